@@ -1,0 +1,556 @@
+"""Fleet-wide calibration: optimistix Levenberg-Marquardt of every heliostat at once.
+
+One compiled program fits all heliostats of a (padded) fleet. Each heliostat's
+problem is
+
+    minimise  sum_records |r_i(y)|^2  +  sum_priors ((p_j - p_j0) * noise / sigma_j)^2
+
+where ``r_i`` are the two tangent-plane components of the beam pointing error of
+record ``i`` (:func:`heliojax.beam_error_components`, in mrad) and ``y`` is the
+model's parameter vector in *scaled* units (mrad for angles, 1e-3 for gear ratios
+and relative scales, mm for lengths) so that the solver's tolerances read in
+physical units (micro-radians). Padded or non-finite records are masked out (their
+inputs are replaced by a dummy record before any arithmetic, so they contribute
+neither values nor NaN gradients).
+
+The heliostat axis is batched by ``jax.vmap`` (wide batches for GPUs), by
+``jax.lax.map`` (sequential lanes: on CPU this avoids the batched while-loop
+running every lane to the slowest one), or by chunked ``lax.map`` (``batch_size``);
+:func:`default_strategy` chooses per backend. Float64 is required: enable it with
+``jax.config.update("jax_enable_x64", True)`` (the CLI does).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import typing
+from collections.abc import Mapping
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Bool, Float, Int
+
+from ._kinematics import (
+    AbstractKinematicModel,
+    ActuatorModel,
+    HeliostatGeometry,
+    StoneModel,
+    beam_error_components,
+    beam_pointing_error,
+    forward,
+)
+
+# --------------------------------------------------------------------------------------
+# Status codes
+# --------------------------------------------------------------------------------------
+
+
+class FitStatus(enum.IntEnum):
+    """Per-heliostat outcome of a fit."""
+
+    CONVERGED = 0
+    MAX_STEPS = 1
+    DIVERGED = 2
+    NON_FINITE_INPUT = 3
+    TOO_FEW_RECORDS = 4
+    FAILED = 5
+    PADDING = 6
+
+    @property
+    def label(self) -> str:
+        return self.name.lower()
+
+
+# --------------------------------------------------------------------------------------
+# Parameter specifications: vector <-> model
+# --------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelSpec:
+    """How a model's parameters map to the solver's scaled vector.
+
+    Attributes:
+        kind: ``"stone8"`` or ``"actuator"``.
+        names: all parameter names of the model, in vector order.
+        scales: physical units per unit of the scaled vector, per name.
+        free: names that are fitted (the rest stay at their nominal values).
+        units: unit label per name (for reports).
+    """
+
+    kind: str
+    names: tuple[str, ...]
+    scales: tuple[float, ...]
+    free: tuple[str, ...]
+    units: tuple[str, ...]
+
+    def __post_init__(self):
+        unknown = set(self.free) - set(self.names)
+        if unknown:
+            raise ValueError(f"unknown parameters {sorted(unknown)} for model {self.kind!r}")
+
+    @property
+    def free_index(self) -> tuple[int, ...]:
+        return tuple(self.names.index(n) for n in self.free)
+
+    @property
+    def n_free(self) -> int:
+        return len(self.free)
+
+    def nominal_vector(self, dtype=jnp.float64) -> Float[Array, " P"]:
+        """Physical values of all parameters of the nominal model."""
+        return self.model_to_physical(self.nominal_model(dtype))
+
+    def nominal_model(self, dtype=jnp.float64) -> AbstractKinematicModel:
+        return (StoneModel if self.kind == "stone8" else ActuatorModel).nominal(dtype)
+
+    def physical_to_model(self, p: Float[Array, " P"]) -> AbstractKinematicModel:
+        if self.kind == "stone8":
+            return StoneModel(*[p[i] for i in range(8)])
+        return ActuatorModel(
+            alpha=p[0], beta=p[1], gamma=p[2], delta=p[3],
+            angle_offset=p[4:6], increment_scale=p[6:8], stroke_offset=p[8:10],
+        )
+
+    def model_to_physical(self, model: AbstractKinematicModel) -> Float[Array, " P"]:
+        if self.kind == "stone8":
+            return jnp.stack([jnp.asarray(getattr(model, n)) for n in self.names])
+        m = typing.cast(ActuatorModel, model)
+        return jnp.concatenate(
+            [jnp.stack([m.alpha, m.beta, m.gamma, m.delta]), m.angle_offset, m.increment_scale, m.stroke_offset]
+        )
+
+    def scaled_to_physical(self, y: Float[Array, " F"], base: Float[Array, " P"]) -> Float[Array, " P"]:
+        scales = jnp.asarray(self.scales, base.dtype)
+        idx = jnp.asarray(self.free_index)
+        return base.at[idx].add(y * scales[idx])
+
+    def scaled_to_model(self, y, base) -> AbstractKinematicModel:
+        return self.physical_to_model(self.scaled_to_physical(y, base))
+
+
+STONE8 = ModelSpec(
+    kind="stone8",
+    names=StoneModel.PARAM_NAMES,
+    scales=(1e-3,) * 6 + (1e-3, 1e-3),
+    free=StoneModel.PARAM_NAMES,
+    units=("rad",) * 6 + ("1", "1"),
+)
+"""The eight Stone parameters, all fitted."""
+
+ACTUATOR = ModelSpec(
+    kind="actuator",
+    names=ActuatorModel.PARAM_NAMES,
+    scales=(1e-3,) * 6 + (1e-3, 1e-3) + (1e-3, 1e-3),
+    free=ActuatorModel.PARAM_NAMES[:8],
+    units=("rad",) * 6 + ("1", "1") + ("m", "m"),
+)
+"""The linear-actuator model: four chain tilts, two angle offsets and two increment
+scales fitted (the identifiable set); the two stroke offsets are nearly collinear
+with the angle offsets and increment scales over a calibration's range and stay
+nominal unless freed (with a prior)."""
+
+
+def model_spec(kind: str, free: typing.Sequence[str] | None = None) -> ModelSpec:
+    """The :class:`ModelSpec` of ``"stone8"`` or ``"actuator"``, optionally with a
+    different set of free parameters."""
+    base = {"stone8": STONE8, "actuator": ACTUATOR}.get(kind)
+    if base is None:
+        raise ValueError(f"unknown model {kind!r}; expected 'stone8' or 'actuator'")
+    if free is None:
+        return base
+    return dataclasses.replace(base, free=tuple(free))
+
+
+# --------------------------------------------------------------------------------------
+# Configuration
+# --------------------------------------------------------------------------------------
+
+
+STRATEGIES = ("auto", "vmap", "chunked", "map")
+
+
+@dataclasses.dataclass(frozen=True)
+class FitConfig:
+    """Solver settings (static: changing them recompiles).
+
+    Attributes:
+        rtol, atol: optimistix LM tolerances on the scaled parameters (mrad, 1e-3)
+            and on the cost (mrad^2): ``atol = 1e-4`` means 0.1 micro-radian.
+        max_steps: LM step limit; kept small so one slow lane cannot stall a batch.
+        prior_sigma: Tikhonov prior toward nominal, ``{name: sigma in physical
+            units}``; empty = no prior.
+        noise_mrad: assumed measurement noise that scales the prior rows.
+        strategy: ``"auto" | "vmap" | "chunked" | "map"``.
+        chunk_size: lanes per chunk for ``"chunked"``.
+    """
+
+    rtol: float = 1e-8
+    atol: float = 1e-4
+    max_steps: int = 64
+    prior_sigma: tuple[tuple[str, float], ...] = ()
+    noise_mrad: float = 0.5
+    strategy: str = "auto"
+    chunk_size: int = 64
+
+    def __post_init__(self):
+        if self.strategy not in STRATEGIES:
+            raise ValueError(f"strategy must be one of {STRATEGIES}, got {self.strategy!r}")
+        if isinstance(self.prior_sigma, Mapping):
+            object.__setattr__(self, "prior_sigma", tuple(sorted(self.prior_sigma.items())))
+        for name, sigma in self.prior_sigma:
+            if not sigma > 0:
+                raise ValueError(f"prior sigma of {name!r} must be > 0, got {sigma}")
+
+
+DEFAULT_WEAK_PRIOR = (("delta", 5e-3), ("gamma", 5e-3))
+"""A prior for the Stone model's weakly identified pair: gamma and delta are
+nearly collinear with theta_k over typical elevation ranges."""
+
+
+def default_strategy(backend: str | None = None) -> str:
+    """``"map"`` on CPU (sequential lanes beat vmap's lock-step while-loop there),
+    ``"vmap"`` on accelerators."""
+    backend = backend or jax.default_backend()
+    return "map" if backend == "cpu" else "vmap"
+
+
+# --------------------------------------------------------------------------------------
+# Batch of problems
+# --------------------------------------------------------------------------------------
+
+
+@typing.final
+class CalibrationData(eqx.Module):
+    """The arrays a fit needs, batched over heliostats ``H`` and records ``M``.
+
+    Attributes:
+        geometry: batched :class:`HeliostatGeometry`.
+        counts: ``(H, M, 2)`` motor counts.
+        sun: ``(H, M, 3)`` unit vectors to the sun.
+        focal_spot: ``(H, M, 3)`` ENU m.
+        mask: ``(H, M)`` records to use.
+    """
+
+    geometry: HeliostatGeometry
+    counts: Float[Array, "H M 2"]
+    sun: Float[Array, "H M 3"]
+    focal_spot: Float[Array, "H M 3"]
+    mask: Bool[Array, "H M"]
+
+    @classmethod
+    def from_fleet(cls, fleet, mask=None) -> "CalibrationData":
+        """From a :class:`heliojax.Fleet` and an optional ``(H, M)`` record mask
+        (ANDed with the fleet's validity mask)."""
+        m = fleet.mask if mask is None else (jnp.asarray(mask) & fleet.mask)
+        return cls(
+            geometry=fleet.geometry,
+            counts=fleet.counts,
+            sun=fleet.context.sun,
+            focal_spot=fleet.focal_spot,
+            mask=m,
+        )
+
+
+def _finite_record(counts, sun, focal):
+    return (
+        jnp.all(jnp.isfinite(counts), -1) & jnp.all(jnp.isfinite(sun), -1) & jnp.all(jnp.isfinite(focal), -1)
+    )
+
+
+def _sanitise(geometry, counts, sun, focal, mask):
+    """Replace masked or non-finite records by a harmless dummy (mid-range counts,
+    sun in the south, spot 100 m south) so no NaN reaches values or gradients."""
+    finite = _finite_record(counts, sun, focal)
+    use = mask & finite
+    act = geometry.actuators
+    mid = 0.5 * (act.min_counts + act.max_counts)
+    dummy_sun = jnp.asarray([0.0, -0.7071067811865476, 0.7071067811865476], sun.dtype)
+    dummy_focal = geometry.position + jnp.asarray([0.0, -100.0, 30.0], focal.dtype)
+    counts = jnp.where(use[:, None], counts, mid)
+    sun = jnp.where(use[:, None], sun, dummy_sun)
+    focal = jnp.where(use[:, None], focal, dummy_focal)
+    bad_input = jnp.any(mask & ~finite)
+    return counts, sun, focal, use, bad_input
+
+
+def _record_residuals(model, geometry, counts, sun, focal):
+    def one(c, s, f):
+        return beam_error_components(forward(model, geometry, c), s, f)
+
+    return jax.vmap(one)(counts, sun, focal)
+
+
+@typing.final
+class FitResult(eqx.Module):
+    """Outcome of :func:`fit_fleet`; arrays batched over heliostats.
+
+    Attributes:
+        params: ``(H, P)`` physical parameter values (rad, 1, m), order ``spec.names``.
+        std: ``(H, P)`` Gauss-Newton standard errors (0 for fixed parameters, NaN
+            where undetermined).
+        status: ``(H,)`` :class:`FitStatus` codes.
+        n_steps: ``(H,)`` LM steps taken.
+        n_used: ``(H,)`` records used.
+        rms_mrad: ``(H,)`` RMS beam pointing error over the fitted records.
+        start_cost, final_cost: ``(H,)`` 0.5 * sum of squared residuals (mrad^2).
+        spec: the :class:`ModelSpec` (static).
+    """
+
+    params: Float[Array, "H P"]
+    std: Float[Array, "H P"]
+    status: Int[Array, " H"]
+    n_steps: Int[Array, " H"]
+    n_used: Int[Array, " H"]
+    rms_mrad: Float[Array, " H"]
+    start_cost: Float[Array, " H"]
+    final_cost: Float[Array, " H"]
+    spec: ModelSpec = eqx.field(static=True)
+
+    def model(self, i: int) -> AbstractKinematicModel:
+        """The fitted model of heliostat ``i``."""
+        return self.spec.physical_to_model(self.params[i])
+
+    def models(self) -> AbstractKinematicModel:
+        """All fitted models as one batched model (vmap over its leading axis)."""
+        return jax.vmap(self.spec.physical_to_model)(self.params)
+
+    def status_labels(self) -> list[str]:
+        return [FitStatus(int(s)).label for s in np.asarray(self.status)]
+
+
+def _fit_one(spec: ModelSpec, config: FitConfig, base, geometry, counts, sun, focal, mask):
+    counts, sun, focal, use, bad_input = _sanitise(geometry, counts, sun, focal, mask)
+    dtype = counts.dtype
+    n_used = jnp.sum(use)
+    prior_names = tuple(n for n, _ in config.prior_sigma if n in spec.names)
+    prior_idx = jnp.asarray([spec.names.index(n) for n in prior_names], dtype=jnp.int32)
+    prior_sig = jnp.asarray([s for n, s in config.prior_sigma if n in spec.names], dtype)
+    nominal = spec.nominal_vector(dtype)
+
+    def residual_fn(y, _):
+        model = spec.scaled_to_model(y, base)
+        r = _record_residuals(model, geometry, counts, sun, focal) * 1e3
+        r = jnp.where(use[:, None], r, 0.0).reshape(-1)
+        if prior_names:
+            p = spec.scaled_to_physical(y, base)
+            prior = (p[prior_idx] - nominal[prior_idx]) / prior_sig * config.noise_mrad
+            r = jnp.concatenate([r, prior])
+        return r
+
+    y0 = jnp.zeros(spec.n_free, dtype)
+    solver = optx.LevenbergMarquardt(rtol=config.rtol, atol=config.atol)
+    sol = optx.least_squares(residual_fn, solver, y0, max_steps=config.max_steps, throw=False)
+    y = sol.value
+    r0 = residual_fn(y0, None)
+    r1 = residual_fn(y, None)
+    start_cost = 0.5 * jnp.sum(r0**2)
+    final_cost = 0.5 * jnp.sum(r1**2)
+
+    # Gauss-Newton covariance of the free parameters (scaled units -> physical).
+    jac = jax.jacfwd(residual_fn)(y, None)
+    jtj = jac.T @ jac
+    n_res = 2 * n_used
+    dof = jnp.maximum(n_res - spec.n_free, 1)
+    data_r = r1[: 2 * counts.shape[0]]
+    sigma2 = jnp.sum(data_r**2) / dof
+    cov = jnp.linalg.pinv(jtj, hermitian=True) * sigma2
+    scales = jnp.asarray(spec.scales, dtype)[jnp.asarray(spec.free_index)]
+    std_free = jnp.sqrt(jnp.clip(jnp.diag(cov), 0.0)) * scales
+    std = jnp.zeros_like(base).at[jnp.asarray(spec.free_index)].set(std_free)
+
+    params = spec.scaled_to_physical(y, base)
+    rms = jnp.sqrt(jnp.sum(jnp.where(use[:, None], (r1[: 2 * counts.shape[0]].reshape(-1, 2)) ** 2, 0.0)) / jnp.maximum(n_used, 1))
+
+    result = sol.result
+    status = jnp.where(
+        result == optx.RESULTS.successful,
+        FitStatus.CONVERGED,
+        jnp.where(
+            result == optx.RESULTS.nonlinear_max_steps_reached,
+            FitStatus.MAX_STEPS,
+            jnp.where(result == optx.RESULTS.nonlinear_divergence, FitStatus.DIVERGED, FitStatus.FAILED),
+        ),
+    )
+    status = jnp.where(jnp.all(jnp.isfinite(params)) & jnp.isfinite(final_cost), status, FitStatus.DIVERGED)
+    status = jnp.where(bad_input, FitStatus.NON_FINITE_INPUT, status)
+    too_few = n_used < spec.n_free
+    status = jnp.where(too_few, FitStatus.TOO_FEW_RECORDS, status)
+    status = jnp.where(jnp.any(mask), status, FitStatus.PADDING)
+    # An unconstrained fit is never reported: keep nominal values where too few records.
+    params = jnp.where(too_few, base, params)
+    std = jnp.where(too_few, jnp.nan, std)
+    return dict(
+        params=params,
+        std=std,
+        status=status.astype(jnp.int32),
+        n_steps=sol.stats["num_steps"].astype(jnp.int32),
+        n_used=n_used.astype(jnp.int32),
+        rms_mrad=rms,
+        start_cost=start_cost,
+        final_cost=final_cost,
+    )
+
+
+def _batched(fn, strategy: str, chunk_size: int):
+    if strategy == "vmap":
+        return jax.vmap(fn)
+    if strategy == "map":
+        return lambda *xs: jax.lax.map(lambda a: fn(*a), xs)
+    if strategy == "chunked":
+        return lambda *xs: jax.lax.map(lambda a: fn(*a), xs, batch_size=chunk_size)
+    raise ValueError(strategy)
+
+
+@eqx.filter_jit
+def _fit_compiled(spec, config, strategy, base, data: CalibrationData):
+    fn = lambda b, g, c, s, f, m: _fit_one(spec, config, b, g, c, s, f, m)  # noqa: E731
+    out = _batched(fn, strategy, config.chunk_size)(
+        base, data.geometry, data.counts, data.sun, data.focal_spot, data.mask
+    )
+    return out
+
+
+def fit_fleet(
+    data: CalibrationData,
+    spec: ModelSpec | str = "stone8",
+    config: FitConfig = FitConfig(),
+    initial: Float[Array, "H P"] | None = None,
+) -> FitResult:
+    """Fit every heliostat of ``data`` in one compiled program.
+
+    Args:
+        data: batched arrays (pad with :func:`heliojax.pad_fleet` to a shape bucket
+            so new fleet sizes reuse the compiled program).
+        spec: a :class:`ModelSpec` or ``"stone8"`` / ``"actuator"``.
+        config: solver settings.
+        initial: ``(H, P)`` physical start values (default: nominal); also the
+            values of the parameters that are not free.
+
+    Returns:
+        A :class:`FitResult`.
+    """
+    if isinstance(spec, str):
+        spec = model_spec(spec)
+    strategy = config.strategy if config.strategy != "auto" else default_strategy()
+    h = data.counts.shape[0]
+    dtype = data.counts.dtype
+    if initial is None:
+        initial = jnp.broadcast_to(spec.nominal_vector(dtype), (h, len(spec.names)))
+    out = _fit_compiled(spec, config, strategy, jnp.asarray(initial, dtype), data)
+    return FitResult(spec=spec, **out)
+
+
+# --------------------------------------------------------------------------------------
+# Evaluation
+# --------------------------------------------------------------------------------------
+
+
+@eqx.filter_jit
+def beam_errors_mrad(
+    models: AbstractKinematicModel, geometry: HeliostatGeometry, counts, sun, focal, mask
+) -> Float[Array, "H M"]:
+    """Beam pointing error (mrad) of every record under batched ``models``; NaN
+    where ``mask`` is False or an input is non-finite."""
+
+    def per_heliostat(model, g, c, s, f, m):
+        c2, s2, f2, use, _ = _sanitise(g, c, s, f, m)
+
+        def one(ci, si, fi):
+            return beam_pointing_error(forward(model, g, ci), si, fi)
+
+        e = jax.vmap(one)(c2, s2, f2) * 1e3
+        return jnp.where(use, e, jnp.nan)
+
+    return jax.vmap(per_heliostat)(models, geometry, counts, sun, focal, mask)
+
+
+def fleet_beam_errors_mrad(result_or_models, fleet, mask=None) -> Float[Array, "H M"]:
+    """Per-record beam error (mrad) of a fitted fleet (NaN outside ``mask``)."""
+    models = result_or_models.models() if isinstance(result_or_models, FitResult) else result_or_models
+    m = fleet.mask if mask is None else (jnp.asarray(mask) & fleet.mask)
+    return beam_errors_mrad(models, fleet.geometry, fleet.counts, fleet.context.sun, fleet.focal_spot, m)
+
+
+def nominal_models(spec: ModelSpec | str, n: int, dtype=jnp.float64) -> AbstractKinematicModel:
+    """``n`` nominal models batched along a leading axis."""
+    if isinstance(spec, str):
+        spec = model_spec(spec)
+    vec = jnp.broadcast_to(spec.nominal_vector(dtype), (n, len(spec.names)))
+    return jax.vmap(spec.physical_to_model)(vec)
+
+
+def fleet_typical_actuators(geometry: HeliostatGeometry, valid: Bool[Array, " H"]):
+    """Median actuator values over the valid heliostats (the start geometry for
+    heliostats whose nominal properties are far off, e.g. PAINT's BF41)."""
+    valid = np.asarray(valid)
+    act = geometry.actuators
+
+    def med(x):
+        x = np.asarray(x)
+        return jnp.asarray(np.median(x[valid], axis=0), x.dtype)
+
+    return jax.tree_util.tree_map(med, act)
+
+
+def choose_start_geometry(fleet, spec: ModelSpec | str = "stone8"):
+    """Per heliostat, the better start of two: its own nominal geometry, or its
+    geometry with the fleet's typical (median) actuator values.
+
+    The choice is by the uncalibrated median beam error of the heliostat's own
+    records, so no threshold is involved. Returns ``(geometry, replaced)`` with
+    ``replaced`` a boolean ``(H,)`` array.
+    """
+    if isinstance(spec, str):
+        spec = model_spec(spec)
+    h = fleet.counts.shape[0]
+    has = np.asarray(jnp.any(fleet.mask, axis=1))
+    if not has.any():
+        return fleet.geometry, np.zeros(h, bool)
+    typical = fleet_typical_actuators(fleet.geometry, has)
+    typ_act = jax.tree_util.tree_map(lambda t, x: jnp.broadcast_to(t, x.shape), typical, fleet.geometry.actuators)
+    alt = HeliostatGeometry.build(
+        fleet.geometry.position,
+        typ_act,
+        fleet.geometry.joint_translation_1,
+        fleet.geometry.joint_translation_2,
+        fleet.geometry.concentrator_translation,
+    )
+    models = nominal_models(spec, h, fleet.counts.dtype)
+    e_own = beam_errors_mrad(models, fleet.geometry, fleet.counts, fleet.context.sun, fleet.focal_spot, fleet.mask)
+    e_alt = beam_errors_mrad(models, alt, fleet.counts, fleet.context.sun, fleet.focal_spot, fleet.mask)
+    med_own = np.nanmedian(np.where(np.isfinite(e_own), e_own, np.nan), axis=1) if has.any() else None
+    med_alt = np.nanmedian(np.where(np.isfinite(e_alt), e_alt, np.nan), axis=1)
+    med_own = np.where(np.isnan(med_own), np.inf, med_own)
+    med_alt = np.where(np.isnan(med_alt), np.inf, med_alt)
+    replaced = has & (med_alt < med_own)
+    geometry = jax.tree_util.tree_map(
+        lambda a, b: jnp.where(jnp.asarray(replaced).reshape((-1,) + (1,) * (a.ndim - 1)), b, a),
+        fleet.geometry,
+        alt,
+    )
+    return geometry, replaced
+
+
+__all__ = [
+    "ACTUATOR",
+    "DEFAULT_WEAK_PRIOR",
+    "STONE8",
+    "STRATEGIES",
+    "CalibrationData",
+    "FitConfig",
+    "FitResult",
+    "FitStatus",
+    "ModelSpec",
+    "beam_errors_mrad",
+    "choose_start_geometry",
+    "default_strategy",
+    "fit_fleet",
+    "fleet_beam_errors_mrad",
+    "model_spec",
+    "nominal_models",
+]

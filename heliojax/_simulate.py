@@ -1,0 +1,299 @@
+"""Simulator: synthetic heliostats and calibration records from the same ``forward``.
+
+A simulated record is produced the way a plant produces one:
+
+1. the plant's *controller model* (nominal parameters unless given) computes the
+   motor counts that should put the sun's reflection on the aim point
+   (:func:`heliojax.inverse_aim`), rounded to whole counts;
+2. the heliostat's *true model* (true parameters, optionally wrapped by effects)
+   turns those counts into the real mirror pose (:func:`heliojax.forward`);
+3. the **injection point** ``perturb_pose(pose, context) -> pose`` may then
+   perturb the true pose by an unmodelled effect (for the discovery workflow);
+   effects that are kinematic models (wrapping a base model) may be used as the
+   true model instead;
+4. the central ray, reflected at the true pose and deviated by Gaussian
+   measurement noise (``noise_mrad`` per tangent-plane component, or
+   ``noise_m`` on the target plane), is intersected with the target plane: that
+   is the measured focal spot.
+
+:func:`write_simulation` writes the records as a PAINT-layout directory that
+:func:`heliojax.load_paint_directory` reads back unchanged.
+"""
+
+from __future__ import annotations
+
+import typing
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, PRNGKeyArray
+
+from ._geometry import TargetPlane, intersect_plane, normalize
+from ._kinematics import (
+    AbstractKinematicModel,
+    HeliostatGeometry,
+    LinearActuators,
+    Pose,
+    RecordContext,
+    StoneModel,
+    _tangent_basis,
+    forward,
+    inverse_aim,
+    reflected_ray,
+)
+
+JUELICH_LAT_LON_ALT = (50.913421122592574, 6.387824755874856, 87.0)
+"""The PAINT plant reference point of the Jülich solar tower (WGS84 deg, deg, m)."""
+
+# Typical Jülich actuator values (PAINT properties of the shared records: the median
+# over the fleet of each field), used to make synthetic heliostats.
+_TYPICAL_ACTUATORS = dict(
+    increment=(154166.6667, 154166.6667),
+    initial_stroke_length=(0.0757, 0.0768),
+    offset=(0.335308, 0.340771),
+    pivot_radius=(0.338095, 0.3191),
+    initial_angle=(0.0137, 0.9381),
+    sign=(1.0, -1.0),
+    min_counts=(0.0, 0.0),
+    max_counts=(69000.0, 75000.0),
+)
+
+
+def typical_actuators(n: int | None = None, dtype=jnp.float64) -> LinearActuators:
+    """Jülich-like :class:`LinearActuators` (batched to ``(n, 2)`` if ``n`` is given)."""
+    fields = {k: jnp.asarray(v, dtype) for k, v in _TYPICAL_ACTUATORS.items()}
+    if n is not None:
+        fields = {k: jnp.broadcast_to(v, (n, 2)) for k, v in fields.items()}
+    return LinearActuators(**fields)
+
+
+def synthetic_geometry(key: PRNGKeyArray, n: int, dtype=jnp.float64) -> HeliostatGeometry:
+    """``n`` heliostats in a field 60-300 m north of the tower (ENU m), Jülich-like
+    actuators with small manufacturing scatter, mirror 0.175 m off axis 2."""
+    k1, k2, k3 = jax.random.split(key, 3)
+    east = jax.random.uniform(k1, (n,), dtype, -130.0, 130.0)
+    north = jax.random.uniform(k2, (n,), dtype, 60.0, 300.0)
+    position = jnp.stack([east, north, jnp.full((n,), 1.5, dtype)], -1)
+    act = typical_actuators(n, dtype)
+    scatter = jax.random.normal(k3, (n, 2), dtype)
+    act = eqx.tree_at(lambda a: a.initial_stroke_length, act, act.initial_stroke_length + 1e-3 * scatter)
+    return HeliostatGeometry.build(
+        position, act, concentrator_translation=jnp.broadcast_to(jnp.asarray([0.0, 0.175, 0.0], dtype), (n, 3))
+    )
+
+
+def random_stone_models(
+    key: PRNGKeyArray, n: int, angle_sigma: float = 3e-3, gear_sigma: float = 2e-3, dtype=jnp.float64
+) -> StoneModel:
+    """``n`` true Stone models with angles ~ N(0, angle_sigma) rad (offsets 3x
+    larger) and gear ratios ~ 1 + N(0, gear_sigma), batched."""
+    ks = jax.random.split(key, 8)
+    ang = [angle_sigma * jax.random.normal(k, (n,), dtype) for k in ks[:4]]
+    off = [3 * angle_sigma * jax.random.normal(k, (n,), dtype) for k in ks[4:6]]
+    gr = [1.0 + gear_sigma * jax.random.normal(k, (n,), dtype) for k in ks[6:]]
+    return StoneModel(*ang, *off, *gr)
+
+
+def calibration_target(dtype=jnp.float64) -> TargetPlane:
+    """A 6 x 7 m vertical calibration target facing north, centred 123 m up on the
+    tower's north face (like PAINT's ``solar_tower_juelich_lower``, in ENU m)."""
+    return TargetPlane.from_corners(
+        jnp.asarray([3.0, -3.2, 126.5], dtype),
+        jnp.asarray([-3.0, -3.2, 126.5], dtype),
+        jnp.asarray([3.0, -3.2, 119.3], dtype),
+        jnp.asarray([-3.0, -3.2, 119.3], dtype),
+    )
+
+
+def calibration_times(
+    key: PRNGKeyArray,
+    shape: tuple[int, ...],
+    start_unix: float = 1.6540e9,
+    days: float = 365.0,
+    latitude_deg: float = JUELICH_LAT_LON_ALT[0],
+    longitude_deg: float = JUELICH_LAT_LON_ALT[1],
+    min_elevation_deg: float = 15.0,
+) -> tuple[Float[Array, "..."], Float[Array, "... 3"]]:
+    """Random calibration times (unix s) and sun vectors, daytime only.
+
+    Days are uniform over ``days`` from ``start_unix``; the hour is uniform over
+    the day and resampled (a fixed number of rounds, vectorised) until the sun is
+    above ``min_elevation_deg``.
+    """
+    from ._sun import solar_position
+
+    k_day, k_hour = jax.random.split(key)
+    day = jnp.floor(jax.random.uniform(k_day, shape, jnp.float64, 0.0, days))
+    t = jnp.zeros(shape, jnp.float64)
+    ok = jnp.zeros(shape, bool)
+    for kk in jax.random.split(k_hour, 12):
+        hour = jax.random.uniform(kk, shape, jnp.float64, 4.0, 20.0)
+        cand = start_unix + day * 86400.0 + hour * 3600.0
+        pos = solar_position(cand, latitude_deg, longitude_deg, JUELICH_LAT_LON_ALT[2])
+        good = pos.elevation > jnp.deg2rad(min_elevation_deg)
+        t = jnp.where(ok, t, cand)
+        ok = ok | good
+    t = jnp.round(t)
+    pos = solar_position(t, latitude_deg, longitude_deg, JUELICH_LAT_LON_ALT[2])
+    return t, pos.direction_enu()
+
+
+@typing.final
+class SimulatedRecords(eqx.Module):
+    """Simulated calibration records, batched ``(H, M)``.
+
+    Attributes:
+        counts: ``(H, M, 2)`` whole motor counts (float dtype).
+        focal_spot: ``(H, M, 3)`` measured spot on the target, ENU m.
+        true_spot: ``(H, M, 3)`` noise-free spot, ENU m.
+        hit: ``(H, M)`` spot inside the target rectangle.
+        context: batched :class:`RecordContext`.
+    """
+
+    counts: Float[Array, "H M 2"]
+    focal_spot: Float[Array, "H M 3"]
+    true_spot: Float[Array, "H M 3"]
+    hit: Bool[Array, "H M"]
+    context: RecordContext
+
+
+def simulate_records(
+    key: PRNGKeyArray,
+    true_models: AbstractKinematicModel,
+    geometry: HeliostatGeometry,
+    context: RecordContext,
+    target: TargetPlane,
+    aim_point: Float[Array, "3"] | None = None,
+    *,
+    controller_models: AbstractKinematicModel | None = None,
+    noise_mrad: float = 0.0,
+    noise_m: float = 0.0,
+    perturb_pose: Callable[[Pose, RecordContext], Pose] | None = None,
+) -> SimulatedRecords:
+    """Simulate calibration records for a batch of heliostats (vmapped).
+
+    Args:
+        key: PRNG key of the measurement noise.
+        true_models: batched (leading axis ``H``) true kinematic models.
+        geometry: batched geometry ``(H, ...)``.
+        context: batched ``(H, M)`` record contexts (sun direction, time, weather).
+        target: the calibration target (one plane for all records).
+        aim_point: ``(3,)`` ENU m; default the target centre.
+        controller_models: batched models the plant uses to aim; default nominal Stone.
+        noise_mrad: std of the angular noise per tangent-plane component, mrad.
+        noise_m: std of additional spot noise on the target plane per axis, m.
+        perturb_pose: the injection point for an unmodelled effect, applied to the
+            true pose of every record.
+    """
+    h = geometry.position.shape[0]
+    m = context.sun.shape[1]
+    dtype = geometry.position.dtype
+    aim = target.centre if aim_point is None else jnp.asarray(aim_point, dtype)
+    if controller_models is None:
+        controller_models = jax.vmap(lambda _: StoneModel.nominal(dtype))(jnp.arange(h))
+    k_ang, k_pos = jax.random.split(key)
+    ang_noise = noise_mrad * 1e-3 * jax.random.normal(k_ang, (h, m, 2), dtype)
+    pos_noise = noise_m * jax.random.normal(k_pos, (h, m, 2), dtype)
+
+    def one_record(true_model, ctrl_model, g, ctx, an, pn):
+        counts = jnp.round(inverse_aim(ctrl_model, g, aim, ctx.sun))
+        counts = jnp.clip(counts, g.actuators.min_counts, g.actuators.max_counts)
+        pose = forward(true_model, g, counts, ctx)
+        if perturb_pose is not None:
+            pose = perturb_pose(pose, ctx)
+        r = reflected_ray(pose, ctx.sun)
+        true_hit = intersect_plane(pose.centre, r, target)
+        e1, e2 = _tangent_basis(r)
+        r_noisy = normalize(r + an[0] * e1 + an[1] * e2)
+        hit = intersect_plane(pose.centre, r_noisy, target)
+        spot = hit.point + pn[0] * target.u_axis + pn[1] * target.v_axis
+        return counts, spot, true_hit.point, hit.hit
+
+    def one_heliostat(tm, cm, g, ctx, an, pn):
+        return jax.vmap(lambda c, a, p: one_record(tm, cm, g, c, a, p))(ctx, an, pn)
+
+    counts, spot, true_spot, hit = jax.jit(jax.vmap(one_heliostat))(
+        true_models, controller_models, geometry, context, ang_noise, pos_noise
+    )
+    return SimulatedRecords(counts=counts, focal_spot=spot, true_spot=true_spot, hit=hit, context=context)
+
+
+def synthetic_contexts(
+    key: PRNGKeyArray, n_heliostats: int, n_records: int, *, weather: bool = True, **time_kwargs
+) -> RecordContext:
+    """Random calibration contexts ``(H, M)``: times and suns from
+    :func:`calibration_times`, plus (if ``weather``) a simple synthetic weather
+    (temperature with seasonal and daily cycles, Weibull-like wind speed, uniform
+    wind direction); records are in chronological order per heliostat and
+    ``approach`` is left 0 (the simulator fills it from the counts' order)."""
+    k_t, k_w1, k_w2, k_w3 = jax.random.split(key, 4)
+    t, sun = calibration_times(k_t, (n_heliostats, n_records), **time_kwargs)
+    order = jnp.argsort(t, axis=1)
+    t = jnp.take_along_axis(t, order, 1)
+    sun = jnp.take_along_axis(sun, order[..., None], 1)
+    shape = t.shape
+    if weather:
+        doy = (t / 86400.0) % 365.25
+        hour = (t / 3600.0) % 24.0
+        temperature = (
+            10.0
+            - 8.0 * jnp.cos(2 * jnp.pi * (doy - 15.0) / 365.25)
+            + 4.0 * jnp.sin(2 * jnp.pi * (hour - 9.0) / 24.0)
+            + 2.0 * jax.random.normal(k_w1, shape)
+        )
+        wind_speed = 4.0 * jnp.sqrt(-jnp.log(jax.random.uniform(k_w2, shape, minval=1e-6, maxval=1.0)))
+        wind_direction = jax.random.uniform(k_w3, shape, minval=0.0, maxval=2 * jnp.pi)
+    else:
+        temperature = wind_speed = wind_direction = jnp.full(shape, jnp.nan)
+    return RecordContext(
+        sun=sun,
+        unix_time=t,
+        temperature=temperature,
+        wind_speed=wind_speed,
+        wind_direction=wind_direction,
+        approach=jnp.zeros(shape + (2,)),
+    )
+
+
+def approach_directions(counts: Float[Array, "H M 2"], mask: Bool[Array, "H M"] | None = None) -> Float[Array, "H M 2"]:
+    """Sign of the last motion of each axis before each record, from the
+    chronological order of a heliostat's records (+1 counts increased, -1
+    decreased, 0 for the first record or no motion). Masked records are skipped
+    (the previous valid record is used)."""
+    counts = jnp.asarray(counts)
+    if mask is None:
+        mask = jnp.ones(counts.shape[:2], bool)
+
+    def per_heliostat(c, m):
+        def step(prev, x):
+            ci, mi = x
+            d = jnp.where(mi & jnp.all(jnp.isfinite(prev)), jnp.sign(ci - prev), 0.0)
+            new_prev = jnp.where(mi, ci, prev)
+            return new_prev, d
+
+        _, d = jax.lax.scan(step, jnp.full((2,), jnp.nan, c.dtype), (c, m))
+        return d
+
+    return jax.vmap(per_heliostat)(counts, mask)
+
+
+def to_numpy_tree(tree):
+    """Device arrays -> numpy (for writing files)."""
+    return jax.tree_util.tree_map(np.asarray, tree)
+
+
+__all__ = [
+    "JUELICH_LAT_LON_ALT",
+    "SimulatedRecords",
+    "approach_directions",
+    "calibration_target",
+    "calibration_times",
+    "random_stone_models",
+    "simulate_records",
+    "synthetic_contexts",
+    "synthetic_geometry",
+    "typical_actuators",
+]

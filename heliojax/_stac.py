@@ -1,0 +1,863 @@
+"""Download PAINT data from a STAC catalogue into PAINT's folder layout.
+
+PAINT publishes its data as a static STAC catalogue (root
+``https://paint-database.org/WRI1030197/WRI1030197-catalog-stac.json``)::
+
+    WRI1030197-catalog                       root catalogue
+    ├── WRI1030197-tower-measurements        item, asset "measurements"
+    ├── weather-collection                   (ignored here)
+    └── <H>-heliostat-catalog                one catalogue per heliostat
+        ├── <H>-heliostat-properties-collection -> item -> asset (properties JSON)
+        ├── <H>-calibration-collection          -> items "<ID>" -> assets
+        │     calibration_properties, flux_image, flux_centered_image,
+        │     cropped_image, raw_image
+        └── <H>-deflectometry-collection        -> items -> assets
+              raw_measurement, filled_measurement, results_summary
+
+:func:`fetch_catalog` walks such a catalogue (from an ``http(s)://`` URL, a
+``file://`` URL or a local path) with pystac and writes what PAINT's own client
+writes::
+
+    <out>/WRI1030197-tower-measurements.json
+    <out>/<H>/Properties/<H>-heliostat-properties.json
+    <out>/<H>/Calibration/<ID>-calibration-properties.json   (+ <ID>-flux.png, ...)
+    <out>/<H>/Deflectometry/<H>-...-deflectometry.h5
+
+The file name is the last path segment of the asset's href (PAINT's rule), the
+heliostat folder the part of the heliostat catalogue id before the first ``-``.
+
+Safety. A catalogue is untrusted input; :class:`~heliojax._errors.DataError` is
+raised, before anything of that heliostat is written, for
+
+- a destination file name that is empty, hidden, or carries a path separator
+  (also percent-encoded) or other odd characters, and a heliostat id that is not
+  a plain name;
+- a destination path whose folders (below the output folder) or file are
+  symbolic links;
+- an asset href with a ``..`` path segment (also percent-encoded), e.g.
+  ``../../evil.json``, and a catalogue link (child/item) whose relative href
+  climbs out of the root catalogue's folder;
+- a local file (absolute path or ``file://``) outside the root catalogue's
+  folder (symbolic links resolved) or, for a remote catalogue, any local file;
+- an href with a scheme other than ``http``, ``https`` or ``file``.
+
+Absolute ``http(s)`` hrefs are accepted (PAINT's catalogue uses them throughout).
+
+Resume and verification. Every file is streamed to a hidden temporary file
+(``.<name>.<random>.part``) in its destination folder, checked, and renamed onto
+its name: an interrupted download never looks complete. Checked are the size
+and checksum from the STAC ``file`` extension (``file:size``, ``file:checksum``,
+a multihash) when the asset has them, and that a ``.json`` file parses. Each
+completed file is appended to the journal ``<out>/.heliojax-fetch.jsonl``
+(path, source href, size, SHA-256). With ``resume=True`` a file that already
+exists is skipped when it matches the asset's ``file:size``/``file:checksum``, or,
+without those, its journal record (same source, size and SHA-256); otherwise it
+is downloaded again. PAINT's catalogue has no ``file`` extension, so the journal
+is what makes a resumed PAINT download trustworthy. One fetch per output folder
+at a time: a run deletes stale ``.part`` files of the files it plans.
+
+Errors. Unsafe hrefs and an unreadable root raise :class:`DataError`; a STAC file
+below the root that cannot be read (network error after retries, broken JSON)
+and an asset that fails to download or verify are listed in
+:attr:`FetchReport.failed` and the run goes on; running it again retries them.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import contextlib
+import dataclasses
+import datetime as dt
+import hashlib
+import http.client
+import json
+import os
+import re
+import tempfile
+import threading
+import time
+import urllib.error
+import urllib.parse
+import urllib.request
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
+from typing import IO, Any
+
+import pystac
+
+from ._errors import DataError
+
+__all__ = [
+    "CALIBRATION_ASSETS",
+    "COLLECTIONS",
+    "JOURNAL_NAME",
+    "FetchReport",
+    "fetch_catalog",
+    "verify_download",
+]
+
+COLLECTIONS: tuple[str, ...] = ("properties", "calibration", "deflectometry")
+"""Collections of a heliostat catalogue that :func:`fetch_catalog` can download."""
+
+CALIBRATION_ASSETS: tuple[str, ...] = (
+    "calibration_properties",
+    "flux_image",
+    "flux_centered_image",
+    "cropped_image",
+    "raw_image",
+)
+"""Asset keys of PAINT's calibration items."""
+
+JOURNAL_NAME = ".heliojax-fetch.jsonl"
+
+_FOLDER = {"properties": "Properties", "calibration": "Calibration", "deflectometry": "Deflectometry"}
+_COLLECTION_SUFFIX = {
+    "properties": "-heliostat-properties-collection",
+    "calibration": "-calibration-collection",
+    "deflectometry": "-deflectometry-collection",
+}
+_HELIOSTAT_SUFFIX = "-heliostat-catalog"
+_TOWER_SUFFIX = "-tower-measurements"
+_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+-]{0,254}$")
+_HELIOSTAT_RE = re.compile(r"^[A-Za-z0-9_]{1,64}$")
+_HREF_HELIOSTAT_RE = re.compile(r"([A-Za-z0-9_]+)-heliostat-catalog")
+_CHUNK = 1 << 20
+_BACKOFF_S = 0.5  # first retry delay; doubles per retry
+
+# Multihash codes (https://github.com/multiformats/multicodec) -> hashlib constructor.
+_MULTIHASH: dict[int, Callable[[], Any]] = {
+    0x11: hashlib.sha1,
+    0x12: hashlib.sha256,
+    0x13: hashlib.sha512,
+    0x14: hashlib.sha3_512,
+    0x16: hashlib.sha3_256,
+    0xD5: hashlib.md5,
+    0xB220: lambda: hashlib.blake2b(digest_size=32),
+    0xB240: hashlib.blake2b,
+}
+
+Transport = Callable[[str, float], IO[bytes]]
+"""``open(href, timeout_s) -> binary stream`` (a context manager). The default opens
+``http(s)`` URLs with :mod:`urllib` and local paths with :func:`open`."""
+
+
+# --------------------------------------------------------------------------- results
+@dataclasses.dataclass(frozen=True)
+class FetchReport:
+    """What :func:`fetch_catalog` did.
+
+    Attributes:
+        out_dir: the output folder.
+        heliostats: ids of the heliostats visited, sorted.
+        missing: requested heliostat ids that the catalogue does not have.
+        downloaded: files written in this run.
+        skipped: files already complete (resume), not downloaded again.
+        failed: ``(href, reason)`` of every asset that could not be fetched or
+            failed verification; its destination file was not written.
+        warnings: notes (unsupported checksum algorithm, heliostat without a
+            wanted collection, ...).
+        bytes_downloaded: bytes written in this run.
+    """
+
+    out_dir: Path
+    heliostats: tuple[str, ...]
+    missing: tuple[str, ...]
+    downloaded: tuple[Path, ...]
+    skipped: tuple[Path, ...]
+    failed: tuple[tuple[str, str], ...]
+    warnings: tuple[str, ...]
+    bytes_downloaded: int
+
+    @property
+    def ok(self) -> bool:
+        """True when nothing failed and every requested heliostat was found."""
+        return not self.failed and not self.missing
+
+
+@dataclasses.dataclass(frozen=True)
+class _Task:
+    src: str
+    dest: Path
+    rel: str
+    size: int | None
+    checksum: str | None  # multihash hex
+    where: str  # STAC file that named the asset, for messages
+
+
+class _Failure(Exception):
+    pass
+
+
+# --------------------------------------------------------------------------- hrefs
+def _is_url(href: str) -> bool:
+    return bool(re.match(r"^[A-Za-z][A-Za-z0-9+.-]*://", href))
+
+
+def _scheme(href: str) -> str:
+    return urllib.parse.urlsplit(href).scheme.lower() if _is_url(href) else ""
+
+
+def _local_path(href: str) -> str:
+    if _scheme(href) == "file":
+        return urllib.parse.unquote(urllib.parse.urlsplit(href).path)
+    return href
+
+
+def _resolve(raw: str, owner: str) -> str:
+    """Absolute href of ``raw`` as written in the STAC file whose absolute href is ``owner``."""
+    if _is_url(raw):
+        return raw
+    if _scheme(owner) in ("http", "https"):
+        return urllib.parse.urljoin(owner, raw)
+    if os.path.isabs(raw):
+        return os.path.normpath(raw)
+    return os.path.normpath(os.path.join(os.path.dirname(_local_path(owner)), raw))
+
+
+@dataclasses.dataclass(frozen=True)
+class _Scope:
+    """Where hrefs of a catalogue may point (see the module docstring)."""
+
+    remote: bool
+    base: str  # URL prefix ending in "/" (remote) or real path of the root's folder (local)
+
+    @classmethod
+    def of(cls, root_href: str) -> _Scope:
+        if _scheme(root_href) in ("http", "https"):
+            parts = urllib.parse.urlsplit(root_href)
+            path = parts.path.rsplit("/", 1)[0] + "/"
+            return cls(True, urllib.parse.urlunsplit((parts.scheme, parts.netloc, path, "", "")))
+        return cls(False, os.path.realpath(os.path.dirname(_local_path(root_href))))
+
+    def _inside_local(self, path: str) -> bool:
+        real = os.path.realpath(path)
+        return os.path.commonpath([real, self.base]) == self.base
+
+    def resolve(self, raw: str, owner: str, where: str, field: str) -> str:
+        """Resolve ``raw`` against ``owner`` and check it; raise :class:`DataError` if unsafe."""
+        if not isinstance(raw, str) or not raw:
+            raise DataError(where, field, "empty or non-string href")
+        if "\x00" in raw:
+            raise DataError(where, field, f"href {raw!r} contains a NUL character")
+        href = _resolve(raw, owner)
+        scheme = _scheme(href)
+        relative = not _is_url(raw) and not os.path.isabs(raw)
+        if scheme in ("http", "https"):
+            if relative and self.remote and not href.startswith(self.base):
+                raise DataError(where, field, f"relative href {raw!r} leaves the catalogue folder {self.base}")
+            return href
+        if scheme not in ("", "file"):
+            raise DataError(where, field, f"href {raw!r}: scheme {scheme!r} is not supported (http, https, file)")
+        if self.remote:
+            raise DataError(where, field, f"href {raw!r}: a remote catalogue may not point at local files")
+        if not self._inside_local(_local_path(href)):
+            kind = "relative href" if relative else "absolute path"
+            raise DataError(
+                where, field, f"{kind} {raw!r} points outside the catalogue folder {self.base} (path traversal)"
+            )
+        return href
+
+
+# --------------------------------------------------------------------------- I/O
+def _default_open(href: str, timeout_s: float) -> IO[bytes]:
+    if _scheme(href) in ("http", "https"):
+        req = urllib.request.Request(href, headers={"User-Agent": "heliojax-fetch"})
+        return urllib.request.urlopen(req, timeout=timeout_s)  # noqa: S310 - scheme checked
+    return open(_local_path(href), "rb")
+
+
+def _transient(exc: BaseException) -> bool:
+    if isinstance(exc, urllib.error.HTTPError):
+        return exc.code >= 500 or exc.code in (408, 429)
+    return isinstance(exc, (urllib.error.URLError, TimeoutError, ConnectionError))
+
+
+class _Reader:
+    """Reads STAC JSON through the transport, with retries; thread-safe."""
+
+    def __init__(self, transport: Transport, timeout_s: float, retries: int):
+        self.transport, self.timeout_s, self.retries = transport, timeout_s, retries
+
+    def open_retrying(self, href: str):
+        delay = _BACKOFF_S
+        for attempt in range(self.retries + 1):
+            try:
+                return self.transport(href, self.timeout_s)
+            except BaseException as e:  # noqa: BLE001 - re-raised unless transient
+                if attempt == self.retries or not _transient(e):
+                    raise
+            time.sleep(delay)
+            delay *= 2
+        raise AssertionError("unreachable")
+
+    def json(self, href: str) -> dict:
+        try:
+            with self.open_retrying(href) as f:
+                data = f.read()
+        except (OSError, urllib.error.URLError) as e:
+            raise DataError(href, None, f"cannot read STAC file: {e}") from e
+        try:
+            obj = json.loads(data.decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise DataError(href, None, f"not a JSON file: {e}") from e
+        if not isinstance(obj, dict):
+            raise DataError(href, None, "STAC file is not a JSON object")
+        return obj
+
+    def stac_or_error(self, href: str) -> pystac.STACObject | DataError:
+        """Like :meth:`stac`, but returns the :class:`DataError` of an unreadable file."""
+        try:
+            return self.stac(href)
+        except DataError as e:
+            return e
+
+    def stac(self, href: str) -> pystac.STACObject:
+        d = self.json(href)
+        try:
+            return pystac.read_dict(d, href=href)
+        except Exception as e:  # pystac raises several types for malformed STAC
+            raise DataError(href, None, f"not a valid STAC object: {e}") from e
+
+
+# --------------------------------------------------------------------------- checksums
+def _parse_multihash(hexstr: str) -> tuple[int, bytes]:
+    raw = bytes.fromhex(hexstr)
+
+    def varint(pos: int) -> tuple[int, int]:
+        value = shift = 0
+        while True:
+            if pos >= len(raw):
+                raise ValueError("truncated varint")
+            b = raw[pos]
+            value |= (b & 0x7F) << shift
+            pos += 1
+            if not b & 0x80:
+                return value, pos
+            shift += 7
+
+    code, pos = varint(0)
+    length, pos = varint(pos)
+    digest = raw[pos:]
+    if len(digest) != length:
+        raise ValueError(f"digest length {len(digest)} != {length}")
+    return code, digest
+
+
+def _hash_file(path: Path, algos: Iterable[Callable[[], Any]]) -> list[Any]:
+    hs = [a() for a in algos]
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(_CHUNK), b""):
+            for h in hs:
+                h.update(chunk)
+    return hs
+
+
+class _Checker:
+    """Expected size/checksum of one asset."""
+
+    def __init__(self, task: _Task):
+        self.task = task
+        self.algo = None
+        self.digest = None
+        if task.checksum:
+            code, digest = _parse_multihash(task.checksum)  # validated at plan time
+            self.algo, self.digest = _MULTIHASH[code], digest
+
+    @property
+    def has_reference(self) -> bool:
+        return self.task.size is not None or self.digest is not None
+
+    def check(self, size: int, hasher) -> str | None:
+        if self.task.size is not None and size != self.task.size:
+            return f"size {size} bytes, the catalogue says {self.task.size}"
+        if self.digest is not None and hasher.digest() != self.digest:
+            return f"checksum mismatch (got {hasher.hexdigest()}, the catalogue says {self.digest.hex()})"
+        return None
+
+
+def _json_ok(path: Path, name: str | None = None) -> str | None:
+    """Problem with ``path`` if ``name`` (default: its own name) ends in ``.json`` and it does not parse."""
+    if not (name or path.name).lower().endswith(".json"):
+        return None
+    try:
+        with open(path, encoding="utf-8") as f:
+            json.load(f)
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        return f"downloaded JSON does not parse: {e}"
+    return None
+
+
+# --------------------------------------------------------------------------- journal
+class _Journal:
+    def __init__(self, out: Path):
+        self.path = out / JOURNAL_NAME
+        self.lock = threading.Lock()
+        self.records: dict[str, dict] = {}
+        if self.path.exists():
+            with open(self.path, encoding="utf-8") as f:
+                for line in f:
+                    try:
+                        rec = json.loads(line)
+                    except json.JSONDecodeError:
+                        continue  # torn last line of an interrupted run
+                    if isinstance(rec, dict) and isinstance(rec.get("path"), str):
+                        self.records[rec["path"]] = rec
+
+    def add(self, rel: str, href: str, size: int, sha256: str) -> None:
+        rec = {"path": rel, "href": href, "size": size, "sha256": sha256}
+        line = json.dumps(rec, sort_keys=True) + "\n"
+        with self.lock:
+            self.records[rel] = rec
+            with open(self.path, "a", encoding="utf-8") as f:
+                f.write(line)
+                f.flush()
+
+
+# --------------------------------------------------------------------------- destinations
+def _dest_name(href: str, where: str, field: str) -> str:
+    path = urllib.parse.urlsplit(href).path if _is_url(href) else href
+    seg = path.replace("\\", "/").rsplit("/", 1)[-1]
+    name = urllib.parse.unquote(seg)
+    if not _NAME_RE.match(name) or "/" in name or "\\" in name:
+        raise DataError(where, field, f"href {href!r} gives the unsafe or empty file name {name!r}")
+    return name
+
+
+def _safe_dest(out: Path, parts: Sequence[str], where: str, field: str) -> Path:
+    cur = out
+    for i, part in enumerate(parts):
+        cur = cur / part
+        if cur.is_symlink():
+            raise DataError(where, field, f"destination {cur} is a symbolic link; refusing to write through it")
+        last = i == len(parts) - 1
+        if cur.exists() and not (cur.is_file() if last else cur.is_dir()):
+            raise DataError(where, field, f"destination {cur} exists and is not a regular {'file' if last else 'folder'}")
+    return cur
+
+
+# --------------------------------------------------------------------------- the walk
+def _heliostat_id(catalog_id: str, where: str) -> str:
+    hid = catalog_id.split("-")[0]
+    if not _HELIOSTAT_RE.match(hid):
+        raise DataError(where, "id", f"heliostat catalogue id {catalog_id!r} gives an unsafe folder name {hid!r}")
+    return hid
+
+
+def _item_time(item: pystac.Item) -> dt.datetime | None:
+    if item.datetime is not None:
+        return item.datetime
+    start = item.common_metadata.start_datetime
+    return start
+
+
+def _as_utc(t: dt.datetime | dt.date | None, end: bool) -> dt.datetime | None:
+    if t is None:
+        return None
+    if not isinstance(t, dt.datetime):
+        t = dt.datetime.combine(t, dt.time.max if end else dt.time.min)
+    if t.tzinfo is None:
+        t = t.replace(tzinfo=dt.timezone.utc)
+    return t
+
+
+def _links(obj: pystac.STACObject, *rels: str) -> list[str]:
+    out = []
+    for link in obj.links:
+        if link.rel in rels and isinstance(link.target, str):
+            out.append(link.target)
+    return out
+
+
+def fetch_catalog(
+    source: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    *,
+    heliostats: Sequence[str] | None = None,
+    collections: Sequence[str] = ("properties", "calibration"),
+    calibration_assets: Sequence[str] = ("calibration_properties",),
+    start: dt.datetime | dt.date | None = None,
+    end: dt.datetime | dt.date | None = None,
+    max_items: int | None = None,
+    resume: bool = True,
+    include_tower: bool = True,
+    workers: int = 8,
+    timeout_s: float = 60.0,
+    retries: int = 2,
+    progress: Callable[[str], None] | None = None,
+    transport: Transport | None = None,
+) -> FetchReport:
+    """Download a PAINT-style STAC catalogue's assets into PAINT's layout.
+
+    Args:
+        source: root catalogue: ``http(s)://`` or ``file://`` URL, local path of its
+            JSON file, or a folder holding ``catalog.json`` / ``*-catalog-stac.json``.
+        out_dir: output folder (created).
+        heliostats: heliostat ids to fetch (default: every heliostat catalogue).
+        collections: any of :data:`COLLECTIONS`.
+        calibration_assets: asset keys of calibration items to fetch (any of
+            :data:`CALIBRATION_ASSETS`); other collections' items are fetched whole.
+        start, end: keep calibration and deflectometry items whose ``datetime``
+            (or ``start_datetime``) lies in ``[start, end]``; naive values are UTC,
+            a plain date as ``end`` means the end of that day. Properties items are
+            never filtered by date (the calibration needs them).
+        max_items: at most this many calibration (and deflectometry) items per
+            heliostat, the earliest first (after the date filter).
+        resume: skip files already complete (see the module docstring); False
+            downloads everything again.
+        include_tower: fetch the tower-measurements file linked from the root.
+        workers: threads reading STAC items and downloading assets.
+        timeout_s, retries: per request; transient network errors are retried.
+        progress: called with one line of text per step (the CLI prints to stderr).
+        transport: replaces the opener (tests inject failures through it).
+
+    Returns:
+        :class:`FetchReport`. Download failures are reported there, not raised.
+
+    Raises:
+        DataError: unreadable root catalogue, or an unsafe href (see the module
+            docstring). Unreadable STAC files below the root are reported in
+            :attr:`FetchReport.failed` instead.
+        ValueError: unknown collection or calibration asset key.
+    """
+    unknown = set(collections) - set(COLLECTIONS)
+    if unknown:
+        raise ValueError(f"unknown collection(s) {sorted(unknown)}; choose from {', '.join(COLLECTIONS)}")
+    unknown = set(calibration_assets) - set(CALIBRATION_ASSETS)
+    if unknown:
+        raise ValueError(f"unknown calibration asset(s) {sorted(unknown)}; choose from {', '.join(CALIBRATION_ASSETS)}")
+    if max_items is not None and max_items < 1:
+        raise ValueError(f"max_items must be >= 1, got {max_items}")
+    t0, t1 = _as_utc(start, False), _as_utc(end, True)
+    if t0 is not None and t1 is not None and t0 > t1:
+        raise ValueError(f"start {t0} is after end {t1}")
+    say = progress or (lambda _msg: None)
+
+    root_href = _root_href(source)
+    scope = _Scope.of(root_href)
+    reader = _Reader(transport or _default_open, timeout_s, retries)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    out = out.resolve()
+    journal = _Journal(out)
+    wanted = None if heliostats is None else {h.strip() for h in heliostats if h.strip()}
+    warnings: list[str] = []
+
+    root = reader.stac(root_href)
+    say(f"catalogue {root.id} ({root_href})")
+    child_hrefs = []
+    tower_hrefs = []
+    for field, raw in [("links.child", r) for r in _links(root, "child")] + [
+        ("links.item", r) for r in _links(root, "item")
+    ]:
+        href = scope.resolve(raw, root_href, root_href, field)
+        m = _HREF_HELIOSTAT_RE.search(raw)
+        if m:
+            if wanted is not None and m.group(1) not in wanted:
+                continue
+            child_hrefs.append(href)
+        elif "tower-measurements" in raw:
+            if include_tower:
+                tower_hrefs.append(href)
+        elif "weather" in raw:
+            continue
+        else:
+            child_hrefs.append(href)  # unknown naming: read it and look at its id
+
+    all_tasks_done: dict[str, list] = {"downloaded": [], "skipped": [], "failed": []}
+    nbytes = [0]
+
+    with cf.ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+        say(f"reading {len(child_hrefs)} child catalogue(s) of the root")
+        children = list(pool.map(reader.stac_or_error, child_hrefs))
+        catalogs: dict[str, tuple[pystac.STACObject, str]] = {}
+        for obj, href in zip(children, child_hrefs, strict=True):
+            if isinstance(obj, DataError):
+                all_tasks_done["failed"].append((href, obj.reason))
+                say(f"  FAILED {href}: {obj.reason}")
+                continue
+            if isinstance(obj, pystac.Item) and obj.id.endswith(_TOWER_SUFFIX):
+                if include_tower:
+                    tower_hrefs.append(href)
+                continue
+            if not obj.id.endswith(_HELIOSTAT_SUFFIX):
+                continue  # weather collection or something else
+            hid = _heliostat_id(obj.id, href)
+            if wanted is not None and hid not in wanted:
+                continue
+            catalogs[hid] = (obj, href)
+        missing = tuple(sorted(wanted - set(catalogs))) if wanted is not None else ()
+        if missing:
+            say(f"not in the catalogue: {', '.join(missing)}")
+        say(f"{len(catalogs)} heliostat catalogue(s) selected")
+
+        def run(tasks: list[_Task]) -> tuple[int, int, int]:
+            counts = [0, 0, 0]
+            futures = [
+                pool.submit(_fetch_one, t, reader, journal, resume, out) for t in tasks
+            ]
+            for t, fut in zip(tasks, futures, strict=True):
+                try:
+                    status, n = fut.result()
+                except _Failure as e:
+                    all_tasks_done["failed"].append((t.src, str(e)))
+                    counts[2] += 1
+                    say(f"  FAILED {t.rel}: {e}")
+                    continue
+                if status == "downloaded":
+                    all_tasks_done["downloaded"].append(t.dest)
+                    nbytes[0] += n
+                    counts[0] += 1
+                else:
+                    all_tasks_done["skipped"].append(t.dest)
+                    counts[1] += 1
+            return counts[0], counts[1], counts[2]
+
+        # The tower file.
+        for href in dict.fromkeys(tower_hrefs):
+            item = reader.stac_or_error(href)
+            if isinstance(item, DataError):
+                all_tasks_done["failed"].append((href, item.reason))
+                say(f"  FAILED {href}: {item.reason}")
+                continue
+            tasks = []
+            for key, asset in item.assets.items():
+                tasks.append(_plan_asset(scope, out, (), asset, key, href, warnings))
+            d, s, f = run(tasks)
+            say(f"tower {item.id}: {d} downloaded, {s} already complete, {f} failed")
+
+        for k, hid in enumerate(sorted(catalogs), 1):
+            cat, cat_href = catalogs[hid]
+            tasks = _plan_heliostat(
+                hid, cat, cat_href, scope, reader, pool, out, collections, calibration_assets,
+                t0, t1, max_items, warnings, all_tasks_done["failed"],
+            )
+            d, s, f = run(tasks)
+            say(f"[{k}/{len(catalogs)}] {hid}: {len(tasks)} file(s): {d} downloaded, {s} already complete, {f} failed")
+
+    report = FetchReport(
+        out_dir=out,
+        heliostats=tuple(sorted(catalogs)),
+        missing=missing,
+        downloaded=tuple(all_tasks_done["downloaded"]),
+        skipped=tuple(all_tasks_done["skipped"]),
+        failed=tuple(all_tasks_done["failed"]),
+        warnings=tuple(warnings),
+        bytes_downloaded=nbytes[0],
+    )
+    say(
+        f"done: {len(report.downloaded)} downloaded ({report.bytes_downloaded} bytes), "
+        f"{len(report.skipped)} already complete, {len(report.failed)} failed"
+    )
+    return report
+
+
+def _root_href(source: str | os.PathLike) -> str:
+    s = os.fspath(source)
+    if _is_url(s):
+        if _scheme(s) not in ("http", "https", "file"):
+            raise DataError(s, None, f"unsupported scheme {_scheme(s)!r} (http, https, file)")
+        return s
+    p = Path(s)
+    if p.is_dir():
+        cands = [p / "catalog.json", *sorted(p.glob("*-catalog-stac.json"))]
+        found = [c for c in cands if c.is_file()]
+        if not found:
+            raise DataError(p, None, "folder has no catalog.json or *-catalog-stac.json")
+        p = found[0]
+    if not p.is_file():
+        raise DataError(p, None, "root catalogue not found")
+    return str(p.resolve())
+
+
+def _plan_asset(
+    scope: _Scope, out: Path, folder: tuple[str, ...], asset: pystac.Asset, key: str, owner: str, warnings: list[str]
+) -> _Task:
+    field = f"assets.{key}.href"
+    raw = asset.href
+    raw_path = urllib.parse.urlsplit(raw).path if _is_url(raw) else raw
+    if ".." in urllib.parse.unquote(raw_path).replace("\\", "/").split("/"):
+        raise DataError(owner, field, f"asset href {raw!r} contains a '..' segment (path traversal)")
+    src = scope.resolve(raw, owner, owner, field)
+    name = _dest_name(raw, owner, field)
+    for part in folder:
+        if not _NAME_RE.match(part):
+            raise DataError(owner, field, f"unsafe folder name {part!r}")
+    dest = _safe_dest(out, (*folder, name), owner, field)
+    size = asset.extra_fields.get("file:size")
+    if size is not None and (not isinstance(size, int) or isinstance(size, bool) or size < 0):
+        raise DataError(owner, f"assets.{key}.file:size", f"not a non-negative integer: {size!r}")
+    checksum = asset.extra_fields.get("file:checksum")
+    if checksum is not None:
+        try:
+            code, _ = _parse_multihash(str(checksum))
+        except ValueError as e:
+            raise DataError(owner, f"assets.{key}.file:checksum", f"not a multihash: {e}") from e
+        if code not in _MULTIHASH:
+            warnings.append(f"{owner}: asset {key}: multihash code 0x{code:x} unsupported; checksum not verified")
+            checksum = None
+    return _Task(src, dest, "/".join((*folder, name)), size, checksum, owner)
+
+
+def _plan_heliostat(
+    hid, cat, cat_href, scope, reader, pool, out, collections, calibration_assets, t0, t1, max_items, warnings,
+    failed,
+) -> list[_Task]:
+    """Plan the downloads of one heliostat; unreadable STAC files go to ``failed``, unsafe hrefs raise."""
+    wanted_suffix = {_COLLECTION_SUFFIX[c]: c for c in collections}
+    found: dict[str, tuple[pystac.STACObject, str]] = {}
+    for raw in _links(cat, "child"):
+        if not any(s in raw for s in _COLLECTION_SUFFIX.values()) or any(s in raw for s in wanted_suffix):
+            href = scope.resolve(raw, cat_href, cat_href, "links.child")
+            obj = reader.stac_or_error(href)
+            if isinstance(obj, DataError):
+                failed.append((href, obj.reason))
+                continue
+            for suffix, name in wanted_suffix.items():
+                if obj.id.endswith(suffix):
+                    found[name] = (obj, href)
+    tasks: list[_Task] = []
+    for name in collections:
+        if name not in found:
+            warnings.append(f"{hid}: no {name} collection")
+            continue
+        coll, coll_href = found[name]
+        item_hrefs = [scope.resolve(raw, coll_href, coll_href, "links.item") for raw in _links(coll, "item")]
+        items = list(pool.map(reader.stac_or_error, item_hrefs))
+        selected = []
+        for item, href in zip(items, item_hrefs, strict=True):
+            if isinstance(item, DataError):
+                failed.append((href, item.reason))
+                continue
+            if not isinstance(item, pystac.Item):
+                raise DataError(href, "type", f"expected a STAC item in {coll.id}, got {type(item).__name__}")
+            when = _item_time(item)
+            if name != "properties" and (t0 is not None or t1 is not None):
+                if when is None or (t0 is not None and when < t0) or (t1 is not None and when > t1):
+                    continue
+            selected.append((when, item.id, item, href))
+        if name != "properties":
+            far = dt.datetime.max.replace(tzinfo=dt.timezone.utc)
+            selected.sort(key=lambda x: (x[0] or far, x[1]))
+            if max_items is not None:
+                selected = selected[:max_items]
+        for _, _, item, href in selected:
+            for key, asset in item.assets.items():
+                if name == "calibration" and key not in calibration_assets:
+                    continue
+                tasks.append(_plan_asset(scope, out, (hid, _FOLDER[name]), asset, key, href, warnings))
+    seen: dict[Path, _Task] = {}
+    for t in tasks:
+        if t.dest in seen and seen[t.dest].src != t.src:
+            raise DataError(t.where, None, f"two assets map onto {t.rel}: {seen[t.dest].src} and {t.src}")
+        seen[t.dest] = t
+    return list(seen.values())
+
+
+def _fetch_one(task: _Task, reader: _Reader, journal: _Journal, resume: bool, out: Path) -> tuple[str, int]:
+    checker = _Checker(task)
+    dest = task.dest
+    if dest.is_symlink():
+        raise _Failure(f"{dest} is a symbolic link")
+    if dest.parent.is_dir():  # leftovers of an interrupted run (one fetch per output folder at a time)
+        for stale in dest.parent.glob(f".{_glob_escape(dest.name)}.*.part"):
+            with contextlib.suppress(OSError):
+                stale.unlink()
+    if resume and dest.is_file():
+        algos = [hashlib.sha256] + ([checker.algo] if checker.algo else [])
+        hs = _hash_file(dest, algos)
+        size = dest.stat().st_size
+        if checker.has_reference:
+            if checker.check(size, hs[-1]) is None and _json_ok(dest) is None:
+                return "skipped", 0
+        else:
+            rec = journal.records.get(task.rel)
+            if (
+                rec is not None
+                and rec.get("href") == task.src
+                and rec.get("size") == size
+                and rec.get("sha256") == hs[0].hexdigest()
+                and _json_ok(dest) is None
+            ):
+                return "skipped", 0
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    if dest.parent.resolve() != dest.parent or not str(dest.parent).startswith(str(out)):
+        raise _Failure(f"{dest.parent} resolves outside the output folder")
+    fd, tmp_name = tempfile.mkstemp(dir=dest.parent, prefix=f".{dest.name}.", suffix=".part")
+    tmp = Path(tmp_name)
+    try:
+        sha = hashlib.sha256()
+        other = checker.algo() if checker.algo else None
+        size = 0
+        try:
+            with os.fdopen(fd, "wb") as f:
+                with reader.open_retrying(task.src) as src:
+                    for chunk in iter(lambda: src.read(_CHUNK), b""):
+                        f.write(chunk)
+                        sha.update(chunk)
+                        if other is not None:
+                            other.update(chunk)
+                        size += len(chunk)
+                f.flush()
+                os.fsync(f.fileno())
+        except (OSError, http.client.HTTPException) as e:
+            raise _Failure(f"download failed: {e}") from e
+        problem = checker.check(size, other if other is not None else sha) or _json_ok(tmp, dest.name)
+        if problem:
+            raise _Failure(problem)
+        os.chmod(tmp, _FILE_MODE)  # mkstemp creates 0600; give the usual umask-based mode
+        os.replace(tmp, dest)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        raise
+    journal.add(task.rel, task.src, size, sha.hexdigest())
+    return "downloaded", size
+
+
+def _umask() -> int:
+    """The process umask, read without changing it where /proc allows."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except OSError:
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+_FILE_MODE = 0o666 & ~_umask()
+
+
+def _glob_escape(name: str) -> str:
+    return re.sub(r"([*?\[])", r"[\1]", name)
+
+
+def verify_download(out_dir: str | os.PathLike) -> list[str]:
+    """Check every file recorded in ``<out_dir>/.heliojax-fetch.jsonl``.
+
+    Returns:
+        One message per problem (missing file, symbolic link, size or SHA-256
+        differing from the journal, JSON that does not parse); empty when all is well.
+    """
+    out = Path(out_dir)
+    journal = _Journal(out)
+    problems = []
+    for rel, rec in sorted(journal.records.items()):
+        p = out / rel
+        if p.is_symlink() or not p.is_file():
+            problems.append(f"{rel}: missing or not a regular file")
+            continue
+        size = p.stat().st_size
+        if size != rec.get("size"):
+            problems.append(f"{rel}: {size} bytes, the journal says {rec.get('size')}")
+            continue
+        if _hash_file(p, [hashlib.sha256])[0].hexdigest() != rec.get("sha256"):
+            problems.append(f"{rel}: SHA-256 differs from the journal")
+            continue
+        bad = _json_ok(p)
+        if bad:
+            problems.append(f"{rel}: {bad}")
+    return problems

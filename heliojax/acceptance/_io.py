@@ -1,0 +1,313 @@
+"""Inputs of the acceptance analysis: measured-field CSV, fleet-calibration
+``summary.json`` plus heliostat positions, and the TOML contract."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import glob
+import json
+import math
+import os
+import tomllib
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+from .._errors import ConfigError, DataError
+from ._field import PARAMETERS, FieldData
+
+_BAD_STATUS = {"failed", "error", "skipped", "excluded"}
+
+
+def _float(path, field, text) -> float:
+    try:
+        x = float(text)
+    except (TypeError, ValueError):
+        raise DataError(path, field, f"not a number: {text!r}") from None
+    if not math.isfinite(x):
+        raise DataError(path, field, f"not finite: {text!r}")
+    return x
+
+
+def read_field_csv(path: str | os.PathLike) -> FieldData:
+    """Read ``heliostat_id,east_m,north_m[,up_m]`` plus any of
+    ``tracking_mrad,slope_mrad,reflectance,aperture_m2`` (empty cell = not measured).
+
+    Every row is a heliostat of the field (the population ``N``).
+
+    Raises:
+        DataError: missing columns, non-numeric or non-finite cells, duplicate IDs,
+            values outside the parameter's support.
+    """
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            rows = list(csv.DictReader(f))
+            header = rows and list(rows[0].keys())
+    except OSError as e:
+        raise DataError(path, None, f"cannot read: {e}") from e
+    if not rows:
+        raise DataError(path, None, "no rows")
+    for col in ("heliostat_id", "east_m", "north_m"):
+        if col not in header:
+            raise DataError(path, col, "missing column")
+    unknown = [c for c in header if c not in ("heliostat_id", "east_m", "north_m", "up_m", *PARAMETERS)]
+    if unknown:
+        raise DataError(path, unknown[0], f"unknown column; known parameters: {sorted(PARAMETERS)}")
+    params = [c for c in header if c in PARAMETERS]
+    ids, pos = [], []
+    vals = {p: [] for p in params}
+    for i, row in enumerate(rows, start=2):
+        hid = (row["heliostat_id"] or "").strip()
+        if not hid:
+            raise DataError(path, f"line {i}: heliostat_id", "empty")
+        ids.append(hid)
+        up = row.get("up_m")
+        pos.append([
+            _float(path, f"line {i}: east_m", row["east_m"]),
+            _float(path, f"line {i}: north_m", row["north_m"]),
+            0.0 if up in (None, "") else _float(path, f"line {i}: up_m", up),
+        ])
+        for p in params:
+            cell = (row[p] or "").strip()
+            x = math.nan if cell == "" else _float(path, f"line {i}: {p}", cell)
+            if not math.isnan(x):
+                sup = PARAMETERS[p].support
+                if (sup == "positive" and x <= 0) or (sup == "unit" and not 0 < x < 1):
+                    raise DataError(path, f"line {i}: {p}", f"{x} outside the {sup} range")
+            vals[p].append(x)
+    if len(set(ids)) != len(ids):
+        dup = sorted({h for h in ids if ids.count(h) > 1})[0]
+        raise DataError(path, "heliostat_id", f"duplicate ID {dup!r}")
+    return FieldData(ids=tuple(ids), positions=np.asarray(pos, dtype=float),
+                     values={p: np.asarray(v, dtype=float) for p, v in vals.items()})
+
+
+def read_summary(path: str | os.PathLike) -> dict[str, float]:
+    """Tracking errors from a fleet-calibration ``summary.json``.
+
+    The tracking error of a heliostat is its ``test_rms_mrad`` (radial RMS beam
+    pointing error on the held-out records). Heliostats whose ``status`` is
+    failed / error / skipped / excluded, or whose ``test_rms_mrad`` is null or
+    not finite (no test records), count as not measured.
+
+    Returns:
+        heliostat ID -> tracking error (mrad).
+
+    Raises:
+        DataError: unreadable file, missing ``heliostats`` table, non-numeric value.
+    """
+    try:
+        with open(path, encoding="utf-8") as f:
+            doc = json.load(f)
+    except (OSError, json.JSONDecodeError) as e:
+        raise DataError(path, None, f"cannot read: {e}") from e
+    table = doc.get("heliostats") if isinstance(doc, dict) else None
+    if not isinstance(table, dict):
+        raise DataError(path, "heliostats", "missing or not an object")
+    out = {}
+    for hid, rec in table.items():
+        if not isinstance(rec, dict):
+            raise DataError(path, f"heliostats.{hid}", "not an object")
+        if str(rec.get("status", "")).lower() in _BAD_STATUS:
+            continue
+        x = rec.get("test_rms_mrad")
+        if x is None:
+            continue
+        if isinstance(x, bool) or not isinstance(x, (int, float)):
+            raise DataError(path, f"heliostats.{hid}.test_rms_mrad", f"not a number: {x!r}")
+        if math.isfinite(x):
+            if x <= 0:
+                raise DataError(path, f"heliostats.{hid}.test_rms_mrad", f"must be > 0, got {x}")
+            out[hid] = float(x)
+    return out
+
+
+def read_positions_csv(path: str | os.PathLike) -> tuple[tuple[str, ...], np.ndarray]:
+    """Read ``heliostat_id,east_m,north_m[,up_m]`` (the whole field, ENU m)."""
+    fd = read_field_csv(path)
+    return fd.ids, np.asarray(fd.positions)
+
+
+def find_tower_file(paint_dir: str | os.PathLike) -> Path:
+    """The ``*-tower-measurements.json`` of a PAINT download directory."""
+    hits = sorted(glob.glob(os.path.join(paint_dir, "*-tower-measurements.json")))
+    if not hits:
+        raise DataError(paint_dir, None, "no *-tower-measurements.json in the PAINT directory")
+    return Path(hits[0])
+
+
+def positions_from_paint(paint_dir: str | os.PathLike) -> tuple[tuple[str, ...], np.ndarray]:
+    """Heliostat positions (ENU m) from a PAINT download directory.
+
+    Reads ``<ID>/Properties/<ID>-heliostat-properties.json`` ``heliostat_position``
+    (WGS84) of every heliostat folder that has one and converts it to ENU about
+    the tower file's ``power_plant_properties.coordinates``.
+    """
+    from .._geometry import wgs84_to_enu
+
+    tower = find_tower_file(paint_dir)
+    try:
+        origin = np.asarray(json.loads(tower.read_text("utf-8"))["power_plant_properties"]["coordinates"],
+                            dtype=float)
+    except (KeyError, TypeError, ValueError, json.JSONDecodeError) as e:
+        raise DataError(tower, "power_plant_properties.coordinates", "missing or malformed") from e
+    ids, lla = [], []
+    for prop in sorted(glob.glob(os.path.join(paint_dir, "*", "Properties", "*-heliostat-properties.json"))):
+        hid = Path(prop).parents[1].name
+        try:
+            p = np.asarray(json.loads(Path(prop).read_text("utf-8"))["heliostat_position"], dtype=float)
+        except (KeyError, TypeError, ValueError, json.JSONDecodeError) as e:
+            raise DataError(prop, "heliostat_position", "missing or malformed") from e
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise DataError(prop, "heliostat_position", "must be 3 finite numbers [lat, lon, alt]")
+        ids.append(hid)
+        lla.append(p)
+    if not ids:
+        raise DataError(paint_dir, None, "no heliostat properties files found")
+    enu = np.asarray(wgs84_to_enu(jnp.asarray(np.asarray(lla)), jnp.asarray(origin)))
+    return tuple(ids), enu
+
+
+def field_from_summary(
+    summary_path: str | os.PathLike,
+    ids: tuple[str, ...],
+    positions: np.ndarray,
+) -> FieldData:
+    """Field of the heliostats ``ids`` (positions ENU m) with the tracking errors of
+    ``summary.json``; heliostats of the summary without a position are an error."""
+    track = read_summary(summary_path)
+    missing = sorted(set(track) - set(ids))
+    if missing:
+        raise DataError(summary_path, f"heliostats.{missing[0]}", "no position known for this heliostat "
+                        "(give --positions or --paint)")
+    values = np.array([track.get(h, math.nan) for h in ids])
+    return FieldData(ids=tuple(ids), positions=np.asarray(positions, dtype=float),
+                     values={"tracking_mrad": values})
+
+
+@dataclasses.dataclass(frozen=True)
+class ParameterSpec:
+    """Contract values of one parameter (its unit, see ``PARAMETERS``)."""
+
+    mean: float
+    std: float
+    rel_error: float
+
+
+@dataclasses.dataclass(frozen=True)
+class Contract:
+    """An acceptance contract (``configs/contract.toml``).
+
+    Attributes:
+        parameters: name -> :class:`ParameterSpec`.
+        confidence, formula, z: sampling settings (:func:`sample_size`).
+        clusters: keyword settings for clustering (``eps``, ``min_samples``,
+            ``value_factor``, ``length_factor``, ``z_threshold``, ``k_neighbours``).
+        bandwidth: KDE bandwidth (``"cv"``, ``"scott"``, ``"silverman"`` or a number).
+        seed: random seed (bootstrap, KDE draws, contract scenario).
+        tower_file: receiver/tower file, resolved against the contract's folder
+            (None: not given).
+        year, step_minutes, min_elevation_deg, sun_sigma_mrad: level-2 settings.
+        tolerance: accepted relative shortfall of the measured annual efficiency.
+    """
+
+    parameters: dict[str, ParameterSpec]
+    confidence: float = 0.95
+    formula: str = "eq7"
+    z: float | None = None
+    clusters: dict = dataclasses.field(default_factory=dict)
+    bandwidth: str | float = "cv"
+    seed: int = 0
+    tower_file: Path | None = None
+    year: int = 2023
+    step_minutes: float = 30.0
+    min_elevation_deg: float = 5.0
+    sun_sigma_mrad: float = 2.51
+    tolerance: float = 0.0
+
+
+_CLUSTER_KEYS = {"eps", "min_samples", "value_factor", "length_factor", "z_threshold", "k_neighbours"}
+
+
+def load_contract(path: str | os.PathLike) -> Contract:
+    """Read and validate a contract TOML file (see ``configs/contract.toml``).
+
+    Raises:
+        ConfigError: unreadable file, unknown sections/keys, bad values.
+    """
+    path = Path(path)
+    try:
+        doc = tomllib.loads(path.read_text("utf-8"))
+    except (OSError, tomllib.TOMLDecodeError) as e:
+        raise ConfigError(f"{path}: cannot read contract: {e}") from e
+    unknown = set(doc) - {"sampling", "parameters", "clusters", "extrapolation", "yield"}
+    if unknown:
+        raise ConfigError(f"{path}: unknown section(s) {sorted(unknown)}")
+
+    def num(sec, key, default=None, positive=False):
+        table = doc.get(sec, {})
+        if key not in table:
+            if default is None:
+                raise ConfigError(f"{path}: [{sec}] {key} is required")
+            return default
+        x = table[key]
+        if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
+            raise ConfigError(f"{path}: [{sec}] {key} must be a finite number, got {x!r}")
+        if positive and x <= 0:
+            raise ConfigError(f"{path}: [{sec}] {key} must be > 0, got {x}")
+        return x
+
+    params = {}
+    for name, spec in doc.get("parameters", {}).items():
+        if name not in PARAMETERS:
+            raise ConfigError(f"{path}: unknown parameter {name!r}; known: {sorted(PARAMETERS)}")
+        if not isinstance(spec, dict) or set(spec) - {"mean", "std", "rel_error"}:
+            raise ConfigError(f"{path}: [parameters.{name}] takes mean, std, rel_error")
+        sec = f"parameters.{name}"
+        vals = {}
+        for key in ("mean", "std", "rel_error"):
+            x = spec.get(key)
+            if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) or x <= 0:
+                raise ConfigError(f"{path}: [{sec}] {key} must be a number > 0, got {x!r}")
+            vals[key] = float(x)
+        params[name] = ParameterSpec(**vals)
+    if "tracking_mrad" not in params:
+        raise ConfigError(f"{path}: [parameters.tracking_mrad] is required (level 2 needs it)")
+    sampling = doc.get("sampling", {})
+    formula = sampling.get("formula", "eq7")
+    if formula not in ("eq4", "eq7", "eq8"):
+        raise ConfigError(f"{path}: [sampling] formula must be eq4, eq7 or eq8, got {formula!r}")
+    confidence = num("sampling", "confidence", 0.95)
+    if not 0 < confidence < 1:
+        raise ConfigError(f"{path}: [sampling] confidence must lie in (0, 1)")
+    clusters = dict(doc.get("clusters", {}))
+    if set(clusters) - _CLUSTER_KEYS:
+        raise ConfigError(f"{path}: [clusters] unknown key(s) {sorted(set(clusters) - _CLUSTER_KEYS)}")
+    for k in clusters:
+        num("clusters", k, positive=True)
+    ex = doc.get("extrapolation", {})
+    bandwidth = ex.get("bandwidth", "cv")
+    if not (bandwidth in ("cv", "scott", "silverman") or (isinstance(bandwidth, (int, float))
+                                                          and not isinstance(bandwidth, bool) and bandwidth > 0)):
+        raise ConfigError(f"{path}: [extrapolation] bandwidth must be cv, scott, silverman or > 0")
+    y = doc.get("yield", {})
+    tower = y.get("tower_file")
+    if tower is not None and not isinstance(tower, str):
+        raise ConfigError(f"{path}: [yield] tower_file must be a string")
+    return Contract(
+        parameters=params,
+        confidence=float(confidence),
+        formula=formula,
+        z=None if "z" not in sampling else float(num("sampling", "z", positive=True)),
+        clusters=clusters,
+        bandwidth=bandwidth,
+        seed=int(num("extrapolation", "seed", 0)),
+        tower_file=None if tower is None else (path.parent / tower).resolve(),
+        year=int(num("yield", "year", 2023)),
+        step_minutes=float(num("yield", "step_minutes", 30.0, positive=True)),
+        min_elevation_deg=float(num("yield", "min_elevation_deg", 5.0)),
+        sun_sigma_mrad=float(num("yield", "sun_sigma_mrad", 2.51, positive=True)),
+        tolerance=float(num("yield", "tolerance", 0.0)),
+    )

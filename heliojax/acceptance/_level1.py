@@ -1,0 +1,206 @@
+"""Level-1 test: sampled mean and standard deviation of a parameter against the
+contract values, each with its confidence interval.
+
+Pass rule (``sense`` says which direction is *better* for the plant owner):
+
+* mean, ``sense="lower"`` (tracking, slope error): pass when the lower end of the
+  CI of the sampled mean is ``<=`` the contract mean (the sample does not show
+  the field to be worse than contracted);
+* mean, ``sense="higher"`` (reflectance, aperture): pass when the upper end of
+  the CI is ``>=`` the contract mean;
+* mean, ``sense="two-sided"``: pass when the contract mean lies inside the CI;
+* std (if the contract gives one): pass when the lower end of the CI of the
+  sampled std is ``<=`` the contract std (spread not significantly larger);
+* and the sample must be at least the required size.
+
+Non-normal parameters. Tracking and slope errors are 2-D radial errors, whose
+per-heliostat values follow Rayleigh / Weibull-like, right-skewed, positive
+distributions. For them (``distribution="radial"``) the confidence intervals of
+mean and std come from a bias-corrected and accelerated (BCa) bootstrap instead
+of the normal-theory t / chi-square intervals, and the result also carries a
+two-parameter Weibull fit (shape, scale), the 95th percentile and a
+Shapiro-Wilk normality p-value, so that a skewed field is visible in the report
+rather than hidden behind mean and sd.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Literal
+
+import numpy as np
+from jaxtyping import Float
+from scipy import stats
+
+Sense = Literal["lower", "higher", "two-sided"]
+Distribution = Literal["normal", "radial"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Level1Result:
+    """Outcome of :func:`level1_test` for one parameter (all values in the
+    parameter's unit).
+
+    Attributes:
+        n: number of measured heliostats.
+        n_required: sample size required by the contract (0 if not given).
+        mean, std: sample mean and standard deviation (ddof=1).
+        mean_ci, std_ci: two-sided confidence intervals ``(low, high)``.
+        contract_mean, contract_std: contract values (``contract_std`` may be None).
+        pass_mean, pass_std, sufficient_sample: the three parts of the verdict.
+        passed: all three.
+        method: ``"bootstrap-bca"`` or ``"normal"``.
+        p95: 95th percentile of the sample.
+        weibull_shape, weibull_scale: two-parameter Weibull fit (radial
+            parameters only; NaN otherwise). Rayleigh is shape 2.
+        normality_p: Shapiro-Wilk p-value (NaN for n < 3).
+    """
+
+    n: int
+    n_required: int
+    mean: float
+    std: float
+    mean_ci: tuple[float, float]
+    std_ci: tuple[float, float]
+    contract_mean: float
+    contract_std: float | None
+    pass_mean: bool
+    pass_std: bool
+    sufficient_sample: bool
+    passed: bool
+    method: str
+    p95: float
+    weibull_shape: float
+    weibull_scale: float
+    normality_p: float
+
+    def to_json(self) -> dict:
+        """JSON-ready dict (the ``level1`` entry of ``acceptance.json``)."""
+        d = dataclasses.asdict(self)
+        d["pass"] = d.pop("passed")
+        d["mean_ci"] = list(self.mean_ci)
+        d["std_ci"] = list(self.std_ci)
+        return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()}
+
+
+def confidence_intervals(
+    values: Float[np.ndarray, " n"],
+    confidence: float = 0.95,
+    method: Literal["normal", "bootstrap"] = "normal",
+    *,
+    n_resamples: int = 2000,
+    seed: int = 0,
+) -> tuple[tuple[float, float], tuple[float, float]]:
+    """Two-sided confidence intervals of the mean and of the standard deviation.
+
+    ``"normal"``: Student-t interval of the mean, chi-square interval of the std.
+    ``"bootstrap"``: BCa bootstrap (``scipy.stats.bootstrap``) of both, which
+    does not assume normality (used for Rayleigh/Weibull-like radial errors).
+
+    Returns:
+        ``((mean_low, mean_high), (std_low, std_high))``.
+    """
+    x = np.asarray(values, dtype=float)
+    n = x.size
+    if n < 2:
+        raise ValueError("need at least two values for a confidence interval")
+    m, s = float(x.mean()), float(x.std(ddof=1))
+    alpha = 1.0 - confidence
+    if method == "normal":
+        half = stats.t.ppf(1 - alpha / 2, n - 1) * s / math.sqrt(n)
+        lo = math.sqrt((n - 1) * s**2 / stats.chi2.ppf(1 - alpha / 2, n - 1))
+        hi = math.sqrt((n - 1) * s**2 / stats.chi2.ppf(alpha / 2, n - 1))
+        return (m - half, m + half), (lo, hi)
+    if method != "bootstrap":
+        raise ValueError(f"method must be 'normal' or 'bootstrap', got {method!r}")
+    if s == 0.0:
+        return (m, m), (0.0, 0.0)
+    rng = np.random.default_rng(seed)
+    out = []
+    for stat in (np.mean, lambda a, axis: np.std(a, axis=axis, ddof=1)):
+        res = stats.bootstrap(
+            (x,), stat, confidence_level=confidence, n_resamples=n_resamples,
+            method="BCa", vectorized=True, axis=-1, random_state=rng,
+        )
+        lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
+        if not (math.isfinite(lo) and math.isfinite(hi)):  # degenerate BCa: percentile
+            res = stats.bootstrap(
+                (x,), stat, confidence_level=confidence, n_resamples=n_resamples,
+                method="percentile", vectorized=True, axis=-1, random_state=rng,
+            )
+            lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
+        out.append((lo, hi))
+    return out[0], out[1]
+
+
+def level1_test(
+    values: Float[np.ndarray, " n"],
+    contract_mean: float,
+    contract_std: float | None = None,
+    *,
+    n_required: int = 0,
+    confidence: float = 0.95,
+    sense: Sense = "lower",
+    distribution: Distribution = "normal",
+    n_resamples: int = 2000,
+    seed: int = 0,
+) -> Level1Result:
+    """Compare the sampled mean and std of one parameter with the contract.
+
+    Args:
+        values: ``(n,)`` measured values of the sampled heliostats (NaNs dropped).
+        contract_mean: contracted field mean (same unit).
+        contract_std: contracted standard deviation, or None (then only the mean
+            is tested).
+        n_required: sample size the contract requires (from :func:`sample_size`).
+        confidence: two-sided confidence level of the intervals.
+        sense: which direction is better (see the module docstring).
+        distribution: ``"radial"`` for 2-D radial errors (bootstrap CIs and a
+            Weibull fit), ``"normal"`` for approximately normal parameters.
+        n_resamples, seed: bootstrap settings.
+
+    Returns:
+        A :class:`Level1Result`.
+    """
+    x = np.asarray(values, dtype=float)
+    x = x[np.isfinite(x)]
+    if x.size < 2:
+        raise ValueError(f"level-1 test needs at least 2 measured values, got {x.size}")
+    if sense not in ("lower", "higher", "two-sided"):
+        raise ValueError(f"sense must be 'lower', 'higher' or 'two-sided', got {sense!r}")
+    method = "bootstrap" if distribution == "radial" else "normal"
+    if distribution not in ("normal", "radial"):
+        raise ValueError(f"distribution must be 'normal' or 'radial', got {distribution!r}")
+    mean_ci, std_ci = confidence_intervals(x, confidence, method, n_resamples=n_resamples, seed=seed)
+    if sense == "lower":
+        pass_mean = mean_ci[0] <= contract_mean
+    elif sense == "higher":
+        pass_mean = mean_ci[1] >= contract_mean
+    else:
+        pass_mean = mean_ci[0] <= contract_mean <= mean_ci[1]
+    pass_std = True if contract_std is None else bool(std_ci[0] <= contract_std)
+    sufficient = x.size >= n_required
+    shape = scale = float("nan")
+    if distribution == "radial" and np.all(x > 0) and x.size >= 3 and np.ptp(x) > 0:
+        shape, _, scale = (float(v) for v in stats.weibull_min.fit(x, floc=0.0))
+    normality_p = float(stats.shapiro(x).pvalue) if x.size >= 3 and np.ptp(x) > 0 else float("nan")
+    return Level1Result(
+        n=int(x.size),
+        n_required=int(n_required),
+        mean=float(x.mean()),
+        std=float(x.std(ddof=1)),
+        mean_ci=(float(mean_ci[0]), float(mean_ci[1])),
+        std_ci=(float(std_ci[0]), float(std_ci[1])),
+        contract_mean=float(contract_mean),
+        contract_std=None if contract_std is None else float(contract_std),
+        pass_mean=bool(pass_mean),
+        pass_std=bool(pass_std),
+        sufficient_sample=bool(sufficient),
+        passed=bool(pass_mean and pass_std and sufficient),
+        method="bootstrap-bca" if method == "bootstrap" else "normal",
+        p95=float(np.percentile(x, 95)),
+        weibull_shape=shape,
+        weibull_scale=scale,
+        normality_p=normality_p,
+    )

@@ -1,0 +1,89 @@
+"""``heliojax accept``: field acceptance per the SolarPACES heliostat field
+performance testing guideline (sample sizes, level 1, clusters, extrapolation,
+level-2 efficiency contract vs measured)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "accept",
+        help="field acceptance test against a contract (SolarPACES guideline)",
+        description=(
+            "Acceptance analysis of a heliostat field. --results is either a CSV "
+            "(heliostat_id,east_m,north_m[,up_m] and any of tracking_mrad,slope_mrad,"
+            "reflectance,aperture_m2; empty cell = not measured; every row is a heliostat "
+            "of the field) or a fleet-calibration summary.json (tracking error = "
+            "test_rms_mrad), which needs the field's positions from --positions or --paint."
+        ),
+    )
+    p.add_argument("--results", required=True, type=Path, help="measured-field CSV or summary.json")
+    p.add_argument("--contract", required=True, type=Path, help="contract TOML (see configs/contract.toml)")
+    p.add_argument("--report", type=Path, default=Path("acceptance.json"), help="output JSON report")
+    p.add_argument("--figures", type=Path, default=None, help="directory for the three PNG figures")
+    p.add_argument("--positions", type=Path, default=None,
+                   help="CSV heliostat_id,east_m,north_m[,up_m] of every heliostat of the field "
+                        "(with a summary.json)")
+    p.add_argument("--paint", type=Path, default=None,
+                   help="PAINT download directory: heliostat positions and the tower file")
+    p.add_argument("--tower", type=Path, default=None,
+                   help="tower file with the receiver (default: --paint's, else the contract's "
+                        "[yield] tower_file, else the built-in Jülich receiver)")
+
+
+def run(args: argparse.Namespace) -> int:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from .. import acceptance as acc
+    from .._errors import ConfigError, HeliojaxError
+    from .._io import atomic_write
+
+    try:
+        contract = acc.load_contract(args.contract)
+        if args.results.suffix.lower() == ".json":
+            if args.positions is not None:
+                ids, pos = acc.read_positions_csv(args.positions)
+            elif args.paint is not None:
+                ids, pos = acc.positions_from_paint(args.paint)
+            else:
+                raise ConfigError("a summary.json needs the heliostat positions: give --positions or --paint")
+            field = acc.field_from_summary(args.results, ids, pos)
+        else:
+            field = acc.read_field_csv(args.results)
+        tower = args.tower
+        if tower is None and args.paint is not None:
+            tower = acc.find_tower_file(args.paint)
+        if tower is None and contract.tower_file is not None and contract.tower_file.exists():
+            tower = contract.tower_file
+        if tower is not None:
+            aperture, plant = acc.load_receiver(tower)
+            receiver_source = str(tower)
+        else:
+            aperture, plant = acc.juelich_receiver(), acc.JUELICH_COORDINATES
+            receiver_source = "built-in Jülich receiver"
+        result = acc.run_acceptance(field, contract, aperture, plant)
+        report = dict(result.report)
+        report["inputs"] = {"results": str(args.results), "contract": str(args.contract),
+                            "receiver": receiver_source}
+        with atomic_write(args.report) as f:
+            json.dump(report, f, indent=2)
+            f.write("\n")
+        if args.figures is not None:
+            acc.plot_all(result, args.figures)
+    except HeliojaxError as e:
+        print(f"heliojax accept: error: {e}", file=sys.stderr)
+        return 2
+    l2 = report["level2"]
+    for name, r in report["level1"].items():
+        status = "n/a" if r["pass"] is None else "pass" if r["pass"] else "FAIL"
+        print(f"{name:14s} n={r.get('n')}/{report['sample_sizes'][name]}  {status}")
+    print(f"annual efficiency: contract {l2['annual_efficiency_contract']:.4f}, "
+          f"measured {l2['annual_efficiency_measured']:.4f}")
+    print(f"verdict: {report['verdict']}")
+    return 0

@@ -1,0 +1,118 @@
+"""``heliojax fetch``: download PAINT data from a STAC catalogue (thin over :mod:`heliojax._stac`)."""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import sys
+
+from .._errors import HeliojaxError
+from .._stac import CALIBRATION_ASSETS, COLLECTIONS, fetch_catalog
+
+PAINT_CATALOGUE = "https://paint-database.org/WRI1030197/WRI1030197-catalog-stac.json"
+
+
+def _csv(value: str) -> list[str]:
+    return [v.strip() for v in value.split(",") if v.strip()]
+
+
+def _when(value: str) -> dt.datetime | dt.date:
+    """``YYYY-MM-DD`` (a whole day) or an ISO 8601 date-time (naive means UTC)."""
+    try:
+        if len(value) == 10:
+            return dt.date.fromisoformat(value)
+        return dt.datetime.fromisoformat(value.replace("Z", "+00:00"))
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(f"not a date or ISO date-time: {value!r}") from e
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "fetch",
+        help="download PAINT data from a STAC catalogue into PAINT's folder layout",
+        description=(
+            "Walk a PAINT-style STAC catalogue (root -> heliostat catalogues -> properties, "
+            "calibration, deflectometry collections -> items -> assets) and download the chosen "
+            "assets into OUT as <H>/Properties, <H>/Calibration, <H>/Deflectometry plus the tower "
+            "file. Interrupted runs resume; every file is verified (size/checksum when the "
+            "catalogue gives them, JSON parses) and written atomically. Unsafe hrefs are refused."
+        ),
+    )
+    p.add_argument(
+        "source",
+        metavar="SOURCE",
+        nargs="?",
+        default=PAINT_CATALOGUE,
+        help=f"root catalogue: URL or path to its JSON file or folder (default: {PAINT_CATALOGUE})",
+    )
+    p.add_argument("--out", metavar="DIR", required=True, help="output folder")
+    p.add_argument("--heliostats", metavar="IDS", type=_csv, help="comma-separated heliostat ids (default: all)")
+    p.add_argument(
+        "--collections",
+        metavar="NAMES",
+        type=_csv,
+        default=["properties", "calibration"],
+        help=f"comma-separated, from {','.join(COLLECTIONS)} (default: properties,calibration)",
+    )
+    p.add_argument(
+        "--assets",
+        metavar="KEYS",
+        type=_csv,
+        default=["calibration_properties"],
+        help=f"calibration asset keys, from {','.join(CALIBRATION_ASSETS)} or 'all' (default: calibration_properties)",
+    )
+    p.add_argument("--start", type=_when, help="earliest item datetime, YYYY-MM-DD or ISO (UTC)")
+    p.add_argument("--end", type=_when, help="latest item datetime, YYYY-MM-DD (inclusive) or ISO (UTC)")
+    p.add_argument("--max-items", type=int, metavar="N", help="at most N calibration items per heliostat (earliest)")
+    p.add_argument("--no-resume", dest="resume", action="store_false", help="download everything again")
+    p.add_argument("--no-tower", dest="tower", action="store_false", help="skip the tower-measurements file")
+    p.add_argument("--workers", type=int, default=8, help="parallel downloads (default 8)")
+    p.add_argument("--timeout", type=float, default=60.0, help="seconds per request (default 60)")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+
+
+def run(args) -> int:
+    assets = list(CALIBRATION_ASSETS) if args.assets == ["all"] else args.assets
+
+    def progress(msg: str) -> None:
+        print(msg, file=sys.stderr, flush=True)
+
+    try:
+        report = fetch_catalog(
+            args.source,
+            args.out,
+            heliostats=args.heliostats,
+            collections=args.collections,
+            calibration_assets=assets,
+            start=args.start,
+            end=args.end,
+            max_items=args.max_items,
+            resume=args.resume,
+            include_tower=args.tower,
+            workers=args.workers,
+            timeout_s=args.timeout,
+            progress=None if args.quiet else progress,
+        )
+    except (HeliojaxError, ValueError) as e:
+        print(f"heliojax fetch: error: {e}", file=sys.stderr)
+        return 2
+    for w in report.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    if report.missing:
+        print(f"heliojax fetch: not in the catalogue: {', '.join(report.missing)}", file=sys.stderr)
+    for href, reason in report.failed:
+        print(f"heliojax fetch: failed {href}: {reason}", file=sys.stderr)
+    if report.failed:
+        print("heliojax fetch: run the same command again to retry the failed files", file=sys.stderr)
+    return 0 if report.ok else 1
+
+
+def main(argv=None) -> int:  # pragma: no cover - convenience for `python -m heliojax.cli._fetch`
+    parser = argparse.ArgumentParser(prog="heliojax")
+    add_parser(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    return run(args)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

@@ -1,0 +1,20 @@
+"""Test configuration: float64 on (calibration and geodesy need it), shared-data paths."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import pytest
+
+jax.config.update("jax_enable_x64", True)
+
+SHARED_PAINT = Path(__file__).resolve().parents[2] / "shared" / "data" / "paint"
+
+
+@pytest.fixture(scope="session")
+def shared_paint() -> Path:
+    """The real PAINT records beside the checkout (../shared/data/paint)."""
+    if not (SHARED_PAINT / "WRI1030197-tower-measurements.json").exists():
+        pytest.skip(f"shared PAINT data not found at {SHARED_PAINT}")
+    return SHARED_PAINT

@@ -1,0 +1,616 @@
+"""STAC fetch: a small PAINT-style catalogue built with pystac, read from a path and over HTTP."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import datetime as dt
+import functools
+import hashlib
+import http.server
+import io
+import json
+import os
+import threading
+from pathlib import Path
+
+import pystac
+import pytest
+
+from heliojax._errors import DataError
+from heliojax._stac import JOURNAL_NAME, fetch_catalog, verify_download
+from heliojax.cli import _fetch as fetch_cli
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "paint"
+UTC = dt.timezone.utc
+
+
+# --------------------------------------------------------------------------- fixtures
+def _source_records() -> dict:
+    """{heliostat: {"properties": bytes, "items": [(id, datetime, {asset_key: (name, bytes)})]}}
+    from the shared PAINT data (or synthetic stand-ins when it is absent)."""
+    out: dict = {}
+    if (SHARED / "BE36").is_dir() and (SHARED / "flux-samples" / "AA31").is_dir():
+        stamps = json.loads((SHARED / "calibration-timestamps.json").read_text())
+        be = SHARED / "BE36"
+        items = []
+        for cid in ("118671", "118750", "118826"):
+            when = dt.datetime.fromisoformat(stamps[cid]["datetime"].replace("Z", "+00:00"))
+            name = f"{cid}-calibration-properties.json"
+            items.append((cid, when, {"calibration_properties": (name, (be / "Calibration" / name).read_bytes())}))
+        out["BE36"] = {"properties": (be / "Properties" / "BE36-heliostat-properties.json").read_bytes(), "items": items}
+        aa = SHARED / "flux-samples" / "AA31"
+        items = []
+        for k, cid in enumerate(("125284", "126372")):
+            assets = {
+                "calibration_properties": (f"{cid}-calibration-properties.json", None),
+                "flux_image": (f"{cid}-flux.png", None),
+                "flux_centered_image": (f"{cid}-flux-centered.png", None),
+            }
+            assets = {key: (n, (aa / "Calibration" / n).read_bytes()) for key, (n, _) in assets.items()}
+            items.append((cid, dt.datetime(2022, 7, 1 + 10 * k, 12, tzinfo=UTC), assets))
+        out["AA31"] = {"properties": (aa / "Properties" / "AA31-heliostat-properties.json").read_bytes(), "items": items}
+        tower = (SHARED / "WRI1030197-tower-measurements.json").read_bytes()
+    else:  # synthetic stand-ins with the same names
+        def rec(i):
+            return json.dumps({"sun_azimuth": -40.0 + i, "sun_elevation": 30.0, "motor_position": {}}).encode()
+
+        out["BE36"] = {
+            "properties": b'{"heliostat_position": [50.9, 6.38, 88.0]}',
+            "items": [
+                (cid, dt.datetime(2022, 6, 12, 13 + i, tzinfo=UTC),
+                 {"calibration_properties": (f"{cid}-calibration-properties.json", rec(i))})
+                for i, cid in enumerate(("118671", "118750", "118826"))
+            ],
+        }
+        out["AA31"] = {
+            "properties": b'{"heliostat_position": [50.9, 6.38, 89.0]}',
+            "items": [
+                (cid, dt.datetime(2022, 7, 1 + 10 * k, 12, tzinfo=UTC), {
+                    "calibration_properties": (f"{cid}-calibration-properties.json", rec(k)),
+                    "flux_image": (f"{cid}-flux.png", b"\x89PNG-flux" + bytes(200 + k)),
+                    "flux_centered_image": (f"{cid}-flux-centered.png", b"\x89PNG-centered" + bytes(300 + k)),
+                })
+                for k, cid in enumerate(("125284", "126372"))
+            ],
+        }
+        tower = b'{"power_plant_properties": {"ID": "WRI1030197", "coordinates": [50.9, 6.38, 87.0]}}'
+    return {"heliostats": out, "tower": tower}
+
+
+def multihash_sha256(data: bytes) -> str:
+    return "1220" + hashlib.sha256(data).hexdigest()
+
+
+def _extent():
+    return pystac.Extent(
+        pystac.SpatialExtent([[6.38, 50.91, 6.39, 50.92]]),
+        pystac.TemporalExtent([[dt.datetime(2022, 1, 1, tzinfo=UTC), None]]),
+    )
+
+
+def build_catalogue(root_dir: Path) -> tuple[Path, dict]:
+    """PAINT-like catalogue: root -> tower item, weather collection, heliostat catalogues ->
+    properties / calibration collections -> items -> assets. BE36's assets carry
+    file:size and file:checksum; AA31's do not. Returns (root json path, expected files)."""
+    src = _source_records()
+    root = pystac.Catalog("WRI1030197-catalog", "PAINT test catalogue")
+    tower = pystac.Item("WRI1030197-tower-measurements", None, None, dt.datetime(2020, 10, 7, tzinfo=UTC), {})
+    root.add_item(tower)
+    root.add_child(pystac.Collection("weather-collection", "ignored", _extent()))
+    pending = []  # (item, key, name, data, with_file_ext)
+    expected: dict[str, bytes] = {"WRI1030197-tower-measurements.json": src["tower"]}
+    pending.append((tower, "measurements", "WRI1030197-tower-measurements.json", src["tower"], False))
+    for hid, rec in src["heliostats"].items():
+        cat = pystac.Catalog(f"{hid}-heliostat-catalog", f"heliostat {hid}")
+        root.add_child(cat)
+        props = pystac.Collection(f"{hid}-heliostat-properties-collection", "props", _extent())
+        calib = pystac.Collection(f"{hid}-calibration-collection", "calib", _extent())
+        cat.add_child(props)
+        cat.add_child(calib)
+        pitem = pystac.Item(f"{hid}-heliostat-properties", None, None, dt.datetime(2021, 1, 1, tzinfo=UTC), {})
+        props.add_item(pitem)
+        name = f"{hid}-heliostat-properties.json"
+        pending.append((pitem, "heliostat-properties", name, rec["properties"], hid == "BE36"))
+        expected[f"{hid}/Properties/{name}"] = rec["properties"]
+        for cid, when, assets in rec["items"]:
+            item = pystac.Item(cid, None, None, when, {})
+            calib.add_item(item)
+            for key, (name, data) in assets.items():
+                pending.append((item, key, name, data, hid == "BE36"))
+                expected[f"{hid}/Calibration/{name}"] = data
+    root.normalize_hrefs(str(root_dir))
+    for item, key, name, data, with_ext in pending:
+        path = Path(item.get_self_href()).parent / "data" / name  # beside the item JSON, never onto it
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(data)
+        extra = {"file:size": len(data), "file:checksum": multihash_sha256(data)} if with_ext else {}
+        item.add_asset(key, pystac.Asset(str(path), media_type="application/json", extra_fields=extra))
+    root.make_all_asset_hrefs_relative()
+    root.save(pystac.CatalogType.SELF_CONTAINED)
+    return root_dir / "catalog.json", expected
+
+
+def item_json(root_dir: Path, hid: str, item_id: str) -> Path:
+    return root_dir / f"{hid}-heliostat-catalog" / f"{hid}-calibration-collection" / item_id / f"{item_id}.json"
+
+
+def edit_asset(root_dir: Path, hid: str, item_id: str, key: str, **fields) -> None:
+    p = item_json(root_dir, hid, item_id)
+    d = json.loads(p.read_text())
+    d["assets"][key].update(fields)
+    p.write_text(json.dumps(d))
+
+
+@pytest.fixture
+def catalogue(tmp_path):
+    root_json, expected = build_catalogue(tmp_path / "stac")
+    return root_json, expected
+
+
+@contextlib.contextmanager
+def serve(directory: Path, log: list | None = None):
+    """Static HTTP server on 127.0.0.1 (ephemeral port) in a thread; shut down on exit."""
+
+    class Handler(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):  # keep test output clean
+            pass
+
+        def do_GET(self):
+            if log is not None:
+                log.append(self.path)
+            super().do_GET()
+
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Handler, directory=str(directory)))
+    srv.daemon_threads = True
+    th = threading.Thread(target=srv.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
+    th.start()
+    try:
+        yield f"http://127.0.0.1:{srv.server_address[1]}"
+    finally:
+        srv.shutdown()
+        srv.server_close()
+        th.join(timeout=5)
+
+
+ALL_CAL = ("calibration_properties", "flux_image", "flux_centered_image")
+
+
+def files_under(out: Path) -> dict[str, bytes]:
+    return {
+        p.relative_to(out).as_posix(): p.read_bytes()
+        for p in out.rglob("*")
+        if p.is_file() and not p.name.startswith(".")
+    }
+
+
+# --------------------------------------------------------------------------- tests
+def test_fetch_from_path_writes_paint_layout(catalogue, tmp_path):
+    root_json, expected = catalogue
+    out = tmp_path / "out"
+    msgs: list[str] = []
+    rep = fetch_catalog(root_json, out, calibration_assets=ALL_CAL, progress=msgs.append)
+    assert rep.ok and rep.failed == () and rep.missing == ()
+    assert rep.heliostats == ("AA31", "BE36")
+    assert files_under(out) == expected  # byte-identical, PAINT layout, nothing else
+    assert "BE36/Calibration/118671-calibration-properties.json" in expected
+    assert len(rep.downloaded) == len(expected) and rep.skipped == ()
+    assert rep.bytes_downloaded == sum(len(b) for b in expected.values())
+    assert verify_download(out) == []
+    assert not list(out.rglob("*.part"))
+    assert any("[2/2] BE36" in m for m in msgs) and msgs[-1].startswith("done:")
+    # the folder named by the catalogue's own folder also works, and a second run skips all
+    rep2 = fetch_catalog(root_json.parent, out, calibration_assets=ALL_CAL)
+    assert rep2.downloaded == () and len(rep2.skipped) == len(expected)
+    rep3 = fetch_catalog(root_json.as_uri(), tmp_path / "out3", calibration_assets=ALL_CAL)  # file:// URL
+    assert rep3.ok and files_under(tmp_path / "out3") == expected
+
+
+def test_fetched_folder_matches_shared_layout(catalogue, tmp_path):
+    if not (SHARED / "BE36").is_dir():
+        pytest.skip(f"shared PAINT data not found at {SHARED}")
+    root_json, _ = catalogue
+    out = tmp_path / "out"
+    fetch_catalog(root_json, out, heliostats=["BE36"])
+    for rel in ("BE36/Properties/BE36-heliostat-properties.json", "BE36/Calibration/118671-calibration-properties.json",
+                "WRI1030197-tower-measurements.json"):
+        assert (out / rel).read_bytes() == (SHARED / rel).read_bytes()
+
+
+def test_fetch_over_http_with_filters(catalogue, tmp_path):
+    root_json, expected = catalogue
+    out = tmp_path / "out"
+    with serve(root_json.parent) as url:
+        rep = fetch_catalog(
+            f"{url}/catalog.json",
+            out,
+            heliostats=["AA31", "ZZ99"],
+            calibration_assets=("calibration_properties", "flux_image"),
+            start=dt.date(2022, 7, 1),
+            end=dt.date(2022, 7, 31),
+            max_items=1,
+            include_tower=False,
+        )
+    assert rep.missing == ("ZZ99",) and not rep.ok and rep.failed == ()
+    assert rep.heliostats == ("AA31",)
+    want = {
+        "AA31/Properties/AA31-heliostat-properties.json",
+        "AA31/Calibration/125284-calibration-properties.json",  # the earliest item only
+        "AA31/Calibration/125284-flux.png",
+    }
+    got = files_under(out)
+    assert set(got) == want
+    assert all(got[k] == expected[k] for k in want)
+
+
+def test_date_filter_excludes_items_but_keeps_properties(catalogue, tmp_path):
+    root_json, _ = catalogue
+    out = tmp_path / "out"
+    rep = fetch_catalog(root_json, out, heliostats=["AA31"], start=dt.datetime(2022, 7, 5), include_tower=False)
+    assert set(files_under(out)) == {
+        "AA31/Properties/AA31-heliostat-properties.json",
+        "AA31/Calibration/126372-calibration-properties.json",  # 2022-07-11 only
+    }
+    assert rep.ok
+
+
+class FailingTransport:
+    """Opens like the default, but fails every asset download after the first ``k``."""
+
+    def __init__(self, k: int, midstream: bool = False):
+        self.k, self.midstream, self.n, self.lock = k, midstream, 0, threading.Lock()
+
+    def __call__(self, href, timeout_s):
+        if href.endswith(("-calibration-properties.json", ".png")):
+            with self.lock:
+                self.n += 1
+                fail = self.n > self.k
+            if fail and not self.midstream:
+                raise ConnectionResetError("injected failure")
+            if fail:
+                return _BrokenStream(open(href, "rb"))
+        return open(href, "rb")
+
+
+class _BrokenStream(io.RawIOBase):
+    """Yields the first 10 bytes, then the connection 'drops'."""
+
+    def __init__(self, f):
+        self.f, self.sent = f, 0
+
+    def read(self, n=-1):
+        if self.sent >= 10:
+            self.f.close()
+            raise ConnectionResetError("injected drop mid-file")
+        data = self.f.read(10)
+        self.sent += len(data)
+        return data
+
+    def close(self):
+        self.f.close()
+        super().close()
+
+
+@pytest.mark.parametrize("midstream", [False, True])
+def test_interrupted_run_resumes(catalogue, tmp_path, midstream):
+    root_json, expected = catalogue
+    out = tmp_path / "out"
+    n_cal = sum(1 for k in expected if "/Calibration/" in k)
+    rep = fetch_catalog(root_json, out, calibration_assets=ALL_CAL, transport=FailingTransport(3, midstream),
+                        workers=3, retries=0)
+    assert len(rep.failed) == n_cal - 3 and not rep.ok
+    assert all("injected" in reason for _, reason in rep.failed)
+    got = files_under(out)
+    assert sum("/Calibration/" in k for k in got) == 3
+    assert all(got[k] == expected[k] for k in got)  # nothing half-written under a real name
+    assert not list(out.rglob("*.part"))
+    # A killed process can leave a stale temporary file and, from other tools, a truncated file.
+    aa_props = out / "AA31/Properties/AA31-heliostat-properties.json"  # AA31: no file:size/checksum
+    aa_props.write_bytes(expected["AA31/Properties/AA31-heliostat-properties.json"][:20])
+    stale = out / "AA31/Calibration/.125284-flux.png.abc123.part"
+    stale.write_bytes(b"partial")
+    rep2 = fetch_catalog(root_json, out, calibration_assets=ALL_CAL)
+    assert rep2.ok
+    assert len(rep2.downloaded) == n_cal - 3 + 1  # the failed ones + the truncated file
+    assert len(rep2.skipped) == len(expected) - len(rep2.downloaded)
+    assert files_under(out) == expected
+    assert not stale.exists()
+    assert verify_download(out) == []
+
+
+def test_transient_errors_are_retried(catalogue, tmp_path, monkeypatch):
+    import heliojax._stac as stac
+
+    monkeypatch.setattr(stac, "_BACKOFF_S", 0.0)
+    root_json, expected = catalogue
+    seen: set[str] = set()
+    lock = threading.Lock()
+
+    def flaky(href, timeout_s):  # every file fails once, then works
+        with lock:
+            first = href not in seen
+            seen.add(href)
+        if first:
+            raise TimeoutError("injected timeout")
+        return open(href, "rb")
+
+    out = tmp_path / "out"
+    rep = fetch_catalog(root_json, out, calibration_assets=ALL_CAL, transport=flaky, retries=1)
+    assert rep.ok and files_under(out) == expected
+    with pytest.raises(DataError, match="injected timeout"):
+        fetch_catalog(root_json, tmp_path / "out2", transport=lambda h, t: flaky(str(tmp_path / "x"), t), retries=0)
+
+
+def test_resume_redownloads_corrupted_file_with_checksum(catalogue, tmp_path):
+    root_json, expected = catalogue
+    out = tmp_path / "out"
+    fetch_catalog(root_json, out, heliostats=["BE36"])
+    target = out / "BE36/Calibration/118750-calibration-properties.json"
+    data = bytearray(target.read_bytes())
+    data[5] ^= 1  # same size, one bit off: only the checksum can tell
+    target.write_bytes(bytes(data))
+    assert any("SHA-256" in p for p in verify_download(out))
+    rep = fetch_catalog(root_json, out, heliostats=["BE36"])
+    assert [p.name for p in rep.downloaded] == ["118750-calibration-properties.json"]
+    assert target.read_bytes() == expected["BE36/Calibration/118750-calibration-properties.json"]
+    # --no-resume downloads everything again
+    rep = fetch_catalog(root_json, out, heliostats=["BE36"], resume=False)
+    assert rep.skipped == () and len(rep.downloaded) == 5
+
+
+def test_resume_over_http_requests_only_missing_files(catalogue, tmp_path):
+    root_json, expected = catalogue
+    out = tmp_path / "out"
+    log: list[str] = []
+    with serve(root_json.parent, log) as url:
+        fetch_catalog(f"{url}/catalog.json", out, calibration_assets=ALL_CAL)
+        (out / "AA31/Calibration/126372-flux.png").unlink()
+        log.clear()
+        rep = fetch_catalog(f"{url}/catalog.json", out, calibration_assets=ALL_CAL)
+    assets = [p for p in log if "/data/" in p]  # STAC JSON requests are not asset requests
+    assert [p.rsplit("/", 1)[-1] for p in assets] == ["126372-flux.png"]
+    assert len(log) > len(assets)  # the catalogue itself was read again
+    assert [p.name for p in rep.downloaded] == ["126372-flux.png"] and rep.ok
+
+
+def test_checksum_and_size_mismatch_detected(catalogue, tmp_path):
+    root_json, _ = catalogue
+    edit_asset(root_json.parent, "BE36", "118671", "calibration_properties", **{"file:checksum": "1220" + "00" * 32})
+    edit_asset(root_json.parent, "BE36", "118750", "calibration_properties", **{"file:size": 3})
+    out = tmp_path / "out"
+    rep = fetch_catalog(root_json, out, heliostats=["BE36"])
+    reasons = {href.rsplit("/", 1)[-1]: r for href, r in rep.failed}
+    assert set(reasons) == {"118671-calibration-properties.json", "118750-calibration-properties.json"}
+    assert "checksum mismatch" in reasons["118671-calibration-properties.json"]
+    assert "size" in reasons["118750-calibration-properties.json"]
+    assert not (out / "BE36/Calibration/118671-calibration-properties.json").exists()
+    assert not (out / "BE36/Calibration/118750-calibration-properties.json").exists()
+    assert (out / "BE36/Calibration/118826-calibration-properties.json").exists()
+    assert not list(out.rglob("*.part")) and not rep.ok
+
+
+def test_unreadable_item_is_reported_and_the_rest_fetched(catalogue, tmp_path):
+    root_json, expected = catalogue
+    p = item_json(root_json.parent, "BE36", "118750")
+    good = p.read_bytes()
+    p.write_bytes(b"{not json")
+    out = tmp_path / "out"
+    rep = fetch_catalog(root_json, out, heliostats=["BE36"])
+    assert len(rep.failed) == 1 and rep.failed[0][0].endswith("118750.json") and "not a JSON file" in rep.failed[0][1]
+    assert not rep.ok and len(rep.downloaded) == 4  # tower, properties, two calibration records
+    p.write_bytes(good)
+    rep = fetch_catalog(root_json, out, heliostats=["BE36"])
+    assert rep.ok and [q.name for q in rep.downloaded] == ["118750-calibration-properties.json"]
+
+
+def test_invalid_json_asset_is_not_kept(catalogue, tmp_path):
+    root_json, _ = catalogue
+    p = item_json(root_json.parent, "AA31", "125284").parent / "data" / "125284-calibration-properties.json"
+    p.write_bytes(b'{"truncated": ')
+    rep = fetch_catalog(root_json, tmp_path / "out", heliostats=["AA31"])
+    assert len(rep.failed) == 1 and "does not parse" in rep.failed[0][1]
+    assert not (tmp_path / "out/AA31/Calibration/125284-calibration-properties.json").exists()
+
+
+@pytest.mark.parametrize(
+    "href, message",
+    [
+        ("../../evil.json", "'..' segment"),
+        ("%2e%2e/%2e%2e/evil.json", "'..' segment"),
+        ("sub%2Fevil.json", "unsafe or empty file name"),
+        (".hidden.json", "unsafe or empty file name"),
+        ("ftp://example.org/evil.json", "not supported"),
+        ("file:///etc/hostname", "outside the catalogue folder"),
+        ("ABSOLUTE_OUTSIDE", "outside the catalogue folder"),
+    ],
+)
+def test_unsafe_hrefs_are_refused(catalogue, tmp_path, href, message):
+    root_json, _ = catalogue
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "evil.json").write_text("{}")
+    if href == "ABSOLUTE_OUTSIDE":
+        href = str(outside / "evil.json")
+    edit_asset(root_json.parent, "AA31", "126372", "calibration_properties", href=href)
+    out = tmp_path / "out"
+    with pytest.raises(DataError, match=message) as ei:
+        fetch_catalog(root_json, out, heliostats=["AA31"])
+    assert ei.value.field == "assets.calibration_properties.href"
+    assert ei.value.file.endswith("126372.json")
+    assert not (out / "AA31").exists()  # refused before anything of the heliostat was written
+    assert sorted(p.name for p in tmp_path.rglob("evil.json")) == ["evil.json"]
+
+
+def test_symlinked_source_leaving_catalogue_is_refused(catalogue, tmp_path):
+    root_json, _ = catalogue
+    secret = tmp_path / "secret.json"
+    secret.write_text('{"secret": 1}')
+    link_dir = item_json(root_json.parent, "AA31", "126372").parent
+    (link_dir / "data" / "linked.json").symlink_to(secret)
+    edit_asset(root_json.parent, "AA31", "126372", "calibration_properties", href="./data/linked.json")
+    with pytest.raises(DataError, match="outside the catalogue folder"):
+        fetch_catalog(root_json, tmp_path / "out", heliostats=["AA31"])
+
+
+def test_symlink_in_output_is_refused(catalogue, tmp_path):
+    root_json, _ = catalogue
+    out = tmp_path / "out"
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (out / "AA31").mkdir(parents=True)
+    (out / "AA31" / "Calibration").symlink_to(elsewhere, target_is_directory=True)
+    with pytest.raises(DataError, match="symbolic link"):
+        fetch_catalog(root_json, out, heliostats=["AA31"])
+    assert list(elsewhere.iterdir()) == []
+
+
+def test_remote_catalogue_may_not_point_at_local_files(catalogue, tmp_path):
+    root_json, _ = catalogue
+    local = tmp_path / "local.json"
+    local.write_text("{}")
+    edit_asset(root_json.parent, "AA31", "126372", "calibration_properties", href=local.as_uri())
+    with serve(root_json.parent) as url:
+        with pytest.raises(DataError, match="remote catalogue may not point at local files"):
+            fetch_catalog(f"{url}/catalog.json", tmp_path / "out", heliostats=["AA31"])
+
+
+def test_missing_catalogue_is_a_data_error(tmp_path):
+    with pytest.raises(DataError, match="not found"):
+        fetch_catalog(tmp_path / "nope.json", tmp_path / "out")
+    with serve(tmp_path) as url:
+        with pytest.raises(DataError, match="cannot read STAC file"):
+            fetch_catalog(f"{url}/nope.json", tmp_path / "out", retries=0)
+
+
+def _cli(argv):
+    parser = argparse.ArgumentParser(prog="heliojax")
+    fetch_cli.add_parser(parser.add_subparsers(dest="command", required=True))
+    return fetch_cli.run(parser.parse_args(argv))
+
+
+def test_cli(catalogue, tmp_path, capsys):
+    root_json, expected = catalogue
+    out = tmp_path / "out"
+    assert _cli(["fetch", str(root_json), "--out", str(out), "--assets", "all", "--start", "2022-01-01"]) == 0
+    err = capsys.readouterr().err
+    assert "[1/2] AA31" in err and "done:" in err
+    assert files_under(out) == expected
+    assert (out / JOURNAL_NAME).exists()
+    assert _cli(["fetch", str(root_json), "--out", str(out), "--heliostats", "BE36,XX01", "--quiet"]) == 1
+    assert "XX01" in capsys.readouterr().err
+    edit_asset(root_json.parent, "BE36", "118671", "calibration_properties", href="../../evil.json")
+    assert _cli(["fetch", str(root_json), "--out", str(out), "--no-resume", "--quiet"]) == 2
+    assert "path traversal" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        _cli(["fetch", str(root_json), "--out", str(out), "--start", "yesterday"])
+
+
+def test_downloaded_files_are_world_readable_per_umask(catalogue, tmp_path):
+    root_json, _ = catalogue
+    out = tmp_path / "out"
+    fetch_catalog(root_json, out, heliostats=["BE36"], include_tower=False)
+    mask = os.umask(0)
+    os.umask(mask)
+    mode = (out / "BE36/Properties/BE36-heliostat-properties.json").stat().st_mode & 0o777
+    assert mode == 0o666 & ~mask
+
+
+def _write_paint_style(site: Path, base: str, records: dict) -> dict[str, bytes]:
+    """The PAINT server's own naming: ``<base>/WRI1030197-catalog-stac.json`` etc., every
+    link and asset an absolute http URL (as on paint-database.org)."""
+    p = "WRI1030197"
+    stac_version = "1.0.0"
+
+    def link(rel, href):
+        return {"rel": rel, "href": f"{base}/{href}", "type": "application/geo+json"}
+
+    def put(rel_path, obj):
+        f = site / rel_path
+        f.parent.mkdir(parents=True, exist_ok=True)
+        f.write_bytes(obj if isinstance(obj, bytes) else json.dumps(obj).encode())
+
+    def catalog(cid, links):
+        return {"type": "Catalog", "stac_version": stac_version, "id": cid, "description": cid, "links": links}
+
+    def collection(cid, links):
+        return {
+            "type": "Collection", "stac_version": stac_version, "id": cid, "description": cid, "license": "CDLA-2.0",
+            "extent": {"spatial": {"bbox": [[6.38, 50.91, 6.39, 50.92]]},
+                       "temporal": {"interval": [["2021-01-01T00:00:00Z", None]]}},
+            "links": links,
+        }
+
+    def item(iid, when, assets, self_href):
+        return {
+            "type": "Feature", "stac_version": stac_version, "id": iid, "geometry": None,
+            "properties": {"datetime": when}, "links": [link("self", self_href)],
+            "assets": {k: {"href": f"{base}/{h}", "roles": ["data"]} for k, h in assets.items()},
+        }
+
+    expected: dict[str, bytes] = {}
+    put(f"{p}-tower-measurements.json", records["tower"])
+    expected[f"{p}-tower-measurements.json"] = records["tower"]
+    put(f"{p}-tower-measurements-item-stac.json",
+        item(f"{p}-tower-measurements", "2020-10-07T00:00:00Z", {"measurements": f"{p}-tower-measurements.json"},
+             f"{p}-tower-measurements-item-stac.json"))
+    root_links = [link("self", f"{p}-catalog-stac.json"), link("child", "Weather/weather-collection-stac.json"),
+                  link("child", f"{p}-tower-measurements-item-stac.json")]
+    rec = records["heliostats"]["BE36"]
+    h = "BE36"
+    root_links.append(link("child", f"{h}/{h}-heliostat-catalog-stac.json"))
+    put(f"{h}/{h}-heliostat-catalog-stac.json", catalog(f"{h}-heliostat-catalog", [
+        link("child", f"{h}/Deflectometry/{h}-deflectometry-collection-stac.json"),
+        link("child", f"{h}/Calibration/{h}-calibration-collection-stac.json"),
+        link("child", f"{h}/Properties/{h}-heliostat-properties-collection-stac.json"),
+    ]))
+    # properties
+    put(f"{h}/Properties/{h}-heliostat-properties.json", rec["properties"])
+    expected[f"{h}/Properties/{h}-heliostat-properties.json"] = rec["properties"]
+    put(f"{h}/Properties/{h}-heliostat-properties-item-stac.json",
+        item(f"{h}-heliostat-properties", "2021-01-01T00:00:00Z",
+             {"heliostat-properties": f"{h}/Properties/{h}-heliostat-properties.json"},
+             f"{h}/Properties/{h}-heliostat-properties-item-stac.json"))
+    put(f"{h}/Properties/{h}-heliostat-properties-collection-stac.json", collection(
+        f"{h}-heliostat-properties-collection",
+        [link("item", f"{h}/Properties/{h}-heliostat-properties-item-stac.json")]))
+    # calibration (raw images listed but not fetched by default)
+    cal_links = []
+    for cid, when, assets in rec["items"]:
+        name, data = assets["calibration_properties"]
+        put(f"{h}/Calibration/{name}", data)
+        put(f"{h}/Calibration/{cid}-raw.png", b"\x89PNG raw")
+        expected[f"{h}/Calibration/{name}"] = data
+        put(f"{h}/Calibration/{cid}-calibration-item-stac.json", item(
+            cid, when.strftime("%Y-%m-%dT%H:%M:%SZ"),
+            {"raw_image": f"{h}/Calibration/{cid}-raw.png", "calibration_properties": f"{h}/Calibration/{name}"},
+            f"{h}/Calibration/{cid}-calibration-item-stac.json"))
+        cal_links.append(link("item", f"{h}/Calibration/{cid}-calibration-item-stac.json"))
+    put(f"{h}/Calibration/{h}-calibration-collection-stac.json",
+        collection(f"{h}-calibration-collection", cal_links))
+    # deflectometry
+    h5 = f"{h}-2023-09-18Z08-32-29Z-deflectometry.h5"
+    put(f"{h}/Deflectometry/{h5}", b"\x89HDF\r\n\x1a\n" + bytes(64))
+    expected[f"{h}/Deflectometry/{h5}"] = b"\x89HDF\r\n\x1a\n" + bytes(64)
+    put(f"{h}/Deflectometry/{h}-defl-item-stac.json", item(
+        f"{h}-2023-09-18Z08-32-29Z", "2023-09-18T08:32:29Z", {"raw_measurement": f"{h}/Deflectometry/{h5}"},
+        f"{h}/Deflectometry/{h}-defl-item-stac.json"))
+    put(f"{h}/Deflectometry/{h}-deflectometry-collection-stac.json", collection(
+        f"{h}-deflectometry-collection", [link("item", f"{h}/Deflectometry/{h}-defl-item-stac.json")]))
+    put(f"{p}-catalog-stac.json", catalog(f"{p}-catalog", root_links))
+    return expected
+
+
+def test_paint_style_catalogue_with_absolute_urls(tmp_path):
+    site = tmp_path / "site"
+    site.mkdir()
+    log: list[str] = []
+    with serve(site, log) as url:
+        base = f"{url}/WRI1030197"
+        expected = _write_paint_style(site / "WRI1030197", base, _source_records())
+        out = tmp_path / "out"
+        rep = fetch_catalog(f"{base}/WRI1030197-catalog-stac.json", out,
+                            collections=("properties", "calibration", "deflectometry"))
+    assert rep.ok and rep.heliostats == ("BE36",)
+    assert files_under(out) == expected  # no raw images, PAINT layout, tower at the root
+    assert not any("weather" in p for p in log)  # the weather collection is never read
+
