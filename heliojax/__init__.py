@@ -1,0 +1,111 @@
+"""heliojax: a JAX-based, purely functional digital twin of a heliostat field.
+
+Conventions (ENU metres, radians inside, PAINT azimuth 0 = south positive east)
+are written down once, in :mod:`heliojax._geometry`. Precision-critical code
+(geodesy, calibration) needs float64: call
+``jax.config.update("jax_enable_x64", True)`` before use (the CLI does; the
+library never flips global flags at import).
+"""
+
+from __future__ import annotations
+
+__version__ = "0.1.0"
+
+from ._calibration import (
+    ACTUATOR as ACTUATOR,
+    DEFAULT_WEAK_PRIOR as DEFAULT_WEAK_PRIOR,
+    STONE8 as STONE8,
+    CalibrationData as CalibrationData,
+    FitConfig as FitConfig,
+    FitResult as FitResult,
+    FitStatus as FitStatus,
+    ModelSpec as ModelSpec,
+    beam_errors_mrad as beam_errors_mrad,
+    choose_start_geometry as choose_start_geometry,
+    default_strategy as default_strategy,
+    fit_fleet as fit_fleet,
+    fleet_beam_errors_mrad as fleet_beam_errors_mrad,
+    model_spec as model_spec,
+    nominal_models as nominal_models,
+)
+from ._errors import ConfigError as ConfigError, DataError as DataError, HeliojaxError as HeliojaxError
+from ._fleet import (
+    Fleet as Fleet,
+    LoadReport as LoadReport,
+    bucket_size as bucket_size,
+    default_data_dir as default_data_dir,
+    fleet_subset as fleet_subset,
+    load_paint_directory as load_paint_directory,
+    load_weather_csv_fleet as load_weather_csv_fleet,
+    pad_fleet as pad_fleet,
+    records_to_fleet as records_to_fleet,
+)
+from ._geometry import (
+    PlaneHit as PlaneHit,
+    TargetPlane as TargetPlane,
+    angle_between as angle_between,
+    direction_to_azimuth_elevation as direction_to_azimuth_elevation,
+    ecef_to_wgs84 as ecef_to_wgs84,
+    enu_to_wgs84 as enu_to_wgs84,
+    intersect_plane as intersect_plane,
+    reflect as reflect,
+    sun_direction as sun_direction,
+    wgs84_to_ecef as wgs84_to_ecef,
+    wgs84_to_enu as wgs84_to_enu,
+)
+from ._kinematics import (
+    AbstractKinematicModel as AbstractKinematicModel,
+    ActuatorModel as ActuatorModel,
+    HeliostatGeometry as HeliostatGeometry,
+    LinearActuators as LinearActuators,
+    Pose as Pose,
+    RecordContext as RecordContext,
+    StoneModel as StoneModel,
+    beam_error_components as beam_error_components,
+    beam_pointing_error as beam_pointing_error,
+    forward as forward,
+    inverse_aim as inverse_aim,
+    inverse_normal as inverse_normal,
+    measured_normal as measured_normal,
+    reflected_ray as reflected_ray,
+    target_miss_distance as target_miss_distance,
+)
+from ._paint import (
+    CalibrationRecord as CalibrationRecord,
+    HeliostatProperties as HeliostatProperties,
+    TowerFile as TowerFile,
+    read_calibration_record as read_calibration_record,
+    read_heliostat_properties as read_heliostat_properties,
+    read_tower as read_tower,
+    write_paint_directory as write_paint_directory,
+)
+from ._simulate import (
+    SimulatedRecords as SimulatedRecords,
+    approach_directions as approach_directions,
+    calibration_target as calibration_target,
+    random_stone_models as random_stone_models,
+    simulate_records as simulate_records,
+    synthetic_contexts as synthetic_contexts,
+    synthetic_geometry as synthetic_geometry,
+)
+from ._splits import (
+    SPLIT_NAMES as SPLIT_NAMES,
+    FleetSplit as FleetSplit,
+    SplitResult as SplitResult,
+    split_fleet as split_fleet,
+    split_records as split_records,
+)
+from ._stac import FetchReport as FetchReport, fetch_catalog as fetch_catalog, verify_download as verify_download
+from ._sun import (
+    SolarPosition as SolarPosition,
+    datetime_to_unix as datetime_to_unix,
+    julian_day as julian_day,
+    solar_position as solar_position,
+)
+from ._workflow import (
+    CalibrationRun as CalibrationRun,
+    calibrate as calibrate,
+    read_results_h5 as read_results_h5,
+    write_results_h5 as write_results_h5,
+    write_summary as write_summary,
+)

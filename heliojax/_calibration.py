@@ -38,10 +38,8 @@ from ._kinematics import (
     AbstractKinematicModel,
     ActuatorModel,
     HeliostatGeometry,
+    RecordContext,
     StoneModel,
-    beam_error_components,
-    beam_pointing_error,
-    forward,
 )
 
 # --------------------------------------------------------------------------------------
@@ -75,11 +73,15 @@ class ModelSpec:
     """How a model's parameters map to the solver's scaled vector.
 
     Attributes:
-        kind: ``"stone8"`` or ``"actuator"``.
+        kind: model name (``"stone8"``, ``"actuator"``, or a base name with effects
+            such as ``"stone8+backlash"``).
         names: all parameter names of the model, in vector order.
         scales: physical units per unit of the scaled vector, per name.
-        free: names that are fitted (the rest stay at their nominal values).
+        free: names that are fitted (the rest stay at their start values).
         units: unit label per name (for reports).
+        nominal: nominal (uncalibrated) physical value per name.
+        builder: ``builder(p) -> model`` from the physical vector ``p`` (a module-level,
+            hashable function: the spec is a static argument of compiled fits).
     """
 
     kind: str
@@ -87,11 +89,16 @@ class ModelSpec:
     scales: tuple[float, ...]
     free: tuple[str, ...]
     units: tuple[str, ...]
+    nominal: tuple[float, ...]
+    builder: typing.Callable[[Float[Array, " P"]], AbstractKinematicModel]
 
     def __post_init__(self):
         unknown = set(self.free) - set(self.names)
         if unknown:
             raise ValueError(f"unknown parameters {sorted(unknown)} for model {self.kind!r}")
+        n = len(self.names)
+        if not (len(self.scales) == len(self.units) == len(self.nominal) == n):
+            raise ValueError("ModelSpec: names, scales, units and nominal must have equal lengths")
 
     @property
     def free_index(self) -> tuple[int, ...]:
@@ -103,34 +110,34 @@ class ModelSpec:
 
     def nominal_vector(self, dtype=jnp.float64) -> Float[Array, " P"]:
         """Physical values of all parameters of the nominal model."""
-        return self.model_to_physical(self.nominal_model(dtype))
+        return jnp.asarray(self.nominal, dtype)
 
     def nominal_model(self, dtype=jnp.float64) -> AbstractKinematicModel:
-        return (StoneModel if self.kind == "stone8" else ActuatorModel).nominal(dtype)
+        return self.builder(self.nominal_vector(dtype))
 
     def physical_to_model(self, p: Float[Array, " P"]) -> AbstractKinematicModel:
-        if self.kind == "stone8":
-            return StoneModel(*[p[i] for i in range(8)])
-        return ActuatorModel(
-            alpha=p[0], beta=p[1], gamma=p[2], delta=p[3],
-            angle_offset=p[4:6], increment_scale=p[6:8], stroke_offset=p[8:10],
-        )
-
-    def model_to_physical(self, model: AbstractKinematicModel) -> Float[Array, " P"]:
-        if self.kind == "stone8":
-            return jnp.stack([jnp.asarray(getattr(model, n)) for n in self.names])
-        m = typing.cast(ActuatorModel, model)
-        return jnp.concatenate(
-            [jnp.stack([m.alpha, m.beta, m.gamma, m.delta]), m.angle_offset, m.increment_scale, m.stroke_offset]
-        )
+        return self.builder(p)
 
     def scaled_to_physical(self, y: Float[Array, " F"], base: Float[Array, " P"]) -> Float[Array, " P"]:
         scales = jnp.asarray(self.scales, base.dtype)
-        idx = jnp.asarray(self.free_index)
+        idx = jnp.asarray(self.free_index, dtype=jnp.int32)
         return base.at[idx].add(y * scales[idx])
 
     def scaled_to_model(self, y, base) -> AbstractKinematicModel:
         return self.physical_to_model(self.scaled_to_physical(y, base))
+
+
+def build_stone_model(p: Float[Array, " 8"]) -> StoneModel:
+    """:class:`StoneModel` from ``(alpha, beta, gamma, delta, theta_k, tau_k, gr1, gr2)``."""
+    return StoneModel(*[p[i] for i in range(8)])
+
+
+def build_actuator_model(p: Float[Array, " 10"]) -> ActuatorModel:
+    """:class:`ActuatorModel` from its 10-vector (order ``ActuatorModel.PARAM_NAMES``)."""
+    return ActuatorModel(
+        alpha=p[0], beta=p[1], gamma=p[2], delta=p[3],
+        angle_offset=p[4:6], increment_scale=p[6:8], stroke_offset=p[8:10],
+    )
 
 
 STONE8 = ModelSpec(
@@ -139,6 +146,8 @@ STONE8 = ModelSpec(
     scales=(1e-3,) * 6 + (1e-3, 1e-3),
     free=StoneModel.PARAM_NAMES,
     units=("rad",) * 6 + ("1", "1"),
+    nominal=(0.0,) * 6 + (1.0, 1.0),
+    builder=build_stone_model,
 )
 """The eight Stone parameters, all fitted."""
 
@@ -148,6 +157,8 @@ ACTUATOR = ModelSpec(
     scales=(1e-3,) * 6 + (1e-3, 1e-3) + (1e-3, 1e-3),
     free=ActuatorModel.PARAM_NAMES[:8],
     units=("rad",) * 6 + ("1", "1") + ("m", "m"),
+    nominal=(0.0,) * 10,
+    builder=build_actuator_model,
 )
 """The linear-actuator model: four chain tilts, two angle offsets and two increment
 scales fitted (the identifiable set); the two stroke offsets are nearly collinear
@@ -155,9 +166,11 @@ with the angle offsets and increment scales over a calibration's range and stay
 nominal unless freed (with a prior)."""
 
 
-def model_spec(kind: str, free: typing.Sequence[str] | None = None) -> ModelSpec:
+def model_spec(kind: "str | ModelSpec", free: typing.Sequence[str] | None = None) -> ModelSpec:
     """The :class:`ModelSpec` of ``"stone8"`` or ``"actuator"``, optionally with a
     different set of free parameters."""
+    if isinstance(kind, ModelSpec):
+        return kind if free is None else dataclasses.replace(kind, free=tuple(free))
     base = {"stone8": STONE8, "actuator": ACTUATOR}.get(kind)
     if base is None:
         raise ValueError(f"unknown model {kind!r}; expected 'stone8' or 'actuator'")
@@ -231,16 +244,20 @@ class CalibrationData(eqx.Module):
     Attributes:
         geometry: batched :class:`HeliostatGeometry`.
         counts: ``(H, M, 2)`` motor counts.
-        sun: ``(H, M, 3)`` unit vectors to the sun.
+        context: batched ``(H, M)`` :class:`RecordContext` (sun, time, weather).
         focal_spot: ``(H, M, 3)`` ENU m.
         mask: ``(H, M)`` records to use.
     """
 
     geometry: HeliostatGeometry
     counts: Float[Array, "H M 2"]
-    sun: Float[Array, "H M 3"]
+    context: RecordContext
     focal_spot: Float[Array, "H M 3"]
     mask: Bool[Array, "H M"]
+
+    @property
+    def sun(self) -> Float[Array, "H M 3"]:
+        return self.context.sun
 
     @classmethod
     def from_fleet(cls, fleet, mask=None) -> "CalibrationData":
@@ -250,39 +267,50 @@ class CalibrationData(eqx.Module):
         return cls(
             geometry=fleet.geometry,
             counts=fleet.counts,
-            sun=fleet.context.sun,
+            context=fleet.context,
             focal_spot=fleet.focal_spot,
             mask=m,
         )
 
 
-def _finite_record(counts, sun, focal):
+def _finite_record(counts, context, focal):
     return (
-        jnp.all(jnp.isfinite(counts), -1) & jnp.all(jnp.isfinite(sun), -1) & jnp.all(jnp.isfinite(focal), -1)
+        jnp.all(jnp.isfinite(counts), -1)
+        & jnp.all(jnp.isfinite(context.sun), -1)
+        & jnp.all(jnp.isfinite(focal), -1)
     )
 
 
-def _sanitise(geometry, counts, sun, focal, mask):
+def _sanitise(geometry, counts, context, focal, mask):
     """Replace masked or non-finite records by a harmless dummy (mid-range counts,
-    sun in the south, spot 100 m south) so no NaN reaches values or gradients."""
-    finite = _finite_record(counts, sun, focal)
+    sun in the south, spot 100 m south, weather NaN -> 0 there) so no NaN reaches
+    values or gradients. Weather of *used* records stays as it is (NaN = unknown;
+    effects that need it treat NaN themselves)."""
+    finite = _finite_record(counts, context, focal)
     use = mask & finite
     act = geometry.actuators
     mid = 0.5 * (act.min_counts + act.max_counts)
-    dummy_sun = jnp.asarray([0.0, -0.7071067811865476, 0.7071067811865476], sun.dtype)
-    dummy_focal = geometry.position + jnp.asarray([0.0, -100.0, 30.0], focal.dtype)
+    dtype = counts.dtype
+    dummy_sun = jnp.asarray([0.0, -0.7071067811865476, 0.7071067811865476], dtype)
+    dummy_focal = geometry.position + jnp.asarray([0.0, -100.0, 30.0], dtype)
     counts = jnp.where(use[:, None], counts, mid)
-    sun = jnp.where(use[:, None], sun, dummy_sun)
     focal = jnp.where(use[:, None], focal, dummy_focal)
+
+    def fix(x):
+        u = use.reshape(use.shape + (1,) * (x.ndim - 1))
+        return jnp.where(u, x, jnp.zeros_like(x))
+
+    context = jax.tree_util.tree_map(fix, context)
+    context = eqx.tree_at(lambda c: c.sun, context, jnp.where(use[:, None], context.sun, dummy_sun))
     bad_input = jnp.any(mask & ~finite)
-    return counts, sun, focal, use, bad_input
+    return counts, context, focal, use, bad_input
 
 
-def _record_residuals(model, geometry, counts, sun, focal):
-    def one(c, s, f):
-        return beam_error_components(forward(model, geometry, c), s, f)
+def _record_residuals(model, geometry, counts, context, focal):
+    def one(c, x, f):
+        return model.beam_components(geometry, c, x, f)
 
-    return jax.vmap(one)(counts, sun, focal)
+    return jax.vmap(one)(counts, context, focal)
 
 
 @typing.final
@@ -297,7 +325,7 @@ class FitResult(eqx.Module):
         n_steps: ``(H,)`` LM steps taken.
         n_used: ``(H,)`` records used.
         rms_mrad: ``(H,)`` RMS beam pointing error over the fitted records.
-        start_cost, final_cost: ``(H,)`` 0.5 * sum of squared residuals (mrad^2).
+        final_cost: ``(H,)`` 0.5 * sum of squared residuals (mrad^2, priors included).
         spec: the :class:`ModelSpec` (static).
     """
 
@@ -307,7 +335,6 @@ class FitResult(eqx.Module):
     n_steps: Int[Array, " H"]
     n_used: Int[Array, " H"]
     rms_mrad: Float[Array, " H"]
-    start_cost: Float[Array, " H"]
     final_cost: Float[Array, " H"]
     spec: ModelSpec = eqx.field(static=True)
 
@@ -323,8 +350,19 @@ class FitResult(eqx.Module):
         return [FitStatus(int(s)).label for s in np.asarray(self.status)]
 
 
-def _fit_one(spec: ModelSpec, config: FitConfig, base, geometry, counts, sun, focal, mask):
-    counts, sun, focal, use, bad_input = _sanitise(geometry, counts, sun, focal, mask)
+def _psd_inverse(a):
+    """Inverse of a symmetric positive semi-definite matrix via a Jacobi-scaled
+    Cholesky factorisation; NaN where it is singular."""
+    d = jnp.sqrt(jnp.clip(jnp.diag(a), 1e-300))
+    scaled = a / d[:, None] / d[None, :]
+    chol = jnp.linalg.cholesky(scaled)
+    eye = jnp.eye(a.shape[0], dtype=a.dtype)
+    inv_l = jax.scipy.linalg.solve_triangular(chol, eye, lower=True)
+    return (inv_l.T @ inv_l) / d[:, None] / d[None, :]
+
+
+def _fit_one(spec: ModelSpec, config: FitConfig, base, geometry, counts, context, focal, mask):
+    counts, context, focal, use, bad_input = _sanitise(geometry, counts, context, focal, mask)
     dtype = counts.dtype
     n_used = jnp.sum(use)
     prior_names = tuple(n for n, _ in config.prior_sigma if n in spec.names)
@@ -334,7 +372,7 @@ def _fit_one(spec: ModelSpec, config: FitConfig, base, geometry, counts, sun, fo
 
     def residual_fn(y, _):
         model = spec.scaled_to_model(y, base)
-        r = _record_residuals(model, geometry, counts, sun, focal) * 1e3
+        r = _record_residuals(model, geometry, counts, context, focal) * 1e3
         r = jnp.where(use[:, None], r, 0.0).reshape(-1)
         if prior_names:
             p = spec.scaled_to_physical(y, base)
@@ -346,19 +384,20 @@ def _fit_one(spec: ModelSpec, config: FitConfig, base, geometry, counts, sun, fo
     solver = optx.LevenbergMarquardt(rtol=config.rtol, atol=config.atol)
     sol = optx.least_squares(residual_fn, solver, y0, max_steps=config.max_steps, throw=False)
     y = sol.value
-    r0 = residual_fn(y0, None)
-    r1 = residual_fn(y, None)
-    start_cost = 0.5 * jnp.sum(r0**2)
+    # Residuals and Jacobian at the accepted point come from the solver's state
+    # (evaluating them again would inline the whole forward graph once more).
+    r1 = sol.state.f_info.residual
     final_cost = 0.5 * jnp.sum(r1**2)
 
     # Gauss-Newton covariance of the free parameters (scaled units -> physical).
-    jac = jax.jacfwd(residual_fn)(y, None)
+    # The solver's own linearisation at the accepted point (no second Jacobian).
+    jac = sol.state.f_info.jac.as_matrix()
     jtj = jac.T @ jac
     n_res = 2 * n_used
     dof = jnp.maximum(n_res - spec.n_free, 1)
     data_r = r1[: 2 * counts.shape[0]]
     sigma2 = jnp.sum(data_r**2) / dof
-    cov = jnp.linalg.pinv(jtj, hermitian=True) * sigma2
+    cov = _psd_inverse(jtj) * sigma2
     scales = jnp.asarray(spec.scales, dtype)[jnp.asarray(spec.free_index)]
     std_free = jnp.sqrt(jnp.clip(jnp.diag(cov), 0.0)) * scales
     std = jnp.zeros_like(base).at[jnp.asarray(spec.free_index)].set(std_free)
@@ -391,7 +430,6 @@ def _fit_one(spec: ModelSpec, config: FitConfig, base, geometry, counts, sun, fo
         n_steps=sol.stats["num_steps"].astype(jnp.int32),
         n_used=n_used.astype(jnp.int32),
         rms_mrad=rms,
-        start_cost=start_cost,
         final_cost=final_cost,
     )
 
@@ -410,7 +448,7 @@ def _batched(fn, strategy: str, chunk_size: int):
 def _fit_compiled(spec, config, strategy, base, data: CalibrationData):
     fn = lambda b, g, c, s, f, m: _fit_one(spec, config, b, g, c, s, f, m)  # noqa: E731
     out = _batched(fn, strategy, config.chunk_size)(
-        base, data.geometry, data.counts, data.sun, data.focal_spot, data.mask
+        base, data.geometry, data.counts, data.context, data.focal_spot, data.mask
     )
     return out
 
@@ -452,28 +490,24 @@ def fit_fleet(
 
 @eqx.filter_jit
 def beam_errors_mrad(
-    models: AbstractKinematicModel, geometry: HeliostatGeometry, counts, sun, focal, mask
+    models: AbstractKinematicModel, geometry: HeliostatGeometry, counts, context: RecordContext, focal, mask
 ) -> Float[Array, "H M"]:
-    """Beam pointing error (mrad) of every record under batched ``models``; NaN
-    where ``mask`` is False or an input is non-finite."""
+    """Beam pointing error (mrad) of every record ``(H, M)`` under batched
+    ``models``; NaN where ``mask`` is False or an input is non-finite."""
 
-    def per_heliostat(model, g, c, s, f, m):
-        c2, s2, f2, use, _ = _sanitise(g, c, s, f, m)
-
-        def one(ci, si, fi):
-            return beam_pointing_error(forward(model, g, ci), si, fi)
-
-        e = jax.vmap(one)(c2, s2, f2) * 1e3
+    def per_heliostat(model, g, c, x, f, m):
+        c2, x2, f2, use, _ = _sanitise(g, c, x, f, m)
+        e = jax.vmap(lambda ci, xi, fi: model.beam_error(g, ci, xi, fi))(c2, x2, f2) * 1e3
         return jnp.where(use, e, jnp.nan)
 
-    return jax.vmap(per_heliostat)(models, geometry, counts, sun, focal, mask)
+    return jax.vmap(per_heliostat)(models, geometry, counts, context, focal, mask)
 
 
 def fleet_beam_errors_mrad(result_or_models, fleet, mask=None) -> Float[Array, "H M"]:
     """Per-record beam error (mrad) of a fitted fleet (NaN outside ``mask``)."""
     models = result_or_models.models() if isinstance(result_or_models, FitResult) else result_or_models
     m = fleet.mask if mask is None else (jnp.asarray(mask) & fleet.mask)
-    return beam_errors_mrad(models, fleet.geometry, fleet.counts, fleet.context.sun, fleet.focal_spot, m)
+    return beam_errors_mrad(models, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, m)
 
 
 def nominal_models(spec: ModelSpec | str, n: int, dtype=jnp.float64) -> AbstractKinematicModel:
@@ -521,8 +555,8 @@ def choose_start_geometry(fleet, spec: ModelSpec | str = "stone8"):
         fleet.geometry.concentrator_translation,
     )
     models = nominal_models(spec, h, fleet.counts.dtype)
-    e_own = beam_errors_mrad(models, fleet.geometry, fleet.counts, fleet.context.sun, fleet.focal_spot, fleet.mask)
-    e_alt = beam_errors_mrad(models, alt, fleet.counts, fleet.context.sun, fleet.focal_spot, fleet.mask)
+    e_own = beam_errors_mrad(models, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, fleet.mask)
+    e_alt = beam_errors_mrad(models, alt, fleet.counts, fleet.context, fleet.focal_spot, fleet.mask)
     med_own = np.nanmedian(np.where(np.isfinite(e_own), e_own, np.nan), axis=1) if has.any() else None
     med_alt = np.nanmedian(np.where(np.isfinite(e_alt), e_alt, np.nan), axis=1)
     med_own = np.where(np.isnan(med_own), np.inf, med_own)
@@ -547,6 +581,8 @@ __all__ = [
     "FitStatus",
     "ModelSpec",
     "beam_errors_mrad",
+    "build_actuator_model",
+    "build_stone_model",
     "choose_start_geometry",
     "default_strategy",
     "fit_fleet",

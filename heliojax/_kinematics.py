@@ -296,6 +296,34 @@ class AbstractKinematicModel(eqx.Module):
         del context
         return chain_pose(self.tilts(), self.joint_angles(geometry, counts), geometry)
 
+    def sun(self, geometry: HeliostatGeometry, context: RecordContext) -> Float[Array, "3"]:
+        """The sun direction the model believes in for a record (effects such as a
+        clock error or refraction override it); default: the recorded one."""
+        del geometry
+        return context.sun
+
+    def beam_components(
+        self,
+        geometry: HeliostatGeometry,
+        counts: Float[Array, "2"],
+        context: RecordContext,
+        focal_spot: Float[Array, "3"],
+    ) -> Float[Array, "2"]:
+        """Tangent-plane beam error components (rad) of one record under this model:
+        the calibration residual. Effects that move the measured spot (target survey
+        errors) override this."""
+        return beam_error_components(self.pose(geometry, counts, context), self.sun(geometry, context), focal_spot)
+
+    def beam_error(
+        self,
+        geometry: HeliostatGeometry,
+        counts: Float[Array, "2"],
+        context: RecordContext,
+        focal_spot: Float[Array, "3"],
+    ) -> Float[Array, ""]:
+        """Beam pointing error (rad) of one record under this model."""
+        return beam_pointing_error(self.pose(geometry, counts, context), self.sun(geometry, context), focal_spot)
+
 
 def _chain_rotations(tilts, angles):
     alpha, beta, gamma, delta = tilts[0], tilts[1], tilts[2], tilts[3]

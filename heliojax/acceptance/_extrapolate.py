@@ -131,7 +131,8 @@ def fit_kde(
     x = x[np.isfinite(x)]
     if x.size < 2:
         raise ValueError(f"a KDE needs at least 2 values, got {x.size}")
-    y = _forward(x, support)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        y = _forward(x, support)
     if not np.all(np.isfinite(y)):
         raise ValueError(f"values outside the {support!r} support")
     if np.ptp(y) == 0:  # all equal: widen by a tiny relative jitter

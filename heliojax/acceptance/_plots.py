@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 from scipy import spatial
 
-from ._clusters import ClusterResult
 from ._extrapolate import Extrapolation
 from ._yield import YieldResult
 

@@ -1,0 +1,395 @@
+"""The calibration job: split, fit, evaluate, summarise, write (library side of
+``heliojax calibrate``).
+
+``results.h5`` schema (all datasets per heliostat ``H`` / record ``M``, padded):
+
+* attrs: ``model``, ``split``, ``heliojax_version``, ``param_names`` (JSON list),
+  ``param_units`` (JSON list)
+* ``heliostat_ids`` ``(H,)`` str
+* ``params`` ``(H, P)`` float64, physical units (rad, 1, m), order ``param_names``
+* ``param_std`` ``(H, P)`` float64, Gauss-Newton standard errors
+* ``status`` ``(H,)`` int32 (:class:`heliojax.FitStatus`), ``status_labels`` ``(H,)`` str
+* ``start_geometry`` ``(H,)`` str: ``"nominal"`` or ``"fleet_typical"``
+* ``record_id`` ``(H, M)`` int64 (-1 = padding)
+* ``split`` ``(H, M)`` int8: 0 unused/padding, 1 train, 2 validation, 3 test
+* ``residual_mrad`` ``(H, M, 2)`` float64: tangent-plane beam error components
+  after calibration (NaN where no record)
+* ``beam_error_mrad`` ``(H, M)`` after calibration; ``beam_error_uncalibrated_mrad``
+  ``(H, M)`` with the nominal model
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._calibration import (
+    CalibrationData,
+    FitConfig,
+    FitResult,
+    FitStatus,
+    ModelSpec,
+    _fit_compiled,
+    _record_residuals,
+    _sanitise,
+    beam_errors_mrad,
+    choose_start_geometry,
+    default_strategy,
+    model_spec,
+    nominal_models,
+)
+from ._geometry import direction_to_azimuth_elevation
+from ._io import atomic_path, atomic_write
+
+SPLIT_CODES = {"unused": 0, "train": 1, "validation": 2, "test": 3}
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibrationRun:
+    """Everything one calibration job produced.
+
+    Attributes:
+        fleet: the (padded) fleet that was fitted (geometry possibly replaced by
+            the fleet-typical start for some heliostats, see ``start_replaced``).
+        spec: model specification.
+        split_kind: name of the split.
+        train_mask, val_mask, test_mask: ``(H, M)`` boolean masks.
+        result: the :class:`FitResult`.
+        errors_mrad: ``(H, M)`` beam error after calibration (NaN where no record).
+        uncalibrated_mrad: ``(H, M)`` beam error with the nominal model.
+        residuals_mrad: ``(H, M, 2)`` error components after calibration.
+        start_replaced: ``(H,)`` heliostats started from fleet-typical actuators.
+        too_few: heliostat id -> reason, from the split.
+        summary: the ``summary.json`` content.
+        test_fleet: the fleet evaluated for test errors when ``--test-data`` was given.
+    """
+
+    fleet: object
+    spec: ModelSpec
+    split_kind: str
+    train_mask: np.ndarray
+    val_mask: np.ndarray
+    test_mask: np.ndarray
+    result: FitResult
+    errors_mrad: np.ndarray
+    uncalibrated_mrad: np.ndarray
+    residuals_mrad: np.ndarray
+    start_replaced: np.ndarray
+    too_few: dict
+    summary: dict
+    test_errors_mrad: np.ndarray | None = None
+    test_uncalibrated_mrad: np.ndarray | None = None
+
+
+def _stats(x: np.ndarray) -> tuple[float, float]:
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return float("nan"), float("nan")
+    return float(np.median(x)), float(np.sqrt(np.mean(x**2)))
+
+
+def _json_float(x: float) -> float | None:
+    return None if not np.isfinite(x) else float(x)
+
+
+def _residuals_mrad(models, fleet, mask):
+    def per(model, g, c, x, f, m):
+        c2, x2, f2, use, _ = _sanitise(g, c, x, f, m)
+        r = _record_residuals(model, g, c2, x2, f2) * 1e3
+        return jnp.where(use[:, None], r, jnp.nan)
+
+    return jax.jit(jax.vmap(per))(models, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, mask)
+
+
+def calibrate(
+    fleet,
+    *,
+    model: str | ModelSpec = "stone8",
+    split: str = "time",
+    n_train: int | None = None,
+    n_val: int = 0,
+    train_fraction: float | None = 0.7,
+    seed: int = 42,
+    config: FitConfig = FitConfig(),
+    test_fleet=None,
+    start: str = "auto",
+    progress: Callable[[str], None] | None = None,
+) -> CalibrationRun:
+    """Split each heliostat's records, fit the model on the training records of all
+    heliostats at once, and evaluate on the held-out ones.
+
+    Args:
+        fleet: a :class:`heliojax.Fleet` (unpadded or padded).
+        model: ``"stone8"``, ``"actuator"`` or a :class:`ModelSpec`.
+        split: one of :data:`heliojax.SPLIT_NAMES`.
+        n_train, n_val, train_fraction, seed: split sizes (``n_train`` wins over
+            ``train_fraction``; PAINT's splits need ``n_train``).
+        config: solver settings.
+        test_fleet: evaluate on this fleet's records (same heliostat ids) instead of
+            the split's test records; then all of ``fleet``'s records may train.
+        start: ``"auto"`` (per heliostat the better of nominal / fleet-typical
+            actuators, see :func:`heliojax.choose_start_geometry`) or ``"nominal"``.
+        progress: callback for progress messages.
+    """
+    from ._fleet import bucket_size, pad_fleet
+    from ._splits import split_fleet
+
+    say = progress or (lambda _msg: None)
+    spec = model_spec(model) if isinstance(model, str) else model
+    n_real = len(fleet.ids)
+    ids = list(fleet.ids)
+    az, el = direction_to_azimuth_elevation(fleet.context.sun)
+    if test_fleet is not None:
+        train = np.asarray(fleet.mask).copy()
+        val = np.zeros_like(train)
+        test = np.zeros_like(train)
+        too_few = {}
+    else:
+        kw = dict(n_train=n_train, n_val=n_val, seed=seed)
+        if n_train is None:
+            kw["train_fraction"] = train_fraction
+        fs = split_fleet(
+            split, np.asarray(az), np.asarray(el), np.asarray(fleet.context.unix_time), ids,
+            valid=np.asarray(fleet.mask), **kw,
+        )
+        train, val, test = np.asarray(fs.train_mask), np.asarray(fs.val_mask), np.asarray(fs.test_mask)
+        too_few = dict(fs.too_few)
+
+    h_pad = bucket_size(fleet.counts.shape[0])
+    m_pad = bucket_size(fleet.counts.shape[1])
+    padded = pad_fleet(fleet, n_heliostats=h_pad, n_records=m_pad)
+
+    def pad_mask(mk):
+        out = np.zeros((h_pad, m_pad), bool)
+        out[: mk.shape[0], : mk.shape[1]] = mk
+        return out
+
+    train, val, test = pad_mask(train), pad_mask(val), pad_mask(test)
+
+    if start == "auto":
+        geometry, replaced = choose_start_geometry(_with_mask(padded, train), spec)
+        padded = _with_geometry(padded, geometry)
+    else:
+        replaced = np.zeros(h_pad, bool)
+
+    data = CalibrationData.from_fleet(padded, jnp.asarray(train))
+    strategy = config.strategy if config.strategy != "auto" else default_strategy()
+    initial = jnp.broadcast_to(spec.nominal_vector(data.counts.dtype), (h_pad, len(spec.names)))
+    say(f"fitting {n_real} heliostats ({spec.kind}, {strategy}, padded to {h_pad} x {m_pad})")
+    t0 = time.perf_counter()
+    compiled = _fit_compiled.lower(spec, config, strategy, initial, data).compile()
+    t1 = time.perf_counter()
+    out = compiled(spec, config, strategy, initial, data)
+    jax.block_until_ready(out)
+    t2 = time.perf_counter()
+    result = FitResult(spec=spec, **out)
+    say(f"fitted in {t2 - t1:.2f} s (compile {t1 - t0:.2f} s)")
+
+    models = result.models()
+    all_valid = np.asarray(padded.mask)
+    errors = np.asarray(beam_errors_mrad(models, padded.geometry, padded.counts, padded.context, padded.focal_spot, jnp.asarray(all_valid)))
+    nominal = nominal_models(spec, h_pad, data.counts.dtype)
+    uncal = np.asarray(beam_errors_mrad(nominal, padded.geometry, padded.counts, padded.context, padded.focal_spot, jnp.asarray(all_valid)))
+    residuals = np.asarray(_residuals_mrad(models, padded, jnp.asarray(all_valid)))
+
+    test_err = test_uncal = None
+    if test_fleet is not None:
+        test_err, test_uncal = _evaluate_other(test_fleet, ids, result, padded, spec, replaced)
+
+    run = CalibrationRun(
+        fleet=padded,
+        spec=spec,
+        split_kind=split if test_fleet is None else "test-data",
+        train_mask=train,
+        val_mask=val,
+        test_mask=test,
+        result=result,
+        errors_mrad=errors,
+        uncalibrated_mrad=uncal,
+        residuals_mrad=residuals,
+        start_replaced=np.asarray(replaced),
+        too_few=too_few,
+        summary={},
+        test_errors_mrad=test_err,
+        test_uncalibrated_mrad=test_uncal,
+    )
+    summary = _summarise(run, n_real, compile_s=t1 - t0, fit_s=t2 - t1)
+    return dataclasses.replace(run, summary=summary)
+
+
+def _with_mask(fleet, mask):
+    import equinox as eqx
+
+    return eqx.tree_at(lambda f: f.mask, fleet, jnp.asarray(mask) & fleet.mask)
+
+
+def _with_geometry(fleet, geometry):
+    import equinox as eqx
+
+    return eqx.tree_at(lambda f: f.geometry, fleet, geometry)
+
+
+def _evaluate_other(test_fleet, ids, result, padded, spec, replaced):
+    """Beam errors of ``test_fleet``'s records under the fitted models of the
+    heliostats with the same ids (NaN rows for ids without a fit)."""
+    index = {h: i for i, h in enumerate(ids)}
+    rows = [index.get(h, -1) for h in test_fleet.ids]
+    h_pad = result.params.shape[0]
+    rows_np = np.array([r if r >= 0 else 0 for r in rows])
+    models = jax.vmap(result.spec.physical_to_model)(result.params[rows_np])
+    geometry = jax.tree_util.tree_map(lambda x: x[rows_np], padded.geometry)
+    mask = np.asarray(test_fleet.mask) & (np.array(rows) >= 0)[:, None]
+    err = np.asarray(beam_errors_mrad(models, geometry, test_fleet.counts, test_fleet.context, test_fleet.focal_spot, jnp.asarray(mask)))
+    nominal = nominal_models(spec, len(rows_np), test_fleet.counts.dtype)
+    unc = np.asarray(beam_errors_mrad(nominal, geometry, test_fleet.counts, test_fleet.context, test_fleet.focal_spot, jnp.asarray(mask)))
+    # Re-index to the training fleet's rows.
+    out = np.full((h_pad, err.shape[1]), np.nan)
+    out_u = np.full((h_pad, err.shape[1]), np.nan)
+    for j, r in enumerate(rows):
+        if r >= 0:
+            out[r] = err[j]
+            out_u[r] = unc[j]
+    del replaced
+    return out, out_u
+
+
+def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float) -> dict:
+    res = run.result
+    spec = run.spec
+    params = np.asarray(res.params)
+    std = np.asarray(res.std)
+    status = np.asarray(res.status)
+    ids = run.fleet.ids
+    test_err = run.test_errors_mrad if run.test_errors_mrad is not None else np.where(run.test_mask, run.errors_mrad, np.nan)
+    test_unc = (
+        run.test_uncalibrated_mrad if run.test_uncalibrated_mrad is not None else np.where(run.test_mask, run.uncalibrated_mrad, np.nan)
+    )
+    train_err = np.where(run.train_mask, run.errors_mrad, np.nan)
+    val_err = np.where(run.val_mask, run.errors_mrad, np.nan)
+    heliostats = {}
+    pooled, pooled_unc = [], []
+    for i in range(n_real):
+        st = FitStatus(int(status[i]))
+        test_med, test_rms = _stats(test_err[i])
+        unc_med, unc_rms = _stats(test_unc[i])
+        train_med, train_rms = _stats(train_err[i])
+        _, val_rms = _stats(val_err[i])
+        entry = {
+            "status": st.label,
+            "n_train": int(np.sum(run.train_mask[i] & np.isfinite(run.errors_mrad[i]))),
+            "n_val": int(np.sum(np.isfinite(val_err[i]))),
+            "n_test": int(np.sum(np.isfinite(test_err[i]))),
+            "train_rms_mrad": _json_float(train_rms),
+            "val_rms_mrad": _json_float(val_rms),
+            "test_median_mrad": _json_float(test_med),
+            "test_rms_mrad": _json_float(test_rms),
+            "uncalibrated_test_median_mrad": _json_float(unc_med),
+            "uncalibrated_test_rms_mrad": _json_float(unc_rms),
+            "lm_steps": int(np.asarray(res.n_steps)[i]),
+            "start_geometry": "fleet_typical" if run.start_replaced[i] else "nominal",
+            "params": {n: _json_float(params[i, k]) for k, n in enumerate(spec.names)},
+            "param_std": {n: _json_float(std[i, k]) for k, n in enumerate(spec.names)},
+        }
+        if ids[i] in run.too_few:
+            entry["split_note"] = run.too_few[ids[i]]
+        heliostats[ids[i]] = entry
+        if st == FitStatus.CONVERGED:
+            t = test_err[i][np.isfinite(test_err[i])]
+            pooled.append(t)
+        u = test_unc[i][np.isfinite(test_unc[i])]
+        pooled_unc.append(u)
+    pooled = np.concatenate(pooled) if pooled else np.array([])
+    pooled_unc = np.concatenate(pooled_unc) if pooled_unc else np.array([])
+    f_med, f_rms = _stats(pooled)
+    u_med, u_rms = _stats(pooled_unc)
+    n_conv = int(np.sum(status[:n_real] == FitStatus.CONVERGED))
+    return {
+        "model": spec.kind,
+        "split": run.split_kind,
+        "param_units": dict(zip(spec.names, spec.units)),
+        "free_params": list(spec.free),
+        "heliostats": heliostats,
+        "fleet": {
+            "n_heliostats": n_real,
+            "n_converged": n_conv,
+            "n_test_records": int(pooled.size),
+            "test_median_mrad": _json_float(f_med),
+            "test_rms_mrad": _json_float(f_rms),
+            "uncalibrated_test_median_mrad": _json_float(u_med),
+            "uncalibrated_test_rms_mrad": _json_float(u_rms),
+            "statuses": {s.label: int(np.sum(status[:n_real] == s)) for s in FitStatus if s != FitStatus.PADDING},
+        },
+        "timing": {"compile_s": float(compile_s), "fit_s": float(fit_s)},
+    }
+
+
+def write_summary(path: str | Path, run: CalibrationRun) -> None:
+    """Write ``summary.json`` atomically."""
+    with atomic_write(path) as f:
+        json.dump(run.summary, f, indent=2, allow_nan=False)
+        f.write("\n")
+
+
+def write_results_h5(path: str | Path, run: CalibrationRun) -> None:
+    """Write ``results.h5`` atomically (schema in the module docstring)."""
+    import h5py
+
+    from . import __version__
+
+    n = len(run.summary["heliostats"])
+    spec = run.spec
+    split = np.zeros(run.train_mask.shape, np.int8)
+    split[run.train_mask] = SPLIT_CODES["train"]
+    split[run.val_mask] = SPLIT_CODES["validation"]
+    split[run.test_mask] = SPLIT_CODES["test"]
+    str_dt = h5py.string_dtype()
+    with atomic_path(path) as tmp:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["model"] = spec.kind
+            f.attrs["split"] = run.split_kind
+            f.attrs["heliojax_version"] = __version__
+            f.attrs["param_names"] = json.dumps(list(spec.names))
+            f.attrs["param_units"] = json.dumps(list(spec.units))
+            f.create_dataset("heliostat_ids", data=np.array(run.fleet.ids[:n], dtype=object), dtype=str_dt)
+            f.create_dataset("params", data=np.asarray(run.result.params)[:n])
+            f.create_dataset("param_std", data=np.asarray(run.result.std)[:n])
+            f.create_dataset("status", data=np.asarray(run.result.status)[:n].astype(np.int32))
+            f.create_dataset(
+                "status_labels", data=np.array(run.result.status_labels()[:n], dtype=object), dtype=str_dt
+            )
+            f.create_dataset(
+                "start_geometry",
+                data=np.array(["fleet_typical" if r else "nominal" for r in run.start_replaced[:n]], dtype=object),
+                dtype=str_dt,
+            )
+            f.create_dataset("record_id", data=np.asarray(run.fleet.record_id)[:n].astype(np.int64))
+            f.create_dataset("split", data=split[:n])
+            f.create_dataset("residual_mrad", data=run.residuals_mrad[:n])
+            f.create_dataset("beam_error_mrad", data=run.errors_mrad[:n])
+            f.create_dataset("beam_error_uncalibrated_mrad", data=run.uncalibrated_mrad[:n])
+
+
+def read_results_h5(path: str | Path) -> dict:
+    """Read ``results.h5`` back into a dict of numpy arrays (and ``attrs``)."""
+    import h5py
+
+    out = {}
+    with h5py.File(path, "r") as f:
+        out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+        for k in f:
+            v = f[k][()]
+            if v.dtype.kind in "OS":
+                v = np.array([x.decode() if isinstance(x, bytes) else x for x in v])
+            out[k] = v
+    out["attrs"]["param_names"] = json.loads(out["attrs"]["param_names"])
+    return out
+
+
+__all__ = ["CalibrationRun", "calibrate", "read_results_h5", "write_results_h5", "write_summary"]

@@ -1,0 +1,77 @@
+"""``heliojax inspect``: load PAINT data, tabulate it, report uncalibrated errors."""
+
+from __future__ import annotations
+
+import datetime as dt
+from pathlib import Path
+
+import numpy as np
+
+from ._common import add_data_argument, load_fleet
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "inspect",
+        help="load PAINT data and print records, dates and uncalibrated beam errors per heliostat",
+        description=(
+            "Load a PAINT-layout directory (the embedded real subset by default), print a table per "
+            "heliostat (records, date range, uncalibrated beam pointing error of the nominal "
+            "linear-actuator and Stone models, median and max) and the load report."
+        ),
+    )
+    add_data_argument(p)
+    p.add_argument("--plot", type=Path, metavar="FILE", help="write a box plot of the uncalibrated errors (PNG)")
+
+
+def _date(t: float) -> str:
+    if not np.isfinite(t):
+        return "?"
+    return dt.datetime.fromtimestamp(float(t), dt.timezone.utc).strftime("%Y-%m-%d")
+
+
+def run(args) -> int:
+    import jax.numpy as jnp
+
+    from .._calibration import beam_errors_mrad, nominal_models
+
+    fleet = load_fleet(args)
+    n = len(fleet.ids)
+    err = {}
+    for kind in ("actuator", "stone8"):
+        models = nominal_models(kind, fleet.n_heliostats, fleet.counts.dtype)
+        err[kind] = np.asarray(
+            beam_errors_mrad(models, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, fleet.mask)
+        )
+    t = np.asarray(fleet.context.unix_time)
+    mask = np.asarray(fleet.mask)
+    flagged = {Path(f.file).parts[-3] for f in fleet.report.flags if len(Path(f.file).parts) >= 3 and Path(f.file).parts[-2] == "Properties"}
+    print(f"{'heliostat':<10} {'records':>7}  {'first':<10}  {'last':<10}  "
+          f"{'actuator med':>12} {'max':>8}  {'stone med':>9} {'max':>8}  [mrad, uncalibrated]")
+    for i in range(n):
+        m = mask[i]
+        ti = t[i][m]
+        ea = err["actuator"][i][m]
+        es = err["stone8"][i][m]
+        note = "  (flagged, see load report)" if fleet.ids[i] in flagged else ""
+        print(
+            f"{fleet.ids[i]:<10} {int(m.sum()):>7}  {_date(np.nanmin(ti) if np.isfinite(ti).any() else np.nan):<10}  "
+            f"{_date(np.nanmax(ti) if np.isfinite(ti).any() else np.nan):<10}  "
+            f"{np.median(ea):>12.1f} {np.max(ea):>8.1f}  {np.median(es):>9.1f} {np.max(es):>8.1f}{note}"
+        )
+    all_a = err["actuator"][mask]
+    print(f"{'fleet':<10} {int(mask.sum()):>7}  {'':<10}  {'':<10}  {np.median(all_a):>12.1f} {np.max(all_a):>8.1f}  "
+          f"{np.median(err['stone8'][mask]):>9.1f} {np.max(err['stone8'][mask]):>8.1f}")
+    print()
+    print(fleet.report.format())
+    if args.plot is not None:
+        from .._plotting import plot_error_per_heliostat, save_figure
+
+        fig = plot_error_per_heliostat(
+            list(fleet.ids[:n]), err["actuator"][:n],
+            title="uncalibrated beam pointing error, nominal linear-actuator model",
+        )
+        save_figure(fig, args.plot)
+        print(f"wrote {args.plot}")
+    del jnp
+    return 0

@@ -1,0 +1,47 @@
+"""Optics: sun shapes, mirror surfaces (ideal, deflectometry, NURBS), flux tracing,
+comparison with measured flux images and surface reconstruction."""
+
+from ._flux import (
+    ImageGrid as ImageGrid,
+    aim_pose as aim_pose,
+    centroid as centroid,
+    flux_image as flux_image,
+    flux_images as flux_images,
+    pose_from_normal as pose_from_normal,
+    ray_count as ray_count,
+    total_power as total_power,
+)
+from ._nurbs import (
+    NurbsFacets as NurbsFacets,
+    bspline_basis as bspline_basis,
+    clamped_knots as clamped_knots,
+    fit_nurbs as fit_nurbs,
+    greville as greville,
+    normal_errors_mrad as normal_errors_mrad,
+    rms_normal_error_mrad as rms_normal_error_mrad,
+)
+from ._sunshape import (
+    SUN_HALF_ANGLE as SUN_HALF_ANGLE,
+    AbstractSunShape as AbstractSunShape,
+    BuieSun as BuieSun,
+    EffectiveSun as EffectiveSun,
+    GaussianSun as GaussianSun,
+    PillboxSun as PillboxSun,
+    buie_profile as buie_profile,
+    offsets_to_directions as offsets_to_directions,
+    tangent_basis as tangent_basis,
+    uniforms as uniforms,
+)
+from ._surfaces import (
+    Deflectometry as Deflectometry,
+    FacetLayout as FacetLayout,
+    SurfacePoints as SurfacePoints,
+    deflectometry_surface as deflectometry_surface,
+    ideal_surface as ideal_surface,
+    read_deflectometry as read_deflectometry,
+    read_facet_layout as read_facet_layout,
+    stack_deflectometry as stack_deflectometry,
+    stack_layouts as stack_layouts,
+    stack_surfaces as stack_surfaces,
+    write_deflectometry as write_deflectometry,
+)

@@ -1,0 +1,342 @@
+"""Mirror surfaces: sampled points, ideal canted facets and PAINT deflectometry.
+
+Everything here lives in the heliostat's *surface frame* (mirror face up,
+normal ``+z``, ``x`` east, ``y`` north at the reference pose; see
+:mod:`heliojax._geometry`). A pose's ``rotation`` and ``centre`` take it to ENU.
+
+* :class:`SurfacePoints` is what the ray tracer consumes: sample points, unit
+  normals and the mirror area each point stands for (``0`` marks padding).
+  Batched with a leading heliostat axis; heliostats with fewer points are
+  padded (:func:`stack_surfaces`), so no equal-count requirement exists.
+* :class:`FacetLayout` is the facet geometry of a PAINT heliostat-properties
+  file: per facet the centre ``translation_vector`` and the half-edge vectors
+  ``canting_e`` / ``canting_n`` (their directions carry the canting, the facet
+  normal is ``normalize(canting_e x canting_n)``).
+* :class:`Deflectometry` holds a PAINT deflectometry HDF5 file (groups
+  ``facet1..facetN`` with ``surface_points`` / ``surface_normals`` ``[N, 3]``,
+  facet-local with the canting built in), padded to equal counts with a mask.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import typing
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from .._errors import DataError
+from .._io import atomic_path
+
+
+@typing.final
+class SurfacePoints(eqx.Module):
+    """Sampled mirror in the surface frame.
+
+    Attributes:
+        points: ``(*b, p, 3)`` m, surface frame.
+        normals: ``(*b, p, 3)`` unit normals (surface frame).
+        areas: ``(*b, p)`` m^2 of mirror each point represents; ``0`` = padding.
+    """
+
+    points: Float[Array, "*b p 3"]
+    normals: Float[Array, "*b p 3"]
+    areas: Float[Array, "*b p"]
+
+    def __check_init__(self):
+        ps, ns, as_ = jnp.shape(self.points), jnp.shape(self.normals), jnp.shape(self.areas)
+        if ps != ns or ps[-1:] != (3,) or ps[:-1] != as_:
+            raise ValueError(f"SurfacePoints shapes disagree: points {ps}, normals {ns}, areas {as_}")
+
+    @property
+    def n_points(self) -> int:
+        return self.areas.shape[-1]
+
+    def total_area(self) -> Float[Array, "*b"]:
+        """Mirror area in m^2 (sum of the point areas)."""
+        return jnp.sum(self.areas, axis=-1)
+
+    def pad_to(self, n: int) -> "SurfacePoints":
+        """Pad (with zero-area points at the origin, normal ``+z``) to ``n`` points."""
+        extra = n - self.n_points
+        if extra < 0:
+            raise ValueError(f"cannot pad {self.n_points} points to {n}")
+        if extra == 0:
+            return self
+        lead = self.areas.shape[:-1]
+        zeros3 = jnp.zeros(lead + (extra, 3), self.points.dtype)
+        up = zeros3.at[..., 2].set(1.0)
+        return SurfacePoints(
+            points=jnp.concatenate([self.points, zeros3], axis=-2),
+            normals=jnp.concatenate([self.normals, up], axis=-2),
+            areas=jnp.concatenate([self.areas, jnp.zeros(lead + (extra,), self.areas.dtype)], axis=-1),
+        )
+
+
+def stack_surfaces(surfaces: Sequence[SurfacePoints]) -> SurfacePoints:
+    """Stack unbatched surfaces with different point counts into a batch ``(h, p_max)``,
+    padding with zero-area points."""
+    n = max(s.n_points for s in surfaces)
+    padded = [s.pad_to(n) for s in surfaces]
+    return jax.tree_util.tree_map(lambda *x: jnp.stack(x), *padded)
+
+
+# --------------------------------------------------------------------------------------
+# Facet layout (PAINT heliostat properties)
+# --------------------------------------------------------------------------------------
+
+
+@typing.final
+class FacetLayout(eqx.Module):
+    """Facets of a heliostat in the surface frame (m); batched with leading axes.
+
+    Attributes:
+        translations: ``(*b, f, 3)`` facet centres.
+        canting_e: ``(*b, f, 3)`` half-width edge vectors (direction includes canting).
+        canting_n: ``(*b, f, 3)`` half-height edge vectors.
+        mask: ``(*b, f)`` True for real facets (False = padding).
+    """
+
+    translations: Float[Array, "*b f 3"]
+    canting_e: Float[Array, "*b f 3"]
+    canting_n: Float[Array, "*b f 3"]
+    mask: Bool[Array, "*b f"]
+
+    @classmethod
+    def from_arrays(cls, translations, canting_e, canting_n, mask=None) -> "FacetLayout":
+        t = jnp.asarray(translations)
+        m = jnp.ones(t.shape[:-1], bool) if mask is None else jnp.asarray(mask, bool)
+        return cls(translations=t, canting_e=jnp.asarray(canting_e, t.dtype), canting_n=jnp.asarray(canting_n, t.dtype), mask=m)
+
+    @property
+    def n_facets(self) -> int:
+        return self.mask.shape[-1]
+
+    def normals(self) -> Float[Array, "*b f 3"]:
+        """Unit facet normals ``normalize(canting_e x canting_n)``."""
+        c = jnp.cross(self.canting_e, self.canting_n)
+        return c / jnp.linalg.norm(c, axis=-1, keepdims=True)
+
+    def areas(self) -> Float[Array, "*b f"]:
+        """Facet areas ``4 |canting_e x canting_n|`` in m^2 (0 for padding)."""
+        return 4.0 * jnp.linalg.norm(jnp.cross(self.canting_e, self.canting_n), axis=-1) * self.mask
+
+
+def _float_vector(data, file, field, n=3):
+    try:
+        v = np.asarray(data, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise DataError(file, field, f"not a numeric vector: {data!r}") from e
+    if v.shape != (n,) or not np.all(np.isfinite(v)):
+        raise DataError(file, field, f"expected {n} finite numbers, got {data!r}")
+    return v
+
+
+def read_facet_layout(path: str | os.PathLike) -> FacetLayout:
+    """Facet layout of a PAINT heliostat-properties JSON (``facet_properties.facets``).
+
+    Raises:
+        DataError: missing or malformed facet fields.
+    """
+    try:
+        with open(path, encoding="utf-8") as f:
+            data = json.load(f)
+    except (OSError, json.JSONDecodeError) as e:
+        raise DataError(path, None, f"cannot read JSON: {e}") from e
+    facets = (data.get("facet_properties") or {}).get("facets")
+    if not isinstance(facets, list) or not facets:
+        raise DataError(path, "facet_properties.facets", "missing or empty")
+    t, ce, cn = [], [], []
+    for i, facet in enumerate(facets):
+        base = f"facet_properties.facets[{i}]"
+        t.append(_float_vector(facet.get("translation_vector"), path, base + ".translation_vector"))
+        ce.append(_float_vector(facet.get("canting_e"), path, base + ".canting_e"))
+        cn.append(_float_vector(facet.get("canting_n"), path, base + ".canting_n"))
+    return FacetLayout.from_arrays(np.stack(t), np.stack(ce), np.stack(cn))
+
+
+def stack_layouts(layouts: Sequence[FacetLayout]) -> FacetLayout:
+    """Batch facet layouts with different facet counts (padding masked out)."""
+    n = max(lay.n_facets for lay in layouts)
+
+    def pad(lay: FacetLayout) -> FacetLayout:
+        k = n - lay.n_facets
+        if k == 0:
+            return lay
+        dt = lay.translations.dtype
+        e = jnp.zeros((k, 3), dt).at[:, 0].set(1e-3)
+        nn = jnp.zeros((k, 3), dt).at[:, 1].set(1e-3)
+        return FacetLayout(
+            translations=jnp.concatenate([lay.translations, jnp.zeros((k, 3), dt)]),
+            canting_e=jnp.concatenate([lay.canting_e, e]),
+            canting_n=jnp.concatenate([lay.canting_n, nn]),
+            mask=jnp.concatenate([lay.mask, jnp.zeros((k,), bool)]),
+        )
+
+    return jax.tree_util.tree_map(lambda *x: jnp.stack(x), *[pad(lay) for lay in layouts])
+
+
+def ideal_surface(layout: FacetLayout, resolution: tuple[int, int] = (32, 32)) -> SurfacePoints:
+    """Flat canted facets sampled on a cell-centred ``resolution = (n_e, n_n)`` grid per facet.
+
+    Point ``(i, j)`` of facet ``f`` is ``t_f + a_i canting_e_f + b_j canting_n_f`` with
+    ``a_i = -1 + (2 i + 1) / n_e``; every point carries ``area_f / (n_e n_n)``.
+
+    Returns:
+        :class:`SurfacePoints` with ``(*b, f * n_e * n_n)`` points.
+    """
+    ne, nn = resolution
+    a = jnp.asarray(-1.0 + (2.0 * np.arange(ne) + 1.0) / ne, layout.translations.dtype)
+    b = jnp.asarray(-1.0 + (2.0 * np.arange(nn) + 1.0) / nn, layout.translations.dtype)
+    t = layout.translations[..., :, None, None, :]
+    pts = t + a[:, None, None] * layout.canting_e[..., :, None, None, :] + b[None, :, None] * layout.canting_n[..., :, None, None, :]
+    normals = jnp.broadcast_to(layout.normals()[..., :, None, None, :], pts.shape)
+    areas = jnp.broadcast_to((layout.areas() / (ne * nn))[..., :, None, None], pts.shape[:-1])
+    lead = pts.shape[:-4]
+    return SurfacePoints(
+        points=pts.reshape(lead + (-1, 3)),
+        normals=normals.reshape(lead + (-1, 3)),
+        areas=areas.reshape(lead + (-1,)),
+    )
+
+
+# --------------------------------------------------------------------------------------
+# Deflectometry
+# --------------------------------------------------------------------------------------
+
+
+@typing.final
+class Deflectometry(eqx.Module):
+    """Measured facet surfaces, facet-local (canting built in), padded with a mask.
+
+    Attributes:
+        points: ``(*b, f, p, 3)`` m.
+        normals: ``(*b, f, p, 3)`` unit.
+        mask: ``(*b, f, p)`` True for measured points.
+    """
+
+    points: Float[Array, "*b f p 3"]
+    normals: Float[Array, "*b f p 3"]
+    mask: Bool[Array, "*b f p"]
+
+    @classmethod
+    def from_facets(cls, facets: Sequence[tuple[ArrayLike, ArrayLike]], n_points: int | None = None) -> "Deflectometry":
+        """Pad per-facet ``(points [n_i, 3], normals [n_i, 3])`` to a common count."""
+        n = max(len(np.asarray(p)) for p, _ in facets)
+        n = n if n_points is None else max(n, n_points)
+        pts = np.zeros((len(facets), n, 3), np.float32)
+        nrm = np.zeros((len(facets), n, 3), np.float32)
+        nrm[..., 2] = 1.0
+        mask = np.zeros((len(facets), n), bool)
+        for i, (p, q) in enumerate(facets):
+            k = len(p)
+            pts[i, :k] = p
+            nrm[i, :k] = q
+            mask[i, :k] = True
+        return cls(points=jnp.asarray(pts), normals=jnp.asarray(nrm), mask=jnp.asarray(mask))
+
+    @property
+    def n_facets(self) -> int:
+        return self.mask.shape[-2]
+
+    def counts(self) -> Array:
+        """Measured points per facet."""
+        return jnp.sum(self.mask, axis=-1)
+
+
+_FACET_GROUP = re.compile(r"^facet(\d+)$")
+
+
+def read_deflectometry(path: str | os.PathLike) -> Deflectometry:
+    """Read a PAINT deflectometry HDF5 file (groups ``facet1..facetN``).
+
+    Raises:
+        DataError: unreadable file, no facet groups, bad shapes or non-finite values.
+    """
+    import h5py
+
+    facets = []
+    try:
+        with h5py.File(path, "r") as f:
+            names = sorted((k for k in f.keys() if _FACET_GROUP.match(k)), key=lambda k: int(_FACET_GROUP.match(k).group(1)))
+            if not names:
+                raise DataError(path, None, "no facet groups (facet1..facetN)")
+            for name in names:
+                g = f[name]
+                for field in ("surface_points", "surface_normals"):
+                    if field not in g:
+                        raise DataError(path, f"{name}/{field}", "missing")
+                p = np.asarray(g["surface_points"], np.float64)
+                q = np.asarray(g["surface_normals"], np.float64)
+                if p.ndim != 2 or p.shape[1] != 3 or q.shape != p.shape or len(p) == 0:
+                    raise DataError(path, f"{name}", f"expected matching [N, 3] arrays, got {p.shape} and {q.shape}")
+                if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
+                    raise DataError(path, f"{name}", "non-finite values")
+                q = q / np.linalg.norm(q, axis=1, keepdims=True)
+                facets.append((p, q))
+    except OSError as e:
+        raise DataError(path, None, f"cannot read HDF5: {e}") from e
+    return Deflectometry.from_facets(facets)
+
+
+def write_deflectometry(path: str | os.PathLike, facets: Sequence[tuple[ArrayLike, ArrayLike]]) -> None:
+    """Write per-facet ``(points [n_i, 3], normals [n_i, 3])`` in PAINT's layout (float32), atomically."""
+    import h5py
+
+    with atomic_path(path) as tmp:
+        with h5py.File(tmp, "w") as f:
+            for i, (p, q) in enumerate(facets, start=1):
+                g = f.create_group(f"facet{i}")
+                g.create_dataset("surface_points", data=np.asarray(p, np.float32))
+                g.create_dataset("surface_normals", data=np.asarray(q, np.float32))
+
+
+def stack_deflectometry(items: Sequence[Deflectometry]) -> Deflectometry:
+    """Batch deflectometry of several heliostats (facets and points padded)."""
+    nf = max(d.n_facets for d in items)
+    npnt = max(d.mask.shape[-1] for d in items)
+
+    def pad(d: Deflectometry) -> Deflectometry:
+        f, p = d.mask.shape
+        pts = jnp.zeros((nf, npnt, 3), d.points.dtype).at[:f, :p].set(d.points)
+        nrm = jnp.zeros((nf, npnt, 3), d.normals.dtype).at[..., 2].set(1.0).at[:f, :p].set(d.normals)
+        mask = jnp.zeros((nf, npnt), bool).at[:f, :p].set(d.mask)
+        return Deflectometry(points=pts, normals=nrm, mask=mask)
+
+    return jax.tree_util.tree_map(lambda *x: jnp.stack(x), *[pad(d) for d in items])
+
+
+def deflectometry_surface(defl: Deflectometry, layout: FacetLayout) -> SurfacePoints:
+    """Trace the measured points directly: facet ``f``'s points are shifted by its
+    translation and each carries ``area_f / count_f`` (facet area from the layout)."""
+    counts = jnp.maximum(defl.counts(), 1)
+    per_point = layout.areas() / counts
+    pts = defl.points + layout.translations[..., :, None, :]
+    areas = jnp.where(defl.mask, per_point[..., :, None], 0.0)
+    lead = pts.shape[:-3]
+    return SurfacePoints(
+        points=pts.reshape(lead + (-1, 3)),
+        normals=defl.normals.reshape(lead + (-1, 3)),
+        areas=areas.reshape(lead + (-1,)).astype(pts.dtype),
+    )
+
+
+__all__ = [
+    "Deflectometry",
+    "FacetLayout",
+    "SurfacePoints",
+    "deflectometry_surface",
+    "ideal_surface",
+    "read_deflectometry",
+    "read_facet_layout",
+    "stack_deflectometry",
+    "stack_layouts",
+    "stack_surfaces",
+    "write_deflectometry",
+]
