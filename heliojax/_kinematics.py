@@ -381,6 +381,7 @@ def _solve_chain_angles(tilts, normal, tau_reference):
     return jnp.stack([theta, tau])
 
 
+@eqx.filter_jit
 def inverse_normal(
     model: AbstractKinematicModel, geometry: HeliostatGeometry, normal: Float[ArrayLike, "3"]
 ) -> Float[Array, "2"]:
@@ -390,6 +391,7 @@ def inverse_normal(
     return model.counts(geometry, angles)
 
 
+@eqx.filter_jit
 def inverse_aim(
     model: AbstractKinematicModel,
     geometry: HeliostatGeometry,
@@ -412,13 +414,15 @@ def inverse_aim(
     """
     aim = jnp.asarray(aim_point)
     sun = jnp.asarray(sun)
-    centre = geometry.position + geometry.joint_translation_1
-    counts = jnp.zeros(2, aim.dtype)
-    for _ in range(iterations):
+    centre0 = geometry.position + geometry.joint_translation_1
+
+    def step(_, centre):
         normal = bisector_normal(sun, normalize(aim - centre))
         counts = inverse_normal(model, geometry, normal)
-        centre = model.pose(geometry, counts).centre
-    return counts
+        return model.pose(geometry, counts).centre
+
+    centre = jax.lax.fori_loop(0, iterations - 1, step, centre0)
+    return inverse_normal(model, geometry, bisector_normal(sun, normalize(aim - centre)))
 
 
 @typing.final

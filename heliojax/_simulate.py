@@ -126,12 +126,13 @@ def calibration_times(
     from ._sun import solar_position
 
     k_day, k_hour = jax.random.split(key)
+    midnight = np.floor(start_unix / 86400.0) * 86400.0  # hours below are UTC hours of the day
     day = jnp.floor(jax.random.uniform(k_day, shape, jnp.float64, 0.0, days))
     t = jnp.zeros(shape, jnp.float64)
     ok = jnp.zeros(shape, bool)
     for kk in jax.random.split(k_hour, 12):
         hour = jax.random.uniform(kk, shape, jnp.float64, 4.0, 20.0)
-        cand = start_unix + day * 86400.0 + hour * 3600.0
+        cand = midnight + day * 86400.0 + hour * 3600.0
         pos = solar_position(cand, latitude_deg, longitude_deg, JUELICH_LAT_LON_ALT[2])
         good = pos.elevation > jnp.deg2rad(min_elevation_deg)
         t = jnp.where(ok, t, cand)
@@ -158,6 +159,29 @@ class SimulatedRecords(eqx.Module):
     true_spot: Float[Array, "H M 3"]
     hit: Bool[Array, "H M"]
     context: RecordContext
+
+
+@eqx.filter_jit
+def _simulate_core(perturb_pose, true_models, controller_models, geometry, context, ang_noise, pos_noise, target, aim):
+    def one_record(true_model, ctrl_model, g, ctx, an, pn):
+        counts = jnp.round(inverse_aim(ctrl_model, g, aim, ctx.sun))
+        counts = jnp.clip(counts, g.actuators.min_counts, g.actuators.max_counts)
+        pose = forward(true_model, g, counts, ctx)
+        if perturb_pose is not None:
+            pose = perturb_pose(pose, ctx)
+        sun = true_model.sun(g, ctx)
+        r = reflected_ray(pose, sun)
+        true_hit = intersect_plane(pose.centre, r, target)
+        e1, e2 = _tangent_basis(r)
+        r_noisy = normalize(r + an[0] * e1 + an[1] * e2)
+        hit = intersect_plane(pose.centre, r_noisy, target)
+        spot = hit.point + pn[0] * target.u_axis + pn[1] * target.v_axis
+        return counts, spot, true_hit.point, hit.hit
+
+    def one_heliostat(tm, cm, g, ctx, an, pn):
+        return jax.vmap(lambda c, a, p: one_record(tm, cm, g, c, a, p))(ctx, an, pn)
+
+    return jax.vmap(one_heliostat)(true_models, controller_models, geometry, context, ang_noise, pos_noise)
 
 
 def simulate_records(
@@ -197,26 +221,8 @@ def simulate_records(
     k_ang, k_pos = jax.random.split(key)
     ang_noise = noise_mrad * 1e-3 * jax.random.normal(k_ang, (h, m, 2), dtype)
     pos_noise = noise_m * jax.random.normal(k_pos, (h, m, 2), dtype)
-
-    def one_record(true_model, ctrl_model, g, ctx, an, pn):
-        counts = jnp.round(inverse_aim(ctrl_model, g, aim, ctx.sun))
-        counts = jnp.clip(counts, g.actuators.min_counts, g.actuators.max_counts)
-        pose = forward(true_model, g, counts, ctx)
-        if perturb_pose is not None:
-            pose = perturb_pose(pose, ctx)
-        r = reflected_ray(pose, ctx.sun)
-        true_hit = intersect_plane(pose.centre, r, target)
-        e1, e2 = _tangent_basis(r)
-        r_noisy = normalize(r + an[0] * e1 + an[1] * e2)
-        hit = intersect_plane(pose.centre, r_noisy, target)
-        spot = hit.point + pn[0] * target.u_axis + pn[1] * target.v_axis
-        return counts, spot, true_hit.point, hit.hit
-
-    def one_heliostat(tm, cm, g, ctx, an, pn):
-        return jax.vmap(lambda c, a, p: one_record(tm, cm, g, c, a, p))(ctx, an, pn)
-
-    counts, spot, true_spot, hit = jax.jit(jax.vmap(one_heliostat))(
-        true_models, controller_models, geometry, context, ang_noise, pos_noise
+    counts, spot, true_spot, hit = _simulate_core(
+        perturb_pose, true_models, controller_models, geometry, context, ang_noise, pos_noise, target, aim
     )
     return SimulatedRecords(counts=counts, focal_spot=spot, true_spot=true_spot, hit=hit, context=context)
 
@@ -285,6 +291,171 @@ def to_numpy_tree(tree):
     return jax.tree_util.tree_map(np.asarray, tree)
 
 
+# --------------------------------------------------------------------------------------
+# Simulated fleet -> PAINT files
+# --------------------------------------------------------------------------------------
+
+
+def synthetic_tower(target: TargetPlane, origin_lla=JUELICH_LAT_LON_ALT, name: str = "solar_tower_juelich_lower"):
+    """A :class:`heliojax.TowerFile` holding ``target`` (corners converted to WGS84)."""
+    from ._geometry import enu_to_wgs84
+    from ._paint import TargetEntry, TowerFile
+
+    origin = jnp.asarray(origin_lla, jnp.float64)
+    uv = {
+        "upper_left": (-1.0, 1.0),
+        "upper_right": (1.0, 1.0),
+        "lower_left": (-1.0, -1.0),
+        "lower_right": (1.0, -1.0),
+        "center": (0.0, 0.0),
+    }
+    points = {}
+    for key, (a, b) in uv.items():
+        enu = target.from_plane(jnp.asarray([a * target.half_width, b * target.half_height]))
+        points[key] = tuple(float(x) for x in np.asarray(enu_to_wgs84(enu, origin)))
+    entry = TargetEntry(
+        name=name, type="planar", normal=tuple(float(x) for x in np.asarray(target.normal)), points=points
+    )
+    return TowerFile(plant_id="SIMULATED", origin_lla=tuple(float(x) for x in origin_lla), targets={name: entry})
+
+
+def synthetic_properties(geometry: HeliostatGeometry, ids, origin_lla=JUELICH_LAT_LON_ALT):
+    """PAINT :class:`heliojax.HeliostatProperties` of a batched synthetic geometry."""
+    from ._geometry import enu_to_wgs84
+    from ._paint import HeliostatProperties
+
+    g = to_numpy_tree(geometry)
+    lla = np.asarray(enu_to_wgs84(jnp.asarray(g.position, jnp.float64), jnp.asarray(origin_lla, jnp.float64)))
+    a = g.actuators
+    out = []
+    for i, hid in enumerate(ids):
+        acts = []
+        for k in range(2):
+            lo = float(a.min_counts[i, k])
+            hi = float(a.max_counts[i, k])
+            acts.append(
+                {
+                    "type_axis": "linear",
+                    "min_increment": int(lo),
+                    "max_increment": int(hi),
+                    "increment": float(a.increment[i, k]),
+                    "offset_shift": 0,
+                    "initial_stroke_length": float(a.initial_stroke_length[i, k]),
+                    "offset": float(a.offset[i, k]),
+                    "pivot_radius": float(a.pivot_radius[i, k]),
+                    "radius_shift": 0,
+                    "clockwise_axis_movement": 0 if a.sign[i, k] > 0 else 1,
+                    "initial_angle": float(a.initial_angle[i, k]),
+                    "movement_speed": 0,
+                }
+            )
+        out.append(
+            HeliostatProperties(
+                heliostat_id=hid,
+                position_lla=tuple(float(x) for x in lla[i]),
+                width=3.22,
+                height=2.56,
+                initial_orientation=(0.0, -1.0, 0.0),
+                actuators=(acts[0], acts[1]),
+                joint_translation_1=tuple(float(x) for x in g.joint_translation_1[i]),
+                joint_translation_2=tuple(float(x) for x in g.joint_translation_2[i]),
+                concentrator_translation=tuple(float(x) for x in g.concentrator_translation[i]),
+            )
+        )
+    return out
+
+
+def simulation_to_records(
+    sim: SimulatedRecords,
+    ids,
+    mask=None,
+    origin_lla=JUELICH_LAT_LON_ALT,
+    target_name: str = "solar_tower_juelich_lower",
+    first_record_id: int = 100000,
+):
+    """Raw :class:`heliojax.CalibrationRecord` s of simulated records (degrees and
+    WGS84 at this boundary; times as ISO strings; weather in file units)."""
+    import datetime as dt
+
+    from ._geometry import direction_to_azimuth_elevation, enu_to_wgs84
+    from ._paint import CalibrationRecord
+
+    counts = np.asarray(sim.counts)
+    h, m = counts.shape[:2]
+    mask = np.ones((h, m), bool) if mask is None else np.asarray(mask)
+    spot_lla = np.asarray(enu_to_wgs84(jnp.asarray(sim.focal_spot, jnp.float64), jnp.asarray(origin_lla, jnp.float64)))
+    az, el = direction_to_azimuth_elevation(jnp.asarray(sim.context.sun, jnp.float64))
+    az, el = np.rad2deg(np.asarray(az)), np.rad2deg(np.asarray(el))
+    t = np.asarray(sim.context.unix_time)
+    temp = np.asarray(sim.context.temperature)
+    wind = np.asarray(sim.context.wind_speed)
+    wdir = np.rad2deg(np.asarray(sim.context.wind_direction))
+    records = []
+    rid = first_record_id
+    for i in range(h):
+        for j in range(m):
+            if not mask[i, j]:
+                continue
+            when = None
+            if np.isfinite(t[i, j]):
+                when = dt.datetime.fromtimestamp(float(t[i, j]), dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+            weather = {
+                "temperature": float(temp[i, j]),
+                "wind_speed": float(wind[i, j]),
+                "wind_direction": float(wdir[i, j]),
+                "dni": float("nan"),
+                "humidity": float("nan"),
+                "pressure": float("nan"),
+            }
+            spot = tuple(float(x) for x in spot_lla[i, j])
+            records.append(
+                CalibrationRecord(
+                    record_id=rid,
+                    heliostat_id=ids[i],
+                    axis_1_counts=int(counts[i, j, 0]),
+                    axis_2_counts=int(counts[i, j, 1]),
+                    target_name=target_name,
+                    sun_azimuth_deg=float(az[i, j]),
+                    sun_elevation_deg=float(el[i, j]),
+                    focal_spot_helios=spot,
+                    focal_spot_utis=spot,
+                    datetime=when,
+                    weather=weather,
+                )
+            )
+            rid += 1
+    return records
+
+
+def write_simulation(
+    out_dir,
+    sim: SimulatedRecords,
+    geometry: HeliostatGeometry,
+    target: TargetPlane,
+    ids=None,
+    mask=None,
+    origin_lla=JUELICH_LAT_LON_ALT,
+):
+    """Write simulated records as a PAINT-layout directory (tower file, properties,
+    calibration records, ``calibration-timestamps.json``, ``calibration-with-weather.csv``)
+    that :func:`heliojax.load_paint_directory` reads back.
+
+    Only records with ``mask`` (default: those whose spot hit the target) are
+    written. Returns ``(path, tower, properties, records)`` so callers can build
+    the same fleet in memory with :func:`heliojax.records_to_fleet`.
+    """
+    from ._paint import write_paint_directory
+
+    h = geometry.position.shape[0]
+    ids = [f"SIM{i:04d}" for i in range(h)] if ids is None else list(ids)
+    mask = np.asarray(sim.hit) if mask is None else np.asarray(mask)
+    tower = synthetic_tower(target, origin_lla)
+    props = synthetic_properties(geometry, ids, origin_lla)
+    records = simulation_to_records(sim, ids, mask, origin_lla, target_name=next(iter(tower.targets)))
+    path = write_paint_directory(out_dir, tower, props, records, weather=True)
+    return path, tower, props, records
+
+
 __all__ = [
     "JUELICH_LAT_LON_ALT",
     "SimulatedRecords",
@@ -295,5 +466,9 @@ __all__ = [
     "simulate_records",
     "synthetic_contexts",
     "synthetic_geometry",
+    "simulation_to_records",
+    "synthetic_properties",
+    "synthetic_tower",
     "typical_actuators",
+    "write_simulation",
 ]

@@ -45,3 +45,25 @@ from ._surfaces import (
     stack_surfaces as stack_surfaces,
     write_deflectometry as write_deflectometry,
 )
+from ._compare import (
+    CENTRED_WINDOW_M as CENTRED_WINDOW_M,
+    FluxComparison as FluxComparison,
+    compare_record as compare_record,
+    comparison_figure as comparison_figure,
+    default_sunshape as default_sunshape,
+    flux_sample_records as flux_sample_records,
+    geometry_from_properties as geometry_from_properties,
+    layout_from_properties as layout_from_properties,
+    load_flux_png as load_flux_png,
+    normalised_cross_correlation as normalised_cross_correlation,
+    target_from_tower as target_from_tower,
+)
+from ._reconstruct import (
+    ReconstructionResult as ReconstructionResult,
+    SyntheticScene as SyntheticScene,
+    flux_loss as flux_loss,
+    normal_rms_error_mrad as normal_rms_error_mrad,
+    reconstruct_surface as reconstruct_surface,
+    synthetic_scene as synthetic_scene,
+    with_height_offsets as with_height_offsets,
+)

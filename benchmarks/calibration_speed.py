@@ -1,0 +1,445 @@
+"""Fleet calibration speed: heliojax ``fit_fleet`` against a scipy loop.
+
+Usage::
+
+    python benchmarks/calibration_speed.py --heliostats 1000 --records 100 --json
+    python benchmarks/calibration_speed.py --heliostats 10000 --records 100 --skip-scipy --json
+    python benchmarks/calibration_speed.py --heliostats 100000 --records 100 --skip-scipy --json  # GPU
+
+What is compared (float64, Stone model, 8 parameters, no prior, same data):
+
+* **heliojax**: :func:`heliojax.fit_fleet` (optimistix Levenberg-Marquardt of every
+  heliostat in one compiled program; batching strategy per backend: ``lax.map`` on
+  CPU, ``vmap`` on GPU, overridable with ``--strategy``). The training records are
+  padded to the library's shape buckets (``--no-pad`` fits the exact shape).
+  ``compile_s`` is the first call minus the best later call (trace + lower + XLA
+  compile); ``heliojax_s`` is the best of ``--repeats`` calls after the first.
+* **scipy**: what a user would write instead: ``scipy.optimize.least_squares(
+  method="lm")`` (MINPACK, forward-difference Jacobian, default tolerances) in a
+  Python loop over heliostats, with the residual written in numpy (vectorised over
+  a heliostat's records): :func:`stone_residual_np`, an independent implementation
+  of the Stone chain of :mod:`heliojax._kinematics` (checked against heliojax to
+  1e-12 in ``tests/test_benchmark_baseline.py``).
+
+Data: :func:`heliojax.synthetic_geometry`, random true Stone models, random
+calibration times over a year, :func:`heliojax.simulate_records` with Gaussian noise
+of ``--noise`` mrad per tangent-plane component. Each heliostat's records are
+chronological; the first 70 % train, the rest are held out (all records are
+used, also those whose spot falls beside the 6 x 7 m target on its plane). Both fits are evaluated
+with the same metric (:func:`heliojax.beam_errors_mrad`, the beam pointing angle)
+on the held-out records.
+
+With ``--scipy-heliostats K`` (or automatically when the estimated scipy time
+exceeds ``--scipy-budget`` seconds) scipy runs on the first ``K`` heliostats only
+and its time is extrapolated linearly; the JSON says so (``scipy_measured_heliostats``,
+``scipy_extrapolated``).
+
+Peak memory is ``resource.getrusage(RUSAGE_SELF).ru_maxrss`` of the whole process
+(simulation included).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import sys
+import time
+
+import numpy as np
+
+# --------------------------------------------------------------------------------------
+# The numpy baseline: Stone chain and beam error components (no JAX)
+# --------------------------------------------------------------------------------------
+
+STONE_NAMES = ("alpha", "beta", "gamma", "delta", "theta_k", "tau_k", "gr1", "gr2")
+STONE_NOMINAL = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0])
+STONE_SCALE = 1e-3  # solver units: mrad for angles, 1e-3 for gear ratios
+
+
+def _rot_x(a):
+    a = np.asarray(a, float)
+    c, s = np.cos(a), np.sin(a)
+    r = np.zeros(a.shape + (3, 3))
+    r[..., 0, 0] = 1.0
+    r[..., 1, 1] = c
+    r[..., 1, 2] = -s
+    r[..., 2, 1] = s
+    r[..., 2, 2] = c
+    return r
+
+
+def _rot_y(a):
+    a = np.asarray(a, float)
+    c, s = np.cos(a), np.sin(a)
+    r = np.zeros(a.shape + (3, 3))
+    r[..., 0, 0] = c
+    r[..., 0, 2] = s
+    r[..., 1, 1] = 1.0
+    r[..., 2, 0] = -s
+    r[..., 2, 2] = c
+    return r
+
+
+def _rot_z(a):
+    a = np.asarray(a, float)
+    c, s = np.cos(a), np.sin(a)
+    r = np.zeros(a.shape + (3, 3))
+    r[..., 0, 0] = c
+    r[..., 0, 1] = -s
+    r[..., 1, 0] = s
+    r[..., 1, 1] = c
+    r[..., 2, 2] = 1.0
+    return r
+
+
+def stone_pose_np(params, geom, counts):
+    """Mirror normals and centres ``(M, 3)`` of records ``counts (M, 2)``.
+
+    ``params``: the 8 physical Stone parameters; ``geom``: dict with ``position``,
+    ``joint_translation_1``, ``joint_translation_2``, ``concentrator_translation``
+    (3,), ``linear_slope``, ``linear_intercept`` (2,). The chain (see
+    ``heliojax._kinematics``)::
+
+        n = Ry(alpha) Rz(beta) Rx(theta - pi/2) Ry(gamma) Rz(tau) Rx(delta) (0, -1, 0)
+        c = P + V01 + Ry(alpha) Rz(beta) Rx(theta - pi/2) (V12 + Ry(gamma) Rz(tau) V2M)
+        (theta, tau) = (slope * counts + intercept) / (gr1, gr2) + (theta_k, tau_k)
+    """
+    alpha, beta, gamma, delta, theta_k, tau_k, gr1, gr2 = params
+    motor = geom["linear_slope"] * counts + geom["linear_intercept"]
+    theta = motor[:, 0] / gr1 + theta_k
+    tau = motor[:, 1] / gr2 + tau_k
+    r01 = _rot_y(alpha) @ _rot_z(beta)
+    outer = r01 @ _rot_x(theta - np.pi / 2)  # (M, 3, 3)
+    inner = _rot_y(gamma) @ _rot_z(tau)  # (M, 3, 3)
+    body = outer @ inner @ _rot_x(delta)
+    normal = -body[..., :, 1]  # body @ (0, -1, 0)
+    arm = geom["joint_translation_2"] + inner @ geom["concentrator_translation"]
+    centre = geom["position"] + geom["joint_translation_1"] + np.einsum("mij,mj->mi", outer, arm)
+    return normal, centre
+
+
+def beam_components_np(normal, centre, sun, focal):
+    """Tangent-plane beam error components ``(M, 2)`` (rad): ``(d . e1, d . e2)``
+    with ``r`` the reflected ray, ``d`` the unit vector centre -> focal spot,
+    ``e1 = normalize(up x r)``, ``e2 = r x e1``."""
+    r = -sun + 2.0 * np.sum(sun * normal, -1, keepdims=True) * normal
+    d = focal - centre
+    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    e1 = np.stack([-r[:, 1], r[:, 0], np.zeros(len(r))], -1)  # (0, 0, 1) x r
+    e1 = e1 / np.linalg.norm(e1, axis=-1, keepdims=True)
+    e2 = np.cross(r, e1)
+    return np.stack([np.sum(d * e1, -1), np.sum(d * e2, -1)], -1)
+
+
+def stone_residual_np(y, geom, counts, sun, focal):
+    """The least-squares residual ``(2 M,)`` in mrad of scaled parameters ``y``
+    (physical = nominal + 1e-3 y)."""
+    params = STONE_NOMINAL + STONE_SCALE * np.asarray(y)
+    normal, centre = stone_pose_np(params, geom, counts)
+    return 1e3 * beam_components_np(normal, centre, sun, focal).reshape(-1)
+
+
+def scipy_fit_fleet(geoms, counts, sun, focal, mask, n_heliostats=None):
+    """``scipy.optimize.least_squares(method="lm")`` per heliostat; returns
+    ``(params (K, 8), n_fev (K,), seconds)`` for the first ``K`` heliostats."""
+    from scipy.optimize import least_squares
+
+    k = len(counts) if n_heliostats is None else int(n_heliostats)
+    params = np.empty((k, 8))
+    nfev = np.zeros(k, int)
+    t0 = time.perf_counter()
+    for i in range(k):
+        m = mask[i]
+        args = (geoms[i], counts[i][m], sun[i][m], focal[i][m])
+        sol = least_squares(stone_residual_np, np.zeros(8), method="lm", args=args)
+        params[i] = STONE_NOMINAL + STONE_SCALE * sol.x
+        nfev[i] = sol.nfev
+    return params, nfev, time.perf_counter() - t0
+
+
+# --------------------------------------------------------------------------------------
+# Simulated fleet
+# --------------------------------------------------------------------------------------
+
+
+def simulate_fleet(n, m, noise_mrad, seed=0, chunk=1000):
+    """Simulated fleet as numpy pytrees: ``(geometry, true_params (n, 8), context,
+    counts, focal, hit)``; simulated in jitted chunks of ``chunk`` heliostats (one
+    compilation)."""
+    import jax
+    import jax.numpy as jnp
+
+    from heliojax._simulate import (
+        calibration_target,
+        random_stone_models,
+        simulate_records,
+        synthetic_contexts,
+        synthetic_geometry,
+    )
+
+    c = min(n, chunk)
+
+    @jax.jit
+    def one_chunk(key):
+        k = jax.random.split(key, 4)
+        g = synthetic_geometry(k[0], c)
+        tm = random_stone_models(k[1], c)
+        ctx = synthetic_contexts(k[2], c, m, weather=False)
+        sim = simulate_records(k[3], tm, g, ctx, calibration_target(), noise_mrad=noise_mrad)
+        true = jnp.stack([getattr(tm, f) for f in STONE_NAMES], -1)
+        return g, true, ctx, sim.counts, sim.focal_spot, sim.hit
+
+    base = jax.random.PRNGKey(seed)
+    parts = [jax.tree.map(np.asarray, one_chunk(jax.random.fold_in(base, i))) for i in range((n + c - 1) // c)]
+    out = jax.tree.map(lambda *xs: np.concatenate(xs, 0)[:n], *parts)
+    return out
+
+
+def _geom_dicts(geometry):
+    fields = (
+        "position",
+        "joint_translation_1",
+        "joint_translation_2",
+        "concentrator_translation",
+        "linear_slope",
+        "linear_intercept",
+    )
+    arrays = {f: np.asarray(getattr(geometry, f)) for f in fields}
+    n = arrays["position"].shape[0]
+    return [{f: arrays[f][i] for f in fields} for i in range(n)]
+
+
+# --------------------------------------------------------------------------------------
+# heliojax
+# --------------------------------------------------------------------------------------
+
+
+def _take_records(tree, idx):
+    import jax
+
+    return jax.tree.map(lambda x: x[:, idx], tree)
+
+
+def _pad(x, n_h, n_m, axis_m=True):
+    """Pad axis 0 to ``n_h`` (copies of row 0) and axis 1 to ``n_m`` (copies of
+    column 0) in numpy."""
+    h = x.shape[0]
+    if n_h > h:
+        x = np.concatenate([x, np.repeat(x[:1], n_h - h, 0)], 0)
+    if axis_m and x.ndim >= 2 and n_m > x.shape[1]:
+        x = np.concatenate([x, np.repeat(x[:, :1], n_m - x.shape[1], 1)], 1)
+    return x
+
+
+def heliojax_data(geometry, context, counts, focal, mask, pad=True):
+    """:class:`heliojax.CalibrationData` of the training records, padded to the
+    shape buckets (numpy padding: no compilation per shape)."""
+    import jax
+
+    from heliojax._calibration import CalibrationData
+    from heliojax._fleet import bucket_size
+
+    h, m = counts.shape[:2]
+    nh, nm = (bucket_size(h), bucket_size(m)) if pad else (h, m)
+    geometry = jax.tree.map(lambda x: _pad(np.asarray(x), nh, nm, axis_m=False), geometry)
+    context = jax.tree.map(lambda x: _pad(np.asarray(x), nh, nm), context)
+    mask = _pad(np.asarray(mask), nh, nm)
+    mask[h:] = False
+    mask[:, m:] = False
+    data = CalibrationData(
+        geometry=geometry,
+        counts=_pad(np.asarray(counts), nh, nm),
+        context=context,
+        focal_spot=_pad(np.asarray(focal), nh, nm),
+        mask=mask,
+    )
+    return jax.device_put(data)
+
+
+def time_heliojax(data, strategy, chunk_size, repeats):
+    """``(result, first_call_s, best_later_s, later_calls)`` of :func:`fit_fleet`."""
+    import jax
+
+    from heliojax._calibration import STONE8, FitConfig, fit_fleet
+
+    config = FitConfig(strategy=strategy, chunk_size=chunk_size)
+    times = []
+    result = None
+    for _ in range(1 + max(1, repeats)):
+        t0 = time.perf_counter()
+        result = fit_fleet(data, STONE8, config)
+        jax.block_until_ready(result.params)
+        times.append(time.perf_counter() - t0)
+    return result, times[0], min(times[1:]), times[1:]
+
+
+def heldout_rms(params, geometry, context, counts, focal, mask):
+    """Fleet RMS (mrad) and per-heliostat RMS of the beam pointing error over the
+    held-out records, with :func:`heliojax.beam_errors_mrad`."""
+    import jax
+    import jax.numpy as jnp
+
+    from heliojax._calibration import STONE8, beam_errors_mrad
+
+    models = jax.vmap(STONE8.physical_to_model)(jnp.asarray(params))
+    e = np.asarray(beam_errors_mrad(models, geometry, counts, context, focal, mask))
+    sq = np.where(mask, e, 0.0) ** 2
+    per = np.sqrt(sq.sum(1) / np.maximum(mask.sum(1), 1))
+    return float(np.sqrt(sq.sum() / mask.sum())), per
+
+
+# --------------------------------------------------------------------------------------
+# Main
+# --------------------------------------------------------------------------------------
+
+
+def _machine():
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return f"{cpu}, {os.cpu_count()} logical cores, {platform.system()} {platform.release()}"
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--heliostats", type=int, default=1000)
+    p.add_argument("--records", type=int, default=100)
+    p.add_argument("--noise", type=float, default=0.2, help="measurement noise, mrad per component")
+    p.add_argument("--train-fraction", type=float, default=0.7)
+    p.add_argument("--strategy", default="auto", help="auto|vmap|chunked|map, or a comma list to time several")
+    p.add_argument("--chunk-size", type=int, default=64)
+    p.add_argument("--repeats", type=int, default=2, help="timed calls after the compiling one")
+    p.add_argument("--no-pad", action="store_true", help="fit the exact shape (no shape buckets)")
+    p.add_argument("--skip-scipy", action="store_true")
+    p.add_argument("--scipy-heliostats", type=int, default=None, help="time scipy on this many and extrapolate")
+    p.add_argument("--scipy-budget", type=float, default=300.0, help="s; above the estimate, scipy is extrapolated")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", action="store_true", help="print one JSON object only")
+    return p.parse_args(argv)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from heliojax._calibration import default_strategy
+
+    log = (lambda *a: print(*a, file=sys.stderr)) if args.json else print
+    n, m = args.heliostats, args.records
+    t0 = time.perf_counter()
+    geometry, true, context, counts, focal, hit = simulate_fleet(n, m, args.noise, args.seed)
+    sim_s = time.perf_counter() - t0
+    n_train = int(round(args.train_fraction * m))
+    train_idx = np.arange(n_train)
+    test_idx = np.arange(n_train, m)
+    # Every record is a measurement (the spot on the target's plane), on target or not.
+    train_mask = np.ones((n, n_train), bool)
+    test_mask = np.ones((n, m - n_train), bool)
+    log(f"simulated {n} x {m} records in {sim_s:.1f} s ({hit.mean():.3f} on target)")
+
+    train = [_take_records(x, train_idx) for x in (context, counts, focal)]
+    test = [_take_records(x, test_idx) for x in (context, counts, focal)]
+    data = heliojax_data(geometry, *train, train_mask, pad=not args.no_pad)
+
+    backend = jax.default_backend()
+    strategies = [s.strip() for s in args.strategy.split(",")]
+    resolved = [default_strategy(backend) if s == "auto" else s for s in strategies]
+    per_strategy = {}
+    best = None
+    for s in resolved:
+        res, first, run, later = time_heliojax(data, s, args.chunk_size, args.repeats)
+        per_strategy[s] = {"heliojax_s": run, "compile_s": first - run, "first_call_s": first, "calls_s": later}
+        log(f"heliojax[{s}]: first call {first:.2f} s, then {', '.join(f'{x:.2f}' for x in later)} s")
+        if best is None or run < per_strategy[best[0]]["heliojax_s"]:
+            best = (s, res)
+    strategy, res = best
+    params_hj = np.asarray(res.params)[:n]
+    status = np.asarray(res.status)[:n]
+    steps = np.asarray(res.n_steps)[:n]
+    rms_hj, per_hj = heldout_rms(params_hj, geometry, test[0], test[1], test[2], test_mask)
+
+    out = {
+        "heliojax_s": per_strategy[strategy]["heliojax_s"],
+        "compile_s": per_strategy[strategy]["compile_s"],
+        "scipy_s": None,
+        "ratio": None,
+        "heldout_rms_mrad_heliojax": rms_hj,
+        "heldout_rms_mrad_scipy": None,
+        "peak_rss_mb": None,
+        "heliostats": n,
+        "records": m,
+        "train_records": n_train,
+        "fit_shape": list(data.counts.shape[:2]),
+        "noise_mrad": args.noise,
+        "strategy": strategy,
+        "chunk_size": args.chunk_size if strategy == "chunked" else None,
+        "per_strategy": per_strategy,
+        "backend": backend,
+        "devices": [str(d) for d in jax.devices()],
+        "machine": _machine(),
+        "jax_version": jax.__version__,
+        "dtype": str(data.counts.dtype),
+        "simulate_s": sim_s,
+        "converged_fraction": float(np.mean(status == 0)),
+        "lm_steps_mean": float(steps.mean()),
+        "lm_steps_max": int(steps.max()),
+    }
+
+    if not args.skip_scipy:
+        geoms = _geom_dicts(geometry)
+        sun_tr, counts_tr, focal_tr = np.asarray(train[0].sun), np.asarray(train[1]), np.asarray(train[2])
+        k = args.scipy_heliostats
+        if k is None:
+            probe = min(n, 20)
+            _, _, probe_s = scipy_fit_fleet(geoms, counts_tr, sun_tr, focal_tr, train_mask, probe)
+            estimate = probe_s / probe * n
+            k = n if estimate <= args.scipy_budget else max(probe, int(args.scipy_budget / (probe_s / probe)))
+            log(f"scipy probe: {probe_s / probe * 1e3:.1f} ms per heliostat, estimate {estimate:.0f} s")
+        k = min(k, n)
+        params_sp, nfev, scipy_k_s = scipy_fit_fleet(geoms, counts_tr, sun_tr, focal_tr, train_mask, k)
+        scipy_s = scipy_k_s * n / k
+        sub = np.arange(k)
+        rms_sp, per_sp = heldout_rms(
+            params_sp, *_sub((geometry, test[0], test[1], test[2], test_mask), sub)
+        )
+        rms_hj_sub = float(np.sqrt(np.sum(per_hj[sub] ** 2 * test_mask[sub].sum(1)) / test_mask[sub].sum()))
+        log(f"scipy: {scipy_k_s:.2f} s for {k} heliostats")
+        out.update(
+            scipy_s=scipy_s,
+            ratio=scipy_s / out["heliojax_s"],
+            heldout_rms_mrad_scipy=rms_sp,
+            heldout_rms_mrad_heliojax_same_heliostats=rms_hj_sub,
+            heldout_rms_abs_diff_mrad=abs(rms_sp - rms_hj_sub),
+            heldout_per_heliostat_max_abs_diff_mrad=float(np.max(np.abs(per_sp - per_hj[sub]))),
+            params_max_abs_diff=float(np.max(np.abs(params_sp - params_hj[sub]))),
+            scipy_measured_heliostats=k,
+            scipy_extrapolated=k < n,
+            scipy_nfev_mean=float(nfev.mean()),
+            scipy_jacobian="2-point finite differences (scipy default)",
+        )
+    out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    if args.json:
+        print(json.dumps(out))
+    else:
+        print(json.dumps(out, indent=2))
+    return 0
+
+
+def _sub(trees, idx):
+    import jax
+
+    return jax.tree.map(lambda x: np.asarray(x)[idx], trees)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,157 @@
+"""``heliojax trace``: flux image of a heliostat for a calibration record or a sun position
+(thin over :mod:`heliojax.optics`)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "trace",
+        help="ray-trace a heliostat's flux image onto a target (PNG + HDF5)",
+        description=(
+            "Align a heliostat (PAINT properties, nominal linear-actuator kinematics) with the motor "
+            "counts of a calibration record (--record) or aim it at a target for a given sun "
+            "(--sun-azimuth/--sun-elevation), trace its flux onto the target plane and write "
+            "OUT/<H>-<ID or sun>-flux.png and .h5 (W/m^2, extent in metres). With --record and "
+            "the record's measured flux PNGs beside it, a comparison (centroid distance, "
+            "normalised cross-correlation) is written too."
+        ),
+    )
+    p.add_argument("paint", type=Path, metavar="PAINT_DIR", help="PAINT-layout directory (<H>/Properties, <H>/Calibration)")
+    p.add_argument("--heliostat", required=True, help="heliostat id, e.g. AA39")
+    p.add_argument("--record", type=int, help="calibration record id (counts, sun and target of the record)")
+    p.add_argument("--sun-azimuth", type=float, help="deg, 0 = south, positive toward east")
+    p.add_argument("--sun-elevation", type=float, help="deg")
+    p.add_argument("--target", default="solar_tower_juelich_lower", help="target name with --sun-* (aimed at its centre)")
+    p.add_argument("--tower", type=Path, help="tower file (default: PAINT_DIR's or its parent's)")
+    p.add_argument("--deflectometry", type=Path, help="PAINT deflectometry HDF5: fit NURBS facets to it")
+    p.add_argument("--sunshape", choices=("buie", "gaussian", "pillbox"), default="buie")
+    p.add_argument("--csr", type=float, default=0.05, help="Buie circumsolar parameter (default 0.05)")
+    p.add_argument("--sigma-mrad", type=float, default=2.51, help="Gaussian sun sigma per axis, mrad")
+    p.add_argument("--slope-error-mrad", type=float, default=1.5, help="Gaussian mirror slope error per axis, mrad (0: none)")
+    p.add_argument("--rays-per-point", type=int, default=64)
+    p.add_argument("--steps", type=int, default=4, help="lax.scan chunks (rays per point = rays-per-point x steps)")
+    p.add_argument("--resolution", type=int, default=32, help="surface points per facet edge")
+    p.add_argument("--pixels", type=int, default=256, help="image pixels per side")
+    p.add_argument("--dni", type=float, default=1000.0, help="W/m^2")
+    p.add_argument("--reflectivity", type=float, default=1.0)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, default=Path("trace"), help="output directory")
+
+
+def _tower_path(args) -> Path:
+    if args.tower is not None:
+        return args.tower
+    for d in (args.paint, args.paint.parent):
+        found = sorted(d.glob("*tower-measurements.json"))
+        if found:
+            return found[0]
+    raise FileNotFoundError(f"no *tower-measurements.json in {args.paint} or its parent; pass --tower")
+
+
+def run(args: argparse.Namespace) -> int:
+    import h5py
+    import jax
+    import jax.numpy as jnp
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from .._errors import HeliojaxError
+    from .._geometry import sun_direction
+    from .._io import atomic_path, atomic_write
+    from .._kinematics import ActuatorModel, forward, inverse_aim
+    from .._paint import read_calibration_record, read_heliostat_properties, read_tower
+    from .. import optics
+    from ..optics import _compare
+
+    if (args.record is None) == (args.sun_azimuth is None or args.sun_elevation is None):
+        print("heliojax trace: give either --record or both --sun-azimuth and --sun-elevation", file=sys.stderr)
+        return 2
+    try:
+        tower_path = _tower_path(args)
+        tower = read_tower(tower_path)
+        hdir = args.paint / args.heliostat
+        props_path = hdir / "Properties" / f"{args.heliostat}-heliostat-properties.json"
+        props = read_heliostat_properties(props_path)
+        geometry = _compare.geometry_from_properties(props, tower.origin_lla)
+        layout = _compare.layout_from_properties(props)
+        model = ActuatorModel.nominal(jnp.float64)
+        if args.deflectometry is not None:
+            defl = optics.read_deflectometry(args.deflectometry)
+            facets = optics.fit_nurbs(defl, layout.translations[: defl.n_facets])
+            surface = facets.evaluate((args.resolution, args.resolution))
+        else:
+            surface = optics.ideal_surface(layout, (args.resolution, args.resolution))
+        base = {
+            "buie": lambda: optics.BuieSun(args.csr),
+            "gaussian": lambda: optics.GaussianSun(args.sigma_mrad * 1e-3),
+            "pillbox": lambda: optics.PillboxSun(),
+        }[args.sunshape]()
+        sunshape = optics.EffectiveSun(base, args.slope_error_mrad * 1e-3) if args.slope_error_mrad > 0 else base
+        if args.record is not None:
+            rec_path = hdir / "Calibration" / f"{args.record}-calibration-properties.json"
+            record = read_calibration_record(rec_path, heliostat_id=args.heliostat)
+            az, el, target_name = record.sun_azimuth_deg, record.sun_elevation_deg, record.target_name
+            counts = jnp.asarray([record.axis_1_counts, record.axis_2_counts], jnp.float64)
+            tag = str(args.record)
+        else:
+            az, el, target_name = args.sun_azimuth, args.sun_elevation, args.target
+            tag = f"az{az:g}_el{el:g}"
+        target = _compare.target_from_tower(tower, target_name)
+        sun = sun_direction(jnp.deg2rad(az), jnp.deg2rad(el))
+        if args.record is None:
+            counts = inverse_aim(model, geometry, target.centre, sun)
+        pose = forward(model, geometry, counts)
+        grid = optics.ImageGrid.for_target(target, (args.pixels, args.pixels))
+        image = optics.flux_image(jax.random.key(args.seed), surface, pose, sun, target, grid, sunshape,
+                                  rays_per_point=args.rays_per_point, steps=args.steps, dni=args.dni,
+                                  reflectivity=args.reflectivity)
+        image = np.asarray(image, np.float64)
+        c = np.asarray(optics.centroid(jnp.asarray(image), grid))
+        power = float(image.sum() * float(grid.pixel_area))
+        stem = args.out / f"{args.heliostat}-{tag}-flux"
+        extent = [float(grid.u_min), float(grid.u_max), float(grid.v_min), float(grid.v_max)]
+        with atomic_path(stem.with_suffix(".h5")) as tmp:
+            with h5py.File(tmp, "w") as f:
+                d = f.create_dataset("flux", data=image.astype(np.float32))
+                d.attrs["units"] = "W/m^2"
+                d.attrs["extent_uv_m"] = extent
+                d.attrs["orientation"] = "row 0 = top (max v), column 0 = left (min u)"
+                f.attrs.update(heliostat=args.heliostat, target=target_name, sun_azimuth_deg=az,
+                               sun_elevation_deg=el, counts=np.asarray(counts), centroid_uv_m=c, power_w=power)
+        fig, ax = plt.subplots(figsize=(5, 4.4))
+        im = ax.imshow(image, extent=extent, origin="upper", cmap="inferno")
+        fig.colorbar(im, ax=ax, label="W/m$^2$")
+        ax.set_xlabel("u (m)")
+        ax.set_ylabel("v (m)")
+        ax.set_title(f"{args.heliostat} {tag} on {target_name}", fontsize=9)
+        with atomic_path(stem.with_suffix(".png")) as tmp:
+            fig.savefig(tmp, dpi=100, format="png")
+        plt.close(fig)
+        summary = {"heliostat": args.heliostat, "target": target_name, "centroid_uv_m": c.tolist(), "power_w": power,
+                   "rays": optics.ray_count(surface, args.rays_per_point, args.steps)}
+        flux_png = hdir / "Calibration" / f"{args.record}-flux.png"
+        if args.record is not None and flux_png.exists():
+            comp = _compare.compare_record(rec_path, props_path, tower_path, surface=surface, sunshape=sunshape,
+                                           key=jax.random.key(args.seed), rays_per_point=args.rays_per_point,
+                                           steps=args.steps)
+            summary["comparison"] = comp.summary()
+            fig = _compare.comparison_figure(comp)
+            with atomic_path(args.out / f"{args.heliostat}-{tag}-comparison.png") as tmp:
+                fig.savefig(tmp, dpi=90, format="png")
+            plt.close(fig)
+        with atomic_write(args.out / f"{args.heliostat}-{tag}-summary.json") as f:
+            json.dump(summary, f, indent=2)
+        print(json.dumps(summary, indent=2))
+    except (HeliojaxError, FileNotFoundError) as e:
+        print(f"heliojax trace: {e}", file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,268 @@
+"""Lanes: the fleet replicated once per cross-validation fold, and the compiled
+fit / Jacobian programs that run over all lanes at once.
+
+A *lane* is one heliostat under one record mask: lane ``(f, h)`` holds
+heliostat ``h`` with the records of every fold but ``f`` (``f = 0``: all
+records). Fitting all lanes in one compiled program gives the full-data fit
+and every cross-validation fit in one call.
+
+The fit is the same Levenberg-Marquardt problem as :func:`heliojax.fit_fleet`
+(tangent-plane residuals in mrad, scaled parameters, masked records replaced
+by :func:`heliojax._calibration._sanitise`), over *one* model specification
+that carries the base parameters and the parameters of every candidate
+effect. Which effect parameters move is a dynamic ``active`` mask per lane,
+not a static choice, so every candidate set, every fold and every step of the
+discovery reuses one compiled program (``fit_fleet`` fixes the free set
+statically, which would recompile per candidate).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from .._calibration import (
+    CalibrationData,
+    FitConfig,
+    ModelSpec,
+    _batched,
+    _record_residuals,
+    _sanitise,
+    default_strategy,
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class Layout:
+    """Static column layout of the discovery's universal specification.
+
+    Attributes:
+        spec: base + all candidate effects (:func:`heliojax.effects.with_effects`).
+        free_index: positions (in ``spec.names``) of the columns the solver sees:
+            the base's free parameters, then every effect parameter.
+        base_cols: solver columns of the base's free parameters.
+        effect_cols: effect name -> its solver columns.
+        effect_param_names: effect name -> its parameter names.
+    """
+
+    spec: ModelSpec
+    free_index: tuple[int, ...]
+    base_cols: tuple[int, ...]
+    effect_cols: tuple[tuple[str, tuple[int, ...]], ...]
+    effect_param_names: tuple[tuple[str, tuple[str, ...]], ...]
+
+    @property
+    def n_free(self) -> int:
+        return len(self.free_index)
+
+    def cols(self, effect: str) -> tuple[int, ...]:
+        return dict(self.effect_cols)[effect]
+
+    def params(self, effect: str) -> tuple[str, ...]:
+        return dict(self.effect_param_names)[effect]
+
+    @property
+    def scales(self) -> np.ndarray:
+        return np.asarray(self.spec.scales)[list(self.free_index)]
+
+
+def make_layout(base_spec: ModelSpec, effects: tuple[str, ...]) -> Layout:
+    from ..effects import with_effects
+    from ..effects._spec import base_kind_of, effect_class
+
+    spec = with_effects(base_spec, effects)
+    kind = base_kind_of(spec)
+    base_free = [spec.names.index(n) for n in base_spec.free]
+    free_index = list(base_free)
+    effect_cols = []
+    effect_params = []
+    for e in effects:
+        names = effect_class(e).param_names(kind)
+        start = len(free_index)
+        free_index += [spec.names.index(n) for n in names]
+        effect_cols.append((e, tuple(range(start, len(free_index)))))
+        effect_params.append((e, tuple(names)))
+    return Layout(
+        spec=spec,
+        free_index=tuple(free_index),
+        base_cols=tuple(range(len(base_free))),
+        effect_cols=tuple(effect_cols),
+        effect_param_names=tuple(effect_params),
+    )
+
+
+def _fit_lane(layout: Layout, config: FitConfig, p0, active, geometry, counts, context, focal, mask):
+    spec = layout.spec
+    counts, context, focal, use, _ = _sanitise(geometry, counts, context, focal, mask)
+    dtype = counts.dtype
+    idx = jnp.asarray(layout.free_index, dtype=jnp.int32)
+    scales = jnp.asarray(spec.scales, dtype)[idx]
+
+    def to_physical(y):
+        return p0.at[idx].add(jnp.where(active, y, 0.0) * scales)
+
+    def residual_fn(y, _):
+        model = spec.builder(to_physical(y))
+        r = _record_residuals(model, geometry, counts, context, focal) * 1e3
+        return jnp.where(use[:, None], r, 0.0).reshape(-1)
+
+    y0 = jnp.zeros(layout.n_free, dtype)
+    solver = optx.LevenbergMarquardt(rtol=config.rtol, atol=config.atol)
+    sol = optx.least_squares(residual_fn, solver, y0, max_steps=config.max_steps, throw=False)
+    p = to_physical(sol.value)
+    r = sol.state.f_info.residual
+    rss = jnp.sum(r**2)
+    n_used = jnp.sum(use)
+    n_active = jnp.sum(active)
+    ok = (2 * n_used > n_active) & jnp.all(jnp.isfinite(p)) & jnp.isfinite(rss)
+    ok = ok & (sol.result != optx.RESULTS.nonlinear_divergence)
+    p = jnp.where(ok, p, p0)
+    return dict(params=p, rss=jnp.where(ok, rss, jnp.nan), n_used=n_used.astype(jnp.int32), ok=ok,
+                n_steps=sol.stats["num_steps"].astype(jnp.int32))
+
+
+@eqx.filter_jit
+def _fit_lanes_compiled(layout, config, strategy, p0, active, data: CalibrationData):
+    fn = lambda a, b, g, c, x, f, m: _fit_lane(layout, config, a, b, g, c, x, f, m)  # noqa: E731
+    return _batched(fn, strategy, config.chunk_size)(
+        p0, active, data.geometry, data.counts, data.context, data.focal_spot, data.mask
+    )
+
+
+def _jac_lane(layout: Layout, p, geometry, counts, context, focal, mask):
+    spec = layout.spec
+    counts, context, focal, use, _ = _sanitise(geometry, counts, context, focal, mask)
+    dtype = counts.dtype
+    idx = jnp.asarray(layout.free_index, dtype=jnp.int32)
+    scales = jnp.asarray(spec.scales, dtype)[idx]
+
+    def residual_fn(y):
+        model = spec.builder(p.at[idx].add(y * scales))
+        r = _record_residuals(model, geometry, counts, context, focal) * 1e3
+        return jnp.where(use[:, None], r, 0.0).reshape(-1)
+
+    y0 = jnp.zeros(layout.n_free, dtype)
+    r, lin = jax.linearize(residual_fn, y0)
+    jac = jax.vmap(lin, out_axes=1)(jnp.eye(layout.n_free, dtype=dtype))
+    return r, jac
+
+
+@eqx.filter_jit
+def _jac_lanes_compiled(layout, strategy, p, data: CalibrationData):
+    fn = lambda a, g, c, x, f, m: _jac_lane(layout, a, g, c, x, f, m)  # noqa: E731
+    return _batched(fn, strategy, 64)(p, data.geometry, data.counts, data.context, data.focal_spot, data.mask)
+
+
+@dataclasses.dataclass(frozen=True)
+class Lanes:
+    """The fleet replicated over ``K + 1`` masks (numpy bookkeeping + device data).
+
+    Attributes:
+        data: :class:`~heliojax.CalibrationData` with ``L = (K + 1) * H`` lanes; its
+            mask is each lane's training mask.
+        eval_data: the same lanes with every valid record unmasked (to evaluate).
+        fold: ``(L,)`` fold of each lane (0 = all records).
+        heliostat: ``(L,)`` heliostat index of each lane.
+        record_fold: ``(H, M)`` fold (1..K) of each record, 0 for invalid ones.
+        valid: ``(H, M)`` valid records.
+        n_folds: ``K``.
+    """
+
+    data: CalibrationData
+    eval_data: CalibrationData
+    fold: np.ndarray
+    heliostat: np.ndarray
+    record_fold: np.ndarray
+    valid: np.ndarray
+    n_folds: int
+
+    @property
+    def n_heliostats(self) -> int:
+        return self.valid.shape[0]
+
+    def lane(self, fold: int, heliostat: int) -> int:
+        return fold * self.n_heliostats + heliostat
+
+    def heldout_mask(self) -> np.ndarray:
+        """``(L, M)``: the records each lane holds out (none for fold 0)."""
+        rf = self.record_fold[self.heliostat]
+        return (rf == self.fold[:, None]) & (self.fold[:, None] > 0) & self.valid[self.heliostat]
+
+
+def day_folds(unix_time: np.ndarray, valid: np.ndarray, record_id: np.ndarray | None, n_folds: int) -> np.ndarray:
+    """Blocked folds by UTC day: the fleet's distinct days, in chronological order,
+    are dealt to folds ``1..K`` in turn (so every fold spans the season); all
+    records of a day share a fold. A record without a time is its own block,
+    dealt after the days in record-id order. Invalid records get fold 0."""
+    t = np.asarray(unix_time, float)
+    valid = np.asarray(valid, bool)
+    day = np.floor(t / 86400.0)
+    timed = valid & np.isfinite(day)
+    days = np.unique(day[timed])
+    rank = {d: i for i, d in enumerate(days)}
+    out = np.zeros(valid.shape, np.int64)
+    for (i, j) in zip(*np.nonzero(timed)):
+        out[i, j] = rank[day[i, j]] % n_folds + 1
+    untimed = np.argwhere(valid & ~np.isfinite(day))
+    if len(untimed):
+        key = (np.asarray(record_id)[tuple(untimed.T)] if record_id is not None else np.arange(len(untimed)))
+        order = np.argsort(key, kind="stable")
+        for k, idx in enumerate(order):
+            i, j = untimed[idx]
+            out[i, j] = (len(days) + k) % n_folds + 1
+    return out
+
+
+def make_lanes(data: CalibrationData, record_id, n_folds: int) -> Lanes:
+    valid = np.asarray(data.mask, bool)
+    rf = day_folds(np.asarray(data.context.unix_time), valid, record_id, n_folds)
+    h = valid.shape[0]
+    n_lanes = (n_folds + 1) * h
+    fold = np.repeat(np.arange(n_folds + 1), h)
+    heli = np.tile(np.arange(h), n_folds + 1)
+    train = valid[heli] & ((rf[heli] != fold[:, None]) | (fold[:, None] == 0))
+    tile = lambda x: jnp.concatenate([x] * (n_folds + 1), axis=0)  # noqa: E731
+    base = CalibrationData(
+        geometry=jax.tree_util.tree_map(tile, data.geometry),
+        counts=tile(data.counts),
+        context=jax.tree_util.tree_map(tile, data.context),
+        focal_spot=tile(data.focal_spot),
+        mask=jnp.asarray(train),
+    )
+    eval_data = eqx.tree_at(lambda d: d.mask, base, jnp.asarray(valid[heli]))
+    assert base.counts.shape[0] == n_lanes
+    return Lanes(data=base, eval_data=eval_data, fold=fold, heliostat=heli, record_fold=rf, valid=valid,
+                 n_folds=n_folds)
+
+
+@dataclasses.dataclass(frozen=True)
+class Engine:
+    """The compiled programs over one set of lanes."""
+
+    layout: Layout
+    lanes: Lanes
+    config: FitConfig
+    strategy: str
+
+    @classmethod
+    def create(cls, layout: Layout, lanes: Lanes, config: FitConfig) -> "Engine":
+        strategy = config.strategy if config.strategy != "auto" else default_strategy()
+        return cls(layout, lanes, config, strategy)
+
+    def fit(self, p0: np.ndarray, active: np.ndarray) -> dict:
+        out = _fit_lanes_compiled(self.layout, self.config, self.strategy, jnp.asarray(p0),
+                                  jnp.asarray(active), self.lanes.data)
+        return {k: np.asarray(v) for k, v in out.items()}
+
+    def jacobian(self, p: np.ndarray, evaluate: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals ``(L, 2M)`` (mrad) and Jacobian ``(L, 2M, F)`` (mrad per scaled
+        unit) at ``p``; rows of records outside the training mask (or, with
+        ``evaluate``, outside the valid records) are zero."""
+        data = self.lanes.eval_data if evaluate else self.lanes.data
+        r, j = _jac_lanes_compiled(self.layout, self.strategy, jnp.asarray(p), data)
+        return np.asarray(r), np.asarray(j)

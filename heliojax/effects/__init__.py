@@ -1,0 +1,88 @@
+"""Effect library: physical effects as composable extensions of a kinematic model.
+
+An effect (:class:`AbstractEffect`) holds its own parameters and corrects one
+stage of a record's prediction (geometry, joint angles, sun, focal spot).
+:class:`EffectModel` ``(base, effects)`` is again a kinematic model, so the
+fit, the metrics and the simulator use it unchanged; :func:`with_effects`
+makes the matching :class:`~heliojax.ModelSpec` for :func:`heliojax.fit_fleet`.
+
+The fixed list of effects (:data:`EFFECT_NAMES`):
+
+==================== ===================================== ===================== ==========================
+name                 parameters (units)                    driving inputs        residual signature
+==================== ===================================== ===================== ==========================
+``actuator_geometry`` ``curvature_1,2`` (1; stone8 base) or counts               curved in each axis's counts
+                     ``pivot_scale_1,2`` (1; actuator base)
+``backlash``         ``backlash_1,2`` (rad, dead-band width) approach directions   step between approach signs
+``thermal``          ``thermal_1,2`` (rad/K)                temperature           proportional to T - T_ref
+``wind``             ``wind_1,2`` (rad/(m/s)^2)             wind speed, direction v^2, by direction to mirror
+``clock``            ``clock_offset`` (s), ``clock_drift``  time, sun             sun turned about the pole,
+                     (s/day)                                                      growing with time
+``gravity_sag``      ``gravity_sag`` (rad)                  normal elevation      ~cos(elevation) on axis 1
+``encoder_wobble``   ``wobble_cos/sin_1,2`` (rad), n = 2    joint angles          sinusoid of n * angle
+``refraction``       ``refraction_scale`` (1)               sun elevation         vertical, ~cot(elevation)
+``survey_heliostat`` ``survey_heliostat_e,n,u`` (m)         geometry              direction to target
+``survey_target``    ``survey_target_e,n,u`` (m)            geometry              fixed shift on the target
+==================== ===================================== ===================== ==========================
+
+Each class's docstring gives the physical meaning and the exact correction.
+"""
+
+from ._base import (
+    AbstractEffect as AbstractEffect,
+    EffectModel as EffectModel,
+    add_effects as add_effects,
+)
+from ._environment import (
+    SOLAR_RATE_RAD_S as SOLAR_RATE_RAD_S,
+    Clock as Clock,
+    Refraction as Refraction,
+    Thermal as Thermal,
+    Wind as Wind,
+    standard_refraction as standard_refraction,
+)
+from ._mechanical import (
+    ActuatorGeometry as ActuatorGeometry,
+    Backlash as Backlash,
+    EncoderWobble as EncoderWobble,
+    GravitySag as GravitySag,
+)
+from ._spec import (
+    EFFECT_CLASSES as EFFECT_CLASSES,
+    EFFECT_NAMES as EFFECT_NAMES,
+    EffectSpecBuilder as EffectSpecBuilder,
+    base_kind_of as base_kind_of,
+    data_references as data_references,
+    effect_class as effect_class,
+    effect_initial as effect_initial,
+    make_effect as make_effect,
+    with_effects as with_effects,
+)
+from ._survey import SurveyHeliostat as SurveyHeliostat, SurveyTarget as SurveyTarget
+
+__all__ = [
+    "EFFECT_CLASSES",
+    "EFFECT_NAMES",
+    "SOLAR_RATE_RAD_S",
+    "AbstractEffect",
+    "ActuatorGeometry",
+    "Backlash",
+    "Clock",
+    "EffectModel",
+    "EffectSpecBuilder",
+    "EncoderWobble",
+    "GravitySag",
+    "Refraction",
+    "SurveyHeliostat",
+    "SurveyTarget",
+    "Thermal",
+    "Wind",
+    "add_effects",
+    "base_kind_of",
+    "data_references",
+    "effect_class",
+    "effect_initial",
+    "make_effect",
+    "standard_refraction",
+    "with_effects",
+]

@@ -1,0 +1,233 @@
+"""Environmental and sun effects: thermal expansion, wind load, clock error,
+atmospheric refraction."""
+
+from __future__ import annotations
+
+import math
+import typing
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ._base import AbstractEffect, known
+
+SOLAR_RATE_RAD_S = 2.0 * math.pi / 86400.0
+"""Rate of the sun's hour angle (rad/s): one turn per mean solar day."""
+
+DEFAULT_LATITUDE_DEG = 50.913421122592574
+"""Latitude of the Jülich solar tower (PAINT plant reference), the default of :class:`Clock`."""
+
+
+@typing.final
+class Thermal(AbstractEffect):
+    """Thermal expansion of the drives and the structure.
+
+    Physical meaning: the actuator, its mounts and the pylon expand with the
+    ambient temperature ``T``; a change of stroke or lever length changes each
+    joint angle in proportion (steel: ~12e-6/K on ~0.3 m strokes and levers
+    gives ~0.01 mrad/K). Correction: ``angle_i += k_i (T - T_ref)``.
+
+    Parameters: ``thermal_1``, ``thermal_2`` (rad/K). Reference:
+    ``thermal_reference_c`` (deg C; the data's mean temperature, so the
+    coefficients do not trade off against the base model's offsets).
+    Driving input: ``temperature`` (records without one get no correction).
+    Residual signature: proportional to ``T - T_ref`` on each axis, independent
+    of the pose.
+    """
+
+    coefficient: Float[Array, "2"]
+    reference: Float[Array, ""]
+
+    NAME: typing.ClassVar[str] = "thermal"
+    PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("thermal_1", "thermal_2")
+    PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("rad/K", "rad/K")
+    PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (1e-4, 1e-4)
+    REFERENCE_NAMES: typing.ClassVar[tuple[str, ...]] = ("thermal_reference_c",)
+    DRIVERS: typing.ClassVar[tuple[str, ...]] = ("temperature",)
+
+    @classmethod
+    def reference_defaults(cls):
+        return (20.0,)
+
+    @classmethod
+    def from_vector(cls, params, references=(20.0,), base_kind="stone8"):
+        p = jnp.asarray(params)
+        return cls(coefficient=p[0:2], reference=jnp.asarray(references[0], p.dtype))
+
+    def to_vector(self, base_kind="stone8"):
+        return self.coefficient
+
+    def angle_correction(self, base, geometry, counts, angles, context, normal):
+        if context is None:
+            return None
+        dt = known(context.temperature, self.reference) - self.reference
+        return self.coefficient * dt
+
+
+@typing.final
+class Wind(AbstractEffect):
+    """Wind load on the mirror.
+
+    Physical meaning: the dynamic pressure ``rho v^2 / 2`` on the mirror bends
+    the structure and the drives. A wind blowing onto the mirror's face pushes
+    it over its elevation axis; a cross wind turns it about the vertical axis.
+    Correction::
+
+        theta += c_1 v^2 cos(phi - a_n)        tau += c_2 v^2 sin(phi - a_n)
+
+    with ``v`` the wind speed (m/s), ``phi`` the direction the wind comes from
+    (clockwise from north) and ``a_n`` the azimuth (clockwise from north) the
+    mirror normal faces.
+
+    Parameters: ``wind_1``, ``wind_2`` (rad per (m/s)^2).
+    Driving inputs: ``wind_speed``, ``wind_direction`` and the pose.
+    Residual signature: grows with ``v^2``, sign and axis set by the wind's
+    direction relative to the mirror.
+    """
+
+    coefficient: Float[Array, "2"]
+
+    NAME: typing.ClassVar[str] = "wind"
+    PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("wind_1", "wind_2")
+    PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("rad/(m/s)^2", "rad/(m/s)^2")
+    PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (1e-5, 1e-5)
+    DRIVERS: typing.ClassVar[tuple[str, ...]] = ("wind_speed", "wind_direction")
+    NEEDS_NORMAL: typing.ClassVar[bool] = True
+
+    @classmethod
+    def from_vector(cls, params, references=(), base_kind="stone8"):
+        return cls(coefficient=jnp.asarray(params)[0:2])
+
+    def to_vector(self, base_kind="stone8"):
+        return self.coefficient
+
+    def angle_correction(self, base, geometry, counts, angles, context, normal):
+        if context is None:
+            return None
+        ok = jnp.isfinite(context.wind_speed) & jnp.isfinite(context.wind_direction)
+        v = jnp.where(ok, context.wind_speed, 0.0)
+        phi = jnp.where(ok, context.wind_direction, 0.0)
+        facing = jnp.arctan2(normal[0], normal[1])
+        rel = phi - facing
+        v2 = v * v
+        return self.coefficient * jnp.stack([v2 * jnp.cos(rel), v2 * jnp.sin(rel)])
+
+
+def rotate_about(v, axis, angle):
+    """Rodrigues rotation of vector ``v`` about unit ``axis`` by ``angle`` (rad)."""
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    return v * c + jnp.cross(axis, v) * s + axis * jnp.dot(axis, v) * (1.0 - c)
+
+
+@typing.final
+class Clock(AbstractEffect):
+    """Clock error of the controller: offset and drift of the time it computes the
+    sun with.
+
+    Physical meaning: the controller's clock reads ``t + dt`` at true time
+    ``t``, with ``dt = offset + drift * (t - t_ref) / 86400``; the sun direction
+    the model should compare with is the sun at the clock's time. The sun's
+    hour angle grows at :data:`SOLAR_RATE_RAD_S`, i.e. the sky turns about the
+    celestial pole, so the sun at ``t + dt`` is the recorded sun turned by
+    ``-SOLAR_RATE_RAD_S * dt`` about the polar axis ``(0, cos lat, sin lat)``
+    (ENU); this equals re-evaluating the solar-position code at ``t + dt`` to
+    ~3e-3 relative (the declination's change, < 0.4 deg/day, is neglected; the
+    tests compare with :func:`heliojax.solar_position`).
+
+    Parameters: ``clock_offset`` (s), ``clock_drift`` (s/day). References:
+    ``clock_reference_s`` (unix s; the data's mean time) and
+    ``clock_latitude_deg`` (the plant's latitude).
+    Driving inputs: ``unix_time`` (records without a time get no correction)
+    and the sun. Residual signature: a turn of the sun about the polar axis,
+    growing linearly with time (drift); a constant turn (offset) is largely
+    absorbed by the base model's tilts.
+    """
+
+    offset: Float[Array, ""]
+    drift: Float[Array, ""]
+    reference: Float[Array, ""]
+    latitude_deg: Float[Array, ""]
+
+    NAME: typing.ClassVar[str] = "clock"
+    PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("clock_offset", "clock_drift")
+    PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("s", "s/day")
+    PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (10.0, 0.1)
+    REFERENCE_NAMES: typing.ClassVar[tuple[str, ...]] = ("clock_reference_s", "clock_latitude_deg")
+    DRIVERS: typing.ClassVar[tuple[str, ...]] = ("unix_time",)
+
+    @classmethod
+    def reference_defaults(cls):
+        return (1.65e9, DEFAULT_LATITUDE_DEG)
+
+    @classmethod
+    def from_vector(cls, params, references=(1.65e9, DEFAULT_LATITUDE_DEG), base_kind="stone8"):
+        p = jnp.asarray(params)
+        return cls(
+            offset=p[0],
+            drift=p[1],
+            reference=jnp.asarray(references[0], p.dtype),
+            latitude_deg=jnp.asarray(references[1], p.dtype),
+        )
+
+    def to_vector(self, base_kind="stone8"):
+        return jnp.stack([self.offset, self.drift])
+
+    def clock_error(self, unix_time) -> Float[Array, "..."]:
+        """``dt`` (s) at ``unix_time`` (0 where the time is unknown)."""
+        t = known(unix_time, self.reference)
+        return jnp.where(jnp.isfinite(jnp.asarray(unix_time)), self.offset + self.drift * (t - self.reference) / 86400.0, 0.0)
+
+    def adjust_sun(self, sun, context):
+        lat = jnp.deg2rad(self.latitude_deg)
+        axis = jnp.stack([jnp.zeros_like(lat), jnp.cos(lat), jnp.sin(lat)])
+        return rotate_about(sun, axis, -SOLAR_RATE_RAD_S * self.clock_error(context.unix_time))
+
+
+def standard_refraction(elevation: Float[Array, "..."]) -> Float[Array, "..."]:
+    """Atmospheric refraction (rad) of a body at true elevation ``elevation`` (rad)
+    at 1010 hPa and 10 deg C: Saemundsson's formula
+    ``R = 1.02 / tan(h + 10.3 / (h + 5.11))`` arcmin, ``h`` in degrees
+    (0.29 mrad at 45 deg, 1.57 mrad at 10 deg, 0 at the zenith). Elevations
+    below -0.5 deg are clipped."""
+    h = jnp.maximum(jnp.rad2deg(elevation), -0.5)
+    r_arcmin = 1.02 / jnp.tan(jnp.deg2rad(h + 10.3 / (h + 5.11)))
+    return jnp.deg2rad(jnp.maximum(r_arcmin, 0.0) / 60.0)
+
+
+@typing.final
+class Refraction(AbstractEffect):
+    """Atmospheric refraction of the apparent sun, wrongly or not applied.
+
+    Physical meaning: the atmosphere lifts the apparent sun by the refraction
+    ``R(e)`` (:func:`standard_refraction`, a few mrad near the horizon,
+    ~0.3 mrad at 45 deg). If the recorded sun positions lack it (or apply it
+    twice, or at the wrong pressure), the beam errors carry a multiple of
+    ``R(e)``. Correction: the model's sun is lifted in its vertical plane by
+    ``kappa * R(e)``.
+
+    Parameter: ``refraction_scale`` (dimensionless; 1 = the full standard
+    refraction is missing). Driving input: the sun elevation. Residual
+    signature: vertical, growing steeply toward low elevations (~cot e).
+    """
+
+    scale: Float[Array, ""]
+
+    NAME: typing.ClassVar[str] = "refraction"
+    PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("refraction_scale",)
+    PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("1",)
+    PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (1.0,)
+    DRIVERS: typing.ClassVar[tuple[str, ...]] = ("sun_elevation",)
+
+    @classmethod
+    def from_vector(cls, params, references=(), base_kind="stone8"):
+        return cls(scale=jnp.asarray(params)[0])
+
+    def to_vector(self, base_kind="stone8"):
+        return jnp.reshape(self.scale, (1,))
+
+    def adjust_sun(self, sun, context):
+        horizontal = jnp.sqrt(jnp.clip(sun[0] ** 2 + sun[1] ** 2, 1e-30))
+        el = jnp.arctan2(sun[2], horizontal)
+        new_el = el + self.scale * standard_refraction(el)
+        h = sun[:2] / horizontal
+        return jnp.concatenate([h * jnp.cos(new_el), jnp.sin(new_el)[None]])

@@ -1,0 +1,212 @@
+"""Mechanical effects: actuator geometry, backlash, gravity sag, encoder wobble.
+
+All four correct the joint angles ``(theta, tau)`` (rad) that the base model
+computes from the motor counts (axis 1 = elevation-like tilt ``theta``, axis 2 =
+azimuth-like turn ``tau``; see :mod:`heliojax._kinematics`).
+"""
+
+from __future__ import annotations
+
+import typing
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from .._kinematics import ActuatorModel
+from ._base import AbstractEffect
+
+
+@typing.final
+class ActuatorGeometry(AbstractEffect):
+    """Linear-actuator geometry the base model gets wrong.
+
+    Physical meaning: a linear actuator turns a joint through a triangle
+    (law of cosines, :class:`~heliojax.LinearActuators`), so the joint angle is
+    a *curved* function of the stroke (of the motor counts). Two errors:
+
+    * ``curvature_i`` (dimensionless): the fraction of the nominal actuator
+      law's curvature that the model is missing. The Stone model maps counts to
+      angles linearly; its gear ratio and offset absorb the law's linear part,
+      not its curvature (up to ~25 mrad on the Jülich heliostats). With
+      ``curvature = 1`` a Stone model follows the full nominal law.
+      Correction: ``curvature_i * (law_i(counts) - line_i(counts))`` with
+      ``line`` the least-squares line of the Stone model's nominal map.
+    * ``pivot_scale_i`` (dimensionless): relative error of the actuator's pivot
+      radius (``pivot_radius * (1 + pivot_scale)``), for a base that already
+      follows the law (the actuator model). Correction:
+      ``law_i(counts; pivot (1 + s_i)) - law_i(counts; pivot)`` with the base's
+      effective actuators.
+
+    Driving inputs: the motor counts. Residual signature: a smooth, curved
+    function of each axis's counts (its linear part is absorbed by the base's
+    gear ratio / increment scale and offset).
+
+    The fitted parameters depend on the base: ``curvature_1, curvature_2`` for
+    ``stone8``, ``pivot_scale_1, pivot_scale_2`` for ``actuator``.
+    """
+
+    curvature: Float[Array, "2"]
+    pivot_scale: Float[Array, "2"]
+
+    NAME: typing.ClassVar[str] = "actuator_geometry"
+    PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("curvature_1", "curvature_2")
+    PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("1", "1")
+    PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (0.05, 0.05)
+    DRIVERS: typing.ClassVar[tuple[str, ...]] = ("counts",)
+
+    @classmethod
+    def _linear_base(cls, base_kind: str) -> bool:
+        return not base_kind.startswith("actuator")
+
+    @classmethod
+    def param_names(cls, base_kind="stone8"):
+        return ("curvature_1", "curvature_2") if cls._linear_base(base_kind) else ("pivot_scale_1", "pivot_scale_2")
+
+    @classmethod
+    def param_units(cls, base_kind="stone8"):
+        return ("1", "1")
+
+    @classmethod
+    def param_scales(cls, base_kind="stone8"):
+        return (0.05, 0.05) if cls._linear_base(base_kind) else (0.01, 0.01)
+
+    @classmethod
+    def from_vector(cls, params, references=(), base_kind="stone8"):
+        p = jnp.asarray(params)
+        z = jnp.zeros(2, p.dtype)
+        if cls._linear_base(base_kind):
+            return cls(curvature=p[0:2], pivot_scale=z)
+        return cls(curvature=z, pivot_scale=p[0:2])
+
+    def to_vector(self, base_kind="stone8"):
+        return self.curvature if self._linear_base(base_kind) else self.pivot_scale
+
+    def angle_correction(self, base, geometry, counts, angles, context, normal):
+        act = base.effective_actuators(geometry) if isinstance(base, ActuatorModel) else geometry.actuators
+        law = act.counts_to_angles(counts)
+        line = geometry.linear_slope * counts + geometry.linear_intercept
+        curved = self.curvature * (geometry.actuators.counts_to_angles(counts) - line)
+        scaled = eqx.tree_at(lambda a: a.pivot_radius, act, act.pivot_radius * (1.0 + self.pivot_scale))
+        pivot = scaled.counts_to_angles(counts) - law
+        return curved + pivot
+
+
+@typing.final
+class Backlash(AbstractEffect):
+    """Backlash (lost motion) of each axis's drive.
+
+    Physical meaning: a drive with a dead band of width ``w_i`` (rad) stops
+    ``w_i / 2`` short of the commanded angle, behind the direction of its last
+    motion. Correction: ``-(w_i / 2) * s_i * approach_i`` with ``approach_i``
+    the sign (+1, -1; 0 unknown) of the last count change of axis ``i`` before
+    the record (:class:`~heliojax.RecordContext` ``.approach``, from the
+    chronological order of the records) and ``s_i = sign(linear_slope_i)`` the
+    direction in which the joint angle grows with the counts. ``w > 0`` is a
+    lag.
+
+    Parameters: ``backlash_1``, ``backlash_2`` (rad, the full dead-band width).
+    Driving inputs: the approach directions. Residual signature: a step of
+    ``w`` between records approached from below and from above, independent of
+    the pose (needs both directions in the data).
+    """
+
+    width: Float[Array, "2"]
+
+    NAME: typing.ClassVar[str] = "backlash"
+    PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("backlash_1", "backlash_2")
+    PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("rad", "rad")
+    PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (1e-3, 1e-3)
+    DRIVERS: typing.ClassVar[tuple[str, ...]] = ("approach",)
+
+    @classmethod
+    def from_vector(cls, params, references=(), base_kind="stone8"):
+        return cls(width=jnp.asarray(params)[0:2])
+
+    def to_vector(self, base_kind="stone8"):
+        return self.width
+
+    def angle_correction(self, base, geometry, counts, angles, context, normal):
+        if context is None:
+            return None
+        a = jnp.where(jnp.isfinite(context.approach), context.approach, 0.0)
+        s = jnp.sign(geometry.linear_slope)
+        return -0.5 * self.width * s * a
+
+
+@typing.final
+class GravitySag(AbstractEffect):
+    """Gravity sag of the mirror and its support.
+
+    Physical meaning: the mirror's weight acts with a lever arm that is largest
+    when the mirror stands vertical; the structure yields and the normal tips
+    toward the horizon by ``g * cos(e_n)``, ``e_n`` the elevation of the mirror
+    normal. Correction: ``theta += g * cos(e_n)`` (axis 1).
+
+    Parameter: ``gravity_sag`` (rad, the tip at a vertical mirror).
+    Driving input: the mirror normal's elevation (from the pose; no record
+    input). Residual signature: a smooth function of the elevation - under
+    calibration sampling (a fixed target, so a limited range of normal
+    elevations per heliostat) nearly linear in ``theta``, hence mostly absorbed
+    by the base model's axis-1 offset and gear ratio.
+    """
+
+    sag: Float[Array, ""]
+
+    NAME: typing.ClassVar[str] = "gravity_sag"
+    PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("gravity_sag",)
+    PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("rad",)
+    PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (1e-3,)
+    DRIVERS: typing.ClassVar[tuple[str, ...]] = ("normal_elevation",)
+    NEEDS_NORMAL: typing.ClassVar[bool] = True
+
+    @classmethod
+    def from_vector(cls, params, references=(), base_kind="stone8"):
+        return cls(sag=jnp.asarray(params)[0])
+
+    def to_vector(self, base_kind="stone8"):
+        return jnp.reshape(self.sag, (1,))
+
+    def angle_correction(self, base, geometry, counts, angles, context, normal):
+        cos_e = jnp.sqrt(jnp.clip(normal[0] ** 2 + normal[1] ** 2, 0.0, 1.0))
+        return jnp.stack([self.sag * cos_e, jnp.zeros_like(cos_e)])
+
+
+@typing.final
+class EncoderWobble(AbstractEffect):
+    """n-per-revolution error of each axis (encoder eccentricity, gear runout).
+
+    Physical meaning: an eccentric encoder disc or a gear with runout reads an
+    angle off by a periodic function of the joint angle. Correction per axis
+    ``i``: ``a_i cos(n angle_i) + b_i sin(n angle_i)``, ``angle_i`` the base
+    model's joint angle, ``n`` cycles per revolution (static, default 2: an
+    elliptic / two-lobed error; ``n = 1`` is a plain eccentricity, which over a
+    calibration's range is mostly absorbed by offset and gear ratio).
+
+    Parameters: ``wobble_cos_1, wobble_sin_1, wobble_cos_2, wobble_sin_2`` (rad);
+    the amplitude of axis ``i`` is ``hypot(a_i, b_i)``.
+    Driving inputs: the joint angles (from the counts). Residual signature: a
+    sinusoid of ``n`` times each joint angle.
+    """
+
+    a: Float[Array, "2"]
+    b: Float[Array, "2"]
+    n: int = eqx.field(static=True, default=2)
+
+    NAME: typing.ClassVar[str] = "encoder_wobble"
+    PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("wobble_cos_1", "wobble_sin_1", "wobble_cos_2", "wobble_sin_2")
+    PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("rad",) * 4
+    PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (1e-3,) * 4
+    DRIVERS: typing.ClassVar[tuple[str, ...]] = ("joint_angles",)
+
+    @classmethod
+    def from_vector(cls, params, references=(), base_kind="stone8"):
+        p = jnp.asarray(params)
+        return cls(a=jnp.stack([p[0], p[2]]), b=jnp.stack([p[1], p[3]]))
+
+    def to_vector(self, base_kind="stone8"):
+        return jnp.stack([self.a[0], self.b[0], self.a[1], self.b[1]])
+
+    def angle_correction(self, base, geometry, counts, angles, context, normal):
+        return self.a * jnp.cos(self.n * angles) + self.b * jnp.sin(self.n * angles)
+

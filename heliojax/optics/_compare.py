@@ -1,0 +1,323 @@
+"""Validation of traced flux against PAINT's measured flux images.
+
+PAINT ships, per calibration record, two 256 x 256 grey-scale PNGs of the spot
+on the calibration target (camera images rectified onto the target plane):
+
+* ``<ID>-flux.png`` covers the **whole target rectangle** (its width and height
+  from the tower file's corners), column 0 at the target's "left" edge (east
+  for the north-facing Jülich targets) and row 0 at the top. (This is how
+  ARTIST reads them: ``bitmap_coordinates_to_target_coordinates`` maps pixel
+  centres linearly onto the target's width and height.) Pixels are therefore not
+  square (e.g. 8.6 m x 7.2 m for ``solar_tower_juelich_upper``).
+* ``<ID>-flux-centered.png`` is a **6 m x 6 m** window centred on the spot's
+  centre of mass (ARTIST's ``utis_crop_width`` / ``utis_crop_height``, used by
+  its ``crop_flux_distributions_around_center`` to compare predictions with
+  these images).
+
+Brightness is relative (8-bit, normalised per image), so only shapes and
+positions are compared: the centroid distance in metres on the target plane and
+the normalised cross-correlation (Pearson correlation of the pixel values) of
+the images. The mapping of the PNG onto the target is checked against the
+record's own focal-spot centroid (``focal_spot.UTIS``/``HeliOS``):
+:attr:`FluxComparison.png_vs_record_m`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._errors import DataError
+from .._geometry import TargetPlane, sun_direction, wgs84_to_enu
+from .._kinematics import AbstractKinematicModel, ActuatorModel, HeliostatGeometry, LinearActuators, forward
+from ._flux import ImageGrid, centroid, flux_image
+from ._sunshape import AbstractSunShape, BuieSun, EffectiveSun
+from ._surfaces import FacetLayout, SurfacePoints, ideal_surface
+
+CENTRED_WINDOW_M = (6.0, 6.0)
+"""Width and height (m) of PAINT's ``-flux-centered`` images."""
+
+
+def load_flux_png(path: str | os.PathLike) -> np.ndarray:
+    """A PAINT flux PNG as a float64 ``(rows, cols)`` array in ``[0, 1]``."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return np.asarray(im.convert("L"), np.float64) / 255.0
+    except OSError as e:
+        raise DataError(path, None, f"cannot read PNG: {e}") from e
+
+
+def remove_background(image: np.ndarray) -> np.ndarray:
+    """Subtract the median of the one-pixel border and clip at 0."""
+    border = np.concatenate([image[0], image[-1], image[:, 0], image[:, -1]])
+    return np.clip(image - np.median(border), 0.0, None)
+
+
+def normalised_cross_correlation(a, b) -> float:
+    """Pearson correlation of two equally shaped images (1 = identical up to scale/offset)."""
+    a = np.asarray(a, np.float64).ravel()
+    b = np.asarray(b, np.float64).ravel()
+    a = a - a.mean()
+    b = b - b.mean()
+    den = np.sqrt((a * a).sum() * (b * b).sum())
+    return float((a * b).sum() / den) if den > 0 else float("nan")
+
+
+def image_centroid(image: np.ndarray, grid: ImageGrid) -> np.ndarray:
+    """Centroid ``(u, v)`` in m of a (background-free) image on ``grid``."""
+    return np.asarray(centroid(jnp.asarray(image), grid), np.float64)
+
+
+def geometry_from_properties(properties, origin_lla) -> HeliostatGeometry:
+    """:class:`HeliostatGeometry` (float64, ENU m) of a
+    :class:`heliojax._paint.HeliostatProperties`."""
+    a = properties.actuators
+
+    def pair(key):
+        return jnp.asarray([float(a[0][key]), float(a[1][key])], jnp.float64)
+
+    actuators = LinearActuators(
+        increment=pair("increment"),
+        initial_stroke_length=pair("initial_stroke_length"),
+        offset=pair("offset"),
+        pivot_radius=pair("pivot_radius"),
+        initial_angle=pair("initial_angle"),
+        sign=jnp.where(pair("clockwise_axis_movement") == 0, 1.0, -1.0),
+        min_counts=pair("min_increment"),
+        max_counts=pair("max_increment"),
+    )
+    pos = wgs84_to_enu(jnp.asarray(properties.position_lla, jnp.float64), jnp.asarray(origin_lla, jnp.float64))
+    return HeliostatGeometry.build(
+        pos,
+        actuators,
+        jnp.asarray(properties.joint_translation_1, jnp.float64),
+        jnp.asarray(properties.joint_translation_2, jnp.float64),
+        jnp.asarray(properties.concentrator_translation, jnp.float64),
+    )
+
+
+def layout_from_properties(properties) -> FacetLayout:
+    """:class:`FacetLayout` of a :class:`heliojax._paint.HeliostatProperties`."""
+    if not properties.facets:
+        raise DataError(properties.source, "facet_properties.facets", "no facets")
+    return FacetLayout.from_arrays(
+        np.asarray([f.translation_vector for f in properties.facets], np.float64),
+        np.asarray([f.canting_e for f in properties.facets], np.float64),
+        np.asarray([f.canting_n for f in properties.facets], np.float64),
+    )
+
+
+def target_from_tower(tower, name: str) -> TargetPlane:
+    """The planar target ``name`` of a :class:`heliojax._paint.TowerFile` (ENU m)."""
+    entry = tower.targets.get(name)
+    if entry is None or not entry.is_planar_target:
+        raise DataError(tower.source, name, "not a planar target of the tower file")
+    origin = jnp.asarray(tower.origin_lla, jnp.float64)
+    corners = [wgs84_to_enu(jnp.asarray(entry.points[c], jnp.float64), origin) for c in ("upper_left", "upper_right", "lower_left", "lower_right")]
+    return TargetPlane.from_corners(*corners)
+
+
+@dataclasses.dataclass(frozen=True)
+class FluxComparison:
+    """Traced vs measured flux of one calibration record (metres on the target plane).
+
+    Attributes:
+        heliostat_id, record_id, target_name: what was compared.
+        centroid_distance_m: traced vs measured (``-flux.png``) centroid distance.
+        ncc: normalised cross-correlation of the full-target images.
+        ncc_centred: normalised cross-correlation of the 6 x 6 m centred images.
+        png_vs_record_m: measured PNG centroid vs the record's focal spot (checks the
+            assumed PNG extent/orientation; UTIS, else HeliOS).
+        traced_vs_record_m: traced centroid vs the record's focal spot.
+        traced, measured: ``(256, 256)`` images on ``grid`` (traced in W/m^2,
+            measured background-free relative brightness).
+        traced_centred, measured_centred: the centred images on ``grid_centred``.
+    """
+
+    heliostat_id: str
+    record_id: int
+    target_name: str
+    centroid_distance_m: float
+    ncc: float
+    ncc_centred: float
+    png_vs_record_m: float
+    traced_vs_record_m: float
+    traced: np.ndarray
+    measured: np.ndarray
+    traced_centred: np.ndarray
+    measured_centred: np.ndarray
+    grid: ImageGrid
+    grid_centred: ImageGrid
+
+    def summary(self) -> dict:
+        """The scalar fields as a JSON-able dict."""
+        return {
+            k: getattr(self, k)
+            for k in ("heliostat_id", "record_id", "target_name", "centroid_distance_m", "ncc", "ncc_centred",
+                      "png_vs_record_m", "traced_vs_record_m")
+        }
+
+
+def default_sunshape() -> AbstractSunShape:
+    """Sun shape used for the PAINT comparisons: Buie (csr 0.05) with 1.5 mrad
+    Gaussian slope error (an assumed typical value: no deflectometry is shipped)."""
+    return EffectiveSun(BuieSun(0.05), 1.5e-3)
+
+
+def compare_record(
+    record_path: str | os.PathLike,
+    properties_path: str | os.PathLike,
+    tower_path: str | os.PathLike,
+    *,
+    model: AbstractKinematicModel | None = None,
+    surface: SurfacePoints | None = None,
+    sunshape: AbstractSunShape | None = None,
+    key=None,
+    rays_per_point: int = 64,
+    steps: int = 4,
+    resolution: tuple[int, int] = (32, 32),
+) -> FluxComparison:
+    """Align a heliostat with a record's motor counts, trace its flux and compare it
+    with the record's ``-flux.png`` / ``-flux-centered.png`` (same folder, same ID).
+
+    Args:
+        record_path: ``<H>/Calibration/<ID>-calibration-properties.json``.
+        properties_path: the heliostat's properties JSON.
+        tower_path: the tower-measurements JSON.
+        model: kinematic model (default: nominal :class:`ActuatorModel`, i.e. PAINT's
+            geometry); pass calibrated parameters here.
+        surface: mirror in the surface frame (default: ideal canted facets from the
+            properties, ``resolution`` points per facet).
+        sunshape: default :func:`default_sunshape`.
+        key: PRNG key (default ``jax.random.key(0)``).
+        rays_per_point, steps: rays per surface point = their product.
+        resolution: points per facet of the default ideal surface.
+    """
+    from .._paint import read_calibration_record, read_heliostat_properties, read_tower
+
+    record_path = Path(record_path)
+    tower = read_tower(tower_path)
+    props = read_heliostat_properties(properties_path)
+    record = read_calibration_record(record_path, heliostat_id=props.heliostat_id)
+    model = ActuatorModel.nominal(jnp.float64) if model is None else model
+    sunshape = default_sunshape() if sunshape is None else sunshape
+    key = jax.random.key(0) if key is None else key
+    target = target_from_tower(tower, record.target_name)
+    geometry = geometry_from_properties(props, tower.origin_lla)
+    if surface is None:
+        surface = ideal_surface(layout_from_properties(props), resolution)
+    sun = sun_direction(jnp.deg2rad(record.sun_azimuth_deg), jnp.deg2rad(record.sun_elevation_deg))
+    counts = jnp.asarray([record.axis_1_counts, record.axis_2_counts], jnp.float64)
+    pose = forward(model, geometry, counts)
+
+    stem = record_path.name.replace("-calibration-properties.json", "")
+    measured_raw = load_flux_png(record_path.parent / f"{stem}-flux.png")
+    measured_c_raw = load_flux_png(record_path.parent / f"{stem}-flux-centered.png")
+    measured = remove_background(measured_raw)
+    measured_c = remove_background(measured_c_raw)
+
+    grid = ImageGrid.for_target(target, measured.shape)
+    trace = jax.jit(
+        lambda k, g: flux_image(k, surface, pose, sun, target, g, sunshape, rays_per_point=rays_per_point, steps=steps)
+    )
+    traced = np.asarray(trace(key, grid), np.float64)
+    # centroid from a grid with a 10 m margin, so a spot partly off the target is not biased
+    wide = ImageGrid(grid.u_min - 10.0, grid.u_max + 10.0, grid.v_min - 10.0, grid.v_max + 10.0, shape=(256, 256))
+    c_traced = image_centroid(np.asarray(trace(jax.random.fold_in(key, 2), wide), np.float64), wide)
+    c_measured = image_centroid(measured, grid)
+    grid_c = ImageGrid.centred(c_traced[0], c_traced[1], *CENTRED_WINDOW_M, shape=measured_c.shape)
+    traced_c = np.asarray(trace(jax.random.fold_in(key, 1), grid_c), np.float64)
+
+    spot = record.focal_spot_utis or record.focal_spot_helios
+    if spot is not None:
+        spot_uv = np.asarray(target.to_plane(wgs84_to_enu(jnp.asarray(spot, jnp.float64), jnp.asarray(tower.origin_lla, jnp.float64))))
+        png_vs_record = float(np.linalg.norm(c_measured - spot_uv))
+        traced_vs_record = float(np.linalg.norm(c_traced - spot_uv))
+    else:
+        png_vs_record = traced_vs_record = float("nan")
+    return FluxComparison(
+        heliostat_id=props.heliostat_id,
+        record_id=record.record_id,
+        target_name=record.target_name,
+        centroid_distance_m=float(np.linalg.norm(c_traced - c_measured)),
+        ncc=normalised_cross_correlation(traced, measured),
+        ncc_centred=normalised_cross_correlation(traced_c, measured_c),
+        png_vs_record_m=png_vs_record,
+        traced_vs_record_m=traced_vs_record,
+        traced=traced,
+        measured=measured,
+        traced_centred=traced_c,
+        measured_centred=measured_c,
+        grid=grid,
+        grid_centred=grid_c,
+    )
+
+
+def flux_sample_records(root: str | os.PathLike) -> list[tuple[Path, Path]]:
+    """``(record JSON, properties JSON)`` of every record with a flux PNG under
+    ``root`` (PAINT layout ``<H>/Calibration``, ``<H>/Properties``)."""
+    out = []
+    for png in sorted(Path(root).glob("*/Calibration/*-flux.png")):
+        h = png.parent.parent.name
+        rec = png.parent / png.name.replace("-flux.png", "-calibration-properties.json")
+        props = png.parent.parent / "Properties" / f"{h}-heliostat-properties.json"
+        if rec.exists() and props.exists():
+            out.append((rec, props))
+    return out
+
+
+def comparison_figure(comparison: FluxComparison, ax=None):
+    """Traced and measured images side by side (full target and centred window)."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    if ax is None:
+        fig, ax = plt.subplots(1, 4, figsize=(13, 3.4))
+    else:
+        fig = np.ravel(ax)[0].figure
+    ax = np.ravel(ax)
+    g, gc = comparison.grid, comparison.grid_centred
+    ext = [float(g.u_min), float(g.u_max), float(g.v_min), float(g.v_max)]
+    extc = [float(gc.u_min), float(gc.u_max), float(gc.v_min), float(gc.v_max)]
+    for a, img, e, title in zip(
+        ax,
+        (comparison.traced, comparison.measured, comparison.traced_centred, comparison.measured_centred),
+        (ext, ext, extc, [-3, 3, -3, 3]),
+        ("traced", "measured (flux.png)", "traced, centred", "measured (flux-centered.png)"),
+    ):
+        a.imshow(img, extent=e, origin="upper", cmap="inferno")
+        a.set_title(title, fontsize=9)
+        a.set_xlabel("u (m)")
+    ax[0].set_ylabel("v (m)")
+    fig.suptitle(
+        f"{comparison.heliostat_id} record {comparison.record_id}: centroid distance "
+        f"{comparison.centroid_distance_m:.2f} m, NCC {comparison.ncc:.2f} / centred {comparison.ncc_centred:.2f}",
+        fontsize=10,
+    )
+    return fig
+
+
+__all__ = [
+    "CENTRED_WINDOW_M",
+    "FluxComparison",
+    "compare_record",
+    "comparison_figure",
+    "default_sunshape",
+    "flux_sample_records",
+    "geometry_from_properties",
+    "image_centroid",
+    "layout_from_properties",
+    "load_flux_png",
+    "normalised_cross_correlation",
+    "remove_background",
+    "target_from_tower",
+]
