@@ -111,26 +111,40 @@ def stone_pose_np(params, geom, counts):
     motor = geom["linear_slope"] * counts + geom["linear_intercept"]
     theta = motor[:, 0] / gr1 + theta_k
     tau = motor[:, 1] / gr2 + tau_k
-    r01 = _rot_y(alpha) @ _rot_z(beta)
-    outer = r01 @ _rot_x(theta - np.pi / 2)  # (M, 3, 3)
+    outer = (_rot_y(alpha) @ _rot_z(beta)) @ _rot_x(theta - np.pi / 2)  # (M, 3, 3)
     inner = _rot_y(gamma) @ _rot_z(tau)  # (M, 3, 3)
-    body = outer @ inner @ _rot_x(delta)
-    normal = -body[..., :, 1]  # body @ (0, -1, 0)
-    arm = geom["joint_translation_2"] + inner @ geom["concentrator_translation"]
-    centre = geom["position"] + geom["joint_translation_1"] + np.einsum("mij,mj->mi", outer, arm)
+    n_2 = _rot_x(delta) @ np.array([0.0, -1.0, 0.0])  # normal in axis 2's frame
+    normal = _matvec(outer, _matvec(inner, n_2))
+    arm = geom["joint_translation_2"] + _matvec(inner, geom["concentrator_translation"])
+    centre = geom["position"] + geom["joint_translation_1"] + _matvec(outer, arm)
     return normal, centre
+
+
+def _matvec(a, v):
+    return (a @ np.asarray(v)[..., None])[..., 0]
+
+
+def _cross(a, b):
+    return np.stack(
+        [
+            a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
+            a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0],
+        ],
+        -1,
+    )
 
 
 def beam_components_np(normal, centre, sun, focal):
     """Tangent-plane beam error components ``(M, 2)`` (rad): ``(d . e1, d . e2)``
     with ``r`` the reflected ray, ``d`` the unit vector centre -> focal spot,
     ``e1 = normalize(up x r)``, ``e2 = r x e1``."""
-    r = -sun + 2.0 * np.sum(sun * normal, -1, keepdims=True) * normal
+    r = 2.0 * np.sum(sun * normal, -1, keepdims=True) * normal - sun
     d = focal - centre
-    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    d /= np.sqrt(np.sum(d * d, -1, keepdims=True))
     e1 = np.stack([-r[:, 1], r[:, 0], np.zeros(len(r))], -1)  # (0, 0, 1) x r
-    e1 = e1 / np.linalg.norm(e1, axis=-1, keepdims=True)
-    e2 = np.cross(r, e1)
+    e1 /= np.sqrt(np.sum(e1 * e1, -1, keepdims=True))
+    e2 = _cross(r, e1)
     return np.stack([np.sum(d * e1, -1), np.sum(d * e2, -1)], -1)
 
 

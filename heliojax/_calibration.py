@@ -557,8 +557,15 @@ def choose_start_geometry(fleet, spec: ModelSpec | str = "stone8"):
     models = nominal_models(spec, h, fleet.counts.dtype)
     e_own = beam_errors_mrad(models, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, fleet.mask)
     e_alt = beam_errors_mrad(models, alt, fleet.counts, fleet.context, fleet.focal_spot, fleet.mask)
-    med_own = np.nanmedian(np.where(np.isfinite(e_own), e_own, np.nan), axis=1) if has.any() else None
-    med_alt = np.nanmedian(np.where(np.isfinite(e_alt), e_alt, np.nan), axis=1)
+    def row_median(e):
+        e = np.asarray(e)
+        out = np.full(e.shape[0], np.nan)
+        for i in np.flatnonzero(np.isfinite(e).any(axis=1)):  # cheap numpy over (H, M), no JAX work
+            out[i] = np.median(e[i][np.isfinite(e[i])])
+        return out
+
+    med_own = row_median(e_own)
+    med_alt = row_median(e_alt)
     med_own = np.where(np.isnan(med_own), np.inf, med_own)
     med_alt = np.where(np.isnan(med_alt), np.inf, med_alt)
     replaced = has & (med_alt < med_own)

@@ -13,8 +13,9 @@ from ._io import atomic_path
 def _plt():
     import matplotlib
 
-    if matplotlib.get_backend().lower() not in ("agg", "module://matplotlib_inline.backend_inline"):
-        matplotlib.use("Agg")
+    backend = matplotlib.get_backend().lower()
+    if "inline" not in backend and backend != "agg" and not backend.startswith("module://"):
+        matplotlib.use("Agg")  # headless default; notebooks keep their inline backend
     import matplotlib.pyplot as plt
 
     return plt

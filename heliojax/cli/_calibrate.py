@@ -7,7 +7,8 @@ from pathlib import Path
 
 from ._common import add_data_argument, enable_compilation_cache, load_fleet, progress
 
-MODELS = ("stone8", "actuator")
+MODELS = ("stone8", "actuator", "stone8+nn", "actuator+nn")
+NN_VARIANTS = ("residual", "paper")
 
 
 def add_parser(subparsers) -> None:
@@ -24,7 +25,11 @@ def add_parser(subparsers) -> None:
         ),
     )
     add_data_argument(p)
-    p.add_argument("--model", choices=MODELS, default="stone8")
+    p.add_argument("--model", choices=MODELS, default="stone8",
+                   help="physics model; '+nn' adds a per-heliostat neural correction (heliojax.neural)")
+    p.add_argument("--nn-variant", choices=NN_VARIANTS, default="residual",
+                   help="with +nn: 'residual' (learned joint-angle correction, default) or 'paper' "
+                        "(Pargmann et al.: physics-pretrained network sun + spot -> motor counts)")
     p.add_argument("--split", choices=SPLIT_NAMES, default="time")
     p.add_argument("--train", type=int, default=None, metavar="N",
                    help="training records per heliostat (default for the time split: the earliest 70%%)")
@@ -64,9 +69,14 @@ def run(args) -> int:
         strategy=args.strategy,
         prior_sigma=DEFAULT_WEAK_PRIOR if args.prior else (),
     )
+    neural = args.model.endswith("+nn")
+    if neural and args.test_data is not None:
+        from .._errors import ConfigError
+
+        raise ConfigError("--test-data is not supported with a +nn model; use a split")
     run_ = calibrate(
         fleet,
-        model=args.model,
+        model=args.model.removesuffix("+nn"),
         split=args.split,
         n_train=args.train,
         n_val=args.val,
@@ -77,6 +87,10 @@ def run(args) -> int:
         start=args.start,
         progress=say,
     )
+    if neural:
+        from ..neural import calibrate_neural
+
+        run_ = calibrate_neural(fleet, variant=args.nn_variant, seed=args.seed, lm_run=run_, progress=say).run
     s = run_.summary
     print(f"{'heliostat':<10} {'status':<16} {'train':>5} {'test':>5} {'train rms':>9} {'test med':>9} "
           f"{'test rms':>9} {'uncal med':>9}   [mrad]")
@@ -85,12 +99,19 @@ def run(args) -> int:
         return f"{x:9.3f}" if x is not None else f"{'-':>9}"
 
     for hid, h in s["heliostats"].items():
+        extra = ""
+        if neural:
+            extra = f"   LM {fmt(h['lm_test_median_mrad'])}" + ("  (fallback to LM)" if h["nn_fallback"] else "")
         print(f"{hid:<10} {h['status']:<16} {h['n_train']:>5} {h['n_test']:>5} {fmt(h['train_rms_mrad'])} "
-              f"{fmt(h['test_median_mrad'])} {fmt(h['test_rms_mrad'])} {fmt(h['uncalibrated_test_median_mrad'])}")
+              f"{fmt(h['test_median_mrad'])} {fmt(h['test_rms_mrad'])} {fmt(h['uncalibrated_test_median_mrad'])}{extra}")
     f = s["fleet"]
     print(f"fleet: {f['n_converged']}/{f['n_heliostats']} converged; held-out median {fmt(f['test_median_mrad'])} "
           f"rms {fmt(f['test_rms_mrad'])} mrad (uncalibrated median {fmt(f['uncalibrated_test_median_mrad'])}); "
           f"compile {s['timing']['compile_s']:.2f} s, fit {s['timing']['fit_s']:.2f} s")
+    if neural:
+        print(f"{s['model']} ({s['nn_variant']}): network used by {f['n_nn_used']} heliostats, "
+              f"{f['n_nn_fallback']} fall back to LM; LM alone: held-out median {fmt(f['lm_test_median_mrad'])} mrad; "
+              f"pretrain {s['timing']['nn_pretrain_s']:.1f} s, fine-tune {s['timing']['nn_finetune_s']:.1f} s")
     if args.report is not None:
         write_summary(args.report, run_)
         say(f"wrote {args.report}")

@@ -1,0 +1,59 @@
+"""Discovery: find where the model and the measurements disagree, name the missing
+effect, add it, and show the gap shrink.
+
+:func:`discover` runs the workflow on a :class:`heliojax.Fleet` (fit the base
+model; screen every candidate effect of :mod:`heliojax.effects` with score
+tests orthogonalised against the model's Jacobian; report candidates the model
+absorbs as not identifiable; refit the finalists with Levenberg-Marquardt;
+name an effect only when it passes Holm's family-wise control, delta BIC > 0
+and a blocked-by-day cross-validated held-out improvement; repeat).
+:func:`write_report`, :func:`write_markdown` and :func:`write_figures` write
+report.json, a Markdown summary and PNG figures; :func:`simulate_fleet` makes
+hidden-effect test fleets.
+"""
+
+from ._identifiability import (
+    ABSORBED_LIMIT as ABSORBED_LIMIT,
+    CONDITION_INDEX_LIMIT as CONDITION_INDEX_LIMIT,
+    absorbed_fractions as absorbed_fractions,
+)
+from ._lanes import day_folds as day_folds
+from ._report import (
+    build_report as build_report,
+    markdown_summary as markdown_summary,
+    plot_effect_residuals as plot_effect_residuals,
+    plot_heldout_per_step as plot_heldout_per_step,
+    plot_screen as plot_screen,
+    write_figures as write_figures,
+    write_markdown as write_markdown,
+    write_report as write_report,
+)
+from ._screen import CandidateScreen as CandidateScreen, holm as holm
+from ._select import (
+    DiscoveryConfig as DiscoveryConfig,
+    DiscoveryResult as DiscoveryResult,
+    discover as discover,
+)
+from ._suites import random_actuator_models as random_actuator_models, simulate_fleet as simulate_fleet
+
+__all__ = [
+    "ABSORBED_LIMIT",
+    "CONDITION_INDEX_LIMIT",
+    "CandidateScreen",
+    "DiscoveryConfig",
+    "DiscoveryResult",
+    "absorbed_fractions",
+    "build_report",
+    "day_folds",
+    "discover",
+    "holm",
+    "markdown_summary",
+    "plot_effect_residuals",
+    "plot_heldout_per_step",
+    "plot_screen",
+    "random_actuator_models",
+    "simulate_fleet",
+    "write_figures",
+    "write_markdown",
+    "write_report",
+]

@@ -67,6 +67,11 @@ class Layout:
         return dict(self.effect_param_names)[effect]
 
     @property
+    def effect_index(self) -> tuple[int, ...]:
+        """Positions (in ``spec.names``) of all effect parameters, in column order."""
+        return self.free_index[len(self.base_cols):]
+
+    @property
     def scales(self) -> np.ndarray:
         return np.asarray(self.spec.scales)[list(self.free_index)]
 
@@ -96,66 +101,129 @@ def make_layout(base_spec: ModelSpec, effects: tuple[str, ...]) -> Layout:
     )
 
 
-def _fit_lane(layout: Layout, config: FitConfig, p0, active, geometry, counts, context, focal, mask):
+# --------------------------------------------------------------------------------------
+# Effects to first order
+# --------------------------------------------------------------------------------------
+#
+# Every effect acts through four additive corrections of a record: the joint angles
+# (2), the sun vector (3), the focal spot (3) and the heliostat position (3). Inside a
+# fit the corrections are expanded to first order in the effect parameters ``q``
+# about an expansion point ``q0`` (with the base parameters of that point):
+# ``c(q) = c(q0) + D (q - q0)``. The base model itself stays exact. At the
+# expansion point value and gradient are exact, so iterating "expand, fit" is
+# Gauss-Newton in ``q``; its fixed point is the exact least-squares solution, and
+# every statistic is evaluated exactly (expansion at the reported point). The
+# expensive effect graph is evaluated once per expansion, not in every solver step.
+
+N_CORR = 11
+
+
+def _corrections(model, geometry, counts, context, focal):
+    g = model._geometry(geometry)
+    base_angles = model.base.joint_angles(g, counts)
+    d_angles = model._angles(g, counts, context) - base_angles
+    d_sun = model.sun(geometry, context) - context.sun
+    d_focal = model._focal(focal, context) - focal
+    d_pos = g.position - geometry.position
+    return jnp.concatenate([d_angles, d_sun, d_focal, d_pos])
+
+
+def _corrections_lane(layout: "Layout", p, geometry, counts, context, focal, mask):
     spec = layout.spec
+    counts, context, focal, use, _ = _sanitise(geometry, counts, context, focal, mask)
+    eidx = jnp.asarray(layout.effect_index, dtype=jnp.int32)
+
+    def corr(q, c, x, f):
+        return _corrections(spec.builder(p.at[eidx].set(q)), geometry, c, x, f)
+
+    q0 = p[eidx]
+    c0 = jax.vmap(lambda c, x, f: corr(q0, c, x, f))(counts, context, focal)
+    d = jax.vmap(lambda c, x, f: jax.jacfwd(corr)(q0, c, x, f))(counts, context, focal)
+    return c0, d
+
+
+@eqx.filter_jit
+def _corrections_compiled(layout, strategy, p, data: CalibrationData):
+    fn = lambda a, g, c, x, f, m: _corrections_lane(layout, a, g, c, x, f, m)  # noqa: E731
+    return _batched(fn, strategy, 64)(p, data.geometry, data.counts, data.context, data.focal_spot, data.mask)
+
+
+def _linear_record(base, tilts, geometry, counts, context, focal, corr):
+    from .._geometry import normalize
+    from .._kinematics import beam_error_components, chain_pose
+
+    geo = eqx.tree_at(lambda g: g.position, geometry, geometry.position + corr[8:11])
+    angles = base.joint_angles(geo, counts) + corr[0:2]
+    pose = chain_pose(tilts, angles, geo)
+    sun = normalize(context.sun + corr[2:5])
+    return beam_error_components(pose, sun, focal + corr[5:8])
+
+
+def _lane_residual_fn(layout: "Layout", geometry, counts, context, focal, use, p_exp, c0, dmat):
+    """``p -> residuals (2M,)`` in mrad with the effects to first order about ``p_exp``."""
+    builder = layout.spec.builder
+    eidx = jnp.asarray(layout.effect_index, dtype=jnp.int32)
+
+    def fn(p):
+        base = builder.base_builder(p[: builder.n_base])
+        tilts = base.tilts()
+        dq = p[eidx] - p_exp[eidx]
+        corr = c0 + jnp.einsum("mij,j->mi", dmat, dq)
+        r = jax.vmap(lambda c, x, f, k: _linear_record(base, tilts, geometry, c, x, f, k))(counts, context, focal, corr)
+        return jnp.where(use[:, None], r * 1e3, 0.0).reshape(-1)
+
+    return fn
+
+
+def _fit_lane(layout: "Layout", config: FitConfig, p0, active, p_exp, c0, dmat, geometry, counts, context, focal,
+              mask):
     counts, context, focal, use, _ = _sanitise(geometry, counts, context, focal, mask)
     dtype = counts.dtype
     idx = jnp.asarray(layout.free_index, dtype=jnp.int32)
-    scales = jnp.asarray(spec.scales, dtype)[idx]
+    scales = jnp.asarray(layout.spec.scales, dtype)[idx]
+    res = _lane_residual_fn(layout, geometry, counts, context, focal, use, p_exp, c0, dmat)
 
     def to_physical(y):
         return p0.at[idx].add(jnp.where(active, y, 0.0) * scales)
 
-    def residual_fn(y, _):
-        model = spec.builder(to_physical(y))
-        r = _record_residuals(model, geometry, counts, context, focal) * 1e3
-        return jnp.where(use[:, None], r, 0.0).reshape(-1)
-
     y0 = jnp.zeros(layout.n_free, dtype)
     solver = optx.LevenbergMarquardt(rtol=config.rtol, atol=config.atol)
-    sol = optx.least_squares(residual_fn, solver, y0, max_steps=config.max_steps, throw=False)
+    sol = optx.least_squares(lambda y, _: res(to_physical(y)), solver, y0, max_steps=config.max_steps,
+                             throw=False)
     p = to_physical(sol.value)
-    r = sol.state.f_info.residual
-    rss = jnp.sum(r**2)
     n_used = jnp.sum(use)
     n_active = jnp.sum(active)
-    ok = (2 * n_used > n_active) & jnp.all(jnp.isfinite(p)) & jnp.isfinite(rss)
+    ok = (2 * n_used > n_active) & jnp.all(jnp.isfinite(p))
     ok = ok & (sol.result != optx.RESULTS.nonlinear_divergence)
     p = jnp.where(ok, p, p0)
-    return dict(params=p, rss=jnp.where(ok, rss, jnp.nan), n_used=n_used.astype(jnp.int32), ok=ok,
-                n_steps=sol.stats["num_steps"].astype(jnp.int32))
+    return dict(params=p, ok=ok, n_used=n_used.astype(jnp.int32), n_steps=sol.stats["num_steps"].astype(jnp.int32))
 
 
 @eqx.filter_jit
-def _fit_lanes_compiled(layout, config, strategy, p0, active, data: CalibrationData):
-    fn = lambda a, b, g, c, x, f, m: _fit_lane(layout, config, a, b, g, c, x, f, m)  # noqa: E731
+def _fit_lanes_compiled(layout, config, strategy, p0, active, p_exp, c0, dmat, data: CalibrationData):
+    fn = lambda *a: _fit_lane(layout, config, *a)  # noqa: E731
     return _batched(fn, strategy, config.chunk_size)(
-        p0, active, data.geometry, data.counts, data.context, data.focal_spot, data.mask
+        p0, active, p_exp, c0, dmat, data.geometry, data.counts, data.context, data.focal_spot, data.mask
     )
 
 
-def _jac_lane(layout: Layout, p, geometry, counts, context, focal, mask):
-    spec = layout.spec
+def _jac_lane(layout: "Layout", p, c0, dmat, geometry, counts, context, focal, mask):
     counts, context, focal, use, _ = _sanitise(geometry, counts, context, focal, mask)
     dtype = counts.dtype
     idx = jnp.asarray(layout.free_index, dtype=jnp.int32)
-    scales = jnp.asarray(spec.scales, dtype)[idx]
-
-    def residual_fn(y):
-        model = spec.builder(p.at[idx].add(y * scales))
-        r = _record_residuals(model, geometry, counts, context, focal) * 1e3
-        return jnp.where(use[:, None], r, 0.0).reshape(-1)
-
+    scales = jnp.asarray(layout.spec.scales, dtype)[idx]
+    res = _lane_residual_fn(layout, geometry, counts, context, focal, use, p, c0, dmat)
     y0 = jnp.zeros(layout.n_free, dtype)
-    r, lin = jax.linearize(residual_fn, y0)
+    r, lin = jax.linearize(lambda y: res(p.at[idx].add(y * scales)), y0)
     jac = jax.vmap(lin, out_axes=1)(jnp.eye(layout.n_free, dtype=dtype))
     return r, jac
 
 
 @eqx.filter_jit
-def _jac_lanes_compiled(layout, strategy, p, data: CalibrationData):
-    fn = lambda a, g, c, x, f, m: _jac_lane(layout, a, g, c, x, f, m)  # noqa: E731
-    return _batched(fn, strategy, 64)(p, data.geometry, data.counts, data.context, data.focal_spot, data.mask)
+def _jac_lanes_compiled(layout, strategy, p, c0, dmat, data: CalibrationData):
+    fn = lambda *a: _jac_lane(layout, *a)  # noqa: E731
+    return _batched(fn, strategy, 64)(p, c0, dmat, data.geometry, data.counts, data.context, data.focal_spot,
+                                      data.mask)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -254,15 +322,26 @@ class Engine:
         strategy = config.strategy if config.strategy != "auto" else default_strategy()
         return cls(layout, lanes, config, strategy)
 
-    def fit(self, p0: np.ndarray, active: np.ndarray) -> dict:
-        out = _fit_lanes_compiled(self.layout, self.config, self.strategy, jnp.asarray(p0),
-                                  jnp.asarray(active), self.lanes.data)
+    def _data(self, evaluate: bool):
+        return self.lanes.eval_data if evaluate else self.lanes.data
+
+    def expand(self, p, evaluate: bool = False):
+        """First-order effect corrections ``(c0, D)`` at ``p`` (device arrays)."""
+        return _corrections_compiled(self.layout, self.strategy, jnp.asarray(p), self._data(evaluate))
+
+    def fit(self, p0: np.ndarray, active: np.ndarray, p_exp: np.ndarray, expansion) -> dict:
+        """One Levenberg-Marquardt fit of every lane from ``p0`` with the columns
+        ``active`` free and the effects expanded about ``p_exp``."""
+        c0, dmat = expansion
+        out = _fit_lanes_compiled(self.layout, self.config, self.strategy, jnp.asarray(p0), jnp.asarray(active),
+                                  jnp.asarray(p_exp), c0, dmat, self.lanes.data)
         return {k: np.asarray(v) for k, v in out.items()}
 
     def jacobian(self, p: np.ndarray, evaluate: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """Residuals ``(L, 2M)`` (mrad) and Jacobian ``(L, 2M, F)`` (mrad per scaled
-        unit) at ``p``; rows of records outside the training mask (or, with
-        ``evaluate``, outside the valid records) are zero."""
-        data = self.lanes.eval_data if evaluate else self.lanes.data
-        r, j = _jac_lanes_compiled(self.layout, self.strategy, jnp.asarray(p), data)
+        """Exact residuals ``(L, 2M)`` (mrad) and Jacobian ``(L, 2M, F)`` (mrad per
+        scaled unit) at ``p``; rows of records outside the training mask (with
+        ``evaluate``: outside the valid records) are zero."""
+        data = self._data(evaluate)
+        c0, dmat = _corrections_compiled(self.layout, self.strategy, jnp.asarray(p), data)
+        r, j = _jac_lanes_compiled(self.layout, self.strategy, jnp.asarray(p), c0, dmat, data)
         return np.asarray(r), np.asarray(j)

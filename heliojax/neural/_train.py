@@ -66,9 +66,9 @@ class NeuralConfig:
     sun_jitter_deg: float = 2.0
     spot_jitter_m: float = 0.3
     pretrain_lr: float = 0.1
-    pretrain_epochs: int = 150
-    batch_size: int = 128
-    steps_per_epoch: int = 28
+    pretrain_epochs: int = 100
+    batch_size: int = 256
+    steps_per_epoch: int = 14
     plateau_factor: float = 0.5
     plateau_patience: int = 5
     plateau_rtol: float = 1e-3

@@ -1,0 +1,86 @@
+"""Identifiability: how much of a candidate's signature the base model absorbs.
+
+Under one data set's sampling (its poses, times, weather), a candidate effect
+``c`` is a set of Jacobian columns ``B_h`` per heliostat (how the residuals
+move per unit of the effect's parameters) and the current model is the
+columns ``A_h`` (its free parameters). The part of ``B_h`` inside the column
+space of ``A_h`` is *absorbed*: the current model's parameters can mimic it, so
+the data cannot tell it from a recombination of the base parameters.
+
+Pooled over heliostats, the absorbed fraction along a direction ``v`` of the
+candidate's parameter space is::
+
+    f(v) = 1 - sum_h |(I - P_h) B_h v|^2 / sum_h |B_h v|^2,     P_h = projector onto span(A_h)
+
+The extremes of ``f`` are a generalised eigenproblem; the candidate's
+absorbed fraction is the *smallest* one (its best-determined direction), so an
+effect is identifiable as soon as one combination of its parameters is.
+
+The limit is the collinearity diagnostic of Belsley, Kuh & Welsch
+(*Regression Diagnostics*, 1980): a condition index above 30 marks strong
+collinearity, where estimates are dominated by the near-dependence. A
+direction that makes the angle ``phi`` with the current model's column space
+(``cos^2 phi = f``) has, with its projection, a condition index
+``cot(phi / 2) = sqrt((1 + cos phi) / (1 - cos phi))``; a condition index of 30
+is ``cos phi = (30^2 - 1) / (30^2 + 1)``, i.e. ``f = 0.99557``. A candidate
+whose every direction is absorbed beyond that is reported *not identifiable*
+and never named. (It is a property of the design, independent of the
+residuals, so it costs no multiple-testing budget.)
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+CONDITION_INDEX_LIMIT = 30.0
+"""Belsley-Kuh-Welsch strong-collinearity condition index."""
+
+ABSORBED_LIMIT = ((CONDITION_INDEX_LIMIT**2 - 1.0) / (CONDITION_INDEX_LIMIT**2 + 1.0)) ** 2
+"""Absorbed fraction above which a candidate is not identifiable (0.99557)."""
+
+RANK_RTOL = 1e-10
+"""Relative singular-value tolerance for column spaces (numerical rank)."""
+
+
+def column_basis(a: np.ndarray) -> np.ndarray:
+    """Orthonormal basis ``(n, rank)`` of the column space of ``a`` (SVD, relative
+    tolerance :data:`RANK_RTOL`)."""
+    if a.size == 0 or a.shape[1] == 0:
+        return np.zeros((a.shape[0], 0))
+    u, s, _ = np.linalg.svd(a, full_matrices=False)
+    if s.size == 0 or s[0] == 0:
+        return np.zeros((a.shape[0], 0))
+    return u[:, s > s[0] * RANK_RTOL]
+
+
+def absorbed_fractions(b_list, b_res_list) -> np.ndarray:
+    """Absorbed fractions of the candidate's directions, ascending (best first).
+
+    Args:
+        b_list: per heliostat, the candidate's columns ``B_h`` ``(n_h, k)``.
+        b_res_list: per heliostat, ``(I - P_h) B_h``.
+
+    Returns:
+        ``(r,)`` fractions in [0, 1] over the ``r`` directions the data drive
+        at all (empty when the candidate's columns are all zero: no driving data).
+    """
+    k = b_list[0].shape[1] if b_list else 0
+    full = np.zeros((k, k))
+    res = np.zeros((k, k))
+    for b, bt in zip(b_list, b_res_list):
+        full += b.T @ b
+        res += bt.T @ bt
+    if k == 0:
+        return np.zeros(0)
+    ev, vec = np.linalg.eigh(full)
+    if ev.max() <= 0:
+        return np.zeros(0)
+    keep = ev > ev.max() * RANK_RTOL
+    w = vec[:, keep] / np.sqrt(ev[keep])
+    kept = np.clip(np.linalg.eigvalsh(w.T @ res @ w), 0.0, 1.0)
+    return np.sort(1.0 - kept)
+
+
+def is_identifiable(fractions: np.ndarray, limit: float = ABSORBED_LIMIT) -> bool:
+    """True when some direction is absorbed less than ``limit``."""
+    return bool(fractions.size) and bool(fractions.min() <= limit)

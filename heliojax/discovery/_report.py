@@ -1,0 +1,410 @@
+"""Reports of the discovery workflow: report.json, a Markdown summary, PNG figures.
+
+``report.json`` schema (all RMS values are pooled over records, mrad, of the
+beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
+
+    {
+      "base_model": "stone8" | "actuator",
+      "steps": [                                   # one per named effect, in order
+        {"effect": name, "mode": "shared" | "per_heliostat",
+         "delta_bic": float,                       # BIC(before) - BIC(after) > 0
+         "cv_heldout_rms_before_mrad": float, "cv_heldout_rms_after_mrad": float,
+         "amplitude": {param: value},              # physical units (see "units")
+         "amplitude_std": {param: value},
+         "units": {param: unit},
+         "heliostats": [ids],                      # heliostats the effect was fitted to
+         "heliostats_significant": [ids],          # individually significant (Holm, alpha)
+         "p_value": float, "p_holm": float}
+      ],
+      "named_effects": [names],
+      "not_identifiable": [names],                 # absorbed by the model at some step, never named
+      "untestable": [names],                       # the data do not drive them (e.g. no weather)
+      "absorbed_fraction": {name: float | null},   # at the first screen
+      "heldout_rms_base_mrad": float, "heldout_rms_final_mrad": float,
+      "train_rms_base_mrad": float, "train_rms_final_mrad": float,
+      "noise_estimate_mrad": float,                # per tangent component, final model
+      "screens": [{name: {"p", "p_shared", "p_per_heliostat", "p_holm", "absorbed_fraction",
+                          "identifiable", "testable"}}],  # one per step
+      "refits": [[{"effect", "mode", "delta_bic", "cv_heldout_rms_before_mrad",
+                   "cv_heldout_rms_after_mrad", "passed"}]],
+      "config": {...}, "data": {...}, "timing": {...}
+    }
+
+Effect names come from :data:`heliojax.effects.EFFECT_NAMES`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .._io import atomic_write
+
+
+def _f(x):
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _train_rms(state, h):
+    lanes = np.nonzero(state.ok[:h])[0]
+    if lanes.size == 0:
+        return None
+    return _f(np.sqrt(np.sum(state.rss[lanes]) / (np.sum(state.n_res[lanes]) / 2)))
+
+
+def _noise(state, layout, h):
+    lanes = np.nonzero(state.ok[:h])[0]
+    if lanes.size == 0:
+        return None
+    k = len(layout.base_cols) + sum(len(layout.cols(e)) for e, m in state.effects if m == "per_heliostat")
+    dof = np.sum(state.n_res[lanes]) - k * lanes.size
+    return _f(np.sqrt(np.sum(state.rss[lanes]) / max(dof, 1)))
+
+
+def build_report(result) -> dict:
+    """The report.json dictionary of a :class:`DiscoveryResult`."""
+    from ..effects import effect_class
+    from ..effects._spec import base_kind_of
+
+    cfg = result.config
+    h = result.lanes.n_heliostats
+    kind = base_kind_of(result.layout.spec)
+    steps = []
+    for s in result.steps:
+        units = dict(zip(effect_class(s.effect).param_names(kind), effect_class(s.effect).param_units(kind)))
+        steps.append({
+            "effect": s.effect,
+            "mode": s.mode,
+            "delta_bic": _f(s.delta_bic),
+            "cv_heldout_rms_before_mrad": _f(s.cv_before),
+            "cv_heldout_rms_after_mrad": _f(s.cv_after),
+            "amplitude": {k: _f(v) for k, v in s.amplitude.items()},
+            "amplitude_std": {k: _f(v) for k, v in s.amplitude_std.items()},
+            "units": units,
+            "heliostats": list(s.heliostats),
+            "heliostats_significant": list(s.heliostats_significant),
+            "p_value": _f(s.p_value),
+            "p_holm": _f(s.p_holm),
+        })
+    named = [s.effect for s in result.steps]
+    not_ident, untestable = [], []
+    for entry in result.screens:
+        for c, sc in entry["screens"].items():
+            if c in named:
+                continue
+            if not sc.testable:
+                if c not in untestable:
+                    untestable.append(c)
+            elif not sc.identifiable and c not in not_ident:
+                not_ident.append(c)
+    untestable = [c for c in untestable if c not in not_ident]
+    screens = []
+    for entry in result.screens:
+        screens.append({
+            c: {
+                "p": _f(sc.p) if sc.identifiable else None,
+                "p_shared": _f(sc.p_shared) if sc.identifiable else None,
+                "p_per_heliostat": _f(sc.p_per_heliostat) if sc.identifiable else None,
+                "p_holm": _f(entry["p_holm"].get(c)),
+                "absorbed_fraction": _f(sc.absorbed_fraction),
+                "identifiable": bool(sc.identifiable),
+                "testable": bool(sc.testable),
+            }
+            for c, sc in entry["screens"].items()
+        })
+    refits = [
+        [
+            {"effect": c.effect, "mode": c.mode, "delta_bic": _f(c.delta_bic),
+             "cv_heldout_rms_before_mrad": _f(c.cv_before), "cv_heldout_rms_after_mrad": _f(c.cv_after),
+             "passed": bool(c.passed)}
+            for c in cands
+        ]
+        for cands in result.candidates
+    ]
+    from ._select import _Workflow
+
+    cv_base, cv_final, n_cv = _Workflow.cv_pair(result.base, result.final)
+    first = result.screens[0]["screens"] if result.screens else {}
+    fleet = result.fleet
+    mask = np.asarray(fleet.mask)
+    return {
+        "base_model": cfg.base,
+        "steps": steps,
+        "named_effects": named,
+        "not_identifiable": not_ident,
+        "untestable": untestable,
+        "absorbed_fraction": {c: _f(sc.absorbed_fraction) for c, sc in first.items()},
+        "heldout_rms_base_mrad": _f(cv_base),
+        "heldout_rms_final_mrad": _f(cv_final),
+        "n_heldout_records": n_cv,
+        "train_rms_base_mrad": _train_rms(result.base, h),
+        "train_rms_final_mrad": _train_rms(result.final, h),
+        "noise_estimate_mrad": _noise(result.final, result.layout, h),
+        "screens": screens,
+        "refits": refits,
+        "config": {
+            "alpha": cfg.alpha,
+            "n_folds": cfg.n_folds,
+            "candidates": list(cfg.effects),
+            "absorbed_limit": cfg.absorbed_limit,
+            "max_refits": cfg.max_refits,
+            "start": cfg.start,
+        },
+        "data": {
+            "source": getattr(getattr(fleet, "report", None), "source", None),
+            "n_heliostats": int(sum(1 for i in fleet.ids if i)),
+            "n_records": int(mask.sum()),
+            "heliostat_ids": [i for i in fleet.ids if i],
+        },
+        "timing": {k: _f(v) for k, v in result.timing.items()},
+    }
+
+
+def write_report(path, report: dict) -> None:
+    """Write report.json atomically."""
+    with atomic_write(path) as f:
+        json.dump(report, f, indent=2, allow_nan=False)
+        f.write("\n")
+
+
+def markdown_summary(report: dict) -> str:
+    """A Markdown summary of a report."""
+
+    def fmt(x, spec=".3f"):
+        return "-" if x is None else format(x, spec)
+
+    d = report["data"]
+    lines = [
+        "# Discovery report",
+        "",
+        f"Data: {d['n_heliostats']} heliostats, {d['n_records']} records"
+        + (f" ({d['source']})" if d.get("source") else "") + f"; base model `{report['base_model']}`.",
+        "",
+        f"Held-out beam error (blocked {report['config']['n_folds']}-fold cross-validation by day, pooled RMS): "
+        f"**{fmt(report['heldout_rms_base_mrad'])} mrad** with the base model, "
+        f"**{fmt(report['heldout_rms_final_mrad'])} mrad** after discovery "
+        f"(training RMS {fmt(report['train_rms_base_mrad'])} -> {fmt(report['train_rms_final_mrad'])} mrad; "
+        f"noise estimate {fmt(report['noise_estimate_mrad'])} mrad per component).",
+        "",
+    ]
+    if report["steps"]:
+        lines += [
+            "| step | effect | form | delta BIC | held-out before | held-out after | p (Holm) | amplitude |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for i, s in enumerate(report["steps"], 1):
+            amp = ", ".join(f"{k} = {v:.4g} {s['units'].get(k, '')}".rstrip() for k, v in s["amplitude"].items()
+                            if v is not None)
+            lines.append(
+                f"| {i} | `{s['effect']}` | {s['mode'].replace('_', ' ')} | {fmt(s['delta_bic'], '.1f')} | "
+                f"{fmt(s['cv_heldout_rms_before_mrad'])} | {fmt(s['cv_heldout_rms_after_mrad'])} | "
+                f"{fmt(s['p_holm'], '.2g')} | {amp} |"
+            )
+        lines.append("")
+    else:
+        lines += ["No effect passed (Holm-controlled score test, delta BIC > 0 and a held-out improvement).", ""]
+    lines += [
+        f"Named: {', '.join(report['named_effects']) or 'none'}.",
+        f"Not identifiable under this data's sampling (absorbed by the model's parameters): "
+        f"{', '.join(report['not_identifiable']) or 'none'}.",
+        f"Untestable (no driving data): {', '.join(report['untestable']) or 'none'}.",
+        "",
+        "Absorbed fraction of each candidate's best-determined direction (first screen; "
+        f"limit {report['config']['absorbed_limit']:.5f}):",
+        "",
+        "| effect | absorbed | p (first screen) |",
+        "|---|---|---|",
+    ]
+    first = report["screens"][0] if report["screens"] else {}
+    for c, a in report["absorbed_fraction"].items():
+        p = first.get(c, {}).get("p")
+        lines.append(f"| `{c}` | {fmt(a, '.4f')} | {fmt(p, '.2g')} |")
+    lines.append("")
+    return "\n".join(lines)
+
+
+def write_markdown(path, report: dict) -> None:
+    with atomic_write(path) as f:
+        f.write(markdown_summary(report))
+
+
+# --------------------------------------------------------------------------------------
+# Figures
+# --------------------------------------------------------------------------------------
+
+
+def _residuals(state, h, m):
+    r = state.r[:h].reshape(h, m, 2).copy()
+    return r
+
+
+def _drivers(fleet, effect: str) -> list[tuple[str, np.ndarray]]:
+    """Driving variables of ``effect`` per record ``(H, M)`` from the data alone."""
+    ctx = fleet.context
+    counts = np.asarray(fleet.counts)
+    sun = np.asarray(ctx.sun)
+    if effect in ("actuator_geometry", "encoder_wobble"):
+        return [("axis-1 motor counts", counts[..., 0]), ("axis-2 motor counts", counts[..., 1])]
+    if effect == "backlash":
+        a = np.asarray(ctx.approach)
+        return [("axis-1 approach direction", a[..., 0]), ("axis-2 approach direction", a[..., 1])]
+    if effect == "thermal":
+        return [("temperature [deg C]", np.asarray(ctx.temperature))]
+    if effect == "wind":
+        pos = np.asarray(fleet.geometry.position)[:, None, :]
+        to_spot = np.asarray(fleet.focal_spot) - pos
+        to_spot /= np.linalg.norm(to_spot, axis=-1, keepdims=True)
+        n = sun + to_spot
+        facing = np.arctan2(n[..., 0], n[..., 1])
+        v2 = np.asarray(ctx.wind_speed) ** 2
+        rel = np.asarray(ctx.wind_direction) - facing
+        return [("v^2 cos(wind - facing) [m^2/s^2]", v2 * np.cos(rel)), ("v^2 sin(wind - facing) [m^2/s^2]",
+                                                                          v2 * np.sin(rel))]
+    if effect == "clock":
+        t = np.asarray(ctx.unix_time)
+        return [("days since first record", (t - np.nanmin(t)) / 86400.0)]
+    if effect == "gravity_sag":
+        pos = np.asarray(fleet.geometry.position)[:, None, :]
+        to_spot = np.asarray(fleet.focal_spot) - pos
+        to_spot /= np.linalg.norm(to_spot, axis=-1, keepdims=True)
+        n = sun + to_spot
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        return [("cos(mirror normal elevation)", np.hypot(n[..., 0], n[..., 1]))]
+    if effect == "refraction":
+        return [("sun elevation [deg]", np.degrees(np.arcsin(np.clip(sun[..., 2], -1, 1))))]
+    return [("sun azimuth [deg]", np.degrees(np.arctan2(sun[..., 0], -sun[..., 1])))]
+
+
+def _binned(x, y, bins=8):
+    ok = np.isfinite(x) & np.isfinite(y)
+    x, y = x[ok], y[ok]
+    if x.size < 2 or np.ptp(x) == 0:
+        u = np.unique(x)
+        return u, np.array([y[x == v].mean() for v in u])
+    edges = np.quantile(x, np.linspace(0, 1, bins + 1))
+    edges = np.unique(edges)
+    idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, len(edges) - 2)
+    xc = np.array([x[idx == i].mean() for i in range(len(edges) - 1) if np.any(idx == i)])
+    yc = np.array([y[idx == i].mean() for i in range(len(edges) - 1) if np.any(idx == i)])
+    return xc, yc
+
+
+def plot_effect_residuals(result, step_index: int, *, axes=None):
+    """Residual components (mrad) against the named effect's driving variable(s),
+    before (grey) and after (colour) adding it; binned means as lines."""
+    from .._plotting import _plt
+
+    plt = _plt()
+    step = result.steps[step_index]
+    fleet = result.fleet
+    h, m = np.asarray(fleet.mask).shape
+    used = np.asarray(result.lanes.data.mask)[:h]
+    drivers = _drivers(fleet, step.effect)
+    rb = _residuals(step.before, h, m)
+    ra = _residuals(step.after, h, m)
+    if axes is None:
+        fig, axes = plt.subplots(len(drivers), 2, figsize=(10, 3.2 * len(drivers)), squeeze=False)
+    else:
+        axes = np.atleast_2d(axes)
+        fig = axes.flat[0].figure
+    labels = ("horizontal component [mrad]", "vertical component [mrad]")
+    for i, (name, x) in enumerate(drivers):
+        for j in range(2):
+            ax = axes[i, j]
+            xv = np.where(used, x, np.nan)
+            ok = used & np.isfinite(xv)
+            jitter = 0.0
+            if step.effect == "backlash":
+                jitter = 0.08 * np.random.default_rng(0).standard_normal(ok.sum())
+            ax.scatter(xv[ok] + jitter, rb[..., j][ok], s=6, color="0.6", alpha=0.5, label="before")
+            ax.scatter(xv[ok] + jitter, ra[..., j][ok], s=6, color="C0", alpha=0.6, label="after")
+            for r_, c_ in ((rb, "0.3"), (ra, "C3")):
+                xc, yc = _binned(xv[ok], r_[..., j][ok])
+                ax.plot(xc, yc, "-o", color=c_, ms=3, lw=1.5)
+            ax.axhline(0.0, color="k", lw=0.5)
+            ax.set_xlabel(name)
+            ax.set_ylabel(labels[j])
+            if i == 0 and j == 0:
+                ax.legend(loc="best", fontsize=8)
+    fig.suptitle(f"step {step_index + 1}: {step.effect} ({step.mode.replace('_', ' ')}) - residuals before / after")
+    fig.tight_layout()
+    return fig
+
+
+def plot_heldout_per_step(report: dict, *, ax=None):
+    """Held-out RMS (blocked CV) of the base model and after each named effect."""
+    from .._plotting import _plt
+
+    plt = _plt()
+    fig = ax.figure if ax is not None else plt.figure(figsize=(6, 3.5))
+    ax = ax or fig.add_subplot(111)
+    labels = [report["base_model"]]
+    values = [report["steps"][0]["cv_heldout_rms_before_mrad"] if report["steps"] else report["heldout_rms_base_mrad"]]
+    for s in report["steps"]:
+        labels.append("+ " + s["effect"])
+        values.append(s["cv_heldout_rms_after_mrad"])
+    vals = [np.nan if v is None else v for v in values]
+    ax.plot(range(len(vals)), vals, "-o", color="C0")
+    for i, v in enumerate(vals):
+        ax.annotate(f"{v:.3f}", (i, v), textcoords="offset points", xytext=(0, 6), ha="center", fontsize=8)
+    ax.set_xticks(range(len(vals)))
+    ax.set_xticklabels(labels, rotation=20, ha="right")
+    ax.set_ylabel("held-out RMS beam error [mrad]")
+    ax.set_title("held-out error per discovery step")
+    ax.set_ylim(bottom=0)
+    fig.tight_layout()
+    return fig
+
+
+def plot_screen(report: dict, step: int = 0, *, ax=None):
+    """-log10 p of every candidate at a step's screen (Holm-adjusted), with the
+    not-identifiable ones marked."""
+    from .._plotting import _plt
+
+    plt = _plt()
+    fig = ax.figure if ax is not None else plt.figure(figsize=(7, 3.5))
+    ax = ax or fig.add_subplot(111)
+    scr = report["screens"][step] if report["screens"] else {}
+    names = list(scr)
+    vals, colors = [], []
+    for n in names:
+        p = scr[n]["p_holm"]
+        vals.append(0.0 if p is None else -np.log10(max(p, 1e-300)))
+        colors.append("C0" if scr[n]["identifiable"] else "0.7")
+    ax.bar(range(len(names)), np.minimum(vals, 50), color=colors)
+    ax.axhline(-np.log10(report["config"]["alpha"]), color="C3", lw=1, label=f"alpha = {report['config']['alpha']}")
+    ax.set_xticks(range(len(names)))
+    ax.set_xticklabels(names, rotation=30, ha="right")
+    ax.set_ylabel("-log10 p (Holm), capped at 50")
+    ax.set_title(f"screen at step {step + 1} (grey: not identifiable / untestable)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def write_figures(result, out_dir) -> list[Path]:
+    """Write the PNG figures: ``heldout_per_step.png``, ``screen_step<k>.png`` and
+    ``residuals_step<k>_<effect>.png``. Returns the paths."""
+    from .._plotting import save_figure
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    p = out / "heldout_per_step.png"
+    save_figure(plot_heldout_per_step(result.report), p)
+    paths.append(p)
+    for k in range(len(result.report["screens"])):
+        p = out / f"screen_step{k + 1}.png"
+        save_figure(plot_screen(result.report, k), p)
+        paths.append(p)
+    for i, s in enumerate(result.steps):
+        p = out / f"residuals_step{i + 1}_{s.effect}.png"
+        save_figure(plot_effect_residuals(result, i), p)
+        paths.append(p)
+    return paths

@@ -1,0 +1,488 @@
+"""The discovery workflow: fit, screen, check identifiability, refit, select, repeat.
+
+1. **Fit the base model** on every lane (all records, and each blocked
+   cross-validation fold held out in turn; :mod:`._lanes`).
+2. **Diagnose and screen** every candidate effect on the current model's
+   residuals: score tests orthogonalised against the current model's Jacobian
+   (:mod:`._screen`), shared and per-heliostat forms.
+3. **Identifiability**: the fraction of each candidate's signature the current
+   model absorbs (:mod:`._identifiability`); an absorbed candidate is reported
+   *not identifiable* and never named. A candidate the data do not drive at all
+   (e.g. no weather) is reported *untestable*.
+4. **Family-wise control**: Holm's step-down procedure over the identifiable
+   candidates' p-values at level ``alpha``; the rejected ones are finalists.
+5. **Refit the finalists** with Levenberg-Marquardt (the best ``max_refits`` by
+   linearised delta BIC, each in the form - shared or per heliostat - with the
+   larger linearised delta BIC; shared parameters by Gauss-Newton steps on the
+   profiled problem between LM fits).
+6. **Name** the finalist with the largest delta BIC among those with
+   ``delta BIC > 0`` *and* a lower pooled held-out RMS in the blocked
+   cross-validation (by UTC day); add it to the model and repeat from 2 until
+   nothing passes.
+
+Under the global null (no effect present), a name needs a Holm rejection in
+the first step, so the probability of naming anything is at most ``alpha``
+(the BIC and CV conditions only remove names). ``alpha`` is the one statistical
+setting; its default 0.01 is a design choice (the false-positive rate it
+bounds), not tuned on data.
+
+BIC: ``sum_h n_h log(RSS_h / n_h) + k log N`` over the heliostats fitted in
+both models, ``n_h`` residual components of heliostat ``h`` (its own noise
+level), ``N = sum n_h``, ``k`` the number of fitted parameters (per-heliostat
+parameters count once per heliostat, shared ones once).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from .._calibration import FitConfig, ModelSpec, model_spec
+from ._identifiability import ABSORBED_LIMIT, column_basis
+from ._lanes import Engine, Lanes, Layout, make_lanes, make_layout
+from ._screen import CandidateScreen, holm, prepare_bases, screen_candidate
+
+MODES = ("shared", "per_heliostat")
+
+
+@dataclasses.dataclass(frozen=True)
+class DiscoveryConfig:
+    """Settings of :func:`discover`.
+
+    Attributes:
+        base: ``"stone8"`` or ``"actuator"``.
+        effects: candidate effects (names from :data:`heliojax.effects.EFFECT_NAMES`).
+        alpha: family-wise error rate of each step's test family (Holm).
+        n_folds: blocked cross-validation folds (by UTC day).
+        max_named: most effects to name.
+        max_refits: finalists refitted per step (best linearised delta BIC first).
+        max_iterations: expansion/fit iterations of one refit (effects enter a fit
+            to first order about the previous point; see :mod:`._lanes`).
+        fit: Levenberg-Marquardt settings (static: changing them recompiles).
+        absorbed_limit: identifiability limit on the absorbed fraction.
+        start: ``"auto"`` (per heliostat the better of nominal / fleet-typical
+            actuators, :func:`heliojax.choose_start_geometry`) or ``"nominal"``.
+    """
+
+    base: str = "stone8"
+    effects: tuple[str, ...] | None = None
+    alpha: float = 0.01
+    n_folds: int = 5
+    max_named: int = 6
+    max_refits: int = 3
+    max_iterations: int = 4
+    fit: FitConfig = FitConfig()
+    absorbed_limit: float = ABSORBED_LIMIT
+    start: str = "auto"
+
+    def __post_init__(self):
+        from ..effects import EFFECT_NAMES
+
+        if self.effects is None:
+            object.__setattr__(self, "effects", EFFECT_NAMES)
+        unknown = set(self.effects) - set(EFFECT_NAMES)
+        if unknown:
+            raise ValueError(f"unknown effects {sorted(unknown)}; expected names from {EFFECT_NAMES}")
+        if not 0.0 < self.alpha < 1.0:
+            raise ValueError(f"alpha must be in (0, 1), got {self.alpha}")
+        if self.n_folds < 2:
+            raise ValueError(f"n_folds must be >= 2, got {self.n_folds}")
+        if self.start not in ("auto", "nominal"):
+            raise ValueError(f"start must be 'auto' or 'nominal', got {self.start!r}")
+
+
+@dataclasses.dataclass
+class ModelState:
+    """A fitted model on every lane.
+
+    Attributes:
+        effects: ``((name, mode), ...)`` in the order named.
+        params: ``(L, P)`` physical parameters per lane.
+        ok: ``(L,)`` lane fitted.
+        r: ``(L, 2M)`` exact training residuals (mrad; 0 outside the training mask).
+        jac: ``(L, 2M, F)`` exact Jacobian there.
+        rss: ``(L,)`` residual sum of squares (mrad^2).
+        n_res: ``(L,)`` used residual components.
+        heldout_sq: ``(L, M)`` squared beam error (mrad^2) of each lane's held-out
+            records (NaN elsewhere).
+        shared_cov: ``(K + 1, S, S)`` covariance of the shared parameters per fold
+            (scaled units), or None.
+        fit_s: seconds spent fitting.
+    """
+
+    effects: tuple[tuple[str, str], ...]
+    params: np.ndarray
+    ok: np.ndarray
+    r: np.ndarray
+    jac: np.ndarray
+    rss: np.ndarray
+    n_res: np.ndarray
+    heldout_sq: np.ndarray
+    shared_cov: np.ndarray | None
+    fit_s: float
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(e for e, _ in self.effects)
+
+
+class _Workflow:
+    def __init__(self, engine: Engine, config: DiscoveryConfig, say: Callable[[str], None]):
+        self.engine = engine
+        self.layout: Layout = engine.layout
+        self.lanes: Lanes = engine.lanes
+        self.config = config
+        self.say = say
+        self.scales = self.layout.scales
+        f = self.layout.n_free
+        self.n_free = f
+        self.free_index = np.asarray(self.layout.free_index)
+
+    # -- columns ----------------------------------------------------------------------
+
+    def active_cols(self, effects) -> list[int]:
+        cols = list(self.layout.base_cols)
+        for e, mode in effects:
+            if mode == "per_heliostat":
+                cols += list(self.layout.cols(e))
+        return cols
+
+    def shared_cols(self, effects) -> list[int]:
+        cols = []
+        for e, mode in effects:
+            if mode == "shared":
+                cols += list(self.layout.cols(e))
+        return cols
+
+    # -- fitting ----------------------------------------------------------------------
+
+    def fit_state(self, effects, p_start: np.ndarray) -> ModelState:
+        t0 = time.perf_counter()
+        lanes = self.lanes
+        n_lanes = p_start.shape[0]
+        act_cols = self.active_cols(effects)
+        sh_cols = self.shared_cols(effects)
+        active = np.zeros((n_lanes, self.n_free), bool)
+        active[:, act_cols] = True
+        eff_cols = [c for c in act_cols if c not in self.layout.base_cols] + sh_cols
+        p = np.array(p_start, dtype=np.float64)
+        cov = None
+        r = jac = None
+        for it in range(self.config.max_iterations):
+            expansion = self.engine.expand(p)
+            out = self.engine.fit(p, active, p, expansion)
+            p_new = out["params"]
+            ok = out["ok"]
+            change = 0.0
+            if eff_cols:
+                idx = self.free_index[eff_cols]
+                d = (p_new[:, idx] - p[:, idx]) / self.scales[eff_cols]
+                change = float(np.nanmax(np.abs(d[ok]))) if ok.any() else 0.0
+            p = p_new
+            r, jac = self.engine.jacobian(p)
+            if sh_cols:
+                step, cov = self._shared_step(r, jac, ok, act_cols, sh_cols)
+                idx = self.free_index[sh_cols]
+                for f in range(lanes.n_folds + 1):
+                    lanes_f = lanes.fold == f
+                    p[np.ix_(lanes_f, idx)] += step[f] * self.scales[sh_cols]
+                change = max(change, float(np.max(np.abs(step))))
+                r, jac = self.engine.jacobian(p)
+            if not eff_cols or change < 1e-3:
+                break
+        used = np.asarray(lanes.data.mask)
+        n_res = 2 * used.sum(axis=1)
+        rss = np.where(ok, np.sum(r**2, axis=1), np.nan)
+        r_eval, _ = self.engine.jacobian(p, evaluate=True)
+        m = used.shape[1]
+        sq = r_eval.reshape(n_lanes, m, 2)
+        sq = np.sum(sq**2, axis=-1)
+        held = lanes.heldout_mask() & ok[:, None]
+        heldout_sq = np.where(held, sq, np.nan)
+        return ModelState(tuple(effects), p, ok, r, jac, rss, n_res, heldout_sq, cov, time.perf_counter() - t0)
+
+    def _shared_step(self, r, jac, ok, act_cols, sh_cols):
+        """Gauss-Newton step of the shared parameters per fold, the current model's
+        per-heliostat parameters profiled out; and the shared covariance."""
+        lanes = self.lanes
+        used = np.repeat(np.asarray(lanes.data.mask), 2, axis=1)
+        k = len(sh_cols)
+        steps = np.zeros((lanes.n_folds + 1, k))
+        covs = np.full((lanes.n_folds + 1, k, k), np.nan)
+        for f in range(lanes.n_folds + 1):
+            g = np.zeros(k)
+            gm = np.zeros((k, k))
+            for lane in np.nonzero((lanes.fold == f) & ok)[0]:
+                rows = np.nonzero(used[lane])[0]
+                a = jac[lane][rows][:, act_cols]
+                b = jac[lane][rows][:, sh_cols]
+                u = column_basis(a)
+                rr = r[lane][rows]
+                bt = b - u @ (u.T @ b)
+                rt = rr - u @ (u.T @ rr)
+                dof = rows.size - u.shape[1]
+                if dof <= 0:
+                    continue
+                w = dof / max(float(rr @ rr), 1e-300)
+                g += w * (bt.T @ rt)
+                gm += w * (bt.T @ bt)
+            if np.any(gm):
+                pinv = np.linalg.pinv(gm, rcond=1e-10, hermitian=True)
+                steps[f] = -pinv @ g
+                covs[f] = pinv
+        return steps, covs
+
+    # -- criteria ---------------------------------------------------------------------
+
+    def bic_pair(self, before: ModelState, after: ModelState) -> tuple[float, float, int]:
+        """BIC of both models over the fold-0 heliostats fitted in both, and that count."""
+        lanes = np.nonzero((self.lanes.fold == 0) & before.ok & after.ok & (before.n_res > 0))[0]
+        n = before.n_res[lanes].astype(float)
+        big_n = max(n.sum(), 2.0)
+
+        def bic(state):
+            k_h = len(self.active_cols(state.effects))
+            k = k_h * lanes.size + len(self.shared_cols(state.effects))
+            rss = np.maximum(state.rss[lanes], 1e-300)
+            return float(np.sum(n * np.log(rss / n)) + k * np.log(big_n))
+
+        return bic(before), bic(after), int(lanes.size)
+
+    @staticmethod
+    def cv_pair(before: ModelState, after: ModelState) -> tuple[float, float, int]:
+        """Pooled held-out RMS (mrad) of both models over the records held out and
+        predicted by both."""
+        both = np.isfinite(before.heldout_sq) & np.isfinite(after.heldout_sq)
+        n = int(both.sum())
+        if n == 0:
+            return float("nan"), float("nan"), 0
+        return (float(np.sqrt(np.mean(before.heldout_sq[both]))), float(np.sqrt(np.mean(after.heldout_sq[both]))), n)
+
+    # -- screening --------------------------------------------------------------------
+
+    def screen(self, state: ModelState, candidates) -> dict[str, CandidateScreen]:
+        lanes = self.lanes
+        h = lanes.n_heliostats
+        fold0 = np.arange(h)  # lanes of fold 0 are the first H
+        used = np.repeat(np.asarray(lanes.data.mask)[fold0], 2, axis=1) & state.ok[fold0, None]
+        a_cols = self.active_cols(state.effects) + self.shared_cols(state.effects)
+        bases = prepare_bases(state.r[fold0], state.jac[fold0], used, a_cols, range(h))
+        return {
+            c: screen_candidate(c, bases, state.jac[fold0], self.layout.cols(c), h, self.config.absorbed_limit)
+            for c in candidates
+        }
+
+    def start_params(self, state: ModelState, effect: str, mode: str, scr: CandidateScreen) -> np.ndarray:
+        p = state.params.copy()
+        cols = list(self.layout.cols(effect))
+        idx = self.free_index[cols]
+        if mode == "shared":
+            p[:, idx] = scr.theta_shared * self.scales[cols]
+        else:
+            th = np.nan_to_num(scr.theta_per_heliostat[self.lanes.heliostat], nan=0.0)
+            p[:, idx] = th * self.scales[cols]
+        return p
+
+
+@dataclasses.dataclass
+class Candidate:
+    """A refitted finalist."""
+
+    effect: str
+    mode: str
+    state: ModelState
+    delta_bic: float
+    bic_before: float
+    bic_after: float
+    cv_before: float
+    cv_after: float
+    n_heldout: int
+    passed: bool
+
+
+@dataclasses.dataclass
+class Step:
+    """One named effect."""
+
+    effect: str
+    mode: str
+    delta_bic: float
+    cv_before: float
+    cv_after: float
+    amplitude: dict
+    amplitude_std: dict
+    heliostats: list
+    heliostats_significant: list
+    p_value: float
+    p_holm: float
+    before: ModelState
+    after: ModelState
+
+
+@dataclasses.dataclass
+class DiscoveryResult:
+    """Everything :func:`discover` found (``report`` is the report.json content).
+
+    Attributes:
+        config: the settings.
+        fleet: the padded fleet that was analysed.
+        layout: column layout.
+        lanes: the cross-validation lanes.
+        base: the fitted base model state.
+        final: the final model state.
+        steps: the named effects in order.
+        screens: per step, ``{"screens": {effect: CandidateScreen}, "p_holm": {effect: p}}``.
+        candidates: per step, the refitted finalists.
+        report: the report dictionary (:func:`heliojax.discovery.build_report`).
+    """
+
+    config: DiscoveryConfig
+    fleet: object
+    layout: Layout
+    lanes: Lanes
+    base: ModelState
+    final: ModelState
+    steps: list
+    screens: list
+    candidates: list
+    report: dict
+    timing: dict
+
+
+def _amplitude(wf: _Workflow, state: ModelState, effect: str, mode: str):
+    cols = list(wf.layout.cols(effect))
+    names = wf.layout.params(effect)
+    idx = wf.free_index[cols]
+    h = wf.lanes.n_heliostats
+    lanes0 = np.nonzero(state.ok[:h])[0]
+    vals = state.params[lanes0][:, idx]
+    amp, std = {}, {}
+    if mode == "shared":
+        v = vals[0] if len(lanes0) else np.full(len(cols), np.nan)
+        sh = wf.shared_cols(state.effects)
+        pos = [sh.index(c) for c in cols]
+        if state.shared_cov is not None:
+            sd = np.sqrt(np.clip(np.diag(state.shared_cov[0])[pos], 0.0, None)) * wf.scales[cols]
+        else:
+            sd = np.full(len(cols), np.nan)
+    else:
+        v = np.median(vals, axis=0) if len(lanes0) else np.full(len(cols), np.nan)
+        mad = np.median(np.abs(vals - v), axis=0) if len(lanes0) else np.full(len(cols), np.nan)
+        sd = 1.4826 * mad / np.sqrt(max(len(lanes0), 1))
+    for n, x, s in zip(names, v, sd):
+        amp[n] = float(x)
+        std[n] = float(s)
+    if effect == "encoder_wobble":
+        for axis in (1, 2):
+            if mode == "shared":
+                amp[f"wobble_amplitude_{axis}"] = float(np.hypot(amp[f"wobble_cos_{axis}"], amp[f"wobble_sin_{axis}"]))
+            else:
+                a = vals[:, names.index(f"wobble_cos_{axis}")]
+                b = vals[:, names.index(f"wobble_sin_{axis}")]
+                amp[f"wobble_amplitude_{axis}"] = float(np.median(np.hypot(a, b))) if len(lanes0) else float("nan")
+    return amp, std
+
+
+def discover(
+    fleet,
+    config: DiscoveryConfig | None = None,
+    *,
+    progress: Callable[[str], None] | None = None,
+    **kwargs,
+) -> DiscoveryResult:
+    """Find the effects the base model misses (the discovery workflow).
+
+    Args:
+        fleet: a :class:`heliojax.Fleet` (from :func:`heliojax.load_paint_directory`
+            or a simulation); times, weather and approach directions are read
+            from its record contexts.
+        config: settings (:class:`DiscoveryConfig`); keyword arguments override
+            its fields, e.g. ``discover(fleet, base="actuator", alpha=0.05)``.
+        progress: callback for progress messages.
+
+    Returns:
+        A :class:`DiscoveryResult`; ``result.report`` is the report.json content.
+    """
+    from .._calibration import CalibrationData, choose_start_geometry
+    from .._fleet import bucket_size, pad_fleet
+    from .._workflow import _with_geometry
+    from ..effects import effect_initial
+    from ._report import build_report
+
+    config = dataclasses.replace(config or DiscoveryConfig(), **kwargs)
+    say = progress or (lambda _m: None)
+    t_start = time.perf_counter()
+    base_spec: ModelSpec = model_spec(config.base)
+    n_real = sum(1 for i in fleet.ids if i)
+    padded = pad_fleet(fleet, bucket_size(fleet.n_heliostats), bucket_size(fleet.n_records))
+    if config.start == "auto":
+        geometry, _ = choose_start_geometry(padded, base_spec)
+        padded = _with_geometry(padded, geometry)
+    data = CalibrationData.from_fleet(padded)
+    layout = make_layout(base_spec, tuple(config.effects))
+    lanes = make_lanes(data, np.asarray(padded.record_id), config.n_folds)
+    engine = Engine.create(layout, lanes, config.fit)
+    wf = _Workflow(engine, config, say)
+    p0 = np.asarray(effect_initial(layout.spec, data))[lanes.heliostat]
+    say(f"{n_real} heliostats, {int(np.asarray(padded.mask).sum())} records; base {config.base}; "
+        f"{len(config.effects)} candidates; {config.n_folds} folds by day ({lanes.data.counts.shape[0]} lanes)")
+    state = wf.fit_state((), p0)
+    base_state = state
+    say(f"base fitted ({state.fit_s:.1f} s): train RMS "
+        f"{np.sqrt(np.nansum(state.rss[:lanes.n_heliostats]) / np.sum(state.n_res[:lanes.n_heliostats]) * 2):.3f} mrad")
+    steps: list[Step] = []
+    screens_log, candidates_log = [], []
+    while len(steps) < config.max_named:
+        remaining = [c for c in config.effects if c not in state.names]
+        if not remaining:
+            break
+        screens = wf.screen(state, remaining)
+        testable = {c: s.p for c, s in screens.items() if s.identifiable}
+        adjusted, rejected = holm(testable, config.alpha) if testable else ({}, set())
+        screens_log.append({"screens": screens, "p_holm": adjusted})
+        say("screen: " + ", ".join(
+            f"{c} p={s.p:.2g}" if s.identifiable else f"{c} ({'not identifiable' if s.testable else 'untestable'})"
+            for c, s in screens.items()))
+        finalists = sorted(rejected, key=lambda c: -max(screens[c].approx_delta_bic.values()))[: config.max_refits]
+        if not finalists:
+            candidates_log.append([])
+            break
+        cands = []
+        for c in finalists:
+            scr = screens[c]
+            mode = max(MODES, key=lambda m: scr.approx_delta_bic[m])
+            st = wf.fit_state(state.effects + ((c, mode),), wf.start_params(state, c, mode, scr))
+            b0, b1, _ = wf.bic_pair(state, st)
+            cv0, cv1, n_cv = wf.cv_pair(state, st)
+            passed = (b0 - b1 > 0) and np.isfinite(cv1) and (cv1 < cv0)
+            cands.append(Candidate(c, mode, st, b0 - b1, b0, b1, cv0, cv1, n_cv, passed))
+            say(f"refit {c} ({mode}, {st.fit_s:.1f} s): delta BIC {b0 - b1:.1f}, held-out RMS "
+                f"{cv0:.3f} -> {cv1:.3f} mrad{'' if passed else ' (rejected)'}")
+        candidates_log.append(cands)
+        passing = [c for c in cands if c.passed]
+        if not passing:
+            break
+        best = max(passing, key=lambda c: c.delta_bic)
+        amp, std = _amplitude(wf, best.state, best.effect, best.mode)
+        h = lanes.n_heliostats
+        ids = list(padded.ids)
+        fitted = [ids[i] for i in range(h) if best.state.ok[i] and ids[i]]
+        p_h = screens[best.effect].p_heliostats
+        tested = {ids[i]: float(p_h[i]) for i in range(h) if ids[i] and np.isfinite(p_h[i])}
+        _, sig = holm(tested, config.alpha) if tested else ({}, set())
+        steps.append(Step(
+            effect=best.effect, mode=best.mode, delta_bic=best.delta_bic, cv_before=best.cv_before,
+            cv_after=best.cv_after, amplitude=amp, amplitude_std=std, heliostats=fitted,
+            heliostats_significant=sorted(sig), p_value=screens[best.effect].p,
+            p_holm=adjusted[best.effect], before=state, after=best.state,
+        ))
+        say(f"named {best.effect} ({best.mode}): " + ", ".join(f"{k}={v:.4g}" for k, v in amp.items()))
+        state = best.state
+    timing = {"total_s": time.perf_counter() - t_start}
+    result = DiscoveryResult(config=config, fleet=padded, layout=layout, lanes=lanes, base=base_state, final=state,
+                             steps=steps, screens=screens_log, candidates=candidates_log, report={}, timing=timing)
+    result.report = build_report(result)
+    return result

@@ -1,0 +1,117 @@
+"""Hidden-effect suites: simulated fleets with known effects (tests, benchmark, notebook).
+
+The simulator's injection point is the true model: each heliostat's true base
+model (random Stone or actuator-model errors) is wrapped by the hidden effects
+(:class:`heliojax.effects.EffectModel`) and :func:`heliojax.simulate_records`
+turns the plant controller's counts into measured focal spots with it. The
+approach directions that backlash needs come from the chronological order of
+each heliostat's counts (:func:`heliojax.approach_directions`), as the data
+loader derives them.
+"""
+
+from __future__ import annotations
+
+import typing
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._kinematics import ActuatorModel, inverse_aim
+from .._simulate import (
+    JUELICH_LAT_LON_ALT,
+    approach_directions,
+    calibration_target,
+    random_stone_models,
+    simulate_records,
+    synthetic_contexts,
+    synthetic_geometry,
+)
+
+
+def random_actuator_models(key, n: int, angle_sigma: float = 3e-3, dtype=jnp.float64) -> ActuatorModel:
+    """``n`` true actuator models: tilts ~ N(0, angle_sigma) rad, angle offsets
+    ~ N(0, 3 angle_sigma) rad, increment scales ~ N(0, 2e-3), stroke offsets 0."""
+    ks = jax.random.split(key, 4)
+    tilts = angle_sigma * jax.random.normal(ks[0], (4, n), dtype)
+    off = 3 * angle_sigma * jax.random.normal(ks[1], (n, 2), dtype)
+    inc = 2e-3 * jax.random.normal(ks[2], (n, 2), dtype)
+    return ActuatorModel(alpha=tilts[0], beta=tilts[1], gamma=tilts[2], delta=tilts[3], angle_offset=off,
+                         increment_scale=inc, stroke_offset=jnp.zeros((n, 2), dtype))
+
+
+@eqx.filter_jit
+def _controller_counts(geometry, sun, target):
+    from .._kinematics import StoneModel
+
+    def one(g, s):
+        c = jnp.round(inverse_aim(StoneModel.nominal(s.dtype), g, target.centre, s))
+        return jnp.clip(c, g.actuators.min_counts, g.actuators.max_counts)
+
+    return jax.vmap(lambda g, ss: jax.vmap(lambda s: one(g, s))(ss))(geometry, sun)
+
+
+def _broadcast(effect, n: int):
+    return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n,) + jnp.shape(x)), effect)
+
+
+def simulate_fleet(
+    seed: int,
+    n_heliostats: int = 20,
+    n_records: int = 60,
+    *,
+    effects: typing.Sequence = (),
+    per_heliostat_effects: typing.Sequence = (),
+    base: str = "stone8",
+    noise_mrad: float = 0.25,
+    weather: bool = True,
+):
+    """A simulated fleet with hidden effects, as a :class:`heliojax.Fleet`.
+
+    Args:
+        seed: PRNG seed (geometry, true models, times, weather, noise).
+        n_heliostats, n_records: fleet size.
+        effects: effects common to all heliostats (unbatched
+            :class:`~heliojax.effects.AbstractEffect` instances).
+        per_heliostat_effects: effects batched over the heliostats (leading axis).
+        base: ``"stone8"`` (true Stone models, linear counts map) or
+            ``"actuator"`` (true actuator models).
+        noise_mrad: measurement noise per tangent-plane component, mrad.
+        weather: synthetic temperature and wind (else NaN).
+
+    Returns:
+        ``(fleet, truth)`` with ``truth`` the batched true model.
+    """
+    from .._fleet import Fleet, LoadReport
+    from ..effects import EffectModel
+
+    key = jax.random.PRNGKey(seed)
+    k_geo, k_model, k_ctx, k_noise = jax.random.split(key, 4)
+    h, m = n_heliostats, n_records
+    geometry = synthetic_geometry(k_geo, h)
+    base_models = random_stone_models(k_model, h) if base == "stone8" else random_actuator_models(k_model, h)
+    context = synthetic_contexts(k_ctx, h, m, weather=weather)
+    target = calibration_target()
+    counts = _controller_counts(geometry, context.sun, target)
+    context = eqx.tree_at(lambda c: c.approach, context, approach_directions(counts))
+    all_effects = tuple(_broadcast(e, h) for e in effects) + tuple(per_heliostat_effects)
+    truth = EffectModel(base_models, all_effects) if all_effects else base_models
+    sim = simulate_records(k_noise, truth, geometry, context, target, noise_mrad=noise_mrad)
+    ids = tuple(f"S{i:03d}" for i in range(h))
+    targets = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], target)
+    fleet = Fleet(
+        geometry=geometry,
+        counts=sim.counts,
+        context=sim.context,
+        focal_spot=sim.focal_spot,
+        target_index=jnp.zeros((h, m), jnp.int32),
+        record_id=jnp.asarray(np.arange(h * m).reshape(h, m) + 100000, jnp.int64),
+        mask=jnp.ones((h, m), bool),
+        targets=targets,
+        origin_lla=jnp.asarray(JUELICH_LAT_LON_ALT, jnp.float64),
+        ids=ids,
+        target_names=("calibration_target",),
+        report=LoadReport(source=f"<simulation seed={seed}>", records_loaded=h * m, heliostats_loaded=h),
+    )
+    return fleet, truth

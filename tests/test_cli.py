@@ -1,0 +1,65 @@
+"""The CLI on the embedded data: inspect, calibrate (outputs and schema), configs."""
+
+from __future__ import annotations
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+
+from heliojax.cli._main import main
+
+
+def test_inspect_embedded(tmp_path, capsys):
+    plot = tmp_path / "u.png"
+    assert main(["inspect", "--plot", str(plot)]) == 0
+    out = capsys.readouterr().out
+    for hid in ("BE36", "BF56", "BG23", "BH20", "BL14"):
+        assert hid in out
+    assert "Load report" in out and plot.stat().st_size > 1000
+
+
+def test_calibrate_embedded_writes_schema(tmp_path, capsys):
+    report, out, plot = tmp_path / "s.json", tmp_path / "r.h5", tmp_path / "p.png"
+    rc = main([
+        "calibrate", "--model", "actuator", "--report", str(report), "--out", str(out),
+        "--plot", str(plot), "--cache-dir", str(tmp_path / "cache"), "--quiet",
+    ])
+    assert rc == 0
+    s = json.loads(report.read_text())
+    assert s["model"] == "actuator" and s["split"] == "time"
+    assert set(s["heliostats"]) == {"BE36", "BF56", "BG23", "BH20", "BL14"}
+    for h in s["heliostats"].values():
+        for key in ("status", "n_train", "n_test", "train_rms_mrad", "test_median_mrad", "test_rms_mrad",
+                    "params", "param_std"):
+            assert key in h
+    f = s["fleet"]
+    assert f["n_heliostats"] == 5 and f["n_converged"] == 4  # BL14 has 9 records: 6 train < 8 parameters
+    assert s["heliostats"]["BL14"]["status"] == "too_few_records"
+    assert f["test_median_mrad"] < 5.0 < f["uncalibrated_test_median_mrad"]
+    assert s["timing"]["compile_s"] > 0 and s["timing"]["fit_s"] > 0
+    with h5py.File(out) as h:
+        assert h["params"].shape == (5, 10)
+        assert h["residual_mrad"].shape[0] == 5 and h["residual_mrad"].shape[2] == 2
+        ids = [x.decode() for x in h["heliostat_ids"][()]]
+        assert ids == list(s["heliostats"])
+        np.testing.assert_allclose(h["params"][0, 0], s["heliostats"][ids[0]]["params"]["alpha"])
+    assert plot.stat().st_size > 1000
+
+
+def test_config_file_and_flag_override(tmp_path):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[inspect]\nplot = "{tmp_path / "from_config.png"}"\n')
+    assert main(["inspect", "--config", str(cfg)]) == 0
+    assert (tmp_path / "from_config.png").exists()
+    assert main(["inspect", "--config", str(cfg), "--plot", str(tmp_path / "flag.png")]) == 0
+    assert (tmp_path / "flag.png").exists()
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[inspect]\nno_such_option = 1\n")
+    assert main(["inspect", "--config", str(bad)]) == 2
+
+
+def test_bad_data_dir_is_a_clean_error(tmp_path, capsys):
+    assert main(["inspect", str(tmp_path / "missing")]) == 2
+    assert "error" in capsys.readouterr().err
