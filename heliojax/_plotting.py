@@ -50,10 +50,11 @@ def plot_error_per_heliostat(ids, errors_mrad, *, ax=None, title=None, label="be
 
 def plot_calibration(run, *, axes=None):
     """Per-heliostat train / test RMS before and after calibration, and the
-    residuals on the target plane (in-plane miss in mrad) before and after."""
+    residuals on the target (horizontal / vertical miss, mrad) of the test records
+    before and after calibration."""
     plt = _plt()
     if axes is None:
-        fig, axes = plt.subplots(1, 2, figsize=(13, 4.5), gridspec_kw={"width_ratios": [2.2, 1]})
+        fig, axes = plt.subplots(1, 3, figsize=(17, 4.8), gridspec_kw={"width_ratios": [2.2, 1, 1]})
     else:
         fig = axes[0].figure
     summary = run.summary
@@ -75,24 +76,25 @@ def plot_calibration(run, *, axes=None):
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3, which="both")
 
-    ax = axes[1]
     n = len(ids)
-    res_after = np.asarray(run.residuals_mrad)[:n]
-    err_before = np.asarray(run.uncalibrated_mrad)[:n]
     test = np.asarray(run.test_mask)[:n] if np.any(run.test_mask) else np.asarray(run.fleet.mask)[:n]
-    after = res_after[test]
-    ax.scatter(after[:, 0], after[:, 1], s=6, alpha=0.6, label="after (test records)", color="tab:orange")
-    lim = np.nanpercentile(np.abs(after), 99) * 1.5 if after.size else 1.0
-    ax.set_xlim(-lim, lim)
-    ax.set_ylim(-lim, lim)
-    ax.axhline(0, color="0.5", lw=0.5)
-    ax.axvline(0, color="0.5", lw=0.5)
-    ax.set_xlabel("horizontal miss [mrad]")
-    ax.set_ylabel("vertical miss [mrad]")
-    med_before = np.nanmedian(err_before[test]) if test.any() else np.nan
-    ax.set_title(f"residuals after calibration\n(uncalibrated median {med_before:.1f} mrad)")
-    ax.set_aspect("equal")
-    ax.legend(fontsize=8)
+    for ax, res, title, color in (
+        (axes[1], np.asarray(run.uncalibrated_residuals_mrad)[:n], "before calibration", "0.4"),
+        (axes[2], np.asarray(run.residuals_mrad)[:n], "after calibration", "tab:orange"),
+    ):
+        pts = res[test]
+        pts = pts[np.all(np.isfinite(pts), axis=1)]
+        ax.scatter(pts[:, 0], pts[:, 1], s=6, alpha=0.6, color=color)
+        lim = np.percentile(np.abs(pts), 98) * 1.3 if pts.size else 1.0
+        ax.set_xlim(-lim, lim)
+        ax.set_ylim(-lim, lim)
+        ax.axhline(0, color="0.5", lw=0.5)
+        ax.axvline(0, color="0.5", lw=0.5)
+        ax.set_xlabel("horizontal miss [mrad]")
+        ax.set_ylabel("vertical miss [mrad]")
+        rms = np.sqrt(np.mean(np.sum(pts**2, axis=1))) if pts.size else np.nan
+        ax.set_title(f"test-record residuals {title}\n(RMS {rms:.2f} mrad)")
+        ax.set_aspect("equal")
     fig.tight_layout()
     return fig
 

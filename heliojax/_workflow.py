@@ -13,7 +13,8 @@
 * ``record_id`` ``(H, M)`` int64 (-1 = padding)
 * ``split`` ``(H, M)`` int8: 0 unused/padding, 1 train, 2 validation, 3 test
 * ``residual_mrad`` ``(H, M, 2)`` float64: tangent-plane beam error components
-  after calibration (NaN where no record)
+  after calibration (NaN where no record); ``residual_uncalibrated_mrad`` the same
+  with the nominal model
 * ``beam_error_mrad`` ``(H, M)`` after calibration; ``beam_error_uncalibrated_mrad``
   ``(H, M)`` with the nominal model
 """
@@ -65,6 +66,7 @@ class CalibrationRun:
         errors_mrad: ``(H, M)`` beam error after calibration (NaN where no record).
         uncalibrated_mrad: ``(H, M)`` beam error with the nominal model.
         residuals_mrad: ``(H, M, 2)`` error components after calibration.
+        uncalibrated_residuals_mrad: ``(H, M, 2)`` error components of the nominal model.
         start_replaced: ``(H,)`` heliostats started from fleet-typical actuators.
         too_few: heliostat id -> reason, from the split.
         summary: the ``summary.json`` content.
@@ -81,6 +83,7 @@ class CalibrationRun:
     errors_mrad: np.ndarray
     uncalibrated_mrad: np.ndarray
     residuals_mrad: np.ndarray
+    uncalibrated_residuals_mrad: np.ndarray
     start_replaced: np.ndarray
     too_few: dict
     summary: dict
@@ -173,6 +176,7 @@ def calibrate(
 
     train, val, test = pad_mask(train), pad_mask(val), pad_mask(test)
 
+    nominal_geometry = padded.geometry  # the plant's own values: the uncalibrated baseline
     if start == "auto":
         geometry, replaced = choose_start_geometry(_with_mask(padded, train), spec)
         padded = _with_geometry(padded, geometry)
@@ -196,12 +200,17 @@ def calibrate(
     all_valid = np.asarray(padded.mask)
     errors = np.asarray(beam_errors_mrad(models, padded.geometry, padded.counts, padded.context, padded.focal_spot, jnp.asarray(all_valid)))
     nominal = nominal_models(spec, h_pad, data.counts.dtype)
-    uncal = np.asarray(beam_errors_mrad(nominal, padded.geometry, padded.counts, padded.context, padded.focal_spot, jnp.asarray(all_valid)))
+    uncal = np.asarray(beam_errors_mrad(nominal, nominal_geometry, padded.counts, padded.context, padded.focal_spot, jnp.asarray(all_valid)))
     residuals = np.asarray(_residuals_mrad(models, padded, jnp.asarray(all_valid)))
+    residuals_uncal = np.asarray(_residuals_mrad(nominal, _with_geometry(padded, nominal_geometry), jnp.asarray(all_valid)))
+    # Heliostats without a fit (too few records, padding) have no calibrated errors.
+    fitted = np.isin(np.asarray(result.status), [FitStatus.TOO_FEW_RECORDS, FitStatus.PADDING], invert=True)
+    errors = np.where(fitted[:, None], errors, np.nan)
+    residuals = np.where(fitted[:, None, None], residuals, np.nan)
 
     test_err = test_uncal = None
     if test_fleet is not None:
-        test_err, test_uncal = _evaluate_other(test_fleet, ids, result, padded, spec, replaced)
+        test_err, test_uncal = _evaluate_other(test_fleet, ids, result, padded, spec, nominal_geometry)
 
     run = CalibrationRun(
         fleet=padded,
@@ -214,6 +223,7 @@ def calibrate(
         errors_mrad=errors,
         uncalibrated_mrad=uncal,
         residuals_mrad=residuals,
+        uncalibrated_residuals_mrad=residuals_uncal,
         start_replaced=np.asarray(replaced),
         too_few=too_few,
         summary={},
@@ -236,7 +246,7 @@ def _with_geometry(fleet, geometry):
     return eqx.tree_at(lambda f: f.geometry, fleet, geometry)
 
 
-def _evaluate_other(test_fleet, ids, result, padded, spec, replaced):
+def _evaluate_other(test_fleet, ids, result, padded, spec, nominal_geometry):
     """Beam errors of ``test_fleet``'s records under the fitted models of the
     heliostats with the same ids (NaN rows for ids without a fit)."""
     index = {h: i for i, h in enumerate(ids)}
@@ -248,7 +258,8 @@ def _evaluate_other(test_fleet, ids, result, padded, spec, replaced):
     mask = np.asarray(test_fleet.mask) & (np.array(rows) >= 0)[:, None]
     err = np.asarray(beam_errors_mrad(models, geometry, test_fleet.counts, test_fleet.context, test_fleet.focal_spot, jnp.asarray(mask)))
     nominal = nominal_models(spec, len(rows_np), test_fleet.counts.dtype)
-    unc = np.asarray(beam_errors_mrad(nominal, geometry, test_fleet.counts, test_fleet.context, test_fleet.focal_spot, jnp.asarray(mask)))
+    geometry0 = jax.tree_util.tree_map(lambda x: x[rows_np], nominal_geometry)
+    unc = np.asarray(beam_errors_mrad(nominal, geometry0, test_fleet.counts, test_fleet.context, test_fleet.focal_spot, jnp.asarray(mask)))
     # Re-index to the training fleet's rows.
     out = np.full((h_pad, err.shape[1]), np.nan)
     out_u = np.full((h_pad, err.shape[1]), np.nan)
@@ -256,8 +267,8 @@ def _evaluate_other(test_fleet, ids, result, padded, spec, replaced):
         if r >= 0:
             out[r] = err[j]
             out_u[r] = unc[j]
-    del replaced
-    return out, out_u
+    fitted = np.isin(np.asarray(result.status), [FitStatus.TOO_FEW_RECORDS, FitStatus.PADDING], invert=True)
+    return np.where(fitted[:, None], out, np.nan), out_u
 
 
 def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float) -> dict:
@@ -372,6 +383,7 @@ def write_results_h5(path: str | Path, run: CalibrationRun) -> None:
             f.create_dataset("record_id", data=np.asarray(run.fleet.record_id)[:n].astype(np.int64))
             f.create_dataset("split", data=split[:n])
             f.create_dataset("residual_mrad", data=run.residuals_mrad[:n])
+            f.create_dataset("residual_uncalibrated_mrad", data=run.uncalibrated_residuals_mrad[:n])
             f.create_dataset("beam_error_mrad", data=run.errors_mrad[:n])
             f.create_dataset("beam_error_uncalibrated_mrad", data=run.uncalibrated_mrad[:n])
 
