@@ -34,8 +34,9 @@ exceeds ``--scipy-budget`` seconds) scipy runs on the first ``K`` heliostats onl
 and its time is extrapolated linearly; the JSON says so (``scipy_measured_heliostats``,
 ``scipy_extrapolated``).
 
-Peak memory is ``resource.getrusage(RUSAGE_SELF).ru_maxrss`` of the whole process
-(simulation included).
+Peak memory is ``resource.getrusage(RUSAGE_SELF).ru_maxrss`` of the benchmark
+process: the data (simulated in a child process, ``--data`` keeps it in an npz for
+reruns), the compilation and the fits (and scipy's unless ``--skip-scipy``).
 """
 
 from __future__ import annotations
@@ -45,7 +46,9 @@ import json
 import os
 import platform
 import resource
+import subprocess
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -212,6 +215,34 @@ def simulate_fleet(n, m, noise_mrad, seed=0, chunk=1000):
     return out
 
 
+def save_fleet(path, fleet):
+    """Write a :func:`simulate_fleet` tuple to ``path`` (npz of its leaves)."""
+    import jax
+
+    geometry, true, context, counts, focal, hit = fleet
+    arrays = {f"g{i}": x for i, x in enumerate(jax.tree.leaves(geometry))}
+    arrays.update({f"c{i}": x for i, x in enumerate(jax.tree.leaves(context))})
+    tmp = str(path) + ".tmp.npz"
+    np.savez(tmp, true=true, counts=counts, focal=focal, hit=hit, **arrays)
+    os.replace(tmp, path)
+
+
+def load_fleet(path):
+    """Read what :func:`save_fleet` wrote (numpy leaves)."""
+    import jax
+
+    from heliojax._kinematics import HeliostatGeometry, LinearActuators, RecordContext
+
+    z = np.load(path)
+    one = np.ones((1, 2))
+    act = LinearActuators(*([one] * 8))
+    g_tree = jax.tree.structure(HeliostatGeometry(*([np.ones((1, 3))] * 4), act, one, one))
+    c_tree = jax.tree.structure(RecordContext.from_sun(np.ones((1, 1, 3))))
+    g = jax.tree.unflatten(g_tree, [z[f"g{i}"] for i in range(g_tree.num_leaves)])
+    c = jax.tree.unflatten(c_tree, [z[f"c{i}"] for i in range(c_tree.num_leaves)])
+    return g, z["true"], c, z["counts"], z["focal"], z["hit"]
+
+
 def _geom_dicts(geometry):
     fields = (
         "position",
@@ -338,6 +369,13 @@ def parse_args(argv=None):
     p.add_argument("--scipy-budget", type=float, default=300.0, help="s; above the estimate, scipy is extrapolated")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", action="store_true", help="print one JSON object only")
+    p.add_argument(
+        "--data",
+        default=None,
+        help="npz of the simulated fleet: read if it exists, else simulate and write it (default: a temporary file)",
+    )
+    p.add_argument("--sim-chunk", type=int, default=None, help="heliostats per simulation chunk")
+    p.add_argument("--simulate-to", default=None, help=argparse.SUPPRESS)
     return p.parse_args(argv)
 
 
@@ -350,8 +388,22 @@ def main(argv=None) -> int:
 
     log = (lambda *a: print(*a, file=sys.stderr)) if args.json else print
     n, m = args.heliostats, args.records
+    chunk = args.sim_chunk or (1000 if jax.default_backend() == "cpu" else 20000)
+    if args.simulate_to:  # child process: simulate and write, nothing else
+        save_fleet(args.simulate_to, simulate_fleet(n, m, args.noise, args.seed, chunk))
+        return 0
+    # The simulation runs in a child process, so that the peak memory reported
+    # below is the fits' (and the data's), not the simulator's.
     t0 = time.perf_counter()
-    geometry, true, context, counts, focal, hit = simulate_fleet(n, m, args.noise, args.seed)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = args.data or os.path.join(tmp, "fleet.npz")
+        if not os.path.exists(path):
+            cmd = [sys.executable, os.path.abspath(__file__), "--simulate-to", path, "--heliostats", str(n),
+                   "--records", str(m), "--noise", str(args.noise), "--seed", str(args.seed), "--sim-chunk", str(chunk)]
+            subprocess.run(cmd, check=True, stdout=sys.stderr)
+        geometry, true, context, counts, focal, hit = load_fleet(path)
+    if counts.shape[:2] != (n, m):
+        raise SystemExit(f"{path} holds a fleet of shape {counts.shape[:2]}, not ({n}, {m})")
     sim_s = time.perf_counter() - t0
     n_train = int(round(args.train_fraction * m))
     train_idx = np.arange(n_train)
@@ -409,7 +461,11 @@ def main(argv=None) -> int:
         "lm_steps_max": int(steps.max()),
     }
 
+    out["peak_rss_mb_before_scipy"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     if not args.skip_scipy:
+        import scipy
+
+        out["scipy_version"] = scipy.__version__
         geoms = _geom_dicts(geometry)
         sun_tr, counts_tr, focal_tr = np.asarray(train[0].sun), np.asarray(train[1]), np.asarray(train[2])
         k = args.scipy_heliostats

@@ -109,3 +109,5 @@ from ._workflow import (
     write_results_h5 as write_results_h5,
     write_summary as write_summary,
 )
+
+from . import acceptance as acceptance, neural as neural, optics as optics  # noqa: E402  (subpackages)

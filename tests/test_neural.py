@@ -4,6 +4,8 @@ the fallback rule. Small synthetic problems (the notebook test runs real data)."
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -48,9 +50,19 @@ SMALL = NeuralConfig(
 )
 
 
+@functools.lru_cache(maxsize=None)
 def _problem(h=H, m=M, seed=0):
     """Heliostats that truly follow the actuator law, described by a nominal Stone
     model (whose linear counts-to-angle map misses the law's curvature)."""
+    return dict(_problem_arrays(h, m, seed))
+
+
+@eqx.filter_jit
+def _inverse_all(truth, geometry, aim, sun):
+    return jax.vmap(lambda g, s: jax.vmap(lambda si: inverse_aim(truth, g, aim, si))(s))(geometry, sun)
+
+
+def _problem_arrays(h, m, seed):
     key = jax.random.key(seed)
     k_g, k_az, k_el = jax.random.split(key, 3)
     geometry = synthetic_geometry(k_g, h)
@@ -60,7 +72,7 @@ def _problem(h=H, m=M, seed=0):
     sun = sun_direction(az, el)
     truth = ActuatorModel.nominal(jnp.float64)
     aim = target.centre + jnp.asarray([0.4, 0.0, -0.3])
-    counts = jax.vmap(lambda g, s: jax.vmap(lambda si: inverse_aim(truth, g, aim, si))(s))(geometry, sun)
+    counts = _inverse_all(truth, geometry, aim, sun)
     focal = jnp.broadcast_to(aim, (h, m, 3))
     context = RecordContext.from_sun(sun)
     base = jax.vmap(lambda _: StoneModel.nominal(jnp.float64))(jnp.arange(h))
@@ -68,8 +80,8 @@ def _problem(h=H, m=M, seed=0):
     fit, val = validation_tail(mask, 0.25)
     u = jnp.broadcast_to(target.u_axis, (h, m, 3))
     v = jnp.broadcast_to(target.v_axis, (h, m, 3))
-    return dict(geometry=geometry, counts=counts, context=context, focal=focal, base=base, fit=fit, val=val,
-                u=u, v=v)
+    return tuple(dict(geometry=geometry, counts=counts, context=context, focal=focal, base=base, fit=fit,
+                      val=val, u=u, v=v).items())
 
 
 def _take(tree, idx):
@@ -101,7 +113,8 @@ def _tree_close(a, b, rtol=1e-4, atol=1e-6):
 
 
 def test_mlp_shapes_selu_and_lecun_init():
-    net = MLP.init(jax.random.key(0), (5, 6, 5, 4, 3, 1))
+    init = eqx.filter_jit(MLP.init)
+    net = init(jax.random.key(0), (5, 6, 5, 4, 3, 1))
     assert net.sizes == (5, 6, 5, 4, 3, 1)
     assert net(jnp.ones(5)).shape == (1,)
     # hand computation: selu hidden layers, linear output
@@ -111,19 +124,19 @@ def test_mlp_shapes_selu_and_lecun_init():
         h = 1.0507009873554805 * np.where(w @ h + b > 0, w @ h + b, 1.6732632423543772 * (np.exp(w @ h + b) - 1))
     np.testing.assert_allclose(net(x), net.weights[-1] @ h + net.biases[-1], rtol=1e-5)
     # LeCun normal: variance 1 / fan_in (a wide layer to estimate it)
-    wide = MLP.init(jax.random.key(1), (400, 300, 1))
+    wide = init(jax.random.key(1), (400, 300, 1))
     var = float(np.var(np.asarray(wide.weights[0])))
     assert abs(var * 400 - 1.0) < 0.05
     assert np.all(np.asarray(wide.biases[0]) == 0)
 
 
 def test_zero_output_network_is_exactly_zero_and_stacks_are_independent():
-    nets = init_networks(jax.random.key(0), (4,), (2, 6, 5, 4, 3, 2), zero_output=True)
-    out = jax.vmap(lambda n: n(jnp.array([0.3, -0.7])))(nets)
+    nets = eqx.filter_jit(init_networks)(jax.random.key(0), (4,), (2, 6, 5, 4, 3, 2), zero_output=True)
+    out = eqx.filter_jit(jax.vmap(lambda n: n(jnp.array([0.3, -0.7]))))(nets)
     assert np.all(np.asarray(out) == 0.0)
     w0 = np.asarray(nets.weights[0])
     assert not np.allclose(w0[0], w0[1])  # different keys per entry
-    single = MLP.init(jax.random.fold_in(jax.random.key(0), 2), (2, 6, 5, 4, 3, 2), zero_output=True)
+    single = eqx.filter_jit(MLP.init)(jax.random.fold_in(jax.random.key(0), 2), (2, 6, 5, 4, 3, 2), zero_output=True)
     assert _tree_equal(_take(nets, 2), single)
 
 
@@ -247,6 +260,7 @@ def _paper(p, keys_seed=0, h=None):
     return syn, preds, tuned
 
 
+@pytest.mark.slow
 def test_paper_variant_synthetic_data_pretraining_and_determinism():
     p = _problem(h=2)
     syn, preds, tuned = _paper(p)
@@ -267,6 +281,7 @@ def test_paper_variant_synthetic_data_pretraining_and_determinism():
     assert 0 < dw <= SMALL.finetune_lr * SMALL.finetune_epochs * 1.01
 
 
+@pytest.mark.slow
 def test_paper_pretraining_vmapped_equals_single_heliostat():
     p = _problem(h=2)
     _, preds, _ = _paper(p)
@@ -283,7 +298,7 @@ def test_paper_pretraining_vmapped_equals_single_heliostat():
 
 
 def test_validation_tail_takes_the_latest_training_records():
-    train = np.array([[1, 1, 0, 1, 1, 1, 0, 1, 1, 1, 1, 0]], bool)  # 8 training records
+    train = np.array([[1, 1, 0, 1, 1, 1, 0, 1, 0, 1, 1, 0]], bool)  # 8 training records
     fit, val = validation_tail(train, 0.25)
     assert np.flatnonzero(val[0]).tolist() == [9, 10]
     assert np.flatnonzero(fit[0]).tolist() == [0, 1, 3, 4, 5, 7]
@@ -309,5 +324,3 @@ def test_neural_config_checks():
         NeuralConfig(pretrain_epochs=0)
     assert NeuralConfig().n_synthetic_val == 400
 
-
-_ = eqx

@@ -207,14 +207,42 @@ def _fit_lanes_compiled(layout, config, strategy, p0, active, p_exp, c0, dmat, d
     )
 
 
+def _predicted_focal(layout: "Layout", p, c0, geometry, counts, context, focal):
+    """Noise-free focal spots: where the model at ``p`` sends each record's central
+    ray, at the measured distance (so the residual there is 0)."""
+    from .._geometry import normalize
+    from .._kinematics import chain_pose, reflected_ray
+
+    builder = layout.spec.builder
+    base = builder.base_builder(p[: builder.n_base])
+    tilts = base.tilts()
+
+    def one(c, x, f, k):
+        geo = eqx.tree_at(lambda g: g.position, geometry, geometry.position + k[8:11])
+        pose = chain_pose(tilts, base.joint_angles(geo, c) + k[0:2], geo)
+        ray = reflected_ray(pose, normalize(x.sun + k[2:5]))
+        dist = jnp.linalg.norm(f + k[5:8] - pose.centre)
+        return pose.centre + dist * ray - k[5:8]
+
+    return jax.vmap(one)(counts, context, focal, c0)
+
+
 def _jac_lane(layout: "Layout", p, c0, dmat, geometry, counts, context, focal, mask):
+    """Exact residuals at the measured spots; the Jacobian at the model's noise-free
+    spots (Fisher scoring). The exact Jacobian holds a term proportional to the
+    measurement noise itself (moving the target along the line of sight rescales
+    every measured offset), which would make a regressor of the noise; the
+    noise-free one is the expected Jacobian and keeps the score tests valid."""
     counts, context, focal, use, _ = _sanitise(geometry, counts, context, focal, mask)
     dtype = counts.dtype
     idx = jnp.asarray(layout.free_index, dtype=jnp.int32)
     scales = jnp.asarray(layout.spec.scales, dtype)[idx]
     res = _lane_residual_fn(layout, geometry, counts, context, focal, use, p, c0, dmat)
+    predicted = _predicted_focal(layout, p, c0, geometry, counts, context, focal)
+    res_pred = _lane_residual_fn(layout, geometry, counts, context, predicted, use, p, c0, dmat)
     y0 = jnp.zeros(layout.n_free, dtype)
-    r, lin = jax.linearize(lambda y: res(p.at[idx].add(y * scales)), y0)
+    r = res(p)
+    _, lin = jax.linearize(lambda y: res_pred(p.at[idx].add(y * scales)), y0)
     jac = jax.vmap(lin, out_axes=1)(jnp.eye(layout.n_free, dtype=dtype))
     return r, jac
 
@@ -338,8 +366,8 @@ class Engine:
         return {k: np.asarray(v) for k, v in out.items()}
 
     def jacobian(self, p: np.ndarray, evaluate: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """Exact residuals ``(L, 2M)`` (mrad) and Jacobian ``(L, 2M, F)`` (mrad per
-        scaled unit) at ``p``; rows of records outside the training mask (with
+        """Exact residuals ``(L, 2M)`` (mrad) and the expected (noise-free) Jacobian
+        ``(L, 2M, F)`` (mrad per scaled unit) at ``p``; rows of records outside the training mask (with
         ``evaluate``: outside the valid records) are zero."""
         data = self._data(evaluate)
         c0, dmat = _corrections_compiled(self.layout, self.strategy, jnp.asarray(p), data)

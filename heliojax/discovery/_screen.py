@@ -191,8 +191,15 @@ def screen_candidate(effect: str, bases: list[HeliostatBasis], jac: np.ndarray, 
         stat_shared, theta_shared, p_shared = 0.0, np.zeros(k), 1.0
     p = min(1.0, 2.0 * min(p_shared, p_perhel))
     log_n = np.log(max(n_total, 2))
+    # Linearised change of -2 log L (each heliostat its own noise level) of the
+    # shared one-step estimate, comparable with the per-heliostat one.
+    dll_shared = 0.0
+    for hb, bt in zip(bases, bt_list):
+        rss0 = float(hb.r_res @ hb.r_res)
+        new = hb.r_res + bt @ theta_shared
+        dll_shared += hb.n * np.log(max(rss0, 1e-300) / max(float(new @ new), 1e-300))
     approx = {
-        "shared": stat_shared - ks * log_n,
+        "shared": dll_shared - ks * log_n,
         "per_heliostat": dll_perhel - k_sum * log_n,
     }
     return CandidateScreen(

@@ -181,7 +181,7 @@ class _Workflow:
                 idx = self.free_index[eff_cols]
                 d = (p_new[:, idx] - p[:, idx]) / self.scales[eff_cols]
                 change = float(np.nanmax(np.abs(d[ok]))) if ok.any() else 0.0
-            p = p_new
+            p = np.array(p_new)
             r, jac = self.engine.jacobian(p)
             if sh_cols:
                 step, cov = self._shared_step(r, jac, ok, act_cols, sh_cols)

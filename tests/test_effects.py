@@ -1,0 +1,261 @@
+"""Effect library: each effect against a hand calculation or a second
+implementation, zero effects reproduce the base, the composed ModelSpec fits."""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import heliojax as hj
+from heliojax._kinematics import chain_pose, reflected_ray
+from heliojax.effects import (
+    EFFECT_NAMES,
+    ActuatorGeometry,
+    Backlash,
+    Clock,
+    EffectModel,
+    EncoderWobble,
+    GravitySag,
+    Refraction,
+    SurveyHeliostat,
+    SurveyTarget,
+    Thermal,
+    Wind,
+    add_effects,
+    effect_class,
+    effect_initial,
+    make_effect,
+    standard_refraction,
+    with_effects,
+)
+
+ACT = hj.LinearActuators(
+    increment=jnp.array([154166.6667, 154166.6667]),
+    initial_stroke_length=jnp.array([0.075676335, 0.078387399]),
+    offset=jnp.array([0.335308, 0.340771]),
+    pivot_radius=jnp.array([0.338095, 0.3191]),
+    initial_angle=jnp.array([0.01366065, 0.937086489]),
+    sign=jnp.array([1.0, -1.0]),
+    min_counts=jnp.array([0.0, 0.0]),
+    max_counts=jnp.array([69001.0, 75454.0]),
+)
+GEOM = hj.HeliostatGeometry.build(jnp.array([0.9, 209.6, 1.7]), ACT, concentrator_translation=jnp.array([0.0, 0.175, 0.0]))
+COUNTS = jnp.array([30000.0, 40000.0])
+SUN = hj.sun_direction(jnp.deg2rad(20.0), jnp.deg2rad(40.0))
+FOCAL = jnp.array([0.3, -3.2, 122.5])
+STONE = hj.StoneModel(*[jnp.asarray(v) for v in (1e-3, -2e-3, 5e-4, -1e-3, 4e-3, -3e-3, 1.002, 0.998)])
+
+
+def _context(**kw):
+    base = dict(sun=SUN, unix_time=jnp.asarray(1.66e9), temperature=jnp.asarray(25.0), wind_speed=jnp.asarray(6.0),
+                wind_direction=jnp.asarray(1.0), approach=jnp.array([1.0, -1.0]))
+    base.update({k: jnp.asarray(v) for k, v in kw.items()})
+    return hj.RecordContext(**base)
+
+
+def test_effect_names_are_the_documented_list():
+    assert EFFECT_NAMES == ("actuator_geometry", "backlash", "thermal", "wind", "clock", "gravity_sag",
+                            "encoder_wobble", "refraction", "survey_heliostat", "survey_target")
+    for name in EFFECT_NAMES:
+        cls = effect_class(name)
+        assert cls.NAME == name
+        assert cls.__doc__ and "Physical meaning" in cls.__doc__ and "signature" in cls.__doc__
+        assert len(cls.param_names("stone8")) == len(cls.param_units("stone8")) == len(cls.param_scales("stone8"))
+    with pytest.raises(ValueError, match="unknown effect"):
+        effect_class("magnetism")
+
+
+@pytest.mark.parametrize("base_kind", ["stone8", "actuator"])
+def test_zero_effects_reproduce_the_base(base_kind):
+    base = STONE if base_kind == "stone8" else hj.ActuatorModel.nominal(jnp.float64)
+    effects = tuple(make_effect(n, base_kind) for n in EFFECT_NAMES)
+    model = EffectModel(base, effects)
+    ctx = _context()
+    np.testing.assert_allclose(model.beam_components(GEOM, COUNTS, ctx, FOCAL),
+                               base.beam_components(GEOM, COUNTS, ctx, FOCAL), atol=1e-15)
+    np.testing.assert_allclose(model.pose(GEOM, COUNTS, ctx).normal, base.pose(GEOM, COUNTS).normal, atol=1e-15)
+    np.testing.assert_allclose(model.sun(GEOM, ctx), SUN, atol=1e-15)
+    # The inverse is the base's (controllers aim with the base model).
+    np.testing.assert_allclose(model.counts(GEOM, jnp.array([0.5, 0.1])), base.counts(GEOM, jnp.array([0.5, 0.1])))
+
+
+def _angle_shift(effect, ctx, base=STONE):
+    """Joint-angle correction of ``effect`` recovered from the pose: the chain at the
+    base angles plus a shift reproduces the effect model's normal."""
+    model = EffectModel(base, (effect,))
+    return model._angles(GEOM, COUNTS, ctx) - base.joint_angles(GEOM, COUNTS)
+
+
+def test_backlash_is_half_the_dead_band_behind_the_motion():
+    w = jnp.array([3e-4, 5e-4])
+    ctx = _context(approach=jnp.array([1.0, -1.0]))
+    d = _angle_shift(Backlash(width=w), ctx)
+    slope_sign = np.sign(np.asarray(GEOM.linear_slope))
+    # axis 1 approached from below (+1): behind = -w/2 in the direction the angle grows.
+    np.testing.assert_allclose(d, [-1.5e-4 * slope_sign[0] * 1, -2.5e-4 * slope_sign[1] * -1], rtol=1e-12)
+    # unknown approach: no correction
+    np.testing.assert_allclose(_angle_shift(Backlash(width=w), _context(approach=jnp.zeros(2))), 0.0, atol=0)
+
+
+def test_thermal_hand_value_and_nan_temperature():
+    eff = Thermal(coefficient=jnp.array([1.5e-5, -1e-5]), reference=jnp.asarray(10.0))
+    np.testing.assert_allclose(_angle_shift(eff, _context(temperature=25.0)), [2.25e-4, -1.5e-4], rtol=1e-12)
+    np.testing.assert_allclose(_angle_shift(eff, _context(temperature=jnp.nan)), 0.0, atol=0)
+
+    # no NaN reaches the gradient when the temperature is unknown
+    def loss(k):
+        m = EffectModel(STONE, (Thermal(coefficient=k, reference=jnp.asarray(10.0)),))
+        return jnp.sum(m.beam_components(GEOM, COUNTS, _context(temperature=jnp.nan), FOCAL) ** 2)
+
+    g = jax.grad(loss)(jnp.array([1e-5, 1e-5]))
+    assert np.all(np.isfinite(g)) and np.all(g == 0)
+
+
+def test_wind_head_on_and_cross():
+    eff = Wind(coefficient=jnp.array([5e-6, 7e-6]))
+    normal = STONE.pose(GEOM, COUNTS).normal
+    facing = float(np.arctan2(normal[0], normal[1]))
+    d_head = _angle_shift(eff, _context(wind_speed=10.0, wind_direction=facing))
+    np.testing.assert_allclose(d_head, [5e-4, 0.0], atol=1e-15)
+    d_cross = _angle_shift(eff, _context(wind_speed=10.0, wind_direction=facing + math.pi / 2))
+    np.testing.assert_allclose(d_cross, [0.0, 7e-4], atol=1e-15)
+    np.testing.assert_allclose(_angle_shift(eff, _context(wind_speed=jnp.nan)), 0.0, atol=0)
+
+
+def test_gravity_sag_follows_cos_elevation():
+    normal = STONE.pose(GEOM, COUNTS).normal
+    cos_e = float(np.hypot(normal[0], normal[1]))
+    d = _angle_shift(GravitySag(sag=jnp.asarray(1e-3)), _context())
+    np.testing.assert_allclose(d, [1e-3 * cos_e, 0.0], rtol=1e-12)
+    # the pose of the effect model is the chain at the shifted angles
+    model = EffectModel(STONE, (GravitySag(sag=jnp.asarray(1e-3)),))
+    want = chain_pose(STONE.tilts(), STONE.joint_angles(GEOM, COUNTS) + d, GEOM).normal
+    np.testing.assert_allclose(model.pose(GEOM, COUNTS, _context()).normal, want, atol=1e-15)
+
+
+def test_encoder_wobble_hand_value():
+    eff = EncoderWobble(a=jnp.array([3e-4, 0.0]), b=jnp.array([0.0, 2e-4]))
+    ang = np.asarray(STONE.joint_angles(GEOM, COUNTS))
+    d = _angle_shift(eff, _context())
+    np.testing.assert_allclose(d, [3e-4 * np.cos(2 * ang[0]), 2e-4 * np.sin(2 * ang[1])], rtol=1e-12)
+
+
+def test_actuator_curvature_one_turns_stone_into_the_actuator_law():
+    # Nominal Stone (gr = 1, offsets 0) follows the least-squares line of the law;
+    # adding the full curvature reproduces the nominal actuator model exactly.
+    stone = hj.StoneModel.nominal(jnp.float64)
+    eff = ActuatorGeometry(curvature=jnp.ones(2), pivot_scale=jnp.zeros(2))
+    model = EffectModel(stone, (eff,))
+    act = hj.ActuatorModel.nominal(jnp.float64)
+    for c in (jnp.array([1000.0, 2000.0]), COUNTS, jnp.array([68000.0, 74000.0])):
+        np.testing.assert_allclose(model.joint_angles(GEOM, c), act.joint_angles(GEOM, c), atol=1e-13)
+    # and the curvature is large: tens of mrad over the range
+    lin = stone.joint_angles(GEOM, jnp.array([68000.0, 74000.0]))
+    assert np.max(np.abs(np.asarray(act.joint_angles(GEOM, jnp.array([68000.0, 74000.0])) - lin))) > 5e-3
+
+
+def test_pivot_scale_equals_a_scaled_pivot_radius():
+    act = hj.ActuatorModel.nominal(jnp.float64)
+    s = jnp.array([0.015, -0.01])
+    model = EffectModel(act, (ActuatorGeometry(curvature=jnp.zeros(2), pivot_scale=s),))
+    scaled = eqx.tree_at(lambda g: g.actuators.pivot_radius, GEOM, GEOM.actuators.pivot_radius * (1 + s))
+    np.testing.assert_allclose(model.joint_angles(GEOM, COUNTS), act.joint_angles(scaled, COUNTS), atol=1e-14)
+
+
+def test_clock_matches_the_solar_position_code():
+    lat, lon, alt = 50.913421122592574, 6.387824755874856, 87.0
+    times = jnp.array([1.66e9 + 3600 * h for h in (11.0, 13.0, 15.0, 17.0)])  # 2022-08-09, 09-15 UTC
+    s0 = hj.solar_position(times, lat, lon, alt).direction_enu()
+    for dt in (30.0, -90.0):
+        s1 = hj.solar_position(times + dt, lat, lon, alt).direction_enu()
+        clock = Clock(offset=jnp.asarray(dt), drift=jnp.asarray(0.0), reference=jnp.asarray(1.6e9),
+                      latitude_deg=jnp.asarray(lat))
+        s2 = jax.vmap(clock.adjust_sun)(s0, hj.RecordContext.from_sun(s0, times))
+        moved = np.linalg.norm(np.asarray(s1 - s0), axis=1)
+        err = np.linalg.norm(np.asarray(s2 - s1), axis=1)
+        assert np.all(moved > 2e-3)
+        assert np.all(err < 5e-3 * moved)
+    # drift: dt grows linearly from the reference; unknown time -> no correction
+    c = Clock(offset=jnp.asarray(1.0), drift=jnp.asarray(0.1), reference=jnp.asarray(1.6e9), latitude_deg=jnp.asarray(lat))
+    np.testing.assert_allclose(c.clock_error(jnp.array([1.6e9 + 10 * 86400, jnp.nan])), [2.0, 0.0])
+
+
+def test_standard_refraction_against_tables():
+    # Almanac refraction (10 deg C, 1010 hPa): ~5.3' at 10 deg, ~0.98' at 45 deg, 0 at the zenith.
+    r = np.degrees(np.asarray(standard_refraction(jnp.deg2rad(jnp.array([10.0, 45.0, 90.0]))))) * 60
+    np.testing.assert_allclose(r[:2], [5.3, 0.98], rtol=0.05)
+    assert abs(r[2]) < 1e-3
+    eff = Refraction(scale=jnp.asarray(1.0))
+    s = eff.adjust_sun(SUN, _context())
+    el0 = np.arcsin(float(SUN[2]))
+    el1 = np.arcsin(float(s[2]))
+    np.testing.assert_allclose(el1 - el0, float(standard_refraction(jnp.asarray(el0))), rtol=1e-9)
+    np.testing.assert_allclose(np.arctan2(s[0], -s[1]), np.arctan2(SUN[0], -SUN[1]), atol=1e-14)  # same azimuth
+
+
+def test_survey_effects_move_heliostat_and_spot():
+    d = jnp.array([0.05, -0.1, 0.02])
+    ctx = _context()
+    moved = eqx.tree_at(lambda g: g.position, GEOM, GEOM.position + d)
+    m = EffectModel(STONE, (SurveyHeliostat(delta=d),))
+    np.testing.assert_allclose(m.beam_components(GEOM, COUNTS, ctx, FOCAL),
+                               STONE.beam_components(moved, COUNTS, ctx, FOCAL), atol=1e-15)
+    m = EffectModel(STONE, (SurveyTarget(delta=d),))
+    np.testing.assert_allclose(m.beam_components(GEOM, COUNTS, ctx, FOCAL),
+                               STONE.beam_components(GEOM, COUNTS, ctx, FOCAL + d), atol=1e-15)
+
+
+def test_add_effects_flattens_and_rejects_nesting():
+    m = add_effects(STONE, [make_effect("backlash")])
+    m2 = add_effects(m, [make_effect("thermal")])
+    assert [e.NAME for e in m2.effects] == ["backlash", "thermal"]
+    with pytest.raises(ValueError, match="nest"):
+        EffectModel(m, ())
+
+
+def test_with_effects_spec():
+    spec = with_effects("stone8", ["thermal", "clock", "actuator_geometry"])
+    assert spec.kind == "stone8+thermal+clock+actuator_geometry"
+    assert spec.names[:8] == hj.StoneModel.PARAM_NAMES
+    assert set(["thermal_1", "thermal_2", "clock_offset", "clock_drift", "curvature_1"]) <= set(spec.free)
+    assert "thermal_reference_c" in spec.names and "thermal_reference_c" not in spec.free
+    hash(spec)  # a static jit argument
+    act = with_effects("actuator", ["actuator_geometry"])
+    assert "pivot_scale_1" in act.names and "curvature_1" not in act.names
+    with pytest.raises(ValueError):
+        with_effects(spec, ["wind"])
+    with pytest.raises(ValueError):
+        with_effects("stone8", ["wind", "wind"])
+    # builder(nominal) predicts what the base predicts
+    model = spec.nominal_model()
+    np.testing.assert_allclose(model.beam_components(GEOM, COUNTS, _context(), FOCAL),
+                               hj.StoneModel.nominal(jnp.float64).beam_components(GEOM, COUNTS, _context(), FOCAL),
+                               atol=1e-15)
+    # a value put in by name comes back out
+    p = np.array(spec.nominal)
+    p[spec.names.index("thermal_2")] = 2e-5
+    p[spec.names.index("thermal_reference_c")] = 12.0
+    eff = spec.builder(jnp.asarray(p)).effects[0]
+    assert float(eff.coefficient[1]) == 2e-5 and float(eff.reference) == 12.0
+
+
+@pytest.mark.slow
+def test_fit_fleet_recovers_an_effect_through_the_composed_spec():
+    """A model with effects is again a model: fit_fleet fits it unchanged."""
+    from heliojax.discovery import simulate_fleet
+
+    true = make_effect("thermal", thermal_1=3e-5, thermal_2=-2e-5, thermal_reference_c=8.0)
+    fleet, _ = simulate_fleet(3, 4, 40, effects=[true], noise_mrad=0.1)
+    spec = with_effects("stone8", ["thermal"])
+    data = hj.CalibrationData.from_fleet(fleet)
+    res = hj.fit_fleet(data, spec, hj.FitConfig(max_steps=64), initial=effect_initial(spec, fleet))
+    k1 = np.asarray(res.params)[:, spec.names.index("thermal_1")]
+    k2 = np.asarray(res.params)[:, spec.names.index("thermal_2")]
+    np.testing.assert_allclose(np.median(k1), 3e-5, rtol=0.2)
+    np.testing.assert_allclose(np.median(k2), -2e-5, rtol=0.25)
+    assert float(np.max(np.asarray(res.rms_mrad))) < 0.2
