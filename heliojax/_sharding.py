@@ -23,7 +23,7 @@ or within 1 ulp).
 Why not ``jax.shard_map`` (or ``jax.pmap``, which JAX 0.10 implements with it):
 lineax (0.1.1, used by optimistix's LM) fails inside it. With
 ``check_vma=False`` the linear solve raises ``ValueError: pytree does not match
-out_structure`` (lineax compares ``ShapeDtypeStruct``\ s, and inside shard_map
+out_structure`` (lineax compares ``ShapeDtypeStruct`` objects, and inside shard_map
 one of them carries the manual-axis sharding: lineax issue #185, open); with
 ``check_vma=True`` JAX raises ``ValueError: Primitive dot_general requires
 varying manual axes to match, but got [frozenset(), frozenset({'heliostats'})]``

@@ -111,7 +111,7 @@ def test_bad_heliostats_do_not_spoil_a_fleet_of_1000():
     spots = spots.at[30].set(jnp.asarray(rng.uniform(-80, 80, (m, 3)) + np.array([0, -3, 120])))
     counts = counts.at[30].set(jnp.asarray(rng.uniform(1000, 60000, (m, 2))))
     bad = hj.CalibrationData(geometry=g, counts=counts, context=ctx, focal_spot=spots, mask=m2)
-    cfg = hj.FitConfig(max_steps=24)
+    cfg = hj.FitConfig()
     r_good = hj.fit_fleet(good, "stone8", cfg)
     r_bad = hj.fit_fleet(bad, "stone8", cfg)
     others = np.setdiff1d(np.arange(h), [10, 20, 30])
