@@ -79,6 +79,12 @@ from ._paint import (
     read_tower as read_tower,
     write_paint_directory as write_paint_directory,
 )
+from ._sharding import (
+    calibrate_distributed as calibrate_distributed,
+    fit_fleet_sharded as fit_fleet_sharded,
+    gather_results as gather_results,
+    process_slice as process_slice,
+)
 from ._simulate import (
     SimulatedRecords as SimulatedRecords,
     approach_directions as approach_directions,
@@ -87,6 +93,7 @@ from ._simulate import (
     simulate_records as simulate_records,
     synthetic_contexts as synthetic_contexts,
     synthetic_geometry as synthetic_geometry,
+    write_simulation as write_simulation,
 )
 from ._splits import (
     SPLIT_NAMES as SPLIT_NAMES,
