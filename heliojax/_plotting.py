@@ -11,7 +11,12 @@ from ._io import atomic_path
 
 
 def _plt():
-    import matplotlib
+    try:
+        import matplotlib
+    except ModuleNotFoundError as e:  # the 'plot' extra
+        from ._errors import ConfigError
+
+        raise ConfigError("plots need matplotlib: pip install 'heliojax[plot]'") from e
 
     backend = matplotlib.get_backend().lower()
     if "inline" not in backend and backend != "agg" and not backend.startswith("module://"):

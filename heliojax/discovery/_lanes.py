@@ -116,6 +116,7 @@ def make_layout(base_spec: ModelSpec, effects: tuple[str, ...]) -> Layout:
 # expensive effect graph is evaluated once per expansion, not in every solver step.
 
 N_CORR = 11
+CAPS = (0, 4, 8, 12, 16, 24, 32)
 
 
 def _corrections(model, geometry, counts, context, focal):
@@ -175,35 +176,44 @@ def _lane_residual_fn(layout: "Layout", geometry, counts, context, focal, use, p
     return fn
 
 
-def _fit_lane(layout: "Layout", config: FitConfig, p0, active, p_exp, c0, dmat, geometry, counts, context, focal,
-              mask):
+def _fit_lane(layout: "Layout", config: FitConfig, cap: int, p0, sel, sel_valid, p_exp, c0, dmat, geometry, counts,
+              context, focal, mask):
+    """One lane's Levenberg-Marquardt fit: the base's free parameters plus up to
+    ``cap`` effect parameters (solver columns ``sel``, where ``sel_valid``)."""
     counts, context, focal, use, _ = _sanitise(geometry, counts, context, focal, mask)
     dtype = counts.dtype
-    idx = jnp.asarray(layout.free_index, dtype=jnp.int32)
-    scales = jnp.asarray(layout.spec.scales, dtype)[idx]
+    n_base = len(layout.base_cols)
+    all_scales = jnp.asarray(layout.spec.scales, dtype)
+    base_idx = jnp.asarray(layout.free_index[:n_base], dtype=jnp.int32)
+    eff_idx = jnp.asarray(layout.effect_index, dtype=jnp.int32)[sel]
     res = _lane_residual_fn(layout, geometry, counts, context, focal, use, p_exp, c0, dmat)
 
     def to_physical(y):
-        return p0.at[idx].add(jnp.where(active, y, 0.0) * scales)
+        p = p0.at[base_idx].add(y[:n_base] * all_scales[base_idx])
+        if cap:
+            p = p.at[eff_idx].add(jnp.where(sel_valid, y[n_base:], 0.0) * all_scales[eff_idx])
+        return p
 
-    y0 = jnp.zeros(layout.n_free, dtype)
+    y0 = jnp.zeros(n_base + cap, dtype)
     solver = optx.LevenbergMarquardt(rtol=config.rtol, atol=config.atol)
     sol = optx.least_squares(lambda y, _: res(to_physical(y)), solver, y0, max_steps=config.max_steps,
                              throw=False)
     p = to_physical(sol.value)
+    cost = jnp.sum(sol.state.f_info.residual**2)
     n_used = jnp.sum(use)
-    n_active = jnp.sum(active)
+    n_active = n_base + jnp.sum(sel_valid)
     ok = (2 * n_used > n_active) & jnp.all(jnp.isfinite(p))
     ok = ok & (sol.result != optx.RESULTS.nonlinear_divergence)
     p = jnp.where(ok, p, p0)
-    return dict(params=p, ok=ok, n_used=n_used.astype(jnp.int32), n_steps=sol.stats["num_steps"].astype(jnp.int32))
+    return dict(params=p, ok=ok, cost=cost, n_used=n_used.astype(jnp.int32),
+                n_steps=sol.stats["num_steps"].astype(jnp.int32))
 
 
 @eqx.filter_jit
-def _fit_lanes_compiled(layout, config, strategy, p0, active, p_exp, c0, dmat, data: CalibrationData):
-    fn = lambda *a: _fit_lane(layout, config, *a)  # noqa: E731
+def _fit_lanes_compiled(layout, config, strategy, cap, p0, sel, sel_valid, p_exp, c0, dmat, data: CalibrationData):
+    fn = lambda *a: _fit_lane(layout, config, cap, *a)  # noqa: E731
     return _batched(fn, strategy, config.chunk_size)(
-        p0, active, p_exp, c0, dmat, data.geometry, data.counts, data.context, data.focal_spot, data.mask
+        p0, sel, sel_valid, p_exp, c0, dmat, data.geometry, data.counts, data.context, data.focal_spot, data.mask
     )
 
 
@@ -357,13 +367,23 @@ class Engine:
         """First-order effect corrections ``(c0, D)`` at ``p`` (device arrays)."""
         return _corrections_compiled(self.layout, self.strategy, jnp.asarray(p), self._data(evaluate))
 
-    def fit(self, p0: np.ndarray, active: np.ndarray, p_exp: np.ndarray, expansion) -> dict:
-        """One Levenberg-Marquardt fit of every lane from ``p0`` with the columns
-        ``active`` free and the effects expanded about ``p_exp``."""
+    def fit(self, p0: np.ndarray, effect_cols, p_exp: np.ndarray, expansion) -> dict:
+        """One Levenberg-Marquardt fit of every lane from ``p0``: the base's free
+        parameters and the effect columns ``effect_cols`` (positions among the
+        effect columns) free, the effects expanded about ``p_exp``. The solver's
+        width is bucketed (0, 4, 8, 12, 16, 24, 32 effect columns) so that few
+        programs are compiled."""
         c0, dmat = expansion
-        out = _fit_lanes_compiled(self.layout, self.config, self.strategy, jnp.asarray(p0), jnp.asarray(active),
-                                  jnp.asarray(p_exp), c0, dmat, self.lanes.data)
-        return {k: np.asarray(v) for k, v in out.items()}
+        k = len(effect_cols)
+        cap = next(c for c in CAPS if c >= k) if k <= CAPS[-1] else k
+        n_lanes = p0.shape[0]
+        sel = np.zeros((n_lanes, cap), np.int32)
+        valid = np.zeros((n_lanes, cap), bool)
+        sel[:, :k] = np.asarray(effect_cols, np.int32)
+        valid[:, :k] = True
+        out = _fit_lanes_compiled(self.layout, self.config, self.strategy, cap, jnp.asarray(p0), jnp.asarray(sel),
+                                  jnp.asarray(valid), jnp.asarray(p_exp), c0, dmat, self.lanes.data)
+        return {k_: np.asarray(v) for k_, v in out.items()}
 
     def jacobian(self, p: np.ndarray, evaluate: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Exact residuals ``(L, 2M)`` (mrad) and the expected (noise-free) Jacobian
