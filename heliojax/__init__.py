@@ -117,4 +117,11 @@ from ._workflow import (
     write_summary as write_summary,
 )
 
-from . import acceptance as acceptance, neural as neural, optics as optics  # noqa: E402  (subpackages)
+from . import acceptance as acceptance, neural as neural, optics as optics  # noqa: E402
+from . import discovery as discovery, effects as effects  # noqa: E402
+from .discovery import (  # noqa: E402
+    DiscoveryConfig as DiscoveryConfig,
+    DiscoveryResult as DiscoveryResult,
+    discover as discover,
+)
+from .effects import EFFECT_NAMES as EFFECT_NAMES, EffectModel as EffectModel, with_effects as with_effects  # noqa: E402

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import heliojax as hj
-from heliojax._kinematics import chain_pose, reflected_ray
+from heliojax._kinematics import chain_pose
 from heliojax.effects import (
     EFFECT_NAMES,
     ActuatorGeometry,
@@ -160,7 +160,7 @@ def test_actuator_curvature_one_turns_stone_into_the_actuator_law():
 
 
 def test_pivot_scale_equals_a_scaled_pivot_radius():
-    act = hj.ActuatorModel.nominal(jnp.float64)
+    act = hj.ActuatorModel.nominal(jnp.float64)  # nominal: the correction uses the nominal actuators
     s = jnp.array([0.015, -0.01])
     model = EffectModel(act, (ActuatorGeometry(curvature=jnp.zeros(2), pivot_scale=s),))
     scaled = eqx.tree_at(lambda g: g.actuators.pivot_radius, GEOM, GEOM.actuators.pivot_radius * (1 + s))

@@ -22,10 +22,22 @@ collinearity, where estimates are dominated by the near-dependence. A
 direction that makes the angle ``phi`` with the current model's column space
 (``cos^2 phi = f``) has, with its projection, a condition index
 ``cot(phi / 2) = sqrt((1 + cos phi) / (1 - cos phi))``; a condition index of 30
-is ``cos phi = (30^2 - 1) / (30^2 + 1)``, i.e. ``f = 0.99557``. A candidate
-whose every direction is absorbed beyond that is reported *not identifiable*
-and never named. (It is a property of the design, independent of the
-residuals, so it costs no multiple-testing budget.)
+is ``cos phi = (30^2 - 1) / (30^2 + 1)``, i.e. ``f = 0.99557``.
+
+Collinearity alone is not the whole story: an effect whose raw signature is
+large (a 1 % pivot-radius error moves the joint angles by ~10 mrad, nearly all
+of it a gear-ratio change the base absorbs) can leave a remainder the data
+still measure well. So a candidate absorbed beyond the limit is *not
+identifiable* only if, in addition, an effect of its **typical size**
+(documented a priori per parameter, ``TYPICAL_SIZES`` of the effect classes:
+the realistic sizes of the hidden-effect suites) would be measured from its
+non-absorbed remainder no better than +-25 % at 2 standard errors: with
+``lambda`` the noncentrality (information) of the typical-size remainder in its
+best direction, pooled over heliostats with each heliostat's noise level,
+``2 / sqrt(lambda) > 0.25``, i.e. ``lambda < 64``. Both conditions are
+properties of the design (and the noise level), not of the candidate's fit to
+the residuals, so they cost no multiple-testing budget. A not-identifiable
+candidate is reported and never named.
 """
 
 from __future__ import annotations
@@ -37,6 +49,12 @@ CONDITION_INDEX_LIMIT = 30.0
 
 ABSORBED_LIMIT = ((CONDITION_INDEX_LIMIT**2 - 1.0) / (CONDITION_INDEX_LIMIT**2 + 1.0)) ** 2
 """Absorbed fraction above which a candidate is not identifiable (0.99557)."""
+
+PRECISION_Z = 2.0
+PRECISION_RELATIVE = 0.25
+PRECISION_INFORMATION = (PRECISION_Z / PRECISION_RELATIVE) ** 2
+"""Information (noncentrality) below which a typical-size remainder is measured
+worse than +-25 % at 2 sigma (64)."""
 
 RANK_RTOL = 1e-10
 """Relative singular-value tolerance for column spaces (numerical rank)."""

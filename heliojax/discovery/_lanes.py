@@ -8,12 +8,14 @@ and every cross-validation fit in one call.
 
 The fit is the same Levenberg-Marquardt problem as :func:`heliojax.fit_fleet`
 (tangent-plane residuals in mrad, scaled parameters, masked records replaced
-by :func:`heliojax._calibration._sanitise`), over *one* model specification
-that carries the base parameters and the parameters of every candidate
-effect. Which effect parameters move is a dynamic ``active`` mask per lane,
-not a static choice, so every candidate set, every fold and every step of the
-discovery reuses one compiled program (``fit_fleet`` fixes the free set
-statically, which would recompile per candidate).
+by :func:`heliojax._calibration._sanitise`, heliostats mapped in one compiled
+program), over *one* model specification that carries the base parameters and
+the parameters of every candidate effect. Which effect parameters move is
+dynamic data (solver columns ``sel``), only the solver's width is static and
+bucketed, so every candidate, every fold and every step of the discovery
+reuses a handful of compiled programs. (``fit_fleet`` fixes the free set
+statically, which would recompile per candidate, and counts every free
+parameter of the specification against a heliostat's records.)
 """
 
 from __future__ import annotations
@@ -31,7 +33,6 @@ from .._calibration import (
     FitConfig,
     ModelSpec,
     _batched,
-    _record_residuals,
     _sanitise,
     default_strategy,
 )
@@ -55,6 +56,7 @@ class Layout:
     base_cols: tuple[int, ...]
     effect_cols: tuple[tuple[str, tuple[int, ...]], ...]
     effect_param_names: tuple[tuple[str, tuple[str, ...]], ...]
+    effect_typical: tuple[tuple[str, tuple[float, ...]], ...] = ()
 
     @property
     def n_free(self) -> int:
@@ -65,6 +67,10 @@ class Layout:
 
     def params(self, effect: str) -> tuple[str, ...]:
         return dict(self.effect_param_names)[effect]
+
+    def typical(self, effect: str) -> np.ndarray:
+        """The effect's typical sizes in the solver's scaled units."""
+        return np.asarray(dict(self.effect_typical)[effect])
 
     @property
     def effect_index(self) -> tuple[int, ...]:
@@ -86,18 +92,23 @@ def make_layout(base_spec: ModelSpec, effects: tuple[str, ...]) -> Layout:
     free_index = list(base_free)
     effect_cols = []
     effect_params = []
+    effect_typical = []
     for e in effects:
-        names = effect_class(e).param_names(kind)
+        cls = effect_class(e)
+        names = cls.param_names(kind)
         start = len(free_index)
         free_index += [spec.names.index(n) for n in names]
         effect_cols.append((e, tuple(range(start, len(free_index)))))
         effect_params.append((e, tuple(names)))
+        effect_typical.append((e, tuple(float(t) / float(sc) for t, sc in
+                                        zip(cls.typical_sizes(kind), cls.param_scales(kind)))))
     return Layout(
         spec=spec,
         free_index=tuple(free_index),
         base_cols=tuple(range(len(base_free))),
         effect_cols=tuple(effect_cols),
         effect_param_names=tuple(effect_params),
+        effect_typical=tuple(effect_typical),
     )
 
 

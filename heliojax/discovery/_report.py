@@ -21,6 +21,7 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
       "untestable": [names],                       # the data do not drive them (e.g. no weather)
       "absorbed_fraction": {name: float | null},   # at the first screen
       "heldout_rms_base_mrad": float, "heldout_rms_final_mrad": float,
+      "heldout_median_base_mrad": float, "heldout_median_final_mrad": float,
       "train_rms_base_mrad": float, "train_rms_final_mrad": float,
       "noise_estimate_mrad": float,                # per tangent component, final model
       "screens": [{name: {"p", "p_shared", "p_per_heliostat", "p_holm", "absorbed_fraction",
@@ -130,6 +131,9 @@ def build_report(result) -> dict:
     from ._select import _Workflow
 
     cv_base, cv_final, n_cv = _Workflow.cv_pair(result.base, result.final)
+    both = np.isfinite(result.base.heldout_sq) & np.isfinite(result.final.heldout_sq)
+    med_base = float(np.median(np.sqrt(result.base.heldout_sq[both]))) if both.any() else None
+    med_final = float(np.median(np.sqrt(result.final.heldout_sq[both]))) if both.any() else None
     first = result.screens[0]["screens"] if result.screens else {}
     fleet = result.fleet
     mask = np.asarray(fleet.mask)
@@ -142,6 +146,8 @@ def build_report(result) -> dict:
         "absorbed_fraction": {c: _f(sc.absorbed_fraction) for c, sc in first.items()},
         "heldout_rms_base_mrad": _f(cv_base),
         "heldout_rms_final_mrad": _f(cv_final),
+        "heldout_median_base_mrad": _f(med_base),
+        "heldout_median_final_mrad": _f(med_final),
         "n_heldout_records": n_cv,
         "train_rms_base_mrad": _train_rms(result.base, h),
         "train_rms_final_mrad": _train_rms(result.final, h),
@@ -189,7 +195,8 @@ def markdown_summary(report: dict) -> str:
         f"Held-out beam error (blocked {report['config']['n_folds']}-fold cross-validation by day, pooled RMS): "
         f"**{fmt(report['heldout_rms_base_mrad'])} mrad** with the base model, "
         f"**{fmt(report['heldout_rms_final_mrad'])} mrad** after discovery "
-        f"(training RMS {fmt(report['train_rms_base_mrad'])} -> {fmt(report['train_rms_final_mrad'])} mrad; "
+        f"(median {fmt(report['heldout_median_base_mrad'])} -> {fmt(report['heldout_median_final_mrad'])} mrad; "
+        f"training RMS {fmt(report['train_rms_base_mrad'])} -> {fmt(report['train_rms_final_mrad'])} mrad; "
         f"noise estimate {fmt(report['noise_estimate_mrad'])} mrad per component).",
         "",
     ]
@@ -199,8 +206,8 @@ def markdown_summary(report: dict) -> str:
             "|---|---|---|---|---|---|---|---|",
         ]
         for i, s in enumerate(report["steps"], 1):
-            amp = ", ".join(f"{k} = {v:.4g} {s['units'].get(k, '')}".rstrip() for k, v in s["amplitude"].items()
-                            if v is not None)
+            amp = ", ".join(f"{k} = {v:.4g} {'' if s['units'].get(k, '1') == '1' else s['units'][k]}".rstrip()
+                            for k, v in s["amplitude"].items() if v is not None)
             lines.append(
                 f"| {i} | `{s['effect']}` | {s['mode'].replace('_', ' ')} | {fmt(s['delta_bic'], '.1f')} | "
                 f"{fmt(s['cv_heldout_rms_before_mrad'])} | {fmt(s['cv_heldout_rms_after_mrad'])} | "

@@ -35,7 +35,13 @@ import dataclasses
 import numpy as np
 from scipy import stats
 
-from ._identifiability import RANK_RTOL, absorbed_fractions, column_basis, is_identifiable
+from ._identifiability import (
+    PRECISION_INFORMATION,
+    RANK_RTOL,
+    absorbed_fractions,
+    column_basis,
+    is_identifiable,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,7 +94,11 @@ class CandidateScreen:
         effect: the candidate's name.
         fractions: absorbed fractions of its directions (ascending).
         testable: the data drive the candidate at all.
-        identifiable: some direction is absorbed less than the limit.
+        identifiable: some direction is absorbed less than the limit, or a
+            typical-size effect's remainder is still measured to +-25 % (2 sigma).
+        information: noncentrality of a typical-size effect's non-absorbed
+            remainder (best direction, shared form): ``(2 / 0.25)^2 = 64`` or more
+            measures it to +-25 % at 2 sigma.
         p_shared, p_per_heliostat, p: score-test p-values (``p`` combines the two).
         stat_shared, k_shared: shared score statistic and its dimension.
         stat_per_heliostat, k_per_heliostat: chi-square sum and its dimension.
@@ -104,6 +114,7 @@ class CandidateScreen:
     fractions: np.ndarray
     testable: bool
     identifiable: bool
+    information: float = 0.0
     p_shared: float = 1.0
     p_per_heliostat: float = 1.0
     p: float = 1.0
@@ -129,21 +140,27 @@ def _chi2_equivalent(p: float, k: int) -> float:
 
 
 def screen_candidate(effect: str, bases: list[HeliostatBasis], jac: np.ndarray, cols, n_heliostats: int,
-                     absorbed_limit: float) -> CandidateScreen:
-    """Score tests and identifiability of the candidate with solver columns ``cols``."""
+                     absorbed_limit: float, typical=None) -> CandidateScreen:
+    """Score tests and identifiability of the candidate with solver columns ``cols``
+    (``typical``: its typical sizes in solver units, default 1)."""
     cols = list(cols)
     k = len(cols)
+    typical = np.ones(k) if typical is None else np.asarray(typical, float)
     b_list, bt_list = [], []
+    info = np.zeros((k, k))
     for hb in bases:
         b = jac[hb.index][hb.rows][:, cols]
         bt = b - hb.u @ (hb.u.T @ b)
         b_list.append(b)
         bt_list.append(bt)
+        bt_typ = bt * typical
+        info += (hb.dof / max(hb.rss, 1e-300)) * (bt_typ.T @ bt_typ)
     fractions = absorbed_fractions(b_list, bt_list)
+    information = float(np.linalg.eigvalsh(info).max()) if k else 0.0
     testable = fractions.size > 0
-    identifiable = testable and is_identifiable(fractions, absorbed_limit)
+    identifiable = testable and (is_identifiable(fractions, absorbed_limit) or information >= PRECISION_INFORMATION)
     if not identifiable:
-        return CandidateScreen(effect, fractions, testable, identifiable)
+        return CandidateScreen(effect, fractions, testable, identifiable, information)
 
     n_total = sum(hb.n for hb in bases)
     theta_h = np.full((n_heliostats, k), np.nan)
@@ -203,7 +220,7 @@ def screen_candidate(effect: str, bases: list[HeliostatBasis], jac: np.ndarray, 
         "per_heliostat": dll_perhel - k_sum * log_n,
     }
     return CandidateScreen(
-        effect, fractions, testable, identifiable,
+        effect, fractions, testable, identifiable, information,
         p_shared=p_shared, p_per_heliostat=p_perhel, p=p,
         stat_shared=stat_shared, k_shared=ks, stat_per_heliostat=q_sum, k_per_heliostat=k_sum,
         theta_shared=theta_shared, theta_per_heliostat=theta_h, p_heliostats=p_h, approx_delta_bic=approx,

@@ -272,7 +272,8 @@ class _Workflow:
         a_cols = self.active_cols(state.effects) + self.shared_cols(state.effects)
         bases = prepare_bases(state.r[fold0], state.jac[fold0], used, a_cols, range(h))
         return {
-            c: screen_candidate(c, bases, state.jac[fold0], self.layout.cols(c), h, self.config.absorbed_limit)
+            c: screen_candidate(c, bases, state.jac[fold0], self.layout.cols(c), h, self.config.absorbed_limit,
+                                typical=self.layout.typical(c))
             for c in candidates
         }
 

@@ -49,8 +49,11 @@ class AbstractEffect(eqx.Module):
         NAME: the effect's name (one of :data:`heliojax.effects.EFFECT_NAMES`).
         PARAM_NAMES: fitted parameters, in vector order (see :meth:`param_names`).
         PARAM_UNITS: unit label per parameter.
-        PARAM_SCALES: a typical size per parameter (the solver's unit: 1 scaled
-            unit changes the beam by roughly 1 mrad).
+        PARAM_SCALES: the solver's unit per parameter (1 scaled unit changes the
+            beam by roughly 1 mrad).
+        TYPICAL_SIZES: a realistic physical size per parameter, documented a
+            priori; discovery judges the identifiability of strongly collinear
+            candidates at this size (:mod:`heliojax.discovery._identifiability`).
         REFERENCE_NAMES: constants derived from the data (not fitted), such as a
             reference temperature; :meth:`reference_defaults` gives defaults.
         DRIVERS: names of the record inputs the effect needs.
@@ -61,6 +64,7 @@ class AbstractEffect(eqx.Module):
     PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ()
     PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ()
     PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = ()
+    TYPICAL_SIZES: typing.ClassVar[tuple[float, ...]] = ()
     REFERENCE_NAMES: typing.ClassVar[tuple[str, ...]] = ()
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ()
     NEEDS_NORMAL: typing.ClassVar[bool] = False
@@ -82,6 +86,11 @@ class AbstractEffect(eqx.Module):
     def param_scales(cls, base_kind: str = "stone8") -> tuple[float, ...]:
         del base_kind
         return cls.PARAM_SCALES
+
+    @classmethod
+    def typical_sizes(cls, base_kind: str = "stone8") -> tuple[float, ...]:
+        del base_kind
+        return cls.TYPICAL_SIZES
 
     @classmethod
     def reference_defaults(cls) -> tuple[float, ...]:

@@ -42,6 +42,7 @@ class Thermal(AbstractEffect):
     PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("thermal_1", "thermal_2")
     PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("rad/K", "rad/K")
     PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (1e-4, 1e-4)
+    TYPICAL_SIZES: typing.ClassVar[tuple[float, ...]] = (1.5e-5, 1.5e-5)
     REFERENCE_NAMES: typing.ClassVar[tuple[str, ...]] = ("thermal_reference_c",)
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("temperature",)
 
@@ -91,6 +92,7 @@ class Wind(AbstractEffect):
     PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("wind_1", "wind_2")
     PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("rad/(m/s)^2", "rad/(m/s)^2")
     PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (1e-5, 1e-5)
+    TYPICAL_SIZES: typing.ClassVar[tuple[float, ...]] = (5e-6, 5e-6)
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("wind_speed", "wind_direction")
     NEEDS_NORMAL: typing.ClassVar[bool] = True
 
@@ -152,6 +154,7 @@ class Clock(AbstractEffect):
     PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("clock_offset", "clock_drift")
     PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("s", "s/day")
     PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (10.0, 0.1)
+    TYPICAL_SIZES: typing.ClassVar[tuple[float, ...]] = (10.0, 0.1)
     REFERENCE_NAMES: typing.ClassVar[tuple[str, ...]] = ("clock_reference_s", "clock_latitude_deg")
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("unix_time",)
 
@@ -216,6 +219,7 @@ class Refraction(AbstractEffect):
     PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("refraction_scale",)
     PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("1",)
     PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (1.0,)
+    TYPICAL_SIZES: typing.ClassVar[tuple[float, ...]] = (1.0,)
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("sun_elevation",)
 
     @classmethod

@@ -13,7 +13,6 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._kinematics import ActuatorModel
 from ._base import AbstractEffect
 
 
@@ -35,8 +34,10 @@ class ActuatorGeometry(AbstractEffect):
     * ``pivot_scale_i`` (dimensionless): relative error of the actuator's pivot
       radius (``pivot_radius * (1 + pivot_scale)``), for a base that already
       follows the law (the actuator model). Correction:
-      ``law_i(counts; pivot (1 + s_i)) - law_i(counts; pivot)`` with the base's
-      effective actuators.
+      ``law_i(counts; pivot (1 + s_i)) - law_i(counts; pivot)`` with the nominal
+      actuators (the base's small increment / offset corrections change this by
+      a second-order amount only, and keeping them out makes the correction
+      independent of the base parameters).
 
     Driving inputs: the motor counts. Residual signature: a smooth, curved
     function of each axis's counts (its linear part is absorbed by the base's
@@ -53,6 +54,7 @@ class ActuatorGeometry(AbstractEffect):
     PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("curvature_1", "curvature_2")
     PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("1", "1")
     PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (0.05, 0.05)
+    TYPICAL_SIZES: typing.ClassVar[tuple[float, ...]] = (1.0, 1.0)
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("counts",)
 
     @classmethod
@@ -72,6 +74,12 @@ class ActuatorGeometry(AbstractEffect):
         return (0.05, 0.05) if cls._linear_base(base_kind) else (0.01, 0.01)
 
     @classmethod
+    def typical_sizes(cls, base_kind="stone8"):
+        # the full nominal curvature (a linear model on linear actuators misses all of
+        # it); a 1 % pivot-radius error (fabrication / survey tolerance)
+        return (1.0, 1.0) if cls._linear_base(base_kind) else (0.01, 0.01)
+
+    @classmethod
     def from_vector(cls, params, references=(), base_kind="stone8"):
         p = jnp.asarray(params)
         z = jnp.zeros(2, p.dtype)
@@ -83,10 +91,10 @@ class ActuatorGeometry(AbstractEffect):
         return self.curvature if self._linear_base(base_kind) else self.pivot_scale
 
     def angle_correction(self, base, geometry, counts, angles, context, normal):
-        act = base.effective_actuators(geometry) if isinstance(base, ActuatorModel) else geometry.actuators
+        act = geometry.actuators
         law = act.counts_to_angles(counts)
         line = geometry.linear_slope * counts + geometry.linear_intercept
-        curved = self.curvature * (geometry.actuators.counts_to_angles(counts) - line)
+        curved = self.curvature * (law - line)
         scaled = eqx.tree_at(lambda a: a.pivot_radius, act, act.pivot_radius * (1.0 + self.pivot_scale))
         pivot = scaled.counts_to_angles(counts) - law
         return curved + pivot
@@ -117,6 +125,7 @@ class Backlash(AbstractEffect):
     PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("backlash_1", "backlash_2")
     PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("rad", "rad")
     PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (1e-3, 1e-3)
+    TYPICAL_SIZES: typing.ClassVar[tuple[float, ...]] = (3e-4, 3e-4)
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("approach",)
 
     @classmethod
@@ -157,6 +166,7 @@ class GravitySag(AbstractEffect):
     PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("gravity_sag",)
     PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("rad",)
     PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (1e-3,)
+    TYPICAL_SIZES: typing.ClassVar[tuple[float, ...]] = (1e-3,)
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("normal_elevation",)
     NEEDS_NORMAL: typing.ClassVar[bool] = True
 
@@ -197,6 +207,7 @@ class EncoderWobble(AbstractEffect):
     PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("wobble_cos_1", "wobble_sin_1", "wobble_cos_2", "wobble_sin_2")
     PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("rad",) * 4
     PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (1e-3,) * 4
+    TYPICAL_SIZES: typing.ClassVar[tuple[float, ...]] = (3e-4,) * 4
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("joint_angles",)
 
     @classmethod

@@ -32,6 +32,7 @@ class SurveyHeliostat(AbstractEffect):
     PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("survey_heliostat_e", "survey_heliostat_n", "survey_heliostat_u")
     PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("m", "m", "m")
     PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (0.1, 0.1, 0.1)
+    TYPICAL_SIZES: typing.ClassVar[tuple[float, ...]] = (0.05, 0.05, 0.05)
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ()
 
     @classmethod
@@ -66,6 +67,7 @@ class SurveyTarget(AbstractEffect):
     PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("survey_target_e", "survey_target_n", "survey_target_u")
     PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("m", "m", "m")
     PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (0.1, 0.1, 0.1)
+    TYPICAL_SIZES: typing.ClassVar[tuple[float, ...]] = (0.05, 0.05, 0.05)
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ()
 
     @classmethod
