@@ -713,6 +713,10 @@ def _assemble(
 
     by_h: dict[str, list[CalibrationRecord]] = collections.defaultdict(list)
     for r in records:
+        if not isinstance(r.heliostat_id, str) or not r.heliostat_id:
+            log.skip_record(DataError(getattr(r, "source", None), "heliostat_id",
+                                      f"must be a non-empty string, got {r.heliostat_id!r}"))
+            continue
         by_h[r.heliostat_id].append(r)
     for hid in sorted(set(by_h) - set(props_by_id), key=str):
         rs = by_h[hid]

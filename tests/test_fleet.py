@@ -591,3 +591,16 @@ def test_hypothesis_records_to_fleet(raw_emb, field, value):
     assert r.records_loaded + r.records_skipped == 9
     loaded = set(np.asarray(f.record_id)[np.asarray(f.mask)].tolist())
     assert {x.record_id for x in rs[1:]} <= loaded
+
+
+def test_record_with_a_non_string_heliostat_id_is_skipped_not_crashing(raw_emb):
+    """Regression (found by Hypothesis): an unhashable heliostat_id used to raise TypeError."""
+    tower, props, recs = raw_emb
+    p = next(p for p in props if p.heliostat_id == "BL14")
+    rs = [r for r in recs if r.heliostat_id == "BL14"]
+    bad = dataclasses.replace(rs[0], heliostat_id=[])
+    f = records_to_fleet(tower, [p], [bad] + rs[1:])
+    assert f.report.records_loaded == len(rs) - 1
+    assert f.report.skipped[-1].field == "heliostat_id"
+    with pytest.raises(DataError, match="heliostat_id"):
+        records_to_fleet(tower, [p], [bad] + rs[1:], strict=True)
