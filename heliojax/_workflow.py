@@ -294,9 +294,10 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
         _, val_rms = _stats(val_err[i])
         entry = {
             "status": st.label,
-            "n_train": int(np.sum(run.train_mask[i] & np.isfinite(run.errors_mrad[i]))),
-            "n_val": int(np.sum(np.isfinite(val_err[i]))),
-            "n_test": int(np.sum(np.isfinite(test_err[i]))),
+            # Record counts of the split (also for heliostats that could not be fitted).
+            "n_train": int(np.sum(run.train_mask[i] & np.isfinite(run.uncalibrated_mrad[i]))),
+            "n_val": int(np.sum(run.val_mask[i] & np.isfinite(run.uncalibrated_mrad[i]))),
+            "n_test": int(np.sum(np.isfinite(test_unc[i]))),
             "train_rms_mrad": _json_float(train_rms),
             "val_rms_mrad": _json_float(val_rms),
             "test_median_mrad": _json_float(test_med),
