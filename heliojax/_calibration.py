@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import warnings
 import typing
 from collections.abc import Mapping
 
@@ -599,11 +600,10 @@ def choose_start_geometry(fleet, spec: ModelSpec | str = "stone8"):
     e_own = beam_errors_mrad(models, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, fleet.mask)
     e_alt = beam_errors_mrad(models, alt, fleet.counts, fleet.context, fleet.focal_spot, fleet.mask)
     def row_median(e):
-        e = np.asarray(e)
-        out = np.full(e.shape[0], np.nan)
-        for i in np.flatnonzero(np.isfinite(e).any(axis=1)):  # cheap numpy over (H, M), no JAX work
-            out[i] = np.median(e[i][np.isfinite(e[i])])
-        return out
+        e = np.where(np.isfinite(np.asarray(e)), np.asarray(e), np.nan)
+        with warnings.catch_warnings():  # all-NaN rows (no records) are expected
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return np.nanmedian(e, axis=1)
 
     med_own = row_median(e_own)
     med_alt = row_median(e_alt)

@@ -263,10 +263,10 @@ def _evaluate_other(test_fleet, ids, result, padded, spec, nominal_geometry):
     # Re-index to the training fleet's rows.
     out = np.full((h_pad, err.shape[1]), np.nan)
     out_u = np.full((h_pad, err.shape[1]), np.nan)
-    for j, r in enumerate(rows):
-        if r >= 0:
-            out[r] = err[j]
-            out_u[r] = unc[j]
+    rows_arr = np.asarray(rows)
+    known = rows_arr >= 0
+    out[rows_arr[known]] = err[known]
+    out_u[rows_arr[known]] = unc[known]
     fitted = np.isin(np.asarray(result.status), [FitStatus.TOO_FEW_RECORDS, FitStatus.PADDING], invert=True)
     return np.where(fitted[:, None], out, np.nan), out_u
 
