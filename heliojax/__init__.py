@@ -11,22 +11,38 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
-from ._calibration import (
-    ACTUATOR as ACTUATOR,
-    DEFAULT_WEAK_PRIOR as DEFAULT_WEAK_PRIOR,
-    STONE8 as STONE8,
-    CalibrationData as CalibrationData,
-    FitConfig as FitConfig,
-    FitResult as FitResult,
+from ._parameters import (
+    ParameterView as ParameterView,
+    broadcast_model as broadcast_model,
+    default_free as default_free,
+    no_free as no_free,
+    parameter as parameter,
+    reference as reference,
+    set_references as set_references,
+)
+from .fit import (
+    AbstractBatching as AbstractBatching,
+    AbstractLoss as AbstractLoss,
+    AbstractPrior as AbstractPrior,
+    Chunked as Chunked,
+    FitSolution as FitSolution,
     FitStatus as FitStatus,
-    ModelSpec as ModelSpec,
+    GaussianPrior as GaussianPrior,
+    LaxMap as LaxMap,
+    LeastSquares as LeastSquares,
+    NoPrior as NoPrior,
+    Sharded as Sharded,
+    Vmap as Vmap,
     beam_errors_mrad as beam_errors_mrad,
+    calibrate_distributed as calibrate_distributed,
     choose_start_geometry as choose_start_geometry,
-    default_strategy as default_strategy,
-    fit_fleet as fit_fleet,
+    default_batching as default_batching,
+    fit as fit,
     fleet_beam_errors_mrad as fleet_beam_errors_mrad,
-    model_spec as model_spec,
-    nominal_models as nominal_models,
+    fleet_residuals_mrad as fleet_residuals_mrad,
+    gather_solutions as gather_solutions,
+    gaussian_prior as gaussian_prior,
+    process_slice as process_slice,
 )
 from ._errors import ConfigError as ConfigError, DataError as DataError, HeliojaxError as HeliojaxError
 from ._fleet import (
@@ -54,7 +70,9 @@ from ._geometry import (
     wgs84_to_enu as wgs84_to_enu,
 )
 from ._kinematics import (
+    MODEL_KINDS as MODEL_KINDS,
     AbstractKinematicModel as AbstractKinematicModel,
+    AbstractModelWrapper as AbstractModelWrapper,
     ActuatorModel as ActuatorModel,
     HeliostatGeometry as HeliostatGeometry,
     LinearActuators as LinearActuators,
@@ -67,6 +85,7 @@ from ._kinematics import (
     inverse_aim as inverse_aim,
     inverse_normal as inverse_normal,
     measured_normal as measured_normal,
+    nominal_model as nominal_model,
     reflected_ray as reflected_ray,
     target_miss_distance as target_miss_distance,
 )
@@ -78,12 +97,6 @@ from ._paint import (
     read_heliostat_properties as read_heliostat_properties,
     read_tower as read_tower,
     write_paint_directory as write_paint_directory,
-)
-from ._sharding import (
-    calibrate_distributed as calibrate_distributed,
-    fit_fleet_sharded as fit_fleet_sharded,
-    gather_results as gather_results,
-    process_slice as process_slice,
 )
 from ._simulate import (
     SimulatedRecords as SimulatedRecords,
@@ -124,4 +137,8 @@ from .discovery import (  # noqa: E402
     DiscoveryResult as DiscoveryResult,
     discover as discover,
 )
-from .effects import EFFECT_NAMES as EFFECT_NAMES, EffectModel as EffectModel, with_effects as with_effects  # noqa: E402
+from .effects import (  # noqa: E402
+    EFFECT_NAMES as EFFECT_NAMES,
+    EffectModel as EffectModel,
+    with_effects as with_effects,
+)

@@ -67,10 +67,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Bool, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from ._geometry import (
     angle_between,
+    intersect_plane,
     bisector_normal,
     normalize,
     reflect,
@@ -78,6 +79,7 @@ from ._geometry import (
     rotation_y,
     rotation_z,
 )
+from ._parameters import parameter
 
 _HALF_PI = np.pi / 2.0
 N_BA = (0.0, -1.0, 0.0)
@@ -270,10 +272,22 @@ class Pose(eqx.Module):
 
 
 class AbstractKinematicModel(eqx.Module):
-    """Fitted parameters of a kinematic model, with the map from counts to joint
-    angles. Subclasses provide the four chain tilts and the counts <-> angle maps;
-    :meth:`pose` builds the shared rotation chain. Effects (discovery) wrap a model
-    and override :meth:`pose`."""
+    """A kinematic model: fitted parameters (fields declared with
+    :func:`heliojax.parameter`) and the map from motor counts to a pose.
+
+    Base models (:class:`StoneModel`, :class:`ActuatorModel`) provide the four
+    chain tilts and the counts <-> joint-angle maps. Wrappers (effects,
+    :class:`heliojax.neural.NeuralCorrection`) hold an inner model and override the
+    record-level hooks below, delegating to the inner model first, so wrappers
+    compose in any order without losing each other's behaviour:
+
+    * :meth:`adjusted_geometry` - the surveyed geometry the model believes in;
+    * :meth:`record_angles` - joint angles of a record (may use its context);
+    * :meth:`sun` - the sun direction the model believes in;
+    * :meth:`spot` - the measured focal spot as the model corrects it.
+
+    :meth:`pose` and the beam error are defined once, from these hooks.
+    """
 
     @abc.abstractmethod
     def tilts(self) -> Float[Array, "4"]:
@@ -283,24 +297,46 @@ class AbstractKinematicModel(eqx.Module):
     def joint_angles(
         self, geometry: HeliostatGeometry, counts: Float[Array, "2"]
     ) -> Float[Array, "2"]:
-        """Joint angles ``(theta, tau)`` in rad of motor counts."""
+        """Joint angles ``(theta, tau)`` in rad of motor counts (no record context)."""
 
     @abc.abstractmethod
     def counts(self, geometry: HeliostatGeometry, angles: Float[Array, "2"]) -> Float[Array, "2"]:
         """Inverse of :meth:`joint_angles`: motor counts (float) of joint angles."""
 
+    def label(self) -> str:
+        """Short name of the model for reports (``"stone8"``, ``"actuator+backlash"``)."""
+        return type(self).__name__
+
+    def adjusted_geometry(self, geometry: HeliostatGeometry) -> HeliostatGeometry:
+        """The geometry the model believes in (survey effects move it); default: as given."""
+        return geometry
+
+    def record_angles(
+        self, geometry: HeliostatGeometry, counts: Float[Array, "2"], context: RecordContext | None
+    ) -> Float[Array, "2"]:
+        """Joint angles (rad) of one record; effects add context-dependent terms.
+        Default: :meth:`joint_angles`."""
+        del context
+        return self.joint_angles(geometry, counts)
+
     def pose(
         self, geometry: HeliostatGeometry, counts: Float[Array, "2"], context: RecordContext | None = None
     ) -> Pose:
         """Aligned mirror of one record (see the module docstring for the chain)."""
-        del context
-        return chain_pose(self.tilts(), self.joint_angles(geometry, counts), geometry)
+        g = self.adjusted_geometry(geometry)
+        return chain_pose(self.tilts(), self.record_angles(g, jnp.asarray(counts), context), g)
 
     def sun(self, geometry: HeliostatGeometry, context: RecordContext) -> Float[Array, "3"]:
         """The sun direction the model believes in for a record (effects such as a
         clock error or refraction override it); default: the recorded one."""
         del geometry
         return context.sun
+
+    def spot(self, focal_spot: Float[Array, "3"], context: RecordContext) -> Float[Array, "3"]:
+        """The measured focal spot (ENU m) as the model corrects it (target survey
+        effects move it); default: as measured."""
+        del context
+        return jnp.asarray(focal_spot)
 
     def beam_components(
         self,
@@ -310,9 +346,10 @@ class AbstractKinematicModel(eqx.Module):
         focal_spot: Float[Array, "3"],
     ) -> Float[Array, "2"]:
         """Tangent-plane beam error components (rad) of one record under this model:
-        the calibration residual. Effects that move the measured spot (target survey
-        errors) override this."""
-        return beam_error_components(self.pose(geometry, counts, context), self.sun(geometry, context), focal_spot)
+        the calibration residual."""
+        return beam_error_components(
+            self.pose(geometry, counts, context), self.sun(geometry, context), self.spot(focal_spot, context)
+        )
 
     def beam_error(
         self,
@@ -322,7 +359,45 @@ class AbstractKinematicModel(eqx.Module):
         focal_spot: Float[Array, "3"],
     ) -> Float[Array, ""]:
         """Beam pointing error (rad) of one record under this model."""
-        return beam_pointing_error(self.pose(geometry, counts, context), self.sun(geometry, context), focal_spot)
+        return beam_pointing_error(
+            self.pose(geometry, counts, context), self.sun(geometry, context), self.spot(focal_spot, context)
+        )
+
+
+class AbstractModelWrapper(AbstractKinematicModel):
+    """A model that wraps an inner model (``inner``) and delegates every hook to
+    it; subclasses add their own behaviour on top (effects, neural correction)."""
+
+    inner: eqx.AbstractVar[AbstractKinematicModel]
+
+    @property
+    def base(self) -> AbstractKinematicModel:
+        """The innermost (base) model."""
+        m = self.inner
+        while isinstance(m, AbstractModelWrapper):
+            m = m.inner
+        return m
+
+    def tilts(self):
+        return self.inner.tilts()
+
+    def joint_angles(self, geometry, counts):
+        return self.inner.joint_angles(geometry, counts)
+
+    def counts(self, geometry, angles):
+        return self.inner.counts(geometry, angles)
+
+    def adjusted_geometry(self, geometry):
+        return self.inner.adjusted_geometry(geometry)
+
+    def record_angles(self, geometry, counts, context):
+        return self.inner.record_angles(geometry, counts, context)
+
+    def sun(self, geometry, context):
+        return self.inner.sun(geometry, context)
+
+    def spot(self, focal_spot, context):
+        return self.inner.spot(focal_spot, context)
 
 
 def _chain_rotations(tilts, angles):
@@ -432,18 +507,19 @@ class StoneModel(AbstractKinematicModel):
     Nominal (uncalibrated) values: all angles 0, ``gr1 = gr2 = 1``.
     """
 
-    alpha: Float[Array, ""]
-    beta: Float[Array, ""]
-    gamma: Float[Array, ""]
-    delta: Float[Array, ""]
-    theta_k: Float[Array, ""]
-    tau_k: Float[Array, ""]
-    gr1: Float[Array, ""]
-    gr2: Float[Array, ""]
+    alpha: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-3)
+    beta: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-3)
+    gamma: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-3)
+    delta: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-3)
+    theta_k: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-2)
+    tau_k: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-2)
+    gr1: Float[Array, ""] = parameter(unit="1", scale=1e-2, typical=1e-2, nominal=1.0)
+    gr2: Float[Array, ""] = parameter(unit="1", scale=1e-2, typical=1e-2, nominal=1.0)
 
-    PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = (
-        "alpha", "beta", "gamma", "delta", "theta_k", "tau_k", "gr1", "gr2",
-    )
+    JOINT_LAW: typing.ClassVar[str] = "linear"
+
+    def label(self) -> str:
+        return "stone8"
 
     @classmethod
     def nominal(cls, dtype=None) -> "StoneModel":
@@ -481,20 +557,23 @@ class ActuatorModel(AbstractKinematicModel):
             range; fit with a prior).
     """
 
-    alpha: Float[Array, ""]
-    beta: Float[Array, ""]
-    gamma: Float[Array, ""]
-    delta: Float[Array, ""]
-    angle_offset: Float[Array, "2"]
-    increment_scale: Float[Array, "2"]
-    stroke_offset: Float[Array, "2"]
+    alpha: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-3)
+    beta: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-3)
+    gamma: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-3)
+    delta: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-3)
+    angle_offset: Float[Array, "2"] = parameter(unit="rad", scale=1e-2, typical=1e-2, shape=(2,))
+    increment_scale: Float[Array, "2"] = parameter(unit="1", scale=1e-2, typical=1e-2, shape=(2,))
+    stroke_offset: Float[Array, "2"] = parameter(unit="m", scale=1e-2, typical=1e-3, shape=(2,))
 
-    PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = (
-        "alpha", "beta", "gamma", "delta",
-        "angle_offset_1", "angle_offset_2",
-        "increment_scale_1", "increment_scale_2",
-        "stroke_offset_1", "stroke_offset_2",
-    )
+    JOINT_LAW: typing.ClassVar[str] = "actuator"
+
+    def label(self) -> str:
+        return "actuator"
+
+    def fixed_parameter_fields(self) -> tuple[str, ...]:
+        """Not fitted by default: the stroke offsets (nearly collinear with the angle
+        offsets and increment scales over a calibration's range; free them with a prior)."""
+        return ("stroke_offset",)
 
     @classmethod
     def nominal(cls, dtype=None) -> "ActuatorModel":
@@ -524,6 +603,19 @@ class ActuatorModel(AbstractKinematicModel):
 
     def counts(self, geometry, angles):
         return self.effective_actuators(geometry).angles_to_counts(angles)
+
+
+MODEL_KINDS = ("stone8", "actuator")
+"""Names of the base models (configs and the command line name them so)."""
+
+
+def nominal_model(kind: str, dtype: typing.Any = None) -> AbstractKinematicModel:
+    """The nominal (uncalibrated) base model called ``kind`` (:data:`MODEL_KINDS`)."""
+    if kind == "stone8":
+        return StoneModel.nominal(dtype)
+    if kind == "actuator":
+        return ActuatorModel.nominal(dtype)
+    raise ValueError(f"unknown model {kind!r}; expected one of {MODEL_KINDS}")
 
 
 def forward(
@@ -606,8 +698,6 @@ def target_miss_distance(
 ) -> Float[Array, ""]:
     """Distance in m, on the target plane, between where the model's central ray hits
     the (infinite) plane of ``target`` and the measured focal spot."""
-    from ._geometry import intersect_plane
-
     r = reflected_ray(pose, sun)
     hit = intersect_plane(pose.centre, r, target)
     return jnp.linalg.norm(hit.point - jnp.asarray(focal_spot), axis=-1)
@@ -615,6 +705,7 @@ def target_miss_distance(
 
 __all__ = [
     "AbstractKinematicModel",
+    "AbstractModelWrapper",
     "ActuatorModel",
     "HeliostatGeometry",
     "LinearActuators",
@@ -625,11 +716,12 @@ __all__ = [
     "beam_pointing_error",
     "chain_pose",
     "forward",
+    "MODEL_KINDS",
     "inverse_aim",
+    "nominal_model",
     "inverse_normal",
     "measured_normal",
     "reflected_ray",
     "target_miss_distance",
 ]
 
-_ = Bool  # re-exported type alias users may want

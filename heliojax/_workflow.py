@@ -31,23 +31,24 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._calibration import (
-    CalibrationData,
-    FitConfig,
-    FitResult,
-    FitStatus,
-    ModelSpec,
-    _fit_compiled,
-    _record_residuals,
-    _sanitise,
-    beam_errors_mrad,
-    choose_start_geometry,
-    default_strategy,
-    model_spec,
-    nominal_models,
-)
+import equinox as eqx
+import typing
+
+from ._fleet import bucket_size, pad_fleet
 from ._geometry import direction_to_azimuth_elevation
 from ._io import atomic_path, atomic_write
+from ._kinematics import AbstractKinematicModel, nominal_model
+from ._parameters import ParameterView
+from ._splits import split_fleet
+from .fit import (
+    FitSolution,
+    FitStatus,
+    beam_errors_mrad,
+    choose_start_geometry,
+    fit_timed,
+    fleet_beam_errors_mrad,
+    fleet_residuals_mrad,
+)
 
 SPLIT_CODES = {"unused": 0, "train": 1, "validation": 2, "test": 3}
 
@@ -59,10 +60,10 @@ class CalibrationRun:
     Attributes:
         fleet: the (padded) fleet that was fitted (geometry possibly replaced by
             the fleet-typical start for some heliostats, see ``start_replaced``).
-        spec: model specification.
+        model0: the start model (nominal).
         split_kind: name of the split.
         train_mask, val_mask, test_mask: ``(H, M)`` boolean masks.
-        result: the :class:`FitResult`.
+        result: the :class:`heliojax.FitSolution`.
         errors_mrad: ``(H, M)`` beam error after calibration (NaN where no record).
         uncalibrated_mrad: ``(H, M)`` beam error with the nominal model.
         residuals_mrad: ``(H, M, 2)`` error components after calibration.
@@ -73,13 +74,13 @@ class CalibrationRun:
         test_fleet: the fleet evaluated for test errors when ``--test-data`` was given.
     """
 
-    fleet: object
-    spec: ModelSpec
+    fleet: typing.Any
+    model0: AbstractKinematicModel
     split_kind: str
     train_mask: np.ndarray
     val_mask: np.ndarray
     test_mask: np.ndarray
-    result: FitResult
+    result: FitSolution
     errors_mrad: np.ndarray
     uncalibrated_mrad: np.ndarray
     residuals_mrad: np.ndarray
@@ -102,25 +103,19 @@ def _json_float(x: float) -> float | None:
     return None if not np.isfinite(x) else float(x)
 
 
-def _residuals_mrad(models, fleet, mask):
-    def per(model, g, c, x, f, m):
-        c2, x2, f2, use, _ = _sanitise(g, c, x, f, m)
-        r = _record_residuals(model, g, c2, x2, f2) * 1e3
-        return jnp.where(use[:, None], r, jnp.nan)
-
-    return jax.jit(jax.vmap(per))(models, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, mask)
+_NOT_FITTED = (FitStatus.TOO_FEW_RECORDS, FitStatus.NO_RECORDS)
 
 
 def calibrate(
     fleet,
     *,
-    model: str | ModelSpec = "stone8",
+    model: str | AbstractKinematicModel = "stone8",
     split: str = "time",
     n_train: int | None = None,
     n_val: int = 0,
     train_fraction: float | None = 0.7,
     seed: int = 42,
-    config: FitConfig = FitConfig(),
+    fit_options: typing.Mapping[str, typing.Any] | None = None,
     test_fleet=None,
     start: str = "auto",
     progress: Callable[[str], None] | None = None,
@@ -130,22 +125,20 @@ def calibrate(
 
     Args:
         fleet: a :class:`heliojax.Fleet` (unpadded or padded).
-        model: ``"stone8"``, ``"actuator"`` or a :class:`ModelSpec`.
+        model: ``"stone8"``, ``"actuator"`` or a start model (e.g. one with effects).
         split: one of :data:`heliojax.SPLIT_NAMES`.
         n_train, n_val, train_fraction, seed: split sizes (``n_train`` wins over
             ``train_fraction``; PAINT's splits need ``n_train``).
-        config: solver settings.
+        fit_options: keyword arguments of :func:`heliojax.fit` (``free``, ``solver``,
+            ``loss``, ``prior``, ``batching``, ``max_steps``).
         test_fleet: evaluate on this fleet's records (same heliostat ids) instead of
             the split's test records; then all of ``fleet``'s records may train.
         start: ``"auto"`` (per heliostat the better of nominal / fleet-typical
             actuators, see :func:`heliojax.choose_start_geometry`) or ``"nominal"``.
         progress: callback for progress messages.
     """
-    from ._fleet import bucket_size, pad_fleet
-    from ._splits import split_fleet
-
     say = progress or (lambda _msg: None)
-    spec = model_spec(model) if isinstance(model, str) else model
+    model0 = nominal_model(model, fleet.counts.dtype) if isinstance(model, str) else model
     n_real = len(fleet.ids)
     ids = list(fleet.ids)
     az, el = direction_to_azimuth_elevation(fleet.context.sun)
@@ -178,43 +171,34 @@ def calibrate(
 
     nominal_geometry = padded.geometry  # the plant's own values: the uncalibrated baseline
     if start == "auto":
-        geometry, replaced = choose_start_geometry(_with_mask(padded, train), spec)
+        geometry, replaced = choose_start_geometry(padded, model0, jnp.asarray(train))
         padded = _with_geometry(padded, geometry)
     else:
         replaced = np.zeros(h_pad, bool)
 
-    data = CalibrationData.from_fleet(padded, jnp.asarray(train))
-    strategy = config.strategy if config.strategy != "auto" else default_strategy()
-    initial = jnp.broadcast_to(spec.nominal_vector(data.counts.dtype), (h_pad, len(spec.names)))
-    say(f"fitting {n_real} heliostats ({spec.kind}, {strategy}, padded to {h_pad} x {m_pad})")
-    t0 = time.perf_counter()
-    compiled = _fit_compiled.lower(spec, config, strategy, initial, data).compile()
-    t1 = time.perf_counter()
-    out = compiled(spec, config, strategy, initial, data)
-    jax.block_until_ready(out)
-    t2 = time.perf_counter()
-    result = FitResult(spec=spec, **out)
-    say(f"fitted in {t2 - t1:.2f} s (compile {t1 - t0:.2f} s)")
+    options = dict(fit_options or {})
+    say(f"fitting {n_real} heliostats ({model0.label()}, padded to {h_pad} x {m_pad})")
+    result, compile_s, fit_s = fit_timed(model0, padded, mask=jnp.asarray(train), **options)
+    say(f"fitted in {fit_s:.2f} s (compile {compile_s:.2f} s)")
 
-    models = result.models()
-    all_valid = np.asarray(padded.mask)
-    errors = np.asarray(beam_errors_mrad(models, padded.geometry, padded.counts, padded.context, padded.focal_spot, jnp.asarray(all_valid)))
-    nominal = nominal_models(spec, h_pad, data.counts.dtype)
-    uncal = np.asarray(beam_errors_mrad(nominal, nominal_geometry, padded.counts, padded.context, padded.focal_spot, jnp.asarray(all_valid)))
-    residuals = np.asarray(_residuals_mrad(models, padded, jnp.asarray(all_valid)))
-    residuals_uncal = np.asarray(_residuals_mrad(nominal, _with_geometry(padded, nominal_geometry), jnp.asarray(all_valid)))
-    # Heliostats without a fit (too few records, padding) have no calibrated errors.
-    fitted = np.isin(np.asarray(result.status), [FitStatus.TOO_FEW_RECORDS, FitStatus.PADDING], invert=True)
+    all_valid = jnp.asarray(padded.mask)
+    errors = np.asarray(fleet_beam_errors_mrad(result.model, padded, all_valid))
+    nominal_fleet = _with_geometry(padded, nominal_geometry)
+    uncal = np.asarray(fleet_beam_errors_mrad(model0, nominal_fleet, all_valid))
+    residuals = np.asarray(fleet_residuals_mrad(result.model, padded, all_valid))
+    residuals_uncal = np.asarray(fleet_residuals_mrad(model0, nominal_fleet, all_valid))
+    # Heliostats without a fit (too few records, no records) have no calibrated errors.
+    fitted = np.isin(np.asarray(result.status), _NOT_FITTED, invert=True)
     errors = np.where(fitted[:, None], errors, np.nan)
     residuals = np.where(fitted[:, None, None], residuals, np.nan)
 
     test_err = test_uncal = None
     if test_fleet is not None:
-        test_err, test_uncal = _evaluate_other(test_fleet, ids, result, padded, spec, nominal_geometry)
+        test_err, test_uncal = _evaluate_other(test_fleet, ids, result, padded, model0, nominal_geometry)
 
     run = CalibrationRun(
         fleet=padded,
-        spec=spec,
+        model0=model0,
         split_kind=split if test_fleet is None else "test-data",
         train_mask=train,
         val_mask=val,
@@ -230,51 +214,43 @@ def calibrate(
         test_errors_mrad=test_err,
         test_uncalibrated_mrad=test_uncal,
     )
-    summary = _summarise(run, n_real, compile_s=t1 - t0, fit_s=t2 - t1)
+    summary = _summarise(run, n_real, compile_s=compile_s, fit_s=fit_s)
     return dataclasses.replace(run, summary=summary)
 
 
-def _with_mask(fleet, mask):
-    import equinox as eqx
-
-    return eqx.tree_at(lambda f: f.mask, fleet, jnp.asarray(mask) & fleet.mask)
-
-
 def _with_geometry(fleet, geometry):
-    import equinox as eqx
-
     return eqx.tree_at(lambda f: f.geometry, fleet, geometry)
 
 
-def _evaluate_other(test_fleet, ids, result, padded, spec, nominal_geometry):
+def _evaluate_other(test_fleet, ids, result, padded, model0, nominal_geometry):
     """Beam errors of ``test_fleet``'s records under the fitted models of the
     heliostats with the same ids (NaN rows for ids without a fit)."""
     index = {h: i for i, h in enumerate(ids)}
-    rows = [index.get(h, -1) for h in test_fleet.ids]
-    h_pad = result.params.shape[0]
-    rows_np = np.array([r if r >= 0 else 0 for r in rows])
-    models = jax.vmap(result.spec.physical_to_model)(result.params[rows_np])
-    geometry = jax.tree_util.tree_map(lambda x: x[rows_np], padded.geometry)
-    mask = np.asarray(test_fleet.mask) & (np.array(rows) >= 0)[:, None]
-    err = np.asarray(beam_errors_mrad(models, geometry, test_fleet.counts, test_fleet.context, test_fleet.focal_spot, jnp.asarray(mask)))
-    nominal = nominal_models(spec, len(rows_np), test_fleet.counts.dtype)
-    geometry0 = jax.tree_util.tree_map(lambda x: x[rows_np], nominal_geometry)
-    unc = np.asarray(beam_errors_mrad(nominal, geometry0, test_fleet.counts, test_fleet.context, test_fleet.focal_spot, jnp.asarray(mask)))
+    rows = np.array([index.get(h, -1) for h in test_fleet.ids])
+    known = rows >= 0
+    take = np.where(known, rows, 0)
+    h_pad = result.n_heliostats
+    models = jax.tree.map(lambda x: x[take] if eqx.is_array(x) else x, result.model)
+    geometry = jax.tree.map(lambda x: x[take], padded.geometry)
+    geometry0 = jax.tree.map(lambda x: x[take], nominal_geometry)
+    mask = jnp.asarray(np.asarray(test_fleet.mask) & known[:, None])
+    args = (test_fleet.counts, test_fleet.context, test_fleet.focal_spot, mask)
+    err = np.asarray(beam_errors_mrad(models, geometry, *args))
+    nominal = jax.tree.map(lambda x: jnp.broadcast_to(x, (len(take),) + jnp.shape(x)) if eqx.is_array(x) else x, model0)
+    unc = np.asarray(beam_errors_mrad(nominal, geometry0, *args))
     # Re-index to the training fleet's rows.
     out = np.full((h_pad, err.shape[1]), np.nan)
     out_u = np.full((h_pad, err.shape[1]), np.nan)
-    rows_arr = np.asarray(rows)
-    known = rows_arr >= 0
-    out[rows_arr[known]] = err[known]
-    out_u[rows_arr[known]] = unc[known]
-    fitted = np.isin(np.asarray(result.status), [FitStatus.TOO_FEW_RECORDS, FitStatus.PADDING], invert=True)
+    out[rows[known]] = err[known]
+    out_u[rows[known]] = unc[known]
+    fitted = np.isin(np.asarray(result.status), _NOT_FITTED, invert=True)
     return np.where(fitted[:, None], out, np.nan), out_u
 
 
 def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float) -> dict:
     res = run.result
-    spec = run.spec
-    params = np.asarray(res.params)
+    view = res.view
+    params = np.asarray(res.parameters())
     std = np.asarray(res.std)
     status = np.asarray(res.status)
     ids = run.fleet.ids
@@ -306,8 +282,8 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
             "uncalibrated_test_rms_mrad": _json_float(unc_rms),
             "lm_steps": int(np.asarray(res.n_steps)[i]),
             "start_geometry": "fleet_typical" if run.start_replaced[i] else "nominal",
-            "params": {n: _json_float(params[i, k]) for k, n in enumerate(spec.names)},
-            "param_std": {n: _json_float(std[i, k]) for k, n in enumerate(spec.names)},
+            "params": {n: _json_float(params[i, k]) for k, n in enumerate(view.names)},
+            "param_std": {n: _json_float(std[i, k]) for k, n in enumerate(view.names)},
         }
         if ids[i] in run.too_few:
             entry["split_note"] = run.too_few[ids[i]]
@@ -323,10 +299,10 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
     u_med, u_rms = _stats(pooled_unc)
     n_conv = int(np.sum(status[:n_real] == FitStatus.CONVERGED))
     return {
-        "model": spec.kind,
+        "model": run.model0.label(),
         "split": run.split_kind,
-        "param_units": dict(zip(spec.names, spec.units)),
-        "free_params": list(spec.free),
+        "param_units": dict(zip(view.names, view.units)),
+        "free_params": list(view.free_names),
         "heliostats": heliostats,
         "fleet": {
             "n_heliostats": n_real,
@@ -336,7 +312,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
             "test_rms_mrad": _json_float(f_rms),
             "uncalibrated_test_median_mrad": _json_float(u_med),
             "uncalibrated_test_rms_mrad": _json_float(u_rms),
-            "statuses": {s.label: int(np.sum(status[:n_real] == s)) for s in FitStatus if s != FitStatus.PADDING},
+            "statuses": {s.label: int(np.sum(status[:n_real] == s)) for s in FitStatus if s != FitStatus.NO_RECORDS},
         },
         "timing": {"compile_s": float(compile_s), "fit_s": float(fit_s)},
     }
@@ -356,7 +332,7 @@ def write_results_h5(path: str | Path, run: CalibrationRun) -> None:
     from . import __version__
 
     n = len(run.summary["heliostats"])
-    spec = run.spec
+    view = run.result.view
     split = np.zeros(run.train_mask.shape, np.int8)
     split[run.train_mask] = SPLIT_CODES["train"]
     split[run.val_mask] = SPLIT_CODES["validation"]
@@ -364,13 +340,13 @@ def write_results_h5(path: str | Path, run: CalibrationRun) -> None:
     str_dt = h5py.string_dtype()
     with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
-            f.attrs["model"] = spec.kind
+            f.attrs["model"] = run.model0.label()
             f.attrs["split"] = run.split_kind
             f.attrs["heliojax_version"] = __version__
-            f.attrs["param_names"] = json.dumps(list(spec.names))
-            f.attrs["param_units"] = json.dumps(list(spec.units))
+            f.attrs["param_names"] = json.dumps(list(view.names))
+            f.attrs["param_units"] = json.dumps(list(view.units))
             f.create_dataset("heliostat_ids", data=np.array(run.fleet.ids[:n], dtype=object), dtype=str_dt)
-            f.create_dataset("params", data=np.asarray(run.result.params)[:n])
+            f.create_dataset("params", data=np.asarray(run.result.parameters())[:n])
             f.create_dataset("param_std", data=np.asarray(run.result.std)[:n])
             f.create_dataset("status", data=np.asarray(run.result.status)[:n].astype(np.int32))
             f.create_dataset(

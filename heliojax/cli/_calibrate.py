@@ -9,10 +9,14 @@ from ._common import add_data_argument, enable_compilation_cache, load_fleet, pr
 
 MODELS = ("stone8", "actuator", "stone8+nn", "actuator+nn")
 NN_VARIANTS = ("residual", "paper")
+WEAK_PRIOR_SIGMA = {"gamma": 5e-3, "delta": 5e-3}
+"""``--prior``: sigma (rad) toward nominal for the chain tilts gamma and delta, the
+pair that is nearly collinear with theta_k (Stone) / the axis-1 offset over typical
+elevation ranges."""
 
 
 def add_parser(subparsers) -> None:
-    from .._calibration import STRATEGIES
+    from ..fit import BATCHING_NAMES
     from .._splits import SPLIT_NAMES
 
     p = subparsers.add_parser(
@@ -41,7 +45,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--prior", action="store_true",
                    help="Tikhonov prior toward nominal for the weakly identified parameters")
     p.add_argument("--max-steps", type=int, default=64, help="Levenberg-Marquardt step limit")
-    p.add_argument("--strategy", choices=STRATEGIES, default="auto", help="batching over heliostats")
+    p.add_argument("--strategy", choices=BATCHING_NAMES, default="auto", help="batching over heliostats")
     p.add_argument("--start", choices=("auto", "nominal"), default="auto",
                    help="start geometry: per heliostat the better of nominal / fleet-typical actuators")
     p.add_argument("--cache-dir", default=None,
@@ -53,8 +57,9 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
-    from .._calibration import DEFAULT_WEAK_PRIOR, FitConfig
     from .._fleet import load_paint_directory
+    from .._kinematics import nominal_model
+    from ..fit import batching_from_name, gaussian_prior
     from .._workflow import calibrate, write_results_h5, write_summary
 
     enable_compilation_cache(args.cache_dir)
@@ -64,11 +69,10 @@ def run(args) -> int:
     test_fleet = None
     if args.test_data is not None:
         test_fleet = load_paint_directory(args.test_data, centroid=args.centroid)
-    config = FitConfig(
-        max_steps=args.max_steps,
-        strategy=args.strategy,
-        prior_sigma=DEFAULT_WEAK_PRIOR if args.prior else (),
-    )
+    model0 = nominal_model(args.model.removesuffix("+nn"))
+    fit_options = {"max_steps": args.max_steps, "batching": batching_from_name(args.strategy)}
+    if args.prior:
+        fit_options["prior"] = gaussian_prior(model0, WEAK_PRIOR_SIGMA)
     neural = args.model.endswith("+nn")
     if neural and args.test_data is not None:
         from .._errors import ConfigError
@@ -76,13 +80,13 @@ def run(args) -> int:
         raise ConfigError("--test-data is not supported with a +nn model; use a split")
     run_ = calibrate(
         fleet,
-        model=args.model.removesuffix("+nn"),
+        model=model0,
         split=args.split,
         n_train=args.train,
         n_val=args.val,
         train_fraction=args.train_fraction,
         seed=args.seed,
-        config=config,
+        fit_options=fit_options,
         test_fleet=test_fleet,
         start=args.start,
         progress=say,

@@ -33,16 +33,14 @@ def _date(t: float) -> str:
 def run(args) -> int:
     import jax.numpy as jnp
 
-    from .._calibration import beam_errors_mrad, nominal_models
+    from .._kinematics import nominal_model
+    from ..fit import fleet_beam_errors_mrad
 
     fleet = load_fleet(args)
     n = len(fleet.ids)
     err = {}
     for kind in ("actuator", "stone8"):
-        models = nominal_models(kind, fleet.n_heliostats, fleet.counts.dtype)
-        err[kind] = np.asarray(
-            beam_errors_mrad(models, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, fleet.mask)
-        )
+        err[kind] = np.asarray(fleet_beam_errors_mrad(nominal_model(kind, fleet.counts.dtype), fleet))
     t = np.asarray(fleet.context.unix_time)
     mask = np.asarray(fleet.mask)
     flagged = {Path(f.file).parts[-3] for f in fleet.report.flags if len(Path(f.file).parts) >= 3 and Path(f.file).parts[-2] == "Properties"}

@@ -6,21 +6,25 @@ heliostat ``h`` with the records of every fold but ``f`` (``f = 0``: all
 records). Fitting all lanes in one compiled program gives the full-data fit
 and every cross-validation fit in one call.
 
-The fit is the same Levenberg-Marquardt problem as :func:`heliojax.fit_fleet`
+The fit is the same Levenberg-Marquardt problem as :func:`heliojax.fit`
 (tangent-plane residuals in mrad, scaled parameters, masked records replaced
-by :func:`heliojax._calibration._sanitise`, heliostats mapped in one compiled
-program), over *one* model specification that carries the base parameters and
-the parameters of every candidate effect. Which effect parameters move is
-dynamic data (solver columns ``sel``), only the solver's width is static and
-bucketed, so every candidate, every fold and every step of the discovery
-reuses a handful of compiled programs. (``fit_fleet`` fixes the free set
-statically, which would recompile per candidate, and counts every free
-parameter of the specification against a heliostat's records.)
+by :func:`heliojax.fit.sanitise`, heliostats mapped by the same batching
+strategies, solved by :func:`heliojax.fit.solve_least_squares` with the same
+cost ``0.5 * sum r^2``), over *one* model that carries the base parameters and
+the parameters of every candidate effect (``layout.template``, an
+:class:`heliojax.EffectModel`; vectors in its :class:`heliojax.ParameterView`
+order). Which effect parameters move is dynamic data (solver columns ``sel``),
+only the solver's width is static and bucketed, so every candidate, every fold
+and every step of the discovery reuses a handful of compiled programs.
+(``fit`` fixes the free set statically, which would recompile per candidate,
+and counts every free parameter against a heliostat's records.)
 """
 
 from __future__ import annotations
 
 import dataclasses
+
+import typing
 
 import equinox as eqx
 import jax
@@ -28,35 +32,43 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .._calibration import (
-    CalibrationData,
-    FitConfig,
-    ModelSpec,
-    _batched,
-    _sanitise,
-    default_strategy,
-)
+from .._geometry import normalize
+from .._kinematics import AbstractKinematicModel, beam_error_components, chain_pose, reflected_ray
+from .._parameters import ParameterView
+from ..effects import EffectModel, with_data_references, with_effects
+from ..fit import AbstractBatching, default_batching, default_solver, sanitise, solve_least_squares
+
+Records = tuple[typing.Any, typing.Any, typing.Any, typing.Any, typing.Any]
+"""``(geometry, counts, context, focal_spot, mask)`` of a (lane-tiled) fleet."""
+
+
+def fleet_records(fleet: typing.Any) -> Records:
+    """The arrays of ``fleet`` the compiled programs take (no ids, no report)."""
+    return (fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, fleet.mask)
 
 
 @dataclasses.dataclass(frozen=True)
 class Layout:
-    """Static column layout of the discovery's universal specification.
+    """Static column layout of the discovery's universal model.
 
     Attributes:
-        spec: base + all candidate effects (:func:`heliojax.effects.with_effects`).
-        free_index: positions (in ``spec.names``) of the columns the solver sees:
-            the base's free parameters, then every effect parameter.
+        view: the :class:`heliojax.ParameterView` of base + all candidate effects.
+        free_index: positions (in ``view.names``) of the columns the solver sees:
+            the base's free parameters, then every effect's free parameters.
         base_cols: solver columns of the base's free parameters.
         effect_cols: effect name -> its solver columns.
         effect_param_names: effect name -> its parameter names.
+        effect_typical: effect name -> typical sizes in scaled units.
+        effect_units: effect name -> parameter units.
     """
 
-    spec: ModelSpec
+    view: ParameterView
     free_index: tuple[int, ...]
     base_cols: tuple[int, ...]
     effect_cols: tuple[tuple[str, tuple[int, ...]], ...]
     effect_param_names: tuple[tuple[str, tuple[str, ...]], ...]
     effect_typical: tuple[tuple[str, tuple[float, ...]], ...] = ()
+    effect_units: tuple[tuple[str, tuple[str, ...]], ...] = ()
 
     @property
     def n_free(self) -> int:
@@ -68,48 +80,61 @@ class Layout:
     def params(self, effect: str) -> tuple[str, ...]:
         return dict(self.effect_param_names)[effect]
 
+    def units(self, effect: str) -> tuple[str, ...]:
+        return dict(self.effect_units)[effect]
+
     def typical(self, effect: str) -> np.ndarray:
         """The effect's typical sizes in the solver's scaled units."""
         return np.asarray(dict(self.effect_typical)[effect])
 
     @property
     def effect_index(self) -> tuple[int, ...]:
-        """Positions (in ``spec.names``) of all effect parameters, in column order."""
+        """Positions (in ``view.names``) of all effect parameters, in column order."""
         return self.free_index[len(self.base_cols):]
 
     @property
     def scales(self) -> np.ndarray:
-        return np.asarray(self.spec.scales)[list(self.free_index)]
+        return np.asarray(self.view.scales)[list(self.free_index)]
+
+    def model(self, template: EffectModel, p: jax.Array) -> EffectModel:
+        """The universal model at physical parameters ``p`` (references from ``template``)."""
+        return self.view.from_vector(template, p)
 
 
-def make_layout(base_spec: ModelSpec, effects: tuple[str, ...]) -> Layout:
-    from ..effects import with_effects
-    from ..effects._spec import base_kind_of, effect_class
-
-    spec = with_effects(base_spec, effects)
-    kind = base_kind_of(spec)
-    base_free = [spec.names.index(n) for n in base_spec.free]
+def make_layout(base: AbstractKinematicModel, effects: tuple[str, ...], fleet: typing.Any) -> tuple[Layout, EffectModel]:
+    """The column layout and the universal model (``base`` wrapped by every
+    candidate effect at no effect, references from ``fleet``'s valid records)."""
+    template = with_data_references(with_effects(base, effects), fleet)
+    view = ParameterView.of(template)
+    n_base = ParameterView.of(base).n_parameters
+    free = view.free
+    base_free = [i for i in range(n_base) if free[i]]
     free_index = list(base_free)
-    effect_cols = []
-    effect_params = []
-    effect_typical = []
-    for e in effects:
-        cls = effect_class(e)
-        names = cls.param_names(kind)
+    effect_cols, effect_params, effect_typical, effect_units = [], [], [], []
+    start_leaf = len(ParameterView.of(base).leaves)
+    offset = n_base
+    for k, e in enumerate(effects):
+        effect = template.effects[k]
+        ev = ParameterView.of(effect)
+        cols = [offset + i for i in range(ev.n_parameters) if free[offset + i]]
         start = len(free_index)
-        free_index += [spec.names.index(n) for n in names]
+        free_index += cols
         effect_cols.append((e, tuple(range(start, len(free_index)))))
-        effect_params.append((e, tuple(names)))
-        effect_typical.append((e, tuple(float(t) / float(sc) for t, sc in
-                                        zip(cls.typical_sizes(kind), cls.param_scales(kind)))))
-    return Layout(
-        spec=spec,
+        effect_params.append((e, tuple(view.names[i] for i in cols)))
+        effect_units.append((e, tuple(view.units[i] for i in cols)))
+        effect_typical.append((e, tuple(float(view.typical[i]) / float(view.scales[i]) for i in cols)))
+        offset += ev.n_parameters
+    del start_leaf
+    layout = Layout(
+        view=view,
         free_index=tuple(free_index),
         base_cols=tuple(range(len(base_free))),
         effect_cols=tuple(effect_cols),
         effect_param_names=tuple(effect_params),
         effect_typical=tuple(effect_typical),
+        effect_units=tuple(effect_units),
     )
+    return layout, template
 
 
 # --------------------------------------------------------------------------------------
@@ -130,23 +155,22 @@ N_CORR = 11
 CAPS = (0, 4, 8, 12, 16, 24, 32)
 
 
-def _corrections(model, geometry, counts, context, focal):
-    g = model._geometry(geometry)
-    base_angles = model.base.joint_angles(g, counts)
-    d_angles = model._angles(g, counts, context) - base_angles
+def _corrections(model: EffectModel, geometry, counts, context, focal):
+    g = model.adjusted_geometry(geometry)
+    base_angles = model.inner.joint_angles(g, counts)
+    d_angles = model.record_angles(g, counts, context) - base_angles
     d_sun = model.sun(geometry, context) - context.sun
-    d_focal = model._focal(focal, context) - focal
+    d_focal = model.spot(focal, context) - focal
     d_pos = g.position - geometry.position
     return jnp.concatenate([d_angles, d_sun, d_focal, d_pos])
 
 
-def _corrections_lane(layout: "Layout", p, geometry, counts, context, focal, mask):
-    spec = layout.spec
-    counts, context, focal, use, _ = _sanitise(geometry, counts, context, focal, mask)
+def _corrections_lane(layout: "Layout", template, p, geometry, counts, context, focal, mask):
+    counts, context, focal, use, _ = sanitise(geometry, counts, context, focal, mask)
     eidx = jnp.asarray(layout.effect_index, dtype=jnp.int32)
 
     def corr(q, c, x, f):
-        return _corrections(spec.builder(p.at[eidx].set(q)), geometry, c, x, f)
+        return _corrections(layout.model(template, p.at[eidx].set(q)), geometry, c, x, f)
 
     q0 = p[eidx]
     c0 = jax.vmap(lambda c, x, f: corr(q0, c, x, f))(counts, context, focal)
@@ -155,15 +179,12 @@ def _corrections_lane(layout: "Layout", p, geometry, counts, context, focal, mas
 
 
 @eqx.filter_jit
-def _corrections_compiled(layout, strategy, p, data: CalibrationData):
-    fn = lambda a, g, c, x, f, m: _corrections_lane(layout, a, g, c, x, f, m)  # noqa: E731
-    return _batched(fn, strategy, 64)(p, data.geometry, data.counts, data.context, data.focal_spot, data.mask)
+def _corrections_compiled(layout, batching: AbstractBatching, template, p, records: Records):
+    fn = lambda a, g, c, x, f, m: _corrections_lane(layout, template, a, g, c, x, f, m)  # noqa: E731
+    return batching.map(fn)(p, *records)
 
 
 def _linear_record(base, tilts, geometry, counts, context, focal, corr):
-    from .._geometry import normalize
-    from .._kinematics import beam_error_components, chain_pose
-
     geo = eqx.tree_at(lambda g: g.position, geometry, geometry.position + corr[8:11])
     angles = base.joint_angles(geo, counts) + corr[0:2]
     pose = chain_pose(tilts, angles, geo)
@@ -171,13 +192,12 @@ def _linear_record(base, tilts, geometry, counts, context, focal, corr):
     return beam_error_components(pose, sun, focal + corr[5:8])
 
 
-def _lane_residual_fn(layout: "Layout", geometry, counts, context, focal, use, p_exp, c0, dmat):
+def _lane_residual_fn(layout: "Layout", template, geometry, counts, context, focal, use, p_exp, c0, dmat):
     """``p -> residuals (2M,)`` in mrad with the effects to first order about ``p_exp``."""
-    builder = layout.spec.builder
     eidx = jnp.asarray(layout.effect_index, dtype=jnp.int32)
 
     def fn(p):
-        base = builder.base_builder(p[: builder.n_base])
+        base = layout.model(template, p).inner
         tilts = base.tilts()
         dq = p[eidx] - p_exp[eidx]
         corr = c0 + jnp.einsum("mij,j->mi", dmat, dq)
@@ -187,17 +207,17 @@ def _lane_residual_fn(layout: "Layout", geometry, counts, context, focal, use, p
     return fn
 
 
-def _fit_lane(layout: "Layout", config: FitConfig, cap: int, p0, sel, sel_valid, p_exp, c0, dmat, geometry, counts,
-              context, focal, mask):
+def _fit_lane(layout: "Layout", solver, max_steps: int, cap: int, template, p0, sel, sel_valid, p_exp, c0, dmat,
+              geometry, counts, context, focal, mask):
     """One lane's Levenberg-Marquardt fit: the base's free parameters plus up to
     ``cap`` effect parameters (solver columns ``sel``, where ``sel_valid``)."""
-    counts, context, focal, use, _ = _sanitise(geometry, counts, context, focal, mask)
+    counts, context, focal, use, _ = sanitise(geometry, counts, context, focal, mask)
     dtype = counts.dtype
     n_base = len(layout.base_cols)
-    all_scales = jnp.asarray(layout.spec.scales, dtype)
+    all_scales = jnp.asarray(layout.view.scales, dtype)
     base_idx = jnp.asarray(layout.free_index[:n_base], dtype=jnp.int32)
     eff_idx = jnp.asarray(layout.effect_index, dtype=jnp.int32)[sel]
-    res = _lane_residual_fn(layout, geometry, counts, context, focal, use, p_exp, c0, dmat)
+    res = _lane_residual_fn(layout, template, geometry, counts, context, focal, use, p_exp, c0, dmat)
 
     def to_physical(y):
         p = p0.at[base_idx].add(y[:n_base] * all_scales[base_idx])
@@ -205,37 +225,27 @@ def _fit_lane(layout: "Layout", config: FitConfig, cap: int, p0, sel, sel_valid,
             p = p.at[eff_idx].add(jnp.where(sel_valid, y[n_base:], 0.0) * all_scales[eff_idx])
         return p
 
-    y0 = jnp.zeros(n_base + cap, dtype)
-    solver = optx.LevenbergMarquardt(rtol=config.rtol, atol=config.atol)
-    sol = optx.least_squares(lambda y, _: res(to_physical(y)), solver, y0, max_steps=config.max_steps,
-                             throw=False)
-    p = to_physical(sol.value)
-    cost = jnp.sum(sol.state.f_info.residual**2)
+    out = solve_least_squares(lambda y: res(to_physical(y)), jnp.zeros(n_base + cap, dtype), solver, max_steps)
+    p = to_physical(out.value)
     n_used = jnp.sum(use)
     n_active = n_base + jnp.sum(sel_valid)
     ok = (2 * n_used > n_active) & jnp.all(jnp.isfinite(p))
-    ok = ok & (sol.result != optx.RESULTS.nonlinear_divergence)
+    ok = ok & (out.result != optx.RESULTS.nonlinear_divergence)
     p = jnp.where(ok, p, p0)
-    return dict(params=p, ok=ok, cost=cost, n_used=n_used.astype(jnp.int32),
-                n_steps=sol.stats["num_steps"].astype(jnp.int32))
+    return dict(params=p, ok=ok, cost=out.cost, n_used=n_used.astype(jnp.int32), n_steps=out.n_steps.astype(jnp.int32))
 
 
 @eqx.filter_jit
-def _fit_lanes_compiled(layout, config, strategy, cap, p0, sel, sel_valid, p_exp, c0, dmat, data: CalibrationData):
-    fn = lambda *a: _fit_lane(layout, config, cap, *a)  # noqa: E731
-    return _batched(fn, strategy, config.chunk_size)(
-        p0, sel, sel_valid, p_exp, c0, dmat, data.geometry, data.counts, data.context, data.focal_spot, data.mask
-    )
+def _fit_lanes_compiled(layout, solver, max_steps, batching, cap, template, p0, sel, sel_valid, p_exp, c0, dmat,
+                        records: Records):
+    fn = lambda *a: _fit_lane(layout, solver, max_steps, cap, template, *a)  # noqa: E731
+    return batching.map(fn)(p0, sel, sel_valid, p_exp, c0, dmat, *records)
 
 
-def _predicted_focal(layout: "Layout", p, c0, geometry, counts, context, focal):
+def _predicted_focal(layout: "Layout", template, p, c0, geometry, counts, context, focal):
     """Noise-free focal spots: where the model at ``p`` sends each record's central
     ray, at the measured distance (so the residual there is 0)."""
-    from .._geometry import normalize
-    from .._kinematics import chain_pose, reflected_ray
-
-    builder = layout.spec.builder
-    base = builder.base_builder(p[: builder.n_base])
+    base = layout.model(template, p).inner
     tilts = base.tilts()
 
     def one(c, x, f, k):
@@ -248,19 +258,19 @@ def _predicted_focal(layout: "Layout", p, c0, geometry, counts, context, focal):
     return jax.vmap(one)(counts, context, focal, c0)
 
 
-def _jac_lane(layout: "Layout", p, c0, dmat, geometry, counts, context, focal, mask):
+def _jac_lane(layout: "Layout", template, p, c0, dmat, geometry, counts, context, focal, mask):
     """Exact residuals at the measured spots; the Jacobian at the model's noise-free
     spots (Fisher scoring). The exact Jacobian holds a term proportional to the
     measurement noise itself (moving the target along the line of sight rescales
     every measured offset), which would make a regressor of the noise; the
     noise-free one is the expected Jacobian and keeps the score tests valid."""
-    counts, context, focal, use, _ = _sanitise(geometry, counts, context, focal, mask)
+    counts, context, focal, use, _ = sanitise(geometry, counts, context, focal, mask)
     dtype = counts.dtype
     idx = jnp.asarray(layout.free_index, dtype=jnp.int32)
-    scales = jnp.asarray(layout.spec.scales, dtype)[idx]
-    res = _lane_residual_fn(layout, geometry, counts, context, focal, use, p, c0, dmat)
-    predicted = _predicted_focal(layout, p, c0, geometry, counts, context, focal)
-    res_pred = _lane_residual_fn(layout, geometry, counts, context, predicted, use, p, c0, dmat)
+    scales = jnp.asarray(layout.view.scales, dtype)[idx]
+    res = _lane_residual_fn(layout, template, geometry, counts, context, focal, use, p, c0, dmat)
+    predicted = _predicted_focal(layout, template, p, c0, geometry, counts, context, focal)
+    res_pred = _lane_residual_fn(layout, template, geometry, counts, context, predicted, use, p, c0, dmat)
     y0 = jnp.zeros(layout.n_free, dtype)
     r = res(p)
     _, lin = jax.linearize(lambda y: res_pred(p.at[idx].add(y * scales)), y0)
@@ -269,10 +279,9 @@ def _jac_lane(layout: "Layout", p, c0, dmat, geometry, counts, context, focal, m
 
 
 @eqx.filter_jit
-def _jac_lanes_compiled(layout, strategy, p, c0, dmat, data: CalibrationData):
-    fn = lambda *a: _jac_lane(layout, *a)  # noqa: E731
-    return _batched(fn, strategy, 64)(p, c0, dmat, data.geometry, data.counts, data.context, data.focal_spot,
-                                      data.mask)
+def _jac_lanes_compiled(layout, batching, template, p, c0, dmat, records: Records):
+    fn = lambda *a: _jac_lane(layout, template, *a)  # noqa: E731
+    return batching.map(fn)(p, c0, dmat, *records)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -280,8 +289,8 @@ class Lanes:
     """The fleet replicated over ``K + 1`` masks (numpy bookkeeping + device data).
 
     Attributes:
-        data: :class:`~heliojax.CalibrationData` with ``L = (K + 1) * H`` lanes; its
-            mask is each lane's training mask.
+        data: the fleet's record arrays tiled to ``L = (K + 1) * H`` lanes
+            (:data:`Records`); its mask is each lane's training mask.
         eval_data: the same lanes with every valid record unmasked (to evaluate).
         fold: ``(L,)`` fold of each lane (0 = all records).
         heliostat: ``(L,)`` heliostat index of each lane.
@@ -290,8 +299,8 @@ class Lanes:
         n_folds: ``K``.
     """
 
-    data: CalibrationData
-    eval_data: CalibrationData
+    data: Records
+    eval_data: Records
     fold: np.ndarray
     heliostat: np.ndarray
     record_fold: np.ndarray
@@ -301,6 +310,11 @@ class Lanes:
     @property
     def n_heliostats(self) -> int:
         return self.valid.shape[0]
+
+    @property
+    def train_mask(self) -> np.ndarray:
+        """``(L, M)`` each lane's training records."""
+        return np.asarray(self.data[4])
 
     def lane(self, fold: int, heliostat: int) -> int:
         return fold * self.n_heliostats + heliostat
@@ -335,55 +349,61 @@ def day_folds(unix_time: np.ndarray, valid: np.ndarray, record_id: np.ndarray | 
     return out
 
 
-def make_lanes(data: CalibrationData, record_id, n_folds: int) -> Lanes:
-    valid = np.asarray(data.mask, bool)
-    rf = day_folds(np.asarray(data.context.unix_time), valid, record_id, n_folds)
+def make_lanes(fleet: typing.Any, n_folds: int) -> Lanes:
+    """Lanes of ``fleet`` (padded): one per (fold, heliostat), folds by UTC day."""
+    valid = np.asarray(fleet.mask, bool)
+    rf = day_folds(np.asarray(fleet.context.unix_time), valid, np.asarray(fleet.record_id), n_folds)
     h = valid.shape[0]
-    n_lanes = (n_folds + 1) * h
     fold = np.repeat(np.arange(n_folds + 1), h)
     heli = np.tile(np.arange(h), n_folds + 1)
     train = valid[heli] & ((rf[heli] != fold[:, None]) | (fold[:, None] == 0))
     tile = lambda x: jnp.concatenate([x] * (n_folds + 1), axis=0)  # noqa: E731
-    base = CalibrationData(
-        geometry=jax.tree_util.tree_map(tile, data.geometry),
-        counts=tile(data.counts),
-        context=jax.tree_util.tree_map(tile, data.context),
-        focal_spot=tile(data.focal_spot),
-        mask=jnp.asarray(train),
-    )
-    eval_data = eqx.tree_at(lambda d: d.mask, base, jnp.asarray(valid[heli]))
-    assert base.counts.shape[0] == n_lanes
-    return Lanes(data=base, eval_data=eval_data, fold=fold, heliostat=heli, record_fold=rf, valid=valid,
+    geometry, counts, context, focal, _ = jax.tree.map(tile, fleet_records(fleet))
+    data = (geometry, counts, context, focal, jnp.asarray(train))
+    eval_data = (geometry, counts, context, focal, jnp.asarray(valid[heli]))
+    return Lanes(data=data, eval_data=eval_data, fold=fold, heliostat=heli, record_fold=rf, valid=valid,
                  n_folds=n_folds)
 
 
 @dataclasses.dataclass(frozen=True)
 class Engine:
-    """The compiled programs over one set of lanes."""
+    """The compiled programs over one set of lanes.
+
+    Attributes:
+        layout: the static column layout.
+        template: the universal model (references from the data).
+        lanes: the lanes.
+        solver: the optimistix least-squares solver.
+        max_steps: its step limit.
+        batching: the strategy over lanes.
+    """
 
     layout: Layout
+    template: EffectModel
     lanes: Lanes
-    config: FitConfig
-    strategy: str
+    solver: optx.AbstractLeastSquaresSolver
+    max_steps: int
+    batching: AbstractBatching
 
     @classmethod
-    def create(cls, layout: Layout, lanes: Lanes, config: FitConfig) -> "Engine":
-        strategy = config.strategy if config.strategy != "auto" else default_strategy()
-        return cls(layout, lanes, config, strategy)
+    def create(cls, layout: Layout, template: EffectModel, lanes: Lanes, solver=None, max_steps: int = 64,
+               batching: AbstractBatching | None = None) -> "Engine":
+        return cls(layout, template, lanes, default_solver() if solver is None else solver, max_steps,
+                   default_batching() if batching is None else batching)
 
-    def _data(self, evaluate: bool):
+    def _data(self, evaluate: bool) -> Records:
         return self.lanes.eval_data if evaluate else self.lanes.data
 
     def expand(self, p, evaluate: bool = False):
         """First-order effect corrections ``(c0, D)`` at ``p`` (device arrays)."""
-        return _corrections_compiled(self.layout, self.strategy, jnp.asarray(p), self._data(evaluate))
+        return _corrections_compiled(self.layout, self.batching, self.template, jnp.asarray(p), self._data(evaluate))
 
     def fit(self, p0: np.ndarray, effect_cols, p_exp: np.ndarray, expansion) -> dict:
         """One Levenberg-Marquardt fit of every lane from ``p0``: the base's free
         parameters and the effect columns ``effect_cols`` (positions among the
         effect columns) free, the effects expanded about ``p_exp``. The solver's
         width is bucketed (0, 4, 8, 12, 16, 24, 32 effect columns) so that few
-        programs are compiled."""
+        programs are compiled. ``cost`` is ``0.5 * sum r^2`` of the linearised model."""
         c0, dmat = expansion
         k = len(effect_cols)
         cap = next(c for c in CAPS if c >= k) if k <= CAPS[-1] else k
@@ -392,8 +412,9 @@ class Engine:
         valid = np.zeros((n_lanes, cap), bool)
         sel[:, :k] = np.asarray(effect_cols, np.int32)
         valid[:, :k] = True
-        out = _fit_lanes_compiled(self.layout, self.config, self.strategy, cap, jnp.asarray(p0), jnp.asarray(sel),
-                                  jnp.asarray(valid), jnp.asarray(p_exp), c0, dmat, self.lanes.data)
+        out = _fit_lanes_compiled(self.layout, self.solver, self.max_steps, self.batching, cap, self.template,
+                                  jnp.asarray(p0), jnp.asarray(sel), jnp.asarray(valid), jnp.asarray(p_exp), c0, dmat,
+                                  self.lanes.data)
         return {k_: np.asarray(v) for k_, v in out.items()}
 
     def jacobian(self, p: np.ndarray, evaluate: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -401,6 +422,6 @@ class Engine:
         ``(L, 2M, F)`` (mrad per scaled unit) at ``p``; rows of records outside the training mask (with
         ``evaluate``: outside the valid records) are zero."""
         data = self._data(evaluate)
-        c0, dmat = _corrections_compiled(self.layout, self.strategy, jnp.asarray(p), data)
-        r, j = _jac_lanes_compiled(self.layout, self.strategy, jnp.asarray(p), c0, dmat, data)
+        c0, dmat = _corrections_compiled(self.layout, self.batching, self.template, jnp.asarray(p), data)
+        r, j = _jac_lanes_compiled(self.layout, self.batching, self.template, jnp.asarray(p), c0, dmat, data)
         return np.asarray(r), np.asarray(j)

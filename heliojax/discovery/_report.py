@@ -68,17 +68,23 @@ def _noise(state, layout, h):
     return _f(np.sqrt(np.sum(state.rss[lanes]) / max(dof, 1)))
 
 
+def cv_pair(before, after) -> tuple[float, float, int]:
+    """Pooled held-out RMS (mrad) of two model states over the records held out and
+    predicted by both."""
+    both = np.isfinite(before.heldout_sq) & np.isfinite(after.heldout_sq)
+    n = int(both.sum())
+    if n == 0:
+        return float("nan"), float("nan"), 0
+    return (float(np.sqrt(np.mean(before.heldout_sq[both]))), float(np.sqrt(np.mean(after.heldout_sq[both]))), n)
+
+
 def build_report(result) -> dict:
     """The report.json dictionary of a :class:`DiscoveryResult`."""
-    from ..effects import effect_class
-    from ..effects._spec import base_kind_of
-
     cfg = result.config
     h = result.lanes.n_heliostats
-    kind = base_kind_of(result.layout.spec)
     steps = []
     for s in result.steps:
-        units = dict(zip(effect_class(s.effect).param_names(kind), effect_class(s.effect).param_units(kind)))
+        units = dict(zip(result.layout.params(s.effect), result.layout.units(s.effect)))
         steps.append({
             "effect": s.effect,
             "mode": s.mode,
@@ -128,9 +134,7 @@ def build_report(result) -> dict:
         ]
         for cands in result.candidates
     ]
-    from ._select import _Workflow
-
-    cv_base, cv_final, n_cv = _Workflow.cv_pair(result.base, result.final)
+    cv_base, cv_final, n_cv = cv_pair(result.base, result.final)
     both = np.isfinite(result.base.heldout_sq) & np.isfinite(result.final.heldout_sq)
     med_base = float(np.median(np.sqrt(result.base.heldout_sq[both]))) if both.any() else None
     med_final = float(np.median(np.sqrt(result.final.heldout_sq[both]))) if both.any() else None

@@ -40,9 +40,15 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .._calibration import FitConfig, ModelSpec, model_spec
+import optimistix as optx
+
+from .._fleet import bucket_size, pad_fleet
+from .._kinematics import nominal_model
+from ..effects import EFFECT_NAMES
+from ..fit import AbstractBatching, choose_start_geometry, default_solver
 from ._identifiability import ABSORBED_LIMIT, column_basis
 from ._lanes import Engine, Lanes, Layout, make_lanes, make_layout
+from ._report import build_report, cv_pair
 from ._screen import CandidateScreen, holm, prepare_bases, screen_candidate
 
 MODES = ("shared", "per_heliostat")
@@ -61,7 +67,9 @@ class DiscoveryConfig:
         max_refits: finalists refitted per step (best linearised delta BIC first).
         max_iterations: expansion/fit iterations of one refit (effects enter a fit
             to first order about the previous point; see :mod:`._lanes`).
-        fit: Levenberg-Marquardt settings (static: changing them recompiles).
+        solver: the optimistix least-squares solver (static: changing it recompiles).
+        max_steps: its step limit.
+        batching: strategy over lanes (default :func:`heliojax.default_batching`).
         absorbed_limit: identifiability limit on the absorbed fraction.
         start: ``"auto"`` (per heliostat the better of nominal / fleet-typical
             actuators, :func:`heliojax.choose_start_geometry`) or ``"nominal"``.
@@ -74,13 +82,13 @@ class DiscoveryConfig:
     max_named: int = 6
     max_refits: int = 3
     max_iterations: int = 4
-    fit: FitConfig = FitConfig()
+    solver: optx.AbstractLeastSquaresSolver = dataclasses.field(default_factory=default_solver)
+    max_steps: int = 64
+    batching: AbstractBatching | None = None
     absorbed_limit: float = ABSORBED_LIMIT
     start: str = "auto"
 
     def __post_init__(self):
-        from ..effects import EFFECT_NAMES
-
         if self.effects is None:
             object.__setattr__(self, "effects", EFFECT_NAMES)
         unknown = set(self.effects) - set(EFFECT_NAMES)
@@ -94,7 +102,7 @@ class DiscoveryConfig:
             raise ValueError(f"start must be 'auto' or 'nominal', got {self.start!r}")
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class ModelState:
     """A fitted model on every lane.
 
@@ -183,7 +191,7 @@ class _Workflow:
             # The fit saw the effects to first order about the previous point; it is
             # converged when that model's cost equals the exact cost at its optimum.
             exact = float(np.sum(np.sum(r**2, axis=1)[ok]))
-            linear = float(np.sum(out["cost"][ok]))
+            linear = float(np.sum(2.0 * out["cost"][ok]))
             converged = abs(exact - linear) <= 1e-4 * max(exact, 1e-300)
             if sh_cols:
                 step, cov = self._shared_step(r, jac, ok, act_cols, sh_cols)
@@ -194,7 +202,7 @@ class _Workflow:
                     converged = False
             if converged:
                 break
-        used = np.asarray(lanes.data.mask)
+        used = lanes.train_mask
         n_res = 2 * used.sum(axis=1)
         rss = np.where(ok, np.sum(r**2, axis=1), np.nan)
         r_eval, _ = self.engine.jacobian(p, evaluate=True)
@@ -209,7 +217,7 @@ class _Workflow:
         """Gauss-Newton step of the shared parameters per fold, the current model's
         per-heliostat parameters profiled out; and the shared covariance."""
         lanes = self.lanes
-        used = np.repeat(np.asarray(lanes.data.mask), 2, axis=1)
+        used = np.repeat(lanes.train_mask, 2, axis=1)
         k = len(sh_cols)
         steps = np.zeros((lanes.n_folds + 1, k))
         covs = np.full((lanes.n_folds + 1, k, k), np.nan)
@@ -252,15 +260,7 @@ class _Workflow:
 
         return bic(before), bic(after), int(lanes.size)
 
-    @staticmethod
-    def cv_pair(before: ModelState, after: ModelState) -> tuple[float, float, int]:
-        """Pooled held-out RMS (mrad) of both models over the records held out and
-        predicted by both."""
-        both = np.isfinite(before.heldout_sq) & np.isfinite(after.heldout_sq)
-        n = int(both.sum())
-        if n == 0:
-            return float("nan"), float("nan"), 0
-        return (float(np.sqrt(np.mean(before.heldout_sq[both]))), float(np.sqrt(np.mean(after.heldout_sq[both]))), n)
+    cv_pair = staticmethod(cv_pair)
 
     # -- screening --------------------------------------------------------------------
 
@@ -268,7 +268,7 @@ class _Workflow:
         lanes = self.lanes
         h = lanes.n_heliostats
         fold0 = np.arange(h)  # lanes of fold 0 are the first H
-        used = np.repeat(np.asarray(lanes.data.mask)[fold0], 2, axis=1) & state.ok[fold0, None]
+        used = np.repeat(lanes.train_mask[fold0], 2, axis=1) & state.ok[fold0, None]
         a_cols = self.active_cols(state.effects) + self.shared_cols(state.effects)
         bases = prepare_bases(state.r[fold0], state.jac[fold0], used, a_cols, range(h))
         return {
@@ -289,7 +289,7 @@ class _Workflow:
         return p
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class Candidate:
     """A refitted finalist."""
 
@@ -305,7 +305,7 @@ class Candidate:
     passed: bool
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class Step:
     """One named effect."""
 
@@ -324,7 +324,7 @@ class Step:
     after: ModelState
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class DiscoveryResult:
     """Everything :func:`discover` found (``report`` is the report.json content).
 
@@ -408,29 +408,22 @@ def discover(
     Returns:
         A :class:`DiscoveryResult`; ``result.report`` is the report.json content.
     """
-    from .._calibration import CalibrationData, choose_start_geometry
-    from .._fleet import bucket_size, pad_fleet
-    from .._workflow import _with_geometry
-    from ..effects import effect_initial
-    from ._report import build_report
-
     config = dataclasses.replace(config or DiscoveryConfig(), **kwargs)
     say = progress or (lambda _m: None)
     t_start = time.perf_counter()
-    base_spec: ModelSpec = model_spec(config.base)
+    base = nominal_model(config.base, fleet.counts.dtype)
     n_real = sum(1 for i in fleet.ids if i)
     padded = pad_fleet(fleet, bucket_size(fleet.n_heliostats), bucket_size(fleet.n_records))
     if config.start == "auto":
-        geometry, _ = choose_start_geometry(padded, base_spec)
-        padded = _with_geometry(padded, geometry)
-    data = CalibrationData.from_fleet(padded)
-    layout = make_layout(base_spec, tuple(config.effects))
-    lanes = make_lanes(data, np.asarray(padded.record_id), config.n_folds)
-    engine = Engine.create(layout, lanes, config.fit)
+        geometry, _ = choose_start_geometry(padded, base)
+        padded = eqx.tree_at(lambda f: f.geometry, padded, geometry)
+    layout, template = make_layout(base, tuple(config.effects), padded)
+    lanes = make_lanes(padded, config.n_folds)
+    engine = Engine.create(layout, template, lanes, config.solver, config.max_steps, config.batching)
     wf = _Workflow(engine, config, say)
-    p0 = np.asarray(effect_initial(layout.spec, data))[lanes.heliostat]
+    p0 = np.broadcast_to(np.asarray(layout.view.to_vector(template)), (lanes.fold.shape[0], layout.view.n_parameters))
     say(f"{n_real} heliostats, {int(np.asarray(padded.mask).sum())} records; base {config.base}; "
-        f"{len(config.effects)} candidates; {config.n_folds} folds by day ({lanes.data.counts.shape[0]} lanes)")
+        f"{len(config.effects)} candidates; {config.n_folds} folds by day ({lanes.fold.shape[0]} lanes)")
     state = wf.fit_state((), p0)
     base_state = state
     say(f"base fitted ({state.fit_s:.1f} s): train RMS "
@@ -486,5 +479,4 @@ def discover(
     timing = {"total_s": time.perf_counter() - t_start}
     result = DiscoveryResult(config=config, fleet=padded, layout=layout, lanes=lanes, base=base_state, final=state,
                              steps=steps, screens=screens_log, candidates=candidates_log, report={}, timing=timing)
-    result.report = build_report(result)
-    return result
+    return dataclasses.replace(result, report=build_report(result))

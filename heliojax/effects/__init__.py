@@ -2,9 +2,9 @@
 
 An effect (:class:`AbstractEffect`) holds its own parameters and corrects one
 stage of a record's prediction (geometry, joint angles, sun, focal spot).
-:class:`EffectModel` ``(base, effects)`` is again a kinematic model, so the
+:class:`EffectModel` ``(inner, effects)`` is again a kinematic model, so the
 fit, the metrics and the simulator use it unchanged; :func:`with_effects`
-makes the matching :class:`~heliojax.ModelSpec` for :func:`heliojax.fit_fleet`.
+wraps a model with named effects for :func:`heliojax.fit`.
 
 The fixed list of effects (:data:`EFFECT_NAMES`):
 
@@ -50,39 +50,10 @@ from ._mechanical import (
 from ._spec import (
     EFFECT_CLASSES as EFFECT_CLASSES,
     EFFECT_NAMES as EFFECT_NAMES,
-    EffectSpecBuilder as EffectSpecBuilder,
-    base_kind_of as base_kind_of,
     data_references as data_references,
     effect_class as effect_class,
-    effect_initial as effect_initial,
     make_effect as make_effect,
+    with_data_references as with_data_references,
     with_effects as with_effects,
 )
 from ._survey import SurveyHeliostat as SurveyHeliostat, SurveyTarget as SurveyTarget
-
-__all__ = [
-    "EFFECT_CLASSES",
-    "EFFECT_NAMES",
-    "SOLAR_RATE_RAD_S",
-    "AbstractEffect",
-    "ActuatorGeometry",
-    "Backlash",
-    "Clock",
-    "EffectModel",
-    "EffectSpecBuilder",
-    "EncoderWobble",
-    "GravitySag",
-    "Refraction",
-    "SurveyHeliostat",
-    "SurveyTarget",
-    "Thermal",
-    "Wind",
-    "add_effects",
-    "base_kind_of",
-    "data_references",
-    "effect_class",
-    "effect_initial",
-    "make_effect",
-    "standard_refraction",
-    "with_effects",
-]

@@ -12,10 +12,14 @@ prediction, through hooks that default to the identity:
 3. ``adjust_sun`` - the sun direction the model believes in;
 4. ``adjust_focal`` - the measured focal spot (target survey).
 
-:class:`EffectModel` ``(base, effects)`` is again an
-:class:`~heliojax.AbstractKinematicModel`, so fitting, metrics and the
-simulator never special-case effects. With all effect parameters zero an
-:class:`EffectModel` predicts exactly what its base predicts.
+:class:`EffectModel` ``(inner, effects)`` is again an
+:class:`~heliojax.AbstractKinematicModel` (a wrapper of its inner model), so
+fitting, metrics and the simulator never special-case effects, and it composes
+with any other wrapper (the neural correction, another EffectModel) in any
+order. With all effect parameters zero an :class:`EffectModel` predicts exactly
+what its inner model predicts. An effect's parameters are fields declared with
+:func:`heliojax.parameter` (units, solver scale and typical size in the field
+metadata); data-derived constants with :func:`heliojax.reference`.
 
 Missing record inputs (``NaN`` weather or time, approach ``0``, or no context at
 all, as when a controller inverts the model) switch the corresponding
@@ -33,78 +37,30 @@ from jaxtyping import Array, Float
 
 from .._kinematics import (
     AbstractKinematicModel,
+    AbstractModelWrapper,
     HeliostatGeometry,
-    Pose,
     RecordContext,
-    beam_error_components,
-    beam_pointing_error,
     chain_pose,
 )
 
 
 class AbstractEffect(eqx.Module):
-    """One physical effect: its parameters, meaning, driving inputs and hooks.
+    """One physical effect: its parameters (fields), meaning, driving inputs and hooks.
 
-    Class attributes (documentation and model-spec construction):
+    Class attributes (documentation):
         NAME: the effect's name (one of :data:`heliojax.effects.EFFECT_NAMES`).
-        PARAM_NAMES: fitted parameters, in vector order (see :meth:`param_names`).
-        PARAM_UNITS: unit label per parameter.
-        PARAM_SCALES: the solver's unit per parameter (1 scaled unit changes the
-            beam by roughly 1 mrad).
-        TYPICAL_SIZES: a realistic physical size per parameter, documented a
-            priori; discovery judges the identifiability of strongly collinear
-            candidates at this size (:mod:`heliojax.discovery._identifiability`).
-        REFERENCE_NAMES: constants derived from the data (not fitted), such as a
-            reference temperature; :meth:`reference_defaults` gives defaults.
         DRIVERS: names of the record inputs the effect needs.
         NEEDS_NORMAL: whether :meth:`angle_correction` uses the mirror normal.
     """
 
     NAME: typing.ClassVar[str] = ""
-    PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ()
-    PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ()
-    PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = ()
-    TYPICAL_SIZES: typing.ClassVar[tuple[float, ...]] = ()
-    REFERENCE_NAMES: typing.ClassVar[tuple[str, ...]] = ()
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ()
     NEEDS_NORMAL: typing.ClassVar[bool] = False
 
-    # -- parameters ---------------------------------------------------------------
-
     @classmethod
-    def param_names(cls, base_kind: str = "stone8") -> tuple[str, ...]:
-        """Fitted parameter names for a base model kind (most effects ignore it)."""
-        del base_kind
-        return cls.PARAM_NAMES
-
-    @classmethod
-    def param_units(cls, base_kind: str = "stone8") -> tuple[str, ...]:
-        del base_kind
-        return cls.PARAM_UNITS
-
-    @classmethod
-    def param_scales(cls, base_kind: str = "stone8") -> tuple[float, ...]:
-        del base_kind
-        return cls.PARAM_SCALES
-
-    @classmethod
-    def typical_sizes(cls, base_kind: str = "stone8") -> tuple[float, ...]:
-        del base_kind
-        return cls.TYPICAL_SIZES
-
-    @classmethod
-    def reference_defaults(cls) -> tuple[float, ...]:
-        """Default values of the references (used when the data cannot set them)."""
-        return ()
-
-    @classmethod
-    def from_vector(cls, params, references, base_kind: str = "stone8") -> "AbstractEffect":
-        """The effect from its parameter vector (order :meth:`param_names`) and
-        its reference vector (order ``REFERENCE_NAMES``)."""
-        raise NotImplementedError
-
-    def to_vector(self, base_kind: str = "stone8") -> Float[Array, " k"]:
-        """The parameter vector (inverse of :meth:`from_vector`)."""
+    def nominal(cls, inner: AbstractKinematicModel, dtype: typing.Any = None) -> "AbstractEffect":
+        """The effect with every parameter at its no-effect value (references at
+        their defaults), for a model wrapping ``inner``."""
         raise NotImplementedError
 
     # -- hooks (identity by default) ----------------------------------------------
@@ -114,7 +70,6 @@ class AbstractEffect(eqx.Module):
 
     def angle_correction(
         self,
-        base: AbstractKinematicModel,
         geometry: HeliostatGeometry,
         counts: Float[Array, "2"],
         angles: Float[Array, "2"],
@@ -122,7 +77,7 @@ class AbstractEffect(eqx.Module):
         normal: Float[Array, "3"] | None,
     ) -> Float[Array, "2"] | None:
         """Additive joint-angle correction (rad), or None for none."""
-        del base, geometry, counts, angles, context, normal
+        del geometry, counts, angles, context, normal
         return None
 
     def adjust_sun(self, sun: Float[Array, "3"], context: RecordContext) -> Float[Array, "3"]:
@@ -140,87 +95,85 @@ def known(x, fill):
     return jnp.where(jnp.isfinite(x), x, fill)
 
 
+def zeros(dtype: typing.Any, *shape: int) -> Float[Array, "..."]:
+    """A zero parameter of ``shape`` (no-effect value)."""
+    return jnp.zeros(shape, dtype)
+
+
 @typing.final
-class EffectModel(AbstractKinematicModel):
-    """A base kinematic model extended by effects.
+class EffectModel(AbstractModelWrapper):
+    """A kinematic model extended by effects.
 
     Attributes:
-        base: the base model (:class:`~heliojax.StoneModel`,
-            :class:`~heliojax.ActuatorModel`, ...), whose pose is the standard
-            rotation chain :func:`heliojax._kinematics.chain_pose`.
+        inner: the wrapped model (a base model such as
+            :class:`~heliojax.StoneModel` or :class:`~heliojax.ActuatorModel`, or
+            another wrapper).
         effects: the effects, applied in the order given (their joint-angle
             corrections add up; sun and focal-spot adjustments compose).
 
-    :meth:`counts` inverts the *base* map only (controllers aim with the base
-    model); :meth:`joint_angles` includes the context-free angle corrections.
+    :meth:`counts` inverts the inner map only (controllers aim with the model
+    without effects); :meth:`joint_angles` includes the context-free angle corrections.
     """
 
-    base: AbstractKinematicModel
+    inner: AbstractKinematicModel
     effects: tuple[AbstractEffect, ...]
 
     def __check_init__(self):
-        if isinstance(self.base, EffectModel):
-            raise ValueError("EffectModel: nest effects with add_effects(model, effects), not by wrapping twice")
         for e in self.effects:
             if not isinstance(e, AbstractEffect):
                 raise TypeError(f"EffectModel: {e!r} is not an AbstractEffect")
+        names = [e.NAME for e in self.effects]
+        if len(set(names)) != len(names):
+            raise ValueError(f"EffectModel: repeated effect in {names}")
 
-    def tilts(self):
-        return self.base.tilts()
+    def label(self) -> str:
+        return "+".join([self.inner.label(), *(e.NAME for e in self.effects)])
 
-    def _geometry(self, geometry):
+    @property
+    def effect_names(self) -> tuple[str, ...]:
+        return tuple(e.NAME for e in self.effects)
+
+    def adjusted_geometry(self, geometry):
+        g = self.inner.adjusted_geometry(geometry)
         for e in self.effects:
-            geometry = e.adjust_geometry(geometry)
-        return geometry
+            g = e.adjust_geometry(g)
+        return g
 
-    def _angles(self, geometry, counts, context):
-        angles = self.base.joint_angles(geometry, counts)
+    def corrected_angles(self, geometry, counts, angles, context) -> Float[Array, "2"]:
+        """The inner model's joint ``angles`` (rad) of one record plus every effect's
+        correction (``geometry`` already adjusted)."""
         normal = None
         if any(e.NEEDS_NORMAL for e in self.effects):
-            normal = chain_pose(self.base.tilts(), angles, geometry).normal
+            normal = chain_pose(self.inner.tilts(), angles, geometry).normal
         total = angles
         for e in self.effects:
-            d = e.angle_correction(self.base, geometry, counts, angles, context, normal)
+            d = e.angle_correction(geometry, counts, angles, context, normal)
             if d is not None:
                 total = total + d
         return total
 
+    def record_angles(self, geometry, counts, context):
+        angles = self.inner.record_angles(geometry, counts, context)
+        return self.corrected_angles(geometry, counts, angles, context)
+
     def joint_angles(self, geometry, counts):
-        return self._angles(geometry, jnp.asarray(counts), None)
-
-    def counts(self, geometry, angles):
-        return self.base.counts(geometry, angles)
-
-    def pose(self, geometry, counts, context=None) -> Pose:
-        g = self._geometry(geometry)
-        angles = self._angles(g, jnp.asarray(counts), context)
-        return chain_pose(self.base.tilts(), angles, g)
+        return self.record_angles(geometry, jnp.asarray(counts), None)
 
     def sun(self, geometry, context):
-        s = self.base.sun(geometry, context)
+        s = self.inner.sun(geometry, context)
         for e in self.effects:
             s = e.adjust_sun(s, context)
         return s
 
-    def _focal(self, focal_spot, context):
-        f = jnp.asarray(focal_spot)
+    def spot(self, focal_spot, context):
+        f = self.inner.spot(focal_spot, context)
         for e in self.effects:
             f = e.adjust_focal(f, context)
         return f
 
-    def beam_components(self, geometry, counts, context, focal_spot):
-        return beam_error_components(
-            self.pose(geometry, counts, context), self.sun(geometry, context), self._focal(focal_spot, context)
-        )
-
-    def beam_error(self, geometry, counts, context, focal_spot):
-        return beam_pointing_error(
-            self.pose(geometry, counts, context), self.sun(geometry, context), self._focal(focal_spot, context)
-        )
-
 
 def add_effects(model: AbstractKinematicModel, effects: typing.Sequence[AbstractEffect]) -> EffectModel:
-    """``model`` with ``effects`` appended (flattens an :class:`EffectModel`)."""
+    """``model`` with ``effects`` appended (extends an :class:`EffectModel`'s own list)."""
     if isinstance(model, EffectModel):
-        return EffectModel(model.base, tuple(model.effects) + tuple(effects))
+        return EffectModel(model.inner, tuple(model.effects) + tuple(effects))
     return EffectModel(model, tuple(effects))

@@ -9,7 +9,9 @@ import typing
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._base import AbstractEffect, known
+from .._parameters import parameter
+from .._parameters import reference as data_reference
+from ._base import AbstractEffect, known, zeros
 
 SOLAR_RATE_RAD_S = 2.0 * math.pi / 86400.0
 """Rate of the sun's hour angle (rad/s): one turn per mean solar day."""
@@ -35,30 +37,17 @@ class Thermal(AbstractEffect):
     of the pose.
     """
 
-    coefficient: Float[Array, "2"]
-    reference: Float[Array, ""]
+    coefficient: Float[Array, "2"] = parameter(unit="rad/K", scale=1e-4, typical=1.5e-5, name="thermal", shape=(2,))
+    reference: Float[Array, ""] = data_reference(unit="deg C", default=20.0, name="thermal_reference_c")
 
     NAME: typing.ClassVar[str] = "thermal"
-    PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("thermal_1", "thermal_2")
-    PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("rad/K", "rad/K")
-    PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (1e-4, 1e-4)
-    TYPICAL_SIZES: typing.ClassVar[tuple[float, ...]] = (1.5e-5, 1.5e-5)
-    REFERENCE_NAMES: typing.ClassVar[tuple[str, ...]] = ("thermal_reference_c",)
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("temperature",)
 
     @classmethod
-    def reference_defaults(cls):
-        return (20.0,)
+    def nominal(cls, inner, dtype=None):
+        return cls(coefficient=zeros(dtype, 2), reference=jnp.asarray(20.0, dtype))
 
-    @classmethod
-    def from_vector(cls, params, references=(20.0,), base_kind="stone8"):
-        p = jnp.asarray(params)
-        return cls(coefficient=p[0:2], reference=jnp.asarray(references[0], p.dtype))
-
-    def to_vector(self, base_kind="stone8"):
-        return self.coefficient
-
-    def angle_correction(self, base, geometry, counts, angles, context, normal):
+    def angle_correction(self, geometry, counts, angles, context, normal):
         if context is None:
             return None
         dt = known(context.temperature, self.reference) - self.reference
@@ -86,24 +75,19 @@ class Wind(AbstractEffect):
     direction relative to the mirror.
     """
 
-    coefficient: Float[Array, "2"]
+    coefficient: Float[Array, "2"] = parameter(
+        unit="rad/(m/s)^2", scale=1e-5, typical=5e-6, name="wind", shape=(2,)
+    )
 
     NAME: typing.ClassVar[str] = "wind"
-    PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("wind_1", "wind_2")
-    PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("rad/(m/s)^2", "rad/(m/s)^2")
-    PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (1e-5, 1e-5)
-    TYPICAL_SIZES: typing.ClassVar[tuple[float, ...]] = (5e-6, 5e-6)
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("wind_speed", "wind_direction")
     NEEDS_NORMAL: typing.ClassVar[bool] = True
 
     @classmethod
-    def from_vector(cls, params, references=(), base_kind="stone8"):
-        return cls(coefficient=jnp.asarray(params)[0:2])
+    def nominal(cls, inner, dtype=None):
+        return cls(coefficient=zeros(dtype, 2))
 
-    def to_vector(self, base_kind="stone8"):
-        return self.coefficient
-
-    def angle_correction(self, base, geometry, counts, angles, context, normal):
+    def angle_correction(self, geometry, counts, angles, context, normal):
         if context is None:
             return None
         ok = jnp.isfinite(context.wind_speed) & jnp.isfinite(context.wind_direction)
@@ -145,35 +129,22 @@ class Clock(AbstractEffect):
     absorbed by the base model's tilts.
     """
 
-    offset: Float[Array, ""]
-    drift: Float[Array, ""]
-    reference: Float[Array, ""]
-    latitude_deg: Float[Array, ""]
+    offset: Float[Array, ""] = parameter(unit="s", scale=10.0, typical=10.0, name="clock_offset")
+    drift: Float[Array, ""] = parameter(unit="s/day", scale=0.1, typical=0.1, name="clock_drift")
+    reference: Float[Array, ""] = data_reference(unit="s", default=1.65e9, name="clock_reference_s")
+    latitude_deg: Float[Array, ""] = data_reference(unit="deg", default=DEFAULT_LATITUDE_DEG, name="clock_latitude_deg")
 
     NAME: typing.ClassVar[str] = "clock"
-    PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("clock_offset", "clock_drift")
-    PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("s", "s/day")
-    PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (10.0, 0.1)
-    TYPICAL_SIZES: typing.ClassVar[tuple[float, ...]] = (10.0, 0.1)
-    REFERENCE_NAMES: typing.ClassVar[tuple[str, ...]] = ("clock_reference_s", "clock_latitude_deg")
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("unix_time",)
 
     @classmethod
-    def reference_defaults(cls):
-        return (1.65e9, DEFAULT_LATITUDE_DEG)
-
-    @classmethod
-    def from_vector(cls, params, references=(1.65e9, DEFAULT_LATITUDE_DEG), base_kind="stone8"):
-        p = jnp.asarray(params)
+    def nominal(cls, inner, dtype=None):
         return cls(
-            offset=p[0],
-            drift=p[1],
-            reference=jnp.asarray(references[0], p.dtype),
-            latitude_deg=jnp.asarray(references[1], p.dtype),
+            offset=zeros(dtype),
+            drift=zeros(dtype),
+            reference=jnp.asarray(1.65e9, dtype),
+            latitude_deg=jnp.asarray(DEFAULT_LATITUDE_DEG, dtype),
         )
-
-    def to_vector(self, base_kind="stone8"):
-        return jnp.stack([self.offset, self.drift])
 
     def clock_error(self, unix_time) -> Float[Array, "..."]:
         """``dt`` (s) at ``unix_time`` (0 where the time is unknown)."""
@@ -213,21 +184,14 @@ class Refraction(AbstractEffect):
     signature: vertical, growing steeply toward low elevations (~cot e).
     """
 
-    scale: Float[Array, ""]
+    scale: Float[Array, ""] = parameter(unit="1", scale=1.0, typical=1.0, name="refraction_scale")
 
     NAME: typing.ClassVar[str] = "refraction"
-    PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("refraction_scale",)
-    PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("1",)
-    PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (1.0,)
-    TYPICAL_SIZES: typing.ClassVar[tuple[float, ...]] = (1.0,)
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("sun_elevation",)
 
     @classmethod
-    def from_vector(cls, params, references=(), base_kind="stone8"):
-        return cls(scale=jnp.asarray(params)[0])
-
-    def to_vector(self, base_kind="stone8"):
-        return jnp.reshape(self.scale, (1,))
+    def nominal(cls, inner, dtype=None):
+        return cls(scale=zeros(dtype))
 
     def adjust_sun(self, sun, context):
         horizontal = jnp.sqrt(jnp.clip(sun[0] ** 2 + sun[1] ** 2, 1e-30))

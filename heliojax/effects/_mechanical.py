@@ -13,7 +13,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._base import AbstractEffect
+from .._parameters import parameter
+from ._base import AbstractEffect, zeros
 
 
 @typing.final
@@ -43,54 +44,29 @@ class ActuatorGeometry(AbstractEffect):
     function of each axis's counts (its linear part is absorbed by the base's
     gear ratio / increment scale and offset).
 
-    The fitted parameters depend on the base: ``curvature_1, curvature_2`` for
-    ``stone8``, ``pivot_scale_1, pivot_scale_2`` for ``actuator``.
+    The fitted parameters depend on the base's joint law (``law``, static):
+    ``curvature_1, curvature_2`` for a linear base (``stone8``),
+    ``pivot_scale_1, pivot_scale_2`` for a base that follows the actuator law
+    (``actuator``); the other pair stays 0.
     """
 
-    curvature: Float[Array, "2"]
-    pivot_scale: Float[Array, "2"]
+    curvature: Float[Array, "2"] = parameter(unit="1", scale=0.05, typical=1.0, shape=(2,))
+    pivot_scale: Float[Array, "2"] = parameter(unit="1", scale=0.01, typical=0.01, shape=(2,))
+    law: str = eqx.field(static=True, default="linear")
 
     NAME: typing.ClassVar[str] = "actuator_geometry"
-    PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("curvature_1", "curvature_2")
-    PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("1", "1")
-    PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (0.05, 0.05)
-    TYPICAL_SIZES: typing.ClassVar[tuple[float, ...]] = (1.0, 1.0)
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("counts",)
 
     @classmethod
-    def _linear_base(cls, base_kind: str) -> bool:
-        return not base_kind.startswith("actuator")
+    def nominal(cls, inner, dtype=None):
+        law = getattr(inner.base if hasattr(inner, "base") else inner, "JOINT_LAW", "linear")
+        return cls(curvature=zeros(dtype, 2), pivot_scale=zeros(dtype, 2), law=law)
 
-    @classmethod
-    def param_names(cls, base_kind="stone8"):
-        return ("curvature_1", "curvature_2") if cls._linear_base(base_kind) else ("pivot_scale_1", "pivot_scale_2")
+    def fixed_parameter_fields(self) -> tuple[str, ...]:
+        """A linear base fits the curvature, a base following the law the pivot scale."""
+        return ("pivot_scale",) if self.law == "linear" else ("curvature",)
 
-    @classmethod
-    def param_units(cls, base_kind="stone8"):
-        return ("1", "1")
-
-    @classmethod
-    def param_scales(cls, base_kind="stone8"):
-        return (0.05, 0.05) if cls._linear_base(base_kind) else (0.01, 0.01)
-
-    @classmethod
-    def typical_sizes(cls, base_kind="stone8"):
-        # the full nominal curvature (a linear model on linear actuators misses all of
-        # it); a 1 % pivot-radius error (fabrication / survey tolerance)
-        return (1.0, 1.0) if cls._linear_base(base_kind) else (0.01, 0.01)
-
-    @classmethod
-    def from_vector(cls, params, references=(), base_kind="stone8"):
-        p = jnp.asarray(params)
-        z = jnp.zeros(2, p.dtype)
-        if cls._linear_base(base_kind):
-            return cls(curvature=p[0:2], pivot_scale=z)
-        return cls(curvature=z, pivot_scale=p[0:2])
-
-    def to_vector(self, base_kind="stone8"):
-        return self.curvature if self._linear_base(base_kind) else self.pivot_scale
-
-    def angle_correction(self, base, geometry, counts, angles, context, normal):
+    def angle_correction(self, geometry, counts, angles, context, normal):
         act = geometry.actuators
         law = act.counts_to_angles(counts)
         line = geometry.linear_slope * counts + geometry.linear_intercept
@@ -119,23 +95,16 @@ class Backlash(AbstractEffect):
     the pose (needs both directions in the data).
     """
 
-    width: Float[Array, "2"]
+    width: Float[Array, "2"] = parameter(unit="rad", scale=1e-3, typical=3e-4, name="backlash", shape=(2,))
 
     NAME: typing.ClassVar[str] = "backlash"
-    PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("backlash_1", "backlash_2")
-    PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("rad", "rad")
-    PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (1e-3, 1e-3)
-    TYPICAL_SIZES: typing.ClassVar[tuple[float, ...]] = (3e-4, 3e-4)
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("approach",)
 
     @classmethod
-    def from_vector(cls, params, references=(), base_kind="stone8"):
-        return cls(width=jnp.asarray(params)[0:2])
+    def nominal(cls, inner, dtype=None):
+        return cls(width=zeros(dtype, 2))
 
-    def to_vector(self, base_kind="stone8"):
-        return self.width
-
-    def angle_correction(self, base, geometry, counts, angles, context, normal):
+    def angle_correction(self, geometry, counts, angles, context, normal):
         if context is None:
             return None
         a = jnp.where(jnp.isfinite(context.approach), context.approach, 0.0)
@@ -160,24 +129,17 @@ class GravitySag(AbstractEffect):
     by the base model's axis-1 offset and gear ratio.
     """
 
-    sag: Float[Array, ""]
+    sag: Float[Array, ""] = parameter(unit="rad", scale=1e-3, typical=1e-3, name="gravity_sag")
 
     NAME: typing.ClassVar[str] = "gravity_sag"
-    PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("gravity_sag",)
-    PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("rad",)
-    PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (1e-3,)
-    TYPICAL_SIZES: typing.ClassVar[tuple[float, ...]] = (1e-3,)
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("normal_elevation",)
     NEEDS_NORMAL: typing.ClassVar[bool] = True
 
     @classmethod
-    def from_vector(cls, params, references=(), base_kind="stone8"):
-        return cls(sag=jnp.asarray(params)[0])
+    def nominal(cls, inner, dtype=None):
+        return cls(sag=zeros(dtype))
 
-    def to_vector(self, base_kind="stone8"):
-        return jnp.reshape(self.sag, (1,))
-
-    def angle_correction(self, base, geometry, counts, angles, context, normal):
+    def angle_correction(self, geometry, counts, angles, context, normal):
         cos_e = jnp.sqrt(jnp.clip(normal[0] ** 2 + normal[1] ** 2, 0.0, 1.0))
         return jnp.stack([self.sag * cos_e, jnp.zeros_like(cos_e)])
 
@@ -199,25 +161,17 @@ class EncoderWobble(AbstractEffect):
     sinusoid of ``n`` times each joint angle.
     """
 
-    a: Float[Array, "2"]
-    b: Float[Array, "2"]
+    a: Float[Array, "2"] = parameter(unit="rad", scale=1e-3, typical=3e-4, name="wobble_cos", shape=(2,))
+    b: Float[Array, "2"] = parameter(unit="rad", scale=1e-3, typical=3e-4, name="wobble_sin", shape=(2,))
     n: int = eqx.field(static=True, default=2)
 
     NAME: typing.ClassVar[str] = "encoder_wobble"
-    PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("wobble_cos_1", "wobble_sin_1", "wobble_cos_2", "wobble_sin_2")
-    PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("rad",) * 4
-    PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (1e-3,) * 4
-    TYPICAL_SIZES: typing.ClassVar[tuple[float, ...]] = (3e-4,) * 4
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("joint_angles",)
 
     @classmethod
-    def from_vector(cls, params, references=(), base_kind="stone8"):
-        p = jnp.asarray(params)
-        return cls(a=jnp.stack([p[0], p[2]]), b=jnp.stack([p[1], p[3]]))
+    def nominal(cls, inner, dtype=None):
+        return cls(a=zeros(dtype, 2), b=zeros(dtype, 2))
 
-    def to_vector(self, base_kind="stone8"):
-        return jnp.stack([self.a[0], self.b[0], self.a[1], self.b[1]])
-
-    def angle_correction(self, base, geometry, counts, angles, context, normal):
+    def angle_correction(self, geometry, counts, angles, context, normal):
         return self.a * jnp.cos(self.n * angles) + self.b * jnp.sin(self.n * angles)
 

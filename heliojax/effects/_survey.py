@@ -5,10 +5,10 @@ from __future__ import annotations
 import typing
 
 import equinox as eqx
-import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._base import AbstractEffect
+from .._parameters import parameter
+from ._base import AbstractEffect, zeros
 
 
 @typing.final
@@ -26,21 +26,16 @@ class SurveyHeliostat(AbstractEffect):
     only through the small variation of the mirror centre with the pose.
     """
 
-    delta: Float[Array, "3"]
+    delta: Float[Array, "3"] = parameter(
+        unit="m", scale=0.1, typical=0.05, name="survey_heliostat", shape=(3,), suffixes=("e", "n", "u")
+    )
 
     NAME: typing.ClassVar[str] = "survey_heliostat"
-    PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("survey_heliostat_e", "survey_heliostat_n", "survey_heliostat_u")
-    PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("m", "m", "m")
-    PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (0.1, 0.1, 0.1)
-    TYPICAL_SIZES: typing.ClassVar[tuple[float, ...]] = (0.05, 0.05, 0.05)
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ()
 
     @classmethod
-    def from_vector(cls, params, references=(), base_kind="stone8"):
-        return cls(delta=jnp.asarray(params)[0:3])
-
-    def to_vector(self, base_kind="stone8"):
-        return self.delta
+    def nominal(cls, inner, dtype=None):
+        return cls(delta=zeros(dtype, 3))
 
     def adjust_geometry(self, geometry):
         return eqx.tree_at(lambda g: g.position, geometry, geometry.position + self.delta)
@@ -61,21 +56,16 @@ class SurveyTarget(AbstractEffect):
     heliostat - largely absorbed by each heliostat's tilts.
     """
 
-    delta: Float[Array, "3"]
+    delta: Float[Array, "3"] = parameter(
+        unit="m", scale=0.1, typical=0.05, name="survey_target", shape=(3,), suffixes=("e", "n", "u")
+    )
 
     NAME: typing.ClassVar[str] = "survey_target"
-    PARAM_NAMES: typing.ClassVar[tuple[str, ...]] = ("survey_target_e", "survey_target_n", "survey_target_u")
-    PARAM_UNITS: typing.ClassVar[tuple[str, ...]] = ("m", "m", "m")
-    PARAM_SCALES: typing.ClassVar[tuple[float, ...]] = (0.1, 0.1, 0.1)
-    TYPICAL_SIZES: typing.ClassVar[tuple[float, ...]] = (0.05, 0.05, 0.05)
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ()
 
     @classmethod
-    def from_vector(cls, params, references=(), base_kind="stone8"):
-        return cls(delta=jnp.asarray(params)[0:3])
-
-    def to_vector(self, base_kind="stone8"):
-        return self.delta
+    def nominal(cls, inner, dtype=None):
+        return cls(delta=zeros(dtype, 3))
 
     def adjust_focal(self, focal_spot, context):
         return focal_spot + self.delta

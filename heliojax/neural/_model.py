@@ -41,6 +41,7 @@ from jaxtyping import Array, Float
 from .._geometry import normalize
 from .._kinematics import (
     AbstractKinematicModel,
+    AbstractModelWrapper,
     HeliostatGeometry,
     beam_error_components,
     beam_pointing_error,
@@ -57,23 +58,25 @@ def _count_features(geometry: HeliostatGeometry, counts):
 
 
 @typing.final
-class NeuralCorrection(AbstractKinematicModel):
-    """Physics model + learned joint-angle correction (the residual variant).
+class NeuralCorrection(AbstractModelWrapper):
+    """A model + learned joint-angle correction (the residual variant).
+
+    A wrapper: every hook of the inner model (effects included) is kept, and the
+    network's correction is added to the inner model's joint angles.
 
     Attributes:
-        base: the fitted physics model (:class:`heliojax.StoneModel` or
-            :class:`heliojax.ActuatorModel`; its own :meth:`pose` override, if any,
-            is bypassed: the chain is rebuilt from its tilts and corrected angles).
+        inner: the fitted model (:class:`heliojax.StoneModel`,
+            :class:`heliojax.ActuatorModel`, an effect-wrapped model, ...).
         network: ``2 -> ... -> 2`` :class:`MLP` of the normalised counts.
         scale: rad per network output unit (scalar).
     """
 
-    base: AbstractKinematicModel
+    inner: AbstractKinematicModel
     network: MLP
     scale: Float[Array, ""]
 
-    def tilts(self):
-        return self.base.tilts()
+    def label(self) -> str:
+        return f"{self.inner.label()}+nn"
 
     def correction(self, geometry: HeliostatGeometry, counts: Float[Array, "2"]) -> Float[Array, "2"]:
         """Joint-angle correction (rad) at motor counts ``counts``."""
@@ -82,13 +85,16 @@ class NeuralCorrection(AbstractKinematicModel):
         return out.astype(counts.dtype) * self.scale
 
     def joint_angles(self, geometry, counts):
-        return self.base.joint_angles(geometry, counts) + self.correction(geometry, counts)
+        return self.inner.joint_angles(geometry, counts) + self.correction(geometry, counts)
+
+    def record_angles(self, geometry, counts, context):
+        return self.inner.record_angles(geometry, counts, context) + self.correction(geometry, counts)
 
     def counts(self, geometry, angles, iterations: int = 4):
         """Inverse by fixed-point iteration on the (small, smooth) correction."""
-        c = self.base.counts(geometry, angles)
+        c = self.inner.counts(geometry, angles)
         for _ in range(iterations):
-            c = self.base.counts(geometry, angles - self.correction(geometry, c))
+            c = self.inner.counts(geometry, angles - self.correction(geometry, c))
         return c
 
 

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import optax
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
-from .._calibration import _sanitise
+from ..fit import sanitise
 from .._geometry import direction_to_azimuth_elevation, sun_direction
 from .._kinematics import AbstractKinematicModel, HeliostatGeometry, RecordContext, inverse_aim
 from ._model import NeuralCorrection, PaperPredictor
@@ -378,7 +378,7 @@ def _finetune_residual_program(keys, nets, models, geometry, counts, context, fo
 
     def one(key, net, model, g, c, x, f, sc, wf, wv):
         use = (wf > 0) | (wv > 0)
-        c2, x2, f2, ok, _ = _sanitise(g, c, x, f, use)
+        c2, x2, f2, ok, _ = sanitise(g, c, x, f, use)
         dt = net.weights[0].dtype
         return _train(net, _residual_loss(model, g, sc, config.residual_huber_mrad), (c2, x2, f2),
                       (wf * ok).astype(dt), (wv * ok).astype(dt), key, sch)

@@ -26,8 +26,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._calibration import FitConfig, FitStatus, _sanitise, beam_errors_mrad
+from ..fit import FitStatus, beam_errors_mrad, residuals_mrad, sanitise
 from .._errors import ConfigError
+from .._fleet import fleet_subset
 from .._workflow import CalibrationRun, _json_float, _stats, calibrate
 from ._model import NeuralCorrection, PaperPredictor, paper_beam_components, paper_beam_error
 from ._train import (
@@ -101,23 +102,13 @@ def _median(x):
 
 
 @eqx.filter_jit
-def _residual_outputs(models, geometry, counts, context, focal, mask):
-    def per(model, g, c, x, f, m):
-        c2, x2, f2, use, _ = _sanitise(g, c, x, f, m)
-        r = jax.vmap(lambda ci, xi, fi: model.beam_components(g, ci, xi, fi))(c2, x2, f2) * 1e3
-        return jnp.where(use[:, None], r, jnp.nan)
-
-    return jax.vmap(per)(models, geometry, counts, context, focal, mask)
-
-
-@eqx.filter_jit
 def paper_errors_mrad(lm_models, predictors, geometry, counts, context, focal, mask):
     """Beam error (mrad) and its components ``(H, M)``, ``(H, M, 2)`` of the paper
     variant's predicted counts (see :mod:`heliojax.neural._model`); also the
     predicted counts ``(H, M, 2)``. NaN where ``mask`` is False."""
 
     def per(model, pred, g, c, x, f, m):
-        c2, x2, f2, use, _ = _sanitise(g, c, x, f, m)
+        c2, x2, f2, use, _ = sanitise(g, c, x, f, m)
         chat = jax.vmap(pred)(x2.sun, f2)
         e = jax.vmap(lambda ci, hi, si, fi: paper_beam_error(model, g, ci, hi, si, fi))(c2, chat, x2.sun, f2)
         r = jax.vmap(lambda ci, hi, si, fi: paper_beam_components(model, g, ci, hi, si, fi))(c2, chat, x2.sun, f2)
@@ -146,7 +137,7 @@ def train_neural(lm: CalibrationRun, variant: str = "residual", nn: NeuralConfig
     fit_mask = np.asarray(fit_mask) & np.asarray(fleet.mask)
     val_mask = np.asarray(val_mask) & np.asarray(fleet.mask)
     h = fit_mask.shape[0]
-    base = lm.result.models()
+    base = lm.result.model
     key = jax.random.key(seed)
     k_init, k_pre, k_ft = jax.random.split(key, 3)
     dt = fleet.counts.dtype
@@ -221,7 +212,7 @@ def calibrate_neural(
     n_train: int | None = None,
     train_fraction: float | None = 0.7,
     seed: int = 42,
-    config: FitConfig = FitConfig(),
+    fit_options: dict | None = None,
     nn: NeuralConfig = NeuralConfig(),
     start: str = "auto",
     lm_run: CalibrationRun | None = None,
@@ -237,7 +228,7 @@ def calibrate_neural(
         split, n_train, train_fraction, seed: as :func:`heliojax.calibrate` (no LM
             validation records: the network carves its own, see the module
             docstring); ``seed`` also seeds the networks.
-        config: LM solver settings.
+        fit_options: keyword arguments of :func:`heliojax.fit` for the LM fit.
         nn: :class:`NeuralConfig`.
         start: LM start geometry.
         lm_run: reuse this LM run (same fleet and split) instead of fitting again.
@@ -248,17 +239,17 @@ def calibrate_neural(
     say = progress or (lambda _m: None)
     if lm_run is None:
         lm_run = calibrate(fleet, model=model, split=split, n_train=n_train, n_val=0, train_fraction=train_fraction,
-                           seed=seed, config=config, start=start, progress=progress)
+                           seed=seed, fit_options=fit_options, start=start, progress=progress)
     lm = lm_run
     if lm.test_errors_mrad is not None:
         raise ConfigError("a neural correction cannot be evaluated on --test-data yet; use a split")
     pf = lm.fleet
     models, fit_mask, val_mask, timing = train_neural(lm, variant, nn, seed=seed, progress=progress)
     valid = jnp.asarray(pf.mask)
-    base = lm.result.models()
+    base = lm.result.model
     if variant == "residual":
         nn_err = np.asarray(beam_errors_mrad(models, pf.geometry, pf.counts, pf.context, pf.focal_spot, valid))
-        nn_res = np.asarray(_residual_outputs(models, pf.geometry, pf.counts, pf.context, pf.focal_spot, valid))
+        nn_res = np.asarray(residuals_mrad(models, pf.geometry, pf.counts, pf.context, pf.focal_spot, valid))
     else:
         e, r, _ = paper_errors_mrad(base, models, pf.geometry, pf.counts, pf.context, pf.focal_spot, valid)
         nn_err, nn_res = np.asarray(e), np.asarray(r)
@@ -271,10 +262,10 @@ def calibrate_neural(
     fb_full[n_real:] = True
     errors = np.where(fb_full[:, None], lm.errors_mrad, nn_err)
     residuals = np.where(fb_full[:, None, None], lm.residuals_mrad, nn_res)
-    spec = dataclasses.replace(lm.spec, kind=f"{lm.spec.kind}+nn")
-    run = dataclasses.replace(lm, spec=spec, errors_mrad=errors, residuals_mrad=residuals)
+    kind = f"{lm.model0.label()}+nn"
+    run = dataclasses.replace(lm, errors_mrad=errors, residuals_mrad=residuals)
     summary = _neural_summary(lm, errors, nn_err, fit_mask, val_mask, fallback, reason, lm_val, nn_val,
-                              variant, nn, timing, spec.kind)
+                              variant, nn, timing, kind)
     run = dataclasses.replace(run, summary=summary)
     n_fb = int(fallback.sum())
     say(f"{variant} network: {n_real - n_fb}/{n_real} heliostats use it, {n_fb} fall back to LM")
@@ -350,7 +341,7 @@ def learning_curve(
     test_fraction: float = 0.3,
     min_train: int | None = None,
     seed: int = 42,
-    config: FitConfig = FitConfig(),
+    fit_options: dict | None = None,
     nn: NeuralConfig = NeuralConfig(),
     progress: Callable[[str], None] | None = None,
 ) -> list[dict]:
@@ -369,8 +360,6 @@ def learning_curve(
     ``"paper_raw"``: without), ``fleet_median_mrad`` (pooled test records),
     ``per_heliostat`` {id: median}, ``n_fallback``.
     """
-    from .._fleet import fleet_subset
-
     sizes = sorted(int(n) for n in sizes)
     min_train = max(sizes) if min_train is None else int(min_train)
     mask = np.asarray(fleet.mask)
@@ -392,7 +381,7 @@ def learning_curve(
             m[i, test_idx] = True
         masked = eqx.tree_at(lambda f: f.mask, sub, jnp.asarray(m))
         lm = calibrate(masked, model=model, split="time", n_train=n, n_val=0, train_fraction=None, seed=seed,
-                       config=config, progress=None)
+                       fit_options=fit_options, progress=None)
         ids = [h for h in lm.summary["heliostats"]]
 
         def row(method, errors, fb=None):

@@ -1,0 +1,360 @@
+"""Parameters are fields of the model pytree: units, solver scale and typical size
+live in the field's metadata, the free set is a boolean pytree of the model's shape.
+
+A kinematic model (:class:`heliojax.StoneModel`, :class:`heliojax.ActuatorModel`,
+an effect, a wrapper of them) is an :class:`equinox.Module`. Each fitted number
+is a field declared with :func:`parameter`::
+
+    class Backlash(AbstractEffect):
+        width: Float[Array, "2"] = parameter(unit="rad", scale=1e-3, typical=3e-4, name="backlash")
+
+and each data-derived constant (a reference temperature, say) with
+:func:`reference`. Nothing else describes the parameters: their names, order,
+units and the solver's scaled vector are *derived* from the pytree by
+:class:`ParameterView` (the one flat view the Levenberg-Marquardt solver and the
+reports need). Which parameters are fitted is a pytree of booleans with the
+model's structure (:func:`default_free`; change it with :func:`equinox.tree_at`),
+so the free set is a partition of the model, not a list of name strings.
+
+Names: a scalar field is named after the field (or its ``name``); a field of
+shape ``(k,)`` gives ``name_1 .. name_k`` (or ``name_<suffix>`` with
+``suffixes``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+from collections.abc import Iterator, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+_META = "heliojax"
+
+PathStep = str | int
+Path = tuple[PathStep, ...]
+
+
+@dataclasses.dataclass(frozen=True)
+class ParameterInfo:
+    """What a parameter field declares (see :func:`parameter`)."""
+
+    unit: str
+    scale: float
+    typical: float | None
+    name: str | None
+    shape: tuple[int, ...]
+    suffixes: tuple[str, ...] | None
+    nominal: float
+
+
+@dataclasses.dataclass(frozen=True)
+class ReferenceInfo:
+    """What a reference field declares (see :func:`reference`)."""
+
+    unit: str
+    name: str | None
+    default: float
+
+
+def parameter(
+    *,
+    unit: str,
+    scale: float,
+    typical: float | None = None,
+    name: str | None = None,
+    shape: tuple[int, ...] = (),
+    suffixes: Sequence[str] | None = None,
+    nominal: float = 0.0,
+    **kwargs: typing.Any,
+) -> typing.Any:
+    """An :func:`equinox.field` that declares a fitted parameter.
+
+    Args:
+        unit: physical unit label (``"rad"``, ``"1"``, ``"m"``, ...).
+        scale: physical units per unit of the solver's scaled vector (chosen so
+            that one scaled unit moves the beam by roughly 1-10 mrad, making the
+            solver's tolerances read in physical terms).
+        typical: a realistic physical size, documented a priori (discovery judges
+            identifiability at this size).
+        name: report name (default: the field name).
+        shape: the field's shape for one heliostat (``()`` or ``(k,)``).
+        suffixes: element name suffixes for ``shape == (k,)`` (default ``1..k``).
+        nominal: the value that means "no correction".
+    """
+    info = ParameterInfo(
+        unit=unit,
+        scale=float(scale),
+        typical=None if typical is None else float(typical),
+        name=name,
+        shape=tuple(shape),
+        suffixes=None if suffixes is None else tuple(suffixes),
+        nominal=float(nominal),
+    )
+    return eqx.field(metadata={_META: info}, **kwargs)
+
+
+def reference(*, unit: str, default: float, name: str | None = None, **kwargs: typing.Any) -> typing.Any:
+    """An :func:`equinox.field` that declares a data-derived constant (never fitted),
+    e.g. the reference temperature of a thermal effect. ``default`` is used when the
+    data cannot set it."""
+    return eqx.field(metadata={_META: ReferenceInfo(unit=unit, name=name, default=float(default))}, **kwargs)
+
+
+@dataclasses.dataclass(frozen=True)
+class ParameterLeaf:
+    """One parameter field found in a model pytree.
+
+    Attributes:
+        path: attribute names / tuple indices from the root model to the field.
+        info: its :class:`ParameterInfo`.
+        names: element names (``size`` of them).
+        fixed_by_model: the owning module declares it not fitted by default.
+    """
+
+    path: Path
+    info: ParameterInfo
+    names: tuple[str, ...]
+    fixed_by_model: bool
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.info.shape, dtype=int))
+
+
+@dataclasses.dataclass(frozen=True)
+class ReferenceLeaf:
+    """One reference field found in a model pytree."""
+
+    path: Path
+    info: ReferenceInfo
+    name: str
+
+
+def _element_names(name: str, info: ParameterInfo) -> tuple[str, ...]:
+    if info.shape == ():
+        return (name,)
+    (k,) = info.shape
+    suffixes = info.suffixes or tuple(str(i + 1) for i in range(k))
+    if len(suffixes) != k:
+        raise ValueError(f"parameter {name!r}: {len(suffixes)} suffixes for shape {info.shape}")
+    return tuple(f"{name}_{s}" for s in suffixes)
+
+
+def _walk(node: typing.Any, path: Path) -> Iterator[ParameterLeaf | ReferenceLeaf]:
+    if isinstance(node, eqx.Module):
+        fixed = set(getattr(node, "fixed_parameter_fields", lambda: ())())
+        for f in dataclasses.fields(node):
+            meta = f.metadata.get(_META)
+            if isinstance(meta, ParameterInfo):
+                name = meta.name or f.name
+                yield ParameterLeaf(path + (f.name,), meta, _element_names(name, meta), f.name in fixed)
+            elif isinstance(meta, ReferenceInfo):
+                yield ReferenceLeaf(path + (f.name,), meta, meta.name or f.name)
+            elif not f.metadata.get("static", False):
+                yield from _walk(getattr(node, f.name), path + (f.name,))
+    elif isinstance(node, (tuple, list)):
+        for i, v in enumerate(node):
+            yield from _walk(v, path + (i,))
+
+
+def _get(node: typing.Any, path: Path) -> typing.Any:
+    for step in path:
+        node = node[step] if isinstance(step, int) else getattr(node, step)
+    return node
+
+
+def parameter_leaves(model: eqx.Module) -> tuple[ParameterLeaf, ...]:
+    """Every parameter field of ``model``, in pytree order."""
+    return tuple(x for x in _walk(model, ()) if isinstance(x, ParameterLeaf))
+
+
+def reference_leaves(model: eqx.Module) -> tuple[ReferenceLeaf, ...]:
+    """Every reference field of ``model``, in pytree order."""
+    return tuple(x for x in _walk(model, ()) if isinstance(x, ReferenceLeaf))
+
+
+def _bool_tree(model: eqx.Module, value: bool) -> typing.Any:
+    return jax.tree.map(lambda _: value, model)
+
+
+def default_free(model: eqx.Module) -> typing.Any:
+    """The default free set of ``model``: a pytree of booleans with the model's
+    structure, True for every parameter its module does not declare fixed
+    (references and other leaves False). Change it with
+    ``eqx.tree_at(lambda m: m.stroke_offset, free, True)``."""
+    leaves = [leaf for leaf in parameter_leaves(model) if not leaf.fixed_by_model]
+    free = _bool_tree(model, False)
+    if not leaves:
+        return free
+    return eqx.tree_at(lambda t: [_get(t, leaf.path) for leaf in leaves], free, [True] * len(leaves))
+
+
+def no_free(model: eqx.Module) -> typing.Any:
+    """A free set with nothing free (a model evaluated as it is)."""
+    return _bool_tree(model, False)
+
+
+def _is_free(free: typing.Any, leaf: ParameterLeaf) -> bool:
+    value = _get(free, leaf.path)
+    flat = np.asarray(value)
+    if flat.dtype != bool:
+        raise TypeError(f"free set at {'.'.join(map(str, leaf.path))}: expected booleans, got {value!r}")
+    return bool(flat.all()) if flat.size else False
+
+
+@dataclasses.dataclass(frozen=True)
+class ParameterView:
+    """The flat view of a model's parameters that solvers and reports use.
+
+    Derived from a model (its structure, not its values) and a free set; static and
+    hashable, so it can parametrise compiled programs. Element order is pytree
+    order (a model's fields in declaration order, wrappers' inner models first).
+
+    Attributes:
+        leaves: the parameter fields.
+        free_leaves: per leaf, whether it is fitted.
+    """
+
+    leaves: tuple[ParameterLeaf, ...]
+    free_leaves: tuple[bool, ...]
+
+    @classmethod
+    def of(cls, model: eqx.Module, free: typing.Any = None) -> "ParameterView":
+        """The view of ``model`` (batched or not) with free set ``free`` (default
+        :func:`default_free`)."""
+        leaves = parameter_leaves(model)
+        if free is None:
+            free_leaves = tuple(not leaf.fixed_by_model for leaf in leaves)
+        else:
+            free_leaves = tuple(_is_free(free, leaf) for leaf in leaves)
+        return cls(leaves, free_leaves)
+
+    # -- element-wise tables ------------------------------------------------------
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """Element names of every parameter, in vector order."""
+        return tuple(n for leaf in self.leaves for n in leaf.names)
+
+    @property
+    def units(self) -> tuple[str, ...]:
+        return tuple(leaf.info.unit for leaf in self.leaves for _ in range(leaf.size))
+
+    @property
+    def scales(self) -> tuple[float, ...]:
+        return tuple(leaf.info.scale for leaf in self.leaves for _ in range(leaf.size))
+
+    @property
+    def typical(self) -> tuple[float | None, ...]:
+        return tuple(leaf.info.typical for leaf in self.leaves for _ in range(leaf.size))
+
+    @property
+    def nominal(self) -> tuple[float, ...]:
+        return tuple(leaf.info.nominal for leaf in self.leaves for _ in range(leaf.size))
+
+    @property
+    def free(self) -> tuple[bool, ...]:
+        """Per element, whether it is fitted."""
+        return tuple(f for leaf, f in zip(self.leaves, self.free_leaves) for _ in range(leaf.size))
+
+    @property
+    def free_index(self) -> tuple[int, ...]:
+        return tuple(i for i, f in enumerate(self.free) if f)
+
+    @property
+    def free_names(self) -> tuple[str, ...]:
+        return tuple(self.names[i] for i in self.free_index)
+
+    @property
+    def n_parameters(self) -> int:
+        return len(self.names)
+
+    @property
+    def n_free(self) -> int:
+        return len(self.free_index)
+
+    def with_free(self, free_names: Sequence[str]) -> "ParameterView":
+        """The same view with the leaves holding ``free_names`` free (whole leaves)."""
+        wanted = set(free_names)
+        unknown = wanted - set(self.names)
+        if unknown:
+            raise ValueError(f"unknown parameters {sorted(unknown)}; known: {self.names}")
+        return dataclasses.replace(self, free_leaves=tuple(bool(wanted & set(leaf.names)) for leaf in self.leaves))
+
+    def leaf_of(self, name: str) -> ParameterLeaf:
+        for leaf in self.leaves:
+            if name in leaf.names:
+                return leaf
+        raise ValueError(f"unknown parameter {name!r}; known: {self.names}")
+
+    # -- vector <-> model -----------------------------------------------------------
+
+    def to_vector(self, model: eqx.Module) -> Float[Array, "*b P"]:
+        """Physical values of every parameter, ``(P,)`` (or ``(..., P)`` for a model
+        batched along leading axes)."""
+        parts = []
+        for leaf in self.leaves:
+            x = jnp.asarray(_get(model, leaf.path))
+            batch = x.shape[: x.ndim - len(leaf.info.shape)]
+            parts.append(jnp.reshape(x, batch + (leaf.size,)))
+        return jnp.concatenate(parts, axis=-1)
+
+    def from_vector(self, model: eqx.Module, vector: Float[Array, " P"]) -> eqx.Module:
+        """``model`` with its parameters replaced by ``vector`` (one heliostat: use
+        :func:`jax.vmap` for batches). References and everything else stay."""
+        values = []
+        start = 0
+        for leaf in self.leaves:
+            values.append(jnp.reshape(vector[start : start + leaf.size], leaf.info.shape))
+            start += leaf.size
+        if not self.leaves:
+            return model
+        return eqx.tree_at(lambda m: [_get(m, leaf.path) for leaf in self.leaves], model, values)
+
+    def scale_vector(self, dtype: typing.Any = None) -> Float[Array, " P"]:
+        return jnp.asarray(self.scales, dtype)
+
+    def free_scales(self, dtype: typing.Any = None) -> Float[Array, " F"]:
+        return jnp.asarray([self.scales[i] for i in self.free_index], dtype)
+
+    def scaled_to_model(self, model0: eqx.Module, y: Float[Array, " F"]) -> eqx.Module:
+        """The model at scaled free-parameter offsets ``y`` from ``model0`` (physical
+        ``p = p0 + y * scale`` on the free elements; one heliostat)."""
+        p0 = self.to_vector(model0)
+        idx = jnp.asarray(self.free_index, dtype=jnp.int32)
+        p = p0.at[idx].add(y * self.free_scales(p0.dtype))
+        return self.from_vector(model0, p)
+
+
+def set_references(model: eqx.Module, values: typing.Mapping[str, float]) -> eqx.Module:
+    """``model`` with the references named in ``values`` set (others unchanged)."""
+    leaves = [leaf for leaf in reference_leaves(model) if leaf.name in values]
+    if not leaves:
+        return model
+
+    def where(m: eqx.Module) -> list[typing.Any]:
+        return [_get(m, leaf.path) for leaf in leaves]
+
+    new = [jnp.full(jnp.shape(_get(model, leaf.path)), values[leaf.name], jnp.asarray(_get(model, leaf.path)).dtype)
+           for leaf in leaves]
+    return eqx.tree_at(where, model, new)
+
+
+def broadcast_model(model: eqx.Module, n: int) -> eqx.Module:
+    """``n`` copies of an unbatched model stacked along a new leading axis."""
+    return jax.tree.map(lambda x: jnp.broadcast_to(x, (n,) + jnp.shape(x)) if eqx.is_array(x) else x, model)
+
+
+def is_batched(model: eqx.Module) -> bool:
+    """Whether ``model``'s parameters carry a leading heliostat axis."""
+    leaves = parameter_leaves(model)
+    if not leaves:
+        arrays = [x for x in jax.tree.leaves(model) if eqx.is_array(x)]
+        raise ValueError("is_batched: the model has no parameter fields" if arrays else "empty model")
+    leaf = leaves[0]
+    return jnp.ndim(_get(model, leaf.path)) > len(leaf.info.shape)

@@ -1,0 +1,53 @@
+"""The fit core: one solve function for calibration, discovery and the neural
+workflow, with its losses, priors, batching strategies and evaluation."""
+
+from ._batching import (
+    AXIS as AXIS,
+    BATCHING_NAMES as BATCHING_NAMES,
+    AbstractBatching as AbstractBatching,
+    Chunked as Chunked,
+    LaxMap as LaxMap,
+    Sharded as Sharded,
+    Vmap as Vmap,
+    batching_from_name as batching_from_name,
+    default_batching as default_batching,
+)
+from ._evaluate import (
+    beam_errors_mrad as beam_errors_mrad,
+    choose_start_geometry as choose_start_geometry,
+    fleet_beam_errors_mrad as fleet_beam_errors_mrad,
+    fleet_residuals_mrad as fleet_residuals_mrad,
+    residuals_mrad as residuals_mrad,
+    typical_actuators as typical_actuators,
+)
+from ._fit import (
+    DEFAULT_ATOL as DEFAULT_ATOL,
+    DEFAULT_MAX_STEPS as DEFAULT_MAX_STEPS,
+    DEFAULT_RTOL as DEFAULT_RTOL,
+    FitSolution as FitSolution,
+    LeastSquaresOutcome as LeastSquaresOutcome,
+    default_solver as default_solver,
+    fit as fit,
+    fit_timed as fit_timed,
+    psd_inverse as psd_inverse,
+    solve_least_squares as solve_least_squares,
+    status_code as status_code,
+)
+from ._loss import AbstractLoss as AbstractLoss, LeastSquares as LeastSquares
+from ._prior import (
+    AbstractPrior as AbstractPrior,
+    GaussianPrior as GaussianPrior,
+    NoPrior as NoPrior,
+    gaussian_prior as gaussian_prior,
+)
+from ._records import (
+    finite_records as finite_records,
+    record_residuals_mrad as record_residuals_mrad,
+    sanitise as sanitise,
+)
+from ._sharding import (
+    calibrate_distributed as calibrate_distributed,
+    gather_solutions as gather_solutions,
+    process_slice as process_slice,
+)
+from ._status import FitStatus as FitStatus

@@ -1,0 +1,144 @@
+"""Evaluation of (fitted) models on a fleet's records, and the start geometry."""
+
+from __future__ import annotations
+
+import typing
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from .._kinematics import AbstractKinematicModel, HeliostatGeometry, RecordContext
+from .._parameters import broadcast_model, is_batched
+from ._records import sanitise
+
+
+@eqx.filter_jit
+def beam_errors_mrad(
+    models: AbstractKinematicModel,
+    geometry: HeliostatGeometry,
+    counts: Float[Array, "H M 2"],
+    context: RecordContext,
+    focal: Float[Array, "H M 3"],
+    mask: Bool[Array, "H M"],
+) -> Float[Array, "H M"]:
+    """Beam pointing error (mrad) of every record ``(H, M)`` under models batched
+    along ``H``; NaN where ``mask`` is False or an input is not finite."""
+
+    def per_heliostat(model, g, c, x, f, m):
+        c2, x2, f2, use, _ = sanitise(g, c, x, f, m)
+        e = jax.vmap(lambda ci, xi, fi: model.beam_error(g, ci, xi, fi))(c2, x2, f2) * 1e3
+        return jnp.where(use, e, jnp.nan)
+
+    return jax.vmap(per_heliostat)(models, geometry, counts, context, focal, mask)
+
+
+@eqx.filter_jit
+def residuals_mrad(
+    models: AbstractKinematicModel,
+    geometry: HeliostatGeometry,
+    counts: Float[Array, "H M 2"],
+    context: RecordContext,
+    focal: Float[Array, "H M 3"],
+    mask: Bool[Array, "H M"],
+) -> Float[Array, "H M 2"]:
+    """Tangent-plane residual components (mrad) of every record; NaN outside ``mask``."""
+
+    def per_heliostat(model, g, c, x, f, m):
+        c2, x2, f2, use, _ = sanitise(g, c, x, f, m)
+        r = jax.vmap(lambda ci, xi, fi: model.beam_components(g, ci, xi, fi))(c2, x2, f2) * 1e3
+        return jnp.where(use[:, None], r, jnp.nan)
+
+    return jax.vmap(per_heliostat)(models, geometry, counts, context, focal, mask)
+
+
+def _batched_models(models: AbstractKinematicModel, n: int) -> AbstractKinematicModel:
+    return models if is_batched(models) else broadcast_model(models, n)
+
+
+def fleet_beam_errors_mrad(
+    models: AbstractKinematicModel, fleet: typing.Any, mask: Bool[Array, "H M"] | None = None
+) -> Float[Array, "H M"]:
+    """Per-record beam error (mrad) of ``models`` (one model, or batched over the
+    fleet's heliostats, e.g. ``solution.model``) on ``fleet``; NaN outside ``mask``."""
+    m = fleet.mask if mask is None else (jnp.asarray(mask) & fleet.mask)
+    models = _batched_models(models, int(np.shape(fleet.mask)[0]))
+    return beam_errors_mrad(models, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, m)
+
+
+def fleet_residuals_mrad(
+    models: AbstractKinematicModel, fleet: typing.Any, mask: Bool[Array, "H M"] | None = None
+) -> Float[Array, "H M 2"]:
+    """Per-record residual components (mrad) of ``models`` on ``fleet``."""
+    m = fleet.mask if mask is None else (jnp.asarray(mask) & fleet.mask)
+    models = _batched_models(models, int(np.shape(fleet.mask)[0]))
+    return residuals_mrad(models, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, m)
+
+
+def _row_median(e: typing.Any) -> np.ndarray:
+    e = np.asarray(e, float)
+    finite = np.isfinite(e)
+    filled = np.where(finite, e, np.inf)
+    n = finite.sum(axis=1)
+    s = np.sort(filled, axis=1)
+    lo = np.clip((n - 1) // 2, 0, None)
+    hi = np.clip(n // 2, 0, None)
+    rows = np.arange(e.shape[0])
+    med = 0.5 * (s[rows, lo] + s[rows, hi])
+    return np.where(n > 0, med, np.inf)
+
+
+def typical_actuators(geometry: HeliostatGeometry, valid: Bool[Array, " H"]) -> typing.Any:
+    """Median actuator values over the ``valid`` heliostats (the start geometry for
+    heliostats whose nominal properties are far off, e.g. PAINT's BF41)."""
+    valid = np.asarray(valid)
+    return jax.tree.map(lambda x: jnp.asarray(np.median(np.asarray(x)[valid], axis=0), x.dtype), geometry.actuators)
+
+
+def choose_start_geometry(
+    fleet: typing.Any, model: AbstractKinematicModel, mask: Bool[Array, "H M"] | None = None
+) -> tuple[HeliostatGeometry, np.ndarray]:
+    """Per heliostat, the better start of two: its own nominal geometry, or its
+    geometry with the fleet's typical (median) actuator values.
+
+    The choice is by the uncalibrated median beam error of the heliostat's own
+    records (``mask``, default all valid ones) under the nominal ``model``, so no
+    threshold is involved. Returns ``(geometry, replaced)`` with ``replaced`` a
+    boolean ``(H,)`` array.
+    """
+    m = fleet.mask if mask is None else (jnp.asarray(mask) & fleet.mask)
+    h = int(np.shape(fleet.mask)[0])
+    has = np.asarray(jnp.any(m, axis=1))
+    if not has.any():
+        return fleet.geometry, np.zeros(h, bool)
+    typical = typical_actuators(fleet.geometry, has)
+    typ_act = jax.tree.map(lambda t, x: jnp.broadcast_to(t, x.shape), typical, fleet.geometry.actuators)
+    alt = HeliostatGeometry.build(
+        fleet.geometry.position,
+        typ_act,
+        fleet.geometry.joint_translation_1,
+        fleet.geometry.joint_translation_2,
+        fleet.geometry.concentrator_translation,
+    )
+    models = _batched_models(model, h)
+    e_own = beam_errors_mrad(models, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, m)
+    e_alt = beam_errors_mrad(models, alt, fleet.counts, fleet.context, fleet.focal_spot, m)
+    replaced = has & (_row_median(e_alt) < _row_median(e_own))
+    geometry = jax.tree.map(
+        lambda a, b: jnp.where(jnp.asarray(replaced).reshape((-1,) + (1,) * (a.ndim - 1)), b, a),
+        fleet.geometry,
+        alt,
+    )
+    return geometry, replaced
+
+
+__all__ = [
+    "beam_errors_mrad",
+    "choose_start_geometry",
+    "fleet_beam_errors_mrad",
+    "fleet_residuals_mrad",
+    "residuals_mrad",
+    "typical_actuators",
+]

@@ -1,0 +1,345 @@
+"""The one fit core: ``fit(model0, fleet, ...) -> FitSolution``.
+
+Every heliostat of a (padded) fleet is fitted in one compiled program. Each
+heliostat's problem is
+
+    minimise  0.5 * sum_records |loss.row(r_i(y))|^2  +  0.5 * |prior.rows(p(y))|^2
+
+where ``r_i`` are the two tangent-plane components of the beam pointing error of
+record ``i`` (:func:`heliojax.beam_error_components`, mrad) under the model
+``p(y) = p0 + y * scale`` on the free parameters (the model pytree's free set,
+scales from the fields' metadata: :class:`heliojax.ParameterView`). The scales
+(10 mrad for angles, 0.01 for gear ratios and relative scales, 1 cm for lengths)
+make the solver's tolerances read in physical units and optimistix LM's initial
+damping mild against ``J^T J``. The Jacobian is computed per record in reverse mode
+(two cotangents per record) and handed to the solver through a ``jax.custom_jvp``.
+Padded or non-finite records are masked out (replaced by a dummy record before any
+arithmetic, so they contribute neither values nor NaN gradients).
+
+Calibration, sharding and multi-host, discovery and the neural workflow all call
+:func:`fit` (or, for residual functions of their own, :func:`solve_least_squares`).
+Float64 is required: ``jax.config.update("jax_enable_x64", True)``.
+"""
+
+from __future__ import annotations
+
+import time
+import typing
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Bool, Float, Int
+
+from .._kinematics import AbstractKinematicModel, HeliostatGeometry, RecordContext
+from .._parameters import ParameterView, broadcast_model, is_batched
+from ._batching import AbstractBatching, default_batching
+from ._loss import AbstractLoss, LeastSquares
+from ._prior import AbstractPrior, NoPrior
+from ._records import sanitise
+from ._status import FitStatus
+
+DEFAULT_RTOL = 1e-8
+DEFAULT_ATOL = 1e-5
+DEFAULT_MAX_STEPS = 64
+
+
+def default_solver() -> optx.LevenbergMarquardt:
+    """optimistix Levenberg-Marquardt with tolerances on the scaled parameters:
+    ``atol = 1e-5`` scaled units = 0.1 micro-radian on angles."""
+    return optx.LevenbergMarquardt(rtol=DEFAULT_RTOL, atol=DEFAULT_ATOL)
+
+
+class LeastSquaresOutcome(typing.NamedTuple):
+    """What :func:`solve_least_squares` returns for one problem."""
+
+    value: Float[Array, " F"]
+    residual: Float[Array, " R"]
+    jacobian: Float[Array, "R F"]
+    cost: Float[Array, ""]
+    result: optx.RESULTS
+    n_steps: Int[Array, ""]
+
+
+def solve_least_squares(
+    residual_fn: Callable[[Float[Array, " F"]], Float[Array, " R"]],
+    y0: Float[Array, " F"],
+    solver: optx.AbstractLeastSquaresSolver,
+    max_steps: int,
+) -> LeastSquaresOutcome:
+    """Run ``solver`` on ``residual_fn`` from ``y0`` (never throws). The cost is
+    ``0.5 * sum(residual**2)`` at the accepted point, the Jacobian the solver's own
+    linearisation there (no second evaluation)."""
+    sol = optx.least_squares(lambda y, _: residual_fn(y), solver, y0, max_steps=max_steps, throw=False)
+    residual = sol.state.f_info.residual
+    jac = sol.state.f_info.jac.as_matrix()
+    return LeastSquaresOutcome(
+        value=sol.value,
+        residual=residual,
+        jacobian=jac,
+        cost=0.5 * jnp.sum(residual**2),
+        result=sol.result,
+        n_steps=sol.stats["num_steps"],
+    )
+
+
+def psd_inverse(a: Float[Array, "F F"]) -> Float[Array, "F F"]:
+    """Inverse of a symmetric positive semi-definite matrix via a Jacobi-scaled
+    Cholesky factorisation; NaN where it is singular."""
+    d = jnp.sqrt(jnp.clip(jnp.diag(a), 1e-300))
+    scaled = a / d[:, None] / d[None, :]
+    chol = jnp.linalg.cholesky(scaled)
+    eye = jnp.eye(a.shape[0], dtype=a.dtype)
+    inv_l = jax.scipy.linalg.solve_triangular(chol, eye, lower=True)
+    return (inv_l.T @ inv_l) / d[:, None] / d[None, :]
+
+
+def status_code(result: optx.RESULTS) -> Int[Array, ""]:
+    """:class:`FitStatus` of an optimistix result."""
+    return jnp.where(
+        result == optx.RESULTS.successful,
+        FitStatus.CONVERGED,
+        jnp.where(
+            result == optx.RESULTS.nonlinear_max_steps_reached,
+            FitStatus.MAX_STEPS,
+            jnp.where(result == optx.RESULTS.nonlinear_divergence, FitStatus.DIVERGED, FitStatus.FAILED),
+        ),
+    )
+
+
+@typing.final
+class FitSolution(eqx.Module):
+    """Outcome of :func:`fit`; arrays batched over heliostats ``H``.
+
+    Attributes:
+        model: the fitted models, one pytree batched along a leading axis ``H``
+            (``heliostat_model(i)`` gives one).
+        std: ``(H, P)`` Gauss-Newton standard errors in physical units, vector order
+            of ``view`` (0 for fixed parameters, NaN where undetermined).
+        covariance: ``(H, F, F)`` covariance of the free parameters, physical units.
+        status: ``(H,)`` :class:`FitStatus` codes.
+        n_steps: ``(H,)`` solver steps.
+        n_used: ``(H,)`` records used.
+        rms_mrad: ``(H,)`` RMS beam pointing error over the fitted records (mrad).
+        cost: ``(H,)`` ``0.5 * sum of squared rows`` (mrad^2, prior rows included).
+        noise_mrad: ``(H,)`` residual standard deviation per component (mrad),
+            ``sqrt(sum r^2 / (2 n - F))`` of the data rows.
+        view: the :class:`heliojax.ParameterView` (names, units, free set); static.
+    """
+
+    model: AbstractKinematicModel
+    std: Float[Array, "H P"]
+    covariance: Float[Array, "H F F"]
+    status: Int[Array, " H"]
+    n_steps: Int[Array, " H"]
+    n_used: Int[Array, " H"]
+    rms_mrad: Float[Array, " H"]
+    cost: Float[Array, " H"]
+    noise_mrad: Float[Array, " H"]
+    view: ParameterView = eqx.field(static=True)
+
+    @property
+    def n_heliostats(self) -> int:
+        return int(jnp.shape(self.status)[0])
+
+    def parameters(self) -> Float[Array, "H P"]:
+        """Physical parameter values ``(H, P)`` in the view's vector order."""
+        return self.view.to_vector(self.model)
+
+    def heliostat_model(self, i: int) -> AbstractKinematicModel:
+        """The fitted model of heliostat ``i``."""
+        return jax.tree.map(lambda x: x[i] if eqx.is_array(x) else x, self.model)
+
+    def status_labels(self) -> list[str]:
+        return [FitStatus(int(s)).label for s in np.asarray(self.status)]
+
+
+def _fit_one(
+    view: ParameterView,
+    solver: optx.AbstractLeastSquaresSolver,
+    loss: AbstractLoss,
+    prior: AbstractPrior,
+    max_steps: int,
+    model0: AbstractKinematicModel,
+    prior_h: typing.Any,
+    geometry: HeliostatGeometry,
+    counts: Float[Array, "M 2"],
+    context: RecordContext,
+    focal: Float[Array, "M 3"],
+    mask: Bool[Array, " M"],
+) -> dict[str, Array]:
+    counts, context, focal, use, bad_input = sanitise(geometry, counts, context, focal, mask)
+    dtype = counts.dtype
+    n_records = counts.shape[0]
+    n_used = jnp.sum(use)
+    p0 = view.to_vector(model0)
+    idx = jnp.asarray(view.free_index, dtype=jnp.int32)
+    free_scales = view.free_scales(dtype)
+
+    def physical(y):
+        return p0.at[idx].add(y * free_scales)
+
+    def record_row(y, c, x, f):
+        r = loss.row(view.from_vector(model0, physical(y)).beam_components(geometry, c, x, f) * 1e3)
+        return r, r
+
+    def prior_rows(y):
+        return prior.rows(view, physical(y), prior_h)
+
+    def residual_and_jacobian(y):
+        # Each record's two rows depend on all parameters: reverse mode per record
+        # (2 cotangents) is ~3x cheaper than forward mode (n_free tangents).
+        jac, r = jax.vmap(jax.jacrev(record_row, has_aux=True), (None, 0, 0, 0))(y, counts, context, focal)
+        r = jnp.where(use[:, None], r, 0.0).reshape(-1)
+        jac = jnp.where(use[:, None, None], jac, 0.0).reshape(-1, y.shape[0])
+        pr = prior_rows(y)
+        if pr.shape[0]:
+            r = jnp.concatenate([r, pr])
+            jac = jnp.concatenate([jac, jax.jacfwd(prior_rows)(y)])
+        return r, jac
+
+    # optimistix linearises the residual (jax.linearize); with this rule the
+    # linearisation is the explicit Jacobian matrix, not a replay of the forward
+    # graph per tangent.
+    @jax.custom_jvp
+    def residual(y):
+        return residual_and_jacobian(y)[0]
+
+    @residual.defjvp
+    def _residual_jvp(primals, tangents):
+        (y,), (t,) = primals, tangents
+        r, jac = residual_and_jacobian(y)
+        return r, jac @ t
+
+    out = solve_least_squares(residual, jnp.zeros(view.n_free, dtype), solver, max_steps)
+    data_r = out.residual[: 2 * n_records]
+
+    # Gauss-Newton covariance of the free parameters (scaled units -> physical).
+    dof = jnp.maximum(2 * n_used - view.n_free, 1)
+    sigma2 = jnp.sum(data_r**2) / dof
+    cov_scaled = psd_inverse(out.jacobian.T @ out.jacobian) * sigma2
+    cov = cov_scaled * free_scales[:, None] * free_scales[None, :]
+    std_free = jnp.sqrt(jnp.clip(jnp.diag(cov_scaled), 0.0)) * free_scales
+    std = jnp.zeros_like(p0).at[idx].set(std_free)
+
+    params = physical(out.value)
+    rms = jnp.sqrt(jnp.sum(jnp.where(use[:, None], data_r.reshape(-1, 2) ** 2, 0.0)) / jnp.maximum(n_used, 1))
+
+    status = status_code(out.result)
+    status = jnp.where(jnp.all(jnp.isfinite(params)) & jnp.isfinite(out.cost), status, FitStatus.DIVERGED)
+    status = jnp.where(bad_input, FitStatus.NON_FINITE_INPUT, status)
+    too_few = n_used < view.n_free
+    status = jnp.where(too_few, FitStatus.TOO_FEW_RECORDS, status)
+    status = jnp.where(jnp.any(mask), status, FitStatus.NO_RECORDS)
+    # An unconstrained fit is never reported: keep the start values where too few records.
+    params = jnp.where(too_few, p0, params)
+    std = jnp.where(too_few, jnp.nan, std)
+    cov = jnp.where(too_few, jnp.nan, cov)
+    return dict(
+        model=view.from_vector(model0, params),
+        std=std,
+        covariance=cov,
+        status=status.astype(jnp.int32),
+        n_steps=out.n_steps.astype(jnp.int32),
+        n_used=n_used.astype(jnp.int32),
+        rms_mrad=rms,
+        cost=out.cost,
+        noise_mrad=jnp.sqrt(sigma2),
+    )
+
+
+@eqx.filter_jit
+def _fit_compiled(view, solver, loss, prior, max_steps, batching, model0, prior_h, geometry, counts, context, focal,
+                  mask):
+    def one(m, ph, g, c, x, f, k):
+        return _fit_one(view, solver, loss, prior, max_steps, m, ph, g, c, x, f, k)
+
+    return batching.map(one)(model0, prior_h, geometry, counts, context, focal, mask)
+
+
+def _prepare(model0, fleet, mask, free, solver, loss, prior, batching, max_steps):
+    h = int(np.shape(fleet.mask)[0])
+    dtype = fleet.counts.dtype
+    model0 = jax.tree.map(lambda x: jnp.asarray(x, dtype) if eqx.is_inexact_array(x) else x, model0)
+    if not is_batched(model0):
+        model0 = broadcast_model(model0, h)
+    view = ParameterView.of(model0, free)
+    solver = default_solver() if solver is None else solver
+    loss = LeastSquares() if loss is None else loss
+    prior = NoPrior() if prior is None else prior
+    batching = default_batching() if batching is None else batching
+    m = fleet.mask if mask is None else (jnp.asarray(mask) & fleet.mask)
+    args = (model0, prior.per_heliostat(h), fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, m)
+    static = (view, solver, loss, prior, max_steps, batching)
+    return h, static, batching.prepare(args)
+
+
+def fit(
+    model0: AbstractKinematicModel,
+    fleet: typing.Any,
+    *,
+    mask: Bool[Array, "H M"] | None = None,
+    free: typing.Any = None,
+    solver: optx.AbstractLeastSquaresSolver | None = None,
+    loss: AbstractLoss | None = None,
+    prior: AbstractPrior | None = None,
+    batching: AbstractBatching | None = None,
+    max_steps: int = DEFAULT_MAX_STEPS,
+) -> FitSolution:
+    """Fit every heliostat of ``fleet`` in one compiled program.
+
+    Args:
+        model0: the start model: one model (used for every heliostat) or models
+            batched along a leading axis ``H``; its non-free parameters stay as given.
+        fleet: a :class:`heliojax.Fleet` (pad it to a shape bucket with
+            :func:`heliojax.pad_fleet` so new fleet sizes reuse the compiled program).
+        mask: ``(H, M)`` records to fit (ANDed with ``fleet.mask``).
+        free: the free set, a pytree of booleans of ``model0``'s structure
+            (default :func:`heliojax.default_free`).
+        solver: an optimistix least-squares solver (default :func:`default_solver`).
+        loss: :class:`LeastSquares` (default) or a robust loss.
+        prior: :class:`NoPrior` (default) or e.g. :class:`GaussianPrior`.
+        batching: strategy over heliostats (default :func:`default_batching`).
+        max_steps: solver step limit (kept small so one slow lane cannot stall a batch).
+
+    Returns:
+        A :class:`FitSolution`.
+    """
+    h, static, args = _prepare(model0, fleet, mask, free, solver, loss, prior, batching, max_steps)
+    out = _fit_compiled(*static, *args)
+    return FitSolution(view=static[0], **static[-1].finish(out, h))
+
+
+def fit_timed(model0: AbstractKinematicModel, fleet: typing.Any, **options: typing.Any) -> tuple[FitSolution, float, float]:
+    """:func:`fit` with its compile and run times measured separately (ahead-of-time
+    lowering): ``(solution, compile_s, run_s)``."""
+    h, static, args = _prepare(model0, fleet, options.pop("mask", None), options.pop("free", None),
+                               options.pop("solver", None), options.pop("loss", None), options.pop("prior", None),
+                               options.pop("batching", None), options.pop("max_steps", DEFAULT_MAX_STEPS))
+    if options:
+        raise TypeError(f"fit_timed: unknown options {sorted(options)}")
+    t0 = time.perf_counter()
+    compiled = _fit_compiled.lower(*static, *args).compile()
+    t1 = time.perf_counter()
+    out = compiled(*static, *args)
+    jax.block_until_ready(out)
+    t2 = time.perf_counter()
+    return FitSolution(view=static[0], **static[-1].finish(out, h)), t1 - t0, t2 - t1
+
+
+__all__ = [
+    "DEFAULT_ATOL",
+    "DEFAULT_MAX_STEPS",
+    "DEFAULT_RTOL",
+    "FitSolution",
+    "LeastSquaresOutcome",
+    "default_solver",
+    "fit",
+    "fit_timed",
+    "psd_inverse",
+    "solve_least_squares",
+    "status_code",
+]

@@ -1,0 +1,96 @@
+"""Priors of a fit: extra residual rows that pull parameters toward a centre.
+
+A prior contributes rows ``noise * (p - centre) / sigma`` (mrad) for the free
+parameters, so that with measurement noise ``noise`` (mrad per component) the
+cost is the negative log-posterior of a Gaussian prior ``N(centre, sigma^2)``.
+``centre`` and ``sigma`` are models of the fitted model's structure (one
+representation: the pytree); a parameter with ``sigma = inf`` has no prior.
+"""
+
+from __future__ import annotations
+
+import abc
+import typing
+from collections.abc import Mapping
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from .._parameters import ParameterView, broadcast_model
+
+
+class AbstractPrior(eqx.Module):
+    """Prior rows of one heliostat's fit."""
+
+    @abc.abstractmethod
+    def rows(self, view: ParameterView, p: Float[Array, " P"], heliostat: typing.Any) -> Float[Array, " K"]:
+        """Rows (mrad) at physical parameters ``p`` (vector order of ``view``);
+        ``heliostat`` is this prior's per-heliostat slice (see :meth:`per_heliostat`)."""
+
+    def per_heliostat(self, n: int) -> typing.Any:
+        """The part of the prior that is batched over heliostats (a pytree with
+        leading axis ``n``), handed to :meth:`rows` per heliostat."""
+        del n
+        return None
+
+
+@typing.final
+class NoPrior(AbstractPrior):
+    """No prior rows."""
+
+    def rows(self, view, p, heliostat):
+        del view, heliostat
+        return jnp.zeros((0,), p.dtype)
+
+
+@typing.final
+class GaussianPrior(AbstractPrior):
+    """Independent Gaussian priors ``N(centre, sigma^2)`` on the free parameters.
+
+    Attributes:
+        centre: model (batched over heliostats or not) holding the prior means.
+        sigma: model of the same structure holding the prior standard deviations
+            (physical units; ``inf`` = no prior on that parameter).
+        noise_mrad: measurement noise per residual component (mrad): a scalar or
+            ``(H,)``.
+    """
+
+    centre: eqx.Module
+    sigma: eqx.Module
+    noise_mrad: Float[Array, "*h"]
+
+    def per_heliostat(self, n):
+        def batch(m):
+            leaves = [x for x in jax.tree.leaves(m) if eqx.is_array(x)]
+            view = ParameterView.of(m)
+            batched = bool(leaves) and view.to_vector(m).ndim == 2
+            return m if batched else broadcast_model(m, n)
+
+        noise = jnp.broadcast_to(jnp.asarray(self.noise_mrad), (n,))
+        return batch(self.centre), batch(self.sigma), noise
+
+    def rows(self, view, p, heliostat):
+        centre, sigma, noise = heliostat
+        idx = jnp.asarray(view.free_index, dtype=jnp.int32)
+        c = view.to_vector(centre)[idx]
+        s = view.to_vector(sigma)[idx]
+        w = jnp.where(jnp.isfinite(s), 1.0 / s, 0.0)
+        return (p[idx] - c) * w * noise
+
+
+def gaussian_prior(model: eqx.Module, sigma: Mapping[str, float], noise_mrad: float = 0.5) -> GaussianPrior:
+    """A :class:`GaussianPrior` centred on ``model`` with ``sigma`` given per parameter
+    name (physical units; others none), e.g. ``{"gamma": 5e-3, "delta": 5e-3}``."""
+    view = ParameterView.of(model)
+    unknown = set(sigma) - set(view.names)
+    if unknown:
+        raise ValueError(f"prior on unknown parameters {sorted(unknown)}; known: {view.names}")
+    vec = jnp.asarray([sigma.get(n, jnp.inf) for n in view.names], jnp.asarray(view.to_vector(model)).dtype)
+    if vec.ndim and any(s <= 0 for s in sigma.values()):
+        raise ValueError(f"prior sigmas must be > 0, got {dict(sigma)}")
+    return GaussianPrior(centre=model, sigma=view.from_vector(model, vec), noise_mrad=jnp.asarray(noise_mrad))
+
+
+__all__ = ["AbstractPrior", "GaussianPrior", "NoPrior", "gaussian_prior"]
