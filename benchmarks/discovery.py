@@ -54,6 +54,7 @@ SCENARIOS = {
 
 def run_one(name: str, seed: int, n_heliostats: int, n_records: int) -> dict:
     from heliojax.discovery import discover, simulate_fleet
+    from heliojax import nominal_model
     from heliojax.effects import make_effect
 
     base, spec, expected, truth = SCENARIOS[name]
@@ -64,7 +65,7 @@ def run_one(name: str, seed: int, n_heliostats: int, n_records: int) -> dict:
         if values == "axis2":  # 2-per-revolution wobble of axis 2, 0.3 mrad, random phase
             phase = rng.uniform(0, 2 * np.pi)
             values = dict(wobble_cos_2=3e-4 * np.cos(phase), wobble_sin_2=3e-4 * np.sin(phase))
-        effects.append(make_effect(eff, base, **values))
+        effects.append(make_effect(eff, nominal_model(base), **values))
     t0 = time.perf_counter()
     fleet, _ = simulate_fleet(seed, n_heliostats, n_records, effects=effects, base=base, noise_mrad=noise)
     res = discover(fleet, base=base)

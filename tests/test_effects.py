@@ -1,5 +1,6 @@
 """Effect library: each effect against a hand calculation or a second
-implementation, zero effects reproduce the base, the composed ModelSpec fits."""
+implementation, zero effects reproduce the base, wrappers compose in any order,
+the effect-wrapped model fits through the one fit core."""
 
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ from heliojax.effects import (
     Wind,
     add_effects,
     effect_class,
-    effect_initial,
+    with_data_references,
     make_effect,
     standard_refraction,
     with_effects,
@@ -65,7 +66,9 @@ def test_effect_names_are_the_documented_list():
         cls = effect_class(name)
         assert cls.NAME == name
         assert cls.__doc__ and "Physical meaning" in cls.__doc__ and "signature" in cls.__doc__
-        assert len(cls.param_names("stone8")) == len(cls.param_units("stone8")) == len(cls.param_scales("stone8"))
+        view = hj.ParameterView.of(cls.nominal(STONE, jnp.float64))
+        assert view.n_parameters >= 1
+        assert all(s > 0 for s in view.scales) and all(t is not None and t > 0 for t in view.typical)
     with pytest.raises(ValueError, match="unknown effect"):
         effect_class("magnetism")
 
@@ -73,7 +76,7 @@ def test_effect_names_are_the_documented_list():
 @pytest.mark.parametrize("base_kind", ["stone8", "actuator"])
 def test_zero_effects_reproduce_the_base(base_kind):
     base = STONE if base_kind == "stone8" else hj.ActuatorModel.nominal(jnp.float64)
-    effects = tuple(make_effect(n, base_kind) for n in EFFECT_NAMES)
+    effects = tuple(make_effect(n, base) for n in EFFECT_NAMES)
     model = EffectModel(base, effects)
     ctx = _context()
     np.testing.assert_allclose(model.beam_components(GEOM, COUNTS, ctx, FOCAL),
@@ -88,7 +91,7 @@ def _angle_shift(effect, ctx, base=STONE):
     """Joint-angle correction of ``effect`` recovered from the pose: the chain at the
     base angles plus a shift reproduces the effect model's normal."""
     model = EffectModel(base, (effect,))
-    return model._angles(GEOM, COUNTS, ctx) - base.joint_angles(GEOM, COUNTS)
+    return model.record_angles(GEOM, COUNTS, ctx) - base.joint_angles(GEOM, COUNTS)
 
 
 def test_backlash_is_half_the_dead_band_behind_the_motion():
@@ -210,52 +213,96 @@ def test_survey_effects_move_heliostat_and_spot():
                                STONE.beam_components(GEOM, COUNTS, ctx, FOCAL + d), atol=1e-15)
 
 
-def test_add_effects_flattens_and_rejects_nesting():
+def test_add_effects_appends_and_wrappers_nest():
     m = add_effects(STONE, [make_effect("backlash")])
     m2 = add_effects(m, [make_effect("thermal")])
     assert [e.NAME for e in m2.effects] == ["backlash", "thermal"]
-    with pytest.raises(ValueError, match="nest"):
-        EffectModel(m, ())
+    with pytest.raises(ValueError, match="repeated"):
+        add_effects(m2, [make_effect("thermal")])
+    # an EffectModel inside an EffectModel keeps both layers' behaviour
+    nested = EffectModel(m, (make_effect("thermal", thermal_1=2e-5, thermal_2=0.0, thermal_reference_c=10.0),))
+    flat = add_effects(STONE, [make_effect("backlash"),
+                               make_effect("thermal", thermal_1=2e-5, thermal_2=0.0, thermal_reference_c=10.0)])
+    ctx = _context()
+    np.testing.assert_allclose(nested.beam_components(GEOM, COUNTS, ctx, FOCAL),
+                               flat.beam_components(GEOM, COUNTS, ctx, FOCAL), atol=1e-15)
+    assert nested.label() == "stone8+backlash+thermal"
 
 
-def test_with_effects_spec():
-    spec = with_effects("stone8", ["thermal", "clock", "actuator_geometry"])
-    assert spec.kind == "stone8+thermal+clock+actuator_geometry"
-    assert spec.names[:8] == hj.StoneModel.PARAM_NAMES
-    assert set(["thermal_1", "thermal_2", "clock_offset", "clock_drift", "curvature_1"]) <= set(spec.free)
-    assert "thermal_reference_c" in spec.names and "thermal_reference_c" not in spec.free
-    hash(spec)  # a static jit argument
-    act = with_effects("actuator", ["actuator_geometry"])
-    assert "pivot_scale_1" in act.names and "curvature_1" not in act.names
+def test_with_effects_model_view():
+    model = with_effects(hj.StoneModel.nominal(jnp.float64), ["thermal", "clock", "actuator_geometry"])
+    assert model.label() == "stone8+thermal+clock+actuator_geometry"
+    view = hj.ParameterView.of(model)
+    assert view.names[:8] == ("alpha", "beta", "gamma", "delta", "theta_k", "tau_k", "gr1", "gr2")
+    assert {"thermal_1", "thermal_2", "clock_offset", "clock_drift", "curvature_1"} <= set(view.free_names)
+    assert "pivot_scale_1" in view.names and "pivot_scale_1" not in view.free_names
+    assert "thermal_reference_c" not in view.names  # references are not parameters
+    hash(view)  # a static jit argument
+    act = hj.ParameterView.of(with_effects(hj.ActuatorModel.nominal(jnp.float64), ["actuator_geometry"]))
+    assert "pivot_scale_1" in act.free_names and "curvature_1" not in act.free_names
+    assert "stroke_offset_1" in act.names and "stroke_offset_1" not in act.free_names
     with pytest.raises(ValueError):
-        with_effects(spec, ["wind"])
-    with pytest.raises(ValueError):
-        with_effects("stone8", ["wind", "wind"])
-    # builder(nominal) predicts what the base predicts
-    model = spec.nominal_model()
+        with_effects(hj.StoneModel.nominal(jnp.float64), ["wind", "wind"])
+    # nominal effects predict what the base predicts
     np.testing.assert_allclose(model.beam_components(GEOM, COUNTS, _context(), FOCAL),
                                hj.StoneModel.nominal(jnp.float64).beam_components(GEOM, COUNTS, _context(), FOCAL),
                                atol=1e-15)
-    # a value put in by name comes back out
-    p = np.array(spec.nominal)
-    p[spec.names.index("thermal_2")] = 2e-5
-    p[spec.names.index("thermal_reference_c")] = 12.0
-    eff = spec.builder(jnp.asarray(p)).effects[0]
-    assert float(eff.coefficient[1]) == 2e-5 and float(eff.reference) == 12.0
+    # a value put in by name comes back out (vector round trip through the pytree)
+    p = np.array(view.to_vector(model))
+    p[view.names.index("thermal_2")] = 2e-5
+    back = view.from_vector(model, jnp.asarray(p))
+    assert float(back.effects[0].coefficient[1]) == 2e-5
+    np.testing.assert_array_equal(np.asarray(view.to_vector(back)), p)
+    refs = hj.set_references(model, {"thermal_reference_c": 12.0})
+    assert float(refs.effects[0].reference) == 12.0
+
+
+def test_free_set_is_a_pytree_partition():
+    model = hj.ActuatorModel.nominal(jnp.float64)
+    free = hj.default_free(model)
+    assert jax.tree.structure(free) == jax.tree.structure(model)
+    assert not free.stroke_offset and free.alpha
+    freed = eqx.tree_at(lambda f: f.stroke_offset, free, True)
+    assert "stroke_offset_2" in hj.ParameterView.of(model, freed).free_names
+    fixed, _ = eqx.partition(model, free)
+    assert fixed.stroke_offset is None and fixed.alpha is not None
+
+
+def test_wrappers_compose_in_any_order():
+    """Neural correction and effects keep each other's behaviour whichever wraps which."""
+    from heliojax.neural import NeuralCorrection, init_residual_networks
+
+    net = jax.tree.map(lambda x: x[0] if eqx.is_array(x) else x, init_residual_networks(jax.random.key(0), 1))
+    # give the network a non-zero output layer so that its correction is visible
+    net = jax.tree.map(lambda x: x + 0.1 if eqx.is_inexact_array(x) else x, net)
+    scale = jnp.asarray(1e-3)
+    thermal = make_effect("thermal", thermal_1=3e-5, thermal_2=-2e-5, thermal_reference_c=10.0)
+    ctx = _context()
+    nn_outside = NeuralCorrection(add_effects(STONE, [thermal]), net, scale)
+    nn_inside = add_effects(NeuralCorrection(STONE, net, scale), [thermal])
+    plain = STONE.record_angles(GEOM, COUNTS, ctx)
+    d_nn = NeuralCorrection(STONE, net, scale).correction(GEOM, COUNTS)
+    d_th = jnp.array([3e-5, -2e-5]) * (25.0 - 10.0)
+    assert float(jnp.max(jnp.abs(d_nn))) > 1e-5
+    for model in (nn_outside, nn_inside):
+        np.testing.assert_allclose(model.record_angles(GEOM, COUNTS, ctx), plain + d_nn + d_th, atol=1e-14)
+        assert model.pose(GEOM, COUNTS, ctx).normal.shape == (3,)
+    np.testing.assert_allclose(nn_outside.beam_components(GEOM, COUNTS, ctx, FOCAL),
+                               nn_inside.beam_components(GEOM, COUNTS, ctx, FOCAL), atol=1e-14)
 
 
 @pytest.mark.slow
-def test_fit_fleet_recovers_an_effect_through_the_composed_spec():
-    """A model with effects is again a model: fit_fleet fits it unchanged."""
+def test_fit_recovers_an_effect_through_the_wrapped_model():
+    """A model with effects is again a model: the fit core fits it unchanged."""
     from heliojax.discovery import simulate_fleet
 
     true = make_effect("thermal", thermal_1=3e-5, thermal_2=-2e-5, thermal_reference_c=8.0)
     fleet, _ = simulate_fleet(3, 4, 40, effects=[true], noise_mrad=0.1)
-    spec = with_effects("stone8", ["thermal"])
-    data = hj.CalibrationData.from_fleet(fleet)
-    res = hj.fit_fleet(data, spec, hj.FitConfig(max_steps=64), initial=effect_initial(spec, fleet))
-    k1 = np.asarray(res.params)[:, spec.names.index("thermal_1")]
-    k2 = np.asarray(res.params)[:, spec.names.index("thermal_2")]
+    model0 = with_data_references(with_effects(hj.StoneModel.nominal(jnp.float64), ["thermal"]), fleet)
+    res = hj.fit(model0, fleet, max_steps=64)
+    params = np.asarray(res.parameters())
+    k1 = params[:, res.view.names.index("thermal_1")]
+    k2 = params[:, res.view.names.index("thermal_2")]
     np.testing.assert_allclose(np.median(k1), 3e-5, rtol=0.2)
     np.testing.assert_allclose(np.median(k2), -2e-5, rtol=0.25)
     assert float(np.max(np.asarray(res.rms_mrad))) < 0.2

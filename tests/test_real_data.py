@@ -24,7 +24,7 @@ def _flagged_properties(fleet):
 def test_uncalibrated_actuator_normals_point_up_and_south(shared_fleet):
     fleet = shared_fleet
     n_h = len([i for i in fleet.ids if i])
-    models = hj.nominal_models("actuator", fleet.n_heliostats)
+    models = hj.broadcast_model(hj.ActuatorModel.nominal(fleet.counts.dtype), fleet.n_heliostats)
     normals = jax.vmap(lambda m, g, c: jax.vmap(lambda ci: hj.forward(m, g, ci).normal)(c))(
         models, fleet.geometry, fleet.counts
     )
@@ -43,7 +43,7 @@ def test_uncalibrated_actuator_normals_point_up_and_south(shared_fleet):
 
 
 def _uncalibrated_errors(fleet):
-    models = hj.nominal_models("actuator", fleet.n_heliostats)
+    models = hj.broadcast_model(hj.ActuatorModel.nominal(fleet.counts.dtype), fleet.n_heliostats)
     return np.asarray(hj.fleet_beam_errors_mrad(models, fleet))
 
 

@@ -42,7 +42,7 @@ def test_noise_free_records_fit_the_true_model_exactly(small_sim):
     np.testing.assert_array_equal(c, np.round(c))
     assert np.all(c >= 0) and np.all(c <= np.asarray(g.actuators.max_counts)[:, None, :])
     # The nominal (controller) model misses by the true parameters' mrad-level error.
-    nominal = hj.nominal_models("stone8", 4)
+    nominal = hj.broadcast_model(hj.StoneModel.nominal(jnp.float64), 4)
     e_nom = hj.beam_errors_mrad(nominal, g, sim.counts, ctx, sim.focal_spot, sim.hit)
     assert 0.5 < float(jnp.nanmedian(e_nom)) < 50.0
 
@@ -102,6 +102,6 @@ def test_simulator_paint_round_trip_is_bit_identical(small_sim, tmp_path):
         np.testing.assert_allclose(np.asarray(loaded.focal_spot)[i, :n], np.asarray(sim.focal_spot)[i][mask[i]], atol=1e-6)
     np.testing.assert_allclose(np.asarray(loaded.geometry.position)[:4], np.asarray(g.position), atol=1e-6)
     # Fitting the loaded data recovers the simulated (noise-free) truth.
-    res = hj.fit_fleet(hj.CalibrationData.from_fleet(loaded), "stone8", hj.FitConfig())
-    err = np.asarray(hj.fleet_beam_errors_mrad(res, loaded))
+    res = hj.fit(hj.StoneModel.nominal(jnp.float64), loaded)
+    err = np.asarray(hj.fleet_beam_errors_mrad(res.model, loaded))
     assert np.nanmax(err[:4]) < 1e-3

@@ -38,8 +38,8 @@ import dataclasses
 import time
 from collections.abc import Callable
 
+import equinox as eqx
 import numpy as np
-
 import optimistix as optx
 
 from .._fleet import bucket_size, pad_fleet

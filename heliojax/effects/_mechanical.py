@@ -13,6 +13,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from .._kinematics import AbstractModelWrapper
 from .._parameters import parameter
 from ._base import AbstractEffect, zeros
 
@@ -59,7 +60,8 @@ class ActuatorGeometry(AbstractEffect):
 
     @classmethod
     def nominal(cls, inner, dtype=None):
-        law = getattr(inner.base if hasattr(inner, "base") else inner, "JOINT_LAW", "linear")
+        base = inner.base if isinstance(inner, AbstractModelWrapper) else inner
+        law = getattr(base, "JOINT_LAW", "linear")
         return cls(curvature=zeros(dtype, 2), pivot_scale=zeros(dtype, 2), law=law)
 
     def fixed_parameter_fields(self) -> tuple[str, ...]:
@@ -161,9 +163,26 @@ class EncoderWobble(AbstractEffect):
     sinusoid of ``n`` times each joint angle.
     """
 
-    a: Float[Array, "2"] = parameter(unit="rad", scale=1e-3, typical=3e-4, name="wobble_cos", shape=(2,))
-    b: Float[Array, "2"] = parameter(unit="rad", scale=1e-3, typical=3e-4, name="wobble_sin", shape=(2,))
+    coefficients: Float[Array, "4"] = parameter(
+        unit="rad", scale=1e-3, typical=3e-4, name="wobble", shape=(4,), suffixes=("cos_1", "sin_1", "cos_2", "sin_2")
+    )
     n: int = eqx.field(static=True, default=2)
+
+    def __init__(self, a: Float[Array, "2"], b: Float[Array, "2"], n: int = 2):
+        a = jnp.asarray(a)
+        b = jnp.asarray(b)
+        self.coefficients = jnp.stack([a[0], b[0], a[1], b[1]])
+        self.n = n
+
+    @property
+    def a(self) -> Float[Array, "2"]:
+        """Cosine amplitudes ``(a_1, a_2)`` (rad)."""
+        return self.coefficients[jnp.array([0, 2])]
+
+    @property
+    def b(self) -> Float[Array, "2"]:
+        """Sine amplitudes ``(b_1, b_2)`` (rad)."""
+        return self.coefficients[jnp.array([1, 3])]
 
     NAME: typing.ClassVar[str] = "encoder_wobble"
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("joint_angles",)

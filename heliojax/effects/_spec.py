@@ -79,10 +79,10 @@ def with_data_references(model: AbstractKinematicModel, fleet: typing.Any, mask:
     return set_references(model, data_references(fleet, mask))
 
 
-def make_effect(name: str, inner: AbstractKinematicModel, **values: float) -> AbstractEffect:
-    """An effect for a model wrapping ``inner`` from named parameter / reference
-    values (others at their no-effect values / defaults), e.g.
-    ``make_effect("backlash", model, backlash_1=3e-4)``."""
+def make_effect(name: str, inner: AbstractKinematicModel | None = None, **values: float) -> AbstractEffect:
+    """An effect for a model wrapping ``inner`` (None: a linear-law base such as the
+    Stone model) from named parameter / reference values (others at their
+    no-effect values / defaults), e.g. ``make_effect("backlash", backlash_1=3e-4)``."""
     effect = effect_class(name).nominal(inner, jnp.float64)
     view = ParameterView.of(effect)
     refs = {leaf.name for leaf in reference_leaves(effect)}
