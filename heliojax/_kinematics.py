@@ -67,7 +67,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._geometry import (
     angle_between,
@@ -173,6 +173,8 @@ class HeliostatGeometry(eqx.Module):
         actuators: the two :class:`LinearActuators`.
         linear_slope: ``(2,)`` rad/count of the Stone model's nominal linear map.
         linear_intercept: ``(2,)`` rad of the Stone model's nominal linear map.
+        ideal_axes: ``(2,)`` bool, axes whose actuator the plant declares *ideal*
+            (joint angle linear in the counts, PAINT ``type_axis == "ideal"``).
     """
 
     position: Float[Array, "*b 3"]
@@ -182,6 +184,7 @@ class HeliostatGeometry(eqx.Module):
     actuators: LinearActuators
     linear_slope: Float[Array, "*b 2"]
     linear_intercept: Float[Array, "*b 2"]
+    ideal_axes: Bool[Array, "*b 2"]
 
     @classmethod
     def build(
@@ -191,8 +194,14 @@ class HeliostatGeometry(eqx.Module):
         joint_translation_1=(0.0, 0.0, 0.0),
         joint_translation_2=(0.0, 0.0, 0.0),
         concentrator_translation=(0.0, 0.0, 0.0),
+        ideal_axes=(False, False),
     ) -> "HeliostatGeometry":
-        """Geometry with the Stone linear map derived from ``actuators``."""
+        """Geometry with the Stone linear map derived from ``actuators``.
+
+        ``ideal_axes``: per axis, whether the plant declares an *ideal* actuator
+        (PAINT ``type_axis == "ideal"``: the joint angle is linear in the counts),
+        ``(2,)`` or batched like the actuators; the law-of-cosines actuator model
+        then uses the linear map on that axis (see :class:`ActuatorModel`)."""
         slope, intercept = actuators.linearised()
         pos = jnp.asarray(position)
         return cls(
@@ -205,6 +214,7 @@ class HeliostatGeometry(eqx.Module):
             actuators=actuators,
             linear_slope=slope,
             linear_intercept=intercept,
+            ideal_axes=jnp.broadcast_to(jnp.asarray(ideal_axes, bool), jnp.shape(slope)),
         )
 
 
@@ -547,6 +557,13 @@ class StoneModel(AbstractKinematicModel):
 class ActuatorModel(AbstractKinematicModel):
     """The linear-actuator model's corrections to the nominal geometry.
 
+    Counts become joint angles by the law of cosines of each linear actuator, or,
+    on axes whose actuator the plant declares *ideal*
+    (``geometry.ideal_axes``), by the linear map ``intercept + angle_offset +
+    slope * counts / (1 + increment_scale)`` (the Stone model's map with the same
+    two corrections as offset and scale), so fleets that mix both kinds share one
+    model and one compiled program.
+
     Attributes (nominal value 0 for all, so the nominal model is PAINT's geometry):
         alpha, beta, gamma, delta: chain tilts, rad (as in the Stone model).
         angle_offset: ``(2,)`` added to each axis's ``initial_angle``, rad.
@@ -599,21 +616,29 @@ class ActuatorModel(AbstractKinematicModel):
         )
 
     def joint_angles(self, geometry, counts):
-        return self.effective_actuators(geometry).counts_to_angles(counts)
+        counts = jnp.asarray(counts)
+        law = self.effective_actuators(geometry).counts_to_angles(counts)
+        line = geometry.linear_intercept + self.angle_offset + geometry.linear_slope * counts / (1.0 + self.increment_scale)
+        return jnp.where(geometry.ideal_axes, line, law)
 
     def counts(self, geometry, angles):
-        return self.effective_actuators(geometry).angles_to_counts(angles)
+        angles = jnp.asarray(angles)
+        law = self.effective_actuators(geometry).angles_to_counts(angles)
+        line = (angles - geometry.linear_intercept - self.angle_offset) * (1.0 + self.increment_scale) / geometry.linear_slope
+        return jnp.where(geometry.ideal_axes, line, law)
 
 
-MODEL_KINDS = ("stone8", "actuator")
-"""Names of the base models (configs and the command line name them so)."""
+MODEL_KINDS = ("auto", "stone8", "actuator")
+"""Names of the base models (configs and the command line name them so). ``"auto"``
+is the actuator model, which follows each heliostat's declared actuator kind
+(law of cosines for linear actuators, a linear map for ideal ones)."""
 
 
 def nominal_model(kind: str, dtype: typing.Any = None) -> AbstractKinematicModel:
     """The nominal (uncalibrated) base model called ``kind`` (:data:`MODEL_KINDS`)."""
     if kind == "stone8":
         return StoneModel.nominal(dtype)
-    if kind == "actuator":
+    if kind in ("actuator", "auto"):
         return ActuatorModel.nominal(dtype)
     raise ValueError(f"unknown model {kind!r}; expected one of {MODEL_KINDS}")
 

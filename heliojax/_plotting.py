@@ -53,13 +53,44 @@ def plot_error_per_heliostat(ids, errors_mrad, *, ax=None, title=None, label="be
     return fig
 
 
+def _residual_panel(ax, pts, flagged, title, color, lim=None):
+    """Scatter of residual pairs (mrad) with flagged records marked; points outside
+    the square ``lim`` are drawn on its edge (open triangles) and counted."""
+    pts = pts[np.all(np.isfinite(pts), axis=1)] if pts.size else pts.reshape(0, 2)
+    flagged = flagged[np.all(np.isfinite(flagged), axis=1)] if flagged.size else flagged.reshape(0, 2)
+    if lim is None:
+        lim = float(np.percentile(np.abs(pts), 95) * 1.5) if pts.size else 1.0
+        lim = max(lim, 1e-3)
+    inside = np.all(np.abs(pts) <= lim, axis=1)
+    ax.scatter(pts[inside, 0], pts[inside, 1], s=6, alpha=0.6, color=color, label="records")
+    if (~inside).any():
+        edge = np.clip(pts[~inside], -lim, lim)
+        ax.scatter(edge[:, 0], edge[:, 1], s=18, marker="^", facecolors="none", edgecolors=color,
+                   label=f"{int((~inside).sum())} beyond the axes (on the edge)")
+    if flagged.size:
+        ax.scatter(*np.clip(flagged, -lim, lim).T, s=28, marker="x", color="tab:red",
+                   label=f"{len(flagged)} training records flagged as outliers (robust fit)")
+    ax.set_xlim(-lim, lim)
+    ax.set_ylim(-lim, lim)
+    ax.axhline(0, color="0.5", lw=0.5)
+    ax.axvline(0, color="0.5", lw=0.5)
+    ax.set_xlabel("horizontal miss [mrad]")
+    ax.set_ylabel("vertical miss [mrad]")
+    rms = np.sqrt(np.mean(np.sum(pts**2, axis=1))) if pts.size else np.nan
+    med = np.median(np.linalg.norm(pts, axis=1)) if pts.size else np.nan
+    ax.set_title(f"{title}\n(median {med:.2f}, RMS {rms:.2f} mrad)")
+    ax.set_aspect("equal")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(0.0, -0.18), frameon=False)
+
+
 def plot_calibration(run, *, axes=None):
-    """Per-heliostat train / test RMS before and after calibration, and the
-    residuals on the target (horizontal / vertical miss, mrad) of the test records
-    before and after calibration."""
+    """Per-heliostat held-out RMS before and after calibration (unfitted heliostats
+    labelled with their status), and the held-out residuals on the target
+    (horizontal / vertical miss, mrad) before and after calibration, with the
+    training records the robust fit flagged as outliers."""
     plt = _plt()
     if axes is None:
-        fig, axes = plt.subplots(1, 3, figsize=(17, 4.8), gridspec_kw={"width_ratios": [2.2, 1, 1]})
+        fig, axes = plt.subplots(1, 3, figsize=(18, 6), gridspec_kw={"width_ratios": [2.4, 1, 1]})
     else:
         fig = axes[0].figure
     summary = run.summary
@@ -67,39 +98,39 @@ def plot_calibration(run, *, axes=None):
     x = np.arange(len(ids))
 
     def col(key):
-        return np.array([np.nan if summary["heliostats"][h][key] is None else summary["heliostats"][h][key] for h in ids])
+        return np.array([np.nan if summary["heliostats"][h].get(key) is None else summary["heliostats"][h][key]
+                         for h in ids], float)
 
     ax = axes[0]
-    ax.bar(x - 0.3, col("uncalibrated_test_rms_mrad"), 0.3, label="test, uncalibrated", color="0.7")
-    ax.bar(x, col("train_rms_mrad"), 0.3, label="train, calibrated", color="tab:blue")
-    ax.bar(x + 0.3, col("test_rms_mrad"), 0.3, label="test, calibrated", color="tab:orange")
+    ax.bar(x - 0.3, col("uncalibrated_test_rms_mrad"), 0.3, label="held-out, uncalibrated", color="0.7")
+    ax.bar(x, col("train_rms_mrad"), 0.3, label="training, calibrated", color="tab:blue")
+    ax.bar(x + 0.3, col("test_rms_mrad"), 0.3, label="held-out, calibrated", color="tab:orange")
+    values = np.concatenate([col("uncalibrated_test_rms_mrad"), col("train_rms_mrad"), col("test_rms_mrad")])
+    values = values[np.isfinite(values) & (values > 0)]
+    top = float(values.max()) if values.size else 10.0
+    bottom = float(values.min()) if values.size else 0.1
+    ax.set_yscale("log")
+    ax.set_ylim(bottom * 0.5, top * 30)
+    for i, h in enumerate(ids):
+        status = summary["heliostats"][h]["status"]
+        if status != "converged":
+            ax.text(i + 0.15, top * 1.5, status.replace("_", " "), rotation=90, ha="center", va="bottom",
+                    fontsize=7, color="tab:red")
     ax.set_xticks(x)
     ax.set_xticklabels(ids, rotation=90)
-    ax.set_yscale("log")
+    ax.set_xlim(-0.8, len(ids) - 0.2)
     ax.set_ylabel("RMS beam pointing error [mrad]")
-    ax.set_title(f"{summary['model']} model, {summary['split']} split")
-    ax.legend(fontsize=8)
+    ax.set_title(f"{summary['model']} model, {summary['split']} split (red: not calibrated, with the reason)")
+    ax.legend(fontsize=8, loc="upper left", ncol=3)
     ax.grid(alpha=0.3, which="both")
 
     n = len(ids)
     test = np.asarray(run.test_mask)[:n] if np.any(run.test_mask) else np.asarray(run.fleet.mask)[:n]
-    for ax, res, title, color in (
-        (axes[1], np.asarray(run.uncalibrated_residuals_mrad)[:n], "before calibration", "0.4"),
-        (axes[2], np.asarray(run.residuals_mrad)[:n], "after calibration", "tab:orange"),
-    ):
-        pts = res[test]
-        pts = pts[np.all(np.isfinite(pts), axis=1)]
-        ax.scatter(pts[:, 0], pts[:, 1], s=6, alpha=0.6, color=color)
-        lim = np.percentile(np.abs(pts), 98) * 1.3 if pts.size else 1.0
-        ax.set_xlim(-lim, lim)
-        ax.set_ylim(-lim, lim)
-        ax.axhline(0, color="0.5", lw=0.5)
-        ax.axvline(0, color="0.5", lw=0.5)
-        ax.set_xlabel("horizontal miss [mrad]")
-        ax.set_ylabel("vertical miss [mrad]")
-        rms = np.sqrt(np.mean(np.sum(pts**2, axis=1))) if pts.size else np.nan
-        ax.set_title(f"test-record residuals {title}\n(RMS {rms:.2f} mrad)")
-        ax.set_aspect("equal")
+    outlier = np.asarray(run.outlier)[:n] if run.outlier is not None else np.zeros_like(test)
+    after = np.asarray(run.residuals_mrad)[:n]
+    before = np.asarray(run.uncalibrated_residuals_mrad)[:n]
+    _residual_panel(axes[1], before[test], before[outlier], "held-out records before calibration", "0.4")
+    _residual_panel(axes[2], after[test], after[outlier], "held-out records after calibration", "tab:orange")
     fig.tight_layout()
     return fig
 

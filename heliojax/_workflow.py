@@ -17,6 +17,9 @@
   with the nominal model
 * ``beam_error_mrad`` ``(H, M)`` after calibration; ``beam_error_uncalibrated_mrad``
   ``(H, M)`` with the nominal model
+* ``weight`` ``(H, M)`` float64: robust weight of each training record (0 unused);
+  ``outlier`` ``(H, M)`` bool: training records flagged as gross errors;
+  ``noise_mrad`` ``(H,)``: noise estimate per residual component
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ from .fit import (
     FitStatus,
     beam_errors_mrad,
     choose_start_geometry,
+    fit_robust,
     fit_timed,
     fleet_beam_errors_mrad,
     fleet_residuals_mrad,
@@ -72,6 +76,9 @@ class CalibrationRun:
         too_few: heliostat id -> reason, from the split.
         summary: the ``summary.json`` content.
         test_fleet: the fleet evaluated for test errors when ``--test-data`` was given.
+        weights: ``(H, M)`` robust weight of each training record (1 without ``robust``).
+        outlier: ``(H, M)`` training records flagged as gross errors.
+        noise_mrad: ``(H,)`` noise estimate per residual component (robust when ``robust``).
     """
 
     fleet: typing.Any
@@ -90,6 +97,9 @@ class CalibrationRun:
     summary: dict
     test_errors_mrad: np.ndarray | None = None
     test_uncalibrated_mrad: np.ndarray | None = None
+    weights: np.ndarray | None = None
+    outlier: np.ndarray | None = None
+    noise_mrad: np.ndarray | None = None
 
 
 def _stats(x: np.ndarray) -> tuple[float, float]:
@@ -109,7 +119,7 @@ _NOT_FITTED = (FitStatus.TOO_FEW_RECORDS, FitStatus.NO_RECORDS)
 def calibrate(
     fleet,
     *,
-    model: str | AbstractKinematicModel = "stone8",
+    model: str | AbstractKinematicModel = "auto",
     split: str = "time",
     n_train: int | None = None,
     n_val: int = 0,
@@ -118,6 +128,7 @@ def calibrate(
     fit_options: typing.Mapping[str, typing.Any] | None = None,
     test_fleet=None,
     start: str = "auto",
+    robust: bool = True,
     progress: Callable[[str], None] | None = None,
 ) -> CalibrationRun:
     """Split each heliostat's records, fit the model on the training records of all
@@ -125,7 +136,9 @@ def calibrate(
 
     Args:
         fleet: a :class:`heliojax.Fleet` (unpadded or padded).
-        model: ``"stone8"``, ``"actuator"`` or a start model (e.g. one with effects).
+        model: ``"auto"`` (the actuator model, following each heliostat's declared
+            actuator kind), ``"stone8"``, ``"actuator"`` or a start model (e.g. one
+            with effects).
         split: one of :data:`heliojax.SPLIT_NAMES`.
         n_train, n_val, train_fraction, seed: split sizes (``n_train`` wins over
             ``train_fraction``; PAINT's splits need ``n_train``).
@@ -135,6 +148,8 @@ def calibrate(
             the split's test records; then all of ``fleet``'s records may train.
         start: ``"auto"`` (per heliostat the better of nominal / fleet-typical
             actuators, see :func:`heliojax.choose_start_geometry`) or ``"nominal"``.
+        robust: robust fit (:func:`heliojax.fit.fit_robust`: Cauchy loss with a
+            per-heliostat scale, record weights and outlier flags) instead of least squares.
         progress: callback for progress messages.
     """
     say = progress or (lambda _msg: None)
@@ -178,7 +193,17 @@ def calibrate(
 
     options = dict(fit_options or {})
     say(f"fitting {n_real} heliostats ({model0.label()}, padded to {h_pad} x {m_pad})")
-    result, compile_s, fit_s = fit_timed(model0, padded, mask=jnp.asarray(train), **options)
+    if robust:
+        robust_fit = fit_robust(model0, padded, mask=jnp.asarray(train), **options)
+        result, compile_s, fit_s = robust_fit.solution, robust_fit.compile_s, robust_fit.run_s
+        weights = np.asarray(robust_fit.weights)
+        outlier = np.asarray(robust_fit.outlier)
+        noise = np.asarray(robust_fit.noise_mrad)
+    else:
+        result, compile_s, fit_s = fit_timed(model0, padded, mask=jnp.asarray(train), **options)
+        weights = np.where(train & np.asarray(padded.mask), 1.0, 0.0)
+        outlier = np.zeros_like(train)
+        noise = np.asarray(result.noise_mrad)
     say(f"fitted in {fit_s:.2f} s (compile {compile_s:.2f} s)")
 
     all_valid = jnp.asarray(padded.mask)
@@ -213,6 +238,9 @@ def calibrate(
         summary={},
         test_errors_mrad=test_err,
         test_uncalibrated_mrad=test_uncal,
+        weights=weights,
+        outlier=outlier,
+        noise_mrad=noise,
     )
     summary = _summarise(run, n_real, compile_s=compile_s, fit_s=fit_s)
     return dataclasses.replace(run, summary=summary)
@@ -281,6 +309,10 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
             "uncalibrated_test_median_mrad": _json_float(unc_med),
             "uncalibrated_test_rms_mrad": _json_float(unc_rms),
             "lm_steps": int(np.asarray(res.n_steps)[i]),
+            "noise_mrad": _json_float(float(run.noise_mrad[i])) if run.noise_mrad is not None else None,
+            "n_outliers": int(np.sum(run.outlier[i])) if run.outlier is not None else 0,
+            "outlier_record_ids": [int(x) for x in np.asarray(run.fleet.record_id)[i][run.outlier[i]]]
+            if run.outlier is not None else [],
             "start_geometry": "fleet_typical" if run.start_replaced[i] else "nominal",
             "params": {n: _json_float(params[i, k]) for k, n in enumerate(view.names)},
             "param_std": {n: _json_float(std[i, k]) for k, n in enumerate(view.names)},
@@ -363,6 +395,10 @@ def write_results_h5(path: str | Path, run: CalibrationRun) -> None:
             f.create_dataset("residual_uncalibrated_mrad", data=run.uncalibrated_residuals_mrad[:n])
             f.create_dataset("beam_error_mrad", data=run.errors_mrad[:n])
             f.create_dataset("beam_error_uncalibrated_mrad", data=run.uncalibrated_mrad[:n])
+            if run.weights is not None:
+                f.create_dataset("weight", data=np.asarray(run.weights, float)[:n])
+                f.create_dataset("outlier", data=np.asarray(run.outlier, bool)[:n])
+                f.create_dataset("noise_mrad", data=np.asarray(run.noise_mrad, float)[:n])
 
 
 def read_results_h5(path: str | Path) -> dict:

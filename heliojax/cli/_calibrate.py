@@ -7,7 +7,7 @@ from pathlib import Path
 
 from ._common import add_data_argument, enable_compilation_cache, load_fleet, progress
 
-MODELS = ("stone8", "actuator", "stone8+nn", "actuator+nn")
+MODELS = ("auto", "stone8", "actuator", "auto+nn", "stone8+nn", "actuator+nn")
 NN_VARIANTS = ("residual", "paper")
 WEAK_PRIOR_SIGMA = {"gamma": 5e-3, "delta": 5e-3}
 """``--prior``: sigma (rad) toward nominal for the chain tilts gamma and delta, the
@@ -29,8 +29,11 @@ def add_parser(subparsers) -> None:
         ),
     )
     add_data_argument(p)
-    p.add_argument("--model", choices=MODELS, default="stone8",
-                   help="physics model; '+nn' adds a per-heliostat neural correction (heliojax.neural)")
+    p.add_argument("--model", choices=MODELS, default="auto",
+                   help="kinematic model: 'auto' (default) follows each heliostat's declared actuators "
+                        "(law of cosines for linear actuators, a linear counts-to-angle map for ideal ones), "
+                        "'actuator' is the same model, 'stone8' the Stone model (linear map everywhere); "
+                        "'+nn' adds a per-heliostat neural correction (heliojax.neural)")
     p.add_argument("--nn-variant", choices=NN_VARIANTS, default="residual",
                    help="with +nn: 'residual' (learned joint-angle correction, default) or 'paper' "
                         "(Pargmann et al.: physics-pretrained network sun + spot -> motor counts)")
@@ -45,6 +48,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--prior", action="store_true",
                    help="Tikhonov prior toward nominal for the weakly identified parameters")
     p.add_argument("--max-steps", type=int, default=64, help="Levenberg-Marquardt step limit")
+    p.add_argument("--no-robust", dest="robust", action="store_false",
+                   help="plain least squares instead of the robust (Cauchy) fit with outlier flags")
     p.add_argument("--strategy", choices=BATCHING_NAMES, default="auto", help="batching over heliostats")
     p.add_argument("--start", choices=("auto", "nominal"), default="auto",
                    help="start geometry: per heliostat the better of nominal / fleet-typical actuators")
@@ -69,7 +74,8 @@ def run(args) -> int:
     test_fleet = None
     if args.test_data is not None:
         test_fleet = load_paint_directory(args.test_data, centroid=args.centroid)
-    model0 = nominal_model(args.model.removesuffix("+nn"))
+    kind = args.model.removesuffix("+nn")
+    model0 = nominal_model("actuator" if kind == "auto" else kind)
     fit_options = {"max_steps": args.max_steps, "batching": batching_from_name(args.strategy)}
     if args.prior:
         fit_options["prior"] = gaussian_prior(model0, WEAK_PRIOR_SIGMA)
@@ -89,6 +95,7 @@ def run(args) -> int:
         fit_options=fit_options,
         test_fleet=test_fleet,
         start=args.start,
+        robust=args.robust,
         progress=say,
     )
     if neural:

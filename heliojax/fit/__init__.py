@@ -24,6 +24,7 @@ from ._fit import (
     DEFAULT_ATOL as DEFAULT_ATOL,
     DEFAULT_MAX_STEPS as DEFAULT_MAX_STEPS,
     DEFAULT_RTOL as DEFAULT_RTOL,
+    CompiledFit as CompiledFit,
     FitSolution as FitSolution,
     LeastSquaresOutcome as LeastSquaresOutcome,
     default_solver as default_solver,
@@ -33,7 +34,12 @@ from ._fit import (
     solve_least_squares as solve_least_squares,
     status_code as status_code,
 )
-from ._loss import AbstractLoss as AbstractLoss, LeastSquares as LeastSquares
+from ._loss import (
+    CAUCHY_EFFICIENCY_FACTOR as CAUCHY_EFFICIENCY_FACTOR,
+    AbstractLoss as AbstractLoss,
+    Cauchy as Cauchy,
+    LeastSquares as LeastSquares,
+)
 from ._prior import (
     AbstractPrior as AbstractPrior,
     GaussianPrior as GaussianPrior,
@@ -44,6 +50,11 @@ from ._records import (
     finite_records as finite_records,
     record_residuals_mrad as record_residuals_mrad,
     sanitise as sanitise,
+)
+from ._robust import (
+    RobustFit as RobustFit,
+    fit_robust as fit_robust,
+    robust_noise as robust_noise,
 )
 from ._sharding import (
     calibrate_distributed as calibrate_distributed,

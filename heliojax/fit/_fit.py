@@ -165,6 +165,7 @@ def _fit_one(
     max_steps: int,
     model0: AbstractKinematicModel,
     prior_h: typing.Any,
+    loss_h: typing.Any,
     geometry: HeliostatGeometry,
     counts: Float[Array, "M 2"],
     context: RecordContext,
@@ -183,7 +184,7 @@ def _fit_one(
         return p0.at[idx].add(y * free_scales)
 
     def record_row(y, c, x, f):
-        r = loss.row(view.from_vector(model0, physical(y)).beam_components(geometry, c, x, f) * 1e3)
+        r = loss.row(view.from_vector(model0, physical(y)).beam_components(geometry, c, x, f) * 1e3, loss_h)
         return r, r
 
     def prior_rows(y):
@@ -252,12 +253,12 @@ def _fit_one(
 
 
 @eqx.filter_jit
-def _fit_compiled(view, solver, loss, prior, max_steps, batching, model0, prior_h, geometry, counts, context, focal,
-                  mask):
-    def one(m, ph, g, c, x, f, k):
-        return _fit_one(view, solver, loss, prior, max_steps, m, ph, g, c, x, f, k)
+def _fit_compiled(view, solver, loss, prior, max_steps, batching, model0, prior_h, loss_h, geometry, counts, context,
+                  focal, mask):
+    def one(m, ph, lh, g, c, x, f, k):
+        return _fit_one(view, solver, loss, prior, max_steps, m, ph, lh, g, c, x, f, k)
 
-    return batching.map(one)(model0, prior_h, geometry, counts, context, focal, mask)
+    return batching.map(one)(model0, prior_h, loss_h, geometry, counts, context, focal, mask)
 
 
 def _prepare(model0, fleet, mask, free, solver, loss, prior, batching, max_steps):
@@ -272,7 +273,8 @@ def _prepare(model0, fleet, mask, free, solver, loss, prior, batching, max_steps
     prior = NoPrior() if prior is None else prior
     batching = default_batching() if batching is None else batching
     m = fleet.mask if mask is None else (jnp.asarray(mask) & fleet.mask)
-    args = (model0, prior.per_heliostat(h), fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, m)
+    args = (model0, prior.per_heliostat(h), loss.per_heliostat(h), fleet.geometry, fleet.counts, fleet.context,
+            fleet.focal_spot, m)
     static = (view, solver, loss, prior, max_steps, batching)
     return h, static, batching.prepare(args)
 
@@ -313,24 +315,60 @@ def fit(
     return FitSolution(view=static[0], **static[-1].finish(out, h))
 
 
+class CompiledFit:
+    """A fit lowered and compiled ahead of time for one fleet and one set of static
+    options, callable again with other start models, losses or priors of the same
+    structure (the robust passes reuse the least-squares program this way).
+
+    Attributes:
+        compile_s: seconds spent tracing, lowering and compiling.
+    """
+
+    def __init__(self, model0: AbstractKinematicModel, fleet: typing.Any, **options: typing.Any):
+        self._fleet = fleet
+        self._mask = options.pop("mask", None)
+        self._options = options
+        h, static, args = _prepare(model0, fleet, self._mask, options.get("free"), options.get("solver"),
+                                   options.get("loss"), options.get("prior"), options.get("batching"),
+                                   options.get("max_steps", DEFAULT_MAX_STEPS))
+        unknown = set(options) - {"free", "solver", "loss", "prior", "batching", "max_steps"}
+        if unknown:
+            raise TypeError(f"unknown fit options {sorted(unknown)}")
+        t0 = time.perf_counter()
+        self._compiled = _fit_compiled.lower(*static, *args).compile()
+        self.compile_s = time.perf_counter() - t0
+        self._h = h
+        self.run_s = 0.0
+
+    def __call__(self, model0: AbstractKinematicModel, *, loss: AbstractLoss | None = None,
+                 prior: AbstractPrior | None = None) -> FitSolution:
+        """Run the compiled fit from ``model0`` (with ``loss`` / ``prior`` replacing
+        the compiled ones; same structure required)."""
+        opts = dict(self._options)
+        if loss is not None:
+            opts["loss"] = loss
+        if prior is not None:
+            opts["prior"] = prior
+        h, static, args = _prepare(model0, self._fleet, self._mask, opts.get("free"), opts.get("solver"),
+                                   opts.get("loss"), opts.get("prior"), opts.get("batching"),
+                                   opts.get("max_steps", DEFAULT_MAX_STEPS))
+        t0 = time.perf_counter()
+        out = self._compiled(*static, *args)
+        jax.block_until_ready(out)
+        self.run_s += time.perf_counter() - t0
+        return FitSolution(view=static[0], **static[-1].finish(out, h))
+
+
 def fit_timed(model0: AbstractKinematicModel, fleet: typing.Any, **options: typing.Any) -> tuple[FitSolution, float, float]:
     """:func:`fit` with its compile and run times measured separately (ahead-of-time
     lowering): ``(solution, compile_s, run_s)``."""
-    h, static, args = _prepare(model0, fleet, options.pop("mask", None), options.pop("free", None),
-                               options.pop("solver", None), options.pop("loss", None), options.pop("prior", None),
-                               options.pop("batching", None), options.pop("max_steps", DEFAULT_MAX_STEPS))
-    if options:
-        raise TypeError(f"fit_timed: unknown options {sorted(options)}")
-    t0 = time.perf_counter()
-    compiled = _fit_compiled.lower(*static, *args).compile()
-    t1 = time.perf_counter()
-    out = compiled(*static, *args)
-    jax.block_until_ready(out)
-    t2 = time.perf_counter()
-    return FitSolution(view=static[0], **static[-1].finish(out, h)), t1 - t0, t2 - t1
+    compiled = CompiledFit(model0, fleet, **options)
+    solution = compiled(model0)
+    return solution, compiled.compile_s, compiled.run_s
 
 
 __all__ = [
+    "CompiledFit",
     "DEFAULT_ATOL",
     "DEFAULT_MAX_STEPS",
     "DEFAULT_RTOL",

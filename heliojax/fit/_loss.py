@@ -5,10 +5,12 @@ the records' tangent-plane residuals (mrad) plus the prior's rows. The loss acts
 per record on the residual pair ``r = (r_1, r_2)``:
 
 * :class:`LeastSquares` - rows ``r`` (Gaussian errors).
-
-Robust losses (a scale estimated per heliostat from its own data) plug in here:
-they return the rows ``sqrt(rho(|r|^2 / s^2)) * s * r / |r|`` that a
-Levenberg-Marquardt solver minimises like squares.
+* :class:`Cauchy` - rows ``r * sqrt(log1p(z) / z)``, ``z = |r|^2 / c^2``, so that
+  the record's cost is ``0.5 c^2 log(1 + |r|^2 / c^2)``: the Cauchy (Lorentzian)
+  M-estimator, minimised by the same Levenberg-Marquardt solver (its Jacobian is
+  exact, differentiated through the row). The scale ``c`` (mrad) is per heliostat
+  (:func:`heliojax.fit.fit_robust` estimates it from the data); ``c = inf`` is
+  least squares exactly, so both share one compiled program.
 """
 
 from __future__ import annotations
@@ -20,30 +22,74 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+CAUCHY_EFFICIENCY_FACTOR = 2.3849
+"""Cauchy scale in units of the noise standard deviation for 95 % asymptotic
+efficiency under Gaussian noise (Holland & Welsch 1977)."""
+
 
 class AbstractLoss(eqx.Module):
     """Turns one record's residual pair (mrad) into the two rows whose half sum of
     squares is its cost (differentiated through by the fit)."""
 
+    def per_heliostat(self, n: int) -> typing.Any:
+        """The part of the loss batched over ``n`` heliostats (handed to
+        :meth:`row` / :meth:`weight` per heliostat); default none."""
+        del n
+        return None
+
     @abc.abstractmethod
-    def row(self, residual: Float[Array, " 2"]) -> Float[Array, " 2"]:
+    def row(self, residual: Float[Array, " 2"], heliostat: typing.Any) -> Float[Array, " 2"]:
         """The record's rows at ``residual``."""
 
     @abc.abstractmethod
-    def weight(self, residual: Float[Array, " 2"]) -> Float[Array, ""]:
-        """The record's effective weight in ``[0, 1]`` at ``residual`` (1 for least
-        squares)."""
+    def weight(self, residual: Float[Array, " 2"], heliostat: typing.Any) -> Float[Array, ""]:
+        """The record's effective (IRLS) weight in ``[0, 1]`` at ``residual``."""
 
 
 @typing.final
 class LeastSquares(AbstractLoss):
     """Plain least squares: the rows are the residuals."""
 
-    def row(self, residual):
+    def row(self, residual, heliostat):
+        del heliostat
         return residual
 
-    def weight(self, residual):
+    def weight(self, residual, heliostat):
+        del heliostat
         return jnp.ones((), residual.dtype)
 
 
-__all__ = ["AbstractLoss", "LeastSquares"]
+def _log1p_ratio(z: Float[Array, ""]) -> Float[Array, ""]:
+    """``log1p(z) / z``, smooth through ``z = 0`` (value 1) and safe to differentiate."""
+    small = z < 1e-8
+    safe = jnp.where(small, 1.0, z)
+    return jnp.where(small, 1.0 - 0.5 * z, jnp.log1p(safe) / safe)
+
+
+@typing.final
+class Cauchy(AbstractLoss):
+    """The Cauchy (Lorentzian) robust loss with a per-heliostat scale.
+
+    Attributes:
+        scale_mrad: ``c`` in mrad, a scalar or ``(H,)``; ``inf`` = least squares.
+    """
+
+    scale_mrad: Float[Array, "*h"]
+
+    def __check_init__(self):
+        if jnp.ndim(self.scale_mrad) > 1:
+            raise ValueError(f"Cauchy: scale_mrad must be a scalar or (H,), got shape {jnp.shape(self.scale_mrad)}")
+
+    def per_heliostat(self, n):
+        return jnp.broadcast_to(jnp.asarray(self.scale_mrad), (n,))
+
+    def row(self, residual, heliostat):
+        z = jnp.sum(residual**2) / heliostat**2
+        return residual * jnp.sqrt(_log1p_ratio(z))
+
+    def weight(self, residual, heliostat):
+        z = jnp.sum(residual**2) / heliostat**2
+        return 1.0 / (1.0 + z)
+
+
+__all__ = ["CAUCHY_EFFICIENCY_FACTOR", "AbstractLoss", "Cauchy", "LeastSquares"]

@@ -1,0 +1,178 @@
+"""Robust calibration: a Cauchy M-estimate with a per-heliostat scale from the data,
+record weights and outlier flags.
+
+Real plant records carry gross errors (a wrong target, a spot centroid on a
+reflection) that dominate a least-squares fit. :func:`fit_robust`
+
+1. fits least squares (``Cauchy(inf)``: the same compiled program as step 2);
+2. estimates each heliostat's noise ``sigma`` (mrad per residual component)
+   robustly from those residuals: for a 2-D Gaussian the median residual norm is
+   ``sigma * sqrt(2 ln 2)``; a heliostat with few records is shrunk toward the
+   fleet's median noise with the weight of :data:`NOISE_PRIOR_RECORDS` records;
+3. refits from there with the Cauchy loss of scale
+   ``c = 2.3849 sigma`` (95 % efficiency under Gaussian noise);
+4. re-estimates ``sigma`` from the robust residuals and flags a record as an
+   outlier when its residual norm exceeds the 99.9 % point of the Rayleigh
+   distribution of ``sigma`` (``sqrt(-2 ln 0.001) sigma = 3.717 sigma``): under
+   Gaussian noise 0.1 % of clean records are flagged.
+
+Each record's weight is its Cauchy IRLS weight ``1 / (1 + |r|^2 / c^2)``. No
+constant is picked on any data set: the two numbers above are the Cauchy
+loss's textbook efficiency constant and a Gaussian tail probability.
+"""
+
+from __future__ import annotations
+
+import typing
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from .._kinematics import AbstractKinematicModel
+from .._parameters import broadcast_model, is_batched
+from ._evaluate import fleet_residuals_mrad
+from ._fit import CompiledFit, FitSolution
+from ._loss import CAUCHY_EFFICIENCY_FACTOR, Cauchy
+from ._status import FitStatus
+
+RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
+"""Median of the norm of a 2-D standard Gaussian."""
+
+OUTLIER_TAIL = 1e-3
+"""Probability that a clean record is flagged as an outlier (Gaussian noise)."""
+
+NOISE_PRIOR_RECORDS = 10.0
+"""Weight (in records) of the fleet's median noise in a heliostat's noise estimate."""
+
+
+@typing.final
+class RobustFit(eqx.Module):
+    """Outcome of :func:`fit_robust`.
+
+    Attributes:
+        solution: the robust :class:`FitSolution`.
+        least_squares: the least-squares fit it started from.
+        weights: ``(H, M)`` Cauchy weight of each record in ``[0, 1]`` (0 outside the mask).
+        outlier: ``(H, M)`` records flagged as gross errors.
+        noise_mrad: ``(H,)`` robust noise estimate per residual component, mrad.
+        scale_mrad: ``(H,)`` the Cauchy scale used, mrad.
+        compile_s: seconds compiling the (one) fit program.
+        run_s: seconds running the fit passes.
+    """
+
+    solution: FitSolution
+    least_squares: FitSolution
+    weights: Float[Array, "H M"]
+    outlier: Bool[Array, "H M"]
+    noise_mrad: Float[Array, " H"]
+    scale_mrad: Float[Array, " H"]
+    compile_s: float = eqx.field(static=True)
+    run_s: float = eqx.field(static=True)
+
+
+def robust_noise(
+    residuals: Float[Array, "H M 2"], use: Bool[Array, "H M"], n_free: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-heliostat noise (mrad per component) from residuals: median norm over
+    ``sqrt(2 ln 2)``, corrected for the fitted degrees of freedom, shrunk toward the
+    fleet median for heliostats with few records. Returns ``(sigma, own)``."""
+    r = np.asarray(residuals, float)
+    use = np.asarray(use, bool) & np.all(np.isfinite(r), axis=-1)
+    norm = np.where(use, np.linalg.norm(np.where(np.isfinite(r), r, 0.0), axis=-1), np.nan)
+    n = use.sum(axis=1)
+    with np.errstate(invalid="ignore"):
+        med = np.nanmedian(np.where(n[:, None] > 0, norm, 0.0), axis=1) if norm.size else np.zeros(0)
+    dof = np.maximum(2 * n - n_free, 1)
+    own = med / RAYLEIGH_MEDIAN * np.sqrt(np.maximum(2 * n, 1) / dof)
+    good = (2 * n >= 3 * n_free) & np.isfinite(own) & (own > 0)
+    fleet = float(np.median(own[good])) if good.any() else float(np.nanmedian(np.where(n > 0, own, np.nan)))
+    if not np.isfinite(fleet) or fleet <= 0:
+        fleet = 1.0
+    own = np.where(np.isfinite(own) & (n > 0), own, fleet)
+    sigma = np.sqrt((n * own**2 + NOISE_PRIOR_RECORDS * fleet**2) / (n + NOISE_PRIOR_RECORDS))
+    return sigma, own
+
+
+def _fitted(solution: FitSolution) -> np.ndarray:
+    st = np.asarray(solution.status)
+    return np.isin(st, (FitStatus.CONVERGED, FitStatus.MAX_STEPS))
+
+
+def fit_robust(
+    model0: AbstractKinematicModel,
+    fleet: typing.Any,
+    *,
+    mask: Bool[Array, "H M"] | None = None,
+    passes: int = 2,
+    **fit_options: typing.Any,
+) -> RobustFit:
+    """Robust fit of every heliostat (see the module docstring).
+
+    Args:
+        model0: start model (one, or batched over heliostats).
+        fleet: a :class:`heliojax.Fleet`.
+        mask: ``(H, M)`` records to fit (ANDed with ``fleet.mask``).
+        passes: robust passes; each re-estimates the scale from the previous pass's
+            residuals (the first from the least-squares residuals).
+        fit_options: further keyword arguments of :func:`heliojax.fit` (not ``loss``).
+
+    Returns:
+        A :class:`RobustFit`.
+    """
+    if "loss" in fit_options:
+        raise TypeError("fit_robust chooses the loss itself")
+    m = fleet.mask if mask is None else (jnp.asarray(mask) & fleet.mask)
+    h = int(np.shape(fleet.mask)[0])
+    least_squares = Cauchy(jnp.full((h,), jnp.inf, fleet.counts.dtype))
+    # one compiled program for every pass (the loss scale is data, not structure)
+    run = CompiledFit(model0, fleet, mask=m, loss=least_squares, **fit_options)
+    ls = run(model0)
+    n_free = ls.view.n_free
+    r0 = fleet_residuals_mrad(ls.model, fleet, m)
+    sigma0, _ = robust_noise(r0, m, n_free)
+    scale = jnp.asarray(CAUCHY_EFFICIENCY_FACTOR * sigma0, fleet.counts.dtype)
+    # warm start from the least-squares fit where it succeeded
+    ok = jnp.asarray(_fitted(ls))
+    start = jax.tree.map(
+        lambda a, b: jnp.where(ok.reshape((-1,) + (1,) * (jnp.ndim(a) - 1)), a, b) if eqx.is_array(a) else a,
+        ls.model,
+        _batched_like(model0, ls.model),
+    )
+    sol = run(start, loss=Cauchy(scale))
+    r1 = fleet_residuals_mrad(sol.model, fleet, m)
+    sigma1, _ = robust_noise(r1, m, n_free)
+    for _ in range(passes - 1):
+        # the least-squares residuals overstate the noise: refit with the scale of
+        # the robust residuals (same program, warm start)
+        scale = jnp.asarray(CAUCHY_EFFICIENCY_FACTOR * sigma1, fleet.counts.dtype)
+        sol = run(sol.model, loss=Cauchy(scale))
+        r1 = fleet_residuals_mrad(sol.model, fleet, m)
+        sigma1, _ = robust_noise(r1, m, n_free)
+    norm = np.linalg.norm(np.where(np.isfinite(np.asarray(r1)), np.asarray(r1), 0.0), axis=-1)
+    use = np.asarray(m, bool) & np.all(np.isfinite(np.asarray(r1)), axis=-1)
+    c = CAUCHY_EFFICIENCY_FACTOR * sigma1
+    weights = np.where(use, 1.0 / (1.0 + (norm / c[:, None]) ** 2), 0.0)
+    threshold = np.sqrt(-2.0 * np.log(OUTLIER_TAIL)) * sigma1
+    outlier = use & (norm > threshold[:, None])
+    return RobustFit(
+        compile_s=run.compile_s,
+        run_s=run.run_s,
+        solution=sol,
+        least_squares=ls,
+        weights=jnp.asarray(weights),
+        outlier=jnp.asarray(outlier),
+        noise_mrad=jnp.asarray(sigma1),
+        scale_mrad=scale,
+    )
+
+
+def _batched_like(model: AbstractKinematicModel, batched: AbstractKinematicModel) -> AbstractKinematicModel:
+    leaves_b = jax.tree.leaves(batched)
+    n = int(jnp.shape(leaves_b[0])[0]) if leaves_b else 0
+    return model if is_batched(model) else broadcast_model(model, n)
+
+
+__all__ = ["NOISE_PRIOR_RECORDS", "OUTLIER_TAIL", "RAYLEIGH_MEDIAN", "RobustFit", "fit_robust", "robust_noise"]
