@@ -122,11 +122,14 @@ from ._sun import (
     julian_day as julian_day,
     solar_position as solar_position,
 )
+from ._results import (
+    CalibrationResults as CalibrationResults,
+    load_results as load_results,
+    write_results_h5 as write_results_h5,
+)
 from ._workflow import (
     CalibrationRun as CalibrationRun,
     calibrate as calibrate,
-    read_results_h5 as read_results_h5,
-    write_results_h5 as write_results_h5,
     write_summary as write_summary,
 )
 

@@ -1,25 +1,8 @@
 """The calibration job: split, fit, evaluate, summarise, write (library side of
 ``heliojax calibrate``).
 
-``results.h5`` schema (all datasets per heliostat ``H`` / record ``M``, padded):
-
-* attrs: ``model``, ``split``, ``heliojax_version``, ``param_names`` (JSON list),
-  ``param_units`` (JSON list)
-* ``heliostat_ids`` ``(H,)`` str
-* ``params`` ``(H, P)`` float64, physical units (rad, 1, m), order ``param_names``
-* ``param_std`` ``(H, P)`` float64, Gauss-Newton standard errors
-* ``status`` ``(H,)`` int32 (:class:`heliojax.FitStatus`), ``status_labels`` ``(H,)`` str
-* ``start_geometry`` ``(H,)`` str: ``"nominal"`` or ``"fleet_typical"``
-* ``record_id`` ``(H, M)`` int64 (-1 = padding)
-* ``split`` ``(H, M)`` int8: 0 unused/padding, 1 train, 2 validation, 3 test
-* ``residual_mrad`` ``(H, M, 2)`` float64: tangent-plane beam error components
-  after calibration (NaN where no record); ``residual_uncalibrated_mrad`` the same
-  with the nominal model
-* ``beam_error_mrad`` ``(H, M)`` after calibration; ``beam_error_uncalibrated_mrad``
-  ``(H, M)`` with the nominal model
-* ``weight`` ``(H, M)`` float64: robust weight of each training record (0 unused);
-  ``outlier`` ``(H, M)`` bool: training records flagged as gross errors;
-  ``noise_mrad`` ``(H,)``: noise estimate per residual component
+The files it writes: ``summary.json`` (:func:`write_summary`, schema in the
+README) and ``results.h5`` (:mod:`heliojax._results`).
 """
 
 from __future__ import annotations
@@ -54,7 +37,6 @@ from .fit import (
     fleet_residuals_mrad,
 )
 
-SPLIT_CODES = {"unused": 0, "train": 1, "validation": 2, "test": 3}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,6 +82,7 @@ class CalibrationRun:
     weights: np.ndarray | None = None
     outlier: np.ndarray | None = None
     noise_mrad: np.ndarray | None = None
+    robust: bool = False
 
 
 def _stats(x: np.ndarray) -> tuple[float, float]:
@@ -241,6 +224,7 @@ def calibrate(
         weights=weights,
         outlier=outlier,
         noise_mrad=noise,
+        robust=robust,
     )
     summary = _summarise(run, n_real, compile_s=compile_s, fit_s=fit_s)
     return dataclasses.replace(run, summary=summary)
@@ -333,6 +317,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
     return {
         "model": run.model0.label(),
         "split": run.split_kind,
+        "robust": bool(run.robust),
         "param_units": dict(zip(view.names, view.units)),
         "free_params": list(view.free_names),
         "heliostats": heliostats,
@@ -357,64 +342,4 @@ def write_summary(path: str | Path, run: CalibrationRun) -> None:
         f.write("\n")
 
 
-def write_results_h5(path: str | Path, run: CalibrationRun) -> None:
-    """Write ``results.h5`` atomically (schema in the module docstring)."""
-    import h5py
-
-    from . import __version__
-
-    n = len(run.summary["heliostats"])
-    view = run.result.view
-    split = np.zeros(run.train_mask.shape, np.int8)
-    split[run.train_mask] = SPLIT_CODES["train"]
-    split[run.val_mask] = SPLIT_CODES["validation"]
-    split[run.test_mask] = SPLIT_CODES["test"]
-    str_dt = h5py.string_dtype()
-    with atomic_path(path) as tmp:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["model"] = run.model0.label()
-            f.attrs["split"] = run.split_kind
-            f.attrs["heliojax_version"] = __version__
-            f.attrs["param_names"] = json.dumps(list(view.names))
-            f.attrs["param_units"] = json.dumps(list(view.units))
-            f.create_dataset("heliostat_ids", data=np.array(run.fleet.ids[:n], dtype=object), dtype=str_dt)
-            f.create_dataset("params", data=np.asarray(run.result.parameters())[:n])
-            f.create_dataset("param_std", data=np.asarray(run.result.std)[:n])
-            f.create_dataset("status", data=np.asarray(run.result.status)[:n].astype(np.int32))
-            f.create_dataset(
-                "status_labels", data=np.array(run.result.status_labels()[:n], dtype=object), dtype=str_dt
-            )
-            f.create_dataset(
-                "start_geometry",
-                data=np.array(["fleet_typical" if r else "nominal" for r in run.start_replaced[:n]], dtype=object),
-                dtype=str_dt,
-            )
-            f.create_dataset("record_id", data=np.asarray(run.fleet.record_id)[:n].astype(np.int64))
-            f.create_dataset("split", data=split[:n])
-            f.create_dataset("residual_mrad", data=run.residuals_mrad[:n])
-            f.create_dataset("residual_uncalibrated_mrad", data=run.uncalibrated_residuals_mrad[:n])
-            f.create_dataset("beam_error_mrad", data=run.errors_mrad[:n])
-            f.create_dataset("beam_error_uncalibrated_mrad", data=run.uncalibrated_mrad[:n])
-            if run.weights is not None:
-                f.create_dataset("weight", data=np.asarray(run.weights, float)[:n])
-                f.create_dataset("outlier", data=np.asarray(run.outlier, bool)[:n])
-                f.create_dataset("noise_mrad", data=np.asarray(run.noise_mrad, float)[:n])
-
-
-def read_results_h5(path: str | Path) -> dict:
-    """Read ``results.h5`` back into a dict of numpy arrays (and ``attrs``)."""
-    import h5py
-
-    out = {}
-    with h5py.File(path, "r") as f:
-        out["attrs"] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
-        for k in f:
-            v = f[k][()]
-            if v.dtype.kind in "OS":
-                v = np.array([x.decode() if isinstance(x, bytes) else x for x in v])
-            out[k] = v
-    out["attrs"]["param_names"] = json.loads(out["attrs"]["param_names"])
-    return out
-
-
-__all__ = ["CalibrationRun", "calibrate", "read_results_h5", "write_results_h5", "write_summary"]
+__all__ = ["CalibrationRun", "calibrate", "write_summary"]

@@ -6,6 +6,8 @@ import json
 
 import h5py
 import numpy as np
+
+import heliojax as hj
 import pytest
 
 from heliojax.cli._main import main
@@ -45,7 +47,20 @@ def test_calibrate_embedded_writes_schema(tmp_path, capsys):
         ids = [x.decode() for x in h["heliostat_ids"][()]]
         assert ids == list(s["heliostats"])
         np.testing.assert_allclose(h["params"][0, 0], s["heliostats"][ids[0]]["params"]["alpha"])
+        for name in ("unix_time", "sun_azimuth_deg", "sun_elevation_deg", "target_index", "split", "weight",
+                     "outlier", "beam_error_mrad"):
+            assert h[name].shape == h["record_id"].shape, name
     assert plot.stat().st_size > 1000
+    # the fit reloads as a fitted fleet that reproduces the written beam errors
+    res = hj.load_results(out)
+    assert res.ids == tuple(s["heliostats"]) and res.status[-1] == "too_few_records"
+    fleet = hj.load_paint_directory(hj.default_data_dir())
+    i = res.ids.index("BE36")
+    model, geometry = res.heliostat("BE36")
+    k = int(np.sum(res.records["record_id"][i] >= 0))
+    errs = [float(hj.beam_pointing_error(hj.forward(model, geometry, fleet.counts[i, j]), fleet.context.sun[i, j],
+                                         fleet.focal_spot[i, j])) * 1e3 for j in range(0, k, 17)]
+    np.testing.assert_allclose(errs, res.records["beam_error_mrad"][i, 0:k:17], rtol=1e-9)
 
 
 def test_config_file_and_flag_override(tmp_path):

@@ -65,7 +65,8 @@ def run(args) -> int:
     from .._fleet import load_paint_directory
     from .._kinematics import nominal_model
     from ..fit import batching_from_name, gaussian_prior
-    from .._workflow import calibrate, write_results_h5, write_summary
+    from .._results import write_results_h5
+    from .._workflow import calibrate, write_summary
 
     enable_compilation_cache(args.cache_dir)
     say = (lambda _m: None) if args.quiet else progress

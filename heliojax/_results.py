@@ -1,0 +1,249 @@
+"""``results.h5``: what a calibration wrote, and :func:`load_results` to use it again.
+
+Schema (``H`` heliostats, ``M`` padded records; NaN / -1 where no record):
+
+* attrs: ``model`` (the model's label, e.g. ``"actuator"``,
+  ``"stone8+backlash"``), ``split``, ``heliojax_version``, ``param_names`` and
+  ``param_units`` (JSON lists, vector order of :class:`heliojax.ParameterView`),
+  ``free_params`` (JSON list), ``robust`` (bool)
+* ``heliostat_ids`` ``(H,)`` str; ``target_names`` ``(T,)`` str
+* ``params`` ``(H, P)`` float64, physical units; ``param_std`` ``(H, P)``
+  Gauss-Newton standard errors; ``covariance`` ``(H, F, F)`` of the free parameters
+* ``status`` ``(H,)`` int32 (:class:`heliojax.FitStatus`), ``status_labels`` ``(H,)`` str
+* ``noise_mrad`` ``(H,)`` noise per residual component (robust estimate)
+* ``start_geometry`` ``(H,)`` str: ``"nominal"`` or ``"fleet_typical"``
+* ``geometry/...`` every field of the :class:`heliojax.HeliostatGeometry` the fit
+  used (``geometry/position`` ``(H, 3)`` ENU m, ``geometry/actuators/increment``
+  ``(H, 2)`` counts/m, ...): with ``params`` it reproduces the fitted models exactly
+* per record ``(H, M)``: ``record_id`` int64 (-1 = padding), ``unix_time`` s,
+  ``sun_azimuth_deg`` / ``sun_elevation_deg`` (PAINT convention: 0 = south,
+  positive east), ``target_index`` int (into ``target_names``, -1 padding),
+  ``split`` int8 (0 unused/padding, 1 train, 2 validation, 3 test), ``weight``
+  (robust weight of a training record, 0 otherwise), ``outlier`` bool,
+  ``residual_mrad`` ``(H, M, 2)`` and ``residual_uncalibrated_mrad``,
+  ``beam_error_mrad`` and ``beam_error_uncalibrated_mrad``
+* with ``--test-data``: group ``test_data`` with ``record_id``, ``unix_time``,
+  ``beam_error_mrad``, ``beam_error_uncalibrated_mrad`` ``(H, M')`` re-indexed to
+  the fitted heliostats' rows
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import typing
+from pathlib import Path
+
+import equinox as eqx
+import h5py
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._errors import DataError
+from ._geometry import direction_to_azimuth_elevation
+from ._io import atomic_path
+from ._kinematics import AbstractKinematicModel, HeliostatGeometry, LinearActuators, nominal_model
+from ._parameters import ParameterView, broadcast_model
+from .effects import with_effects
+from .fit import FitStatus
+
+SPLIT_CODES = {"unused": 0, "train": 1, "validation": 2, "test": 3}
+
+
+def _geometry_items(geometry: HeliostatGeometry, prefix: str = "geometry") -> dict[str, np.ndarray]:
+    out = {}
+    for f in dataclasses.fields(geometry):
+        v = getattr(geometry, f.name)
+        if isinstance(v, eqx.Module):
+            out.update(_geometry_items(v, f"{prefix}/{f.name}"))
+        else:
+            out[f"{prefix}/{f.name}"] = np.asarray(v)
+    return out
+
+
+def _read_geometry(group: h5py.Group, source: str) -> HeliostatGeometry:
+    def arr(name):
+        if name not in group:
+            raise DataError(source, f"geometry/{name}", "missing dataset")
+        return jnp.asarray(group[name][()])
+
+    act = LinearActuators(**{f.name: arr(f"actuators/{f.name}") for f in dataclasses.fields(LinearActuators)})
+    kw = {f.name: arr(f.name) for f in dataclasses.fields(HeliostatGeometry) if f.name != "actuators"}
+    return HeliostatGeometry(actuators=act, **kw)
+
+
+def model_from_label(label: str, dtype: typing.Any = jnp.float64) -> AbstractKinematicModel:
+    """The nominal model of a label written by :meth:`AbstractKinematicModel.label`
+    (``"actuator"``, ``"stone8+backlash+thermal"``); neural corrections are not
+    stored in ``results.h5``."""
+    base, *effects = label.split("+")
+    if "nn" in effects:
+        raise DataError(None, "model", f"a model with a neural correction ({label!r}) cannot be rebuilt from results.h5")
+    model = nominal_model(base, dtype)
+    return with_effects(model, effects) if effects else model
+
+
+def write_results_h5(path: str | Path, run: typing.Any) -> None:
+    """Write ``results.h5`` atomically for a :class:`heliojax.CalibrationRun`
+    (schema in the module docstring)."""
+    from . import __version__
+
+    n = len(run.summary["heliostats"])
+    view = run.result.view
+    split = np.zeros(run.train_mask.shape, np.int8)
+    split[run.train_mask] = SPLIT_CODES["train"]
+    split[run.val_mask] = SPLIT_CODES["validation"]
+    split[run.test_mask] = SPLIT_CODES["test"]
+    az, el = direction_to_azimuth_elevation(run.fleet.context.sun)
+    mask = np.asarray(run.fleet.mask)
+    str_dt = h5py.string_dtype()
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs["model"] = run.model0.label()
+        f.attrs["split"] = run.split_kind
+        f.attrs["heliojax_version"] = __version__
+        f.attrs["param_names"] = json.dumps(list(view.names))
+        f.attrs["param_units"] = json.dumps(list(view.units))
+        f.attrs["free_params"] = json.dumps(list(view.free_names))
+        f.attrs["robust"] = bool(run.summary.get("robust", False))
+        f.create_dataset("heliostat_ids", data=np.array(run.fleet.ids[:n], dtype=object), dtype=str_dt)
+        f.create_dataset("target_names", data=np.array(run.fleet.target_names, dtype=object), dtype=str_dt)
+        f.create_dataset("params", data=np.asarray(run.result.parameters())[:n])
+        f.create_dataset("param_std", data=np.asarray(run.result.std)[:n])
+        f.create_dataset("covariance", data=np.asarray(run.result.covariance)[:n])
+        f.create_dataset("status", data=np.asarray(run.result.status)[:n].astype(np.int32))
+        f.create_dataset("status_labels", data=np.array(run.result.status_labels()[:n], dtype=object), dtype=str_dt)
+        f.create_dataset("noise_mrad", data=np.asarray(run.noise_mrad, float)[:n])
+        f.create_dataset(
+            "start_geometry",
+            data=np.array(["fleet_typical" if r else "nominal" for r in run.start_replaced[:n]], dtype=object),
+            dtype=str_dt,
+        )
+        for name, value in _geometry_items(jax.tree.map(lambda x: x[:n], run.fleet.geometry)).items():
+            f.create_dataset(name, data=value)
+        f.create_dataset("record_id", data=np.asarray(run.fleet.record_id)[:n].astype(np.int64))
+        f.create_dataset("unix_time", data=np.where(mask, np.asarray(run.fleet.context.unix_time), np.nan)[:n])
+        f.create_dataset("sun_azimuth_deg", data=np.where(mask, np.degrees(np.asarray(az)), np.nan)[:n])
+        f.create_dataset("sun_elevation_deg", data=np.where(mask, np.degrees(np.asarray(el)), np.nan)[:n])
+        f.create_dataset("target_index", data=np.where(mask, np.asarray(run.fleet.target_index), -1)[:n])
+        f.create_dataset("split", data=split[:n])
+        f.create_dataset("weight", data=np.asarray(run.weights, float)[:n])
+        f.create_dataset("outlier", data=np.asarray(run.outlier, bool)[:n])
+        f.create_dataset("residual_mrad", data=run.residuals_mrad[:n])
+        f.create_dataset("residual_uncalibrated_mrad", data=run.uncalibrated_residuals_mrad[:n])
+        f.create_dataset("beam_error_mrad", data=run.errors_mrad[:n])
+        f.create_dataset("beam_error_uncalibrated_mrad", data=run.uncalibrated_mrad[:n])
+        if run.test_errors_mrad is not None:
+            g = f.create_group("test_data")
+            g.create_dataset("beam_error_mrad", data=np.asarray(run.test_errors_mrad)[:n])
+            g.create_dataset("beam_error_uncalibrated_mrad", data=np.asarray(run.test_uncalibrated_mrad)[:n])
+
+
+@typing.final
+@dataclasses.dataclass(frozen=True)
+class CalibrationResults:
+    """A calibration read back from ``results.h5`` (:func:`load_results`), ready for
+    aiming and plotting.
+
+    Attributes:
+        ids: heliostat ids ``(H,)``.
+        model: the fitted models, batched over ``H`` (rebuilt from the model label
+            and ``params``).
+        geometry: the :class:`heliojax.HeliostatGeometry` the fit used, batched.
+        view: the :class:`heliojax.ParameterView` (names, units, free set).
+        status: ``(H,)`` status labels.
+        params, param_std: ``(H, P)`` physical units.
+        covariance: ``(H, F, F)`` of the free parameters.
+        noise_mrad: ``(H,)``.
+        records: per-record arrays ``(H, M, ...)`` by dataset name (``record_id``,
+            ``unix_time``, ``split``, ``weight``, ``outlier``, ``residual_mrad``, ...).
+        attrs: the file's attributes.
+        source: the file.
+    """
+
+    ids: tuple[str, ...]
+    model: AbstractKinematicModel
+    geometry: HeliostatGeometry
+    view: ParameterView
+    status: tuple[str, ...]
+    params: np.ndarray
+    param_std: np.ndarray
+    covariance: np.ndarray
+    noise_mrad: np.ndarray
+    records: dict[str, np.ndarray]
+    attrs: dict[str, typing.Any]
+    source: str
+
+    @property
+    def fitted(self) -> np.ndarray:
+        """``(H,)`` heliostats with a usable fit (converged or at the step limit)."""
+        ok = (FitStatus.CONVERGED.label, FitStatus.MAX_STEPS.label)
+        return np.array([s in ok for s in self.status])
+
+    def heliostat(self, heliostat_id: str) -> tuple[AbstractKinematicModel, HeliostatGeometry]:
+        """The fitted model and geometry of one heliostat."""
+        if heliostat_id not in self.ids:
+            raise KeyError(f"heliostat {heliostat_id!r} is not in {self.source}")
+        i = self.ids.index(heliostat_id)
+        take = lambda x: x[i] if eqx.is_array(x) else x  # noqa: E731
+        return jax.tree.map(take, self.model), jax.tree.map(take, self.geometry)
+
+
+_RECORD_FIELDS = ("record_id", "unix_time", "sun_azimuth_deg", "sun_elevation_deg", "target_index", "split", "weight",
+                  "outlier", "residual_mrad", "residual_uncalibrated_mrad", "beam_error_mrad",
+                  "beam_error_uncalibrated_mrad")
+
+
+def load_results(path: str | Path) -> CalibrationResults:
+    """Read ``results.h5`` into a :class:`CalibrationResults` (models, the geometry
+    the fit used, statuses, covariance, per-record residuals and times).
+
+    Raises:
+        DataError: naming the file and field when something is missing or malformed.
+    """
+    source = str(path)
+    try:
+        f = h5py.File(path, "r")
+    except OSError as e:
+        raise DataError(source, None, f"not a readable results.h5 ({e})") from e
+    with f:
+        def need(name):
+            if name not in f:
+                raise DataError(source, name, "missing dataset")
+            return f[name][()]
+
+        attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+        for key in ("model", "param_names", "param_units"):
+            if key not in attrs:
+                raise DataError(source, key, "missing attribute")
+        try:
+            names = tuple(json.loads(attrs["param_names"]))
+            attrs["param_names"] = list(names)
+            attrs["param_units"] = json.loads(attrs["param_units"])
+            attrs["free_params"] = json.loads(attrs.get("free_params", "[]"))
+        except (json.JSONDecodeError, TypeError) as e:
+            raise DataError(source, "param_names", f"malformed parameter attributes ({e})") from e
+        ids = tuple(x.decode() if isinstance(x, bytes) else str(x) for x in need("heliostat_ids"))
+        params = np.asarray(need("params"), float)
+        geometry = _read_geometry(f["geometry"], source) if "geometry" in f else None
+        if geometry is None:
+            raise DataError(source, "geometry", "missing group (written by an older heliojax?)")
+        records = {k: np.asarray(f[k][()]) for k in _RECORD_FIELDS if k in f}
+        status = tuple(x.decode() if isinstance(x, bytes) else str(x) for x in need("status_labels"))
+        std = np.asarray(need("param_std"), float)
+        cov = np.asarray(f["covariance"][()]) if "covariance" in f else np.full((len(ids), 0, 0), np.nan)
+        noise = np.asarray(f["noise_mrad"][()]) if "noise_mrad" in f else np.full(len(ids), np.nan)
+    template = model_from_label(str(attrs["model"]))
+    view = ParameterView.of(template)
+    if view.names != names:
+        raise DataError(source, "param_names", f"parameters {names} do not match model {attrs['model']!r} ({view.names})")
+    if attrs["free_params"]:
+        view = view.with_free(attrs["free_params"])
+    batched = broadcast_model(template, len(ids))
+    model = jax.vmap(view.from_vector)(batched, jnp.asarray(params))
+    return CalibrationResults(ids=ids, model=model, geometry=geometry, view=view, status=status, params=params,
+                              param_std=std, covariance=cov, noise_mrad=noise, records=records, attrs=attrs,
+                              source=source)
+
+
+__all__ = ["SPLIT_CODES", "CalibrationResults", "load_results", "model_from_label", "write_results_h5"]
