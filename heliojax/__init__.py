@@ -9,7 +9,7 @@ library never flips global flags at import).
 
 from __future__ import annotations
 
-__version__ = "0.1.0"
+from ._version import __version__ as __version__
 
 from ._parameters import (
     ParameterView as ParameterView,

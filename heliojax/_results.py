@@ -45,6 +45,7 @@ from ._geometry import direction_to_azimuth_elevation
 from ._io import atomic_path
 from ._kinematics import AbstractKinematicModel, HeliostatGeometry, LinearActuators, nominal_model
 from ._parameters import ParameterView, broadcast_model
+from ._version import __version__
 from .effects import with_effects
 from .fit import FitStatus
 
@@ -87,8 +88,6 @@ def model_from_label(label: str, dtype: typing.Any = jnp.float64) -> AbstractKin
 def write_results_h5(path: str | Path, run: typing.Any) -> None:
     """Write ``results.h5`` atomically for a :class:`heliojax.CalibrationRun`
     (schema in the module docstring)."""
-    from . import __version__
-
     n = len(run.summary["heliostats"])
     view = run.result.view
     split = np.zeros(run.train_mask.shape, np.int8)
