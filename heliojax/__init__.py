@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from ._version import __version__ as __version__
 
+from ._aim import AimResult as AimResult, aim_fleet as aim_fleet, aim_results as aim_results
 from ._parameters import (
     ParameterView as ParameterView,
     broadcast_model as broadcast_model,

@@ -5,7 +5,8 @@ Schema (``H`` heliostats, ``M`` padded records; NaN / -1 where no record):
 * attrs: ``model`` (the model's label, e.g. ``"actuator"``,
   ``"stone8+backlash"``), ``split``, ``heliojax_version``, ``param_names`` and
   ``param_units`` (JSON lists, vector order of :class:`heliojax.ParameterView`),
-  ``free_params`` (JSON list), ``robust`` (bool)
+  ``free_params`` (JSON list), ``robust`` (bool), ``origin_lla`` (WGS84 lat deg,
+  lon deg, alt m of the ENU origin)
 * ``heliostat_ids`` ``(H,)`` str; ``target_names`` ``(T,)`` str
 * ``params`` ``(H, P)`` float64, physical units; ``param_std`` ``(H, P)``
   Gauss-Newton standard errors; ``covariance`` ``(H, F, F)`` of the free parameters
@@ -105,6 +106,7 @@ def write_results_h5(path: str | Path, run: typing.Any) -> None:
         f.attrs["param_units"] = json.dumps(list(view.units))
         f.attrs["free_params"] = json.dumps(list(view.free_names))
         f.attrs["robust"] = bool(run.summary.get("robust", False))
+        f.attrs["origin_lla"] = np.asarray(run.fleet.origin_lla, float)
         f.create_dataset("heliostat_ids", data=np.array(run.fleet.ids[:n], dtype=object), dtype=str_dt)
         f.create_dataset("target_names", data=np.array(run.fleet.target_names, dtype=object), dtype=str_dt)
         f.create_dataset("params", data=np.asarray(run.result.parameters())[:n])

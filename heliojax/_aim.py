@@ -1,0 +1,137 @@
+"""Aiming with a calibrated fleet: motor counts for given instants and aim points.
+
+:func:`aim_fleet` inverts every heliostat's fitted model (:func:`heliojax.inverse_aim`)
+for every instant, vmapped over heliostats and instants in one compiled program,
+checks the result by the forward model (the beam error of the commanded counts
+under the same model, which must vanish) and flags what a plant must not send
+blindly:
+
+* ``counts_out_of_range``: counts outside the actuator's ``[min, max]`` range;
+* ``sun_low``: sun elevation below ``min_sun_elevation_deg``;
+* ``unreliable``: the heliostat has no usable fit (status not converged /
+  max_steps) or its calibrated model is flagged unreliable;
+* ``unreachable``: no finite counts, or the forward model misses the aim point
+  by more than ``reach_tolerance_mrad``.
+"""
+
+from __future__ import annotations
+
+import typing
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from ._kinematics import AbstractKinematicModel, HeliostatGeometry, beam_pointing_error, forward, inverse_aim
+
+REACH_TOLERANCE_MRAD = 1e-3
+"""Largest forward-model miss (mrad) of commanded counts that still counts as reaching the aim point."""
+
+
+@typing.final
+class AimResult(eqx.Module):
+    """Motor counts and flags for ``H`` heliostats and ``N`` instants.
+
+    Attributes:
+        counts: ``(H, N, 2)`` motor counts (float; round to send).
+        aim_point: ``(H, N, 3)`` ENU m.
+        sun: ``(N, 3)`` unit vectors to the sun.
+        model_miss_mrad: ``(H, N)`` beam error of ``counts`` under the fitted model
+            (the inversion's own accuracy).
+        counts_out_of_range: ``(H, N)``.
+        sun_low: ``(N,)``.
+        unreliable: ``(H,)``.
+        unreachable: ``(H, N)``.
+    """
+
+    counts: Float[Array, "H N 2"]
+    aim_point: Float[Array, "H N 3"]
+    sun: Float[Array, "N 3"]
+    model_miss_mrad: Float[Array, "H N"]
+    counts_out_of_range: Bool[Array, "H N"]
+    sun_low: Bool[Array, " N"]
+    unreliable: Bool[Array, " H"]
+    unreachable: Bool[Array, "H N"]
+
+    @property
+    def ok(self) -> Bool[Array, "H N"]:
+        """Counts that may be sent: no flag raised."""
+        return ~(self.counts_out_of_range | self.sun_low[None, :] | self.unreliable[:, None] | self.unreachable)
+
+
+@eqx.filter_jit
+def _aim_program(models, geometry, aim_points, sun):
+    def one(model, g, points):
+        def instant(point, s):
+            counts = inverse_aim(model, g, point, s)
+            miss = beam_pointing_error(forward(model, g, counts), s, point) * 1e3
+            return counts, miss
+
+        return jax.vmap(instant)(points, sun)
+
+    return jax.vmap(one)(models, geometry, aim_points)
+
+
+def aim_fleet(
+    models: AbstractKinematicModel,
+    geometry: HeliostatGeometry,
+    sun: Float[Array, "N 3"],
+    aim_points: Float[Array, "*hn 3"],
+    *,
+    fitted: Bool[Array, " H"] | None = None,
+    min_sun_elevation_deg: float = 5.0,
+    reach_tolerance_mrad: float = REACH_TOLERANCE_MRAD,
+) -> AimResult:
+    """Counts that put each heliostat's beam on its aim point at each instant.
+
+    Args:
+        models: fitted models batched over ``H`` heliostats.
+        geometry: their :class:`heliojax.HeliostatGeometry`, batched.
+        sun: ``(N, 3)`` unit ENU vectors to the sun.
+        aim_points: ``(3,)`` one point for all, ``(H, 3)`` per heliostat or
+            ``(H, N, 3)`` per heliostat and instant (ENU m).
+        fitted: ``(H,)`` heliostats whose model may be used (default all).
+        min_sun_elevation_deg: flag instants with the sun lower than this.
+        reach_tolerance_mrad: largest forward-model miss still counted as reached.
+
+    Returns:
+        An :class:`AimResult`.
+    """
+    sun = jnp.asarray(sun)
+    n = sun.shape[0]
+    h = int(jnp.shape(geometry.position)[0])
+    points = jnp.asarray(aim_points, sun.dtype)
+    if points.ndim == 1:
+        points = jnp.broadcast_to(points, (h, n, 3))
+    elif points.ndim == 2:
+        points = jnp.broadcast_to(points[:, None, :], (h, n, 3))
+    if points.shape != (h, n, 3):
+        raise ValueError(f"aim_points has shape {jnp.shape(aim_points)}; expected (3,), ({h}, 3) or ({h}, {n}, 3)")
+    counts, miss = _aim_program(models, geometry, points, sun)
+    act = geometry.actuators
+    out_of_range = jnp.any((counts < act.min_counts[:, None, :]) | (counts > act.max_counts[:, None, :]), axis=-1)
+    elevation = jnp.degrees(jnp.arcsin(jnp.clip(sun[:, 2], -1.0, 1.0)))
+    unreachable = ~jnp.all(jnp.isfinite(counts), axis=-1) | ~(miss <= reach_tolerance_mrad)
+    unreliable = jnp.zeros((h,), bool) if fitted is None else ~jnp.asarray(fitted, bool)
+    return AimResult(
+        counts=counts,
+        aim_point=points,
+        sun=sun,
+        model_miss_mrad=miss,
+        counts_out_of_range=out_of_range,
+        sun_low=elevation < min_sun_elevation_deg,
+        unreliable=unreliable,
+        unreachable=unreachable,
+    )
+
+
+def aim_results(results: typing.Any, sun: Float[Array, "N 3"], aim_points: Float[Array, "*hn 3"],
+                **options: typing.Any) -> AimResult:
+    """:func:`aim_fleet` for a calibration read with :func:`heliojax.load_results`
+    (heliostats without a usable fit are flagged ``unreliable``)."""
+    return aim_fleet(results.model, results.geometry, sun, aim_points, fitted=np.asarray(results.fitted), **options)
+
+
+__all__ = ["REACH_TOLERANCE_MRAD", "AimResult", "aim_fleet", "aim_results"]
