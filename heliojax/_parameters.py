@@ -37,6 +37,7 @@ _META = "heliojax"
 
 PathStep = str | int
 Path = tuple[PathStep, ...]
+ModuleT = typing.TypeVar("ModuleT", bound=eqx.Module)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -304,7 +305,7 @@ class ParameterView:
             parts.append(jnp.reshape(x, batch + (leaf.size,)))
         return jnp.concatenate(parts, axis=-1)
 
-    def from_vector(self, model: eqx.Module, vector: Float[Array, " P"]) -> eqx.Module:
+    def from_vector(self, model: ModuleT, vector: Float[Array, " P"]) -> ModuleT:
         """``model`` with its parameters replaced by ``vector`` (one heliostat: use
         :func:`jax.vmap` for batches). References and everything else stay."""
         values = []
@@ -322,7 +323,7 @@ class ParameterView:
     def free_scales(self, dtype: typing.Any = None) -> Float[Array, " F"]:
         return jnp.asarray([self.scales[i] for i in self.free_index], dtype)
 
-    def scaled_to_model(self, model0: eqx.Module, y: Float[Array, " F"]) -> eqx.Module:
+    def scaled_to_model(self, model0: ModuleT, y: Float[Array, " F"]) -> ModuleT:
         """The model at scaled free-parameter offsets ``y`` from ``model0`` (physical
         ``p = p0 + y * scale`` on the free elements; one heliostat)."""
         p0 = self.to_vector(model0)
@@ -331,7 +332,7 @@ class ParameterView:
         return self.from_vector(model0, p)
 
 
-def set_references(model: eqx.Module, values: typing.Mapping[str, float]) -> eqx.Module:
+def set_references(model: ModuleT, values: typing.Mapping[str, float]) -> ModuleT:
     """``model`` with the references named in ``values`` set (others unchanged)."""
     leaves = [leaf for leaf in reference_leaves(model) if leaf.name in values]
     if not leaves:
@@ -345,7 +346,7 @@ def set_references(model: eqx.Module, values: typing.Mapping[str, float]) -> eqx
     return eqx.tree_at(where, model, new)
 
 
-def broadcast_model(model: eqx.Module, n: int) -> eqx.Module:
+def broadcast_model(model: ModuleT, n: int) -> ModuleT:
     """``n`` copies of an unbatched model stacked along a new leading axis."""
     return jax.tree.map(lambda x: jnp.broadcast_to(x, (n,) + jnp.shape(x)) if eqx.is_array(x) else x, model)
 
