@@ -21,7 +21,7 @@ from ._parameters import (
     reference as reference,
     set_references as set_references,
 )
-from .fit import (
+from .fitting import (
     AbstractBatching as AbstractBatching,
     AbstractLoss as AbstractLoss,
     AbstractPrior as AbstractPrior,
@@ -100,7 +100,6 @@ from ._paint import (
     write_paint_directory as write_paint_directory,
 )
 from ._simulate import (
-    SimulatedRecords as SimulatedRecords,
     approach_directions as approach_directions,
     calibration_target as calibration_target,
     random_stone_models as random_stone_models,

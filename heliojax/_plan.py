@@ -35,7 +35,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._kinematics import AbstractKinematicModel, HeliostatGeometry, RecordContext
 from ._parameters import ParameterView
-from .fit import sanitise
+from .fitting import sanitise
 
 
 def residual_jacobians(

@@ -48,7 +48,7 @@ from ._kinematics import AbstractKinematicModel, HeliostatGeometry, LinearActuat
 from ._parameters import ParameterView, broadcast_model
 from ._version import __version__
 from .effects import with_effects
-from .fit import FitStatus
+from .fitting import FitStatus
 
 SPLIT_CODES = {"unused": 0, "train": 1, "validation": 2, "test": 3}
 

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
+from ._fleet import Fleet, LoadReport
 from ._geometry import TargetPlane, intersect_plane, normalize
 from ._kinematics import (
     AbstractKinematicModel,
@@ -142,25 +143,6 @@ def calibration_times(
     return t, pos.direction_enu()
 
 
-@typing.final
-class SimulatedRecords(eqx.Module):
-    """Simulated calibration records, batched ``(H, M)``.
-
-    Attributes:
-        counts: ``(H, M, 2)`` whole motor counts (float dtype).
-        focal_spot: ``(H, M, 3)`` measured spot on the target, ENU m.
-        true_spot: ``(H, M, 3)`` noise-free spot, ENU m.
-        hit: ``(H, M)`` spot inside the target rectangle.
-        context: batched :class:`RecordContext`.
-    """
-
-    counts: Float[Array, "H M 2"]
-    focal_spot: Float[Array, "H M 3"]
-    true_spot: Float[Array, "H M 3"]
-    hit: Bool[Array, "H M"]
-    context: RecordContext
-
-
 @eqx.filter_jit
 def _simulate_core(perturb_pose, true_models, controller_models, geometry, context, ang_noise, pos_noise, target, aim):
     def one_record(true_model, ctrl_model, g, ctx, an, pn):
@@ -196,8 +178,10 @@ def simulate_records(
     noise_mrad: float = 0.0,
     noise_m: float = 0.0,
     perturb_pose: Callable[[Pose, RecordContext], Pose] | None = None,
-) -> SimulatedRecords:
-    """Simulate calibration records for a batch of heliostats (vmapped).
+) -> Fleet:
+    """Simulate calibration records for a batch of heliostats (vmapped), as a
+    :class:`heliojax.Fleet` (the one record container): ``mask`` marks the records
+    whose noisy spot hit the target; ids ``S000, S001, ...``; one target.
 
     Args:
         key: PRNG key of the measurement noise.
@@ -224,7 +208,21 @@ def simulate_records(
     counts, spot, true_spot, hit = _simulate_core(
         perturb_pose, true_models, controller_models, geometry, context, ang_noise, pos_noise, target, aim
     )
-    return SimulatedRecords(counts=counts, focal_spot=spot, true_spot=true_spot, hit=hit, context=context)
+    del true_spot
+    return Fleet(
+        geometry=geometry,
+        counts=counts,
+        context=context,
+        focal_spot=spot,
+        target_index=jnp.zeros((h, m), jnp.int32),
+        record_id=jnp.asarray(np.arange(h * m).reshape(h, m) + 100000, jnp.int64),
+        mask=hit,
+        targets=jax.tree.map(lambda x: jnp.asarray(x)[None], target),
+        origin_lla=jnp.asarray(JUELICH_LAT_LON_ALT, dtype),
+        ids=tuple(f"S{i:03d}" for i in range(h)),
+        target_names=("calibration_target",),
+        report=LoadReport(source="<simulation>", records_loaded=h * m, heliostats_loaded=h),
+    )
 
 
 def synthetic_contexts(
@@ -366,7 +364,7 @@ def synthetic_properties(geometry: HeliostatGeometry, ids, origin_lla=JUELICH_LA
 
 
 def simulation_to_records(
-    sim: SimulatedRecords,
+    sim: Fleet,
     ids,
     mask=None,
     origin_lla=JUELICH_LAT_LON_ALT,
@@ -429,7 +427,7 @@ def simulation_to_records(
 
 def write_simulation(
     out_dir,
-    sim: SimulatedRecords,
+    sim: Fleet,
     geometry: HeliostatGeometry,
     target: TargetPlane,
     ids=None,
@@ -448,7 +446,7 @@ def write_simulation(
 
     h = geometry.position.shape[0]
     ids = [f"SIM{i:04d}" for i in range(h)] if ids is None else list(ids)
-    mask = np.asarray(sim.hit) if mask is None else np.asarray(mask)
+    mask = np.asarray(sim.mask) if mask is None else np.asarray(mask)
     tower = synthetic_tower(target, origin_lla)
     props = synthetic_properties(geometry, ids, origin_lla)
     records = simulation_to_records(sim, ids, mask, origin_lla, target_name=next(iter(tower.targets)))
@@ -458,7 +456,6 @@ def write_simulation(
 
 __all__ = [
     "JUELICH_LAT_LON_ALT",
-    "SimulatedRecords",
     "approach_directions",
     "calibration_target",
     "calibration_times",

@@ -26,7 +26,7 @@ from ._io import atomic_path, atomic_write
 from ._kinematics import AbstractKinematicModel, nominal_model
 from ._parameters import ParameterView
 from ._splits import split_fleet
-from .fit import (
+from .fitting import (
     FitSolution,
     FitStatus,
     beam_errors_mrad,
@@ -131,7 +131,7 @@ def calibrate(
             the split's test records; then all of ``fleet``'s records may train.
         start: ``"auto"`` (per heliostat the better of nominal / fleet-typical
             actuators, see :func:`heliojax.choose_start_geometry`) or ``"nominal"``.
-        robust: robust fit (:func:`heliojax.fit.fit_robust`: Cauchy loss with a
+        robust: robust fit (:func:`heliojax.fitting.fit_robust`: Cauchy loss with a
             per-heliostat scale, record weights and outlier flags) instead of least squares.
         progress: callback for progress messages.
     """

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from heliojax.fit import beam_errors_mrad
+from heliojax.fitting import beam_errors_mrad
 from heliojax._geometry import sun_direction
 from heliojax._kinematics import (
     ActuatorModel,

@@ -34,8 +34,8 @@ def small_sim():
 def test_noise_free_records_fit_the_true_model_exactly(small_sim):
     g, true, ctx, target, sim = small_sim
     # Records whose true spot misses the target are not recorded (hit = False).
-    assert float(jnp.mean(sim.hit)) > 0.9
-    err = hj.beam_errors_mrad(true, g, sim.counts, ctx, sim.focal_spot, sim.hit)
+    assert float(jnp.mean(sim.mask)) > 0.9
+    err = hj.beam_errors_mrad(true, g, sim.counts, ctx, sim.focal_spot, sim.mask)
     assert float(jnp.nanmax(err)) < 1e-7
     # Counts are whole numbers inside the actuator range.
     c = np.asarray(sim.counts)
@@ -43,7 +43,7 @@ def test_noise_free_records_fit_the_true_model_exactly(small_sim):
     assert np.all(c >= 0) and np.all(c <= np.asarray(g.actuators.max_counts)[:, None, :])
     # The nominal (controller) model misses by the true parameters' mrad-level error.
     nominal = hj.broadcast_model(hj.StoneModel.nominal(jnp.float64), 4)
-    e_nom = hj.beam_errors_mrad(nominal, g, sim.counts, ctx, sim.focal_spot, sim.hit)
+    e_nom = hj.beam_errors_mrad(nominal, g, sim.counts, ctx, sim.focal_spot, sim.mask)
     assert 0.5 < float(jnp.nanmedian(e_nom)) < 50.0
 
 
@@ -53,7 +53,7 @@ def test_noise_level(small_sim):
     comps = jax.vmap(
         lambda m, gg, c, x, f: jax.vmap(lambda ci, xi, fi: m.beam_components(gg, ci, xi, fi))(c, x, f)
     )(true, g, sim.counts, ctx, sim.focal_spot)
-    std = float(jnp.std(comps[sim.hit])) * 1e3
+    std = float(jnp.std(comps[sim.mask])) * 1e3
     assert std == pytest.approx(0.3, rel=0.15)
 
 
@@ -67,7 +67,7 @@ def test_injection_point_perturbs_the_truth(small_sim):
 
     sim = simulate_records(jax.random.PRNGKey(3), true, g, ctx, target, controller_models=true, perturb_pose=tilt_up)
     np.testing.assert_array_equal(sim.counts, sim0.counts)
-    err = hj.beam_errors_mrad(true, g, sim.counts, ctx, sim.focal_spot, sim.hit)
+    err = hj.beam_errors_mrad(true, g, sim.counts, ctx, sim.focal_spot, sim.mask)
     assert 1.0 < float(jnp.nanmedian(err)) < 4.5  # ~2x the normal's rotation, projected
 
 
@@ -83,7 +83,7 @@ def test_approach_directions_by_hand():
 
 def test_simulator_paint_round_trip_is_bit_identical(small_sim, tmp_path):
     g, true, ctx, target, sim = small_sim
-    mask = np.asarray(sim.hit)
+    mask = np.asarray(sim.mask)
     path, tower, props, records = write_simulation(tmp_path / "sim", sim, g, target)
     in_memory = hj.records_to_fleet(tower, props, records)
     loaded = hj.load_paint_directory(path)

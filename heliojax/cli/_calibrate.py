@@ -16,7 +16,7 @@ elevation ranges."""
 
 
 def add_parser(subparsers) -> None:
-    from ..fit import BATCHING_NAMES
+    from ..fitting import BATCHING_NAMES
     from .._splits import SPLIT_NAMES
 
     p = subparsers.add_parser(
@@ -64,7 +64,7 @@ def add_parser(subparsers) -> None:
 def run(args) -> int:
     from .._fleet import load_paint_directory
     from .._kinematics import nominal_model
-    from ..fit import batching_from_name, gaussian_prior
+    from ..fitting import batching_from_name, gaussian_prior
     from .._results import write_results_h5
     from .._workflow import calibrate, write_summary
 

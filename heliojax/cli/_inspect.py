@@ -34,7 +34,7 @@ def run(args) -> int:
     import jax.numpy as jnp
 
     from .._kinematics import nominal_model
-    from ..fit import fleet_beam_errors_mrad
+    from ..fitting import fleet_beam_errors_mrad
 
     fleet = load_fleet(args)
     n = len(fleet.ids)

@@ -8,8 +8,8 @@ and every cross-validation fit in one call.
 
 The fit is the same Levenberg-Marquardt problem as :func:`heliojax.fit`
 (tangent-plane residuals in mrad, scaled parameters, masked records replaced
-by :func:`heliojax.fit.sanitise`, heliostats mapped by the same batching
-strategies, solved by :func:`heliojax.fit.solve_least_squares` with the same
+by :func:`heliojax.fitting.sanitise`, heliostats mapped by the same batching
+strategies, solved by :func:`heliojax.fitting.solve_least_squares` with the same
 cost ``0.5 * sum r^2``), over *one* model that carries the base parameters and
 the parameters of every candidate effect (``layout.template``, an
 :class:`heliojax.EffectModel`; vectors in its :class:`heliojax.ParameterView`
@@ -36,7 +36,7 @@ from .._geometry import normalize
 from .._kinematics import AbstractKinematicModel, beam_error_components, chain_pose, reflected_ray
 from .._parameters import ParameterView
 from ..effects import EffectModel, with_data_references, with_effects
-from ..fit import AbstractBatching, default_batching, default_solver, sanitise, solve_least_squares
+from ..fitting import AbstractBatching, default_batching, default_solver, sanitise, solve_least_squares
 
 Records = tuple[typing.Any, typing.Any, typing.Any, typing.Any, typing.Any]
 """``(geometry, counts, context, focal_spot, mask)`` of a (lane-tiled) fleet."""

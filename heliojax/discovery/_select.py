@@ -45,7 +45,7 @@ import optimistix as optx
 from .._fleet import bucket_size, pad_fleet
 from .._kinematics import nominal_model
 from ..effects import EFFECT_NAMES
-from ..fit import AbstractBatching, choose_start_geometry, default_solver
+from ..fitting import AbstractBatching, choose_start_geometry, default_solver
 from ._identifiability import ABSORBED_LIMIT, column_basis
 from ._lanes import Engine, Lanes, Layout, make_lanes, make_layout
 from ._report import build_report, cv_pair

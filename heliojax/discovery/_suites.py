@@ -18,7 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._kinematics import ActuatorModel, inverse_aim
+from .._kinematics import ActuatorModel, StoneModel, inverse_aim
+from ..effects import EffectModel
 from .._simulate import (
     JUELICH_LAT_LON_ALT,
     approach_directions,
@@ -43,8 +44,6 @@ def random_actuator_models(key, n: int, angle_sigma: float = 3e-3, dtype=jnp.flo
 
 @eqx.filter_jit
 def _controller_counts(geometry, sun, target):
-    from .._kinematics import StoneModel
-
     def one(g, s):
         c = jnp.round(inverse_aim(StoneModel.nominal(s.dtype), g, target.centre, s))
         return jnp.clip(c, g.actuators.min_counts, g.actuators.max_counts)
@@ -83,9 +82,6 @@ def simulate_fleet(
     Returns:
         ``(fleet, truth)`` with ``truth`` the batched true model.
     """
-    from .._fleet import Fleet, LoadReport
-    from ..effects import EffectModel
-
     key = jax.random.PRNGKey(seed)
     k_geo, k_model, k_ctx, k_noise = jax.random.split(key, 4)
     h, m = n_heliostats, n_records
@@ -97,21 +93,6 @@ def simulate_fleet(
     context = eqx.tree_at(lambda c: c.approach, context, approach_directions(counts))
     all_effects = tuple(_broadcast(e, h) for e in effects) + tuple(per_heliostat_effects)
     truth = EffectModel(base_models, all_effects) if all_effects else base_models
-    sim = simulate_records(k_noise, truth, geometry, context, target, noise_mrad=noise_mrad)
-    ids = tuple(f"S{i:03d}" for i in range(h))
-    targets = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], target)
-    fleet = Fleet(
-        geometry=geometry,
-        counts=sim.counts,
-        context=sim.context,
-        focal_spot=sim.focal_spot,
-        target_index=jnp.zeros((h, m), jnp.int32),
-        record_id=jnp.asarray(np.arange(h * m).reshape(h, m) + 100000, jnp.int64),
-        mask=jnp.ones((h, m), bool),
-        targets=targets,
-        origin_lla=jnp.asarray(JUELICH_LAT_LON_ALT, jnp.float64),
-        ids=ids,
-        target_names=("calibration_target",),
-        report=LoadReport(source=f"<simulation seed={seed}>", records_loaded=h * m, heliostats_loaded=h),
-    )
+    fleet = simulate_records(k_noise, truth, geometry, context, target, noise_mrad=noise_mrad)
+    fleet = eqx.tree_at(lambda f: f.mask, fleet, jnp.ones((h, m), bool))
     return fleet, truth

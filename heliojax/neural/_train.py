@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import optax
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
-from ..fit import sanitise
+from ..fitting import sanitise
 from .._geometry import direction_to_azimuth_elevation, sun_direction
 from .._kinematics import AbstractKinematicModel, HeliostatGeometry, RecordContext, inverse_aim
 from ._model import NeuralCorrection, PaperPredictor

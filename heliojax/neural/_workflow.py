@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..fit import FitStatus, beam_errors_mrad, residuals_mrad, sanitise
+from ..fitting import FitStatus, beam_errors_mrad, residuals_mrad, sanitise
 from .._errors import ConfigError
 from .._fleet import fleet_subset
 from .._workflow import CalibrationRun, _json_float, _stats, calibrate

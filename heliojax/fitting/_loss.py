@@ -9,7 +9,7 @@ per record on the residual pair ``r = (r_1, r_2)``:
   the record's cost is ``0.5 c^2 log(1 + |r|^2 / c^2)``: the Cauchy (Lorentzian)
   M-estimator, minimised by the same Levenberg-Marquardt solver (its Jacobian is
   exact, differentiated through the row). The scale ``c`` (mrad) is per heliostat
-  (:func:`heliojax.fit.fit_robust` estimates it from the data); ``c = inf`` is
+  (:func:`heliojax.fitting.fit_robust` estimates it from the data); ``c = inf`` is
   least squares exactly, so both share one compiled program.
 """
 

@@ -2,14 +2,14 @@
 
 Local devices
 -------------
-:class:`heliojax.fit.Sharded` batching splits the heliostat axis over all local devices (or the
+:class:`heliojax.fitting.Sharded` batching splits the heliostat axis over all local devices (or the
 given ones): a one-axis :class:`jax.sharding.Mesh` named ``"heliostats"``. The
 fleet is padded to a multiple ``D * k`` of the device count with copies of
 heliostat 0 whose mask is all False (status ``padding``), reshaped to
 ``(D, k, ...)`` and placed with ``NamedSharding(mesh, P("heliostats"))``, so
 device ``d`` holds heliostats ``d k .. (d+1) k - 1``. One compiled program maps
 over the device axis with ``jax.vmap``; inside, each device batches its ``k``
-heliostats exactly as `heliojax.fit` does (the strategy of
+heliostats exactly as `heliojax.fitting` does (the strategy of
 :func:`heliojax.default_strategy` for the devices' platform: ``lax.map`` on CPU,
 ``vmap`` on GPU/TPU, or ``config.strategy``). XLA's SPMD partitioner splits the
 device axis, so each device computes only its own block; the only communication
@@ -17,7 +17,7 @@ is the all-reduce of the solver loop's "any lane still running" flag, which keep
 the devices' LM loops in step (each device's loop runs until the slowest of the
 ``D`` heliostats at that position converges). Padding is stripped from the
 result. Heliostats are independent problems, so the result equals single-device
-`heliojax.fit` (to 1e-12 in the tests, in practice to the last bit
+`heliojax.fitting` (to 1e-12 in the tests, in practice to the last bit
 or within 1 ulp).
 
 Why not ``jax.shard_map`` (or ``jax.pmap``, which JAX 0.10 implements with it):

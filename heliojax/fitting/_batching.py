@@ -8,7 +8,7 @@ arguments inside one compiled program:
 * :class:`LaxMap` - ``jax.lax.map``: lanes one after another, best on CPU.
 * :class:`Chunked` - ``lax.map`` over chunks of ``size`` lanes that are vmapped.
 * :class:`Sharded` - the heliostat axis split over devices (see
-  :mod:`heliojax.fit._sharding`), each device batching its block by ``inner``.
+  :mod:`heliojax.fitting._sharding`), each device batching its block by ``inner``.
 
 :func:`default_batching` is the one place where a backend picks a strategy.
 """
