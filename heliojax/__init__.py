@@ -51,6 +51,7 @@ from ._fleet import (
     LoadReport as LoadReport,
     bucket_size as bucket_size,
     default_data_dir as default_data_dir,
+    fleet_from_arrays as fleet_from_arrays,
     fleet_subset as fleet_subset,
     load_paint_directory as load_paint_directory,
     load_weather_csv_fleet as load_weather_csv_fleet,

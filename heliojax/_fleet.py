@@ -1106,3 +1106,44 @@ def load_weather_csv_fleet(
             log.records_skipped += len(bad)
             rows = tuple(r for r in rows if r.heliostat_id != hid)
     return _assemble(tower, properties, rows, centroid=centroid, origin=origin, log=log, validate=False)
+
+
+def fleet_from_arrays(
+    geometry: HeliostatGeometry,
+    counts: Float[Array, "H M 2"],
+    context: RecordContext,
+    focal_spot: Float[Array, "H M 3"],
+    mask: Bool[Array, "H M"] | None = None,
+    *,
+    ids: Sequence[str] | None = None,
+    origin_lla: Sequence[float] = (50.913421122592574, 6.387824755874856, 87.0),
+) -> Fleet:
+    """A :class:`Fleet` from arrays of one's own (simulations, other data sources):
+    batched geometry ``(H, ...)``, counts ``(H, M, 2)``, contexts ``(H, M)``,
+    focal spots ``(H, M, 3)`` ENU m, and a mask (default: every finite record).
+    Ids default to ``H000, H001, ...``; there are no calibration targets."""
+    counts = jnp.asarray(counts)
+    h, m = counts.shape[:2]
+    focal_spot = jnp.asarray(focal_spot, counts.dtype)
+    if mask is None:
+        mask = jnp.all(jnp.isfinite(counts), -1) & jnp.all(jnp.isfinite(focal_spot), -1)
+    targets = jax.tree.map(lambda x: jnp.zeros((0,) + jnp.shape(x), jnp.asarray(x).dtype), _unit_target(counts.dtype))
+    return Fleet(
+        geometry=geometry,
+        counts=counts,
+        context=context,
+        focal_spot=focal_spot,
+        target_index=jnp.full((h, m), -1, jnp.int32),
+        record_id=jnp.asarray(np.arange(h * m).reshape(h, m), jnp.int64),
+        mask=jnp.asarray(mask, bool),
+        targets=targets,
+        origin_lla=jnp.asarray(origin_lla, counts.dtype),
+        ids=tuple(ids) if ids is not None else tuple(f"H{i:03d}" for i in range(h)),
+        target_names=(),
+        report=LoadReport(source="<arrays>", records_loaded=int(np.sum(np.asarray(mask))), heliostats_loaded=h),
+    )
+
+
+def _unit_target(dtype: typing.Any) -> TargetPlane:
+    corners = [jnp.asarray(c, dtype) for c in ([-1.0, 0, 1], [1.0, 0, 1], [-1.0, 0, -1], [1.0, 0, -1])]
+    return TargetPlane.from_corners(*corners)

@@ -19,31 +19,31 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from heliojax._calibration import CalibrationData, FitStatus, fit_fleet
-from heliojax._kinematics import forward, reflected_ray
-from heliojax._sharding import process_slice
+import heliojax as hj
+from heliojax import FitStatus, forward, process_slice, reflected_ray
 from heliojax._simulate import random_stone_models, synthetic_geometry
 
 REPO = Path(__file__).resolve().parents[1]
-FIELDS = ("params", "std", "status", "n_steps", "n_used", "rms_mrad", "final_cost")
+FIELDS = ("params", "std", "covariance", "status", "n_steps", "n_used", "rms_mrad", "cost", "noise_mrad")
 SEED = 7
 
 # Loads the fleet written by `_write_fleet` (geometry rebuilt from the same key);
-# `load(slice)` returns the CalibrationData of those heliostats only.
+# `load(slice)` returns the Fleet of those heliostats only.
 LOADER = """
 import numpy as np, jax
-from heliojax._calibration import CalibrationData
-from heliojax._kinematics import RecordContext
+import heliojax as hj
 from heliojax._simulate import synthetic_geometry
 _z = np.load(NPZ)
 H = _z["counts"].shape[0]
+STONE = hj.StoneModel.nominal(np.float64)
 _geometry = synthetic_geometry(jax.random.PRNGKey(int(_z["seed"])), H)
 def load(sl=slice(None)):
-    return CalibrationData(
-        geometry=jax.tree.map(lambda x: x[sl], _geometry), counts=_z["counts"][sl],
-        context=RecordContext.from_sun(_z["sun"][sl]), focal_spot=_z["focal"][sl], mask=_z["mask"][sl])
+    return hj.fleet_from_arrays(
+        jax.tree.map(lambda x: x[sl], _geometry), _z["counts"][sl], hj.RecordContext.from_sun(_z["sun"][sl]),
+        _z["focal"][sl], _z["mask"][sl])
 def save(path, res, **extra):
-    np.savez(path, **{k: np.asarray(getattr(res, k)) for k in FIELDS}, **extra)
+    arrays = {k: np.asarray(res.parameters() if k == "params" else getattr(res, k)) for k in FIELDS}
+    np.savez(path, **arrays, **extra)
 """
 
 
@@ -72,7 +72,7 @@ def _write_fleet(path: Path, h: int = 6, m: int = 12) -> None:
     np.savez(path, counts=counts, sun=sun, focal=focal, mask=mask, seed=SEED)
 
 
-def _load_here(npz: Path, sl=slice(None)) -> CalibrationData:
+def _load_here(npz: Path, sl=slice(None)) -> hj.Fleet:
     scope = {"NPZ": str(npz), "FIELDS": FIELDS}
     exec(LOADER, scope)
     return scope["load"](sl)
@@ -105,13 +105,13 @@ def fleet_npz(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def four_device_run(fleet_npz, tmp_path_factory):
-    """Starts fit_fleet_sharded on four simulated CPU devices in a subprocess (it
+    """Starts the sharded fit on four simulated CPU devices in a subprocess (it
     compiles while this process computes the reference)."""
     out = tmp_path_factory.mktemp("four") / "sharded.npz"
     script = LOADER + textwrap.dedent(
         """
         import jax.numpy as jnp
-        from heliojax import _sharding
+        from heliojax.fitting import _batching
         assert len(jax.devices()) == 4, jax.devices()
         shards = []
         _put = jax.device_put
@@ -119,9 +119,9 @@ def four_device_run(fleet_npz, tmp_path_factory):
             y = _put(x, s, **kw)
             shards.append(max(len(l.sharding.device_set) for l in jax.tree.leaves(y)))
             return y
-        _sharding.jax.device_put = spy
-        res = _sharding.fit_fleet_sharded(load())
-        _sharding.jax.device_put = _put
+        _batching.jax.device_put = spy
+        res = hj.fit(STONE, load(), batching=hj.Sharded())
+        _batching.jax.device_put = _put
         save(OUT, res, n_devices=len(jax.devices()), n_shards=min(shards))
         """
     )
@@ -144,9 +144,9 @@ def four_device_run(fleet_npz, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def reference(fleet_npz, four_device_run) -> dict:
-    """Single-device fit_fleet in this process."""
-    res = fit_fleet(_load_here(fleet_npz))
-    return {k: np.asarray(getattr(res, k)) for k in FIELDS}
+    """Single-device fit in this process."""
+    res = hj.fit(hj.StoneModel.nominal(np.float64), _load_here(fleet_npz))
+    return {k: np.asarray(res.parameters() if k == "params" else getattr(res, k)) for k in FIELDS}
 
 
 def test_reference_statuses(reference):
@@ -207,12 +207,12 @@ def test_two_processes_on_loopback(fleet_npz, reference, tmp_path):
     )
     worker = init + LOADER + textwrap.dedent(
         """
-        from heliojax._sharding import calibrate_distributed, process_slice
+        from heliojax import calibrate_distributed, process_slice
         seen = []
         def load_logged(sl):
             seen.append((sl.start, sl.stop))
             return load(sl)
-        res = calibrate_distributed(load_logged, H)
+        res = calibrate_distributed(load_logged, STONE, H)
         save(OUT, res, process_count=jax.process_count(), loaded=np.asarray(seen[0]))
         jax.distributed.shutdown()
         """
