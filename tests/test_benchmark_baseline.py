@@ -10,11 +10,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from heliojax._calibration import STONE8
+import heliojax as hj
 from heliojax._kinematics import RecordContext
 from heliojax._simulate import random_stone_models, synthetic_geometry
 
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "calibration_speed.py"
+STONE = hj.StoneModel.nominal(jnp.float64)
+VIEW = hj.ParameterView.of(STONE)
 
 
 @pytest.fixture(scope="module")
@@ -38,6 +40,7 @@ def _records(n_heliostats=3, n_records=7, seed=0):
         actuators=g.actuators,
         linear_slope=g.linear_slope,
         linear_intercept=g.linear_intercept,
+        ideal_axes=g.ideal_axes,
     )
     counts = rng.uniform(0, 69000, (n_heliostats, n_records, 2))
     az = rng.uniform(-1.5, 1.5, (n_heliostats, n_records))
@@ -57,11 +60,11 @@ def test_numpy_residual_matches_heliojax(bench, nominal):
         y = np.zeros((h, 8))
     else:
         true = random_stone_models(jax.random.PRNGKey(5), h)
-        p = np.stack([np.asarray(getattr(true, f)) for f in STONE8.names], -1)
+        p = np.asarray(VIEW.to_vector(true))
         y = (p - bench.STONE_NOMINAL) / bench.STONE_SCALE
     geoms = bench._geom_dicts(g)
     for i in range(h):
-        model = STONE8.physical_to_model(jnp.asarray(bench.STONE_NOMINAL + bench.STONE_SCALE * y[i]))
+        model = VIEW.from_vector(STONE, jnp.asarray(bench.STONE_NOMINAL + bench.STONE_SCALE * y[i]))
         gi = jax.tree.map(lambda x: x[i], g)
         ctx = RecordContext.from_sun(jnp.asarray(sun[i]))
         ref = jax.vmap(lambda c, x, f: model.beam_components(gi, c, x, f))(
@@ -108,6 +111,6 @@ def test_scipy_fit_recovers_noise_free_parameters(bench):
     params, nfev, _ = bench.scipy_fit_fleet(
         bench._geom_dicts(g), np.asarray(sim.counts), sun, np.asarray(sim.focal_spot), np.ones((h, m), bool)
     )
-    expected = np.stack([np.asarray(getattr(true, f)) for f in STONE8.names], -1)
+    expected = np.asarray(VIEW.to_vector(true))
     assert np.all(nfev > 0)
     np.testing.assert_allclose(params, expected, rtol=0, atol=1e-6)
