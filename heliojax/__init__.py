@@ -50,13 +50,9 @@ from ._fleet import (
     Fleet as Fleet,
     LoadReport as LoadReport,
     bucket_size as bucket_size,
-    default_data_dir as default_data_dir,
     fleet_from_arrays as fleet_from_arrays,
     fleet_subset as fleet_subset,
-    load_paint_directory as load_paint_directory,
-    load_weather_csv_fleet as load_weather_csv_fleet,
     pad_fleet as pad_fleet,
-    records_to_fleet as records_to_fleet,
 )
 from ._geometry import (
     PlaneHit as PlaneHit,
@@ -91,13 +87,20 @@ from ._kinematics import (
     reflected_ray as reflected_ray,
     target_miss_distance as target_miss_distance,
 )
-from ._paint import (
+from .paint import (
     CalibrationRecord as CalibrationRecord,
+    FetchReport as FetchReport,
     HeliostatProperties as HeliostatProperties,
     TowerFile as TowerFile,
+    default_data_dir as default_data_dir,
+    fetch_catalog as fetch_catalog,
+    load_paint_directory as load_paint_directory,
+    load_weather_csv_fleet as load_weather_csv_fleet,
     read_calibration_record as read_calibration_record,
     read_heliostat_properties as read_heliostat_properties,
     read_tower as read_tower,
+    records_to_fleet as records_to_fleet,
+    verify_download as verify_download,
     write_paint_directory as write_paint_directory,
 )
 from ._simulate import (
@@ -116,7 +119,6 @@ from ._splits import (
     split_fleet as split_fleet,
     split_records as split_records,
 )
-from ._stac import FetchReport as FetchReport, fetch_catalog as fetch_catalog, verify_download as verify_download
 from ._sun import (
     SolarPosition as SolarPosition,
     datetime_to_unix as datetime_to_unix,
@@ -134,7 +136,7 @@ from ._workflow import (
     write_summary as write_summary,
 )
 
-from . import acceptance as acceptance, neural as neural, optics as optics  # noqa: E402
+from . import acceptance as acceptance, neural as neural, optics as optics, paint as paint  # noqa: E402
 from . import discovery as discovery, effects as effects  # noqa: E402
 from .discovery import (  # noqa: E402
     DiscoveryConfig as DiscoveryConfig,

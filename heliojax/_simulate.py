@@ -22,7 +22,7 @@ A simulated record is produced the way a plant produces one:
 
 from __future__ import annotations
 
-import typing
+import datetime as dt
 from collections.abc import Callable
 
 import equinox as eqx
@@ -32,7 +32,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from ._fleet import Fleet, LoadReport
-from ._geometry import TargetPlane, intersect_plane, normalize
+from ._geometry import TargetPlane, direction_to_azimuth_elevation, enu_to_wgs84, intersect_plane, normalize
 from ._kinematics import (
     AbstractKinematicModel,
     HeliostatGeometry,
@@ -45,6 +45,8 @@ from ._kinematics import (
     inverse_aim,
     reflected_ray,
 )
+from ._sun import solar_position
+from .paint import CalibrationRecord, HeliostatProperties, TargetEntry, TowerFile, write_paint_directory
 
 JUELICH_LAT_LON_ALT = (50.913421122592574, 6.387824755874856, 87.0)
 """The PAINT plant reference point of the Jülich solar tower (WGS84 deg, deg, m)."""
@@ -124,7 +126,6 @@ def calibration_times(
     the day and resampled (a fixed number of rounds, vectorised) until the sun is
     above ``min_elevation_deg``.
     """
-    from ._sun import solar_position
 
     k_day, k_hour = jax.random.split(key)
     midnight = np.floor(start_unix / 86400.0) * 86400.0  # hours below are UTC hours of the day
@@ -296,9 +297,6 @@ def to_numpy_tree(tree):
 
 def synthetic_tower(target: TargetPlane, origin_lla=JUELICH_LAT_LON_ALT, name: str = "solar_tower_juelich_lower"):
     """A :class:`heliojax.TowerFile` holding ``target`` (corners converted to WGS84)."""
-    from ._geometry import enu_to_wgs84
-    from ._paint import TargetEntry, TowerFile
-
     origin = jnp.asarray(origin_lla, jnp.float64)
     uv = {
         "upper_left": (-1.0, 1.0),
@@ -319,9 +317,6 @@ def synthetic_tower(target: TargetPlane, origin_lla=JUELICH_LAT_LON_ALT, name: s
 
 def synthetic_properties(geometry: HeliostatGeometry, ids, origin_lla=JUELICH_LAT_LON_ALT):
     """PAINT :class:`heliojax.HeliostatProperties` of a batched synthetic geometry."""
-    from ._geometry import enu_to_wgs84
-    from ._paint import HeliostatProperties
-
     g = to_numpy_tree(geometry)
     lla = np.asarray(enu_to_wgs84(jnp.asarray(g.position, jnp.float64), jnp.asarray(origin_lla, jnp.float64)))
     a = g.actuators
@@ -373,11 +368,6 @@ def simulation_to_records(
 ):
     """Raw :class:`heliojax.CalibrationRecord` s of simulated records (degrees and
     WGS84 at this boundary; times as ISO strings; weather in file units)."""
-    import datetime as dt
-
-    from ._geometry import direction_to_azimuth_elevation, enu_to_wgs84
-    from ._paint import CalibrationRecord
-
     counts = np.asarray(sim.counts)
     h, m = counts.shape[:2]
     mask = np.ones((h, m), bool) if mask is None else np.asarray(mask)
@@ -442,8 +432,6 @@ def write_simulation(
     written. Returns ``(path, tower, properties, records)`` so callers can build
     the same fleet in memory with :func:`heliojax.records_to_fleet`.
     """
-    from ._paint import write_paint_directory
-
     h = geometry.position.shape[0]
     ids = [f"SIM{i:04d}" for i in range(h)] if ids is None else list(ids)
     mask = np.asarray(sim.mask) if mask is None else np.asarray(mask)

@@ -27,14 +27,11 @@ from heliojax._fleet import (
     Fleet,
     LoadReport,
     bucket_size,
-    default_data_dir,
     fleet_subset,
-    load_paint_directory,
-    load_weather_csv_fleet,
     pad_fleet,
-    records_to_fleet,
 )
-from heliojax._paint import (
+from heliojax.paint import default_data_dir, load_paint_directory, load_weather_csv_fleet, records_to_fleet
+from heliojax.paint import (
     CalibrationRecord,
     read_calibration_record,
     read_heliostat_properties,

@@ -19,8 +19,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from heliojax._errors import DataError
-from heliojax._fleet import default_data_dir
-from heliojax._paint import (
+from heliojax.paint import default_data_dir
+from heliojax.paint import (
     CSV_COLUMNS,
     WEATHER_KEYS,
     CalibrationRecord,

@@ -18,7 +18,7 @@ import pystac
 import pytest
 
 from heliojax._errors import DataError
-from heliojax._stac import JOURNAL_NAME, fetch_catalog, verify_download
+from heliojax.paint import JOURNAL_NAME, fetch_catalog, verify_download
 from heliojax.cli import _fetch as fetch_cli
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "paint"
@@ -319,7 +319,7 @@ def test_interrupted_run_resumes(catalogue, tmp_path, midstream):
 
 
 def test_transient_errors_are_retried(catalogue, tmp_path, monkeypatch):
-    import heliojax._stac as stac
+    import heliojax.paint._stac as stac
 
     monkeypatch.setattr(stac, "_BACKOFF_S", 0.0)
     root_json, expected = catalogue

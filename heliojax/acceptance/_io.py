@@ -16,6 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._errors import ConfigError, DataError
+from .._geometry import wgs84_to_enu
+from ..paint import TOWER_FILE_SUFFIX, read_heliostat_properties, read_tower
 from ._field import PARAMETERS, FieldData
 
 _BAD_STATUS = {"failed", "error", "skipped", "excluded"}
@@ -132,41 +134,25 @@ def read_positions_csv(path: str | os.PathLike) -> tuple[tuple[str, ...], np.nda
 
 def find_tower_file(paint_dir: str | os.PathLike) -> Path:
     """The ``*-tower-measurements.json`` of a PAINT download directory."""
-    hits = sorted(glob.glob(os.path.join(paint_dir, "*-tower-measurements.json")))
+    hits = sorted(glob.glob(os.path.join(paint_dir, "*" + TOWER_FILE_SUFFIX)))
     if not hits:
         raise DataError(paint_dir, None, "no *-tower-measurements.json in the PAINT directory")
     return Path(hits[0])
 
 
 def positions_from_paint(paint_dir: str | os.PathLike) -> tuple[tuple[str, ...], np.ndarray]:
-    """Heliostat positions (ENU m) from a PAINT download directory.
-
-    Reads ``<ID>/Properties/<ID>-heliostat-properties.json`` ``heliostat_position``
-    (WGS84) of every heliostat folder that has one and converts it to ENU about
-    the tower file's ``power_plant_properties.coordinates``.
-    """
-    from .._geometry import wgs84_to_enu
-
-    tower = find_tower_file(paint_dir)
-    try:
-        origin = np.asarray(json.loads(tower.read_text("utf-8"))["power_plant_properties"]["coordinates"],
-                            dtype=float)
-    except (KeyError, TypeError, ValueError, json.JSONDecodeError) as e:
-        raise DataError(tower, "power_plant_properties.coordinates", "missing or malformed") from e
+    """Heliostat positions (ENU m) from a PAINT download directory: every heliostat
+    folder's properties file (read by :mod:`heliojax.paint`), converted to ENU about
+    the tower file's plant reference point."""
+    tower = read_tower(find_tower_file(paint_dir))
     ids, lla = [], []
     for prop in sorted(glob.glob(os.path.join(paint_dir, "*", "Properties", "*-heliostat-properties.json"))):
-        hid = Path(prop).parents[1].name
-        try:
-            p = np.asarray(json.loads(Path(prop).read_text("utf-8"))["heliostat_position"], dtype=float)
-        except (KeyError, TypeError, ValueError, json.JSONDecodeError) as e:
-            raise DataError(prop, "heliostat_position", "missing or malformed") from e
-        if p.shape != (3,) or not np.all(np.isfinite(p)):
-            raise DataError(prop, "heliostat_position", "must be 3 finite numbers [lat, lon, alt]")
-        ids.append(hid)
-        lla.append(p)
+        props = read_heliostat_properties(prop)
+        ids.append(props.heliostat_id)
+        lla.append(props.position_lla)
     if not ids:
         raise DataError(paint_dir, None, "no heliostat properties files found")
-    enu = np.asarray(wgs84_to_enu(jnp.asarray(np.asarray(lla)), jnp.asarray(origin)))
+    enu = np.asarray(wgs84_to_enu(jnp.asarray(np.asarray(lla)), jnp.asarray(tower.origin_lla)))
     return tuple(ids), enu
 
 

@@ -53,7 +53,6 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
-import json
 import os
 
 import jax
@@ -62,6 +61,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._errors import DataError
+from .._sun import solar_position
+from ..paint import read_tower
 from .._geometry import TargetPlane, sun_direction, wgs84_to_enu
 
 SUN_SIGMA_MRAD = 2.51
@@ -102,34 +103,24 @@ def load_receiver(tower_file: str | os.PathLike) -> tuple[TargetPlane, tuple[flo
     Raises:
         DataError: missing or malformed fields.
     """
-    try:
-        with open(tower_file, encoding="utf-8") as f:
-            doc = json.load(f)
-    except (OSError, json.JSONDecodeError) as e:
-        raise DataError(tower_file, None, f"cannot read tower file: {e}") from e
-    try:
-        origin = [float(x) for x in doc["power_plant_properties"]["coordinates"]]
-    except (KeyError, TypeError, ValueError) as e:
-        raise DataError(tower_file, "power_plant_properties.coordinates", "missing or not 3 numbers") from e
-    if len(origin) != 3 or not np.all(np.isfinite(origin)):
-        raise DataError(tower_file, "power_plant_properties.coordinates", "missing or not 3 numbers")
+    tower = read_tower(tower_file)
+    origin = tower.origin_lla
+    receiver = tower.targets.get("receiver")
+    if receiver is None:
+        raise DataError(tower_file, "receiver", "missing")
     corners = {}
     for name in ("upper_left", "upper_right", "lower_left", "lower_right"):
-        field = f"receiver.coordinates.receiver_outer_{name}"
-        try:
-            lla = np.asarray(doc["receiver"]["coordinates"][f"receiver_outer_{name}"], dtype=float)
-        except (KeyError, TypeError, ValueError) as e:
-            raise DataError(tower_file, field, "missing or not numeric") from e
-        if lla.shape != (3,) or not np.all(np.isfinite(lla)):
-            raise DataError(tower_file, field, "must be 3 finite numbers [lat, lon, alt]")
-        corners[name] = wgs84_to_enu(jnp.asarray(lla), jnp.asarray(origin))
+        key = f"receiver_outer_{name}"
+        if key not in receiver.points:
+            raise DataError(tower_file, f"receiver.coordinates.{key}", "missing")
+        corners[name] = wgs84_to_enu(jnp.asarray(receiver.points[key]), jnp.asarray(origin))
     plane = TargetPlane.from_corners(
         corners["upper_left"], corners["upper_right"], corners["lower_left"], corners["lower_right"]
     )
-    nv = doc["receiver"].get("normal_vector")
+    nv = receiver.normal
     if nv is not None:
         nv = np.asarray(nv, dtype=float)
-        if nv.shape == (3,) and float(np.dot(nv, np.asarray(plane.normal))) < 0.9 * np.linalg.norm(nv):
+        if float(np.dot(nv, np.asarray(plane.normal))) < 0.9 * np.linalg.norm(nv):
             raise DataError(tower_file, "receiver.normal_vector", "disagrees with the corner points")
     return plane, (origin[0], origin[1], origin[2])
 
@@ -298,7 +289,7 @@ def typical_year(
         step_minutes: sampling step.
         min_elevation_deg: drop times with the sun lower than this.
     """
-    from .._sun import solar_position
+
 
     start = _dt.datetime(year, 1, 1, tzinfo=_dt.timezone.utc).timestamp()
     end = _dt.datetime(year + 1, 1, 1, tzinfo=_dt.timezone.utc).timestamp()

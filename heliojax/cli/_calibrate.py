@@ -62,7 +62,7 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
-    from .._fleet import load_paint_directory
+    from ..paint import load_paint_directory
     from .._kinematics import nominal_model
     from ..fitting import batching_from_name, gaussian_prior
     from .._results import write_results_h5

@@ -17,7 +17,7 @@ def add_data_argument(p) -> None:
 
 
 def load_fleet(args):
-    from .._fleet import default_data_dir, load_paint_directory
+    from ..paint import default_data_dir, load_paint_directory
 
     path = args.data_dir if args.data_dir is not None else default_data_dir()
     return load_paint_directory(path, centroid=args.centroid)

@@ -1,4 +1,4 @@
-"""``heliojax fetch``: download PAINT data from a STAC catalogue (thin over :mod:`heliojax._stac`)."""
+"""``heliojax fetch``: download PAINT data from a STAC catalogue (thin over :mod:`heliojax.paint`)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import datetime as dt
 import sys
 
 from .._errors import HeliojaxError
-from .._stac import CALIBRATION_ASSETS, COLLECTIONS, fetch_catalog
+from ..paint import CALIBRATION_ASSETS, COLLECTIONS, fetch_catalog
 
 PAINT_CATALOGUE = "https://paint-database.org/WRI1030197/WRI1030197-catalog-stac.json"
 

@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     from .._geometry import sun_direction
     from .._io import atomic_path, atomic_write
     from .._kinematics import ActuatorModel, forward, inverse_aim
-    from .._paint import read_calibration_record, read_heliostat_properties, read_tower
+    from ..paint import read_calibration_record, read_heliostat_properties, read_tower
     from .. import optics
     from ..optics import _compare
 

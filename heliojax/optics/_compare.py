@@ -37,21 +37,14 @@ from .._geometry import TargetPlane, sun_direction, wgs84_to_enu
 from .._kinematics import AbstractKinematicModel, ActuatorModel, HeliostatGeometry, LinearActuators, forward
 from ._flux import ImageGrid, centroid, flux_image
 from ._sunshape import AbstractSunShape, BuieSun, EffectiveSun
+from ..paint import read_calibration_record, read_flux_png, read_heliostat_properties, read_tower
 from ._surfaces import FacetLayout, SurfacePoints, ideal_surface
+
+load_flux_png = read_flux_png
+"""Alias of :func:`heliojax.paint.read_flux_png`."""
 
 CENTRED_WINDOW_M = (6.0, 6.0)
 """Width and height (m) of PAINT's ``-flux-centered`` images."""
-
-
-def load_flux_png(path: str | os.PathLike) -> np.ndarray:
-    """A PAINT flux PNG as a float64 ``(rows, cols)`` array in ``[0, 1]``."""
-    from PIL import Image
-
-    try:
-        with Image.open(path) as im:
-            return np.asarray(im.convert("L"), np.float64) / 255.0
-    except OSError as e:
-        raise DataError(path, None, f"cannot read PNG: {e}") from e
 
 
 def remove_background(image: np.ndarray) -> np.ndarray:
@@ -77,7 +70,7 @@ def image_centroid(image: np.ndarray, grid: ImageGrid) -> np.ndarray:
 
 def geometry_from_properties(properties, origin_lla) -> HeliostatGeometry:
     """:class:`HeliostatGeometry` (float64, ENU m) of a
-    :class:`heliojax._paint.HeliostatProperties`."""
+    :class:`heliojax.paint.HeliostatProperties`."""
     a = properties.actuators
 
     def pair(key):
@@ -104,7 +97,7 @@ def geometry_from_properties(properties, origin_lla) -> HeliostatGeometry:
 
 
 def layout_from_properties(properties) -> FacetLayout:
-    """:class:`FacetLayout` of a :class:`heliojax._paint.HeliostatProperties`."""
+    """:class:`FacetLayout` of a :class:`heliojax.paint.HeliostatProperties`."""
     if not properties.facets:
         raise DataError(properties.source, "facet_properties.facets", "no facets")
     return FacetLayout.from_arrays(
@@ -115,7 +108,7 @@ def layout_from_properties(properties) -> FacetLayout:
 
 
 def target_from_tower(tower, name: str) -> TargetPlane:
-    """The planar target ``name`` of a :class:`heliojax._paint.TowerFile` (ENU m)."""
+    """The planar target ``name`` of a :class:`heliojax.paint.TowerFile` (ENU m)."""
     entry = tower.targets.get(name)
     if entry is None or not entry.is_planar_target:
         raise DataError(tower.source, name, "not a planar target of the tower file")
@@ -200,8 +193,6 @@ def compare_record(
         rays_per_point, steps: rays per surface point = their product.
         resolution: points per facet of the default ideal surface.
     """
-    from .._paint import read_calibration_record, read_heliostat_properties, read_tower
-
     record_path = Path(record_path)
     tower = read_tower(tower_path)
     props = read_heliostat_properties(properties_path)

@@ -19,9 +19,7 @@ normal ``+z``, ``x`` east, ``y`` north at the reference pose; see
 
 from __future__ import annotations
 
-import json
 import os
-import re
 import typing
 from collections.abc import Sequence
 
@@ -32,7 +30,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._errors import DataError
-from .._io import atomic_path
+from ..paint import read_deflectometry_facets, read_facets, write_deflectometry
 
 
 @typing.final
@@ -139,26 +137,18 @@ def _float_vector(data, file, field, n=3):
 
 
 def read_facet_layout(path: str | os.PathLike) -> FacetLayout:
-    """Facet layout of a PAINT heliostat-properties JSON (``facet_properties.facets``).
+    """Facet layout of a PAINT heliostat-properties JSON (``facet_properties.facets``,
+    read by :func:`heliojax.paint.read_facets`).
 
     Raises:
         DataError: missing or malformed facet fields.
     """
-    try:
-        with open(path, encoding="utf-8") as f:
-            data = json.load(f)
-    except (OSError, json.JSONDecodeError) as e:
-        raise DataError(path, None, f"cannot read JSON: {e}") from e
-    facets = (data.get("facet_properties") or {}).get("facets")
-    if not isinstance(facets, list) or not facets:
-        raise DataError(path, "facet_properties.facets", "missing or empty")
-    t, ce, cn = [], [], []
-    for i, facet in enumerate(facets):
-        base = f"facet_properties.facets[{i}]"
-        t.append(_float_vector(facet.get("translation_vector"), path, base + ".translation_vector"))
-        ce.append(_float_vector(facet.get("canting_e"), path, base + ".canting_e"))
-        cn.append(_float_vector(facet.get("canting_n"), path, base + ".canting_n"))
-    return FacetLayout.from_arrays(np.stack(t), np.stack(ce), np.stack(cn))
+    facets = read_facets(path)
+    return FacetLayout.from_arrays(
+        np.asarray([f.translation_vector for f in facets], np.float64),
+        np.asarray([f.canting_e for f in facets], np.float64),
+        np.asarray([f.canting_n for f in facets], np.float64),
+    )
 
 
 def stack_layouts(layouts: Sequence[FacetLayout]) -> FacetLayout:
@@ -250,51 +240,14 @@ class Deflectometry(eqx.Module):
         return jnp.sum(self.mask, axis=-1)
 
 
-_FACET_GROUP = re.compile(r"^facet(\d+)$")
-
-
 def read_deflectometry(path: str | os.PathLike) -> Deflectometry:
-    """Read a PAINT deflectometry HDF5 file (groups ``facet1..facetN``).
+    """A PAINT deflectometry HDF5 file (read by :mod:`heliojax.paint`) as
+    :class:`Deflectometry` (facets and points padded, masked).
 
     Raises:
         DataError: unreadable file, no facet groups, bad shapes or non-finite values.
     """
-    import h5py
-
-    facets = []
-    try:
-        with h5py.File(path, "r") as f:
-            names = sorted((k for k in f.keys() if _FACET_GROUP.match(k)), key=lambda k: int(_FACET_GROUP.match(k).group(1)))
-            if not names:
-                raise DataError(path, None, "no facet groups (facet1..facetN)")
-            for name in names:
-                g = f[name]
-                for field in ("surface_points", "surface_normals"):
-                    if field not in g:
-                        raise DataError(path, f"{name}/{field}", "missing")
-                p = np.asarray(g["surface_points"], np.float64)
-                q = np.asarray(g["surface_normals"], np.float64)
-                if p.ndim != 2 or p.shape[1] != 3 or q.shape != p.shape or len(p) == 0:
-                    raise DataError(path, f"{name}", f"expected matching [N, 3] arrays, got {p.shape} and {q.shape}")
-                if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
-                    raise DataError(path, f"{name}", "non-finite values")
-                q = q / np.linalg.norm(q, axis=1, keepdims=True)
-                facets.append((p, q))
-    except OSError as e:
-        raise DataError(path, None, f"cannot read HDF5: {e}") from e
-    return Deflectometry.from_facets(facets)
-
-
-def write_deflectometry(path: str | os.PathLike, facets: Sequence[tuple[ArrayLike, ArrayLike]]) -> None:
-    """Write per-facet ``(points [n_i, 3], normals [n_i, 3])`` in PAINT's layout (float32), atomically."""
-    import h5py
-
-    with atomic_path(path) as tmp:
-        with h5py.File(tmp, "w") as f:
-            for i, (p, q) in enumerate(facets, start=1):
-                g = f.create_group(f"facet{i}")
-                g.create_dataset("surface_points", data=np.asarray(p, np.float32))
-                g.create_dataset("surface_normals", data=np.asarray(q, np.float32))
+    return Deflectometry.from_facets(read_deflectometry_facets(path))
 
 
 def stack_deflectometry(items: Sequence[Deflectometry]) -> Deflectometry:

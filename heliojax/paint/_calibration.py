@@ -1,0 +1,230 @@
+"""Calibration records (``<H>/Calibration/<ID>-calibration-properties.json``)."""
+
+from __future__ import annotations
+
+import math
+import numbers
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+from .._errors import DataError
+from ._common import CALIBRATION_SUFFIX, CalibrationRecord, HeliostatProperties, PROPERTIES_SUFFIX, TIMESTAMPS_FILE, TimestampEntry, TowerFile, Vec3, WEATHER_KEYS, _Node, _check, _check_datetime, _join, _latlon_ok, _load_json, _nan_weather, _record_id_from_name, _roundtrip, _type_name, _write_json
+
+
+# ======================================================================================
+# Calibration records
+# ======================================================================================
+
+
+def _record_from_json(
+    file: str,
+    data: Any,
+    record_id: int,
+    heliostat_id: str,
+    datetime: str | None,
+    weather: Mapping[str, float] | None,
+) -> CalibrationRecord:
+    root = _Node(file, data)
+    motor = root.node("motor_position")
+    c1 = motor.integer("axis_1_motor_position")
+    c2 = motor.integer("axis_2_motor_position")
+    target = root.string("target_name")
+    el = float(root.number("sun_elevation"))
+    az = float(root.number("sun_azimuth"))
+    _check(-90.0 <= el <= 90.0, file, "sun_elevation", f"{el!r} outside [-90, 90] deg")
+    _check(-360.0 <= az <= 360.0, file, "sun_azimuth", f"{az!r} outside [-360, 360] deg")
+    fs = root.node("focal_spot")
+    spots: dict[str, Vec3 | None] = {}
+    for key in ("HeliOS", "UTIS"):
+        if fs.has(key) and fs.get(key) is not None:
+            spots[key] = fs.vec3(key)
+            _latlon_ok(file, fs.field(key), spots[key])  # type: ignore[arg-type]
+        else:
+            spots[key] = None
+    if spots["HeliOS"] is None and spots["UTIS"] is None:
+        raise DataError(file, "focal_spot", "neither a HeliOS nor a UTIS centroid")
+    w = _nan_weather()
+    if weather is not None:
+        w.update({k: (math.nan if math.isnan(v) else v) for k, v in weather.items() if k in w})
+    return CalibrationRecord(
+        record_id=record_id,
+        heliostat_id=heliostat_id,
+        axis_1_counts=c1,
+        axis_2_counts=c2,
+        target_name=target,
+        sun_azimuth_deg=az,
+        sun_elevation_deg=el,
+        focal_spot_helios=spots["HeliOS"],
+        focal_spot_utis=spots["UTIS"],
+        datetime=datetime,
+        weather=w,
+        source=file,
+    )
+
+
+def _record_to_json(r: CalibrationRecord) -> dict:
+    fs: dict[str, Any] = {}
+    if r.focal_spot_helios is not None:
+        fs["HeliOS"] = list(r.focal_spot_helios)
+    if r.focal_spot_utis is not None:
+        fs["UTIS"] = list(r.focal_spot_utis)
+    return {
+        "motor_position": {"axis_1_motor_position": r.axis_1_counts, "axis_2_motor_position": r.axis_2_counts},
+        "target_name": r.target_name,
+        "sun_elevation": r.sun_elevation_deg,
+        "sun_azimuth": r.sun_azimuth_deg,
+        "focal_spot": fs,
+    }
+
+
+def check_record_context(
+    record: CalibrationRecord,
+    tower: TowerFile | None = None,
+    properties: HeliostatProperties | Mapping[str, HeliostatProperties] | None = None,
+) -> None:
+    """Checks of a record against its tower file and heliostat properties.
+
+    Raises:
+        DataError: (file = ``record.source``) for a ``target_name`` that is not a
+            planar target of ``tower``; for a heliostat missing from ``properties``
+            (when a mapping id -> properties is given); for motor counts outside
+            ``[min_increment, max_increment]``.
+    """
+    file = record.source
+    if tower is not None:
+        t = tower.targets.get(record.target_name)
+        if t is None:
+            raise DataError(file, "target_name",
+                            f"unknown target {record.target_name!r} (tower file has "
+                            f"{', '.join(tower.planar_target_names)})")
+        if not t.is_planar_target:
+            raise DataError(file, "target_name", f"{record.target_name!r} is not a planar calibration target")
+    if properties is None:
+        return
+    if isinstance(properties, Mapping):
+        props = properties.get(record.heliostat_id)
+        if props is None:
+            raise DataError(file, "heliostat_id",
+                            f"heliostat {record.heliostat_id!r} has no properties file")
+    else:
+        props = properties
+        if props.heliostat_id != record.heliostat_id:
+            raise DataError(file, "heliostat_id",
+                            f"record of {record.heliostat_id!r} checked against properties of "
+                            f"{props.heliostat_id!r}")
+    for axis, count in ((1, record.axis_1_counts), (2, record.axis_2_counts)):
+        a = props.actuators[axis - 1]
+        lo, hi = a["min_increment"], a["max_increment"]
+        if not lo <= count <= hi:
+            raise DataError(file, f"motor_position.axis_{axis}_motor_position",
+                            f"count {count} outside [min_increment, max_increment] = [{lo}, {hi}] "
+                            f"of {Path(props.source).name}")
+
+
+def validate_record(record: CalibrationRecord) -> CalibrationRecord:
+    """Run the reader's value checks on an in-memory :class:`CalibrationRecord`
+    (serialise and re-parse, plus the date-time and weather); returns the
+    re-parsed (equal) record.
+
+    Raises:
+        DataError: with ``record.source`` as the file.
+    """
+    file = record.source
+    rid = record.record_id
+    if isinstance(rid, bool) or not isinstance(rid, numbers.Integral) or rid < 0:
+        raise DataError(file, "record_id", f"expected a non-negative integer, got {rid!r}")
+    if not isinstance(record.heliostat_id, str) or not record.heliostat_id:
+        raise DataError(file, "heliostat_id", "expected a non-empty string")
+    if record.datetime is not None:
+        _check_datetime(file, "datetime", record.datetime)
+    weather = _check_weather(file, "weather", record.weather)
+    try:
+        data = _roundtrip(_record_to_json(record))
+    except (TypeError, ValueError) as e:
+        raise DataError(file, None, f"not serialisable: {e}") from None
+    return _record_from_json(file, data, int(rid), record.heliostat_id, record.datetime, weather)
+
+
+def _check_weather(file: str, field: str, weather: Any) -> dict[str, float]:
+    if not isinstance(weather, Mapping):
+        raise DataError(file, field, "expected a mapping")
+    out = _nan_weather()
+    for k, v in weather.items():
+        if k not in out:
+            raise DataError(file, _join(field, str(k)), f"unknown weather key (known: {', '.join(WEATHER_KEYS)})")
+        if isinstance(v, bool) or not isinstance(v, numbers.Real):
+            raise DataError(file, _join(field, k), f"expected a number, got {_type_name(v)}")
+        v = float(v)
+        if math.isinf(v):
+            raise DataError(file, _join(field, k), f"not finite ({v!r}); use NaN for unknown")
+        out[k] = math.nan if math.isnan(v) else v
+    return out
+
+
+def calibration_record_path(root: str | os.PathLike, heliostat_id: str, record_id: int) -> Path:
+    """``root/<H>/Calibration/<ID>-calibration-properties.json``."""
+    return Path(root) / heliostat_id / "Calibration" / f"{record_id}{CALIBRATION_SUFFIX}"
+
+
+def heliostat_properties_path(root: str | os.PathLike, heliostat_id: str) -> Path:
+    """``root/<H>/Properties/<H>-heliostat-properties.json``."""
+    return Path(root) / heliostat_id / "Properties" / f"{heliostat_id}{PROPERTIES_SUFFIX}"
+
+
+def read_calibration_record(
+    path: str | os.PathLike,
+    *,
+    heliostat_id: str | None = None,
+    timestamps: Mapping[int, TimestampEntry] | None = None,
+    weather: Mapping[tuple[str, int], Mapping[str, float]] | None = None,
+    tower: TowerFile | None = None,
+    properties: HeliostatProperties | Mapping[str, HeliostatProperties] | None = None,
+) -> CalibrationRecord:
+    """Read and validate a ``<ID>-calibration-properties.json``.
+
+    Args:
+        path: the file; the record id is the ``<ID>`` of its name.
+        heliostat_id: the heliostat; default: the directory ``<H>`` of
+            ``<H>/Calibration/<file>``.
+        timestamps: :func:`read_timestamps` of the download; gives ``datetime``
+            (None when the record has no entry). An entry naming another heliostat
+            is an error.
+        weather: ``(heliostat_id, record_id) -> weather`` (see :func:`read_weather_csv`).
+        tower: when given, ``target_name`` must be one of its planar targets.
+        properties: the heliostat's properties, or a mapping id -> properties; when
+            given, the counts must lie in ``[min_increment, max_increment]`` and (for a
+            mapping) the heliostat must have properties.
+
+    Raises:
+        DataError: naming the file and the dotted field.
+    """
+    path = Path(path)
+    file = str(path)
+    rid = _record_id_from_name(path)
+    if heliostat_id is None:
+        if path.parent.name == "Calibration" and path.parent.parent.name:
+            heliostat_id = path.parent.parent.name
+        elif timestamps is not None and rid in timestamps:
+            heliostat_id = timestamps[rid].heliostat_id
+        else:
+            raise DataError(file, None, "cannot tell the heliostat (not in '<H>/Calibration/'; pass heliostat_id)")
+    dt = None
+    if timestamps is not None and rid in timestamps:
+        entry = timestamps[rid]
+        if entry.heliostat_id != heliostat_id:
+            raise DataError(file, "heliostat_id",
+                            f"{TIMESTAMPS_FILE} assigns record {rid} to {entry.heliostat_id!r}, "
+                            f"the file lies under {heliostat_id!r}")
+        dt = entry.datetime
+    w = None if weather is None else weather.get((heliostat_id, rid))
+    record = _record_from_json(file, _load_json(path), rid, heliostat_id, dt, w)
+    check_record_context(record, tower, properties)
+    return record
+
+
+def write_calibration_record(path: str | os.PathLike, record: CalibrationRecord) -> None:
+    """Write the JSON part of a record (counts, target, sun, centroids) atomically.
+    The id lives in the file name, the time in ``calibration-timestamps.json``, the
+    weather in ``calibration-with-weather.csv``."""
+    _write_json(path, _record_to_json(record))

@@ -1,0 +1,433 @@
+"""Shared pieces of the PAINT readers: file names, the record types (frozen
+dataclasses of file values), validation helpers and the JSON writer."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import re
+from pathlib import Path
+from typing import Any
+from .._errors import DataError
+from .._io import atomic_write
+from .._sun import datetime_to_unix
+
+
+
+Vec3 = tuple[float, float, float]
+
+TOWER_FILE_SUFFIX = "-tower-measurements.json"
+"""File-name suffix of the tower file (``<PLANT>-tower-measurements.json``)."""
+TIMESTAMPS_FILE = "calibration-timestamps.json"
+WEATHER_CSV_FILE = "calibration-with-weather.csv"
+PROPERTIES_SUFFIX = "-heliostat-properties.json"
+CALIBRATION_SUFFIX = "-calibration-properties.json"
+
+ACTUATOR_TYPES = ("linear", "ideal")
+"""Actuator kinds heliojax models: ``linear`` (the law of cosines of the stroke) and
+``ideal`` (joint angle linear in the counts, :attr:`heliojax.HeliostatGeometry.ideal_axes`)."""
+
+WEATHER_KEYS = ("temperature", "wind_speed", "wind_direction", "dni", "humidity", "pressure")
+"""Weather of a record (file units: deg C, m/s, deg, W/m^2, %, hPa); NaN = unknown."""
+
+CORNERS = ("upper_left", "upper_right", "lower_left", "lower_right")
+"""Corner points that make a tower entry a usable planar target."""
+
+ACTUATOR_REQUIRED = (
+    "type_axis",
+    "min_increment",
+    "max_increment",
+    "increment",
+    "initial_stroke_length",
+    "offset",
+    "pivot_radius",
+    "clockwise_axis_movement",
+    "initial_angle",
+)
+ACTUATOR_OPTIONAL = (
+    "offset_shift",
+    "radius_shift",
+    "min_movement_angle",
+    "max_movement_angle",
+    "movement_speed",
+)
+ACTUATOR_KEYS = (
+    "type_axis",
+    "min_increment",
+    "max_increment",
+    "increment",
+    "offset_shift",
+    "initial_stroke_length",
+    "offset",
+    "pivot_radius",
+    "radius_shift",
+    "clockwise_axis_movement",
+    "initial_angle",
+    "min_movement_angle",
+    "max_movement_angle",
+    "movement_speed",
+)
+"""Keys of an actuator entry, in PAINT's order. The first group
+(:data:`ACTUATOR_REQUIRED`) is required; the rest are kept when present."""
+
+CSV_COLUMNS = (
+    "heliostat_id",
+    "timestamp",
+    "sample_id",
+    "sun_elevation",
+    "sun_azimuth",
+    "axis_1_motor_position",
+    "axis_2_motor_position",
+    "target_name",
+    "heliostat_lat",
+    "heliostat_lon",
+    "heliostat_alt",
+    "focal_spot_lat",
+    "focal_spot_lon",
+    "focal_spot_alt",
+    "target_center_lat",
+    "target_center_lon",
+    "target_center_alt",
+    "tracking_error_lat",
+    "tracking_error_lon",
+    "tracking_error_alt",
+    "wind_speed",
+    "wind_direction",
+    "dni",
+    "temperature",
+    "humidity",
+    "pressure",
+)
+"""Columns of ``calibration-with-weather.csv`` (in the shared file's order)."""
+
+_CSV_REQUIRED = (
+    "heliostat_id",
+    "timestamp",
+    "sample_id",
+    "sun_elevation",
+    "sun_azimuth",
+    "axis_1_motor_position",
+    "axis_2_motor_position",
+    "target_name",
+    "focal_spot_lat",
+    "focal_spot_lon",
+    "focal_spot_alt",
+)
+
+_MEMORY = "<memory>"
+_ID_RE = re.compile(r"^[0-9]+$")
+
+
+def _nan_weather() -> dict[str, float]:
+    return {k: math.nan for k in WEATHER_KEYS}
+
+
+# ======================================================================================
+# Records
+# ======================================================================================
+
+
+@dataclasses.dataclass(frozen=True)
+class TargetEntry:
+    """One entry of the tower file besides ``power_plant_properties``.
+
+    Attributes:
+        name: the entry's key (``"solar_tower_juelich_upper"``, ``"receiver"``, ...).
+        type: ``"planar"``, ``"convex_cylinder"``, ...
+        normal: ``normal_vector`` as written (ENU components), or None.
+        points: every named point of ``coordinates`` (``center``, ``upper_left``, ...),
+            WGS84 ``(lat_deg, lon_deg, alt_m)``, in file order.
+        extra: other keys of the entry (``radius``, ``opening_angle``, ...), kept verbatim
+            (JSON scalars).
+    """
+
+    name: str
+    type: str
+    normal: Vec3 | None
+    points: dict[str, Vec3]
+    extra: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    @property
+    def is_planar_target(self) -> bool:
+        """True for a ``planar`` entry with the four corners: a calibration target."""
+        return self.type == "planar" and all(c in self.points for c in CORNERS)
+
+
+@dataclasses.dataclass(frozen=True)
+class TowerFile:
+    """The tower file: plant reference point and targets.
+
+    Attributes:
+        plant_id: ``power_plant_properties.ID``.
+        origin_lla: ``power_plant_properties.coordinates``, the ENU origin (WGS84).
+        targets: every other entry (receiver included), in file order.
+        source: the file it came from.
+    """
+
+    plant_id: str
+    origin_lla: Vec3
+    targets: dict[str, TargetEntry]
+    source: str = _MEMORY
+
+    @property
+    def planar_target_names(self) -> tuple[str, ...]:
+        """Names of the entries usable as calibration targets, in file order."""
+        return tuple(n for n, t in self.targets.items() if t.is_planar_target)
+
+
+@dataclasses.dataclass(frozen=True)
+class Facet:
+    """One facet of ``facet_properties.facets`` (metres, heliostat surface frame)."""
+
+    translation_vector: Vec3
+    canting_e: Vec3
+    canting_n: Vec3
+
+
+@dataclasses.dataclass(frozen=True)
+class HeliostatProperties:
+    """A ``<H>-heliostat-properties.json``.
+
+    Attributes:
+        heliostat_id: from the file name (``<H>-heliostat-properties.json``).
+        position_lla: ``heliostat_position`` (WGS84).
+        width, height: mirror size, m.
+        initial_orientation: mirror normal at zero joint angles (ENU; PAINT: south).
+        actuators: the two entries of ``kinematics_properties.actuators`` (axis 1,
+            axis 2) as dicts: ``type_axis`` (str) and numbers (int or float as in
+            the file) for the keys of :data:`ACTUATOR_KEYS` that are present.
+        joint_translation_1, joint_translation_2: ``joint_translation_{e,n,u}_{1,2}``, m.
+        concentrator_translation: ``concentrator_translation_{e,n,u}``, m.
+        facets: ``facet_properties.facets`` (empty if the file has none).
+        canting_type: ``facet_properties.canting_type`` or None.
+        renovation: ``renovation`` (a date or date range string) or None.
+        source: the file it came from.
+    """
+
+    heliostat_id: str
+    position_lla: Vec3
+    width: float
+    height: float
+    initial_orientation: Vec3
+    actuators: tuple[dict[str, Any], dict[str, Any]]
+    joint_translation_1: Vec3 = (0.0, 0.0, 0.0)
+    joint_translation_2: Vec3 = (0.0, 0.0, 0.0)
+    concentrator_translation: Vec3 = (0.0, 0.0, 0.0)
+    facets: tuple[Facet, ...] = ()
+    canting_type: str | None = None
+    renovation: str | None = None
+    source: str = _MEMORY
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibrationRecord:
+    """One calibration record.
+
+    Attributes:
+        record_id: from the file name ``<ID>-calibration-properties.json`` (CSV: ``sample_id``).
+        heliostat_id: the heliostat (directory name ``<H>/Calibration``; CSV column).
+        axis_1_counts, axis_2_counts: motor positions, integer counts.
+        target_name: a planar entry of the tower file.
+        sun_azimuth_deg: deg, 0 = south, positive toward east.
+        sun_elevation_deg: deg.
+        focal_spot_helios: HeliOS centroid (WGS84) or None.
+        focal_spot_utis: UTIS centroid (WGS84) or None (absent or null in the file).
+        datetime: UTC ISO-8601 string from ``calibration-timestamps.json`` (CSV:
+            ``timestamp``) or None when unknown.
+        weather: the keys of :data:`WEATHER_KEYS` in file units; NaN = unknown.
+        source: the file it came from (CSV: ``path:line``).
+    """
+
+    record_id: int
+    heliostat_id: str
+    axis_1_counts: int
+    axis_2_counts: int
+    target_name: str
+    sun_azimuth_deg: float
+    sun_elevation_deg: float
+    focal_spot_helios: Vec3 | None
+    focal_spot_utis: Vec3 | None = None
+    datetime: str | None = None
+    weather: dict[str, float] = dataclasses.field(default_factory=_nan_weather)
+    source: str = _MEMORY
+
+
+@dataclasses.dataclass(frozen=True)
+class TimestampEntry:
+    """An entry of ``calibration-timestamps.json``."""
+
+    heliostat_id: str
+    datetime: str
+
+
+# ======================================================================================
+# Validation helpers
+# ======================================================================================
+
+
+def _load_json(path: str | os.PathLike) -> Any:
+    """Parse a JSON file; every failure becomes a DataError naming the file."""
+    try:
+        raw = Path(path).read_bytes()
+    except OSError as e:
+        raise DataError(path, None, f"cannot read file: {e.strerror or e}") from None
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise DataError(path, None, f"not UTF-8 text (byte {e.start})") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as e:
+        raise DataError(path, None, f"malformed JSON: {e.msg} at line {e.lineno} column {e.colno}") from None
+    except (ValueError, RecursionError) as e:
+        raise DataError(path, None, f"malformed JSON: {type(e).__name__}") from None
+
+
+def _join(prefix: str, key: str | int) -> str:
+    if isinstance(key, int):
+        return f"{prefix}[{key}]"
+    return key if not prefix else f"{prefix}.{key}"
+
+
+class _Node:
+    """A JSON object with typed, validating getters that name the dotted field."""
+
+    __slots__ = ("file", "data", "prefix")
+
+    def __init__(self, file: str, data: Any, prefix: str = ""):
+        if not isinstance(data, dict):
+            raise DataError(file, prefix or None, f"expected a JSON object, got {_type_name(data)}")
+        self.file = file
+        self.data = data
+        self.prefix = prefix
+
+    def field(self, key: str) -> str:
+        return _join(self.prefix, key)
+
+    def has(self, key: str) -> bool:
+        return key in self.data
+
+    def get(self, key: str) -> Any:
+        if key not in self.data:
+            raise DataError(self.file, self.field(key), "missing")
+        return self.data[key]
+
+    def node(self, key: str) -> _Node:
+        return _Node(self.file, self.get(key), self.field(key))
+
+    def number(self, key: str) -> float | int:
+        return _number(self.file, self.field(key), self.get(key))
+
+    def integer(self, key: str) -> int:
+        return _integer(self.file, self.field(key), self.get(key))
+
+    def string(self, key: str) -> str:
+        v = self.get(key)
+        if not isinstance(v, str):
+            raise DataError(self.file, self.field(key), f"expected a string, got {_type_name(v)}")
+        return v
+
+    def vec3(self, key: str) -> Vec3:
+        return _vec3(self.file, self.field(key), self.get(key))
+
+
+def _type_name(v: Any) -> str:
+    if v is None:
+        return "null"
+    if isinstance(v, bool):
+        return "a boolean"
+    if isinstance(v, (int, float)):
+        return "a number"
+    if isinstance(v, str):
+        return "a string"
+    if isinstance(v, list):
+        return "an array"
+    if isinstance(v, dict):
+        return "an object"
+    return type(v).__name__
+
+
+def _number(file: str, field: str, v: Any) -> float | int:
+    """A finite JSON number (int kept int, float kept float)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise DataError(file, field, f"expected a number, got {_type_name(v)}")
+    try:
+        f = float(v)
+    except OverflowError:
+        raise DataError(file, field, "number out of range") from None
+    if not math.isfinite(f):
+        raise DataError(file, field, f"not finite ({v!r})")
+    return v
+
+
+def _integer(file: str, field: str, v: Any) -> int:
+    """A finite integral JSON number, returned as int (2.0 is accepted as 2)."""
+    v = _number(file, field, v)
+    if isinstance(v, float):
+        if not v.is_integer():
+            raise DataError(file, field, f"expected an integer, got {v!r}")
+        return int(v)
+    return v
+
+
+def _vec3(file: str, field: str, v: Any) -> Vec3:
+    if not isinstance(v, list) or len(v) != 3:
+        what = f"an array of {len(v)}" if isinstance(v, list) else _type_name(v)
+        raise DataError(file, field, f"expected an array of 3 numbers, got {what}")
+    return tuple(float(_number(file, _join(field, i), x)) for i, x in enumerate(v))  # type: ignore[return-value]
+
+
+def _check(cond: bool, file: str, field: str | None, reason: str) -> None:
+    if not cond:
+        raise DataError(file, field, reason)
+
+
+def _latlon_ok(file: str, field: str, lla: Vec3) -> None:
+    _check(-90.0 <= lla[0] <= 90.0, file, field, f"latitude {lla[0]!r} outside [-90, 90] deg")
+    _check(-180.0 <= lla[1] <= 360.0, file, field, f"longitude {lla[1]!r} outside [-180, 360] deg")
+    _check(abs(lla[2]) <= 1e5, file, field, f"altitude {lla[2]!r} m is not near the Earth's surface")
+
+
+def _record_id_from_name(path: Path) -> int:
+    name = path.name
+    if not name.endswith(CALIBRATION_SUFFIX) or not _ID_RE.match(name[: -len(CALIBRATION_SUFFIX)]):
+        raise DataError(path, None, f"file name is not '<ID>{CALIBRATION_SUFFIX}' with a numeric ID")
+    return int(name[: -len(CALIBRATION_SUFFIX)])
+
+
+def _check_datetime(file: str, field: str, text: Any) -> str:
+    if not isinstance(text, str):
+        raise DataError(file, field, f"expected an ISO-8601 string, got {_type_name(text)}")
+    try:
+        t = datetime_to_unix(text)
+    except (ValueError, TypeError, OverflowError) as e:
+        raise DataError(file, field, f"not an ISO-8601 date-time: {text!r}") from None
+    if not math.isfinite(t):
+        raise DataError(file, field, f"not a finite date-time: {text!r}")
+    return text
+
+
+
+
+# ======================================================================================
+# Directory writer
+# ======================================================================================
+
+
+def _json_default(v: Any) -> Any:
+    """numpy scalars and arrays (e.g. from a simulator) -> plain Python values."""
+    if hasattr(v, "tolist") and callable(v.tolist):
+        return v.tolist()
+    raise TypeError(f"{type(v).__name__} is not JSON serialisable")
+
+
+def _roundtrip(data: Any) -> Any:
+    return json.loads(json.dumps(data, default=_json_default))
+
+
+def _write_json(path: str | os.PathLike, data: Any, indent: int = 2) -> None:
+    text = json.dumps(data, indent=indent, allow_nan=False, default=_json_default)
+    with atomic_write(path, "w") as f:
+        f.write(text)

@@ -1,0 +1,62 @@
+"""PAINT deflectometry HDF5 files (groups ``facet1..facetN`` with ``surface_points``
+and ``surface_normals``, metres, heliostat surface frame)."""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Sequence
+
+import h5py
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .._errors import DataError
+from .._io import atomic_path
+
+_FACET_GROUP = re.compile(r"^facet(\d+)$")
+
+
+def read_deflectometry_facets(path: str | os.PathLike) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per facet ``(points (n_i, 3), unit normals (n_i, 3))`` float64 of a PAINT
+    deflectometry file, in facet order.
+
+    Raises:
+        DataError: unreadable file, no facet groups, bad shapes or non-finite values.
+    """
+    facets = []
+    try:
+        with h5py.File(path, "r") as f:
+            names = sorted((k for k in f.keys() if _FACET_GROUP.match(k)),
+                           key=lambda k: int(_FACET_GROUP.match(k).group(1)))  # type: ignore[union-attr]
+            if not names:
+                raise DataError(path, None, "no facet groups (facet1..facetN)")
+            for name in names:
+                g = f[name]
+                if not isinstance(g, h5py.Group):
+                    raise DataError(path, name, "not a group")
+                for field in ("surface_points", "surface_normals"):
+                    if field not in g:
+                        raise DataError(path, f"{name}/{field}", "missing")
+                p = np.asarray(g["surface_points"], np.float64)
+                q = np.asarray(g["surface_normals"], np.float64)
+                if p.ndim != 2 or p.shape[1] != 3 or q.shape != p.shape or len(p) == 0:
+                    raise DataError(path, f"{name}", f"expected matching [N, 3] arrays, got {p.shape} and {q.shape}")
+                if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
+                    raise DataError(path, f"{name}", "non-finite values")
+                facets.append((p, q / np.linalg.norm(q, axis=1, keepdims=True)))
+    except OSError as e:
+        raise DataError(path, None, f"cannot read HDF5: {e}") from e
+    return facets
+
+
+def write_deflectometry(path: str | os.PathLike, facets: Sequence[tuple[ArrayLike, ArrayLike]]) -> None:
+    """Write per-facet ``(points [n_i, 3], normals [n_i, 3])`` in PAINT's layout (float32), atomically."""
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        for i, (p, q) in enumerate(facets, start=1):
+            g = f.create_group(f"facet{i}")
+            g.create_dataset("surface_points", data=np.asarray(p, np.float32))
+            g.create_dataset("surface_normals", data=np.asarray(q, np.float32))
+
+
+__all__ = ["read_deflectometry_facets", "write_deflectometry"]

@@ -1,0 +1,34 @@
+"""PAINT flux images (``<ID>-flux.png``, ``<ID>-flux-centered.png``): relative
+brightness of the camera image of the spot on the target."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+from PIL import Image
+
+from .._errors import DataError
+
+MAX_FLUX_PIXELS = 4096 * 4096
+"""Largest image (pixels) read; PAINT's flux images are 512 x 512. A larger
+declared size is refused before decoding (a decompression bomb)."""
+
+
+def read_flux_png(path: str | os.PathLike) -> np.ndarray:
+    """A PAINT flux PNG as a float64 ``(rows, cols)`` array in ``[0, 1]``.
+
+    Raises:
+        DataError: unreadable or not an image, or larger than :data:`MAX_FLUX_PIXELS`.
+    """
+    try:
+        with Image.open(path) as im:
+            w, h = im.size
+            if w * h > MAX_FLUX_PIXELS:
+                raise DataError(path, None, f"image of {w} x {h} pixels exceeds {MAX_FLUX_PIXELS} pixels")
+            return np.asarray(im.convert("L"), np.float64) / 255.0
+    except (OSError, Image.DecompressionBombError, ValueError) as e:
+        raise DataError(path, None, f"cannot read PNG: {e}") from e
+
+
+__all__ = ["MAX_FLUX_PIXELS", "read_flux_png"]

@@ -1,0 +1,536 @@
+"""Loading a PAINT download directory (or the weather CSV form) into a :class:`heliojax.Fleet`:
+parse every file, skip and report bad ones, flag suspicious values, assemble padded arrays."""
+
+from __future__ import annotations
+
+import collections
+import importlib.resources
+import math
+import os
+import re
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+from .._errors import DataError
+from .._geometry import TargetPlane, sun_direction, wgs84_to_enu
+from .._kinematics import HeliostatGeometry, LinearActuators, RecordContext
+from .._sun import datetime_to_unix
+from .._fleet import Centroid, Fleet, ReportEntry, _CENTROIDS, bucket_size
+from ._common import CALIBRATION_SUFFIX, CORNERS, CalibrationRecord, HeliostatProperties, PROPERTIES_SUFFIX, TIMESTAMPS_FILE, TOWER_FILE_SUFFIX, TowerFile, WEATHER_CSV_FILE
+from ._tower import read_tower
+from ._properties import read_heliostat_properties, validate_properties
+from ._calibration import check_record_context, heliostat_properties_path, read_calibration_record, validate_record
+from ._timestamps import read_timestamps
+from ._weather import read_weather_csv
+from ._flags import _Log, _check_actuator_law, _flag_properties, _flag_repeated_weather
+
+
+
+def default_data_dir() -> Path:
+    """The embedded PAINT subset shipped with heliojax (``heliojax/data/paint``):
+    5 heliostats of the Jülich tower (CDLA-Permissive-2.0, see its NOTICE)."""
+    return Path(str(importlib.resources.files("heliojax") / "data" / "paint"))
+
+
+# ======================================================================================
+# Assembly
+# ======================================================================================
+
+
+def _check_centroid(centroid: str) -> None:
+    if centroid not in _CENTROIDS:
+        raise ValueError(f"centroid must be one of {_CENTROIDS}, got {centroid!r}")
+
+
+def _common_dir(sources: Sequence[str]) -> str:
+    """The one file (CSV rows ``path:line``) or the one directory the sources share."""
+    files = {re.sub(r":[0-9]+$", "", s) for s in sources}
+    if len(files) == 1:
+        return files.pop()
+    parents = {str(Path(f).parent) for f in files}
+    if len(parents) == 1 and parents != {"."}:
+        return parents.pop()
+    return sources[0]
+
+
+def _chronological(records: list[CalibrationRecord], times: list[float]) -> list[int]:
+    """Indices of ``records`` in chronological order (ties: record id); records of
+    unknown time are placed by record id among the timed ones."""
+    known = sorted((t, records[k].record_id, k) for k, t in enumerate(times) if math.isfinite(t))
+    unknown = sorted((records[k].record_id, k) for k, t in enumerate(times) if not math.isfinite(t))
+    order: list[int] = []
+    u = 0
+    for _, rid, k in known:
+        while u < len(unknown) and unknown[u][0] < rid:
+            order.append(unknown[u][1])
+            u += 1
+        order.append(k)
+    order.extend(k for _, k in unknown[u:])
+    return order
+
+
+def _approach(counts: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``(H, M, 2)`` sign of the last count change before each record (valid
+    records first along M, in chronological order)."""
+    h, m, _ = counts.shape
+    step = np.zeros_like(counts)
+    if m > 1:
+        both = (mask[:, 1:] & mask[:, :-1])[..., None]
+        step[:, 1:] = np.where(both, np.sign(counts[:, 1:] - counts[:, :-1]), 0.0)
+    pos = np.arange(m)[None, :, None]
+    last = np.maximum.accumulate(np.where(step != 0, pos, 0), axis=1)
+    return np.take_along_axis(step, last, axis=1) * mask[..., None]
+
+
+
+def _f(x) -> Array:
+    """A JAX array of JAX's default float dtype (float64 under ``jax_enable_x64``)."""
+    return jax.device_put(np.asarray(x, dtype=np.float64))
+
+
+def _bucket_rows(x) -> np.ndarray:
+    """Pad axis 0 to :func:`bucket_size` with copies of row 0 (float64), so that the
+    jitted kernels below compile once per bucket, not once per fleet shape."""
+    x = np.asarray(x, dtype=np.float64)
+    n = len(x)
+    return np.concatenate([x, np.repeat(x[:1], bucket_size(n) - n, axis=0)])
+
+
+_enu_kernel = jax.jit(wgs84_to_enu)
+_sun_kernel = jax.jit(lambda az, el: sun_direction(jnp.deg2rad(az), jnp.deg2rad(el)))
+_geometry_kernel = jax.jit(HeliostatGeometry.build)
+_targets_kernel = jax.jit(jax.vmap(TargetPlane.from_corners))
+
+
+def _assemble(
+    tower: TowerFile,
+    properties: Sequence[HeliostatProperties],
+    records: Sequence[CalibrationRecord],
+    *,
+    centroid: str,
+    origin,
+    log: _Log,
+    validate: bool,
+) -> Fleet:
+    _check_centroid(centroid)
+    planar = tower.planar_target_names
+    tindex = {name: i for i, name in enumerate(planar)}
+    origin_lla = tower.origin_lla if origin is None else tuple(float(x) for x in origin)
+    if len(origin_lla) != 3 or not all(math.isfinite(x) for x in origin_lla):
+        raise ValueError(f"origin must be 3 finite numbers [lat_deg, lon_deg, alt_m], got {origin!r}")
+
+    props_by_id: dict[str, HeliostatProperties] = {}
+    for p in sorted(properties, key=lambda p: p.heliostat_id):
+        try:
+            if validate:
+                p = validate_properties(p)
+            _check_actuator_law(p)
+            if p.heliostat_id in props_by_id:
+                raise DataError(p.source, None, f"second properties entry for heliostat {p.heliostat_id!r} "
+                                                f"(first: {props_by_id[p.heliostat_id].source})")
+        except DataError as e:
+            log.skip(e, heliostats=1)
+            continue
+        props_by_id[p.heliostat_id] = p
+
+    by_h: dict[str, list[CalibrationRecord]] = collections.defaultdict(list)
+    for r in records:
+        if not isinstance(r.heliostat_id, str) or not r.heliostat_id:
+            log.skip_record(DataError(getattr(r, "source", None), "heliostat_id",
+                                      f"must be a non-empty string, got {r.heliostat_id!r}"))
+            continue
+        by_h[r.heliostat_id].append(r)
+    for hid in sorted(set(by_h) - set(props_by_id), key=str):
+        rs = by_h[hid]
+        log.skip(DataError(_common_dir([r.source for r in rs]), "heliostat_id",
+                           f"{len(rs)} calibration record(s) of heliostat {hid!r} skipped: no properties file"),
+                 records=len(rs), heliostats=1)
+
+    ids = tuple(sorted(props_by_id))
+    if not ids:
+        rep = log.report()
+        raise DataError(log.source, None, "no heliostat could be loaded\n" + rep.format())
+    per_h: list[list[CalibrationRecord]] = []
+    per_t: list[list[float]] = []
+    n_fallback = 0
+    for hid in ids:
+        props = props_by_id[hid]
+        good: list[CalibrationRecord] = []
+        seen: set[int] = set()
+        for r in by_h.get(hid, []):
+            try:
+                if validate:
+                    r = validate_record(r)
+                check_record_context(r, tower, props)
+                if centroid == "helios" and r.focal_spot_helios is None:
+                    raise DataError(r.source, "focal_spot.HeliOS", "missing (centroid='helios' uses HeliOS only)")
+                if r.record_id in seen:
+                    raise DataError(r.source, "record_id", f"duplicate record id {r.record_id} of {hid!r}")
+            except DataError as e:
+                log.skip_record(e)
+                continue
+            seen.add(r.record_id)
+            good.append(r)
+        times = [math.nan if r.datetime is None else datetime_to_unix(r.datetime) for r in good]
+        order = _chronological(good, times)
+        per_h.append([good[k] for k in order])
+        per_t.append([times[k] for k in order])
+        if not good:
+            log.flag(props.source, None, f"heliostat {hid!r} has no valid calibration record (kept, all masked)")
+
+    h = len(ids)
+    m = max(1, max(len(rs) for rs in per_h))
+    counts = np.zeros((h, m, 2))
+    az = np.zeros((h, m))
+    el = np.zeros((h, m))
+    spot_lla = np.zeros((h, m, 3))
+    tidx = np.zeros((h, m), np.int32)
+    rid = np.full((h, m), -1, np.int32)
+    utime = np.full((h, m), np.nan)
+    weather = np.full((h, m, 3), np.nan)  # temperature, wind_speed, wind_direction (deg)
+    mask = np.zeros((h, m), bool)
+    n_no_time = n_weather = 0
+    for i, (rs, ts) in enumerate(zip(per_h, per_t)):
+        for j, (r, t) in enumerate(zip(rs, ts)):
+            counts[i, j] = (r.axis_1_counts, r.axis_2_counts)
+            az[i, j], el[i, j] = r.sun_azimuth_deg, r.sun_elevation_deg
+            if centroid == "utis" and r.focal_spot_utis is not None:
+                spot_lla[i, j] = r.focal_spot_utis
+            else:
+                spot_lla[i, j] = r.focal_spot_helios
+                n_fallback += centroid == "utis"
+            tidx[i, j] = tindex[r.target_name]
+            rid[i, j] = r.record_id
+            utime[i, j] = t
+            weather[i, j] = (r.weather["temperature"], r.weather["wind_speed"], r.weather["wind_direction"])
+            mask[i, j] = True
+            if not math.isfinite(t):
+                n_no_time += 1
+                log.flag(r.source, "datetime", "no timestamp: time unknown (NaN), record kept")
+            n_weather += any(not math.isnan(v) for v in r.weather.values())
+
+    approach = _approach(counts, mask)
+    n_valid = mask.sum(1)
+    # Heliostats without records: one synthetic slot (mid-range counts, sun south at 45 deg).
+    for i in np.nonzero(n_valid == 0)[0]:
+        acts = props_by_id[ids[i]].actuators
+        counts[i, 0] = [round((a["min_increment"] + a["max_increment"]) / 2) for a in acts]
+        az[i, 0], el[i, 0] = 0.0, 45.0
+    # Padded slots copy the first valid record (slot 0).
+    pad = ~mask & (np.arange(m)[None, :] > 0)
+    for arr in (counts, az, el, spot_lla, tidx, utime, weather, approach):
+        arr[pad] = np.broadcast_to(arr[:, :1], arr.shape)[pad]
+
+    pos_lla = np.array([props_by_id[k].position_lla for k in ids])
+    corners_lla = np.array([[tower.targets[t].points[c] for c in CORNERS] for t in planar])  # (T, 4, 3)
+    n_t = len(planar)
+    # Geodesy in float64 on one flat, bucketed batch (one compilation per bucket).
+    flat = np.concatenate([pos_lla, spot_lla.reshape(-1, 3), corners_lla.reshape(-1, 3)])
+    with jax.enable_x64(True):
+        enu = np.array(_enu_kernel(_bucket_rows(flat), np.asarray(origin_lla, np.float64)))[: len(flat)]
+        sun = np.asarray(_sun_kernel(_bucket_rows(az.reshape(-1)), _bucket_rows(el.reshape(-1))))
+    sun = sun[: h * m].reshape(h, m, 3)
+    pos_enu = enu[:h]
+    spot_enu = enu[h : h + h * m].reshape(h, m, 3)
+    corners_enu = enu[h + h * m :].reshape(n_t, 4, 3)
+    for k, name in enumerate(planar):
+        ul, ur, ll, lr = corners_enu[k]
+        width = np.linalg.norm((ur + lr) / 2 - (ul + ll) / 2)
+        height = np.linalg.norm((ul + ur) / 2 - (ll + lr) / 2)
+        if not (width > 1e-3 and height > 1e-3):
+            raise DataError(tower.source, f"{name}.coordinates",
+                            f"degenerate target corners (width {width:.3g} m, height {height:.3g} m)")
+    centres = corners_enu.mean(axis=1)
+    for i in np.nonzero(n_valid == 0)[0]:
+        spot_enu[i] = centres[0]
+
+    acts = {
+        k: np.array([[float(props_by_id[hid].actuators[i][k]) for i in range(2)] for hid in ids])
+        for k in ("increment", "initial_stroke_length", "offset", "pivot_radius", "initial_angle",
+                  "min_increment", "max_increment", "clockwise_axis_movement")
+    }
+    actuators = LinearActuators(
+        increment=_bucket_rows(acts["increment"]),
+        initial_stroke_length=_bucket_rows(acts["initial_stroke_length"]),
+        offset=_bucket_rows(acts["offset"]),
+        pivot_radius=_bucket_rows(acts["pivot_radius"]),
+        initial_angle=_bucket_rows(acts["initial_angle"]),
+        sign=_bucket_rows(np.where(acts["clockwise_axis_movement"] == 0, 1.0, -1.0)),
+        min_counts=_bucket_rows(acts["min_increment"]),
+        max_counts=_bucket_rows(acts["max_increment"]),
+    )
+    with jax.enable_x64(True):
+        geometry = _geometry_kernel(
+            _bucket_rows(pos_enu),
+            actuators,
+            _bucket_rows(np.array([props_by_id[k].joint_translation_1 for k in ids])),
+            _bucket_rows(np.array([props_by_id[k].joint_translation_2 for k in ids])),
+            _bucket_rows(np.array([props_by_id[k].concentrator_translation for k in ids])),
+            _bucket_rows(np.array([[props_by_id[k].actuators[i]["type_axis"] == "ideal" for i in range(2)]
+                                   for k in ids])),
+        )
+        targets = _targets_kernel(*(corners_enu[:, c] for c in range(4)))
+    geometry = jax.tree.map(lambda x: jax.device_put(np.asarray(x)[:h]) if x.dtype == bool else _f(np.asarray(x)[:h]),
+                            geometry)
+    targets = jax.tree.map(lambda x: _f(np.asarray(x)), targets)
+    context = RecordContext(
+        sun=_f(sun),
+        unix_time=_f(utime),
+        temperature=_f(weather[..., 0]),
+        wind_speed=_f(weather[..., 1]),
+        wind_direction=_f(np.deg2rad(weather[..., 2])),
+        approach=_f(approach),
+    )
+    _flag_properties([props_by_id[k] for k in ids], log)
+    report = log.report(
+        records_loaded=int(mask.sum()),
+        heliostats_loaded=h,
+        records_without_time=n_no_time,
+        records_with_weather=n_weather,
+        centroid_fallbacks=n_fallback,
+    )
+    return Fleet(
+        geometry=geometry,
+        counts=_f(counts),
+        context=context,
+        focal_spot=_f(spot_enu),
+        target_index=jax.device_put(tidx),
+        record_id=jax.device_put(rid),
+        mask=jax.device_put(mask),
+        targets=targets,
+        origin_lla=_f(origin_lla),
+        ids=ids,
+        target_names=planar,
+        report=report,
+    )
+
+
+def records_to_fleet(
+    tower: TowerFile,
+    properties: Sequence[HeliostatProperties],
+    records: Sequence[CalibrationRecord],
+    *,
+    centroid: Centroid = "utis",
+    origin=None,
+    strict: bool = False,
+    source: str = "<records>",
+) -> Fleet:
+    """Assemble raw records into a :class:`Fleet` (the step shared by
+    :func:`load_paint_directory`, :func:`load_weather_csv_fleet` and the simulator).
+
+    Every property and record is validated as the readers would (so in-memory
+    records from a simulator get the same checks); a bad one is skipped and
+    reported (or raised with ``strict``). See the module docstring for ordering,
+    padding and flags.
+
+    Args:
+        tower: the tower file (targets, ENU origin).
+        properties: one per heliostat.
+        records: calibration records of any of those heliostats.
+        centroid: ``"utis"`` (UTIS, HeliOS where UTIS is missing) or ``"helios"``.
+        origin: WGS84 ``[lat_deg, lon_deg, alt_m]`` overriding the tower file's
+            plant coordinates as ENU origin.
+        strict: raise the first :class:`DataError` instead of skipping.
+        source: name of the input in the report.
+
+    Returns:
+        The fleet, unpadded (``M`` = most records of a heliostat, at least 1).
+
+    Raises:
+        DataError: (``strict``) the first bad input; always when no heliostat is left.
+        ValueError: for an unknown ``centroid`` or a malformed ``origin``.
+    """
+    _check_centroid(centroid)
+    log = _Log(source, strict, centroid)
+    return _assemble(tower, properties, records, centroid=centroid, origin=origin, log=log, validate=True)
+
+
+# ======================================================================================
+# Loaders
+# ======================================================================================
+
+
+def load_paint_directory(
+    path: str | os.PathLike | None = None,
+    *,
+    centroid: Centroid = "utis",
+    heliostats: Iterable[str] | None = None,
+    strict: bool = False,
+    origin=None,
+) -> Fleet:
+    """Load a PAINT download directory into a :class:`Fleet`.
+
+    Reads ``*-tower-measurements.json`` (exactly one; required),
+    ``calibration-timestamps.json`` (optional: without it every time is NaN),
+    ``calibration-with-weather.csv`` (optional: weather joined by
+    ``(heliostat_id, sample_id == record id)``; its other rows are not records
+    here) and every top-level heliostat folder ``<H>/Properties``,
+    ``<H>/Calibration`` (other folders, such as ``flux-samples``, are ignored).
+
+    One bad record, properties file or heliostat never spoils the others: it is
+    skipped and listed in ``fleet.report`` with file, field and reason; the
+    records of a heliostat without (valid) properties are skipped with it.
+
+    Args:
+        path: the directory; default: :func:`default_data_dir` (embedded data).
+        centroid: ``"utis"`` (default; HeliOS where UTIS is missing/null) or ``"helios"``.
+        heliostats: ids to load (default: all); others are not read.
+        strict: raise the first :class:`DataError` instead of skipping.
+        origin: WGS84 ENU origin overriding the tower file's plant coordinates.
+
+    Raises:
+        DataError: a missing/invalid tower file or no loadable heliostat (always);
+            any bad input when ``strict``.
+    """
+    _check_centroid(centroid)
+    root = default_data_dir() if path is None else Path(path)
+    if not root.is_dir():
+        raise DataError(root, None, "not a directory")
+    log = _Log(str(root), strict, centroid)
+    towers = sorted(root.glob("*" + TOWER_FILE_SUFFIX))
+    if len(towers) != 1:
+        raise DataError(root, None, f"expected one *{TOWER_FILE_SUFFIX}, found {len(towers)}")
+    log.files_seen += 1
+    tower = read_tower(towers[0])
+
+    timestamps: Mapping = {}
+    ts_path = root / TIMESTAMPS_FILE
+    if ts_path.is_file():
+        log.files_seen += 1
+        try:
+            timestamps = read_timestamps(ts_path, on_error=log.skip_entry)
+        except DataError as e:
+            log.skip(e)
+    else:
+        log.notes.append(f"no {TIMESTAMPS_FILE}: every record's time is unknown")
+
+    weather: dict[tuple[str, int], dict[str, float]] = {}
+    csv_path = root / WEATHER_CSV_FILE
+    if csv_path.is_file():
+        log.files_seen += 1
+        try:
+            rows = read_weather_csv(csv_path, on_error=log.skip_entry)
+        except DataError as e:
+            log.skip(e)
+            rows = ()
+        weather = {(r.heliostat_id, r.record_id): r.weather for r in rows}
+        _flag_repeated_weather(rows, str(csv_path), log)
+
+    dirs = sorted(d for d in root.iterdir() if d.is_dir() and ((d / "Properties").is_dir() or
+                                                                  (d / "Calibration").is_dir()))
+    if heliostats is not None:
+        wanted = set(heliostats)
+        for hid in sorted(wanted - {d.name for d in dirs}):
+            log.skip(DataError(root / hid, None, f"heliostat {hid!r} requested but not in the directory"),
+                     heliostats=1)
+        dirs = [d for d in dirs if d.name in wanted]
+
+    properties: list[HeliostatProperties] = []
+    records: list[CalibrationRecord] = []
+    for d in dirs:
+        hid = d.name
+        prop_files = sorted((d / "Properties").glob("*" + PROPERTIES_SUFFIX))
+        cal_files = sorted((d / "Calibration").glob("*" + CALIBRATION_SUFFIX))
+        log.files_seen += len(prop_files) + len(cal_files)
+        expected = heliostat_properties_path(root, hid)
+        try:
+            if not prop_files:
+                if not cal_files:
+                    continue
+                raise DataError(expected, None, f"missing: {len(cal_files)} calibration record(s) of heliostat "
+                                                f"{hid!r} have no properties file")
+            if len(prop_files) > 1 or prop_files[0].name != expected.name:
+                raise DataError(d / "Properties", None,
+                                f"expected exactly {expected.name}, found {[p.name for p in prop_files]}")
+            props = read_heliostat_properties(prop_files[0], heliostat_id=hid)
+        except DataError as e:
+            log.skip(e, records=len(cal_files), heliostats=1)
+            if prop_files and cal_files:
+                log.skipped.append(ReportEntry(str(d / "Calibration"), None,
+                                               f"{len(cal_files)} calibration record(s) skipped with heliostat "
+                                               f"{hid!r} (bad properties file)"))
+            continue
+        properties.append(props)
+        for cf in cal_files:
+            try:
+                records.append(read_calibration_record(cf, heliostat_id=hid, timestamps=timestamps,
+                                                       weather=weather, tower=tower, properties=props))
+            except DataError as e:
+                log.skip_record(e)
+    return _assemble(tower, properties, records, centroid=centroid, origin=origin, log=log, validate=False)
+
+
+def load_weather_csv_fleet(
+    csv_path: str | os.PathLike,
+    tower_path: str | os.PathLike,
+    properties_dir: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
+    *,
+    centroid: Centroid = "utis",
+    heliostats: Iterable[str] | None = None,
+    strict: bool = False,
+    origin=None,
+) -> Fleet:
+    """Load the CSV form (``calibration-with-weather.csv``): each row is a record
+    (HeliOS centroid, time and weather from the row).
+
+    Heliostat properties are looked up as ``**/Properties/<H>-heliostat-properties.json``
+    anywhere under ``properties_dir`` (one directory or several; default: the CSV's
+    directory), the shallowest first; heliostats without one are skipped and
+    reported (one entry per heliostat). Only the properties of heliostats present
+    in the CSV are read.
+
+    Args:
+        csv_path: the CSV file.
+        tower_path: the tower file (targets and ENU origin).
+        properties_dir: where to look for properties files.
+        centroid: as :func:`load_paint_directory` (CSV rows carry HeliOS only, so
+            ``"utis"`` falls back to HeliOS for every row).
+        heliostats: ids to load (default: all in the CSV).
+        strict: raise the first :class:`DataError` instead of skipping.
+        origin: WGS84 ENU origin overriding the tower file's.
+    """
+    _check_centroid(centroid)
+    log = _Log(str(csv_path), strict, centroid)
+    tower = read_tower(tower_path)
+    log.files_seen += 2
+    rows = read_weather_csv(csv_path, on_error=log.skip_record)
+    if heliostats is not None:
+        wanted = set(heliostats)
+        for hid in sorted(wanted - {r.heliostat_id for r in rows}):
+            log.skip(DataError(csv_path, "heliostat_id", f"heliostat {hid!r} requested but not in the CSV"),
+                     heliostats=1)
+        rows = tuple(r for r in rows if r.heliostat_id in wanted)
+    _flag_repeated_weather(rows, str(csv_path), log)
+    if properties_dir is None:
+        dirs = [Path(csv_path).parent]
+    elif isinstance(properties_dir, (str, os.PathLike)):
+        dirs = [Path(properties_dir)]
+    else:
+        dirs = [Path(p) for p in properties_dir]
+    needed = {r.heliostat_id for r in rows}
+    found: dict[str, list[Path]] = collections.defaultdict(list)
+    for d in dirs:
+        hits = sorted(d.glob("**/Properties/*" + PROPERTIES_SUFFIX), key=lambda p: (len(p.parts), str(p)))
+        for p in hits:
+            hid = p.name[: -len(PROPERTIES_SUFFIX)]
+            if hid in needed:
+                found[hid].append(p)
+    properties = []
+    for hid in sorted(found):
+        first, *others = found[hid]
+        for o in others:
+            log.flag(str(o), None, f"another properties file of {hid!r}; using {first}")
+        log.files_seen += 1
+        try:
+            properties.append(read_heliostat_properties(first, heliostat_id=hid))
+        except DataError as e:
+            log.skip(e, heliostats=1)
+            bad = [r for r in rows if r.heliostat_id == hid]
+            log.skipped.append(ReportEntry(str(csv_path), "heliostat_id",
+                                           f"{len(bad)} row(s) of heliostat {hid!r} skipped (bad properties file)"))
+            log.records_skipped += len(bad)
+            rows = tuple(r for r in rows if r.heliostat_id != hid)
+    return _assemble(tower, properties, rows, centroid=centroid, origin=origin, log=log, validate=False)

@@ -1,0 +1,202 @@
+"""Heliostat properties files (``<H>/Properties/<H>-heliostat-properties.json``)."""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Any
+from .._errors import DataError
+from ._common import ACTUATOR_TYPES, ACTUATOR_KEYS, ACTUATOR_REQUIRED, Facet, HeliostatProperties, PROPERTIES_SUFFIX, Vec3, _Node, _check, _join, _latlon_ok, _load_json, _roundtrip, _type_name, _write_json
+
+
+# ======================================================================================
+# Heliostat properties
+# ======================================================================================
+
+
+def _actuator_from_json(file: str, node: _Node) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key in ACTUATOR_KEYS:
+        if key not in ACTUATOR_REQUIRED and not node.has(key):
+            continue
+        if key == "type_axis":
+            out[key] = node.string(key)
+            _check(out[key] in ACTUATOR_TYPES, file, node.field(key),
+                   f"unsupported actuator type {out[key]!r} (heliojax models {', '.join(ACTUATOR_TYPES)})")
+        elif key in ("min_increment", "max_increment", "clockwise_axis_movement"):
+            out[key] = node.integer(key)
+        else:
+            out[key] = node.number(key)
+    f = node.field
+    _check(out["clockwise_axis_movement"] in (0, 1), file, f("clockwise_axis_movement"), "must be 0 or 1")
+    _check(out["min_increment"] < out["max_increment"], file, f("max_increment"),
+           f"max_increment {out['max_increment']} is not above min_increment {out['min_increment']}")
+    for key in ("increment", "offset", "pivot_radius"):
+        _check(out[key] > 0, file, f(key), f"must be positive, got {out[key]!r}")
+    _check(out["initial_stroke_length"] >= 0, file, f("initial_stroke_length"),
+           f"must be non-negative, got {out['initial_stroke_length']!r}")
+    return out
+
+
+def _facets_from_json(file: str, root: _Node) -> tuple[tuple[Facet, ...], str | None]:
+    facets: tuple[Facet, ...] = ()
+    canting_type = None
+    if root.has("facet_properties"):
+        fp = root.node("facet_properties")
+        if fp.has("canting_type"):
+            canting_type = fp.string("canting_type")
+        raw = fp.get("facets")
+        if not isinstance(raw, list):
+            raise DataError(file, fp.field("facets"), f"expected an array, got {_type_name(raw)}")
+        fl = []
+        for i, fd in enumerate(raw):
+            fn = _Node(file, fd, _join(fp.field("facets"), i))
+            fl.append(Facet(fn.vec3("translation_vector"), fn.vec3("canting_e"), fn.vec3("canting_n")))
+        facets = tuple(fl)
+        if fp.has("number_of_facets"):
+            n = fp.integer("number_of_facets")
+            _check(n == len(facets), file, fp.field("number_of_facets"),
+                   f"says {n} but {len(facets)} facets are listed")
+    return facets, canting_type
+
+
+def read_facets(path: str | os.PathLike) -> tuple[Facet, ...]:
+    """Only ``facet_properties.facets`` of a heliostat-properties JSON (facet
+    translations and canting vectors, m, heliostat surface frame), validated.
+
+    Raises:
+        DataError: naming the file and field; also when there are no facets.
+    """
+    file = str(path)
+    facets, _ = _facets_from_json(file, _Node(file, _load_json(path)))
+    if not facets:
+        raise DataError(file, "facet_properties.facets", "missing or empty")
+    return facets
+
+
+def _properties_from_json(file: str, data: Any, heliostat_id: str) -> HeliostatProperties:
+    root = _Node(file, data)
+    pos = root.vec3("heliostat_position")
+    _latlon_ok(file, "heliostat_position", pos)
+    width = float(root.number("width"))
+    height = float(root.number("height"))
+    _check(width > 0, file, "width", f"must be positive, got {width!r}")
+    _check(height > 0, file, "height", f"must be positive, got {height!r}")
+    orient = root.vec3("initial_orientation")
+    norm = math.sqrt(sum(x * x for x in orient))
+    _check(norm > 0, file, "initial_orientation", "zero vector")
+    south = (orient[0] / norm, orient[1] / norm, orient[2] / norm)
+    _check(abs(south[0]) < 1e-9 and abs(south[1] + 1.0) < 1e-9 and abs(south[2]) < 1e-9, file,
+           "initial_orientation",
+           f"{list(orient)} is not south [0, -1, 0], the reference pose heliojax's kinematics assume")
+    kin = root.node("kinematics_properties")
+    acts = kin.get("actuators")
+    if not isinstance(acts, list) or len(acts) != 2:
+        what = f"an array of {len(acts)}" if isinstance(acts, list) else _type_name(acts)
+        raise DataError(file, kin.field("actuators"), f"expected an array of 2 actuators, got {what}")
+    actuators = tuple(
+        _actuator_from_json(file, _Node(file, a, _join(kin.field("actuators"), i))) for i, a in enumerate(acts)
+    )
+
+    def triple(fmt: str) -> Vec3:
+        return tuple(float(kin.number(fmt.format(c))) for c in "enu")  # type: ignore[return-value]
+
+    jt1 = triple("joint_translation_{}_1")
+    jt2 = triple("joint_translation_{}_2")
+    conc = triple("concentrator_translation_{}")
+    facets, canting_type = _facets_from_json(file, root)
+    renovation = None
+    if root.has("renovation") and root.get("renovation") is not None:
+        renovation = root.string("renovation")
+    return HeliostatProperties(
+        heliostat_id=heliostat_id,
+        position_lla=pos,
+        width=width,
+        height=height,
+        initial_orientation=orient,
+        actuators=actuators,  # type: ignore[arg-type]
+        joint_translation_1=jt1,
+        joint_translation_2=jt2,
+        concentrator_translation=conc,
+        facets=facets,
+        canting_type=canting_type,
+        renovation=renovation,
+        source=file,
+    )
+
+
+def _properties_to_json(p: HeliostatProperties) -> dict:
+    kin: dict[str, Any] = {"actuators": [{k: a[k] for k in ACTUATOR_KEYS if k in a} for a in p.actuators]}
+    for name, vec in (("joint_translation_{}_1", p.joint_translation_1),
+                      ("joint_translation_{}_2", p.joint_translation_2),
+                      ("concentrator_translation_{}", p.concentrator_translation)):
+        for c, x in zip("enu", vec):
+            kin[name.format(c)] = x
+    out: dict[str, Any] = {
+        "heliostat_position": list(p.position_lla),
+        "height": p.height,
+        "width": p.width,
+        "initial_orientation": list(p.initial_orientation),
+        "kinematics_properties": kin,
+    }
+    if p.facets or p.canting_type is not None:
+        fp: dict[str, Any] = {}
+        if p.canting_type is not None:
+            fp["canting_type"] = p.canting_type
+        fp["number_of_facets"] = len(p.facets)
+        fp["facets"] = [
+            {"translation_vector": list(f.translation_vector), "canting_e": list(f.canting_e),
+             "canting_n": list(f.canting_n)}
+            for f in p.facets
+        ]
+        out["facet_properties"] = fp
+    if p.renovation is not None:
+        out["renovation"] = p.renovation
+    return out
+
+
+def _heliostat_id_from_properties_name(path: Path) -> str:
+    name = path.name
+    if not name.endswith(PROPERTIES_SUFFIX) or len(name) == len(PROPERTIES_SUFFIX):
+        raise DataError(path, None, f"file name is not '<H>{PROPERTIES_SUFFIX}'")
+    return name[: -len(PROPERTIES_SUFFIX)]
+
+
+def read_heliostat_properties(path: str | os.PathLike, *, heliostat_id: str | None = None) -> HeliostatProperties:
+    """Read and validate a ``<H>-heliostat-properties.json``.
+
+    Args:
+        path: the file.
+        heliostat_id: overrides the id taken from the file name.
+
+    Raises:
+        DataError: naming the file and the dotted field (e.g.
+            ``kinematics_properties.actuators[0].increment``). The actuators must be
+            ``linear`` with positive ``increment``, ``offset``, ``pivot_radius``,
+            ``min_increment < max_increment`` and ``clockwise_axis_movement`` in {0, 1};
+            ``initial_orientation`` must be south.
+    """
+    path = Path(path)
+    hid = heliostat_id if heliostat_id is not None else _heliostat_id_from_properties_name(path)
+    return _properties_from_json(str(path), _load_json(path), hid)
+
+
+def write_heliostat_properties(path: str | os.PathLike, properties: HeliostatProperties) -> None:
+    """Write a heliostat-properties file (atomically)."""
+    _write_json(path, _properties_to_json(properties))
+
+
+def validate_properties(properties: HeliostatProperties) -> HeliostatProperties:
+    """Run the reader's checks on an in-memory :class:`HeliostatProperties`
+    (serialise and re-parse); returns the re-parsed (equal) value.
+
+    Raises:
+        DataError: as :func:`read_heliostat_properties`, with ``properties.source``
+            as the file.
+    """
+    try:
+        data = _roundtrip(_properties_to_json(properties))
+    except (TypeError, ValueError) as e:
+        raise DataError(properties.source, None, f"not serialisable: {e}") from None
+    return _properties_from_json(properties.source, data, properties.heliostat_id)

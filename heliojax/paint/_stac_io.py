@@ -1,0 +1,368 @@
+"""The plumbing of :func:`heliojax.paint.fetch_catalog`: reading bounded and
+retried, checksums, the resume journal, and the safety checks on catalogue hrefs."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import re
+import threading
+import time
+import urllib.error
+import urllib.parse
+import urllib.request
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
+from typing import IO, Any
+import pystac
+from .._errors import DataError
+
+
+
+COLLECTIONS: tuple[str, ...] = ("properties", "calibration", "deflectometry")
+"""Collections of a heliostat catalogue that :func:`fetch_catalog` can download."""
+
+CALIBRATION_ASSETS: tuple[str, ...] = (
+    "calibration_properties",
+    "flux_image",
+    "flux_centered_image",
+    "cropped_image",
+    "raw_image",
+)
+"""Asset keys of PAINT's calibration items."""
+
+JOURNAL_NAME = ".heliojax-fetch.jsonl"
+
+_FOLDER = {"properties": "Properties", "calibration": "Calibration", "deflectometry": "Deflectometry"}
+_COLLECTION_SUFFIX = {
+    "properties": "-heliostat-properties-collection",
+    "calibration": "-calibration-collection",
+    "deflectometry": "-deflectometry-collection",
+}
+_HELIOSTAT_SUFFIX = "-heliostat-catalog"
+_TOWER_SUFFIX = "-tower-measurements"
+_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+-]{0,254}$")
+_HELIOSTAT_RE = re.compile(r"^[A-Za-z0-9_]{1,64}$")
+_HREF_HELIOSTAT_RE = re.compile(r"([A-Za-z0-9_]+)-heliostat-catalog")
+_CHUNK = 1 << 20
+_BACKOFF_S = 0.5  # first retry delay; doubles per retry
+
+# Multihash codes (https://github.com/multiformats/multicodec) -> hashlib constructor.
+_MULTIHASH: dict[int, Callable[[], Any]] = {
+    0x11: hashlib.sha1,
+    0x12: hashlib.sha256,
+    0x13: hashlib.sha512,
+    0x14: hashlib.sha3_512,
+    0x16: hashlib.sha3_256,
+    0xD5: hashlib.md5,
+    0xB220: lambda: hashlib.blake2b(digest_size=32),
+    0xB240: hashlib.blake2b,
+}
+
+Transport = Callable[[str, float], IO[bytes]]
+"""``open(href, timeout_s) -> binary stream`` (a context manager). The default opens
+``http(s)`` URLs with :mod:`urllib` and local paths with :func:`open`."""
+
+
+# --------------------------------------------------------------------------- results
+@dataclasses.dataclass(frozen=True)
+class FetchReport:
+    """What :func:`fetch_catalog` did.
+
+    Attributes:
+        out_dir: the output folder.
+        heliostats: ids of the heliostats visited, sorted.
+        missing: requested heliostat ids that the catalogue does not have.
+        downloaded: files written in this run.
+        skipped: files already complete (resume), not downloaded again.
+        failed: ``(href, reason)`` of every asset that could not be fetched or
+            failed verification; its destination file was not written.
+        warnings: notes (unsupported checksum algorithm, heliostat without a
+            wanted collection, ...).
+        bytes_downloaded: bytes written in this run.
+    """
+
+    out_dir: Path
+    heliostats: tuple[str, ...]
+    missing: tuple[str, ...]
+    downloaded: tuple[Path, ...]
+    skipped: tuple[Path, ...]
+    failed: tuple[tuple[str, str], ...]
+    warnings: tuple[str, ...]
+    bytes_downloaded: int
+
+    @property
+    def ok(self) -> bool:
+        """True when nothing failed and every requested heliostat was found."""
+        return not self.failed and not self.missing
+
+
+@dataclasses.dataclass(frozen=True)
+class _Task:
+    src: str
+    dest: Path
+    rel: str
+    size: int | None
+    checksum: str | None  # multihash hex
+    where: str  # STAC file that named the asset, for messages
+
+
+class _Failure(Exception):
+    pass
+
+
+# --------------------------------------------------------------------------- hrefs
+def _is_url(href: str) -> bool:
+    return bool(re.match(r"^[A-Za-z][A-Za-z0-9+.-]*://", href))
+
+
+def _scheme(href: str) -> str:
+    return urllib.parse.urlsplit(href).scheme.lower() if _is_url(href) else ""
+
+
+def _local_path(href: str) -> str:
+    if _scheme(href) == "file":
+        return urllib.parse.unquote(urllib.parse.urlsplit(href).path)
+    return href
+
+
+def _resolve(raw: str, owner: str) -> str:
+    """Absolute href of ``raw`` as written in the STAC file whose absolute href is ``owner``."""
+    if _is_url(raw):
+        return raw
+    if _scheme(owner) in ("http", "https"):
+        return urllib.parse.urljoin(owner, raw)
+    if os.path.isabs(raw):
+        return os.path.normpath(raw)
+    return os.path.normpath(os.path.join(os.path.dirname(_local_path(owner)), raw))
+
+
+@dataclasses.dataclass(frozen=True)
+class _Scope:
+    """Where hrefs of a catalogue may point (see the module docstring)."""
+
+    remote: bool
+    base: str  # URL prefix ending in "/" (remote) or real path of the root's folder (local)
+
+    @classmethod
+    def of(cls, root_href: str) -> _Scope:
+        if _scheme(root_href) in ("http", "https"):
+            parts = urllib.parse.urlsplit(root_href)
+            path = parts.path.rsplit("/", 1)[0] + "/"
+            return cls(True, urllib.parse.urlunsplit((parts.scheme, parts.netloc, path, "", "")))
+        return cls(False, os.path.realpath(os.path.dirname(_local_path(root_href))))
+
+    def _inside_local(self, path: str) -> bool:
+        real = os.path.realpath(path)
+        return os.path.commonpath([real, self.base]) == self.base
+
+    def resolve(self, raw: str, owner: str, where: str, field: str) -> str:
+        """Resolve ``raw`` against ``owner`` and check it; raise :class:`DataError` if unsafe."""
+        if not isinstance(raw, str) or not raw:
+            raise DataError(where, field, "empty or non-string href")
+        if "\x00" in raw:
+            raise DataError(where, field, f"href {raw!r} contains a NUL character")
+        href = _resolve(raw, owner)
+        scheme = _scheme(href)
+        relative = not _is_url(raw) and not os.path.isabs(raw)
+        if scheme in ("http", "https"):
+            if relative and self.remote and not href.startswith(self.base):
+                raise DataError(where, field, f"relative href {raw!r} leaves the catalogue folder {self.base}")
+            return href
+        if scheme not in ("", "file"):
+            raise DataError(where, field, f"href {raw!r}: scheme {scheme!r} is not supported (http, https, file)")
+        if self.remote:
+            raise DataError(where, field, f"href {raw!r}: a remote catalogue may not point at local files")
+        if not self._inside_local(_local_path(href)):
+            kind = "relative href" if relative else "absolute path"
+            raise DataError(
+                where, field, f"{kind} {raw!r} points outside the catalogue folder {self.base} (path traversal)"
+            )
+        return href
+
+
+# --------------------------------------------------------------------------- I/O
+def _default_open(href: str, timeout_s: float) -> IO[bytes]:
+    if _scheme(href) in ("http", "https"):
+        req = urllib.request.Request(href, headers={"User-Agent": "heliojax-fetch"})
+        return urllib.request.urlopen(req, timeout=timeout_s)  # noqa: S310 - scheme checked
+    return open(_local_path(href), "rb")
+
+
+def _transient(exc: BaseException) -> bool:
+    if isinstance(exc, urllib.error.HTTPError):
+        return exc.code >= 500 or exc.code in (408, 429)
+    return isinstance(exc, (urllib.error.URLError, TimeoutError, ConnectionError))
+
+
+class _Reader:
+    """Reads STAC JSON through the transport, with retries; thread-safe."""
+
+    def __init__(self, transport: Transport, timeout_s: float, retries: int):
+        self.transport, self.timeout_s, self.retries = transport, timeout_s, retries
+
+    def open_retrying(self, href: str):
+        delay = _BACKOFF_S
+        for attempt in range(self.retries + 1):
+            try:
+                return self.transport(href, self.timeout_s)
+            except BaseException as e:  # noqa: BLE001 - re-raised unless transient
+                if attempt == self.retries or not _transient(e):
+                    raise
+            time.sleep(delay)
+            delay *= 2
+        raise AssertionError("unreachable")
+
+    def json(self, href: str) -> dict:
+        try:
+            with self.open_retrying(href) as f:
+                data = f.read()
+        except (OSError, urllib.error.URLError) as e:
+            raise DataError(href, None, f"cannot read STAC file: {e}") from e
+        try:
+            obj = json.loads(data.decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise DataError(href, None, f"not a JSON file: {e}") from e
+        if not isinstance(obj, dict):
+            raise DataError(href, None, "STAC file is not a JSON object")
+        return obj
+
+    def stac_or_error(self, href: str) -> pystac.STACObject | DataError:
+        """Like :meth:`stac`, but returns the :class:`DataError` of an unreadable file."""
+        try:
+            return self.stac(href)
+        except DataError as e:
+            return e
+
+    def stac(self, href: str) -> pystac.STACObject:
+        d = self.json(href)
+        try:
+            return pystac.read_dict(d, href=href)
+        except Exception as e:  # pystac raises several types for malformed STAC
+            raise DataError(href, None, f"not a valid STAC object: {e}") from e
+
+
+# --------------------------------------------------------------------------- checksums
+def _parse_multihash(hexstr: str) -> tuple[int, bytes]:
+    raw = bytes.fromhex(hexstr)
+
+    def varint(pos: int) -> tuple[int, int]:
+        value = shift = 0
+        while True:
+            if pos >= len(raw):
+                raise ValueError("truncated varint")
+            b = raw[pos]
+            value |= (b & 0x7F) << shift
+            pos += 1
+            if not b & 0x80:
+                return value, pos
+            shift += 7
+
+    code, pos = varint(0)
+    length, pos = varint(pos)
+    digest = raw[pos:]
+    if len(digest) != length:
+        raise ValueError(f"digest length {len(digest)} != {length}")
+    return code, digest
+
+
+def _hash_file(path: Path, algos: Iterable[Callable[[], Any]]) -> list[Any]:
+    hs = [a() for a in algos]
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(_CHUNK), b""):
+            for h in hs:
+                h.update(chunk)
+    return hs
+
+
+class _Checker:
+    """Expected size/checksum of one asset."""
+
+    def __init__(self, task: _Task):
+        self.task = task
+        self.algo = None
+        self.digest = None
+        if task.checksum:
+            code, digest = _parse_multihash(task.checksum)  # validated at plan time
+            self.algo, self.digest = _MULTIHASH[code], digest
+
+    @property
+    def has_reference(self) -> bool:
+        return self.task.size is not None or self.digest is not None
+
+    def check(self, size: int, hasher) -> str | None:
+        if self.task.size is not None and size != self.task.size:
+            return f"size {size} bytes, the catalogue says {self.task.size}"
+        if self.digest is not None and hasher.digest() != self.digest:
+            return f"checksum mismatch (got {hasher.hexdigest()}, the catalogue says {self.digest.hex()})"
+        return None
+
+
+def _json_ok(path: Path, name: str | None = None) -> str | None:
+    """Problem with ``path`` if ``name`` (default: its own name) ends in ``.json`` and it does not parse."""
+    if not (name or path.name).lower().endswith(".json"):
+        return None
+    try:
+        with open(path, encoding="utf-8") as f:
+            json.load(f)
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        return f"downloaded JSON does not parse: {e}"
+    return None
+
+
+# --------------------------------------------------------------------------- journal
+class _Journal:
+    def __init__(self, out: Path):
+        self.path = out / JOURNAL_NAME
+        self.lock = threading.Lock()
+        self.records: dict[str, dict] = {}
+        if self.path.exists():
+            with open(self.path, encoding="utf-8") as f:
+                for line in f:
+                    try:
+                        rec = json.loads(line)
+                    except json.JSONDecodeError:
+                        continue  # torn last line of an interrupted run
+                    if isinstance(rec, dict) and isinstance(rec.get("path"), str):
+                        self.records[rec["path"]] = rec
+
+    def add(self, rel: str, href: str, size: int, sha256: str) -> None:
+        rec = {"path": rel, "href": href, "size": size, "sha256": sha256}
+        line = json.dumps(rec, sort_keys=True) + "\n"
+        with self.lock:
+            self.records[rel] = rec
+            with open(self.path, "a", encoding="utf-8") as f:
+                f.write(line)
+                f.flush()
+
+
+# --------------------------------------------------------------------------- destinations
+def _dest_name(href: str, where: str, field: str) -> str:
+    path = urllib.parse.urlsplit(href).path if _is_url(href) else href
+    seg = path.replace("\\", "/").rsplit("/", 1)[-1]
+    name = urllib.parse.unquote(seg)
+    if not _NAME_RE.match(name) or "/" in name or "\\" in name:
+        raise DataError(where, field, f"href {href!r} gives the unsafe or empty file name {name!r}")
+    return name
+
+
+def _safe_dest(out: Path, parts: Sequence[str], where: str, field: str) -> Path:
+    cur = out
+    for i, part in enumerate(parts):
+        cur = cur / part
+        if cur.is_symlink():
+            raise DataError(where, field, f"destination {cur} is a symbolic link; refusing to write through it")
+        last = i == len(parts) - 1
+        if cur.exists() and not (cur.is_file() if last else cur.is_dir()):
+            raise DataError(where, field, f"destination {cur} exists and is not a regular {'file' if last else 'folder'}")
+    return cur
+
+
+# --------------------------------------------------------------------------- the walk
+def _heliostat_id(catalog_id: str, where: str) -> str:
+    hid = catalog_id.split("-")[0]
+    if not _HELIOSTAT_RE.match(hid):
+        raise DataError(where, "id", f"heliostat catalogue id {catalog_id!r} gives an unsafe folder name {hid!r}")
+    return hid

@@ -1,0 +1,89 @@
+"""The tower file (``<PLANT>-tower-measurements.json``): plant reference point, targets, receiver."""
+
+from __future__ import annotations
+
+import math
+import os
+from typing import Any
+from .._errors import DataError
+from ._common import CORNERS, TargetEntry, TowerFile, _Node, _latlon_ok, _load_json, _number, _type_name, _vec3, _write_json
+
+
+# ======================================================================================
+# Tower file
+# ======================================================================================
+
+
+def _tower_from_json(file: str, data: Any) -> TowerFile:
+    root = _Node(file, data)
+    plant = root.node("power_plant_properties")
+    plant_id = plant.get("ID") if plant.has("ID") else ""
+    if not isinstance(plant_id, (str, int)) or isinstance(plant_id, bool):
+        raise DataError(file, plant.field("ID"), f"expected a string, got {_type_name(plant_id)}")
+    origin = plant.vec3("coordinates")
+    _latlon_ok(file, plant.field("coordinates"), origin)
+    targets: dict[str, TargetEntry] = {}
+    for name, value in root.data.items():
+        if name == "power_plant_properties":
+            continue
+        entry = _Node(file, value, name)
+        ttype = entry.string("type")
+        normal = entry.vec3("normal_vector") if entry.has("normal_vector") else None
+        coords = entry.node("coordinates")
+        points = {str(k): _vec3(file, coords.field(k), v) for k, v in coords.data.items()}
+        for k, p in points.items():
+            _latlon_ok(file, coords.field(k), p)
+        extra = {}
+        for k, v in entry.data.items():
+            if k in ("type", "normal_vector", "coordinates"):
+                continue
+            if isinstance(v, (int, float)) and not isinstance(v, bool):
+                v = _number(file, entry.field(k), v)
+            elif not (v is None or isinstance(v, (str, bool))):
+                raise DataError(file, entry.field(k), f"expected a scalar, got {_type_name(v)}")
+            extra[k] = v
+        if ttype == "planar":
+            for c in CORNERS:
+                if c not in points:
+                    raise DataError(file, coords.field(c), "missing (a planar target needs four corners)")
+            if normal is not None and math.hypot(*normal) == 0.0:
+                raise DataError(file, entry.field("normal_vector"), "zero vector")
+        targets[name] = TargetEntry(name=name, type=ttype, normal=normal, points=points, extra=extra)
+    tower = TowerFile(plant_id=str(plant_id), origin_lla=origin, targets=targets, source=file)
+    if not tower.planar_target_names:
+        raise DataError(file, None, "no planar calibration target")
+    return tower
+
+
+def _tower_to_json(tower: TowerFile) -> dict:
+    out: dict[str, Any] = {
+        "power_plant_properties": {"ID": tower.plant_id, "coordinates": list(tower.origin_lla)}
+    }
+    for name, t in tower.targets.items():
+        entry: dict[str, Any] = {"type": t.type}
+        if t.normal is not None:
+            entry["normal_vector"] = list(t.normal)
+        entry.update(t.extra)
+        entry["coordinates"] = {k: list(p) for k, p in t.points.items()}
+        out[name] = entry
+    return out
+
+
+def read_tower(path: str | os.PathLike) -> TowerFile:
+    """Read and validate a ``<PLANT>-tower-measurements.json``.
+
+    Every entry besides ``power_plant_properties`` is kept (the receiver too);
+    ``planar`` entries must carry the four corners ``upper_left``,
+    ``upper_right``, ``lower_left``, ``lower_right`` and are the calibration
+    targets (:attr:`TowerFile.planar_target_names`).
+
+    Raises:
+        DataError: naming the file and the field.
+    """
+    file = str(path)
+    return _tower_from_json(file, _load_json(path))
+
+
+def write_tower(path: str | os.PathLike, tower: TowerFile) -> None:
+    """Write ``tower`` as a PAINT tower file (atomically)."""
+    _write_json(path, _tower_to_json(tower))
