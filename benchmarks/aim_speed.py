@@ -51,17 +51,22 @@ def main() -> None:
         jax.block_until_ready(r.counts)
         warm.append(time.perf_counter() - t0)
     ok = np.asarray(r.ok)
-    print(json.dumps({
-        "heliostats": args.heliostats,
-        "instants": args.instants,
-        "first_call_s": first,
-        "warm_s": min(warm),
-        "warm_all_s": warm,
-        "ok_fraction": float(ok.mean()),
-        "max_model_miss_ok_mrad": float(np.asarray(r.model_miss_mrad)[ok].max()) if ok.any() else None,
-        "backend": jax.default_backend(),
-        "machine": platform.processor() or platform.machine(),
-    }, indent=2))
+    print(
+        json.dumps(
+            {
+                "heliostats": args.heliostats,
+                "instants": args.instants,
+                "first_call_s": first,
+                "warm_s": min(warm),
+                "warm_all_s": warm,
+                "ok_fraction": float(ok.mean()),
+                "max_model_miss_ok_mrad": float(np.asarray(r.model_miss_mrad)[ok].max()) if ok.any() else None,
+                "backend": jax.default_backend(),
+                "machine": platform.processor() or platform.machine(),
+            },
+            indent=2,
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -408,8 +408,22 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         path = args.data or os.path.join(tmp, "fleet.npz")
         if not os.path.exists(path):
-            cmd = [sys.executable, os.path.abspath(__file__), "--simulate-to", path, "--heliostats", str(n),
-                   "--records", str(m), "--noise", str(args.noise), "--seed", str(args.seed), "--sim-chunk", str(chunk)]
+            cmd = [
+                sys.executable,
+                os.path.abspath(__file__),
+                "--simulate-to",
+                path,
+                "--heliostats",
+                str(n),
+                "--records",
+                str(m),
+                "--noise",
+                str(args.noise),
+                "--seed",
+                str(args.seed),
+                "--sim-chunk",
+                str(chunk),
+            ]
             subprocess.run(cmd, check=True, stdout=sys.stderr)
         geometry, true, context, counts, focal, hit = load_fleet(path)
     if counts.shape[:2] != (n, m):
@@ -443,8 +457,11 @@ def main(argv=None) -> int:
     # Compile cost of one more shape bucket once the process is warm (the first
     # call above also pays one-off tracing / initialisation of JAX and optimistix).
     other = jax.tree_util.tree_map(
-        lambda x: np.concatenate([x, np.zeros((x.shape[0], 32) + x.shape[2:], x.dtype)], axis=1)
-        if np.ndim(x) >= 2 and np.shape(x)[1] == data.mask.shape[1] else x,
+        lambda x: (
+            np.concatenate([x, np.zeros((x.shape[0], 32) + x.shape[2:], x.dtype)], axis=1)
+            if np.ndim(x) >= 2 and np.shape(x)[1] == data.mask.shape[1]
+            else x
+        ),
         jax.device_get(data),
     )
     _, first_o, run_o, _ = time_heliojax(jax.device_put(other), strategy, args.chunk_size, 1)
@@ -488,8 +505,12 @@ def main(argv=None) -> int:
     }
     if not args.skip_robust:
         rms_r, _ = heldout_rms(np.asarray(res_r.parameters())[:n], geometry, test[0], test[1], test[2], test_mask)
-        out.update(robust_s=run_r, robust_first_call_s=first_r, robust_over_plain=run_r / out["heliojax_s"],
-                   heldout_rms_mrad_heliojax_robust=rms_r)
+        out.update(
+            robust_s=run_r,
+            robust_first_call_s=first_r,
+            robust_over_plain=run_r / out["heliojax_s"],
+            heldout_rms_mrad_heliojax_robust=rms_r,
+        )
 
     out["peak_rss_mb_before_scipy"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     if not args.skip_scipy:
@@ -509,9 +530,7 @@ def main(argv=None) -> int:
         params_sp, nfev, scipy_k_s = scipy_fit_fleet(geoms, counts_tr, sun_tr, focal_tr, train_mask, k)
         scipy_s = scipy_k_s * n / k
         sub = np.arange(k)
-        rms_sp, per_sp = heldout_rms(
-            params_sp, *_sub((geometry, test[0], test[1], test[2], test_mask), sub)
-        )
+        rms_sp, per_sp = heldout_rms(params_sp, *_sub((geometry, test[0], test[1], test[2], test_mask), sub))
         rms_hj_sub = float(np.sqrt(np.sum(per_hj[sub] ** 2 * test_mask[sub].sum(1)) / test_mask[sub].sum()))
         log(f"scipy: {scipy_k_s:.2f} s for {k} heliostats")
         out.update(

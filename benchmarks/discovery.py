@@ -35,26 +35,43 @@ import numpy as np
 SCENARIOS = {
     # name: (base, effects [(effect, values)], expected first, {param: true value} to compare)
     "null": ("stone8", [], None, {}),
-    "backlash": ("stone8", [("backlash", dict(backlash_1=3e-4, backlash_2=3e-4))], "backlash",
-                 {"backlash_1": 3e-4, "backlash_2": 3e-4}),
-    "thermal": ("stone8", [("thermal", dict(thermal_1=1.5e-5, thermal_2=1.5e-5, thermal_reference_c=10.0))],
-                "thermal", {"thermal_1": 1.5e-5, "thermal_2": 1.5e-5}),
+    "backlash": (
+        "stone8",
+        [("backlash", dict(backlash_1=3e-4, backlash_2=3e-4))],
+        "backlash",
+        {"backlash_1": 3e-4, "backlash_2": 3e-4},
+    ),
+    "thermal": (
+        "stone8",
+        [("thermal", dict(thermal_1=1.5e-5, thermal_2=1.5e-5, thermal_reference_c=10.0))],
+        "thermal",
+        {"thermal_1": 1.5e-5, "thermal_2": 1.5e-5},
+    ),
     "wind": ("stone8", [("wind", dict(wind_1=5e-6, wind_2=5e-6))], "wind", {"wind_1": 5e-6, "wind_2": 5e-6}),
-    "clock": ("stone8", [("clock", dict(clock_drift=0.1, clock_reference_s=1.654e9))], "clock",
-              {"clock_drift": 0.1}),
-    "pivot": ("actuator", [("actuator_geometry", dict(pivot_scale_1=0.015, pivot_scale_2=0.015))],
-              "actuator_geometry", {"pivot_scale_1": 0.015, "pivot_scale_2": 0.015}),
+    "clock": ("stone8", [("clock", dict(clock_drift=0.1, clock_reference_s=1.654e9))], "clock", {"clock_drift": 0.1}),
+    "pivot": (
+        "actuator",
+        [("actuator_geometry", dict(pivot_scale_1=0.015, pivot_scale_2=0.015))],
+        "actuator_geometry",
+        {"pivot_scale_1": 0.015, "pivot_scale_2": 0.015},
+    ),
     "wobble": ("stone8", [("encoder_wobble", "axis2")], "encoder_wobble", {"wobble_amplitude_2": 3e-4}),
     "gravity_sag": ("stone8", [("gravity_sag", dict(gravity_sag=1e-3))], None, {}),
-    "two_effects": ("stone8", [("backlash", dict(backlash_1=3e-4, backlash_2=3e-4)),
-                               ("thermal", dict(thermal_1=1.5e-5, thermal_2=1.5e-5, thermal_reference_c=10.0))],
-                    None, {}),
+    "two_effects": (
+        "stone8",
+        [
+            ("backlash", dict(backlash_1=3e-4, backlash_2=3e-4)),
+            ("thermal", dict(thermal_1=1.5e-5, thermal_2=1.5e-5, thermal_reference_c=10.0)),
+        ],
+        None,
+        {},
+    ),
 }
 
 
 def run_one(name: str, seed: int, n_heliostats: int, n_records: int) -> dict:
-    from heliojax.discovery import discover, simulate_fleet
     from heliojax import nominal_model
+    from heliojax.discovery import discover, simulate_fleet
     from heliojax.effects import make_effect
 
     base, spec, expected, truth = SCENARIOS[name]
@@ -72,9 +89,14 @@ def run_one(name: str, seed: int, n_heliostats: int, n_records: int) -> dict:
     r = res.report
     floor = noise * np.sqrt(2.0)
     out = {
-        "scenario": name, "seed": seed, "noise_mrad": noise, "named": r["named_effects"],
-        "not_identifiable": r["not_identifiable"], "heldout_base_mrad": r["heldout_rms_base_mrad"],
-        "heldout_final_mrad": r["heldout_rms_final_mrad"], "heldout_ratio": r["heldout_rms_final_mrad"] / floor,
+        "scenario": name,
+        "seed": seed,
+        "noise_mrad": noise,
+        "named": r["named_effects"],
+        "not_identifiable": r["not_identifiable"],
+        "heldout_base_mrad": r["heldout_rms_base_mrad"],
+        "heldout_final_mrad": r["heldout_rms_final_mrad"],
+        "heldout_ratio": r["heldout_rms_final_mrad"] / floor,
         "seconds": time.perf_counter() - t0,
     }
     if expected is not None:
@@ -95,8 +117,9 @@ def run_one(name: str, seed: int, n_heliostats: int, n_records: int) -> dict:
         out["false_positive"] = bool(r["named_effects"])
         out["heldout_ok"] = bool(out["heldout_ratio"] <= 1.1)
     if name == "gravity_sag":
-        out["not_identifiable_ok"] = bool("gravity_sag" in r["not_identifiable"]
-                                          and "gravity_sag" not in r["named_effects"])
+        out["not_identifiable_ok"] = bool(
+            "gravity_sag" in r["not_identifiable"] and "gravity_sag" not in r["named_effects"]
+        )
     if name == "two_effects":
         out["both"] = bool({"backlash", "thermal"} <= set(r["named_effects"]))
         out["heldout_ok"] = bool(out["heldout_ratio"] <= 1.1)
@@ -109,11 +132,21 @@ def summarise(runs: list[dict]) -> dict:
         by.setdefault(r["scenario"], []).append(r)
     summary = {}
     for name, rs in by.items():
-        s = {"n_seeds": len(rs), "mean_seconds": float(np.mean([r["seconds"] for r in rs])),
-             "heldout_ratio_mean": float(np.mean([r["heldout_ratio"] for r in rs])),
-             "heldout_ratio_max": float(np.max([r["heldout_ratio"] for r in rs]))}
-        for key in ("hit", "amplitude_ok", "amplitude_all_ok", "heldout_ok", "false_positive",
-                    "not_identifiable_ok", "both"):
+        s = {
+            "n_seeds": len(rs),
+            "mean_seconds": float(np.mean([r["seconds"] for r in rs])),
+            "heldout_ratio_mean": float(np.mean([r["heldout_ratio"] for r in rs])),
+            "heldout_ratio_max": float(np.max([r["heldout_ratio"] for r in rs])),
+        }
+        for key in (
+            "hit",
+            "amplitude_ok",
+            "amplitude_all_ok",
+            "heldout_ok",
+            "false_positive",
+            "not_identifiable_ok",
+            "both",
+        ):
             vals = [r[key] for r in rs if key in r]
             if vals:
                 s[f"{key}_rate"] = float(np.mean(vals))
@@ -157,9 +190,20 @@ def main(argv=None) -> int:
     print(json.dumps(summary, indent=1))
     if args.out:
         with open(args.out, "w") as f:
-            json.dump({"summary": summary, "runs": runs,
-                       "settings": {"seeds": args.seeds, "first_seed": args.first_seed,
-                                    "heliostats": args.heliostats, "records": args.records}}, f, indent=1)
+            json.dump(
+                {
+                    "summary": summary,
+                    "runs": runs,
+                    "settings": {
+                        "seeds": args.seeds,
+                        "first_seed": args.first_seed,
+                        "heliostats": args.heliostats,
+                        "records": args.records,
+                    },
+                },
+                f,
+                indent=1,
+            )
     return 0
 
 

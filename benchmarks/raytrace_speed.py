@@ -36,7 +36,9 @@ def scene(n_heliostats: int, resolution: int, seed: int = 0):
     target = TargetPlane.from_corners([3.0, 0, 126.5], [-3.0, 0, 126.5], [3.0, 0, 119.3], [-3.0, 0, 119.3])
     sun = jnp.asarray([0.3, -0.6, 0.74]) / np.linalg.norm([0.3, -0.6, 0.74])
     surf = ideal_surface(heliostat_layout(), (resolution, resolution))
-    positions = np.c_[rng.uniform(-100, 100, n_heliostats), rng.uniform(50, 250, n_heliostats), np.full(n_heliostats, 1.5)]
+    positions = np.c_[
+        rng.uniform(-100, 100, n_heliostats), rng.uniform(50, 250, n_heliostats), np.full(n_heliostats, 1.5)
+    ]
     poses = [aim_pose(jnp.asarray(p), sun, target.centre) for p in positions]
     poses = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *poses)
     surfs = stack_surfaces([surf] * n_heliostats)
@@ -50,8 +52,20 @@ def run_case(n_heliostats: int, rays: int, resolution: int, chunk: int, repeats:
     steps = max(1, rays // (points * rays_per_point))
     total = points * rays_per_point * steps
     combine = n_heliostats > 1
-    fn = jax.jit(lambda k: flux_images(k, surfs, poses, sun, target, grid, GaussianSun(2.51e-3),
-                                       rays_per_point=rays_per_point, steps=steps, combine=combine))
+    fn = jax.jit(
+        lambda k: flux_images(
+            k,
+            surfs,
+            poses,
+            sun,
+            target,
+            grid,
+            GaussianSun(2.51e-3),
+            rays_per_point=rays_per_point,
+            steps=steps,
+            combine=combine,
+        )
+    )
     t0 = time.perf_counter()
     compiled = fn.lower(jax.random.key(0)).compile()
     compile_s = time.perf_counter() - t0
@@ -97,8 +111,10 @@ def main(argv=None) -> int:
         print(json.dumps(out))
     else:
         for c in cases:
-            print(f"{c['heliostats']:4d} heliostats: {c['rays']:.3g} rays in {c['run_s_best']:.3f} s = "
-                  f"{c['mrays_per_s']:.1f} Mrays/s (compile {c['compile_s']:.1f} s)")
+            print(
+                f"{c['heliostats']:4d} heliostats: {c['rays']:.3g} rays in {c['run_s_best']:.3f} s = "
+                f"{c['mrays_per_s']:.1f} Mrays/s (compile {c['compile_s']:.1f} s)"
+            )
     return 0
 
 

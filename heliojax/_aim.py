@@ -21,7 +21,6 @@ import typing
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ._kinematics import AbstractKinematicModel, HeliostatGeometry, beam_pointing_error, forward, inverse_aim
@@ -127,11 +126,12 @@ def aim_fleet(
     )
 
 
-def aim_results(results: typing.Any, sun: Float[Array, "N 3"], aim_points: Float[Array, "*hn 3"],
-                **options: typing.Any) -> AimResult:
+def aim_results(
+    results: typing.Any, sun: Float[Array, "N 3"], aim_points: Float[Array, "*hn 3"], **options: typing.Any
+) -> AimResult:
     """:func:`aim_fleet` for a calibration read with :func:`heliojax.load_results`
     (heliostats without a usable fit are flagged ``unreliable``)."""
-    return aim_fleet(results.model, results.geometry, sun, aim_points, fitted=np.asarray(results.fitted), **options)
+    return aim_fleet(results.model, results.geometry, sun, aim_points, fitted=jnp.asarray(results.fitted), **options)
 
 
 __all__ = ["REACH_TOLERANCE_MRAD", "AimResult", "aim_fleet", "aim_results"]

@@ -89,12 +89,9 @@ __all__ = [
     "LoadReport",
     "ReportEntry",
     "bucket_size",
-    "default_data_dir",
+    "fleet_from_arrays",
     "fleet_subset",
-    "load_paint_directory",
-    "load_weather_csv_fleet",
     "pad_fleet",
-    "records_to_fleet",
 ]
 
 Centroid = Literal["utis", "helios"]
@@ -243,7 +240,7 @@ class Fleet(eqx.Module):
     record_id: Int[Array, "H M"]
     mask: Bool[Array, "H M"]
     targets: TargetPlane
-    origin_lla: Float[Array, "3"]
+    origin_lla: Float[Array, 3]
     ids: tuple[str, ...] = eqx.field(static=True)
     target_names: tuple[str, ...] = eqx.field(static=True)
     report: LoadReport = eqx.field(static=True)
@@ -342,12 +339,15 @@ def bucket_size(n: int) -> int:
 def _backend(tree) -> typing.Any:
     """numpy for concrete arrays (no per-shape compilation), jax.numpy under tracing."""
     leaves = jax.tree.leaves(tree)
-    return jnp if any(isinstance(x, jax.core.Tracer) for x in leaves) else np
+    return jnp if any(isinstance(x, jax.core.Tracer) for x in leaves) else np  # pyright: ignore[reportAttributeAccessIssue]
 
 
 def _to_jax(tree):
     """numpy leaves -> device arrays without a compilation (tracers pass through)."""
-    return jax.tree.map(lambda x: x if isinstance(x, jax.core.Tracer) else jax.device_put(x), tree)
+    return jax.tree.map(
+        lambda x: x if isinstance(x, jax.core.Tracer) else jax.device_put(x),  # pyright: ignore[reportAttributeAccessIssue]
+        tree,
+    )
 
 
 def pad_fleet(fleet: Fleet, n_heliostats: int | None = None, n_records: int | None = None) -> Fleet:
@@ -410,9 +410,8 @@ def pad_fleet(fleet: Fleet, n_heliostats: int | None = None, n_records: int | No
 def fleet_subset(fleet: Fleet, indices: Sequence[int] | np.ndarray | int | str | Sequence[str]) -> Fleet:
     """The heliostats ``indices`` (positions or ids, in the given order) of a fleet;
     the record axis, targets and report are kept."""
-    if isinstance(indices, (int, np.integer, str)):
-        indices = [indices]
-    idx = [fleet.index(i) if isinstance(i, str) else int(i) for i in indices]
+    items: list = [indices] if isinstance(indices, (int, np.integer, str)) else list(indices)
+    idx = [fleet.index(i) if isinstance(i, str) else int(i) for i in items]
     for i in idx:
         if not -fleet.n_heliostats <= i < fleet.n_heliostats:
             raise IndexError(f"heliostat index {i} out of range for {fleet.n_heliostats}")

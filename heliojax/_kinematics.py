@@ -71,8 +71,8 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._geometry import (
     angle_between,
-    intersect_plane,
     bisector_normal,
+    intersect_plane,
     normalize,
     reflect,
     rotation_x,
@@ -140,9 +140,7 @@ class LinearActuators(eqx.Module):
         angles = jnp.asarray(angles)
         psi0 = _actuator_psi(self.initial_stroke_length, self.offset, self.pivot_radius)
         psi = psi0 + (angles - self.initial_angle) * self.sign
-        stroke = jnp.sqrt(
-            self.offset**2 + self.pivot_radius**2 - 2.0 * self.offset * self.pivot_radius * jnp.cos(psi)
-        )
+        stroke = jnp.sqrt(self.offset**2 + self.pivot_radius**2 - 2.0 * self.offset * self.pivot_radius * jnp.cos(psi))
         return (stroke - self.initial_stroke_length) * self.increment
 
     def linearised(self, n: int = 257) -> tuple[Float[Array, "*b 2"], Float[Array, "*b 2"]]:
@@ -195,7 +193,7 @@ class HeliostatGeometry(eqx.Module):
         joint_translation_2=(0.0, 0.0, 0.0),
         concentrator_translation=(0.0, 0.0, 0.0),
         ideal_axes=(False, False),
-    ) -> "HeliostatGeometry":
+    ) -> HeliostatGeometry:
         """Geometry with the Stone linear map derived from ``actuators``.
 
         ``ideal_axes``: per axis, whether the plant declares an *ideal* actuator
@@ -208,9 +206,7 @@ class HeliostatGeometry(eqx.Module):
             position=pos,
             joint_translation_1=jnp.broadcast_to(jnp.asarray(joint_translation_1, pos.dtype), pos.shape),
             joint_translation_2=jnp.broadcast_to(jnp.asarray(joint_translation_2, pos.dtype), pos.shape),
-            concentrator_translation=jnp.broadcast_to(
-                jnp.asarray(concentrator_translation, pos.dtype), pos.shape
-            ),
+            concentrator_translation=jnp.broadcast_to(jnp.asarray(concentrator_translation, pos.dtype), pos.shape),
             actuators=actuators,
             linear_slope=slope,
             linear_intercept=intercept,
@@ -246,7 +242,7 @@ class RecordContext(eqx.Module):
     approach: Float[Array, "*b 2"]
 
     @classmethod
-    def from_sun(cls, sun, unix_time=None) -> "RecordContext":
+    def from_sun(cls, sun, unix_time=None) -> RecordContext:
         """A context with only the sun direction (and optionally the time) known."""
         sun = jnp.asarray(sun)
         nan = jnp.full(sun.shape[:-1], jnp.nan, sun.dtype)
@@ -300,17 +296,15 @@ class AbstractKinematicModel(eqx.Module):
     """
 
     @abc.abstractmethod
-    def tilts(self) -> Float[Array, "4"]:
+    def tilts(self) -> Float[Array, 4]:
         """``(alpha, beta, gamma, delta)`` in rad."""
 
     @abc.abstractmethod
-    def joint_angles(
-        self, geometry: HeliostatGeometry, counts: Float[Array, "2"]
-    ) -> Float[Array, "2"]:
+    def joint_angles(self, geometry: HeliostatGeometry, counts: Float[Array, 2]) -> Float[Array, 2]:
         """Joint angles ``(theta, tau)`` in rad of motor counts (no record context)."""
 
     @abc.abstractmethod
-    def counts(self, geometry: HeliostatGeometry, angles: Float[Array, "2"]) -> Float[Array, "2"]:
+    def counts(self, geometry: HeliostatGeometry, angles: Float[Array, 2]) -> Float[Array, 2]:
         """Inverse of :meth:`joint_angles`: motor counts (float) of joint angles."""
 
     def label(self) -> str:
@@ -322,27 +316,25 @@ class AbstractKinematicModel(eqx.Module):
         return geometry
 
     def record_angles(
-        self, geometry: HeliostatGeometry, counts: Float[Array, "2"], context: RecordContext | None
-    ) -> Float[Array, "2"]:
+        self, geometry: HeliostatGeometry, counts: Float[Array, 2], context: RecordContext | None
+    ) -> Float[Array, 2]:
         """Joint angles (rad) of one record; effects add context-dependent terms.
         Default: :meth:`joint_angles`."""
         del context
         return self.joint_angles(geometry, counts)
 
-    def pose(
-        self, geometry: HeliostatGeometry, counts: Float[Array, "2"], context: RecordContext | None = None
-    ) -> Pose:
+    def pose(self, geometry: HeliostatGeometry, counts: Float[Array, 2], context: RecordContext | None = None) -> Pose:
         """Aligned mirror of one record (see the module docstring for the chain)."""
         g = self.adjusted_geometry(geometry)
         return chain_pose(self.tilts(), self.record_angles(g, jnp.asarray(counts), context), g)
 
-    def sun(self, geometry: HeliostatGeometry, context: RecordContext) -> Float[Array, "3"]:
+    def sun(self, geometry: HeliostatGeometry, context: RecordContext) -> Float[Array, 3]:
         """The sun direction the model believes in for a record (effects such as a
         clock error or refraction override it); default: the recorded one."""
         del geometry
         return context.sun
 
-    def spot(self, focal_spot: Float[Array, "3"], context: RecordContext) -> Float[Array, "3"]:
+    def spot(self, focal_spot: Float[Array, 3], context: RecordContext) -> Float[Array, 3]:
         """The measured focal spot (ENU m) as the model corrects it (target survey
         effects move it); default: as measured."""
         del context
@@ -351,10 +343,10 @@ class AbstractKinematicModel(eqx.Module):
     def beam_components(
         self,
         geometry: HeliostatGeometry,
-        counts: Float[Array, "2"],
+        counts: Float[Array, 2],
         context: RecordContext,
-        focal_spot: Float[Array, "3"],
-    ) -> Float[Array, "2"]:
+        focal_spot: Float[Array, 3],
+    ) -> Float[Array, 2]:
         """Tangent-plane beam error components (rad) of one record under this model:
         the calibration residual."""
         return beam_error_components(
@@ -364,9 +356,9 @@ class AbstractKinematicModel(eqx.Module):
     def beam_error(
         self,
         geometry: HeliostatGeometry,
-        counts: Float[Array, "2"],
+        counts: Float[Array, 2],
         context: RecordContext,
-        focal_spot: Float[Array, "3"],
+        focal_spot: Float[Array, 3],
     ) -> Float[Array, ""]:
         """Beam pointing error (rad) of one record under this model."""
         return beam_pointing_error(
@@ -420,9 +412,7 @@ def _chain_rotations(tilts, angles):
     return r01, r_theta, r12, r_tau, r2m
 
 
-def chain_pose(
-    tilts: Float[Array, "4"], angles: Float[Array, "2"], geometry: HeliostatGeometry
-) -> Pose:
+def chain_pose(tilts: Float[Array, 4], angles: Float[Array, 2], geometry: HeliostatGeometry) -> Pose:
     """The shared rotation chain: tilts ``(alpha, beta, gamma, delta)`` and joint
     angles ``(theta, tau)`` (rad) -> :class:`Pose`."""
     r01, r_theta, r12, r_tau, r2m = _chain_rotations(tilts, angles)
@@ -468,8 +458,8 @@ def _solve_chain_angles(tilts, normal, tau_reference):
 
 @eqx.filter_jit
 def inverse_normal(
-    model: AbstractKinematicModel, geometry: HeliostatGeometry, normal: Float[ArrayLike, "3"]
-) -> Float[Array, "2"]:
+    model: AbstractKinematicModel, geometry: HeliostatGeometry, normal: Float[ArrayLike, 3]
+) -> Float[Array, 2]:
     """Motor counts (float) that align the mirror normal with ``normal`` (unit, ENU)."""
     normal = normalize(jnp.asarray(normal))
     angles = _solve_chain_angles(model.tilts(), normal, jnp.zeros((), normal.dtype))
@@ -480,10 +470,10 @@ def inverse_normal(
 def inverse_aim(
     model: AbstractKinematicModel,
     geometry: HeliostatGeometry,
-    aim_point: Float[ArrayLike, "3"],
-    sun: Float[ArrayLike, "3"],
+    aim_point: Float[ArrayLike, 3],
+    sun: Float[ArrayLike, 3],
     iterations: int = 8,
-) -> Float[Array, "2"]:
+) -> Float[Array, 2]:
     """Motor counts (float) that reflect the sun onto ``aim_point`` (ENU m).
 
     The mirror centre moves with the pose (axis offsets), so the bisector normal
@@ -532,7 +522,7 @@ class StoneModel(AbstractKinematicModel):
         return "stone8"
 
     @classmethod
-    def nominal(cls, dtype=None) -> "StoneModel":
+    def nominal(cls, dtype=None) -> StoneModel:
         z = jnp.zeros((), dtype)
         o = jnp.ones((), dtype)
         return cls(alpha=z, beta=z, gamma=z, delta=z, theta_k=z, tau_k=z, gr1=o, gr2=o)
@@ -578,9 +568,9 @@ class ActuatorModel(AbstractKinematicModel):
     beta: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-3)
     gamma: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-3)
     delta: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-3)
-    angle_offset: Float[Array, "2"] = parameter(unit="rad", scale=1e-2, typical=1e-2, shape=(2,))
-    increment_scale: Float[Array, "2"] = parameter(unit="1", scale=1e-2, typical=1e-2, shape=(2,))
-    stroke_offset: Float[Array, "2"] = parameter(unit="m", scale=1e-2, typical=1e-3, shape=(2,))
+    angle_offset: Float[Array, 2] = parameter(unit="rad", scale=1e-2, typical=1e-2, shape=(2,))
+    increment_scale: Float[Array, 2] = parameter(unit="1", scale=1e-2, typical=1e-2, shape=(2,))
+    stroke_offset: Float[Array, 2] = parameter(unit="m", scale=1e-2, typical=1e-3, shape=(2,))
 
     JOINT_LAW: typing.ClassVar[str] = "actuator"
 
@@ -593,12 +583,10 @@ class ActuatorModel(AbstractKinematicModel):
         return ("stroke_offset",)
 
     @classmethod
-    def nominal(cls, dtype=None) -> "ActuatorModel":
+    def nominal(cls, dtype=None) -> ActuatorModel:
         z = jnp.zeros((), dtype)
         z2 = jnp.zeros((2,), dtype)
-        return cls(
-            alpha=z, beta=z, gamma=z, delta=z, angle_offset=z2, increment_scale=z2, stroke_offset=z2
-        )
+        return cls(alpha=z, beta=z, gamma=z, delta=z, angle_offset=z2, increment_scale=z2, stroke_offset=z2)
 
     def tilts(self):
         return jnp.stack([self.alpha, self.beta, self.gamma, self.delta])
@@ -618,13 +606,21 @@ class ActuatorModel(AbstractKinematicModel):
     def joint_angles(self, geometry, counts):
         counts = jnp.asarray(counts)
         law = self.effective_actuators(geometry).counts_to_angles(counts)
-        line = geometry.linear_intercept + self.angle_offset + geometry.linear_slope * counts / (1.0 + self.increment_scale)
+        line = (
+            geometry.linear_intercept
+            + self.angle_offset
+            + geometry.linear_slope * counts / (1.0 + self.increment_scale)
+        )
         return jnp.where(geometry.ideal_axes, line, law)
 
     def counts(self, geometry, angles):
         angles = jnp.asarray(angles)
         law = self.effective_actuators(geometry).angles_to_counts(angles)
-        line = (angles - geometry.linear_intercept - self.angle_offset) * (1.0 + self.increment_scale) / geometry.linear_slope
+        line = (
+            (angles - geometry.linear_intercept - self.angle_offset)
+            * (1.0 + self.increment_scale)
+            / geometry.linear_slope
+        )
         return jnp.where(geometry.ideal_axes, line, law)
 
 
@@ -646,7 +642,7 @@ def nominal_model(kind: str, dtype: typing.Any = None) -> AbstractKinematicModel
 def forward(
     model: AbstractKinematicModel,
     geometry: HeliostatGeometry,
-    counts: Float[ArrayLike, "2"],
+    counts: Float[ArrayLike, 2],
     context: RecordContext | None = None,
 ) -> Pose:
     """Motor counts -> aligned mirror (normal, centre, rotation) of one record.
@@ -670,14 +666,14 @@ def forward(
 
 
 def measured_normal(
-    centre: Float[ArrayLike, "3"], sun: Float[ArrayLike, "3"], focal_spot: Float[ArrayLike, "3"]
-) -> Float[Array, "3"]:
+    centre: Float[ArrayLike, 3], sun: Float[ArrayLike, 3], focal_spot: Float[ArrayLike, 3]
+) -> Float[Array, 3]:
     """Normal implied by a record: bisector of the sun direction and the unit vector
     from the mirror centre to the measured focal spot (all ENU)."""
     return bisector_normal(sun, normalize(jnp.asarray(focal_spot) - jnp.asarray(centre)))
 
 
-def reflected_ray(pose: Pose, sun: Float[ArrayLike, "3"]) -> Float[Array, "3"]:
+def reflected_ray(pose: Pose, sun: Float[ArrayLike, 3]) -> Float[Array, 3]:
     """Direction of the central ray reflected at ``pose`` for sunlight from ``sun``."""
     return reflect(-jnp.asarray(sun), pose.normal)
 
@@ -689,9 +685,7 @@ def _tangent_basis(r):
     return e1, e2
 
 
-def beam_error_components(
-    pose: Pose, sun: Float[ArrayLike, "3"], focal_spot: Float[ArrayLike, "3"]
-) -> Float[Array, "2"]:
+def beam_error_components(pose: Pose, sun: Float[ArrayLike, 3], focal_spot: Float[ArrayLike, 3]) -> Float[Array, 2]:
     """The beam pointing error's two tangent-plane components (rad).
 
     With ``r`` the model's reflected central ray and ``d`` the unit vector from the
@@ -707,9 +701,7 @@ def beam_error_components(
     return jnp.stack([d @ e1, d @ e2])
 
 
-def beam_pointing_error(
-    pose: Pose, sun: Float[ArrayLike, "3"], focal_spot: Float[ArrayLike, "3"]
-) -> Float[Array, ""]:
+def beam_pointing_error(pose: Pose, sun: Float[ArrayLike, 3], focal_spot: Float[ArrayLike, 3]) -> Float[Array, ""]:
     """Beam pointing error in rad: the angle between the model's reflected central
     ray and the direction from the model's mirror centre to the measured focal spot.
     Multiply by 1e3 for mrad."""
@@ -719,7 +711,7 @@ def beam_pointing_error(
 
 
 def target_miss_distance(
-    pose: Pose, sun: Float[ArrayLike, "3"], focal_spot: Float[ArrayLike, "3"], target
+    pose: Pose, sun: Float[ArrayLike, 3], focal_spot: Float[ArrayLike, 3], target
 ) -> Float[Array, ""]:
     """Distance in m, on the target plane, between where the model's central ray hits
     the (infinite) plane of ``target`` and the measured focal spot."""
@@ -749,4 +741,3 @@ __all__ = [
     "reflected_ray",
     "target_miss_distance",
 ]
-

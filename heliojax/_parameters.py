@@ -225,7 +225,7 @@ class ParameterView:
     free_leaves: tuple[bool, ...]
 
     @classmethod
-    def of(cls, model: eqx.Module, free: typing.Any = None) -> "ParameterView":
+    def of(cls, model: eqx.Module, free: typing.Any = None) -> ParameterView:
         """The view of ``model`` (batched or not) with free set ``free`` (default
         :func:`default_free`)."""
         leaves = parameter_leaves(model)
@@ -279,7 +279,7 @@ class ParameterView:
     def n_free(self) -> int:
         return len(self.free_index)
 
-    def with_free(self, free_names: Sequence[str]) -> "ParameterView":
+    def with_free(self, free_names: Sequence[str]) -> ParameterView:
         """The same view with the leaves holding ``free_names`` free (whole leaves)."""
         wanted = set(free_names)
         unknown = wanted - set(self.names)
@@ -341,8 +341,10 @@ def set_references(model: ModuleT, values: typing.Mapping[str, float]) -> Module
     def where(m: eqx.Module) -> list[typing.Any]:
         return [_get(m, leaf.path) for leaf in leaves]
 
-    new = [jnp.full(jnp.shape(_get(model, leaf.path)), values[leaf.name], jnp.asarray(_get(model, leaf.path)).dtype)
-           for leaf in leaves]
+    new = [
+        jnp.full(jnp.shape(_get(model, leaf.path)), values[leaf.name], jnp.asarray(_get(model, leaf.path)).dtype)
+        for leaf in leaves
+    ]
     return eqx.tree_at(where, model, new)
 
 

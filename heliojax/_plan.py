@@ -147,12 +147,15 @@ def plan_measurements(
     """
     h = covariance.shape[0]
     noise = jnp.broadcast_to(jnp.asarray(noise_mrad, covariance.dtype), (h,))
-    chosen, u0, u, c_end = _greedy(covariance, candidate_jacobians, jnp.asarray(candidate_valid, bool), envelope,
-                                   noise, int(budget))
+    chosen, u0, u, c_end = _greedy(
+        covariance, candidate_jacobians, jnp.asarray(candidate_valid, bool), envelope, noise, int(budget)
+    )
     return MeasurementPlan(chosen=chosen, uncertainty_before_mrad=u0, uncertainty_after_mrad=u, covariance_after=c_end)
 
 
-def predicted_uncertainty_mrad(covariance: Float[Array, "H F F"], envelope: Float[Array, "H F F"]) -> Float[Array, " H"]:
+def predicted_uncertainty_mrad(
+    covariance: Float[Array, "H F F"], envelope: Float[Array, "H F F"]
+) -> Float[Array, " H"]:
     """``sqrt(tr(C M))``: RMS predicted pointing error over the envelope (mrad)
     from parameter uncertainty; rank heliostats by it to see which most need measuring."""
     return jnp.sqrt(jnp.maximum(jnp.einsum("hfg,hgf->h", covariance, envelope), 0.0))

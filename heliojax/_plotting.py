@@ -65,11 +65,23 @@ def _residual_panel(ax, pts, flagged, title, color, lim=None):
     ax.scatter(pts[inside, 0], pts[inside, 1], s=6, alpha=0.6, color=color, label="records")
     if (~inside).any():
         edge = np.clip(pts[~inside], -lim, lim)
-        ax.scatter(edge[:, 0], edge[:, 1], s=18, marker="^", facecolors="none", edgecolors=color,
-                   label=f"{int((~inside).sum())} beyond the axes (on the edge)")
+        ax.scatter(
+            edge[:, 0],
+            edge[:, 1],
+            s=18,
+            marker="^",
+            facecolors="none",
+            edgecolors=color,
+            label=f"{int((~inside).sum())} beyond the axes (on the edge)",
+        )
     if flagged.size:
-        ax.scatter(*np.clip(flagged, -lim, lim).T, s=28, marker="x", color="tab:red",
-                   label=f"{len(flagged)} training records flagged as outliers (robust fit)")
+        ax.scatter(
+            *np.clip(flagged, -lim, lim).T,
+            s=28,
+            marker="x",
+            color="tab:red",
+            label=f"{len(flagged)} training records flagged as outliers (robust fit)",
+        )
     ax.set_xlim(-lim, lim)
     ax.set_ylim(-lim, lim)
     ax.axhline(0, color="0.5", lw=0.5)
@@ -98,8 +110,9 @@ def plot_calibration(run, *, axes=None):
     x = np.arange(len(ids))
 
     def col(key):
-        return np.array([np.nan if summary["heliostats"][h].get(key) is None else summary["heliostats"][h][key]
-                         for h in ids], float)
+        return np.array(
+            [np.nan if summary["heliostats"][h].get(key) is None else summary["heliostats"][h][key] for h in ids], float
+        )
 
     ax = axes[0]
     ax.bar(x - 0.3, col("uncalibrated_test_rms_mrad"), 0.3, label="held-out, uncalibrated", color="0.7")
@@ -114,8 +127,16 @@ def plot_calibration(run, *, axes=None):
     for i, h in enumerate(ids):
         status = summary["heliostats"][h]["status"]
         if status != "converged":
-            ax.text(i + 0.15, top * 1.5, status.replace("_", " "), rotation=90, ha="center", va="bottom",
-                    fontsize=7, color="tab:red")
+            ax.text(
+                i + 0.15,
+                top * 1.5,
+                status.replace("_", " "),
+                rotation=90,
+                ha="center",
+                va="bottom",
+                fontsize=7,
+                color="tab:red",
+            )
     ax.set_xticks(x)
     ax.set_xticklabels(ids, rotation=90)
     ax.set_xlim(-0.8, len(ids) - 0.2)

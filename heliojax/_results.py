@@ -58,7 +58,7 @@ def _geometry_items(geometry: HeliostatGeometry, prefix: str = "geometry") -> di
     for f in dataclasses.fields(geometry):
         v = getattr(geometry, f.name)
         if isinstance(v, eqx.Module):
-            out.update(_geometry_items(v, f"{prefix}/{f.name}"))
+            out.update(_geometry_items(v, f"{prefix}/{f.name}"))  # type: ignore[arg-type]
         else:
             out[f"{prefix}/{f.name}"] = np.asarray(v)
     return out
@@ -68,7 +68,7 @@ def _read_geometry(group: h5py.Group, source: str) -> HeliostatGeometry:
     def arr(name):
         if name not in group:
             raise DataError(source, f"geometry/{name}", "missing dataset")
-        return jnp.asarray(group[name][()])
+        return jnp.asarray(group[name][()])  # pyright: ignore[reportIndexIssue]
 
     act = LinearActuators(**{f.name: arr(f"actuators/{f.name}") for f in dataclasses.fields(LinearActuators)})
     kw = {f.name: arr(f.name) for f in dataclasses.fields(HeliostatGeometry) if f.name != "actuators"}
@@ -81,7 +81,9 @@ def model_from_label(label: str, dtype: typing.Any = jnp.float64) -> AbstractKin
     stored in ``results.h5``."""
     base, *effects = label.split("+")
     if "nn" in effects:
-        raise DataError(None, "model", f"a model with a neural correction ({label!r}) cannot be rebuilt from results.h5")
+        raise DataError(
+            None, "model", f"a model with a neural correction ({label!r}) cannot be rebuilt from results.h5"
+        )
     model = nominal_model(base, dtype)
     return with_effects(model, effects) if effects else model
 
@@ -190,9 +192,20 @@ class CalibrationResults:
         return jax.tree.map(take, self.model), jax.tree.map(take, self.geometry)
 
 
-_RECORD_FIELDS = ("record_id", "unix_time", "sun_azimuth_deg", "sun_elevation_deg", "target_index", "split", "weight",
-                  "outlier", "residual_mrad", "residual_uncalibrated_mrad", "beam_error_mrad",
-                  "beam_error_uncalibrated_mrad")
+_RECORD_FIELDS = (
+    "record_id",
+    "unix_time",
+    "sun_azimuth_deg",
+    "sun_elevation_deg",
+    "target_index",
+    "split",
+    "weight",
+    "outlier",
+    "residual_mrad",
+    "residual_uncalibrated_mrad",
+    "beam_error_mrad",
+    "beam_error_uncalibrated_mrad",
+)
 
 
 def load_results(path: str | Path) -> CalibrationResults:
@@ -208,12 +221,13 @@ def load_results(path: str | Path) -> CalibrationResults:
     except OSError as e:
         raise DataError(source, None, f"not a readable results.h5 ({e})") from e
     with f:
-        def need(name):
+
+        def need(name: str) -> typing.Any:
             if name not in f:
                 raise DataError(source, name, "missing dataset")
-            return f[name][()]
+            return f[name][()]  # pyright: ignore[reportIndexIssue]
 
-        attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+        attrs: dict[str, typing.Any] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
         for key in ("model", "param_names", "param_units"):
             if key not in attrs:
                 raise DataError(source, key, "missing attribute")
@@ -226,25 +240,39 @@ def load_results(path: str | Path) -> CalibrationResults:
             raise DataError(source, "param_names", f"malformed parameter attributes ({e})") from e
         ids = tuple(x.decode() if isinstance(x, bytes) else str(x) for x in need("heliostat_ids"))
         params = np.asarray(need("params"), float)
-        geometry = _read_geometry(f["geometry"], source) if "geometry" in f else None
+        group = f.get("geometry")
+        geometry = _read_geometry(group, source) if isinstance(group, h5py.Group) else None
         if geometry is None:
             raise DataError(source, "geometry", "missing group (written by an older heliojax?)")
-        records = {k: np.asarray(f[k][()]) for k in _RECORD_FIELDS if k in f}
+        records = {k: np.asarray(f[k][()]) for k in _RECORD_FIELDS if k in f}  # pyright: ignore[reportIndexIssue]
         status = tuple(x.decode() if isinstance(x, bytes) else str(x) for x in need("status_labels"))
         std = np.asarray(need("param_std"), float)
-        cov = np.asarray(f["covariance"][()]) if "covariance" in f else np.full((len(ids), 0, 0), np.nan)
-        noise = np.asarray(f["noise_mrad"][()]) if "noise_mrad" in f else np.full(len(ids), np.nan)
+        cov = np.asarray(f["covariance"][()]) if "covariance" in f else np.full((len(ids), 0, 0), np.nan)  # pyright: ignore[reportIndexIssue]
+        noise = np.asarray(f["noise_mrad"][()]) if "noise_mrad" in f else np.full(len(ids), np.nan)  # pyright: ignore[reportIndexIssue]
     template = model_from_label(str(attrs["model"]))
     view = ParameterView.of(template)
     if view.names != names:
-        raise DataError(source, "param_names", f"parameters {names} do not match model {attrs['model']!r} ({view.names})")
+        raise DataError(
+            source, "param_names", f"parameters {names} do not match model {attrs['model']!r} ({view.names})"
+        )
     if attrs["free_params"]:
         view = view.with_free(attrs["free_params"])
     batched = broadcast_model(template, len(ids))
     model = jax.vmap(view.from_vector)(batched, jnp.asarray(params))
-    return CalibrationResults(ids=ids, model=model, geometry=geometry, view=view, status=status, params=params,
-                              param_std=std, covariance=cov, noise_mrad=noise, records=records, attrs=attrs,
-                              source=source)
+    return CalibrationResults(
+        ids=ids,
+        model=model,
+        geometry=geometry,
+        view=view,
+        status=status,
+        params=params,
+        param_std=std,
+        covariance=cov,
+        noise_mrad=noise,
+        records=records,
+        attrs=attrs,
+        source=source,
+    )
 
 
 __all__ = ["SPLIT_CODES", "CalibrationResults", "load_results", "model_from_label", "write_results_h5"]

@@ -23,6 +23,7 @@ A simulated record is produced the way a plant produces one:
 from __future__ import annotations
 
 import datetime as dt
+import typing
 from collections.abc import Callable
 
 import equinox as eqx
@@ -119,7 +120,7 @@ def calibration_times(
     latitude_deg: float = JUELICH_LAT_LON_ALT[0],
     longitude_deg: float = JUELICH_LAT_LON_ALT[1],
     min_elevation_deg: float = 15.0,
-) -> tuple[Float[Array, "..."], Float[Array, "... 3"]]:
+) -> tuple[Float[Array, ...], Float[Array, "... 3"]]:
     """Random calibration times (unix s) and sun vectors, daytime only.
 
     Days are uniform over ``days`` from ``start_unix``; the hour is uniform over
@@ -173,7 +174,7 @@ def simulate_records(
     geometry: HeliostatGeometry,
     context: RecordContext,
     target: TargetPlane,
-    aim_point: Float[Array, "3"] | None = None,
+    aim_point: Float[Array, 3] | None = None,
     *,
     controller_models: AbstractKinematicModel | None = None,
     noise_mrad: float = 0.0,
@@ -295,6 +296,11 @@ def to_numpy_tree(tree):
 # --------------------------------------------------------------------------------------
 
 
+def _vec3(values: typing.Any) -> tuple[float, float, float]:
+    x, y, z = (float(v) for v in values)
+    return (x, y, z)
+
+
 def synthetic_tower(target: TargetPlane, origin_lla=JUELICH_LAT_LON_ALT, name: str = "solar_tower_juelich_lower"):
     """A :class:`heliojax.TowerFile` holding ``target`` (corners converted to WGS84)."""
     origin = jnp.asarray(origin_lla, jnp.float64)
@@ -308,11 +314,9 @@ def synthetic_tower(target: TargetPlane, origin_lla=JUELICH_LAT_LON_ALT, name: s
     points = {}
     for key, (a, b) in uv.items():
         enu = target.from_plane(jnp.asarray([a * target.half_width, b * target.half_height]))
-        points[key] = tuple(float(x) for x in np.asarray(enu_to_wgs84(enu, origin)))
-    entry = TargetEntry(
-        name=name, type="planar", normal=tuple(float(x) for x in np.asarray(target.normal)), points=points
-    )
-    return TowerFile(plant_id="SIMULATED", origin_lla=tuple(float(x) for x in origin_lla), targets={name: entry})
+        points[key] = _vec3(np.asarray(enu_to_wgs84(enu, origin)))
+    entry = TargetEntry(name=name, type="planar", normal=_vec3(np.asarray(target.normal)), points=points)
+    return TowerFile(plant_id="SIMULATED", origin_lla=_vec3(origin_lla), targets={name: entry})
 
 
 def synthetic_properties(geometry: HeliostatGeometry, ids, origin_lla=JUELICH_LAT_LON_ALT):
@@ -345,14 +349,14 @@ def synthetic_properties(geometry: HeliostatGeometry, ids, origin_lla=JUELICH_LA
         out.append(
             HeliostatProperties(
                 heliostat_id=hid,
-                position_lla=tuple(float(x) for x in lla[i]),
+                position_lla=_vec3(lla[i]),
                 width=3.22,
                 height=2.56,
                 initial_orientation=(0.0, -1.0, 0.0),
                 actuators=(acts[0], acts[1]),
-                joint_translation_1=tuple(float(x) for x in g.joint_translation_1[i]),
-                joint_translation_2=tuple(float(x) for x in g.joint_translation_2[i]),
-                concentrator_translation=tuple(float(x) for x in g.concentrator_translation[i]),
+                joint_translation_1=_vec3(g.joint_translation_1[i]),
+                joint_translation_2=_vec3(g.joint_translation_2[i]),
+                concentrator_translation=_vec3(g.concentrator_translation[i]),
             )
         )
     return out
@@ -386,7 +390,7 @@ def simulation_to_records(
                 continue
             when = None
             if np.isfinite(t[i, j]):
-                when = dt.datetime.fromtimestamp(float(t[i, j]), dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+                when = dt.datetime.fromtimestamp(float(t[i, j]), dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
             weather = {
                 "temperature": float(temp[i, j]),
                 "wind_speed": float(wind[i, j]),
@@ -395,7 +399,7 @@ def simulation_to_records(
                 "humidity": float("nan"),
                 "pressure": float("nan"),
             }
-            spot = tuple(float(x) for x in spot_lla[i, j])
+            spot = _vec3(spot_lla[i, j])
             records.append(
                 CalibrationRecord(
                     record_id=rid,

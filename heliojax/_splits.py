@@ -282,10 +282,8 @@ def split_records(
     if train_fraction is not None:
         n_train = int(math.floor(train_fraction * nv))
         if n_train < 1:
-            return _not_ok(
-                kind, n, f"{nv} valid records: train_fraction={train_fraction} leaves no training record"
-            )
-    need = minimum_records(n_train, n_val)
+            return _not_ok(kind, n, f"{nv} valid records: train_fraction={train_fraction} leaves no training record")
+    need = minimum_records(int(n_train or 0), n_val)
     if nv < need:
         return _not_ok(
             kind,
@@ -408,9 +406,7 @@ def split_fleet(
     el = np.asarray(elevation_rad, dtype=np.float64)
     t = np.asarray(unix_time_s, dtype=np.float64)
     if az.ndim != 2 or el.shape != az.shape or t.shape != az.shape:
-        raise ConfigError(
-            f"fleet arrays must share one (h, m) shape, got {az.shape}, {el.shape}, {t.shape}"
-        )
+        raise ConfigError(f"fleet arrays must share one (h, m) shape, got {az.shape}, {el.shape}, {t.shape}")
     h, m = az.shape
     ids = [str(i) for i in ids]
     if len(ids) != h:

@@ -450,9 +450,7 @@ _NUTATION_X_POLY = np.array(
 
 # Mean obliquity of the ecliptic (arcsec) as a polynomial in U = JME / 10, SPA eq. 24,
 # coefficients of U^0 .. U^10.
-_OBLIQUITY_POLY = np.array(
-    [84381.448, -4680.93, -1.55, 1999.25, -51.38, -249.67, -39.05, 7.12, 27.87, 5.79, 2.45]
-)
+_OBLIQUITY_POLY = np.array([84381.448, -4680.93, -1.55, 1999.25, -51.38, -249.67, -39.05, 7.12, 27.87, 5.79, 2.45])
 
 
 # --------------------------------------------------------------------------------------
@@ -475,12 +473,12 @@ class SolarPosition(eqx.Module):
         equation_of_time_min: equation of time (apparent minus mean solar time), minutes.
     """
 
-    azimuth: Float[Array, "..."]
-    elevation: Float[Array, "..."]
-    zenith: Float[Array, "..."]
-    declination: Float[Array, "..."]
-    hour_angle: Float[Array, "..."]
-    equation_of_time_min: Float[Array, "..."]
+    azimuth: Float[Array, ...]
+    elevation: Float[Array, ...]
+    zenith: Float[Array, ...]
+    declination: Float[Array, ...]
+    hour_angle: Float[Array, ...]
+    equation_of_time_min: Float[Array, ...]
 
     def direction_enu(self) -> Float[Array, "... 3"]:
         """Unit vector pointing to the sun in the local east-north-up frame, shape ``(..., 3)``."""
@@ -491,7 +489,7 @@ class SolarPosition(eqx.Module):
         )
 
 
-def julian_day(unix_time_s: ArrayLike) -> Float[Array, "..."]:
+def julian_day(unix_time_s: ArrayLike) -> Float[Array, ...]:
     """Julian day (UT) of a unix time.
 
     Args:
@@ -532,12 +530,10 @@ def datetime_to_unix(dt_or_iso_string: _dt.datetime | str) -> float:
     elif isinstance(dt_or_iso_string, _dt.datetime):
         dt = dt_or_iso_string
     else:
-        raise TypeError(
-            f"expected a datetime or an ISO-8601 string, got {type(dt_or_iso_string).__name__}"
-        )
+        raise TypeError(f"expected a datetime or an ISO-8601 string, got {type(dt_or_iso_string).__name__}")
     if dt.tzinfo is None:
-        dt = dt.replace(tzinfo=_dt.timezone.utc)
-    delta = dt - _dt.datetime(1970, 1, 1, tzinfo=_dt.timezone.utc)
+        dt = dt.replace(tzinfo=_dt.UTC)
+    delta = dt - _dt.datetime(1970, 1, 1, tzinfo=_dt.UTC)
     # Exact integer arithmetic before the single rounding to float.
     micro = (delta.days * 86400 + delta.seconds) * 1_000_000 + delta.microseconds
     return micro / 1e6
@@ -737,9 +733,7 @@ def _spa_jit(
     lamda = theta + dpsi + dtau
 
     # 3.8 apparent sidereal time at Greenwich.
-    nu0 = jnp.mod(
-        280.46061837 + 360.98564736629 * d + 0.000387933 * jc**2 - jc**3 / 38710000.0, 360.0
-    )
+    nu0 = jnp.mod(280.46061837 + 360.98564736629 * d + 0.000387933 * jc**2 - jc**3 / 38710000.0, 360.0)
     eps_r = jnp.deg2rad(eps)
     nu = nu0 + dpsi * jnp.cos(eps_r)
 
@@ -755,10 +749,7 @@ def _spa_jit(
         360.0,
     )
     delta = jnp.rad2deg(
-        jnp.arcsin(
-            jnp.sin(beta_r) * jnp.cos(eps_r)
-            + jnp.cos(beta_r) * jnp.sin(eps_r) * jnp.sin(lam_r)
-        )
+        jnp.arcsin(jnp.sin(beta_r) * jnp.cos(eps_r) + jnp.cos(beta_r) * jnp.sin(eps_r) * jnp.sin(lam_r))
     )
 
     # 3.11 observer local hour angle (westward from south).
@@ -782,10 +773,7 @@ def _spa_jit(
 
     # 3.14 topocentric elevation, refraction, zenith.
     e0 = jnp.rad2deg(
-        jnp.arcsin(
-            jnp.sin(lat_r) * jnp.sin(delta_p_r)
-            + jnp.cos(lat_r) * jnp.cos(delta_p_r) * jnp.cos(Hp_r)
-        )
+        jnp.arcsin(jnp.sin(lat_r) * jnp.sin(delta_p_r) + jnp.cos(lat_r) * jnp.cos(delta_p_r) * jnp.cos(Hp_r))
     )
     if refraction:
         limit = -(_SUN_RADIUS_DEG + atmos_refract_deg)

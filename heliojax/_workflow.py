@@ -9,22 +9,19 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import time
+import typing
 from collections.abc import Callable
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-import equinox as eqx
-import typing
-
 from ._fleet import bucket_size, pad_fleet
 from ._geometry import direction_to_azimuth_elevation
-from ._io import atomic_path, atomic_write
+from ._io import atomic_write
 from ._kinematics import AbstractKinematicModel, nominal_model
-from ._parameters import ParameterView
 from ._splits import split_fleet
 from .fitting import (
     FitSolution,
@@ -36,7 +33,6 @@ from .fitting import (
     fleet_beam_errors_mrad,
     fleet_residuals_mrad,
 )
-
 
 
 @dataclasses.dataclass(frozen=True)
@@ -146,12 +142,17 @@ def calibrate(
         test = np.zeros_like(train)
         too_few = {}
     else:
-        kw = dict(n_train=n_train, n_val=n_val, seed=seed)
+        kw: dict[str, typing.Any] = dict(n_train=n_train, n_val=n_val, seed=seed)
         if n_train is None:
             kw["train_fraction"] = train_fraction
         fs = split_fleet(
-            split, np.asarray(az), np.asarray(el), np.asarray(fleet.context.unix_time), ids,
-            valid=np.asarray(fleet.mask), **kw,
+            typing.cast(typing.Any, split),
+            np.asarray(az),
+            np.asarray(el),
+            np.asarray(fleet.context.unix_time),
+            ids,
+            valid=np.asarray(fleet.mask),
+            **kw,
         )
         train, val, test = np.asarray(fs.train_mask), np.asarray(fs.val_mask), np.asarray(fs.test_mask)
         too_few = dict(fs.too_few)
@@ -266,9 +267,13 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
     std = np.asarray(res.std)
     status = np.asarray(res.status)
     ids = run.fleet.ids
-    test_err = run.test_errors_mrad if run.test_errors_mrad is not None else np.where(run.test_mask, run.errors_mrad, np.nan)
+    test_err = (
+        run.test_errors_mrad if run.test_errors_mrad is not None else np.where(run.test_mask, run.errors_mrad, np.nan)
+    )
     test_unc = (
-        run.test_uncalibrated_mrad if run.test_uncalibrated_mrad is not None else np.where(run.test_mask, run.uncalibrated_mrad, np.nan)
+        run.test_uncalibrated_mrad
+        if run.test_uncalibrated_mrad is not None
+        else np.where(run.test_mask, run.uncalibrated_mrad, np.nan)
     )
     train_err = np.where(run.train_mask, run.errors_mrad, np.nan)
     val_err = np.where(run.val_mask, run.errors_mrad, np.nan)
@@ -296,7 +301,8 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
             "noise_mrad": _json_float(float(run.noise_mrad[i])) if run.noise_mrad is not None else None,
             "n_outliers": int(np.sum(run.outlier[i])) if run.outlier is not None else 0,
             "outlier_record_ids": [int(x) for x in np.asarray(run.fleet.record_id)[i][run.outlier[i]]]
-            if run.outlier is not None else [],
+            if run.outlier is not None
+            else [],
             "start_geometry": "fleet_typical" if run.start_replaced[i] else "nominal",
             "params": {n: _json_float(params[i, k]) for k, n in enumerate(view.names)},
             "param_std": {n: _json_float(std[i, k]) for k, n in enumerate(view.names)},

@@ -47,8 +47,9 @@ def zoo(name: str) -> Case:
         return Case(*simulate_fleet(12, N_HELIOSTATS, N_RECORDS, base="actuator", noise_mrad=NOISE_MRAD))
     if name == "backlash":
         effect = make_effect("backlash", hj.ActuatorModel.nominal(jnp.float64), backlash_1=3e-4, backlash_2=3e-4)
-        return Case(*simulate_fleet(13, N_HELIOSTATS, N_RECORDS, effects=[effect], base="actuator",
-                                    noise_mrad=NOISE_MRAD))
+        return Case(
+            *simulate_fleet(13, N_HELIOSTATS, N_RECORDS, effects=[effect], base="actuator", noise_mrad=NOISE_MRAD)
+        )
     if name == "padded":
         base = zoo("stone")
         return Case(hj.pad_fleet(base.fleet, 16, 32), base.truth)

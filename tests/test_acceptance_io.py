@@ -9,7 +9,9 @@ import pytest
 
 from heliojax._errors import ConfigError, DataError
 from heliojax.acceptance import (
+    JUELICH_COORDINATES,
     field_from_summary,
+    juelich_receiver,
     load_contract,
     positions_from_paint,
     read_field_csv,
@@ -18,8 +20,6 @@ from heliojax.acceptance import (
     select_sample,
     synthetic_field,
     typical_year,
-    juelich_receiver,
-    JUELICH_COORDINATES,
 )
 from heliojax.cli import _accept
 
@@ -93,12 +93,18 @@ def test_read_field_csv_errors(tmp_path, text, field):
 
 
 def test_read_summary(tmp_path):
-    doc = {"model": "stone", "split": "time", "heliostats": {
-        "AA01": {"status": "ok", "test_rms_mrad": 1.2},
-        "AA02": {"status": "failed", "test_rms_mrad": 9.9},
-        "AA03": {"status": "ok", "test_rms_mrad": None},
-        "AA04": {"status": "ok", "test_rms_mrad": 2.5},
-    }, "fleet": {}, "timing": {}}
+    doc = {
+        "model": "stone",
+        "split": "time",
+        "heliostats": {
+            "AA01": {"status": "ok", "test_rms_mrad": 1.2},
+            "AA02": {"status": "failed", "test_rms_mrad": 9.9},
+            "AA03": {"status": "ok", "test_rms_mrad": None},
+            "AA04": {"status": "ok", "test_rms_mrad": 2.5},
+        },
+        "fleet": {},
+        "timing": {},
+    }
     p = tmp_path / "summary.json"
     p.write_text(json.dumps(doc))
     assert read_summary(p) == {"AA01": 1.2, "AA04": 2.5}
@@ -120,9 +126,13 @@ def test_contract_validation(tmp_path):
     p.write_text(CONTRACT)
     c = load_contract(p)
     assert c.parameters["tracking_mrad"].mean == 2.0 and c.formula == "eq7" and c.step_minutes == 180
-    for bad in [CONTRACT.replace("mean = 2.0", "mean = -2.0"), CONTRACT + "\n[bogus]\n",
-                CONTRACT.replace("tracking_mrad", "tracking"), "[sampling]\nformula='eq5'\n" + CONTRACT,
-                CONTRACT.replace("[parameters.tracking_mrad]", "[parameters.reflectance]")]:
+    for bad in [
+        CONTRACT.replace("mean = 2.0", "mean = -2.0"),
+        CONTRACT + "\n[bogus]\n",
+        CONTRACT.replace("tracking_mrad", "tracking"),
+        "[sampling]\nformula='eq5'\n" + CONTRACT,
+        CONTRACT.replace("[parameters.tracking_mrad]", "[parameters.reflectance]"),
+    ]:
         p.write_text(bad)
         with pytest.raises(ConfigError):
             load_contract(p)
@@ -147,8 +157,9 @@ def test_run_acceptance_detects_bad_field():
     p_sun = typical_year(*JUELICH_COORDINATES, step_minutes=240)
     from heliojax.acceptance._io import Contract, ParameterSpec
 
-    c = Contract(parameters={"tracking_mrad": ParameterSpec(1.8, 0.3, 0.04),
-                             "slope_mrad": ParameterSpec(1.5, 0.3, 0.075)})
+    c = Contract(
+        parameters={"tracking_mrad": ParameterSpec(1.8, 0.3, 0.04), "slope_mrad": ParameterSpec(1.5, 0.3, 0.075)}
+    )
     res = run_acceptance(f, c, juelich_receiver(), JUELICH_COORDINATES, sun=p_sun)
     r = res.report
     assert r["verdict"] == "rejected"
@@ -170,8 +181,22 @@ def test_cli_csv(synthetic_csv, tmp_path, capsys):
     path, contract, _, _ = synthetic_csv
     report = tmp_path / "out" / "acceptance.json"
     figs = tmp_path / "figs"
-    assert _cli(["accept", "--results", str(path), "--contract", str(contract), "--report", str(report),
-                 "--figures", str(figs)]) == 0
+    assert (
+        _cli(
+            [
+                "accept",
+                "--results",
+                str(path),
+                "--contract",
+                str(contract),
+                "--report",
+                str(report),
+                "--figures",
+                str(figs),
+            ]
+        )
+        == 0
+    )
     doc = json.loads(report.read_text())
     for key in ("sample_sizes", "level1", "clusters", "level2", "verdict"):
         assert key in doc
@@ -183,7 +208,10 @@ def test_cli_csv(synthetic_csv, tmp_path, capsys):
     assert {"annual_efficiency_contract", "annual_efficiency_measured", "monthly"} <= set(doc["level2"])
     assert doc["verdict"] in ("accepted", "rejected", "inconclusive")
     assert sorted(p.name for p in figs.iterdir()) == [
-        "cluster_distributions.png", "field_map.png", "monthly_efficiency.png"]
+        "cluster_distributions.png",
+        "field_map.png",
+        "monthly_efficiency.png",
+    ]
     assert not [p for p in report.parent.iterdir() if p.name.startswith(".")]  # atomic, no leftovers
     assert "verdict" in capsys.readouterr().out
 
@@ -207,17 +235,42 @@ def test_cli_summary_with_paint_positions(shared_paint, tmp_path):
     # these heliostats stand about 210 to 300 m north of the tower
     assert 150 < enu[:, 1].min() and enu[:, 1].max() < 320 and np.abs(enu[:, 0]).max() < 200
     rng = np.random.default_rng(0)
-    heliostats = {h: {"status": "ok", "n_train": 30, "n_test": 10, "train_rms_mrad": 1.0,
-                      "test_median_mrad": 1.0, "test_rms_mrad": float(rng.gamma(30, 1.7 / 30)),
-                      "params": {}, "param_std": {}} for h in ids}
+    heliostats = {
+        h: {
+            "status": "ok",
+            "n_train": 30,
+            "n_test": 10,
+            "train_rms_mrad": 1.0,
+            "test_median_mrad": 1.0,
+            "test_rms_mrad": float(rng.gamma(30, 1.7 / 30)),
+            "params": {},
+            "param_std": {},
+        }
+        for h in ids
+    }
     summ = tmp_path / "summary.json"
-    summ.write_text(json.dumps({"model": "stone", "split": "time", "heliostats": heliostats,
-                                "fleet": {}, "timing": {}}))
+    summ.write_text(
+        json.dumps({"model": "stone", "split": "time", "heliostats": heliostats, "fleet": {}, "timing": {}})
+    )
     c = tmp_path / "c.toml"
     c.write_text(CONTRACT.replace("[parameters.slope_mrad]\nmean = 1.5\nstd = 0.3\nrel_error = 0.075\n", ""))
     report = tmp_path / "acceptance.json"
-    assert _cli(["accept", "--results", str(summ), "--contract", str(c), "--report", str(report),
-                 "--paint", str(shared_paint)]) == 0
+    assert (
+        _cli(
+            [
+                "accept",
+                "--results",
+                str(summ),
+                "--contract",
+                str(c),
+                "--report",
+                str(report),
+                "--paint",
+                str(shared_paint),
+            ]
+        )
+        == 0
+    )
     doc = json.loads(report.read_text())
     assert doc["population"] == 27 and doc["level1"]["tracking_mrad"]["n"] == 27
     assert doc["inputs"]["receiver"].endswith("WRI1030197-tower-measurements.json")

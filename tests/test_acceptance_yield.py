@@ -53,8 +53,14 @@ def test_intercept_off_centre_aim_and_tiny_target():
     from heliojax._geometry import TargetPlane
 
     c = np.array([0.0, 0.0, 50.0])
-    tp = TargetPlane(centre=jnp.asarray(c), normal=jnp.array([0.0, 1, 0]), u_axis=jnp.array([-1.0, 0, 0]),
-                     v_axis=jnp.array([0.0, 0, 1]), half_width=jnp.asarray(0.05), half_height=jnp.asarray(0.05))
+    tp = TargetPlane(
+        centre=jnp.asarray(c),
+        normal=jnp.array([0.0, 1, 0]),
+        u_axis=jnp.array([-1.0, 0, 0]),
+        v_axis=jnp.array([0.0, 0, 1]),
+        half_width=jnp.asarray(0.05),
+        half_height=jnp.asarray(0.05),
+    )
     p = np.array([[0.0, 100.0, 50.0]])  # normal incidence, d = 100 m
     sigma = 5e-3
     got = float(intercept_efficiency(p, tp, np.array([sigma]))[0])
@@ -127,6 +133,14 @@ def test_typical_year_and_field_efficiency():
     w = good.dni_kwh_m2
     assert good.annual == pytest.approx(float((good.monthly * w).sum() / w.sum()), rel=1e-9)
     # reflectance and aperture scale linearly
-    half = field_efficiency(pos, ap, sun, tracking_mrad=np.full(3, 1.0), slope_mrad=1.5, reflectance=0.5,
-                            aperture_m2=np.full(3, 4.0), reference_aperture_m2=8.0)
+    half = field_efficiency(
+        pos,
+        ap,
+        sun,
+        tracking_mrad=np.full(3, 1.0),
+        slope_mrad=1.5,
+        reflectance=0.5,
+        aperture_m2=np.full(3, 4.0),
+        reference_aperture_m2=8.0,
+    )
     assert half.annual == pytest.approx(good.annual / 4, rel=1e-9)

@@ -47,8 +47,13 @@ def _records(n_heliostats=3, n_records=7, seed=0):
     el = rng.uniform(0.2, 1.2, (n_heliostats, n_records))
     sun = np.stack([np.cos(el) * np.sin(az), -np.cos(el) * np.cos(az), np.sin(el)], -1)
     focal = np.stack(
-        [rng.uniform(-3, 3, (n_heliostats, n_records)), np.full((n_heliostats, n_records), -3.2),
-         rng.uniform(119, 127, (n_heliostats, n_records))], -1)
+        [
+            rng.uniform(-3, 3, (n_heliostats, n_records)),
+            np.full((n_heliostats, n_records), -3.2),
+            rng.uniform(119, 127, (n_heliostats, n_records)),
+        ],
+        -1,
+    )
     return g, counts, sun, focal
 
 
@@ -80,9 +85,12 @@ def test_numpy_pose_reference_pose(bench):
     """Hand check: nominal model, theta = pi/2 and tau = 0 give the south-facing
     reference normal (0, -1, 0) and centre P + V2M (no other offsets)."""
     geom = dict(
-        position=np.array([1.0, 2.0, 3.0]), joint_translation_1=np.zeros(3), joint_translation_2=np.zeros(3),
+        position=np.array([1.0, 2.0, 3.0]),
+        joint_translation_1=np.zeros(3),
+        joint_translation_2=np.zeros(3),
         concentrator_translation=np.array([0.0, 0.175, 0.0]),
-        linear_slope=np.array([1e-5, 1e-5]), linear_intercept=np.array([np.pi / 2, 0.0]),
+        linear_slope=np.array([1e-5, 1e-5]),
+        linear_intercept=np.array([np.pi / 2, 0.0]),
     )
     normal, centre = bench.stone_pose_np(bench.STONE_NOMINAL, geom, np.zeros((1, 2)))
     np.testing.assert_allclose(normal[0], [0.0, -1.0, 0.0], atol=1e-15)

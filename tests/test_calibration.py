@@ -9,9 +9,9 @@ units (:data:`PATH_ATOL`); runs of the same program agree to the last bit.
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
-import equinox as eqx
 import numpy as np
 import pytest
 
@@ -24,7 +24,6 @@ from heliojax._simulate import (
     synthetic_contexts,
     synthetic_geometry,
 )
-
 
 STONE8_NAMES = ("alpha", "beta", "gamma", "delta", "theta_k", "tau_k", "gr1", "gr2")
 PATH_ATOL = 10 * hj.fitting.DEFAULT_ATOL * 1e-2
@@ -122,9 +121,9 @@ def test_bad_heliostats_do_not_spoil_a_fleet_of_1000():
     counts = sim.counts
     spots = sim.focal_spot
     m2 = mask
-    spots = spots.at[10, 3].set(jnp.nan)                      # NaN record
-    m2 = m2.at[20].set(jnp.arange(m) < 3)                      # 3 records
-    rng = np.random.default_rng(0)                             # garbage that cannot converge
+    spots = spots.at[10, 3].set(jnp.nan)  # NaN record
+    m2 = m2.at[20].set(jnp.arange(m) < 3)  # 3 records
+    rng = np.random.default_rng(0)  # garbage that cannot converge
     spots = spots.at[30].set(jnp.asarray(rng.uniform(-80, 80, (m, 3)) + np.array([0, -3, 120])))
     counts = counts.at[30].set(jnp.asarray(rng.uniform(1000, 60000, (m, 2))))
     bad = eqx.tree_at(lambda f: (f.counts, f.focal_spot, f.mask), sim, (counts, spots, m2))

@@ -6,10 +6,9 @@ import json
 
 import h5py
 import numpy as np
-
-import heliojax as hj
 import pytest
 
+import heliojax as hj
 from heliojax.cli._main import main
 
 
@@ -24,17 +23,37 @@ def test_inspect_embedded(tmp_path, capsys):
 
 def test_calibrate_embedded_writes_schema(tmp_path, capsys):
     report, out, plot = tmp_path / "s.json", tmp_path / "r.h5", tmp_path / "p.png"
-    rc = main([
-        "calibrate", "--model", "actuator", "--report", str(report), "--out", str(out),
-        "--plot", str(plot), "--cache-dir", str(tmp_path / "cache"), "--quiet",
-    ])
+    rc = main(
+        [
+            "calibrate",
+            "--model",
+            "actuator",
+            "--report",
+            str(report),
+            "--out",
+            str(out),
+            "--plot",
+            str(plot),
+            "--cache-dir",
+            str(tmp_path / "cache"),
+            "--quiet",
+        ]
+    )
     assert rc == 0
     s = json.loads(report.read_text())
     assert s["model"] == "actuator" and s["split"] == "time"
     assert set(s["heliostats"]) == {"BE36", "BF56", "BG23", "BH20", "BL14"}
     for h in s["heliostats"].values():
-        for key in ("status", "n_train", "n_test", "train_rms_mrad", "test_median_mrad", "test_rms_mrad",
-                    "params", "param_std"):
+        for key in (
+            "status",
+            "n_train",
+            "n_test",
+            "train_rms_mrad",
+            "test_median_mrad",
+            "test_rms_mrad",
+            "params",
+            "param_std",
+        ):
             assert key in h
     f = s["fleet"]
     assert f["n_heliostats"] == 5 and f["n_converged"] == 4  # BL14 has 9 records: 6 train < 8 parameters
@@ -47,8 +66,16 @@ def test_calibrate_embedded_writes_schema(tmp_path, capsys):
         ids = [x.decode() for x in h["heliostat_ids"][()]]
         assert ids == list(s["heliostats"])
         np.testing.assert_allclose(h["params"][0, 0], s["heliostats"][ids[0]]["params"]["alpha"])
-        for name in ("unix_time", "sun_azimuth_deg", "sun_elevation_deg", "target_index", "split", "weight",
-                     "outlier", "beam_error_mrad"):
+        for name in (
+            "unix_time",
+            "sun_azimuth_deg",
+            "sun_elevation_deg",
+            "target_index",
+            "split",
+            "weight",
+            "outlier",
+            "beam_error_mrad",
+        ):
             assert h[name].shape == h["record_id"].shape, name
     assert plot.stat().st_size > 1000
     # the fit reloads as a fitted fleet that reproduces the written beam errors
@@ -58,8 +85,15 @@ def test_calibrate_embedded_writes_schema(tmp_path, capsys):
     i = res.ids.index("BE36")
     model, geometry = res.heliostat("BE36")
     k = int(np.sum(res.records["record_id"][i] >= 0))
-    errs = [float(hj.beam_pointing_error(hj.forward(model, geometry, fleet.counts[i, j]), fleet.context.sun[i, j],
-                                         fleet.focal_spot[i, j])) * 1e3 for j in range(0, k, 17)]
+    errs = [
+        float(
+            hj.beam_pointing_error(
+                hj.forward(model, geometry, fleet.counts[i, j]), fleet.context.sun[i, j], fleet.focal_spot[i, j]
+            )
+        )
+        * 1e3
+        for j in range(0, k, 17)
+    ]
     np.testing.assert_allclose(errs, res.records["beam_error_mrad"][i, 0:k:17], rtol=1e-9)
 
 
@@ -85,8 +119,24 @@ def test_calibrate_with_test_data_directory(tmp_path):
 
     report = tmp_path / "s.json"
     data = str(hj.default_data_dir())
-    assert main(["calibrate", data, "--model", "actuator", "--test-data", data, "--report", str(report),
-                 "--cache-dir", "none", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                data,
+                "--model",
+                "actuator",
+                "--test-data",
+                data,
+                "--report",
+                str(report),
+                "--cache-dir",
+                "none",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     s = json.loads(report.read_text())
     assert s["split"] == "test-data"
     be36 = s["heliostats"]["BE36"]

@@ -5,7 +5,6 @@ compiled programs are shared)."""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 from scipy import stats
 
 from heliojax.discovery import (
@@ -156,8 +155,10 @@ def test_gravity_sag_is_reported_not_identifiable():
 
 
 def test_two_hidden_effects_are_both_named():
-    effects = [make_effect("backlash", backlash_1=3e-4, backlash_2=3e-4),
-               make_effect("thermal", thermal_1=1.5e-5, thermal_2=1.5e-5, thermal_reference_c=10.0)]
+    effects = [
+        make_effect("backlash", backlash_1=3e-4, backlash_2=3e-4),
+        make_effect("thermal", thermal_1=1.5e-5, thermal_2=1.5e-5, thermal_reference_c=10.0),
+    ]
     res = _run(104, effects)
     assert set(res.report["named_effects"][:2]) == {"backlash", "thermal"}
     assert res.report["heldout_rms_final_mrad"] <= HELDOUT_BOUND

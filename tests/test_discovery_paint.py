@@ -33,13 +33,18 @@ def _write_like_another_program(root: Path, fleet) -> None:
     c, u, v = (np.asarray(x) for x in (tg.centre, tg.u_axis, tg.v_axis))
     hw, hh = float(tg.half_width), float(tg.half_height)
     corners = {
-        "upper_left": c - hw * u + hh * v, "upper_right": c + hw * u + hh * v,
-        "lower_left": c - hw * u - hh * v, "lower_right": c + hw * u - hh * v,
+        "upper_left": c - hw * u + hh * v,
+        "upper_right": c + hw * u + hh * v,
+        "lower_left": c - hw * u - hh * v,
+        "lower_right": c + hw * u - hh * v,
     }
     tower = {
         "power_plant_properties": {"ID": "WRI1030197", "coordinates": PLANT},
-        TARGET: {"type": "planar", "normal_vector": [0, 1, 0],
-                 "coordinates": {"center": _lla(c), **{k: _lla(p) for k, p in corners.items()}}},
+        TARGET: {
+            "type": "planar",
+            "normal_vector": [0, 1, 0],
+            "coordinates": {"center": _lla(c), **{k: _lla(p) for k, p in corners.items()}},
+        },
     }
     (root / "WRI1030197-tower-measurements.json").write_text(json.dumps(tower, indent=1))
     g = fleet.geometry
@@ -53,20 +58,29 @@ def _write_like_another_program(root: Path, fleet) -> None:
     for i, hid in enumerate(fleet.ids):
         props = {
             "heliostat_position": [float(x) for x in positions[i]],
-            "height": 2.56, "width": 3.22, "initial_orientation": [0.0, -1.0, 0.0],
+            "height": 2.56,
+            "width": 3.22,
+            "initial_orientation": [0.0, -1.0, 0.0],
             "kinematics_properties": {
                 "actuators": [
-                    {"type_axis": "linear", "min_increment": int(act.min_counts[i, a]),
-                     "max_increment": int(act.max_counts[i, a]), "increment": float(act.increment[i, a]),
-                     "initial_stroke_length": float(act.initial_stroke_length[i, a]),
-                     "offset": float(act.offset[i, a]), "pivot_radius": float(act.pivot_radius[i, a]),
-                     "clockwise_axis_movement": 0 if float(act.sign[i, a]) > 0 else 1,
-                     "initial_angle": float(act.initial_angle[i, a])}
+                    {
+                        "type_axis": "linear",
+                        "min_increment": int(act.min_counts[i, a]),
+                        "max_increment": int(act.max_counts[i, a]),
+                        "increment": float(act.increment[i, a]),
+                        "initial_stroke_length": float(act.initial_stroke_length[i, a]),
+                        "offset": float(act.offset[i, a]),
+                        "pivot_radius": float(act.pivot_radius[i, a]),
+                        "clockwise_axis_movement": 0 if float(act.sign[i, a]) > 0 else 1,
+                        "initial_angle": float(act.initial_angle[i, a]),
+                    }
                     for a in range(2)
                 ],
                 **{f"joint_translation_{k}_{n}": 0.0 for n in (1, 2) for k in "enu"},
-                **{f"concentrator_translation_{k}": float(x)
-                   for k, x in zip("enu", np.asarray(g.concentrator_translation[i]))},
+                **{
+                    f"concentrator_translation_{k}": float(x)
+                    for k, x in zip("enu", np.asarray(g.concentrator_translation[i]))
+                },
             },
         }
         (root / hid / "Properties").mkdir(parents=True)
@@ -79,26 +93,47 @@ def _write_like_another_program(root: Path, fleet) -> None:
             el = math.degrees(math.asin(s[2]))
             spot = [float(x) for x in spots[i, j]]
             counts = [int(round(float(x))) for x in np.asarray(fleet.counts[i, j])]
-            rec = {"motor_position": {"axis_1_motor_position": counts[0], "axis_2_motor_position": counts[1]},
-                   "target_name": TARGET, "sun_elevation": el, "sun_azimuth": az,
-                   "focal_spot": {"HeliOS": spot, "UTIS": spot}}
+            rec = {
+                "motor_position": {"axis_1_motor_position": counts[0], "axis_2_motor_position": counts[1]},
+                "target_name": TARGET,
+                "sun_elevation": el,
+                "sun_azimuth": az,
+                "focal_spot": {"HeliOS": spot, "UTIS": spot},
+            }
             (root / hid / "Calibration" / f"{rid}-calibration-properties.json").write_text(json.dumps(rec))
-            when = dt.datetime.fromtimestamp(float(ctx.unix_time[i, j]), dt.timezone.utc)
+            when = dt.datetime.fromtimestamp(float(ctx.unix_time[i, j]), dt.UTC)
             stamp = when.strftime("%Y-%m-%dT%H:%M:%SZ")
             timestamps[str(rid)] = {"heliostat_id": hid, "datetime": stamp}
-            rows.append({
-                "heliostat_id": hid, "timestamp": stamp, "sample_id": rid, "sun_elevation": el, "sun_azimuth": az,
-                "axis_1_motor_position": counts[0], "axis_2_motor_position": counts[1], "target_name": TARGET,
-                "heliostat_lat": props["heliostat_position"][0], "heliostat_lon": props["heliostat_position"][1],
-                "heliostat_alt": props["heliostat_position"][2],
-                "focal_spot_lat": spot[0], "focal_spot_lon": spot[1], "focal_spot_alt": spot[2],
-                "target_center_lat": _lla(c)[0], "target_center_lon": _lla(c)[1], "target_center_alt": _lla(c)[2],
-                "tracking_error_lat": "", "tracking_error_lon": "", "tracking_error_alt": "",
-                "wind_speed": f"{float(ctx.wind_speed[i, j]):.4f}",
-                "wind_direction": f"{math.degrees(float(ctx.wind_direction[i, j])):.4f}",
-                "dni": "800.0", "temperature": f"{float(ctx.temperature[i, j]):.4f}",
-                "humidity": "40.0", "pressure": "1005.0",
-            })
+            rows.append(
+                {
+                    "heliostat_id": hid,
+                    "timestamp": stamp,
+                    "sample_id": rid,
+                    "sun_elevation": el,
+                    "sun_azimuth": az,
+                    "axis_1_motor_position": counts[0],
+                    "axis_2_motor_position": counts[1],
+                    "target_name": TARGET,
+                    "heliostat_lat": props["heliostat_position"][0],
+                    "heliostat_lon": props["heliostat_position"][1],
+                    "heliostat_alt": props["heliostat_position"][2],
+                    "focal_spot_lat": spot[0],
+                    "focal_spot_lon": spot[1],
+                    "focal_spot_alt": spot[2],
+                    "target_center_lat": _lla(c)[0],
+                    "target_center_lon": _lla(c)[1],
+                    "target_center_alt": _lla(c)[2],
+                    "tracking_error_lat": "",
+                    "tracking_error_lon": "",
+                    "tracking_error_alt": "",
+                    "wind_speed": f"{float(ctx.wind_speed[i, j]):.4f}",
+                    "wind_direction": f"{math.degrees(float(ctx.wind_direction[i, j])):.4f}",
+                    "dni": "800.0",
+                    "temperature": f"{float(ctx.temperature[i, j]):.4f}",
+                    "humidity": "40.0",
+                    "pressure": "1005.0",
+                }
+            )
     (root / "calibration-timestamps.json").write_text(json.dumps(timestamps, indent=1))
     with open(root / "calibration-with-weather.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
@@ -109,8 +144,10 @@ def _write_like_another_program(root: Path, fleet) -> None:
 @pytest.fixture(scope="module")
 def paint_dir(tmp_path_factory):
     # Whole-second times: the PAINT timestamps have a resolution of 1 s.
-    true = [make_effect("backlash", backlash_1=3e-4, backlash_2=3e-4),
-            make_effect("thermal", thermal_1=1.5e-5, thermal_2=1.5e-5, thermal_reference_c=10.0)]
+    true = [
+        make_effect("backlash", backlash_1=3e-4, backlash_2=3e-4),
+        make_effect("thermal", thermal_1=1.5e-5, thermal_2=1.5e-5, thermal_reference_c=10.0),
+    ]
     fleet, _ = simulate_fleet(105, 8, 40, effects=true, noise_mrad=0.25)
     root = tmp_path_factory.mktemp("paint")
     _write_like_another_program(root, fleet)
@@ -122,10 +159,14 @@ def test_written_data_read_back_like_the_simulation(paint_dir):
     loaded = hj.load_paint_directory(root)
     assert loaded.ids == fleet.ids
     order = np.argsort(np.asarray(fleet.context.unix_time), axis=1)  # the loader sorts by time
-    np.testing.assert_allclose(np.asarray(loaded.context.approach),
-                               np.take_along_axis(np.asarray(fleet.context.approach), order[..., None], 1))
-    np.testing.assert_allclose(np.asarray(loaded.context.temperature),
-                               np.take_along_axis(np.asarray(fleet.context.temperature), order, 1), atol=1e-4)
+    np.testing.assert_allclose(
+        np.asarray(loaded.context.approach), np.take_along_axis(np.asarray(fleet.context.approach), order[..., None], 1)
+    )
+    np.testing.assert_allclose(
+        np.asarray(loaded.context.temperature),
+        np.take_along_axis(np.asarray(fleet.context.temperature), order, 1),
+        atol=1e-4,
+    )
 
 
 def test_discover_command_on_paint_layout(paint_dir, tmp_path):
@@ -133,18 +174,45 @@ def test_discover_command_on_paint_layout(paint_dir, tmp_path):
 
     root, _ = paint_dir
     report, figs, md = tmp_path / "report.json", tmp_path / "figs", tmp_path / "summary.md"
-    rc = main(["discover", str(root), "--base", "stone8", "--report", str(report), "--figures", str(figs),
-               "--markdown", str(md), "--cache-dir", "none", "--quiet"])
+    rc = main(
+        [
+            "discover",
+            str(root),
+            "--base",
+            "stone8",
+            "--report",
+            str(report),
+            "--figures",
+            str(figs),
+            "--markdown",
+            str(md),
+            "--cache-dir",
+            "none",
+            "--quiet",
+        ]
+    )
     assert rc == 0
     r = json.loads(report.read_text())
-    for key in ("base_model", "steps", "named_effects", "not_identifiable", "heldout_rms_base_mrad",
-                "heldout_rms_final_mrad"):
+    for key in (
+        "base_model",
+        "steps",
+        "named_effects",
+        "not_identifiable",
+        "heldout_rms_base_mrad",
+        "heldout_rms_final_mrad",
+    ):
         assert key in r
     assert r["base_model"] == "stone8"
     assert set(r["named_effects"][:2]) == {"backlash", "thermal"}
     for s in r["steps"]:
-        for key in ("effect", "delta_bic", "cv_heldout_rms_before_mrad", "cv_heldout_rms_after_mrad", "amplitude",
-                    "heliostats"):
+        for key in (
+            "effect",
+            "delta_bic",
+            "cv_heldout_rms_before_mrad",
+            "cv_heldout_rms_after_mrad",
+            "amplitude",
+            "heliostats",
+        ):
             assert key in s
         assert s["delta_bic"] > 0 and s["cv_heldout_rms_after_mrad"] < s["cv_heldout_rms_before_mrad"]
     assert r["heldout_rms_final_mrad"] < r["heldout_rms_base_mrad"]

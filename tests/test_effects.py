@@ -29,9 +29,9 @@ from heliojax.effects import (
     Wind,
     add_effects,
     effect_class,
-    with_data_references,
     make_effect,
     standard_refraction,
+    with_data_references,
     with_effects,
 )
 
@@ -45,7 +45,9 @@ ACT = hj.LinearActuators(
     min_counts=jnp.array([0.0, 0.0]),
     max_counts=jnp.array([69001.0, 75454.0]),
 )
-GEOM = hj.HeliostatGeometry.build(jnp.array([0.9, 209.6, 1.7]), ACT, concentrator_translation=jnp.array([0.0, 0.175, 0.0]))
+GEOM = hj.HeliostatGeometry.build(
+    jnp.array([0.9, 209.6, 1.7]), ACT, concentrator_translation=jnp.array([0.0, 0.175, 0.0])
+)
 COUNTS = jnp.array([30000.0, 40000.0])
 SUN = hj.sun_direction(jnp.deg2rad(20.0), jnp.deg2rad(40.0))
 FOCAL = jnp.array([0.3, -3.2, 122.5])
@@ -53,15 +55,31 @@ STONE = hj.StoneModel(*[jnp.asarray(v) for v in (1e-3, -2e-3, 5e-4, -1e-3, 4e-3,
 
 
 def _context(**kw):
-    base = dict(sun=SUN, unix_time=jnp.asarray(1.66e9), temperature=jnp.asarray(25.0), wind_speed=jnp.asarray(6.0),
-                wind_direction=jnp.asarray(1.0), approach=jnp.array([1.0, -1.0]))
+    base = dict(
+        sun=SUN,
+        unix_time=jnp.asarray(1.66e9),
+        temperature=jnp.asarray(25.0),
+        wind_speed=jnp.asarray(6.0),
+        wind_direction=jnp.asarray(1.0),
+        approach=jnp.array([1.0, -1.0]),
+    )
     base.update({k: jnp.asarray(v) for k, v in kw.items()})
     return hj.RecordContext(**base)
 
 
 def test_effect_names_are_the_documented_list():
-    assert EFFECT_NAMES == ("actuator_geometry", "backlash", "thermal", "wind", "clock", "gravity_sag",
-                            "encoder_wobble", "refraction", "survey_heliostat", "survey_target")
+    assert EFFECT_NAMES == (
+        "actuator_geometry",
+        "backlash",
+        "thermal",
+        "wind",
+        "clock",
+        "gravity_sag",
+        "encoder_wobble",
+        "refraction",
+        "survey_heliostat",
+        "survey_target",
+    )
     for name in EFFECT_NAMES:
         cls = effect_class(name)
         assert cls.NAME == name
@@ -79,8 +97,9 @@ def test_zero_effects_reproduce_the_base(base_kind):
     effects = tuple(make_effect(n, base) for n in EFFECT_NAMES)
     model = EffectModel(base, effects)
     ctx = _context()
-    np.testing.assert_allclose(model.beam_components(GEOM, COUNTS, ctx, FOCAL),
-                               base.beam_components(GEOM, COUNTS, ctx, FOCAL), atol=1e-15)
+    np.testing.assert_allclose(
+        model.beam_components(GEOM, COUNTS, ctx, FOCAL), base.beam_components(GEOM, COUNTS, ctx, FOCAL), atol=1e-15
+    )
     np.testing.assert_allclose(model.pose(GEOM, COUNTS, ctx).normal, base.pose(GEOM, COUNTS).normal, atol=1e-15)
     np.testing.assert_allclose(model.sun(GEOM, ctx), SUN, atol=1e-15)
     # The inverse is the base's (controllers aim with the base model).
@@ -176,15 +195,18 @@ def test_clock_matches_the_solar_position_code():
     s0 = hj.solar_position(times, lat, lon, alt).direction_enu()
     for dt in (30.0, -90.0):
         s1 = hj.solar_position(times + dt, lat, lon, alt).direction_enu()
-        clock = Clock(offset=jnp.asarray(dt), drift=jnp.asarray(0.0), reference=jnp.asarray(1.6e9),
-                      latitude_deg=jnp.asarray(lat))
+        clock = Clock(
+            offset=jnp.asarray(dt), drift=jnp.asarray(0.0), reference=jnp.asarray(1.6e9), latitude_deg=jnp.asarray(lat)
+        )
         s2 = jax.vmap(clock.adjust_sun)(s0, hj.RecordContext.from_sun(s0, times))
         moved = np.linalg.norm(np.asarray(s1 - s0), axis=1)
         err = np.linalg.norm(np.asarray(s2 - s1), axis=1)
         assert np.all(moved > 2e-3)
         assert np.all(err < 5e-3 * moved)
     # drift: dt grows linearly from the reference; unknown time -> no correction
-    c = Clock(offset=jnp.asarray(1.0), drift=jnp.asarray(0.1), reference=jnp.asarray(1.6e9), latitude_deg=jnp.asarray(lat))
+    c = Clock(
+        offset=jnp.asarray(1.0), drift=jnp.asarray(0.1), reference=jnp.asarray(1.6e9), latitude_deg=jnp.asarray(lat)
+    )
     np.testing.assert_allclose(c.clock_error(jnp.array([1.6e9 + 10 * 86400, jnp.nan])), [2.0, 0.0])
 
 
@@ -206,11 +228,13 @@ def test_survey_effects_move_heliostat_and_spot():
     ctx = _context()
     moved = eqx.tree_at(lambda g: g.position, GEOM, GEOM.position + d)
     m = EffectModel(STONE, (SurveyHeliostat(delta=d),))
-    np.testing.assert_allclose(m.beam_components(GEOM, COUNTS, ctx, FOCAL),
-                               STONE.beam_components(moved, COUNTS, ctx, FOCAL), atol=1e-15)
+    np.testing.assert_allclose(
+        m.beam_components(GEOM, COUNTS, ctx, FOCAL), STONE.beam_components(moved, COUNTS, ctx, FOCAL), atol=1e-15
+    )
     m = EffectModel(STONE, (SurveyTarget(delta=d),))
-    np.testing.assert_allclose(m.beam_components(GEOM, COUNTS, ctx, FOCAL),
-                               STONE.beam_components(GEOM, COUNTS, ctx, FOCAL + d), atol=1e-15)
+    np.testing.assert_allclose(
+        m.beam_components(GEOM, COUNTS, ctx, FOCAL), STONE.beam_components(GEOM, COUNTS, ctx, FOCAL + d), atol=1e-15
+    )
 
 
 def test_add_effects_appends_and_wrappers_nest():
@@ -221,11 +245,14 @@ def test_add_effects_appends_and_wrappers_nest():
         add_effects(m2, [make_effect("thermal")])
     # an EffectModel inside an EffectModel keeps both layers' behaviour
     nested = EffectModel(m, (make_effect("thermal", thermal_1=2e-5, thermal_2=0.0, thermal_reference_c=10.0),))
-    flat = add_effects(STONE, [make_effect("backlash"),
-                               make_effect("thermal", thermal_1=2e-5, thermal_2=0.0, thermal_reference_c=10.0)])
+    flat = add_effects(
+        STONE,
+        [make_effect("backlash"), make_effect("thermal", thermal_1=2e-5, thermal_2=0.0, thermal_reference_c=10.0)],
+    )
     ctx = _context()
-    np.testing.assert_allclose(nested.beam_components(GEOM, COUNTS, ctx, FOCAL),
-                               flat.beam_components(GEOM, COUNTS, ctx, FOCAL), atol=1e-15)
+    np.testing.assert_allclose(
+        nested.beam_components(GEOM, COUNTS, ctx, FOCAL), flat.beam_components(GEOM, COUNTS, ctx, FOCAL), atol=1e-15
+    )
     assert nested.label() == "stone8+backlash+thermal"
 
 
@@ -244,9 +271,11 @@ def test_with_effects_model_view():
     with pytest.raises(ValueError):
         with_effects(hj.StoneModel.nominal(jnp.float64), ["wind", "wind"])
     # nominal effects predict what the base predicts
-    np.testing.assert_allclose(model.beam_components(GEOM, COUNTS, _context(), FOCAL),
-                               hj.StoneModel.nominal(jnp.float64).beam_components(GEOM, COUNTS, _context(), FOCAL),
-                               atol=1e-15)
+    np.testing.assert_allclose(
+        model.beam_components(GEOM, COUNTS, _context(), FOCAL),
+        hj.StoneModel.nominal(jnp.float64).beam_components(GEOM, COUNTS, _context(), FOCAL),
+        atol=1e-15,
+    )
     # a value put in by name comes back out (vector round trip through the pytree)
     p = np.array(view.to_vector(model))
     p[view.names.index("thermal_2")] = 2e-5
@@ -287,8 +316,11 @@ def test_wrappers_compose_in_any_order():
     for model in (nn_outside, nn_inside):
         np.testing.assert_allclose(model.record_angles(GEOM, COUNTS, ctx), plain + d_nn + d_th, atol=1e-14)
         assert model.pose(GEOM, COUNTS, ctx).normal.shape == (3,)
-    np.testing.assert_allclose(nn_outside.beam_components(GEOM, COUNTS, ctx, FOCAL),
-                               nn_inside.beam_components(GEOM, COUNTS, ctx, FOCAL), atol=1e-14)
+    np.testing.assert_allclose(
+        nn_outside.beam_components(GEOM, COUNTS, ctx, FOCAL),
+        nn_inside.beam_components(GEOM, COUNTS, ctx, FOCAL),
+        atol=1e-14,
+    )
 
 
 @pytest.mark.slow

@@ -30,14 +30,17 @@ from heliojax._fleet import (
     fleet_subset,
     pad_fleet,
 )
-from heliojax.paint import default_data_dir, load_paint_directory, load_weather_csv_fleet, records_to_fleet
 from heliojax.paint import (
     CalibrationRecord,
+    default_data_dir,
+    load_paint_directory,
+    load_weather_csv_fleet,
     read_calibration_record,
     read_heliostat_properties,
     read_timestamps,
     read_tower,
     read_weather_csv,
+    records_to_fleet,
     write_paint_directory,
 )
 
@@ -61,8 +64,9 @@ def raw_emb():
     ts = read_timestamps(EMB / "calibration-timestamps.json")
     weather = {(r.heliostat_id, r.record_id): r.weather for r in read_weather_csv(EMB / "calibration-with-weather.csv")}
     props = [read_heliostat_properties(f) for f in sorted(EMB.glob("*/Properties/*.json"))]
-    recs = [read_calibration_record(f, timestamps=ts, weather=weather)
-            for f in sorted(EMB.glob("*/Calibration/*.json"))]
+    recs = [
+        read_calibration_record(f, timestamps=ts, weather=weather) for f in sorted(EMB.glob("*/Calibration/*.json"))
+    ]
     return tower, props, recs
 
 
@@ -182,15 +186,24 @@ def test_weather_join(emb_fleet):
 def test_approach_by_hand(raw_emb):
     tower, props, _ = raw_emb
     p = next(p for p in props if p.heliostat_id == "BL14")
-    base = dict(heliostat_id="BL14", target_name="solar_tower_juelich_lower", sun_azimuth_deg=10.0,
-                sun_elevation_deg=40.0, focal_spot_helios=(50.91339, 6.38782, 123.0))
+    base = dict(
+        heliostat_id="BL14",
+        target_name="solar_tower_juelich_lower",
+        sun_azimuth_deg=10.0,
+        sun_elevation_deg=40.0,
+        focal_spot_helios=(50.91339, 6.38782, 123.0),
+    )
     # Chronology: ids 1..6 at increasing times except id 4, which has no time and is
     # placed by its id (between 3 and 5). Written in scrambled order.
-    seq = [(1, 10, 500, "2023-01-01T10:00:00Z"), (2, 20, 500, "2023-01-01T11:00:00Z"),
-           (3, 20, 500, "2023-01-01T12:00:00Z"), (4, 15, 400, None),
-           (5, 15, 400, "2023-01-02T10:00:00Z"), (6, 30, 450, "2023-01-02T11:00:00Z")]
-    recs = [CalibrationRecord(record_id=i, axis_1_counts=a, axis_2_counts=b, datetime=t, **base)
-            for i, a, b, t in seq]
+    seq = [
+        (1, 10, 500, "2023-01-01T10:00:00Z"),
+        (2, 20, 500, "2023-01-01T11:00:00Z"),
+        (3, 20, 500, "2023-01-01T12:00:00Z"),
+        (4, 15, 400, None),
+        (5, 15, 400, "2023-01-02T10:00:00Z"),
+        (6, 30, 450, "2023-01-02T11:00:00Z"),
+    ]
+    recs = [CalibrationRecord(record_id=i, axis_1_counts=a, axis_2_counts=b, datetime=t, **base) for i, a, b, t in seq]
     f = records_to_fleet(tower, [p], recs[::-1])
     assert np.asarray(f.record_id[0]).tolist() == [1, 2, 3, 4, 5, 6]
     # Axis 1: 10 -> 20 (+), 20 (no move: keeps +), 15 (-), 15 (keeps -), 30 (+).
@@ -218,8 +231,9 @@ def test_shared_directory(shared_fleet, shared_paint):
     assert len(r.skipped) == 1 and "BG63" in r.skipped[0].file and "no properties" in r.skipped[0].reason
     # Records without a timestamp: kept with NaN time, each flagged; counted independently.
     ts = read_timestamps(shared_paint / "calibration-timestamps.json")
-    no_time = {int(p.name.split("-")[0]) for p in shared_paint.glob("*/Calibration/*.json")
-               if p.parents[1].name != "BG63"} - set(ts)
+    no_time = {
+        int(p.name.split("-")[0]) for p in shared_paint.glob("*/Calibration/*.json") if p.parents[1].name != "BG63"
+    } - set(ts)
     assert r.records_without_time == len(no_time) == 5
     t = np.asarray(f.context.unix_time)
     m = np.asarray(f.mask)
@@ -247,8 +261,11 @@ def test_outlier_rule_by_hand(shared_fleet, shared_paint):
     med = np.median(v)
     thr = OUTLIER_K * max(1.4826 * np.median(np.abs(v - med)), OUTLIER_FLOOR * med)
     expect = {h for h, x in vals.items() if abs(x - med) > thr}
-    got = {Path(e.file).parents[1].name for e in shared_fleet.report.flags
-           if e.field == "kinematics_properties.actuators[1].initial_stroke_length" and "median" in e.reason}
+    got = {
+        Path(e.file).parents[1].name
+        for e in shared_fleet.report.flags
+        if e.field == "kinematics_properties.actuators[1].initial_stroke_length" and "median" in e.reason
+    }
     assert got == expect and "BF41" in got
 
 
@@ -318,8 +335,13 @@ def test_csv_form(shared_paint):
     for rid in common[:5]:
         i = int(np.nonzero(np.asarray(a.record_id) == rid)[0][0])
         k = int(np.nonzero(np.asarray(b.record_id) == rid)[0][0])
-        for x, y in ((a.counts, b.counts), (a.focal_spot, b.focal_spot), (a.context.sun, b.context.sun),
-                     (a.context.unix_time, b.context.unix_time), (a.context.temperature, b.context.temperature)):
+        for x, y in (
+            (a.counts, b.counts),
+            (a.focal_spot, b.focal_spot),
+            (a.context.sun, b.context.sun),
+            (a.context.unix_time, b.context.unix_time),
+            (a.context.temperature, b.context.temperature),
+        ):
             assert np.array_equal(np.asarray(x[i]), np.asarray(y[k]))
 
 
@@ -338,8 +360,6 @@ def _edit(path: Path, fn):
     data = json.loads(path.read_text())
     fn(data)
     path.write_text(json.dumps(data))
-
-
 
 
 def _first_bh20(d: Path) -> Path:
@@ -362,8 +382,11 @@ def _mut(field, value):
 
 BAD_RECORDS = [
     ("unknown target", _mut("target_name", "nowhere"), "target_name"),
-    ("counts out of range", _mut("motor_position.axis_1_motor_position", 10**6),
-     "motor_position.axis_1_motor_position"),
+    (
+        "counts out of range",
+        _mut("motor_position.axis_1_motor_position", 10**6),
+        "motor_position.axis_1_motor_position",
+    ),
     ("missing field", _mut("sun_azimuth", None), "sun_azimuth"),
     ("non-numeric", _mut("sun_elevation", "high"), "sun_elevation"),
     ("non-finite", _mut("focal_spot.UTIS", [float("nan"), 6.0, 100.0]), "focal_spot.UTIS[0]"),
@@ -394,8 +417,7 @@ def test_bad_files_in_directory(tmp_path, emb_fleet):
     # A malformed record of BH20, a broken properties file of BL14, records of a
     # heliostat without properties (XX01), a malformed timestamp entry.
     (d / "BH20" / "Calibration" / "999-calibration-properties.json").write_text("{not json")
-    _edit(d / "BL14" / "Properties" / "BL14-heliostat-properties.json",
-          _mut("kinematics_properties.actuators", [{}]))
+    _edit(d / "BL14" / "Properties" / "BL14-heliostat-properties.json", _mut("kinematics_properties.actuators", [{}]))
     (d / "XX01" / "Calibration").mkdir(parents=True)
     shutil.copy(_first_bh20(d), d / "XX01" / "Calibration" / "5-calibration-properties.json")
     _edit(d / "calibration-timestamps.json", lambda t: t.update({"5": {"heliostat_id": "XX01", "datetime": "?"}}))
@@ -479,8 +501,20 @@ def test_heliostat_without_records(raw_emb):
 
 
 def test_bucket_size():
-    assert [bucket_size(n) for n in (0, 1, 8, 9, 12, 13, 16, 17, 24, 25, 164, 193)] == \
-        [8, 8, 8, 12, 12, 16, 16, 24, 24, 32, 192, 256]
+    assert [bucket_size(n) for n in (0, 1, 8, 9, 12, 13, 16, 17, 24, 25, 164, 193)] == [
+        8,
+        8,
+        8,
+        12,
+        12,
+        16,
+        16,
+        24,
+        24,
+        32,
+        192,
+        256,
+    ]
     prev = 8
     for n in range(1, 5000):
         b = bucket_size(n)
@@ -504,13 +538,16 @@ def test_pad_fleet(emb_fleet):
     assert np.all(np.isfinite(np.asarray(p.context.sun)))
     assert _leaves_equal(jax.tree.map(lambda x: x[:5], p.geometry), f.geometry)
     assert _leaves_equal(jax.tree.map(lambda x: x[:5, :164], p.context), f.context)
+
     # A masked, vmapped reduction agrees between padded and unpadded fleets.
     def per_heliostat(fl):
         def one(sun, spot, mask, pos):
             d = spot - pos
             cosang = jnp.sum(sun * d, -1) / jnp.linalg.norm(d, axis=-1)
             return jnp.sum(jnp.where(mask, cosang, 0.0)) / jnp.maximum(mask.sum(), 1)
+
         return jax.jit(jax.vmap(one))(fl.context.sun, fl.focal_spot, fl.mask, fl.geometry.position)
+
     np.testing.assert_allclose(np.asarray(per_heliostat(p))[:5], np.asarray(per_heliostat(f)), rtol=1e-12)
     with pytest.raises(ValueError):
         pad_fleet(f, n_heliostats=3)
@@ -557,21 +594,43 @@ def test_degenerate_actuator_is_skipped(raw_emb):
 def test_numpy_scalars_from_a_simulator(tmp_path, raw_emb):
     tower, props, recs = raw_emb
     p = next(p for p in props if p.heliostat_id == "BL14")
-    rs = [dataclasses.replace(r, record_id=np.int64(r.record_id), axis_1_counts=np.int64(r.axis_1_counts),
-                              sun_azimuth_deg=np.float64(r.sun_azimuth_deg))
-          for r in recs if r.heliostat_id == "BL14"]
+    rs = [
+        dataclasses.replace(
+            r,
+            record_id=np.int64(r.record_id),
+            axis_1_counts=np.int64(r.axis_1_counts),
+            sun_azimuth_deg=np.float64(r.sun_azimuth_deg),
+        )
+        for r in recs
+        if r.heliostat_id == "BL14"
+    ]
     a = records_to_fleet(tower, [p], rs)
     b = load_paint_directory(write_paint_directory(tmp_path / "d", tower, [p], rs))
     assert a.report.records_loaded == 9 and _leaves_equal(a, b)
 
 
 _any_value = st.one_of(
-    st.none(), st.booleans(), st.integers(-(10**20), 10**20), st.floats(allow_nan=True, allow_infinity=True),
-    st.text(max_size=6), st.lists(st.floats(allow_nan=True), max_size=4),
+    st.none(),
+    st.booleans(),
+    st.integers(-(10**20), 10**20),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=6),
+    st.lists(st.floats(allow_nan=True), max_size=4),
     st.tuples(st.floats(-100, 100), st.floats(-200, 400), st.floats(-1e6, 1e6)),
 )
-_RECORD_FIELDS = ("record_id", "heliostat_id", "axis_1_counts", "axis_2_counts", "target_name", "sun_azimuth_deg",
-                  "sun_elevation_deg", "focal_spot_helios", "focal_spot_utis", "datetime", "weather")
+_RECORD_FIELDS = (
+    "record_id",
+    "heliostat_id",
+    "axis_1_counts",
+    "axis_2_counts",
+    "target_name",
+    "sun_azimuth_deg",
+    "sun_elevation_deg",
+    "focal_spot_helios",
+    "focal_spot_utis",
+    "datetime",
+    "weather",
+)
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -150,8 +150,10 @@ def test_intersect_tilted_target_by_hand():
 def test_intersect_vmapped_over_targets_and_rays():
     t1, *_ = _tilted_target()
     t2 = TargetPlane.from_corners(
-        jnp.array([3.0, -3.0, 126.0]), jnp.array([-3.0, -3.0, 126.0]),
-        jnp.array([3.0, -3.0, 120.0]), jnp.array([-3.0, -3.0, 120.0]),
+        jnp.array([3.0, -3.0, 126.0]),
+        jnp.array([-3.0, -3.0, 126.0]),
+        jnp.array([3.0, -3.0, 120.0]),
+        jnp.array([-3.0, -3.0, 120.0]),
     )
     targets = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), t1, t2)
     origins = jnp.array([[0.0, 100.0, 2.0], [5.0, 200.0, 2.0]])

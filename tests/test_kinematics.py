@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 import heliojax as hj
-
 from heliojax._geometry import sun_direction
 from heliojax._kinematics import (
     ActuatorModel,
@@ -54,8 +53,12 @@ def _stone(**kw):
 
 PERTURBED = _stone(alpha=2e-3, beta=-3e-3, gamma=1.5e-3, delta=-2e-3, theta_k=8e-3, tau_k=-6e-3, gr1=1.003, gr2=0.998)
 PERTURBED_ACT = ActuatorModel(
-    alpha=jnp.asarray(1e-3), beta=jnp.asarray(-2e-3), gamma=jnp.asarray(2e-3), delta=jnp.asarray(1e-3),
-    angle_offset=jnp.array([5e-3, -0.03]), increment_scale=jnp.array([2e-3, -1e-3]),
+    alpha=jnp.asarray(1e-3),
+    beta=jnp.asarray(-2e-3),
+    gamma=jnp.asarray(2e-3),
+    delta=jnp.asarray(1e-3),
+    angle_offset=jnp.array([5e-3, -0.03]),
+    increment_scale=jnp.array([2e-3, -1e-3]),
     stroke_offset=jnp.array([1e-3, -5e-4]),
 )
 
@@ -117,12 +120,14 @@ def _quat(axis, angle):
 def _qmul(a, b):
     w1, x1, y1, z1 = a
     w2, x2, y2, z2 = b
-    return np.array([
-        w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-        w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-        w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-        w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
-    ])
+    return np.array(
+        [
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        ]
+    )
 
 
 def _qrot(q, v):

@@ -12,7 +12,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from heliojax.fitting import beam_errors_mrad
 from heliojax._geometry import sun_direction
 from heliojax._kinematics import (
     ActuatorModel,
@@ -23,6 +22,7 @@ from heliojax._kinematics import (
     inverse_aim,
 )
 from heliojax._simulate import calibration_target, synthetic_geometry
+from heliojax.fitting import beam_errors_mrad
 from heliojax.neural import (
     MLP,
     NeuralConfig,
@@ -45,12 +45,17 @@ from heliojax.neural._train import (
 
 H, M = 3, 20
 SMALL = NeuralConfig(
-    n_synthetic=160, pretrain_epochs=6, batch_size=32, steps_per_epoch=4, finetune_epochs=15,
-    residual_epochs=40, residual_lr=1e-2,
+    n_synthetic=160,
+    pretrain_epochs=6,
+    batch_size=32,
+    steps_per_epoch=4,
+    finetune_epochs=15,
+    residual_epochs=40,
+    residual_lr=1e-2,
 )
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _problem(h=H, m=M, seed=0):
     """Heliostats that truly follow the actuator law, described by a nominal Stone
     model (whose linear counts-to-angle map misses the law's curvature)."""
@@ -80,8 +85,11 @@ def _problem_arrays(h, m, seed):
     fit, val = validation_tail(mask, 0.25)
     u = jnp.broadcast_to(target.u_axis, (h, m, 3))
     v = jnp.broadcast_to(target.v_axis, (h, m, 3))
-    return tuple(dict(geometry=geometry, counts=counts, context=context, focal=focal, base=base, fit=fit,
-                      val=val, u=u, v=v).items())
+    return tuple(
+        dict(
+            geometry=geometry, counts=counts, context=context, focal=focal, base=base, fit=fit, val=val, u=u, v=v
+        ).items()
+    )
 
 
 def _take(tree, idx):
@@ -94,8 +102,17 @@ def _residual(p, seed=1, config=SMALL):
     scale = jnp.full((h,), 5e-3)
     keys = heliostat_keys(jax.random.key(seed + 1), h)
     return _finetune_residual_program(
-        keys, nets, p["base"], p["geometry"], p["counts"], p["context"], p["focal"], scale,
-        jnp.asarray(p["fit"], float), jnp.asarray(p["val"], float), config,
+        keys,
+        nets,
+        p["base"],
+        p["geometry"],
+        p["counts"],
+        p["context"],
+        p["focal"],
+        scale,
+        jnp.asarray(p["fit"], float),
+        jnp.asarray(p["val"], float),
+        config,
     ), scale
 
 
@@ -181,7 +198,10 @@ def test_residual_inverse_inverts_a_nonzero_correction():
 
 def test_paper_metric_equals_beam_error_for_the_physics_models_own_prediction():
     p = _problem()
-    g, model = _take(p["geometry"], 1), StoneModel(*[jnp.asarray(x) for x in (2e-3, -1e-3, 0, 0, 5e-3, -4e-3, 1.001, 0.999)])
+    g, model = (
+        _take(p["geometry"], 1),
+        StoneModel(*[jnp.asarray(x) for x in (2e-3, -1e-3, 0, 0, 5e-3, -4e-3, 1.001, 0.999)]),
+    )
     for j in range(4):
         c, s, f = p["counts"][1, j], p["context"].sun[1, j], p["focal"][1, j]
         predicted = inverse_aim(model, g, f, s)
@@ -213,8 +233,17 @@ def test_residual_training_is_deterministic_learns_and_matches_single_heliostat(
     nets_q = init_residual_networks(jax.random.key(1), H, SMALL)
     keys = heliostat_keys(jax.random.key(2), H)
     single, _ = _finetune_residual_program(
-        keys[1:2], _take(nets_q, slice(1, 2)), q["base"], q["geometry"], q["counts"], q["context"], q["focal"],
-        scale[1:2], jnp.asarray(q["fit"], float), jnp.asarray(q["val"], float), SMALL,
+        keys[1:2],
+        _take(nets_q, slice(1, 2)),
+        q["base"],
+        q["geometry"],
+        q["counts"],
+        q["context"],
+        q["focal"],
+        scale[1:2],
+        jnp.asarray(q["fit"], float),
+        jnp.asarray(q["val"], float),
+        SMALL,
     )
     _tree_close(_take(nets, slice(1, 2)), single)
 
@@ -237,8 +266,14 @@ def test_residual_training_ignores_padded_records_and_heliostats():
     q["fit"] = np.concatenate([p["fit"], np.zeros((H, extra), bool)], 1)
     q["val"] = np.concatenate([p["val"], np.zeros((H, extra), bool)], 1)
     # plus one padding heliostat (copy of heliostat 0, no records)
-    q = {k: (jax.tree_util.tree_map(lambda x: jnp.concatenate([x, x[:1]], 0), v) if k not in ("fit", "val")
-             else np.concatenate([v, np.zeros((1, v.shape[1]), bool)], 0)) for k, v in q.items()}
+    q = {
+        k: (
+            jax.tree_util.tree_map(lambda x: jnp.concatenate([x, x[:1]], 0), v)
+            if k not in ("fit", "val")
+            else np.concatenate([v, np.zeros((1, v.shape[1]), bool)], 0)
+        )
+        for k, v in q.items()
+    }
     (nets_p, _), _ = _residual(q)
     _tree_close(_take(nets_p, slice(0, H)), nets, rtol=1e-4, atol=1e-6)
     # the padding heliostat's network never moves: still exactly zero output
@@ -249,13 +284,26 @@ def test_residual_training_ignores_padded_records_and_heliostats():
 def _paper(p, keys_seed=0, h=None):
     h = p["counts"].shape[0] if h is None else h
     syn = synthetic_fleet_data(
-        heliostat_keys(jax.random.key(keys_seed), h), p["base"], p["geometry"], p["context"].sun, p["focal"],
-        p["u"], p["v"], jnp.asarray(p["fit"], float), SMALL,
+        heliostat_keys(jax.random.key(keys_seed), h),
+        p["base"],
+        p["geometry"],
+        p["context"].sun,
+        p["focal"],
+        p["u"],
+        p["v"],
+        jnp.asarray(p["fit"], float),
+        SMALL,
     )
     preds, _ = _pretrain_paper_program(heliostat_keys(jax.random.key(keys_seed + 1), h), syn, SMALL)
     tuned, _ = _finetune_paper_program(
-        heliostat_keys(jax.random.key(keys_seed + 2), h), preds, p["counts"], p["context"].sun, p["focal"],
-        jnp.asarray(p["fit"], float), jnp.asarray(p["val"], float), SMALL,
+        heliostat_keys(jax.random.key(keys_seed + 2), h),
+        preds,
+        p["counts"],
+        p["context"].sun,
+        p["focal"],
+        jnp.asarray(p["fit"], float),
+        jnp.asarray(p["val"], float),
+        SMALL,
     )
     return syn, preds, tuned
 
@@ -287,8 +335,15 @@ def test_paper_pretraining_vmapped_equals_single_heliostat():
     _, preds, _ = _paper(p)
     q = {k: (_take(v, slice(1, 2)) if k not in ("fit", "val") else v[1:2]) for k, v in p.items()}
     syn_q = synthetic_fleet_data(
-        heliostat_keys(jax.random.key(0), 2)[1:2], q["base"], q["geometry"], q["context"].sun, q["focal"],
-        q["u"], q["v"], jnp.asarray(q["fit"], float), SMALL,
+        heliostat_keys(jax.random.key(0), 2)[1:2],
+        q["base"],
+        q["geometry"],
+        q["context"].sun,
+        q["focal"],
+        q["u"],
+        q["v"],
+        jnp.asarray(q["fit"], float),
+        SMALL,
     )
     single, _ = _pretrain_paper_program(heliostat_keys(jax.random.key(1), 2)[1:2], syn_q, SMALL)
     _tree_close(_take(preds, slice(1, 2)), single)
@@ -323,4 +378,3 @@ def test_neural_config_checks():
     with pytest.raises(ValueError):
         NeuralConfig(pretrain_epochs=0)
     assert NeuralConfig().n_synthetic_val == 400
-

@@ -5,7 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from heliojax.optics._compare import compare_record, flux_sample_records, normalised_cross_correlation, remove_background
+from heliojax.optics._compare import (
+    compare_record,
+    flux_sample_records,
+    normalised_cross_correlation,
+    remove_background,
+)
 
 
 def test_normalised_cross_correlation():

@@ -72,8 +72,19 @@ def test_energy_on_oversized_target_within_monte_carlo_error():
     grid = ImageGrid.for_target(target, (128, 128))
     sunshape = PillboxSun()
     dni, rho, K = 850.0, 0.93, 64 * 4
-    img = flux_images(jax.random.key(0), surf, pose, sun, target, grid, sunshape,
-                      rays_per_point=64, steps=4, dni=dni, reflectivity=rho)
+    img = flux_images(
+        jax.random.key(0),
+        surf,
+        pose,
+        sun,
+        target,
+        grid,
+        sunshape,
+        rays_per_point=64,
+        steps=4,
+        dni=dni,
+        reflectivity=rho,
+    )
     assert img.dtype == jnp.float32
     power = float(total_power(img.astype(jnp.float64), grid))
     # Expected value: E[d . n] = E[cos r] (s . n) for a symmetric sun shape;
@@ -101,8 +112,17 @@ def test_flat_mirror_pillbox_spot_is_analytic_disk():
     surf = square_mirror(side, 8)
     target = ceiling(D, 1.0)
     grid = ImageGrid.for_target(target, (200, 200))
-    img = flux_image(jax.random.key(1), surf, UP, jnp.asarray([0.0, 0.0, 1.0]), target, grid, PillboxSun(a),
-                     rays_per_point=4096, steps=4)
+    img = flux_image(
+        jax.random.key(1),
+        surf,
+        UP,
+        jnp.asarray([0.0, 0.0, 1.0]),
+        target,
+        grid,
+        PillboxSun(a),
+        rays_per_point=4096,
+        steps=4,
+    )
     cu, cv, vu, vv = moments(img, grid)
     R = D * np.tan(a)
     # per axis: disk R^2/4 (cos-weighting changes it by O(a^2)), mirror side^2/12,
@@ -141,8 +161,17 @@ def test_gaussian_sun_parabolic_facet_gives_gaussian_spot():
     surf = SurfacePoints(jnp.asarray(np.stack([x, y, z], -1)), jnp.asarray(nrm), jnp.full(x.shape, 2.0 / n**2))
     target = ceiling(f, 0.6)
     grid = ImageGrid.for_target(target, (160, 160))
-    img = flux_image(jax.random.key(2), surf, UP, jnp.asarray([0.0, 0.0, 1.0]), target, grid, GaussianSun(sigma),
-                     rays_per_point=256, steps=4)
+    img = flux_image(
+        jax.random.key(2),
+        surf,
+        UP,
+        jnp.asarray([0.0, 0.0, 1.0]),
+        target,
+        grid,
+        GaussianSun(sigma),
+        rays_per_point=256,
+        steps=4,
+    )
     cu, cv, vu, vv = moments(img, grid)
     L = f + z
     tan2 = (x**2 + y**2) / (f - z) ** 2
@@ -185,11 +214,15 @@ def test_batched_padded_heliostats_match_individual_and_combine():
     sun = jnp.asarray([0.0, 0.0, 1.0])
     target = ceiling(30.0, 1.5)
     grid = ImageGrid.for_target(target, (64, 64))
-    poses = jax.tree_util.tree_map(lambda *x: jnp.stack(x), UP, eqx.tree_at(lambda p: p.centre, UP, jnp.asarray([0.3, 0.0, 0.0])))
+    poses = jax.tree_util.tree_map(
+        lambda *x: jnp.stack(x), UP, eqx.tree_at(lambda p: p.centre, UP, jnp.asarray([0.3, 0.0, 0.0]))
+    )
     batch = stack_surfaces([s1, s2])
     assert batch.points.shape == (2, 64, 3) and float(batch.areas[1, 25:].sum()) == 0.0
     imgs = flux_images(jax.random.key(4), batch, poses, sun, target, grid, PillboxSun(), rays_per_point=32)
-    total = flux_images(jax.random.key(4), batch, poses, sun, target, grid, PillboxSun(), rays_per_point=32, combine=True)
+    total = flux_images(
+        jax.random.key(4), batch, poses, sun, target, grid, PillboxSun(), rays_per_point=32, combine=True
+    )
     np.testing.assert_allclose(np.asarray(total), np.asarray(imgs).sum(0), rtol=1e-5, atol=1e-3)
     p = np.asarray(total_power(imgs.astype(jnp.float64), grid))
     np.testing.assert_allclose(p, [1000.0, 250.0], rtol=1e-4)
@@ -252,8 +285,9 @@ def test_gradient_wrt_kinematic_parameters():
     from heliojax._kinematics import HeliostatGeometry, StoneModel, forward, inverse_aim
     from heliojax._simulate import calibration_target, typical_actuators
 
-    geometry = HeliostatGeometry.build(jnp.asarray([5.0, 80.0, 1.5]), typical_actuators(),
-                                       concentrator_translation=(0.0, 0.175, 0.0))
+    geometry = HeliostatGeometry.build(
+        jnp.asarray([5.0, 80.0, 1.5]), typical_actuators(), concentrator_translation=(0.0, 0.175, 0.0)
+    )
     target = calibration_target()
     sun = jnp.asarray([0.3, -0.6, 0.7]) / np.linalg.norm([0.3, -0.6, 0.7])
     counts = inverse_aim(StoneModel.nominal(), geometry, target.centre, sun)

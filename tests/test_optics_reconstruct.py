@@ -50,9 +50,22 @@ def test_reconstruction_recovers_hidden_bumps():
     n = suns.shape[0]
     surf = truth.evaluate((16, 16))
     surfs = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n,) + x.shape), surf)
-    images = flux_images(jax.random.key(99), surfs, poses, suns, target, grid, PillboxSun(), rays_per_point=256, steps=4)
-    res = reconstruct_surface(jax.random.key(0), ideal, images, poses, suns, target, grid, PillboxSun(),
-                              steps=120, learning_rate=2.5e-4, rays_per_point=32)
+    images = flux_images(
+        jax.random.key(99), surfs, poses, suns, target, grid, PillboxSun(), rays_per_point=256, steps=4
+    )
+    res = reconstruct_surface(
+        jax.random.key(0),
+        ideal,
+        images,
+        poses,
+        suns,
+        target,
+        grid,
+        PillboxSun(),
+        steps=120,
+        learning_rate=2.5e-4,
+        rays_per_point=32,
+    )
     assert res.losses[-20:].mean() < 0.5 * res.losses[0]
     e_ideal = normal_rms_error_mrad(ideal, truth)
     e_rec = normal_rms_error_mrad(res.facets, truth)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 
 import h5py
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -63,7 +62,9 @@ def test_bspline_partition_of_unity_and_derivative():
     n, dn = bspline_basis(t, 7, 3)
     np.testing.assert_allclose(np.asarray(n).sum(-1), 1.0, atol=1e-12)
     np.testing.assert_allclose(np.asarray(dn).sum(-1), 0.0, atol=1e-10)
-    fd = (np.asarray(bspline_basis(t[1:-1] + 1e-6, 7, 3)[0]) - np.asarray(bspline_basis(t[1:-1] - 1e-6, 7, 3)[0])) / 2e-6
+    fd = (
+        np.asarray(bspline_basis(t[1:-1] + 1e-6, 7, 3)[0]) - np.asarray(bspline_basis(t[1:-1] - 1e-6, 7, 3)[0])
+    ) / 2e-6
     np.testing.assert_allclose(np.asarray(dn)[1:-1], fd, atol=1e-5)
 
 
@@ -142,7 +143,15 @@ def test_ideal_nurbs_matches_ideal_surface(shared_paint):
 
 def test_read_facet_layout_errors(tmp_path):
     p = tmp_path / "h.json"
-    p.write_text(json.dumps({"facet_properties": {"facets": [{"translation_vector": [0, 0], "canting_e": [1, 0, 0], "canting_n": [0, 1, 0]}]}}))
+    p.write_text(
+        json.dumps(
+            {
+                "facet_properties": {
+                    "facets": [{"translation_vector": [0, 0], "canting_e": [1, 0, 0], "canting_n": [0, 1, 0]}]
+                }
+            }
+        )
+    )
     with pytest.raises(DataError, match="translation_vector"):
         read_facet_layout(p)
 

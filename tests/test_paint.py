@@ -19,12 +19,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from heliojax._errors import DataError
-from heliojax.paint import default_data_dir
 from heliojax.paint import (
     CSV_COLUMNS,
     WEATHER_KEYS,
     CalibrationRecord,
     TimestampEntry,
+    default_data_dir,
     read_calibration_record,
     read_heliostat_properties,
     read_timestamps,
@@ -140,8 +140,9 @@ def test_every_shared_file_reads(shared_paint):
         assert r.focal_spot_helios is not None
     # Counted independently: files absent from the timestamps, files without "UTIS".
     ids = {int(f.name.split("-")[0]) for f in shared_paint.glob("*/Calibration/*.json")}
-    no_utis = sum("UTIS" not in json.loads(f.read_text()).get("focal_spot", {})
-                  for f in shared_paint.glob("*/Calibration/*.json"))
+    no_utis = sum(
+        "UTIS" not in json.loads(f.read_text()).get("focal_spot", {}) for f in shared_paint.glob("*/Calibration/*.json")
+    )
     assert n == 1712
     assert no_time == len(ids - set(ts)) == 6
     assert helios_only == no_utis == 10
@@ -210,8 +211,13 @@ def test_bad_calibration_record(tmp_path, tower, be36, path, value, field, words
 
 @pytest.mark.parametrize(
     "content,words",
-    [(b"{", "malformed JSON"), (b"\xff\xfe\x00junk", "UTF-8"), (b"[1, 2]", "object"), (b"", "malformed JSON"),
-     (b"[" * 100_000, "malformed JSON")],
+    [
+        (b"{", "malformed JSON"),
+        (b"\xff\xfe\x00junk", "UTF-8"),
+        (b"[1, 2]", "object"),
+        (b"", "malformed JSON"),
+        (b"[" * 100_000, "malformed JSON"),
+    ],
 )
 def test_malformed_calibration_file(tmp_path, content, words):
     f = tmp_path / "BE36" / "Calibration" / "1-calibration-properties.json"
@@ -256,17 +262,19 @@ PROPERTY_CASES = [
     ("kinematics_properties.actuators", [{}], "kinematics_properties.actuators", "2 actuators"),
     (f"{A0}.increment", "abc", "kinematics_properties.actuators[0].increment", "number"),
     (f"{A0}.increment", 0, "kinematics_properties.actuators[0].increment", "positive"),
-    (f"{A1}.initial_stroke_length", float("nan"), "kinematics_properties.actuators[1].initial_stroke_length",
-     "finite"),
+    (f"{A1}.initial_stroke_length", float("nan"), "kinematics_properties.actuators[1].initial_stroke_length", "finite"),
     (f"{A1}.offset", _DELETE, "kinematics_properties.actuators[1].offset", "missing"),
     (f"{A0}.type_axis", "ideal", "kinematics_properties.actuators[0].type_axis", "linear"),
     (f"{A1}.clockwise_axis_movement", 2, "kinematics_properties.actuators[1].clockwise_axis_movement", "0 or 1"),
     (f"{A0}.max_increment", -5, "kinematics_properties.actuators[0].max_increment", "min_increment"),
     (f"{A0}.min_increment", 0.5, "kinematics_properties.actuators[0].min_increment", "integer"),
-    ("kinematics_properties.joint_translation_e_1", _DELETE, "kinematics_properties.joint_translation_e_1",
-     "missing"),
-    ("kinematics_properties.concentrator_translation_n", float("inf"),
-     "kinematics_properties.concentrator_translation_n", "finite"),
+    ("kinematics_properties.joint_translation_e_1", _DELETE, "kinematics_properties.joint_translation_e_1", "missing"),
+    (
+        "kinematics_properties.concentrator_translation_n",
+        float("inf"),
+        "kinematics_properties.concentrator_translation_n",
+        "finite",
+    ),
     ("facet_properties.facets.2.canting_n", _DELETE, "facet_properties.facets[2].canting_n", "missing"),
     ("facet_properties.number_of_facets", 5, "facet_properties.number_of_facets", "4 facets"),
     ("renovation", 2022, "renovation", "string"),
@@ -289,8 +297,11 @@ def test_bad_tower(tmp_path):
     base = json.loads(TOWER.read_text())
     cases = [
         ("power_plant_properties.coordinates", _DELETE, "power_plant_properties.coordinates"),
-        ("solar_tower_juelich_upper.coordinates.lower_left", _DELETE,
-         "solar_tower_juelich_upper.coordinates.lower_left"),
+        (
+            "solar_tower_juelich_upper.coordinates.lower_left",
+            _DELETE,
+            "solar_tower_juelich_upper.coordinates.lower_left",
+        ),
         ("multi_focus_tower.normal_vector", [0, 0, 0], "multi_focus_tower.normal_vector"),
         ("receiver.coordinates.center.1", "x", "receiver.coordinates.center[1]"),
         ("receiver.type", None, "receiver.type"),
@@ -307,10 +318,16 @@ def test_bad_tower(tmp_path):
 
 def test_bad_timestamps(tmp_path):
     f = tmp_path / "calibration-timestamps.json"
-    f.write_text(json.dumps({"1": {"heliostat_id": "AA", "datetime": "2022-06-10T12:15:59Z"},
-                             "2": {"heliostat_id": "AA", "datetime": "yesterday"},
-                             "x3": {"heliostat_id": "AA", "datetime": "2022-06-10T12:15:59Z"},
-                             "4": {"heliostat_id": 7, "datetime": "2022-06-10T12:15:59Z"}}))
+    f.write_text(
+        json.dumps(
+            {
+                "1": {"heliostat_id": "AA", "datetime": "2022-06-10T12:15:59Z"},
+                "2": {"heliostat_id": "AA", "datetime": "yesterday"},
+                "x3": {"heliostat_id": "AA", "datetime": "2022-06-10T12:15:59Z"},
+                "4": {"heliostat_id": 7, "datetime": "2022-06-10T12:15:59Z"},
+            }
+        )
+    )
     with pytest.raises(DataError) as e:
         read_timestamps(f)
     assert (e.value.file, e.value.field) == (str(f), "2.datetime")
@@ -402,7 +419,10 @@ def _only_data_errors(content: bytes, reader, name: str):
         return "ok"
 
 
-def _read_record(f, _ctx={}):
+_RECORD_CONTEXT: dict = {}
+
+
+def _read_record(f, _ctx=_RECORD_CONTEXT):
     if not _ctx:
         _ctx["tower"] = read_tower(TOWER)
         _ctx["props"] = {"BE36": read_heliostat_properties(BE36_PROPS)}
@@ -436,8 +456,10 @@ def test_hypothesis_mutated_properties(data):
 @_SETTINGS
 @given(st.binary(max_size=200) | st.text(max_size=100).map(str.encode))
 def test_hypothesis_junk_bytes(content):
-    for reader, name in ((_read_record, "1-calibration-properties.json"),
-                         (read_heliostat_properties, "BE36-heliostat-properties.json")):
+    for reader, name in (
+        (_read_record, "1-calibration-properties.json"),
+        (read_heliostat_properties, "BE36-heliostat-properties.json"),
+    ):
         _only_data_errors(content, reader, name)
 
 
@@ -466,8 +488,9 @@ def test_writers_round_trip_real_files(tmp_path, tower, be36):
 
 def test_weather_csv_round_trip(tmp_path, tower):
     rows = read_weather_csv(EMB / "calibration-with-weather.csv")
-    odd = dataclasses.replace(rows[0], datetime=None, weather={**rows[0].weather, "dni": math.nan},
-                              sun_azimuth_deg=0.1 + 0.2)  # a float whose repr needs 17 digits
+    odd = dataclasses.replace(
+        rows[0], datetime=None, weather={**rows[0].weather, "dni": math.nan}, sun_azimuth_deg=0.1 + 0.2
+    )  # a float whose repr needs 17 digits
     rows = (odd,) + rows[1:]
     f = tmp_path / "w.csv"
     write_weather_csv(f, rows, tower=tower)
@@ -480,8 +503,16 @@ def test_weather_csv_round_trip(tmp_path, tower):
 
 
 def test_validate_record():
-    r = CalibrationRecord(record_id=5, heliostat_id="AA01", axis_1_counts=1, axis_2_counts=2, target_name="t",
-                          sun_azimuth_deg=10.0, sun_elevation_deg=20.0, focal_spot_helios=(50.0, 6.0, 100.0))
+    r = CalibrationRecord(
+        record_id=5,
+        heliostat_id="AA01",
+        axis_1_counts=1,
+        axis_2_counts=2,
+        target_name="t",
+        sun_azimuth_deg=10.0,
+        sun_elevation_deg=20.0,
+        focal_spot_helios=(50.0, 6.0, 100.0),
+    )
     assert validate_record(r) == r
     for bad, field in [
         (dataclasses.replace(r, sun_elevation_deg=math.nan), "sun_elevation"),

@@ -5,7 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -36,7 +35,7 @@ def test_uncalibrated_actuator_normals_point_up_and_south(shared_fleet):
         if fleet.ids[i] == "BF41":
             continue
         n = np.asarray(normals[i])[mask[i]]
-        assert np.all(n[:, 2] > 0.1), fleet.ids[i]   # up
+        assert np.all(n[:, 2] > 0.1), fleet.ids[i]  # up
         assert np.all(n[:, 1] < -0.3), fleet.ids[i]  # south, toward the tower
         checked += n.shape[0]
     assert checked > 1400
@@ -56,10 +55,14 @@ def test_uncalibrated_beam_errors_are_bounded(shared_fleet):
     assert np.median(rest) < 100.0
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "Issue 2 expects < 100 mrad for every record; measured: 9 of 26 heliostats (e.g. BF09 169, BK20 171, "
-    "BG14 147 mrad median) exceed it because their PAINT axis-2 initial_angle is 2-5 deg off the value "
-    "the records imply (constant per heliostat, scatter < 0.5 deg); see README 'Uncalibrated errors'."))
+@pytest.mark.xfail(
+    strict=True,
+    reason=(
+        "Issue 2 expects < 100 mrad for every record; measured: 9 of 26 heliostats (e.g. BF09 169, BK20 171, "
+        "BG14 147 mrad median) exceed it because their PAINT axis-2 initial_angle is 2-5 deg off the value "
+        "the records imply (constant per heliostat, scatter < 0.5 deg); see README 'Uncalibrated errors'."
+    ),
+)
 def test_issue_bound_of_100_mrad_for_every_record(shared_fleet):
     err = _uncalibrated_errors(shared_fleet)
     ids = shared_fleet.ids

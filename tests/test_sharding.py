@@ -205,8 +205,11 @@ def test_two_processes_on_loopback(fleet_npz, reference, tmp_path):
                                    process_id=PID, initialization_timeout=60)
         """
     )
-    worker = init + LOADER + textwrap.dedent(
-        """
+    worker = (
+        init
+        + LOADER
+        + textwrap.dedent(
+            """
         from heliojax import calibrate_distributed, process_slice
         seen = []
         def load_logged(sl):
@@ -216,6 +219,7 @@ def test_two_processes_on_loopback(fleet_npz, reference, tmp_path):
         save(OUT, res, process_count=jax.process_count(), loaded=np.asarray(seen[0]))
         jax.distributed.shutdown()
         """
+        )
     )
     procs = []
     try:

@@ -50,9 +50,9 @@ def test_noise_free_records_fit_the_true_model_exactly(small_sim):
 def test_noise_level(small_sim):
     g, true, ctx, target, _ = small_sim
     sim = simulate_records(jax.random.PRNGKey(7), true, g, ctx, target, controller_models=true, noise_mrad=0.3)
-    comps = jax.vmap(
-        lambda m, gg, c, x, f: jax.vmap(lambda ci, xi, fi: m.beam_components(gg, ci, xi, fi))(c, x, f)
-    )(true, g, sim.counts, ctx, sim.focal_spot)
+    comps = jax.vmap(lambda m, gg, c, x, f: jax.vmap(lambda ci, xi, fi: m.beam_components(gg, ci, xi, fi))(c, x, f))(
+        true, g, sim.counts, ctx, sim.focal_spot
+    )
     std = float(jnp.std(comps[sim.mask])) * 1e3
     assert std == pytest.approx(0.3, rel=0.15)
 
@@ -89,7 +89,9 @@ def test_simulator_paint_round_trip_is_bit_identical(small_sim, tmp_path):
     loaded = hj.load_paint_directory(path)
     assert loaded.ids[: len(props)] == in_memory.ids[: len(props)]
     for name in ("counts", "focal_spot", "mask", "record_id", "target_index"):
-        np.testing.assert_array_equal(np.asarray(getattr(loaded, name)), np.asarray(getattr(in_memory, name)), err_msg=name)
+        np.testing.assert_array_equal(
+            np.asarray(getattr(loaded, name)), np.asarray(getattr(in_memory, name)), err_msg=name
+        )
     for name in ("sun", "unix_time", "temperature", "wind_speed", "wind_direction"):
         a = np.asarray(getattr(loaded.context, name))
         b = np.asarray(getattr(in_memory.context, name))
@@ -99,7 +101,9 @@ def test_simulator_paint_round_trip_is_bit_identical(small_sim, tmp_path):
     for i in range(4):
         n = int(mask[i].sum())  # simulated contexts are already chronological
         np.testing.assert_array_equal(np.asarray(loaded.counts)[i, :n], np.asarray(sim.counts)[i][mask[i]])
-        np.testing.assert_allclose(np.asarray(loaded.focal_spot)[i, :n], np.asarray(sim.focal_spot)[i][mask[i]], atol=1e-6)
+        np.testing.assert_allclose(
+            np.asarray(loaded.focal_spot)[i, :n], np.asarray(sim.focal_spot)[i][mask[i]], atol=1e-6
+        )
     np.testing.assert_allclose(np.asarray(loaded.geometry.position)[:4], np.asarray(g.position), atol=1e-6)
     # Fitting the loaded data recovers the simulated (noise-free) truth.
     res = hj.fit(hj.StoneModel.nominal(jnp.float64), loaded)

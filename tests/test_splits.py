@@ -22,7 +22,7 @@ DAY = 86400.0
 
 
 def utc(*args) -> float:
-    return dt.datetime(*args, tzinfo=dt.timezone.utc).timestamp()
+    return dt.datetime(*args, tzinfo=dt.UTC).timestamp()
 
 
 def as_set(a) -> set[int]:
@@ -185,9 +185,7 @@ def test_high_variance_split_by_hand():
     #   0: (1+2+3)/3 = 2      1: (1+1+2)/3 = 4/3   2: (1+1+2)/3 = 4/3
     #   3: (1+1+2)/3 = 4/3    4: (1+2+3)/3 = 2     5: (6+7+8)/3 = 7
     #   6: (20+26+27)/3 = 73/3
-    np.testing.assert_allclose(
-        knn_mean_distance(np.stack([az, el], 1)) * 64, [2, 4 / 3, 4 / 3, 4 / 3, 2, 7, 73 / 3]
-    )
+    np.testing.assert_allclose(knn_mean_distance(np.stack([az, el], 1)) * 64, [2, 4 / 3, 4 / 3, 4 / 3, 2, 7, 73 / 3])
     # most isolated first, ties by index: 6, 5, 0, 4, 1, 2, 3
     r = split_records("high_variance", az, el, np.zeros(7), n_train=2, n_val=1)
     assert as_set(r.validation) == {6} and as_set(r.test) == {5}

@@ -18,11 +18,11 @@ import pystac
 import pytest
 
 from heliojax._errors import DataError
-from heliojax.paint import JOURNAL_NAME, fetch_catalog, verify_download
 from heliojax.cli import _fetch as fetch_cli
+from heliojax.paint import JOURNAL_NAME, fetch_catalog, verify_download
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "paint"
-UTC = dt.timezone.utc
+UTC = dt.UTC
 
 
 # --------------------------------------------------------------------------- fixtures
@@ -38,7 +38,10 @@ def _source_records() -> dict:
             when = dt.datetime.fromisoformat(stamps[cid]["datetime"].replace("Z", "+00:00"))
             name = f"{cid}-calibration-properties.json"
             items.append((cid, when, {"calibration_properties": (name, (be / "Calibration" / name).read_bytes())}))
-        out["BE36"] = {"properties": (be / "Properties" / "BE36-heliostat-properties.json").read_bytes(), "items": items}
+        out["BE36"] = {
+            "properties": (be / "Properties" / "BE36-heliostat-properties.json").read_bytes(),
+            "items": items,
+        }
         aa = SHARED / "flux-samples" / "AA31"
         items = []
         for k, cid in enumerate(("125284", "126372")):
@@ -49,28 +52,39 @@ def _source_records() -> dict:
             }
             assets = {key: (n, (aa / "Calibration" / n).read_bytes()) for key, (n, _) in assets.items()}
             items.append((cid, dt.datetime(2022, 7, 1 + 10 * k, 12, tzinfo=UTC), assets))
-        out["AA31"] = {"properties": (aa / "Properties" / "AA31-heliostat-properties.json").read_bytes(), "items": items}
+        out["AA31"] = {
+            "properties": (aa / "Properties" / "AA31-heliostat-properties.json").read_bytes(),
+            "items": items,
+        }
         tower = (SHARED / "WRI1030197-tower-measurements.json").read_bytes()
     else:  # synthetic stand-ins with the same names
+
         def rec(i):
             return json.dumps({"sun_azimuth": -40.0 + i, "sun_elevation": 30.0, "motor_position": {}}).encode()
 
         out["BE36"] = {
             "properties": b'{"heliostat_position": [50.9, 6.38, 88.0]}',
             "items": [
-                (cid, dt.datetime(2022, 6, 12, 13 + i, tzinfo=UTC),
-                 {"calibration_properties": (f"{cid}-calibration-properties.json", rec(i))})
+                (
+                    cid,
+                    dt.datetime(2022, 6, 12, 13 + i, tzinfo=UTC),
+                    {"calibration_properties": (f"{cid}-calibration-properties.json", rec(i))},
+                )
                 for i, cid in enumerate(("118671", "118750", "118826"))
             ],
         }
         out["AA31"] = {
             "properties": b'{"heliostat_position": [50.9, 6.38, 89.0]}',
             "items": [
-                (cid, dt.datetime(2022, 7, 1 + 10 * k, 12, tzinfo=UTC), {
-                    "calibration_properties": (f"{cid}-calibration-properties.json", rec(k)),
-                    "flux_image": (f"{cid}-flux.png", b"\x89PNG-flux" + bytes(200 + k)),
-                    "flux_centered_image": (f"{cid}-flux-centered.png", b"\x89PNG-centered" + bytes(300 + k)),
-                })
+                (
+                    cid,
+                    dt.datetime(2022, 7, 1 + 10 * k, 12, tzinfo=UTC),
+                    {
+                        "calibration_properties": (f"{cid}-calibration-properties.json", rec(k)),
+                        "flux_image": (f"{cid}-flux.png", b"\x89PNG-flux" + bytes(200 + k)),
+                        "flux_centered_image": (f"{cid}-flux-centered.png", b"\x89PNG-centered" + bytes(300 + k)),
+                    },
+                )
                 for k, cid in enumerate(("125284", "126372"))
             ],
         }
@@ -212,8 +226,11 @@ def test_fetched_folder_matches_shared_layout(catalogue, tmp_path):
     root_json, _ = catalogue
     out = tmp_path / "out"
     fetch_catalog(root_json, out, heliostats=["BE36"])
-    for rel in ("BE36/Properties/BE36-heliostat-properties.json", "BE36/Calibration/118671-calibration-properties.json",
-                "WRI1030197-tower-measurements.json"):
+    for rel in (
+        "BE36/Properties/BE36-heliostat-properties.json",
+        "BE36/Calibration/118671-calibration-properties.json",
+        "WRI1030197-tower-measurements.json",
+    ):
         assert (out / rel).read_bytes() == (SHARED / rel).read_bytes()
 
 
@@ -296,8 +313,9 @@ def test_interrupted_run_resumes(catalogue, tmp_path, midstream):
     root_json, expected = catalogue
     out = tmp_path / "out"
     n_cal = sum(1 for k in expected if "/Calibration/" in k)
-    rep = fetch_catalog(root_json, out, calibration_assets=ALL_CAL, transport=FailingTransport(3, midstream),
-                        workers=3, retries=0)
+    rep = fetch_catalog(
+        root_json, out, calibration_assets=ALL_CAL, transport=FailingTransport(3, midstream), workers=3, retries=0
+    )
     assert len(rep.failed) == n_cal - 3 and not rep.ok
     assert all("injected" in reason for _, reason in rep.failed)
     got = files_under(out)
@@ -534,45 +552,79 @@ def _write_paint_style(site: Path, base: str, records: dict) -> dict[str, bytes]
 
     def collection(cid, links):
         return {
-            "type": "Collection", "stac_version": stac_version, "id": cid, "description": cid, "license": "CDLA-2.0",
-            "extent": {"spatial": {"bbox": [[6.38, 50.91, 6.39, 50.92]]},
-                       "temporal": {"interval": [["2021-01-01T00:00:00Z", None]]}},
+            "type": "Collection",
+            "stac_version": stac_version,
+            "id": cid,
+            "description": cid,
+            "license": "CDLA-2.0",
+            "extent": {
+                "spatial": {"bbox": [[6.38, 50.91, 6.39, 50.92]]},
+                "temporal": {"interval": [["2021-01-01T00:00:00Z", None]]},
+            },
             "links": links,
         }
 
     def item(iid, when, assets, self_href):
         return {
-            "type": "Feature", "stac_version": stac_version, "id": iid, "geometry": None,
-            "properties": {"datetime": when}, "links": [link("self", self_href)],
+            "type": "Feature",
+            "stac_version": stac_version,
+            "id": iid,
+            "geometry": None,
+            "properties": {"datetime": when},
+            "links": [link("self", self_href)],
             "assets": {k: {"href": f"{base}/{h}", "roles": ["data"]} for k, h in assets.items()},
         }
 
     expected: dict[str, bytes] = {}
     put(f"{p}-tower-measurements.json", records["tower"])
     expected[f"{p}-tower-measurements.json"] = records["tower"]
-    put(f"{p}-tower-measurements-item-stac.json",
-        item(f"{p}-tower-measurements", "2020-10-07T00:00:00Z", {"measurements": f"{p}-tower-measurements.json"},
-             f"{p}-tower-measurements-item-stac.json"))
-    root_links = [link("self", f"{p}-catalog-stac.json"), link("child", "Weather/weather-collection-stac.json"),
-                  link("child", f"{p}-tower-measurements-item-stac.json")]
+    put(
+        f"{p}-tower-measurements-item-stac.json",
+        item(
+            f"{p}-tower-measurements",
+            "2020-10-07T00:00:00Z",
+            {"measurements": f"{p}-tower-measurements.json"},
+            f"{p}-tower-measurements-item-stac.json",
+        ),
+    )
+    root_links = [
+        link("self", f"{p}-catalog-stac.json"),
+        link("child", "Weather/weather-collection-stac.json"),
+        link("child", f"{p}-tower-measurements-item-stac.json"),
+    ]
     rec = records["heliostats"]["BE36"]
     h = "BE36"
     root_links.append(link("child", f"{h}/{h}-heliostat-catalog-stac.json"))
-    put(f"{h}/{h}-heliostat-catalog-stac.json", catalog(f"{h}-heliostat-catalog", [
-        link("child", f"{h}/Deflectometry/{h}-deflectometry-collection-stac.json"),
-        link("child", f"{h}/Calibration/{h}-calibration-collection-stac.json"),
-        link("child", f"{h}/Properties/{h}-heliostat-properties-collection-stac.json"),
-    ]))
+    put(
+        f"{h}/{h}-heliostat-catalog-stac.json",
+        catalog(
+            f"{h}-heliostat-catalog",
+            [
+                link("child", f"{h}/Deflectometry/{h}-deflectometry-collection-stac.json"),
+                link("child", f"{h}/Calibration/{h}-calibration-collection-stac.json"),
+                link("child", f"{h}/Properties/{h}-heliostat-properties-collection-stac.json"),
+            ],
+        ),
+    )
     # properties
     put(f"{h}/Properties/{h}-heliostat-properties.json", rec["properties"])
     expected[f"{h}/Properties/{h}-heliostat-properties.json"] = rec["properties"]
-    put(f"{h}/Properties/{h}-heliostat-properties-item-stac.json",
-        item(f"{h}-heliostat-properties", "2021-01-01T00:00:00Z",
-             {"heliostat-properties": f"{h}/Properties/{h}-heliostat-properties.json"},
-             f"{h}/Properties/{h}-heliostat-properties-item-stac.json"))
-    put(f"{h}/Properties/{h}-heliostat-properties-collection-stac.json", collection(
-        f"{h}-heliostat-properties-collection",
-        [link("item", f"{h}/Properties/{h}-heliostat-properties-item-stac.json")]))
+    put(
+        f"{h}/Properties/{h}-heliostat-properties-item-stac.json",
+        item(
+            f"{h}-heliostat-properties",
+            "2021-01-01T00:00:00Z",
+            {"heliostat-properties": f"{h}/Properties/{h}-heliostat-properties.json"},
+            f"{h}/Properties/{h}-heliostat-properties-item-stac.json",
+        ),
+    )
+    put(
+        f"{h}/Properties/{h}-heliostat-properties-collection-stac.json",
+        collection(
+            f"{h}-heliostat-properties-collection",
+            [link("item", f"{h}/Properties/{h}-heliostat-properties-item-stac.json")],
+        ),
+    )
     # calibration (raw images listed but not fetched by default)
     cal_links = []
     for cid, when, assets in rec["items"]:
@@ -580,22 +632,34 @@ def _write_paint_style(site: Path, base: str, records: dict) -> dict[str, bytes]
         put(f"{h}/Calibration/{name}", data)
         put(f"{h}/Calibration/{cid}-raw.png", b"\x89PNG raw")
         expected[f"{h}/Calibration/{name}"] = data
-        put(f"{h}/Calibration/{cid}-calibration-item-stac.json", item(
-            cid, when.strftime("%Y-%m-%dT%H:%M:%SZ"),
-            {"raw_image": f"{h}/Calibration/{cid}-raw.png", "calibration_properties": f"{h}/Calibration/{name}"},
-            f"{h}/Calibration/{cid}-calibration-item-stac.json"))
+        put(
+            f"{h}/Calibration/{cid}-calibration-item-stac.json",
+            item(
+                cid,
+                when.strftime("%Y-%m-%dT%H:%M:%SZ"),
+                {"raw_image": f"{h}/Calibration/{cid}-raw.png", "calibration_properties": f"{h}/Calibration/{name}"},
+                f"{h}/Calibration/{cid}-calibration-item-stac.json",
+            ),
+        )
         cal_links.append(link("item", f"{h}/Calibration/{cid}-calibration-item-stac.json"))
-    put(f"{h}/Calibration/{h}-calibration-collection-stac.json",
-        collection(f"{h}-calibration-collection", cal_links))
+    put(f"{h}/Calibration/{h}-calibration-collection-stac.json", collection(f"{h}-calibration-collection", cal_links))
     # deflectometry
     h5 = f"{h}-2023-09-18Z08-32-29Z-deflectometry.h5"
     put(f"{h}/Deflectometry/{h5}", b"\x89HDF\r\n\x1a\n" + bytes(64))
     expected[f"{h}/Deflectometry/{h5}"] = b"\x89HDF\r\n\x1a\n" + bytes(64)
-    put(f"{h}/Deflectometry/{h}-defl-item-stac.json", item(
-        f"{h}-2023-09-18Z08-32-29Z", "2023-09-18T08:32:29Z", {"raw_measurement": f"{h}/Deflectometry/{h5}"},
-        f"{h}/Deflectometry/{h}-defl-item-stac.json"))
-    put(f"{h}/Deflectometry/{h}-deflectometry-collection-stac.json", collection(
-        f"{h}-deflectometry-collection", [link("item", f"{h}/Deflectometry/{h}-defl-item-stac.json")]))
+    put(
+        f"{h}/Deflectometry/{h}-defl-item-stac.json",
+        item(
+            f"{h}-2023-09-18Z08-32-29Z",
+            "2023-09-18T08:32:29Z",
+            {"raw_measurement": f"{h}/Deflectometry/{h5}"},
+            f"{h}/Deflectometry/{h}-defl-item-stac.json",
+        ),
+    )
+    put(
+        f"{h}/Deflectometry/{h}-deflectometry-collection-stac.json",
+        collection(f"{h}-deflectometry-collection", [link("item", f"{h}/Deflectometry/{h}-defl-item-stac.json")]),
+    )
     put(f"{p}-catalog-stac.json", catalog(f"{p}-catalog", root_links))
     return expected
 
@@ -608,9 +672,9 @@ def test_paint_style_catalogue_with_absolute_urls(tmp_path):
         base = f"{url}/WRI1030197"
         expected = _write_paint_style(site / "WRI1030197", base, _source_records())
         out = tmp_path / "out"
-        rep = fetch_catalog(f"{base}/WRI1030197-catalog-stac.json", out,
-                            collections=("properties", "calibration", "deflectometry"))
+        rep = fetch_catalog(
+            f"{base}/WRI1030197-catalog-stac.json", out, collections=("properties", "calibration", "deflectometry")
+        )
     assert rep.ok and rep.heliostats == ("BE36",)
     assert files_under(out) == expected  # no raw images, PAINT layout, tower at the root
     assert not any("weather" in p for p in log)  # the weather collection is never read
-

@@ -307,9 +307,7 @@ def _paint_records(root):
         props = root / h / "Properties" / f"{h}-heliostat-properties.json"
         pos = json.loads(props.read_text())["heliostat_position"] if props.exists() else origin
         c = json.loads(cal.read_text())
-        rows.append(
-            [datetime_to_unix(rec["datetime"]), *pos, *origin, c["sun_azimuth"], c["sun_elevation"]]
-        )
+        rows.append([datetime_to_unix(rec["datetime"]), *pos, *origin, c["sun_azimuth"], c["sun_elevation"]])
     return np.asarray(rows, dtype=np.float64)
 
 

@@ -6,9 +6,9 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import NOISE_MRAD, ZOO_NAMES, zoo
 
 import heliojax as hj
-from helpers import NOISE_MRAD, ZOO_NAMES, zoo
 
 
 @pytest.mark.parametrize("name", ZOO_NAMES)

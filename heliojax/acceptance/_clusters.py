@@ -6,7 +6,8 @@ scale, by default 2.5 times the median nearest-neighbour spacing of the whole
 field (so heliostats a couple of rows apart count as neighbours); ``s`` is the
 value scale, by default ``value_factor`` (2.5) times the robust spread of the
 values *between spatial neighbours* (:func:`local_std`), which is the spread
-within a region even when the sample mixes a normal and an anomalous region. DBSCAN (scikit-learn) runs with ``eps`` (default 1) and
+within a region even when the sample mixes a normal and an anomalous region.
+DBSCAN (scikit-learn) runs with ``eps`` (default 1) and
 ``min_samples`` (default 4) on these features.
 
 DBSCAN labels are then condensed into the labels the acceptance report uses:
@@ -66,7 +67,8 @@ def local_std(positions: Float[np.ndarray, "m 2"], values: Float[np.ndarray, " m
     v = np.asarray(values, dtype=float)
     if v.size < 3:
         return robust_std(v)
-    _, j = spatial.cKDTree(xy).query(xy, k=2)
+    _, j = spatial.KDTree(xy).query(xy, k=2)
+    j = np.asarray(j)
     return float(_MAD_TO_STD * np.median(np.abs(v - v[j[:, 1]])) / np.sqrt(2.0))
 
 
@@ -75,7 +77,7 @@ def field_spacing(positions: Float[np.ndarray, "n 2"]) -> float:
     xy = np.asarray(positions, dtype=float)[:, :2]
     if len(xy) < 2:
         return 1.0
-    d, _ = spatial.cKDTree(xy).query(xy, k=2)
+    d, _ = spatial.KDTree(xy).query(xy, k=2)
     return float(np.median(d[:, 1]))
 
 
@@ -180,7 +182,7 @@ def find_clusters(
     p_values = {}
     idx = np.flatnonzero(kept)
     if idx.size:
-        pairs = spatial.cKDTree(xy[idx]).query_pairs(length_scale_m, output_type="ndarray")
+        pairs = spatial.KDTree(xy[idx]).query_pairs(length_scale_m, output_type="ndarray")
         pairs = pairs[kept[idx[pairs[:, 0]]] == kept[idx[pairs[:, 1]]]]
         graph = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(idx.size,) * 2)
         _, comp = csgraph.connected_components(graph, directed=False)
@@ -270,7 +272,7 @@ def resampling_advice(
     if not flagged.any():
         return np.zeros(0, dtype=int)
     k = min(k_neighbours + 1, len(xy))
-    _, nb = spatial.cKDTree(xy).query(xy[measured[flagged]], k=k)
+    _, nb = spatial.KDTree(xy).query(xy[measured[flagged]], k=k)
     cand = np.unique(np.asarray(nb).ravel())
     return np.setdiff1d(cand, measured)
 
@@ -329,7 +331,7 @@ def adaptive_survey(
     xy = np.asarray(field_positions, dtype=float)[:, :2]
     if length_scale_m is None:
         length_scale_m = 2.5 * field_spacing(xy)
-    measured = select_sample(xy, n_initial, seed=seed, method=method)
+    measured = select_sample(xy, n_initial, seed=seed, method=method)  # pyright: ignore[reportArgumentType]
     values = np.asarray(measure(measured), dtype=float)
     rounds = [int(measured.size)]
 
@@ -337,15 +339,29 @@ def adaptive_survey(
 
     def cluster(m, v):
         ref = np.arange(m.size) < n_first
-        return find_clusters(xy[m], v, length_scale_m=length_scale_m, value_factor=value_factor,
-                             eps=eps, min_samples=min_samples, reference=ref)
+        return find_clusters(
+            xy[m],
+            v,
+            length_scale_m=length_scale_m,
+            value_factor=value_factor,
+            eps=eps,
+            min_samples=min_samples,
+            reference=ref,
+        )
 
     res = cluster(measured, values)
     budget = np.inf if max_extra is None else max_extra
     for _ in range(max_rounds):
-        new = resampling_advice(xy, measured, values, res, k_neighbours=k_neighbours,
-                                z_threshold=z_threshold, side=side,
-                                reference=np.arange(measured.size) < n_first)
+        new = resampling_advice(
+            xy,
+            measured,
+            values,
+            res,
+            k_neighbours=k_neighbours,
+            z_threshold=z_threshold,
+            side=side,
+            reference=np.arange(measured.size) < n_first,
+        )
         if new.size == 0 or budget <= 0:
             break
         new = new[: int(min(new.size, budget))]

@@ -140,7 +140,7 @@ def fit_kde(
     if bandwidth == "cv":
         factor = cv_bandwidth_factor(y)
     elif isinstance(bandwidth, str):
-        factor = float(stats.gaussian_kde(y, bw_method=bandwidth).factor)
+        factor = float(stats.gaussian_kde(y, bw_method=bandwidth).factor)  # pyright: ignore[reportArgumentType]
     else:
         factor = float(bandwidth)
     return TransformedKDE(stats.gaussian_kde(y, bw_method=factor), support, factor)
@@ -196,7 +196,7 @@ def extrapolate_field(
     is_meas = np.zeros(n, dtype=bool)
     is_meas[measured] = True
     # label of the nearest measured heliostat
-    _, j = spatial.cKDTree(xy[measured]).query(xy, k=1)
+    _, j = spatial.KDTree(xy[measured]).query(xy, k=1)
     field_labels = lab[j]
     field_labels[measured] = lab
     out = np.full(n, np.nan)

@@ -56,7 +56,7 @@ def read_field_csv(path: str | os.PathLike) -> FieldData:
             raise DataError(path, col, "missing column")
     unknown = [c for c in header if c not in ("heliostat_id", "east_m", "north_m", "up_m", *PARAMETERS)]
     if unknown:
-        raise DataError(path, unknown[0], f"unknown column; known parameters: {sorted(PARAMETERS)}")
+        raise DataError(path, str(unknown[0]), f"unknown column; known parameters: {sorted(PARAMETERS)}")
     params = [c for c in header if c in PARAMETERS]
     ids, pos = [], []
     vals = {p: [] for p in params}
@@ -66,11 +66,13 @@ def read_field_csv(path: str | os.PathLike) -> FieldData:
             raise DataError(path, f"line {i}: heliostat_id", "empty")
         ids.append(hid)
         up = row.get("up_m")
-        pos.append([
-            _float(path, f"line {i}: east_m", row["east_m"]),
-            _float(path, f"line {i}: north_m", row["north_m"]),
-            0.0 if up in (None, "") else _float(path, f"line {i}: up_m", up),
-        ])
+        pos.append(
+            [
+                _float(path, f"line {i}: east_m", row["east_m"]),
+                _float(path, f"line {i}: north_m", row["north_m"]),
+                0.0 if up in (None, "") else _float(path, f"line {i}: up_m", up),
+            ]
+        )
         for p in params:
             cell = (row[p] or "").strip()
             x = math.nan if cell == "" else _float(path, f"line {i}: {p}", cell)
@@ -82,8 +84,11 @@ def read_field_csv(path: str | os.PathLike) -> FieldData:
     if len(set(ids)) != len(ids):
         dup = sorted({h for h in ids if ids.count(h) > 1})[0]
         raise DataError(path, "heliostat_id", f"duplicate ID {dup!r}")
-    return FieldData(ids=tuple(ids), positions=np.asarray(pos, dtype=float),
-                     values={p: np.asarray(v, dtype=float) for p, v in vals.items()})
+    return FieldData(
+        ids=tuple(ids),
+        positions=np.asarray(pos, dtype=float),
+        values={p: np.asarray(v, dtype=float) for p, v in vals.items()},
+    )
 
 
 def read_summary(path: str | os.PathLike) -> dict[str, float]:
@@ -166,11 +171,13 @@ def field_from_summary(
     track = read_summary(summary_path)
     missing = sorted(set(track) - set(ids))
     if missing:
-        raise DataError(summary_path, f"heliostats.{missing[0]}", "no position known for this heliostat "
-                        "(give --positions or --paint)")
+        raise DataError(
+            summary_path,
+            f"heliostats.{missing[0]}",
+            "no position known for this heliostat (give --positions or --paint)",
+        )
     values = np.array([track.get(h, math.nan) for h in ids])
-    return FieldData(ids=tuple(ids), positions=np.asarray(positions, dtype=float),
-                     values={"tracking_mrad": values})
+    return FieldData(ids=tuple(ids), positions=np.asarray(positions, dtype=float), values={"tracking_mrad": values})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -275,8 +282,10 @@ def load_contract(path: str | os.PathLike) -> Contract:
         num("clusters", k, positive=True)
     ex = doc.get("extrapolation", {})
     bandwidth = ex.get("bandwidth", "cv")
-    if not (bandwidth in ("cv", "scott", "silverman") or (isinstance(bandwidth, (int, float))
-                                                          and not isinstance(bandwidth, bool) and bandwidth > 0)):
+    if not (
+        bandwidth in ("cv", "scott", "silverman")
+        or (isinstance(bandwidth, (int, float)) and not isinstance(bandwidth, bool) and bandwidth > 0)
+    ):
         raise ConfigError(f"{path}: [extrapolation] bandwidth must be cv, scott, silverman or > 0")
     y = doc.get("yield", {})
     tower = y.get("tower_file")

@@ -111,7 +111,7 @@ def confidence_intervals(
         half = stats.t.ppf(1 - alpha / 2, n - 1) * s / math.sqrt(n)
         lo = math.sqrt((n - 1) * s**2 / stats.chi2.ppf(1 - alpha / 2, n - 1))
         hi = math.sqrt((n - 1) * s**2 / stats.chi2.ppf(alpha / 2, n - 1))
-        return (m - half, m + half), (lo, hi)
+        return (float(m - half), float(m + half)), (lo, hi)
     if method != "bootstrap":
         raise ValueError(f"method must be 'normal' or 'bootstrap', got {method!r}")
     if s == 0.0:
@@ -120,14 +120,26 @@ def confidence_intervals(
     out = []
     for stat in (np.mean, lambda a, axis: np.std(a, axis=axis, ddof=1)):
         res = stats.bootstrap(
-            (x,), stat, confidence_level=confidence, n_resamples=n_resamples,
-            method="BCa", vectorized=True, axis=-1, random_state=rng,
+            (x,),
+            stat,
+            confidence_level=confidence,
+            n_resamples=n_resamples,
+            method="BCa",
+            vectorized=True,
+            axis=-1,
+            random_state=rng,  # pyright: ignore[reportCallIssue]
         )
         lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
         if not (math.isfinite(lo) and math.isfinite(hi)):  # degenerate BCa: percentile
             res = stats.bootstrap(
-                (x,), stat, confidence_level=confidence, n_resamples=n_resamples,
-                method="percentile", vectorized=True, axis=-1, random_state=rng,
+                (x,),
+                stat,
+                confidence_level=confidence,
+                n_resamples=n_resamples,
+                method="percentile",
+                vectorized=True,
+                axis=-1,
+                random_state=rng,  # pyright: ignore[reportCallIssue]
             )
             lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
         out.append((lo, hi))
@@ -183,7 +195,7 @@ def level1_test(
     sufficient = x.size >= n_required
     shape = scale = float("nan")
     if distribution == "radial" and np.all(x > 0) and x.size >= 3 and np.ptp(x) > 0:
-        shape, _, scale = (float(v) for v in stats.weibull_min.fit(x, floc=0.0))
+        shape, _, scale = (float(v) for v in stats.weibull_min.fit(x, floc=0.0))  # pyright: ignore[reportArgumentType]
     normality_p = float(stats.shapiro(x).pvalue) if x.size >= 3 and np.ptp(x) > 0 else float("nan")
     return Level1Result(
         n=int(x.size),

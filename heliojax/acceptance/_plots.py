@@ -47,10 +47,17 @@ def plot_field_map(
     size = 6.0 + 60.0 * (t / np.nanmax(t)) ** 2
     colours = np.array(["tab:blue", "tab:red", "tab:orange", "tab:purple", "tab:green", "tab:brown"])
     col = colours[np.minimum(lab, len(colours) - 1)]
-    ax.scatter(xy[~meas, 0], xy[~meas, 1], s=size[~meas], facecolors="none", edgecolors=col[~meas],
-               linewidths=0.5, alpha=0.6, label="extrapolated")
-    ax.scatter(xy[meas, 0], xy[meas, 1], s=size[meas], c=col[meas], edgecolors="k", linewidths=0.4,
-               label="measured")
+    ax.scatter(
+        xy[~meas, 0],
+        xy[~meas, 1],
+        s=size[~meas],
+        facecolors="none",
+        edgecolors=col[~meas],  # pyright: ignore[reportArgumentType]
+        linewidths=0.5,
+        alpha=0.6,
+        label="extrapolated",
+    )
+    ax.scatter(xy[meas, 0], xy[meas, 1], s=size[meas], c=col[meas], edgecolors="k", linewidths=0.4, label="measured")
     for k in range(1, int(lab.max(initial=0)) + 1):  # loop over clusters
         pts = xy[(lab == k) & meas]
         if len(pts) >= 3:
@@ -59,8 +66,7 @@ def plot_field_map(
             except spatial.QhullError:
                 continue
             ring = pts[np.r_[hull.vertices, hull.vertices[0]]]
-            ax.plot(ring[:, 0], ring[:, 1], "-", color=colours[min(k, len(colours) - 1)], lw=1.5,
-                    label=f"cluster {k}")
+            ax.plot(ring[:, 0], ring[:, 1], "-", color=colours[min(k, len(colours) - 1)], lw=1.5, label=f"cluster {k}")
     ax.plot([0], [0], "k^", ms=8, label="tower")
     ax.set_aspect("equal")
     ax.set_xlabel("east (m)")
@@ -94,8 +100,14 @@ def plot_cluster_distributions(
     for k in np.unique(lab):
         c = colours[min(int(k), len(colours) - 1)]
         sel = v[lab == k]
-        ax.hist(sel, bins=max(5, int(np.sqrt(sel.size)) + 2), density=True, alpha=0.35, color=c,
-                label=f"cluster {k} (n={sel.size})")
+        ax.hist(
+            sel,
+            bins=max(5, int(np.sqrt(sel.size)) + 2),
+            density=True,
+            alpha=0.35,
+            color=c,
+            label=f"cluster {k} (n={sel.size})",
+        )
         if extrapolation is not None and int(k) in extrapolation.kdes:
             ax.plot(grid, extrapolation.kdes[int(k)].pdf(np.maximum(grid, 1e-12)), color=c, lw=1.5)
     ax.set_xlabel(name)
@@ -139,7 +151,8 @@ def plot_all(result, directory) -> list:
         figs["field_map.png"] = plot_field_map(result.field.positions, ex.values, ex.measured, ex.labels)
         meas = np.isfinite(np.asarray(result.field.values["tracking_mrad"]))
         figs["cluster_distributions.png"] = plot_cluster_distributions(
-            np.asarray(result.field.values["tracking_mrad"])[meas], cr.labels, ex)
+            np.asarray(result.field.values["tracking_mrad"])[meas], cr.labels, ex
+        )
     figs["monthly_efficiency.png"] = plot_monthly_efficiency(result.yield_contract, result.yield_measured)
     for fname, fig in figs.items():
         with atomic_path(directory / fname) as tmp:

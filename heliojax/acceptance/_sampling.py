@@ -151,9 +151,7 @@ def sample_size(
         raise ValueError(f"mean must be finite and non-zero, got {mean}")
     if not (rel_error > 0.0 and math.isfinite(rel_error)):
         raise ValueError(f"rel_error must be finite and > 0, got {rel_error}")
-    return sample_size_absolute(
-        abs(std / mean), rel_error, population, confidence, formula, z=z
-    )
+    return sample_size_absolute(abs(std / mean), rel_error, population, confidence, formula, z=z)
 
 
 def select_sample(

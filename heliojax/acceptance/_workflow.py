@@ -20,9 +20,7 @@ from ._yield import SunSeries, YieldResult, field_efficiency, typical_year
 _YIELD_DEFAULTS = {"slope_mrad": 0.0, "reflectance": 1.0, "aperture_m2": 1.0}
 
 
-def contract_values(
-    n: int, mean: float, std: float, support: str = "positive", seed: int = 0
-) -> np.ndarray:
+def contract_values(n: int, mean: float, std: float, support: str = "positive", seed: int = 0) -> np.ndarray:
     """``n`` per-heliostat values that realise a contract distribution.
 
     Quantiles ``(k + 0.5) / n`` (deterministic, no sampling noise) of a gamma
@@ -98,36 +96,70 @@ def run_acceptance(
     length_scale = cl.pop("length_factor", 2.5) * field_spacing(xy)
     z_thr = cl.pop("z_threshold", 2.0)
     k_nb = int(cl.pop("k_neighbours", 8))
-    cl_kw = {"eps": float(cl.get("eps", 1.0)), "min_samples": int(cl.get("min_samples", 6)),
-             "value_factor": float(cl.get("value_factor", 2.5))}
+    cl_kw = {
+        "eps": float(cl.get("eps", 1.0)),
+        "min_samples": int(cl.get("min_samples", 6)),
+        "value_factor": float(cl.get("value_factor", 2.5)),
+    }
     ids = np.asarray(field.ids)
-    report: dict = {"population": n, "sample_sizes": {}, "level1": {}, "clusters": {},
-                    "resample": {}, "level2": {}, "verdict": None, "reasons": []}
+    report: dict = {
+        "population": n,
+        "sample_sizes": {},
+        "level1": {},
+        "clusters": {},
+        "resample": {},
+        "level2": {},
+        "verdict": None,
+        "reasons": [],
+    }
     level1, clusters, extrap = {}, {}, {}
     reasons = []
     inconclusive = False
     for name, spec in contract.parameters.items():
         info = PARAMETERS[name]
-        n_req = sample_size(spec.mean, spec.std, spec.rel_error, population=n,
-                            confidence=contract.confidence, formula=contract.formula, z=contract.z)
+        n_req = sample_size(
+            spec.mean,
+            spec.std,
+            spec.rel_error,
+            population=n,
+            confidence=contract.confidence,
+            formula=contract.formula,  # pyright: ignore[reportArgumentType]
+            z=contract.z,
+        )
         report["sample_sizes"][name] = n_req
         meas = np.flatnonzero(field.measured(name))
         if meas.size < 2:
-            report["level1"][name] = {"pass": None, "n": int(meas.size), "n_required": n_req,
-                                      "mean": None, "std": None, "contract_mean": spec.mean,
-                                      "contract_std": spec.std}
+            report["level1"][name] = {
+                "pass": None,
+                "n": int(meas.size),
+                "n_required": n_req,
+                "mean": None,
+                "std": None,
+                "contract_mean": spec.mean,
+                "contract_std": spec.std,
+            }
             reasons.append(f"{name}: not measured")
             inconclusive = True
             continue
         vals = np.asarray(field.values[name])[meas]
-        r1 = level1_test(vals, spec.mean, spec.std, n_required=n_req, confidence=contract.confidence,
-                         sense=info.sense, distribution=info.distribution, seed=contract.seed)
+        r1 = level1_test(
+            vals,
+            spec.mean,
+            spec.std,
+            n_required=n_req,
+            confidence=contract.confidence,
+            sense=info.sense,
+            distribution=info.distribution,
+            seed=contract.seed,
+        )
         level1[name] = r1
         report["level1"][name] = r1.to_json()
         if not (r1.pass_mean and r1.pass_std):
-            reasons.append(f"{name}: level 1 failed (mean {r1.mean:.4g} CI {r1.mean_ci[0]:.4g}.."
-                           f"{r1.mean_ci[1]:.4g} vs {spec.mean:.4g}; std {r1.std:.4g} CI "
-                           f"{r1.std_ci[0]:.4g}..{r1.std_ci[1]:.4g} vs {spec.std:.4g})")
+            reasons.append(
+                f"{name}: level 1 failed (mean {r1.mean:.4g} CI {r1.mean_ci[0]:.4g}.."
+                f"{r1.mean_ci[1]:.4g} vs {spec.mean:.4g}; std {r1.std:.4g} CI "
+                f"{r1.std_ci[0]:.4g}..{r1.std_ci[1]:.4g} vs {spec.std:.4g})"
+            )
         elif not r1.sufficient_sample:
             reasons.append(f"{name}: {r1.n} measured, {n_req} required")
             inconclusive = True
@@ -136,30 +168,43 @@ def run_acceptance(
         side = "high" if info.sense == "lower" else "low" if info.sense == "higher" else "both"
         advice = resampling_advice(xy, meas, vals, cr, k_neighbours=k_nb, z_threshold=z_thr, side=side)
         report["resample"][name] = [str(h) for h in ids[advice]]
-        ex = extrapolate_field(xy, meas, vals, cr.labels, support=info.support,
-                               bandwidth=contract.bandwidth, seed=contract.seed)
+        ex = extrapolate_field(
+            xy,
+            meas,
+            vals,
+            cr.labels,
+            support=info.support,
+            bandwidth=contract.bandwidth,
+            seed=contract.seed,  # pyright: ignore[reportArgumentType]
+        )
         extrap[name] = ex
         entries = []
         for k in range(cr.n_anomalies + 1):
             members = cr.labels == k
             mv = vals[members]
-            entries.append({
-                "label": k,
-                "anomalous": k > 0,
-                "heliostats": [str(h) for h in ids[meas[members]]],
-                "n_assigned": int((ex.labels == k).sum()),
-                "mean": float(mv.mean()) if mv.size else None,
-                "std": float(mv.std(ddof=1)) if mv.size > 1 else None,
-                "p_value": cr.p_values.get(k),
-            })
+            entries.append(
+                {
+                    "label": k,
+                    "anomalous": k > 0,
+                    "heliostats": [str(h) for h in ids[meas[members]]],
+                    "n_assigned": int((ex.labels == k).sum()),
+                    "mean": float(mv.mean()) if mv.size else None,
+                    "std": float(mv.std(ddof=1)) if mv.size > 1 else None,
+                    "p_value": cr.p_values.get(k),
+                }
+            )
         report["clusters"][name] = entries
         if cr.n_anomalies:
             reasons.append(f"{name}: {cr.n_anomalies} local anomaly cluster(s)")
 
     # ---- level 2
     if sun is None:
-        sun = typical_year(*plant_lla, year=contract.year, step_minutes=contract.step_minutes,
-                           min_elevation_deg=contract.min_elevation_deg)
+        sun = typical_year(
+            *plant_lla,
+            year=contract.year,
+            step_minutes=contract.step_minutes,
+            min_elevation_deg=contract.min_elevation_deg,
+        )
     contract_kw, measured_kw = {}, {}
     for i, name in enumerate(("tracking_mrad", "slope_mrad", "reflectance", "aperture_m2")):
         spec = contract.parameters.get(name)
@@ -183,18 +228,28 @@ def run_acceptance(
         "tolerance": contract.tolerance,
         "pass": bool(rel >= -contract.tolerance),
         "monthly": [
-            {"month": m + 1, "efficiency_contract": yc.monthly[m], "efficiency_measured": ym.monthly[m],
-             "clear_sky_dni_kwh_m2": yc.dni_kwh_m2[m]}
+            {
+                "month": m + 1,
+                "efficiency_contract": yc.monthly[m],
+                "efficiency_measured": ym.monthly[m],
+                "clear_sky_dni_kwh_m2": yc.dni_kwh_m2[m],
+            }
             for m in range(12)
         ],
-        "model": {"sun_sigma_mrad": contract.sun_sigma_mrad, "year": contract.year,
-                  "step_minutes": contract.step_minutes, "min_elevation_deg": contract.min_elevation_deg,
-                  "beam_sigma": "per-axis sigma^2 = sun^2 + 2 slope^2 + tracking^2 / 2 (radial RMS inputs)"},
+        "model": {
+            "sun_sigma_mrad": contract.sun_sigma_mrad,
+            "year": contract.year,
+            "step_minutes": contract.step_minutes,
+            "min_elevation_deg": contract.min_elevation_deg,
+            "beam_sigma": "per-axis sigma^2 = sun^2 + 2 slope^2 + tracking^2 / 2 (radial RMS inputs)",
+        },
     }
     if not report["level2"]["pass"]:
-        reasons.append(f"level 2: annual efficiency {ym.annual:.4f} vs contract {yc.annual:.4f} "
-                       f"({100 * rel:+.2f} %, tolerance {100 * contract.tolerance:.2f} %)")
+        reasons.append(
+            f"level 2: annual efficiency {ym.annual:.4f} vs contract {yc.annual:.4f} "
+            f"({100 * rel:+.2f} %, tolerance {100 * contract.tolerance:.2f} %)"
+        )
     failed = any(not (r.pass_mean and r.pass_std) for r in level1.values()) or not report["level2"]["pass"]
     report["verdict"] = "rejected" if failed else "inconclusive" if inconclusive else "accepted"
     report["reasons"] = reasons
-    return AcceptanceResult(_clean(report), field, level1, clusters, extrap, yc, ym)
+    return AcceptanceResult(_clean(report), field, level1, clusters, extrap, yc, ym)  # pyright: ignore[reportArgumentType]

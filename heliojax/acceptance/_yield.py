@@ -61,9 +61,9 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._errors import DataError
+from .._geometry import TargetPlane, sun_direction, wgs84_to_enu
 from .._sun import solar_position
 from ..paint import read_tower
-from .._geometry import TargetPlane, sun_direction, wgs84_to_enu
 
 SUN_SIGMA_MRAD = 2.51
 """Default per-axis standard deviation of the Gaussian sunshape (mrad)."""
@@ -126,10 +126,10 @@ def load_receiver(tower_file: str | os.PathLike) -> tuple[TargetPlane, tuple[flo
 
 
 def beam_sigma(
-    tracking_mrad: Float[ArrayLike, "..."],
-    slope_mrad: Float[ArrayLike, "..."],
+    tracking_mrad: Float[ArrayLike, ...],
+    slope_mrad: Float[ArrayLike, ...],
     sun_sigma_mrad: float = SUN_SIGMA_MRAD,
-) -> Float[Array, "..."]:
+) -> Float[Array, ...]:
     """Per-axis angular std (rad) of the reflected beam (see the module docstring).
 
     Args:
@@ -145,7 +145,7 @@ def beam_sigma(
     return 1e-3 * jnp.sqrt(sun_sigma_mrad**2 + 2.0 * s**2 + 0.5 * t**2)
 
 
-def atmospheric_attenuation(slant_m: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
+def atmospheric_attenuation(slant_m: Float[ArrayLike, ...]) -> Float[Array, ...]:
     """Clear-day transmittance over ``slant_m`` metres (valid below 1000 m)."""
     d = jnp.asarray(slant_m)
     return 0.99321 - 1.176e-4 * d + 1.97e-8 * d**2
@@ -221,13 +221,19 @@ def intercept_efficiency(
     p = jnp.asarray(positions)
     sigma = jnp.broadcast_to(jnp.asarray(sigma_rad, dtype=p.dtype), p.shape[:1])
     x, wq = np.polynomial.legendre.leggauss(n_nodes)
-    return _intercept(p, aperture.centre.astype(p.dtype), _aperture_corners(aperture).astype(p.dtype),
-                      sigma, jnp.asarray(x, p.dtype), jnp.asarray(wq, p.dtype))
+    return _intercept(
+        p,
+        aperture.centre.astype(p.dtype),
+        _aperture_corners(aperture).astype(p.dtype),
+        sigma,
+        jnp.asarray(x, p.dtype),
+        jnp.asarray(wq, p.dtype),
+    )
 
 
 def cosine_efficiency(
     positions: Float[ArrayLike, "n 3"],
-    aim: Float[ArrayLike, "3"],
+    aim: Float[ArrayLike, 3],
     sun: Float[ArrayLike, "t 3"],
 ) -> Float[Array, "t n"]:
     """Cosine factor ``sqrt((1 + s . u) / 2)`` for every (time, heliostat).
@@ -242,7 +248,7 @@ def cosine_efficiency(
     return jnp.sqrt(jnp.clip(0.5 * (1.0 + jnp.asarray(sun) @ u.T), 0.0, 1.0))
 
 
-def clear_sky_dni(elevation_rad: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
+def clear_sky_dni(elevation_rad: Float[ArrayLike, ...]) -> Float[Array, ...]:
     """Clear-sky direct normal irradiance (W/m^2), Meinel model
     ``1353 * 0.7 ** (AM ** 0.678)`` with the Kasten-Young (1989) air mass; 0 below
     the horizon."""
@@ -290,9 +296,8 @@ def typical_year(
         min_elevation_deg: drop times with the sun lower than this.
     """
 
-
-    start = _dt.datetime(year, 1, 1, tzinfo=_dt.timezone.utc).timestamp()
-    end = _dt.datetime(year + 1, 1, 1, tzinfo=_dt.timezone.utc).timestamp()
+    start = _dt.datetime(year, 1, 1, tzinfo=_dt.UTC).timestamp()
+    end = _dt.datetime(year + 1, 1, 1, tzinfo=_dt.UTC).timestamp()
     step = 60.0 * step_minutes
     t = np.arange(start + 0.5 * step, end, step)
     pos = solar_position(jnp.asarray(t), latitude_deg, longitude_deg, altitude_m)

@@ -26,14 +26,22 @@ def add_parser(subparsers) -> None:
     p.add_argument("--contract", required=True, type=Path, help="contract TOML (see configs/contract.toml)")
     p.add_argument("--report", type=Path, default=Path("acceptance.json"), help="output JSON report")
     p.add_argument("--figures", type=Path, default=None, help="directory for the three PNG figures")
-    p.add_argument("--positions", type=Path, default=None,
-                   help="CSV heliostat_id,east_m,north_m[,up_m] of every heliostat of the field "
-                        "(with a summary.json)")
-    p.add_argument("--paint", type=Path, default=None,
-                   help="PAINT download directory: heliostat positions and the tower file")
-    p.add_argument("--tower", type=Path, default=None,
-                   help="tower file with the receiver (default: --paint's, else the contract's "
-                        "[yield] tower_file, else the built-in Jülich receiver)")
+    p.add_argument(
+        "--positions",
+        type=Path,
+        default=None,
+        help="CSV heliostat_id,east_m,north_m[,up_m] of every heliostat of the field (with a summary.json)",
+    )
+    p.add_argument(
+        "--paint", type=Path, default=None, help="PAINT download directory: heliostat positions and the tower file"
+    )
+    p.add_argument(
+        "--tower",
+        type=Path,
+        default=None,
+        help="tower file with the receiver (default: --paint's, else the contract's "
+        "[yield] tower_file, else the built-in Jülich receiver)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -69,8 +77,7 @@ def run(args: argparse.Namespace) -> int:
             receiver_source = "built-in Jülich receiver"
         result = acc.run_acceptance(field, contract, aperture, plant)
         report = dict(result.report)
-        report["inputs"] = {"results": str(args.results), "contract": str(args.contract),
-                            "receiver": receiver_source}
+        report["inputs"] = {"results": str(args.results), "contract": str(args.contract), "receiver": receiver_source}
         with atomic_write(args.report) as f:
             json.dump(report, f, indent=2)
             f.write("\n")
@@ -83,7 +90,9 @@ def run(args: argparse.Namespace) -> int:
     for name, r in report["level1"].items():
         status = "n/a" if r["pass"] is None else "pass" if r["pass"] else "FAIL"
         print(f"{name:14s} n={r.get('n')}/{report['sample_sizes'][name]}  {status}")
-    print(f"annual efficiency: contract {l2['annual_efficiency_contract']:.4f}, "
-          f"measured {l2['annual_efficiency_measured']:.4f}")
+    print(
+        f"annual efficiency: contract {l2['annual_efficiency_contract']:.4f}, "
+        f"measured {l2['annual_efficiency_measured']:.4f}"
+    )
     print(f"verdict: {report['verdict']}")
     return 0

@@ -16,8 +16,8 @@ elevation ranges."""
 
 
 def add_parser(subparsers) -> None:
-    from ..fitting import BATCHING_NAMES
     from .._splits import SPLIT_NAMES
+    from ..fitting import BATCHING_NAMES
 
     p = subparsers.add_parser(
         "calibrate",
@@ -29,32 +29,62 @@ def add_parser(subparsers) -> None:
         ),
     )
     add_data_argument(p)
-    p.add_argument("--model", choices=MODELS, default="auto",
-                   help="kinematic model: 'auto' (default) follows each heliostat's declared actuators "
-                        "(law of cosines for linear actuators, a linear counts-to-angle map for ideal ones), "
-                        "'actuator' is the same model, 'stone8' the Stone model (linear map everywhere); "
-                        "'+nn' adds a per-heliostat neural correction (heliojax.neural)")
-    p.add_argument("--nn-variant", choices=NN_VARIANTS, default="residual",
-                   help="with +nn: 'residual' (learned joint-angle correction, default) or 'paper' "
-                        "(Pargmann et al.: physics-pretrained network sun + spot -> motor counts)")
+    p.add_argument(
+        "--model",
+        choices=MODELS,
+        default="auto",
+        help="kinematic model: 'auto' (default) follows each heliostat's declared actuators "
+        "(law of cosines for linear actuators, a linear counts-to-angle map for ideal ones), "
+        "'actuator' is the same model, 'stone8' the Stone model (linear map everywhere); "
+        "'+nn' adds a per-heliostat neural correction (heliojax.neural)",
+    )
+    p.add_argument(
+        "--nn-variant",
+        choices=NN_VARIANTS,
+        default="residual",
+        help="with +nn: 'residual' (learned joint-angle correction, default) or 'paper' "
+        "(Pargmann et al.: physics-pretrained network sun + spot -> motor counts)",
+    )
     p.add_argument("--split", choices=SPLIT_NAMES, default="time")
-    p.add_argument("--train", type=int, default=None, metavar="N",
-                   help="training records per heliostat (default for the time split: the earliest 70%%)")
+    p.add_argument(
+        "--train",
+        type=int,
+        default=None,
+        metavar="N",
+        help="training records per heliostat (default for the time split: the earliest 70%%)",
+    )
     p.add_argument("--train-fraction", type=float, default=0.7, help="time split: fraction that trains")
     p.add_argument("--val", type=int, default=0, metavar="N", help="validation records per heliostat")
     p.add_argument("--seed", type=int, default=42, help="seed of the random splits")
-    p.add_argument("--test-data", type=Path, default=None, metavar="DIR",
-                   help="evaluate on the records of this directory (same heliostat ids) instead of a split")
-    p.add_argument("--prior", action="store_true",
-                   help="Tikhonov prior toward nominal for the weakly identified parameters")
+    p.add_argument(
+        "--test-data",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="evaluate on the records of this directory (same heliostat ids) instead of a split",
+    )
+    p.add_argument(
+        "--prior", action="store_true", help="Tikhonov prior toward nominal for the weakly identified parameters"
+    )
     p.add_argument("--max-steps", type=int, default=64, help="Levenberg-Marquardt step limit")
-    p.add_argument("--no-robust", dest="robust", action="store_false",
-                   help="plain least squares instead of the robust (Cauchy) fit with outlier flags")
+    p.add_argument(
+        "--no-robust",
+        dest="robust",
+        action="store_false",
+        help="plain least squares instead of the robust (Cauchy) fit with outlier flags",
+    )
     p.add_argument("--strategy", choices=BATCHING_NAMES, default="auto", help="batching over heliostats")
-    p.add_argument("--start", choices=("auto", "nominal"), default="auto",
-                   help="start geometry: per heliostat the better of nominal / fleet-typical actuators")
-    p.add_argument("--cache-dir", default=None,
-                   help="persistent JAX compilation cache (default ~/.cache/heliojax/jax; 'none' disables)")
+    p.add_argument(
+        "--start",
+        choices=("auto", "nominal"),
+        default="auto",
+        help="start geometry: per heliostat the better of nominal / fleet-typical actuators",
+    )
+    p.add_argument(
+        "--cache-dir",
+        default=None,
+        help="persistent JAX compilation cache (default ~/.cache/heliojax/jax; 'none' disables)",
+    )
     p.add_argument("--out", type=Path, default=None, metavar="FILE", help="results.h5")
     p.add_argument("--report", type=Path, default=None, metavar="FILE", help="summary.json")
     p.add_argument("--plot", type=Path, default=None, metavar="FILE", help="figure (PNG)")
@@ -62,11 +92,11 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..paint import load_paint_directory
     from .._kinematics import nominal_model
-    from ..fitting import batching_from_name, gaussian_prior
     from .._results import write_results_h5
     from .._workflow import calibrate, write_summary
+    from ..fitting import batching_from_name, gaussian_prior
+    from ..paint import load_paint_directory
 
     enable_compilation_cache(args.cache_dir)
     say = (lambda _m: None) if args.quiet else progress
@@ -104,8 +134,10 @@ def run(args) -> int:
 
         run_ = calibrate_neural(fleet, variant=args.nn_variant, seed=args.seed, lm_run=run_, progress=say).run
     s = run_.summary
-    print(f"{'heliostat':<10} {'status':<16} {'train':>5} {'test':>5} {'train rms':>9} {'test med':>9} "
-          f"{'test rms':>9} {'uncal med':>9}   [mrad]")
+    print(
+        f"{'heliostat':<10} {'status':<16} {'train':>5} {'test':>5} {'train rms':>9} {'test med':>9} "
+        f"{'test rms':>9} {'uncal med':>9}   [mrad]"
+    )
 
     def fmt(x):
         return f"{x:9.3f}" if x is not None else f"{'-':>9}"
@@ -114,16 +146,22 @@ def run(args) -> int:
         extra = ""
         if neural:
             extra = f"   LM {fmt(h['lm_test_median_mrad'])}" + ("  (fallback to LM)" if h["nn_fallback"] else "")
-        print(f"{hid:<10} {h['status']:<16} {h['n_train']:>5} {h['n_test']:>5} {fmt(h['train_rms_mrad'])} "
-              f"{fmt(h['test_median_mrad'])} {fmt(h['test_rms_mrad'])} {fmt(h['uncalibrated_test_median_mrad'])}{extra}")
+        print(
+            f"{hid:<10} {h['status']:<16} {h['n_train']:>5} {h['n_test']:>5} {fmt(h['train_rms_mrad'])} "
+            f"{fmt(h['test_median_mrad'])} {fmt(h['test_rms_mrad'])} {fmt(h['uncalibrated_test_median_mrad'])}{extra}"
+        )
     f = s["fleet"]
-    print(f"fleet: {f['n_converged']}/{f['n_heliostats']} converged; held-out median {fmt(f['test_median_mrad'])} "
-          f"rms {fmt(f['test_rms_mrad'])} mrad (uncalibrated median {fmt(f['uncalibrated_test_median_mrad'])}); "
-          f"compile {s['timing']['compile_s']:.2f} s, fit {s['timing']['fit_s']:.2f} s")
+    print(
+        f"fleet: {f['n_converged']}/{f['n_heliostats']} converged; held-out median {fmt(f['test_median_mrad'])} "
+        f"rms {fmt(f['test_rms_mrad'])} mrad (uncalibrated median {fmt(f['uncalibrated_test_median_mrad'])}); "
+        f"compile {s['timing']['compile_s']:.2f} s, fit {s['timing']['fit_s']:.2f} s"
+    )
     if neural:
-        print(f"{s['model']} ({s['nn_variant']}): network used by {f['n_nn_used']} heliostats, "
-              f"{f['n_nn_fallback']} fall back to LM; LM alone: held-out median {fmt(f['lm_test_median_mrad'])} mrad; "
-              f"pretrain {s['timing']['nn_pretrain_s']:.1f} s, fine-tune {s['timing']['nn_finetune_s']:.1f} s")
+        print(
+            f"{s['model']} ({s['nn_variant']}): network used by {f['n_nn_used']} heliostats, "
+            f"{f['n_nn_fallback']} fall back to LM; LM alone: held-out median {fmt(f['lm_test_median_mrad'])} mrad; "
+            f"pretrain {s['timing']['nn_pretrain_s']:.1f} s, fine-tune {s['timing']['nn_finetune_s']:.1f} s"
+        )
     if args.report is not None:
         write_summary(args.report, run_)
         say(f"wrote {args.report}")

@@ -9,11 +9,19 @@ from pathlib import Path
 
 def add_data_argument(p) -> None:
     p.add_argument(
-        "data_dir", nargs="?", type=Path, default=None, metavar="DATA_DIR",
+        "data_dir",
+        nargs="?",
+        type=Path,
+        default=None,
+        metavar="DATA_DIR",
         help="PAINT-layout directory (default: the embedded real subset of PAINT)",
     )
-    p.add_argument("--centroid", choices=("utis", "helios"), default="utis",
-                   help="focal-spot centroid: UTIS with HeliOS fallback (default) or HeliOS only")
+    p.add_argument(
+        "--centroid",
+        choices=("utis", "helios"),
+        default="utis",
+        help="focal-spot centroid: UTIS with HeliOS fallback (default) or HeliOS only",
+    )
 
 
 def load_fleet(args):

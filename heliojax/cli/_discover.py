@@ -30,15 +30,21 @@ def add_parser(subparsers) -> None:
     p.add_argument("--report", type=Path, default=Path("report.json"), metavar="FILE", help="report.json path")
     p.add_argument("--figures", type=Path, default=None, metavar="DIR", help="directory for the PNG figures")
     p.add_argument("--markdown", type=Path, default=None, metavar="FILE", help="Markdown summary")
-    p.add_argument("--effects", default=None, metavar="NAMES",
-                   help="comma-separated candidate effects (default: all)")
+    p.add_argument("--effects", default=None, metavar="NAMES", help="comma-separated candidate effects (default: all)")
     p.add_argument("--alpha", type=float, default=0.01, help="family-wise error rate per step (Holm)")
     p.add_argument("--folds", type=int, default=5, help="blocked cross-validation folds (by UTC day)")
     p.add_argument("--max-named", type=int, default=6, help="most effects to name")
-    p.add_argument("--start", choices=("auto", "nominal"), default="auto",
-                   help="start geometry: per heliostat the better of nominal / fleet-typical actuators")
-    p.add_argument("--cache-dir", default=None,
-                   help="persistent JAX compilation cache (default ~/.cache/heliojax/jax; 'none' disables)")
+    p.add_argument(
+        "--start",
+        choices=("auto", "nominal"),
+        default="auto",
+        help="start geometry: per heliostat the better of nominal / fleet-typical actuators",
+    )
+    p.add_argument(
+        "--cache-dir",
+        default=None,
+        help="persistent JAX compilation cache (default ~/.cache/heliojax/jax; 'none' disables)",
+    )
     p.add_argument("--quiet", action="store_true")
 
 
@@ -56,8 +62,14 @@ def run(args) -> int:
         if unknown:
             raise ConfigError(f"unknown effects {unknown}; expected names from {', '.join(EFFECT_NAMES)}")
     try:
-        config = DiscoveryConfig(base=args.base, effects=effects, alpha=args.alpha, n_folds=args.folds,
-                                 max_named=args.max_named, start=args.start)
+        config = DiscoveryConfig(
+            base=args.base,
+            effects=effects,
+            alpha=args.alpha,
+            n_folds=args.folds,
+            max_named=args.max_named,
+            start=args.start,
+        )
     except ValueError as e:
         raise ConfigError(str(e)) from e
     fleet = load_fleet(args)

@@ -27,7 +27,7 @@ def add_parser(subparsers) -> None:
 def _date(t: float) -> str:
     if not np.isfinite(t):
         return "?"
-    return dt.datetime.fromtimestamp(float(t), dt.timezone.utc).strftime("%Y-%m-%d")
+    return dt.datetime.fromtimestamp(float(t), dt.UTC).strftime("%Y-%m-%d")
 
 
 def run(args) -> int:
@@ -43,9 +43,15 @@ def run(args) -> int:
         err[kind] = np.asarray(fleet_beam_errors_mrad(nominal_model(kind, fleet.counts.dtype), fleet))
     t = np.asarray(fleet.context.unix_time)
     mask = np.asarray(fleet.mask)
-    flagged = {Path(f.file).parts[-3] for f in fleet.report.flags if len(Path(f.file).parts) >= 3 and Path(f.file).parts[-2] == "Properties"}
-    print(f"{'heliostat':<10} {'records':>7}  {'first':<10}  {'last':<10}  "
-          f"{'actuator med':>12} {'max':>8}  {'stone med':>9} {'max':>8}  [mrad, uncalibrated]")
+    flagged = {
+        Path(f.file).parts[-3]
+        for f in fleet.report.flags
+        if len(Path(f.file).parts) >= 3 and Path(f.file).parts[-2] == "Properties"
+    }
+    print(
+        f"{'heliostat':<10} {'records':>7}  {'first':<10}  {'last':<10}  "
+        f"{'actuator med':>12} {'max':>8}  {'stone med':>9} {'max':>8}  [mrad, uncalibrated]"
+    )
     for i in range(n):
         m = mask[i]
         ti = t[i][m]
@@ -58,15 +64,18 @@ def run(args) -> int:
             f"{np.median(ea):>12.1f} {np.max(ea):>8.1f}  {np.median(es):>9.1f} {np.max(es):>8.1f}{note}"
         )
     all_a = err["actuator"][mask]
-    print(f"{'fleet':<10} {int(mask.sum()):>7}  {'':<10}  {'':<10}  {np.median(all_a):>12.1f} {np.max(all_a):>8.1f}  "
-          f"{np.median(err['stone8'][mask]):>9.1f} {np.max(err['stone8'][mask]):>8.1f}")
+    print(
+        f"{'fleet':<10} {int(mask.sum()):>7}  {'':<10}  {'':<10}  {np.median(all_a):>12.1f} {np.max(all_a):>8.1f}  "
+        f"{np.median(err['stone8'][mask]):>9.1f} {np.max(err['stone8'][mask]):>8.1f}"
+    )
     print()
     print(fleet.report.format())
     if args.plot is not None:
         from .._plotting import plot_error_per_heliostat, save_figure
 
         fig = plot_error_per_heliostat(
-            list(fleet.ids[:n]), err["actuator"][:n],
+            list(fleet.ids[:n]),
+            err["actuator"][:n],
             title="uncalibrated beam pointing error, nominal linear-actuator model",
         )
         save_figure(fig, args.plot)

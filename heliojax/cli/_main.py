@@ -49,7 +49,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict]:
         module.add_parser(sub)
         modules[name] = module
         sp = sub.choices[name]
-        sp.add_argument("--config", type=Path, metavar="FILE", help="TOML file with option defaults (table [%s])" % name)
+        sp.add_argument("--config", type=Path, metavar="FILE", help=f"TOML file with option defaults (table [{name}])")
     return parser, modules
 
 
@@ -72,7 +72,7 @@ def _apply_config(subparser: argparse.ArgumentParser, command: str, path: Path) 
             raise ConfigError(f"{path}: [{command}] unknown option {key!r}")
         action = known[dest]
         if action.type is not None and isinstance(value, str) and not isinstance(action.type, type):
-            value = action.type(value)
+            value = action.type(value)  # pyright: ignore[reportCallIssue]
         elif action.type in (Path,) and isinstance(value, str):
             value = Path(value)
         defaults[dest] = value
@@ -96,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         if getattr(args, "config", None) is not None:
-            sp = parser._subparsers._group_actions[0].choices[args.command]
+            sp = parser._subparsers._group_actions[0].choices[args.command]  # pyright: ignore[reportOptionalSubscript, reportOptionalMemberAccess, reportIndexIssue]
             _apply_config(sp, args.command, args.config)
             args = parser.parse_args(argv)
         return int(modules[args.command].run(args) or 0)

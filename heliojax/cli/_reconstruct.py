@@ -51,9 +51,19 @@ def run(args: argparse.Namespace) -> int:
     scene = rc.synthetic_scene(seed=args.seed, n_images=args.images)
     losses = []
     res = rc.reconstruct_surface(
-        jax.random.key(args.seed), scene.ideal, scene.images, scene.poses, scene.suns, scene.target, scene.grid,
-        scene.sunshape, steps=args.steps, learning_rate=args.learning_rate, rays_per_point=args.rays_per_point,
-        smoothness=args.smoothness, flux_weight=args.flux_weight,
+        jax.random.key(args.seed),
+        scene.ideal,
+        scene.images,
+        scene.poses,
+        scene.suns,
+        scene.target,
+        scene.grid,
+        scene.sunshape,
+        steps=args.steps,
+        learning_rate=args.learning_rate,
+        rays_per_point=args.rays_per_point,
+        smoothness=args.smoothness,
+        flux_weight=args.flux_weight,
         callback=lambda j, loss: losses.append(loss),
     )
     e_ideal = rc.normal_rms_error_mrad(scene.ideal, scene.truth)

@@ -22,18 +22,24 @@ def add_parser(subparsers) -> None:
             "normalised cross-correlation) is written too."
         ),
     )
-    p.add_argument("paint", type=Path, metavar="PAINT_DIR", help="PAINT-layout directory (<H>/Properties, <H>/Calibration)")
+    p.add_argument(
+        "paint", type=Path, metavar="PAINT_DIR", help="PAINT-layout directory (<H>/Properties, <H>/Calibration)"
+    )
     p.add_argument("--heliostat", required=True, help="heliostat id, e.g. AA39")
     p.add_argument("--record", type=int, help="calibration record id (counts, sun and target of the record)")
     p.add_argument("--sun-azimuth", type=float, help="deg, 0 = south, positive toward east")
     p.add_argument("--sun-elevation", type=float, help="deg")
-    p.add_argument("--target", default="solar_tower_juelich_lower", help="target name with --sun-* (aimed at its centre)")
+    p.add_argument(
+        "--target", default="solar_tower_juelich_lower", help="target name with --sun-* (aimed at its centre)"
+    )
     p.add_argument("--tower", type=Path, help="tower file (default: PAINT_DIR's or its parent's)")
     p.add_argument("--deflectometry", type=Path, help="PAINT deflectometry HDF5: fit NURBS facets to it")
     p.add_argument("--sunshape", choices=("buie", "gaussian", "pillbox"), default="buie")
     p.add_argument("--csr", type=float, default=0.05, help="Buie circumsolar parameter (default 0.05)")
     p.add_argument("--sigma-mrad", type=float, default=2.51, help="Gaussian sun sigma per axis, mrad")
-    p.add_argument("--slope-error-mrad", type=float, default=1.5, help="Gaussian mirror slope error per axis, mrad (0: none)")
+    p.add_argument(
+        "--slope-error-mrad", type=float, default=1.5, help="Gaussian mirror slope error per axis, mrad (0: none)"
+    )
     p.add_argument("--rays-per-point", type=int, default=64)
     p.add_argument("--steps", type=int, default=4, help="lax.scan chunks (rays per point = rays-per-point x steps)")
     p.add_argument("--resolution", type=int, default=32, help="surface points per facet edge")
@@ -64,13 +70,13 @@ def run(args: argparse.Namespace) -> int:
     import matplotlib.pyplot as plt
     import numpy as np
 
+    from .. import optics
     from .._errors import HeliojaxError
     from .._geometry import sun_direction
     from .._io import atomic_path, atomic_write
     from .._kinematics import ActuatorModel, forward, inverse_aim
-    from ..paint import read_calibration_record, read_heliostat_properties, read_tower
-    from .. import optics
     from ..optics import _compare
+    from ..paint import read_calibration_record, read_heliostat_properties, read_tower
 
     if (args.record is None) == (args.sun_azimuth is None or args.sun_elevation is None):
         print("heliojax trace: give either --record or both --sun-azimuth and --sun-elevation", file=sys.stderr)
@@ -106,14 +112,24 @@ def run(args: argparse.Namespace) -> int:
             az, el, target_name = args.sun_azimuth, args.sun_elevation, args.target
             tag = f"az{az:g}_el{el:g}"
         target = _compare.target_from_tower(tower, target_name)
-        sun = sun_direction(jnp.deg2rad(az), jnp.deg2rad(el))
+        sun = sun_direction(jnp.deg2rad(az), jnp.deg2rad(el))  # pyright: ignore[reportArgumentType]
         if args.record is None:
             counts = inverse_aim(model, geometry, target.centre, sun)
         pose = forward(model, geometry, counts)
         grid = optics.ImageGrid.for_target(target, (args.pixels, args.pixels))
-        image = optics.flux_image(jax.random.key(args.seed), surface, pose, sun, target, grid, sunshape,
-                                  rays_per_point=args.rays_per_point, steps=args.steps, dni=args.dni,
-                                  reflectivity=args.reflectivity)
+        image = optics.flux_image(
+            jax.random.key(args.seed),
+            surface,
+            pose,
+            sun,
+            target,
+            grid,
+            sunshape,
+            rays_per_point=args.rays_per_point,
+            steps=args.steps,
+            dni=args.dni,
+            reflectivity=args.reflectivity,
+        )
         image = np.asarray(image, np.float64)
         c = np.asarray(optics.centroid(jnp.asarray(image), grid))
         power = float(image.sum() * float(grid.pixel_area))
@@ -125,10 +141,17 @@ def run(args: argparse.Namespace) -> int:
                 d.attrs["units"] = "W/m^2"
                 d.attrs["extent_uv_m"] = extent
                 d.attrs["orientation"] = "row 0 = top (max v), column 0 = left (min u)"
-                f.attrs.update(heliostat=args.heliostat, target=target_name, sun_azimuth_deg=az,
-                               sun_elevation_deg=el, counts=np.asarray(counts), centroid_uv_m=c, power_w=power)
+                f.attrs.update(
+                    heliostat=args.heliostat,
+                    target=target_name,
+                    sun_azimuth_deg=az,
+                    sun_elevation_deg=el,
+                    counts=np.asarray(counts),
+                    centroid_uv_m=c,
+                    power_w=power,
+                )
         fig, ax = plt.subplots(figsize=(5, 4.4))
-        im = ax.imshow(image, extent=extent, origin="upper", cmap="inferno")
+        im = ax.imshow(image, extent=extent, origin="upper", cmap="inferno")  # pyright: ignore[reportArgumentType]
         fig.colorbar(im, ax=ax, label="W/m$^2$")
         ax.set_xlabel("u (m)")
         ax.set_ylabel("v (m)")
@@ -136,13 +159,25 @@ def run(args: argparse.Namespace) -> int:
         with atomic_path(stem.with_suffix(".png")) as tmp:
             fig.savefig(tmp, dpi=100, format="png")
         plt.close(fig)
-        summary = {"heliostat": args.heliostat, "target": target_name, "centroid_uv_m": c.tolist(), "power_w": power,
-                   "rays": optics.ray_count(surface, args.rays_per_point, args.steps)}
+        summary = {
+            "heliostat": args.heliostat,
+            "target": target_name,
+            "centroid_uv_m": c.tolist(),
+            "power_w": power,
+            "rays": optics.ray_count(surface, args.rays_per_point, args.steps),
+        }
         flux_png = hdir / "Calibration" / f"{args.record}-flux.png"
         if args.record is not None and flux_png.exists():
-            comp = _compare.compare_record(rec_path, props_path, tower_path, surface=surface, sunshape=sunshape,
-                                           key=jax.random.key(args.seed), rays_per_point=args.rays_per_point,
-                                           steps=args.steps)
+            comp = _compare.compare_record(
+                rec_path,
+                props_path,
+                tower_path,
+                surface=surface,
+                sunshape=sunshape,
+                key=jax.random.key(args.seed),
+                rays_per_point=args.rays_per_point,
+                steps=args.steps,
+            )
             summary["comparison"] = comp.summary()
             fig = _compare.comparison_figure(comp)
             with atomic_path(args.out / f"{args.heliostat}-{tag}-comparison.png") as tmp:

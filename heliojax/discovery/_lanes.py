@@ -23,7 +23,6 @@ and counts every free parameter against a heliostat's records.)
 from __future__ import annotations
 
 import dataclasses
-
 import typing
 
 import equinox as eqx
@@ -90,7 +89,7 @@ class Layout:
     @property
     def effect_index(self) -> tuple[int, ...]:
         """Positions (in ``view.names``) of all effect parameters, in column order."""
-        return self.free_index[len(self.base_cols):]
+        return self.free_index[len(self.base_cols) :]
 
     @property
     def scales(self) -> np.ndarray:
@@ -101,7 +100,9 @@ class Layout:
         return self.view.from_vector(template, p)
 
 
-def make_layout(base: AbstractKinematicModel, effects: tuple[str, ...], fleet: typing.Any) -> tuple[Layout, EffectModel]:
+def make_layout(
+    base: AbstractKinematicModel, effects: tuple[str, ...], fleet: typing.Any
+) -> tuple[Layout, EffectModel]:
     """The column layout and the universal model (``base`` wrapped by every
     candidate effect at no effect, references from ``fleet``'s valid records)."""
     template = with_data_references(with_effects(base, effects), fleet)
@@ -122,7 +123,7 @@ def make_layout(base: AbstractKinematicModel, effects: tuple[str, ...], fleet: t
         effect_cols.append((e, tuple(range(start, len(free_index)))))
         effect_params.append((e, tuple(view.names[i] for i in cols)))
         effect_units.append((e, tuple(view.units[i] for i in cols)))
-        effect_typical.append((e, tuple(float(view.typical[i]) / float(view.scales[i]) for i in cols)))
+        effect_typical.append((e, tuple(float(view.typical[i] or 0.0) / float(view.scales[i]) for i in cols)))
         offset += ev.n_parameters
     del start_leaf
     layout = Layout(
@@ -165,7 +166,7 @@ def _corrections(model: EffectModel, geometry, counts, context, focal):
     return jnp.concatenate([d_angles, d_sun, d_focal, d_pos])
 
 
-def _corrections_lane(layout: "Layout", template, p, geometry, counts, context, focal, mask):
+def _corrections_lane(layout: Layout, template, p, geometry, counts, context, focal, mask):
     counts, context, focal, use, _ = sanitise(geometry, counts, context, focal, mask)
     eidx = jnp.asarray(layout.effect_index, dtype=jnp.int32)
 
@@ -192,7 +193,7 @@ def _linear_record(base, tilts, geometry, counts, context, focal, corr):
     return beam_error_components(pose, sun, focal + corr[5:8])
 
 
-def _lane_residual_fn(layout: "Layout", template, geometry, counts, context, focal, use, p_exp, c0, dmat):
+def _lane_residual_fn(layout: Layout, template, geometry, counts, context, focal, use, p_exp, c0, dmat):
     """``p -> residuals (2M,)`` in mrad with the effects to first order about ``p_exp``."""
     eidx = jnp.asarray(layout.effect_index, dtype=jnp.int32)
 
@@ -207,8 +208,24 @@ def _lane_residual_fn(layout: "Layout", template, geometry, counts, context, foc
     return fn
 
 
-def _fit_lane(layout: "Layout", solver, max_steps: int, cap: int, template, p0, sel, sel_valid, p_exp, c0, dmat,
-              geometry, counts, context, focal, mask):
+def _fit_lane(
+    layout: Layout,
+    solver,
+    max_steps: int,
+    cap: int,
+    template,
+    p0,
+    sel,
+    sel_valid,
+    p_exp,
+    c0,
+    dmat,
+    geometry,
+    counts,
+    context,
+    focal,
+    mask,
+):
     """One lane's Levenberg-Marquardt fit: the base's free parameters plus up to
     ``cap`` effect parameters (solver columns ``sel``, where ``sel_valid``)."""
     counts, context, focal, use, _ = sanitise(geometry, counts, context, focal, mask)
@@ -236,13 +253,14 @@ def _fit_lane(layout: "Layout", solver, max_steps: int, cap: int, template, p0, 
 
 
 @eqx.filter_jit
-def _fit_lanes_compiled(layout, solver, max_steps, batching, cap, template, p0, sel, sel_valid, p_exp, c0, dmat,
-                        records: Records):
+def _fit_lanes_compiled(
+    layout, solver, max_steps, batching, cap, template, p0, sel, sel_valid, p_exp, c0, dmat, records: Records
+):
     fn = lambda *a: _fit_lane(layout, solver, max_steps, cap, template, *a)  # noqa: E731
     return batching.map(fn)(p0, sel, sel_valid, p_exp, c0, dmat, *records)
 
 
-def _predicted_focal(layout: "Layout", template, p, c0, geometry, counts, context, focal):
+def _predicted_focal(layout: Layout, template, p, c0, geometry, counts, context, focal):
     """Noise-free focal spots: where the model at ``p`` sends each record's central
     ray, at the measured distance (so the residual there is 0)."""
     base = layout.model(template, p).inner
@@ -258,7 +276,7 @@ def _predicted_focal(layout: "Layout", template, p, c0, geometry, counts, contex
     return jax.vmap(one)(counts, context, focal, c0)
 
 
-def _jac_lane(layout: "Layout", template, p, c0, dmat, geometry, counts, context, focal, mask):
+def _jac_lane(layout: Layout, template, p, c0, dmat, geometry, counts, context, focal, mask):
     """Exact residuals at the measured spots; the Jacobian at the model's noise-free
     spots (Fisher scoring). The exact Jacobian holds a term proportional to the
     measurement noise itself (moving the target along the line of sight rescales
@@ -337,11 +355,11 @@ def day_folds(unix_time: np.ndarray, valid: np.ndarray, record_id: np.ndarray | 
     days = np.unique(day[timed])
     rank = {d: i for i, d in enumerate(days)}
     out = np.zeros(valid.shape, np.int64)
-    for (i, j) in zip(*np.nonzero(timed)):
+    for i, j in zip(*np.nonzero(timed)):
         out[i, j] = rank[day[i, j]] % n_folds + 1
     untimed = np.argwhere(valid & ~np.isfinite(day))
     if len(untimed):
-        key = (np.asarray(record_id)[tuple(untimed.T)] if record_id is not None else np.arange(len(untimed)))
+        key = np.asarray(record_id)[tuple(untimed.T)] if record_id is not None else np.arange(len(untimed))
         order = np.argsort(key, kind="stable")
         for k, idx in enumerate(order):
             i, j = untimed[idx]
@@ -361,8 +379,9 @@ def make_lanes(fleet: typing.Any, n_folds: int) -> Lanes:
     geometry, counts, context, focal, _ = jax.tree.map(tile, fleet_records(fleet))
     data = (geometry, counts, context, focal, jnp.asarray(train))
     eval_data = (geometry, counts, context, focal, jnp.asarray(valid[heli]))
-    return Lanes(data=data, eval_data=eval_data, fold=fold, heliostat=heli, record_fold=rf, valid=valid,
-                 n_folds=n_folds)
+    return Lanes(
+        data=data, eval_data=eval_data, fold=fold, heliostat=heli, record_fold=rf, valid=valid, n_folds=n_folds
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -386,10 +405,23 @@ class Engine:
     batching: AbstractBatching
 
     @classmethod
-    def create(cls, layout: Layout, template: EffectModel, lanes: Lanes, solver=None, max_steps: int = 64,
-               batching: AbstractBatching | None = None) -> "Engine":
-        return cls(layout, template, lanes, default_solver() if solver is None else solver, max_steps,
-                   default_batching() if batching is None else batching)
+    def create(
+        cls,
+        layout: Layout,
+        template: EffectModel,
+        lanes: Lanes,
+        solver=None,
+        max_steps: int = 64,
+        batching: AbstractBatching | None = None,
+    ) -> Engine:
+        return cls(
+            layout,
+            template,
+            lanes,
+            default_solver() if solver is None else solver,
+            max_steps,
+            default_batching() if batching is None else batching,
+        )
 
     def _data(self, evaluate: bool) -> Records:
         return self.lanes.eval_data if evaluate else self.lanes.data
@@ -412,9 +444,21 @@ class Engine:
         valid = np.zeros((n_lanes, cap), bool)
         sel[:, :k] = np.asarray(effect_cols, np.int32)
         valid[:, :k] = True
-        out = _fit_lanes_compiled(self.layout, self.solver, self.max_steps, self.batching, cap, self.template,
-                                  jnp.asarray(p0), jnp.asarray(sel), jnp.asarray(valid), jnp.asarray(p_exp), c0, dmat,
-                                  self.lanes.data)
+        out = _fit_lanes_compiled(
+            self.layout,
+            self.solver,
+            self.max_steps,
+            self.batching,
+            cap,
+            self.template,
+            jnp.asarray(p0),
+            jnp.asarray(sel),
+            jnp.asarray(valid),
+            jnp.asarray(p_exp),
+            c0,
+            dmat,
+            self.lanes.data,
+        )
         return {k_: np.asarray(v) for k_, v in out.items()}
 
     def jacobian(self, p: np.ndarray, evaluate: bool = False) -> tuple[np.ndarray, np.ndarray]:

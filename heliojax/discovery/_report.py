@@ -85,20 +85,22 @@ def build_report(result) -> dict:
     steps = []
     for s in result.steps:
         units = dict(zip(result.layout.params(s.effect), result.layout.units(s.effect)))
-        steps.append({
-            "effect": s.effect,
-            "mode": s.mode,
-            "delta_bic": _f(s.delta_bic),
-            "cv_heldout_rms_before_mrad": _f(s.cv_before),
-            "cv_heldout_rms_after_mrad": _f(s.cv_after),
-            "amplitude": {k: _f(v) for k, v in s.amplitude.items()},
-            "amplitude_std": {k: _f(v) for k, v in s.amplitude_std.items()},
-            "units": units,
-            "heliostats": list(s.heliostats),
-            "heliostats_significant": list(s.heliostats_significant),
-            "p_value": _f(s.p_value),
-            "p_holm": _f(s.p_holm),
-        })
+        steps.append(
+            {
+                "effect": s.effect,
+                "mode": s.mode,
+                "delta_bic": _f(s.delta_bic),
+                "cv_heldout_rms_before_mrad": _f(s.cv_before),
+                "cv_heldout_rms_after_mrad": _f(s.cv_after),
+                "amplitude": {k: _f(v) for k, v in s.amplitude.items()},
+                "amplitude_std": {k: _f(v) for k, v in s.amplitude_std.items()},
+                "units": units,
+                "heliostats": list(s.heliostats),
+                "heliostats_significant": list(s.heliostats_significant),
+                "p_value": _f(s.p_value),
+                "p_holm": _f(s.p_holm),
+            }
+        )
     named = [s.effect for s in result.steps]
     not_ident, untestable = [], []
     for entry in result.screens:
@@ -113,23 +115,30 @@ def build_report(result) -> dict:
     untestable = [c for c in untestable if c not in not_ident]
     screens = []
     for entry in result.screens:
-        screens.append({
-            c: {
-                "p": _f(sc.p) if sc.identifiable else None,
-                "p_shared": _f(sc.p_shared) if sc.identifiable else None,
-                "p_per_heliostat": _f(sc.p_per_heliostat) if sc.identifiable else None,
-                "p_holm": _f(entry["p_holm"].get(c)),
-                "absorbed_fraction": _f(sc.absorbed_fraction),
-                "identifiable": bool(sc.identifiable),
-                "testable": bool(sc.testable),
+        screens.append(
+            {
+                c: {
+                    "p": _f(sc.p) if sc.identifiable else None,
+                    "p_shared": _f(sc.p_shared) if sc.identifiable else None,
+                    "p_per_heliostat": _f(sc.p_per_heliostat) if sc.identifiable else None,
+                    "p_holm": _f(entry["p_holm"].get(c)),
+                    "absorbed_fraction": _f(sc.absorbed_fraction),
+                    "identifiable": bool(sc.identifiable),
+                    "testable": bool(sc.testable),
+                }
+                for c, sc in entry["screens"].items()
             }
-            for c, sc in entry["screens"].items()
-        })
+        )
     refits = [
         [
-            {"effect": c.effect, "mode": c.mode, "delta_bic": _f(c.delta_bic),
-             "cv_heldout_rms_before_mrad": _f(c.cv_before), "cv_heldout_rms_after_mrad": _f(c.cv_after),
-             "passed": bool(c.passed)}
+            {
+                "effect": c.effect,
+                "mode": c.mode,
+                "delta_bic": _f(c.delta_bic),
+                "cv_heldout_rms_before_mrad": _f(c.cv_before),
+                "cv_heldout_rms_after_mrad": _f(c.cv_after),
+                "passed": bool(c.passed),
+            }
             for c in cands
         ]
         for cands in result.candidates
@@ -194,7 +203,8 @@ def markdown_summary(report: dict) -> str:
         "# Discovery report",
         "",
         f"Data: {d['n_heliostats']} heliostats, {d['n_records']} records"
-        + (f" ({d['source']})" if d.get("source") else "") + f"; base model `{report['base_model']}`.",
+        + (f" ({d['source']})" if d.get("source") else "")
+        + f"; base model `{report['base_model']}`.",
         "",
         f"Held-out beam error (blocked {report['config']['n_folds']}-fold cross-validation by day, pooled RMS): "
         f"**{fmt(report['heldout_rms_base_mrad'])} mrad** with the base model, "
@@ -210,8 +220,11 @@ def markdown_summary(report: dict) -> str:
             "|---|---|---|---|---|---|---|---|",
         ]
         for i, s in enumerate(report["steps"], 1):
-            amp = ", ".join(f"{k} = {v:.4g} {'' if s['units'].get(k, '1') == '1' else s['units'][k]}".rstrip()
-                            for k, v in s["amplitude"].items() if v is not None)
+            amp = ", ".join(
+                f"{k} = {v:.4g} {'' if s['units'].get(k, '1') == '1' else s['units'][k]}".rstrip()
+                for k, v in s["amplitude"].items()
+                if v is not None
+            )
             lines.append(
                 f"| {i} | `{s['effect']}` | {s['mode'].replace('_', ' ')} | {fmt(s['delta_bic'], '.1f')} | "
                 f"{fmt(s['cv_heldout_rms_before_mrad'])} | {fmt(s['cv_heldout_rms_after_mrad'])} | "
@@ -275,8 +288,10 @@ def _drivers(fleet, effect: str) -> list[tuple[str, np.ndarray]]:
         facing = np.arctan2(n[..., 0], n[..., 1])
         v2 = np.asarray(ctx.wind_speed) ** 2
         rel = np.asarray(ctx.wind_direction) - facing
-        return [("v^2 cos(wind - facing) [m^2/s^2]", v2 * np.cos(rel)), ("v^2 sin(wind - facing) [m^2/s^2]",
-                                                                          v2 * np.sin(rel))]
+        return [
+            ("v^2 cos(wind - facing) [m^2/s^2]", v2 * np.cos(rel)),
+            ("v^2 sin(wind - facing) [m^2/s^2]", v2 * np.sin(rel)),
+        ]
     if effect == "clock":
         t = np.asarray(ctx.unix_time)
         return [("days since first record", (t - np.nanmin(t)) / 86400.0)]
@@ -315,7 +330,7 @@ def plot_effect_residuals(result, step_index: int, *, axes=None):
     step = result.steps[step_index]
     fleet = result.fleet
     h, m = np.asarray(fleet.mask).shape
-    used = np.asarray(result.lanes.data.mask)[:h]
+    used = result.lanes.train_mask[:h]
     drivers = _drivers(fleet, step.effect)
     rb = _residuals(step.before, h, m)
     ra = _residuals(step.after, h, m)

@@ -139,8 +139,15 @@ def _chi2_equivalent(p: float, k: int) -> float:
     return float(stats.chi2.isf(p, k))
 
 
-def screen_candidate(effect: str, bases: list[HeliostatBasis], jac: np.ndarray, cols, n_heliostats: int,
-                     absorbed_limit: float, typical=None) -> CandidateScreen:
+def screen_candidate(
+    effect: str,
+    bases: list[HeliostatBasis],
+    jac: np.ndarray,
+    cols,
+    n_heliostats: int,
+    absorbed_limit: float,
+    typical=None,
+) -> CandidateScreen:
     """Score tests and identifiability of the candidate with solver columns ``cols``
     (``typical``: its typical sizes in solver units, default 1)."""
     cols = list(cols)
@@ -220,10 +227,22 @@ def screen_candidate(effect: str, bases: list[HeliostatBasis], jac: np.ndarray, 
         "per_heliostat": dll_perhel - k_sum * log_n,
     }
     return CandidateScreen(
-        effect, fractions, testable, identifiable, information,
-        p_shared=p_shared, p_per_heliostat=p_perhel, p=p,
-        stat_shared=stat_shared, k_shared=ks, stat_per_heliostat=q_sum, k_per_heliostat=k_sum,
-        theta_shared=theta_shared, theta_per_heliostat=theta_h, p_heliostats=p_h, approx_delta_bic=approx,
+        effect,
+        fractions,
+        testable,
+        identifiable,
+        information,
+        p_shared=p_shared,
+        p_per_heliostat=p_perhel,
+        p=p,
+        stat_shared=stat_shared,
+        k_shared=ks,
+        stat_per_heliostat=q_sum,
+        k_per_heliostat=k_sum,
+        theta_shared=theta_shared,
+        theta_per_heliostat=theta_h,
+        p_heliostats=p_h,
+        approx_delta_bic=approx,
     )
 
 

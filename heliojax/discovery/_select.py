@@ -88,10 +88,15 @@ class DiscoveryConfig:
     absorbed_limit: float = ABSORBED_LIMIT
     start: str = "auto"
 
+    @property
+    def candidates(self) -> tuple[str, ...]:
+        """The candidate effects (all of :data:`EFFECT_NAMES` when ``effects`` is None)."""
+        return EFFECT_NAMES if self.effects is None else tuple(self.effects)
+
     def __post_init__(self):
         if self.effects is None:
             object.__setattr__(self, "effects", EFFECT_NAMES)
-        unknown = set(self.effects) - set(EFFECT_NAMES)
+        unknown = set(self.candidates) - set(EFFECT_NAMES)
         if unknown:
             raise ValueError(f"unknown effects {sorted(unknown)}; expected names from {EFFECT_NAMES}")
         if not 0.0 < self.alpha < 1.0:
@@ -204,6 +209,7 @@ class _Workflow:
                 break
         used = lanes.train_mask
         n_res = 2 * used.sum(axis=1)
+        assert r is not None and jac is not None
         rss = np.where(ok, np.sum(r**2, axis=1), np.nan)
         r_eval, _ = self.engine.jacobian(p, evaluate=True)
         m = used.shape[1]
@@ -272,8 +278,15 @@ class _Workflow:
         a_cols = self.active_cols(state.effects) + self.shared_cols(state.effects)
         bases = prepare_bases(state.r[fold0], state.jac[fold0], used, a_cols, range(h))
         return {
-            c: screen_candidate(c, bases, state.jac[fold0], self.layout.cols(c), h, self.config.absorbed_limit,
-                                typical=self.layout.typical(c))
+            c: screen_candidate(
+                c,
+                bases,
+                state.jac[fold0],
+                self.layout.cols(c),
+                h,
+                self.config.absorbed_limit,
+                typical=self.layout.typical(c),
+            )
             for c in candidates
         }
 
@@ -284,6 +297,7 @@ class _Workflow:
         if mode == "shared":
             p[:, idx] = scr.theta_shared * self.scales[cols]
         else:
+            assert scr.theta_per_heliostat is not None  # identifiable candidates carry estimates
             th = np.nan_to_num(scr.theta_per_heliostat[self.lanes.heliostat], nan=0.0)
             p[:, idx] = th * self.scales[cols]
         return p
@@ -388,6 +402,12 @@ def _amplitude(wf: _Workflow, state: ModelState, effect: str, mode: str):
     return amp, std
 
 
+def _delta_bic(screen: CandidateScreen) -> dict:
+    """The linearised delta BIC per mode of a tested candidate."""
+    assert screen.approx_delta_bic is not None  # set for every identifiable candidate
+    return screen.approx_delta_bic
+
+
 def discover(
     fleet,
     config: DiscoveryConfig | None = None,
@@ -417,45 +437,54 @@ def discover(
     if config.start == "auto":
         geometry, _ = choose_start_geometry(padded, base)
         padded = eqx.tree_at(lambda f: f.geometry, padded, geometry)
-    layout, template = make_layout(base, tuple(config.effects), padded)
+    layout, template = make_layout(base, config.candidates, padded)
     lanes = make_lanes(padded, config.n_folds)
     engine = Engine.create(layout, template, lanes, config.solver, config.max_steps, config.batching)
     wf = _Workflow(engine, config, say)
     p0 = np.broadcast_to(np.asarray(layout.view.to_vector(template)), (lanes.fold.shape[0], layout.view.n_parameters))
-    say(f"{n_real} heliostats, {int(np.asarray(padded.mask).sum())} records; base {config.base}; "
-        f"{len(config.effects)} candidates; {config.n_folds} folds by day ({lanes.fold.shape[0]} lanes)")
+    say(
+        f"{n_real} heliostats, {int(np.asarray(padded.mask).sum())} records; base {config.base}; "
+        f"{len(config.candidates)} candidates; {config.n_folds} folds by day ({lanes.fold.shape[0]} lanes)"
+    )
     state = wf.fit_state((), p0)
     base_state = state
-    say(f"base fitted ({state.fit_s:.1f} s): train RMS "
-        f"{np.sqrt(np.nansum(state.rss[:lanes.n_heliostats]) / np.sum(state.n_res[:lanes.n_heliostats]) * 2):.3f} mrad")
+    h = lanes.n_heliostats
+    train_rms = np.sqrt(np.nansum(state.rss[:h]) / np.sum(state.n_res[:h]) * 2)
+    say(f"base fitted ({state.fit_s:.1f} s): train RMS {train_rms:.3f} mrad")
     steps: list[Step] = []
     screens_log, candidates_log = [], []
     while len(steps) < config.max_named:
-        remaining = [c for c in config.effects if c not in state.names]
+        remaining = [c for c in config.candidates if c not in state.names]
         if not remaining:
             break
         screens = wf.screen(state, remaining)
         testable = {c: s.p for c, s in screens.items() if s.identifiable}
         adjusted, rejected = holm(testable, config.alpha) if testable else ({}, set())
         screens_log.append({"screens": screens, "p_holm": adjusted})
-        say("screen: " + ", ".join(
-            f"{c} p={s.p:.2g}" if s.identifiable else f"{c} ({'not identifiable' if s.testable else 'untestable'})"
-            for c, s in screens.items()))
-        finalists = sorted(rejected, key=lambda c: -max(screens[c].approx_delta_bic.values()))[: config.max_refits]
+        say(
+            "screen: "
+            + ", ".join(
+                f"{c} p={s.p:.2g}" if s.identifiable else f"{c} ({'not identifiable' if s.testable else 'untestable'})"
+                for c, s in screens.items()
+            )
+        )
+        finalists = sorted(rejected, key=lambda c: -max(_delta_bic(screens[c]).values()))[: config.max_refits]
         if not finalists:
             candidates_log.append([])
             break
         cands = []
         for c in finalists:
             scr = screens[c]
-            mode = max(MODES, key=lambda m: scr.approx_delta_bic[m])
+            mode = max(MODES, key=lambda m: _delta_bic(scr)[m])
             st = wf.fit_state(state.effects + ((c, mode),), wf.start_params(state, c, mode, scr))
             b0, b1, _ = wf.bic_pair(state, st)
             cv0, cv1, n_cv = wf.cv_pair(state, st)
             passed = (b0 - b1 > 0) and np.isfinite(cv1) and (cv1 < cv0)
             cands.append(Candidate(c, mode, st, b0 - b1, b0, b1, cv0, cv1, n_cv, passed))
-            say(f"refit {c} ({mode}, {st.fit_s:.1f} s): delta BIC {b0 - b1:.1f}, held-out RMS "
-                f"{cv0:.3f} -> {cv1:.3f} mrad{'' if passed else ' (rejected)'}")
+            say(
+                f"refit {c} ({mode}, {st.fit_s:.1f} s): delta BIC {b0 - b1:.1f}, held-out RMS "
+                f"{cv0:.3f} -> {cv1:.3f} mrad{'' if passed else ' (rejected)'}"
+            )
         candidates_log.append(cands)
         passing = [c for c in cands if c.passed]
         if not passing:
@@ -466,17 +495,40 @@ def discover(
         ids = list(padded.ids)
         fitted = [ids[i] for i in range(h) if best.state.ok[i] and ids[i]]
         p_h = screens[best.effect].p_heliostats
+        assert p_h is not None
         tested = {ids[i]: float(p_h[i]) for i in range(h) if ids[i] and np.isfinite(p_h[i])}
         _, sig = holm(tested, config.alpha) if tested else ({}, set())
-        steps.append(Step(
-            effect=best.effect, mode=best.mode, delta_bic=best.delta_bic, cv_before=best.cv_before,
-            cv_after=best.cv_after, amplitude=amp, amplitude_std=std, heliostats=fitted,
-            heliostats_significant=sorted(sig), p_value=screens[best.effect].p,
-            p_holm=adjusted[best.effect], before=state, after=best.state,
-        ))
+        steps.append(
+            Step(
+                effect=best.effect,
+                mode=best.mode,
+                delta_bic=best.delta_bic,
+                cv_before=best.cv_before,
+                cv_after=best.cv_after,
+                amplitude=amp,
+                amplitude_std=std,
+                heliostats=fitted,
+                heliostats_significant=sorted(sig),
+                p_value=screens[best.effect].p,
+                p_holm=adjusted[best.effect],
+                before=state,
+                after=best.state,
+            )
+        )
         say(f"named {best.effect} ({best.mode}): " + ", ".join(f"{k}={v:.4g}" for k, v in amp.items()))
         state = best.state
     timing = {"total_s": time.perf_counter() - t_start}
-    result = DiscoveryResult(config=config, fleet=padded, layout=layout, lanes=lanes, base=base_state, final=state,
-                             steps=steps, screens=screens_log, candidates=candidates_log, report={}, timing=timing)
+    result = DiscoveryResult(
+        config=config,
+        fleet=padded,
+        layout=layout,
+        lanes=lanes,
+        base=base_state,
+        final=state,
+        steps=steps,
+        screens=screens_log,
+        candidates=candidates_log,
+        report={},
+        timing=timing,
+    )
     return dataclasses.replace(result, report=build_report(result))

@@ -16,12 +16,9 @@ import typing
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from .._kinematics import ActuatorModel, StoneModel, inverse_aim
-from ..effects import EffectModel
 from .._simulate import (
-    JUELICH_LAT_LON_ALT,
     approach_directions,
     calibration_target,
     random_stone_models,
@@ -29,6 +26,7 @@ from .._simulate import (
     synthetic_contexts,
     synthetic_geometry,
 )
+from ..effects import EffectModel
 
 
 def random_actuator_models(key, n: int, angle_sigma: float = 3e-3, dtype=jnp.float64) -> ActuatorModel:
@@ -38,8 +36,15 @@ def random_actuator_models(key, n: int, angle_sigma: float = 3e-3, dtype=jnp.flo
     tilts = angle_sigma * jax.random.normal(ks[0], (4, n), dtype)
     off = 3 * angle_sigma * jax.random.normal(ks[1], (n, 2), dtype)
     inc = 2e-3 * jax.random.normal(ks[2], (n, 2), dtype)
-    return ActuatorModel(alpha=tilts[0], beta=tilts[1], gamma=tilts[2], delta=tilts[3], angle_offset=off,
-                         increment_scale=inc, stroke_offset=jnp.zeros((n, 2), dtype))
+    return ActuatorModel(
+        alpha=tilts[0],
+        beta=tilts[1],
+        gamma=tilts[2],
+        delta=tilts[3],
+        angle_offset=off,
+        increment_scale=inc,
+        stroke_offset=jnp.zeros((n, 2), dtype),
+    )
 
 
 @eqx.filter_jit

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._kinematics import AbstractKinematicModel
+from .._parameters import ModuleT as ModelT
 from .._parameters import ParameterView, reference_leaves, set_references
 from ._base import AbstractEffect, EffectModel, add_effects
 from ._environment import DEFAULT_LATITUDE_DEG, Clock, Refraction, Thermal, Wind
@@ -72,7 +73,7 @@ def data_references(fleet: typing.Any, mask: typing.Any = None) -> dict[str, flo
     return refs
 
 
-def with_data_references(model: AbstractKinematicModel, fleet: typing.Any, mask: typing.Any = None):
+def with_data_references(model: ModelT, fleet: typing.Any, mask: typing.Any = None) -> ModelT:
     """``model`` with its effects' references set from ``fleet`` (:func:`data_references`)."""
     if not reference_leaves(model):
         return model
@@ -88,8 +89,10 @@ def make_effect(name: str, inner: AbstractKinematicModel | None = None, **values
     refs = {leaf.name for leaf in reference_leaves(effect)}
     unknown = set(values) - set(view.names) - refs
     if unknown:
-        raise ValueError(f"{name}: unknown values {sorted(unknown)}; parameters {view.names}, references {sorted(refs)}")
+        raise ValueError(
+            f"{name}: unknown values {sorted(unknown)}; parameters {view.names}, references {sorted(refs)}"
+        )
     vec = view.to_vector(effect)
-    vec = jnp.asarray([float(values.get(n, v)) for n, v in zip(view.names, np.asarray(vec))], jnp.float64)
+    vec = jnp.asarray([float(values.get(n, float(v))) for n, v in zip(view.names, np.asarray(vec))], jnp.float64)
     effect = view.from_vector(effect, vec)
     return set_references(effect, {k: float(v) for k, v in values.items() if k in refs})

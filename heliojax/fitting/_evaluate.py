@@ -8,7 +8,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._kinematics import AbstractKinematicModel, HeliostatGeometry, RecordContext
 from .._parameters import broadcast_model, is_batched
@@ -90,11 +90,11 @@ def _row_median(e: typing.Any) -> np.ndarray:
     return np.where(n > 0, med, np.inf)
 
 
-def typical_actuators(geometry: HeliostatGeometry, valid: Bool[Array, " H"]) -> typing.Any:
+def typical_actuators(geometry: HeliostatGeometry, valid: Bool[ArrayLike, " H"]) -> typing.Any:
     """Median actuator values over the ``valid`` heliostats (the start geometry for
     heliostats whose nominal properties are far off, e.g. PAINT's BF41)."""
-    valid = np.asarray(valid)
-    return jax.tree.map(lambda x: jnp.asarray(np.median(np.asarray(x)[valid], axis=0), x.dtype), geometry.actuators)
+    valid_np = np.asarray(valid)
+    return jax.tree.map(lambda x: jnp.asarray(np.median(np.asarray(x)[valid_np], axis=0), x.dtype), geometry.actuators)
 
 
 def choose_start_geometry(

@@ -171,7 +171,7 @@ def _fit_one(
     context: RecordContext,
     focal: Float[Array, "M 3"],
     mask: Bool[Array, " M"],
-) -> dict[str, Array]:
+) -> dict[str, typing.Any]:
     counts, context, focal, use, bad_input = sanitise(geometry, counts, context, focal, mask)
     dtype = counts.dtype
     n_records = counts.shape[0]
@@ -253,8 +253,9 @@ def _fit_one(
 
 
 @eqx.filter_jit
-def _fit_compiled(view, solver, loss, prior, max_steps, batching, model0, prior_h, loss_h, geometry, counts, context,
-                  focal, mask):
+def _fit_compiled(
+    view, solver, loss, prior, max_steps, batching, model0, prior_h, loss_h, geometry, counts, context, focal, mask
+):
     def one(m, ph, lh, g, c, x, f, k):
         return _fit_one(view, solver, loss, prior, max_steps, m, ph, lh, g, c, x, f, k)
 
@@ -273,8 +274,16 @@ def _prepare(model0, fleet, mask, free, solver, loss, prior, batching, max_steps
     prior = NoPrior() if prior is None else prior
     batching = default_batching() if batching is None else batching
     m = fleet.mask if mask is None else (jnp.asarray(mask) & fleet.mask)
-    args = (model0, prior.per_heliostat(h), loss.per_heliostat(h), fleet.geometry, fleet.counts, fleet.context,
-            fleet.focal_spot, m)
+    args = (
+        model0,
+        prior.per_heliostat(h),
+        loss.per_heliostat(h),
+        fleet.geometry,
+        fleet.counts,
+        fleet.context,
+        fleet.focal_spot,
+        m,
+    )
     static = (view, solver, loss, prior, max_steps, batching)
     return h, static, batching.prepare(args)
 
@@ -328,9 +337,17 @@ class CompiledFit:
         self._fleet = fleet
         self._mask = options.pop("mask", None)
         self._options = options
-        h, static, args = _prepare(model0, fleet, self._mask, options.get("free"), options.get("solver"),
-                                   options.get("loss"), options.get("prior"), options.get("batching"),
-                                   options.get("max_steps", DEFAULT_MAX_STEPS))
+        h, static, args = _prepare(
+            model0,
+            fleet,
+            self._mask,
+            options.get("free"),
+            options.get("solver"),
+            options.get("loss"),
+            options.get("prior"),
+            options.get("batching"),
+            options.get("max_steps", DEFAULT_MAX_STEPS),
+        )
         unknown = set(options) - {"free", "solver", "loss", "prior", "batching", "max_steps"}
         if unknown:
             raise TypeError(f"unknown fit options {sorted(unknown)}")
@@ -340,8 +357,9 @@ class CompiledFit:
         self._h = h
         self.run_s = 0.0
 
-    def __call__(self, model0: AbstractKinematicModel, *, loss: AbstractLoss | None = None,
-                 prior: AbstractPrior | None = None) -> FitSolution:
+    def __call__(
+        self, model0: AbstractKinematicModel, *, loss: AbstractLoss | None = None, prior: AbstractPrior | None = None
+    ) -> FitSolution:
         """Run the compiled fit from ``model0`` (with ``loss`` / ``prior`` replacing
         the compiled ones; same structure required)."""
         opts = dict(self._options)
@@ -349,9 +367,17 @@ class CompiledFit:
             opts["loss"] = loss
         if prior is not None:
             opts["prior"] = prior
-        h, static, args = _prepare(model0, self._fleet, self._mask, opts.get("free"), opts.get("solver"),
-                                   opts.get("loss"), opts.get("prior"), opts.get("batching"),
-                                   opts.get("max_steps", DEFAULT_MAX_STEPS))
+        h, static, args = _prepare(
+            model0,
+            self._fleet,
+            self._mask,
+            opts.get("free"),
+            opts.get("solver"),
+            opts.get("loss"),
+            opts.get("prior"),
+            opts.get("batching"),
+            opts.get("max_steps", DEFAULT_MAX_STEPS),
+        )
         t0 = time.perf_counter()
         out = self._compiled(*static, *args)
         jax.block_until_ready(out)
@@ -359,7 +385,9 @@ class CompiledFit:
         return FitSolution(view=static[0], **static[-1].finish(out, h))
 
 
-def fit_timed(model0: AbstractKinematicModel, fleet: typing.Any, **options: typing.Any) -> tuple[FitSolution, float, float]:
+def fit_timed(
+    model0: AbstractKinematicModel, fleet: typing.Any, **options: typing.Any
+) -> tuple[FitSolution, float, float]:
     """:func:`fit` with its compile and run times measured separately (ahead-of-time
     lowering): ``(solution, compile_s, run_s)``."""
     compiled = CompiledFit(model0, fleet, **options)

@@ -14,11 +14,7 @@ def finite_records(
     counts: Float[Array, "M 2"], context: RecordContext, focal: Float[Array, "M 3"]
 ) -> Bool[Array, " M"]:
     """Records whose counts, sun and focal spot are all finite."""
-    return (
-        jnp.all(jnp.isfinite(counts), -1)
-        & jnp.all(jnp.isfinite(context.sun), -1)
-        & jnp.all(jnp.isfinite(focal), -1)
-    )
+    return jnp.all(jnp.isfinite(counts), -1) & jnp.all(jnp.isfinite(context.sun), -1) & jnp.all(jnp.isfinite(focal), -1)
 
 
 def sanitise(

@@ -78,9 +78,7 @@ from ._batching import Sharded
 from ._fit import FitSolution, fit
 
 
-def process_slice(
-    n_heliostats: int, process_index: int | None = None, process_count: int | None = None
-) -> slice:
+def process_slice(n_heliostats: int, process_index: int | None = None, process_count: int | None = None) -> slice:
     """The contiguous block of heliostats (in fleet order) that process
     ``process_index`` of ``process_count`` handles: sizes differ by at most one,
     the first ``n_heliostats % process_count`` processes take one more.

@@ -38,9 +38,7 @@ class MLP(eqx.Module):
             raise ValueError("MLP needs one bias per weight matrix and at least one layer")
 
     @classmethod
-    def init(
-        cls, key: PRNGKeyArray, sizes: Sequence[int], *, zero_output: bool = False, dtype=jnp.float32
-    ) -> "MLP":
+    def init(cls, key: PRNGKeyArray, sizes: Sequence[int], *, zero_output: bool = False, dtype=jnp.float32) -> MLP:
         """A freshly initialised network with layer widths ``sizes`` (inputs first)."""
         sizes = tuple(int(s) for s in sizes)
         if len(sizes) < 2 or min(sizes) < 1:

@@ -18,9 +18,9 @@ import jax.numpy as jnp
 import optax
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
-from ..fitting import sanitise
 from .._geometry import direction_to_azimuth_elevation, sun_direction
 from .._kinematics import AbstractKinematicModel, HeliostatGeometry, RecordContext, inverse_aim
+from ..fitting import sanitise
 from ._model import NeuralCorrection, PaperPredictor
 from ._network import MLP, PAPER_HIDDEN, init_networks
 
@@ -91,8 +91,14 @@ class NeuralConfig:
             raise ValueError("val_fraction must be in [0, 1)")
         if self.fallback_tolerance < 0:
             raise ValueError("fallback_tolerance must be >= 0")
-        for name in ("n_synthetic", "pretrain_epochs", "batch_size", "steps_per_epoch", "finetune_epochs",
-                     "residual_epochs"):
+        for name in (
+            "n_synthetic",
+            "pretrain_epochs",
+            "batch_size",
+            "steps_per_epoch",
+            "finetune_epochs",
+            "residual_epochs",
+        ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1")
         object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
@@ -271,8 +277,15 @@ def _masked_stats(x, w):
 
 def _paper_schedule(config: NeuralConfig, pretrain: bool) -> _Schedule:
     if pretrain:
-        return _Schedule(config.pretrain_lr, config.pretrain_epochs, config.steps_per_epoch, config.batch_size,
-                         config.plateau_factor, config.plateau_patience, config.plateau_rtol)
+        return _Schedule(
+            config.pretrain_lr,
+            config.pretrain_epochs,
+            config.steps_per_epoch,
+            config.batch_size,
+            config.plateau_factor,
+            config.plateau_patience,
+            config.plateau_rtol,
+        )
     return _Schedule(config.finetune_lr, config.finetune_epochs, 1, None, 1.0, 10**9, 0.0)
 
 
@@ -304,7 +317,7 @@ def _train_paper_one(predictor: PaperPredictor, x, y, w_fit, w_val, key, sch: _S
 @eqx.filter_jit
 def synthetic_fleet_data(keys, models, geometry, sun, focal, u_axis, v_axis, weight, config: NeuralConfig):
     """:func:`synthetic_data` of every heliostat (vmapped; ``keys`` ``(H,)``)."""
-    return eqx.filter_vmap(lambda *a: synthetic_data(*a, config))(
+    return eqx.filter_vmap(lambda *a: synthetic_data(*a, config))(  # pyright: ignore[reportCallIssue]
         keys, models, geometry, sun, focal, u_axis, v_axis, weight
     )
 
@@ -325,8 +338,14 @@ def _pretrain_paper_program(keys, syn: SyntheticData, config: NeuralConfig):
         x = (feats - in_mean) / in_std
         y = (syn.counts - out_mean) / out_std
         return _train_paper_one(
-            pred, x, y, fit.astype(dtype), (syn.valid & syn.is_val).astype(dtype), k_train,
-            _paper_schedule(config, True), config.huber_delta,
+            pred,
+            x,
+            y,
+            fit.astype(dtype),
+            (syn.valid & syn.is_val).astype(dtype),
+            k_train,
+            _paper_schedule(config, True),
+            config.huber_delta,
         )
 
     return eqx.filter_vmap(one)(keys, syn)
@@ -342,7 +361,13 @@ def _finetune_paper_program(keys, predictors, counts, sun, focal, w_fit, w_val, 
         y = jnp.where(ok[:, None], y, 0.0)
         dt = jnp.dtype(config.dtype)
         return _train_paper_one(
-            pred, x, y, (wf * ok).astype(dt), (wv * ok).astype(dt), key, _paper_schedule(config, False),
+            pred,
+            x,
+            y,
+            (wf * ok).astype(dt),
+            (wv * ok).astype(dt),
+            key,
+            _paper_schedule(config, False),
             config.huber_delta,
         )
 
@@ -371,17 +396,32 @@ def init_residual_networks(key: PRNGKeyArray, n: int, config: NeuralConfig = Neu
 
 
 @eqx.filter_jit
-def _finetune_residual_program(keys, nets, models, geometry, counts, context, focal, scale, w_fit, w_val,
-                               config: NeuralConfig):
-    sch = _Schedule(config.residual_lr, config.residual_epochs, 1, None, config.plateau_factor,
-                    config.plateau_patience * 20, config.plateau_rtol)
+def _finetune_residual_program(
+    keys, nets, models, geometry, counts, context, focal, scale, w_fit, w_val, config: NeuralConfig
+):
+    sch = _Schedule(
+        config.residual_lr,
+        config.residual_epochs,
+        1,
+        None,
+        config.plateau_factor,
+        config.plateau_patience * 20,
+        config.plateau_rtol,
+    )
 
     def one(key, net, model, g, c, x, f, sc, wf, wv):
         use = (wf > 0) | (wv > 0)
         c2, x2, f2, ok, _ = sanitise(g, c, x, f, use)
         dt = net.weights[0].dtype
-        return _train(net, _residual_loss(model, g, sc, config.residual_huber_mrad), (c2, x2, f2),
-                      (wf * ok).astype(dt), (wv * ok).astype(dt), key, sch)
+        return _train(
+            net,
+            _residual_loss(model, g, sc, config.residual_huber_mrad),
+            (c2, x2, f2),
+            (wf * ok).astype(dt),
+            (wv * ok).astype(dt),
+            key,
+            sch,
+        )
 
     return eqx.filter_vmap(one)(keys, nets, models, geometry, counts, context, focal, scale, w_fit, w_val)
 

@@ -26,11 +26,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..fitting import FitStatus, beam_errors_mrad, residuals_mrad, sanitise
 from .._errors import ConfigError
 from .._fleet import fleet_subset
 from .._workflow import CalibrationRun, _json_float, _stats, calibrate
-from ._model import NeuralCorrection, PaperPredictor, paper_beam_components, paper_beam_error
+from ..fitting import FitStatus, beam_errors_mrad, residuals_mrad, sanitise
+from ._model import NeuralCorrection, paper_beam_components, paper_beam_error
 from ._train import (
     VARIANTS,
     NeuralConfig,
@@ -76,6 +76,10 @@ class NeuralRun:
     timing: dict
 
 
+DEFAULT_NEURAL_CONFIG = NeuralConfig()
+"""The default :class:`NeuralConfig` (frozen, shared)."""
+
+
 def validation_tail(train_mask: np.ndarray, val_fraction: float, min_val: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Split each row's training records (record axis chronological) into *fit* and
     the latest ``max(min_val, round(val_fraction * n))`` for *validation*; no
@@ -91,8 +95,8 @@ def validation_tail(train_mask: np.ndarray, val_fraction: float, min_val: int = 
         n_val = max(int(min_val), int(round(val_fraction * n)))
         if n - n_val < 2:
             continue
-        val[i, idx[n - n_val:]] = True
-        fit[i, idx[n - n_val:]] = False
+        val[i, idx[n - n_val :]] = True
+        fit[i, idx[n - n_val :]] = False
     return fit, val
 
 
@@ -121,8 +125,15 @@ def paper_errors_mrad(lm_models, predictors, geometry, counts, context, focal, m
     return jax.vmap(per)(lm_models, predictors, geometry, counts, context, focal, mask)
 
 
-def train_neural(lm: CalibrationRun, variant: str = "residual", nn: NeuralConfig = NeuralConfig(), seed: int = 0,
-                 fit_mask=None, val_mask=None, progress: Callable[[str], None] | None = None):
+def train_neural(
+    lm: CalibrationRun,
+    variant: str = "residual",
+    nn: NeuralConfig = DEFAULT_NEURAL_CONFIG,
+    seed: int = 0,
+    fit_mask=None,
+    val_mask=None,
+    progress: Callable[[str], None] | None = None,
+):
     """Train the networks of every heliostat of a fitted LM run at once.
 
     Returns ``(models, fit_mask, val_mask, timing)``; ``models`` is a batched
@@ -151,8 +162,17 @@ def train_neural(lm: CalibrationRun, variant: str = "residual", nn: NeuralConfig
         say(f"fine-tuning {h} residual networks ({nn.residual_epochs} steps)")
         t0 = time.perf_counter()
         nets, info = _finetune_residual_program(
-            heliostat_keys(k_ft, h), nets, base, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot,
-            scale, w_fit, w_val, nn,
+            heliostat_keys(k_ft, h),
+            nets,
+            base,
+            fleet.geometry,
+            fleet.counts,
+            fleet.context,
+            fleet.focal_spot,
+            scale,
+            w_fit,
+            w_val,
+            nn,
         )
         jax.block_until_ready(nets)
         timing["pretrain_s"] = 0.0
@@ -167,15 +187,29 @@ def train_neural(lm: CalibrationRun, variant: str = "residual", nn: NeuralConfig
     t0 = time.perf_counter()
     k_syn, k_pre = jax.random.split(k_pre)
     syn = synthetic_fleet_data(
-        heliostat_keys(k_syn, h), base, fleet.geometry, fleet.context.sun, fleet.focal_spot, u_axis, v_axis,
-        w_fit, nn,
+        heliostat_keys(k_syn, h),
+        base,
+        fleet.geometry,
+        fleet.context.sun,
+        fleet.focal_spot,
+        u_axis,
+        v_axis,
+        w_fit,
+        nn,
     )
     preds, _info = _pretrain_paper_program(heliostat_keys(k_pre, h), syn, nn)
     jax.block_until_ready(preds)
     t1 = time.perf_counter()
     say(f"pretrained in {t1 - t0:.1f} s; fine-tuning ({nn.finetune_epochs} steps, lr {nn.finetune_lr:g})")
     preds, _info = _finetune_paper_program(
-        heliostat_keys(k_ft, h), preds, fleet.counts, fleet.context.sun, fleet.focal_spot, w_fit, w_val, nn,
+        heliostat_keys(k_ft, h),
+        preds,
+        fleet.counts,
+        fleet.context.sun,
+        fleet.focal_spot,
+        w_fit,
+        w_val,
+        nn,
     )
     jax.block_until_ready(preds)
     timing["pretrain_s"] = t1 - t0
@@ -213,7 +247,7 @@ def calibrate_neural(
     train_fraction: float | None = 0.7,
     seed: int = 42,
     fit_options: dict | None = None,
-    nn: NeuralConfig = NeuralConfig(),
+    nn: NeuralConfig = DEFAULT_NEURAL_CONFIG,
     start: str = "auto",
     lm_run: CalibrationRun | None = None,
     progress: Callable[[str], None] | None = None,
@@ -238,8 +272,18 @@ def calibrate_neural(
         raise ConfigError(f"unknown neural variant {variant!r}; choose one of {', '.join(VARIANTS)}")
     say = progress or (lambda _m: None)
     if lm_run is None:
-        lm_run = calibrate(fleet, model=model, split=split, n_train=n_train, n_val=0, train_fraction=train_fraction,
-                           seed=seed, fit_options=fit_options, start=start, progress=progress)
+        lm_run = calibrate(
+            fleet,
+            model=model,
+            split=split,
+            n_train=n_train,
+            n_val=0,
+            train_fraction=train_fraction,
+            seed=seed,
+            fit_options=fit_options,
+            start=start,
+            progress=progress,
+        )
     lm = lm_run
     if lm.test_errors_mrad is not None:
         raise ConfigError("a neural correction cannot be evaluated on --test-data yet; use a split")
@@ -264,17 +308,30 @@ def calibrate_neural(
     residuals = np.where(fb_full[:, None, None], lm.residuals_mrad, nn_res)
     kind = f"{lm.model0.label()}+nn"
     run = dataclasses.replace(lm, errors_mrad=errors, residuals_mrad=residuals)
-    summary = _neural_summary(lm, errors, nn_err, fit_mask, val_mask, fallback, reason, lm_val, nn_val,
-                              variant, nn, timing, kind)
+    summary = _neural_summary(
+        lm, errors, nn_err, fit_mask, val_mask, fallback, reason, lm_val, nn_val, variant, nn, timing, kind
+    )
     run = dataclasses.replace(run, summary=summary)
     n_fb = int(fallback.sum())
     say(f"{variant} network: {n_real - n_fb}/{n_real} heliostats use it, {n_fb} fall back to LM")
-    return NeuralRun(lm=lm, run=run, variant=variant, config=nn, fit_mask=fit_mask, val_mask=val_mask,
-                     nn_errors_mrad=nn_err, fallback=fallback, fallback_reason=reason, models=models, timing=timing)
+    return NeuralRun(
+        lm=lm,
+        run=run,
+        variant=variant,
+        config=nn,
+        fit_mask=fit_mask,
+        val_mask=val_mask,
+        nn_errors_mrad=nn_err,
+        fallback=fallback,
+        fallback_reason=reason,
+        models=models,
+        timing=timing,
+    )
 
 
-def _neural_summary(lm, errors, nn_err, fit_mask, val_mask, fallback, reason, lm_val, nn_val, variant, nn,
-                    timing, kind):
+def _neural_summary(
+    lm, errors, nn_err, fit_mask, val_mask, fallback, reason, lm_val, nn_val, variant, nn, timing, kind
+):
     s = copy.deepcopy(lm.summary)
     s["model"] = kind
     s["nn_variant"] = variant
@@ -289,21 +346,23 @@ def _neural_summary(lm, errors, nn_err, fit_mask, val_mask, fallback, reason, lm
         med, rms = _stats(t)
         _, tr_rms = _stats(np.where(lm.train_mask[i], errors[i], np.nan))
         nn_med, nn_rms = _stats(np.where(test[i], nn_err[i], np.nan))
-        e.update({
-            "train_rms_mrad": _json_float(tr_rms),
-            "test_median_mrad": _json_float(med),
-            "test_rms_mrad": _json_float(rms),
-            "lm_test_median_mrad": lm_med,
-            "lm_test_rms_mrad": lm_rms,
-            "nn_test_median_mrad": _json_float(nn_med),
-            "nn_test_rms_mrad": _json_float(nn_rms),
-            "nn_fallback": bool(fallback[i]),
-            "nn_fallback_reason": reason[i],
-            "nn_n_fit": int(fit_mask[i].sum()),
-            "nn_n_val": int(val_mask[i].sum()),
-            "nn_val_median_mrad": _json_float(nn_val[i]),
-            "lm_val_median_mrad": _json_float(lm_val[i]),
-        })
+        e.update(
+            {
+                "train_rms_mrad": _json_float(tr_rms),
+                "test_median_mrad": _json_float(med),
+                "test_rms_mrad": _json_float(rms),
+                "lm_test_median_mrad": lm_med,
+                "lm_test_rms_mrad": lm_rms,
+                "nn_test_median_mrad": _json_float(nn_med),
+                "nn_test_rms_mrad": _json_float(nn_rms),
+                "nn_fallback": bool(fallback[i]),
+                "nn_fallback_reason": reason[i],
+                "nn_n_fit": int(fit_mask[i].sum()),
+                "nn_n_val": int(val_mask[i].sum()),
+                "nn_val_median_mrad": _json_float(nn_val[i]),
+                "lm_val_median_mrad": _json_float(lm_val[i]),
+            }
+        )
         if status[i] == FitStatus.CONVERGED:
             pooled.append(t[np.isfinite(t)])
             pooled_lm.append(np.where(test[i], lm.errors_mrad[i], np.nan))
@@ -313,16 +372,18 @@ def _neural_summary(lm, errors, nn_err, fit_mask, val_mask, fallback, reason, lm
     lmed, lrms = _stats(cat(pooled_lm))
     nmed, nrms = _stats(cat(pooled_nn))
     f = s["fleet"]
-    f.update({
-        "test_median_mrad": _json_float(med),
-        "test_rms_mrad": _json_float(rms),
-        "lm_test_median_mrad": _json_float(lmed),
-        "lm_test_rms_mrad": _json_float(lrms),
-        "nn_test_median_mrad": _json_float(nmed),
-        "nn_test_rms_mrad": _json_float(nrms),
-        "n_nn_used": int((~fallback).sum()),
-        "n_nn_fallback": int(fallback.sum()),
-    })
+    f.update(
+        {
+            "test_median_mrad": _json_float(med),
+            "test_rms_mrad": _json_float(rms),
+            "lm_test_median_mrad": _json_float(lmed),
+            "lm_test_rms_mrad": _json_float(lrms),
+            "nn_test_median_mrad": _json_float(nmed),
+            "nn_test_rms_mrad": _json_float(nrms),
+            "n_nn_used": int((~fallback).sum()),
+            "n_nn_fallback": int(fallback.sum()),
+        }
+    )
     s["timing"].update({"nn_pretrain_s": float(timing["pretrain_s"]), "nn_finetune_s": float(timing["finetune_s"])})
     return s
 
@@ -342,7 +403,7 @@ def learning_curve(
     min_train: int | None = None,
     seed: int = 42,
     fit_options: dict | None = None,
-    nn: NeuralConfig = NeuralConfig(),
+    nn: NeuralConfig = DEFAULT_NEURAL_CONFIG,
     progress: Callable[[str], None] | None = None,
 ) -> list[dict]:
     """Held-out median beam error of LM and LM+NN against the number of training
@@ -376,19 +437,33 @@ def learning_curve(
         for i in range(mask.shape[0]):
             idx = np.flatnonzero(mask[i])
             nt = int(np.ceil(test_fraction * idx.size))
-            before, test_idx = idx[: idx.size - nt], idx[idx.size - nt:]
+            before, test_idx = idx[: idx.size - nt], idx[idx.size - nt :]
             m[i, before[-n:]] = True
             m[i, test_idx] = True
         masked = eqx.tree_at(lambda f: f.mask, sub, jnp.asarray(m))
-        lm = calibrate(masked, model=model, split="time", n_train=n, n_val=0, train_fraction=None, seed=seed,
-                       fit_options=fit_options, progress=None)
+        lm = calibrate(
+            masked,
+            model=model,
+            split="time",
+            n_train=n,
+            n_val=0,
+            train_fraction=None,
+            seed=seed,
+            fit_options=fit_options,
+            progress=None,
+        )
         ids = [h for h in lm.summary["heliostats"]]
 
         def row(method, errors, fb=None):
             t = np.where(lm.test_mask[: len(ids)], errors[: len(ids)], np.nan)
             per = {h: _json_float(_median(t[i])) for i, h in enumerate(ids)}
-            return {"n_train": n, "method": method, "fleet_median_mrad": _json_float(_median(t)),
-                    "per_heliostat": per, "n_fallback": None if fb is None else int(np.sum(fb))}
+            return {
+                "n_train": n,
+                "method": method,
+                "fleet_median_mrad": _json_float(_median(t)),
+                "per_heliostat": per,
+                "n_fallback": None if fb is None else int(np.sum(fb)),
+            }
 
         rows.append(row("lm", lm.errors_mrad))
         for v in variants:
@@ -396,9 +471,18 @@ def learning_curve(
             rows.append(row(v, nr.run.errors_mrad, nr.fallback))
             rows.append(row(v + "_raw", nr.nn_errors_mrad))
         if progress:
-            progress(f"N={n}: " + ", ".join(f"{r['method']} {r['fleet_median_mrad']:.2f}" for r in rows if r["n_train"] == n))
+            progress(
+                f"N={n}: " + ", ".join(f"{r['method']} {r['fleet_median_mrad']:.2f}" for r in rows if r["n_train"] == n)
+            )
     return rows
 
 
-__all__ = ["NeuralRun", "calibrate_neural", "fallback_rule", "learning_curve", "paper_errors_mrad",
-           "train_neural", "validation_tail"]
+__all__ = [
+    "NeuralRun",
+    "calibrate_neural",
+    "fallback_rule",
+    "learning_curve",
+    "paper_errors_mrad",
+    "train_neural",
+    "validation_tail",
+]

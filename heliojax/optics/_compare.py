@@ -35,9 +35,9 @@ import numpy as np
 from .._errors import DataError
 from .._geometry import TargetPlane, sun_direction, wgs84_to_enu
 from .._kinematics import AbstractKinematicModel, ActuatorModel, HeliostatGeometry, LinearActuators, forward
+from ..paint import read_calibration_record, read_flux_png, read_heliostat_properties, read_tower
 from ._flux import ImageGrid, centroid, flux_image
 from ._sunshape import AbstractSunShape, BuieSun, EffectiveSun
-from ..paint import read_calibration_record, read_flux_png, read_heliostat_properties, read_tower
 from ._surfaces import FacetLayout, SurfacePoints, ideal_surface
 
 load_flux_png = read_flux_png
@@ -113,7 +113,10 @@ def target_from_tower(tower, name: str) -> TargetPlane:
     if entry is None or not entry.is_planar_target:
         raise DataError(tower.source, name, "not a planar target of the tower file")
     origin = jnp.asarray(tower.origin_lla, jnp.float64)
-    corners = [wgs84_to_enu(jnp.asarray(entry.points[c], jnp.float64), origin) for c in ("upper_left", "upper_right", "lower_left", "lower_right")]
+    corners = [
+        wgs84_to_enu(jnp.asarray(entry.points[c], jnp.float64), origin)
+        for c in ("upper_left", "upper_right", "lower_left", "lower_right")
+    ]
     return TargetPlane.from_corners(*corners)
 
 
@@ -153,8 +156,16 @@ class FluxComparison:
         """The scalar fields as a JSON-able dict."""
         return {
             k: getattr(self, k)
-            for k in ("heliostat_id", "record_id", "target_name", "centroid_distance_m", "ncc", "ncc_centred",
-                      "png_vs_record_m", "traced_vs_record_m")
+            for k in (
+                "heliostat_id",
+                "record_id",
+                "target_name",
+                "centroid_distance_m",
+                "ncc",
+                "ncc_centred",
+                "png_vs_record_m",
+                "traced_vs_record_m",
+            )
         }
 
 
@@ -228,7 +239,9 @@ def compare_record(
 
     spot = record.focal_spot_utis or record.focal_spot_helios
     if spot is not None:
-        spot_uv = np.asarray(target.to_plane(wgs84_to_enu(jnp.asarray(spot, jnp.float64), jnp.asarray(tower.origin_lla, jnp.float64))))
+        spot_uv = np.asarray(
+            target.to_plane(wgs84_to_enu(jnp.asarray(spot, jnp.float64), jnp.asarray(tower.origin_lla, jnp.float64)))
+        )
         png_vs_record = float(np.linalg.norm(c_measured - spot_uv))
         traced_vs_record = float(np.linalg.norm(c_traced - spot_uv))
     else:

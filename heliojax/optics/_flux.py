@@ -85,23 +85,29 @@ class ImageGrid(eqx.Module):
             raise ValueError(f"ImageGrid shape must be (ny, nx) >= 1, got {self.shape}")
 
     @classmethod
-    def for_target(cls, target: TargetPlane, shape: tuple[int, int] = (256, 256)) -> "ImageGrid":
+    def for_target(cls, target: TargetPlane, shape: tuple[int, int] = (256, 256)) -> ImageGrid:
         """The grid covering the target rectangle exactly (PAINT flux PNG layout)."""
         return cls(
             u_min=-target.half_width,
             u_max=target.half_width,
             v_min=-target.half_height,
             v_max=target.half_height,
-            shape=tuple(shape),
+            shape=(int(shape[0]), int(shape[1])),
         )
 
     @classmethod
     def centred(
         cls, u0: ArrayLike, v0: ArrayLike, width: ArrayLike, height: ArrayLike, shape: tuple[int, int] = (256, 256)
-    ) -> "ImageGrid":
+    ) -> ImageGrid:
         """A ``width x height`` (m) window centred at ``(u0, v0)``."""
         u0, v0, width, height = (jnp.asarray(x) for x in (u0, v0, width, height))
-        return cls(u_min=u0 - width / 2, u_max=u0 + width / 2, v_min=v0 - height / 2, v_max=v0 + height / 2, shape=tuple(shape))
+        return cls(
+            u_min=u0 - width / 2,
+            u_max=u0 + width / 2,
+            v_min=v0 - height / 2,
+            v_max=v0 + height / 2,
+            shape=(int(shape[0]), int(shape[1])),
+        )
 
     @property
     def du(self) -> Float[Array, "*b"]:
@@ -139,9 +145,7 @@ def total_power(image: Float[Array, "*b ny nx"], grid: ImageGrid) -> Float[Array
     return jnp.sum(image, axis=(-2, -1)) * grid.pixel_area
 
 
-def aim_pose(
-    centre: Float[ArrayLike, "3"], sun: Float[ArrayLike, "3"], aim_point: Float[ArrayLike, "3"]
-) -> Pose:
+def aim_pose(centre: Float[ArrayLike, 3], sun: Float[ArrayLike, 3], aim_point: Float[ArrayLike, 3]) -> Pose:
     """Ideal pose at ``centre`` (ENU m) reflecting the central sun ray onto ``aim_point``.
 
     The normal is the bisector; the surface ``x`` axis is kept horizontal
@@ -154,7 +158,7 @@ def aim_pose(
     return pose_from_normal(centre, normal)
 
 
-def pose_from_normal(centre: Float[ArrayLike, "3"], normal: Float[ArrayLike, "3"]) -> Pose:
+def pose_from_normal(centre: Float[ArrayLike, 3], normal: Float[ArrayLike, 3]) -> Pose:
     """Pose with the given centre and unit normal, surface ``x`` axis horizontal
     (north-based if the normal is vertical)."""
     centre = jnp.asarray(centre)
@@ -349,7 +353,7 @@ def flux_image(
     key: PRNGKeyArray,
     surface: SurfacePoints,
     pose: Pose,
-    sun: Float[ArrayLike, "3"],
+    sun: Float[ArrayLike, 3],
     target: TargetPlane,
     grid: ImageGrid,
     sunshape: AbstractSunShape,

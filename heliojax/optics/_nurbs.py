@@ -53,7 +53,7 @@ def greville(n_ctrl: int, degree: int) -> np.ndarray:
 
 
 def bspline_basis(
-    t: Float[ArrayLike, "..."], n_ctrl: int, degree: int
+    t: Float[ArrayLike, ...], n_ctrl: int, degree: int
 ) -> tuple[Float[Array, "... n"], Float[Array, "... n"]]:
     """B-spline basis values and first derivatives at ``t`` (clamped uniform knots).
 
@@ -85,7 +85,7 @@ def bspline_basis(
         prev = new
     if degree == 0:
         deriv = jnp.zeros_like(prev)
-    return prev, deriv
+    return prev, deriv  # pyright: ignore[reportPossiblyUnbound, reportReturnType]
 
 
 @typing.final
@@ -118,9 +118,7 @@ class NurbsFacets(eqx.Module):
         return self.control_points.shape[-3], self.control_points.shape[-2]
 
     @classmethod
-    def ideal(
-        cls, layout: FacetLayout, n_ctrl: tuple[int, int] = (6, 6), degree: int = 3
-    ) -> "NurbsFacets":
+    def ideal(cls, layout: FacetLayout, n_ctrl: tuple[int, int] = (6, 6), degree: int = 3) -> NurbsFacets:
         """Flat canted facets of ``layout`` as exact NURBS patches: control point
         ``(i, j)`` is ``g_i canting_e + g_j canting_n`` with ``g`` the Greville
         abscissae mapped to ``[-1, 1]`` (linear precision makes the patch the flat
@@ -128,7 +126,10 @@ class NurbsFacets(eqx.Module):
         dt = layout.translations.dtype
         gu = jnp.asarray(2.0 * greville(n_ctrl[0], degree) - 1.0, dt)
         gv = jnp.asarray(2.0 * greville(n_ctrl[1], degree) - 1.0, dt)
-        cp = gu[:, None, None] * layout.canting_e[..., :, None, None, :] + gv[None, :, None] * layout.canting_n[..., :, None, None, :]
+        cp = (
+            gu[:, None, None] * layout.canting_e[..., :, None, None, :]
+            + gv[None, :, None] * layout.canting_n[..., :, None, None, :]
+        )
         return cls(
             control_points=cp,
             weights=jnp.ones(cp.shape[:-1], dt),
@@ -214,7 +215,7 @@ class NurbsFacets(eqx.Module):
             return n / jnp.linalg.norm(n, axis=-1, keepdims=True)
 
         lead = cp.shape[:-3]
-        flat = lambda x, k: x.reshape((-1,) + x.shape[len(lead):])  # noqa: E731
+        flat = lambda x, k: x.reshape((-1,) + x.shape[len(lead) :])  # noqa: E731
         out = jax.vmap(one)(flat(cp, 0), flat(self.weights, 0), flat(u, 0), flat(v, 0))
         return out.reshape(lead + out.shape[1:])
 
@@ -303,9 +304,7 @@ def fit_nurbs(
         zc = jnp.linalg.solve(lhs, rhs).reshape(nu, nv)
         cx = x0 + gu * lx
         cy = y0 + gv * ly
-        cp = jnp.stack(
-            [jnp.broadcast_to(cx[:, None], (nu, nv)), jnp.broadcast_to(cy[None, :], (nu, nv)), zc], axis=-1
-        )
+        cp = jnp.stack([jnp.broadcast_to(cx[:, None], (nu, nv)), jnp.broadcast_to(cy[None, :], (nu, nv)), zc], axis=-1)
         return cp, ok
 
     cp, ok = jax.lax.map(one, (pts, nrm, msk))
@@ -320,9 +319,7 @@ def fit_nurbs(
     )
 
 
-def normal_errors_mrad(
-    facets: NurbsFacets, deflectometry: Deflectometry
-) -> Float[Array, "*b f p"]:
+def normal_errors_mrad(facets: NurbsFacets, deflectometry: Deflectometry) -> Float[Array, "*b f p"]:
     """Angle (mrad) between the patches' normals and the measured normals at the
     measured ``(x, y)`` (0 where masked)."""
     n = facets.normals_at(deflectometry.points[..., :2])

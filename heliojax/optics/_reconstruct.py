@@ -138,11 +138,15 @@ def reconstruct_surface(
     dz = jnp.zeros(initial.control_points.shape[:-1], initial.control_points.dtype)
     opt = optax.adam(learning_rate)
     state = opt.init(dz)
-    kw = dict(resolution=resolution, rays_per_point=rays_per_point, smoothness=smoothness, flux_weight=flux_weight, dni=dni)
+    kw = dict(
+        resolution=resolution, rays_per_point=rays_per_point, smoothness=smoothness, flux_weight=flux_weight, dni=dni
+    )
 
     @jax.jit
     def step(dz, state, j):
-        loss, g = jax.value_and_grad(flux_loss)(dz, jax.random.fold_in(key, j), initial, images, poses, suns, target, grid, sunshape, **kw)
+        loss, g = jax.value_and_grad(flux_loss)(
+            dz, jax.random.fold_in(key, j), initial, images, poses, suns, target, grid, sunshape, **kw
+        )
         updates, state = opt.update(g, state, dz)
         return optax.apply_updates(dz, updates), state, loss
 
@@ -217,7 +221,12 @@ def synthetic_scene(
         bx, by = rng.uniform(-0.5, 0.5, 2)
         dz[k] = rng.uniform(*bump_m) * rng.choice([-1, 1]) * np.exp(-((X - bx) ** 2 + (Y - by) ** 2) / 0.5)
     truth = with_height_offsets(ideal, jnp.asarray(dz))
-    target = _TP.from_corners(jnp.asarray([2.5, 0, 22.5]), jnp.asarray([-2.5, 0, 22.5]), jnp.asarray([2.5, 0, 17.5]), jnp.asarray([-2.5, 0, 17.5]))
+    target = _TP.from_corners(
+        jnp.asarray([2.5, 0, 22.5]),
+        jnp.asarray([-2.5, 0, 22.5]),
+        jnp.asarray([2.5, 0, 17.5]),
+        jnp.asarray([-2.5, 0, 17.5]),
+    )
     grid = ImageGrid.for_target(target, (pixels, pixels))
     centre = jnp.asarray([0.0, 40.0, 2.0])
     suns, poses = [], []
@@ -231,8 +240,17 @@ def synthetic_scene(
     sunshape = PillboxSun()
     surf = truth.evaluate((16, 16))
     surfs = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n_images,) + x.shape), surf)
-    images = flux_images(jax.random.key(seed + 1000), surfs, poses, suns, target, grid, sunshape,
-                         rays_per_point=rays_per_point // 4, steps=4)
+    images = flux_images(
+        jax.random.key(seed + 1000),
+        surfs,
+        poses,
+        suns,
+        target,
+        grid,
+        sunshape,
+        rays_per_point=rays_per_point // 4,
+        steps=4,
+    )
     return SyntheticScene(ideal, truth, images, poses, suns, target, grid, sunshape)
 
 

@@ -80,7 +80,9 @@ def _lowbias32(x):
     return x ^ (x >> 16)
 
 
-def uniforms(key: PRNGKeyArray, shape: tuple[int, ...], dtype=jnp.float32, method: str = "hash") -> Float[Array, "*shape"]:
+def uniforms(
+    key: PRNGKeyArray, shape: tuple[int, ...], dtype=jnp.float32, method: str = "hash"
+) -> Float[Array, "*shape"]:
     """Uniform numbers in the open interval ``(0, 1)`` with 24-bit resolution.
 
     Args:
@@ -124,7 +126,7 @@ def _horner(coef, y):
     return out
 
 
-def _disk(radius: Float[Array, "..."], u: Float[Array, "..."]) -> Float[Array, "... 2"]:
+def _disk(radius: Float[Array, ...], u: Float[Array, ...]) -> Float[Array, "... 2"]:
     """``radius * (cos, sin)`` of the uniform angle ``2 pi (u - 1/2)`` by polynomials
     (no range reduction needed: ~3x faster than ``jnp.sin``/``jnp.cos`` on CPU)."""
     x = u - 0.5
@@ -230,13 +232,17 @@ def _buie_cdf(csr: float, n: int = 20000) -> tuple[np.ndarray, np.ndarray]:
     """Nodes (mrad) and the normalised radial CDF of ``phi(t) t``."""
     disk = np.linspace(0.0, _BUIE_DISK_MRAD, n)
     aureole = np.geomspace(_BUIE_DISK_MRAD, _BUIE_OUTER_MRAD, n)
+
     def integrate(t, left_value=None):
         d = buie_profile(t, csr) * t
         if left_value is not None:
             d[0] = left_value
         return np.concatenate([[0.0], np.cumsum(0.5 * (d[1:] + d[:-1]) * np.diff(t))])
+
     c_disk = integrate(disk)
-    edge = np.exp(0.9 * np.log(13.5 * csr) * csr**-0.3) * _BUIE_DISK_MRAD ** (2.2 * np.log(0.52 * csr) * csr**0.43 - 0.1)
+    edge = np.exp(0.9 * np.log(13.5 * csr) * csr**-0.3) * _BUIE_DISK_MRAD ** (
+        2.2 * np.log(0.52 * csr) * csr**0.43 - 0.1
+    )
     c_aur = integrate(aureole, left_value=edge * _BUIE_DISK_MRAD)
     t = np.concatenate([disk, aureole[1:]])
     cdf = np.concatenate([c_disk, c_disk[-1] + c_aur[1:]])
@@ -292,9 +298,7 @@ def tangent_basis(s: Float[Array, "... 3"]) -> tuple[Float[Array, "... 3"], Floa
     return e1, e2
 
 
-def offsets_to_directions(
-    offsets: Float[Array, "... 2"], sun: Float[Array, "3"]
-) -> Float[Array, "... 3"]:
+def offsets_to_directions(offsets: Float[Array, "... 2"], sun: Float[Array, 3]) -> Float[Array, "... 3"]:
     """Unit vectors to the sun of rays with angular ``offsets`` (rad) about ``sun``."""
     e1, e2 = tangent_basis(sun)
     a, b = offsets[..., 0:1], offsets[..., 1:2]

@@ -60,7 +60,7 @@ class SurfacePoints(eqx.Module):
         """Mirror area in m^2 (sum of the point areas)."""
         return jnp.sum(self.areas, axis=-1)
 
-    def pad_to(self, n: int) -> "SurfacePoints":
+    def pad_to(self, n: int) -> SurfacePoints:
         """Pad (with zero-area points at the origin, normal ``+z``) to ``n`` points."""
         extra = n - self.n_points
         if extra < 0:
@@ -107,10 +107,12 @@ class FacetLayout(eqx.Module):
     mask: Bool[Array, "*b f"]
 
     @classmethod
-    def from_arrays(cls, translations, canting_e, canting_n, mask=None) -> "FacetLayout":
+    def from_arrays(cls, translations, canting_e, canting_n, mask=None) -> FacetLayout:
         t = jnp.asarray(translations)
         m = jnp.ones(t.shape[:-1], bool) if mask is None else jnp.asarray(mask, bool)
-        return cls(translations=t, canting_e=jnp.asarray(canting_e, t.dtype), canting_n=jnp.asarray(canting_n, t.dtype), mask=m)
+        return cls(
+            translations=t, canting_e=jnp.asarray(canting_e, t.dtype), canting_n=jnp.asarray(canting_n, t.dtype), mask=m
+        )
 
     @property
     def n_facets(self) -> int:
@@ -185,7 +187,11 @@ def ideal_surface(layout: FacetLayout, resolution: tuple[int, int] = (32, 32)) -
     a = jnp.asarray(-1.0 + (2.0 * np.arange(ne) + 1.0) / ne, layout.translations.dtype)
     b = jnp.asarray(-1.0 + (2.0 * np.arange(nn) + 1.0) / nn, layout.translations.dtype)
     t = layout.translations[..., :, None, None, :]
-    pts = t + a[:, None, None] * layout.canting_e[..., :, None, None, :] + b[None, :, None] * layout.canting_n[..., :, None, None, :]
+    pts = (
+        t
+        + a[:, None, None] * layout.canting_e[..., :, None, None, :]
+        + b[None, :, None] * layout.canting_n[..., :, None, None, :]
+    )
     normals = jnp.broadcast_to(layout.normals()[..., :, None, None, :], pts.shape)
     areas = jnp.broadcast_to((layout.areas() / (ne * nn))[..., :, None, None], pts.shape[:-1])
     lead = pts.shape[:-4]
@@ -216,7 +222,7 @@ class Deflectometry(eqx.Module):
     mask: Bool[Array, "*b f p"]
 
     @classmethod
-    def from_facets(cls, facets: Sequence[tuple[ArrayLike, ArrayLike]], n_points: int | None = None) -> "Deflectometry":
+    def from_facets(cls, facets: Sequence[tuple[ArrayLike, ArrayLike]], n_points: int | None = None) -> Deflectometry:
         """Pad per-facet ``(points [n_i, 3], normals [n_i, 3])`` to a common count."""
         n = max(len(np.asarray(p)) for p, _ in facets)
         n = n if n_points is None else max(n, n_points)
@@ -225,7 +231,7 @@ class Deflectometry(eqx.Module):
         nrm[..., 2] = 1.0
         mask = np.zeros((len(facets), n), bool)
         for i, (p, q) in enumerate(facets):
-            k = len(p)
+            k = len(p)  # pyright: ignore[reportArgumentType]
             pts[i, :k] = p
             nrm[i, :k] = q
             mask[i, :k] = True

@@ -8,9 +8,30 @@ import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
-from .._errors import DataError
-from ._common import CALIBRATION_SUFFIX, CalibrationRecord, HeliostatProperties, PROPERTIES_SUFFIX, TIMESTAMPS_FILE, TimestampEntry, TowerFile, Vec3, WEATHER_KEYS, _Node, _check, _check_datetime, _join, _latlon_ok, _load_json, _nan_weather, _record_id_from_name, _roundtrip, _type_name, _write_json
 
+from .._errors import DataError
+from ._common import (
+    CALIBRATION_SUFFIX,
+    PROPERTIES_SUFFIX,
+    TIMESTAMPS_FILE,
+    WEATHER_KEYS,
+    CalibrationRecord,
+    HeliostatProperties,
+    TimestampEntry,
+    TowerFile,
+    Vec3,
+    _check,
+    _check_datetime,
+    _join,
+    _latlon_ok,
+    _load_json,
+    _nan_weather,
+    _Node,
+    _record_id_from_name,
+    _roundtrip,
+    _type_name,
+    _write_json,
+)
 
 # ======================================================================================
 # Calibration records
@@ -95,9 +116,11 @@ def check_record_context(
     if tower is not None:
         t = tower.targets.get(record.target_name)
         if t is None:
-            raise DataError(file, "target_name",
-                            f"unknown target {record.target_name!r} (tower file has "
-                            f"{', '.join(tower.planar_target_names)})")
+            raise DataError(
+                file,
+                "target_name",
+                f"unknown target {record.target_name!r} (tower file has {', '.join(tower.planar_target_names)})",
+            )
         if not t.is_planar_target:
             raise DataError(file, "target_name", f"{record.target_name!r} is not a planar calibration target")
     if properties is None:
@@ -105,21 +128,24 @@ def check_record_context(
     if isinstance(properties, Mapping):
         props = properties.get(record.heliostat_id)
         if props is None:
-            raise DataError(file, "heliostat_id",
-                            f"heliostat {record.heliostat_id!r} has no properties file")
+            raise DataError(file, "heliostat_id", f"heliostat {record.heliostat_id!r} has no properties file")
     else:
         props = properties
         if props.heliostat_id != record.heliostat_id:
-            raise DataError(file, "heliostat_id",
-                            f"record of {record.heliostat_id!r} checked against properties of "
-                            f"{props.heliostat_id!r}")
+            raise DataError(
+                file,
+                "heliostat_id",
+                f"record of {record.heliostat_id!r} checked against properties of {props.heliostat_id!r}",
+            )
     for axis, count in ((1, record.axis_1_counts), (2, record.axis_2_counts)):
         a = props.actuators[axis - 1]
         lo, hi = a["min_increment"], a["max_increment"]
         if not lo <= count <= hi:
-            raise DataError(file, f"motor_position.axis_{axis}_motor_position",
-                            f"count {count} outside [min_increment, max_increment] = [{lo}, {hi}] "
-                            f"of {Path(props.source).name}")
+            raise DataError(
+                file,
+                f"motor_position.axis_{axis}_motor_position",
+                f"count {count} outside [min_increment, max_increment] = [{lo}, {hi}] of {Path(props.source).name}",
+            )
 
 
 def validate_record(record: CalibrationRecord) -> CalibrationRecord:
@@ -213,9 +239,12 @@ def read_calibration_record(
     if timestamps is not None and rid in timestamps:
         entry = timestamps[rid]
         if entry.heliostat_id != heliostat_id:
-            raise DataError(file, "heliostat_id",
-                            f"{TIMESTAMPS_FILE} assigns record {rid} to {entry.heliostat_id!r}, "
-                            f"the file lies under {heliostat_id!r}")
+            raise DataError(
+                file,
+                "heliostat_id",
+                f"{TIMESTAMPS_FILE} assigns record {rid} to {entry.heliostat_id!r}, "
+                f"the file lies under {heliostat_id!r}",
+            )
         dt = entry.datetime
     w = None if weather is None else weather.get((heliostat_id, rid))
     record = _record_from_json(file, _load_json(path), rid, heliostat_id, dt, w)

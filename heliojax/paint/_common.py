@@ -10,11 +10,10 @@ import os
 import re
 from pathlib import Path
 from typing import Any
+
 from .._errors import DataError
 from .._io import atomic_write
 from .._sun import datetime_to_unix
-
-
 
 Vec3 = tuple[float, float, float]
 
@@ -402,13 +401,11 @@ def _check_datetime(file: str, field: str, text: Any) -> str:
         raise DataError(file, field, f"expected an ISO-8601 string, got {_type_name(text)}")
     try:
         t = datetime_to_unix(text)
-    except (ValueError, TypeError, OverflowError) as e:
+    except (ValueError, TypeError, OverflowError):
         raise DataError(file, field, f"not an ISO-8601 date-time: {text!r}") from None
     if not math.isfinite(t):
         raise DataError(file, field, f"not a finite date-time: {text!r}")
     return text
-
-
 
 
 # ======================================================================================

@@ -27,8 +27,8 @@ def read_deflectometry_facets(path: str | os.PathLike) -> list[tuple[np.ndarray,
     facets = []
     try:
         with h5py.File(path, "r") as f:
-            names = sorted((k for k in f.keys() if _FACET_GROUP.match(k)),
-                           key=lambda k: int(_FACET_GROUP.match(k).group(1)))  # type: ignore[union-attr]
+            numbered = {int(m.group(1)): k for k in f.keys() if (m := _FACET_GROUP.match(k))}
+            names = [numbered[i] for i in sorted(numbered)]
             if not names:
                 raise DataError(path, None, "no facet groups (facet1..facetN)")
             for name in names:

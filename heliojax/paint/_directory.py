@@ -6,12 +6,21 @@ import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
+
 from .._errors import DataError
-from ._common import CalibrationRecord, HeliostatProperties, TIMESTAMPS_FILE, TOWER_FILE_SUFFIX, TowerFile, WEATHER_CSV_FILE, _roundtrip
-from ._tower import _tower_from_json, _tower_to_json, write_tower
-from ._properties import validate_properties, write_heliostat_properties
 from ._calibration import calibration_record_path, heliostat_properties_path, validate_record, write_calibration_record
+from ._common import (
+    TIMESTAMPS_FILE,
+    TOWER_FILE_SUFFIX,
+    WEATHER_CSV_FILE,
+    CalibrationRecord,
+    HeliostatProperties,
+    TowerFile,
+    _roundtrip,
+)
+from ._properties import validate_properties, write_heliostat_properties
 from ._timestamps import write_timestamps
+from ._tower import _tower_from_json, _tower_to_json, write_tower
 from ._weather import write_weather_csv
 
 
@@ -73,6 +82,7 @@ def write_paint_directory(
     write_timestamps(out / TIMESTAMPS_FILE, records)
     with_weather = [r for r in records if any(not math.isnan(float(v)) for v in r.weather.values())]
     if weather and with_weather:
-        write_weather_csv(out / WEATHER_CSV_FILE, with_weather,
-                          properties={p.heliostat_id: p for p in props}, tower=tower)
+        write_weather_csv(
+            out / WEATHER_CSV_FILE, with_weather, properties={p.heliostat_id: p for p in props}, tower=tower
+        )
     return out

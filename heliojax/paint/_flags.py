@@ -6,10 +6,12 @@ from __future__ import annotations
 import collections
 import math
 from collections.abc import Sequence
+
 import numpy as np
+
 from .._errors import DataError
+from .._fleet import _MIN_FLEET_FOR_OUTLIERS, OUTLIER_FLOOR, OUTLIER_K, LoadReport, ReportEntry
 from .._sun import datetime_to_unix
-from .._fleet import LoadReport, OUTLIER_FLOOR, OUTLIER_K, ReportEntry, _MIN_FLEET_FOR_OUTLIERS
 from ._common import CalibrationRecord, HeliostatProperties
 
 
@@ -62,7 +64,9 @@ class _Log:
 # ======================================================================================
 
 
-def _actuator_law(inc, s0, a, b, ang0, sign, counts):
+def _actuator_law(*args):
+    inc, s0, a, b, ang0, sign, counts = args
+
     def psi(s):
         return np.arccos(np.clip((a**2 + b**2 - s**2) / (2 * a * b), -1.0, 1.0))
 
@@ -73,15 +77,20 @@ def _check_actuator_law(p: HeliostatProperties) -> None:
     """The counts-to-angle law must give finite, distinct angles at both count limits."""
     for i, a in enumerate(p.actuators):
         with np.errstate(all="ignore"):
-            args = [np.float64(a[k]) for k in ("increment", "initial_stroke_length", "offset", "pivot_radius",
-                                                "initial_angle")]
+            args = [
+                np.float64(a[k])
+                for k in ("increment", "initial_stroke_length", "offset", "pivot_radius", "initial_angle")
+            ]
             sign = 1.0 if a["clockwise_axis_movement"] == 0 else -1.0
             lo, hi = (_actuator_law(*args, sign, np.float64(a[k])) for k in ("min_increment", "max_increment"))
             slope = (hi - lo) / (np.float64(a["max_increment"]) - np.float64(a["min_increment"]))
         if not (np.isfinite(lo) and np.isfinite(hi) and np.isfinite(slope) and slope != 0):
-            raise DataError(p.source, f"kinematics_properties.actuators[{i}]",
-                            f"the actuator law gives no usable angle range over [min_increment, max_increment] "
-                            f"(angles {lo!r} .. {hi!r} rad)")
+            raise DataError(
+                p.source,
+                f"kinematics_properties.actuators[{i}]",
+                f"the actuator law gives no usable angle range over [min_increment, max_increment] "
+                f"(angles {lo!r} .. {hi!r} rad)",
+            )
 
 
 def _flag_properties(props: list[HeliostatProperties], log: _Log) -> None:
@@ -91,8 +100,16 @@ def _flag_properties(props: list[HeliostatProperties], log: _Log) -> None:
         return
     a = {
         k: np.array([[float(p.actuators[i][k]) for i in range(2)] for p in props])
-        for k in ("increment", "initial_stroke_length", "offset", "pivot_radius", "initial_angle",
-                  "min_increment", "max_increment", "clockwise_axis_movement")
+        for k in (
+            "increment",
+            "initial_stroke_length",
+            "offset",
+            "pivot_radius",
+            "initial_angle",
+            "min_increment",
+            "max_increment",
+            "clockwise_axis_movement",
+        )
     }
     sign = np.where(a["clockwise_axis_movement"] == 0, 1.0, -1.0)
     # Triangle feasibility over the count range (stroke is monotone in the counts).
@@ -102,9 +119,12 @@ def _flag_properties(props: list[HeliostatProperties], log: _Log) -> None:
         hi = a["offset"] + a["pivot_radius"]
         bad = (stroke < lo) | (stroke > hi)
         for h, i in zip(*np.nonzero(bad)):
-            log.flag(props[h].source, f"kinematics_properties.actuators[{i}].initial_stroke_length",
-                     f"stroke {stroke[h, i]:.4f} m at {end} = {int(a[end][h, i])} lies outside the actuator "
-                     f"triangle [{lo[h, i]:.4f}, {hi[h, i]:.4f}] m (law of cosines saturates)")
+            log.flag(
+                props[h].source,
+                f"kinematics_properties.actuators[{i}].initial_stroke_length",
+                f"stroke {stroke[h, i]:.4f} m at {end} = {int(a[end][h, i])} lies outside the actuator "
+                f"triangle [{lo[h, i]:.4f}, {hi[h, i]:.4f}] m (law of cosines saturates)",
+            )
     # Majority direction of motion.
     for i in range(2):
         vals = a["clockwise_axis_movement"][:, i]
@@ -112,54 +132,88 @@ def _flag_properties(props: list[HeliostatProperties], log: _Log) -> None:
         mode, k = cnt.most_common(1)[0]
         if n >= _MIN_FLEET_FOR_OUTLIERS and 2 * k > n:
             for h in np.nonzero(vals != mode)[0]:
-                log.flag(props[h].source, f"kinematics_properties.actuators[{i}].clockwise_axis_movement",
-                         f"{int(vals[h])} where {k} of {n} heliostats have {int(mode)}")
+                log.flag(
+                    props[h].source,
+                    f"kinematics_properties.actuators[{i}].clockwise_axis_movement",
+                    f"{int(vals[h])} where {k} of {n} heliostats have {int(mode)}",
+                )
     if n < _MIN_FLEET_FOR_OUTLIERS:
         log.notes.append(f"actuator outlier check not run: {n} heliostat(s) (needs {_MIN_FLEET_FOR_OUTLIERS})")
         return
     span = np.abs(
-        _actuator_law(a["increment"], a["initial_stroke_length"], a["offset"], a["pivot_radius"],
-                      a["initial_angle"], sign, a["max_increment"])
-        - _actuator_law(a["increment"], a["initial_stroke_length"], a["offset"], a["pivot_radius"],
-                        a["initial_angle"], sign, a["min_increment"])
+        _actuator_law(
+            a["increment"],
+            a["initial_stroke_length"],
+            a["offset"],
+            a["pivot_radius"],
+            a["initial_angle"],
+            sign,
+            a["max_increment"],
+        )
+        - _actuator_law(
+            a["increment"],
+            a["initial_stroke_length"],
+            a["offset"],
+            a["pivot_radius"],
+            a["initial_angle"],
+            sign,
+            a["min_increment"],
+        )
     )
     checks: list[tuple[str, np.ndarray, np.ndarray, str]] = []  # (field, values (n,), scale (), unit)
     for i in range(2):
-        for k, unit in (("increment", "counts/m"), ("initial_stroke_length", "m"), ("offset", "m"),
-                        ("pivot_radius", "m")):
+        for k, unit in (
+            ("increment", "counts/m"),
+            ("initial_stroke_length", "m"),
+            ("offset", "m"),
+            ("pivot_radius", "m"),
+        ):
             v = a[k][:, i]
             checks.append((f"kinematics_properties.actuators[{i}].{k}", v, abs(np.median(v)), unit))
-        checks.append((f"kinematics_properties.actuators[{i}].initial_angle", a["initial_angle"][:, i],
-                       np.median(span[:, i]), "rad"))
+        checks.append(
+            (
+                f"kinematics_properties.actuators[{i}].initial_angle",
+                a["initial_angle"][:, i],
+                np.median(span[:, i]),
+                "rad",
+            )
+        )
     width = np.median([p.width for p in props])
-    for name, attr in (("joint_translation_{}_1", "joint_translation_1"),
-                       ("joint_translation_{}_2", "joint_translation_2"),
-                       ("concentrator_translation_{}", "concentrator_translation")):
+    for name, attr in (
+        ("joint_translation_{}_1", "joint_translation_1"),
+        ("joint_translation_{}_2", "joint_translation_2"),
+        ("concentrator_translation_{}", "concentrator_translation"),
+    ):
         vals = np.array([getattr(p, attr) for p in props])
         for j, c in enumerate("enu"):
-            checks.append((f"kinematics_properties.{name.format(c)}", vals[:, j], width, "m"))
+            checks.append((f"kinematics_properties.{name.format(c)}", vals[:, j], width, "m"))  # pyright: ignore[reportArgumentType]
     for field, v, scale, unit in checks:
         med = np.median(v)
         mad = np.median(np.abs(v - med))
         thr = OUTLIER_K * max(1.4826 * mad, OUTLIER_FLOOR * float(scale))
         for h in np.nonzero(np.abs(v - med) > thr)[0]:
-            log.flag(props[h].source, field,
-                     f"{v[h]:.6g} {unit} is far from the fleet median {med:.6g} "
-                     f"(|dev| {abs(v[h] - med):.3g} > {thr:.3g} = {OUTLIER_K:g} x max(1.4826 MAD, "
-                     f"{OUTLIER_FLOOR:g} x scale))")
+            log.flag(
+                props[h].source,
+                field,
+                f"{v[h]:.6g} {unit} is far from the fleet median {med:.6g} "
+                f"(|dev| {abs(v[h] - med):.3g} > {thr:.3g} = {OUTLIER_K:g} x max(1.4826 MAD, "
+                f"{OUTLIER_FLOOR:g} x scale))",
+            )
 
 
 def _flag_repeated_weather(records: Sequence[CalibrationRecord], file: str, log: _Log) -> None:
     """Flag weather tuples repeated over rows spanning more than an hour (forward fill)."""
     groups: dict[tuple, list[float]] = collections.defaultdict(list)
     for r in records:
-        w = tuple(r.weather[k] for k in ("temperature", "wind_speed", "wind_direction", "dni", "humidity",
-                                          "pressure"))
+        w = tuple(r.weather[k] for k in ("temperature", "wind_speed", "wind_direction", "dni", "humidity", "pressure"))
         if all(math.isfinite(x) for x in w) and r.datetime is not None:
             groups[w].append(datetime_to_unix(r.datetime))
     for w, ts in groups.items():
         hours = (max(ts) - min(ts)) / 3600.0
         if len(ts) >= 3 and hours > 1.0:
-            log.flag(file, "weather",
-                     f"identical weather (temperature, wind_speed, wind_direction, dni, humidity, pressure) "
-                     f"= {w} on {len(ts)} rows spanning {hours:.1f} h: looks forward-filled")
+            log.flag(
+                file,
+                "weather",
+                f"identical weather (temperature, wind_speed, wind_direction, dni, humidity, pressure) "
+                f"= {w} on {len(ts)} rows spanning {hours:.1f} h: looks forward-filled",
+            )

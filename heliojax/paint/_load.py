@@ -10,23 +10,34 @@ import os
 import re
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
+
 from .._errors import DataError
+from .._fleet import _CENTROIDS, Centroid, Fleet, ReportEntry, bucket_size
 from .._geometry import TargetPlane, sun_direction, wgs84_to_enu
 from .._kinematics import HeliostatGeometry, LinearActuators, RecordContext
 from .._sun import datetime_to_unix
-from .._fleet import Centroid, Fleet, ReportEntry, _CENTROIDS, bucket_size
-from ._common import CALIBRATION_SUFFIX, CORNERS, CalibrationRecord, HeliostatProperties, PROPERTIES_SUFFIX, TIMESTAMPS_FILE, TOWER_FILE_SUFFIX, TowerFile, WEATHER_CSV_FILE
-from ._tower import read_tower
-from ._properties import read_heliostat_properties, validate_properties
 from ._calibration import check_record_context, heliostat_properties_path, read_calibration_record, validate_record
+from ._common import (
+    CALIBRATION_SUFFIX,
+    CORNERS,
+    PROPERTIES_SUFFIX,
+    TIMESTAMPS_FILE,
+    TOWER_FILE_SUFFIX,
+    WEATHER_CSV_FILE,
+    CalibrationRecord,
+    HeliostatProperties,
+    TowerFile,
+)
+from ._flags import _check_actuator_law, _flag_properties, _flag_repeated_weather, _Log
+from ._properties import read_heliostat_properties, validate_properties
 from ._timestamps import read_timestamps
+from ._tower import read_tower
 from ._weather import read_weather_csv
-from ._flags import _Log, _check_actuator_law, _flag_properties, _flag_repeated_weather
-
 
 
 def default_data_dir() -> Path:
@@ -85,7 +96,6 @@ def _approach(counts: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return np.take_along_axis(step, last, axis=1) * mask[..., None]
 
 
-
 def _f(x) -> Array:
     """A JAX array of JAX's default float dtype (float64 under ``jax_enable_x64``)."""
     return jax.device_put(np.asarray(x, dtype=np.float64))
@@ -129,8 +139,12 @@ def _assemble(
                 p = validate_properties(p)
             _check_actuator_law(p)
             if p.heliostat_id in props_by_id:
-                raise DataError(p.source, None, f"second properties entry for heliostat {p.heliostat_id!r} "
-                                                f"(first: {props_by_id[p.heliostat_id].source})")
+                raise DataError(
+                    p.source,
+                    None,
+                    f"second properties entry for heliostat {p.heliostat_id!r} "
+                    f"(first: {props_by_id[p.heliostat_id].source})",
+                )
         except DataError as e:
             log.skip(e, heliostats=1)
             continue
@@ -139,15 +153,24 @@ def _assemble(
     by_h: dict[str, list[CalibrationRecord]] = collections.defaultdict(list)
     for r in records:
         if not isinstance(r.heliostat_id, str) or not r.heliostat_id:
-            log.skip_record(DataError(getattr(r, "source", None), "heliostat_id",
-                                      f"must be a non-empty string, got {r.heliostat_id!r}"))
+            log.skip_record(
+                DataError(
+                    getattr(r, "source", None), "heliostat_id", f"must be a non-empty string, got {r.heliostat_id!r}"
+                )
+            )
             continue
         by_h[r.heliostat_id].append(r)
     for hid in sorted(set(by_h) - set(props_by_id), key=str):
         rs = by_h[hid]
-        log.skip(DataError(_common_dir([r.source for r in rs]), "heliostat_id",
-                           f"{len(rs)} calibration record(s) of heliostat {hid!r} skipped: no properties file"),
-                 records=len(rs), heliostats=1)
+        log.skip(
+            DataError(
+                _common_dir([r.source for r in rs]),
+                "heliostat_id",
+                f"{len(rs)} calibration record(s) of heliostat {hid!r} skipped: no properties file",
+            ),
+            records=len(rs),
+            heliostats=1,
+        )
 
     ids = tuple(sorted(props_by_id))
     if not ids:
@@ -241,26 +264,37 @@ def _assemble(
         width = np.linalg.norm((ur + lr) / 2 - (ul + ll) / 2)
         height = np.linalg.norm((ul + ur) / 2 - (ll + lr) / 2)
         if not (width > 1e-3 and height > 1e-3):
-            raise DataError(tower.source, f"{name}.coordinates",
-                            f"degenerate target corners (width {width:.3g} m, height {height:.3g} m)")
+            raise DataError(
+                tower.source,
+                f"{name}.coordinates",
+                f"degenerate target corners (width {width:.3g} m, height {height:.3g} m)",
+            )
     centres = corners_enu.mean(axis=1)
     for i in np.nonzero(n_valid == 0)[0]:
         spot_enu[i] = centres[0]
 
     acts = {
         k: np.array([[float(props_by_id[hid].actuators[i][k]) for i in range(2)] for hid in ids])
-        for k in ("increment", "initial_stroke_length", "offset", "pivot_radius", "initial_angle",
-                  "min_increment", "max_increment", "clockwise_axis_movement")
+        for k in (
+            "increment",
+            "initial_stroke_length",
+            "offset",
+            "pivot_radius",
+            "initial_angle",
+            "min_increment",
+            "max_increment",
+            "clockwise_axis_movement",
+        )
     }
     actuators = LinearActuators(
-        increment=_bucket_rows(acts["increment"]),
-        initial_stroke_length=_bucket_rows(acts["initial_stroke_length"]),
-        offset=_bucket_rows(acts["offset"]),
-        pivot_radius=_bucket_rows(acts["pivot_radius"]),
-        initial_angle=_bucket_rows(acts["initial_angle"]),
-        sign=_bucket_rows(np.where(acts["clockwise_axis_movement"] == 0, 1.0, -1.0)),
-        min_counts=_bucket_rows(acts["min_increment"]),
-        max_counts=_bucket_rows(acts["max_increment"]),
+        increment=jnp.asarray(_bucket_rows(acts["increment"])),
+        initial_stroke_length=jnp.asarray(_bucket_rows(acts["initial_stroke_length"])),
+        offset=jnp.asarray(_bucket_rows(acts["offset"])),
+        pivot_radius=jnp.asarray(_bucket_rows(acts["pivot_radius"])),
+        initial_angle=jnp.asarray(_bucket_rows(acts["initial_angle"])),
+        sign=jnp.asarray(_bucket_rows(np.where(acts["clockwise_axis_movement"] == 0, 1.0, -1.0))),
+        min_counts=jnp.asarray(_bucket_rows(acts["min_increment"])),
+        max_counts=jnp.asarray(_bucket_rows(acts["max_increment"])),
     )
     with jax.enable_x64(True):
         geometry = _geometry_kernel(
@@ -269,12 +303,14 @@ def _assemble(
             _bucket_rows(np.array([props_by_id[k].joint_translation_1 for k in ids])),
             _bucket_rows(np.array([props_by_id[k].joint_translation_2 for k in ids])),
             _bucket_rows(np.array([props_by_id[k].concentrator_translation for k in ids])),
-            _bucket_rows(np.array([[props_by_id[k].actuators[i]["type_axis"] == "ideal" for i in range(2)]
-                                   for k in ids])),
+            _bucket_rows(
+                np.array([[props_by_id[k].actuators[i]["type_axis"] == "ideal" for i in range(2)] for k in ids])
+            ),
         )
         targets = _targets_kernel(*(corners_enu[:, c] for c in range(4)))
-    geometry = jax.tree.map(lambda x: jax.device_put(np.asarray(x)[:h]) if x.dtype == bool else _f(np.asarray(x)[:h]),
-                            geometry)
+    geometry = jax.tree.map(
+        lambda x: jax.device_put(np.asarray(x)[:h]) if x.dtype == bool else _f(np.asarray(x)[:h]), geometry
+    )
     targets = jax.tree.map(lambda x: _f(np.asarray(x)), targets)
     context = RecordContext(
         sun=_f(sun),
@@ -419,13 +455,13 @@ def load_paint_directory(
         weather = {(r.heliostat_id, r.record_id): r.weather for r in rows}
         _flag_repeated_weather(rows, str(csv_path), log)
 
-    dirs = sorted(d for d in root.iterdir() if d.is_dir() and ((d / "Properties").is_dir() or
-                                                                  (d / "Calibration").is_dir()))
+    dirs = sorted(
+        d for d in root.iterdir() if d.is_dir() and ((d / "Properties").is_dir() or (d / "Calibration").is_dir())
+    )
     if heliostats is not None:
         wanted = set(heliostats)
         for hid in sorted(wanted - {d.name for d in dirs}):
-            log.skip(DataError(root / hid, None, f"heliostat {hid!r} requested but not in the directory"),
-                     heliostats=1)
+            log.skip(DataError(root / hid, None, f"heliostat {hid!r} requested but not in the directory"), heliostats=1)
         dirs = [d for d in dirs if d.name in wanted]
 
     properties: list[HeliostatProperties] = []
@@ -440,24 +476,35 @@ def load_paint_directory(
             if not prop_files:
                 if not cal_files:
                     continue
-                raise DataError(expected, None, f"missing: {len(cal_files)} calibration record(s) of heliostat "
-                                                f"{hid!r} have no properties file")
+                raise DataError(
+                    expected,
+                    None,
+                    f"missing: {len(cal_files)} calibration record(s) of heliostat {hid!r} have no properties file",
+                )
             if len(prop_files) > 1 or prop_files[0].name != expected.name:
-                raise DataError(d / "Properties", None,
-                                f"expected exactly {expected.name}, found {[p.name for p in prop_files]}")
+                raise DataError(
+                    d / "Properties", None, f"expected exactly {expected.name}, found {[p.name for p in prop_files]}"
+                )
             props = read_heliostat_properties(prop_files[0], heliostat_id=hid)
         except DataError as e:
             log.skip(e, records=len(cal_files), heliostats=1)
             if prop_files and cal_files:
-                log.skipped.append(ReportEntry(str(d / "Calibration"), None,
-                                               f"{len(cal_files)} calibration record(s) skipped with heliostat "
-                                               f"{hid!r} (bad properties file)"))
+                log.skipped.append(
+                    ReportEntry(
+                        str(d / "Calibration"),
+                        None,
+                        f"{len(cal_files)} calibration record(s) skipped with heliostat {hid!r} (bad properties file)",
+                    )
+                )
             continue
         properties.append(props)
         for cf in cal_files:
             try:
-                records.append(read_calibration_record(cf, heliostat_id=hid, timestamps=timestamps,
-                                                       weather=weather, tower=tower, properties=props))
+                records.append(
+                    read_calibration_record(
+                        cf, heliostat_id=hid, timestamps=timestamps, weather=weather, tower=tower, properties=props
+                    )
+                )
             except DataError as e:
                 log.skip_record(e)
     return _assemble(tower, properties, records, centroid=centroid, origin=origin, log=log, validate=False)
@@ -500,8 +547,9 @@ def load_weather_csv_fleet(
     if heliostats is not None:
         wanted = set(heliostats)
         for hid in sorted(wanted - {r.heliostat_id for r in rows}):
-            log.skip(DataError(csv_path, "heliostat_id", f"heliostat {hid!r} requested but not in the CSV"),
-                     heliostats=1)
+            log.skip(
+                DataError(csv_path, "heliostat_id", f"heliostat {hid!r} requested but not in the CSV"), heliostats=1
+            )
         rows = tuple(r for r in rows if r.heliostat_id in wanted)
     _flag_repeated_weather(rows, str(csv_path), log)
     if properties_dir is None:
@@ -529,8 +577,13 @@ def load_weather_csv_fleet(
         except DataError as e:
             log.skip(e, heliostats=1)
             bad = [r for r in rows if r.heliostat_id == hid]
-            log.skipped.append(ReportEntry(str(csv_path), "heliostat_id",
-                                           f"{len(bad)} row(s) of heliostat {hid!r} skipped (bad properties file)"))
+            log.skipped.append(
+                ReportEntry(
+                    str(csv_path),
+                    "heliostat_id",
+                    f"{len(bad)} row(s) of heliostat {hid!r} skipped (bad properties file)",
+                )
+            )
             log.records_skipped += len(bad)
             rows = tuple(r for r in rows if r.heliostat_id != hid)
     return _assemble(tower, properties, rows, centroid=centroid, origin=origin, log=log, validate=False)

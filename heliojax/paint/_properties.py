@@ -6,9 +6,25 @@ import math
 import os
 from pathlib import Path
 from typing import Any
-from .._errors import DataError
-from ._common import ACTUATOR_TYPES, ACTUATOR_KEYS, ACTUATOR_REQUIRED, Facet, HeliostatProperties, PROPERTIES_SUFFIX, Vec3, _Node, _check, _join, _latlon_ok, _load_json, _roundtrip, _type_name, _write_json
 
+from .._errors import DataError
+from ._common import (
+    ACTUATOR_KEYS,
+    ACTUATOR_REQUIRED,
+    ACTUATOR_TYPES,
+    PROPERTIES_SUFFIX,
+    Facet,
+    HeliostatProperties,
+    Vec3,
+    _check,
+    _join,
+    _latlon_ok,
+    _load_json,
+    _Node,
+    _roundtrip,
+    _type_name,
+    _write_json,
+)
 
 # ======================================================================================
 # Heliostat properties
@@ -22,20 +38,32 @@ def _actuator_from_json(file: str, node: _Node) -> dict[str, Any]:
             continue
         if key == "type_axis":
             out[key] = node.string(key)
-            _check(out[key] in ACTUATOR_TYPES, file, node.field(key),
-                   f"unsupported actuator type {out[key]!r} (heliojax models {', '.join(ACTUATOR_TYPES)})")
+            _check(
+                out[key] in ACTUATOR_TYPES,
+                file,
+                node.field(key),
+                f"unsupported actuator type {out[key]!r} (heliojax models {', '.join(ACTUATOR_TYPES)})",
+            )
         elif key in ("min_increment", "max_increment", "clockwise_axis_movement"):
             out[key] = node.integer(key)
         else:
             out[key] = node.number(key)
     f = node.field
     _check(out["clockwise_axis_movement"] in (0, 1), file, f("clockwise_axis_movement"), "must be 0 or 1")
-    _check(out["min_increment"] < out["max_increment"], file, f("max_increment"),
-           f"max_increment {out['max_increment']} is not above min_increment {out['min_increment']}")
+    _check(
+        out["min_increment"] < out["max_increment"],
+        file,
+        f("max_increment"),
+        f"max_increment {out['max_increment']} is not above min_increment {out['min_increment']}",
+    )
     for key in ("increment", "offset", "pivot_radius"):
         _check(out[key] > 0, file, f(key), f"must be positive, got {out[key]!r}")
-    _check(out["initial_stroke_length"] >= 0, file, f("initial_stroke_length"),
-           f"must be non-negative, got {out['initial_stroke_length']!r}")
+    _check(
+        out["initial_stroke_length"] >= 0,
+        file,
+        f("initial_stroke_length"),
+        f"must be non-negative, got {out['initial_stroke_length']!r}",
+    )
     return out
 
 
@@ -56,8 +84,9 @@ def _facets_from_json(file: str, root: _Node) -> tuple[tuple[Facet, ...], str | 
         facets = tuple(fl)
         if fp.has("number_of_facets"):
             n = fp.integer("number_of_facets")
-            _check(n == len(facets), file, fp.field("number_of_facets"),
-                   f"says {n} but {len(facets)} facets are listed")
+            _check(
+                n == len(facets), file, fp.field("number_of_facets"), f"says {n} but {len(facets)} facets are listed"
+            )
     return facets, canting_type
 
 
@@ -87,9 +116,12 @@ def _properties_from_json(file: str, data: Any, heliostat_id: str) -> HeliostatP
     norm = math.sqrt(sum(x * x for x in orient))
     _check(norm > 0, file, "initial_orientation", "zero vector")
     south = (orient[0] / norm, orient[1] / norm, orient[2] / norm)
-    _check(abs(south[0]) < 1e-9 and abs(south[1] + 1.0) < 1e-9 and abs(south[2]) < 1e-9, file,
-           "initial_orientation",
-           f"{list(orient)} is not south [0, -1, 0], the reference pose heliojax's kinematics assume")
+    _check(
+        abs(south[0]) < 1e-9 and abs(south[1] + 1.0) < 1e-9 and abs(south[2]) < 1e-9,
+        file,
+        "initial_orientation",
+        f"{list(orient)} is not south [0, -1, 0], the reference pose heliojax's kinematics assume",
+    )
     kin = root.node("kinematics_properties")
     acts = kin.get("actuators")
     if not isinstance(acts, list) or len(acts) != 2:
@@ -128,9 +160,11 @@ def _properties_from_json(file: str, data: Any, heliostat_id: str) -> HeliostatP
 
 def _properties_to_json(p: HeliostatProperties) -> dict:
     kin: dict[str, Any] = {"actuators": [{k: a[k] for k in ACTUATOR_KEYS if k in a} for a in p.actuators]}
-    for name, vec in (("joint_translation_{}_1", p.joint_translation_1),
-                      ("joint_translation_{}_2", p.joint_translation_2),
-                      ("concentrator_translation_{}", p.concentrator_translation)):
+    for name, vec in (
+        ("joint_translation_{}_1", p.joint_translation_1),
+        ("joint_translation_{}_2", p.joint_translation_2),
+        ("concentrator_translation_{}", p.concentrator_translation),
+    ):
         for c, x in zip("enu", vec):
             kin[name.format(c)] = x
     out: dict[str, Any] = {
@@ -146,8 +180,11 @@ def _properties_to_json(p: HeliostatProperties) -> dict:
             fp["canting_type"] = p.canting_type
         fp["number_of_facets"] = len(p.facets)
         fp["facets"] = [
-            {"translation_vector": list(f.translation_vector), "canting_e": list(f.canting_e),
-             "canting_n": list(f.canting_n)}
+            {
+                "translation_vector": list(f.translation_vector),
+                "canting_e": list(f.canting_e),
+                "canting_n": list(f.canting_n),
+            }
             for f in p.facets
         ]
         out["facet_properties"] = fp

@@ -75,9 +75,39 @@ import urllib.parse
 import urllib.request
 from collections.abc import Callable, Sequence
 from pathlib import Path
+
 import pystac
+
 from .._errors import DataError
-from ._stac_io import CALIBRATION_ASSETS, COLLECTIONS, FetchReport, Transport, _CHUNK, _COLLECTION_SUFFIX, _Checker, _FOLDER, _Failure, _HELIOSTAT_SUFFIX, _HREF_HELIOSTAT_RE, _Journal, _MULTIHASH, _NAME_RE, _Reader, _Scope, _TOWER_SUFFIX, _Task, _default_open, _dest_name, _hash_file, _heliostat_id, _is_url, _json_ok, _parse_multihash, _safe_dest, _scheme
+from ._stac_io import (
+    _CHUNK,
+    _COLLECTION_SUFFIX,
+    _FOLDER,
+    _HELIOSTAT_SUFFIX,
+    _HREF_HELIOSTAT_RE,
+    _MULTIHASH,
+    _NAME_RE,
+    _TOWER_SUFFIX,
+    CALIBRATION_ASSETS,
+    COLLECTIONS,
+    FetchReport,
+    Transport,
+    _Checker,
+    _default_open,
+    _dest_name,
+    _Failure,
+    _hash_file,
+    _heliostat_id,
+    _is_url,
+    _Journal,
+    _json_ok,
+    _parse_multihash,
+    _Reader,
+    _safe_dest,
+    _scheme,
+    _Scope,
+    _Task,
+)
 
 
 def _item_time(item: pystac.Item) -> dt.datetime | None:
@@ -93,7 +123,7 @@ def _as_utc(t: dt.datetime | dt.date | None, end: bool) -> dt.datetime | None:
     if not isinstance(t, dt.datetime):
         t = dt.datetime.combine(t, dt.time.max if end else dt.time.min)
     if t.tzinfo is None:
-        t = t.replace(tzinfo=dt.timezone.utc)
+        t = t.replace(tzinfo=dt.UTC)
     return t
 
 
@@ -229,9 +259,7 @@ def fetch_catalog(
 
         def run(tasks: list[_Task]) -> tuple[int, int, int]:
             counts = [0, 0, 0]
-            futures = [
-                pool.submit(_fetch_one, t, reader, journal, resume, out) for t in tasks
-            ]
+            futures = [pool.submit(_fetch_one, t, reader, journal, resume, out) for t in tasks]
             for t, fut in zip(tasks, futures, strict=True):
                 try:
                     status, n = fut.result()
@@ -257,7 +285,7 @@ def fetch_catalog(
                 say(f"  FAILED {href}: {item.reason}")
                 continue
             tasks = []
-            for key, asset in item.assets.items():
+            for key, asset in item.assets.items():  # pyright: ignore[reportAttributeAccessIssue]
                 tasks.append(_plan_asset(scope, out, (), asset, key, href, warnings))
             d, s, f = run(tasks)
             say(f"tower {item.id}: {d} downloaded, {s} already complete, {f} failed")
@@ -265,8 +293,20 @@ def fetch_catalog(
         for k, hid in enumerate(sorted(catalogs), 1):
             cat, cat_href = catalogs[hid]
             tasks = _plan_heliostat(
-                hid, cat, cat_href, scope, reader, pool, out, collections, calibration_assets,
-                t0, t1, max_items, warnings, all_tasks_done["failed"],
+                hid,
+                cat,
+                cat_href,
+                scope,
+                reader,
+                pool,
+                out,
+                collections,
+                calibration_assets,
+                t0,
+                t1,
+                max_items,
+                warnings,
+                all_tasks_done["failed"],
             )
             d, s, f = run(tasks)
             say(f"[{k}/{len(catalogs)}] {hid}: {len(tasks)} file(s): {d} downloaded, {s} already complete, {f} failed")
@@ -336,7 +376,19 @@ def _plan_asset(
 
 
 def _plan_heliostat(
-    hid, cat, cat_href, scope, reader, pool, out, collections, calibration_assets, t0, t1, max_items, warnings,
+    hid,
+    cat,
+    cat_href,
+    scope,
+    reader,
+    pool,
+    out,
+    collections,
+    calibration_assets,
+    t0,
+    t1,
+    max_items,
+    warnings,
     failed,
 ) -> list[_Task]:
     """Plan the downloads of one heliostat; unreadable STAC files go to ``failed``, unsafe hrefs raise."""
@@ -373,12 +425,12 @@ def _plan_heliostat(
                     continue
             selected.append((when, item.id, item, href))
         if name != "properties":
-            far = dt.datetime.max.replace(tzinfo=dt.timezone.utc)
+            far = dt.datetime.max.replace(tzinfo=dt.UTC)
             selected.sort(key=lambda x: (x[0] or far, x[1]))
             if max_items is not None:
                 selected = selected[:max_items]
         for _, _, item, href in selected:
-            for key, asset in item.assets.items():
+            for key, asset in item.assets.items():  # pyright: ignore[reportAttributeAccessIssue]
                 if name == "calibration" and key not in calibration_assets:
                     continue
                 tasks.append(_plan_asset(scope, out, (hid, _FOLDER[name]), asset, key, href, warnings))

@@ -16,10 +16,10 @@ import urllib.request
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import IO, Any
+
 import pystac
+
 from .._errors import DataError
-
-
 
 COLLECTIONS: tuple[str, ...] = ("properties", "calibration", "deflectometry")
 """Collections of a heliostat catalogue that :func:`fetch_catalog` can download."""
@@ -356,7 +356,9 @@ def _safe_dest(out: Path, parts: Sequence[str], where: str, field: str) -> Path:
             raise DataError(where, field, f"destination {cur} is a symbolic link; refusing to write through it")
         last = i == len(parts) - 1
         if cur.exists() and not (cur.is_file() if last else cur.is_dir()):
-            raise DataError(where, field, f"destination {cur} exists and is not a regular {'file' if last else 'folder'}")
+            raise DataError(
+                where, field, f"destination {cur} exists and is not a regular {'file' if last else 'folder'}"
+            )
     return cur
 
 

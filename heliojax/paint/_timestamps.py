@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterable, Mapping
-from .._errors import DataError
-from ._common import CalibrationRecord, TimestampEntry, _ID_RE, _Node, _check, _check_datetime, _load_json, _write_json
 
+from .._errors import DataError
+from ._common import _ID_RE, CalibrationRecord, TimestampEntry, _check, _check_datetime, _load_json, _Node, _write_json
 
 # ======================================================================================
 # Timestamps
@@ -56,7 +56,7 @@ def write_timestamps(
             ``datetime`` are written).
     """
     if isinstance(entries, Mapping):
-        items = {int(k): v for k, v in entries.items()}
+        items = {int(k): v for k, v in entries.items()}  # pyright: ignore[reportArgumentType]
     else:
         items = {r.record_id: TimestampEntry(r.heliostat_id, r.datetime) for r in entries if r.datetime is not None}
     data = {str(k): {"heliostat_id": items[k].heliostat_id, "datetime": items[k].datetime} for k in sorted(items)}

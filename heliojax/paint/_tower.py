@@ -5,9 +5,20 @@ from __future__ import annotations
 import math
 import os
 from typing import Any
-from .._errors import DataError
-from ._common import CORNERS, TargetEntry, TowerFile, _Node, _latlon_ok, _load_json, _number, _type_name, _vec3, _write_json
 
+from .._errors import DataError
+from ._common import (
+    CORNERS,
+    TargetEntry,
+    TowerFile,
+    _latlon_ok,
+    _load_json,
+    _Node,
+    _number,
+    _type_name,
+    _vec3,
+    _write_json,
+)
 
 # ======================================================================================
 # Tower file
@@ -56,9 +67,7 @@ def _tower_from_json(file: str, data: Any) -> TowerFile:
 
 
 def _tower_to_json(tower: TowerFile) -> dict:
-    out: dict[str, Any] = {
-        "power_plant_properties": {"ID": tower.plant_id, "coordinates": list(tower.origin_lla)}
-    }
+    out: dict[str, Any] = {"power_plant_properties": {"ID": tower.plant_id, "coordinates": list(tower.origin_lla)}}
     for name, t in tower.targets.items():
         entry: dict[str, Any] = {"type": t.type}
         if t.normal is not None:

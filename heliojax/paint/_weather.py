@@ -8,10 +8,21 @@ import math
 import os
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
+
 from .._errors import DataError
 from .._io import atomic_write
-from ._common import CSV_COLUMNS, CalibrationRecord, HeliostatProperties, TowerFile, WEATHER_KEYS, _CSV_REQUIRED, _check, _check_datetime, _latlon_ok, _nan_weather
-
+from ._common import (
+    _CSV_REQUIRED,
+    CSV_COLUMNS,
+    WEATHER_KEYS,
+    CalibrationRecord,
+    HeliostatProperties,
+    TowerFile,
+    _check,
+    _check_datetime,
+    _latlon_ok,
+    _nan_weather,
+)
 
 # ======================================================================================
 # The CSV form
@@ -118,9 +129,18 @@ def read_weather_csv(
                     weather[k] = v
             out.append(
                 CalibrationRecord(
-                    record_id=rid, heliostat_id=hid, axis_1_counts=c1, axis_2_counts=c2, target_name=target,
-                    sun_azimuth_deg=az, sun_elevation_deg=el, focal_spot_helios=spot, focal_spot_utis=None,
-                    datetime=dt, weather=weather, source=f"{file}:{line}",
+                    record_id=rid,
+                    heliostat_id=hid,
+                    axis_1_counts=c1,
+                    axis_2_counts=c2,
+                    target_name=target,
+                    sun_azimuth_deg=az,
+                    sun_elevation_deg=el,
+                    focal_spot_helios=spot,
+                    focal_spot_utis=None,
+                    datetime=dt,
+                    weather=weather,
+                    source=f"{file}:{line}",
                 )
             )
         except DataError as e:
@@ -162,14 +182,23 @@ def write_weather_csv(
             centre = t.points.get("center") if t is not None else None
             centre = centre if centre is not None else (None, None, None)
             row = [
-                r.heliostat_id, r.datetime or "", str(r.record_id),
-                _csv_cell(float(r.sun_elevation_deg)), _csv_cell(float(r.sun_azimuth_deg)),
-                str(r.axis_1_counts), str(r.axis_2_counts), r.target_name,
+                r.heliostat_id,
+                r.datetime or "",
+                str(r.record_id),
+                _csv_cell(float(r.sun_elevation_deg)),
+                _csv_cell(float(r.sun_azimuth_deg)),
+                str(r.axis_1_counts),
+                str(r.axis_2_counts),
+                r.target_name,
                 *(_csv_cell(x) for x in hpos),
                 *(_csv_cell(x) for x in (spot if spot is not None else (None, None, None))),
                 *(_csv_cell(x) for x in centre),
-                "", "", "",
-                *(_csv_cell(float(r.weather.get(k, math.nan))) for k in
-                  ("wind_speed", "wind_direction", "dni", "temperature", "humidity", "pressure")),
+                "",
+                "",
+                "",
+                *(
+                    _csv_cell(float(r.weather.get(k, math.nan)))
+                    for k in ("wind_speed", "wind_direction", "dni", "temperature", "humidity", "pressure")
+                ),
             ]
             w.writerow(row)
