@@ -264,7 +264,7 @@ PROPERTY_CASES = [
     (f"{A0}.increment", 0, "kinematics_properties.actuators[0].increment", "positive"),
     (f"{A1}.initial_stroke_length", float("nan"), "kinematics_properties.actuators[1].initial_stroke_length", "finite"),
     (f"{A1}.offset", _DELETE, "kinematics_properties.actuators[1].offset", "missing"),
-    (f"{A0}.type_axis", "ideal", "kinematics_properties.actuators[0].type_axis", "linear"),
+    (f"{A0}.type_axis", "hydraulic", "kinematics_properties.actuators[0].type_axis", "linear, ideal"),
     (f"{A1}.clockwise_axis_movement", 2, "kinematics_properties.actuators[1].clockwise_axis_movement", "0 or 1"),
     (f"{A0}.max_increment", -5, "kinematics_properties.actuators[0].max_increment", "min_increment"),
     (f"{A0}.min_increment", 0.5, "kinematics_properties.actuators[0].min_increment", "integer"),

@@ -337,7 +337,7 @@ def test_interrupted_run_resumes(catalogue, tmp_path, midstream):
 
 
 def test_transient_errors_are_retried(catalogue, tmp_path, monkeypatch):
-    import heliojax.paint._stac as stac
+    import heliojax.paint._stac_io as stac
 
     monkeypatch.setattr(stac, "_BACKOFF_S", 0.0)
     root_json, expected = catalogue
