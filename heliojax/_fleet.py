@@ -240,7 +240,7 @@ class Fleet(eqx.Module):
     record_id: Int[Array, "H M"]
     mask: Bool[Array, "H M"]
     targets: TargetPlane
-    origin_lla: Float[Array, 3]
+    origin_lla: Float[Array, "3"]
     ids: tuple[str, ...] = eqx.field(static=True)
     target_names: tuple[str, ...] = eqx.field(static=True)
     report: LoadReport = eqx.field(static=True)

@@ -113,7 +113,7 @@ def ecef_to_wgs84(xyz: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
     return jnp.stack([jnp.rad2deg(lat), jnp.rad2deg(lon), h], axis=-1)
 
 
-def _ecef_to_enu_matrix(origin_lla: Float[ArrayLike, 3]) -> Float[Array, "3 3"]:
+def _ecef_to_enu_matrix(origin_lla: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
     """Rows are the east, north and up unit vectors at ``origin_lla`` in ECEF."""
     origin_lla = jnp.asarray(origin_lla)
     lat = jnp.deg2rad(origin_lla[0])
@@ -130,7 +130,7 @@ def _ecef_to_enu_matrix(origin_lla: Float[ArrayLike, 3]) -> Float[Array, "3 3"]:
     )
 
 
-def wgs84_to_enu(lla: Float[ArrayLike, "... 3"], origin_lla: Float[ArrayLike, 3]) -> Float[Array, "... 3"]:
+def wgs84_to_enu(lla: Float[ArrayLike, "... 3"], origin_lla: Float[ArrayLike, "3"]) -> Float[Array, "... 3"]:
     """WGS84 ``[lat_deg, lon_deg, alt_m]`` -> local ENU metres about ``origin_lla``.
 
     Args:
@@ -145,7 +145,7 @@ def wgs84_to_enu(lla: Float[ArrayLike, "... 3"], origin_lla: Float[ArrayLike, 3]
     return d @ rot.T
 
 
-def enu_to_wgs84(enu: Float[ArrayLike, "... 3"], origin_lla: Float[ArrayLike, 3]) -> Float[Array, "... 3"]:
+def enu_to_wgs84(enu: Float[ArrayLike, "... 3"], origin_lla: Float[ArrayLike, "3"]) -> Float[Array, "... 3"]:
     """Local ENU metres about ``origin_lla`` -> WGS84 ``[lat_deg, lon_deg, alt_m]``.
 
     Inverse of :func:`wgs84_to_enu` (round trip better than 1e-6 m in float64).
@@ -161,7 +161,7 @@ def normalize(v: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
     return v / jnp.linalg.norm(v, axis=-1, keepdims=True)
 
 
-def sun_direction(azimuth: Float[ArrayLike, ...], elevation: Float[ArrayLike, ...]) -> Float[Array, "... 3"]:
+def sun_direction(azimuth: Float[ArrayLike, "..."], elevation: Float[ArrayLike, "..."]) -> Float[Array, "... 3"]:
     """Unit ENU vector pointing to the sun.
 
     Args:
@@ -179,7 +179,7 @@ def sun_direction(azimuth: Float[ArrayLike, ...], elevation: Float[ArrayLike, ..
 
 def direction_to_azimuth_elevation(
     direction: Float[ArrayLike, "... 3"],
-) -> tuple[Float[Array, ...], Float[Array, ...]]:
+) -> tuple[Float[Array, "..."], Float[Array, "..."]]:
     """Inverse of :func:`sun_direction`: ``(azimuth, elevation)`` in rad of a unit vector."""
     d = jnp.asarray(direction)
     az = jnp.arctan2(d[..., 0], -d[..., 1])
@@ -200,7 +200,7 @@ def bisector_normal(sun: Float[ArrayLike, "... 3"], to_target: Float[ArrayLike, 
     return normalize(jnp.asarray(sun) + jnp.asarray(to_target))
 
 
-def angle_between(a: Float[ArrayLike, "... 3"], b: Float[ArrayLike, "... 3"]) -> Float[Array, ...]:
+def angle_between(a: Float[ArrayLike, "... 3"], b: Float[ArrayLike, "... 3"]) -> Float[Array, "..."]:
     """Angle in rad between two vectors, accurate for tiny angles (atan2 form)."""
     a = jnp.asarray(a)
     b = jnp.asarray(b)
@@ -221,20 +221,20 @@ class TargetPlane(eqx.Module):
         half_height: m, half extent along ``v_axis``.
     """
 
-    centre: Float[Array, 3]
-    normal: Float[Array, 3]
-    u_axis: Float[Array, 3]
-    v_axis: Float[Array, 3]
+    centre: Float[Array, "3"]
+    normal: Float[Array, "3"]
+    u_axis: Float[Array, "3"]
+    v_axis: Float[Array, "3"]
     half_width: Float[Array, ""]
     half_height: Float[Array, ""]
 
     @classmethod
     def from_corners(
         cls,
-        upper_left: Float[ArrayLike, 3],
-        upper_right: Float[ArrayLike, 3],
-        lower_left: Float[ArrayLike, 3],
-        lower_right: Float[ArrayLike, 3],
+        upper_left: Float[ArrayLike, "3"],
+        upper_right: Float[ArrayLike, "3"],
+        lower_left: Float[ArrayLike, "3"],
+        lower_right: Float[ArrayLike, "3"],
     ) -> TargetPlane:
         """Build the plane from four ENU corner points (m).
 
@@ -287,8 +287,8 @@ class PlaneHit(eqx.Module):
 
     point: Float[Array, "... 3"]
     uv: Float[Array, "... 2"]
-    distance: Float[Array, ...]
-    hit: Bool[Array, ...]
+    distance: Float[Array, "..."]
+    hit: Bool[Array, "..."]
 
 
 def intersect_plane(
@@ -322,7 +322,7 @@ def intersect_plane(
     return PlaneHit(point=point, uv=uv, distance=t, hit=hit)
 
 
-def rotation_about_axis(axis: Float[ArrayLike, 3], angle: Float[ArrayLike, ""]) -> Float[Array, "3 3"]:
+def rotation_about_axis(axis: Float[ArrayLike, "3"], angle: Float[ArrayLike, ""]) -> Float[Array, "3 3"]:
     """Right-handed rotation matrix by ``angle`` (rad) about unit ``axis`` (Rodrigues)."""
     k = normalize(jnp.asarray(axis))
     angle = jnp.asarray(angle)

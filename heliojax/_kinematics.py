@@ -147,7 +147,9 @@ class LinearActuators(eqx.Module):
         """``(slope, intercept)`` of the least-squares line ``angle = slope * counts +
         intercept`` through the actuator law, sampled at ``n`` uniform counts over
         ``[min_counts, max_counts]`` (rad/count, rad)."""
-        t = jnp.linspace(0.0, 1.0, n)
+        t = jnp.broadcast_to(
+            jnp.linspace(0.0, 1.0, n, dtype=jnp.result_type(self.min_counts)), (*jnp.shape(self.min_counts), n)
+        )
         counts = self.min_counts[..., None] + t * (self.max_counts - self.min_counts)[..., None]
         batched = jax.tree_util.tree_map(lambda x: x[..., None], self)
         angles = batched.counts_to_angles(counts)
@@ -296,15 +298,15 @@ class AbstractKinematicModel(eqx.Module):
     """
 
     @abc.abstractmethod
-    def tilts(self) -> Float[Array, 4]:
+    def tilts(self) -> Float[Array, "4"]:
         """``(alpha, beta, gamma, delta)`` in rad."""
 
     @abc.abstractmethod
-    def joint_angles(self, geometry: HeliostatGeometry, counts: Float[Array, 2]) -> Float[Array, 2]:
+    def joint_angles(self, geometry: HeliostatGeometry, counts: Float[Array, "2"]) -> Float[Array, "2"]:
         """Joint angles ``(theta, tau)`` in rad of motor counts (no record context)."""
 
     @abc.abstractmethod
-    def counts(self, geometry: HeliostatGeometry, angles: Float[Array, 2]) -> Float[Array, 2]:
+    def counts(self, geometry: HeliostatGeometry, angles: Float[Array, "2"]) -> Float[Array, "2"]:
         """Inverse of :meth:`joint_angles`: motor counts (float) of joint angles."""
 
     def label(self) -> str:
@@ -316,25 +318,27 @@ class AbstractKinematicModel(eqx.Module):
         return geometry
 
     def record_angles(
-        self, geometry: HeliostatGeometry, counts: Float[Array, 2], context: RecordContext | None
-    ) -> Float[Array, 2]:
+        self, geometry: HeliostatGeometry, counts: Float[Array, "2"], context: RecordContext | None
+    ) -> Float[Array, "2"]:
         """Joint angles (rad) of one record; effects add context-dependent terms.
         Default: :meth:`joint_angles`."""
         del context
         return self.joint_angles(geometry, counts)
 
-    def pose(self, geometry: HeliostatGeometry, counts: Float[Array, 2], context: RecordContext | None = None) -> Pose:
+    def pose(
+        self, geometry: HeliostatGeometry, counts: Float[Array, "2"], context: RecordContext | None = None
+    ) -> Pose:
         """Aligned mirror of one record (see the module docstring for the chain)."""
         g = self.adjusted_geometry(geometry)
         return chain_pose(self.tilts(), self.record_angles(g, jnp.asarray(counts), context), g)
 
-    def sun(self, geometry: HeliostatGeometry, context: RecordContext) -> Float[Array, 3]:
+    def sun(self, geometry: HeliostatGeometry, context: RecordContext) -> Float[Array, "3"]:
         """The sun direction the model believes in for a record (effects such as a
         clock error or refraction override it); default: the recorded one."""
         del geometry
         return context.sun
 
-    def spot(self, focal_spot: Float[Array, 3], context: RecordContext) -> Float[Array, 3]:
+    def spot(self, focal_spot: Float[Array, "3"], context: RecordContext) -> Float[Array, "3"]:
         """The measured focal spot (ENU m) as the model corrects it (target survey
         effects move it); default: as measured."""
         del context
@@ -343,10 +347,10 @@ class AbstractKinematicModel(eqx.Module):
     def beam_components(
         self,
         geometry: HeliostatGeometry,
-        counts: Float[Array, 2],
+        counts: Float[Array, "2"],
         context: RecordContext,
-        focal_spot: Float[Array, 3],
-    ) -> Float[Array, 2]:
+        focal_spot: Float[Array, "3"],
+    ) -> Float[Array, "2"]:
         """Tangent-plane beam error components (rad) of one record under this model:
         the calibration residual."""
         return beam_error_components(
@@ -356,9 +360,9 @@ class AbstractKinematicModel(eqx.Module):
     def beam_error(
         self,
         geometry: HeliostatGeometry,
-        counts: Float[Array, 2],
+        counts: Float[Array, "2"],
         context: RecordContext,
-        focal_spot: Float[Array, 3],
+        focal_spot: Float[Array, "3"],
     ) -> Float[Array, ""]:
         """Beam pointing error (rad) of one record under this model."""
         return beam_pointing_error(
@@ -412,7 +416,7 @@ def _chain_rotations(tilts, angles):
     return r01, r_theta, r12, r_tau, r2m
 
 
-def chain_pose(tilts: Float[Array, 4], angles: Float[Array, 2], geometry: HeliostatGeometry) -> Pose:
+def chain_pose(tilts: Float[Array, "4"], angles: Float[Array, "2"], geometry: HeliostatGeometry) -> Pose:
     """The shared rotation chain: tilts ``(alpha, beta, gamma, delta)`` and joint
     angles ``(theta, tau)`` (rad) -> :class:`Pose`."""
     r01, r_theta, r12, r_tau, r2m = _chain_rotations(tilts, angles)
@@ -458,8 +462,8 @@ def _solve_chain_angles(tilts, normal, tau_reference):
 
 @eqx.filter_jit
 def inverse_normal(
-    model: AbstractKinematicModel, geometry: HeliostatGeometry, normal: Float[ArrayLike, 3]
-) -> Float[Array, 2]:
+    model: AbstractKinematicModel, geometry: HeliostatGeometry, normal: Float[ArrayLike, "3"]
+) -> Float[Array, "2"]:
     """Motor counts (float) that align the mirror normal with ``normal`` (unit, ENU)."""
     normal = normalize(jnp.asarray(normal))
     angles = _solve_chain_angles(model.tilts(), normal, jnp.zeros((), normal.dtype))
@@ -470,10 +474,10 @@ def inverse_normal(
 def inverse_aim(
     model: AbstractKinematicModel,
     geometry: HeliostatGeometry,
-    aim_point: Float[ArrayLike, 3],
-    sun: Float[ArrayLike, 3],
+    aim_point: Float[ArrayLike, "3"],
+    sun: Float[ArrayLike, "3"],
     iterations: int = 8,
-) -> Float[Array, 2]:
+) -> Float[Array, "2"]:
     """Motor counts (float) that reflect the sun onto ``aim_point`` (ENU m).
 
     The mirror centre moves with the pose (axis offsets), so the bisector normal
@@ -568,9 +572,9 @@ class ActuatorModel(AbstractKinematicModel):
     beta: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-3)
     gamma: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-3)
     delta: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-3)
-    angle_offset: Float[Array, 2] = parameter(unit="rad", scale=1e-2, typical=1e-2, shape=(2,))
-    increment_scale: Float[Array, 2] = parameter(unit="1", scale=1e-2, typical=1e-2, shape=(2,))
-    stroke_offset: Float[Array, 2] = parameter(unit="m", scale=1e-2, typical=1e-3, shape=(2,))
+    angle_offset: Float[Array, "2"] = parameter(unit="rad", scale=1e-2, typical=1e-2, shape=(2,))
+    increment_scale: Float[Array, "2"] = parameter(unit="1", scale=1e-2, typical=1e-2, shape=(2,))
+    stroke_offset: Float[Array, "2"] = parameter(unit="m", scale=1e-2, typical=1e-3, shape=(2,))
 
     JOINT_LAW: typing.ClassVar[str] = "actuator"
 
@@ -642,7 +646,7 @@ def nominal_model(kind: str, dtype: typing.Any = None) -> AbstractKinematicModel
 def forward(
     model: AbstractKinematicModel,
     geometry: HeliostatGeometry,
-    counts: Float[ArrayLike, 2],
+    counts: Float[ArrayLike, "2"],
     context: RecordContext | None = None,
 ) -> Pose:
     """Motor counts -> aligned mirror (normal, centre, rotation) of one record.
@@ -666,14 +670,14 @@ def forward(
 
 
 def measured_normal(
-    centre: Float[ArrayLike, 3], sun: Float[ArrayLike, 3], focal_spot: Float[ArrayLike, 3]
-) -> Float[Array, 3]:
+    centre: Float[ArrayLike, "3"], sun: Float[ArrayLike, "3"], focal_spot: Float[ArrayLike, "3"]
+) -> Float[Array, "3"]:
     """Normal implied by a record: bisector of the sun direction and the unit vector
     from the mirror centre to the measured focal spot (all ENU)."""
     return bisector_normal(sun, normalize(jnp.asarray(focal_spot) - jnp.asarray(centre)))
 
 
-def reflected_ray(pose: Pose, sun: Float[ArrayLike, 3]) -> Float[Array, 3]:
+def reflected_ray(pose: Pose, sun: Float[ArrayLike, "3"]) -> Float[Array, "3"]:
     """Direction of the central ray reflected at ``pose`` for sunlight from ``sun``."""
     return reflect(-jnp.asarray(sun), pose.normal)
 
@@ -685,7 +689,9 @@ def _tangent_basis(r):
     return e1, e2
 
 
-def beam_error_components(pose: Pose, sun: Float[ArrayLike, 3], focal_spot: Float[ArrayLike, 3]) -> Float[Array, 2]:
+def beam_error_components(
+    pose: Pose, sun: Float[ArrayLike, "3"], focal_spot: Float[ArrayLike, "3"]
+) -> Float[Array, "2"]:
     """The beam pointing error's two tangent-plane components (rad).
 
     With ``r`` the model's reflected central ray and ``d`` the unit vector from the
@@ -701,7 +707,7 @@ def beam_error_components(pose: Pose, sun: Float[ArrayLike, 3], focal_spot: Floa
     return jnp.stack([d @ e1, d @ e2])
 
 
-def beam_pointing_error(pose: Pose, sun: Float[ArrayLike, 3], focal_spot: Float[ArrayLike, 3]) -> Float[Array, ""]:
+def beam_pointing_error(pose: Pose, sun: Float[ArrayLike, "3"], focal_spot: Float[ArrayLike, "3"]) -> Float[Array, ""]:
     """Beam pointing error in rad: the angle between the model's reflected central
     ray and the direction from the model's mirror centre to the measured focal spot.
     Multiply by 1e3 for mrad."""
@@ -711,7 +717,7 @@ def beam_pointing_error(pose: Pose, sun: Float[ArrayLike, 3], focal_spot: Float[
 
 
 def target_miss_distance(
-    pose: Pose, sun: Float[ArrayLike, 3], focal_spot: Float[ArrayLike, 3], target
+    pose: Pose, sun: Float[ArrayLike, "3"], focal_spot: Float[ArrayLike, "3"], target
 ) -> Float[Array, ""]:
     """Distance in m, on the target plane, between where the model's central ray hits
     the (infinite) plane of ``target`` and the measured focal spot."""

@@ -120,7 +120,7 @@ def calibration_times(
     latitude_deg: float = JUELICH_LAT_LON_ALT[0],
     longitude_deg: float = JUELICH_LAT_LON_ALT[1],
     min_elevation_deg: float = 15.0,
-) -> tuple[Float[Array, ...], Float[Array, "... 3"]]:
+) -> tuple[Float[Array, "..."], Float[Array, "... 3"]]:
     """Random calibration times (unix s) and sun vectors, daytime only.
 
     Days are uniform over ``days`` from ``start_unix``; the hour is uniform over
@@ -174,7 +174,7 @@ def simulate_records(
     geometry: HeliostatGeometry,
     context: RecordContext,
     target: TargetPlane,
-    aim_point: Float[Array, 3] | None = None,
+    aim_point: Float[Array, "3"] | None = None,
     *,
     controller_models: AbstractKinematicModel | None = None,
     noise_mrad: float = 0.0,

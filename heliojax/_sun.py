@@ -473,12 +473,12 @@ class SolarPosition(eqx.Module):
         equation_of_time_min: equation of time (apparent minus mean solar time), minutes.
     """
 
-    azimuth: Float[Array, ...]
-    elevation: Float[Array, ...]
-    zenith: Float[Array, ...]
-    declination: Float[Array, ...]
-    hour_angle: Float[Array, ...]
-    equation_of_time_min: Float[Array, ...]
+    azimuth: Float[Array, "..."]
+    elevation: Float[Array, "..."]
+    zenith: Float[Array, "..."]
+    declination: Float[Array, "..."]
+    hour_angle: Float[Array, "..."]
+    equation_of_time_min: Float[Array, "..."]
 
     def direction_enu(self) -> Float[Array, "... 3"]:
         """Unit vector pointing to the sun in the local east-north-up frame, shape ``(..., 3)``."""
@@ -489,7 +489,7 @@ class SolarPosition(eqx.Module):
         )
 
 
-def julian_day(unix_time_s: ArrayLike) -> Float[Array, ...]:
+def julian_day(unix_time_s: ArrayLike) -> Float[Array, "..."]:
     """Julian day (UT) of a unix time.
 
     Args:
@@ -610,7 +610,8 @@ def _wrap_deg(x: Array) -> Array:
 
 def _series(table: np.ndarray, jme: Array) -> Array:
     """Sum of A cos(B + C JME) over the rows of ``table``; shape of ``jme``."""
-    a, b, c = (jnp.asarray(table[:, k], dtype=jme.dtype) for k in range(3))
+    shape = (1,) * jnp.ndim(jme) + (table.shape[0],)
+    a, b, c = (jnp.asarray(table[:, k], dtype=jme.dtype).reshape(shape) for k in range(3))
     return jnp.sum(a * jnp.cos(b + c * jme[..., None]), axis=-1)
 
 

@@ -119,29 +119,23 @@ def confidence_intervals(
     rng = np.random.default_rng(seed)
     out = []
     for stat in (np.mean, lambda a, axis: np.std(a, axis=axis, ddof=1)):
-        res = stats.bootstrap(
-            (x,),
-            stat,
-            confidence_level=confidence,
-            n_resamples=n_resamples,
-            method="BCa",
-            vectorized=True,
-            axis=-1,
-            random_state=rng,  # pyright: ignore[reportCallIssue]
-        )
-        lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
-        if not (math.isfinite(lo) and math.isfinite(hi)):  # degenerate BCa: percentile
+
+        def interval(method: str, stat=stat) -> tuple[float, float]:
             res = stats.bootstrap(
                 (x,),
                 stat,
                 confidence_level=confidence,
                 n_resamples=n_resamples,
-                method="percentile",
+                method=method,  # pyright: ignore[reportArgumentType]
                 vectorized=True,
                 axis=-1,
                 random_state=rng,  # pyright: ignore[reportCallIssue]
             )
-            lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
+            return float(res.confidence_interval.low), float(res.confidence_interval.high)
+
+        lo, hi = interval("BCa")
+        if not (math.isfinite(lo) and math.isfinite(hi)):  # degenerate BCa: percentile
+            lo, hi = interval("percentile")
         out.append((lo, hi))
     return out[0], out[1]
 

@@ -126,10 +126,10 @@ def load_receiver(tower_file: str | os.PathLike) -> tuple[TargetPlane, tuple[flo
 
 
 def beam_sigma(
-    tracking_mrad: Float[ArrayLike, ...],
-    slope_mrad: Float[ArrayLike, ...],
+    tracking_mrad: Float[ArrayLike, "..."],
+    slope_mrad: Float[ArrayLike, "..."],
     sun_sigma_mrad: float = SUN_SIGMA_MRAD,
-) -> Float[Array, ...]:
+) -> Float[Array, "..."]:
     """Per-axis angular std (rad) of the reflected beam (see the module docstring).
 
     Args:
@@ -145,7 +145,7 @@ def beam_sigma(
     return 1e-3 * jnp.sqrt(sun_sigma_mrad**2 + 2.0 * s**2 + 0.5 * t**2)
 
 
-def atmospheric_attenuation(slant_m: Float[ArrayLike, ...]) -> Float[Array, ...]:
+def atmospheric_attenuation(slant_m: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
     """Clear-day transmittance over ``slant_m`` metres (valid below 1000 m)."""
     d = jnp.asarray(slant_m)
     return 0.99321 - 1.176e-4 * d + 1.97e-8 * d**2
@@ -233,7 +233,7 @@ def intercept_efficiency(
 
 def cosine_efficiency(
     positions: Float[ArrayLike, "n 3"],
-    aim: Float[ArrayLike, 3],
+    aim: Float[ArrayLike, "3"],
     sun: Float[ArrayLike, "t 3"],
 ) -> Float[Array, "t n"]:
     """Cosine factor ``sqrt((1 + s . u) / 2)`` for every (time, heliostat).
@@ -248,7 +248,7 @@ def cosine_efficiency(
     return jnp.sqrt(jnp.clip(0.5 * (1.0 + jnp.asarray(sun) @ u.T), 0.0, 1.0))
 
 
-def clear_sky_dni(elevation_rad: Float[ArrayLike, ...]) -> Float[Array, ...]:
+def clear_sky_dni(elevation_rad: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
     """Clear-sky direct normal irradiance (W/m^2), Meinel model
     ``1353 * 0.7 ** (AM ** 0.678)`` with the Kasten-Young (1989) air mass; 0 below
     the horizon."""

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ._common import add_data_argument, enable_compilation_cache, load_fleet, progress
+from ._common import add_data_argument, add_fit_arguments, enable_compilation_cache, load_fleet, progress
 
 MODELS = ("auto", "stone8", "actuator", "auto+nn", "stone8+nn", "actuator+nn")
 NN_VARIANTS = ("residual", "paper")
@@ -74,17 +74,7 @@ def add_parser(subparsers) -> None:
         help="plain least squares instead of the robust (Cauchy) fit with outlier flags",
     )
     p.add_argument("--strategy", choices=BATCHING_NAMES, default="auto", help="batching over heliostats")
-    p.add_argument(
-        "--start",
-        choices=("auto", "nominal"),
-        default="auto",
-        help="start geometry: per heliostat the better of nominal / fleet-typical actuators",
-    )
-    p.add_argument(
-        "--cache-dir",
-        default=None,
-        help="persistent JAX compilation cache (default ~/.cache/heliojax/jax; 'none' disables)",
-    )
+    add_fit_arguments(p)
     p.add_argument("--out", type=Path, default=None, metavar="FILE", help="results.h5")
     p.add_argument("--report", type=Path, default=None, metavar="FILE", help="summary.json")
     p.add_argument("--plot", type=Path, default=None, metavar="FILE", help="figure (PNG)")

@@ -7,6 +7,21 @@ import sys
 from pathlib import Path
 
 
+def add_fit_arguments(p) -> None:
+    """``--start`` and ``--cache-dir``, shared by the commands that fit."""
+    p.add_argument(
+        "--start",
+        choices=("auto", "nominal"),
+        default="auto",
+        help="start geometry: per heliostat the better of nominal / fleet-typical actuators",
+    )
+    p.add_argument(
+        "--cache-dir",
+        default=None,
+        help="persistent JAX compilation cache (default ~/.cache/heliojax/jax; 'none' disables)",
+    )
+
+
 def add_data_argument(p) -> None:
     p.add_argument(
         "data_dir",

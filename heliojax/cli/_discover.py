@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ._common import add_data_argument, enable_compilation_cache, load_fleet, progress
+from ._common import add_data_argument, add_fit_arguments, enable_compilation_cache, load_fleet, progress
 
 BASES = ("stone8", "actuator")
 
@@ -34,17 +34,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--alpha", type=float, default=0.01, help="family-wise error rate per step (Holm)")
     p.add_argument("--folds", type=int, default=5, help="blocked cross-validation folds (by UTC day)")
     p.add_argument("--max-named", type=int, default=6, help="most effects to name")
-    p.add_argument(
-        "--start",
-        choices=("auto", "nominal"),
-        default="auto",
-        help="start geometry: per heliostat the better of nominal / fleet-typical actuators",
-    )
-    p.add_argument(
-        "--cache-dir",
-        default=None,
-        help="persistent JAX compilation cache (default ~/.cache/heliojax/jax; 'none' disables)",
-    )
+    add_fit_arguments(p)
     p.add_argument("--quiet", action="store_true")
 
 

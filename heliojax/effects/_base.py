@@ -71,20 +71,20 @@ class AbstractEffect(eqx.Module):
     def angle_correction(
         self,
         geometry: HeliostatGeometry,
-        counts: Float[Array, 2],
-        angles: Float[Array, 2],
+        counts: Float[Array, "2"],
+        angles: Float[Array, "2"],
         context: RecordContext | None,
-        normal: Float[Array, 3] | None,
-    ) -> Float[Array, 2] | None:
+        normal: Float[Array, "3"] | None,
+    ) -> Float[Array, "2"] | None:
         """Additive joint-angle correction (rad), or None for none."""
         del geometry, counts, angles, context, normal
         return None
 
-    def adjust_sun(self, sun: Float[Array, 3], context: RecordContext) -> Float[Array, 3]:
+    def adjust_sun(self, sun: Float[Array, "3"], context: RecordContext) -> Float[Array, "3"]:
         del context
         return sun
 
-    def adjust_focal(self, focal_spot: Float[Array, 3], context: RecordContext) -> Float[Array, 3]:
+    def adjust_focal(self, focal_spot: Float[Array, "3"], context: RecordContext) -> Float[Array, "3"]:
         del context
         return focal_spot
 
@@ -95,7 +95,7 @@ def known(x, fill):
     return jnp.where(jnp.isfinite(x), x, fill)
 
 
-def zeros(dtype: typing.Any, *shape: int) -> Float[Array, ...]:
+def zeros(dtype: typing.Any, *shape: int) -> Float[Array, "..."]:
     """A zero parameter of ``shape`` (no-effect value)."""
     return jnp.zeros(shape, dtype)
 
@@ -139,7 +139,7 @@ class EffectModel(AbstractModelWrapper):
             g = e.adjust_geometry(g)
         return g
 
-    def corrected_angles(self, geometry, counts, angles, context) -> Float[Array, 2]:
+    def corrected_angles(self, geometry, counts, angles, context) -> Float[Array, "2"]:
         """The inner model's joint ``angles`` (rad) of one record plus every effect's
         correction (``geometry`` already adjusted)."""
         normal = None

@@ -37,7 +37,7 @@ class Thermal(AbstractEffect):
     of the pose.
     """
 
-    coefficient: Float[Array, 2] = parameter(unit="rad/K", scale=1e-4, typical=1.5e-5, name="thermal", shape=(2,))
+    coefficient: Float[Array, "2"] = parameter(unit="rad/K", scale=1e-4, typical=1.5e-5, name="thermal", shape=(2,))
     reference: Float[Array, ""] = data_reference(unit="deg C", default=20.0, name="thermal_reference_c")
 
     NAME: typing.ClassVar[str] = "thermal"
@@ -75,7 +75,7 @@ class Wind(AbstractEffect):
     direction relative to the mirror.
     """
 
-    coefficient: Float[Array, 2] = parameter(unit="rad/(m/s)^2", scale=1e-5, typical=5e-6, name="wind", shape=(2,))
+    coefficient: Float[Array, "2"] = parameter(unit="rad/(m/s)^2", scale=1e-5, typical=5e-6, name="wind", shape=(2,))
 
     NAME: typing.ClassVar[str] = "wind"
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("wind_speed", "wind_direction")
@@ -145,7 +145,7 @@ class Clock(AbstractEffect):
             latitude_deg=jnp.asarray(DEFAULT_LATITUDE_DEG, dtype),
         )
 
-    def clock_error(self, unix_time) -> Float[Array, ...]:
+    def clock_error(self, unix_time) -> Float[Array, "..."]:
         """``dt`` (s) at ``unix_time`` (0 where the time is unknown)."""
         t = known(unix_time, self.reference)
         return jnp.where(
@@ -158,7 +158,7 @@ class Clock(AbstractEffect):
         return rotate_about(sun, axis, -SOLAR_RATE_RAD_S * self.clock_error(context.unix_time))
 
 
-def standard_refraction(elevation: Float[Array, ...]) -> Float[Array, ...]:
+def standard_refraction(elevation: Float[Array, "..."]) -> Float[Array, "..."]:
     """Atmospheric refraction (rad) of a body at true elevation ``elevation`` (rad)
     at 1010 hPa and 10 deg C: Saemundsson's formula
     ``R = 1.02 / tan(h + 10.3 / (h + 5.11))`` arcmin, ``h`` in degrees

@@ -51,8 +51,8 @@ class ActuatorGeometry(AbstractEffect):
     (``actuator``); the other pair stays 0.
     """
 
-    curvature: Float[Array, 2] = parameter(unit="1", scale=0.05, typical=1.0, shape=(2,))
-    pivot_scale: Float[Array, 2] = parameter(unit="1", scale=0.01, typical=0.01, shape=(2,))
+    curvature: Float[Array, "2"] = parameter(unit="1", scale=0.05, typical=1.0, shape=(2,))
+    pivot_scale: Float[Array, "2"] = parameter(unit="1", scale=0.01, typical=0.01, shape=(2,))
     law: str = eqx.field(static=True, default="linear")
 
     NAME: typing.ClassVar[str] = "actuator_geometry"
@@ -97,7 +97,7 @@ class Backlash(AbstractEffect):
     the pose (needs both directions in the data).
     """
 
-    width: Float[Array, 2] = parameter(unit="rad", scale=1e-3, typical=3e-4, name="backlash", shape=(2,))
+    width: Float[Array, "2"] = parameter(unit="rad", scale=1e-3, typical=3e-4, name="backlash", shape=(2,))
 
     NAME: typing.ClassVar[str] = "backlash"
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("approach",)
@@ -164,24 +164,24 @@ class EncoderWobble(AbstractEffect):
     sinusoid of ``n`` times each joint angle.
     """
 
-    coefficients: Float[Array, 4] = parameter(
+    coefficients: Float[Array, "4"] = parameter(
         unit="rad", scale=1e-3, typical=3e-4, name="wobble", shape=(4,), suffixes=("cos_1", "sin_1", "cos_2", "sin_2")
     )
     n: int = eqx.field(static=True, default=2)
 
-    def __init__(self, a: Float[Array, 2], b: Float[Array, 2], n: int = 2):
+    def __init__(self, a: Float[Array, "2"], b: Float[Array, "2"], n: int = 2):
         a = jnp.asarray(a)
         b = jnp.asarray(b)
         self.coefficients = jnp.stack([a[0], b[0], a[1], b[1]])
         self.n = n
 
     @property
-    def a(self) -> Float[Array, 2]:
+    def a(self) -> Float[Array, "2"]:
         """Cosine amplitudes ``(a_1, a_2)`` (rad)."""
         return self.coefficients[jnp.array([0, 2])]
 
     @property
-    def b(self) -> Float[Array, 2]:
+    def b(self) -> Float[Array, "2"]:
         """Sine amplitudes ``(b_1, b_2)`` (rad)."""
         return self.coefficients[jnp.array([1, 3])]
 

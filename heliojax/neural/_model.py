@@ -78,7 +78,7 @@ class NeuralCorrection(AbstractModelWrapper):
     def label(self) -> str:
         return f"{self.inner.label()}+nn"
 
-    def correction(self, geometry: HeliostatGeometry, counts: Float[Array, 2]) -> Float[Array, 2]:
+    def correction(self, geometry: HeliostatGeometry, counts: Float[Array, "2"]) -> Float[Array, "2"]:
         """Joint-angle correction (rad) at motor counts ``counts``."""
         counts = jnp.asarray(counts)
         out = self.network(_count_features(geometry, counts))
@@ -116,7 +116,7 @@ class PaperPredictor(eqx.Module):
     output_std: Float[Array, " 2"]
 
     @staticmethod
-    def features(sun: Float[Array, 3], spot: Float[Array, 3]) -> Float[Array, " 5"]:
+    def features(sun: Float[Array, "3"], spot: Float[Array, "3"]) -> Float[Array, " 5"]:
         """Raw inputs: unit sun vector (e, n, u) and the spot's ENU east and up (m)."""
         return jnp.concatenate([sun, spot[..., jnp.asarray([0, 2])]], axis=-1)
 
@@ -128,13 +128,13 @@ class PaperPredictor(eqx.Module):
         x = self.standardised(sun, spot)
         return jax.vmap(lambda net: net(x)[0])(self.networks)
 
-    def __call__(self, sun: Float[Array, 3], spot: Float[Array, 3]) -> Float[Array, 2]:
+    def __call__(self, sun: Float[Array, "3"], spot: Float[Array, "3"]) -> Float[Array, "2"]:
         """Motor counts predicted for sun ``sun`` (unit ENU) and spot ``spot`` (ENU m)."""
         y = self.raw_output(sun, spot).astype(self.output_mean.dtype)
         return y * self.output_std + self.output_mean
 
 
-def virtual_spot(model: AbstractKinematicModel, geometry, counts, sun, focal_spot) -> Float[Array, 3]:
+def virtual_spot(model: AbstractKinematicModel, geometry, counts, sun, focal_spot) -> Float[Array, "3"]:
     """Where the physics model at the recorded counts puts the beam, at the measured
     spot's distance (ENU m): ``O(c) + |p - O(c)| r(c)``."""
     pose = model.pose(geometry, counts)
@@ -150,7 +150,7 @@ def paper_beam_error(model, geometry, counts, predicted, sun, focal_spot) -> Flo
     return beam_pointing_error(model.pose(geometry, predicted), sun, target)
 
 
-def paper_beam_components(model, geometry, counts, predicted, sun, focal_spot) -> Float[Array, 2]:
+def paper_beam_components(model, geometry, counts, predicted, sun, focal_spot) -> Float[Array, "2"]:
     """Tangent-plane components (rad) of :func:`paper_beam_error`."""
     target = virtual_spot(model, geometry, counts, sun, focal_spot)
     return beam_error_components(model.pose(geometry, predicted), sun, target)

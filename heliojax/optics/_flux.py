@@ -145,7 +145,7 @@ def total_power(image: Float[Array, "*b ny nx"], grid: ImageGrid) -> Float[Array
     return jnp.sum(image, axis=(-2, -1)) * grid.pixel_area
 
 
-def aim_pose(centre: Float[ArrayLike, 3], sun: Float[ArrayLike, 3], aim_point: Float[ArrayLike, 3]) -> Pose:
+def aim_pose(centre: Float[ArrayLike, "3"], sun: Float[ArrayLike, "3"], aim_point: Float[ArrayLike, "3"]) -> Pose:
     """Ideal pose at ``centre`` (ENU m) reflecting the central sun ray onto ``aim_point``.
 
     The normal is the bisector; the surface ``x`` axis is kept horizontal
@@ -158,7 +158,7 @@ def aim_pose(centre: Float[ArrayLike, 3], sun: Float[ArrayLike, 3], aim_point: F
     return pose_from_normal(centre, normal)
 
 
-def pose_from_normal(centre: Float[ArrayLike, 3], normal: Float[ArrayLike, 3]) -> Pose:
+def pose_from_normal(centre: Float[ArrayLike, "3"], normal: Float[ArrayLike, "3"]) -> Pose:
     """Pose with the given centre and unit normal, surface ``x`` axis horizontal
     (north-based if the normal is vertical)."""
     centre = jnp.asarray(centre)
@@ -353,7 +353,7 @@ def flux_image(
     key: PRNGKeyArray,
     surface: SurfacePoints,
     pose: Pose,
-    sun: Float[ArrayLike, 3],
+    sun: Float[ArrayLike, "3"],
     target: TargetPlane,
     grid: ImageGrid,
     sunshape: AbstractSunShape,

@@ -53,7 +53,7 @@ def greville(n_ctrl: int, degree: int) -> np.ndarray:
 
 
 def bspline_basis(
-    t: Float[ArrayLike, ...], n_ctrl: int, degree: int
+    t: Float[ArrayLike, "..."], n_ctrl: int, degree: int
 ) -> tuple[Float[Array, "... n"], Float[Array, "... n"]]:
     """B-spline basis values and first derivatives at ``t`` (clamped uniform knots).
 

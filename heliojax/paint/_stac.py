@@ -65,6 +65,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import contextlib
 import datetime as dt
+import functools
 import hashlib
 import http.client
 import os
@@ -290,24 +291,14 @@ def fetch_catalog(
             d, s, f = run(tasks)
             say(f"tower {item.id}: {d} downloaded, {s} already complete, {f} failed")
 
+        plan_heliostat = functools.partial(
+            _plan_heliostat, scope=scope, reader=reader, pool=pool, out=out, collections=collections,
+            calibration_assets=calibration_assets, t0=t0, t1=t1, max_items=max_items, warnings=warnings,
+            failed=all_tasks_done["failed"],
+        )  # fmt: skip
         for k, hid in enumerate(sorted(catalogs), 1):
             cat, cat_href = catalogs[hid]
-            tasks = _plan_heliostat(
-                hid,
-                cat,
-                cat_href,
-                scope,
-                reader,
-                pool,
-                out,
-                collections,
-                calibration_assets,
-                t0,
-                t1,
-                max_items,
-                warnings,
-                all_tasks_done["failed"],
-            )
+            tasks = plan_heliostat(hid, cat, cat_href)
             d, s, f = run(tasks)
             say(f"[{k}/{len(catalogs)}] {hid}: {len(tasks)} file(s): {d} downloaded, {s} already complete, {f} failed")
 
