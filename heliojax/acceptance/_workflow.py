@@ -174,8 +174,8 @@ def run_acceptance(
             vals,
             cr.labels,
             support=info.support,
-            bandwidth=contract.bandwidth,
-            seed=contract.seed,  # pyright: ignore[reportArgumentType]
+            bandwidth=contract.bandwidth,  # pyright: ignore[reportArgumentType]
+            seed=contract.seed,
         )
         extrap[name] = ex
         entries = []
