@@ -79,6 +79,7 @@ class CalibrationRun:
     outlier: np.ndarray | None = None
     noise_mrad: np.ndarray | None = None
     robust: bool = False
+    pooled: bool = False
 
 
 def _stats(x: np.ndarray) -> tuple[float, float]:
@@ -108,6 +109,7 @@ def calibrate(
     test_fleet=None,
     start: str = "auto",
     robust: bool = True,
+    pool: bool = True,
     progress: Callable[[str], None] | None = None,
 ) -> CalibrationRun:
     """Split each heliostat's records, fit the model on the training records of all
@@ -129,6 +131,9 @@ def calibrate(
             actuators, see :func:`heliojax.choose_start_geometry`) or ``"nominal"``.
         robust: robust fit (:func:`heliojax.fitting.fit_robust`: Cauchy loss with a
             per-heliostat scale, record weights and outlier flags) instead of least squares.
+        pool: with ``robust``, finish under the fleet's empirical-Bayes prior
+            (:func:`heliojax.fitting.fleet_prior`): heliostats with few records are
+            calibrated too.
         progress: callback for progress messages.
     """
     say = progress or (lambda _msg: None)
@@ -178,7 +183,7 @@ def calibrate(
     options = dict(fit_options or {})
     say(f"fitting {n_real} heliostats ({model0.label()}, padded to {h_pad} x {m_pad})")
     if robust:
-        robust_fit = fit_robust(model0, padded, mask=jnp.asarray(train), **options)
+        robust_fit = fit_robust(model0, padded, mask=jnp.asarray(train), pool=pool, **options)
         result, compile_s, fit_s = robust_fit.solution, robust_fit.compile_s, robust_fit.run_s
         weights = np.asarray(robust_fit.weights)
         outlier = np.asarray(robust_fit.outlier)
@@ -226,6 +231,7 @@ def calibrate(
         outlier=outlier,
         noise_mrad=noise,
         robust=robust,
+        pooled=robust and pool,
     )
     summary = _summarise(run, n_real, compile_s=compile_s, fit_s=fit_s)
     return dataclasses.replace(run, summary=summary)
@@ -324,6 +330,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
         "model": run.model0.label(),
         "split": run.split_kind,
         "robust": bool(run.robust),
+        "pooled": bool(run.pooled),
         "param_units": dict(zip(view.names, view.units)),
         "free_params": list(view.free_names),
         "heliostats": heliostats,

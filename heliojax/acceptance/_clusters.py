@@ -67,7 +67,7 @@ def local_std(positions: Float[np.ndarray, "m 2"], values: Float[np.ndarray, " m
     v = np.asarray(values, dtype=float)
     if v.size < 3:
         return robust_std(v)
-    _, j = spatial.KDTree(xy).query(xy, k=2)
+    _, j = spatial.cKDTree(xy).query(xy, k=2)  # pyright: ignore[reportAttributeAccessIssue]
     j = np.asarray(j)
     return float(_MAD_TO_STD * np.median(np.abs(v - v[j[:, 1]])) / np.sqrt(2.0))
 
@@ -77,7 +77,7 @@ def field_spacing(positions: Float[np.ndarray, "n 2"]) -> float:
     xy = np.asarray(positions, dtype=float)[:, :2]
     if len(xy) < 2:
         return 1.0
-    d, _ = spatial.KDTree(xy).query(xy, k=2)
+    d, _ = spatial.cKDTree(xy).query(xy, k=2)  # pyright: ignore[reportAttributeAccessIssue]
     return float(np.median(d[:, 1]))
 
 
@@ -182,7 +182,7 @@ def find_clusters(
     p_values = {}
     idx = np.flatnonzero(kept)
     if idx.size:
-        pairs = spatial.KDTree(xy[idx]).query_pairs(length_scale_m, output_type="ndarray")
+        pairs = spatial.cKDTree(xy[idx]).query_pairs(length_scale_m, output_type="ndarray")  # pyright: ignore[reportAttributeAccessIssue]
         pairs = pairs[kept[idx[pairs[:, 0]]] == kept[idx[pairs[:, 1]]]]
         graph = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(idx.size,) * 2)
         _, comp = csgraph.connected_components(graph, directed=False)
@@ -272,7 +272,7 @@ def resampling_advice(
     if not flagged.any():
         return np.zeros(0, dtype=int)
     k = min(k_neighbours + 1, len(xy))
-    _, nb = spatial.KDTree(xy).query(xy[measured[flagged]], k=k)
+    _, nb = spatial.cKDTree(xy).query(xy[measured[flagged]], k=k)  # pyright: ignore[reportAttributeAccessIssue]
     cand = np.unique(np.asarray(nb).ravel())
     return np.setdiff1d(cand, measured)
 

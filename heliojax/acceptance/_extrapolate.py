@@ -196,7 +196,7 @@ def extrapolate_field(
     is_meas = np.zeros(n, dtype=bool)
     is_meas[measured] = True
     # label of the nearest measured heliostat
-    _, j = spatial.KDTree(xy[measured]).query(xy, k=1)
+    _, j = spatial.cKDTree(xy[measured]).query(xy, k=1)  # pyright: ignore[reportAttributeAccessIssue]
     field_labels = lab[j]
     field_labels[measured] = lab
     out = np.full(n, np.nan)

@@ -73,6 +73,12 @@ def add_parser(subparsers) -> None:
         action="store_false",
         help="plain least squares instead of the robust (Cauchy) fit with outlier flags",
     )
+    p.add_argument(
+        "--no-pool",
+        dest="pool",
+        action="store_false",
+        help="no fleet prior: heliostats with fewer training records than parameters stay uncalibrated",
+    )
     p.add_argument("--strategy", choices=BATCHING_NAMES, default="auto", help="batching over heliostats")
     add_fit_arguments(p)
     p.add_argument("--out", type=Path, default=None, metavar="FILE", help="results.h5")
@@ -117,6 +123,7 @@ def run(args) -> int:
         test_fleet=test_fleet,
         start=args.start,
         robust=args.robust,
+        pool=args.pool,
         progress=say,
     )
     if neural:

@@ -14,51 +14,27 @@ hidden-effect test fleets.
 
 from ._identifiability import (
     ABSORBED_LIMIT as ABSORBED_LIMIT,
-)
-from ._identifiability import (
     CONDITION_INDEX_LIMIT as CONDITION_INDEX_LIMIT,
-)
-from ._identifiability import (
     absorbed_fractions as absorbed_fractions,
 )
 from ._lanes import day_folds as day_folds
 from ._report import (
     build_report as build_report,
-)
-from ._report import (
     markdown_summary as markdown_summary,
-)
-from ._report import (
     plot_effect_residuals as plot_effect_residuals,
-)
-from ._report import (
     plot_heldout_per_step as plot_heldout_per_step,
-)
-from ._report import (
     plot_screen as plot_screen,
-)
-from ._report import (
     write_figures as write_figures,
-)
-from ._report import (
     write_markdown as write_markdown,
-)
-from ._report import (
     write_report as write_report,
 )
-from ._screen import CandidateScreen as CandidateScreen
-from ._screen import holm as holm
+from ._screen import CandidateScreen as CandidateScreen, holm as holm
 from ._select import (
     DiscoveryConfig as DiscoveryConfig,
-)
-from ._select import (
     DiscoveryResult as DiscoveryResult,
-)
-from ._select import (
     discover as discover,
 )
-from ._suites import random_actuator_models as random_actuator_models
-from ._suites import simulate_fleet as simulate_fleet
+from ._suites import random_actuator_models as random_actuator_models, simulate_fleet as simulate_fleet
 
 __all__ = [
     "ABSORBED_LIMIT",

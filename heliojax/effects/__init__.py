@@ -30,63 +30,30 @@ Each class's docstring gives the physical meaning and the exact correction.
 
 from ._base import (
     AbstractEffect as AbstractEffect,
-)
-from ._base import (
     EffectModel as EffectModel,
-)
-from ._base import (
     add_effects as add_effects,
 )
 from ._environment import (
     SOLAR_RATE_RAD_S as SOLAR_RATE_RAD_S,
-)
-from ._environment import (
     Clock as Clock,
-)
-from ._environment import (
     Refraction as Refraction,
-)
-from ._environment import (
     Thermal as Thermal,
-)
-from ._environment import (
     Wind as Wind,
-)
-from ._environment import (
     standard_refraction as standard_refraction,
 )
 from ._mechanical import (
     ActuatorGeometry as ActuatorGeometry,
-)
-from ._mechanical import (
     Backlash as Backlash,
-)
-from ._mechanical import (
     EncoderWobble as EncoderWobble,
-)
-from ._mechanical import (
     GravitySag as GravitySag,
 )
 from ._spec import (
     EFFECT_CLASSES as EFFECT_CLASSES,
-)
-from ._spec import (
     EFFECT_NAMES as EFFECT_NAMES,
-)
-from ._spec import (
     data_references as data_references,
-)
-from ._spec import (
     effect_class as effect_class,
-)
-from ._spec import (
     make_effect as make_effect,
-)
-from ._spec import (
     with_data_references as with_data_references,
-)
-from ._spec import (
     with_effects as with_effects,
 )
-from ._survey import SurveyHeliostat as SurveyHeliostat
-from ._survey import SurveyTarget as SurveyTarget
+from ._survey import SurveyHeliostat as SurveyHeliostat, SurveyTarget as SurveyTarget

@@ -9,8 +9,7 @@ import typing
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._parameters import parameter
-from .._parameters import reference as data_reference
+from .._parameters import parameter, reference as data_reference
 from ._base import AbstractEffect, known, zeros
 
 SOLAR_RATE_RAD_S = 2.0 * math.pi / 86400.0

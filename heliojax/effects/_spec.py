@@ -8,8 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._kinematics import AbstractKinematicModel
-from .._parameters import ModuleT as ModelT
-from .._parameters import ParameterView, reference_leaves, set_references
+from .._parameters import ModuleT as ModelT, ParameterView, reference_leaves, set_references
 from ._base import AbstractEffect, EffectModel, add_effects
 from ._environment import DEFAULT_LATITUDE_DEG, Clock, Refraction, Thermal, Wind
 from ._mechanical import ActuatorGeometry, Backlash, EncoderWobble, GravitySag

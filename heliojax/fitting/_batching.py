@@ -23,8 +23,7 @@ from collections.abc import Callable, Sequence
 import equinox as eqx
 import jax
 import numpy as np
-from jax.sharding import Mesh, NamedSharding
-from jax.sharding import PartitionSpec as P
+from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 AXIS = "heliostats"
 """Name of the mesh axis the heliostats are sharded over."""

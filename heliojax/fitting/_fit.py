@@ -221,6 +221,12 @@ def _fit_one(
     # Gauss-Newton covariance of the free parameters (scaled units -> physical).
     dof = jnp.maximum(2 * n_used - view.n_free, 1)
     sigma2 = jnp.sum(data_r**2) / dof
+    # With a prior that constrains the parameters, few records suffice; the noise
+    # then comes from the prior (the fleet's) while the heliostat's own residuals
+    # have fewer degrees of freedom than parameters.
+    n_prior = prior.n_constrained(view, prior_h)
+    prior_noise = prior.noise_mrad_of(prior_h)
+    sigma2 = jnp.where((2 * n_used - view.n_free < view.n_free) & (n_prior > 0), prior_noise**2, sigma2)
     cov_scaled = psd_inverse(out.jacobian.T @ out.jacobian) * sigma2
     cov = cov_scaled * free_scales[:, None] * free_scales[None, :]
     std_free = jnp.sqrt(jnp.clip(jnp.diag(cov_scaled), 0.0)) * free_scales
@@ -232,7 +238,7 @@ def _fit_one(
     status = status_code(out.result)
     status = jnp.where(jnp.all(jnp.isfinite(params)) & jnp.isfinite(out.cost), status, FitStatus.DIVERGED)
     status = jnp.where(bad_input, FitStatus.NON_FINITE_INPUT, status)
-    too_few = n_used < view.n_free
+    too_few = (n_used < 1) | (n_used + n_prior < view.n_free)
     status = jnp.where(too_few, FitStatus.TOO_FEW_RECORDS, status)
     status = jnp.where(jnp.any(mask), status, FitStatus.NO_RECORDS)
     # An unconstrained fit is never reported: keep the start values where too few records.

@@ -16,7 +16,7 @@ from collections.abc import Mapping
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from .._parameters import ParameterView, broadcast_model
 
@@ -34,6 +34,16 @@ class AbstractPrior(eqx.Module):
         leading axis ``n``), handed to :meth:`rows` per heliostat."""
         del n
         return None
+
+    def n_constrained(self, view: ParameterView, heliostat: typing.Any) -> Int[Array, ""]:
+        """How many free parameters the prior constrains (0: none)."""
+        del view, heliostat
+        return jnp.zeros((), jnp.int32)
+
+    def noise_mrad_of(self, heliostat: typing.Any) -> Float[Array, ""]:
+        """The noise (mrad per component) the prior rows are scaled with (NaN: none)."""
+        del heliostat
+        return jnp.full((), jnp.nan)
 
 
 @typing.final
@@ -70,6 +80,14 @@ class GaussianPrior(AbstractPrior):
 
         noise = jnp.broadcast_to(jnp.asarray(self.noise_mrad), (n,))
         return batch(self.centre), batch(self.sigma), noise
+
+    def n_constrained(self, view, heliostat):
+        _, sigma, _ = heliostat
+        s = view.to_vector(sigma)[jnp.asarray(view.free_index, dtype=jnp.int32)]
+        return jnp.sum(jnp.isfinite(s)).astype(jnp.int32)
+
+    def noise_mrad_of(self, heliostat):
+        return heliostat[2]
 
     def rows(self, view, p, heliostat):
         centre, sigma, noise = heliostat

@@ -36,6 +36,7 @@ from .._parameters import broadcast_model, is_batched
 from ._evaluate import fleet_residuals_mrad
 from ._fit import CompiledFit, FitSolution
 from ._loss import CAUCHY_EFFICIENCY_FACTOR, Cauchy
+from ._pooling import flat_prior, fleet_prior
 from ._status import FitStatus
 
 RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
@@ -107,6 +108,7 @@ def fit_robust(
     *,
     mask: Bool[Array, "H M"] | None = None,
     passes: int = 2,
+    pool: bool = False,
     **fit_options: typing.Any,
 ) -> RobustFit:
     """Robust fit of every heliostat (see the module docstring).
@@ -117,7 +119,12 @@ def fit_robust(
         mask: ``(H, M)`` records to fit (ANDed with ``fleet.mask``).
         passes: robust passes; each re-estimates the scale from the previous pass's
             residuals (the first from the least-squares residuals).
-        fit_options: further keyword arguments of :func:`heliojax.fit` (not ``loss``).
+        pool: finish with a pass under the fleet's empirical-Bayes prior
+            (:func:`heliojax.fitting.fleet_prior`), so that heliostats with few
+            records are calibrated too (one compiled program for all passes: the
+            earlier passes run with a prior that constrains nothing).
+        fit_options: further keyword arguments of :func:`heliojax.fit` (not ``loss``;
+            not ``prior`` with ``pool``).
 
     Returns:
         A :class:`RobustFit`.
@@ -127,6 +134,10 @@ def fit_robust(
     m = fleet.mask if mask is None else (jnp.asarray(mask) & fleet.mask)
     h = int(np.shape(fleet.mask)[0])
     least_squares = Cauchy(jnp.full((h,), jnp.inf, fleet.counts.dtype))
+    if pool:
+        if "prior" in fit_options:
+            raise TypeError("fit_robust(pool=True) learns the prior itself")
+        fit_options["prior"] = flat_prior(model0, h)
     # one compiled program for every pass (the loss scale is data, not structure)
     run = CompiledFit(model0, fleet, mask=m, loss=least_squares, **fit_options)
     ls = run(model0)
@@ -151,6 +162,18 @@ def fit_robust(
         sol = run(sol.model, loss=Cauchy(scale))
         r1 = fleet_residuals_mrad(sol.model, fleet, m)
         sigma1, _ = robust_noise(r1, m, n_free)
+    if pool:
+        prior = fleet_prior(sol, jnp.asarray(sigma1, fleet.counts.dtype))
+        # heliostats without a usable fit start from the fleet's centre
+        ok = jnp.asarray(_fitted(sol))
+        start = jax.tree.map(
+            lambda a, b: jnp.where(ok.reshape((-1,) + (1,) * (jnp.ndim(a) - 1)), a, b) if eqx.is_array(a) else a,
+            sol.model,
+            prior.centre,
+        )
+        sol = run(start, loss=Cauchy(scale), prior=prior)
+        r1 = fleet_residuals_mrad(sol.model, fleet, m)
+        sigma1 = np.where(np.isfinite(robust_noise(r1, m, n_free)[0]), robust_noise(r1, m, n_free)[0], sigma1)
     norm = np.linalg.norm(np.where(np.isfinite(np.asarray(r1)), np.asarray(r1), 0.0), axis=-1)
     use = np.asarray(m, bool) & np.all(np.isfinite(np.asarray(r1)), axis=-1)
     c = CAUCHY_EFFICIENCY_FACTOR * sigma1

@@ -22,58 +22,26 @@ from __future__ import annotations
 
 from ._model import (
     NeuralCorrection as NeuralCorrection,
-)
-from ._model import (
     PaperPredictor as PaperPredictor,
-)
-from ._model import (
     paper_beam_components as paper_beam_components,
-)
-from ._model import (
     paper_beam_error as paper_beam_error,
-)
-from ._model import (
     virtual_spot as virtual_spot,
 )
-from ._network import MLP as MLP
-from ._network import PAPER_HIDDEN as PAPER_HIDDEN
-from ._network import init_networks as init_networks
+from ._network import MLP as MLP, PAPER_HIDDEN as PAPER_HIDDEN, init_networks as init_networks
 from ._train import (
     VARIANTS as VARIANTS,
-)
-from ._train import (
     NeuralConfig as NeuralConfig,
-)
-from ._train import (
     SyntheticData as SyntheticData,
-)
-from ._train import (
     heliostat_keys as heliostat_keys,
-)
-from ._train import (
     init_residual_networks as init_residual_networks,
-)
-from ._train import (
     synthetic_data as synthetic_data,
 )
 from ._workflow import (
     NeuralRun as NeuralRun,
-)
-from ._workflow import (
     calibrate_neural as calibrate_neural,
-)
-from ._workflow import (
     fallback_rule as fallback_rule,
-)
-from ._workflow import (
     learning_curve as learning_curve,
-)
-from ._workflow import (
     paper_errors_mrad as paper_errors_mrad,
-)
-from ._workflow import (
     train_neural as train_neural,
-)
-from ._workflow import (
     validation_tail as validation_tail,
 )

@@ -58,144 +58,71 @@ Facts about the real files (checked on the shared download)
 
 from ._calibration import (
     calibration_record_path as calibration_record_path,
-)
-from ._calibration import (
     check_record_context as check_record_context,
-)
-from ._calibration import (
     heliostat_properties_path as heliostat_properties_path,
-)
-from ._calibration import (
     read_calibration_record as read_calibration_record,
-)
-from ._calibration import (
     validate_record as validate_record,
-)
-from ._calibration import (
     write_calibration_record as write_calibration_record,
 )
 from ._common import (
     ACTUATOR_KEYS as ACTUATOR_KEYS,
-)
-from ._common import (
     ACTUATOR_OPTIONAL as ACTUATOR_OPTIONAL,
-)
-from ._common import (
     ACTUATOR_REQUIRED as ACTUATOR_REQUIRED,
-)
-from ._common import (
     CALIBRATION_SUFFIX as CALIBRATION_SUFFIX,
-)
-from ._common import (
     CORNERS as CORNERS,
-)
-from ._common import (
     CSV_COLUMNS as CSV_COLUMNS,
-)
-from ._common import (
     PROPERTIES_SUFFIX as PROPERTIES_SUFFIX,
-)
-from ._common import (
     TIMESTAMPS_FILE as TIMESTAMPS_FILE,
-)
-from ._common import (
     TOWER_FILE_SUFFIX as TOWER_FILE_SUFFIX,
-)
-from ._common import (
     WEATHER_CSV_FILE as WEATHER_CSV_FILE,
-)
-from ._common import (
     WEATHER_KEYS as WEATHER_KEYS,
-)
-from ._common import (
     CalibrationRecord as CalibrationRecord,
-)
-from ._common import (
     Facet as Facet,
-)
-from ._common import (
     HeliostatProperties as HeliostatProperties,
-)
-from ._common import (
     TargetEntry as TargetEntry,
-)
-from ._common import (
     TimestampEntry as TimestampEntry,
-)
-from ._common import (
     TowerFile as TowerFile,
-)
-from ._common import (
     Vec3 as Vec3,
 )
 from ._deflectometry import (
     read_deflectometry_facets as read_deflectometry_facets,
-)
-from ._deflectometry import (
     write_deflectometry as write_deflectometry,
 )
 from ._directory import (
     write_paint_directory as write_paint_directory,
 )
-from ._flux import MAX_FLUX_PIXELS as MAX_FLUX_PIXELS
-from ._flux import read_flux_png as read_flux_png
+from ._flux import MAX_FLUX_PIXELS as MAX_FLUX_PIXELS, read_flux_png as read_flux_png
 from ._load import (
     default_data_dir as default_data_dir,
-)
-from ._load import (
     load_paint_directory as load_paint_directory,
-)
-from ._load import (
     load_weather_csv_fleet as load_weather_csv_fleet,
-)
-from ._load import (
     records_to_fleet as records_to_fleet,
 )
 from ._properties import (
     read_facets as read_facets,
-)
-from ._properties import (
     read_heliostat_properties as read_heliostat_properties,
-)
-from ._properties import (
     validate_properties as validate_properties,
-)
-from ._properties import (
     write_heliostat_properties as write_heliostat_properties,
 )
 from ._stac import (
     fetch_catalog as fetch_catalog,
-)
-from ._stac import (
     verify_download as verify_download,
 )
 from ._stac_io import (
     CALIBRATION_ASSETS as CALIBRATION_ASSETS,
-)
-from ._stac_io import (
     COLLECTIONS as COLLECTIONS,
-)
-from ._stac_io import (
     JOURNAL_NAME as JOURNAL_NAME,
-)
-from ._stac_io import (
     FetchReport as FetchReport,
 )
 from ._timestamps import (
     read_timestamps as read_timestamps,
-)
-from ._timestamps import (
     write_timestamps as write_timestamps,
 )
 from ._tower import (
     read_tower as read_tower,
-)
-from ._tower import (
     write_tower as write_tower,
 )
 from ._weather import (
     read_weather_csv as read_weather_csv,
-)
-from ._weather import (
     write_weather_csv as write_weather_csv,
 )

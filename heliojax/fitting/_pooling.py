@@ -1,0 +1,108 @@
+"""Fleet pooling: an empirical-Bayes prior learnt from the fleet's own parameters.
+
+A heliostat with few records cannot determine its parameters alone, but the
+fleet tells what values are typical. :func:`fleet_prior` learns, per parameter,
+a Gaussian ``N(centre, spread^2)`` from the *well-determined* heliostats of a fit
+(converged, with at least three residuals per free parameter):
+
+* ``centre``: the median of their fitted values;
+* ``spread^2``: the robust variance of their fitted values (1.4826 MAD)^2 minus
+  the mean squared standard error (method of moments: what remains is the
+  spread of the true values), floored at ``(SPREAD_FLOOR_SCALED * scale)^2`` so
+  that no parameter is pinned harder than 1/10 of its solver scale (0.1 mrad
+  for angles, 1e-3 for ratios) by a fleet that happens to agree.
+
+Refitting every heliostat with this prior (:func:`heliojax.fitting.fit_robust`
+with ``pool=True``) calibrates heliostats with a handful of records; for a
+heliostat with many records the prior rows are weak against its data (its
+standard errors are far below the fleet spread), so it is not pulled measurably.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from .._kinematics import AbstractKinematicModel
+from .._parameters import ParameterView, broadcast_model, is_batched
+from ._fit import FitSolution
+from ._prior import GaussianPrior
+from ._status import FitStatus
+
+SPREAD_FLOOR_SCALED = 0.1
+"""Smallest prior spread, in units of each parameter's solver scale."""
+
+MIN_RESIDUALS_PER_PARAMETER = 3
+"""A heliostat is well determined with at least this many residuals per free parameter."""
+
+
+def flat_prior(model: AbstractKinematicModel, n: int, noise_mrad: float = 1.0) -> GaussianPrior:
+    """A prior of the pooled structure that constrains nothing (``sigma = inf``):
+    fits with it run the same compiled program as fits with a learnt prior."""
+    models = model if is_batched(model) else broadcast_model(model, n)
+    view = ParameterView.of(models)
+    inf = jnp.full((n, view.n_parameters), jnp.inf, jnp.asarray(view.to_vector(models)).dtype)
+    sigma = _from_vectors(view, models, inf)
+    return GaussianPrior(centre=models, sigma=sigma, noise_mrad=jnp.full((n,), noise_mrad))
+
+
+def _from_vectors(view: ParameterView, models: AbstractKinematicModel, vectors: Float[Array, "H P"]):
+    return jax.vmap(view.from_vector)(models, vectors)
+
+
+def well_determined(solution: FitSolution) -> np.ndarray:
+    """``(H,)`` heliostats whose fit the fleet prior may learn from."""
+    status = np.asarray(solution.status)
+    n_res = 2 * np.asarray(solution.n_used)
+    finite = np.all(np.isfinite(np.asarray(solution.std)), axis=1)
+    return (status == FitStatus.CONVERGED) & (n_res >= MIN_RESIDUALS_PER_PARAMETER * solution.view.n_free) & finite
+
+
+def fleet_prior(
+    solution: FitSolution,
+    noise_mrad: Float[Array, " H"],
+    learn_from: Bool[Array, " H"] | None = None,
+) -> GaussianPrior:
+    """The fleet's empirical-Bayes prior (see the module docstring) for every
+    heliostat of ``solution``.
+
+    Args:
+        solution: a fit of the fleet (e.g. the robust fit).
+        noise_mrad: ``(H,)`` noise per residual component that scales the prior rows.
+        learn_from: heliostats to learn from (default :func:`well_determined`).
+
+    Returns:
+        A :class:`GaussianPrior` batched over the heliostats (centre and spread the
+        same for all, noise per heliostat).
+    """
+    view = solution.view
+    p = np.asarray(solution.parameters())
+    std = np.asarray(solution.std)
+    good = well_determined(solution) if learn_from is None else np.asarray(learn_from, bool)
+    h = p.shape[0]
+    scales = np.asarray(view.scales)
+    free = np.asarray(view.free)
+    centre = np.asarray(view.to_vector(solution.heliostat_model(0)), float).copy()
+    spread = np.full(p.shape[1], np.inf)
+    if good.sum() >= 3:
+        pg, sg = p[good], std[good]
+        med = np.median(pg, axis=0)
+        mad_var = (1.4826 * np.median(np.abs(pg - med), axis=0)) ** 2
+        var = mad_var - np.mean(sg**2, axis=0)
+        floor = (SPREAD_FLOOR_SCALED * scales) ** 2
+        centre = np.where(free, med, centre)
+        spread = np.where(free, np.sqrt(np.maximum(var, floor)), np.inf)
+    centres = np.broadcast_to(centre, (h, centre.size))
+    spreads = np.broadcast_to(spread, (h, spread.size))
+    models = solution.model
+    dtype = jnp.asarray(p).dtype
+    return GaussianPrior(
+        centre=_from_vectors(view, models, jnp.asarray(centres, dtype)),
+        sigma=_from_vectors(view, models, jnp.asarray(spreads, dtype)),
+        noise_mrad=jnp.asarray(noise_mrad, dtype),
+    )
+
+
+__all__ = ["MIN_RESIDUALS_PER_PARAMETER", "SPREAD_FLOOR_SCALED", "fleet_prior", "flat_prior", "well_determined"]
