@@ -50,20 +50,23 @@ def _weather_table(rows: list[dict]):
     return good, unix
 
 
-def _match_weather(unix_rec: float, good_unix: np.ndarray) -> int:
+def _match_weather(unix_rec: float, good_unix: np.ndarray, used: np.ndarray) -> int:
+    """Nearest unused weather row by day of year and time of day (each row used once)."""
     doy = lambda u: (u / 86400.0) % 365.2425  # noqa: E731
     dd = np.abs(doy(good_unix) - doy(unix_rec))
     dd = np.minimum(dd, 365.2425 - dd)
     dh = np.abs((good_unix % 86400.0) - (unix_rec % 86400.0)) / 3600.0
-    return int(np.argmin(dd / 30.0 + dh / 2.0))
+    i = int(np.argmin(dd / 30.0 + dh / 2.0 + 1e9 * used))
+    used[i] = True
+    return i
 
 
-def _draw_plant(nominal: Mount, rng: np.random.Generator) -> tuple[Mount, dict]:
-    base = rng.normal(0, 3e-3, 3)
-    between = rng.normal(0, 1e-3, 3)
-    mirror = rng.normal(0, 2e-3, 3)
-    zeros = rng.normal(0, 5e-3, 2)
-    scale = 1.0 + rng.normal(0, 3e-3, 2)
+def _draw_plant(nominal: Mount, rng: np.random.Generator, size: float) -> tuple[Mount, dict]:
+    base = rng.normal(0, 3e-3 * size, 3)
+    between = rng.normal(0, 1e-3 * size, 3)
+    mirror = rng.normal(0, 2e-3 * size, 3)
+    zeros = rng.normal(0, 5e-3 * size, 2)
+    scale = 1.0 + rng.normal(0, 3e-3 * size, 2)
     plant = nominal.with_changes(
         base_q=small_rotation(base), between_q=small_rotation(between), mirror_q=small_rotation(mirror),
         zero_1=float(zeros[0]), zero_2=float(zeros[1]),
@@ -73,6 +76,23 @@ def _draw_plant(nominal: Mount, rng: np.random.Generator) -> tuple[Mount, dict]:
             "mirror_rotvec_rad": mirror.tolist(), "joint_zero_offsets_rad": zeros.tolist(),
             "increment_scale": scale.tolist()}
     return plant, info
+
+
+def _feasible(recs, raw: dict, controller: Mount, targets, margin: int = 600) -> np.ndarray:
+    """Whether the controller can reach each record's target centre within the actuators' count range."""
+    if not recs:
+        return np.zeros(0, dtype=bool)
+    site = raw["heliostat_position"]
+    t = np.array([r[1] for r in recs])
+    az, el = sun_compass(t, site[0], site[1])
+    sun = sun_vector_enu(az, el + refraction_deg(el))
+    aim = np.stack([targets[r[2]][0] for r in recs])
+    th1, th2 = aim_normal(controller, sun, aim)
+    ok = np.ones(len(recs), dtype=bool)
+    for act, counts in zip(raw["kinematics_properties"]["actuators"],
+                           (controller.act1.counts(th1), controller.act2.counts(th2))):
+        ok &= (counts > act["min_increment"] + margin) & (counts < act["max_increment"] - margin)
+    return ok & (el > 3.0)
 
 
 def _simulate(effect, amp, hp, plant: Mount, controller: Mount, site, ctx, aim, targets_file, targets_true):
@@ -122,14 +142,15 @@ def _simulate(effect, amp, hp, plant: Mount, controller: Mount, site, ctx, aim, 
 
 def generate(effect: str, out_dir, seed: int = 0, amplitude: float | None = None, n_heliostats: int = 20,
              n_records: int = 60, noise_mrad: float = 0.25, outliers: float = 0.0,
-             controller: str = "calibrated", aim_spread_m: float = 0.8, source=DEFAULT_SOURCE) -> dict:
+             controller: str = "calibrated", aim_spread_m: float = 0.8, plant_errors: float = 1.0,
+             source=DEFAULT_SOURCE) -> dict:
     """Write a PAINT-layout suite to `out_dir` and return the truth (also written as truth.json).
 
     effect: a key of `EFFECTS`; amplitude in the effect's unit (default `EFFECTS[effect].default`);
     noise_mrad: camera centroid noise per in-plane component as beam angle (mrad); outliers: fraction of
     records displaced by 10-100 mrad; controller: 'calibrated' (knows the plant without the hidden effect)
     or 'nominal' (aims with the properties files); aim_spread_m: half-width of the controller's aim points
-    around each target centre (m).
+    around each target centre (m); plant_errors: scale of the drawn plant state (0 = the nominal plant).
     """
     if effect not in fx.EFFECTS:
         raise ValueError(f"unknown effect {effect!r}; choose from {sorted(fx.EFFECTS)}")
@@ -143,6 +164,7 @@ def generate(effect: str, out_dir, seed: int = 0, amplitude: float | None = None
     fields, rows = read_weather(root)
     by_sample = {r["sample_id"]: r for r in rows if all(r.get(c) for c in WEATHER)}
     good, good_unix = _weather_table(rows)
+    used = np.array([r["sample_id"] in by_sample for r in good])
     heliostats = _pick_heliostats(root, n_heliostats)
     pool = []  # (time, target) of every real timestamped record of any heliostat
     own: dict[str, list] = {}
@@ -154,15 +176,26 @@ def generate(effect: str, out_dir, seed: int = 0, amplitude: float | None = None
                 own.setdefault(hdir.name, []).append(item)
     next_id = 9_000_000
     plan: dict[str, list] = {}
+    plants: dict[str, tuple] = {}
     for h in heliostats:
+        raw, nominal = read_mount(root, h, frame)
+        plant, plant_info = _draw_plant(nominal, rng, plant_errors)
+        plants[h] = (raw, nominal, plant, plant_info)
+        ctrl = plant if controller == "calibrated" else nominal
         mine = own.get(h, [])
-        if len(mine) > n_records:
-            mine = [mine[i] for i in sorted(rng.choice(len(mine), n_records, replace=False))]
         others = [p for p in pool if p[0] != h]
         extra = []
-        for j in rng.choice(len(others), n_records - len(mine), replace=False):
+        for j in rng.choice(len(others), min(len(others), n_records + 40), replace=False):
             extra.append((str(next_id), others[j][2], others[j][3]))
             next_id += 1
+        ok_mine = _feasible(mine, raw, ctrl, targets)
+        ok_extra = _feasible(extra, raw, ctrl, targets)
+        mine = [r for r, ok in zip(mine, ok_mine) if ok]
+        if len(mine) > n_records:
+            mine = [mine[i] for i in sorted(rng.choice(len(mine), n_records, replace=False))]
+        extra = [r for r, ok in zip(extra, ok_extra) if ok][:n_records - len(mine)]
+        if len(mine) + len(extra) < n_records:
+            raise ValueError(f"{h}: only {len(mine) + len(extra)} reachable records")
         plan[h] = sorted(mine + extra, key=lambda x: x[1])
     times = {h: np.array([r[1] for r in plan[h]]) for h in heliostats}
     params = fx.draw_parameters(effect, amp, heliostats, times, rng)
@@ -180,11 +213,10 @@ def generate(effect: str, out_dir, seed: int = 0, amplitude: float | None = None
              "source": str(root), "heliostats": {}, "outliers": [], "steps": []}
     all_dev = []
     for h in heliostats:
-        raw, nominal = read_mount(root, h, frame)
-        plant, plant_info = _draw_plant(nominal, rng)
+        raw, nominal, plant, plant_info = plants[h]
         recs = plan[h]
         n = len(recs)
-        wrows = [by_sample.get(r[0]) or good[_match_weather(r[1], good_unix)] for r in recs]
+        wrows = [by_sample.get(r[0]) or good[_match_weather(r[1], good_unix, used)] for r in recs]
         aim_off = rng.uniform(-aim_spread_m, aim_spread_m, (n, 2))
         first_dir = rng.choice([-1.0, 1.0], 2)
         noise = rng.normal(0, 1, (n, 2))
