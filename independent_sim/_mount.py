@@ -28,19 +28,25 @@ def quat_axis_angle(axis, angle) -> np.ndarray:
     return np.concatenate([np.cos(half)[..., None], np.sin(half)[..., None] * axis], axis=-1)
 
 
+def _cross(a, b) -> np.ndarray:
+    a, b = np.broadcast_arrays(a, b)
+    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+
+
 def quat_mul(p, q) -> np.ndarray:
     pw, pv = p[..., :1], p[..., 1:]
     qw, qv = q[..., :1], q[..., 1:]
     w = pw * qw - np.sum(pv * qv, axis=-1, keepdims=True)
-    v = pw * qv + qw * pv + np.cross(pv, qv)
+    v = pw * qv + qw * pv + _cross(pv, qv)
     return np.concatenate([w, v], axis=-1)
 
 
 def quat_rotate(q, v) -> np.ndarray:
     """Rotate vector(s) v (..., 3) by unit quaternion(s) q (..., 4)."""
     w, u = q[..., :1], q[..., 1:]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
+    t = 2.0 * _cross(u, v)
+    return v + w * t + _cross(u, t)
 
 
 def small_rotation(rotvec) -> np.ndarray:
@@ -133,7 +139,7 @@ class Mount:
         centre = self.position + quat_rotate(outer, arm)
         return normal, centre
 
-    def joint_angles_for_normal(self, normal, iterations: int = 12):
+    def joint_angles_for_normal(self, normal, iterations: int = 20):
         """Joint angles (theta1, theta2) that point the mirror normal along `normal` (..., 3); Newton."""
         normal = np.asarray(normal, dtype=float)
         t1 = 0.5 * np.pi - np.arcsin(np.clip(normal[..., 2], -1, 1))
@@ -148,8 +154,10 @@ class Mount:
             a11, a12, a22 = np.sum(ja * ja, -1), np.sum(ja * jb, -1), np.sum(jb * jb, -1)
             b1, b2 = np.sum(ja * r, -1), np.sum(jb * r, -1)
             det = a11 * a22 - a12 * a12
-            t1 = t1 - (a22 * b1 - a12 * b2) / det
-            t2 = t2 - (a11 * b2 - a12 * b1) / det
+            s1, s2 = (a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det
+            t1, t2 = t1 - s1, t2 - s2
+            if max(np.max(np.abs(s1)), np.max(np.abs(s2))) < 1e-13:
+                break
         return t1, t2
 
 
@@ -165,7 +173,7 @@ def hit_plane(origin, direction, plane_point, plane_normal):
     return origin + t * direction
 
 
-def aim_normal(mount: Mount, sun, aim_point, iterations: int = 6):
+def aim_normal(mount: Mount, sun, aim_point, iterations: int = 12):
     """Joint angles so that the beam from the mirror centre hits `aim_point` (fixed point on the centre)."""
     _n, centre = mount.pose(np.full(sun.shape[:-1], 0.8), np.zeros(sun.shape[:-1]))
     t1 = t2 = None
@@ -175,5 +183,9 @@ def aim_normal(mount: Mount, sun, aim_point, iterations: int = 6):
         bis = sun + to_aim
         bis = bis / np.linalg.norm(bis, axis=-1, keepdims=True)
         t1, t2 = mount.joint_angles_for_normal(bis)
-        _n, centre = mount.pose(t1, t2)
+        _n, new_centre = mount.pose(t1, t2)
+        moved = float(np.max(np.abs(new_centre - centre)))
+        centre = new_centre
+        if moved < 1e-10:
+            break
     return t1, t2
