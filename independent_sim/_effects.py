@@ -81,9 +81,7 @@ def draw_parameters(effect: str, amplitude: float, heliostats: list[str], times:
         params["target_offsets_enu_m"] = targets
     for h in heliostats:
         p: dict = {}
-        if effect == "encoder_wobble":
-            p["phase_rad"] = float(rng.uniform(0, 2 * np.pi))
-        elif effect == "daily_periodic":
+        if effect == "encoder_wobble" or effect == "daily_periodic":
             p["phase_rad"] = float(rng.uniform(0, 2 * np.pi))
         elif effect == "survey_heliostat":
             v = rng.normal(size=3)

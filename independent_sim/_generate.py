@@ -13,8 +13,19 @@ import numpy as np
 
 from . import _effects as fx
 from ._mount import Mount, aim_normal, hit_plane, reflect, small_rotation
-from ._paintio import (CSV_FILE, TIMES_FILE, TOWER_FILE, format_utc, parse_utc, properties_path, read_mount,
-                       read_records, read_tower, read_weather, write_record)
+from ._paintio import (
+    CSV_FILE,
+    TIMES_FILE,
+    TOWER_FILE,
+    format_utc,
+    parse_utc,
+    properties_path,
+    read_mount,
+    read_records,
+    read_tower,
+    read_weather,
+    write_record,
+)
 from ._solar import refraction_deg, sun_compass, sun_vector_enu, to_paint_azimuth
 
 DEFAULT_SOURCE = Path("/work/shared/data/paint")
@@ -52,7 +63,7 @@ def _weather_table(rows: list[dict]):
 
 def _match_weather(unix_rec: float, good_unix: np.ndarray, used: np.ndarray) -> int:
     """Nearest unused weather row by day of year and time of day (each row used once)."""
-    doy = lambda u: (u / 86400.0) % 365.2425  # noqa: E731
+    doy = lambda u: (u / 86400.0) % 365.2425
     dd = np.abs(doy(good_unix) - doy(unix_rec))
     dd = np.minimum(dd, 365.2425 - dd)
     dh = np.abs((good_unix % 86400.0) - (unix_rec % 86400.0)) / 3600.0

@@ -115,7 +115,7 @@ class Mount:
     zero_1: float = 0.0
     zero_2: float = 0.0
 
-    def with_changes(self, **kw) -> "Mount":
+    def with_changes(self, **kw) -> Mount:
         return replace(self, **kw)
 
     def chain(self, theta1, theta2):

@@ -19,11 +19,11 @@ TIMES_FILE = "calibration-timestamps.json"
 
 def parse_utc(text: str) -> float:
     """ISO time 'YYYY-MM-DDTHH:MM:SSZ' -> unix seconds."""
-    return dt.datetime.strptime(text, "%Y-%m-%dT%H:%M:%SZ").replace(tzinfo=dt.timezone.utc).timestamp()
+    return dt.datetime.strptime(text, "%Y-%m-%dT%H:%M:%SZ").replace(tzinfo=dt.UTC).timestamp()
 
 
 def format_utc(unix: float) -> str:
-    return dt.datetime.fromtimestamp(round(unix), tz=dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    return dt.datetime.fromtimestamp(round(unix), tz=dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
 def read_tower(root: Path):

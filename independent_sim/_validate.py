@@ -7,7 +7,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ._paintio import TIMES_FILE, parse_utc, properties_path, read_mount, read_records, read_tower
+from ._paintio import (
+    TIMES_FILE,
+    parse_utc,
+    properties_path,
+    read_mount,
+    read_records,
+    read_tower,
+)
 from ._solar import refraction_deg, sun_compass, to_paint_azimuth
 
 
