@@ -59,7 +59,7 @@ EFFECTS: dict[str, EffectSpec] = {
         "mrad of axis-2 joint at 10 m/s", 0.5, "wind direction", False,
         "wind yaw torque: theta2 += a (v / 10) sin(wind_from - mirror azimuth), linear in v"),
     "lens_distortion": EffectSpec(
-        "metres of barrel distortion at 1 m from the target centre", 0.05, "spot position on target", False,
+        "metres of barrel distortion at 1 m from the target centre", 0.15, "spot position on target", False,
         "camera: measured offset from target centre r' = r (1 + k |r|^2), k = a / 1 m^3"),
     "daily_periodic": EffectSpec(
         "mrad of mirror normal", 0.5, "UTC time of day", False,
