@@ -28,7 +28,8 @@ def run_suite(work: Path, tag: str, seed: int) -> None:
     effect, outliers = (tag[:-4], 0.05) if tag.endswith("_out") else (tag, 0.0)
     generate(effect, work / tag, seed=seed, outliers=outliers)
     subprocess.run([sys.executable, "-m", "heliojax.cli._main", "discover", str(work / tag), "--base", "actuator",
-                    "--report", str(work / f"{tag}.report.json"), "--quiet"], check=False)
+                    "--report", str(work / f"{tag}.report.json"), "--quiet"], check=False,
+                   stdout=subprocess.DEVNULL)
 
 
 def table(work: Path) -> str:
