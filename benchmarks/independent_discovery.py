@@ -17,25 +17,57 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from independent_sim import EFFECTS, generate
+from independent_sim import EFFECTS, generate  # noqa: E402 (after the sys.path line)
 
-DEFAULT = ["none", "backlash", "encoder_wobble", "gravity_sag", "step", "thermal", "clock", "lens_distortion",
-           "wind_direction", "daily_periodic", "survey_target", "backlash_out", "actuator_geometry", "wind",
-           "refraction", "survey_heliostat"]
+DEFAULT = [
+    "none",
+    "backlash",
+    "encoder_wobble",
+    "gravity_sag",
+    "step",
+    "thermal",
+    "clock",
+    "lens_distortion",
+    "wind_direction",
+    "daily_periodic",
+    "survey_target",
+    "backlash_out",
+    "actuator_geometry",
+    "wind",
+    "refraction",
+    "survey_heliostat",
+]
 
 
 def run_suite(work: Path, tag: str, seed: int) -> None:
     effect, outliers = (tag[:-4], 0.05) if tag.endswith("_out") else (tag, 0.0)
     generate(effect, work / tag, seed=seed, outliers=outliers)
-    subprocess.run([sys.executable, "-m", "heliojax.cli._main", "discover", str(work / tag), "--base", "actuator",
-                    "--report", str(work / f"{tag}.report.json"), "--quiet"], check=False,
-                   stdout=subprocess.DEVNULL)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "heliojax.cli._main",
+            "discover",
+            str(work / tag),
+            "--base",
+            "actuator",
+            "--report",
+            str(work / f"{tag}.report.json"),
+            "--quiet",
+        ],
+        check=False,
+        stdout=subprocess.DEVNULL,
+    )
 
 
 def table(work: Path) -> str:
-    lines = [("| hidden effect (truth) | in library | beam RMS of effect (mrad) | named (in order; first step's "
-              "amplitudes) | not identifiable | noise estimate (mrad) | held-out RMS base -> final (mrad) |"),
-             "|---|---|---|---|---|---|---|"]
+    lines = [
+        (
+            "| hidden effect (truth) | in library | beam RMS of effect (mrad) | named (in order; first step's "
+            "amplitudes) | not identifiable | noise estimate (mrad) | held-out RMS base -> final (mrad) |"
+        ),
+        "|---|---|---|---|---|---|---|",
+    ]
     for tag in DEFAULT:
         rep_path, truth_path = work / f"{tag}.report.json", work / tag / "truth.json"
         if not (rep_path.exists() and truth_path.exists()):
@@ -48,13 +80,17 @@ def table(work: Path) -> str:
         named = ", ".join(rep.get("named_effects", [])) or "-"
         if rep.get("steps"):
             first = rep["steps"][0]
-            amps = ", ".join(f"{k} {v * 1e3:.3g}" if first.get("units", {}).get(k) == "rad" else f"{k} {v:.3g}"
-                             for k, v in first.get("amplitude", {}).items())
+            amps = ", ".join(
+                f"{k} {v * 1e3:.3g}" if first.get("units", {}).get(k) == "rad" else f"{k} {v:.3g}"
+                for k, v in first.get("amplitude", {}).items()
+            )
             named += f" ({amps})"
-        lines.append(f"| {name} | {'yes' if truth['in_library'] else 'no'} | {truth['beam_rms_mrad']:.2f} | {named} "
-                     f"| {', '.join(rep.get('not_identifiable', [])) or '-'} "
-                     f"| {rep.get('noise_estimate_mrad', float('nan')):.3f} "
-                     f"| {rep['heldout_rms_base_mrad']:.3f} -> {rep['heldout_rms_final_mrad']:.3f} |")
+        lines.append(
+            f"| {name} | {'yes' if truth['in_library'] else 'no'} | {truth['beam_rms_mrad']:.2f} | {named} "
+            f"| {', '.join(rep.get('not_identifiable', [])) or '-'} "
+            f"| {rep.get('noise_estimate_mrad', float('nan')):.3f} "
+            f"| {rep['heldout_rms_base_mrad']:.3f} -> {rep['heldout_rms_final_mrad']:.3f} |"
+        )
     return "\n".join(lines)
 
 

@@ -22,9 +22,18 @@ def main(argv=None) -> None:
     p.add_argument("--controller", choices=["calibrated", "nominal"], default="calibrated")
     p.add_argument("--source", default=str(DEFAULT_SOURCE))
     a = p.parse_args(argv)
-    truth = generate(a.effect, a.out, seed=a.seed, amplitude=a.amplitude, n_heliostats=a.heliostats,
-                     n_records=a.records, noise_mrad=a.noise, outliers=a.outliers, controller=a.controller,
-                     source=a.source)
+    truth = generate(
+        a.effect,
+        a.out,
+        seed=a.seed,
+        amplitude=a.amplitude,
+        n_heliostats=a.heliostats,
+        n_records=a.records,
+        noise_mrad=a.noise,
+        outliers=a.outliers,
+        controller=a.controller,
+        source=a.source,
+    )
     print(json.dumps({k: truth[k] for k in ("effect", "beam_rms_mrad", "seed")}))
 
 

@@ -23,52 +23,109 @@ class EffectSpec:
 EFFECTS: dict[str, EffectSpec] = {
     "none": EffectSpec("-", 0.0, "-", True, "no hidden effect (null suite)"),
     "actuator_geometry": EffectSpec(
-        "relative pivot_radius error", 0.015, "axis counts", True,
-        "true pivot_radius = (1 + a) x file value on both actuators, offset = (1 - a/2) x file value"),
+        "relative pivot_radius error",
+        0.015,
+        "axis counts",
+        True,
+        "true pivot_radius = (1 + a) x file value on both actuators, offset = (1 - a/2) x file value",
+    ),
     "backlash": EffectSpec(
-        "mrad of joint angle (half backlash)", 0.3, "approach direction", True,
-        "stroke lost on reversal: true stroke = commanded - direction x L/2, L set from a and the local slope"),
+        "mrad of joint angle (half backlash)",
+        0.3,
+        "approach direction",
+        True,
+        "stroke lost on reversal: true stroke = commanded - direction x L/2, L set from a and the local slope",
+    ),
     "thermal": EffectSpec(
-        "1/K stroke expansion", 5e-5, "temperature", True,
-        "true stroke = stroke x (1 + a (T - 20 C)) on both actuators (T from the weather row)"),
+        "1/K stroke expansion",
+        5e-5,
+        "temperature",
+        True,
+        "true stroke = stroke x (1 + a (T - 20 C)) on both actuators (T from the weather row)",
+    ),
     "wind": EffectSpec(
-        "mrad of mirror normal at 10 m/s", 0.5, "wind speed", True,
-        "wind pressure droops the mirror normal toward the horizon by a (v / 10 m/s)^2"),
+        "mrad of mirror normal at 10 m/s",
+        0.5,
+        "wind speed",
+        True,
+        "wind pressure droops the mirror normal toward the horizon by a (v / 10 m/s)^2",
+    ),
     "clock": EffectSpec(
-        "seconds of controller clock offset", 10.0, "time", True,
-        "controller time = t + a + a x (t - t0) / 100 days: the sun is computed at the wrong time"),
+        "seconds of controller clock offset",
+        10.0,
+        "time",
+        True,
+        "controller time = t + a + a x (t - t0) / 100 days: the sun is computed at the wrong time",
+    ),
     "encoder_wobble": EffectSpec(
-        "mrad of axis-2 joint angle", 0.3, "axis-2 angle", True,
-        "2-per-revolution bearing wobble: theta2 += a sin(2 theta2 + phase)"),
+        "mrad of axis-2 joint angle",
+        0.3,
+        "axis-2 angle",
+        True,
+        "2-per-revolution bearing wobble: theta2 += a sin(2 theta2 + phase)",
+    ),
     "gravity_sag": EffectSpec(
-        "mrad of mirror normal", 1.0, "normal elevation", True,
-        "the mirror's weight tilts the normal down by a cos(elevation of the normal)"),
+        "mrad of mirror normal",
+        1.0,
+        "normal elevation",
+        True,
+        "the mirror's weight tilts the normal down by a cos(elevation of the normal)",
+    ),
     "refraction": EffectSpec(
-        "fraction of standard refraction ignored", 1.0, "sun elevation", True,
-        "the light comes from the apparent sun, the controller aims with the geometric sun (a x refraction)"),
+        "fraction of standard refraction ignored",
+        1.0,
+        "sun elevation",
+        True,
+        "the light comes from the apparent sun, the controller aims with the geometric sun (a x refraction)",
+    ),
     "survey_heliostat": EffectSpec(
-        "metres of position error", 0.1, "target geometry", True,
-        "the true heliostat position differs from the properties file by a in a random 3-D direction"),
+        "metres of position error",
+        0.1,
+        "target geometry",
+        True,
+        "the true heliostat position differs from the properties file by a in a random 3-D direction",
+    ),
     "survey_target": EffectSpec(
-        "metres of target offset", 0.1, "target", True,
-        "each target's true centre differs from the tower file by a (random east/up direction)"),
+        "metres of target offset",
+        0.1,
+        "target",
+        True,
+        "each target's true centre differs from the tower file by a (random east/up direction)",
+    ),
     "step": EffectSpec(
-        "mrad of joint zero jump", 1.0, "time", True,
-        "maintenance: both joint zeros jump by a (random signs and split) at a random date per heliostat"),
+        "mrad of joint zero jump",
+        1.0,
+        "time",
+        True,
+        "maintenance: both joint zeros jump by a (random signs and split) at a random date per heliostat",
+    ),
     "wind_direction": EffectSpec(
-        "mrad of axis-2 joint at 10 m/s", 0.5, "wind direction", False,
-        "wind yaw torque: theta2 += a (v / 10) sin(wind_from - mirror azimuth), linear in v"),
+        "mrad of axis-2 joint at 10 m/s",
+        0.5,
+        "wind direction",
+        False,
+        "wind yaw torque: theta2 += a (v / 10) sin(wind_from - mirror azimuth), linear in v",
+    ),
     "lens_distortion": EffectSpec(
-        "metres of barrel distortion at 1 m from the target centre", 0.15, "spot position on target", False,
-        "camera: measured offset from target centre r' = r (1 + k |r|^2), k = a / 1 m^3"),
+        "metres of barrel distortion at 1 m from the target centre",
+        0.15,
+        "spot position on target",
+        False,
+        "camera: measured offset from target centre r' = r (1 + k |r|^2), k = a / 1 m^3",
+    ),
     "daily_periodic": EffectSpec(
-        "mrad of mirror normal", 0.5, "UTC time of day", False,
-        "24-hour periodic tilt of the pylon: elevation of the normal += a sin(2 pi t / 1 day + phase)"),
+        "mrad of mirror normal",
+        0.5,
+        "UTC time of day",
+        False,
+        "24-hour periodic tilt of the pylon: elevation of the normal += a sin(2 pi t / 1 day + phase)",
+    ),
 }
 
 
-def draw_parameters(effect: str, amplitude: float, heliostats: list[str], times: dict[str, np.ndarray],
-                    rng: np.random.Generator) -> dict:
+def draw_parameters(
+    effect: str, amplitude: float, heliostats: list[str], times: dict[str, np.ndarray], rng: np.random.Generator
+) -> dict:
     """Per-heliostat physical parameters of the effect (JSON-ready)."""
     if effect not in EFFECTS:
         raise ValueError(f"unknown effect {effect!r}; choose from {sorted(EFFECTS)}")
@@ -140,6 +197,6 @@ def normal_elevation_change(effect, amplitude, normal, ctx, hp) -> np.ndarray:
 def camera_distortion(effect, amplitude, offset_in_plane) -> np.ndarray:
     """Measured in-plane offset (m) from the target centre, (n, 2)."""
     if effect == "lens_distortion":
-        r2 = np.sum(offset_in_plane ** 2, axis=-1, keepdims=True)
+        r2 = np.sum(offset_in_plane**2, axis=-1, keepdims=True)
         return offset_in_plane * (1.0 + amplitude * r2)
     return offset_in_plane

@@ -53,8 +53,10 @@ def _pick_heliostats(root: Path, n: int) -> list[str]:
 
 def _weather_table(rows: list[dict]):
     """Rows with complete weather, without long forward-filled repeats; arrays for nearest matching."""
+
     def key(r):
         return tuple(r.get(c, "") for c in WEATHER)
+
     rep = Counter(key(r) for r in rows)
     good = [r for r in rows if all(r.get(c) for c in WEATHER) and r.get("timestamp") and rep[key(r)] <= 20]
     unix = np.array([parse_utc(r["timestamp"]) for r in good])
@@ -79,13 +81,21 @@ def _draw_plant(nominal: Mount, rng: np.random.Generator, size: float) -> tuple[
     zeros = rng.normal(0, 5e-3 * size, 2)
     scale = 1.0 + rng.normal(0, 3e-3 * size, 2)
     plant = nominal.with_changes(
-        base_q=small_rotation(base), between_q=small_rotation(between), mirror_q=small_rotation(mirror),
-        zero_1=float(zeros[0]), zero_2=float(zeros[1]),
+        base_q=small_rotation(base),
+        between_q=small_rotation(between),
+        mirror_q=small_rotation(mirror),
+        zero_1=float(zeros[0]),
+        zero_2=float(zeros[1]),
         act1=replace(nominal.act1, increment=nominal.act1.increment * scale[0]),
-        act2=replace(nominal.act2, increment=nominal.act2.increment * scale[1]))
-    info = {"base_rotvec_rad": base.tolist(), "between_axes_rotvec_rad": between.tolist(),
-            "mirror_rotvec_rad": mirror.tolist(), "joint_zero_offsets_rad": zeros.tolist(),
-            "increment_scale": scale.tolist()}
+        act2=replace(nominal.act2, increment=nominal.act2.increment * scale[1]),
+    )
+    info = {
+        "base_rotvec_rad": base.tolist(),
+        "between_axes_rotvec_rad": between.tolist(),
+        "mirror_rotvec_rad": mirror.tolist(),
+        "joint_zero_offsets_rad": zeros.tolist(),
+        "increment_scale": scale.tolist(),
+    }
     return plant, info
 
 
@@ -100,8 +110,9 @@ def _feasible(recs, raw: dict, controller: Mount, targets, margin: int = 600) ->
     aim = np.stack([targets[r[2]][0] for r in recs])
     th1, th2 = aim_normal(controller, sun, aim)
     ok = np.ones(len(recs), dtype=bool)
-    for act, counts in zip(raw["kinematics_properties"]["actuators"],
-                           (controller.act1.counts(th1), controller.act2.counts(th2))):
+    for act, counts in zip(
+        raw["kinematics_properties"]["actuators"], (controller.act1.counts(th1), controller.act2.counts(th2))
+    ):
         ok &= (counts > act["min_increment"] + margin) & (counts < act["max_increment"] - margin)
     return ok & (el > 3.0)
 
@@ -119,8 +130,12 @@ def _simulate(effect, amp, hp, plant: Mount, controller: Mount, site, ctx, aim, 
     counts = np.stack([np.rint(controller.act1.counts(th1)), np.rint(controller.act2.counts(th2))], -1)
     true = plant
     if effect == "actuator_geometry":
-        true = plant.with_changes(**{k: replace(a, pivot=a.pivot * (1 + amp), offset=a.offset * (1 - amp / 2))
-                                     for k, a in (("act1", plant.act1), ("act2", plant.act2))})
+        true = plant.with_changes(
+            **{
+                k: replace(a, pivot=a.pivot * (1 + amp), offset=a.offset * (1 - amp / 2))
+                for k, a in (("act1", plant.act1), ("act2", plant.act2))
+            }
+        )
     if effect == "survey_heliostat":
         true = true.with_changes(position=plant.position + np.asarray(hp["offset_enu_m"]))
     d = np.sign(np.diff(counts, axis=0))
@@ -151,10 +166,20 @@ def _simulate(effect, amp, hp, plant: Mount, controller: Mount, site, ctx, aim, 
     return counts.astype(np.int64), spots, centre, direction
 
 
-def generate(effect: str, out_dir, seed: int = 0, amplitude: float | None = None, n_heliostats: int = 20,
-             n_records: int = 60, noise_mrad: float = 0.25, outliers: float = 0.0,
-             controller: str = "calibrated", aim_spread_m: float = 0.8, plant_errors: float = 1.0,
-             source=DEFAULT_SOURCE) -> dict:
+def generate(
+    effect: str,
+    out_dir,
+    seed: int = 0,
+    amplitude: float | None = None,
+    n_heliostats: int = 20,
+    n_records: int = 60,
+    noise_mrad: float = 0.25,
+    outliers: float = 0.0,
+    controller: str = "calibrated",
+    aim_spread_m: float = 0.8,
+    plant_errors: float = 1.0,
+    source=DEFAULT_SOURCE,
+) -> dict:
     """Write a PAINT-layout suite to `out_dir` and return the truth (also written as truth.json).
 
     effect: a key of `EFFECTS`; amplitude in the effect's unit (default `EFFECTS[effect].default`);
@@ -204,24 +229,36 @@ def generate(effect: str, out_dir, seed: int = 0, amplitude: float | None = None
         mine = [r for r, ok in zip(mine, ok_mine) if ok]
         if len(mine) > n_records:
             mine = [mine[i] for i in sorted(rng.choice(len(mine), n_records, replace=False))]
-        extra = [r for r, ok in zip(extra, ok_extra) if ok][:n_records - len(mine)]
+        extra = [r for r, ok in zip(extra, ok_extra) if ok][: n_records - len(mine)]
         if len(mine) + len(extra) < n_records:
             raise ValueError(f"{h}: only {len(mine) + len(extra)} reachable records")
         plan[h] = sorted(mine + extra, key=lambda x: x[1])
     times = {h: np.array([r[1] for r in plan[h]]) for h in heliostats}
     params = fx.draw_parameters(effect, amp, heliostats, times, rng)
-    targets_true = {k: v[0] + np.asarray(params.get("target_offsets_enu_m", {}).get(k, [0.0, 0, 0]))
-                    for k, v in targets.items()}
+    targets_true = {
+        k: v[0] + np.asarray(params.get("target_offsets_enu_m", {}).get(k, [0.0, 0, 0])) for k, v in targets.items()
+    }
     targets_nominal = {k: v[0] for k, v in targets.items()}
     if out.exists():
         shutil.rmtree(out)
     out.mkdir(parents=True)
     shutil.copyfile(root / TOWER_FILE, out / TOWER_FILE)
     csv_rows, stamps_out = [], {}
-    truth = {"effect": effect, "in_library": fx.EFFECTS[effect].in_library, "driver": fx.EFFECTS[effect].driver,
-             "description": fx.EFFECTS[effect].description, "parameters": params, "seed": seed,
-             "noise_mrad": noise_mrad, "outlier_fraction": outliers, "controller": controller,
-             "source": str(root), "heliostats": {}, "outliers": [], "steps": []}
+    truth = {
+        "effect": effect,
+        "in_library": fx.EFFECTS[effect].in_library,
+        "driver": fx.EFFECTS[effect].driver,
+        "description": fx.EFFECTS[effect].description,
+        "parameters": params,
+        "seed": seed,
+        "noise_mrad": noise_mrad,
+        "outlier_fraction": outliers,
+        "controller": controller,
+        "source": str(root),
+        "heliostats": {},
+        "outliers": [],
+        "steps": [],
+    }
     all_dev = []
     for h in heliostats:
         raw, nominal, plant, plant_info = plants[h]
@@ -237,18 +274,22 @@ def generate(effect: str, out_dir, seed: int = 0, amplitude: float | None = None
         for i, r in enumerate(recs):
             a1, a2 = _plane_axes(targets[r[2]][1])
             aim[i] = targets[r[2]][0] + aim_off[i, 0] * a1 + aim_off[i, 1] * a2
-        ctx = {"time": times[h], "t0": float(times[h][0]), "target": [r[2] for r in recs],
-               "temperature": np.array([float(w["temperature"]) for w in wrows]),
-               "wind_speed": np.array([float(w["wind_speed"]) for w in wrows]),
-               "wind_direction": np.array([float(w["wind_direction"]) for w in wrows]),
-               "first_direction": first_dir}
+        ctx = {
+            "time": times[h],
+            "t0": float(times[h][0]),
+            "target": [r[2] for r in recs],
+            "temperature": np.array([float(w["temperature"]) for w in wrows]),
+            "wind_speed": np.array([float(w["wind_speed"]) for w in wrows]),
+            "wind_direction": np.array([float(w["wind_direction"]) for w in wrows]),
+            "first_direction": first_dir,
+        }
         ctrl = plant if controller == "calibrated" else nominal
         site = raw["heliostat_position"]
         hp = params["per_heliostat"][h]
-        counts, spots, centre, direction = _simulate(effect, amp, hp, plant, ctrl, site, ctx, aim, targets,
-                                                     targets_true)
-        _c0, spots0, _ce, _d = _simulate("none", 0.0, hp, plant, ctrl, site, ctx, aim, targets,
-                                         targets_nominal)
+        counts, spots, centre, direction = _simulate(
+            effect, amp, hp, plant, ctrl, site, ctx, aim, targets, targets_true
+        )
+        _c0, spots0, _ce, _d = _simulate("none", 0.0, hp, plant, ctrl, site, ctx, aim, targets, targets_nominal)
         dist = np.linalg.norm(spots - centre, axis=-1)
         all_dev.append(np.linalg.norm(spots - spots0, axis=-1) / dist * 1e3)
         (out / h / "Properties").mkdir(parents=True)
@@ -261,32 +302,60 @@ def generate(effect: str, out_dir, seed: int = 0, amplitude: float | None = None
             spot = spots[i] + noise_mrad * 1e-3 * dist[i] * (noise[i, 0] * a1 + noise[i, 1] * a2)
             if is_out[i]:
                 spot = spot + out_ang[i] * dist[i] * (np.cos(out_dir_ang[i]) * a1 + np.sin(out_dir_ang[i]) * a2)
-                truth["outliers"].append({"heliostat": h, "record_id": r[0], "displacement_mrad":
-                                          float(out_ang[i] * 1e3)})
+                truth["outliers"].append(
+                    {"heliostat": h, "record_id": r[0], "displacement_mrad": float(out_ang[i] * 1e3)}
+                )
             lla = frame.to_lla(spot)
-            write_record(out / h / "Calibration" / f"{r[0]}-calibration-properties.json", counts[i], r[2],
-                         float(el_app[i]), float(to_paint_azimuth(az[i])), lla)
+            write_record(
+                out / h / "Calibration" / f"{r[0]}-calibration-properties.json",
+                counts[i],
+                r[2],
+                float(el_app[i]),
+                float(to_paint_azimuth(az[i])),
+                lla,
+            )
             stamps_out[r[0]] = {"heliostat_id": h, "datetime": format_utc(r[1])}
             centre_lla = tower[r[2]]["coordinates"]["center"]
-            row = {"heliostat_id": h, "timestamp": format_utc(r[1]), "sample_id": r[0],
-                   "sun_elevation": float(el_app[i]), "sun_azimuth": float(to_paint_azimuth(az[i])),
-                   "axis_1_motor_position": int(counts[i, 0]), "axis_2_motor_position": int(counts[i, 1]),
-                   "target_name": r[2], "heliostat_lat": site[0], "heliostat_lon": site[1],
-                   "heliostat_alt": site[2], "focal_spot_lat": lla[0], "focal_spot_lon": lla[1],
-                   "focal_spot_alt": lla[2], "target_center_lat": centre_lla[0],
-                   "target_center_lon": centre_lla[1], "target_center_alt": centre_lla[2],
-                   "tracking_error_lat": lla[0] - centre_lla[0], "tracking_error_lon": lla[1] - centre_lla[1],
-                   "tracking_error_alt": lla[2] - centre_lla[2]}
+            row = {
+                "heliostat_id": h,
+                "timestamp": format_utc(r[1]),
+                "sample_id": r[0],
+                "sun_elevation": float(el_app[i]),
+                "sun_azimuth": float(to_paint_azimuth(az[i])),
+                "axis_1_motor_position": int(counts[i, 0]),
+                "axis_2_motor_position": int(counts[i, 1]),
+                "target_name": r[2],
+                "heliostat_lat": site[0],
+                "heliostat_lon": site[1],
+                "heliostat_alt": site[2],
+                "focal_spot_lat": lla[0],
+                "focal_spot_lon": lla[1],
+                "focal_spot_alt": lla[2],
+                "target_center_lat": centre_lla[0],
+                "target_center_lon": centre_lla[1],
+                "target_center_alt": centre_lla[2],
+                "tracking_error_lat": lla[0] - centre_lla[0],
+                "tracking_error_lon": lla[1] - centre_lla[1],
+                "tracking_error_alt": lla[2] - centre_lla[2],
+            }
             row.update({c: wrows[i][c] for c in WEATHER})
             csv_rows.append(row)
         if effect == "step":
-            truth["steps"].append({"heliostat": h, "time": format_utc(hp["step_unix"]),
-                                   "jump_mrad": {"axis_1": hp["jump_axis_1_mrad"], "axis_2": hp["jump_axis_2_mrad"]}})
-        truth["heliostats"][h] = {"plant": plant_info, "record_ids": [r[0] for r in recs],
-                                  "reused_real_records": sum(1 for r in recs if int(r[0]) < 9_000_000),
-                                  "approach_reversals": int(np.sum(np.abs(np.diff(direction, axis=0)) > 0))}
+            truth["steps"].append(
+                {
+                    "heliostat": h,
+                    "time": format_utc(hp["step_unix"]),
+                    "jump_mrad": {"axis_1": hp["jump_axis_1_mrad"], "axis_2": hp["jump_axis_2_mrad"]},
+                }
+            )
+        truth["heliostats"][h] = {
+            "plant": plant_info,
+            "record_ids": [r[0] for r in recs],
+            "reused_real_records": sum(1 for r in recs if int(r[0]) < 9_000_000),
+            "approach_reversals": int(np.sum(np.abs(np.diff(direction, axis=0)) > 0)),
+        }
     dev = np.concatenate(all_dev)
-    truth["beam_rms_mrad"] = float(np.sqrt(np.mean(dev ** 2)))
+    truth["beam_rms_mrad"] = float(np.sqrt(np.mean(dev**2)))
     truth["beam_rms_per_component_mrad"] = truth["beam_rms_mrad"] / np.sqrt(2.0)
     (out / TIMES_FILE).write_text(json.dumps(stamps_out, indent=1))
     with open(out / CSV_FILE, "w", newline="") as f:

@@ -30,8 +30,14 @@ def quat_axis_angle(axis, angle) -> np.ndarray:
 
 def _cross(a, b) -> np.ndarray:
     a, b = np.broadcast_arrays(a, b)
-    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+    return np.stack(
+        [
+            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
+        ],
+        axis=-1,
+    )
 
 
 def quat_mul(p, q) -> np.ndarray:
@@ -73,7 +79,7 @@ class Actuator:
     clockwise: bool
 
     def triangle_angle(self, stroke):
-        c = (self.offset ** 2 + self.pivot ** 2 - np.asarray(stroke) ** 2) / (2.0 * self.offset * self.pivot)
+        c = (self.offset**2 + self.pivot**2 - np.asarray(stroke) ** 2) / (2.0 * self.offset * self.pivot)
         return np.arccos(np.clip(c, -1.0, 1.0))
 
     def stroke(self, counts):
@@ -86,7 +92,7 @@ class Actuator:
     def stroke_from_angle(self, angle):
         change = (self.initial_angle - angle) if self.clockwise else (angle - self.initial_angle)
         tri = change + self.triangle_angle(self.initial_stroke)
-        return np.sqrt(self.offset ** 2 + self.pivot ** 2 - 2.0 * self.offset * self.pivot * np.cos(tri))
+        return np.sqrt(self.offset**2 + self.pivot**2 - 2.0 * self.offset * self.pivot * np.cos(tri))
 
     def angle(self, counts):
         return self.angle_from_stroke(self.stroke(counts))
@@ -124,8 +130,9 @@ class Mount:
         q1 = quat_axis_angle(EAST, -elevation)
         q2 = quat_axis_angle(UP, np.asarray(theta2, dtype=float) + self.zero_2)
         outer = quat_mul(np.broadcast_to(self.base_q, q1.shape), q1)
-        inner = quat_mul(quat_mul(np.broadcast_to(self.between_q, q2.shape), q2),
-                         np.broadcast_to(self.mirror_q, q2.shape))
+        inner = quat_mul(
+            quat_mul(np.broadcast_to(self.between_q, q2.shape), q2), np.broadcast_to(self.mirror_q, q2.shape)
+        )
         return outer, quat_mul(outer, inner)
 
     def pose(self, theta1, theta2):
@@ -133,9 +140,12 @@ class Mount:
         outer, full = self.chain(theta1, theta2)
         normal = quat_rotate(full, np.broadcast_to(self.rest_normal, full.shape[:-1] + (3,)))
         arm = self.joint2_translation + quat_rotate(
-            quat_mul(np.broadcast_to(self.between_q, full.shape), quat_axis_angle(
-                UP, np.asarray(theta2, dtype=float) + self.zero_2)),
-            np.broadcast_to(self.mirror_translation, full.shape[:-1] + (3,)))
+            quat_mul(
+                np.broadcast_to(self.between_q, full.shape),
+                quat_axis_angle(UP, np.asarray(theta2, dtype=float) + self.zero_2),
+            ),
+            np.broadcast_to(self.mirror_translation, full.shape[:-1] + (3,)),
+        )
         centre = self.position + quat_rotate(outer, arm)
         return normal, centre
 
@@ -168,8 +178,9 @@ def reflect(incoming_to_sun, normal):
 
 def hit_plane(origin, direction, plane_point, plane_normal):
     """Intersection of rays with a plane (ENU m)."""
-    t = np.sum((plane_point - origin) * plane_normal, -1, keepdims=True) / np.sum(direction * plane_normal, -1,
-                                                                                      keepdims=True)
+    t = np.sum((plane_point - origin) * plane_normal, -1, keepdims=True) / np.sum(
+        direction * plane_normal, -1, keepdims=True
+    )
     return origin + t * direction
 
 

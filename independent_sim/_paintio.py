@@ -47,17 +47,31 @@ def read_mount(root: Path, heliostat: str, frame: LocalFrame) -> tuple[dict, Mou
     """Nominal mount from a properties file (raw dict returned too, to copy unchanged)."""
     raw = json.loads(properties_path(root, heliostat).read_text())
     kin = raw["kinematics_properties"]
-    acts = [Actuator(increment=float(a["increment"]), initial_stroke=float(a["initial_stroke_length"]),
-                     offset=float(a["offset"]), pivot=float(a["pivot_radius"]),
-                     initial_angle=float(a["initial_angle"]), clockwise=bool(a["clockwise_axis_movement"]))
-            for a in kin["actuators"]]
+    acts = [
+        Actuator(
+            increment=float(a["increment"]),
+            initial_stroke=float(a["initial_stroke_length"]),
+            offset=float(a["offset"]),
+            pivot=float(a["pivot_radius"]),
+            initial_angle=float(a["initial_angle"]),
+            clockwise=bool(a["clockwise_axis_movement"]),
+        )
+        for a in kin["actuators"]
+    ]
     j2 = np.array([kin["joint_translation_e_2"], kin["joint_translation_n_2"], kin["joint_translation_u_2"]])
     j1 = np.array([kin["joint_translation_e_1"], kin["joint_translation_n_1"], kin["joint_translation_u_1"]])
-    mirror = np.array([kin["concentrator_translation_e"], kin["concentrator_translation_n"],
-                       kin["concentrator_translation_u"]])
+    mirror = np.array(
+        [kin["concentrator_translation_e"], kin["concentrator_translation_n"], kin["concentrator_translation_u"]]
+    )
     rest = np.asarray(raw["initial_orientation"], dtype=float)
-    mount = Mount(position=frame.to_enu(raw["heliostat_position"]) + j1, act1=acts[0], act2=acts[1],
-                  rest_normal=rest / np.linalg.norm(rest), joint2_translation=j2, mirror_translation=mirror)
+    mount = Mount(
+        position=frame.to_enu(raw["heliostat_position"]) + j1,
+        act1=acts[0],
+        act2=acts[1],
+        rest_normal=rest / np.linalg.norm(rest),
+        joint2_translation=j2,
+        mirror_translation=mirror,
+    )
     return raw, mount
 
 
@@ -76,7 +90,11 @@ def read_weather(root: Path) -> tuple[list[str], list[dict]]:
 
 def write_record(path: Path, counts, target: str, sun_el: float, sun_az: float, spot_lla) -> None:
     spot = [float(v) for v in spot_lla]
-    rec = {"motor_position": {"axis_1_motor_position": int(counts[0]), "axis_2_motor_position": int(counts[1])},
-           "target_name": target, "sun_elevation": float(sun_el), "sun_azimuth": float(sun_az),
-           "focal_spot": {"HeliOS": spot, "UTIS": spot}}
+    rec = {
+        "motor_position": {"axis_1_motor_position": int(counts[0]), "axis_2_motor_position": int(counts[1])},
+        "target_name": target,
+        "sun_elevation": float(sun_el),
+        "sun_azimuth": float(sun_az),
+        "focal_spot": {"HeliOS": spot, "UTIS": spot},
+    }
     path.write_text(json.dumps(rec, indent=2))

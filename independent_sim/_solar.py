@@ -20,8 +20,11 @@ def sun_compass(unix_seconds, lat_deg, lon_deg) -> tuple[np.ndarray, np.ndarray]
     mean_long = np.mod(280.46646 + t * (36000.76983 + t * 0.0003032), 360.0)
     anomaly = np.radians(357.52911 + t * (35999.05029 - 0.0001537 * t))
     ecc = 0.016708634 - t * (0.000042037 + 0.0000001267 * t)
-    centre = (np.sin(anomaly) * (1.914602 - t * (0.004817 + 0.000014 * t))
-              + np.sin(2 * anomaly) * (0.019993 - 0.000101 * t) + np.sin(3 * anomaly) * 0.000289)
+    centre = (
+        np.sin(anomaly) * (1.914602 - t * (0.004817 + 0.000014 * t))
+        + np.sin(2 * anomaly) * (0.019993 - 0.000101 * t)
+        + np.sin(3 * anomaly) * 0.000289
+    )
     omega = np.radians(125.04 - 1934.136 * t)
     app_long = np.radians(mean_long + centre - 0.00569 - 0.00478 * np.sin(omega))
     eps0 = 23.0 + (26.0 + (21.448 - t * (46.815 + t * (0.00059 - t * 0.001813))) / 60.0) / 60.0
@@ -29,9 +32,13 @@ def sun_compass(unix_seconds, lat_deg, lon_deg) -> tuple[np.ndarray, np.ndarray]
     decl = np.arcsin(np.sin(eps) * np.sin(app_long))
     y = np.tan(eps / 2.0) ** 2
     l0 = np.radians(mean_long)
-    eot_min = 4.0 * np.degrees(y * np.sin(2 * l0) - 2 * ecc * np.sin(anomaly)
-                               + 4 * ecc * y * np.sin(anomaly) * np.cos(2 * l0)
-                               - 0.5 * y * y * np.sin(4 * l0) - 1.25 * ecc * ecc * np.sin(2 * anomaly))
+    eot_min = 4.0 * np.degrees(
+        y * np.sin(2 * l0)
+        - 2 * ecc * np.sin(anomaly)
+        + 4 * ecc * y * np.sin(anomaly) * np.cos(2 * l0)
+        - 0.5 * y * y * np.sin(4 * l0)
+        - 1.25 * ecc * ecc * np.sin(2 * anomaly)
+    )
     minutes_utc = np.mod(np.asarray(unix_seconds, dtype=float), 86400.0) / 60.0
     solar_min = minutes_utc + eot_min + 4.0 * np.asarray(lon_deg, dtype=float)
     hour_angle = np.radians(solar_min / 4.0 - 180.0)

@@ -41,10 +41,14 @@ def compare_sun_with_records(source) -> dict:
             del_app.append(float(el + refraction_deg(el)) - rec["sun_elevation"])
             del_geo.append(float(el) - rec["sun_elevation"])
     a, e, g = (np.abs(np.array(x)) for x in (daz, del_app, del_geo))
-    return {"n_records": int(a.size), "azimuth_median_deg": float(np.median(a)),
-            "azimuth_p99_deg": float(np.percentile(a, 99)), "elevation_median_deg": float(np.median(e)),
-            "elevation_p99_deg": float(np.percentile(e, 99)),
-            "elevation_without_refraction_median_deg": float(np.median(g))}
+    return {
+        "n_records": int(a.size),
+        "azimuth_median_deg": float(np.median(a)),
+        "azimuth_p99_deg": float(np.percentile(a, 99)),
+        "elevation_median_deg": float(np.median(e)),
+        "elevation_p99_deg": float(np.percentile(e, 99)),
+        "elevation_without_refraction_median_deg": float(np.median(g)),
+    }
 
 
 def nominal_normal_errors(source) -> np.ndarray:
@@ -59,8 +63,9 @@ def nominal_normal_errors(source) -> np.ndarray:
             az, el = np.radians(rec["sun_azimuth"]), np.radians(rec["sun_elevation"])
             sun = np.array([np.cos(el) * np.sin(az), -np.cos(el) * np.cos(az), np.sin(el)])
             c = rec["motor_position"]
-            normal, centre = mount.pose(mount.act1.angle(c["axis_1_motor_position"]),
-                                        mount.act2.angle(c["axis_2_motor_position"]))
+            normal, centre = mount.pose(
+                mount.act1.angle(c["axis_1_motor_position"]), mount.act2.angle(c["axis_2_motor_position"])
+            )
             d = frame.to_enu(rec["focal_spot"]["HeliOS"]) - centre
             bis = sun + d / np.linalg.norm(d)
             bis = bis / np.linalg.norm(bis)

@@ -100,5 +100,6 @@ def test_geodesy_round_trip():
 def test_unknown_effect_is_rejected(tmp_path):
     with pytest.raises(ValueError, match="unknown effect"):
         generate("nope", tmp_path / "x")
-    assert {"wind_direction", "lens_distortion", "daily_periodic"} <= {k for k, v in EFFECTS.items()
-                                                                        if not v.in_library}
+    assert {"wind_direction", "lens_distortion", "daily_periodic"} <= {
+        k for k, v in EFFECTS.items() if not v.in_library
+    }
