@@ -231,7 +231,7 @@ def load_fleet(path):
     """Read what :func:`save_fleet` wrote (numpy leaves)."""
     import jax
 
-    from heliojax._kinematics import HeliostatGeometry, LinearActuators, RecordContext
+    from heliojax._heliostat import HeliostatGeometry, LinearActuators, RecordContext
 
     z = np.load(path)
     one = np.ones((1, 2))

@@ -22,7 +22,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from heliojax._geometry import sun_direction  # noqa: E402
-from heliojax._kinematics import ActuatorModel, RecordContext, StoneModel, inverse_aim  # noqa: E402
+from heliojax._heliostat import RecordContext  # noqa: E402
+from heliojax._kinematics import ActuatorModel, StoneModel, inverse_aim  # noqa: E402
 from heliojax._simulate import calibration_target, synthetic_geometry  # noqa: E402
 from heliojax.neural import NeuralConfig, heliostat_keys, init_residual_networks, validation_tail  # noqa: E402
 from heliojax.neural._train import (  # noqa: E402

@@ -18,6 +18,13 @@ from . import (
     paint as paint,
 )
 from ._aim import AimResult as AimResult, aim_fleet as aim_fleet, aim_results as aim_results
+from ._beam import (
+    beam_error_components as beam_error_components,
+    beam_pointing_error as beam_pointing_error,
+    measured_normal as measured_normal,
+    reflected_ray as reflected_ray,
+    target_miss_distance as target_miss_distance,
+)
 from ._errors import ConfigError as ConfigError, DataError as DataError, HeliojaxError as HeliojaxError
 from ._fleet import (
     Fleet as Fleet,
@@ -40,25 +47,22 @@ from ._geometry import (
     wgs84_to_ecef as wgs84_to_ecef,
     wgs84_to_enu as wgs84_to_enu,
 )
+from ._heliostat import (
+    HeliostatGeometry as HeliostatGeometry,
+    LinearActuators as LinearActuators,
+    Pose as Pose,
+    RecordContext as RecordContext,
+)
 from ._kinematics import (
     MODEL_KINDS as MODEL_KINDS,
     AbstractKinematicModel as AbstractKinematicModel,
     AbstractModelWrapper as AbstractModelWrapper,
     ActuatorModel as ActuatorModel,
-    HeliostatGeometry as HeliostatGeometry,
-    LinearActuators as LinearActuators,
-    Pose as Pose,
-    RecordContext as RecordContext,
     StoneModel as StoneModel,
-    beam_error_components as beam_error_components,
-    beam_pointing_error as beam_pointing_error,
     forward as forward,
     inverse_aim as inverse_aim,
     inverse_normal as inverse_normal,
-    measured_normal as measured_normal,
     nominal_model as nominal_model,
-    reflected_ray as reflected_ray,
-    target_miss_distance as target_miss_distance,
 )
 from ._parameters import (
     ParameterView as ParameterView,

@@ -23,7 +23,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from ._kinematics import AbstractKinematicModel, HeliostatGeometry, beam_pointing_error, forward, inverse_aim
+from ._beam import beam_pointing_error
+from ._heliostat import HeliostatGeometry
+from ._kinematics import AbstractKinematicModel, forward, inverse_aim
 
 REACH_TOLERANCE_MRAD = 1e-3
 """Largest forward-model miss (mrad) of commanded counts that still counts as reaching the aim point."""

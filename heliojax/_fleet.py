@@ -79,7 +79,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ._geometry import TargetPlane
-from ._kinematics import HeliostatGeometry, RecordContext
+from ._heliostat import HeliostatGeometry, RecordContext
 
 __all__ = [
     "OUTLIER_FLOOR",

@@ -141,7 +141,8 @@ def wgs84_to_enu(lla: Float[ArrayLike, "... 3"], origin_lla: Float[ArrayLike, "3
         ``(..., 3)`` east, north, up in metres.
     """
     rot = _ecef_to_enu_matrix(origin_lla)
-    d = wgs84_to_ecef(lla) - wgs84_to_ecef(origin_lla)
+    ecef = wgs84_to_ecef(lla)
+    d = ecef - jnp.broadcast_to(wgs84_to_ecef(origin_lla), ecef.shape)
     return d @ rot.T
 
 
@@ -151,7 +152,8 @@ def enu_to_wgs84(enu: Float[ArrayLike, "... 3"], origin_lla: Float[ArrayLike, "3
     Inverse of :func:`wgs84_to_enu` (round trip better than 1e-6 m in float64).
     """
     rot = _ecef_to_enu_matrix(origin_lla)
-    ecef = jnp.asarray(enu) @ rot + wgs84_to_ecef(origin_lla)
+    ecef = jnp.asarray(enu) @ rot
+    ecef = ecef + jnp.broadcast_to(wgs84_to_ecef(origin_lla), ecef.shape)
     return ecef_to_wgs84(ecef)
 
 
@@ -263,13 +265,16 @@ class TargetPlane(eqx.Module):
 
     def to_plane(self, point: Float[ArrayLike, "... 3"]) -> Float[Array, "... 2"]:
         """In-target coordinates ``(u, v)`` in metres of ENU points (projected on the plane)."""
-        d = jnp.asarray(point) - self.centre
+        point, centre = jnp.broadcast_arrays(jnp.asarray(point), self.centre)
+        d = point - centre
         return jnp.stack([d @ self.u_axis, d @ self.v_axis], axis=-1)
 
     def from_plane(self, uv: Float[ArrayLike, "... 2"]) -> Float[Array, "... 3"]:
         """ENU points of in-target coordinates ``(u, v)`` in metres."""
         uv = jnp.asarray(uv)
-        return self.centre + uv[..., :1] * self.u_axis + uv[..., 1:2] * self.v_axis
+        lead = (1,) * (uv.ndim - 1)
+        u_axis, v_axis, centre = (x.reshape(lead + (3,)) for x in (self.u_axis, self.v_axis, self.centre))
+        return centre + uv[..., :1] * u_axis + uv[..., 1:2] * v_axis
 
 
 @typing.final
@@ -309,12 +314,11 @@ def intersect_plane(
     Returns:
         A :class:`PlaneHit`.
     """
-    o = jnp.asarray(origin)
-    d = jnp.asarray(direction)
+    o, d = jnp.broadcast_arrays(jnp.asarray(origin), jnp.asarray(direction))
     denom = d @ target.normal
     front = denom < 0.0
     safe = jnp.where(jnp.abs(denom) > 1e-300, denom, jnp.ones_like(denom))
-    t = ((target.centre - o) @ target.normal) / safe
+    t = ((jnp.broadcast_to(target.centre, o.shape) - o) @ target.normal) / safe
     point = o + t[..., None] * d
     uv = target.to_plane(point)
     inside = (jnp.abs(uv[..., 0]) <= target.half_width) & (jnp.abs(uv[..., 1]) <= target.half_height)

@@ -33,7 +33,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ._kinematics import AbstractKinematicModel, HeliostatGeometry, RecordContext
+from ._heliostat import HeliostatGeometry, RecordContext
+from ._kinematics import AbstractKinematicModel
 from ._parameters import ParameterView
 from .fitting import sanitise
 

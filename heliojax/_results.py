@@ -43,8 +43,9 @@ import numpy as np
 
 from ._errors import DataError
 from ._geometry import direction_to_azimuth_elevation
+from ._heliostat import HeliostatGeometry, LinearActuators
 from ._io import atomic_path
-from ._kinematics import AbstractKinematicModel, HeliostatGeometry, LinearActuators, nominal_model
+from ._kinematics import AbstractKinematicModel, nominal_model
 from ._parameters import ParameterView, broadcast_model
 from ._version import __version__
 from .effects import with_effects

@@ -32,20 +32,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
+from ._beam import reflected_ray, tangent_basis
 from ._fleet import Fleet, LoadReport
 from ._geometry import TargetPlane, direction_to_azimuth_elevation, enu_to_wgs84, intersect_plane, normalize
-from ._kinematics import (
-    AbstractKinematicModel,
-    HeliostatGeometry,
-    LinearActuators,
-    Pose,
-    RecordContext,
-    StoneModel,
-    _tangent_basis,
-    forward,
-    inverse_aim,
-    reflected_ray,
-)
+from ._heliostat import HeliostatGeometry, LinearActuators, Pose, RecordContext
+from ._kinematics import AbstractKinematicModel, StoneModel, forward, inverse_aim
 from ._sun import solar_position
 from .paint import CalibrationRecord, HeliostatProperties, TargetEntry, TowerFile, write_paint_directory
 
@@ -156,7 +147,7 @@ def _simulate_core(perturb_pose, true_models, controller_models, geometry, conte
         sun = true_model.sun(g, ctx)
         r = reflected_ray(pose, sun)
         true_hit = intersect_plane(pose.centre, r, target)
-        e1, e2 = _tangent_basis(r)
+        e1, e2 = tangent_basis(r)
         r_noisy = normalize(r + an[0] * e1 + an[1] * e2)
         hit = intersect_plane(pose.centre, r_noisy, target)
         spot = hit.point + pn[0] * target.u_axis + pn[1] * target.v_axis

@@ -633,13 +633,15 @@ def _earth_heliocentric(jme: Array) -> tuple[Array, Array, Array]:
 
 def _nutation(jce: Array) -> tuple[Array, Array]:
     """Nutation in longitude and in obliquity (delta psi, delta epsilon), degrees."""
-    poly = jnp.asarray(_NUTATION_X_POLY, dtype=jce.dtype)
-    x = _poly([poly[:, k] for k in range(4)], jce[..., None])  # (..., 5), degrees
+    lead = (1,) * jnp.ndim(jce)  # explicit broadcasting of the tables over jce's shape
+    poly = jnp.asarray(_NUTATION_X_POLY, dtype=jce.dtype).reshape(-1, 4)
+    x = _poly([poly[:, k].reshape(lead + (-1,)) for k in range(4)], jce[..., None])  # (..., 5), degrees
     arg = jnp.deg2rad(x @ jnp.asarray(_NUTATION_Y.T, dtype=jce.dtype))  # (..., 63)
-    abcd = jnp.asarray(_NUTATION_ABCD, dtype=jce.dtype)
+    abcd = jnp.asarray(_NUTATION_ABCD, dtype=jce.dtype).reshape(lead + (-1, 4))
+    abcd = [abcd[..., k] for k in range(4)]
     j = jce[..., None]
-    dpsi = jnp.sum((abcd[:, 0] + abcd[:, 1] * j) * jnp.sin(arg), axis=-1) / 36_000_000.0
-    deps = jnp.sum((abcd[:, 2] + abcd[:, 3] * j) * jnp.cos(arg), axis=-1) / 36_000_000.0
+    dpsi = jnp.sum((abcd[0] + abcd[1] * j) * jnp.sin(arg), axis=-1) / 36_000_000.0
+    deps = jnp.sum((abcd[2] + abcd[3] * j) * jnp.cos(arg), axis=-1) / 36_000_000.0
     return dpsi, deps
 
 

@@ -1,4 +1,6 @@
-"""Test configuration: float64 on (calibration and geodesy need it), shared-data paths."""
+"""Test configuration: float64 on (calibration and geodesy need it), strict rank and
+dtype promotion, shared-data paths (warnings are errors: ``filterwarnings`` in
+pyproject.toml)."""
 
 from __future__ import annotations
 
@@ -8,6 +10,9 @@ import jax
 import pytest
 
 jax.config.update("jax_enable_x64", True)
+# Catch silent broadcasting and mixed-dtype arithmetic in heliojax and in the tests.
+jax.config.update("jax_numpy_rank_promotion", "raise")
+jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 SHARED_PAINT = Path(__file__).resolve().parents[2] / "shared" / "data" / "paint"
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import heliojax as hj
-from heliojax._kinematics import RecordContext
+from heliojax._heliostat import RecordContext
 from heliojax._simulate import random_stone_models, synthetic_geometry
 
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "calibration_speed.py"

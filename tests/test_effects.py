@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import heliojax as hj
-from heliojax._kinematics import chain_pose
+from heliojax._heliostat import chain_pose
 from heliojax.effects import (
     EFFECT_NAMES,
     ActuatorGeometry,

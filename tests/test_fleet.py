@@ -541,9 +541,9 @@ def test_pad_fleet(emb_fleet):
     # A masked, vmapped reduction agrees between padded and unpadded fleets.
     def per_heliostat(fl):
         def one(sun, spot, mask, pos):
-            d = spot - pos
+            d = spot - pos[None]
             cosang = jnp.sum(sun * d, -1) / jnp.linalg.norm(d, axis=-1)
-            return jnp.sum(jnp.where(mask, cosang, 0.0)) / jnp.maximum(mask.sum(), 1)
+            return jnp.sum(jnp.where(mask, cosang, 0.0)) / jnp.maximum(mask.sum(), 1).astype(cosang.dtype)
 
         return jax.jit(jax.vmap(one))(fl.context.sun, fl.focal_spot, fl.mask, fl.geometry.position)
 

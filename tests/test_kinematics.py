@@ -11,22 +11,10 @@ import numpy as np
 import pytest
 
 import heliojax as hj
+from heliojax._beam import beam_error_components, beam_pointing_error, measured_normal, reflected_ray
 from heliojax._geometry import sun_direction
-from heliojax._kinematics import (
-    ActuatorModel,
-    HeliostatGeometry,
-    LinearActuators,
-    RecordContext,
-    StoneModel,
-    beam_error_components,
-    beam_pointing_error,
-    chain_pose,
-    forward,
-    inverse_aim,
-    inverse_normal,
-    measured_normal,
-    reflected_ray,
-)
+from heliojax._heliostat import HeliostatGeometry, LinearActuators, RecordContext, chain_pose
+from heliojax._kinematics import ActuatorModel, StoneModel, forward, inverse_aim, inverse_normal
 
 # BE36's PAINT actuator values.
 BE36 = LinearActuators(

@@ -12,15 +12,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from heliojax._beam import beam_pointing_error
 from heliojax._geometry import sun_direction
-from heliojax._kinematics import (
-    ActuatorModel,
-    RecordContext,
-    StoneModel,
-    beam_pointing_error,
-    forward,
-    inverse_aim,
-)
+from heliojax._heliostat import RecordContext
+from heliojax._kinematics import ActuatorModel, StoneModel, forward, inverse_aim
 from heliojax._simulate import calibration_target, synthetic_geometry
 from heliojax.fitting import beam_errors_mrad
 from heliojax.neural import (

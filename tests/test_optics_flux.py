@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from heliojax._geometry import TargetPlane, intersect_plane, reflect
-from heliojax._kinematics import Pose
+from heliojax._heliostat import Pose
 from heliojax.optics import (
     FacetLayout,
     GaussianSun,
@@ -282,7 +282,8 @@ def test_gradient_wrt_control_points_matches_finite_differences():
 
 
 def test_gradient_wrt_kinematic_parameters():
-    from heliojax._kinematics import HeliostatGeometry, StoneModel, forward, inverse_aim
+    from heliojax._heliostat import HeliostatGeometry
+    from heliojax._kinematics import StoneModel, forward, inverse_aim
     from heliojax._simulate import calibration_target, typical_actuators
 
     geometry = HeliostatGeometry.build(

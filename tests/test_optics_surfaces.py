@@ -119,7 +119,8 @@ def test_nurbs_fit_batched_over_heliostats_with_padding(deflectometry_file):
     t = jnp.asarray([[c[0], c[1], 0.0] for c in CENTRES])
     fb = fit_nurbs(batch, jnp.stack([t, t]))
     f2 = fit_nurbs(d2, t[:2])
-    np.testing.assert_allclose(np.asarray(fb.control_points[1, :2]), np.asarray(f2.control_points), atol=1e-9)
+    # float32 surfaces: agreement to ~1 ulp at the metre scale of the coordinates
+    np.testing.assert_allclose(np.asarray(fb.control_points[1, :2]), np.asarray(f2.control_points), atol=1e-7)
     np.testing.assert_array_equal(np.asarray(fb.facet_mask), [[True] * 4, [True, True, False, False]])
     surf = fb.evaluate((8, 8))
     np.testing.assert_allclose(np.asarray(surf.total_area())[1], 2 * 1.6 * 1.25, rtol=0.02)

@@ -169,7 +169,7 @@ def test_jit_equals_plain():
 
 
 def test_vmap_equals_loop_and_broadcasting():
-    times = T0 + jnp.arange(5) * 5000.0
+    times = T0 + jnp.arange(5.0) * 5000.0
     lats = jnp.asarray([-30.0, 0.0, 20.0, 50.9, 70.0])
     lons = jnp.asarray([-120.0, 0.0, 45.0, 6.39, 170.0])
     vm = jax.vmap(lambda t, la, lo: solar_position(t, la, lo, 100.0))(times, lats, lons)

@@ -154,12 +154,12 @@ def atmospheric_attenuation(slant_m: Float[ArrayLike, "..."]) -> Float[Array, ".
 def _aperture_corners(aperture: TargetPlane) -> Float[Array, "4 3"]:
     hw, hh = aperture.half_width, aperture.half_height
     signs = jnp.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
-    return aperture.centre + (signs[:, :1] * hw) * aperture.u_axis + (signs[:, 1:] * hh) * aperture.v_axis
+    return aperture.centre[None] + (signs[:, :1] * hw) * aperture.u_axis[None] + (signs[:, 1:] * hh) * aperture.v_axis[None]
 
 
 @jax.jit
 def _intercept(positions, centre, corners, sigma, nodes, weights):
-    w = centre - positions  # (n, 3)
+    w = centre[None] - positions  # (n, 3)
     u = w / jnp.linalg.norm(w, axis=-1, keepdims=True)
     up = jnp.zeros_like(u).at[:, 2].set(1.0)
     e1 = jnp.cross(up, u)
@@ -178,11 +178,11 @@ def _intercept(positions, centre, corners, sigma, nodes, weights):
     t = -jnp.sum(a * ab, -1) / jnp.sum(ab * ab, -1)
     foot = a + t[..., None] * ab
     t0 = jnp.arctan2(foot[..., 1], foot[..., 0])
-    theta = ta[..., None] + dtheta[..., None] * 0.5 * (nodes + 1.0)  # (n, 4, q)
+    theta = ta[..., None] + dtheta[..., None] * 0.5 * (nodes[None, None] + 1.0)  # (n, 4, q)
     r = h[..., None] / jnp.cos(theta - t0[..., None])
     s2 = (sigma**2)[:, None, None]
     f = -jnp.expm1(-0.5 * r**2 / s2)
-    integral = 0.5 * dtheta * jnp.sum(weights * f, axis=-1)  # (n, 4)
+    integral = 0.5 * dtheta * jnp.sum(weights[None, None] * f, axis=-1)  # (n, 4)
     return jnp.abs(jnp.sum(integral, axis=-1)) / (2 * jnp.pi)
 
 
@@ -243,7 +243,8 @@ def cosine_efficiency(
         aim: ``(3,)`` ENU m aim point.
         sun: ``(t, 3)`` unit vectors to the sun.
     """
-    w = jnp.asarray(aim) - jnp.asarray(positions)
+    positions = jnp.asarray(positions)
+    w = jnp.broadcast_to(jnp.asarray(aim), positions.shape) - positions
     u = w / jnp.linalg.norm(w, axis=-1, keepdims=True)
     return jnp.sqrt(jnp.clip(0.5 * (1.0 + jnp.asarray(sun) @ u.T), 0.0, 1.0))
 
@@ -364,7 +365,7 @@ def field_efficiency(
     a_ref = float(jnp.mean(area)) if reference_aperture_m2 is None else float(reference_aperture_m2)
     sigma = beam_sigma(bc(tracking_mrad), bc(slope_mrad), sun_sigma_mrad)
     eta_int = intercept_efficiency(p, aperture, sigma)
-    slant = jnp.linalg.norm(aperture.centre - p, axis=-1)
+    slant = jnp.linalg.norm(aperture.centre[None] - p, axis=-1)
     static = area / a_ref * bc(reflectance) * eta_int * atmospheric_attenuation(slant)  # (n,)
     monthly = np.full(12, np.nan)
     dni_month = np.zeros(12)

@@ -31,8 +31,10 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from .._beam import beam_error_components, reflected_ray
 from .._geometry import normalize
-from .._kinematics import AbstractKinematicModel, beam_error_components, chain_pose, reflected_ray
+from .._heliostat import chain_pose
+from .._kinematics import AbstractKinematicModel
 from .._parameters import ParameterView
 from ..effects import EffectModel, with_data_references, with_effects
 from ..fitting import AbstractBatching, default_batching, default_solver, sanitise, solve_least_squares

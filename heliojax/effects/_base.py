@@ -35,13 +35,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._kinematics import (
-    AbstractKinematicModel,
-    AbstractModelWrapper,
-    HeliostatGeometry,
-    RecordContext,
-    chain_pose,
-)
+from .._heliostat import HeliostatGeometry, RecordContext, chain_pose
+from .._kinematics import AbstractKinematicModel, AbstractModelWrapper
 
 
 class AbstractEffect(eqx.Module):

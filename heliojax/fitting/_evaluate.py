@@ -10,7 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from .._kinematics import AbstractKinematicModel, HeliostatGeometry, RecordContext
+from .._heliostat import HeliostatGeometry, RecordContext
+from .._kinematics import AbstractKinematicModel
 from .._parameters import broadcast_model, is_batched
 from ._records import sanitise
 

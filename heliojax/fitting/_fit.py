@@ -34,7 +34,8 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from .._kinematics import AbstractKinematicModel, HeliostatGeometry, RecordContext
+from .._heliostat import HeliostatGeometry, RecordContext
+from .._kinematics import AbstractKinematicModel
 from .._parameters import ParameterView, broadcast_model, is_batched
 from ._batching import AbstractBatching, default_batching
 from ._loss import AbstractLoss, LeastSquares
@@ -220,7 +221,7 @@ def _fit_one(
 
     # Gauss-Newton covariance of the free parameters (scaled units -> physical).
     dof = jnp.maximum(2 * n_used - view.n_free, 1)
-    sigma2 = jnp.sum(data_r**2) / dof
+    sigma2 = jnp.sum(data_r**2) / dof.astype(data_r.dtype)
     # With a prior that constrains the parameters, few records suffice; the noise
     # then comes from the prior (the fleet's) while the heliostat's own residuals
     # have fewer degrees of freedom than parameters.
@@ -233,12 +234,12 @@ def _fit_one(
     std = jnp.zeros_like(p0).at[idx].set(std_free)
 
     params = physical(out.value)
-    rms = jnp.sqrt(jnp.sum(jnp.where(use[:, None], data_r.reshape(-1, 2) ** 2, 0.0)) / jnp.maximum(n_used, 1))
+    rms = jnp.sqrt(jnp.sum(jnp.where(use[:, None], data_r.reshape(-1, 2) ** 2, 0.0)) / jnp.maximum(n_used, 1).astype(data_r.dtype))
 
     status = status_code(out.result)
     status = jnp.where(jnp.all(jnp.isfinite(params)) & jnp.isfinite(out.cost), status, FitStatus.DIVERGED)
     status = jnp.where(bad_input, FitStatus.NON_FINITE_INPUT, status)
-    too_few = (n_used < 1) | (n_used + n_prior < view.n_free)
+    too_few = (n_used < 1) | (n_used + n_prior.astype(n_used.dtype) < view.n_free)
     status = jnp.where(too_few, FitStatus.TOO_FEW_RECORDS, status)
     status = jnp.where(jnp.any(mask), status, FitStatus.NO_RECORDS)
     # An unconstrained fit is never reported: keep the start values where too few records.

@@ -7,7 +7,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from .._kinematics import AbstractKinematicModel, HeliostatGeometry, RecordContext
+from .._heliostat import HeliostatGeometry, RecordContext
+from .._kinematics import AbstractKinematicModel
 
 
 def finite_records(

@@ -38,15 +38,10 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from .._beam import beam_error_components, beam_pointing_error, reflected_ray
 from .._geometry import normalize
-from .._kinematics import (
-    AbstractKinematicModel,
-    AbstractModelWrapper,
-    HeliostatGeometry,
-    beam_error_components,
-    beam_pointing_error,
-    reflected_ray,
-)
+from .._heliostat import HeliostatGeometry
+from .._kinematics import AbstractKinematicModel, AbstractModelWrapper
 from ._network import MLP
 
 

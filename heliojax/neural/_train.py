@@ -19,7 +19,8 @@ import optax
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from .._geometry import direction_to_azimuth_elevation, sun_direction
-from .._kinematics import AbstractKinematicModel, HeliostatGeometry, RecordContext, inverse_aim
+from .._heliostat import HeliostatGeometry, RecordContext
+from .._kinematics import AbstractKinematicModel, inverse_aim
 from ..fitting import sanitise
 from ._model import NeuralCorrection, PaperPredictor
 from ._network import MLP, PAPER_HIDDEN, init_networks
@@ -122,7 +123,7 @@ def _weighted_indices(key, w, n):
     c = jnp.cumsum(w)
     u = jax.random.uniform(key, (n,), jnp.float32) * c[-1]
     idx = jnp.searchsorted(c, u, side="right")
-    last = jnp.max(jnp.where(w > 0, jnp.arange(w.shape[0]), 0))
+    last = jnp.max(jnp.where(w > 0, jnp.arange(w.shape[0], dtype=idx.dtype), 0))
     return jnp.minimum(idx, last)
 
 
@@ -169,7 +170,8 @@ def _train(net, loss_fn, data, w_fit, w_val, key, sch: _Schedule):
             d = jax.tree_util.tree_map(lambda x: x[idx], data)
             w = jnp.where(jnp.sum(w_fit) > 0, 1.0, 0.0).astype(wdt) * jnp.ones(sch.batch_size, wdt)
         value, g = grad(p, d, w)
-        u, s = opt.update(g, s, p)
+        with jax.numpy_dtype_promotion("standard"):  # optax mixes Python floats with its int32 step count
+            u, s = opt.update(g, s, p)
         p = jax.tree_util.tree_map(lambda a, b: a - (sch.lr * scale).astype(a.dtype) * b, p, u)
         return (p, s, scale), value
 
@@ -177,7 +179,7 @@ def _train(net, loss_fn, data, w_fit, w_val, key, sch: _Schedule):
         p, s, scale, best_p, best_v, plateau_best, wait = carry
         keys = jax.random.split(k, sch.steps_per_epoch)
         (p, s, scale), values = jax.lax.scan(step, (p, s, scale), keys)
-        v = jnp.where(has_val, loss(p, data, w_val), jnp.mean(values))
+        v = jnp.where(has_val, loss(p, data, w_val).astype(wdt), jnp.mean(values).astype(wdt))
         better = v < best_v
         best_p = jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), p, best_p)
         best_v = jnp.where(better, v, best_v)
@@ -190,7 +192,7 @@ def _train(net, loss_fn, data, w_fit, w_val, key, sch: _Schedule):
         return (p, s, scale, best_p, best_v, plateau_best, wait), (jnp.mean(values), v)
 
     inf = jnp.asarray(jnp.inf, wdt)
-    v0 = jnp.where(has_val, loss(params, data, w_val), inf)
+    v0 = jnp.where(has_val, loss(params, data, w_val).astype(wdt), inf)
     carry = (params, opt.init(params), jnp.ones((), wdt), params, v0, v0, jnp.zeros((), jnp.int32))
     keys = jax.random.split(key, sch.epochs)
     carry, (train_hist, val_hist) = jax.lax.scan(epoch, carry, keys)
@@ -258,12 +260,12 @@ def synthetic_data(
     a = geometry.actuators
     valid = (
         jnp.all(jnp.isfinite(c), -1)
-        & jnp.all(c >= a.min_counts, -1)
-        & jnp.all(c <= a.max_counts, -1)
+        & jnp.all(c >= a.min_counts[None], -1)
+        & jnp.all(c <= a.max_counts[None], -1)
         & (el > jnp.deg2rad(1.0))
         & (jnp.sum(weight) > 0)
     )
-    c = jnp.where(valid[:, None], c, 0.5 * (a.min_counts + a.max_counts))
+    c = jnp.where(valid[:, None], c, 0.5 * (a.min_counts + a.max_counts)[None])
     is_val = jnp.arange(n) >= n - config.n_synthetic_val
     return SyntheticData(sun=s, spot=p, counts=c, valid=valid, is_val=is_val)
 
@@ -271,7 +273,7 @@ def synthetic_data(
 def _masked_stats(x, w):
     w = w[:, None]
     mean = jnp.sum(w * x, 0) / jnp.maximum(jnp.sum(w), 1.0)
-    var = jnp.sum(w * (x - mean) ** 2, 0) / jnp.maximum(jnp.sum(w), 1.0)
+    var = jnp.sum(w * (x - mean[None]) ** 2, 0) / jnp.maximum(jnp.sum(w), 1.0)
     return mean, jnp.sqrt(jnp.maximum(var, 1e-12)) + 1e-6
 
 
@@ -335,8 +337,8 @@ def _pretrain_paper_program(keys, syn: SyntheticData, config: NeuralConfig):
         out_mean, out_std = _masked_stats(syn.counts, fit.astype(feats.dtype))
         nets = init_networks(k_init, (2,), sizes, dtype=dtype)
         pred = PaperPredictor(nets, in_mean, in_std, out_mean, out_std)
-        x = (feats - in_mean) / in_std
-        y = (syn.counts - out_mean) / out_std
+        x = (feats - in_mean[None]) / in_std[None]
+        y = (syn.counts - out_mean[None]) / out_std[None]
         return _train_paper_one(
             pred,
             x,
@@ -355,7 +357,7 @@ def _pretrain_paper_program(keys, syn: SyntheticData, config: NeuralConfig):
 def _finetune_paper_program(keys, predictors, counts, sun, focal, w_fit, w_val, config: NeuralConfig):
     def one(key, pred, c, s, f, wf, wv):
         x = jax.vmap(pred.standardised)(s, f)
-        y = (c - pred.output_mean) / pred.output_std
+        y = (c - pred.output_mean[None]) / pred.output_std[None]
         ok = jnp.all(jnp.isfinite(x), -1) & jnp.all(jnp.isfinite(y), -1)
         x = jnp.where(ok[:, None], x, 0.0)
         y = jnp.where(ok[:, None], y, 0.0)
@@ -364,8 +366,8 @@ def _finetune_paper_program(keys, predictors, counts, sun, focal, w_fit, w_val, 
             pred,
             x,
             y,
-            (wf * ok).astype(dt),
-            (wv * ok).astype(dt),
+            (wf * ok.astype(wf.dtype)).astype(dt),
+            (wv * ok.astype(wv.dtype)).astype(dt),
             key,
             _paper_schedule(config, False),
             config.huber_delta,
@@ -417,8 +419,8 @@ def _finetune_residual_program(
             net,
             _residual_loss(model, g, sc, config.residual_huber_mrad),
             (c2, x2, f2),
-            (wf * ok).astype(dt),
-            (wv * ok).astype(dt),
+            (wf * ok.astype(wf.dtype)).astype(dt),
+            (wv * ok.astype(wv.dtype)).astype(dt),
             key,
             sch,
         )

@@ -34,7 +34,8 @@ import numpy as np
 
 from .._errors import DataError
 from .._geometry import TargetPlane, sun_direction, wgs84_to_enu
-from .._kinematics import AbstractKinematicModel, ActuatorModel, HeliostatGeometry, LinearActuators, forward
+from .._heliostat import HeliostatGeometry, LinearActuators
+from .._kinematics import AbstractKinematicModel, ActuatorModel, forward
 from ..paint import read_calibration_record, read_flux_png, read_heliostat_properties, read_tower
 from ._flux import ImageGrid, centroid, flux_image
 from ._sunshape import AbstractSunShape, BuieSun, EffectiveSun

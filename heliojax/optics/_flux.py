@@ -59,7 +59,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .._geometry import TargetPlane, bisector_normal, normalize
-from .._kinematics import Pose
+from .._heliostat import Pose
 from ._sunshape import AbstractSunShape, tangent_basis, uniforms
 from ._surfaces import SurfacePoints
 
@@ -123,20 +123,22 @@ class ImageGrid(eqx.Module):
 
     def pixel_centres(self) -> tuple[Float[Array, "*b nx"], Float[Array, "*b ny"]]:
         """``(u of each column, v of each row)`` in m (rows top to bottom)."""
-        c = jnp.arange(self.shape[1]) + 0.5
-        r = jnp.arange(self.shape[0]) + 0.5
-        u = self.u_min[..., None] + c * self.du[..., None]
-        v = self.v_max[..., None] - r * self.dv[..., None]
+        c = jnp.arange(self.shape[1], dtype=self.du.dtype) + 0.5
+        r = jnp.arange(self.shape[0], dtype=self.dv.dtype) + 0.5
+        lead = (1,) * jnp.ndim(self.du)
+        u = self.u_min[..., None] + c.reshape(lead + (-1,)) * self.du[..., None]
+        v = self.v_max[..., None] - r.reshape(lead + (-1,)) * self.dv[..., None]
         return u, v
 
 
 def centroid(image: Float[Array, "*b ny nx"], grid: ImageGrid) -> Float[Array, "*b 2"]:
     """Flux-weighted centroid ``(u, v)`` in m of an image on ``grid``."""
-    u, v = grid.pixel_centres()
+    u, v = (x.astype(image.dtype) for x in grid.pixel_centres())
     total = jnp.sum(image, axis=(-2, -1))
     safe = jnp.where(total > 0, total, 1.0)
-    cu = jnp.sum(image * u[..., None, :], axis=(-2, -1)) / safe
-    cv = jnp.sum(image * v[..., :, None], axis=(-2, -1)) / safe
+    lift = lambda x: x.reshape((1,) * (image.ndim - x.ndim) + x.shape)  # noqa: E731
+    cu = jnp.sum(image * lift(u[..., None, :]), axis=(-2, -1)) / safe
+    cv = jnp.sum(image * lift(v[..., :, None]), axis=(-2, -1)) / safe
     return jnp.stack([cu, cv], axis=-1)
 
 
@@ -187,7 +189,7 @@ class _Prepared(eqx.Module):
 def _prepare(surface, pose, sun, target, grid, scale, dtype):
     cast = lambda x: jnp.asarray(x).astype(dtype)  # noqa: E731
     rot = cast(pose.rotation)
-    o = cast(pose.centre) + cast(surface.points) @ rot.T
+    o = cast(pose.centre)[None] + cast(surface.points) @ rot.T
     n = cast(surface.normals) @ rot.T
     n = n / jnp.linalg.norm(n, axis=-1, keepdims=True)
     s = cast(sun)
@@ -201,11 +203,11 @@ def _prepare(surface, pose, sun, target, grid, scale, dtype):
     # reflected propagation direction of incoming -b: -b + 2 (b.n) n ; projected on X.
     coef = -bx.T[None] + 2.0 * nx[:, :, None] * cosb[:, None, :]  # (p, X, b)
     c = cast(target.centre)
-    h = (c - o) @ frame[0]
+    h = (c[None] - o) @ frame[0]
     du, dv = cast(grid.du), cast(grid.dv)
     # continuous pixel coordinates: x = (u - u_min)/du - 1/2 ; y = (v_max - v)/dv - 1/2
-    ou = ((o - c) @ frame[1] - cast(grid.u_min)) / du - 0.5
-    ov = (cast(grid.v_max) - (o - c) @ frame[2]) / dv - 0.5
+    ou = ((o - c[None]) @ frame[1] - cast(grid.u_min)) / du - 0.5
+    ov = (cast(grid.v_max) - (o - c[None]) @ frame[2]) / dv - 0.5
     weight = cast(surface.areas) * cast(scale) / (du * dv)
     # fold the pixel scaling of u, v into the coefficients
     coef = coef * jnp.stack([jnp.ones((), dtype), 1.0 / du, -1.0 / dv])[None, :, None]

@@ -63,9 +63,10 @@ def bspline_basis(
     Returns:
         ``(N, dN/dt)``, each ``(..., n_ctrl)``.
     """
-    knots = clamped_knots(n_ctrl, degree)
     t = jnp.clip(jnp.asarray(t), 0.0, 1.0)[..., None]
-    lo, hi = knots[:-1], knots[1:]
+    knots = np.asarray(clamped_knots(n_ctrl, degree), dtype=t.dtype)
+    lead = (1,) * (t.ndim - 1)
+    lo, hi = knots[:-1].reshape(lead + (-1,)), knots[1:].reshape(lead + (-1,))
     n = ((t >= lo) & (t < hi)).astype(t.dtype)
     last = len(knots) - degree - 2
     at_end = (t[..., 0] >= 1.0).astype(t.dtype)
@@ -79,6 +80,7 @@ def bspline_basis(
         kd1 = knots[d + 1 : d + 1 + m]
         inv_a = np.where(kd - k0 > 0, 1.0 / np.where(kd - k0 > 0, kd - k0, 1.0), 0.0)
         inv_b = np.where(kd1 - k1 > 0, 1.0 / np.where(kd1 - k1 > 0, kd1 - k1, 1.0), 0.0)
+        k0, kd1, inv_a, inv_b = (np.reshape(x, lead + (-1,)) for x in (k0, kd1, inv_a, inv_b))
         new = (t - k0) * inv_a * prev[..., :m] + (kd1 - t) * inv_b * prev[..., 1 : m + 1]
         if d == degree:
             deriv = d * (inv_a * prev[..., :m] - inv_b * prev[..., 1 : m + 1])
@@ -126,9 +128,10 @@ class NurbsFacets(eqx.Module):
         dt = layout.translations.dtype
         gu = jnp.asarray(2.0 * greville(n_ctrl[0], degree) - 1.0, dt)
         gv = jnp.asarray(2.0 * greville(n_ctrl[1], degree) - 1.0, dt)
+        lead = (1,) * (layout.canting_e.ndim - 1)  # the batch and facet axes
         cp = (
-            gu[:, None, None] * layout.canting_e[..., :, None, None, :]
-            + gv[None, :, None] * layout.canting_n[..., :, None, None, :]
+            gu.reshape(lead + (-1, 1, 1)) * layout.canting_e[..., :, None, None, :]
+            + gv.reshape(lead + (1, -1, 1)) * layout.canting_n[..., :, None, None, :]
         )
         return cls(
             control_points=cp,
@@ -178,7 +181,7 @@ class NurbsFacets(eqx.Module):
         c = jnp.cross(su, sv)
         norm = jnp.linalg.norm(c, axis=-1, keepdims=True)
         normals = c / norm
-        areas = norm[..., 0] / (m * k) * self.facet_mask[..., None, None]
+        areas = norm[..., 0] / (m * k) * self.facet_mask[..., None, None].astype(norm.dtype)
         pts = s + self.translations[..., :, None, None, :]
         lead = pts.shape[:-4]
         return SurfacePoints(
@@ -298,6 +301,7 @@ def fit_nurbs(
         gy = jnp.where(m, -n[:, 1] / nz, 0.0)
         z = jnp.where(m, x[:, 2], 0.0)
         wn = w / cnt
+        wn = wn[None, :]
         lhs = (dx.T * wn) @ dx + (dy.T * wn) @ dy + height_weight * (b.T * wn) @ b + smoothing * d2.T @ d2
         rhs = (dx.T * wn) @ gx + (dy.T * wn) @ gy + height_weight * (b.T * wn) @ z
         lhs = lhs + 1e-12 * jnp.trace(lhs) / lhs.shape[0] * jnp.eye(lhs.shape[0], dtype=dt)
@@ -332,7 +336,7 @@ def normal_errors_mrad(facets: NurbsFacets, deflectometry: Deflectometry) -> Flo
 def rms_normal_error_mrad(facets: NurbsFacets, deflectometry: Deflectometry) -> Float[Array, ""]:
     """RMS over all measured points of :func:`normal_errors_mrad`."""
     e = normal_errors_mrad(facets, deflectometry)
-    return jnp.sqrt(jnp.sum(e**2) / jnp.maximum(jnp.sum(deflectometry.mask), 1))
+    return jnp.sqrt(jnp.sum(e**2) / jnp.maximum(jnp.sum(deflectometry.mask), 1).astype(e.dtype))
 
 
 __all__ = [

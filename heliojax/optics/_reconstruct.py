@@ -29,7 +29,7 @@ import optax
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from .._geometry import TargetPlane
-from .._kinematics import Pose
+from .._heliostat import Pose
 from ._flux import ImageGrid, flux_images
 from ._nurbs import NurbsFacets
 from ._sunshape import AbstractSunShape
@@ -91,7 +91,8 @@ def flux_loss(
     nu, nv = dz.shape[-2:]
     smooth = _second_differences(dz) / (nu * nv)
     piston = jnp.mean(dz**2) / 1e-6
-    return data + flux_weight * conservation + smoothness * smooth / 1e-6 + 1e-6 * piston
+    regular = (smoothness * smooth / 1e-6 + 1e-6 * piston).astype(data.dtype)
+    return data + flux_weight * conservation.astype(data.dtype) + regular
 
 
 def reconstruct_surface(
@@ -147,7 +148,8 @@ def reconstruct_surface(
         loss, g = jax.value_and_grad(flux_loss)(
             dz, jax.random.fold_in(key, j), initial, images, poses, suns, target, grid, sunshape, **kw
         )
-        updates, state = opt.update(g, state, dz)
+        with jax.numpy_dtype_promotion("standard"):  # optax mixes Python floats with its int32 step count
+            updates, state = opt.update(g, state, dz)
         return optax.apply_updates(dz, updates), state, loss
 
     losses = []

@@ -218,7 +218,7 @@ class BuieSun(AbstractSunShape):
         n = table.shape[0] - 1
         x = u[..., 0] * n
         i = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, n - 1)
-        f = x - i
+        f = x - i.astype(x.dtype)
         r = table[i] * (1.0 - f) + table[i + 1] * f
         return _disk(r, u[..., 1])
 
@@ -305,6 +305,8 @@ def offsets_to_directions(offsets: Float[Array, "... 2"], sun: Float[Array, "3"]
     r = jnp.sqrt(a * a + b * b)
     safe = jnp.where(r > 0, r, 1.0)
     sinc = jnp.where(r > 0, jnp.sin(r) / safe, 1.0)
+    lead = (1,) * (offsets.ndim - 1)
+    sun, e1, e2 = (v.reshape(lead + (3,)) for v in (sun, e1, e2))
     return jnp.cos(r) * sun + sinc * (a * e1 + b * e2)
 
 

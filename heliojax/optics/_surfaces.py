@@ -125,7 +125,7 @@ class FacetLayout(eqx.Module):
 
     def areas(self) -> Float[Array, "*b f"]:
         """Facet areas ``4 |canting_e x canting_n|`` in m^2 (0 for padding)."""
-        return 4.0 * jnp.linalg.norm(jnp.cross(self.canting_e, self.canting_n), axis=-1) * self.mask
+        return 4.0 * jnp.linalg.norm(jnp.cross(self.canting_e, self.canting_n), axis=-1) * self.mask.astype(self.canting_e.dtype)
 
 
 def _float_vector(data, file, field, n=3):
@@ -187,10 +187,11 @@ def ideal_surface(layout: FacetLayout, resolution: tuple[int, int] = (32, 32)) -
     a = jnp.asarray(-1.0 + (2.0 * np.arange(ne) + 1.0) / ne, layout.translations.dtype)
     b = jnp.asarray(-1.0 + (2.0 * np.arange(nn) + 1.0) / nn, layout.translations.dtype)
     t = layout.translations[..., :, None, None, :]
+    lead = (1,) * (layout.canting_e.ndim - 1)  # the batch and facet axes
     pts = (
         t
-        + a[:, None, None] * layout.canting_e[..., :, None, None, :]
-        + b[None, :, None] * layout.canting_n[..., :, None, None, :]
+        + a.reshape(lead + (-1, 1, 1)) * layout.canting_e[..., :, None, None, :]
+        + b.reshape(lead + (1, -1, 1)) * layout.canting_n[..., :, None, None, :]
     )
     normals = jnp.broadcast_to(layout.normals()[..., :, None, None, :], pts.shape)
     areas = jnp.broadcast_to((layout.areas() / (ne * nn))[..., :, None, None], pts.shape[:-1])
@@ -275,8 +276,9 @@ def deflectometry_surface(defl: Deflectometry, layout: FacetLayout) -> SurfacePo
     """Trace the measured points directly: facet ``f``'s points are shifted by its
     translation and each carries ``area_f / count_f`` (facet area from the layout)."""
     counts = jnp.maximum(defl.counts(), 1)
-    per_point = layout.areas() / counts
-    pts = defl.points + layout.translations[..., :, None, :]
+    areas_f = layout.areas()
+    per_point = areas_f / counts.astype(areas_f.dtype)
+    pts = defl.points + layout.translations[..., :, None, :].astype(defl.points.dtype)
     areas = jnp.where(defl.mask, per_point[..., :, None], 0.0)
     lead = pts.shape[:-3]
     return SurfacePoints(

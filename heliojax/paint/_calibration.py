@@ -158,8 +158,8 @@ def validate_record(record: CalibrationRecord) -> CalibrationRecord:
     """
     file = record.source
     rid = record.record_id
-    if isinstance(rid, bool) or not isinstance(rid, numbers.Integral) or rid < 0:
-        raise DataError(file, "record_id", f"expected a non-negative integer, got {rid!r}")
+    if isinstance(rid, bool) or not isinstance(rid, numbers.Integral) or not 0 <= rid < 2**31:
+        raise DataError(file, "record_id", f"expected an integer in [0, 2**31), got {rid!r}")
     if not isinstance(record.heliostat_id, str) or not record.heliostat_id:
         raise DataError(file, "heliostat_id", "expected a non-empty string")
     if record.datetime is not None:

@@ -19,7 +19,7 @@ from jaxtyping import Array
 from .._errors import DataError
 from .._fleet import _CENTROIDS, Centroid, Fleet, ReportEntry, bucket_size
 from .._geometry import TargetPlane, sun_direction, wgs84_to_enu
-from .._kinematics import HeliostatGeometry, LinearActuators, RecordContext
+from .._heliostat import HeliostatGeometry, LinearActuators, RecordContext
 from .._sun import datetime_to_unix
 from ._calibration import check_record_context, heliostat_properties_path, read_calibration_record, validate_record
 from ._common import (
