@@ -76,7 +76,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._geometry import TargetPlane
 from ._heliostat import HeliostatGeometry, RecordContext
@@ -427,10 +427,10 @@ def fleet_subset(fleet: Fleet, indices: Sequence[int] | np.ndarray | int | str |
 
 def fleet_from_arrays(
     geometry: HeliostatGeometry,
-    counts: Float[Array, "H M 2"],
+    counts: Float[ArrayLike, "H M 2"],
     context: RecordContext,
-    focal_spot: Float[Array, "H M 3"],
-    mask: Bool[Array, "H M"] | None = None,
+    focal_spot: Float[ArrayLike, "H M 3"],
+    mask: Bool[ArrayLike, "H M"] | None = None,
     *,
     ids: Sequence[str] | None = None,
     origin_lla: Sequence[float] = (50.913421122592574, 6.387824755874856, 87.0),

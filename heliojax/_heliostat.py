@@ -112,16 +112,15 @@ class LinearActuators(eqx.Module):
         """``(slope, intercept)`` of the least-squares line ``angle = slope * counts +
         intercept`` through the actuator law, sampled at ``n`` uniform counts over
         ``[min_counts, max_counts]`` (rad/count, rad)."""
-        t = jnp.broadcast_to(
-            jnp.linspace(0.0, 1.0, n, dtype=jnp.result_type(self.min_counts)), (*jnp.shape(self.min_counts), n)
-        )
-        counts = self.min_counts[..., None] + t * (self.max_counts - self.min_counts)[..., None]
-        batched = jax.tree_util.tree_map(lambda x: x[..., None], self)
+        lead = (1,) * (jnp.ndim(self.min_counts) - 1)
+        t = jnp.linspace(0.0, 1.0, n, dtype=jnp.result_type(self.min_counts)).reshape(lead + (n, 1))
+        counts = self.min_counts[..., None, :] + t * (self.max_counts - self.min_counts)[..., None, :]  # (*b, n, 2)
+        batched = jax.tree_util.tree_map(lambda x: x[..., None, :], self)
         angles = batched.counts_to_angles(counts)
-        cm = counts.mean(-1, keepdims=True)
-        am = angles.mean(-1, keepdims=True)
-        slope = ((counts - cm) * (angles - am)).sum(-1) / ((counts - cm) ** 2).sum(-1)
-        intercept = am[..., 0] - slope * cm[..., 0]
+        cm = counts.mean(-2, keepdims=True)
+        am = angles.mean(-2, keepdims=True)
+        slope = ((counts - cm) * (angles - am)).sum(-2) / ((counts - cm) ** 2).sum(-2)
+        intercept = am[..., 0, :] - slope * cm[..., 0, :]
         return slope, intercept
 
 

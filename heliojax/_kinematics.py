@@ -227,14 +227,14 @@ class StoneModel(AbstractKinematicModel):
     Nominal (uncalibrated) values: all angles 0, ``gr1 = gr2 = 1``.
     """
 
-    alpha: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-3)
-    beta: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-3)
-    gamma: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-3)
-    delta: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-3)
-    theta_k: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-2)
-    tau_k: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-2)
-    gr1: Float[Array, ""] = parameter(unit="1", scale=1e-2, typical=1e-2, nominal=1.0)
-    gr2: Float[Array, ""] = parameter(unit="1", scale=1e-2, typical=1e-2, nominal=1.0)
+    alpha: Float[Array, "*h"] = parameter(unit="rad", scale=1e-2, typical=1e-3)
+    beta: Float[Array, "*h"] = parameter(unit="rad", scale=1e-2, typical=1e-3)
+    gamma: Float[Array, "*h"] = parameter(unit="rad", scale=1e-2, typical=1e-3)
+    delta: Float[Array, "*h"] = parameter(unit="rad", scale=1e-2, typical=1e-3)
+    theta_k: Float[Array, "*h"] = parameter(unit="rad", scale=1e-2, typical=1e-2)
+    tau_k: Float[Array, "*h"] = parameter(unit="rad", scale=1e-2, typical=1e-2)
+    gr1: Float[Array, "*h"] = parameter(unit="1", scale=1e-2, typical=1e-2, nominal=1.0)
+    gr2: Float[Array, "*h"] = parameter(unit="1", scale=1e-2, typical=1e-2, nominal=1.0)
 
     JOINT_LAW: typing.ClassVar[str] = "linear"
 
@@ -284,13 +284,13 @@ class ActuatorModel(AbstractKinematicModel):
             range; fit with a prior).
     """
 
-    alpha: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-3)
-    beta: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-3)
-    gamma: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-3)
-    delta: Float[Array, ""] = parameter(unit="rad", scale=1e-2, typical=1e-3)
-    angle_offset: Float[Array, "2"] = parameter(unit="rad", scale=1e-2, typical=1e-2, shape=(2,))
-    increment_scale: Float[Array, "2"] = parameter(unit="1", scale=1e-2, typical=1e-2, shape=(2,))
-    stroke_offset: Float[Array, "2"] = parameter(unit="m", scale=1e-2, typical=1e-3, shape=(2,))
+    alpha: Float[Array, "*h"] = parameter(unit="rad", scale=1e-2, typical=1e-3)
+    beta: Float[Array, "*h"] = parameter(unit="rad", scale=1e-2, typical=1e-3)
+    gamma: Float[Array, "*h"] = parameter(unit="rad", scale=1e-2, typical=1e-3)
+    delta: Float[Array, "*h"] = parameter(unit="rad", scale=1e-2, typical=1e-3)
+    angle_offset: Float[Array, "*h 2"] = parameter(unit="rad", scale=1e-2, typical=1e-2, shape=(2,))
+    increment_scale: Float[Array, "*h 2"] = parameter(unit="1", scale=1e-2, typical=1e-2, shape=(2,))
+    stroke_offset: Float[Array, "*h 2"] = parameter(unit="m", scale=1e-2, typical=1e-3, shape=(2,))
 
     JOINT_LAW: typing.ClassVar[str] = "actuator"
 

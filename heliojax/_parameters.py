@@ -6,7 +6,7 @@ an effect, a wrapper of them) is an :class:`equinox.Module`. Each fitted number
 is a field declared with :func:`parameter`::
 
     class Backlash(AbstractEffect):
-        width: Float[Array, "2"] = parameter(unit="rad", scale=1e-3, typical=3e-4, name="backlash")
+        width: Float[Array, "*h 2"] = parameter(unit="rad", scale=1e-3, typical=3e-4, name="backlash")
 
 and each data-derived constant (a reference temperature, say) with
 :func:`reference`. Nothing else describes the parameters: their names, order,
@@ -23,6 +23,7 @@ shape ``(k,)`` gives ``name_1 .. name_k`` (or ``name_<suffix>`` with
 
 from __future__ import annotations
 
+import collections.abc
 import dataclasses
 import typing
 from collections.abc import Iterator, Sequence
@@ -332,7 +333,7 @@ class ParameterView:
         return self.from_vector(model0, p)
 
 
-def set_references(model: ModuleT, values: typing.Mapping[str, float]) -> ModuleT:
+def set_references(model: ModuleT, values: collections.abc.Mapping[str, float]) -> ModuleT:
     """``model`` with the references named in ``values`` set (others unchanged)."""
     leaves = [leaf for leaf in reference_leaves(model) if leaf.name in values]
     if not leaves:

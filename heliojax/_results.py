@@ -54,7 +54,7 @@ from .fitting import FitStatus
 SPLIT_CODES = {"unused": 0, "train": 1, "validation": 2, "test": 3}
 
 
-def _geometry_items(geometry: HeliostatGeometry, prefix: str = "geometry") -> dict[str, np.ndarray]:
+def _geometry_items(geometry: eqx.Module, prefix: str = "geometry") -> dict[str, np.ndarray]:
     out = {}
     for f in dataclasses.fields(geometry):
         v = getattr(geometry, f.name)

@@ -7,6 +7,7 @@ README) and ``results.h5`` (:mod:`heliojax._results`).
 
 from __future__ import annotations
 
+import collections.abc
 import dataclasses
 import json
 import typing
@@ -105,7 +106,7 @@ def calibrate(
     n_val: int = 0,
     train_fraction: float | None = 0.7,
     seed: int = 42,
-    fit_options: typing.Mapping[str, typing.Any] | None = None,
+    fit_options: collections.abc.Mapping[str, typing.Any] | None = None,
     test_fleet=None,
     start: str = "auto",
     robust: bool = True,

@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import jax
+import jaxtyping
 import pytest
 
 jax.config.update("jax_enable_x64", True)
@@ -15,6 +16,17 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 SHARED_PAINT = Path(__file__).resolve().parents[2] / "shared" / "data" / "paint"
+
+
+@pytest.fixture
+def unchecked():
+    """Run-time type checks off, for tests that hand heliojax ill-typed values on
+    purpose to see its own validation errors (what a user without checks gets)."""
+    jaxtyping.config.update("jaxtyping_disable", True)
+    try:
+        yield
+    finally:
+        jaxtyping.config.update("jaxtyping_disable", False)
 
 
 @pytest.fixture(scope="session")

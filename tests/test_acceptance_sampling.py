@@ -81,7 +81,7 @@ def test_eq7_vs_eq8_and_limits():
     assert sample_size(1.0, 5.0, 0.01, 50) == 50
 
 
-def test_errors():
+def test_errors(unchecked):
     with pytest.raises(ValueError, match="population"):
         sample_size(1.0, 0.2, 0.05, formula="eq7")
     with pytest.raises(ValueError, match="formula"):

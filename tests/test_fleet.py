@@ -298,7 +298,7 @@ def test_centroid_selection(shared_fleet, shared_paint):
     np.testing.assert_allclose(np.asarray(f_h.focal_spot[h, j]), np.asarray(helios), atol=1e-9)
 
 
-def test_strict_and_filter(shared_paint):
+def test_strict_and_filter(shared_paint, unchecked):
     with pytest.raises(DataError) as e:
         load_paint_directory(shared_paint, strict=True)
     assert e.value.file.endswith("BG63/Properties/BG63-heliostat-properties.json")
@@ -632,9 +632,13 @@ _RECORD_FIELDS = (
 )
 
 
-@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(
+    max_examples=60,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],  # `unchecked` is stateless
+)
 @given(field=st.sampled_from(_RECORD_FIELDS), value=_any_value)
-def test_hypothesis_records_to_fleet(raw_emb, field, value):
+def test_hypothesis_records_to_fleet(raw_emb, unchecked, field, value):
     """A record with a random value in any field is loaded or skipped and reported;
     nothing but DataError escapes and the other records are untouched."""
     tower, props, recs = raw_emb
@@ -648,7 +652,7 @@ def test_hypothesis_records_to_fleet(raw_emb, field, value):
     assert {x.record_id for x in rs[1:]} <= loaded
 
 
-def test_record_with_a_non_string_heliostat_id_is_skipped_not_crashing(raw_emb):
+def test_record_with_a_non_string_heliostat_id_is_skipped_not_crashing(raw_emb, unchecked):
     """Regression (found by Hypothesis): an unhashable heliostat_id used to raise TypeError."""
     tower, props, recs = raw_emb
     p = next(p for p in props if p.heliostat_id == "BL14")

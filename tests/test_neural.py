@@ -195,7 +195,7 @@ def test_paper_metric_equals_beam_error_for_the_physics_models_own_prediction():
     p = _problem()
     g, model = (
         _take(p["geometry"], 1),
-        StoneModel(*[jnp.asarray(x) for x in (2e-3, -1e-3, 0, 0, 5e-3, -4e-3, 1.001, 0.999)]),
+        StoneModel(*[jnp.asarray(x) for x in (2e-3, -1e-3, 0.0, 0.0, 5e-3, -4e-3, 1.001, 0.999)]),
     )
     for j in range(4):
         c, s, f = p["counts"][1, j], p["context"].sun[1, j], p["focal"][1, j]

@@ -68,7 +68,12 @@ def test_energy_on_oversized_target_within_monte_carlo_error():
     surf = ideal_surface(lay, (16, 16))
     sun = jnp.asarray([0.6, 0.3, 0.5]) / np.linalg.norm([0.6, 0.3, 0.5])
     pose = aim_pose(jnp.asarray([10.0, 60.0, 2.0]), sun, jnp.asarray([0.0, 0.0, 40.0]))
-    target = TargetPlane.from_corners([15.0, 0, 55], [-15.0, 0, 55], [15.0, 0, 25], [-15.0, 0, 25])
+    target = TargetPlane.from_corners(
+        np.array([15.0, 0, 55]),
+        np.array([-15.0, 0, 55]),
+        np.array([15.0, 0, 25]),
+        np.array([-15.0, 0, 25]),
+    )
     grid = ImageGrid.for_target(target, (128, 128))
     sunshape = PillboxSun()
     dni, rho, K = 850.0, 0.93, 64 * 4
@@ -194,7 +199,12 @@ def test_centroid_follows_the_central_ray_and_orientation():
     # Tilted flat mirror: the spot centre is where the reflected central ray meets
     # the target; the image is PNG-oriented (column -> +u, row -> -v).
     sun = jnp.asarray([0.2, -0.4, 0.9]) / np.linalg.norm([0.2, -0.4, 0.9])
-    target = TargetPlane.from_corners([5.0, -1, 35], [-5.0, -1, 35], [5.0, -1, 25], [-5.0, -1, 25])
+    target = TargetPlane.from_corners(
+        np.array([5.0, -1, 35]),
+        np.array([-5.0, -1, 35]),
+        np.array([5.0, -1, 25]),
+        np.array([-5.0, -1, 25]),
+    )
     aim = jnp.asarray([1.5, -1.0, 28.0])  # right (west, +u) of and below (-v) the centre
     pose = aim_pose(jnp.asarray([2.0, 50.0, 1.5]), sun, aim)
     surf = square_mirror(1.0, 16)

@@ -27,7 +27,12 @@ def scene():
         amp = rng.uniform(0.6e-3, 1.2e-3) * rng.choice([-1, 1])
         dz[k] = amp * np.exp(-((X - bx) ** 2 + (Y - by) ** 2) / 0.5)
     truth = with_height_offsets(ideal, jnp.asarray(dz))
-    target = TargetPlane.from_corners([2.5, 0, 22.5], [-2.5, 0, 22.5], [2.5, 0, 17.5], [-2.5, 0, 17.5])
+    target = TargetPlane.from_corners(
+        np.array([2.5, 0, 22.5]),
+        np.array([-2.5, 0, 22.5]),
+        np.array([2.5, 0, 17.5]),
+        np.array([-2.5, 0, 17.5]),
+    )
     grid = ImageGrid.for_target(target, (64, 64))
     centre = jnp.asarray([0.0, 40.0, 2.0])
     suns, poses = [], []

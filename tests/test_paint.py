@@ -501,7 +501,7 @@ def test_weather_csv_round_trip(tmp_path, tower):
         assert tuple(next(csv.reader(fh))) == CSV_COLUMNS
 
 
-def test_validate_record():
+def test_validate_record(unchecked):
     r = CalibrationRecord(
         record_id=5,
         heliostat_id="AA01",

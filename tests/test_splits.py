@@ -76,7 +76,7 @@ def test_azimuth_split_by_hand():
 
 
 # ----------------------------------------------------------------- solstice
-def test_solstice_distance_by_hand():
+def test_solstice_distance_by_hand(unchecked):
     t = np.array(
         [
             utc(2022, 12, 20, 12),  # 1 day before the 2022 winter solstice
@@ -236,7 +236,7 @@ def test_invalid_records_take_no_part():
     assert as_set(r.test) == {2, 3, 5} and as_set(r.unused) == {4}
 
 
-def test_bad_arguments():
+def test_bad_arguments(unchecked):
     z = np.zeros(8)
     with pytest.raises(ConfigError, match="unknown split"):
         split_records("random", z, z, z, n_train=2)

@@ -235,7 +235,7 @@ def outliers(
 
 
 def resampling_advice(
-    field_positions: Float[np.ndarray, "n 2"],
+    field_positions: Float[np.ndarray, "n _"],
     measured: Int[np.ndarray, " m"],
     values: Float[np.ndarray, " m"],
     clusters: ClusterResult,
@@ -295,7 +295,7 @@ class SurveyResult:
 
 
 def adaptive_survey(
-    field_positions: Float[np.ndarray, "n 2"],
+    field_positions: Float[np.ndarray, "n _"],
     measure: Callable[[np.ndarray], np.ndarray],
     n_initial: int,
     *,

@@ -155,13 +155,13 @@ def sample_size(
 
 
 def select_sample(
-    positions: Float[np.ndarray, "n 2"],
+    positions: Float[np.ndarray, "N _"],
     n: int,
     *,
     seed: int | np.random.Generator = 0,
     method: Literal["random", "stratified"] = "stratified",
     exclude: Int[np.ndarray, " m"] | None = None,
-) -> Int[np.ndarray, " n"]:
+) -> Int[np.ndarray, " k"]:
     """Pick ``n`` heliostats to measure, at random.
 
     ``"random"`` is simple random sampling without replacement (the guideline's

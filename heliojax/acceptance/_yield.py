@@ -154,7 +154,11 @@ def atmospheric_attenuation(slant_m: Float[ArrayLike, "..."]) -> Float[Array, ".
 def _aperture_corners(aperture: TargetPlane) -> Float[Array, "4 3"]:
     hw, hh = aperture.half_width, aperture.half_height
     signs = jnp.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
-    return aperture.centre[None] + (signs[:, :1] * hw) * aperture.u_axis[None] + (signs[:, 1:] * hh) * aperture.v_axis[None]
+    return (
+        aperture.centre[None]
+        + (signs[:, :1] * hw) * aperture.u_axis[None]
+        + (signs[:, 1:] * hh) * aperture.v_axis[None]
+    )
 
 
 @jax.jit

@@ -11,7 +11,7 @@ loader derives them.
 
 from __future__ import annotations
 
-import typing
+import collections.abc
 
 import equinox as eqx
 import jax
@@ -65,8 +65,8 @@ def simulate_fleet(
     n_heliostats: int = 20,
     n_records: int = 60,
     *,
-    effects: typing.Sequence = (),
-    per_heliostat_effects: typing.Sequence = (),
+    effects: collections.abc.Sequence = (),
+    per_heliostat_effects: collections.abc.Sequence = (),
     base: str = "stone8",
     noise_mrad: float = 0.25,
     weather: bool = True,

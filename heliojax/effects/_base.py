@@ -29,6 +29,7 @@ so no NaN reaches a value or a gradient.
 
 from __future__ import annotations
 
+import collections.abc
 import typing
 
 import equinox as eqx
@@ -167,7 +168,7 @@ class EffectModel(AbstractModelWrapper):
         return f
 
 
-def add_effects(model: AbstractKinematicModel, effects: typing.Sequence[AbstractEffect]) -> EffectModel:
+def add_effects(model: AbstractKinematicModel, effects: collections.abc.Sequence[AbstractEffect]) -> EffectModel:
     """``model`` with ``effects`` appended (extends an :class:`EffectModel`'s own list)."""
     if isinstance(model, EffectModel):
         return EffectModel(model.inner, tuple(model.effects) + tuple(effects))

@@ -36,7 +36,7 @@ class Thermal(AbstractEffect):
     of the pose.
     """
 
-    coefficient: Float[Array, "2"] = parameter(unit="rad/K", scale=1e-4, typical=1.5e-5, name="thermal", shape=(2,))
+    coefficient: Float[Array, "*h 2"] = parameter(unit="rad/K", scale=1e-4, typical=1.5e-5, name="thermal", shape=(2,))
     reference: Float[Array, ""] = data_reference(unit="deg C", default=20.0, name="thermal_reference_c")
 
     NAME: typing.ClassVar[str] = "thermal"
@@ -74,7 +74,7 @@ class Wind(AbstractEffect):
     direction relative to the mirror.
     """
 
-    coefficient: Float[Array, "2"] = parameter(unit="rad/(m/s)^2", scale=1e-5, typical=5e-6, name="wind", shape=(2,))
+    coefficient: Float[Array, "*h 2"] = parameter(unit="rad/(m/s)^2", scale=1e-5, typical=5e-6, name="wind", shape=(2,))
 
     NAME: typing.ClassVar[str] = "wind"
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("wind_speed", "wind_direction")
@@ -127,8 +127,8 @@ class Clock(AbstractEffect):
     absorbed by the base model's tilts.
     """
 
-    offset: Float[Array, ""] = parameter(unit="s", scale=10.0, typical=10.0, name="clock_offset")
-    drift: Float[Array, ""] = parameter(unit="s/day", scale=0.1, typical=0.1, name="clock_drift")
+    offset: Float[Array, "*h"] = parameter(unit="s", scale=10.0, typical=10.0, name="clock_offset")
+    drift: Float[Array, "*h"] = parameter(unit="s/day", scale=0.1, typical=0.1, name="clock_drift")
     reference: Float[Array, ""] = data_reference(unit="s", default=1.65e9, name="clock_reference_s")
     latitude_deg: Float[Array, ""] = data_reference(unit="deg", default=DEFAULT_LATITUDE_DEG, name="clock_latitude_deg")
 
@@ -184,7 +184,7 @@ class Refraction(AbstractEffect):
     signature: vertical, growing steeply toward low elevations (~cot e).
     """
 
-    scale: Float[Array, ""] = parameter(unit="1", scale=1.0, typical=1.0, name="refraction_scale")
+    scale: Float[Array, "*h"] = parameter(unit="1", scale=1.0, typical=1.0, name="refraction_scale")
 
     NAME: typing.ClassVar[str] = "refraction"
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("sun_elevation",)

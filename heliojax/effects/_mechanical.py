@@ -51,8 +51,8 @@ class ActuatorGeometry(AbstractEffect):
     (``actuator``); the other pair stays 0.
     """
 
-    curvature: Float[Array, "2"] = parameter(unit="1", scale=0.05, typical=1.0, shape=(2,))
-    pivot_scale: Float[Array, "2"] = parameter(unit="1", scale=0.01, typical=0.01, shape=(2,))
+    curvature: Float[Array, "*h 2"] = parameter(unit="1", scale=0.05, typical=1.0, shape=(2,))
+    pivot_scale: Float[Array, "*h 2"] = parameter(unit="1", scale=0.01, typical=0.01, shape=(2,))
     law: str = eqx.field(static=True, default="linear")
 
     NAME: typing.ClassVar[str] = "actuator_geometry"
@@ -97,7 +97,7 @@ class Backlash(AbstractEffect):
     the pose (needs both directions in the data).
     """
 
-    width: Float[Array, "2"] = parameter(unit="rad", scale=1e-3, typical=3e-4, name="backlash", shape=(2,))
+    width: Float[Array, "*h 2"] = parameter(unit="rad", scale=1e-3, typical=3e-4, name="backlash", shape=(2,))
 
     NAME: typing.ClassVar[str] = "backlash"
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("approach",)
@@ -131,7 +131,7 @@ class GravitySag(AbstractEffect):
     by the base model's axis-1 offset and gear ratio.
     """
 
-    sag: Float[Array, ""] = parameter(unit="rad", scale=1e-3, typical=1e-3, name="gravity_sag")
+    sag: Float[Array, "*h"] = parameter(unit="rad", scale=1e-3, typical=1e-3, name="gravity_sag")
 
     NAME: typing.ClassVar[str] = "gravity_sag"
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("normal_elevation",)
@@ -164,7 +164,7 @@ class EncoderWobble(AbstractEffect):
     sinusoid of ``n`` times each joint angle.
     """
 
-    coefficients: Float[Array, "4"] = parameter(
+    coefficients: Float[Array, "*h 4"] = parameter(
         unit="rad", scale=1e-3, typical=3e-4, name="wobble", shape=(4,), suffixes=("cos_1", "sin_1", "cos_2", "sin_2")
     )
     n: int = eqx.field(static=True, default=2)

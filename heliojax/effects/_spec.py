@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections.abc
 import typing
 
 import jax.numpy as jnp
@@ -42,7 +43,7 @@ def effect_class(name: str) -> type[AbstractEffect]:
         raise ValueError(f"unknown effect {name!r}; expected one of {EFFECT_NAMES}") from None
 
 
-def with_effects(model: AbstractKinematicModel, effects: typing.Sequence[str]) -> EffectModel:
+def with_effects(model: AbstractKinematicModel, effects: collections.abc.Sequence[str]) -> EffectModel:
     """``model`` wrapped by the named effects at their no-effect values (parameters 0,
     references at their defaults: set them from data with :func:`with_data_references`).
 

@@ -26,7 +26,7 @@ class SurveyHeliostat(AbstractEffect):
     only through the small variation of the mirror centre with the pose.
     """
 
-    delta: Float[Array, "3"] = parameter(
+    delta: Float[Array, "*h 3"] = parameter(
         unit="m", scale=0.1, typical=0.05, name="survey_heliostat", shape=(3,), suffixes=("e", "n", "u")
     )
 
@@ -56,7 +56,7 @@ class SurveyTarget(AbstractEffect):
     heliostat - largely absorbed by each heliostat's tilts.
     """
 
-    delta: Float[Array, "3"] = parameter(
+    delta: Float[Array, "*h 3"] = parameter(
         unit="m", scale=0.1, typical=0.05, name="survey_target", shape=(3,), suffixes=("e", "n", "u")
     )
 

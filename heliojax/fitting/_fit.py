@@ -234,7 +234,9 @@ def _fit_one(
     std = jnp.zeros_like(p0).at[idx].set(std_free)
 
     params = physical(out.value)
-    rms = jnp.sqrt(jnp.sum(jnp.where(use[:, None], data_r.reshape(-1, 2) ** 2, 0.0)) / jnp.maximum(n_used, 1).astype(data_r.dtype))
+    rms = jnp.sqrt(
+        jnp.sum(jnp.where(use[:, None], data_r.reshape(-1, 2) ** 2, 0.0)) / jnp.maximum(n_used, 1).astype(data_r.dtype)
+    )
 
     status = status_code(out.result)
     status = jnp.where(jnp.all(jnp.isfinite(params)) & jnp.isfinite(out.cost), status, FitStatus.DIVERGED)

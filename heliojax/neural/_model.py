@@ -63,12 +63,12 @@ class NeuralCorrection(AbstractModelWrapper):
         inner: the fitted model (:class:`heliojax.StoneModel`,
             :class:`heliojax.ActuatorModel`, an effect-wrapped model, ...).
         network: ``2 -> ... -> 2`` :class:`MLP` of the normalised counts.
-        scale: rad per network output unit (scalar).
+        scale: rad per network output unit (scalar; ``(H,)`` when batched).
     """
 
     inner: AbstractKinematicModel
     network: MLP
-    scale: Float[Array, ""]
+    scale: Float[Array, "*h"]
 
     def label(self) -> str:
         return f"{self.inner.label()}+nn"
@@ -111,7 +111,7 @@ class PaperPredictor(eqx.Module):
     output_std: Float[Array, " 2"]
 
     @staticmethod
-    def features(sun: Float[Array, "3"], spot: Float[Array, "3"]) -> Float[Array, " 5"]:
+    def features(sun: Float[Array, "*b 3"], spot: Float[Array, "*b 3"]) -> Float[Array, "*b 5"]:
         """Raw inputs: unit sun vector (e, n, u) and the spot's ENU east and up (m)."""
         return jnp.concatenate([sun, spot[..., jnp.asarray([0, 2])]], axis=-1)
 

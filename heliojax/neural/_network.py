@@ -30,8 +30,8 @@ class MLP(eqx.Module):
         biases: per layer ``(out,)``.
     """
 
-    weights: tuple[Float[Array, "o i"], ...]
-    biases: tuple[Float[Array, " o"], ...]
+    weights: tuple[Float[Array, "_ _"], ...]  # layer sizes differ: no shared dimension names
+    biases: tuple[Float[Array, " _"], ...]
 
     def __check_init__(self):
         if len(self.weights) != len(self.biases) or not self.weights:

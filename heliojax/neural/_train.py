@@ -16,7 +16,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optax
-from jaxtyping import Array, Bool, Float, PRNGKeyArray
+from jaxtyping import Array, Bool, Float, Key, PRNGKeyArray, UInt32
 
 from .._geometry import direction_to_azimuth_elevation, sun_direction
 from .._heliostat import HeliostatGeometry, RecordContext
@@ -428,7 +428,7 @@ def _finetune_residual_program(
     return eqx.filter_vmap(one)(keys, nets, models, geometry, counts, context, focal, scale, w_fit, w_val)
 
 
-def heliostat_keys(key: PRNGKeyArray, n: int) -> PRNGKeyArray:
+def heliostat_keys(key: PRNGKeyArray, n: int) -> Key[Array, " n"] | UInt32[Array, "n 2"]:
     """Per-heliostat keys ``fold_in(key, i)``, ``i = 0..n-1``."""
     return jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.arange(n))
 

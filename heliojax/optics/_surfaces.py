@@ -125,7 +125,11 @@ class FacetLayout(eqx.Module):
 
     def areas(self) -> Float[Array, "*b f"]:
         """Facet areas ``4 |canting_e x canting_n|`` in m^2 (0 for padding)."""
-        return 4.0 * jnp.linalg.norm(jnp.cross(self.canting_e, self.canting_n), axis=-1) * self.mask.astype(self.canting_e.dtype)
+        return (
+            4.0
+            * jnp.linalg.norm(jnp.cross(self.canting_e, self.canting_n), axis=-1)
+            * self.mask.astype(self.canting_e.dtype)
+        )
 
 
 def _float_vector(data, file, field, n=3):

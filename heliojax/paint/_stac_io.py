@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import io
 import json
 import os
 import re
@@ -15,7 +16,7 @@ import urllib.parse
 import urllib.request
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import pystac
 
@@ -61,7 +62,7 @@ _MULTIHASH: dict[int, Callable[[], Any]] = {
     0xB240: hashlib.blake2b,
 }
 
-Transport = Callable[[str, float], IO[bytes]]
+Transport = Callable[[str, float], io.BufferedIOBase]
 """``open(href, timeout_s) -> binary stream`` (a context manager). The default opens
 ``http(s)`` URLs with :mod:`urllib` and local paths with :func:`open`."""
 
@@ -184,7 +185,7 @@ class _Scope:
 
 
 # --------------------------------------------------------------------------- I/O
-def _default_open(href: str, timeout_s: float) -> IO[bytes]:
+def _default_open(href: str, timeout_s: float) -> io.BufferedIOBase:
     if _scheme(href) in ("http", "https"):
         req = urllib.request.Request(href, headers={"User-Agent": "heliojax-fetch"})
         return urllib.request.urlopen(req, timeout=timeout_s)  # noqa: S310 - scheme checked
