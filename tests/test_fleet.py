@@ -590,7 +590,7 @@ def test_degenerate_actuator_is_skipped(raw_emb):
     assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves(f.geometry))
 
 
-def test_numpy_scalars_from_a_simulator(tmp_path, raw_emb):
+def test_numpy_scalars_from_a_simulator(tmp_path, raw_emb, unchecked):  # records annotated int get np.int64
     tower, props, recs = raw_emb
     p = next(p for p in props if p.heliostat_id == "BL14")
     rs = [

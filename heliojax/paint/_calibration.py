@@ -9,8 +9,6 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from .._errors import DataError
 from ._common import (
     CALIBRATION_SUFFIX,
@@ -190,7 +188,7 @@ def _check_weather(file: str, field: str, weather: Any) -> dict[str, float]:
     return out
 
 
-def calibration_record_path(root: str | os.PathLike, heliostat_id: str, record_id: int | np.integer) -> Path:
+def calibration_record_path(root: str | os.PathLike, heliostat_id: str, record_id: int) -> Path:
     """``root/<H>/Calibration/<ID>-calibration-properties.json``."""
     return Path(root) / heliostat_id / "Calibration" / f"{record_id}{CALIBRATION_SUFFIX}"
 

@@ -11,8 +11,6 @@ import re
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from .._errors import DataError
 from .._io import atomic_write
 from .._sun import datetime_to_unix
@@ -241,10 +239,10 @@ class CalibrationRecord:
         source: the file it came from (CSV: ``path:line``).
     """
 
-    record_id: int | np.integer
+    record_id: int
     heliostat_id: str
-    axis_1_counts: int | np.integer
-    axis_2_counts: int | np.integer
+    axis_1_counts: int
+    axis_2_counts: int
     target_name: str
     sun_azimuth_deg: float
     sun_elevation_deg: float
