@@ -230,6 +230,12 @@ class Fleet(eqx.Module):
         ids: heliostat ids (``""`` for padding heliostats); static.
         target_names: names of ``targets``; static.
         report: the :class:`LoadReport`; static.
+
+    ``ids``, ``target_names`` and ``report`` are static metadata, outside the traced
+    arrays. heliojax's compiled programs (:func:`heliojax.fit`, the evaluations)
+    take the fleet's arrays, never the Fleet itself, so fleets that differ only in
+    their metadata share one compiled program. A user who jits a function of a whole
+    Fleet keys that function's cache on the metadata: pass the arrays instead.
     """
 
     geometry: HeliostatGeometry

@@ -7,15 +7,17 @@ from pathlib import Path
 
 import numpy as np
 
+from ._errors import ConfigError
 from ._io import atomic_path
 
 
-def _plt():
+def pyplot():
+    """``matplotlib.pyplot``, imported on first use (matplotlib is the optional
+    ``plot`` extra and costs ~0.5 s to import); switches to the headless Agg backend
+    unless a notebook's inline backend is active. Raises ConfigError without it."""
     try:
         import matplotlib
     except ModuleNotFoundError as e:  # the 'plot' extra
-        from ._errors import ConfigError
-
         raise ConfigError("plots need matplotlib: pip install 'heliojax[plot]'") from e
 
     backend = matplotlib.get_backend().lower()
@@ -28,7 +30,7 @@ def _plt():
 
 def save_figure(fig, path: str | Path, dpi: int = 120) -> None:
     """Save ``fig`` to ``path`` atomically (format from the suffix) and close it."""
-    plt = _plt()
+    plt = pyplot()
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".") or "png", bbox_inches="tight")
@@ -37,7 +39,7 @@ def save_figure(fig, path: str | Path, dpi: int = 120) -> None:
 
 def plot_error_per_heliostat(ids, errors_mrad, *, ax=None, title=None, label="beam pointing error [mrad]"):
     """Box plot of per-record errors ``(H, M)`` (NaN = no record) per heliostat."""
-    plt = _plt()
+    plt = pyplot()
     fig = ax.figure if ax is not None else plt.figure(figsize=(max(6, 0.35 * len(ids)), 4))
     ax = ax or fig.add_subplot(111)
     data = [e[np.isfinite(e)] for e in np.asarray(errors_mrad)[: len(ids)]]
@@ -100,7 +102,7 @@ def plot_calibration(run, *, axes=None):
     labelled with their status), and the held-out residuals on the target
     (horizontal / vertical miss, mrad) before and after calibration, with the
     training records the robust fit flagged as outliers."""
-    plt = _plt()
+    plt = pyplot()
     if axes is None:
         fig, axes = plt.subplots(1, 3, figsize=(18, 6), gridspec_kw={"width_ratios": [2.4, 1, 1]})
     else:
@@ -156,4 +158,4 @@ def plot_calibration(run, *, axes=None):
     return fig
 
 
-__all__ = ["plot_calibration", "plot_error_per_heliostat", "save_figure"]
+__all__ = ["plot_calibration", "plot_error_per_heliostat", "pyplot", "save_figure"]

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import jaxtyping
 import numpy as np
 import pytest
+from helpers import zoo
 
 import heliojax as hj
 
@@ -24,3 +27,29 @@ def test_annotated_shapes_are_checked_at_run_time():
     assert hj.wgs84_to_enu(origin, origin).shape == (3,)
     with pytest.raises(jaxtyping.TypeCheckError):
         hj.wgs84_to_enu(np.zeros(2), origin)  # points must be (..., 3)
+
+
+def test_fleet_metadata_does_not_key_compiled_programs():
+    """Ids and the load report are static metadata outside the traced arrays: fitting
+    a fleet that differs from another only in them reuses the compiled program."""
+    fleet = zoo("stone").fleet
+    renamed = dataclasses.replace(
+        fleet,
+        ids=tuple(f"X{i:03d}" for i in range(len(fleet.ids))),
+        report=hj.LoadReport(source="elsewhere", records_loaded=1),
+    )
+    model0 = hj.StoneModel.nominal()
+    compiles = []
+
+    def listener(event, duration, **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(duration)
+
+    hj.fit(model0, fleet, max_steps=4)
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        again = hj.fit(model0, renamed, max_steps=4)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    assert compiles == []
+    assert again.model is not None

@@ -2,21 +2,20 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 from scipy import spatial
 
+from .._io import atomic_path
+from .._plotting import pyplot
 from ._extrapolate import Extrapolation
 from ._yield import YieldResult
 
 
 def _axes(ax, figsize=(6.5, 5.0)):
     if ax is None:
-        import matplotlib
-
-        matplotlib.use("Agg", force=False)
-        import matplotlib.pyplot as plt
-
-        fig, ax = plt.subplots(figsize=figsize)
+        fig, ax = pyplot().subplots(figsize=figsize)
         return fig, ax
     return ax.figure, ax
 
@@ -135,12 +134,7 @@ def plot_monthly_efficiency(contract: YieldResult, measured: YieldResult, *, ax=
 def plot_all(result, directory) -> list:
     """Write the three acceptance figures of an :class:`AcceptanceResult` as PNGs
     (atomically) into ``directory``; returns the paths."""
-    from pathlib import Path
-
-    import matplotlib.pyplot as plt
-
-    from .._io import atomic_path
-
+    plt = pyplot()
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     out = []

@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from .._io import atomic_write
+from .._plotting import pyplot, save_figure
 
 
 def _f(x):
@@ -324,9 +325,7 @@ def _binned(x, y, bins=8):
 def plot_effect_residuals(result, step_index: int, *, axes=None):
     """Residual components (mrad) against the named effect's driving variable(s),
     before (grey) and after (colour) adding it; binned means as lines."""
-    from .._plotting import _plt
-
-    plt = _plt()
+    plt = pyplot()
     step = result.steps[step_index]
     fleet = result.fleet
     h, m = np.asarray(fleet.mask).shape
@@ -365,9 +364,7 @@ def plot_effect_residuals(result, step_index: int, *, axes=None):
 
 def plot_heldout_per_step(report: dict, *, ax=None):
     """Held-out RMS (blocked CV) of the base model and after each named effect."""
-    from .._plotting import _plt
-
-    plt = _plt()
+    plt = pyplot()
     fig = ax.figure if ax is not None else plt.figure(figsize=(6, 3.5))
     ax = ax or fig.add_subplot(111)
     labels = [report["base_model"]]
@@ -391,9 +388,7 @@ def plot_heldout_per_step(report: dict, *, ax=None):
 def plot_screen(report: dict, step: int = 0, *, ax=None):
     """-log10 p of every candidate at a step's screen (Holm-adjusted), with the
     not-identifiable ones marked."""
-    from .._plotting import _plt
-
-    plt = _plt()
+    plt = pyplot()
     fig = ax.figure if ax is not None else plt.figure(figsize=(7, 3.5))
     ax = ax or fig.add_subplot(111)
     scr = report["screens"][step] if report["screens"] else {}
@@ -417,8 +412,6 @@ def plot_screen(report: dict, step: int = 0, *, ax=None):
 def write_figures(result, out_dir) -> list[Path]:
     """Write the PNG figures: ``heldout_per_step.png``, ``screen_step<k>.png`` and
     ``residuals_step<k>_<effect>.png``. Returns the paths."""
-    from .._plotting import save_figure
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = []

@@ -36,6 +36,7 @@ from .._errors import DataError
 from .._geometry import TargetPlane, sun_direction, wgs84_to_enu
 from .._heliostat import HeliostatGeometry, LinearActuators
 from .._kinematics import AbstractKinematicModel, ActuatorModel, forward
+from .._plotting import pyplot
 from ..paint import read_calibration_record, read_flux_png, read_heliostat_properties, read_tower
 from ._flux import ImageGrid, centroid, flux_image
 from ._sunshape import AbstractSunShape, BuieSun, EffectiveSun
@@ -280,11 +281,7 @@ def flux_sample_records(root: str | os.PathLike) -> list[tuple[Path, Path]]:
 
 def comparison_figure(comparison: FluxComparison, ax=None):
     """Traced and measured images side by side (full target and centred window)."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     if ax is None:
         fig, ax = plt.subplots(1, 4, figsize=(13, 3.4))
     else:

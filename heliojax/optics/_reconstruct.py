@@ -30,9 +30,10 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from .._geometry import TargetPlane
 from .._heliostat import Pose
-from ._flux import ImageGrid, flux_images
+from ._flux import ImageGrid, aim_pose, flux_images
 from ._nurbs import NurbsFacets
-from ._sunshape import AbstractSunShape
+from ._sunshape import AbstractSunShape, PillboxSun
+from ._surfaces import FacetLayout
 
 
 def with_height_offsets(facets: NurbsFacets, dz: Float[Array, "f nu nv"]) -> NurbsFacets:
@@ -205,11 +206,6 @@ def synthetic_scene(
     vertical target; each facet's control heights carry a Gaussian bump of random
     sign and amplitude in ``bump_m`` (max slopes ~1-3 mrad); ``n_images`` flux
     images (pillbox sun) for suns from the east through south to the west."""
-    from .._geometry import TargetPlane as _TP
-    from ._flux import aim_pose
-    from ._sunshape import PillboxSun
-    from ._surfaces import FacetLayout
-
     f = 200.0
     cent = np.array([[-0.81, 0.645], [0.81, 0.645], [-0.81, -0.645], [0.81, -0.645]])
     ce = np.array([[0.8, 0, c[0] / (2 * f) * 0.8] for c in cent])
@@ -223,7 +219,7 @@ def synthetic_scene(
         bx, by = rng.uniform(-0.5, 0.5, 2)
         dz[k] = rng.uniform(*bump_m) * rng.choice([-1, 1]) * np.exp(-((X - bx) ** 2 + (Y - by) ** 2) / 0.5)
     truth = with_height_offsets(ideal, jnp.asarray(dz))
-    target = _TP.from_corners(
+    target = TargetPlane.from_corners(
         jnp.asarray([2.5, 0, 22.5]),
         jnp.asarray([-2.5, 0, 22.5]),
         jnp.asarray([2.5, 0, 17.5]),
