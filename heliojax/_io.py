@@ -1,4 +1,7 @@
-"""Atomic output: every file heliojax writes goes through :func:`atomic_write`."""
+"""Atomic output: every file heliojax writes goes through :func:`atomic_write` or
+:func:`atomic_path`. The file appears under its name only when complete, with the
+permissions :func:`open` would give it (``0o666`` less the umask, or the mode of the
+file it replaces), not the private ``0o600`` of a temporary file."""
 
 from __future__ import annotations
 
@@ -8,6 +11,23 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)  # the only portable way to read it
+    os.umask(mask)
+    return mask
+
+
+def _publish(tmp: str, path: Path) -> None:
+    """Give ``tmp`` the mode a plain ``open(path, "w")`` would have, then rename it
+    onto ``path``."""
+    try:
+        mode = path.stat().st_mode & 0o7777
+    except FileNotFoundError:
+        mode = 0o666 & ~_umask()
+    os.chmod(tmp, mode)
+    os.replace(tmp, path)
 
 
 @contextlib.contextmanager
@@ -32,7 +52,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **kwargs) -> Iterator
             yield f
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
+        _publish(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
@@ -49,7 +69,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     os.close(fd)
     try:
         yield Path(tmp)
-        os.replace(tmp, path)
+        _publish(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)

@@ -18,6 +18,24 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 SHARED_PAINT = Path(__file__).resolve().parents[2] / "shared" / "data" / "paint"
 
 
+_CACHE_OPTIONS = (
+    "jax_compilation_cache_dir",
+    "jax_persistent_cache_min_compile_time_secs",
+    "jax_persistent_cache_min_entry_size_bytes",
+)
+
+
+@pytest.fixture(autouse=True)
+def _restore_compilation_cache_options():
+    """The CLI configures JAX's persistent cache (and with it heliojax's kept
+    programs) for its process; in the test process, undo it after each test."""
+    before = {k: getattr(jax.config, k) for k in _CACHE_OPTIONS}
+    yield
+    for k, v in before.items():
+        if getattr(jax.config, k) != v:
+            jax.config.update(k, v)
+
+
 @pytest.fixture
 def unchecked():
     """Run-time type checks off, for tests that hand heliojax ill-typed values on

@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
+import os
+import subprocess
+import sys
 
 import h5py
 import numpy as np
 import pytest
 
 import heliojax as hj
-from heliojax.cli._main import main
+from heliojax.cli._main import build_parser, main
 
 
 def test_inspect_embedded(tmp_path, capsys):
@@ -40,6 +44,11 @@ def test_calibrate_embedded_writes_schema(tmp_path, capsys):
         ]
     )
     assert rc == 0
+    mask = os.umask(0o022)
+    os.umask(mask)
+    for path in (report, out, plot):  # readable by colleagues, as open() would make it
+        assert path.stat().st_mode & 0o777 == 0o666 & ~mask, path
+    assert not [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary files left
     s = json.loads(report.read_text())
     assert s["model"] == "actuator" and s["split"] == "time"
     assert set(s["heliostats"]) == {"BE36", "BF56", "BG23", "BH20", "BL14"}
@@ -143,3 +152,52 @@ def test_calibrate_with_test_data_directory(tmp_path):
     be36 = s["heliostats"]["BE36"]
     assert be36["n_train"] == be36["n_test"] == 164  # all records train; the same records are evaluated
     assert be36["test_rms_mrad"] == pytest.approx(be36["train_rms_mrad"], rel=1e-9)
+
+
+def test_help_needs_no_jax_and_documents_every_option():
+    """``heliojax --help`` and every subcommand's help build without importing JAX
+    (lazy imports keep them fast), give an example and a help text for each option."""
+    code = (
+        "import sys; from heliojax.cli._main import build_parser; p, m = build_parser(); "
+        "print(sorted(k for k in ('jax', 'equinox', 'sklearn', 'matplotlib') if k in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+    parser, modules = build_parser()
+    assert "examples:" in parser.format_help()
+    for name, sub in parser._subparsers._group_actions[0].choices.items():  # pyright: ignore[reportOptionalMemberAccess]
+        text = sub.format_help()
+        assert "examples:" in text and f"heliojax {name}" in text, name
+        for action in sub._actions:
+            assert action.help and action.help.strip(), f"{name} {action.option_strings or action.dest}: no help"
+
+
+def test_cli_choices_match_the_library():
+    """The CLI keeps the library's name lists as literals (no JAX for --help)."""
+    from heliojax._splits import SPLIT_NAMES
+    from heliojax.cli import _calibrate, _discover, _fetch
+
+    assert _calibrate.SPLIT_CHOICES == SPLIT_NAMES
+    assert _calibrate.BATCHING_CHOICES == hj.fitting.BATCHING_NAMES
+    assert _discover.EFFECT_CHOICES == hj.effects.EFFECT_NAMES
+    assert _fetch.COLLECTIONS == hj.paint.COLLECTIONS
+    assert _fetch.CALIBRATION_ASSETS == hj.paint.CALIBRATION_ASSETS
+
+
+def test_version_is_the_distribution_version(capsys):
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == hj.__version__ == importlib.metadata.version("heliojax")
+
+
+def test_atomic_write_keeps_the_mode_of_the_file_it_replaces(tmp_path):
+    from heliojax._io import atomic_path, atomic_write
+
+    target = tmp_path / "summary.json"
+    target.write_text("{}")
+    target.chmod(0o640)
+    with atomic_write(target) as f:
+        f.write("[]")
+    assert target.read_text() == "[]" and target.stat().st_mode & 0o777 == 0o640
+    with atomic_path(target) as tmp:
+        tmp.write_text("[1]")
+    assert target.read_text() == "[1]" and target.stat().st_mode & 0o777 == 0o640

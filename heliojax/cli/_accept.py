@@ -9,6 +9,10 @@ import json
 import sys
 from pathlib import Path
 
+EXAMPLES = """examples:
+  heliojax accept --results field.csv --contract configs/contract.toml --figures out/acceptance
+  heliojax accept --results out/summary.json --paint ../shared/data/paint --contract configs/contract.toml"""
+
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(

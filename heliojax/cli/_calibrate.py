@@ -15,10 +15,18 @@ pair that is nearly collinear with theta_k (Stone) / the axis-1 offset over typi
 elevation ranges."""
 
 
-def add_parser(subparsers) -> None:
-    from .._splits import SPLIT_NAMES
-    from ..fitting import BATCHING_NAMES
+SPLIT_CHOICES = ("time", "azimuth", "solstice", "balanced", "high_variance")
+"""heliojax's split names (``heliojax._splits.SPLIT_NAMES``; kept here so that
+``--help`` needs no JAX; a test checks they agree)."""
+BATCHING_CHOICES = ("auto", "vmap", "chunked", "map")
+"""``heliojax.fitting.BATCHING_NAMES`` (a test checks they agree)."""
+EXAMPLES = """examples:
+  heliojax calibrate --out out/results.h5 --report out/summary.json --plot out/calibration.png
+  heliojax calibrate ../shared/data/paint --split azimuth --train 20 --no-pool
+  heliojax calibrate DATA --config configs/paint-benchmark.toml"""
 
+
+def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "calibrate",
         help="fit the kinematic model of every heliostat (Levenberg-Marquardt, all at once)",
@@ -45,15 +53,25 @@ def add_parser(subparsers) -> None:
         help="with +nn: 'residual' (learned joint-angle correction, default) or 'paper' "
         "(Pargmann et al.: physics-pretrained network sun + spot -> motor counts)",
     )
-    p.add_argument("--split", choices=SPLIT_NAMES, default="time")
+    p.add_argument(
+        "--split",
+        choices=SPLIT_CHOICES,
+        default="time",
+        help="how records are split into training and held-out: by time (earliest train) or one of PAINT's splits",
+    )
     p.add_argument(
         "--train",
         type=int,
         default=None,
         metavar="N",
-        help="training records per heliostat (default for the time split: the earliest 70%%)",
+        help="training records per heliostat (time split: default the --train-fraction earliest)",
     )
-    p.add_argument("--train-fraction", type=float, default=0.7, help="time split: fraction that trains")
+    p.add_argument(
+        "--train-fraction",
+        type=float,
+        default=0.7,
+        help="time split: fraction of each heliostat's records that trains (0-1)",
+    )
     p.add_argument("--val", type=int, default=0, metavar="N", help="validation records per heliostat")
     p.add_argument("--seed", type=int, default=42, help="seed of the random splits")
     p.add_argument(
@@ -66,7 +84,7 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--prior", action="store_true", help="Tikhonov prior toward nominal for the weakly identified parameters"
     )
-    p.add_argument("--max-steps", type=int, default=64, help="Levenberg-Marquardt step limit")
+    p.add_argument("--max-steps", type=int, default=64, help="Levenberg-Marquardt step limit per fit pass")
     p.add_argument(
         "--no-robust",
         dest="robust",
@@ -79,12 +97,29 @@ def add_parser(subparsers) -> None:
         action="store_false",
         help="no fleet prior: heliostats with fewer training records than parameters stay uncalibrated",
     )
-    p.add_argument("--strategy", choices=BATCHING_NAMES, default="auto", help="batching over heliostats")
+    p.add_argument(
+        "--strategy",
+        choices=BATCHING_CHOICES,
+        default="auto",
+        help="batching over heliostats: auto (by backend), vmap, chunked or map (lax.map)",
+    )
     add_fit_arguments(p)
-    p.add_argument("--out", type=Path, default=None, metavar="FILE", help="results.h5")
-    p.add_argument("--report", type=Path, default=None, metavar="FILE", help="summary.json")
-    p.add_argument("--plot", type=Path, default=None, metavar="FILE", help="figure (PNG)")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="results.h5: fitted parameters, covariance, per-record residuals (default: none)",
+    )
+    p.add_argument(
+        "--report",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="summary.json: statuses and errors per heliostat in mrad (default: none)",
+    )
+    p.add_argument("--plot", type=Path, default=None, metavar="FILE", help="calibration figure, PNG")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or messages on stderr")
 
 
 def run(args) -> int:

@@ -63,5 +63,5 @@ def enable_compilation_cache(cache_dir: str | os.PathLike | None) -> None:
     path = Path(cache_dir or os.environ.get("HELIOJAX_CACHE_DIR") or Path.home() / ".cache" / "heliojax" / "jax")
     path.mkdir(parents=True, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", str(path))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)  # keep small programs too
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)

@@ -10,15 +10,32 @@ from ._common import add_data_argument, add_fit_arguments, enable_compilation_ca
 BASES = ("stone8", "actuator")
 
 
-def add_parser(subparsers) -> None:
-    from ..effects import EFFECT_NAMES
+EFFECT_CHOICES = (
+    "actuator_geometry",
+    "backlash",
+    "thermal",
+    "wind",
+    "clock",
+    "gravity_sag",
+    "encoder_wobble",
+    "refraction",
+    "survey_heliostat",
+    "survey_target",
+)
+"""``heliojax.effects.EFFECT_NAMES`` (kept here so that ``--help`` needs no JAX; a
+test checks they agree)."""
+EXAMPLES = """examples:
+  heliojax discover --base actuator --report out/report.json --figures out/discovery
+  heliojax discover ../shared/data/paint --base actuator --effects thermal,backlash --markdown out/discovery.md"""
 
+
+def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "discover",
         help="find where the model and the measurements disagree and name the missing effects",
         description=(
             "Fit the base model of every heliostat, screen the candidate effects ("
-            + ", ".join(EFFECT_NAMES)
+            + ", ".join(EFFECT_CHOICES)
             + ") with score tests on the residuals, report the ones the model absorbs as not identifiable, "
             "refit the finalists and name an effect only when it passes Holm's family-wise control, "
             "delta BIC > 0 and a blocked-by-day cross-validated held-out improvement; repeat. "
@@ -28,14 +45,16 @@ def add_parser(subparsers) -> None:
     add_data_argument(p)
     p.add_argument("--base", choices=BASES, default="stone8", help="base kinematic model")
     p.add_argument("--report", type=Path, default=Path("report.json"), metavar="FILE", help="report.json path")
-    p.add_argument("--figures", type=Path, default=None, metavar="DIR", help="directory for the PNG figures")
-    p.add_argument("--markdown", type=Path, default=None, metavar="FILE", help="Markdown summary")
+    p.add_argument(
+        "--figures", type=Path, default=None, metavar="DIR", help="directory for the PNG figures (default: none)"
+    )
+    p.add_argument("--markdown", type=Path, default=None, metavar="FILE", help="Markdown summary file")
     p.add_argument("--effects", default=None, metavar="NAMES", help="comma-separated candidate effects (default: all)")
-    p.add_argument("--alpha", type=float, default=0.01, help="family-wise error rate per step (Holm)")
+    p.add_argument("--alpha", type=float, default=0.01, help="family-wise error rate per step (Holm), 0-1")
     p.add_argument("--folds", type=int, default=5, help="blocked cross-validation folds (by UTC day)")
     p.add_argument("--max-named", type=int, default=6, help="most effects to name")
     add_fit_arguments(p)
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or messages on stderr")
 
 
 def run(args) -> int:

@@ -7,8 +7,21 @@ import datetime as dt
 import sys
 
 from .._errors import HeliojaxError
-from ..paint import CALIBRATION_ASSETS, COLLECTIONS, fetch_catalog
 
+COLLECTIONS = ("properties", "calibration", "deflectometry")
+"""``heliojax.paint.COLLECTIONS`` (kept here so that ``--help`` needs no JAX; a test
+checks they agree)."""
+CALIBRATION_ASSETS = (
+    "calibration_properties",
+    "flux_image",
+    "flux_centered_image",
+    "cropped_image",
+    "raw_image",
+)
+"""``heliojax.paint.CALIBRATION_ASSETS`` (a test checks they agree)."""
+EXAMPLES = """examples:
+  heliojax fetch --out paint --heliostats AA39,BE36 --start 2023-01-01 --end 2023-03-31
+  heliojax fetch catalog.json --out paint --collections properties,calibration --assets all --max-items 20"""
 PAINT_CATALOGUE = "https://paint-database.org/WRI1030197/WRI1030197-catalog-stac.json"
 
 
@@ -66,12 +79,14 @@ def add_parser(subparsers) -> None:
     p.add_argument("--max-items", type=int, metavar="N", help="at most N calibration items per heliostat (earliest)")
     p.add_argument("--no-resume", dest="resume", action="store_false", help="download everything again")
     p.add_argument("--no-tower", dest="tower", action="store_false", help="skip the tower-measurements file")
-    p.add_argument("--workers", type=int, default=8, help="parallel downloads (default 8)")
-    p.add_argument("--timeout", type=float, default=60.0, help="seconds per request (default 60)")
+    p.add_argument("--workers", type=int, default=8, help="parallel downloads")
+    p.add_argument("--timeout", type=float, default=60.0, help="seconds per request (> 0)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
 
 
 def run(args) -> int:
+    from ..paint import fetch_catalog
+
     assets = list(CALIBRATION_ASSETS) if args.assets == ["all"] else args.assets
 
     def progress(msg: str) -> None:

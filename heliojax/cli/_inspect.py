@@ -9,6 +9,10 @@ import numpy as np
 
 from ._common import add_data_argument, load_fleet
 
+EXAMPLES = """examples:
+  heliojax inspect
+  heliojax inspect ../shared/data/paint --centroid helios --plot out/uncalibrated.png"""
+
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
@@ -21,7 +25,9 @@ def add_parser(subparsers) -> None:
         ),
     )
     add_data_argument(p)
-    p.add_argument("--plot", type=Path, metavar="FILE", help="write a box plot of the uncalibrated errors (PNG)")
+    p.add_argument(
+        "--plot", type=Path, metavar="FILE", help="write a box plot of the uncalibrated errors, PNG (default: none)"
+    )
 
 
 def _date(t: float) -> str:

@@ -15,6 +15,7 @@ import tomllib
 from pathlib import Path
 
 from .._errors import ConfigError, HeliojaxError
+from .._version import __version__
 
 # subcommand -> module (each has add_parser(subparsers) and run(args) -> int)
 SUBCOMMANDS = {
@@ -37,9 +38,31 @@ def _available():
                 raise
 
 
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Option help with its default (unless the help names it or there is none to
+    name: flags, unset options); descriptions and example epilogs as written."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        if (
+            "default" in text
+            or default is None
+            or default is argparse.SUPPRESS
+            or isinstance(default, bool)
+            or not (action.option_strings or action.nargs in ("?", "*"))
+        ):
+            return text
+        shown = ",".join(map(str, default)) if isinstance(default, list | tuple) else "%(default)s"
+        return f"{text} (default: {shown})"
+
+
 def build_parser() -> tuple[argparse.ArgumentParser, dict]:
     parser = argparse.ArgumentParser(
         prog="heliojax",
+        formatter_class=_HelpFormatter,
+        epilog="examples:\n  heliojax calibrate --plot out/calibration.png\n  heliojax inspect ../shared/data/paint\n"
+        "  heliojax COMMAND --help",
         description="heliojax: a JAX digital twin of a heliostat field (PAINT data, Stone calibration).",
     )
     parser.add_argument("--version", action="store_true", help="print the version and exit")
@@ -49,6 +72,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict]:
         module.add_parser(sub)
         modules[name] = module
         sp = sub.choices[name]
+        sp.formatter_class = _HelpFormatter
+        sp.epilog = module.EXAMPLES
         sp.add_argument("--config", type=Path, metavar="FILE", help=f"TOML file with option defaults (table [{name}])")
     return parser, modules
 
@@ -80,20 +105,18 @@ def _apply_config(subparser: argparse.ArgumentParser, command: str, path: Path) 
 
 
 def main(argv: list[str] | None = None) -> int:
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
     argv = sys.argv[1:] if argv is None else list(argv)
     parser, modules = build_parser()
     args = parser.parse_args(argv)
     if args.version:
-        from .. import __version__
-
         print(__version__)
         return 0
     if args.command is None:
         parser.print_help()
         return 2
+    import jax  # after parsing: --help and --version stay fast
+
+    jax.config.update("jax_enable_x64", True)
     try:
         if getattr(args, "config", None) is not None:
             sp = parser._subparsers._group_actions[0].choices[args.command]  # pyright: ignore[reportOptionalSubscript, reportOptionalMemberAccess, reportIndexIssue]

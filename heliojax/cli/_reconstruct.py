@@ -8,6 +8,10 @@ import json
 import sys
 from pathlib import Path
 
+EXAMPLES = """examples:
+  heliojax reconstruct --out out/reconstruction
+  heliojax reconstruct --images 8 --steps 300 --rays-per-point 64 --seed 3 --out out/reconstruction"""
+
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
@@ -25,11 +29,15 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--images", type=int, default=6, help="number of flux images (sun positions), 4-8 typical")
     p.add_argument("--seed", type=int, default=1, help="seed of the hidden surface and of the rays")
-    p.add_argument("--steps", type=int, default=150, help="optimiser steps")
+    p.add_argument("--steps", type=int, default=150, help="optimiser steps (>= 1)")
     p.add_argument("--learning-rate", type=float, default=2.5e-4, help="Adam step (m of control height)")
     p.add_argument("--rays-per-point", type=int, default=32, help="rays per surface point per image and step")
-    p.add_argument("--smoothness", type=float, default=1e-3)
-    p.add_argument("--flux-weight", type=float, default=1.0)
+    p.add_argument(
+        "--smoothness", type=float, default=1e-3, help="weight of the curvature penalty on the control heights (1/m^2)"
+    )
+    p.add_argument(
+        "--flux-weight", type=float, default=1.0, help="weight of the flux-conservation term (dimensionless)"
+    )
     p.add_argument("--out", type=Path, default=Path("reconstruction"), help="output directory")
 
 

@@ -8,6 +8,10 @@ import json
 import sys
 from pathlib import Path
 
+EXAMPLES = """examples:
+  heliojax trace ../shared/data/paint/flux-samples --heliostat AA39 --record 203169 --out out/trace
+  heliojax trace PAINT_DIR --heliostat AA39 --sun-azimuth -20 --sun-elevation 35 --sunshape pillbox"""
+
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
@@ -27,26 +31,28 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--heliostat", required=True, help="heliostat id, e.g. AA39")
     p.add_argument("--record", type=int, help="calibration record id (counts, sun and target of the record)")
-    p.add_argument("--sun-azimuth", type=float, help="deg, 0 = south, positive toward east")
-    p.add_argument("--sun-elevation", type=float, help="deg")
+    p.add_argument("--sun-azimuth", type=float, help="sun azimuth in degrees, 0 = south, positive toward east")
+    p.add_argument("--sun-elevation", type=float, help="sun elevation in degrees above the horizon (> 0)")
     p.add_argument(
         "--target", default="solar_tower_juelich_lower", help="target name with --sun-* (aimed at its centre)"
     )
     p.add_argument("--tower", type=Path, help="tower file (default: PAINT_DIR's or its parent's)")
     p.add_argument("--deflectometry", type=Path, help="PAINT deflectometry HDF5: fit NURBS facets to it")
-    p.add_argument("--sunshape", choices=("buie", "gaussian", "pillbox"), default="buie")
-    p.add_argument("--csr", type=float, default=0.05, help="Buie circumsolar parameter (default 0.05)")
+    p.add_argument(
+        "--sunshape", choices=("buie", "gaussian", "pillbox"), default="buie", help="sun shape of the ray directions"
+    )
+    p.add_argument("--csr", type=float, default=0.05, help="Buie circumsolar ratio (0-1)")
     p.add_argument("--sigma-mrad", type=float, default=2.51, help="Gaussian sun sigma per axis, mrad")
     p.add_argument(
         "--slope-error-mrad", type=float, default=1.5, help="Gaussian mirror slope error per axis, mrad (0: none)"
     )
-    p.add_argument("--rays-per-point", type=int, default=64)
+    p.add_argument("--rays-per-point", type=int, default=64, help="rays per surface point and chunk (>= 1)")
     p.add_argument("--steps", type=int, default=4, help="lax.scan chunks (rays per point = rays-per-point x steps)")
     p.add_argument("--resolution", type=int, default=32, help="surface points per facet edge")
-    p.add_argument("--pixels", type=int, default=256, help="image pixels per side")
-    p.add_argument("--dni", type=float, default=1000.0, help="W/m^2")
-    p.add_argument("--reflectivity", type=float, default=1.0)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--pixels", type=int, default=256, help="image pixels per side (>= 1)")
+    p.add_argument("--dni", type=float, default=1000.0, help="direct normal irradiance, W/m^2")
+    p.add_argument("--reflectivity", type=float, default=1.0, help="mirror reflectivity (0-1)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the ray sampling")
     p.add_argument("--out", type=Path, default=Path("trace"), help="output directory")
 
 

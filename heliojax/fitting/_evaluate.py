@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import typing
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -13,10 +12,11 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from .._heliostat import HeliostatGeometry, RecordContext
 from .._kinematics import AbstractKinematicModel
 from .._parameters import broadcast_model, is_batched
+from .._programs import cached_jit
 from ._records import sanitise
 
 
-@eqx.filter_jit
+@cached_jit
 def beam_errors_mrad(
     models: AbstractKinematicModel,
     geometry: HeliostatGeometry,
@@ -36,7 +36,7 @@ def beam_errors_mrad(
     return jax.vmap(per_heliostat)(models, geometry, counts, context, focal, mask)
 
 
-@eqx.filter_jit
+@cached_jit
 def residuals_mrad(
     models: AbstractKinematicModel,
     geometry: HeliostatGeometry,
@@ -114,25 +114,31 @@ def choose_start_geometry(
     has = np.asarray(jnp.any(m, axis=1))
     if not has.any():
         return fleet.geometry, np.zeros(h, bool)
-    typical = typical_actuators(fleet.geometry, has)
-    typ_act = jax.tree.map(lambda t, x: jnp.broadcast_to(t, x.shape), typical, fleet.geometry.actuators)
-    alt = HeliostatGeometry.build(
-        fleet.geometry.position,
-        typ_act,
-        fleet.geometry.joint_translation_1,
-        fleet.geometry.joint_translation_2,
-        fleet.geometry.concentrator_translation,
-    )
+    alt = _with_actuators(fleet.geometry, typical_actuators(fleet.geometry, has))
     models = _batched_models(model, h)
     e_own = beam_errors_mrad(models, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, m)
     e_alt = beam_errors_mrad(models, alt, fleet.counts, fleet.context, fleet.focal_spot, m)
     replaced = has & (_row_median(e_alt) < _row_median(e_own))
-    geometry = jax.tree.map(
-        lambda a, b: jnp.where(jnp.asarray(replaced).reshape((-1,) + (1,) * (a.ndim - 1)), b, a),
-        fleet.geometry,
-        alt,
+    return _select_geometry(jnp.asarray(replaced), alt, fleet.geometry), replaced
+
+
+@cached_jit
+def _with_actuators(geometry: HeliostatGeometry, typical: typing.Any) -> HeliostatGeometry:
+    """``geometry`` (batched ``H``) with every heliostat's actuators set to ``typical``."""
+    actuators = jax.tree.map(lambda t, x: jnp.broadcast_to(t, x.shape), typical, geometry.actuators)
+    return HeliostatGeometry.build(
+        geometry.position,
+        actuators,
+        geometry.joint_translation_1,
+        geometry.joint_translation_2,
+        geometry.concentrator_translation,
     )
-    return geometry, replaced
+
+
+@cached_jit
+def _select_geometry(take: Bool[Array, " H"], a: HeliostatGeometry, b: HeliostatGeometry) -> HeliostatGeometry:
+    """Per heliostat, ``a`` where ``take`` else ``b``."""
+    return jax.tree.map(lambda x, y: jnp.where(take.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), a, b)
 
 
 __all__ = [

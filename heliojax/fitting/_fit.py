@@ -37,6 +37,7 @@ from jaxtyping import Array, Bool, Float, Int
 from .._heliostat import HeliostatGeometry, RecordContext
 from .._kinematics import AbstractKinematicModel
 from .._parameters import ParameterView, broadcast_model, is_batched
+from .._programs import compile_cached
 from ._batching import AbstractBatching, default_batching
 from ._loss import AbstractLoss, LeastSquares
 from ._prior import AbstractPrior, NoPrior
@@ -361,7 +362,7 @@ class CompiledFit:
         if unknown:
             raise TypeError(f"unknown fit options {sorted(unknown)}")
         t0 = time.perf_counter()
-        self._compiled = _fit_compiled.lower(*static, *args).compile()
+        self._compiled = compile_cached(_fit_compiled, *static, *args)
         self.compile_s = time.perf_counter() - t0
         self._h = h
         self.run_s = 0.0

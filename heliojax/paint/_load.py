@@ -20,6 +20,7 @@ from .._errors import DataError
 from .._fleet import _CENTROIDS, Centroid, Fleet, ReportEntry, bucket_size
 from .._geometry import TargetPlane, sun_direction, wgs84_to_enu
 from .._heliostat import HeliostatGeometry, LinearActuators, RecordContext
+from .._programs import cached_jit
 from .._sun import datetime_to_unix
 from ._calibration import check_record_context, heliostat_properties_path, read_calibration_record, validate_record
 from ._common import (
@@ -109,10 +110,19 @@ def _bucket_rows(x) -> np.ndarray:
     return np.concatenate([x, np.repeat(x[:1], bucket_size(n) - n, axis=0)])
 
 
-_enu_kernel = jax.jit(wgs84_to_enu)
-_sun_kernel = jax.jit(lambda az, el: sun_direction(jnp.deg2rad(az), jnp.deg2rad(el)))
-_geometry_kernel = jax.jit(HeliostatGeometry.build)
-_targets_kernel = jax.jit(jax.vmap(TargetPlane.from_corners))
+def _sun_vectors(azimuth_deg, elevation_deg):
+    return sun_direction(jnp.deg2rad(azimuth_deg), jnp.deg2rad(elevation_deg))
+
+
+def _target_planes(*corners):
+    return jax.vmap(TargetPlane.from_corners)(*corners)
+
+
+# jitted once per shape bucket; traced programs kept across processes (heliojax._programs)
+_enu_kernel = cached_jit(wgs84_to_enu)
+_sun_kernel = cached_jit(_sun_vectors)
+_geometry_kernel = cached_jit(HeliostatGeometry.build)
+_targets_kernel = cached_jit(_target_planes)
 
 
 def _assemble(

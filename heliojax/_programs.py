@@ -1,0 +1,200 @@
+"""Traced programs kept across processes (``jax.export``), beside JAX's persistent
+compilation cache.
+
+JAX's persistent cache skips *compiling* a program a second time, but a new
+process still *traces* and lowers it: for the Levenberg-Marquardt fit of a fleet
+that is ~2 s of the CLI's wall time. When a compilation cache directory is
+configured (``jax.config.update("jax_compilation_cache_dir", DIR)``, as the CLI
+does), :func:`compile_cached` also keeps the traced program, serialised with
+:func:`jax.export.export`, in ``DIR/heliojax-programs/`` and loads it instead of
+tracing again. The key is a SHA-256 of the function's name, everything static in
+its arguments (pickled: solver settings, parameter views, model classes and
+static fields), the shapes and dtypes of its array arguments, and the versions of
+heliojax, jax and jaxlib and the backend, so a changed option, shape or version
+never reuses a program. Arguments that cannot be pickled, and any failure to
+export or load, fall back to tracing (the result is the same either way).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import logging
+import pickle
+import re
+import typing
+from collections.abc import Callable
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jaxlib
+
+from ._io import atomic_write
+from ._version import __version__
+
+log = logging.getLogger(__name__)
+
+PROGRAM_DIR = "heliojax-programs"
+"""Subdirectory of the compilation cache directory holding the exported programs."""
+
+
+@dataclasses.dataclass(frozen=True)
+class _Leaf:
+    """Placeholder for the ``index``-th array of a program's flattened output."""
+
+    index: int
+
+
+def _key(fn: typing.Any, stat: typing.Any, leaves: list) -> str | None:
+    if "<" in fn.__qualname__:  # lambdas and local functions: the name does not identify them
+        return None
+    try:
+        material = pickle.dumps(
+            (
+                fn.__module__,
+                fn.__qualname__,
+                stat,
+                [(tuple(x.shape), str(x.dtype)) for x in leaves],
+                __version__,
+                jax.__version__,
+                jaxlib.__version__,
+                jax.default_backend(),
+            ),
+            protocol=5,
+        )
+    except Exception:  # noqa: BLE001 - unpicklable static parts (closures): no key, trace instead
+        return None
+    return hashlib.sha256(material).hexdigest()
+
+
+def _program_dir() -> Path | None:
+    directory = jax.config.jax_compilation_cache_dir  # pyright: ignore[reportAttributeAccessIssue]
+    return None if not directory else Path(directory) / PROGRAM_DIR
+
+
+def compile_cached(fn: Callable, *args: typing.Any) -> Callable[..., typing.Any]:
+    """``fn`` (an :func:`equinox.filter_jit` function) compiled for ``args``,
+    returned as a callable of the same arguments (of the same shapes and static
+    parts). With a compilation cache directory configured, the traced program is
+    loaded from / saved to it (see the module docstring); otherwise this is
+    ``fn.lower(*args).compile()``."""
+    directory = _program_dir()
+    dyn, stat = eqx.partition(args, eqx.is_array)
+    leaves, treedef = jax.tree.flatten(dyn)
+    key = _key(fn, stat, leaves) if directory is not None else None
+    if directory is None or key is None:
+        return fn.lower(*args).compile()  # pyright: ignore[reportAttributeAccessIssue]
+    path = directory / f"{key}.bin"
+    loaded = _load(path)
+    if loaded is None:
+        loaded = _export(fn, stat, treedef, leaves, path)
+    if loaded is None:
+        return fn.lower(*args).compile()  # pyright: ignore[reportAttributeAccessIssue]
+    exported, skeleton = loaded
+    program = jax.jit(exported.call).lower(*leaves).compile()
+
+    def run(*call_args: typing.Any) -> typing.Any:
+        flat = jax.tree.leaves(eqx.filter(call_args, eqx.is_array))
+        out = program(*flat)
+        return jax.tree.map(lambda x: out[x.index] if isinstance(x, _Leaf) else x, skeleton)
+
+    return run
+
+
+def _export_allowing_version_bound_calls(flat: Callable, leaves: list) -> typing.Any:
+    """Export ``flat``; custom calls without cross-version guarantees (LAPACK's QR on
+    the CPU) are allowed, since the key pins the jax/jaxlib versions and backend."""
+    specs = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
+    allowed: set[str] = set()
+    for _ in range(8):
+        checks = [jax.export.DisabledSafetyCheck.custom_call(name) for name in sorted(allowed)]
+        try:
+            return jax.export.export(jax.jit(flat), disabled_checks=checks)(*specs)
+        except ValueError as e:
+            names = set(re.findall(r"custom_call @(\w+)", str(e))) - allowed
+            if "compatibility guarantees" not in str(e) or not names:
+                raise
+            allowed |= names
+    raise ValueError(f"too many custom calls without compatibility guarantees: {sorted(allowed)}")
+
+
+class cached_jit(eqx.Module):
+    """:func:`equinox.filter_jit` whose traced programs are kept across processes
+    when a compilation cache directory is configured (see the module docstring);
+    without one it is exactly ``eqx.filter_jit(fn)``. Use as a decorator."""
+
+    fn: Callable = eqx.field(static=True)
+    jitted: Callable = eqx.field(static=True)
+
+    def __init__(self, fn: Callable):
+        self.fn = fn
+        self.jitted = eqx.filter_jit(fn)
+
+    @property
+    def __wrapped__(self) -> Callable:
+        return self.fn
+
+    def __call__(self, *args: typing.Any) -> typing.Any:
+        if _program_dir() is None:
+            return self.jitted(*args)
+        dyn, stat = eqx.partition(args, eqx.is_array)
+        key = _key(self.fn, stat, jax.tree.leaves(dyn))
+        if key is None:
+            return self.jitted(*args)
+        program = _COMPILED.get(key)
+        if program is None:
+            program = _COMPILED[key] = compile_cached(self.jitted, *args)
+        return program(*args)
+
+
+_COMPILED: dict[str, Callable] = {}
+"""Programs compiled in this process by :class:`cached_jit`, by key (like jit's own cache)."""
+
+
+def _load(path: Path) -> tuple[typing.Any, typing.Any] | None:
+    try:
+        blob = path.read_bytes()
+    except OSError:
+        return None
+    try:
+        skeleton_bytes, program_bytes = pickle.loads(blob)
+        return jax.export.deserialize(program_bytes), pickle.loads(skeleton_bytes)
+    except Exception as e:  # noqa: BLE001 - a stale or damaged entry: trace again and overwrite it
+        log.debug("ignoring the cached program %s: %s", path, e)
+        return None
+
+
+def _export(fn: Callable, stat: typing.Any, treedef: typing.Any, leaves: list, path: Path):
+    skeleton: list = []
+
+    def flat(*flat_leaves):
+        out = fn(*eqx.combine(jax.tree.unflatten(treedef, flat_leaves), stat))
+        out_leaves, out_tree = jax.tree.flatten(out, is_leaf=lambda x: x is None)
+        arrays = [x for x in out_leaves if eqx.is_array(x)]
+        marks, n = [], 0
+        for x in out_leaves:
+            if eqx.is_array(x):
+                marks.append(_Leaf(n))
+                n += 1
+            else:
+                marks.append(x)
+        skeleton.append(jax.tree.unflatten(out_tree, marks))
+        return arrays
+
+    try:
+        exported = _export_allowing_version_bound_calls(flat, leaves)
+        blob = pickle.dumps((pickle.dumps(skeleton[0], protocol=5), exported.serialize()), protocol=5)
+    except Exception as e:  # noqa: BLE001 - not exportable (e.g. an unsupported custom call): trace as usual
+        log.debug("not keeping the traced program of %s: %s", fn, e)
+        return None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_write(path, "wb") as f:
+            f.write(blob)
+    except OSError as e:
+        log.debug("cannot write %s: %s", path, e)
+    return exported, skeleton[0]
+
+
+__all__ = ["PROGRAM_DIR", "cached_jit", "compile_cached"]

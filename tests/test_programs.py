@@ -1,0 +1,79 @@
+"""Traced programs kept across processes (heliojax._programs): same results as a
+fresh trace, loaded instead of traced, keyed by every static option and shape."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import zoo
+
+import heliojax as hj
+from heliojax import _programs
+from heliojax.fitting import CompiledFit
+
+
+@pytest.fixture
+def program_dir(tmp_path, monkeypatch):
+    """A program directory for this test only (no global JAX cache configured)."""
+    monkeypatch.setattr(_programs, "_program_dir", lambda: tmp_path)
+    monkeypatch.setattr(_programs, "_COMPILED", {})
+    return tmp_path
+
+
+def _no_export(*_a, **_k):
+    raise AssertionError("traced again although a kept program exists")
+
+
+def test_kept_fit_program_gives_the_traced_result(program_dir, monkeypatch):
+    fleet = zoo("actuator").fleet
+    model0 = hj.ActuatorModel.nominal()
+    reference = CompiledFit(model0, fleet, max_steps=16)(model0)  # traced here: a program is written
+    written = sorted(program_dir.glob("*.bin"))
+    assert len(written) == 1
+    monkeypatch.setattr(_programs, "_export", _no_export)  # from now on only loading is allowed
+    kept = CompiledFit(model0, fleet, max_steps=16)(model0)
+    for a, b in zip(jax.tree.leaves(reference.model), jax.tree.leaves(kept.model), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_array_equal(np.asarray(reference.status), np.asarray(kept.status))
+    np.testing.assert_array_equal(np.asarray(reference.covariance), np.asarray(kept.covariance))
+    assert sorted(program_dir.glob("*.bin")) == written
+
+
+def test_other_static_option_or_shape_is_another_program(program_dir):
+    fleet = zoo("actuator").fleet
+    model0 = hj.ActuatorModel.nominal()
+    CompiledFit(model0, fleet, max_steps=16)
+    CompiledFit(model0, fleet, max_steps=17)
+    CompiledFit(model0, hj.pad_fleet(fleet, 16, 32), max_steps=16)
+    assert len(list(program_dir.glob("*.bin"))) == 3
+
+
+def test_damaged_program_is_traced_again_and_replaced(program_dir):
+    errors = jnp.arange(6.0).reshape(2, 3)
+    square = _programs.cached_jit(_square)
+    expected = np.asarray(errors) ** 2
+    np.testing.assert_array_equal(np.asarray(square(errors)), expected)
+    (path,) = program_dir.glob("*.bin")
+    path.write_bytes(b"not a program")
+    _programs._COMPILED.clear()
+    np.testing.assert_array_equal(np.asarray(square(errors)), expected)
+    assert path.read_bytes() != b"not a program"
+
+
+def test_lambdas_are_never_kept(program_dir):
+    square = _programs.cached_jit(lambda x: x**2)
+    np.testing.assert_array_equal(np.asarray(square(jnp.arange(3.0))), [0.0, 1.0, 4.0])
+    assert list(program_dir.glob("*.bin")) == []
+
+
+def test_without_a_cache_directory_nothing_is_written(tmp_path, monkeypatch):
+    monkeypatch.setattr(_programs, "_program_dir", lambda: None)
+    monkeypatch.setattr(_programs, "_export", _no_export)
+    square = _programs.cached_jit(_square)
+    np.testing.assert_array_equal(np.asarray(square(jnp.arange(3.0))), [0.0, 1.0, 4.0])
+
+
+def _square(x):
+    return x**2
