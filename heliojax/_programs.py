@@ -28,7 +28,7 @@ from pathlib import Path
 
 import equinox as eqx
 import jax
-import jaxlib
+from jaxlib import version as jaxlib_version
 
 from ._io import atomic_write
 from ._version import __version__
@@ -58,7 +58,7 @@ def _key(fn: typing.Any, stat: typing.Any, leaves: list) -> str | None:
                 [(tuple(x.shape), str(x.dtype)) for x in leaves],
                 __version__,
                 jax.__version__,
-                jaxlib.__version__,
+                jaxlib_version.__version__,
                 jax.default_backend(),
             ),
             protocol=5,
