@@ -50,7 +50,11 @@ def _run(argv: list[str], cache: str, out: str) -> float:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--commands", default="--version,--help,calibrate --help,inspect,calibrate,calibrate --model stone8")
+    ap.add_argument(
+        "--commands",
+        default="--version,--help,calibrate --help,inspect,calibrate,calibrate --model stone8",
+        help=f"comma-separated, from: {', '.join(COMMANDS)}",
+    )
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args()
     names = [c.strip() for c in args.commands.split(",") if c.strip()]

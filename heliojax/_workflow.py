@@ -10,8 +10,8 @@ from __future__ import annotations
 import collections.abc
 import dataclasses
 import json
+import logging
 import typing
-from collections.abc import Callable
 from pathlib import Path
 
 import equinox as eqx
@@ -34,6 +34,8 @@ from .fitting import (
     fleet_beam_errors_mrad,
     fleet_residuals_mrad,
 )
+
+log = logging.getLogger(__name__)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,7 +113,6 @@ def calibrate(
     start: str = "auto",
     robust: bool = True,
     pool: bool = True,
-    progress: Callable[[str], None] | None = None,
 ) -> CalibrationRun:
     """Split each heliostat's records, fit the model on the training records of all
     heliostats at once, and evaluate on the held-out ones.
@@ -135,9 +136,7 @@ def calibrate(
         pool: with ``robust``, finish under the fleet's empirical-Bayes prior
             (:func:`heliojax.fitting.fleet_prior`): heliostats with few records are
             calibrated too.
-        progress: callback for progress messages.
     """
-    say = progress or (lambda _msg: None)
     model0 = nominal_model(model, fleet.counts.dtype) if isinstance(model, str) else model
     n_real = len(fleet.ids)
     ids = list(fleet.ids)
@@ -182,7 +181,7 @@ def calibrate(
         replaced = np.zeros(h_pad, bool)
 
     options = dict(fit_options or {})
-    say(f"fitting {n_real} heliostats ({model0.label()}, padded to {h_pad} x {m_pad})")
+    log.info(f"fitting {n_real} heliostats ({model0.label()}, padded to {h_pad} x {m_pad})")
     if robust:
         robust_fit = fit_robust(model0, padded, mask=jnp.asarray(train), pool=pool, **options)
         result, compile_s, fit_s = robust_fit.solution, robust_fit.compile_s, robust_fit.run_s
@@ -194,7 +193,7 @@ def calibrate(
         weights = np.where(train & np.asarray(padded.mask), 1.0, 0.0)
         outlier = np.zeros_like(train)
         noise = np.asarray(result.noise_mrad)
-    say(f"fitted in {fit_s:.2f} s (compile {compile_s:.2f} s)")
+    log.info(f"fitted in {fit_s:.2f} s (compile {compile_s:.2f} s)")
 
     all_valid = jnp.asarray(padded.mask)
     errors = np.asarray(fleet_beam_errors_mrad(result.model, padded, all_valid))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.metadata
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -44,6 +45,7 @@ def test_calibrate_embedded_writes_schema(tmp_path, capsys):
         ]
     )
     assert rc == 0
+    assert capsys.readouterr().err == ""  # --quiet: no messages, no bar
     mask = os.umask(0o022)
     os.umask(mask)
     for path in (report, out, plot):  # readable by colleagues, as open() would make it
@@ -201,3 +203,12 @@ def test_atomic_write_keeps_the_mode_of_the_file_it_replaces(tmp_path):
     with atomic_path(target) as tmp:
         tmp.write_text("[1]")
     assert target.read_text() == "[1]" and target.stat().st_mode & 0o777 == 0o640
+
+
+def test_progress_messages_go_through_logging(caplog):
+    """The library reports progress by logging (logger ``heliojax``), never print."""
+    fleet = hj.load_paint_directory(hj.default_data_dir())
+    with caplog.at_level(logging.INFO, logger="heliojax"):
+        hj.calibrate(fleet, model=hj.ActuatorModel.nominal(), fit_options={"max_steps": 4})
+    messages = [r.getMessage() for r in caplog.records if r.name.startswith("heliojax")]
+    assert any(m.startswith("fitting 5 heliostats") for m in messages), messages

@@ -13,6 +13,10 @@ EXAMPLES = """examples:
   heliojax accept --results field.csv --contract configs/contract.toml --figures out/acceptance
   heliojax accept --results out/summary.json --paint ../shared/data/paint --contract configs/contract.toml"""
 
+OUTPUT_FILES = ("report",)
+OUTPUT_DIRS = ("figures",)
+"""Output paths checked before any work (attribute names of the parsed arguments)."""
+
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(

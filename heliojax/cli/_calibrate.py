@@ -3,9 +3,10 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
-from ._common import add_data_argument, add_fit_arguments, enable_compilation_cache, load_fleet, progress
+from ._common import add_data_argument, add_fit_arguments, enable_compilation_cache, integer, load_fleet, number
 
 MODELS = ("auto", "stone8", "actuator", "auto+nn", "stone8+nn", "actuator+nn")
 NN_VARIANTS = ("residual", "paper")
@@ -13,6 +14,8 @@ WEAK_PRIOR_SIGMA = {"gamma": 5e-3, "delta": 5e-3}
 """``--prior``: sigma (rad) toward nominal for the chain tilts gamma and delta, the
 pair that is nearly collinear with theta_k (Stone) / the axis-1 offset over typical
 elevation ranges."""
+
+log = logging.getLogger(__name__)
 
 
 SPLIT_CHOICES = ("time", "azimuth", "solstice", "balanced", "high_variance")
@@ -24,6 +27,10 @@ EXAMPLES = """examples:
   heliojax calibrate --out out/results.h5 --report out/summary.json --plot out/calibration.png
   heliojax calibrate ../shared/data/paint --split azimuth --train 20 --no-pool
   heliojax calibrate DATA --config configs/paint-benchmark.toml"""
+
+OUTPUT_FILES = ("out", "report", "plot")
+OUTPUT_DIRS = ("cache_dir",)
+"""Output paths checked before any work (attribute names of the parsed arguments)."""
 
 
 def add_parser(subparsers) -> None:
@@ -61,19 +68,19 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument(
         "--train",
-        type=int,
+        type=integer(1),
         default=None,
         metavar="N",
         help="training records per heliostat (time split: default the --train-fraction earliest)",
     )
     p.add_argument(
         "--train-fraction",
-        type=float,
+        type=number(0.0, 1.0, above=True),
         default=0.7,
         help="time split: fraction of each heliostat's records that trains (0-1)",
     )
-    p.add_argument("--val", type=int, default=0, metavar="N", help="validation records per heliostat")
-    p.add_argument("--seed", type=int, default=42, help="seed of the random splits")
+    p.add_argument("--val", type=integer(0), default=0, metavar="N", help="validation records per heliostat")
+    p.add_argument("--seed", type=integer(0, 2**32 - 1), default=42, help="seed of the random splits")
     p.add_argument(
         "--test-data",
         type=Path,
@@ -84,7 +91,7 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--prior", action="store_true", help="Tikhonov prior toward nominal for the weakly identified parameters"
     )
-    p.add_argument("--max-steps", type=int, default=64, help="Levenberg-Marquardt step limit per fit pass")
+    p.add_argument("--max-steps", type=integer(1), default=64, help="Levenberg-Marquardt step limit per fit pass")
     p.add_argument(
         "--no-robust",
         dest="robust",
@@ -130,9 +137,8 @@ def run(args) -> int:
     from ..paint import load_paint_directory
 
     enable_compilation_cache(args.cache_dir)
-    say = (lambda _m: None) if args.quiet else progress
     fleet = load_fleet(args)
-    say(f"loaded {len(fleet.ids)} heliostats, {int(fleet.mask.sum())} records")
+    log.info(f"loaded {len(fleet.ids)} heliostats, {int(fleet.mask.sum())} records")
     test_fleet = None
     if args.test_data is not None:
         test_fleet = load_paint_directory(args.test_data, centroid=args.centroid)
@@ -159,12 +165,11 @@ def run(args) -> int:
         start=args.start,
         robust=args.robust,
         pool=args.pool,
-        progress=say,
     )
     if neural:
         from ..neural import calibrate_neural
 
-        run_ = calibrate_neural(fleet, variant=args.nn_variant, seed=args.seed, lm_run=run_, progress=say).run
+        run_ = calibrate_neural(fleet, variant=args.nn_variant, seed=args.seed, lm_run=run_).run
     s = run_.summary
     print(
         f"{'heliostat':<10} {'status':<16} {'train':>5} {'test':>5} {'train rms':>9} {'test med':>9} "
@@ -196,13 +201,13 @@ def run(args) -> int:
         )
     if args.report is not None:
         write_summary(args.report, run_)
-        say(f"wrote {args.report}")
+        log.info(f"wrote {args.report}")
     if args.out is not None:
         write_results_h5(args.out, run_)
-        say(f"wrote {args.out}")
+        log.info(f"wrote {args.out}")
     if args.plot is not None:
         from .._plotting import plot_calibration, save_figure
 
         save_figure(plot_calibration(run_), args.plot)
-        say(f"wrote {args.plot}")
+        log.info(f"wrote {args.plot}")
     return 0

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import argparse
+import logging
+import math
 import os
 import sys
 from pathlib import Path
@@ -46,8 +49,18 @@ def load_fleet(args):
     return load_paint_directory(path, centroid=args.centroid)
 
 
-def progress(msg: str) -> None:
-    print(f"[heliojax] {msg}", file=sys.stderr, flush=True)
+def configure_logging(quiet: bool) -> logging.Logger:
+    """Show the library's INFO messages (progress) on stderr as ``[heliojax] ...``;
+    only warnings with ``quiet``. Returns the ``heliojax`` logger."""
+    logger = logging.getLogger("heliojax")
+    if not any(getattr(h, "_heliojax_cli", False) for h in logger.handlers):
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("[heliojax] %(message)s"))
+        handler._heliojax_cli = True  # pyright: ignore[reportAttributeAccessIssue]
+        logger.addHandler(handler)
+        logger.propagate = False
+    logger.setLevel(logging.WARNING if quiet else logging.INFO)
+    return logger
 
 
 def enable_compilation_cache(cache_dir: str | os.PathLike | None) -> None:
@@ -65,3 +78,70 @@ def enable_compilation_cache(cache_dir: str | os.PathLike | None) -> None:
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)  # keep small programs too
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+def check_output_paths(args, files: tuple[str, ...] = (), directories: tuple[str, ...] = ()) -> None:
+    """Before any work: every output file / directory named by ``args`` (attribute
+    names; None = not requested) can be written. Raises ConfigError naming the flag."""
+    from .._errors import ConfigError
+
+    for names, is_dir in ((files, False), (directories, True)):
+        for name in names:
+            value = getattr(args, name, None)
+            if value is None or (name == "cache_dir" and str(value).lower() == "none"):
+                continue
+            path = Path(value)
+            flag = "--" + name.replace("_", "-")
+            if is_dir and path.exists() and not path.is_dir():
+                raise ConfigError(f"{flag} {path}: exists and is not a directory")
+            if not is_dir and path.is_dir():
+                raise ConfigError(f"{flag} {path}: is a directory, expected a file name")
+            ancestor = path if is_dir else path.parent
+            while not ancestor.exists() and ancestor != ancestor.parent:
+                ancestor = ancestor.parent
+            if not ancestor.is_dir():
+                raise ConfigError(f"{flag} {path}: {ancestor} is not a directory")
+            if not os.access(ancestor, os.W_OK | os.X_OK):
+                raise ConfigError(f"{flag} {path}: {ancestor} is not writable")
+
+
+def integer(minimum: int | None = None, maximum: int | None = None):
+    """An argparse ``type``: an integer in ``[minimum, maximum]`` (from a command
+    line string or a config number), else a message naming the range."""
+
+    def parse(value: str | int | float) -> int:
+        if isinstance(value, bool):
+            raise argparse.ArgumentTypeError(f"expected an integer, got {value!r}")
+        try:
+            number = int(value)
+        except (TypeError, ValueError):
+            raise argparse.ArgumentTypeError(f"expected an integer, got {value!r}") from None
+        if isinstance(value, float) and number != value:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {value!r}")
+        if (minimum is not None and number < minimum) or (maximum is not None and number > maximum):
+            raise argparse.ArgumentTypeError(f"{number} is outside [{minimum}, {maximum}]".replace("None", "..."))
+        return number
+
+    parse.__name__ = "integer"
+    return parse
+
+
+def number(minimum: float | None = None, maximum: float | None = None, *, above: bool = False):
+    """An argparse ``type``: a finite number in ``[minimum, maximum]`` (``(minimum,
+    maximum]`` with ``above``), else a message naming the range."""
+
+    def parse(value: str | float) -> float:
+        if isinstance(value, bool):
+            raise argparse.ArgumentTypeError(f"expected a number, got {value!r}")
+        try:
+            x = float(value)
+        except (TypeError, ValueError):
+            raise argparse.ArgumentTypeError(f"expected a number, got {value!r}") from None
+        low_ok = minimum is None or (x > minimum if above else x >= minimum)
+        if not math.isfinite(x) or not low_ok or (maximum is not None and x > maximum):
+            bracket = "(" if above else "["
+            raise argparse.ArgumentTypeError(f"{x} is outside {bracket}{minimum}, {maximum}]".replace("None", "..."))
+        return x
+
+    parse.__name__ = "number"
+    return parse

@@ -3,11 +3,14 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
-from ._common import add_data_argument, add_fit_arguments, enable_compilation_cache, load_fleet, progress
+from ._common import add_data_argument, add_fit_arguments, enable_compilation_cache, integer, load_fleet, number
 
 BASES = ("stone8", "actuator")
+
+log = logging.getLogger(__name__)
 
 
 EFFECT_CHOICES = (
@@ -27,6 +30,10 @@ test checks they agree)."""
 EXAMPLES = """examples:
   heliojax discover --base actuator --report out/report.json --figures out/discovery
   heliojax discover ../shared/data/paint --base actuator --effects thermal,backlash --markdown out/discovery.md"""
+
+OUTPUT_FILES = ("report", "markdown")
+OUTPUT_DIRS = ("figures", "cache_dir")
+"""Output paths checked before any work (attribute names of the parsed arguments)."""
 
 
 def add_parser(subparsers) -> None:
@@ -50,9 +57,11 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--markdown", type=Path, default=None, metavar="FILE", help="Markdown summary file")
     p.add_argument("--effects", default=None, metavar="NAMES", help="comma-separated candidate effects (default: all)")
-    p.add_argument("--alpha", type=float, default=0.01, help="family-wise error rate per step (Holm), 0-1")
-    p.add_argument("--folds", type=int, default=5, help="blocked cross-validation folds (by UTC day)")
-    p.add_argument("--max-named", type=int, default=6, help="most effects to name")
+    p.add_argument(
+        "--alpha", type=number(0.0, 1.0, above=True), default=0.01, help="family-wise error rate per step (Holm), 0-1"
+    )
+    p.add_argument("--folds", type=integer(2), default=5, help="blocked cross-validation folds (by UTC day)")
+    p.add_argument("--max-named", type=integer(0), default=6, help="most effects to name")
     add_fit_arguments(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar or messages on stderr")
 
@@ -63,7 +72,6 @@ def run(args) -> int:
     from ..effects import EFFECT_NAMES
 
     enable_compilation_cache(args.cache_dir)
-    say = (lambda _m: None) if args.quiet else progress
     effects = None
     if args.effects:
         effects = tuple(e.strip() for e in args.effects.split(",") if e.strip())
@@ -82,15 +90,15 @@ def run(args) -> int:
     except ValueError as e:
         raise ConfigError(str(e)) from e
     fleet = load_fleet(args)
-    say(f"loaded {sum(1 for i in fleet.ids if i)} heliostats, {int(fleet.mask.sum())} records")
-    result = discover(fleet, config, progress=say)
+    log.info(f"loaded {sum(1 for i in fleet.ids if i)} heliostats, {int(fleet.mask.sum())} records")
+    result = discover(fleet, config)
     write_report(args.report, result.report)
-    say(f"wrote {args.report}")
+    log.info(f"wrote {args.report}")
     if args.markdown is not None:
         write_markdown(args.markdown, result.report)
-        say(f"wrote {args.markdown}")
+        log.info(f"wrote {args.markdown}")
     if args.figures is not None:
         paths = write_figures(result, args.figures)
-        say(f"wrote {len(paths)} figures to {args.figures}")
+        log.info(f"wrote {len(paths)} figures to {args.figures}")
     print(markdown_summary(result.report))
     return 0

@@ -7,6 +7,7 @@ import datetime as dt
 import sys
 
 from .._errors import HeliojaxError
+from ._common import integer, number
 
 COLLECTIONS = ("properties", "calibration", "deflectometry")
 """``heliojax.paint.COLLECTIONS`` (kept here so that ``--help`` needs no JAX; a test
@@ -37,6 +38,11 @@ def _when(value: str) -> dt.datetime | dt.date:
         return dt.datetime.fromisoformat(value.replace("Z", "+00:00"))
     except ValueError as e:
         raise argparse.ArgumentTypeError(f"not a date or ISO date-time: {value!r}") from e
+
+
+OUTPUT_FILES = ()
+OUTPUT_DIRS = ("out",)
+"""Output paths checked before any work (attribute names of the parsed arguments)."""
 
 
 def add_parser(subparsers) -> None:
@@ -76,11 +82,13 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--start", type=_when, help="earliest item datetime, YYYY-MM-DD or ISO (UTC)")
     p.add_argument("--end", type=_when, help="latest item datetime, YYYY-MM-DD (inclusive) or ISO (UTC)")
-    p.add_argument("--max-items", type=int, metavar="N", help="at most N calibration items per heliostat (earliest)")
+    p.add_argument(
+        "--max-items", type=integer(1), metavar="N", help="at most N calibration items per heliostat (earliest)"
+    )
     p.add_argument("--no-resume", dest="resume", action="store_false", help="download everything again")
     p.add_argument("--no-tower", dest="tower", action="store_false", help="skip the tower-measurements file")
-    p.add_argument("--workers", type=int, default=8, help="parallel downloads")
-    p.add_argument("--timeout", type=float, default=60.0, help="seconds per request (> 0)")
+    p.add_argument("--workers", type=integer(1, 64), default=8, help="parallel downloads")
+    p.add_argument("--timeout", type=number(0.0, above=True), default=60.0, help="seconds per request (> 0)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
 
 

@@ -13,6 +13,10 @@ EXAMPLES = """examples:
   heliojax inspect
   heliojax inspect ../shared/data/paint --centroid helios --plot out/uncalibrated.png"""
 
+OUTPUT_FILES = ("plot",)
+OUTPUT_DIRS = ()
+"""Output paths checked before any work (attribute names of the parsed arguments)."""
+
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
@@ -36,9 +40,12 @@ def _date(t: float) -> str:
     return dt.datetime.fromtimestamp(float(t), dt.UTC).strftime("%Y-%m-%d")
 
 
-def run(args) -> int:
-    import jax.numpy as jnp
+def _stat(reduce, x: np.ndarray) -> float:
+    """``reduce(x)``, NaN for a heliostat without usable records."""
+    return float(reduce(x)) if x.size else float("nan")
 
+
+def run(args) -> int:
     from .._kinematics import nominal_model
     from ..fitting import fleet_beam_errors_mrad
 
@@ -64,15 +71,18 @@ def run(args) -> int:
         ea = err["actuator"][i][m]
         es = err["stone8"][i][m]
         note = "  (flagged, see load report)" if fleet.ids[i] in flagged else ""
+        note += "  (no usable records)" if not m.any() else ""
         print(
             f"{fleet.ids[i]:<10} {int(m.sum()):>7}  {_date(np.nanmin(ti) if np.isfinite(ti).any() else np.nan):<10}  "
             f"{_date(np.nanmax(ti) if np.isfinite(ti).any() else np.nan):<10}  "
-            f"{np.median(ea):>12.1f} {np.max(ea):>8.1f}  {np.median(es):>9.1f} {np.max(es):>8.1f}{note}"
+            f"{_stat(np.median, ea):>12.1f} {_stat(np.max, ea):>8.1f}  "
+            f"{_stat(np.median, es):>9.1f} {_stat(np.max, es):>8.1f}{note}"
         )
     all_a = err["actuator"][mask]
     print(
-        f"{'fleet':<10} {int(mask.sum()):>7}  {'':<10}  {'':<10}  {np.median(all_a):>12.1f} {np.max(all_a):>8.1f}  "
-        f"{np.median(err['stone8'][mask]):>9.1f} {np.max(err['stone8'][mask]):>8.1f}"
+        f"{'fleet':<10} {int(mask.sum()):>7}  {'':<10}  {'':<10}  {_stat(np.median, all_a):>12.1f} "
+        f"{_stat(np.max, all_a):>8.1f}  {_stat(np.median, err['stone8'][mask]):>9.1f} "
+        f"{_stat(np.max, err['stone8'][mask]):>8.1f}"
     )
     print()
     print(fleet.report.format())
@@ -86,5 +96,4 @@ def run(args) -> int:
         )
         save_figure(fig, args.plot)
         print(f"wrote {args.plot}")
-    del jnp
     return 0

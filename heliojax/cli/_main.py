@@ -12,10 +12,13 @@ import argparse
 import importlib
 import sys
 import tomllib
+import typing
+from collections.abc import Iterable
 from pathlib import Path
 
 from .._errors import ConfigError, HeliojaxError
 from .._version import __version__
+from ._common import check_output_paths, configure_logging
 
 # subcommand -> module (each has add_parser(subparsers) and run(args) -> int)
 SUBCOMMANDS = {
@@ -38,6 +41,13 @@ def _available():
                 raise
 
 
+class _Parser(argparse.ArgumentParser):
+    """Usage errors in two lines: the error naming the flag, and where to find help."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        self.exit(2, f"{self.prog}: error: {message}\nsee '{self.prog} --help'\n")
+
+
 class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
     """Option help with its default (unless the help names it or there is none to
     name: flags, unset options); descriptions and example epilogs as written."""
@@ -58,7 +68,7 @@ class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
 
 
 def build_parser() -> tuple[argparse.ArgumentParser, dict]:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="heliojax",
         formatter_class=_HelpFormatter,
         epilog="examples:\n  heliojax calibrate --plot out/calibration.png\n  heliojax inspect ../shared/data/paint\n"
@@ -78,14 +88,19 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict]:
     return parser, modules
 
 
-def _apply_config(subparser: argparse.ArgumentParser, command: str, path: Path) -> None:
+def _apply_config(subparser: argparse.ArgumentParser, command: str, path: Path, commands: Iterable[str]) -> None:
     try:
         with open(path, "rb") as f:
             doc = tomllib.load(f)
     except OSError as e:
         raise ConfigError(f"{path}: cannot read config: {e}") from e
-    except tomllib.TOMLDecodeError as e:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise ConfigError(f"{path}: malformed TOML: {e}") from e
+    unknown_tables = sorted(set(doc) - set(commands))
+    if unknown_tables:
+        raise ConfigError(
+            f"{path}: unknown table(s) {unknown_tables}; tables are named after commands: {sorted(commands)}"
+        )
     table = doc.get(command, {})
     if not isinstance(table, dict):
         raise ConfigError(f"{path}: [{command}] must be a table")
@@ -95,13 +110,38 @@ def _apply_config(subparser: argparse.ArgumentParser, command: str, path: Path) 
         dest = key.replace("-", "_")
         if dest not in known or dest in ("help", "config"):
             raise ConfigError(f"{path}: [{command}] unknown option {key!r}")
-        action = known[dest]
-        if action.type is not None and isinstance(value, str) and not isinstance(action.type, type):
-            value = action.type(value)  # pyright: ignore[reportCallIssue]
-        elif action.type in (Path,) and isinstance(value, str):
-            value = Path(value)
-        defaults[dest] = value
+        defaults[dest] = _config_value(known[dest], value, f"{path}: [{command}] {key}")
     subparser.set_defaults(**defaults)
+
+
+def _config_value(action: argparse.Action, value: object, where: str) -> object:
+    """A config value converted as the command line would convert it, or ConfigError."""
+    if action.nargs == 0:  # flags: store_true / store_false
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where}: expected true or false, got {value!r}")
+        return value  # the option's own value: `robust = false` is --no-robust
+    kind = action.type
+    if kind is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+    elif kind is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        value = float(value)
+    elif kind is None or kind is str or kind is Path:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: expected a string, got {value!r}")
+        value = Path(value) if kind is Path else value
+    else:  # the option's own parser (ranges, lists, dates): strings, and numbers where it takes them
+        if isinstance(value, bool) or not isinstance(value, str | int | float):
+            raise ConfigError(f"{where}: expected a string or a number, got {value!r}")
+        try:
+            value = kind(value)  # pyright: ignore[reportCallIssue, reportArgumentType]
+        except (ValueError, TypeError, AttributeError, argparse.ArgumentTypeError) as e:
+            raise ConfigError(f"{where}: {e}") from e
+    if action.choices is not None and value not in action.choices:
+        raise ConfigError(f"{where}: {value!r} is not one of {list(action.choices)}")
+    return value
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -115,16 +155,25 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     import jax  # after parsing: --help and --version stay fast
+    from tqdm.contrib.logging import logging_redirect_tqdm
 
     jax.config.update("jax_enable_x64", True)
     try:
         if getattr(args, "config", None) is not None:
             sp = parser._subparsers._group_actions[0].choices[args.command]  # pyright: ignore[reportOptionalSubscript, reportOptionalMemberAccess, reportIndexIssue]
-            _apply_config(sp, args.command, args.config)
+            _apply_config(sp, args.command, args.config, modules)
             args = parser.parse_args(argv)
-        return int(modules[args.command].run(args) or 0)
+        module = modules[args.command]
+        check_output_paths(args, getattr(module, "OUTPUT_FILES", ()), getattr(module, "OUTPUT_DIRS", ()))
+        logger = configure_logging(bool(getattr(args, "quiet", False)))
+        with logging_redirect_tqdm(loggers=[logger]):  # messages and progress bars share stderr
+            return int(module.run(args) or 0)
     except HeliojaxError as e:
         print(f"heliojax {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # a file that vanished or turned unwritable while running
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"heliojax {args.command}: error: {where}{e.strerror or e}", file=sys.stderr)
         return 2
 
 

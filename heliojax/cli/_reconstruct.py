@@ -5,12 +5,19 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
+
+from ._common import integer, number
 
 EXAMPLES = """examples:
   heliojax reconstruct --out out/reconstruction
   heliojax reconstruct --images 8 --steps 300 --rays-per-point 64 --seed 3 --out out/reconstruction"""
+
+OUTPUT_FILES = ()
+OUTPUT_DIRS = ("out",)
+"""Output paths checked before any work (attribute names of the parsed arguments)."""
 
 
 def add_parser(subparsers) -> None:
@@ -27,18 +34,26 @@ def add_parser(subparsers) -> None:
             "flux PNGs carry relative brightness and need calibrated kinematics first."
         ),
     )
-    p.add_argument("--images", type=int, default=6, help="number of flux images (sun positions), 4-8 typical")
-    p.add_argument("--seed", type=int, default=1, help="seed of the hidden surface and of the rays")
-    p.add_argument("--steps", type=int, default=150, help="optimiser steps (>= 1)")
-    p.add_argument("--learning-rate", type=float, default=2.5e-4, help="Adam step (m of control height)")
-    p.add_argument("--rays-per-point", type=int, default=32, help="rays per surface point per image and step")
     p.add_argument(
-        "--smoothness", type=float, default=1e-3, help="weight of the curvature penalty on the control heights (1/m^2)"
+        "--images", type=integer(1, 32), default=6, help="number of flux images (sun positions), 4-8 typical"
+    )
+    p.add_argument("--seed", type=integer(0, 2**32 - 1), default=1, help="seed of the hidden surface and of the rays")
+    p.add_argument("--steps", type=integer(1), default=150, help="optimiser steps (>= 1)")
+    p.add_argument(
+        "--learning-rate", type=number(0.0, above=True), default=2.5e-4, help="Adam step (m of control height)"
+    )
+    p.add_argument("--rays-per-point", type=integer(1), default=32, help="rays per surface point per image and step")
+    p.add_argument(
+        "--smoothness",
+        type=number(0.0),
+        default=1e-3,
+        help="weight of the curvature penalty on the control heights (1/m^2)",
     )
     p.add_argument(
-        "--flux-weight", type=float, default=1.0, help="weight of the flux-conservation term (dimensionless)"
+        "--flux-weight", type=number(0.0), default=1.0, help="weight of the flux-conservation term (dimensionless)"
     )
     p.add_argument("--out", type=Path, default=Path("reconstruction"), help="output directory")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or messages on stderr")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -56,6 +71,16 @@ def run(args: argparse.Namespace) -> int:
     if not 1 <= args.images <= 32:
         print("heliojax reconstruct: --images must lie in 1..32", file=sys.stderr)
         return 2
+    for flag, value, ok in (
+        ("--steps", args.steps, args.steps >= 1),
+        ("--rays-per-point", args.rays_per_point, args.rays_per_point >= 1),
+        ("--learning-rate", args.learning_rate, math.isfinite(args.learning_rate) and args.learning_rate > 0),
+        ("--smoothness", args.smoothness, math.isfinite(args.smoothness) and args.smoothness >= 0),
+        ("--flux-weight", args.flux_weight, math.isfinite(args.flux_weight) and args.flux_weight >= 0),
+    ):
+        if not ok:
+            print(f"heliojax reconstruct: {flag} {value} is out of range (see --help)", file=sys.stderr)
+            return 2
     scene = rc.synthetic_scene(seed=args.seed, n_images=args.images)
     losses = []
     res = rc.reconstruct_surface(

@@ -8,9 +8,15 @@ import json
 import sys
 from pathlib import Path
 
+from ._common import integer, number
+
 EXAMPLES = """examples:
   heliojax trace ../shared/data/paint/flux-samples --heliostat AA39 --record 203169 --out out/trace
   heliojax trace PAINT_DIR --heliostat AA39 --sun-azimuth -20 --sun-elevation 35 --sunshape pillbox"""
+
+OUTPUT_FILES = ()
+OUTPUT_DIRS = ("out",)
+"""Output paths checked before any work (attribute names of the parsed arguments)."""
 
 
 def add_parser(subparsers) -> None:
@@ -30,9 +36,13 @@ def add_parser(subparsers) -> None:
         "paint", type=Path, metavar="PAINT_DIR", help="PAINT-layout directory (<H>/Properties, <H>/Calibration)"
     )
     p.add_argument("--heliostat", required=True, help="heliostat id, e.g. AA39")
-    p.add_argument("--record", type=int, help="calibration record id (counts, sun and target of the record)")
-    p.add_argument("--sun-azimuth", type=float, help="sun azimuth in degrees, 0 = south, positive toward east")
-    p.add_argument("--sun-elevation", type=float, help="sun elevation in degrees above the horizon (> 0)")
+    p.add_argument("--record", type=integer(0), help="calibration record id (counts, sun and target of the record)")
+    p.add_argument(
+        "--sun-azimuth", type=number(-360.0, 360.0), help="sun azimuth in degrees, 0 = south, positive toward east"
+    )
+    p.add_argument(
+        "--sun-elevation", type=number(0.0, 90.0, above=True), help="sun elevation in degrees above the horizon (> 0)"
+    )
     p.add_argument(
         "--target", default="solar_tower_juelich_lower", help="target name with --sun-* (aimed at its centre)"
     )
@@ -41,18 +51,20 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--sunshape", choices=("buie", "gaussian", "pillbox"), default="buie", help="sun shape of the ray directions"
     )
-    p.add_argument("--csr", type=float, default=0.05, help="Buie circumsolar ratio (0-1)")
-    p.add_argument("--sigma-mrad", type=float, default=2.51, help="Gaussian sun sigma per axis, mrad")
+    p.add_argument("--csr", type=number(0.0, 1.0), default=0.05, help="Buie circumsolar ratio (0-1)")
+    p.add_argument("--sigma-mrad", type=number(0.0, above=True), default=2.51, help="Gaussian sun sigma per axis, mrad")
     p.add_argument(
-        "--slope-error-mrad", type=float, default=1.5, help="Gaussian mirror slope error per axis, mrad (0: none)"
+        "--slope-error-mrad", type=number(0.0), default=1.5, help="Gaussian mirror slope error per axis, mrad (0: none)"
     )
-    p.add_argument("--rays-per-point", type=int, default=64, help="rays per surface point and chunk (>= 1)")
-    p.add_argument("--steps", type=int, default=4, help="lax.scan chunks (rays per point = rays-per-point x steps)")
-    p.add_argument("--resolution", type=int, default=32, help="surface points per facet edge")
-    p.add_argument("--pixels", type=int, default=256, help="image pixels per side (>= 1)")
-    p.add_argument("--dni", type=float, default=1000.0, help="direct normal irradiance, W/m^2")
-    p.add_argument("--reflectivity", type=float, default=1.0, help="mirror reflectivity (0-1)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the ray sampling")
+    p.add_argument("--rays-per-point", type=integer(1), default=64, help="rays per surface point and chunk (>= 1)")
+    p.add_argument(
+        "--steps", type=integer(1), default=4, help="lax.scan chunks (rays per point = rays-per-point x steps)"
+    )
+    p.add_argument("--resolution", type=integer(2), default=32, help="surface points per facet edge")
+    p.add_argument("--pixels", type=integer(1, 4096), default=256, help="image pixels per side (>= 1)")
+    p.add_argument("--dni", type=number(0.0, above=True), default=1000.0, help="direct normal irradiance, W/m^2")
+    p.add_argument("--reflectivity", type=number(0.0, 1.0), default=1.0, help="mirror reflectivity (0-1)")
+    p.add_argument("--seed", type=integer(0, 2**32 - 1), default=0, help="seed of the ray sampling")
     p.add_argument("--out", type=Path, default=Path("trace"), help="output directory")
 
 

@@ -35,8 +35,8 @@ parameters count once per heliostat, shared ones once).
 from __future__ import annotations
 
 import dataclasses
+import logging
 import time
-from collections.abc import Callable
 
 import equinox as eqx
 import numpy as np
@@ -44,12 +44,15 @@ import optimistix as optx
 
 from .._fleet import bucket_size, pad_fleet
 from .._kinematics import nominal_model
+from .._progress import progress_bar
 from ..effects import EFFECT_NAMES
 from ..fitting import AbstractBatching, choose_start_geometry, default_solver
 from ._identifiability import ABSORBED_LIMIT, column_basis
 from ._lanes import Engine, Lanes, Layout, make_lanes, make_layout
 from ._report import build_report, cv_pair
 from ._screen import CandidateScreen, holm, prepare_bases, screen_candidate
+
+log = logging.getLogger(__name__)
 
 MODES = ("shared", "per_heliostat")
 
@@ -143,12 +146,11 @@ class ModelState:
 
 
 class _Workflow:
-    def __init__(self, engine: Engine, config: DiscoveryConfig, say: Callable[[str], None]):
+    def __init__(self, engine: Engine, config: DiscoveryConfig):
         self.engine = engine
         self.layout: Layout = engine.layout
         self.lanes: Lanes = engine.lanes
         self.config = config
-        self.say = say
         self.scales = self.layout.scales
         f = self.layout.n_free
         self.n_free = f
@@ -411,8 +413,6 @@ def _delta_bic(screen: CandidateScreen) -> dict:
 def discover(
     fleet,
     config: DiscoveryConfig | None = None,
-    *,
-    progress: Callable[[str], None] | None = None,
     **kwargs,
 ) -> DiscoveryResult:
     """Find the effects the base model misses (the discovery workflow).
@@ -423,13 +423,11 @@ def discover(
             from its record contexts.
         config: settings (:class:`DiscoveryConfig`); keyword arguments override
             its fields, e.g. ``discover(fleet, base="actuator", alpha=0.05)``.
-        progress: callback for progress messages.
 
     Returns:
         A :class:`DiscoveryResult`; ``result.report`` is the report.json content.
     """
     config = dataclasses.replace(config or DiscoveryConfig(), **kwargs)
-    say = progress or (lambda _m: None)
     t_start = time.perf_counter()
     base = nominal_model(config.base, fleet.counts.dtype)
     n_real = sum(1 for i in fleet.ids if i)
@@ -440,9 +438,9 @@ def discover(
     layout, template = make_layout(base, config.candidates, padded)
     lanes = make_lanes(padded, config.n_folds)
     engine = Engine.create(layout, template, lanes, config.solver, config.max_steps, config.batching)
-    wf = _Workflow(engine, config, say)
+    wf = _Workflow(engine, config)
     p0 = np.broadcast_to(np.asarray(layout.view.to_vector(template)), (lanes.fold.shape[0], layout.view.n_parameters))
-    say(
+    log.info(
         f"{n_real} heliostats, {int(np.asarray(padded.mask).sum())} records; base {config.base}; "
         f"{len(config.candidates)} candidates; {config.n_folds} folds by day ({lanes.fold.shape[0]} lanes)"
     )
@@ -450,7 +448,7 @@ def discover(
     base_state = state
     h = lanes.n_heliostats
     train_rms = np.sqrt(np.nansum(state.rss[:h]) / np.sum(state.n_res[:h]) * 2)
-    say(f"base fitted ({state.fit_s:.1f} s): train RMS {train_rms:.3f} mrad")
+    log.info(f"base fitted ({state.fit_s:.1f} s): train RMS {train_rms:.3f} mrad")
     steps: list[Step] = []
     screens_log, candidates_log = [], []
     while len(steps) < config.max_named:
@@ -461,7 +459,7 @@ def discover(
         testable = {c: s.p for c, s in screens.items() if s.identifiable}
         adjusted, rejected = holm(testable, config.alpha) if testable else ({}, set())
         screens_log.append({"screens": screens, "p_holm": adjusted})
-        say(
+        log.info(
             "screen: "
             + ", ".join(
                 f"{c} p={s.p:.2g}" if s.identifiable else f"{c} ({'not identifiable' if s.testable else 'untestable'})"
@@ -473,7 +471,7 @@ def discover(
             candidates_log.append([])
             break
         cands = []
-        for c in finalists:
+        for c in progress_bar(finalists, logger=log, desc=f"step {len(steps) + 1}: refits", unit="refit"):
             scr = screens[c]
             mode = max(MODES, key=lambda m: _delta_bic(scr)[m])
             st = wf.fit_state(state.effects + ((c, mode),), wf.start_params(state, c, mode, scr))
@@ -481,7 +479,7 @@ def discover(
             cv0, cv1, n_cv = wf.cv_pair(state, st)
             passed = (b0 - b1 > 0) and np.isfinite(cv1) and (cv1 < cv0)
             cands.append(Candidate(c, mode, st, b0 - b1, b0, b1, cv0, cv1, n_cv, passed))
-            say(
+            log.info(
                 f"refit {c} ({mode}, {st.fit_s:.1f} s): delta BIC {b0 - b1:.1f}, held-out RMS "
                 f"{cv0:.3f} -> {cv1:.3f} mrad{'' if passed else ' (rejected)'}"
             )
@@ -515,7 +513,7 @@ def discover(
                 after=best.state,
             )
         )
-        say(f"named {best.effect} ({best.mode}): " + ", ".join(f"{k}={v:.4g}" for k, v in amp.items()))
+        log.info(f"named {best.effect} ({best.mode}): " + ", ".join(f"{k}={v:.4g}" for k, v in amp.items()))
         state = best.state
     timing = {"total_s": time.perf_counter() - t_start}
     result = DiscoveryResult(

@@ -18,8 +18,9 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import equinox as eqx
 import jax
@@ -41,6 +42,8 @@ from ._train import (
     init_residual_networks,
     synthetic_fleet_data,
 )
+
+log = logging.getLogger(__name__)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,7 +135,6 @@ def train_neural(
     seed: int = 0,
     fit_mask=None,
     val_mask=None,
-    progress: Callable[[str], None] | None = None,
 ):
     """Train the networks of every heliostat of a fitted LM run at once.
 
@@ -141,7 +143,6 @@ def train_neural(
     """
     if variant not in VARIANTS:
         raise ConfigError(f"unknown neural variant {variant!r}; choose one of {', '.join(VARIANTS)}")
-    say = progress or (lambda _m: None)
     fleet = lm.fleet
     if fit_mask is None or val_mask is None:
         fit_mask, val_mask = validation_tail(lm.train_mask, nn.val_fraction, nn.min_val)
@@ -159,7 +160,7 @@ def train_neural(
         rms = np.nan_to_num(np.asarray(lm.result.rms_mrad), nan=1.0)
         scale = jnp.asarray(np.clip(rms, 0.1, 100.0) * 1e-3, dt)
         nets = init_residual_networks(k_init, h, nn)
-        say(f"fine-tuning {h} residual networks ({nn.residual_epochs} steps)")
+        log.info(f"fine-tuning {h} residual networks ({nn.residual_epochs} steps)")
         t0 = time.perf_counter()
         nets, info = _finetune_residual_program(
             heliostat_keys(k_ft, h),
@@ -183,7 +184,7 @@ def train_neural(
     ti = jnp.asarray(fleet.target_index)
     u_axis = tgt.u_axis[ti]
     v_axis = tgt.v_axis[ti]
-    say(f"pretraining {h} x 2 networks on {nn.n_synthetic} synthetic points each")
+    log.info(f"pretraining {h} x 2 networks on {nn.n_synthetic} synthetic points each")
     t0 = time.perf_counter()
     k_syn, k_pre = jax.random.split(k_pre)
     syn = synthetic_fleet_data(
@@ -200,7 +201,7 @@ def train_neural(
     preds, _info = _pretrain_paper_program(heliostat_keys(k_pre, h), syn, nn)
     jax.block_until_ready(preds)
     t1 = time.perf_counter()
-    say(f"pretrained in {t1 - t0:.1f} s; fine-tuning ({nn.finetune_epochs} steps, lr {nn.finetune_lr:g})")
+    log.info(f"pretrained in {t1 - t0:.1f} s; fine-tuning ({nn.finetune_epochs} steps, lr {nn.finetune_lr:g})")
     preds, _info = _finetune_paper_program(
         heliostat_keys(k_ft, h),
         preds,
@@ -250,7 +251,6 @@ def calibrate_neural(
     nn: NeuralConfig = DEFAULT_NEURAL_CONFIG,
     start: str = "auto",
     lm_run: CalibrationRun | None = None,
-    progress: Callable[[str], None] | None = None,
 ) -> NeuralRun:
     """LM calibration (:func:`heliojax.calibrate`) plus a neural correction per
     heliostat, evaluated on the split's test records.
@@ -266,11 +266,9 @@ def calibrate_neural(
         nn: :class:`NeuralConfig`.
         start: LM start geometry.
         lm_run: reuse this LM run (same fleet and split) instead of fitting again.
-        progress: callback for progress messages.
     """
     if variant not in VARIANTS:
         raise ConfigError(f"unknown neural variant {variant!r}; choose one of {', '.join(VARIANTS)}")
-    say = progress or (lambda _m: None)
     if lm_run is None:
         lm_run = calibrate(
             fleet,
@@ -282,13 +280,12 @@ def calibrate_neural(
             seed=seed,
             fit_options=fit_options,
             start=start,
-            progress=progress,
         )
     lm = lm_run
     if lm.test_errors_mrad is not None:
         raise ConfigError("a neural correction cannot be evaluated on --test-data yet; use a split")
     pf = lm.fleet
-    models, fit_mask, val_mask, timing = train_neural(lm, variant, nn, seed=seed, progress=progress)
+    models, fit_mask, val_mask, timing = train_neural(lm, variant, nn, seed=seed)
     valid = jnp.asarray(pf.mask)
     base = lm.result.model
     if variant == "residual":
@@ -313,7 +310,7 @@ def calibrate_neural(
     )
     run = dataclasses.replace(run, summary=summary)
     n_fb = int(fallback.sum())
-    say(f"{variant} network: {n_real - n_fb}/{n_real} heliostats use it, {n_fb} fall back to LM")
+    log.info(f"{variant} network: {n_real - n_fb}/{n_real} heliostats use it, {n_fb} fall back to LM")
     return NeuralRun(
         lm=lm,
         run=run,
@@ -404,7 +401,6 @@ def learning_curve(
     seed: int = 42,
     fit_options: dict | None = None,
     nn: NeuralConfig = DEFAULT_NEURAL_CONFIG,
-    progress: Callable[[str], None] | None = None,
 ) -> list[dict]:
     """Held-out median beam error of LM and LM+NN against the number of training
     records (time split).
@@ -450,7 +446,6 @@ def learning_curve(
             train_fraction=None,
             seed=seed,
             fit_options=fit_options,
-            progress=None,
         )
         ids = [h for h in lm.summary["heliostats"]]
 
@@ -470,10 +465,9 @@ def learning_curve(
             nr = calibrate_neural(masked, model=model, variant=v, seed=seed, nn=nn, lm_run=lm)
             rows.append(row(v, nr.run.errors_mrad, nr.fallback))
             rows.append(row(v + "_raw", nr.nn_errors_mrad))
-        if progress:
-            progress(
-                f"N={n}: " + ", ".join(f"{r['method']} {r['fleet_median_mrad']:.2f}" for r in rows if r["n_train"] == n)
-            )
+        log.info(
+            "N=%d: %s", n, ", ".join(f"{r['method']} {r['fleet_median_mrad']:.2f}" for r in rows if r["n_train"] == n)
+        )
     return rows
 
 

@@ -19,6 +19,7 @@ Optimiser: ``optax.adam``; the whole step is jitted once.
 from __future__ import annotations
 
 import dataclasses
+import logging
 from collections.abc import Callable
 
 import equinox as eqx
@@ -30,10 +31,13 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from .._geometry import TargetPlane
 from .._heliostat import Pose
+from .._progress import progress_bar
 from ._flux import ImageGrid, aim_pose, flux_images
 from ._nurbs import NurbsFacets
 from ._sunshape import AbstractSunShape, PillboxSun
 from ._surfaces import FacetLayout
+
+log = logging.getLogger(__name__)
 
 
 def with_height_offsets(facets: NurbsFacets, dz: Float[Array, "f nu nv"]) -> NurbsFacets:
@@ -154,7 +158,7 @@ def reconstruct_surface(
         return optax.apply_updates(dz, updates), state, loss
 
     losses = []
-    for j in range(steps):
+    for j in progress_bar(range(steps), logger=log, desc="surface reconstruction", unit="step"):
         dz, state, loss = step(dz, state, j)
         losses.append(float(loss))
         if callback is not None:
