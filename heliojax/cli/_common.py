@@ -18,10 +18,16 @@ def add_fit_arguments(p) -> None:
         default="auto",
         help="start geometry: per heliostat the better of nominal / fleet-typical actuators",
     )
+    add_cache_argument(p)
+
+
+def add_cache_argument(p) -> None:
+    """``--cache-dir``: compiled and traced programs kept across runs."""
     p.add_argument(
         "--cache-dir",
         default=None,
-        help="persistent JAX compilation cache (default ~/.cache/heliojax/jax; 'none' disables)",
+        help="persistent JAX compilation cache and heliojax's traced programs "
+        "(default $HELIOJAX_CACHE_DIR or ~/.cache/heliojax/jax; 'none' disables)",
     )
 
 

@@ -7,14 +7,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ._common import add_data_argument, load_fleet
+from ._common import add_cache_argument, add_data_argument, enable_compilation_cache, load_fleet
 
 EXAMPLES = """examples:
   heliojax inspect
   heliojax inspect ../shared/data/paint --centroid helios --plot out/uncalibrated.png"""
 
 OUTPUT_FILES = ("plot",)
-OUTPUT_DIRS = ()
+OUTPUT_DIRS = ("cache_dir",)
 """Output paths checked before any work (attribute names of the parsed arguments)."""
 
 
@@ -29,6 +29,7 @@ def add_parser(subparsers) -> None:
         ),
     )
     add_data_argument(p)
+    add_cache_argument(p)
     p.add_argument(
         "--plot", type=Path, metavar="FILE", help="write a box plot of the uncalibrated errors, PNG (default: none)"
     )
@@ -49,6 +50,7 @@ def run(args) -> int:
     from .._kinematics import nominal_model
     from ..fitting import fleet_beam_errors_mrad
 
+    enable_compilation_cache(args.cache_dir)
     fleet = load_fleet(args)
     n = len(fleet.ids)
     err = {}

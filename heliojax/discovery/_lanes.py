@@ -36,6 +36,7 @@ from .._geometry import normalize
 from .._heliostat import chain_pose
 from .._kinematics import AbstractKinematicModel
 from .._parameters import ParameterView
+from .._programs import cached_jit
 from ..effects import EffectModel, with_data_references, with_effects
 from ..fitting import AbstractBatching, default_batching, default_solver, sanitise, solve_least_squares
 
@@ -181,7 +182,7 @@ def _corrections_lane(layout: Layout, template, p, geometry, counts, context, fo
     return c0, d
 
 
-@eqx.filter_jit
+@cached_jit
 def _corrections_compiled(layout, batching: AbstractBatching, template, p, records: Records):
     fn = lambda a, g, c, x, f, m: _corrections_lane(layout, template, a, g, c, x, f, m)  # noqa: E731
     return batching.map(fn)(p, *records)
@@ -254,7 +255,7 @@ def _fit_lane(
     return dict(params=p, ok=ok, cost=out.cost, n_used=n_used.astype(jnp.int32), n_steps=out.n_steps.astype(jnp.int32))
 
 
-@eqx.filter_jit
+@cached_jit
 def _fit_lanes_compiled(
     layout, solver, max_steps, batching, cap, template, p0, sel, sel_valid, p_exp, c0, dmat, records: Records
 ):
@@ -298,7 +299,7 @@ def _jac_lane(layout: Layout, template, p, c0, dmat, geometry, counts, context, 
     return r, jac
 
 
-@eqx.filter_jit
+@cached_jit
 def _jac_lanes_compiled(layout, batching, template, p, c0, dmat, records: Records):
     fn = lambda *a: _jac_lane(layout, template, *a)  # noqa: E731
     return batching.map(fn)(p, c0, dmat, *records)

@@ -466,7 +466,8 @@ def discover(
                 for c, s in screens.items()
             )
         )
-        finalists = sorted(rejected, key=lambda c: -max(_delta_bic(screens[c]).values()))[: config.max_refits]
+        # largest linearised delta BIC first; the name breaks ties (sets iterate in a per-process order)
+        finalists = sorted(rejected, key=lambda c: (-max(_delta_bic(screens[c]).values()), c))[: config.max_refits]
         if not finalists:
             candidates_log.append([])
             break
