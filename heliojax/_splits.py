@@ -274,10 +274,15 @@ def split_records(
         "balanced": (az, el),
         "high_variance": (az, el),
     }[kind]
+    n_given = int(ok_mask.sum())
     for f in needs:
         ok_mask &= np.isfinite(f)
     vidx = np.flatnonzero(ok_mask).astype(np.int64)
     nv = vidx.size
+    if nv < n_given:  # say which feature is missing, e.g. times without calibration-timestamps.json
+        missing = "a time" if needs[0] is t else "a sun position"
+        if nv == 0:
+            return _not_ok(kind, n, f"none of the {n_given} records has {missing}, which the {kind} split needs")
 
     if train_fraction is not None:
         n_train = int(math.floor(train_fraction * nv))

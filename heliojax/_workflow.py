@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._errors import ConfigError
 from ._fleet import bucket_size, pad_fleet
 from ._geometry import direction_to_azimuth_elevation
 from ._io import atomic_write
@@ -161,6 +162,13 @@ def calibrate(
         )
         train, val, test = np.asarray(fs.train_mask), np.asarray(fs.val_mask), np.asarray(fs.test_mask)
         too_few = dict(fs.too_few)
+        records = np.asarray(fleet.mask)
+        if split in ("time", "solstice") and records.any() and not np.isfinite(fleet.context.unix_time)[records].any():
+            raise ConfigError(
+                f"the {split} split needs record times and none of the {int(records.sum())} records has one "
+                "(PAINT's calibration-timestamps.json missing beside the data?); add it or choose another "
+                "split, e.g. azimuth"
+            )
 
     h_pad = bucket_size(fleet.counts.shape[0])
     m_pad = bucket_size(fleet.counts.shape[1])
@@ -291,8 +299,11 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
         unc_med, unc_rms = _stats(test_unc[i])
         train_med, train_rms = _stats(train_err[i])
         _, val_rms = _stats(val_err[i])
+        n_candidates = int(np.sum(np.asarray(run.fleet.mask)[i]))
+        label, reason = _status_reason(st, run, i, n_candidates, int(np.asarray(res.n_steps)[i]))
         entry = {
-            "status": st.label,
+            "status": label,
+            "status_reason": reason,
             # Record counts of the split (also for heliostats that could not be fitted).
             "n_train": int(np.sum(run.train_mask[i] & np.isfinite(run.uncalibrated_mrad[i]))),
             "n_val": int(np.sum(run.val_mask[i] & np.isfinite(run.uncalibrated_mrad[i]))),
@@ -342,10 +353,32 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
             "test_rms_mrad": _json_float(f_rms),
             "uncalibrated_test_median_mrad": _json_float(u_med),
             "uncalibrated_test_rms_mrad": _json_float(u_rms),
-            "statuses": {s.label: int(np.sum(status[:n_real] == s)) for s in FitStatus if s != FitStatus.NO_RECORDS},
+            "statuses": {
+                **{s.label: int(np.sum(status[:n_real] == s)) for s in FitStatus if s != FitStatus.NO_RECORDS},
+                "no_training_records": int(np.sum(status[:n_real] == FitStatus.NO_RECORDS)),
+            },
         },
         "timing": {"compile_s": float(compile_s), "fit_s": float(fit_s)},
     }
+
+
+def _status_reason(st: FitStatus, run: CalibrationRun, i: int, n_records: int, steps: int) -> tuple[str, str | None]:
+    """The summary's status label of heliostat ``i`` and, unless it converged, why."""
+    note = run.too_few.get(run.fleet.ids[i])
+    n_train = int(np.sum(run.train_mask[i]))
+    n_free = run.result.view.n_free
+    why = {
+        FitStatus.CONVERGED: None,
+        FitStatus.MAX_STEPS: f"no convergence within {steps} Levenberg-Marquardt steps",
+        FitStatus.DIVERGED: "the fit diverged or its result is not finite",
+        FitStatus.NON_FINITE_INPUT: "a training record holds NaN or inf",
+        FitStatus.TOO_FEW_RECORDS: f"{n_train} training records for {n_free} free parameters and no fleet prior",
+        FitStatus.FAILED: "the solver failed",
+        FitStatus.NO_RECORDS: f"split {run.split_kind} leaves 0 of {n_records} records for training",
+    }[st]
+    if why is not None and note and st in (FitStatus.NO_RECORDS, FitStatus.TOO_FEW_RECORDS):
+        why = f"{why} ({note})"
+    return ("no_training_records" if st == FitStatus.NO_RECORDS else st.label), why
 
 
 def write_summary(path: str | Path, run: CalibrationRun) -> None:

@@ -6,6 +6,7 @@ import importlib.metadata
 import json
 import logging
 import os
+import shutil
 import subprocess
 import sys
 
@@ -212,3 +213,30 @@ def test_progress_messages_go_through_logging(caplog):
         hj.calibrate(fleet, model=hj.ActuatorModel.nominal(), fit_options={"max_steps": 4})
     messages = [r.getMessage() for r in caplog.records if r.name.startswith("heliojax")]
     assert any(m.startswith("fitting 5 heliostats") for m in messages), messages
+
+
+def test_heliostats_without_training_records_say_why(tmp_path, capsys):
+    report = tmp_path / "summary.json"
+    argv = ["calibrate", "--split", "azimuth", "--train", "100", "--no-robust", "--no-pool"]
+    assert main([*argv, "--report", str(report), "--cache-dir", "none", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    s = json.loads(report.read_text())
+    short = {h: v for h, v in s["heliostats"].items() if v["status"] != "converged"}
+    assert set(short) == {"BG23", "BH20", "BL14"}  # 52, 30 and 9 records; BE36 and BF56 have more than 100
+    for hid, h in short.items():
+        assert h["status"] == "no_training_records"
+        assert h["status_reason"].startswith("split azimuth leaves 0 of") and "needs at least 101" in h["status_reason"]
+        assert f"{hid}: no_training_records: split azimuth leaves 0 of" in out
+    assert s["fleet"]["statuses"]["no_training_records"] == 3
+    assert s["heliostats"]["BE36"]["status_reason"] is None
+
+
+def test_time_split_without_times_is_a_clear_error(tmp_path, capsys):
+    data = tmp_path / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    (data / "calibration-timestamps.json").unlink()
+    (data / "calibration-with-weather.csv").unlink()
+    assert main(["calibrate", str(data), "--cache-dir", "none", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "calibration-timestamps.json" in err and "azimuth" in err
+    assert len(err.strip().splitlines()) <= 2

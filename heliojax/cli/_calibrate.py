@@ -172,7 +172,7 @@ def run(args) -> int:
         run_ = calibrate_neural(fleet, variant=args.nn_variant, seed=args.seed, lm_run=run_).run
     s = run_.summary
     print(
-        f"{'heliostat':<10} {'status':<16} {'train':>5} {'test':>5} {'train rms':>9} {'test med':>9} "
+        f"{'heliostat':<10} {'status':<20} {'train':>5} {'test':>5} {'train rms':>9} {'test med':>9} "
         f"{'test rms':>9} {'uncal med':>9}   [mrad]"
     )
 
@@ -184,9 +184,12 @@ def run(args) -> int:
         if neural:
             extra = f"   LM {fmt(h['lm_test_median_mrad'])}" + ("  (fallback to LM)" if h["nn_fallback"] else "")
         print(
-            f"{hid:<10} {h['status']:<16} {h['n_train']:>5} {h['n_test']:>5} {fmt(h['train_rms_mrad'])} "
+            f"{hid:<10} {h['status']:<20} {h['n_train']:>5} {h['n_test']:>5} {fmt(h['train_rms_mrad'])} "
             f"{fmt(h['test_median_mrad'])} {fmt(h['test_rms_mrad'])} {fmt(h['uncalibrated_test_median_mrad'])}{extra}"
         )
+    for hid, h in s["heliostats"].items():
+        if h.get("status_reason"):
+            print(f"  {hid}: {h['status']}: {h['status_reason']}")
     f = s["fleet"]
     print(
         f"fleet: {f['n_converged']}/{f['n_heliostats']} converged; held-out median {fmt(f['test_median_mrad'])} "

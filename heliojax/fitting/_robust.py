@@ -89,7 +89,11 @@ def robust_noise(
     dof = np.maximum(2 * n - n_free, 1)
     own = med / RAYLEIGH_MEDIAN * np.sqrt(np.maximum(2 * n, 1) / dof)
     good = (2 * n >= 3 * n_free) & np.isfinite(own) & (own > 0)
-    fleet = float(np.median(own[good])) if good.any() else float(np.nanmedian(np.where(n > 0, own, np.nan)))
+    if good.any():
+        fleet = float(np.median(own[good]))
+    else:
+        some = np.isfinite(own) & (n > 0)
+        fleet = float(np.median(own[some])) if some.any() else 1.0
     if not np.isfinite(fleet) or fleet <= 0:
         fleet = 1.0
     own = np.where(np.isfinite(own) & (n > 0), own, fleet)
