@@ -17,6 +17,7 @@ from pathlib import Path
 import pystac
 import pytest
 
+import heliojax as hj
 from heliojax._errors import DataError
 from heliojax.cli import _fetch as fetch_cli
 from heliojax.paint import JOURNAL_NAME, fetch_catalog, verify_download
@@ -103,11 +104,27 @@ def _extent():
     )
 
 
-def build_catalogue(root_dir: Path) -> tuple[Path, dict]:
+def _embedded_records() -> dict:
+    """:func:`_source_records`' structure for every record of the embedded PAINT subset."""
+    data = hj.default_data_dir()
+    stamps = json.loads((data / "calibration-timestamps.json").read_text())
+    out: dict = {}
+    for hid in sorted(p.name for p in data.iterdir() if (p / "Properties").is_dir()):
+        items = []
+        for f in sorted((data / hid / "Calibration").glob("*-calibration-properties.json")):
+            cid = f.name.split("-")[0]
+            when = dt.datetime.fromisoformat(stamps[cid]["datetime"].replace("Z", "+00:00"))
+            items.append((cid, when, {"calibration_properties": (f.name, f.read_bytes())}))
+        props = (data / hid / "Properties" / f"{hid}-heliostat-properties.json").read_bytes()
+        out[hid] = {"properties": props, "items": items}
+    return {"heliostats": out, "tower": (data / "WRI1030197-tower-measurements.json").read_bytes()}
+
+
+def build_catalogue(root_dir: Path, src: dict | None = None) -> tuple[Path, dict]:
     """PAINT-like catalogue: root -> tower item, weather collection, heliostat catalogues ->
     properties / calibration collections -> items -> assets. BE36's assets carry
     file:size and file:checksum; AA31's do not. Returns (root json path, expected files)."""
-    src = _source_records()
+    src = _source_records() if src is None else src
     root = pystac.Catalog("WRI1030197-catalog", "PAINT test catalogue")
     tower = pystac.Item("WRI1030197-tower-measurements", None, None, dt.datetime(2020, 10, 7, tzinfo=UTC), {})
     root.add_item(tower)
@@ -191,10 +208,12 @@ ALL_CAL = ("calibration_properties", "flux_image", "flux_centered_image")
 
 
 def files_under(out: Path) -> dict[str, bytes]:
+    """The downloaded files (without the calibration-timestamps.json that fetch
+    writes from the items' datetimes)."""
     return {
         p.relative_to(out).as_posix(): p.read_bytes()
         for p in out.rglob("*")
-        if p.is_file() and not p.name.startswith(".")
+        if p.is_file() and not p.name.startswith(".") and p.name != "calibration-timestamps.json"
     }
 
 
@@ -207,6 +226,14 @@ def test_fetch_from_path_writes_paint_layout(catalogue, tmp_path):
     assert rep.ok and rep.failed == () and rep.missing == ()
     assert rep.heliostats == ("AA31", "BE36")
     assert files_under(out) == expected  # byte-identical, PAINT layout, nothing else
+    stamps = json.loads((out / "calibration-timestamps.json").read_text())  # the items' datetimes
+    assert stamps == {
+        "118671": {"heliostat_id": "BE36", "datetime": "2022-06-12T13:27:37Z"},
+        "118750": {"heliostat_id": "BE36", "datetime": "2022-06-12T13:45:35Z"},
+        "118826": {"heliostat_id": "BE36", "datetime": "2022-06-12T14:00:56Z"},
+        "125284": {"heliostat_id": "AA31", "datetime": "2022-07-01T12:00:00Z"},
+        "126372": {"heliostat_id": "AA31", "datetime": "2022-07-11T12:00:00Z"},
+    }
     assert "BE36/Calibration/118671-calibration-properties.json" in expected
     assert len(rep.downloaded) == len(expected) and rep.skipped == ()
     assert rep.bytes_downloaded == sum(len(b) for b in expected.values())
@@ -678,3 +705,23 @@ def test_paint_style_catalogue_with_absolute_urls(tmp_path):
     assert rep.ok and rep.heliostats == ("BE36",)
     assert files_under(out) == expected  # no raw images, PAINT layout, tower at the root
     assert not any("weather" in p for p in log)  # the weather collection is never read
+
+
+def test_new_user_path_fetch_inspect_calibrate(tmp_path, capsys):
+    """A new user's path over HTTP: serve a catalogue of the embedded records on
+    127.0.0.1, fetch it, inspect and calibrate it with the defaults (time split from
+    the items' datetimes): every command exits 0 and every heliostat is fitted."""
+    from heliojax.cli._main import main
+
+    build_catalogue(tmp_path / "site", _embedded_records())
+    out = tmp_path / "fetched"
+    with serve(tmp_path / "site") as url:
+        assert main(["fetch", f"{url}/catalog.json", "--out", str(out), "--quiet"]) == 0
+    assert main(["inspect", str(out), "--cache-dir", "none"]) == 0
+    assert "BE36" in capsys.readouterr().out
+    report = tmp_path / "summary.json"
+    assert main(["calibrate", str(out), "--report", str(report), "--cache-dir", "none", "--quiet"]) == 0
+    s = json.loads(report.read_text())
+    assert s["split"] == "time" and s["fleet"]["n_heliostats"] == 5
+    assert {h["status"] for h in s["heliostats"].values()} == {"converged"}
+    assert all(h["n_train"] > 0 and h["n_test"] > 0 for h in s["heliostats"].values())

@@ -80,6 +80,7 @@ from pathlib import Path
 import pystac
 
 from .._errors import DataError
+from ._common import TimestampEntry
 from ._stac_io import (
     _CHUNK,
     _COLLECTION_SUFFIX,
@@ -109,6 +110,7 @@ from ._stac_io import (
     _Scope,
     _Task,
 )
+from ._timestamps import read_timestamps, write_timestamps
 
 
 def _item_time(item: pystac.Item) -> dt.datetime | None:
@@ -232,6 +234,7 @@ def fetch_catalog(
             child_hrefs.append(href)  # unknown naming: read it and look at its id
 
     all_tasks_done: dict[str, list] = {"downloaded": [], "skipped": [], "failed": []}
+    timestamps: dict[int, TimestampEntry] = {}  # record id -> (heliostat, item datetime)
     nbytes = [0]
 
     with cf.ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
@@ -294,7 +297,7 @@ def fetch_catalog(
         plan_heliostat = functools.partial(
             _plan_heliostat, scope=scope, reader=reader, pool=pool, out=out, collections=collections,
             calibration_assets=calibration_assets, t0=t0, t1=t1, max_items=max_items, warnings=warnings,
-            failed=all_tasks_done["failed"],
+            failed=all_tasks_done["failed"], timestamps=timestamps,
         )  # fmt: skip
         for k, hid in enumerate(sorted(catalogs), 1):
             cat, cat_href = catalogs[hid]
@@ -302,6 +305,9 @@ def fetch_catalog(
             d, s, f = run(tasks)
             say(f"[{k}/{len(catalogs)}] {hid}: {len(tasks)} file(s): {d} downloaded, {s} already complete, {f} failed")
 
+    if timestamps:
+        _merge_timestamps(out / TIMESTAMPS_FILE, timestamps)
+        say(f"{TIMESTAMPS_FILE}: {len(timestamps)} record time(s) from the items' datetimes")
     report = FetchReport(
         out_dir=out,
         heliostats=tuple(sorted(catalogs)),
@@ -381,6 +387,7 @@ def _plan_heliostat(
     max_items,
     warnings,
     failed,
+    timestamps,
 ) -> list[_Task]:
     """Plan the downloads of one heliostat; unreadable STAC files go to ``failed``, unsafe hrefs raise."""
     wanted_suffix = {_COLLECTION_SUFFIX[c]: c for c in collections}
@@ -420,7 +427,12 @@ def _plan_heliostat(
             selected.sort(key=lambda x: (x[0] or far, x[1]))
             if max_items is not None:
                 selected = selected[:max_items]
-        for _, _, item, href in selected:
+        for when, _, item, href in selected:
+            if name == "calibration" and when is not None:
+                record_id = _record_id(item)
+                if record_id is not None:
+                    utc = when.astimezone(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+                    timestamps[record_id] = TimestampEntry(hid, utc)
             for key, asset in item.assets.items():  # pyright: ignore[reportAttributeAccessIssue]
                 if name == "calibration" and key not in calibration_assets:
                     continue
@@ -431,6 +443,30 @@ def _plan_heliostat(
             raise DataError(t.where, None, f"two assets map onto {t.rel}: {seen[t.dest].src} and {t.src}")
         seen[t.dest] = t
     return list(seen.values())
+
+
+TIMESTAMPS_FILE = "calibration-timestamps.json"
+_RECORD_ID_RE = re.compile(r"(\d+)-calibration-properties\.json$")
+
+
+def _record_id(item: pystac.Item) -> int | None:
+    """The calibration record id of ``item``: from its calibration-properties asset's
+    file name (PAINT's ``<ID>-calibration-properties.json``), else an all-digit item id."""
+    asset = item.assets.get("calibration_properties")
+    m = _RECORD_ID_RE.search(urllib.parse.urlparse(asset.href).path) if asset is not None else None
+    if m:
+        return int(m.group(1))
+    return int(item.id) if item.id.isdigit() else None
+
+
+def _merge_timestamps(path: Path, new: dict[int, TimestampEntry]) -> None:
+    """Add ``new`` to ``path`` (PAINT's calibration-timestamps.json), keeping the
+    entries of earlier downloads; an unreadable old file is replaced."""
+    old: dict[int, TimestampEntry] = {}
+    if path.exists():
+        with contextlib.suppress(DataError):
+            old = read_timestamps(path, on_error=lambda _e: None)
+    write_timestamps(path, {**old, **new})
 
 
 def _fetch_one(task: _Task, reader: _Reader, journal: _Journal, resume: bool, out: Path) -> tuple[str, int]:
