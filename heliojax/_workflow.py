@@ -55,6 +55,8 @@ class CalibrationRun:
         residuals_mrad: ``(H, M, 2)`` error components after calibration.
         uncalibrated_residuals_mrad: ``(H, M, 2)`` error components of the nominal model.
         start_replaced: ``(H,)`` heliostats started from fleet-typical actuators.
+        start_sources: ``(H,)`` heliostats the fleet-typical actuators are the median of
+            (those with a finite uncalibrated error on their training records).
         too_few: heliostat id -> reason, from the split.
         summary: the ``summary.json`` content.
         test_fleet: the fleet evaluated for test errors when ``--test-data`` was given.
@@ -75,6 +77,7 @@ class CalibrationRun:
     residuals_mrad: np.ndarray
     uncalibrated_residuals_mrad: np.ndarray
     start_replaced: np.ndarray
+    start_sources: np.ndarray
     too_few: dict
     summary: dict
     test_errors_mrad: np.ndarray | None = None
@@ -183,10 +186,10 @@ def calibrate(
 
     nominal_geometry = padded.geometry  # the plant's own values: the uncalibrated baseline
     if start == "auto":
-        geometry, replaced = choose_start_geometry(padded, model0, jnp.asarray(train))
+        geometry, replaced, sources = choose_start_geometry(padded, model0, jnp.asarray(train))
         padded = _with_geometry(padded, geometry)
     else:
-        replaced = np.zeros(h_pad, bool)
+        replaced = sources = np.zeros(h_pad, bool)
 
     options = dict(fit_options or {})
     log.info(f"fitting {n_real} heliostats ({model0.label()}, padded to {h_pad} x {m_pad})")
@@ -231,6 +234,7 @@ def calibrate(
         residuals_mrad=residuals,
         uncalibrated_residuals_mrad=residuals_uncal,
         start_replaced=np.asarray(replaced),
+        start_sources=np.asarray(sources),
         too_few=too_few,
         summary={},
         test_errors_mrad=test_err,
@@ -344,6 +348,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
         "pooled": bool(run.pooled),
         "param_units": dict(zip(view.names, view.units)),
         "free_params": list(view.free_names),
+        "start_geometry_sources": [ids[i] for i in range(n_real) if run.start_sources[i]],
         "heliostats": heliostats,
         "fleet": {
             "n_heliostats": n_real,

@@ -4,6 +4,7 @@ pyproject.toml)."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import jax
@@ -26,14 +27,20 @@ _CACHE_OPTIONS = (
 
 
 @pytest.fixture(autouse=True)
-def _restore_compilation_cache_options():
+def _restore_cli_process_settings():
     """The CLI configures JAX's persistent cache (and with it heliojax's kept
-    programs) for its process; in the test process, undo it after each test."""
+    programs) and logging for its process; in the test process, undo both after
+    each test."""
     before = {k: getattr(jax.config, k) for k in _CACHE_OPTIONS}
     yield
     for k, v in before.items():
         if getattr(jax.config, k) != v:
             jax.config.update(k, v)
+    logger = logging.getLogger("heliojax")  # and the CLI's stderr handler
+    for handler in list(logger.handlers):
+        logger.removeHandler(handler)
+    logger.propagate = True
+    logger.setLevel(logging.NOTSET)
 
 
 @pytest.fixture

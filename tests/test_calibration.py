@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import zoo
 
 import heliojax as hj
 from heliojax import FitStatus
@@ -201,3 +202,17 @@ def test_robust_fit_ignores_planted_gross_errors():
     assert flags[np.asarray(sim.mask) & ~planted].mean() <= 0.01
     w = np.asarray(robust.weights)
     assert np.median(w[planted]) < 0.01 < np.median(w[np.asarray(sim.mask) & ~planted])
+
+
+def test_broken_heliostats_do_not_move_the_typical_start_geometry():
+    """Heliostats whose records are all broken (NaN focal spots) are no source of the
+    fleet-typical actuators: the good heliostats start exactly as without them."""
+    fleet = zoo("actuator").fleet
+    nominal = hj.ActuatorModel.nominal()
+    broken = eqx.tree_at(lambda f: f.focal_spot, fleet, fleet.focal_spot.at[:3].set(jnp.nan))
+    without = eqx.tree_at(lambda f: f.mask, fleet, fleet.mask.at[:3].set(False))
+    g_broken, _, sources = hj.choose_start_geometry(broken, nominal)
+    g_without, _, sources_without = hj.choose_start_geometry(without, nominal)
+    assert sources.tolist() == [False] * 3 + [True] * 5 == sources_without.tolist()
+    for a, b in zip(jax.tree.leaves(g_broken), jax.tree.leaves(g_without), strict=True):
+        np.testing.assert_array_equal(np.asarray(a)[3:], np.asarray(b)[3:])

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -117,3 +118,47 @@ def test_inspect_survives_a_heliostat_without_usable_records(tmp_path, capsys):
     rc, out, err = _run(["inspect", str(data)], capsys)
     assert rc == 0, err
     assert "BE36" in out and "Traceback" not in err
+
+
+def test_damaged_data_is_named_and_the_good_heliostats_are_fitted(tmp_path, capsys):
+    """Bad parts of a download are named on stderr (even with --quiet) or in the
+    load report; the good heliostats are calibrated as usual (exit 0)."""
+    data = tmp_path / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    (data / "BL14" / "Properties" / "BL14-heliostat-properties.json").unlink()  # records without properties
+    truncated = sorted((data / "BE36" / "Calibration").iterdir())[0]
+    truncated.write_text(truncated.read_text()[:40])
+    stamps = json.loads((data / "calibration-timestamps.json").read_text())
+    future = sorted(k for k, v in stamps.items() if v["heliostat_id"] == "BF56")[-1]
+    stamps[future]["datetime"] = "3000-01-01T00:00:00Z"
+    (data / "calibration-timestamps.json").write_text(json.dumps(stamps))
+    report = tmp_path / "summary.json"
+    rc, out, err = _run(["calibrate", str(data), "--report", str(report), "--cache-dir", "none", "--quiet"], capsys)
+    assert rc == 0, err
+    assert "BL14-heliostat-properties.json" in err and truncated.name in err and "Traceback" not in err
+    s = json.loads(report.read_text())
+    assert set(s["heliostats"]) == {"BE36", "BF56", "BG23", "BH20"}
+    assert {h["status"] for h in s["heliostats"].values()} == {"converged"}
+    flags = [(e.field, e.reason) for e in hj.load_paint_directory(data).report.flags]
+    assert (
+        "datetime",
+        "3000-01-01T00:00:00+00:00 is before 2000 or in the future: record kept, check its time",
+    ) in flags
+    del out
+
+
+def test_weather_gaps_and_conflicts_are_flagged(tmp_path):
+    data = tmp_path / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    lines = (data / "calibration-with-weather.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    drop = header.index("temperature")
+    rows = [",".join(c for j, c in enumerate(line.split(",")) if j != drop) for line in lines]
+    cells = rows[1].split(",")
+    cells[-1] = str(float(cells[-1]) + 50.0)  # the same record again, other pressure
+    rows.append(",".join(cells))
+    (data / "calibration-with-weather.csv").write_text("\n".join(rows) + "\n")
+    flags = {(e.field, e.reason.split(":")[0]) for e in hj.load_paint_directory(data).report.flags}
+    assert ("temperature", "no row has a temperature (column missing or empty)") in flags
+    rid = f"{cells[0]}.{cells[2]}"
+    assert (rid, "listed twice with different weather") in flags

@@ -138,7 +138,6 @@ def run(args) -> int:
 
     enable_compilation_cache(args.cache_dir)
     fleet = load_fleet(args)
-    log.info(f"loaded {len(fleet.ids)} heliostats, {int(fleet.mask.sum())} records")
     test_fleet = None
     if args.test_data is not None:
         test_fleet = load_paint_directory(args.test_data, centroid=args.centroid)

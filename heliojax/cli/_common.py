@@ -9,6 +9,8 @@ import os
 import sys
 from pathlib import Path
 
+log = logging.getLogger(__name__)
+
 
 def add_fit_arguments(p) -> None:
     """``--start`` and ``--cache-dir``, shared by the commands that fit."""
@@ -49,22 +51,49 @@ def add_data_argument(p) -> None:
 
 
 def load_fleet(args):
+    """The fleet of ``args.data_dir`` (default: the embedded subset); says what was
+    loaded, and names what was skipped (warnings, shown even with ``--quiet``)."""
     from ..paint import default_data_dir, load_paint_directory
 
     path = args.data_dir if args.data_dir is not None else default_data_dir()
-    return load_paint_directory(path, centroid=args.centroid)
+    fleet = load_paint_directory(path, centroid=args.centroid)
+    report = fleet.report
+    log.info(f"loaded {report.heliostats_loaded} heliostats, {report.records_loaded} records from {path}")
+    if report.skipped:
+        log.warning(
+            f"skipped {report.heliostats_skipped} heliostat(s) and {report.records_skipped} record(s) of {path}:"
+        )
+        for entry in report.skipped[:MAX_LISTED]:
+            log.warning(f"  {_relative(entry.file, path)}: {entry.field or '-'}: {entry.reason}")
+        if len(report.skipped) > MAX_LISTED:
+            log.warning(f"  ... and {len(report.skipped) - MAX_LISTED} more: `heliojax inspect {path}` lists them")
+    if report.flags:
+        log.info(f"{len(report.flags)} suspicious input(s) loaded: `heliojax inspect {path}` lists them")
+    return fleet
+
+
+MAX_LISTED = 5
+"""Skipped inputs named one by one before the rest are counted."""
+
+
+def _relative(file: str, root) -> str:
+    try:
+        return str(Path(file).relative_to(root))
+    except ValueError:
+        return str(file)
 
 
 def configure_logging(quiet: bool) -> logging.Logger:
     """Show the library's INFO messages (progress) on stderr as ``[heliojax] ...``;
     only warnings with ``quiet``. Returns the ``heliojax`` logger."""
     logger = logging.getLogger("heliojax")
-    if not any(getattr(h, "_heliojax_cli", False) for h in logger.handlers):
-        handler = logging.StreamHandler(sys.stderr)
-        handler.setFormatter(logging.Formatter("[heliojax] %(message)s"))
-        handler._heliojax_cli = True  # pyright: ignore[reportAttributeAccessIssue]
-        logger.addHandler(handler)
-        logger.propagate = False
+    for old in [h for h in logger.handlers if getattr(h, "_heliojax_cli", False)]:
+        logger.removeHandler(old)  # a handler of an earlier run may hold another stderr
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("[heliojax] %(message)s"))
+    handler._heliojax_cli = True  # pyright: ignore[reportAttributeAccessIssue]
+    logger.addHandler(handler)
+    logger.propagate = False
     logger.setLevel(logging.WARNING if quiet else logging.INFO)
     return logger
 

@@ -90,7 +90,6 @@ def run(args) -> int:
     except ValueError as e:
         raise ConfigError(str(e)) from e
     fleet = load_fleet(args)
-    log.info(f"loaded {sum(1 for i in fleet.ids if i)} heliostats, {int(fleet.mask.sum())} records")
     result = discover(fleet, config)
     write_report(args.report, result.report)
     log.info(f"wrote {args.report}")

@@ -433,7 +433,7 @@ def discover(
     n_real = sum(1 for i in fleet.ids if i)
     padded = pad_fleet(fleet, bucket_size(fleet.n_heliostats), bucket_size(fleet.n_records))
     if config.start == "auto":
-        geometry, _ = choose_start_geometry(padded, base)
+        geometry, _, _ = choose_start_geometry(padded, base)
         padded = eqx.tree_at(lambda f: f.geometry, padded, geometry)
     layout, template = make_layout(base, config.candidates, padded)
     lanes = make_lanes(padded, config.n_folds)

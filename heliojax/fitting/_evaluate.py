@@ -100,26 +100,33 @@ def typical_actuators(geometry: HeliostatGeometry, valid: Bool[ArrayLike, " H"])
 
 def choose_start_geometry(
     fleet: typing.Any, model: AbstractKinematicModel, mask: Bool[Array, "H M"] | None = None
-) -> tuple[HeliostatGeometry, np.ndarray]:
+) -> tuple[HeliostatGeometry, np.ndarray, np.ndarray]:
     """Per heliostat, the better start of two: its own nominal geometry, or its
     geometry with the fleet's typical (median) actuator values.
 
-    The choice is by the uncalibrated median beam error of the heliostat's own
-    records (``mask``, default all valid ones) under the nominal ``model``, so no
-    threshold is involved. Returns ``(geometry, replaced)`` with ``replaced`` a
-    boolean ``(H,)`` array.
+    The typical values are the median over the heliostats whose own records
+    (``mask``, default all valid ones) give a finite uncalibrated error under the
+    nominal ``model`` - heliostats without usable records or with broken inputs
+    never move it. The choice is by the uncalibrated median beam error of the
+    heliostat's own records, so no threshold is involved.
+
+    Returns:
+        ``(geometry, replaced, sources)``: the start geometry, ``replaced`` bool
+        ``(H,)`` (started from the typical actuators) and ``sources`` bool ``(H,)``
+        (the heliostats the typical actuators came from).
     """
     m = fleet.mask if mask is None else (jnp.asarray(mask) & fleet.mask)
     h = int(np.shape(fleet.mask)[0])
-    has = np.asarray(jnp.any(m, axis=1))
-    if not has.any():
-        return fleet.geometry, np.zeros(h, bool)
-    alt = _with_actuators(fleet.geometry, typical_actuators(fleet.geometry, has))
     models = _batched_models(model, h)
     e_own = beam_errors_mrad(models, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, m)
+    own = _row_median(e_own)
+    sources = np.asarray(jnp.any(m, axis=1)) & np.isfinite(own)
+    if not sources.any():
+        return fleet.geometry, np.zeros(h, bool), sources
+    alt = _with_actuators(fleet.geometry, typical_actuators(fleet.geometry, sources))
     e_alt = beam_errors_mrad(models, alt, fleet.counts, fleet.context, fleet.focal_spot, m)
-    replaced = has & (_row_median(e_alt) < _row_median(e_own))
-    return _select_geometry(jnp.asarray(replaced), alt, fleet.geometry), replaced
+    replaced = np.isfinite(_row_median(e_alt)) & (_row_median(e_alt) < own)
+    return _select_geometry(jnp.asarray(replaced), alt, fleet.geometry), replaced, sources
 
 
 @cached_jit

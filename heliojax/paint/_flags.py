@@ -12,7 +12,7 @@ import numpy as np
 from .._errors import DataError
 from .._fleet import _MIN_FLEET_FOR_OUTLIERS, OUTLIER_FLOOR, OUTLIER_K, LoadReport, ReportEntry
 from .._sun import datetime_to_unix
-from ._common import CalibrationRecord, HeliostatProperties
+from ._common import WEATHER_KEYS, CalibrationRecord, HeliostatProperties
 
 
 class _Log:
@@ -199,6 +199,31 @@ def _flag_properties(props: list[HeliostatProperties], log: _Log) -> None:
                 f"(|dev| {abs(v[h] - med):.3g} > {thr:.3g} = {OUTLIER_K:g} x max(1.4826 MAD, "
                 f"{OUTLIER_FLOOR:g} x scale))",
             )
+
+
+EARLIEST_RECORD_TIME = 946684800.0
+"""2000-01-01T00:00:00Z: earlier record times are flagged (PAINT's records start in 2021)."""
+
+
+def _flag_weather_gaps(rows: Sequence[CalibrationRecord], file: str, log: _Log) -> None:
+    """Flag weather variables no row knows (a missing or empty column) and records
+    listed twice with different weather (the later row is used)."""
+    if not rows:
+        return
+    for key in WEATHER_KEYS:
+        if all(math.isnan(r.weather[key]) for r in rows):
+            log.flag(file, key, f"no row has a {key} (column missing or empty): unknown for every record")
+    seen: dict[tuple[str, int], dict[str, float]] = {}
+    for r in rows:
+        key = (r.heliostat_id, r.record_id)
+        old = seen.get(key)
+        if old is not None and any(
+            not (math.isnan(old[k]) and math.isnan(r.weather[k])) and old[k] != r.weather[k] for k in WEATHER_KEYS
+        ):
+            log.flag(
+                file, f"{r.heliostat_id}.{r.record_id}", "listed twice with different weather: the later row is used"
+            )
+        seen[key] = r.weather
 
 
 def _flag_repeated_weather(records: Sequence[CalibrationRecord], file: str, log: _Log) -> None:

@@ -4,10 +4,12 @@ parse every file, skip and report bad ones, flag suspicious values, assemble pad
 from __future__ import annotations
 
 import collections
+import datetime as dt
 import importlib.resources
 import math
 import os
 import re
+import time
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
@@ -34,7 +36,14 @@ from ._common import (
     HeliostatProperties,
     TowerFile,
 )
-from ._flags import _check_actuator_law, _flag_properties, _flag_repeated_weather, _Log
+from ._flags import (
+    EARLIEST_RECORD_TIME,
+    _check_actuator_law,
+    _flag_properties,
+    _flag_repeated_weather,
+    _flag_weather_gaps,
+    _Log,
+)
 from ._properties import read_heliostat_properties, validate_properties
 from ._timestamps import read_timestamps
 from ._tower import read_tower
@@ -243,6 +252,9 @@ def _assemble(
             if not math.isfinite(t):
                 n_no_time += 1
                 log.flag(r.source, "datetime", "no timestamp: time unknown (NaN), record kept")
+            elif not EARLIEST_RECORD_TIME <= t <= time.time() + 86400.0:
+                when = dt.datetime.fromtimestamp(t, dt.UTC).isoformat() if -6e10 < t < 2.5e11 else repr(t)
+                log.flag(r.source, "datetime", f"{when} is before 2000 or in the future: record kept, check its time")
             n_weather += any(not math.isnan(v) for v in r.weather.values())
 
     approach = _approach(counts, mask)
@@ -464,6 +476,7 @@ def load_paint_directory(
             rows = ()
         weather = {(r.heliostat_id, r.record_id): r.weather for r in rows}
         _flag_repeated_weather(rows, str(csv_path), log)
+        _flag_weather_gaps(rows, str(csv_path), log)
 
     dirs = sorted(
         d for d in root.iterdir() if d.is_dir() and ((d / "Properties").is_dir() or (d / "Calibration").is_dir())
