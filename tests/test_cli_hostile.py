@@ -40,6 +40,24 @@ def _a_dir(tmp: Path) -> Path:
     return path
 
 
+CONTRACT = """
+[parameters.tracking_mrad]
+mean = 2.0
+std = 0.2
+rel_error = 0.04
+"""
+
+
+def _file(tmp: Path, name: str, content: str | bytes) -> str:
+    path = tmp / name
+    path.write_bytes(content if isinstance(content, bytes) else content.encode())
+    return str(path)
+
+
+def _accept(tmp: Path, results: str, contract: str = CONTRACT) -> list[str]:
+    return ["accept", "--results", results, "--contract", _file(tmp, "contract.toml", contract)]
+
+
 # (case, argv from the temporary directory, text the error must contain)
 CASES = [
     ("negative seed", lambda t: ["calibrate", "--seed", "-1"], "--seed"),
@@ -94,6 +112,18 @@ CASES = [
         "--report",
     ),
     ("data directory missing", lambda t: ["calibrate", str(t / "missing")], "missing"),
+    ("accept binary field CSV", lambda t: _accept(t, _file(t, "field.csv", b"\xff\xfe\x00\x81garbage")), "field.csv"),
+    (
+        "accept binary summary",
+        lambda t: [*_accept(t, _file(t, "summary.json", b"\x89\xff\x00")), "--paint", str(hj.default_data_dir())],
+        "summary.json",
+    ),
+    ("accept sampling not a table", lambda t: _accept(t, "f.csv", "sampling = 5\n" + CONTRACT), "[sampling]"),
+    (
+        "accept tower file missing",
+        lambda t: _accept(t, "f.csv", CONTRACT + '[yield]\ntower_file = "nowhere.json"\n'),
+        "nowhere.json",
+    ),
 ]
 
 
@@ -105,9 +135,8 @@ def test_bad_input_is_a_short_clean_error(argv, expected, tmp_path, capsys, monk
     assert rc == 2, err
     assert expected in err and "Traceback" not in err, err
     assert len(err.strip().splitlines()) <= 2, err
-    assert {p for p in tmp_path.rglob("*")} - before - {tmp_path / "a-dir", tmp_path / "a-file"} <= {
-        tmp_path / "config.toml"
-    }
+    inputs = {tmp_path / n for n in ("a-dir", "a-file", "config.toml", "contract.toml", "field.csv", "summary.json")}
+    assert {p for p in tmp_path.rglob("*")} - before <= inputs  # no output written
 
 
 def test_inspect_survives_a_heliostat_without_usable_records(tmp_path, capsys):

@@ -49,6 +49,10 @@ def read_field_csv(path: str | os.PathLike) -> FieldData:
             header = rows and list(rows[0].keys())
     except OSError as e:
         raise DataError(path, None, f"cannot read: {e}") from e
+    except UnicodeDecodeError as e:
+        raise DataError(path, None, f"not UTF-8 text (byte {e.start}): not a field CSV") from None
+    except csv.Error as e:
+        raise DataError(path, None, f"malformed CSV: {e}") from None
     if not rows:
         raise DataError(path, None, "no rows")
     for col in ("heliostat_id", "east_m", "north_m"):
@@ -110,6 +114,8 @@ def read_summary(path: str | os.PathLike) -> dict[str, float]:
             doc = json.load(f)
     except (OSError, json.JSONDecodeError) as e:
         raise DataError(path, None, f"cannot read: {e}") from e
+    except UnicodeDecodeError as e:
+        raise DataError(path, None, f"not UTF-8 text (byte {e.start}): not a summary.json") from None
     table = doc.get("heliostats") if isinstance(doc, dict) else None
     if not isinstance(table, dict):
         raise DataError(path, "heliostats", "missing or not an object")
@@ -233,11 +239,14 @@ def load_contract(path: str | os.PathLike) -> Contract:
     path = Path(path)
     try:
         doc = tomllib.loads(path.read_text("utf-8"))
-    except (OSError, tomllib.TOMLDecodeError) as e:
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise ConfigError(f"{path}: cannot read contract: {e}") from e
     unknown = set(doc) - {"sampling", "parameters", "clusters", "extrapolation", "yield"}
     if unknown:
         raise ConfigError(f"{path}: unknown section(s) {sorted(unknown)}")
+    for section, value in doc.items():
+        if not isinstance(value, dict):
+            raise ConfigError(f"{path}: [{section}] must be a table, got {value!r}")
 
     def num(sec, key, default=None, positive=False):
         table = doc.get(sec, {})
@@ -291,6 +300,8 @@ def load_contract(path: str | os.PathLike) -> Contract:
     tower = y.get("tower_file")
     if tower is not None and not isinstance(tower, str):
         raise ConfigError(f"{path}: [yield] tower_file must be a string")
+    if tower is not None and not (path.parent / tower).resolve().is_file():
+        raise ConfigError(f"{path}: [yield] tower_file {tower!r} not found (relative to the contract's folder)")
     return Contract(
         parameters=params,
         confidence=float(confidence),
