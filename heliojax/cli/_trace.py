@@ -24,7 +24,7 @@ def add_parser(subparsers) -> None:
         "trace",
         help="ray-trace a heliostat's flux image onto a target (PNG + HDF5)",
         description=(
-            "Align a heliostat (PAINT properties, nominal linear-actuator kinematics) with the motor "
+            "Align a heliostat (PAINT properties; nominal linear-actuator kinematics, or the calibrated ones of --results) with the motor "
             "counts of a calibration record (--record) or aim it at a target for a given sun "
             "(--sun-azimuth/--sun-elevation), trace its flux onto the target plane and write "
             "OUT/<H>-<ID or sun>-flux.png and .h5 (W/m^2, extent in metres). With --record and "
@@ -33,7 +33,12 @@ def add_parser(subparsers) -> None:
         ),
     )
     p.add_argument(
-        "paint", type=Path, metavar="PAINT_DIR", help="PAINT-layout directory (<H>/Properties, <H>/Calibration)"
+        "paint",
+        type=Path,
+        nargs="?",
+        default=None,
+        metavar="PAINT_DIR",
+        help="PAINT-layout directory (<H>/Properties, <H>/Calibration; default: the embedded real subset)",
     )
     p.add_argument("--heliostat", required=True, help="heliostat id, e.g. AA39")
     p.add_argument("--record", type=integer(0), help="calibration record id (counts, sun and target of the record)")
@@ -48,6 +53,13 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--tower", type=Path, help="tower file (default: PAINT_DIR's or its parent's)")
     p.add_argument("--deflectometry", type=Path, help="PAINT deflectometry HDF5: fit NURBS facets to it")
+    p.add_argument(
+        "--results",
+        type=Path,
+        metavar="FILE",
+        help="results.h5 of `heliojax calibrate`: trace with the heliostat's calibrated model and geometry "
+        "(default: nominal linear-actuator kinematics)",
+    )
     p.add_argument(
         "--sunshape", choices=("buie", "gaussian", "pillbox"), default="buie", help="sun shape of the ray directions"
     )
@@ -89,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from .. import optics
-    from .._errors import HeliojaxError
+    from .._errors import ConfigError, HeliojaxError
     from .._geometry import sun_direction
     from .._io import atomic_path, atomic_write
     from .._kinematics import ActuatorModel, forward, inverse_aim
@@ -97,9 +109,13 @@ def run(args: argparse.Namespace) -> int:
     from ..paint import read_calibration_record, read_heliostat_properties, read_tower
 
     if (args.record is None) == (args.sun_azimuth is None or args.sun_elevation is None):
-        print("heliojax trace: give either --record or both --sun-azimuth and --sun-elevation", file=sys.stderr)
+        print("heliojax trace: error: give either --record or both --sun-azimuth and --sun-elevation", file=sys.stderr)
         return 2
     try:
+        if args.paint is None:
+            from ..paint import default_data_dir
+
+            args.paint = default_data_dir()
         tower_path = _tower_path(args)
         tower = read_tower(tower_path)
         hdir = args.paint / args.heliostat
@@ -108,6 +124,13 @@ def run(args: argparse.Namespace) -> int:
         geometry = _compare.geometry_from_properties(props, tower.origin_lla)
         layout = _compare.layout_from_properties(props)
         model = ActuatorModel.nominal(jnp.float64)
+        if args.results is not None:
+            from .._results import load_results
+
+            results = load_results(args.results)
+            if args.heliostat not in results.ids:
+                raise ConfigError(f"--results {args.results}: no heliostat {args.heliostat!r} in it")
+            model, geometry = results.heliostat(args.heliostat)
         if args.deflectometry is not None:
             defl = optics.read_deflectometry(args.deflectometry)
             facets = optics.fit_nurbs(defl, layout.translations[: defl.n_facets])
@@ -151,6 +174,28 @@ def run(args: argparse.Namespace) -> int:
         image = np.asarray(image, np.float64)
         c = np.asarray(optics.centroid(jnp.asarray(image), grid))
         power = float(image.sum() * float(grid.pixel_area))
+        summary = {
+            "heliostat": args.heliostat,
+            "target": target_name,
+            "centroid_uv_m": c.tolist(),
+            "power_w": power,
+            "rays": optics.ray_count(surface, args.rays_per_point, args.steps),
+        }
+        comparison_fig = None
+        flux_png = hdir / "Calibration" / f"{args.record}-flux.png"
+        if args.record is not None and flux_png.exists():  # read and compared before anything is written
+            comp = _compare.compare_record(
+                rec_path,
+                props_path,
+                tower_path,
+                surface=surface,
+                sunshape=sunshape,
+                key=jax.random.key(args.seed),
+                rays_per_point=args.rays_per_point,
+                steps=args.steps,
+            )
+            summary["comparison"] = comp.summary()
+            comparison_fig = _compare.comparison_figure(comp)
         stem = args.out / f"{args.heliostat}-{tag}-flux"
         extent = [float(grid.u_min), float(grid.u_max), float(grid.v_min), float(grid.v_max)]
         with atomic_path(stem.with_suffix(".h5")) as tmp:
@@ -170,41 +215,21 @@ def run(args: argparse.Namespace) -> int:
                 )
         fig, ax = plt.subplots(figsize=(5, 4.4))
         im = ax.imshow(image, extent=extent, origin="upper", cmap="inferno")  # pyright: ignore[reportArgumentType]
-        fig.colorbar(im, ax=ax, label="W/m$^2$")
-        ax.set_xlabel("u (m)")
-        ax.set_ylabel("v (m)")
+        fig.colorbar(im, ax=ax, label="flux density [W/m$^2$]")
+        ax.set_xlabel("u, along the target [m]")
+        ax.set_ylabel("v, up the target [m]")
         ax.set_title(f"{args.heliostat} {tag} on {target_name}", fontsize=9)
         with atomic_path(stem.with_suffix(".png")) as tmp:
-            fig.savefig(tmp, dpi=100, format="png")
+            fig.savefig(tmp, dpi=100, format="png", bbox_inches="tight")
         plt.close(fig)
-        summary = {
-            "heliostat": args.heliostat,
-            "target": target_name,
-            "centroid_uv_m": c.tolist(),
-            "power_w": power,
-            "rays": optics.ray_count(surface, args.rays_per_point, args.steps),
-        }
-        flux_png = hdir / "Calibration" / f"{args.record}-flux.png"
-        if args.record is not None and flux_png.exists():
-            comp = _compare.compare_record(
-                rec_path,
-                props_path,
-                tower_path,
-                surface=surface,
-                sunshape=sunshape,
-                key=jax.random.key(args.seed),
-                rays_per_point=args.rays_per_point,
-                steps=args.steps,
-            )
-            summary["comparison"] = comp.summary()
-            fig = _compare.comparison_figure(comp)
+        if comparison_fig is not None:
             with atomic_path(args.out / f"{args.heliostat}-{tag}-comparison.png") as tmp:
-                fig.savefig(tmp, dpi=90, format="png")
-            plt.close(fig)
+                comparison_fig.savefig(tmp, dpi=90, format="png", bbox_inches="tight")
+            plt.close(comparison_fig)
         with atomic_write(args.out / f"{args.heliostat}-{tag}-summary.json") as f:
             json.dump(summary, f, indent=2)
         print(json.dumps(summary, indent=2))
     except (HeliojaxError, FileNotFoundError) as e:
-        print(f"heliojax trace: {e}", file=sys.stderr)
-        return 1
+        print(f"heliojax trace: error: {e}", file=sys.stderr)
+        return 2
     return 0

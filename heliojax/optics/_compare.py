@@ -110,16 +110,26 @@ def layout_from_properties(properties) -> FacetLayout:
 
 
 def target_from_tower(tower, name: str) -> TargetPlane:
-    """The planar target ``name`` of a :class:`heliojax.paint.TowerFile` (ENU m)."""
+    """The target ``name`` of a :class:`heliojax.paint.TowerFile` as a plane (ENU m):
+    a planar calibration target from its corners, or the receiver (PAINT's
+    ``convex_cylinder``) as the plane of its outer aperture corners
+    (``receiver_outer_*``), on which its flux is then imaged."""
     entry = tower.targets.get(name)
-    if entry is None or not entry.is_planar_target:
-        raise DataError(tower.source, name, "not a planar target of the tower file")
+    corners = ("upper_left", "upper_right", "lower_left", "lower_right")
+    if entry is not None and entry.is_planar_target:
+        names = corners
+    elif entry is not None and all(f"receiver_outer_{c}" in entry.points for c in corners):
+        names = tuple(f"receiver_outer_{c}" for c in corners)
+    else:
+        usable = sorted(
+            k
+            for k, e in tower.targets.items()
+            if e.is_planar_target or all(f"receiver_outer_{c}" in e.points for c in corners)
+        )
+        raise DataError(tower.source, name, f"no such target with corners; the tower file has {', '.join(usable)}")
     origin = jnp.asarray(tower.origin_lla, jnp.float64)
-    corners = [
-        wgs84_to_enu(jnp.asarray(entry.points[c], jnp.float64), origin)
-        for c in ("upper_left", "upper_right", "lower_left", "lower_right")
-    ]
-    return TargetPlane.from_corners(*corners)
+    points = [wgs84_to_enu(jnp.asarray(entry.points[c], jnp.float64), origin) for c in names]
+    return TargetPlane.from_corners(*points)
 
 
 @dataclasses.dataclass(frozen=True)
