@@ -24,7 +24,8 @@ def add_parser(subparsers) -> None:
         "trace",
         help="ray-trace a heliostat's flux image onto a target (PNG + HDF5)",
         description=(
-            "Align a heliostat (PAINT properties; nominal linear-actuator kinematics, or the calibrated ones of --results) with the motor "
+            "Align a heliostat (PAINT properties; nominal linear-actuator kinematics, or the "
+            "calibrated ones of --results) with the motor "
             "counts of a calibration record (--record) or aim it at a target for a given sun "
             "(--sun-azimuth/--sun-elevation), trace its flux onto the target plane and write "
             "OUT/<H>-<ID or sun>-flux.png and .h5 (W/m^2, extent in metres). With --record and "
