@@ -725,3 +725,38 @@ def test_new_user_path_fetch_inspect_calibrate(tmp_path, capsys):
     assert s["split"] == "time" and s["fleet"]["n_heliostats"] == 5
     assert {h["status"] for h in s["heliostats"].values()} == {"converged"}
     assert all(h["n_train"] > 0 and h["n_test"] > 0 for h in s["heliostats"].values())
+
+
+def test_lying_content_length_and_damaged_journal_are_clean_errors(tmp_path, capsys):
+    """A catalogue whose server announces a huge body and sends a short one is a
+    one-line error naming it (no MemoryError); a damaged resume journal is read past."""
+
+    class Liar(http.server.BaseHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+        def do_GET(self):
+            self.send_response(200)
+            self.send_header("Content-Length", str(10**12))
+            self.end_headers()
+            self.wfile.write(b'{"type": "Catalog", "id": "x"')
+            self.wfile.flush()
+            self.close_connection = True
+
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Liar)
+    th = threading.Thread(target=srv.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
+    th.start()
+    try:
+        url = f"http://127.0.0.1:{srv.server_address[1]}/catalog.json"
+        rc = _cli(["fetch", url, "--out", str(tmp_path / "o"), "--timeout", "5", "--quiet"])
+    finally:
+        srv.shutdown()
+        srv.server_close()
+    err = capsys.readouterr().err
+    assert rc == 2 and "catalog.json" in err and len(err.strip().splitlines()) <= 2, err
+    root_json, expected = build_catalogue(tmp_path / "stac")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / JOURNAL_NAME).write_bytes(b"\xff\xfe garbage\n{not json\n")
+    rep = fetch_catalog(root_json, out)
+    assert rep.ok and files_under(out) == {k: v for k, v in expected.items() if "flux" not in k}

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import http.client
 import io
 import json
 import os
@@ -219,9 +220,11 @@ class _Reader:
     def json(self, href: str) -> dict:
         try:
             with self.open_retrying(href) as f:
-                data = f.read()
-        except (OSError, urllib.error.URLError) as e:
-            raise DataError(href, None, f"cannot read STAC file: {e}") from e
+                data = f.read(MAX_STAC_BYTES + 1)  # bounded: a server's Content-Length is not trusted
+        except (OSError, urllib.error.URLError, http.client.HTTPException) as e:
+            raise DataError(href, None, f"cannot read STAC file: {e!r}") from e
+        if len(data) > MAX_STAC_BYTES:
+            raise DataError(href, None, f"STAC file larger than {MAX_STAC_BYTES} bytes: not read")
         try:
             obj = json.loads(data.decode("utf-8"))
         except (UnicodeDecodeError, json.JSONDecodeError) as e:
@@ -314,20 +317,30 @@ def _json_ok(path: Path, name: str | None = None) -> str | None:
 
 
 # --------------------------------------------------------------------------- journal
+MAX_STAC_BYTES = 64 * 2**20
+"""Largest STAC JSON file read (PAINT's largest collection is well below 1 MB)."""
+
+
 class _Journal:
     def __init__(self, out: Path):
         self.path = out / JOURNAL_NAME
         self.lock = threading.Lock()
         self.records: dict[str, dict] = {}
         if self.path.exists():
-            with open(self.path, encoding="utf-8") as f:
-                for line in f:
-                    try:
-                        rec = json.loads(line)
-                    except json.JSONDecodeError:
-                        continue  # torn last line of an interrupted run
-                    if isinstance(rec, dict) and isinstance(rec.get("path"), str):
-                        self.records[rec["path"]] = rec
+            try:
+                with open(self.path, encoding="utf-8", errors="replace") as f:
+                    lines = f.readlines()
+            except OSError as e:
+                raise DataError(
+                    self.path, None, f"cannot read the resume journal ({e}); delete it to start over"
+                ) from e
+            for line in lines:
+                try:
+                    rec = json.loads(line)
+                except json.JSONDecodeError:
+                    continue  # a torn last line of an interrupted run, or damage: that file is fetched again
+                if isinstance(rec, dict) and isinstance(rec.get("path"), str):
+                    self.records[rec["path"]] = rec
 
     def add(self, rel: str, href: str, size: int, sha256: str) -> None:
         rec = {"path": rel, "href": href, "size": size, "sha256": sha256}
