@@ -65,6 +65,11 @@ from ._parameters import (
     reference as reference,
     set_references as set_references,
 )
+from ._plotting import (
+    plot_calibration as plot_calibration,
+    plot_error_per_heliostat as plot_error_per_heliostat,
+    save_figure as save_figure,
+)
 from ._results import (
     CalibrationResults as CalibrationResults,
     load_results as load_results,
