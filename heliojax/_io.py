@@ -8,9 +8,28 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
+
+TEMPORARY_MARK = ".heliojax-tmp"
+"""In the name of every temporary file heliojax writes (so that stale ones, left by
+a killed run, can be recognised and removed: :func:`remove_stale_temporaries`)."""
+
+
+def remove_stale_temporaries(directory: str | os.PathLike, older_than_s: float = 3600.0) -> list[Path]:
+    """Remove heliojax's temporary files in ``directory`` that a killed run left
+    behind (older than ``older_than_s``, so a concurrent writer's file is kept).
+    Returns the removed paths."""
+    removed = []
+    now = time.time()
+    for tmp in Path(directory).glob(f".*{TEMPORARY_MARK}*"):
+        with contextlib.suppress(OSError):
+            if tmp.is_file() and now - tmp.stat().st_mtime > older_than_s:
+                tmp.unlink()
+                removed.append(tmp)
+    return removed
 
 
 def _umask() -> int:
@@ -43,7 +62,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **kwargs) -> Iterator
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=TEMPORARY_MARK)
     os.close(fd)
     try:
         if "b" not in mode:
@@ -65,7 +84,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     such as h5py or matplotlib); on success rename it onto ``path``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=TEMPORARY_MARK + path.suffix)
     os.close(fd)
     try:
         yield Path(tmp)

@@ -191,3 +191,20 @@ def test_weather_gaps_and_conflicts_are_flagged(tmp_path):
     assert ("temperature", "no row has a temperature (column missing or empty)") in flags
     rid = f"{cells[0]}.{cells[2]}"
     assert (rid, "listed twice with different weather") in flags
+
+
+def test_temporaries_of_a_killed_run_are_removed_before_the_next(tmp_path, capsys):
+    """A kill during a write leaves a temporary file; the next run writing to that
+    folder removes it when it is old (a concurrent writer's fresh one is kept)."""
+    import os
+    import time
+
+    stale = tmp_path / ".summary.json.abcd1234.heliojax-tmp"
+    fresh = tmp_path / ".summary.json.efgh5678.heliojax-tmp"
+    for f in (stale, fresh):
+        f.write_text("{")
+    hour_ago = time.time() - 7200
+    os.utime(stale, (hour_ago, hour_ago))
+    rc, _, err = _run(["inspect", "--plot", str(tmp_path / "x.png"), "--cache-dir", "none"], capsys)
+    assert rc == 0, err
+    assert not stale.exists() and fresh.exists()

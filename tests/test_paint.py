@@ -482,7 +482,7 @@ def test_writers_round_trip_real_files(tmp_path, tower, be36):
     ts = read_timestamps(src)
     write_timestamps(tmp_path / "ts.json", ts)
     assert (tmp_path / "ts.json").read_text().rstrip() == src.read_text().rstrip()  # same format too
-    assert not list(tmp_path.glob(".*.tmp"))  # atomic writes leave no temporaries
+    assert not list(tmp_path.glob(".*heliojax-tmp*"))  # atomic writes leave no temporaries
 
 
 def test_weather_csv_round_trip(tmp_path, tower):

@@ -119,6 +119,7 @@ def check_output_paths(args, files: tuple[str, ...] = (), directories: tuple[str
     """Before any work: every output file / directory named by ``args`` (attribute
     names; None = not requested) can be written. Raises ConfigError naming the flag."""
     from .._errors import ConfigError
+    from .._io import remove_stale_temporaries
 
     for names, is_dir in ((files, False), (directories, True)):
         for name in names:
@@ -138,6 +139,10 @@ def check_output_paths(args, files: tuple[str, ...] = (), directories: tuple[str
                 raise ConfigError(f"{flag} {path}: {ancestor} is not a directory")
             if not os.access(ancestor, os.W_OK | os.X_OK):
                 raise ConfigError(f"{flag} {path}: {ancestor} is not writable")
+            folder = path if is_dir else path.parent
+            if folder.is_dir() and name != "cache_dir":
+                for stale in remove_stale_temporaries(folder):
+                    log.info(f"removed {stale}, left by an interrupted run")
 
 
 def integer(minimum: int | None = None, maximum: int | None = None):

@@ -67,7 +67,9 @@ class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
         return f"{text} (default: {shown})"
 
 
-def build_parser() -> tuple[argparse.ArgumentParser, dict]:
+def build_parser() -> tuple[argparse.ArgumentParser, dict, dict[str, argparse.ArgumentParser]]:
+    """The ``heliojax`` parser, the subcommand modules and the subcommand parsers
+    (both keyed by subcommand name)."""
     parser = _Parser(
         prog="heliojax",
         formatter_class=_HelpFormatter,
@@ -77,15 +79,15 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict]:
     )
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    modules = {}
+    modules, subparsers = {}, {}
     for name, module in _available():
         module.add_parser(sub)
         modules[name] = module
-        sp = sub.choices[name]
+        sp = subparsers[name] = sub.choices[name]
         sp.formatter_class = _HelpFormatter
         sp.epilog = module.EXAMPLES
         sp.add_argument("--config", type=Path, metavar="FILE", help=f"TOML file with option defaults (table [{name}])")
-    return parser, modules
+    return parser, modules, subparsers
 
 
 def _apply_config(subparser: argparse.ArgumentParser, command: str, path: Path, commands: Iterable[str]) -> None:
@@ -146,7 +148,7 @@ def _config_value(action: argparse.Action, value: object, where: str) -> object:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    parser, modules = build_parser()
+    parser, modules, subparsers = build_parser()
     args = parser.parse_args(argv)
     if args.version:
         print(__version__)
@@ -160,12 +162,11 @@ def main(argv: list[str] | None = None) -> int:
     jax.config.update("jax_enable_x64", True)
     try:
         if getattr(args, "config", None) is not None:
-            sp = parser._subparsers._group_actions[0].choices[args.command]  # pyright: ignore[reportOptionalSubscript, reportOptionalMemberAccess, reportIndexIssue]
-            _apply_config(sp, args.command, args.config, modules)
+            _apply_config(subparsers[args.command], args.command, args.config, modules)
             args = parser.parse_args(argv)
         module = modules[args.command]
-        check_output_paths(args, getattr(module, "OUTPUT_FILES", ()), getattr(module, "OUTPUT_DIRS", ()))
         logger = configure_logging(bool(getattr(args, "quiet", False)))
+        check_output_paths(args, getattr(module, "OUTPUT_FILES", ()), getattr(module, "OUTPUT_DIRS", ()))
         with logging_redirect_tqdm(loggers=[logger]):  # messages and progress bars share stderr
             return int(module.run(args) or 0)
     except HeliojaxError as e:
