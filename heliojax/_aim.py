@@ -12,6 +12,13 @@ blindly:
   max_steps) or its calibrated model is flagged unreliable;
 * ``unreachable``: no finite counts, or the forward model misses the aim point
   by more than ``reach_tolerance_mrad``.
+
+With the fitted parameters' covariance (``results.h5``), each command also gets
+its predicted pointing uncertainty: the 2x2 covariance (mrad^2) of the beam's
+direction in the tangent plane at the commanded counts, propagated linearly from
+the parameter covariance (``J C J^T`` with ``J`` the Jacobian of the beam
+direction with respect to the free parameters). It covers the uncertainty of the
+fit, not effects the model lacks (the fit's ``noise_mrad`` bounds those).
 """
 
 from __future__ import annotations
@@ -21,11 +28,12 @@ import typing
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._beam import beam_pointing_error
-from ._heliostat import HeliostatGeometry
+from ._heliostat import HeliostatGeometry, RecordContext
 from ._kinematics import AbstractKinematicModel, forward, inverse_aim
+from ._parameters import ParameterView
 
 REACH_TOLERANCE_MRAD = 1e-3
 """Largest forward-model miss (mrad) of commanded counts that still counts as reaching the aim point."""
@@ -45,6 +53,8 @@ class AimResult(eqx.Module):
         sun_low: ``(N,)``.
         unreliable: ``(H,)``.
         unreachable: ``(H, N)``.
+        pointing_cov_mrad2: ``(H, N, 2, 2)`` predicted covariance of the beam
+            direction (mrad^2) from the parameter covariance; NaN without one.
     """
 
     counts: Float[Array, "H N 2"]
@@ -55,6 +65,12 @@ class AimResult(eqx.Module):
     sun_low: Bool[Array, " N"]
     unreliable: Bool[Array, " H"]
     unreachable: Bool[Array, "H N"]
+    pointing_cov_mrad2: Float[Array, "H N 2 2"]
+
+    @property
+    def pointing_std_mrad(self) -> Float[Array, "H N"]:
+        """Predicted radial RMS pointing uncertainty (mrad) of each command."""
+        return jnp.sqrt(jnp.trace(self.pointing_cov_mrad2, axis1=-2, axis2=-1))
 
     @property
     def ok(self) -> Bool[Array, "H N"]:
@@ -75,6 +91,27 @@ def _aim_program(models, geometry, aim_points, sun):
     return jax.vmap(one)(models, geometry, aim_points)
 
 
+@eqx.filter_jit
+def _pointing_covariance(view, models, geometry, counts, aim_points, sun, covariance):
+    idx = jnp.asarray(view.free_index, dtype=jnp.int32)
+
+    def one(model, g, c_n, points, cov):
+        p = view.to_vector(model)
+
+        def instant(c, point, s):
+            context = RecordContext.from_sun(s)
+
+            def direction_mrad(free):
+                return view.from_vector(model, p.at[idx].set(free)).beam_components(g, c, context, point) * 1e3
+
+            jac = jax.jacfwd(direction_mrad)(p[idx])  # (2, F)
+            return jac @ cov @ jac.T
+
+        return jax.vmap(instant)(c_n, points, sun)
+
+    return jax.vmap(one)(models, geometry, counts, aim_points, covariance)
+
+
 def aim_fleet(
     models: AbstractKinematicModel,
     geometry: HeliostatGeometry,
@@ -82,6 +119,8 @@ def aim_fleet(
     aim_points: Float[Array, "*hn 3"],
     *,
     fitted: Bool[Array, " H"] | None = None,
+    covariance: Float[ArrayLike, "H F F"] | None = None,
+    view: ParameterView | None = None,
     min_sun_elevation_deg: float = 5.0,
     reach_tolerance_mrad: float = REACH_TOLERANCE_MRAD,
 ) -> AimResult:
@@ -94,6 +133,10 @@ def aim_fleet(
         aim_points: ``(3,)`` one point for all, ``(H, 3)`` per heliostat or
             ``(H, N, 3)`` per heliostat and instant (ENU m).
         fitted: ``(H,)`` heliostats whose model may be used (default all).
+        covariance: ``(H, F, F)`` covariance of the free parameters (physical
+            units, :attr:`heliojax.FitSolution.covariance`) and ``view`` the
+            :class:`heliojax.ParameterView` naming them: give both for the
+            predicted pointing uncertainty.
         min_sun_elevation_deg: flag instants with the sun lower than this.
         reach_tolerance_mrad: largest forward-model miss still counted as reached.
 
@@ -116,6 +159,11 @@ def aim_fleet(
     elevation = jnp.degrees(jnp.arcsin(jnp.clip(sun[:, 2], -1.0, 1.0)))
     unreachable = ~jnp.all(jnp.isfinite(counts), axis=-1) | ~(miss <= reach_tolerance_mrad)
     unreliable = jnp.zeros((h,), bool) if fitted is None else ~jnp.asarray(fitted, bool)
+    if covariance is not None and view is not None:
+        cov = jnp.asarray(covariance, sun.dtype)
+        pointing = _pointing_covariance(view, models, geometry, counts, points, sun, cov)
+    else:
+        pointing = jnp.full((h, n, 2, 2), jnp.nan, sun.dtype)
     return AimResult(
         counts=counts,
         aim_point=points,
@@ -125,6 +173,7 @@ def aim_fleet(
         sun_low=elevation < min_sun_elevation_deg,
         unreliable=unreliable,
         unreachable=unreachable,
+        pointing_cov_mrad2=pointing,
     )
 
 
@@ -132,8 +181,18 @@ def aim_results(
     results: typing.Any, sun: Float[Array, "N 3"], aim_points: Float[Array, "*hn 3"], **options: typing.Any
 ) -> AimResult:
     """:func:`aim_fleet` for a calibration read with :func:`heliojax.load_results`
-    (heliostats without a usable fit are flagged ``unreliable``)."""
-    return aim_fleet(results.model, results.geometry, sun, aim_points, fitted=jnp.asarray(results.fitted), **options)
+    (heliostats without a usable fit are flagged ``unreliable``), with the
+    predicted pointing uncertainty from the file's covariance."""
+    return aim_fleet(
+        results.model,
+        results.geometry,
+        sun,
+        aim_points,
+        fitted=jnp.asarray(results.fitted),
+        covariance=results.covariance,
+        view=results.view,
+        **options,
+    )
 
 
 __all__ = ["REACH_TOLERANCE_MRAD", "AimResult", "aim_fleet", "aim_results"]

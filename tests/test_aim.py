@@ -51,3 +51,31 @@ def test_unfitted_heliostats_are_flagged_and_shapes_broadcast():
     np.testing.assert_array_equal(np.asarray(r.unreliable), [False, True, False])
     assert not np.asarray(r.ok)[1].any()
     np.testing.assert_allclose(np.asarray(r.aim_point)[2, 1], [0.0, 0.0, 57.0])
+
+
+def test_predicted_pointing_uncertainty_matches_the_true_miss():
+    """Independent check of the error bars: fit a simulated fleet with known noise,
+    aim with the fitted models, and compare the true models' beam miss of the
+    commanded counts with the predicted pointing covariance. The mean squared miss
+    over heliostats and instants matches the mean predicted variance (ratio ~1;
+    bounds for 60 heliostats whose errors are correlated over the day)."""
+    fleet, truth = simulate_fleet(5, 60, 24, base="actuator", noise_mrad=0.5)
+    solution = hj.fit(hj.ActuatorModel.nominal(), fleet)
+    assert set(solution.status_labels()) == {"converged"}
+    sun = _sun([8.0, 10.0, 12.0, 14.0, 16.0])
+    aim = jnp.array([0.0, 0.0, 60.0])
+    r = hj.aim_fleet(solution.model, fleet.geometry, sun, aim, covariance=solution.covariance, view=solution.view)
+    ok = np.asarray(r.ok)
+    miss2, var = [], []
+    for i, j in zip(*np.nonzero(ok)):
+        model = jax.tree.map(lambda x: x[i], truth)
+        geometry = jax.tree.map(lambda x: x[i], fleet.geometry)
+        pose = hj.forward(model, geometry, r.counts[i, j])
+        miss2.append((float(hj.beam_pointing_error(pose, sun[j], aim)) * 1e3) ** 2)
+        var.append(float(np.trace(np.asarray(r.pointing_cov_mrad2)[i, j])))
+    assert len(miss2) > 150
+    ratio = np.mean(miss2) / np.mean(var)
+    assert 0.5 < ratio < 2.0, ratio
+    assert np.all(np.isfinite(np.asarray(r.pointing_std_mrad)[ok]))
+    without = hj.aim_fleet(solution.model, fleet.geometry, sun, aim)
+    assert np.isnan(np.asarray(without.pointing_std_mrad)).all()
