@@ -3,6 +3,7 @@ the figure; ``save_figure`` writes atomically."""
 
 from __future__ import annotations
 
+import datetime
 from pathlib import Path
 
 import numpy as np
@@ -158,4 +159,59 @@ def plot_calibration(run, *, axes=None):
     return fig
 
 
-__all__ = ["plot_calibration", "plot_error_per_heliostat", "pyplot", "save_figure"]
+def plot_aim(ids, pointing_cov_mrad2, ok, distance_m, hours=None, start=None, *, axes=None):
+    """Error bars of aiming commands: 1-sigma ellipses of the beam's landing point on
+    the aim plane (cm; the beam's tangent plane scaled by each heliostat's distance)
+    at the instant with most usable commands, and each heliostat's predicted
+    pointing uncertainty (mrad) over the instants. Flagged commands are left out."""
+    plt = pyplot()
+    from matplotlib.patches import Ellipse
+
+    if axes is None:
+        fig, axes = plt.subplots(1, 2, figsize=(13, 5.5), gridspec_kw={"width_ratios": [1, 1.5]})
+    else:
+        fig = axes[0].figure
+    cov = np.asarray(pointing_cov_mrad2, float)
+    ok = np.asarray(ok, bool)
+    std = np.sqrt(np.trace(cov, axis1=-2, axis2=-1))
+    j = int(np.argmax(ok.sum(axis=0)))
+    ax = axes[0]
+    colours = plt.get_cmap("viridis")(np.linspace(0, 1, max(len(ids), 2)))
+    extent = 0.0
+    for i in np.flatnonzero(ok[:, j] & np.all(np.isfinite(cov[:, j]), axis=(-2, -1))):
+        vals, vecs = np.linalg.eigh(cov[i, j] * (distance_m[i] * 1e-3 * 100.0) ** 2)  # mrad^2 -> cm^2
+        w, h = 2.0 * np.sqrt(np.clip(vals, 0.0, None))
+        angle = float(np.degrees(np.arctan2(vecs[1, 1], vecs[0, 1])))
+        ax.add_patch(Ellipse((0.0, 0.0), float(h), float(w), angle=angle, fill=False, color=colours[i], lw=1))
+        extent = max(extent, float(max(w, h)) / 2)
+    extent = 1.15 * (extent or 1.0)
+    ax.set_xlim(-extent, extent)
+    ax.set_ylim(-extent, extent)
+    ax.set_aspect("equal")
+    ax.axhline(0, color="0.6", lw=0.5)
+    ax.axvline(0, color="0.6", lw=0.5)
+    ax.set_xlabel("horizontal offset on the aim plane [cm]")
+    ax.set_ylabel("vertical offset on the aim plane [cm]")
+    when = (
+        f"instant {j}" if hours is None else f"{start + datetime.timedelta(hours=float(hours[j])):%Y-%m-%d %H:%M} UTC"
+    )
+    ax.set_title(
+        f"1-sigma landing ellipses of {int(ok[:, j].sum())} heliostats\n{when}; colours as in the legend", fontsize=10
+    )
+    ax = axes[1]
+    x = np.arange(std.shape[1]) if hours is None else hours
+    for i, hid in enumerate(ids):
+        y = np.where(ok[i], std[i], np.nan)
+        if np.isfinite(y).any():
+            ax.plot(x, y, marker="o", ms=3, lw=1, color=colours[i], label=hid)
+    ax.set_xlabel("instant" if hours is None else f"hours after {start:%Y-%m-%d %H:%M} UTC")
+    ax.set_ylabel("predicted pointing uncertainty, radial RMS [mrad]")
+    ax.set_title("predicted pointing uncertainty of the usable commands", fontsize=10)
+    ax.grid(alpha=0.3)
+    if len(ids) <= 30:
+        ax.legend(fontsize=7, ncol=2, loc="upper left", bbox_to_anchor=(1.01, 1.0), title="heliostat")
+    fig.tight_layout()
+    return fig
+
+
+__all__ = ["plot_aim", "plot_calibration", "plot_error_per_heliostat", "pyplot", "save_figure"]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import importlib.metadata
 import json
 import logging
@@ -9,6 +10,7 @@ import os
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -242,15 +244,41 @@ def test_time_split_without_times_is_a_clear_error(tmp_path, capsys):
     assert len(err.strip().splitlines()) <= 2
 
 
-def test_trace_with_calibrated_kinematics_and_on_the_receiver(tmp_path, capsys):
+@pytest.fixture(scope="module")
+def results_h5(tmp_path_factory) -> Path:
+    """results.h5 of `heliojax calibrate` on the embedded data (default model)."""
+    path = tmp_path_factory.mktemp("calibrated") / "results.h5"
+    assert main(["calibrate", "--out", str(path), "--cache-dir", "none", "--quiet"]) == 0
+    return path
+
+
+def test_aim_writes_commands_with_error_bars(results_h5, tmp_path, capsys):
+    out, h5, plot = tmp_path / "aim.csv", tmp_path / "aim.h5", tmp_path / "aim.png"
+    argv = ["aim", str(results_h5), "--date", "2023-06-21", "--step-minutes", "60", "--out", str(out)]
+    assert main([*argv, "--h5", str(h5), "--plot", str(plot), "--cache-dir", "none", "--quiet"]) == 0
+    assert "commands without a flag" in capsys.readouterr().out
+    with open(out, newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 5 * 24 and {r["heliostat_id"] for r in rows} == {"BE36", "BF56", "BG23", "BH20", "BL14"}
+    usable = [r for r in rows if r["ok"] == "1"]
+    assert len(usable) > 40 and all(r["flags"] == "" for r in usable)
+    assert all(float(r["sun_elevation_deg"]) >= 5.0 for r in usable)
+    assert all(0.0 < float(r["pointing_std_mrad"]) < 20.0 for r in usable)
+    night = [r for r in rows if float(r["sun_elevation_deg"]) < 0]
+    assert night and all("sun_low" in r["flags"] and r["ok"] == "0" for r in night)
+    with h5py.File(h5) as f:
+        assert f["counts"].shape == (5, 24, 2) and f["pointing_cov_mrad2"].shape == (5, 24, 2, 2)
+    assert plot.stat().st_size > 10_000
+
+
+def test_trace_with_calibrated_kinematics_and_on_the_receiver(results_h5, tmp_path, capsys):
     """`trace --results` aims with the calibrated model: its spot lands within 0.5 m
     of the record's measured focal spot (BE36 is ~210 m from the tower and fits to
     ~1.6 mrad RMS, i.e. ~0.35 m; its residual on this record is smaller);
     the nominal model misses by metres. The receiver is traced on its aperture plane."""
     from heliojax.optics._compare import target_from_tower
 
-    results = tmp_path / "results.h5"
-    assert main(["calibrate", "--out", str(results), "--cache-dir", "none", "--quiet"]) == 0
+    results = results_h5
     data = hj.default_data_dir()
     record = hj.read_calibration_record(data / "BE36" / "Calibration" / "118671-calibration-properties.json")
     tower = hj.read_tower(data / "WRI1030197-tower-measurements.json")

@@ -112,6 +112,9 @@ CASES = [
         "--report",
     ),
     ("data directory missing", lambda t: ["calibrate", str(t / "missing")], "missing"),
+    ("aim without results", lambda t: ["aim", str(t / "results.h5")], "results.h5"),
+    ("aim start without end", lambda t: ["aim", str(_a_file(t)), "--start", "2023-06-21"], "a-file"),
+    ("aim bad date", lambda t: ["aim", "r.h5", "--date", "midsummer"], "--date"),
     ("accept binary field CSV", lambda t: _accept(t, _file(t, "field.csv", b"\xff\xfe\x00\x81garbage")), "field.csv"),
     (
         "accept binary summary",

@@ -24,6 +24,7 @@ from ._common import check_output_paths, configure_logging
 SUBCOMMANDS = {
     "inspect": "heliojax.cli._inspect",
     "calibrate": "heliojax.cli._calibrate",
+    "aim": "heliojax.cli._aim",
     "discover": "heliojax.cli._discover",
     "fetch": "heliojax.cli._fetch",
     "accept": "heliojax.cli._accept",

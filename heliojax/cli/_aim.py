@@ -1,0 +1,201 @@
+"""``heliojax aim``: motor counts for a calibrated fleet (thin over
+:func:`heliojax.aim_results`)."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import datetime as dt
+import logging
+from pathlib import Path
+
+from ._common import add_cache_argument, enable_compilation_cache, integer, number
+
+log = logging.getLogger(__name__)
+
+OUTPUT_FILES = ("out", "h5", "plot")
+OUTPUT_DIRS = ("cache_dir",)
+"""Output paths checked before any work (attribute names of the parsed arguments)."""
+
+EXAMPLES = """examples:
+  heliojax calibrate --out out/results.h5 && heliojax aim out/results.h5 --date 2023-06-21 --out out/aim.csv
+  heliojax aim out/results.h5 --start 2023-06-21T06:00 --end 2023-06-21T18:00 --step-minutes 15 --plot out/aim.png
+  heliojax aim out/results.h5 --sun-azimuth -20 --sun-elevation 40 --target solar_tower_juelich_lower"""
+
+
+def _utc(value: str) -> dt.datetime:
+    """``YYYY-MM-DD[THH:MM[:SS]][Z|+hh:mm]``; naive means UTC."""
+    try:
+        t = dt.datetime.fromisoformat(value.replace("Z", "+00:00"))
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(f"not an ISO date-time: {value!r}") from e
+    return t if t.tzinfo is not None else t.replace(tzinfo=dt.UTC)
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "aim",
+        help="motor counts that put each calibrated heliostat's beam on an aim point, with error bars",
+        description=(
+            "Read a fitted fleet (results.h5 of `heliojax calibrate`), compute for every heliostat and "
+            "instant the motor counts that put its beam on the aim point (the receiver by default) with "
+            "the calibrated inverse kinematics, the predicted pointing uncertainty (mrad, from the fit's "
+            "parameter covariance) and flags (counts outside the actuator range, sun low, no usable fit, "
+            "aim point not reached). Writes a CSV (one row per heliostat and instant), optionally HDF5 "
+            "and a plot."
+        ),
+    )
+    p.add_argument("results", type=Path, metavar="RESULTS_H5", help="results.h5 of `heliojax calibrate`")
+    when = p.add_mutually_exclusive_group()
+    when.add_argument("--date", type=_utc, help="a whole day (UTC), with --step-minutes (default: today)")
+    when.add_argument("--start", type=_utc, help="first instant, ISO date-time (UTC), with --end")
+    when.add_argument("--time", type=_utc, help="one instant, ISO date-time (UTC)")
+    when.add_argument("--sun-azimuth", type=number(-360.0, 360.0), help="sun azimuth in degrees (0 = south, east +)")
+    p.add_argument("--end", type=_utc, help="last instant with --start")
+    p.add_argument("--sun-elevation", type=number(0.0, 90.0, above=True), help="sun elevation in degrees")
+    p.add_argument("--step-minutes", type=number(0.0, 1440.0, above=True), default=30.0, help="instant spacing")
+    p.add_argument("--target", default="receiver", help="aim point: this target's centre in the tower file")
+    p.add_argument("--tower", type=Path, help="tower file (default: the embedded Jülich tower file)")
+    p.add_argument(
+        "--min-sun-elevation", type=number(-90.0, 90.0), default=5.0, help="flag instants with a lower sun (degrees)"
+    )
+    p.add_argument("--max-instants", type=integer(1), default=10_000, help="refuse longer schedules")
+    p.add_argument("--out", type=Path, default=Path("aim.csv"), metavar="FILE", help="CSV of the commands")
+    p.add_argument("--h5", type=Path, default=None, metavar="FILE", help="HDF5 with the full arrays")
+    p.add_argument("--plot", type=Path, default=None, metavar="FILE", help="figure of the error bars (PNG)")
+    add_cache_argument(p)
+    p.add_argument("--quiet", action="store_true", help="no messages on stderr")
+
+
+def _instants(args, origin_lla):
+    """``(times or None, sun (N, 3))`` for the requested instants."""
+    import jax.numpy as jnp
+    import numpy as np
+
+    from .._errors import ConfigError
+    from .._geometry import sun_direction
+    from .._sun import solar_position
+
+    if args.sun_azimuth is not None or args.sun_elevation is not None:
+        if args.sun_azimuth is None or args.sun_elevation is None:
+            raise ConfigError("--sun-azimuth and --sun-elevation go together")
+        sun = sun_direction(jnp.deg2rad(jnp.array([args.sun_azimuth])), jnp.deg2rad(jnp.array([args.sun_elevation])))
+        return None, sun
+    step = dt.timedelta(minutes=args.step_minutes)
+    if args.time is not None:
+        times = [args.time]
+    else:
+        if args.start is not None:
+            if args.end is None or args.end < args.start:
+                raise ConfigError("--start needs an --end at or after it")
+            start, end = args.start, args.end
+        else:
+            day = args.date or dt.datetime.now(dt.UTC)
+            start = day.replace(hour=0, minute=0, second=0, microsecond=0)
+            end = start + dt.timedelta(days=1) - dt.timedelta(seconds=1)
+        n = int((end - start) / step) + 1
+        if n > args.max_instants:
+            raise ConfigError(f"{n} instants exceed --max-instants {args.max_instants}; use a larger --step-minutes")
+        times = [start + k * step for k in range(n)]
+    unix = np.array([t.timestamp() for t in times])
+    lat, lon, alt = (float(x) for x in origin_lla)
+    return times, solar_position(jnp.asarray(unix), lat, lon, alt).direction_enu()
+
+
+def run(args) -> int:
+    import jax.numpy as jnp
+    import numpy as np
+
+    from .._aim import aim_results
+    from .._errors import ConfigError
+    from .._geometry import direction_to_azimuth_elevation, enu_to_wgs84, wgs84_to_enu
+    from .._io import atomic_path, atomic_write
+    from .._results import load_results
+    from ..optics import target_from_tower
+    from ..paint import default_data_dir, read_tower
+
+    enable_compilation_cache(args.cache_dir)
+    results = load_results(args.results)
+    origin = np.asarray(results.attrs["origin_lla"], float)
+    tower = read_tower(args.tower or default_data_dir() / "WRI1030197-tower-measurements.json")
+    target = target_from_tower(tower, args.target)
+    centre = wgs84_to_enu(enu_to_wgs84(target.centre, jnp.asarray(tower.origin_lla)), jnp.asarray(origin))
+    if args.end is not None and args.start is None:
+        raise ConfigError("--end needs --start")
+    times, sun = _instants(args, origin)
+    log.info(f"aiming {len(results.ids)} heliostats at {args.target} for {sun.shape[0]} instant(s)")
+    r = aim_results(results, sun, centre, min_sun_elevation_deg=args.min_sun_elevation)
+    counts = np.asarray(r.counts)
+    std = np.asarray(r.pointing_std_mrad)
+    az, el = (np.degrees(np.asarray(x)) for x in direction_to_azimuth_elevation(sun))
+    flags = {
+        "counts_out_of_range": np.asarray(r.counts_out_of_range),
+        "sun_low": np.broadcast_to(np.asarray(r.sun_low)[None, :], counts.shape[:2]),
+        "unreliable": np.broadcast_to(np.asarray(r.unreliable)[:, None], counts.shape[:2]),
+        "unreachable": np.asarray(r.unreachable),
+    }
+    ok = np.asarray(r.ok)
+    with atomic_write(args.out, newline="") as f:
+        w = csv.writer(f)
+        w.writerow(
+            [
+                "heliostat_id",
+                "time_utc",
+                "sun_azimuth_deg",
+                "sun_elevation_deg",
+                "axis_1_counts",
+                "axis_2_counts",
+                "pointing_std_mrad",
+                "ok",
+                "flags",
+            ]
+        )
+        for i, hid in enumerate(results.ids):
+            for j in range(counts.shape[1]):
+                c = counts[i, j]
+                w.writerow(
+                    [
+                        hid,
+                        "" if times is None else times[j].strftime("%Y-%m-%dT%H:%M:%SZ"),
+                        f"{az[j]:.4f}",
+                        f"{el[j]:.4f}",
+                        int(round(c[0])) if np.isfinite(c[0]) else "",
+                        int(round(c[1])) if np.isfinite(c[1]) else "",
+                        f"{std[i, j]:.4f}" if np.isfinite(std[i, j]) else "",
+                        int(ok[i, j]),
+                        ";".join(k for k, v in flags.items() if v[i, j]),
+                    ]
+                )
+    log.info(f"wrote {args.out}: {int(ok.sum())} of {ok.size} commands without a flag")
+    if args.h5 is not None:
+        import h5py
+
+        with atomic_path(args.h5) as tmp, h5py.File(tmp, "w") as f:
+            f.attrs["target"] = args.target
+            f.attrs["origin_lla"] = origin
+            f.create_dataset("heliostat_id", data=np.array(results.ids, dtype=object), dtype=h5py.string_dtype())
+            if times is not None:
+                f.create_dataset("unix_time", data=np.array([t.timestamp() for t in times])).attrs["units"] = "s"
+            f.create_dataset("sun_enu", data=np.asarray(sun))
+            f.create_dataset("aim_point_enu", data=np.asarray(centre)).attrs["units"] = "m"
+            f.create_dataset("counts", data=counts)
+            f.create_dataset("pointing_cov_mrad2", data=np.asarray(r.pointing_cov_mrad2)).attrs["units"] = "mrad^2"
+            f.create_dataset("ok", data=ok)
+            for k, v in flags.items():
+                f.create_dataset(f"flags/{k}", data=v)
+        log.info(f"wrote {args.h5}")
+    if args.plot is not None:
+        from .._plotting import plot_aim, save_figure
+
+        distance = np.linalg.norm(np.asarray(centre)[None, :] - np.asarray(results.geometry.position), axis=-1)
+        hours = None if times is None else np.array([(t - times[0]).total_seconds() / 3600.0 for t in times])
+        fig = plot_aim(
+            list(results.ids), np.asarray(r.pointing_cov_mrad2), ok, distance, hours, times[0] if times else None
+        )
+        save_figure(fig, args.plot)
+        log.info(f"wrote {args.plot}")
+    print(
+        f"{int(ok.sum())} of {ok.size} commands without a flag; median predicted pointing uncertainty "
+        f"{np.nanmedian(np.where(ok, std, np.nan)) if ok.any() else float('nan'):.3f} mrad"
+    )
+    return 0
