@@ -192,19 +192,20 @@ def plot_aim(ids, pointing_cov_mrad2, ok, distance_m, hours=None, start=None, *,
     ax.axvline(0, color="0.6", lw=0.5)
     ax.set_xlabel("horizontal offset on the aim plane [cm]")
     ax.set_ylabel("vertical offset on the aim plane [cm]")
-    when = (
-        f"instant {j}" if hours is None else f"{start + datetime.timedelta(hours=float(hours[j])):%Y-%m-%d %H:%M} UTC"
-    )
+    if hours is None or start is None:
+        when = f"instant {j}"
+    else:
+        when = f"{start + datetime.timedelta(hours=float(hours[j])):%Y-%m-%d %H:%M} UTC"
     ax.set_title(
         f"1-sigma landing ellipses of {int(ok[:, j].sum())} heliostats\n{when}; colours as in the legend", fontsize=10
     )
     ax = axes[1]
-    x = np.arange(std.shape[1]) if hours is None else hours
+    x = np.arange(std.shape[1]) if hours is None or start is None else hours
     for i, hid in enumerate(ids):
         y = np.where(ok[i], std[i], np.nan)
         if np.isfinite(y).any():
             ax.plot(x, y, marker="o", ms=3, lw=1, color=colours[i], label=hid)
-    ax.set_xlabel("instant" if hours is None else f"hours after {start:%Y-%m-%d %H:%M} UTC")
+    ax.set_xlabel("instant" if hours is None or start is None else f"hours after {start:%Y-%m-%d %H:%M} UTC")
     ax.set_ylabel("predicted pointing uncertainty, radial RMS [mrad]")
     ax.set_title("predicted pointing uncertainty of the usable commands", fontsize=10)
     ax.grid(alpha=0.3)
