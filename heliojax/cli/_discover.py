@@ -13,17 +13,9 @@ BASES = ("stone8", "actuator")
 log = logging.getLogger(__name__)
 
 
-EFFECT_CHOICES = (
-    "actuator_geometry",
-    "backlash",
-    "thermal",
-    "wind",
-    "clock",
-    "gravity_sag",
-    "encoder_wobble",
-    "refraction",
-    "survey_heliostat",
-    "survey_target",
+EFFECT_CHOICES = tuple(
+    "actuator_geometry backlash thermal wind clock gravity_sag encoder_wobble refraction "
+    "survey_heliostat survey_target".split()
 )
 """``heliojax.effects.EFFECT_NAMES`` (kept here so that ``--help`` needs no JAX; a
 test checks they agree)."""
