@@ -110,25 +110,23 @@ def test_energy_on_oversized_target_within_monte_carlo_error():
     assert power == pytest.approx(dni * rho * float(surf.total_area()) * float(sun @ pose.normal), rel=2e-3)
 
 
+def _overhead_sun_image(surf, target, pixels, sunshape, rays_per_point, seed):
+    """Flux image of ``surf`` (facing up) for the sun overhead: ``(grid, image, moments)``."""
+    grid = ImageGrid.for_target(target, (pixels, pixels))
+    sun = jnp.asarray([0.0, 0.0, 1.0])
+    img = flux_image(
+        jax.random.key(seed), surf, UP, sun, target, grid, sunshape, rays_per_point=rays_per_point, steps=4
+    )
+    return grid, img, moments(img, grid)
+
+
 def test_flat_mirror_pillbox_spot_is_analytic_disk():
     # Sun overhead, small flat mirror facing up, target ceiling at D: the spot is the
     # sun disk of radius D tan(a) (mirror 0.1 m wide convolves it slightly).
     D, a, side = 100.0, 4.65e-3, 0.1
     surf = square_mirror(side, 8)
     target = ceiling(D, 1.0)
-    grid = ImageGrid.for_target(target, (200, 200))
-    img = flux_image(
-        jax.random.key(1),
-        surf,
-        UP,
-        jnp.asarray([0.0, 0.0, 1.0]),
-        target,
-        grid,
-        PillboxSun(a),
-        rays_per_point=4096,
-        steps=4,
-    )
-    cu, cv, vu, vv = moments(img, grid)
+    grid, img, (cu, cv, vu, vv) = _overhead_sun_image(surf, target, 200, PillboxSun(a), 4096, seed=1)
     R = D * np.tan(a)
     # per axis: disk R^2/4 (cos-weighting changes it by O(a^2)), mirror side^2/12,
     # bilinear splat du^2/6
@@ -165,19 +163,7 @@ def test_gaussian_sun_parabolic_facet_gives_gaussian_spot():
     nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
     surf = SurfacePoints(jnp.asarray(np.stack([x, y, z], -1)), jnp.asarray(nrm), jnp.full(x.shape, 2.0 / n**2))
     target = ceiling(f, 0.6)
-    grid = ImageGrid.for_target(target, (160, 160))
-    img = flux_image(
-        jax.random.key(2),
-        surf,
-        UP,
-        jnp.asarray([0.0, 0.0, 1.0]),
-        target,
-        grid,
-        GaussianSun(sigma),
-        rays_per_point=256,
-        steps=4,
-    )
-    cu, cv, vu, vv = moments(img, grid)
+    grid, img, (cu, cv, vu, vv) = _overhead_sun_image(surf, target, 160, GaussianSun(sigma), 256, seed=2)
     L = f + z
     tan2 = (x**2 + y**2) / (f - z) ** 2
     du = 1.2 / 160
