@@ -95,13 +95,15 @@ __all__ = [
 ]
 
 Centroid = Literal["utis", "helios"]
-_CENTROIDS = ("utis", "helios")
+CENTROIDS = ("utis", "helios")
+"""The focal-spot centroids a load can select (see :data:`Centroid`)."""
 
 OUTLIER_K = 5.0
 """Robust outlier threshold in (robust) standard deviations."""
 OUTLIER_FLOOR = 0.01
 """Relative floor of the robust scale (fraction of the quantity's natural scale)."""
-_MIN_FLEET_FOR_OUTLIERS = 3
+MIN_FLEET_FOR_OUTLIERS = 3
+"""Fewest heliostats for the load's fleet-wide actuator outlier check."""
 
 
 # ======================================================================================

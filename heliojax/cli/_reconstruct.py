@@ -65,8 +65,8 @@ def run(args: argparse.Namespace) -> int:
     import matplotlib.pyplot as plt
     import numpy as np
 
+    from .. import optics
     from .._io import atomic_path, atomic_write
-    from ..optics import _reconstruct as rc
 
     if not 1 <= args.images <= 32:
         print("heliojax reconstruct: --images must lie in 1..32", file=sys.stderr)
@@ -81,9 +81,9 @@ def run(args: argparse.Namespace) -> int:
         if not ok:
             print(f"heliojax reconstruct: {flag} {value} is out of range (see --help)", file=sys.stderr)
             return 2
-    scene = rc.synthetic_scene(seed=args.seed, n_images=args.images)
+    scene = optics.synthetic_scene(seed=args.seed, n_images=args.images)
     losses = []
-    res = rc.reconstruct_surface(
+    res = optics.reconstruct_surface(
         jax.random.key(args.seed),
         scene.ideal,
         scene.images,
@@ -99,8 +99,8 @@ def run(args: argparse.Namespace) -> int:
         flux_weight=args.flux_weight,
         callback=lambda j, loss: losses.append(loss),
     )
-    e_ideal = rc.normal_rms_error_mrad(scene.ideal, scene.truth)
-    e_rec = rc.normal_rms_error_mrad(res.facets, scene.truth)
+    e_ideal = optics.normal_rms_error_mrad(scene.ideal, scene.truth)
+    e_rec = optics.normal_rms_error_mrad(res.facets, scene.truth)
     report = {
         "images": args.images,
         "steps": args.steps,

@@ -106,7 +106,6 @@ def run(args: argparse.Namespace) -> int:
     from .._geometry import sun_direction
     from .._io import atomic_path, atomic_write
     from .._kinematics import ActuatorModel, forward, inverse_aim
-    from ..optics import _compare
     from ..paint import read_calibration_record, read_heliostat_properties, read_tower
 
     if (args.record is None) == (args.sun_azimuth is None or args.sun_elevation is None):
@@ -122,8 +121,8 @@ def run(args: argparse.Namespace) -> int:
         hdir = args.paint / args.heliostat
         props_path = hdir / "Properties" / f"{args.heliostat}-heliostat-properties.json"
         props = read_heliostat_properties(props_path)
-        geometry = _compare.geometry_from_properties(props, tower.origin_lla)
-        layout = _compare.layout_from_properties(props)
+        geometry = optics.geometry_from_properties(props, tower.origin_lla)
+        layout = optics.layout_from_properties(props)
         model = ActuatorModel.nominal(jnp.float64)
         if args.results is not None:
             from .._results import load_results
@@ -153,7 +152,7 @@ def run(args: argparse.Namespace) -> int:
         else:
             az, el, target_name = args.sun_azimuth, args.sun_elevation, args.target
             tag = f"az{az:g}_el{el:g}"
-        target = _compare.target_from_tower(tower, target_name)
+        target = optics.target_from_tower(tower, target_name)
         sun = sun_direction(jnp.deg2rad(az), jnp.deg2rad(el))  # pyright: ignore[reportArgumentType]
         if args.record is None:
             counts = inverse_aim(model, geometry, target.centre, sun)
@@ -185,7 +184,7 @@ def run(args: argparse.Namespace) -> int:
         comparison_fig = None
         flux_png = hdir / "Calibration" / f"{args.record}-flux.png"
         if args.record is not None and flux_png.exists():  # read and compared before anything is written
-            comp = _compare.compare_record(
+            comp = optics.compare_record(
                 rec_path,
                 props_path,
                 tower_path,
@@ -196,7 +195,7 @@ def run(args: argparse.Namespace) -> int:
                 steps=args.steps,
             )
             summary["comparison"] = comp.summary()
-            comparison_fig = _compare.comparison_figure(comp)
+            comparison_fig = optics.comparison_figure(comp)
         stem = args.out / f"{args.heliostat}-{tag}-flux"
         extent = [float(grid.u_min), float(grid.u_max), float(grid.v_min), float(grid.v_max)]
         with atomic_path(stem.with_suffix(".h5")) as tmp:

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from .._errors import DataError
-from .._fleet import _MIN_FLEET_FOR_OUTLIERS, OUTLIER_FLOOR, OUTLIER_K, LoadReport, ReportEntry
+from .._fleet import MIN_FLEET_FOR_OUTLIERS, OUTLIER_FLOOR, OUTLIER_K, LoadReport, ReportEntry
 from .._sun import datetime_to_unix
 from ._common import WEATHER_KEYS, CalibrationRecord, HeliostatProperties
 
@@ -130,15 +130,15 @@ def _flag_properties(props: list[HeliostatProperties], log: _Log) -> None:
         vals = a["clockwise_axis_movement"][:, i]
         cnt = collections.Counter(vals.tolist())
         mode, k = cnt.most_common(1)[0]
-        if n >= _MIN_FLEET_FOR_OUTLIERS and 2 * k > n:
+        if n >= MIN_FLEET_FOR_OUTLIERS and 2 * k > n:
             for h in np.nonzero(vals != mode)[0]:
                 log.flag(
                     props[h].source,
                     f"kinematics_properties.actuators[{i}].clockwise_axis_movement",
                     f"{int(vals[h])} where {k} of {n} heliostats have {int(mode)}",
                 )
-    if n < _MIN_FLEET_FOR_OUTLIERS:
-        log.notes.append(f"actuator outlier check not run: {n} heliostat(s) (needs {_MIN_FLEET_FOR_OUTLIERS})")
+    if n < MIN_FLEET_FOR_OUTLIERS:
+        log.notes.append(f"actuator outlier check not run: {n} heliostat(s) (needs {MIN_FLEET_FOR_OUTLIERS})")
         return
     span = np.abs(
         _actuator_law(

@@ -19,7 +19,7 @@ import numpy as np
 from jaxtyping import Array
 
 from .._errors import DataError
-from .._fleet import _CENTROIDS, Centroid, Fleet, ReportEntry, bucket_size
+from .._fleet import CENTROIDS, Centroid, Fleet, ReportEntry, bucket_size
 from .._geometry import TargetPlane, sun_direction, wgs84_to_enu
 from .._heliostat import HeliostatGeometry, LinearActuators, RecordContext
 from .._programs import cached_jit
@@ -62,8 +62,8 @@ def default_data_dir() -> Path:
 
 
 def _check_centroid(centroid: str) -> None:
-    if centroid not in _CENTROIDS:
-        raise ValueError(f"centroid must be one of {_CENTROIDS}, got {centroid!r}")
+    if centroid not in CENTROIDS:
+        raise ValueError(f"centroid must be one of {CENTROIDS}, got {centroid!r}")
 
 
 def _common_dir(sources: Sequence[str]) -> str:
