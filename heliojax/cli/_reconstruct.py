@@ -116,19 +116,24 @@ def run(args: argparse.Namespace) -> int:
             f.create_dataset("true_control_points", data=np.asarray(scene.truth.control_points))
             f.create_dataset("translations", data=np.asarray(res.facets.translations))
             f.attrs["degree"] = res.facets.degree
-    fig, ax = plt.subplots(1, 3, figsize=(12, 3.5))
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4.6), layout="constrained")
     true_dz = np.asarray(scene.truth.control_points[..., 2] - scene.ideal.control_points[..., 2])
     lim = np.abs(true_dz).max() * 1e3
-    for a, d, t in ((ax[0], true_dz, "hidden dz (mm)"), (ax[1], res.dz, "recovered dz (mm)")):
+    for a, d, t in ((ax[0], true_dz, "hidden height offsets"), (ax[1], res.dz, "recovered height offsets")):
         tiles = np.block([[d[2].T[::-1], d[3].T[::-1]], [d[0].T[::-1], d[1].T[::-1]]]) * 1e3
         im = a.imshow(tiles, cmap="coolwarm", vmin=-lim, vmax=lim)
-        a.set_title(t)
-        fig.colorbar(im, ax=a)
-    ax[2].semilogy(res.losses)
-    ax[2].set_xlabel("step")
-    ax[2].set_title(f"loss; normal error {e_ideal:.2f} -> {e_rec:.2f} mrad")
+        a.set_title(f"{t}\n(4 facets, 2 x 2 as seen from the target)", fontsize=10)
+        a.set_xlabel("control point along the mirror width (index)")
+        a.set_ylabel("control point along the height (index)")
+        fig.colorbar(im, ax=a, label="control-point height offset [mm]", shrink=0.85)
+    ax[2].semilogy(np.arange(1, len(res.losses) + 1), res.losses, label="flux-matching loss")
+    ax[2].set_xlabel("optimiser step")
+    ax[2].set_ylabel("loss (relative flux mismatch + regularisation)")
+    ax[2].set_title(f"normal RMS error vs truth: ideal {e_ideal:.2f} -> recovered {e_rec:.2f} mrad", fontsize=10)
+    ax[2].legend(fontsize=8)
+    ax[2].grid(alpha=0.3, which="both")
     with atomic_path(args.out / "reconstruction.png") as tmp:
-        fig.savefig(tmp, dpi=90, format="png")
+        fig.savefig(tmp, dpi=90, format="png", bbox_inches="tight")
     plt.close(fig)
     with atomic_write(args.out / "reconstruction.json") as f:
         json.dump(report, f, indent=2)

@@ -79,6 +79,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--reflectivity", type=number(0.0, 1.0), default=1.0, help="mirror reflectivity (0-1)")
     p.add_argument("--seed", type=integer(0, 2**32 - 1), default=0, help="seed of the ray sampling")
     p.add_argument("--out", type=Path, default=Path("trace"), help="output directory")
+    p.add_argument("--quiet", action="store_true", help="no messages on stderr (the summary still goes to stdout)")
 
 
 def _tower_path(args) -> Path:

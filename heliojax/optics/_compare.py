@@ -293,23 +293,25 @@ def comparison_figure(comparison: FluxComparison, ax=None):
     """Traced and measured images side by side (full target and centred window)."""
     plt = pyplot()
     if ax is None:
-        fig, ax = plt.subplots(1, 4, figsize=(13, 3.4))
+        fig, ax = plt.subplots(1, 4, figsize=(16, 4.2), layout="constrained")
     else:
         fig = np.ravel(ax)[0].figure
     ax = np.ravel(ax)
     g, gc = comparison.grid, comparison.grid_centred
     ext = [float(g.u_min), float(g.u_max), float(g.v_min), float(g.v_max)]
     extc = [float(gc.u_min), float(gc.u_max), float(gc.v_min), float(gc.v_max)]
-    for a, img, e, title in zip(
-        ax,
-        (comparison.traced, comparison.measured, comparison.traced_centred, comparison.measured_centred),
-        (ext, ext, extc, [-3, 3, -3, 3]),
-        ("traced", "measured (flux.png)", "traced, centred", "measured (flux-centered.png)"),
-    ):
-        a.imshow(img, extent=e, origin="upper", cmap="inferno")
+    panels = (
+        (comparison.traced, ext, "traced, whole target", "flux density [W/m$^2$]"),
+        (comparison.measured, ext, "measured (flux.png)", "relative brightness"),
+        (comparison.traced_centred, extc, "traced, window on its centroid", "flux density [W/m$^2$]"),
+        (comparison.measured_centred, [-3, 3, -3, 3], "measured (flux-centered.png)", "relative brightness"),
+    )
+    for a, (img, e, title, unit) in zip(ax, panels, strict=True):
+        im = a.imshow(img, extent=e, origin="upper", cmap="inferno")
+        fig.colorbar(im, ax=a, label=unit, shrink=0.85)
         a.set_title(title, fontsize=9)
-        a.set_xlabel("u (m)")
-    ax[0].set_ylabel("v (m)")
+        a.set_xlabel("u, along the target [m]")
+        a.set_ylabel("v, up the target [m]")
     fig.suptitle(
         f"{comparison.heliostat_id} record {comparison.record_id}: centroid distance "
         f"{comparison.centroid_distance_m:.2f} m, NCC {comparison.ncc:.2f} / centred {comparison.ncc_centred:.2f}",
