@@ -20,6 +20,16 @@ def _axes(ax, figsize=(6.5, 5.0)):
     return ax.figure, ax
 
 
+AXIS_LABELS = {
+    "tracking_mrad": "tracking error, radial RMS [mrad]",
+    "slope_mrad": "slope error, radial RMS [mrad]",
+    "reflectance": "solar-weighted specular reflectance [-]",
+    "aperture_m2": "net reflective aperture [m$^2$]",
+}
+"""Axis labels (with units) of the acceptance parameters."""
+AXIS_UNITS = {"tracking_mrad": "mrad", "slope_mrad": "mrad", "reflectance": "-", "aperture_m2": "m$^2$"}
+
+
 def plot_field_map(
     positions: np.ndarray,
     tracking_mrad: np.ndarray,
@@ -67,11 +77,16 @@ def plot_field_map(
             ring = pts[np.r_[hull.vertices, hull.vertices[0]]]
             ax.plot(ring[:, 0], ring[:, 1], "-", color=colours[min(k, len(colours) - 1)], lw=1.5, label=f"cluster {k}")
     ax.plot([0], [0], "k^", ms=8, label="tower")
+    finite = t[np.isfinite(t)]
+    if finite.size:  # the marker-size scale
+        for ref in np.unique(np.round(np.nanpercentile(finite, [10, 50, 100]), 1)):
+            s_ref = 6.0 + 60.0 * (ref / np.nanmax(t)) ** 2
+            ax.scatter([], [], s=s_ref, facecolors="none", edgecolors="0.3", label=f"{ref:g} mrad")
     ax.set_aspect("equal")
-    ax.set_xlabel("east (m)")
-    ax.set_ylabel("north (m)")
+    ax.set_xlabel("east of the tower [m]")
+    ax.set_ylabel("north of the tower [m]")
     ax.set_title("tracking error (marker size) and clusters")
-    ax.legend(fontsize=7, loc="upper right")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), title="marker", title_fontsize=7)
     return fig
 
 
@@ -94,7 +109,8 @@ def plot_cluster_distributions(
     fig, ax = _axes(ax)
     v = np.asarray(values, dtype=float)
     lab = np.asarray(labels)
-    grid = np.linspace(v.min() - 0.2 * np.ptp(v) - 1e-9, v.max() + 0.2 * np.ptp(v) + 1e-9, 400)
+    # every acceptance parameter is non-negative: no density drawn below zero
+    grid = np.linspace(max(0.0, v.min() - 0.2 * np.ptp(v)), v.max() + 0.2 * np.ptp(v) + 1e-9, 400)
     colours = ["tab:blue", "tab:red", "tab:orange", "tab:purple", "tab:green", "tab:brown"]
     for k in np.unique(lab):
         c = colours[min(int(k), len(colours) - 1)]
@@ -109,8 +125,8 @@ def plot_cluster_distributions(
         )
         if extrapolation is not None and int(k) in extrapolation.kdes:
             ax.plot(grid, extrapolation.kdes[int(k)].pdf(np.maximum(grid, 1e-12)), color=c, lw=1.5)
-    ax.set_xlabel(name)
-    ax.set_ylabel("density")
+    ax.set_xlabel(AXIS_LABELS.get(name, name))
+    ax.set_ylabel(f"probability density [1/{AXIS_UNITS.get(name, 'unit')}]")
     ax.set_title("distribution per cluster (histogram: measured; line: KDE)")
     ax.legend(fontsize=7)
     return fig
