@@ -349,15 +349,18 @@ def plot_effect_residuals(result, step_index: int, *, axes=None):
                 jitter = 0.08 * np.random.default_rng(0).standard_normal(ok.sum())
             ax.scatter(xv[ok] + jitter, rb[..., j][ok], s=6, color="0.6", alpha=0.5, label="before")
             ax.scatter(xv[ok] + jitter, ra[..., j][ok], s=6, color="C0", alpha=0.6, label="after")
-            for r_, c_ in ((rb, "0.3"), (ra, "C3")):
+            for r_, c_, when in ((rb, "0.3", "before"), (ra, "C3", "after")):
                 xc, yc = _binned(xv[ok], r_[..., j][ok])
-                ax.plot(xc, yc, "-o", color=c_, ms=3, lw=1.5)
+                ax.plot(xc, yc, "-o", color=c_, ms=3, lw=1.5, label=f"binned mean, {when}")
             ax.axhline(0.0, color="k", lw=0.5)
             ax.set_xlabel(name)
             ax.set_ylabel(labels[j])
             if i == 0 and j == 0:
                 ax.legend(loc="best", fontsize=8)
-    fig.suptitle(f"step {step_index + 1}: {step.effect} ({step.mode.replace('_', ' ')}) - residuals before / after")
+    fig.suptitle(
+        f"step {step_index + 1}: {step.effect} ({step.mode.replace('_', ' ')}) - training residuals before / after "
+        "adding it (points: records, lines: means in bins of the driving variable)"
+    )
     fig.tight_layout()
     return fig
 
@@ -389,22 +392,28 @@ def plot_screen(report: dict, step: int = 0, *, ax=None):
     """-log10 p of every candidate at a step's screen (Holm-adjusted), with the
     not-identifiable ones marked."""
     plt = pyplot()
-    fig = ax.figure if ax is not None else plt.figure(figsize=(7, 3.5))
+    fig = ax.figure if ax is not None else plt.figure(figsize=(9, 3.8))
     ax = ax or fig.add_subplot(111)
     scr = report["screens"][step] if report["screens"] else {}
     names = list(scr)
-    vals, colors = [], []
-    for n in names:
-        p = scr[n]["p_holm"]
-        vals.append(0.0 if p is None else -np.log10(max(p, 1e-300)))
-        colors.append("C0" if scr[n]["identifiable"] else "0.7")
-    ax.bar(range(len(names)), np.minimum(vals, 50), color=colors)
+    vals = [0.0 if scr[n]["p_holm"] is None else -np.log10(max(scr[n]["p_holm"], 1e-300)) for n in names]
+    heights = np.minimum(vals, 50)
+    untested = np.array([not scr[n]["identifiable"] for n in names], bool)
+    index = np.arange(len(names))
+    ax.bar(index[~untested], heights[~untested], color="C0", label="tested: -log10 p (Holm)")
+    # not identifiable / untestable candidates have no p-value: a short hatched grey bar marks them
+    ax.bar(index[untested], 1.0, color="0.7", hatch="//", label="not identifiable / untestable (no p)")
+    for i in index[~untested]:
+        p_i = scr[names[i]]["p_holm"]
+        ax.annotate(f"p={p_i:.1g}" if p_i > 0 else "p<1e-300", (i, heights[i]), xytext=(0, 2), textcoords="offset points",
+                    ha="center", fontsize=7)  # fmt: skip
     ax.axhline(-np.log10(report["config"]["alpha"]), color="C3", lw=1, label=f"alpha = {report['config']['alpha']}")
-    ax.set_xticks(range(len(names)))
+    ax.set_ylim(0, 56)
+    ax.set_xticks(index)
     ax.set_xticklabels(names, rotation=30, ha="right")
     ax.set_ylabel("-log10 p (Holm), capped at 50")
-    ax.set_title(f"screen at step {step + 1} (grey: not identifiable / untestable)")
-    ax.legend(fontsize=8)
+    ax.set_title(f"screen at step {step + 1}")
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.tight_layout()
     return fig
 
