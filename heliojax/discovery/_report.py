@@ -405,8 +405,8 @@ def plot_screen(report: dict, step: int = 0, *, ax=None):
     ax.bar(index[untested], 1.0, color="0.7", hatch="//", label="not identifiable / untestable (no p)")
     for i in index[~untested]:
         p_i = scr[names[i]]["p_holm"]
-        ax.annotate(f"p={p_i:.1g}" if p_i > 0 else "p<1e-300", (i, heights[i]), xytext=(0, 2), textcoords="offset points",
-                    ha="center", fontsize=7)  # fmt: skip
+        text = f"p={p_i:.1g}" if p_i > 0 else "p<1e-300"
+        ax.annotate(text, (i, heights[i]), xytext=(0, 2), textcoords="offset points", ha="center", fontsize=7)
     ax.axhline(-np.log10(report["config"]["alpha"]), color="C3", lw=1, label=f"alpha = {report['config']['alpha']}")
     ax.set_ylim(0, 56)
     ax.set_xticks(index)
