@@ -301,3 +301,29 @@ def test_trace_with_calibrated_kinematics_and_on_the_receiver(results_h5, tmp_pa
     assert main([*argv, "--out", str(out), *small]) == 0
     summary = json.loads((out / "BE36-az-20_el40-summary.json").read_text())
     assert summary["target"] == "receiver" and summary["power_w"] > 0
+
+
+def test_aim_points_from_a_csv_in_enu_or_wgs84_agree(results_h5, tmp_path, capsys):
+    origin = np.asarray(hj.load_results(results_h5).attrs["origin_lla"])
+    ids = ["BE36", "BF56", "BG23", "BH20", "BL14"]
+    enu = np.array([[0.0, 5.0 * k, 60.0 + k] for k in range(5)])
+    lla = np.asarray(hj.enu_to_wgs84(enu, origin))
+    (tmp_path / "enu.csv").write_text(
+        "heliostat_id,east_m,north_m,up_m\n" + "".join(f"{h},{e},{n},{u}\n" for h, (e, n, u) in zip(ids, enu))
+    )
+    (tmp_path / "lla.csv").write_text(
+        "heliostat_id,lat_deg,lon_deg,alt_m\n"
+        + "".join(f"{h},{a!r},{b!r},{c!r}\n" for h, (a, b, c) in zip(ids, lla.tolist()))
+    )
+    counts = {}
+    for name in ("enu", "lla"):
+        out = tmp_path / f"aim-{name}.csv"
+        argv = ["aim", str(results_h5), "--sun-azimuth", "-20", "--sun-elevation", "40"]
+        assert main([*argv, "--aim-csv", str(tmp_path / f"{name}.csv"), "--out", str(out), "--quiet"]) == 0
+        with open(out, newline="") as f:
+            counts[name] = [(r["axis_1_counts"], r["axis_2_counts"]) for r in csv.DictReader(f)]
+    assert counts["enu"] == counts["lla"] and len(counts["enu"]) == 5
+    (tmp_path / "short.csv").write_text("heliostat_id,east_m,north_m,up_m\nBE36,0,0,60\n")
+    argv = ["aim", str(results_h5), "--time", "2023-06-21T12:00", "--aim-csv", str(tmp_path / "short.csv")]
+    assert main([*argv, "--out", str(tmp_path / "never.csv"), "--quiet"]) == 2
+    assert "no aim point for BF56" in capsys.readouterr().err and not (tmp_path / "never.csv").exists()

@@ -9,6 +9,8 @@ import datetime as dt
 import logging
 from pathlib import Path
 
+import numpy as np
+
 from ._common import add_cache_argument, enable_compilation_cache, integer, number
 
 log = logging.getLogger(__name__)
@@ -55,6 +57,13 @@ def add_parser(subparsers) -> None:
     p.add_argument("--sun-elevation", type=number(0.0, 90.0, above=True), help="sun elevation in degrees")
     p.add_argument("--step-minutes", type=number(0.0, 1440.0, above=True), default=30.0, help="instant spacing")
     p.add_argument("--target", default="receiver", help="aim point: this target's centre in the tower file")
+    p.add_argument(
+        "--aim-csv",
+        type=Path,
+        metavar="FILE",
+        help="per-heliostat aim points instead of --target: CSV heliostat_id,east_m,north_m,up_m (ENU of the "
+        "fit's origin) or heliostat_id,lat_deg,lon_deg,alt_m (WGS84)",
+    )
     p.add_argument("--tower", type=Path, help="tower file (default: the embedded Jülich tower file)")
     p.add_argument(
         "--min-sun-elevation", type=number(-90.0, 90.0), default=5.0, help="flag instants with a lower sun (degrees)"
@@ -102,6 +111,39 @@ def _instants(args, origin_lla):
     return times, solar_position(jnp.asarray(unix), lat, lon, alt).direction_enu()
 
 
+def _aim_points_csv(path: Path, ids: tuple[str, ...], origin_lla) -> np.ndarray:
+    """``(H, 3)`` ENU aim points (m) of the heliostats ``ids`` from a CSV (see ``--aim-csv``)."""
+    from .._errors import DataError
+    from .._geometry import wgs84_to_enu
+
+    enu_cols, lla_cols = ("east_m", "north_m", "up_m"), ("lat_deg", "lon_deg", "alt_m")
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            rows = list(csv.DictReader(f))
+    except OSError as e:
+        raise DataError(path, None, f"cannot read: {e.strerror or e}") from None
+    except (UnicodeDecodeError, csv.Error) as e:
+        raise DataError(path, None, f"not a CSV file: {e}") from None
+    header = set(rows[0]) if rows else set()
+    cols = enu_cols if set(enu_cols) <= header else lla_cols if set(lla_cols) <= header else None
+    if "heliostat_id" not in header or cols is None:
+        raise DataError(path, None, f"needs heliostat_id and {', '.join(enu_cols)} or {', '.join(lla_cols)}")
+    points: dict[str, np.ndarray] = {}
+    for line, row in enumerate(rows, start=2):
+        try:
+            xyz = np.array([float(row[c]) for c in cols])
+        except (TypeError, ValueError):
+            raise DataError(path, f"row {line}", "non-numeric coordinate") from None
+        if not np.all(np.isfinite(xyz)):
+            raise DataError(path, f"row {line}", "non-finite coordinate")
+        points[str(row["heliostat_id"]).strip()] = xyz
+    missing = [h for h in ids if h not in points]
+    if missing:
+        raise DataError(path, "heliostat_id", f"no aim point for {', '.join(missing)}")
+    out = np.stack([points[h] for h in ids])
+    return out if cols == enu_cols else np.asarray(wgs84_to_enu(out, np.asarray(origin_lla)))
+
+
 def run(args) -> int:
     import jax.numpy as jnp
     import numpy as np
@@ -119,7 +161,11 @@ def run(args) -> int:
     origin = np.asarray(results.attrs["origin_lla"], float)
     tower = read_tower(args.tower or default_data_dir() / "WRI1030197-tower-measurements.json")
     target = target_from_tower(tower, args.target)
-    centre = wgs84_to_enu(enu_to_wgs84(target.centre, jnp.asarray(tower.origin_lla)), jnp.asarray(origin))
+    if args.aim_csv is not None:
+        centre = jnp.asarray(_aim_points_csv(args.aim_csv, results.ids, origin))
+        args.target = f"points of {args.aim_csv.name}"
+    else:
+        centre = wgs84_to_enu(enu_to_wgs84(target.centre, jnp.asarray(tower.origin_lla)), jnp.asarray(origin))
     if args.end is not None and args.start is None:
         raise ConfigError("--end needs --start")
     times, sun = _instants(args, origin)
