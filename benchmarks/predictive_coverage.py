@@ -1,0 +1,81 @@
+"""Coverage of the predicted pointing uncertainty on real held-out records.
+
+Calibrates a PAINT directory (default model, time split, robust, pooled), then for
+every held-out record of a converged heliostat compares its residual (mrad, two
+tangent components) with the predicted covariance ``J C J^T`` (the parameter
+covariance propagated through the residual's Jacobian, as ``heliojax aim`` does)
+and, optionally, plus the fit's noise per component. Prints JSON: the fraction of
+records inside the nominal 95 % ellipse (Mahalanobis d^2 < 5.991) and the median
+d^2 (1.386 for a correct Gaussian model).
+
+    python benchmarks/predictive_coverage.py ../shared/data/paint
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import heliojax as hj  # noqa: E402
+from heliojax.fitting import sanitise  # noqa: E402
+
+CHI2_2_95 = 5.991
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("data_dir", nargs="?", default=None, help="PAINT directory (default: the embedded subset)")
+    args = ap.parse_args()
+    fleet = hj.load_paint_directory(args.data_dir or hj.default_data_dir())
+    run = hj.calibrate(fleet)
+    sol, padded = run.result, run.fleet
+    view = sol.view
+    free = jnp.asarray(view.free_index, dtype=jnp.int32)
+
+    def per_heliostat(model, g, counts, context, focal, mask, cov):
+        c2, x2, f2, _, _ = sanitise(g, counts, context, focal, mask)
+        p = view.to_vector(model)
+
+        def record(c, x, f):
+            def residual(y):
+                return view.from_vector(model, p.at[free].set(y)).beam_components(g, c, x, f) * 1e3
+
+            jac = jax.jacfwd(residual)(p[free])
+            return residual(p[free]), jac @ cov @ jac.T
+
+        return jax.vmap(record)(c2, x2, f2)
+
+    program = jax.jit(jax.vmap(per_heliostat))
+    r, s = program(sol.model, padded.geometry, padded.counts, padded.context, padded.focal_spot, padded.mask,
+                   sol.covariance)  # fmt: skip
+    h = len(fleet.ids)
+    r, s = np.asarray(r)[:h], np.asarray(s)[:h]
+    noise = np.asarray(run.noise_mrad)[:h]
+    converged = np.array([run.summary["heliostats"][i]["status"] == "converged" for i in fleet.ids])
+    held_out = np.asarray(run.test_mask)[:h] & converged[:, None]
+    out = {"benchmark": "predictive_coverage", "data": str(args.data_dir or "embedded"), "heliostats": h}
+    for name, total in (
+        ("parameters_only", s),
+        ("parameters_and_noise", s + noise[:, None, None, None] ** 2 * np.eye(2)),
+    ):
+        d2 = np.einsum("hmi,hmij,hmj->hm", r, np.linalg.inv(total + 1e-12 * np.eye(2)), r)
+        use = held_out & np.isfinite(d2)
+        per = [float(np.mean(d2[i][use[i]] < CHI2_2_95)) for i in range(h) if use[i].any()]
+        out[name] = {
+            "held_out_records": int(use.sum()),
+            "coverage_95": float(np.mean(d2[use] < CHI2_2_95)),
+            "median_d2": float(np.median(d2[use])),
+            "per_heliostat_coverage_min_median": [min(per), float(np.median(per))],
+        }
+    print(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()
