@@ -65,6 +65,7 @@ def typical_actuators(n: int | None = None, dtype=jnp.float64) -> LinearActuator
     return LinearActuators(**fields)
 
 
+@eqx.filter_jit
 def synthetic_geometry(key: PRNGKeyArray, n: int, dtype=jnp.float64) -> HeliostatGeometry:
     """``n`` heliostats in a field 60-300 m north of the tower (ENU m), Jülich-like
     actuators with small manufacturing scatter, mirror 0.175 m off axis 2."""
@@ -80,18 +81,20 @@ def synthetic_geometry(key: PRNGKeyArray, n: int, dtype=jnp.float64) -> Heliosta
     )
 
 
+@eqx.filter_jit
 def random_stone_models(
     key: PRNGKeyArray, n: int, angle_sigma: float = 3e-3, gear_sigma: float = 2e-3, dtype=jnp.float64
 ) -> StoneModel:
     """``n`` true Stone models with angles ~ N(0, angle_sigma) rad (offsets 3x
     larger) and gear ratios ~ 1 + N(0, gear_sigma), batched."""
-    ks = jax.random.split(key, 8)
-    ang = [angle_sigma * jax.random.normal(k, (n,), dtype) for k in ks[:4]]
-    off = [3 * angle_sigma * jax.random.normal(k, (n,), dtype) for k in ks[4:6]]
-    gr = [1.0 + gear_sigma * jax.random.normal(k, (n,), dtype) for k in ks[6:]]
+    z = jax.vmap(lambda k: jax.random.normal(k, (n,), dtype))(jax.random.split(key, 8))  # (8, n)
+    ang = [angle_sigma * z[i] for i in range(4)]
+    off = [3 * angle_sigma * z[i] for i in range(4, 6)]
+    gr = [1.0 + gear_sigma * z[i] for i in range(6, 8)]
     return StoneModel(*ang, *off, *gr)
 
 
+@eqx.filter_jit
 def calibration_target(dtype=jnp.float64) -> TargetPlane:
     """A 6 x 7 m vertical calibration target facing north, centred 123 m up on the
     tower's north face (like PAINT's ``solar_tower_juelich_lower``, in ENU m)."""
@@ -103,6 +106,7 @@ def calibration_target(dtype=jnp.float64) -> TargetPlane:
     )
 
 
+@eqx.filter_jit
 def calibration_times(
     key: PRNGKeyArray,
     shape: tuple[int, ...],
@@ -122,18 +126,15 @@ def calibration_times(
     k_day, k_hour = jax.random.split(key)
     midnight = np.floor(start_unix / 86400.0) * 86400.0  # hours below are UTC hours of the day
     day = jnp.floor(jax.random.uniform(k_day, shape, jnp.float64, 0.0, days))
-    t = jnp.zeros(shape, jnp.float64)
-    ok = jnp.zeros(shape, bool)
-    for kk in jax.random.split(k_hour, 12):
-        hour = jax.random.uniform(kk, shape, jnp.float64, 4.0, 20.0)
-        cand = midnight + day * 86400.0 + hour * 3600.0
-        pos = solar_position(cand, latitude_deg, longitude_deg, JUELICH_LAT_LON_ALT[2])
-        good = pos.elevation > jnp.deg2rad(min_elevation_deg)
-        t = jnp.where(ok, t, cand)
-        ok = ok | good
-    t = jnp.round(t)
-    pos = solar_position(t, latitude_deg, longitude_deg, JUELICH_LAT_LON_ALT[2])
-    return t, pos.direction_enu()
+    rounds = 12  # candidate hours per record; the first with the sun high enough wins (else the last)
+    hour = jax.vmap(lambda kk: jax.random.uniform(kk, shape, jnp.float64, 4.0, 20.0))(jax.random.split(k_hour, rounds))
+    cand = jnp.round(midnight + day[None] * 86400.0 + hour * 3600.0)  # (rounds, *shape), whole seconds
+    pos = solar_position(cand, latitude_deg, longitude_deg, JUELICH_LAT_LON_ALT[2])
+    good = pos.elevation > jnp.deg2rad(min_elevation_deg)
+    first = jnp.where(jnp.any(good, axis=0), jnp.argmax(good, axis=0), rounds - 1)
+    t = jnp.take_along_axis(cand, first[None], axis=0)[0]
+    sun = jnp.take_along_axis(pos.direction_enu(), first[None, ..., None], axis=0)[0]
+    return t, sun
 
 
 @eqx.filter_jit
@@ -218,6 +219,7 @@ def simulate_records(
     )
 
 
+@eqx.filter_jit
 def synthetic_contexts(
     key: PRNGKeyArray, n_heliostats: int, n_records: int, *, weather: bool = True, **time_kwargs
 ) -> RecordContext:
@@ -255,6 +257,7 @@ def synthetic_contexts(
     )
 
 
+@eqx.filter_jit
 def approach_directions(counts: Float[Array, "H M 2"], mask: Bool[Array, "H M"] | None = None) -> Float[Array, "H M 2"]:
     """Sign of the last motion of each axis before each record, from the
     chronological order of a heliostat's records (+1 counts increased, -1

@@ -60,3 +60,15 @@ def shared_paint() -> Path:
     if not (SHARED_PAINT / "WRI1030197-tower-measurements.json").exists():
         pytest.skip(f"shared PAINT data not found at {SHARED_PAINT}")
     return SHARED_PAINT
+
+
+def pytest_collection_modifyitems(config, items):
+    """Start each xdist worker's share with half of the notebook runs (the longest
+    tests, ~20-60 s each, no shared fixtures): work stealing then evens out the
+    short tests at the end instead of one worker finishing a notebook alone."""
+    if not config.pluginmanager.hasplugin("xdist") or not getattr(config.option, "numprocesses", None):
+        return
+    heavy = [it for it in items if it.nodeid.startswith("tests/test_notebook_")]
+    rest = [it for it in items if not it.nodeid.startswith("tests/test_notebook_")]
+    split = len(items) // 2 - len(heavy[::2])
+    items[:] = heavy[::2] + rest[:split] + heavy[1::2] + rest[split:]

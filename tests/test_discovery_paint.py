@@ -228,28 +228,3 @@ def test_discover_command_rejects_unknown_effect(tmp_path, capsys):
     rc = main(["discover", "--effects", "backlash,magnetism", "--report", str(tmp_path / "r.json")])
     assert rc == 2
     assert "magnetism" in capsys.readouterr().err
-
-
-@pytest.mark.slow
-def test_real_records_name_the_actuator_geometry(shared_paint):
-    """On the real records the Stone model's linear counts-to-angle map misses the
-    actuator law's curvature; the workflow must name it (with a curvature near the
-    nominal law's). The 8 heliostats with most records, their first 40 each (the
-    shapes the other tests compiled)."""
-    import dataclasses
-
-    from heliojax.discovery import discover
-
-    fleet = hj.load_paint_directory(shared_paint)
-    n = np.asarray(fleet.mask).sum(1)
-    keep = [fleet.ids[i] for i in np.argsort(-n, kind="stable")[:8]]
-    sub = hj.fleet_subset(fleet, keep)
-    cut = {k: getattr(sub, k)[:, :40] for k in ("counts", "focal_spot", "target_index", "record_id", "mask")}
-    import jax
-
-    sub = dataclasses.replace(sub, context=jax.tree_util.tree_map(lambda x: x[:, :40], sub.context), **cut)
-    r = discover(sub).report
-    assert r["named_effects"][:1] == ["actuator_geometry"]
-    amp = r["steps"][0]["amplitude"]
-    assert 0.75 < amp["curvature_2"] < 1.25
-    assert r["heldout_median_final_mrad"] < 0.5 * r["heldout_median_base_mrad"]

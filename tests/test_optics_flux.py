@@ -273,7 +273,7 @@ def test_gradient_wrt_control_points_matches_finite_differences():
         fd = (float(loss(dz0 + e)) - float(loss(dz0 - e))) / (2 * h)
         assert g[idx] == pytest.approx(fd, rel=2e-3, abs=1e-3 * np.abs(g).max())
     # the float32 tracer gives the same gradient to float32 Monte Carlo precision
-    g32 = np.asarray(jax.grad(lambda dz: _nurbs_flux_loss(dz, facets, key, jnp.float32))(dz0))
+    g32 = np.asarray(jax.jit(jax.grad(lambda dz: _nurbs_flux_loss(dz, facets, key, jnp.float32)))(dz0))
     np.testing.assert_allclose(g32, g, rtol=0.02, atol=0.01 * np.abs(g).max())
 
 

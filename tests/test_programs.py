@@ -42,12 +42,13 @@ def test_kept_fit_program_gives_the_traced_result(program_dir, monkeypatch):
 
 
 def test_other_static_option_or_shape_is_another_program(program_dir):
-    fleet = zoo("actuator").fleet
-    model0 = hj.ActuatorModel.nominal()
-    CompiledFit(model0, fleet, max_steps=16)
-    CompiledFit(model0, fleet, max_steps=17)
-    CompiledFit(model0, hj.pad_fleet(fleet, 16, 32), max_steps=16)
-    assert len(list(program_dir.glob("*.bin"))) == 3
+    """The key covers the static arguments (as CompiledFit's ``max_steps``), the
+    shapes and the dtypes; the same call again loads (no new program)."""
+    power = _programs.cached_jit(_power)
+    x = jnp.arange(4.0)
+    for args in ((x, 2), (x, 3), (jnp.arange(6.0), 2), (x.astype(jnp.float32), 2), (x, 2)):
+        np.testing.assert_array_equal(np.asarray(power(*args)), np.asarray(args[0]) ** args[1])
+    assert len(list(program_dir.glob("*.bin"))) == 4
 
 
 def test_damaged_program_is_traced_again_and_replaced(program_dir):
@@ -77,3 +78,7 @@ def test_without_a_cache_directory_nothing_is_written(tmp_path, monkeypatch):
 
 def _square(x):
     return x**2
+
+
+def _power(x, n: int):
+    return x**n

@@ -139,11 +139,11 @@ def four_device_run(fleet_npz, tmp_path_factory):
     yield proc, out
     if proc.poll() is None:
         proc.kill()
-        proc.wait(timeout=10)
+    proc.communicate(timeout=10)  # reaps the process and closes its pipes, wherever the test ran
 
 
 @pytest.fixture(scope="module")
-def reference(fleet_npz, four_device_run) -> dict:
+def reference(fleet_npz) -> dict:
     """Single-device fit in this process."""
     res = hj.fit(hj.StoneModel.nominal(np.float64), _load_here(fleet_npz))
     return {k: np.asarray(res.parameters() if k == "params" else getattr(res, k)) for k in FIELDS}
@@ -180,7 +180,7 @@ def test_sharded_over_four_cpu_devices(four_device_run, reference):
     finally:
         if proc.poll() is None:
             proc.kill()
-            proc.wait(timeout=10)
+            proc.communicate(timeout=10)
     assert proc.returncode == 0, err[-4000:]
     got = dict(np.load(out))
     assert int(got["n_devices"]) == 4
@@ -242,7 +242,7 @@ def test_two_processes_on_loopback(fleet_npz, reference, tmp_path):
         for p in procs:
             if p.poll() is None:
                 p.kill()
-                p.wait(timeout=10)
+            p.communicate(timeout=10)
     h = reference["status"].shape[0]
     for pid in range(2):
         got = dict(np.load(tmp_path / f"p{pid}.npz"))

@@ -29,6 +29,7 @@ from .._simulate import (
 from ..effects import EffectModel
 
 
+@eqx.filter_jit
 def random_actuator_models(key, n: int, angle_sigma: float = 3e-3, dtype=jnp.float64) -> ActuatorModel:
     """``n`` true actuator models: tilts ~ N(0, angle_sigma) rad, angle offsets
     ~ N(0, 3 angle_sigma) rad, increment scales ~ N(0, 2e-3), stroke offsets 0."""

@@ -9,7 +9,7 @@ import math
 import os
 import re
 from pathlib import Path
-from typing import Any
+from typing import Any, no_type_check
 
 from .._errors import DataError
 from .._io import atomic_write
@@ -119,6 +119,10 @@ _MEMORY = "<memory>"
 _ID_RE = re.compile(r"^[0-9]+$")
 
 
+# The per-field scalar helpers below are ``@no_type_check``: they carry no array
+# types, and the tests' run-time type checks (jaxtyping's import hook) would cost
+# them ~10 s per directory load.
+@no_type_check
 def _nan_weather() -> dict[str, float]:
     return {k: math.nan for k in WEATHER_KEYS}
 
@@ -284,12 +288,14 @@ def _load_json(path: str | os.PathLike) -> Any:
         raise DataError(path, None, f"malformed JSON: {type(e).__name__}") from None
 
 
+@no_type_check
 def _join(prefix: str, key: str | int) -> str:
     if isinstance(key, int):
         return f"{prefix}[{key}]"
     return key if not prefix else f"{prefix}.{key}"
 
 
+@no_type_check
 class _Node:
     """A JSON object with typed, validating getters that name the dotted field."""
 
@@ -332,6 +338,7 @@ class _Node:
         return _vec3(self.file, self.field(key), self.get(key))
 
 
+@no_type_check
 def _type_name(v: Any) -> str:
     if v is None:
         return "null"
@@ -348,6 +355,7 @@ def _type_name(v: Any) -> str:
     return type(v).__name__
 
 
+@no_type_check
 def _number(file: str, field: str, v: Any) -> float | int:
     """A finite JSON number (int kept int, float kept float)."""
     if isinstance(v, bool) or not isinstance(v, (int, float)):
@@ -361,6 +369,7 @@ def _number(file: str, field: str, v: Any) -> float | int:
     return v
 
 
+@no_type_check
 def _integer(file: str, field: str, v: Any) -> int:
     """A finite integral JSON number, returned as int (2.0 is accepted as 2)."""
     v = _number(file, field, v)
@@ -371,6 +380,7 @@ def _integer(file: str, field: str, v: Any) -> int:
     return v
 
 
+@no_type_check
 def _vec3(file: str, field: str, v: Any) -> Vec3:
     if not isinstance(v, list) or len(v) != 3:
         what = f"an array of {len(v)}" if isinstance(v, list) else _type_name(v)
@@ -378,11 +388,13 @@ def _vec3(file: str, field: str, v: Any) -> Vec3:
     return tuple(float(_number(file, _join(field, i), x)) for i, x in enumerate(v))  # type: ignore[return-value]
 
 
+@no_type_check
 def _check(cond: bool, file: str, field: str | None, reason: str) -> None:
     if not cond:
         raise DataError(file, field, reason)
 
 
+@no_type_check
 def _latlon_ok(file: str, field: str, lla: Vec3) -> None:
     _check(-90.0 <= lla[0] <= 90.0, file, field, f"latitude {lla[0]!r} outside [-90, 90] deg")
     _check(-180.0 <= lla[1] <= 360.0, file, field, f"longitude {lla[1]!r} outside [-180, 360] deg")
@@ -396,6 +408,7 @@ def _record_id_from_name(path: Path) -> int:
     return int(name[: -len(CALIBRATION_SUFFIX)])
 
 
+@no_type_check
 def _check_datetime(file: str, field: str, text: Any) -> str:
     if not isinstance(text, str):
         raise DataError(file, field, f"expected an ISO-8601 string, got {_type_name(text)}")

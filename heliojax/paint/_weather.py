@@ -8,6 +8,7 @@ import math
 import os
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
+from typing import no_type_check
 
 from .._errors import DataError
 from .._io import atomic_write
@@ -29,6 +30,7 @@ from ._common import (
 # ======================================================================================
 
 
+@no_type_check
 def _csv_float(file: str, field: str, text: str, *, allow_empty: bool) -> float:
     s = text.strip()
     if s == "" or s.lower() == "nan":
@@ -44,6 +46,7 @@ def _csv_float(file: str, field: str, text: str, *, allow_empty: bool) -> float:
     return v
 
 
+@no_type_check
 def _csv_int(file: str, field: str, text: str) -> int:
     s = text.strip()
     try:
@@ -104,6 +107,7 @@ def read_weather_csv(
             if len(cells) != ncols:
                 raise DataError(file, where, f"{len(cells)} cells, the header has {ncols}")
 
+            @no_type_check
             def num(name, allow_empty=False):
                 return _csv_float(file, f"{where}.{name}", cells[col[name]], allow_empty=allow_empty)
 
