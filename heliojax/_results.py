@@ -12,6 +12,8 @@ Schema (``H`` heliostats, ``M`` padded records; NaN / -1 where no record):
   Gauss-Newton standard errors; ``covariance`` ``(H, F, F)`` of the free parameters
 * ``status`` ``(H,)`` int32 (:class:`heliojax.FitStatus`), ``status_labels`` ``(H,)`` str
 * ``noise_mrad`` ``(H,)`` noise per residual component (robust estimate)
+* ``worse_than_nominal`` ``(H,)`` bool: the fit's leave-one-out RMS error on its
+  training records is not below the uncalibrated model's (not used for aiming)
 * ``start_geometry`` ``(H,)`` str: ``"nominal"`` or ``"fleet_typical"``
 * ``geometry/...`` every field of the :class:`heliojax.HeliostatGeometry` the fit
   used (``geometry/position`` ``(H, 3)`` ENU m, ``geometry/actuators/increment``
@@ -22,7 +24,8 @@ Schema (``H`` heliostats, ``M`` padded records; NaN / -1 where no record):
   ``split`` int8 (0 unused/padding, 1 train, 2 validation, 3 test), ``weight``
   (robust weight of a training record, 0 otherwise), ``outlier`` bool,
   ``residual_mrad`` ``(H, M, 2)`` and ``residual_uncalibrated_mrad``,
-  ``beam_error_mrad`` and ``beam_error_uncalibrated_mrad``
+  ``beam_error_mrad`` and ``beam_error_uncalibrated_mrad``, ``loo_mrad``
+  (leave-one-out beam error of the records the fit used, NaN otherwise)
 * with ``--test-data``: group ``test_data`` with ``record_id``, ``unix_time``,
   ``beam_error_mrad``, ``beam_error_uncalibrated_mrad`` ``(H, M')`` re-indexed to
   the fitted heliostats' rows
@@ -118,6 +121,9 @@ def write_results_h5(path: str | Path, run: typing.Any) -> None:
         f.create_dataset("status", data=np.asarray(run.result.status)[:n].astype(np.int32))
         f.create_dataset("status_labels", data=np.array(run.result.status_labels()[:n], dtype=object), dtype=str_dt)
         f.create_dataset("noise_mrad", data=np.asarray(run.noise_mrad, float)[:n])
+        worse = run.summary["fleet"].get("worse_than_nominal", [])
+        f.create_dataset("worse_than_nominal", data=np.array([i in worse for i in run.fleet.ids[:n]], bool))
+        f.create_dataset("loo_mrad", data=np.asarray(run.result.loo_mrad, float)[:n])
         f.create_dataset(
             "start_geometry",
             data=np.array(["fleet_typical" if r else "nominal" for r in run.start_replaced[:n]], dtype=object),
@@ -159,6 +165,9 @@ class CalibrationResults:
         params, param_std: ``(H, P)`` physical units.
         covariance: ``(H, F, F)`` of the free parameters.
         noise_mrad: ``(H,)``.
+        worse_than_nominal: ``(H,)`` fits whose leave-one-out error on their
+            training records is not below the uncalibrated model's (summary's
+            ``worse_than_nominal``): not used for aiming.
         records: per-record arrays ``(H, M, ...)`` by dataset name (``record_id``,
             ``unix_time``, ``split``, ``weight``, ``outlier``, ``residual_mrad``, ...).
         attrs: the file's attributes.
@@ -174,15 +183,17 @@ class CalibrationResults:
     param_std: np.ndarray
     covariance: np.ndarray
     noise_mrad: np.ndarray
+    worse_than_nominal: np.ndarray
     records: dict[str, np.ndarray]
     attrs: dict[str, typing.Any]
     source: str
 
     @property
     def fitted(self) -> np.ndarray:
-        """``(H,)`` heliostats with a usable fit (converged or at the step limit)."""
+        """``(H,)`` heliostats with a usable fit: converged or at the step limit, and
+        not flagged ``worse_than_nominal``."""
         ok = (FitStatus.CONVERGED.label, FitStatus.MAX_STEPS.label)
-        return np.array([s in ok for s in self.status])
+        return np.array([s in ok for s in self.status]) & ~self.worse_than_nominal
 
     def heliostat(self, heliostat_id: str) -> tuple[AbstractKinematicModel, HeliostatGeometry]:
         """The fitted model and geometry of one heliostat."""
@@ -206,6 +217,7 @@ _RECORD_FIELDS = (
     "residual_uncalibrated_mrad",
     "beam_error_mrad",
     "beam_error_uncalibrated_mrad",
+    "loo_mrad",
 )
 
 
@@ -250,6 +262,11 @@ def load_results(path: str | Path) -> CalibrationResults:
         std = np.asarray(need("param_std"), float)
         cov = np.asarray(f["covariance"][()]) if "covariance" in f else np.full((len(ids), 0, 0), np.nan)  # pyright: ignore[reportIndexIssue]
         noise = np.asarray(f["noise_mrad"][()]) if "noise_mrad" in f else np.full(len(ids), np.nan)  # pyright: ignore[reportIndexIssue]
+        worse = (
+            np.asarray(f["worse_than_nominal"][()], bool)  # pyright: ignore[reportIndexIssue]
+            if "worse_than_nominal" in f
+            else np.zeros(len(ids), bool)
+        )
     template = model_from_label(str(attrs["model"]))
     view = ParameterView.of(template)
     if view.names != names:
@@ -270,6 +287,7 @@ def load_results(path: str | Path) -> CalibrationResults:
         param_std=std,
         covariance=cov,
         noise_mrad=noise,
+        worse_than_nominal=worse,
         records=records,
         attrs=attrs,
         source=source,

@@ -295,6 +295,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
     )
     train_err = np.where(run.train_mask, run.errors_mrad, np.nan)
     val_err = np.where(run.val_mask, run.errors_mrad, np.nan)
+    loo_rms, unc_train_rms, worse = _worse_than_nominal(run)
     heliostats = {}
     pooled, pooled_unc = [], []
     for i in range(n_real):
@@ -318,6 +319,9 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
             "test_rms_mrad": _json_float(test_rms),
             "uncalibrated_test_median_mrad": _json_float(unc_med),
             "uncalibrated_test_rms_mrad": _json_float(unc_rms),
+            "loo_rms_mrad": _json_float(loo_rms[i]),
+            "uncalibrated_train_rms_mrad": _json_float(unc_train_rms[i]),
+            "worse_than_nominal": bool(worse[i]),
             "lm_steps": int(np.asarray(res.n_steps)[i]),
             "noise_mrad": _json_float(float(run.noise_mrad[i])) if run.noise_mrad is not None else None,
             "n_outliers": int(np.sum(run.outlier[i])) if run.outlier is not None else 0,
@@ -358,6 +362,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
             "test_rms_mrad": _json_float(f_rms),
             "uncalibrated_test_median_mrad": _json_float(u_med),
             "uncalibrated_test_rms_mrad": _json_float(u_rms),
+            "worse_than_nominal": [ids[i] for i in range(n_real) if worse[i]],
             "statuses": {
                 **{s.label: int(np.sum(status[:n_real] == s)) for s in FitStatus if s != FitStatus.NO_RECORDS},
                 "no_training_records": int(np.sum(status[:n_real] == FitStatus.NO_RECORDS)),
@@ -365,6 +370,25 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
         },
         "timing": {"compile_s": float(compile_s), "fit_s": float(fit_s)},
     }
+
+
+def _worse_than_nominal(run: CalibrationRun) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per heliostat ``(H,)``: the RMS leave-one-out error of the fitted model over
+    its training records (:attr:`FitSolution.loo_mrad`; the PRESS statistic), the
+    RMS error of the uncalibrated model over the same records, and the flag that
+    the first is not below the second (a converged fit that does not predict
+    better than nominal: do not aim with it blindly). Records flagged as gross
+    errors are left out of both; no test record is used."""
+    loo_all = np.asarray(run.result.loo_mrad)  # +inf where a record alone fixes a direction: kept
+    used = run.train_mask & ~np.isnan(loo_all) & np.isfinite(run.uncalibrated_mrad)
+    if run.outlier is not None:
+        used &= ~run.outlier
+    converged = np.asarray(run.result.status) == FitStatus.CONVERGED
+    loo = np.array([np.sqrt(np.mean(x[u] ** 2)) if u.any() else np.nan for x, u in zip(loo_all, used)])
+    unc = np.array([np.sqrt(np.mean(x[u] ** 2)) if u.any() else np.nan for x, u in zip(run.uncalibrated_mrad, used)])
+    with np.errstate(invalid="ignore"):
+        worse = converged & ~(loo < unc)
+    return loo, unc, worse
 
 
 def _status_reason(st: FitStatus, run: CalibrationRun, i: int, n_records: int, steps: int) -> tuple[str, str | None]:
