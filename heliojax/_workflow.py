@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import collections.abc
 import dataclasses
+import datetime
 import json
 import logging
 import typing
@@ -26,10 +27,12 @@ from ._io import atomic_write
 from ._kinematics import AbstractKinematicModel, nominal_model
 from ._splits import split_fleet
 from .fitting import (
+    ChangePoints,
     FitSolution,
     FitStatus,
     beam_errors_mrad,
     choose_start_geometry,
+    find_change_points,
     fit_robust,
     fit_timed,
     fleet_beam_errors_mrad,
@@ -63,6 +66,10 @@ class CalibrationRun:
         weights: ``(H, M)`` robust weight of each training record (1 without ``robust``).
         outlier: ``(H, M)`` training records flagged as gross errors.
         noise_mrad: ``(H,)`` noise estimate per residual component (robust when ``robust``).
+        change_points: the change-point scan of the training records
+            (:func:`heliojax.fitting.find_change_points`), None when not run.
+        superseded: ``(H, M)`` training records before a reported change point:
+            not fitted (the fit calibrates the state since the change).
     """
 
     fleet: typing.Any
@@ -87,6 +94,8 @@ class CalibrationRun:
     noise_mrad: np.ndarray | None = None
     robust: bool = False
     pooled: bool = False
+    change_points: ChangePoints | None = None
+    superseded: np.ndarray | None = None
 
 
 def _stats(x: np.ndarray) -> tuple[float, float]:
@@ -117,6 +126,7 @@ def calibrate(
     start: str = "auto",
     robust: bool = True,
     pool: bool = True,
+    changes: bool = True,
 ) -> CalibrationRun:
     """Split each heliostat's records, fit the model on the training records of all
     heliostats at once, and evaluate on the held-out ones.
@@ -140,6 +150,10 @@ def calibrate(
         pool: with ``robust``, finish under the fleet's empirical-Bayes prior
             (:func:`heliojax.fitting.fleet_prior`): heliostats with few records are
             calibrated too.
+        changes: scan the training records for change points (jumps of the axis
+            offsets, :func:`heliojax.fitting.find_change_points`) and, where one is
+            reported, fit again on the records since the change (the current
+            state; with ``pool`` the fleet prior fills in what they leave open).
     """
     model0 = nominal_model(model, fleet.counts.dtype) if isinstance(model, str) else model
     n_real = len(fleet.ids)
@@ -193,18 +207,26 @@ def calibrate(
 
     options = dict(fit_options or {})
     log.info(f"fitting {n_real} heliostats ({model0.label()}, padded to {h_pad} x {m_pad})")
-    if robust:
-        robust_fit = fit_robust(model0, padded, mask=jnp.asarray(train), pool=pool, **options)
-        result, compile_s, fit_s = robust_fit.solution, robust_fit.compile_s, robust_fit.run_s
-        weights = np.asarray(robust_fit.weights)
-        outlier = np.asarray(robust_fit.outlier)
-        noise = np.asarray(robust_fit.noise_mrad)
-    else:
-        result, compile_s, fit_s = fit_timed(model0, padded, mask=jnp.asarray(train), **options)
-        weights = np.where(train & np.asarray(padded.mask), 1.0, 0.0)
-        outlier = np.zeros_like(train)
-        noise = np.asarray(result.noise_mrad)
+
+    def fit_on(mask: np.ndarray):
+        if robust:
+            rf = fit_robust(model0, padded, mask=jnp.asarray(mask), pool=pool, **options)
+            return rf.solution, rf.compile_s, rf.run_s, np.asarray(rf.weights), np.asarray(rf.outlier), rf.noise_mrad
+        res, c_s, f_s = fit_timed(model0, padded, mask=jnp.asarray(mask), **options)
+        w = np.where(mask & np.asarray(padded.mask), 1.0, 0.0)
+        return res, c_s, f_s, w, np.zeros_like(mask), res.noise_mrad
+
+    result, compile_s, fit_s, weights, outlier, noise = fit_on(train)
     log.info(f"fitted in {fit_s:.2f} s (compile {compile_s:.2f} s)")
+    change_points, superseded = None, np.zeros_like(train)
+    if changes:
+        change_points, superseded = _scan_changes(result, padded, train, weights, n_real)
+        if superseded.any():
+            n_changed = int(np.any(superseded, axis=1).sum())
+            log.info(f"change points in {n_changed} heliostats: fitting their current state")
+            result, c2, f2, weights, outlier, noise = fit_on(train & ~superseded)
+            compile_s, fit_s = compile_s + c2, fit_s + f2
+    noise = np.asarray(noise)
 
     all_valid = jnp.asarray(padded.mask)
     errors = np.asarray(fleet_beam_errors_mrad(result.model, padded, all_valid))
@@ -244,9 +266,58 @@ def calibrate(
         noise_mrad=noise,
         robust=robust,
         pooled=robust and pool,
+        change_points=change_points,
+        superseded=superseded,
     )
     summary = _summarise(run, n_real, compile_s=compile_s, fit_s=fit_s)
     return dataclasses.replace(run, summary=summary)
+
+
+def _scan_changes(
+    result: FitSolution, fleet, train: np.ndarray, weights: np.ndarray, n_real: int
+) -> tuple[ChangePoints | None, np.ndarray]:
+    """The change-point scan of the converged heliostats' training records, and
+    ``(H, M)`` the training records before a reported change."""
+    try:
+        cp = find_change_points(result, fleet, jnp.asarray(train), jnp.asarray(weights))
+    except ConfigError as e:  # a model without a free pair of axis offsets
+        log.info(f"no change-point scan: {e}")
+        return None, np.zeros_like(train)
+    found = np.asarray(cp.found) & (np.asarray(result.status) == FitStatus.CONVERGED)
+    found[n_real:] = False
+    t = np.asarray(fleet.context.unix_time)
+    with np.errstate(invalid="ignore"):
+        superseded = train & found[:, None] & (t < np.asarray(cp.time_s)[:, None])
+    return eqx.tree_at(lambda c: c.found, cp, jnp.asarray(found)), superseded
+
+
+def _utc(t: float) -> str | None:
+    if not np.isfinite(t):
+        return None
+    return datetime.datetime.fromtimestamp(float(t), tz=datetime.UTC).isoformat().replace("+00:00", "Z")
+
+
+def _change_entry(run: CalibrationRun, i: int) -> dict[str, typing.Any]:
+    cp = run.change_points
+    if cp is None:
+        return {"change_point": None, "change_point_delta_chi2": None}
+    dchi2 = _json_float(float(np.asarray(cp.delta_chi2)[i]))
+    if not bool(np.asarray(cp.found)[i]):
+        return {"change_point": None, "change_point_delta_chi2": dchi2}
+    jump = np.asarray(cp.jump_mrad)[i]
+    n_sup = int(run.superseded[i].sum()) if run.superseded is not None else 0
+    return {
+        "change_point": {
+            "date_utc": _utc(float(np.asarray(cp.time_s)[i])),
+            "previous_record_utc": _utc(float(np.asarray(cp.previous_time_s)[i])),
+            "jump_mrad": {n: _json_float(float(v)) for n, v in zip(cp.offsets, jump)},
+            "delta_chi2": dchi2,
+            "threshold": _json_float(float(np.asarray(cp.threshold)[i])),
+            "n_records_since": int(np.asarray(cp.n_after)[i]),
+            "n_training_records_superseded": n_sup,
+        },
+        "change_point_delta_chi2": dchi2,
+    }
 
 
 def _with_geometry(fleet, geometry):
@@ -311,6 +382,11 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
             "status_reason": reason,
             # Record counts of the split (also for heliostats that could not be fitted).
             "n_train": int(np.sum(run.train_mask[i] & np.isfinite(run.uncalibrated_mrad[i]))),
+            "n_train_used": int(
+                np.sum(run.train_mask[i] & np.isfinite(run.uncalibrated_mrad[i]) & ~run.superseded[i])
+                if run.superseded is not None
+                else np.sum(run.train_mask[i] & np.isfinite(run.uncalibrated_mrad[i]))
+            ),
             "n_val": int(np.sum(run.val_mask[i] & np.isfinite(run.uncalibrated_mrad[i]))),
             "n_test": int(np.sum(np.isfinite(test_unc[i]))),
             "train_rms_mrad": _json_float(train_rms),
@@ -322,6 +398,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
             "loo_rms_mrad": _json_float(loo_rms[i]),
             "uncalibrated_train_rms_mrad": _json_float(unc_train_rms[i]),
             "worse_than_nominal": bool(worse[i]),
+            **_change_entry(run, i),
             "lm_steps": int(np.asarray(res.n_steps)[i]),
             "noise_mrad": _json_float(float(run.noise_mrad[i])) if run.noise_mrad is not None else None,
             "n_outliers": int(np.sum(run.outlier[i])) if run.outlier is not None else 0,
@@ -363,6 +440,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
             "uncalibrated_test_median_mrad": _json_float(u_med),
             "uncalibrated_test_rms_mrad": _json_float(u_rms),
             "worse_than_nominal": [ids[i] for i in range(n_real) if worse[i]],
+            "change_points": [ids[i] for i in range(n_real) if _change_entry(run, i)["change_point"] is not None],
             "statuses": {
                 **{s.label: int(np.sum(status[:n_real] == s)) for s in FitStatus if s != FitStatus.NO_RECORDS},
                 "no_training_records": int(np.sum(status[:n_real] == FitStatus.NO_RECORDS)),
@@ -381,6 +459,8 @@ def _worse_than_nominal(run: CalibrationRun) -> tuple[np.ndarray, np.ndarray, np
     errors are left out of both; no test record is used."""
     loo_all = np.asarray(run.result.loo_mrad)  # +inf where a record alone fixes a direction: kept
     used = run.train_mask & ~np.isnan(loo_all) & np.isfinite(run.uncalibrated_mrad)
+    if run.superseded is not None:
+        used &= ~run.superseded  # the records the fit used
     if run.outlier is not None:
         used &= ~run.outlier
     converged = np.asarray(run.result.status) == FitStatus.CONVERGED

@@ -105,6 +105,12 @@ def add_parser(subparsers) -> None:
         help="no fleet prior: heliostats with fewer training records than parameters stay uncalibrated",
     )
     p.add_argument(
+        "--no-changes",
+        dest="changes",
+        action="store_false",
+        help="no change-point scan: fit all training records as one state",
+    )
+    p.add_argument(
         "--strategy",
         choices=BATCHING_CHOICES,
         default="auto",
@@ -164,6 +170,7 @@ def run(args) -> int:
         start=args.start,
         robust=args.robust,
         pool=args.pool,
+        changes=args.changes,
     )
     if neural:
         from ..neural import calibrate_neural

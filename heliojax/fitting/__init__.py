@@ -12,6 +12,11 @@ from ._batching import (
     batching_from_name as batching_from_name,
     default_batching as default_batching,
 )
+from ._changes import (
+    OFFSET_NAMES as OFFSET_NAMES,
+    ChangePoints as ChangePoints,
+    find_change_points as find_change_points,
+)
 from ._evaluate import (
     beam_errors_mrad as beam_errors_mrad,
     choose_start_geometry as choose_start_geometry,

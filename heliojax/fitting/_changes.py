@@ -1,0 +1,175 @@
+"""Change points: dates at which a heliostat's axis offsets jumped (maintenance,
+re-mounting, an actuator swap).
+
+Around a fit of all of a heliostat's records (residual rows ``r``, Jacobian
+``J`` of the free parameters, both weighted by the records' robust weights),
+every record time ``t_c`` is a candidate: the linearised least-squares problem
+gets two more columns, the Jacobian of the two axis offsets on the records at or
+after ``t_c`` (a jump of both offsets from ``t_c`` on). The candidate that lowers
+the residual sum of squares most wins; its evidence is that drop in units of the
+likelihood ratio with the noise variance profiled out, ``delta_chi2 = n_rows
+ln(RSS_0 / RSS_c)`` (``n_rows`` = 2 x the records used), so that it does not
+depend on a noise estimate the jump itself inflates. A change point is reported
+where the Bayesian information criterion prefers it: ``delta_chi2 > 3
+ln(n_rows)`` (two jumps and the location are three more parameters). For a
+clean heliostat the statistic at one candidate is about chi-square with 2
+degrees of freedom, so the threshold (14.4 at 60 records) is exceeded with
+probability ~exp(-7) per candidate; the scan over candidates multiplies that by
+at most their number.
+Each segment needs ``min_segment`` records, by default as many as the model has
+free parameters (each segment alone determines the model twice over: a short
+segment cannot be told from a few noisy records). No constant here was chosen
+on the shared records.
+"""
+
+from __future__ import annotations
+
+import typing
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int
+
+from .._errors import ConfigError
+from .._parameters import ParameterView
+from ._fit import FitSolution
+from ._records import sanitise
+
+OFFSET_NAMES: tuple[tuple[str, str], ...] = (("angle_offset_1", "angle_offset_2"), ("theta_k", "tau_k"))
+"""The axis-offset parameter pairs a jump is sought in (actuator model, Stone model)."""
+
+
+class ChangePoints(eqx.Module):
+    """Per heliostat ``(H,)``: the most likely change point and its evidence.
+
+    Attributes:
+        found: a change point is reported (``delta_chi2 > threshold``).
+        index: record index (into the fleet's ``M`` axis) of the first record at
+            or after the change (-1 where no candidate was possible).
+        time_s: unix time of that record (s; NaN where none).
+        previous_time_s: unix time of the last record before it (s; NaN where none):
+            the change happened between the two.
+        jump_mrad: ``(H, 2)`` the jump of the two offsets (mrad; later minus earlier).
+        delta_chi2: the evidence (see the module docstring).
+        threshold: ``3 ln(n_rows)``.
+        n_after: records used at or after the change.
+        offsets: the names of the two offset parameters; static.
+    """
+
+    found: Bool[Array, " H"]
+    index: Int[Array, " H"]
+    time_s: Float[Array, " H"]
+    previous_time_s: Float[Array, " H"]
+    jump_mrad: Float[Array, "H 2"]
+    delta_chi2: Float[Array, " H"]
+    threshold: Float[Array, " H"]
+    n_after: Int[Array, " H"]
+    offsets: tuple[str, str] = eqx.field(static=True)
+
+
+def _offset_columns(view: ParameterView) -> tuple[tuple[str, str], list[int]]:
+    for pair in OFFSET_NAMES:
+        if all(n in view.free_names for n in pair):
+            return pair, [view.free_names.index(n) for n in pair]
+    raise ConfigError(
+        f"change points need a free pair of axis offsets ({' or '.join('/'.join(p) for p in OFFSET_NAMES)}); "
+        f"free parameters: {', '.join(view.free_names)}"
+    )
+
+
+@eqx.filter_jit
+def _scan(view, columns, min_segment, model, geometry, counts, context, focal, mask, weight):
+    def one(model, geometry, counts, context, focal, mask, weight):
+        counts, context, focal, use, _ = sanitise(geometry, counts, context, focal, mask)
+        p = view.to_vector(model)
+        idx = jnp.asarray(view.free_index, dtype=jnp.int32)
+
+        def rows(y):
+            m = view.from_vector(model, p.at[idx].set(y))
+            return jax.vmap(m.beam_components, (None, 0, 0, 0))(geometry, counts, context, focal) * 1e3
+
+        y0 = p[idx]
+        sw = jnp.sqrt(jnp.where(use, jnp.clip(weight, 0.0, 1.0), 0.0))
+        r = rows(y0) * sw[:, None]  # (M, 2) mrad
+        jac = jax.jacfwd(rows)(y0) * sw[:, None, None]  # (M, 2, F) mrad / physical unit
+        scale = jnp.maximum(jnp.sqrt(jnp.sum(jac**2, axis=(0, 1))), 1e-30)  # column scaling for conditioning
+        jac = jac / scale[None, None, :]
+        jump_cols = jac[:, :, jnp.asarray(columns)]  # (M, 2, 2)
+        t = jnp.where(use, context.unix_time, jnp.inf)
+        rr = r.reshape(-1)
+        base = jac.reshape(rr.shape[0], -1)
+
+        def rss(design):
+            x, *_ = jnp.linalg.lstsq(design, rr)
+            return jnp.sum((rr - design @ x) ** 2), x
+
+        rss0, _ = rss(base)
+
+        def candidate(tc):
+            after = use & (t >= tc)
+            extra = jnp.where(after[:, None, None], jump_cols, 0.0).reshape(rr.shape[0], 2)
+            rss1, x = rss(jnp.concatenate([base, extra], axis=1))
+            n_after, n_before = jnp.sum(after), jnp.sum(use & ~after)
+            ok = (n_after >= min_segment) & (n_before >= min_segment)
+            jump = -x[-2:] / scale[jnp.asarray(columns)] * 1e3  # rows are residuals: the offsets move the other way
+            return jnp.where(ok, rss0 - rss1, -jnp.inf), jump, n_after
+
+        gain, jump, n_after = jax.vmap(candidate)(t)
+        best = jnp.argmax(gain)
+        possible = jnp.isfinite(gain[best])
+        n_rows = 2 * jnp.sum(use)
+        threshold = 3.0 * jnp.log(jnp.maximum(n_rows, 2).astype(r.dtype))
+        rss1 = jnp.maximum(rss0 - gain[best], 1e-300)
+        dchi2 = jnp.where(possible, n_rows.astype(r.dtype) * jnp.log(jnp.maximum(rss0, 1e-300) / rss1), jnp.nan)
+        t_best = t[best]
+        before = jnp.where(use & (t < t_best), t, -jnp.inf)
+        return dict(
+            found=possible & (dchi2 > threshold),
+            index=jnp.where(possible, best, -1).astype(jnp.int32),
+            time_s=jnp.where(possible, t_best, jnp.nan),
+            previous_time_s=jnp.where(possible, jnp.max(before), jnp.nan),
+            jump_mrad=jnp.where(possible, jump[best], jnp.nan),
+            delta_chi2=dchi2,
+            threshold=threshold,
+            n_after=jnp.where(possible, n_after[best], 0).astype(jnp.int32),
+        )
+
+    return jax.vmap(one)(model, geometry, counts, context, focal, mask, weight)
+
+
+def find_change_points(
+    solution: FitSolution,
+    fleet: typing.Any,
+    mask: Bool[Array, "H M"],
+    weights: Float[Array, "H M"],
+    *,
+    min_segment: int | None = None,
+) -> ChangePoints:
+    """The most likely jump of the axis offsets per heliostat (see the module docstring).
+
+    Args:
+        solution: a fit of ``fleet`` (its models are the linearisation point).
+        fleet: the :class:`heliojax.Fleet` that was fitted.
+        mask: ``(H, M)`` the records the fit used (e.g. the training records).
+        weights: ``(H, M)`` robust record weights (1 for least squares; 0 ignores a record).
+        min_segment: records each side of a change point at least (default: the
+            number of free parameters).
+
+    Raises:
+        ConfigError: the model has no free pair of axis offsets.
+    """
+    names, columns = _offset_columns(solution.view)
+    out = _scan(
+        solution.view,
+        tuple(columns),
+        int(solution.view.n_free if min_segment is None else min_segment),
+        solution.model,
+        fleet.geometry,
+        fleet.counts,
+        fleet.context,
+        fleet.focal_spot,
+        jnp.asarray(mask) & jnp.asarray(fleet.mask),
+        jnp.asarray(weights, fleet.counts.dtype),
+    )
+    return ChangePoints(offsets=names, **out)

@@ -1,0 +1,62 @@
+"""Change points (heliojax.fitting.find_change_points) on simulated fleets with
+planted jumps of the axis offsets at a random date, beside clean heliostats.
+
+Independent of the detector: the truth is two simulations of the same records
+(before / after the planted date) spliced by time."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import heliojax as hj
+from heliojax._simulate import calibration_target, simulate_records, synthetic_contexts, synthetic_geometry
+from heliojax.discovery._suites import random_actuator_models
+
+DAY = 86400.0
+
+
+def _stepped_fleet(seed: int, h: int = 40, m: int = 40, noise_mrad: float = 0.25):
+    """Half the heliostats get a jump of both angle offsets (norm 1.5-3 mrad) at a
+    random record time (between the 25 % and 75 % points of their records)."""
+    k = jax.random.split(jax.random.PRNGKey(seed), 4)
+    rng = np.random.default_rng(seed)
+    geometry = synthetic_geometry(k[0], h)
+    before = random_actuator_models(k[1], h, angle_sigma=1e-3)
+    stepped = np.arange(h) < h // 2
+    direction = rng.normal(size=(h, 2))
+    jump = direction / np.linalg.norm(direction, axis=1, keepdims=True) * rng.uniform(1.5e-3, 3e-3, (h, 1))
+    jump[~stepped] = 0.0
+    after = eqx.tree_at(lambda mm: mm.angle_offset, before, before.angle_offset + jnp.asarray(jump))
+    contexts = synthetic_contexts(k[2], h, m)
+    target = calibration_target()
+    # The plant aims with the pre-change state throughout (same counts in both).
+    a = simulate_records(k[3], before, geometry, contexts, target, controller_models=before, noise_mrad=noise_mrad)
+    b = simulate_records(k[3], after, geometry, contexts, target, controller_models=before, noise_mrad=noise_mrad)
+    t = np.asarray(contexts.unix_time)
+    change = np.array([rng.choice(np.sort(t[i])[m // 4 : 3 * m // 4]) for i in range(h)])
+    later = t >= change[:, None]
+    spot = np.where(later[..., None], np.asarray(b.focal_spot), np.asarray(a.focal_spot))
+    fleet = eqx.tree_at(lambda f: (f.focal_spot, f.mask), a, (jnp.asarray(spot), a.mask & b.mask))
+    return fleet, stepped, change, jump * 1e3
+
+
+def test_planted_jumps_are_found_and_dated_and_clean_heliostats_are_left_alone():
+    found, dated, clean_flags, jump_err = [], [], [], []
+    for seed in (1, 2):
+        fleet, stepped, change, jump = _stepped_fleet(seed)
+        robust = hj.fitting.fit_robust(hj.ActuatorModel.nominal(), fleet)
+        cp = hj.fitting.find_change_points(robust.solution, fleet, fleet.mask, robust.weights)
+        f = np.asarray(cp.found)
+        found += list(f[stepped])
+        clean_flags += list(f[~stepped])
+        t0, t1 = np.asarray(cp.previous_time_s), np.asarray(cp.time_s)
+        ok = (t0 < change) & (change <= t1) | (np.abs(t1 - change) <= 10 * DAY)
+        dated += list(ok[stepped & f])
+        jump_err += list(np.linalg.norm(np.asarray(cp.jump_mrad) - jump, axis=1)[stepped & f])
+    assert np.mean(found) >= 0.9, np.mean(found)
+    assert np.mean(dated) >= 0.9, np.mean(dated)
+    assert np.mean(clean_flags) <= 0.05, np.mean(clean_flags)
+    assert np.median(jump_err) < 0.3, np.median(jump_err)
