@@ -220,7 +220,7 @@ def calibrate(
     log.info(f"fitted in {fit_s:.2f} s (compile {compile_s:.2f} s)")
     change_points, superseded = None, np.zeros_like(train)
     if changes:
-        change_points, superseded = _scan_changes(result, padded, train, weights, n_real)
+        change_points, superseded = _scan_changes(result, padded, train, weights)
         if superseded.any():
             n_changed = int(np.any(superseded, axis=1).sum())
             log.info(f"change points in {n_changed} heliostats: fitting their current state")
@@ -274,7 +274,7 @@ def calibrate(
 
 
 def _scan_changes(
-    result: FitSolution, fleet, train: np.ndarray, weights: np.ndarray, n_real: int
+    result: FitSolution, fleet, train: np.ndarray, weights: np.ndarray
 ) -> tuple[ChangePoints | None, np.ndarray]:
     """The change-point scan of the converged heliostats' training records, and
     ``(H, M)`` the training records before a reported change."""
@@ -284,7 +284,6 @@ def _scan_changes(
         log.info(f"no change-point scan: {e}")
         return None, np.zeros_like(train)
     found = np.asarray(cp.found) & (np.asarray(result.status) == FitStatus.CONVERGED)
-    found[n_real:] = False
     t = np.asarray(fleet.context.unix_time)
     with np.errstate(invalid="ignore"):
         superseded = train & found[:, None] & (t < np.asarray(cp.time_s)[:, None])
@@ -366,7 +365,8 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
     )
     train_err = np.where(run.train_mask, run.errors_mrad, np.nan)
     val_err = np.where(run.val_mask, run.errors_mrad, np.nan)
-    loo_rms, unc_train_rms, worse = _worse_than_nominal(run)
+    fit_mask = run.train_mask if run.superseded is None else run.train_mask & ~run.superseded
+    loo_rms, unc_train_rms, worse = _worse_than_nominal(run, fit_mask)
     heliostats = {}
     pooled, pooled_unc = [], []
     for i in range(n_real):
@@ -382,11 +382,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
             "status_reason": reason,
             # Record counts of the split (also for heliostats that could not be fitted).
             "n_train": int(np.sum(run.train_mask[i] & np.isfinite(run.uncalibrated_mrad[i]))),
-            "n_train_used": int(
-                np.sum(run.train_mask[i] & np.isfinite(run.uncalibrated_mrad[i]) & ~run.superseded[i])
-                if run.superseded is not None
-                else np.sum(run.train_mask[i] & np.isfinite(run.uncalibrated_mrad[i]))
-            ),
+            "n_train_used": int(np.sum(fit_mask[i] & np.isfinite(run.uncalibrated_mrad[i]))),
             "n_val": int(np.sum(run.val_mask[i] & np.isfinite(run.uncalibrated_mrad[i]))),
             "n_test": int(np.sum(np.isfinite(test_unc[i]))),
             "train_rms_mrad": _json_float(train_rms),
@@ -440,7 +436,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
             "uncalibrated_test_median_mrad": _json_float(u_med),
             "uncalibrated_test_rms_mrad": _json_float(u_rms),
             "worse_than_nominal": [ids[i] for i in range(n_real) if worse[i]],
-            "change_points": [ids[i] for i in range(n_real) if _change_entry(run, i)["change_point"] is not None],
+            "change_points": [h for h, e in heliostats.items() if e["change_point"] is not None],
             "statuses": {
                 **{s.label: int(np.sum(status[:n_real] == s)) for s in FitStatus if s != FitStatus.NO_RECORDS},
                 "no_training_records": int(np.sum(status[:n_real] == FitStatus.NO_RECORDS)),
@@ -450,7 +446,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
     }
 
 
-def _worse_than_nominal(run: CalibrationRun) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _worse_than_nominal(run: CalibrationRun, fit_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per heliostat ``(H,)``: the RMS leave-one-out error of the fitted model over
     its training records (:attr:`FitSolution.loo_mrad`; the PRESS statistic), the
     RMS error of the uncalibrated model over the same records, and the flag that
@@ -458,15 +454,14 @@ def _worse_than_nominal(run: CalibrationRun) -> tuple[np.ndarray, np.ndarray, np
     better than nominal: do not aim with it blindly). Records flagged as gross
     errors are left out of both; no test record is used."""
     loo_all = np.asarray(run.result.loo_mrad)  # +inf where a record alone fixes a direction: kept
-    used = run.train_mask & ~np.isnan(loo_all) & np.isfinite(run.uncalibrated_mrad)
-    if run.superseded is not None:
-        used &= ~run.superseded  # the records the fit used
+    used = fit_mask & ~np.isnan(loo_all) & np.isfinite(run.uncalibrated_mrad)
     if run.outlier is not None:
         used &= ~run.outlier
     converged = np.asarray(run.result.status) == FitStatus.CONVERGED
-    loo = np.array([np.sqrt(np.mean(x[u] ** 2)) if u.any() else np.nan for x, u in zip(loo_all, used)])
-    unc = np.array([np.sqrt(np.mean(x[u] ** 2)) if u.any() else np.nan for x, u in zip(run.uncalibrated_mrad, used)])
-    with np.errstate(invalid="ignore"):
+    n = used.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        loo = np.sqrt(np.sum(np.where(used, loo_all, 0.0) ** 2, axis=1) / n)  # NaN without records
+        unc = np.sqrt(np.sum(np.where(used, run.uncalibrated_mrad, 0.0) ** 2, axis=1) / n)
         worse = converged & ~(loo < unc)
     return loo, unc, worse
 
