@@ -68,10 +68,16 @@ def _source_records() -> dict:
             "items": [
                 (
                     cid,
-                    dt.datetime(2022, 6, 12, 13 + i, tzinfo=UTC),
+                    when,  # the real records' times, as with ../shared
                     {"calibration_properties": (f"{cid}-calibration-properties.json", rec(i))},
                 )
-                for i, cid in enumerate(("118671", "118750", "118826"))
+                for i, (cid, when) in enumerate(
+                    (
+                        ("118671", dt.datetime(2022, 6, 12, 13, 27, 37, tzinfo=UTC)),
+                        ("118750", dt.datetime(2022, 6, 12, 13, 45, 35, tzinfo=UTC)),
+                        ("118826", dt.datetime(2022, 6, 12, 14, 0, 56, tzinfo=UTC)),
+                    )
+                )
             ],
         }
         out["AA31"] = {
