@@ -233,7 +233,8 @@ def load_fleet(path):
 
     from heliojax._heliostat import HeliostatGeometry, LinearActuators, RecordContext
 
-    z = np.load(path)
+    with np.load(path) as npz:
+        z = dict(npz)
     one = np.ones((1, 2))
     act = LinearActuators(*([one] * 8))
     g_tree = jax.tree.structure(HeliostatGeometry(*([np.ones((1, 3))] * 4), act, one, one, one))

@@ -33,7 +33,8 @@ LOADER = """
 import numpy as np, jax
 import heliojax as hj
 from heliojax._simulate import synthetic_geometry
-_z = np.load(NPZ)
+with np.load(NPZ) as _npz:
+    _z = dict(_npz)
 H = _z["counts"].shape[0]
 STONE = hj.StoneModel.nominal(np.float64)
 _geometry = synthetic_geometry(jax.random.PRNGKey(int(_z["seed"])), H)
@@ -182,7 +183,8 @@ def test_sharded_over_four_cpu_devices(four_device_run, reference):
             proc.kill()
             proc.communicate(timeout=10)
     assert proc.returncode == 0, err[-4000:]
-    got = dict(np.load(out))
+    with np.load(out) as npz:
+        got = dict(npz)
     assert int(got["n_devices"]) == 4
     assert int(got["n_shards"]) == 4  # the inputs really were spread over 4 devices
     _assert_same(reference, got, "4 devices")
@@ -245,7 +247,8 @@ def test_two_processes_on_loopback(fleet_npz, reference, tmp_path):
             p.communicate(timeout=10)
     h = reference["status"].shape[0]
     for pid in range(2):
-        got = dict(np.load(tmp_path / f"p{pid}.npz"))
+        with np.load(tmp_path / f"p{pid}.npz") as npz:
+            got = dict(npz)
         assert int(got["process_count"]) == 2
         sl = process_slice(h, pid, 2)
         assert tuple(got["loaded"]) == (sl.start, sl.stop)  # loaded only its own slice
