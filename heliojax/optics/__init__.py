@@ -1,6 +1,11 @@
 """Optics: sun shapes, mirror surfaces (ideal, deflectometry, NURBS), flux tracing,
 comparison with measured flux images and surface reconstruction."""
 
+from ._artist import (
+    Scene as Scene,
+    scene_from_artist as scene_from_artist,
+    scene_to_artist as scene_to_artist,
+)
 from ._compare import (
     CENTRED_WINDOW_M as CENTRED_WINDOW_M,
     FluxComparison as FluxComparison,

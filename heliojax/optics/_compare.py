@@ -33,8 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._errors import DataError
-from .._geometry import TargetPlane, sun_direction, wgs84_to_enu
-from .._heliostat import HeliostatGeometry, LinearActuators
+from .._geometry import TargetPlane, bisector_normal, normalize, sun_direction, wgs84_to_enu
+from .._heliostat import HeliostatGeometry, LinearActuators, Pose
 from .._kinematics import AbstractKinematicModel, ActuatorModel, forward
 from .._plotting import pyplot
 from ..paint import read_calibration_record, read_flux_png, read_heliostat_properties, read_tower
@@ -63,6 +63,45 @@ def normalised_cross_correlation(a, b) -> float:
     b = b - b.mean()
     den = np.sqrt((a * a).sum() * (b * b).sum())
     return float((a * b).sum() / den) if den > 0 else float("nan")
+
+
+def kl_divergence(measured, traced, floor: float = 1e-9) -> float:
+    """Kullback-Leibler divergence ``KL(p || q) = sum p ln(p / q)`` (nats) of the
+    measured image ``p`` from the traced ``q``, both normalised to unit sum after a
+    floor of ``floor`` per pixel (so a pixel that the Monte Carlo trace left empty
+    costs a finite amount); 0 for identical shapes, independent of brightness."""
+    p = np.asarray(measured, np.float64).ravel()
+    q = np.asarray(traced, np.float64).ravel()
+    p = np.clip(p, 0.0, None) / max(p.clip(0.0).sum(), 1e-300) + floor
+    q = np.clip(q, 0.0, None) / max(q.clip(0.0).sum(), 1e-300) + floor
+    p, q = p / p.sum(), q / q.sum()
+    return float(np.sum(p * np.log(p / q)))
+
+
+def spot_widths(image: np.ndarray, grid: ImageGrid) -> np.ndarray:
+    """Second-moment widths ``(sigma_u, sigma_v)`` in m of a (background-free) image
+    on ``grid``: the standard deviations of the brightness along both target axes."""
+    img = np.clip(np.asarray(image, np.float64), 0.0, None)
+    u, v = (np.asarray(x, np.float64) for x in grid.pixel_centres())
+    total = max(img.sum(), 1e-300)
+    cu = (img * u[None, :]).sum() / total
+    cv = (img * v[:, None]).sum() / total
+    su = np.sqrt((img * (u[None, :] - cu) ** 2).sum() / total)
+    sv = np.sqrt((img * (v[:, None] - cv) ** 2).sum() / total)
+    return np.asarray([su, sv])
+
+
+def point_at(pose: Pose, sun, spot) -> Pose:
+    """``pose`` turned by the smallest rotation that sends the central sun ray's
+    reflection from the mirror centre to ``spot`` (ENU m): the kinematic pose with
+    its pointing error removed (the rotation about the normal is kept)."""
+    want = bisector_normal(sun, normalize(jnp.asarray(spot, pose.centre.dtype) - pose.centre))
+    n = pose.normal
+    v = jnp.cross(n, want)
+    c = jnp.dot(n, want)
+    k = jnp.asarray([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]], n.dtype)
+    turn = jnp.eye(3, dtype=n.dtype) + k + k @ k / (1.0 + c)
+    return Pose(normal=want, centre=pose.centre, rotation=turn @ pose.rotation)
 
 
 def image_centroid(image: np.ndarray, grid: ImageGrid) -> np.ndarray:
@@ -95,6 +134,7 @@ def geometry_from_properties(properties, origin_lla) -> HeliostatGeometry:
         jnp.asarray(properties.joint_translation_1, jnp.float64),
         jnp.asarray(properties.joint_translation_2, jnp.float64),
         jnp.asarray(properties.concentrator_translation, jnp.float64),
+        ideal_axes=tuple(a[i]["type_axis"] == "ideal" for i in range(2)),
     )
 
 
@@ -144,6 +184,10 @@ class FluxComparison:
         png_vs_record_m: measured PNG centroid vs the record's focal spot (checks the
             assumed PNG extent/orientation; UTIS, else HeliOS).
         traced_vs_record_m: traced centroid vs the record's focal spot.
+        kl_centred: :func:`kl_divergence` of the measured from the traced centred image.
+        widths_traced_m, widths_measured_m: ``(2,)`` :func:`spot_widths` ``(sigma_u,
+            sigma_v)`` of the centred images.
+        pointing_corrected: whether the pose was turned onto the record's focal spot.
         traced, measured: ``(256, 256)`` images on ``grid`` (traced in W/m^2,
             measured background-free relative brightness).
         traced_centred, measured_centred: the centred images on ``grid_centred``.
@@ -157,6 +201,10 @@ class FluxComparison:
     ncc_centred: float
     png_vs_record_m: float
     traced_vs_record_m: float
+    kl_centred: float
+    widths_traced_m: np.ndarray
+    widths_measured_m: np.ndarray
+    pointing_corrected: bool
     traced: np.ndarray
     measured: np.ndarray
     traced_centred: np.ndarray
@@ -166,7 +214,7 @@ class FluxComparison:
 
     def summary(self) -> dict:
         """The scalar fields as a JSON-able dict."""
-        return {
+        out = {
             k: getattr(self, k)
             for k in (
                 "heliostat_id",
@@ -175,10 +223,15 @@ class FluxComparison:
                 "centroid_distance_m",
                 "ncc",
                 "ncc_centred",
+                "kl_centred",
                 "png_vs_record_m",
                 "traced_vs_record_m",
+                "pointing_corrected",
             )
         }
+        out["widths_traced_m"] = [float(x) for x in self.widths_traced_m]
+        out["widths_measured_m"] = [float(x) for x in self.widths_measured_m]
+        return out
 
 
 def default_sunshape() -> AbstractSunShape:
@@ -199,6 +252,7 @@ def compare_record(
     rays_per_point: int = 64,
     steps: int = 4,
     resolution: tuple[int, int] = (32, 32),
+    correct_pointing: bool = False,
 ) -> FluxComparison:
     """Align a heliostat with a record's motor counts, trace its flux and compare it
     with the record's ``-flux.png`` / ``-flux-centered.png`` (same folder, same ID).
@@ -215,6 +269,9 @@ def compare_record(
         key: PRNG key (default ``jax.random.key(0)``).
         rays_per_point, steps: rays per surface point = their product.
         resolution: points per facet of the default ideal surface.
+        correct_pointing: turn the kinematic pose onto the record's measured focal
+            spot (:func:`point_at`; UTIS, else HeliOS), so that the spot's shape, not
+            the pointing error, is compared.
     """
     record_path = Path(record_path)
     tower = read_tower(tower_path)
@@ -230,6 +287,13 @@ def compare_record(
     sun = sun_direction(jnp.deg2rad(record.sun_azimuth_deg), jnp.deg2rad(record.sun_elevation_deg))
     counts = jnp.asarray([record.axis_1_counts, record.axis_2_counts], jnp.float64)
     pose = forward(model, geometry, counts)
+    spot = record.focal_spot_utis or record.focal_spot_helios
+    origin = jnp.asarray(tower.origin_lla, jnp.float64)
+    spot_enu = None if spot is None else wgs84_to_enu(jnp.asarray(spot, jnp.float64), origin)
+    if correct_pointing:
+        if spot_enu is None:
+            raise DataError(record_path, "focal_spot", "no focal spot to correct the pointing with")
+        pose = point_at(pose, sun, spot_enu)
 
     stem = record_path.name.replace("-calibration-properties.json", "")
     measured_raw = load_flux_png(record_path.parent / f"{stem}-flux.png")
@@ -249,11 +313,8 @@ def compare_record(
     grid_c = ImageGrid.centred(c_traced[0], c_traced[1], *CENTRED_WINDOW_M, shape=measured_c.shape)
     traced_c = np.asarray(trace(jax.random.fold_in(key, 1), grid_c), np.float64)
 
-    spot = record.focal_spot_utis or record.focal_spot_helios
-    if spot is not None:
-        spot_uv = np.asarray(
-            target.to_plane(wgs84_to_enu(jnp.asarray(spot, jnp.float64), jnp.asarray(tower.origin_lla, jnp.float64)))
-        )
+    if spot_enu is not None:
+        spot_uv = np.asarray(target.to_plane(spot_enu))
         png_vs_record = float(np.linalg.norm(c_measured - spot_uv))
         traced_vs_record = float(np.linalg.norm(c_traced - spot_uv))
     else:
@@ -267,6 +328,10 @@ def compare_record(
         ncc_centred=normalised_cross_correlation(traced_c, measured_c),
         png_vs_record_m=png_vs_record,
         traced_vs_record_m=traced_vs_record,
+        kl_centred=kl_divergence(measured_c, traced_c),
+        widths_traced_m=spot_widths(traced_c, grid_c),
+        widths_measured_m=spot_widths(measured_c, _centred_grid(measured_c.shape)),
+        pointing_corrected=correct_pointing,
         traced=traced,
         measured=measured,
         traced_centred=traced_c,
@@ -274,6 +339,12 @@ def compare_record(
         grid=grid,
         grid_centred=grid_c,
     )
+
+
+def _centred_grid(shape) -> ImageGrid:
+    """Grid of a measured ``-flux-centered`` image: 6 x 6 m about its own centroid."""
+    w, h = CENTRED_WINDOW_M
+    return ImageGrid.centred(0.0, 0.0, w, h, shape=shape)
 
 
 def flux_sample_records(root: str | os.PathLike) -> list[tuple[Path, Path]]:
@@ -329,6 +400,9 @@ __all__ = [
     "flux_sample_records",
     "geometry_from_properties",
     "image_centroid",
+    "kl_divergence",
+    "point_at",
+    "spot_widths",
     "layout_from_properties",
     "load_flux_png",
     "normalised_cross_correlation",

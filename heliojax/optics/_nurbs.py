@@ -169,58 +169,76 @@ class NurbsFacets(eqx.Module):
     def evaluate(self, resolution: tuple[int, int] = (32, 32)) -> SurfacePoints:
         """Sample every facet on a cell-centred ``resolution = (m, k)`` parameter grid.
 
-        Areas are ``|S_u x S_v| / (m k)`` (midpoint rule); padded facets get area 0.
+        Points and normals are taken at the cell centres; a point's area is that of
+        its cell's image, ``|d1 x d2| / 2`` with ``d1, d2`` the diagonals between the
+        mapped cell corners (exact for flat facets however the control points are
+        spread, e.g. ARTIST's uniform ones, where the midpoint rule
+        ``|S_u x S_v| / (m k)`` converges only as ``1 / m``); padded facets get area 0.
 
         Returns:
             :class:`SurfacePoints` ``(*b, f * m * k)`` in the surface frame.
         """
-        m, k = resolution
-        u = (np.arange(m) + 0.5) / m
-        v = (np.arange(k) + 0.5) / k
-        s, su, sv = self.evaluate_at(u, v)
-        c = jnp.cross(su, sv)
-        norm = jnp.linalg.norm(c, axis=-1, keepdims=True)
-        normals = c / norm
-        areas = norm[..., 0] / (m * k) * self.facet_mask[..., None, None].astype(norm.dtype)
-        pts = s + self.translations[..., :, None, None, :]
-        lead = pts.shape[:-4]
-        return SurfacePoints(
-            points=pts.reshape(lead + (-1, 3)),
-            normals=normals.reshape(lead + (-1, 3)),
-            areas=areas.reshape(lead + (-1,)),
-        )
+        return _evaluate_grid(self, int(resolution[0]), int(resolution[1]))
 
     def normals_at(self, xy: Float[ArrayLike, "*b f p 2"]) -> Float[Array, "*b f p 3"]:
         """Unit normals at facet-local ``(x, y)`` points, for height-field patches
         built by :func:`fit_nurbs` or :meth:`ideal` (``x, y`` linear in ``u, v``)."""
-        xy = jnp.asarray(xy, self.control_points.dtype)
-        cp = self.control_points
-        x0 = cp[..., 0, 0, 0]
-        x1 = cp[..., -1, 0, 0]
-        y0 = cp[..., 0, 0, 1]
-        y1 = cp[..., 0, -1, 1]
-        u = (xy[..., 0] - x0[..., None]) / (x1 - x0)[..., None]
-        v = (xy[..., 1] - y0[..., None]) / (y1 - y0)[..., None]
-        nu, nv = self.n_ctrl
+        return _normals_at(self, xy)
 
-        def one(cpf, wf, uf, vf):
-            bu, dbu = bspline_basis(uf, nu, self.degree)
-            bv, dbv = bspline_basis(vf, nv, self.degree)
-            pw = cpf * wf[..., None]
 
-            def c(a, b, x):
-                return jnp.einsum("pi,ijc,pj->pc", a, x, b)
+@eqx.filter_jit
+def _evaluate_grid(self: NurbsFacets, m: int, k: int) -> SurfacePoints:
+    """:meth:`NurbsFacets.evaluate`, compiled once per shape and resolution."""
+    u = (np.arange(m) + 0.5) / m
+    v = (np.arange(k) + 0.5) / k
+    s, su, sv = self.evaluate_at(u, v)
+    c = jnp.cross(su, sv)
+    normals = c / jnp.linalg.norm(c, axis=-1, keepdims=True)
+    corners, _, _ = self.evaluate_at(np.linspace(0.0, 1.0, m + 1), np.linspace(0.0, 1.0, k + 1))
+    d1 = corners[..., 1:, 1:, :] - corners[..., :-1, :-1, :]
+    d2 = corners[..., :-1, 1:, :] - corners[..., 1:, :-1, :]
+    cell = 0.5 * jnp.linalg.norm(jnp.cross(d1, d2), axis=-1)
+    areas = cell * self.facet_mask[..., None, None].astype(cell.dtype)
+    pts = s + self.translations[..., :, None, None, :]
+    lead = pts.shape[:-4]
+    return SurfacePoints(
+        points=pts.reshape(lead + (-1, 3)),
+        normals=normals.reshape(lead + (-1, 3)),
+        areas=areas.reshape(lead + (-1,)),
+    )
 
-            a, au, av = c(bu, bv, pw), c(dbu, bv, pw), c(bu, dbv, pw)
-            ww, wu, wv = c(bu, bv, wf[..., None]), c(dbu, bv, wf[..., None]), c(bu, dbv, wf[..., None])
-            s = a / ww
-            n = jnp.cross((au - wu * s) / ww, (av - wv * s) / ww)
-            return n / jnp.linalg.norm(n, axis=-1, keepdims=True)
 
-        lead = cp.shape[:-3]
-        flat = lambda x, k: x.reshape((-1,) + x.shape[len(lead) :])  # noqa: E731
-        out = jax.vmap(one)(flat(cp, 0), flat(self.weights, 0), flat(u, 0), flat(v, 0))
-        return out.reshape(lead + out.shape[1:])
+@eqx.filter_jit
+def _normals_at(self: NurbsFacets, xy) -> Array:
+    """:meth:`NurbsFacets.normals_at`, compiled."""
+    xy = jnp.asarray(xy, self.control_points.dtype)
+    cp = self.control_points
+    x0 = cp[..., 0, 0, 0]
+    x1 = cp[..., -1, 0, 0]
+    y0 = cp[..., 0, 0, 1]
+    y1 = cp[..., 0, -1, 1]
+    u = (xy[..., 0] - x0[..., None]) / (x1 - x0)[..., None]
+    v = (xy[..., 1] - y0[..., None]) / (y1 - y0)[..., None]
+    nu, nv = self.n_ctrl
+
+    def one(cpf, wf, uf, vf):
+        bu, dbu = bspline_basis(uf, nu, self.degree)
+        bv, dbv = bspline_basis(vf, nv, self.degree)
+        pw = cpf * wf[..., None]
+
+        def c(a, b, x):
+            return jnp.einsum("pi,ijc,pj->pc", a, x, b)
+
+        a, au, av = c(bu, bv, pw), c(dbu, bv, pw), c(bu, dbv, pw)
+        ww, wu, wv = c(bu, bv, wf[..., None]), c(dbu, bv, wf[..., None]), c(bu, dbv, wf[..., None])
+        s = a / ww
+        n = jnp.cross((au - wu * s) / ww, (av - wv * s) / ww)
+        return n / jnp.linalg.norm(n, axis=-1, keepdims=True)
+
+    lead = cp.shape[:-3]
+    flat = lambda x, k: x.reshape((-1,) + x.shape[len(lead) :])  # noqa: E731
+    out = jax.vmap(one)(flat(cp, 0), flat(self.weights, 0), flat(u, 0), flat(v, 0))
+    return out.reshape(lead + out.shape[1:])
 
 
 def _second_difference(n_u: int, n_v: int) -> np.ndarray:

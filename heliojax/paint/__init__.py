@@ -9,7 +9,8 @@ the files of a PAINT download directory::
     calibration-timestamps.json                       <ID> -> {heliostat_id, datetime (UTC)}
     calibration-with-weather.csv                      optional: one row per record, with weather
 
-into frozen dataclasses of plain Python values (:class:`TowerFile`,
+and ARTIST's scenario HDF5 files (:func:`read_artist_scenario`,
+:func:`write_artist_scenario`), into frozen dataclasses of plain Python values (:class:`TowerFile`,
 :class:`HeliostatProperties`, :class:`CalibrationRecord`). Units are those of
 the files: WGS84 ``[lat_deg, lon_deg, alt_m]`` positions, degrees for the sun
 (PAINT azimuth: 0 = south, positive toward east), metres and radians for the
@@ -56,6 +57,18 @@ Facts about the real files (checked on the shared download)
   W/m^2, ``humidity`` %, ``pressure`` hPa.
 """
 
+from ._artist import (
+    ACTUATOR_PARAMETERS as ACTUATOR_PARAMETERS,
+    DEVIATIONS as DEVIATIONS,
+    ArtistActuator as ArtistActuator,
+    ArtistFacet as ArtistFacet,
+    ArtistHeliostat as ArtistHeliostat,
+    ArtistLightSource as ArtistLightSource,
+    ArtistPlanarTarget as ArtistPlanarTarget,
+    ArtistScenario as ArtistScenario,
+    read_artist_scenario as read_artist_scenario,
+    write_artist_scenario as write_artist_scenario,
+)
 from ._calibration import (
     calibration_record_path as calibration_record_path,
     check_record_context as check_record_context,

@@ -1,0 +1,386 @@
+"""ARTIST scenario HDF5 files (ARTIST 2.0 layout), read into and written from plain
+records.
+
+Layout (what ARTIST's scenario generator writes; ``[4]`` vectors are homogeneous,
+``w = 1`` for points, ``0`` for directions)::
+
+    power_plant/position                       [3] WGS84 lat_deg, lon_deg, alt_m
+    heliostats/<H>/id, position [4]            ENU m about power_plant/position
+    heliostats/<H>/kinematics/type             b"rigid_body"
+    heliostats/<H>/kinematics/initial_orientation [4]
+    heliostats/<H>/kinematics/deviations/<name> scalar (m or rad)
+    heliostats/<H>/actuator/actuator_<i>/{type, clockwise_axis_movement,
+        min_max_motor_positions [2], parameters/{increment, initial_angle,
+        initial_stroke_length, offset, pivot_radius}}
+    heliostats/<H>/surface/facets/facet_<k>/{position [4], canting [2, 4],
+        control_points [nu, nv, 3], degrees [2]}
+    prototypes/{kinematics, actuator, surface}  same groups, no id/position
+    target_areas_planar/<T>/{position_center [4], normal_vector [1, 4], plane_e, plane_u}
+    target_areas_cylindrical/<T>/<name>         kept as they are
+    lightsources/<S>/{type, number_of_rays, distribution_parameters/{distribution_type, mean, covariance}}
+
+The numbers are kept in the file's units; the mapping to heliojax's objects is
+:mod:`heliojax.optics` (:func:`heliojax.optics.scene_from_artist`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import re
+from collections.abc import Mapping
+from typing import Any
+
+import h5py
+import numpy as np
+
+from .._errors import DataError
+from .._io import atomic_path
+
+ACTUATOR_PARAMETERS = ("increment", "initial_angle", "initial_stroke_length", "offset", "pivot_radius")
+"""Parameters of an ARTIST actuator (m, rad; ``increment`` counts per metre)."""
+
+DEVIATIONS = (
+    "first_joint_translation_e",
+    "first_joint_translation_n",
+    "first_joint_translation_u",
+    "first_joint_tilt_n",
+    "first_joint_tilt_u",
+    "second_joint_translation_e",
+    "second_joint_translation_n",
+    "second_joint_translation_u",
+    "second_joint_tilt_e",
+    "second_joint_tilt_n",
+    "concentrator_translation_e",
+    "concentrator_translation_n",
+    "concentrator_translation_u",
+)
+"""Kinematic deviations of ARTIST's rigid-body kinematics (m for translations, rad for tilts)."""
+
+_NUMBERED = re.compile(r"^(?:actuator|facet)_(\d+)$")
+
+
+@dataclasses.dataclass(frozen=True)
+class ArtistActuator:
+    """One actuator: ``type`` (``"linear"`` or ``"ideal"``), ``clockwise_axis_movement``,
+    ``min_max_motor_positions`` (counts) and ``parameters`` (see :data:`ACTUATOR_PARAMETERS`)."""
+
+    type: str
+    clockwise_axis_movement: bool
+    min_max_motor_positions: tuple[int, int]
+    parameters: Mapping[str, float]
+
+
+@dataclasses.dataclass(frozen=True)
+class ArtistFacet:
+    """One facet: ``position`` ``(3,)`` m and ``canting`` ``(2, 3)`` (the ``e`` and ``n``
+    half-edge vectors) in the heliostat's surface frame, ``control_points``
+    ``(nu, nv, 3)`` m and the NURBS ``degrees`` ``(2,)``.
+
+    ARTIST cants and translates the control points itself when every control
+    point of the heliostat has ``z == 0`` (a flat facet, as in its "ideal"
+    scenarios); otherwise they are already in the surface frame."""
+
+    position: np.ndarray
+    canting: np.ndarray
+    control_points: np.ndarray
+    degrees: tuple[int, int]
+
+
+@dataclasses.dataclass(frozen=True)
+class ArtistHeliostat:
+    """One heliostat (or the prototype, with ``position`` and ``id`` ``None``)."""
+
+    name: str
+    id: int | None
+    position: np.ndarray | None
+    kinematics_type: str
+    initial_orientation: np.ndarray
+    deviations: Mapping[str, float]
+    actuators: tuple[ArtistActuator, ...]
+    facets: tuple[ArtistFacet, ...]
+
+
+@dataclasses.dataclass(frozen=True)
+class ArtistPlanarTarget:
+    """A planar target area: ``centre`` ``(3,)`` ENU m, unit ``normal`` ``(3,)``, full
+    ``width`` (along east, ``plane_e``) and ``height`` (``plane_u``), m."""
+
+    centre: np.ndarray
+    normal: np.ndarray
+    width: float
+    height: float
+
+
+@dataclasses.dataclass(frozen=True)
+class ArtistLightSource:
+    """A light source: ``type`` (``"sun"``), ``number_of_rays``, ``distribution_type``
+    (``"normal"``) with ``mean`` and ``covariance`` (rad^2 per axis)."""
+
+    type: str
+    number_of_rays: int
+    distribution_type: str
+    mean: float
+    covariance: float
+
+
+@dataclasses.dataclass(frozen=True)
+class ArtistScenario:
+    """The contents of an ARTIST scenario file (units of the file)."""
+
+    source: str
+    plant_position_lla: np.ndarray
+    heliostats: tuple[ArtistHeliostat, ...]
+    prototype: ArtistHeliostat | None
+    planar_targets: Mapping[str, ArtistPlanarTarget]
+    cylindrical_targets: Mapping[str, Mapping[str, np.ndarray]]
+    light_sources: Mapping[str, ArtistLightSource]
+    number_of_heliostat_groups: int | None = None
+    version: float = 1.0
+
+
+# --------------------------------------------------------------------------------------
+# Reading
+# --------------------------------------------------------------------------------------
+
+
+class _Reader:
+    def __init__(self, path: str):
+        self.path = path
+
+    def fail(self, field: str, reason: str) -> DataError:
+        return DataError(self.path, field, reason)
+
+    @staticmethod
+    def where(group: Any, name: str = "") -> str:
+        return f"{(group.name or '').strip('/')}/{name}".strip("/")
+
+    def node(self, group: Any, name: str) -> Any:
+        if name not in group:
+            raise self.fail(self.where(group, name), "missing")
+        return group[name]
+
+    def group(self, parent: Any, name: str) -> Any:
+        g = self.node(parent, name)
+        if not isinstance(g, h5py.Group):
+            raise self.fail(self.where(parent, name), "is a dataset, expected a group")
+        return g
+
+    def array(self, group: Any, name: str, shape: tuple[int | None, ...]) -> np.ndarray:
+        field = self.where(group, name)
+        obj = self.node(group, name)
+        if not isinstance(obj, h5py.Dataset):
+            raise self.fail(field, "is a group, expected a dataset")
+        try:
+            a = np.asarray(obj[()], np.float64)
+        except (TypeError, ValueError) as e:
+            raise self.fail(field, f"not numeric ({e})") from None
+        if a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape, strict=True)):
+            raise self.fail(field, f"shape {a.shape}, expected {tuple('*' if s is None else s for s in shape)}")
+        if not np.all(np.isfinite(a)):
+            raise self.fail(field, "non-finite value")
+        return a
+
+    def number(self, group: Any, name: str) -> float:
+        return float(self.array(group, name, ()))
+
+    def text(self, group: Any, name: str) -> str:
+        value = self.node(group, name)[()]
+        if isinstance(value, bytes):
+            return value.decode()
+        if isinstance(value, str):
+            return value
+        raise self.fail(self.where(group, name), f"expected a string, got {type(value).__name__}")
+
+    def numbered(self, group: Any) -> list[str]:
+        found = {int(m.group(1)): k for k in group if (m := _NUMBERED.match(k))}
+        if not found:
+            raise self.fail(self.where(group), "no numbered entries")
+        return [found[i] for i in sorted(found)]
+
+    def heliostat(self, g: Any, name: str, prototype: bool) -> ArtistHeliostat:
+        kin = self.group(g, "kinematics")
+        dev_group = self.group(kin, "deviations")
+        deviations = {k: self.number(dev_group, k) for k in DEVIATIONS if k in dev_group}
+        actuators = []
+        act_group = self.group(g, "actuator")
+        for a in self.numbered(act_group):
+            ag = act_group[a]
+            params = self.group(ag, "parameters")
+            mm = self.array(ag, "min_max_motor_positions", (2,))
+            actuators.append(
+                ArtistActuator(
+                    type=self.text(ag, "type"),
+                    clockwise_axis_movement=bool(self.node(ag, "clockwise_axis_movement")[()]),
+                    min_max_motor_positions=(int(mm[0]), int(mm[1])),
+                    parameters={k: self.number(params, k) for k in ACTUATOR_PARAMETERS},
+                )
+            )
+        if len(actuators) != 2:
+            raise self.fail(self.where(act_group), f"{len(actuators)} actuators, expected 2")
+        facets = []
+        fg = self.group(self.group(g, "surface"), "facets")
+        for k in self.numbered(fg):
+            f = fg[k]
+            deg = self.array(f, "degrees", (2,))
+            cp = self.array(f, "control_points", (None, None, 3))
+            if cp.shape[0] <= deg[0] or cp.shape[1] <= deg[1]:
+                raise self.fail(self.where(f, "control_points"), f"{cp.shape[:2]} too few for degrees {deg}")
+            facets.append(
+                ArtistFacet(
+                    position=self.array(f, "position", (4,))[:3],
+                    canting=self.array(f, "canting", (2, 4))[:, :3],
+                    control_points=cp,
+                    degrees=(int(deg[0]), int(deg[1])),
+                )
+            )
+        return ArtistHeliostat(
+            name=name,
+            id=None if prototype else int(self.array(g, "id", ())),
+            position=None if prototype else self.array(g, "position", (4,))[:3],
+            kinematics_type=self.text(kin, "type"),
+            initial_orientation=self.array(kin, "initial_orientation", (4,))[:3],
+            deviations=deviations,
+            actuators=tuple(actuators),
+            facets=tuple(facets),
+        )
+
+    def scenario(self, f: Any) -> ArtistScenario:
+        hel = self.group(f, "heliostats")
+        heliostats = tuple(self.heliostat(hel[k], k, False) for k in hel)
+        if not heliostats:
+            raise self.fail("heliostats", "no heliostats")
+        prototype = self.heliostat(f["prototypes"], "prototype", True) if "prototypes" in f else None
+        planar = {}
+        if "target_areas_planar" in f:
+            for k, t in f["target_areas_planar"].items():
+                normal = self.array(t, "normal_vector", (None, 4)).reshape(-1, 4)[0, :3]
+                planar[k] = ArtistPlanarTarget(
+                    centre=self.array(t, "position_center", (4,))[:3],
+                    normal=normal,
+                    width=self.number(t, "plane_e"),
+                    height=self.number(t, "plane_u"),
+                )
+        cylindrical = {}
+        if "target_areas_cylindrical" in f:
+            for k, t in f["target_areas_cylindrical"].items():
+                cylindrical[k] = {n: np.asarray(d[()]) for n, d in t.items()}
+        lights = {}
+        if "lightsources" in f:
+            for k, s in f["lightsources"].items():
+                d = self.group(s, "distribution_parameters")
+                lights[k] = ArtistLightSource(
+                    type=self.text(s, "type"),
+                    number_of_rays=int(self.number(s, "number_of_rays")),
+                    distribution_type=self.text(d, "distribution_type"),
+                    mean=self.number(d, "mean"),
+                    covariance=self.number(d, "covariance"),
+                )
+        groups = f.get("number_of_heliostat_groups")
+        return ArtistScenario(
+            source=self.path,
+            plant_position_lla=self.array(self.group(f, "power_plant"), "position", (3,)),
+            heliostats=heliostats,
+            prototype=prototype,
+            planar_targets=planar,
+            cylindrical_targets=cylindrical,
+            light_sources=lights,
+            number_of_heliostat_groups=None if groups is None else int(np.asarray(groups[()])),
+            version=float(f.attrs.get("version", 1.0)),
+        )
+
+
+def read_artist_scenario(path: str | os.PathLike) -> ArtistScenario:
+    """Read an ARTIST scenario HDF5 file.
+
+    Raises:
+        DataError: unreadable file, missing groups or datasets (named by their HDF5
+            path), wrong shapes or non-finite numbers.
+    """
+    reader = _Reader(str(path))
+    try:
+        with h5py.File(path, "r") as f:
+            return reader.scenario(f)
+    except OSError as e:
+        raise DataError(path, None, f"not a readable HDF5 file ({e})") from None
+
+
+# --------------------------------------------------------------------------------------
+# Writing
+# --------------------------------------------------------------------------------------
+
+
+def _h(v, w: float) -> np.ndarray:
+    return np.concatenate([np.asarray(v, np.float32).reshape(3), np.asarray([w], np.float32)])
+
+
+def _write_heliostat(g: Any, h: ArtistHeliostat) -> None:
+    if h.id is not None:
+        g["id"] = np.int64(h.id)
+    if h.position is not None:
+        g["position"] = _h(h.position, 1.0)
+    k = g.create_group("kinematics")
+    k["type"] = np.bytes_(h.kinematics_type)
+    k["initial_orientation"] = _h(h.initial_orientation, 0.0)
+    d = k.create_group("deviations")
+    for name, value in h.deviations.items():
+        d[name] = np.float32(value)
+    for i, a in enumerate(h.actuators):
+        ag = g.create_group(f"actuator/actuator_{i}")
+        ag["type"] = np.bytes_(a.type)
+        ag["clockwise_axis_movement"] = np.bool_(a.clockwise_axis_movement)
+        ag["min_max_motor_positions"] = np.asarray(a.min_max_motor_positions, np.int64)
+        p = ag.create_group("parameters")
+        for name, value in a.parameters.items():
+            p[name] = np.float32(value)
+    for i, facet in enumerate(h.facets, start=1):
+        fg = g.create_group(f"surface/facets/facet_{i}")
+        fg["position"] = _h(facet.position, 0.0)
+        fg["canting"] = np.stack([_h(c, 0.0) for c in np.asarray(facet.canting)])
+        fg["control_points"] = np.asarray(facet.control_points, np.float32)
+        fg["degrees"] = np.asarray(facet.degrees, np.int64)
+
+
+def write_artist_scenario(path: str | os.PathLike, scenario: ArtistScenario) -> None:
+    """Write ``scenario`` in ARTIST's layout (float32 numbers, as ARTIST writes them),
+    atomically."""
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs["version"] = np.float64(scenario.version)
+        f["power_plant/position"] = np.asarray(scenario.plant_position_lla, np.float64)
+        if scenario.number_of_heliostat_groups is not None:
+            f["number_of_heliostat_groups"] = np.int64(scenario.number_of_heliostat_groups)
+        for h in scenario.heliostats:
+            _write_heliostat(f.create_group(f"heliostats/{h.name}"), h)
+        if scenario.prototype is not None:
+            _write_heliostat(f.create_group("prototypes"), scenario.prototype)
+        for name, t in scenario.planar_targets.items():
+            g = f.create_group(f"target_areas_planar/{name}")
+            g["position_center"] = _h(t.centre, 1.0)
+            g["normal_vector"] = _h(t.normal, 0.0)[None]
+            g["plane_e"] = np.float32(t.width)
+            g["plane_u"] = np.float32(t.height)
+        for name, entries in scenario.cylindrical_targets.items():
+            g = f.create_group(f"target_areas_cylindrical/{name}")
+            for k, v in entries.items():
+                g[k] = v
+        for name, s in scenario.light_sources.items():
+            g = f.create_group(f"lightsources/{name}")
+            g["type"] = np.bytes_(s.type)
+            g["number_of_rays"] = np.int64(s.number_of_rays)
+            g["distribution_parameters/distribution_type"] = np.bytes_(s.distribution_type)
+            g["distribution_parameters/mean"] = np.float64(s.mean)
+            g["distribution_parameters/covariance"] = np.float64(s.covariance)
+
+
+__all__ = [
+    "ACTUATOR_PARAMETERS",
+    "DEVIATIONS",
+    "ArtistActuator",
+    "ArtistFacet",
+    "ArtistHeliostat",
+    "ArtistLightSource",
+    "ArtistPlanarTarget",
+    "ArtistScenario",
+    "read_artist_scenario",
+    "write_artist_scenario",
+]
