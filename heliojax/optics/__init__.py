@@ -9,14 +9,19 @@ from ._artist import (
 from ._compare import (
     CENTRED_WINDOW_M as CENTRED_WINDOW_M,
     FluxComparison as FluxComparison,
+    FluxRecords as FluxRecords,
     compare_record as compare_record,
     comparison_figure as comparison_figure,
     default_sunshape as default_sunshape,
+    flux_records as flux_records,
     flux_sample_records as flux_sample_records,
     geometry_from_properties as geometry_from_properties,
+    kl_divergence as kl_divergence,
     layout_from_properties as layout_from_properties,
     load_flux_png as load_flux_png,
     normalised_cross_correlation as normalised_cross_correlation,
+    point_at as point_at,
+    spot_widths as spot_widths,
     target_from_tower as target_from_tower,
 )
 from ._flux import (

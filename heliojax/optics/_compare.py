@@ -26,11 +26,14 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import typing
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Float
 
 from .._errors import DataError
 from .._geometry import TargetPlane, bisector_normal, normalize, sun_direction, wgs84_to_enu
@@ -341,6 +344,119 @@ def compare_record(
     )
 
 
+@typing.final
+class FluxRecords(eqx.Module):
+    """Measured flux images of one heliostat with what they were taken with, ready
+    for tracing (batched over ``n`` records; ENU m).
+
+    Attributes:
+        heliostat_id: the heliostat.
+        record_ids: ``(n,)`` calibration record ids.
+        images: ``(n, k, k)`` measured ``-flux-centered`` images, background removed,
+            block-averaged to ``k`` pixels, relative brightness.
+        poses: :class:`Pose` ``(n, ...)``: the record's motor counts through
+            ``model``, turned onto its measured focal spot (:func:`point_at`).
+        suns: ``(n, 3)`` unit vectors to the sun.
+        targets: :class:`TargetPlane` ``(n, ...)`` of each record.
+        grids: :class:`ImageGrid` ``(n,)``: 6 x 6 m windows about the measured centroids.
+        geometry: the heliostat's :class:`HeliostatGeometry` (from its properties).
+        layout: its :class:`FacetLayout`.
+    """
+
+    heliostat_id: str = eqx.field(static=True)
+    record_ids: tuple[int, ...] = eqx.field(static=True)
+    images: Float[Array, "n k k"]
+    poses: Pose
+    suns: Float[Array, "n 3"]
+    targets: TargetPlane
+    grids: ImageGrid
+    geometry: HeliostatGeometry
+    layout: FacetLayout
+
+    def __check_init__(self):
+        n = len(self.record_ids)
+        if self.images.shape[0] != n or self.suns.shape[0] != n or self.poses.normal.shape[0] != n:
+            raise ValueError(f"{n} record ids but {self.images.shape[0]} images, {self.suns.shape[0]} suns")
+
+    def subset(self, index) -> FluxRecords:
+        """The records at ``index`` (a list of positions)."""
+        idx = np.asarray(index, int)
+        take = lambda t: jax.tree_util.tree_map(lambda x: x[idx], t)  # noqa: E731
+        return FluxRecords(
+            heliostat_id=self.heliostat_id,
+            record_ids=tuple(self.record_ids[i] for i in idx),
+            images=self.images[idx],
+            poses=take(self.poses),
+            suns=self.suns[idx],
+            targets=take(self.targets),
+            grids=take(self.grids),
+            geometry=self.geometry,
+            layout=self.layout,
+        )
+
+
+def flux_records(
+    records: list[tuple[Path, Path]],
+    tower_path: str | os.PathLike,
+    *,
+    model: AbstractKinematicModel | None = None,
+    pixels: int = 64,
+) -> FluxRecords:
+    """Load one heliostat's flux records (``(record JSON, properties JSON)`` pairs as
+    :func:`flux_sample_records` lists them) for reconstruction or validation.
+
+    Raises:
+        DataError: a record of another heliostat, one without a focal spot, or a
+            ``-flux-centered.png`` whose size is not a multiple of ``pixels``.
+    """
+    tower = read_tower(tower_path)
+    origin = jnp.asarray(tower.origin_lla, jnp.float64)
+    model = ActuatorModel.nominal(jnp.float64) if model is None else model
+    props = read_heliostat_properties(records[0][1])
+    geometry = geometry_from_properties(props, tower.origin_lla)
+    ids, images, poses, suns, targets, grids = [], [], [], [], [], []
+    for rec_path, _ in records:
+        rec_path = Path(rec_path)
+        record = read_calibration_record(rec_path, heliostat_id=props.heliostat_id)
+        spot = record.focal_spot_utis or record.focal_spot_helios
+        if spot is None:
+            raise DataError(rec_path, "focal_spot", "no focal spot")
+        target = target_from_tower(tower, record.target_name)
+        sun = sun_direction(jnp.deg2rad(record.sun_azimuth_deg), jnp.deg2rad(record.sun_elevation_deg))
+        counts = jnp.asarray([record.axis_1_counts, record.axis_2_counts], jnp.float64)
+        spot_enu = wgs84_to_enu(jnp.asarray(spot, jnp.float64), origin)
+        pose = point_at(forward(model, geometry, counts), sun, spot_enu)
+        stem = rec_path.name.replace("-calibration-properties.json", "")
+        full = remove_background(load_flux_png(rec_path.parent / f"{stem}-flux.png"))
+        centre = image_centroid(full, ImageGrid.for_target(target, full.shape))
+        centred = remove_background(load_flux_png(rec_path.parent / f"{stem}-flux-centered.png"))
+        k = centred.shape[0] // pixels
+        if centred.shape != (k * pixels, k * pixels):
+            raise DataError(
+                rec_path.parent / f"{stem}-flux-centered.png",
+                None,
+                f"{centred.shape} pixels, not a multiple of {pixels}",
+            )
+        images.append(centred.reshape(pixels, k, pixels, k).mean(axis=(1, 3)))
+        ids.append(record.record_id)
+        poses.append(pose)
+        suns.append(sun)
+        targets.append(target)
+        grids.append(ImageGrid.centred(centre[0], centre[1], *CENTRED_WINDOW_M, shape=(pixels, pixels)))
+    stack = lambda xs: jax.tree_util.tree_map(lambda *x: jnp.stack(x), *xs)  # noqa: E731
+    return FluxRecords(
+        heliostat_id=props.heliostat_id,
+        record_ids=tuple(ids),
+        images=jnp.asarray(np.stack(images)),
+        poses=stack(poses),
+        suns=jnp.stack(suns),
+        targets=stack(targets),
+        grids=stack(grids),
+        geometry=geometry,
+        layout=layout_from_properties(props),
+    )
+
+
 def _centred_grid(shape) -> ImageGrid:
     """Grid of a measured ``-flux-centered`` image: 6 x 6 m about its own centroid."""
     w, h = CENTRED_WINDOW_M
@@ -394,9 +510,11 @@ def comparison_figure(comparison: FluxComparison, ax=None):
 __all__ = [
     "CENTRED_WINDOW_M",
     "FluxComparison",
+    "FluxRecords",
     "compare_record",
     "comparison_figure",
     "default_sunshape",
+    "flux_records",
     "flux_sample_records",
     "geometry_from_properties",
     "image_centroid",

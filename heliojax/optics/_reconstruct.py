@@ -10,7 +10,10 @@ and sun directions ``s_k``, the loss is
           + smoothness * sum |D2 dz|^2 / (n_u n_v)                  (curvature of the patch)
           + 1e-6 * mean dz^2 / (1 mm)^2                            (fixes the per-facet piston)
 
-with ``F_k`` the traced flux image (W/m^2 on the same grid). Each optimisation
+with ``F_k`` the traced flux image (W/m^2 on the same grid). With
+``relative=True`` (camera images of relative brightness, such as PAINT's flux
+PNGs) both images are normalised to unit sum before the data term and the
+flux-conservation term is dropped. Each optimisation
 step traces with a fresh key (``fold_in(key, step)``), so the optimiser averages
 the Monte Carlo noise out instead of fitting one fixed noise realisation.
 Optimiser: ``optax.adam``; the whole step is jitted once.
@@ -27,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from jaxtyping import Array, Float, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .._geometry import TargetPlane
 from .._heliostat import Pose
@@ -82,6 +85,7 @@ def flux_loss(
     smoothness: float,
     flux_weight: float,
     dni: float,
+    relative: bool = False,
 ) -> Float[Array, ""]:
     """The reconstruction loss (see the module docstring) at height offsets ``dz``."""
     n = images.shape[0]
@@ -89,6 +93,10 @@ def flux_loss(
     surfs = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n,) + x.shape), surf)
     pred = flux_images(key, surfs, poses, suns, target, grid, sunshape, rays_per_point=rays_per_point, dni=dni)
     pred = pred.astype(images.dtype)
+    if relative:
+        unit = lambda x: x / jnp.maximum(jnp.sum(x, axis=(-2, -1), keepdims=True), 1e-30)  # noqa: E731
+        pred, images = unit(pred), unit(images)
+        flux_weight = 0.0
     norm = jnp.sum(images**2, axis=(-2, -1))
     data = jnp.mean(jnp.sum((pred - images) ** 2, axis=(-2, -1)) / norm)
     ratio = jnp.sum(pred, axis=(-2, -1)) / jnp.sum(images, axis=(-2, -1))
@@ -103,9 +111,9 @@ def flux_loss(
 def reconstruct_surface(
     key: PRNGKeyArray,
     initial: NurbsFacets,
-    images: Float[Array, "n ny nx"],
+    images: Float[ArrayLike, "n ny nx"],
     poses: Pose,
-    suns: Float[Array, "n 3"],
+    suns: Float[ArrayLike, "n 3"],
     target: TargetPlane,
     grid: ImageGrid,
     sunshape: AbstractSunShape,
@@ -117,6 +125,7 @@ def reconstruct_surface(
     smoothness: float = 1e-3,
     flux_weight: float = 1.0,
     dni: float = 1000.0,
+    relative: bool = False,
     callback: Callable[[int, float], None] | None = None,
 ) -> ReconstructionResult:
     """Recover control-point heights of one heliostat from ``n`` flux images.
@@ -137,6 +146,8 @@ def reconstruct_surface(
         smoothness: weight of the second differences of ``dz`` (per (1 mm)^2).
         flux_weight: weight of the total-power (flux conservation) term.
         dni: W/m^2.
+        relative: images of relative brightness: compare unit-sum images, no
+            flux-conservation term.
         callback: ``callback(step, loss)`` after every step (host side).
     """
     images = jnp.asarray(images, jnp.float32)
@@ -145,7 +156,12 @@ def reconstruct_surface(
     opt = optax.adam(learning_rate)
     state = opt.init(dz)
     kw = dict(
-        resolution=resolution, rays_per_point=rays_per_point, smoothness=smoothness, flux_weight=flux_weight, dni=dni
+        resolution=resolution,
+        rays_per_point=rays_per_point,
+        smoothness=smoothness,
+        flux_weight=flux_weight,
+        dni=dni,
+        relative=relative,
     )
 
     @jax.jit
