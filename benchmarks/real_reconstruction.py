@@ -31,68 +31,22 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from heliojax.optics import (  # noqa: E402
     BuieSun,
-    NurbsFacets,
-    flux_images,
     flux_records,
     flux_sample_records,
-    kl_divergence,
-    normalised_cross_correlation,
-    reconstruct_surface,
+    low_order_shape,
+    normal_deviation_map,
+    normal_deviation_mrad,
+    reconstruct_from_records,
     scene_from_artist,
 )
 
 HERE = Path(__file__).resolve().parent
 SHARED = HERE.parents[1] / "shared" / "data"
 SUN = BuieSun(0.05)
-
-
-def trace(surface, recs, key, rays=256):
-    n = recs.images.shape[0]
-    surfs = jax.tree.map(lambda x: jnp.broadcast_to(x, (n,) + x.shape), surface)
-    return np.asarray(
-        flux_images(
-            key, surfs, recs.poses, recs.suns, recs.targets, recs.grids, SUN, rays_per_point=rays // 4, steps=4
-        ),
-        np.float64,
-    )
-
-
-def normal_angles_mrad(facets: NurbsFacets, reference_points, reference_normals) -> np.ndarray:
-    """Angle (mrad) between ``facets``' normals at the reference points' facet-local
-    (x, y) and the reference normals, ``(f, p)``."""
-    n = np.asarray(facets.normals_at(jnp.asarray(reference_points[..., :2])))
-    cross = np.linalg.norm(np.cross(n, reference_normals), axis=-1)
-    return np.arctan2(cross, np.sum(n * reference_normals, axis=-1)) * 1e3
-
-
-def normal_deviation_mrad(facets: NurbsFacets, reference_points, reference_normals, reference_areas) -> float:
-    """Area-weighted RMS of :func:`normal_angles_mrad`."""
-    ang = normal_angles_mrad(facets, reference_points, reference_normals)
-    return float(np.sqrt(np.sum(reference_areas * ang**2) / np.sum(reference_areas)))
-
-
-def low_order(points, areas) -> list[dict]:
-    """Per facet: paraboloid fit -> focal length (m) and tilt (mrad)."""
-    out = []
-    for p, w in zip(points, areas, strict=True):
-        x, y, z = p[:, 0] - p[:, 0].mean(), p[:, 1] - p[:, 1].mean(), p[:, 2]
-        a = np.stack([np.ones_like(x), x, y, x**2 + y**2], -1) * np.sqrt(w)[:, None]
-        c = np.linalg.lstsq(a, z * np.sqrt(w), rcond=None)[0]
-        out.append({"focal_length_m": float(1.0 / (4.0 * c[3])), "tilt_mrad": [float(c[1] * 1e3), float(c[2] * 1e3)]})
-    return out
-
-
-def facet_samples(facets: NurbsFacets, resolution=(24, 24)):
-    """Facet-local points, normals, areas ``(f, m*k, ...)``."""
-    s = facets.evaluate(resolution)
-    f = facets.control_points.shape[-4]
-    pts = np.asarray(s.points).reshape(f, -1, 3) - np.asarray(facets.translations)[:, None, :]
-    return pts, np.asarray(s.normals).reshape(f, -1, 3), np.asarray(s.areas).reshape(f, -1)
 
 
 def main() -> None:
@@ -127,70 +81,57 @@ def main() -> None:
         recs = flux_records(recs_h, tower)
         i = scene.index(h)
         measured_facets = jax.tree.map(lambda x, i=i: x[i], scene.facets)
-        ref_pts, ref_nrm, ref_area = facet_samples(measured_facets)
-        ideal = NurbsFacets.ideal(recs.layout, n_ctrl=(args.n_ctrl, args.n_ctrl))
         for test in range(len(recs.record_ids)):
             train = [k for k in range(len(recs.record_ids)) if k != test]
             t0 = time.perf_counter()
-            result = reconstruct_surface(
-                jax.random.key(test),
-                ideal,
-                recs.subset(train).images,
-                recs.subset(train).poses,
-                recs.subset(train).suns,
-                recs.subset(train).targets,
-                recs.subset(train).grids,
-                SUN,
+            rec = reconstruct_from_records(
+                recs,
+                train,
+                key=jax.random.key(test),
+                references={"deflectometry": measured_facets},
+                sunshape=SUN,
+                n_ctrl=args.n_ctrl,
                 steps=args.steps,
                 learning_rate=args.learning_rate,
                 smoothness=args.smoothness,
-                resolution=(16, 16),
-                rays_per_point=32,
-                relative=True,
+                evaluation_rays=64,
             )
-            seconds = time.perf_counter() - t0
-            held = recs.subset([test])
-            key = jax.random.key(99)
             row = {
                 "heliostat": h,
-                "held_out_record": held.record_ids[0],
+                "held_out_record": recs.record_ids[test],
                 "train_records": [recs.record_ids[k] for k in train],
             }
-            row["seconds"] = round(seconds, 1)
-            row["loss_first_last"] = [float(result.losses[:10].mean()), float(result.losses[-10:].mean())]
-            images = {}
-            for name, facets in (
-                ("ideal", ideal),
-                ("reconstructed", result.facets),
-                ("deflectometry", measured_facets),
-            ):
-                img = trace(facets.evaluate((24, 24)), held, key)[0]
-                images[name] = img
-                row[f"held_out_ncc_{name}"] = normalised_cross_correlation(img, held.images[0])
-                row[f"held_out_kl_{name}"] = kl_divergence(held.images[0], img)
+            row["seconds"] = round(time.perf_counter() - t0, 1)
+            row["loss_first_last"] = rec.summary()["loss_first_last"]
+            for name in rec.traced:
+                row[f"held_out_ncc_{name}"] = float(rec.ncc[name][test])
+                row[f"held_out_kl_{name}"] = float(rec.kl[name][test])
             row["normal_rms_vs_deflectometry_mrad"] = {
-                "ideal": normal_deviation_mrad(ideal, ref_pts, ref_nrm, ref_area),
-                "reconstructed": normal_deviation_mrad(result.facets, ref_pts, ref_nrm, ref_area),
+                "ideal": normal_deviation_mrad(rec.ideal, measured_facets),
+                "reconstructed": normal_deviation_mrad(rec.result.facets, measured_facets),
             }
             row["low_order"] = {
-                name: low_order(*(lambda p, n, a: (p, a))(*facet_samples(f)))
-                for name, f in (("ideal", ideal), ("reconstructed", result.facets), ("deflectometry", measured_facets))
+                name: low_order_shape(f)
+                for name, f in (
+                    ("ideal", rec.ideal),
+                    ("reconstructed", rec.result.facets),
+                    ("deflectometry", measured_facets),
+                )
             }
             results.append(row)
-            panels.append((h, held.record_ids[0], held.images[0], images, row))
-            if test == 0:
-                where = ref_pts + np.asarray(measured_facets.translations)[:, None, :]
-                maps.append(
-                    (
-                        h,
-                        row["train_records"],
-                        where,
-                        {
-                            "ideal": normal_angles_mrad(ideal, ref_pts, ref_nrm),
-                            "reconstructed": normal_angles_mrad(result.facets, ref_pts, ref_nrm),
-                        },
-                    )
+            panels.append(
+                (
+                    h,
+                    recs.record_ids[test],
+                    np.asarray(recs.images[test]),
+                    {k: v[test] for k, v in rec.traced.items()},
+                    row,
                 )
+            )
+            if test == 0:
+                where, ang_ideal, _ = normal_deviation_map(rec.ideal, measured_facets)
+                _, ang_rec, _ = normal_deviation_map(rec.result.facets, measured_facets)
+                maps.append((h, row["train_records"], where, {"ideal": ang_ideal, "reconstructed": ang_rec}))
             print(json.dumps({k: row[k] for k in row if k != "low_order"}), flush=True)
     summary = {
         "folds": len(results),

@@ -65,6 +65,8 @@ CASES = [
     ("train fraction above 1", lambda t: ["calibrate", "--train-fraction", "1.5"], "--train-fraction"),
     ("nan learning rate", lambda t: ["reconstruct", "--learning-rate", "nan"], "--learning-rate"),
     ("zero reconstruction steps", lambda t: ["reconstruct", "--steps", "0"], "--steps"),
+    ("reconstruct heliostat without --paint", lambda t: ["reconstruct", "--heliostat", "AA39"], "--paint"),
+    ("reconstruct no flux records", lambda t: ["reconstruct", "--paint", str(t), "--heliostat", "AA39"], "AA39"),
     ("zero pixels", lambda t: ["trace", str(t), "--heliostat", "AA39", "--pixels", "0"], "--pixels"),
     ("zero rays", lambda t: ["trace", str(t), "--heliostat", "AA39", "--rays-per-point", "0"], "--rays-per-point"),
     ("sun below the horizon", lambda t: ["trace", str(t), "--heliostat", "AA39", "--sun-elevation", "-30"], "--sun"),

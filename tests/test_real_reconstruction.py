@@ -114,3 +114,25 @@ def test_reconstruction_from_two_real_images_predicts_the_third(aa39):
         for name, f in (("ideal", ideal), ("reconstructed", result.facets))
     }
     assert kl["reconstructed"] < 0.7 * kl["ideal"], kl
+
+
+def test_reconstruct_command_on_real_records(tmp_path, capsys):
+    """`heliojax reconstruct --paint ... --heliostat AA39 --held-out ...` writes its
+    report, control points and figure, and names a held-out id it does not know."""
+    import json
+
+    from heliojax.cli._main import main
+
+    paint = SHARED_PAINT / "flux-samples"
+    if not (paint / "AA39").exists():
+        pytest.skip("needs ../shared/data/paint/flux-samples")
+    out = tmp_path / "aa39"
+    argv = ["reconstruct", "--paint", str(paint), "--heliostat", "AA39", "--out", str(out), "--quiet"]
+    assert main([*argv, "--held-out", "270398", "--steps", "3", "--rays-per-point", "4"]) == 0
+    report = json.loads((out / "reconstruction.json").read_text())
+    roles = {r["record"]: r["role"] for r in report["records"]}
+    assert roles == {270398: "held out", 271633: "train", 275564: "train"}
+    assert (out / "control_points.h5").stat().st_size > 0 and (out / "reconstruction.png").stat().st_size > 0
+    capsys.readouterr()
+    assert main([*argv, "--held-out", "1"]) == 2
+    assert "--held-out [1]" in capsys.readouterr().err

@@ -13,7 +13,9 @@ from ._common import integer, number
 
 EXAMPLES = """examples:
   heliojax reconstruct --out out/reconstruction
-  heliojax reconstruct --images 8 --steps 300 --rays-per-point 64 --seed 3 --out out/reconstruction"""
+  heliojax reconstruct --images 8 --steps 300 --rays-per-point 64 --seed 3 --out out/reconstruction
+  heliojax reconstruct --paint ../shared/data/paint/flux-samples --heliostat AA39 --held-out 270398 \
+      --scenario ../shared/data/artist-scenarios/paint_four_heliostats_deflectometry.h5 --out out/aa39"""
 
 OUTPUT_FILES = ()
 OUTPUT_DIRS = ("out",)
@@ -23,15 +25,18 @@ OUTPUT_DIRS = ("out",)
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "reconstruct",
-        help="gradient-based surface reconstruction from flux images (synthetic benchmark)",
+        help="gradient-based surface reconstruction from flux images (real PAINT records or a synthetic benchmark)",
         description=(
             "Recover the control-point heights of a heliostat's NURBS facets from several flux "
             "images by Adam through the differentiable ray tracer (fresh rays every step, "
-            "smoothness and flux-conservation regularisation). This version runs the synthetic "
-            "benchmark: a hidden surface with 1-3 mrad bumps, imaged for N sun positions; it "
-            "writes OUT/reconstruction.json (normal errors of the ideal and the recovered "
-            "surface vs the truth), OUT/control_points.h5 and OUT/reconstruction.png. Real PAINT "
-            "flux PNGs carry relative brightness and need calibrated kinematics first."
+            "smoothness regularisation). With --paint and --heliostat it uses the heliostat's real "
+            "flux records (PAINT layout <H>/Calibration/<ID>-flux.png, -flux-centered.png and the "
+            "calibration JSON; relative brightness; each record's pose from its motor counts turned "
+            "onto its measured focal spot), trains on all records but --held-out and scores every "
+            "record (NCC, KL) with the ideal, the reconstructed and, with --scenario, the "
+            "deflectometry surface of an ARTIST scenario. Without --paint it runs the synthetic "
+            "benchmark: a hidden surface with 1-3 mrad bumps, imaged for N sun positions. Writes "
+            "OUT/reconstruction.json, OUT/control_points.h5 and OUT/reconstruction.png."
         ),
     )
     p.add_argument(
@@ -40,17 +45,37 @@ def add_parser(subparsers) -> None:
     p.add_argument("--seed", type=integer(0, 2**32 - 1), default=1, help="seed of the hidden surface and of the rays")
     p.add_argument("--steps", type=integer(1), default=150, help="optimiser steps (>= 1)")
     p.add_argument(
-        "--learning-rate", type=number(0.0, above=True), default=2.5e-4, help="Adam step (m of control height)"
+        "--learning-rate",
+        type=number(0.0, above=True),
+        default=None,
+        help="Adam step (m of control height); default 2.5e-4 synthetic, 5e-5 real records",
     )
     p.add_argument("--rays-per-point", type=integer(1), default=32, help="rays per surface point per image and step")
     p.add_argument(
         "--smoothness",
         type=number(0.0),
-        default=1e-3,
-        help="weight of the curvature penalty on the control heights (1/m^2)",
+        default=None,
+        help="weight of the curvature penalty on the control heights (1/m^2); default 1e-3 synthetic, 1e-2 real",
     )
     p.add_argument(
         "--flux-weight", type=number(0.0), default=1.0, help="weight of the flux-conservation term (dimensionless)"
+    )
+    p.add_argument(
+        "--paint",
+        type=Path,
+        default=None,
+        help="PAINT directory with <H>/Calibration flux records (e.g. ../shared/data/paint/flux-samples)",
+    )
+    p.add_argument("--heliostat", default=None, help="heliostat id of the real records (with --paint)")
+    p.add_argument(
+        "--tower", type=Path, default=None, help="tower-measurements JSON (default: the one in --paint or its parent)"
+    )
+    p.add_argument("--held-out", nargs="*", type=int, default=[], help="record ids kept out of the reconstruction")
+    p.add_argument(
+        "--scenario", type=Path, default=None, help="ARTIST scenario HDF5 whose surface of --heliostat is scored too"
+    )
+    p.add_argument(
+        "--n-ctrl", type=integer(4, 32), default=8, help="control points per facet and direction (real mode)"
     )
     p.add_argument("--out", type=Path, default=Path("reconstruction"), help="output directory")
     p.add_argument("--quiet", action="store_true", help="no progress bar or messages on stderr")
@@ -68,6 +93,11 @@ def run(args: argparse.Namespace) -> int:
     from .. import optics
     from .._io import atomic_path, atomic_write
 
+    real = args.paint is not None or args.heliostat is not None
+    if args.learning_rate is None:
+        args.learning_rate = 5e-5 if real else 2.5e-4
+    if args.smoothness is None:
+        args.smoothness = 1e-2 if real else 1e-3
     if not 1 <= args.images <= 32:
         print("heliojax reconstruct: --images must lie in 1..32", file=sys.stderr)
         return 2
@@ -81,6 +111,8 @@ def run(args: argparse.Namespace) -> int:
         if not ok:
             print(f"heliojax reconstruct: {flag} {value} is out of range (see --help)", file=sys.stderr)
             return 2
+    if real:
+        return _run_real(args)
     scene = optics.synthetic_scene(seed=args.seed, n_images=args.images)
     losses = []
     res = optics.reconstruct_surface(
@@ -135,6 +167,86 @@ def run(args: argparse.Namespace) -> int:
     with atomic_path(args.out / "reconstruction.png") as tmp:
         fig.savefig(tmp, dpi=90, format="png", bbox_inches="tight")
     plt.close(fig)
+    with atomic_write(args.out / "reconstruction.json") as f:
+        json.dump(report, f, indent=2)
+    print(json.dumps(report, indent=2))
+    return 0
+
+
+def _run_real(args: argparse.Namespace) -> int:
+    """Reconstruction from a heliostat's real flux records."""
+    import h5py
+    import jax
+    import numpy as np
+
+    from .. import optics
+    from .._errors import DataError
+    from .._io import atomic_path, atomic_write
+
+    def fail(message: str) -> int:
+        print(f"heliojax reconstruct: {message}", file=sys.stderr)
+        return 2
+
+    if args.paint is None or args.heliostat is None:
+        return fail("real records need both --paint DIR and --heliostat ID")
+    pairs = [p for p in optics.flux_sample_records(args.paint) if p[1].parent.parent.name == args.heliostat]
+    if not pairs:
+        found = sorted({p[1].parent.parent.name for p in optics.flux_sample_records(args.paint)})
+        some = ", ".join(found) or "none"
+        return fail(f"no flux records of {args.heliostat} under {args.paint} (heliostats with some: {some})")
+    tower = args.tower
+    if tower is None:
+        candidates = [
+            *args.paint.glob("*-tower-measurements.json"),
+            *args.paint.parent.glob("*-tower-measurements.json"),
+        ]
+        if not candidates:
+            return fail(f"no *-tower-measurements.json in {args.paint} or its parent: pass --tower")
+        tower = candidates[0]
+    try:
+        records = optics.flux_records(pairs, tower)
+        references = {}
+        if args.scenario is not None:
+            scene = optics.scene_from_artist(args.scenario)
+            i = scene.index(args.heliostat)
+            references["deflectometry"] = jax.tree_util.tree_map(lambda x: x[i], scene.facets)
+    except (DataError, KeyError) as e:
+        return fail(str(e))
+    unknown = sorted(set(args.held_out) - set(records.record_ids))
+    if unknown:
+        return fail(
+            f"--held-out {unknown}: not records of {args.heliostat} ({', '.join(map(str, records.record_ids))})"
+        )
+    train = [i for i, r in enumerate(records.record_ids) if r not in set(args.held_out)]
+    if not train:
+        return fail("every record is held out: nothing to reconstruct from")
+    rec = optics.reconstruct_from_records(
+        records,
+        train,
+        key=jax.random.key(args.seed),
+        references=references,
+        n_ctrl=args.n_ctrl,
+        steps=args.steps,
+        learning_rate=args.learning_rate,
+        smoothness=args.smoothness,
+        rays_per_point=args.rays_per_point,
+    )
+    report = rec.summary()
+    if "deflectometry" in references:
+        report["normal_rms_vs_deflectometry_mrad"] = {
+            name: optics.normal_deviation_mrad(f, references["deflectometry"])
+            for name, f in (("ideal", rec.ideal), ("reconstructed", rec.result.facets))
+        }
+    with atomic_path(args.out / "control_points.h5") as tmp:
+        with h5py.File(tmp, "w") as f:
+            f.create_dataset("control_points", data=np.asarray(rec.result.facets.control_points))
+            f.create_dataset("translations", data=np.asarray(rec.result.facets.translations))
+            f.attrs["degree"] = rec.result.facets.degree
+            f.attrs["heliostat"] = args.heliostat
+            f.attrs["train_records"] = [records.record_ids[i] for i in rec.train]
+    fig = optics.records_figure(rec, records)
+    with atomic_path(args.out / "reconstruction.png") as tmp:
+        fig.savefig(tmp, dpi=80, format="png")
     with atomic_write(args.out / "reconstruction.json") as f:
         json.dump(report, f, indent=2)
     print(json.dumps(report, indent=2))

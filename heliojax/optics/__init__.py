@@ -43,6 +43,14 @@ from ._nurbs import (
     normal_errors_mrad as normal_errors_mrad,
     rms_normal_error_mrad as rms_normal_error_mrad,
 )
+from ._real import (
+    RecordsReconstruction as RecordsReconstruction,
+    low_order_shape as low_order_shape,
+    normal_deviation_map as normal_deviation_map,
+    normal_deviation_mrad as normal_deviation_mrad,
+    reconstruct_from_records as reconstruct_from_records,
+    records_figure as records_figure,
+)
 from ._reconstruct import (
     ReconstructionResult as ReconstructionResult,
     SyntheticScene as SyntheticScene,
