@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import heliojax as hj
-from heliojax.optics import BuieSun, ImageGrid, pose_from_normal, scene_from_artist
+from heliojax.optics import ImageGrid, pose_from_normal
 from heliojax.optics._compare import (
     compare_record,
     flux_sample_records,
@@ -78,39 +77,3 @@ def test_point_at_reflects_the_central_ray_onto_the_spot():
     r = np.asarray(new.rotation)
     np.testing.assert_allclose(r.T @ r, np.eye(3), atol=1e-12)
     np.testing.assert_allclose(r[:, 2], np.asarray(new.normal), atol=1e-12)
-
-
-def test_measured_surface_beats_ideal_facets_on_a_real_image(shared_paint):
-    """AA39 record 271633 with the pointing corrected by its focal spot: the
-    deflectometry surface (ARTIST's NURBS fit) matches the measured spot better than
-    ideal facets (NCC and KL), and its widths agree with the measured ones to 10 %."""
-    scenario = shared_paint.parent / "artist-scenarios" / "paint_four_heliostats_deflectometry.h5"
-    pairs = [p for p in flux_sample_records(shared_paint / "flux-samples") if p[0].name.startswith("271633")]
-    if not pairs or not scenario.exists():
-        pytest.skip("flux sample 271633 (AA39) or the ARTIST scenario not present")
-    rec, props = pairs[0]
-    scene = scene_from_artist(scenario)
-    i = scene.index("AA39")
-    surfaces = {
-        "ideal": None,
-        "deflectometry": jax.tree.map(lambda x: x[i], scene.facets.evaluate((24, 24))),
-    }
-    tower = shared_paint / "WRI1030197-tower-measurements.json"
-    got = {
-        k: compare_record(
-            rec,
-            props,
-            tower,
-            surface=s,
-            sunshape=BuieSun(0.05),
-            rays_per_point=32,
-            steps=2,
-            resolution=(24, 24),
-            correct_pointing=True,
-        )
-        for k, s in surfaces.items()
-    }
-    assert got["ideal"].traced_vs_record_m < 0.1  # the correction put the spot on the record's centroid
-    assert got["deflectometry"].ncc_centred > got["ideal"].ncc_centred
-    assert got["deflectometry"].kl_centred < got["ideal"].kl_centred
-    np.testing.assert_allclose(got["deflectometry"].widths_traced_m, got["deflectometry"].widths_measured_m, rtol=0.1)

@@ -41,7 +41,7 @@ from .._heliostat import HeliostatGeometry, LinearActuators, Pose
 from .._kinematics import AbstractKinematicModel, ActuatorModel, forward
 from .._plotting import pyplot
 from ..paint import read_calibration_record, read_flux_png, read_heliostat_properties, read_tower
-from ._flux import ImageGrid, centroid, flux_image
+from ._flux import ImageGrid, flux_image
 from ._sunshape import AbstractSunShape, BuieSun, EffectiveSun
 from ._surfaces import FacetLayout, SurfacePoints, ideal_surface
 
@@ -108,8 +108,16 @@ def point_at(pose: Pose, sun, spot) -> Pose:
 
 
 def image_centroid(image: np.ndarray, grid: ImageGrid) -> np.ndarray:
-    """Centroid ``(u, v)`` in m of a (background-free) image on ``grid``."""
-    return np.asarray(centroid(jnp.asarray(image), grid), np.float64)
+    """Centroid ``(u, v)`` in m of a (background-free) image on ``grid`` (numpy)."""
+    img = np.asarray(image, np.float64)
+    ny, nx = img.shape
+    u0, u1, v0, v1 = (float(x) for x in (grid.u_min, grid.u_max, grid.v_min, grid.v_max))
+    u = u0 + (np.arange(nx) + 0.5) * (u1 - u0) / nx
+    v = v1 - (np.arange(ny) + 0.5) * (v1 - v0) / ny  # rows top to bottom
+    total = img.sum()
+    if total <= 0:
+        return np.zeros(2)
+    return np.asarray([(img * u[None, :]).sum() / total, (img * v[:, None]).sum() / total])
 
 
 def geometry_from_properties(properties, origin_lla) -> HeliostatGeometry:
@@ -118,27 +126,46 @@ def geometry_from_properties(properties, origin_lla) -> HeliostatGeometry:
     a = properties.actuators
 
     def pair(key):
-        return jnp.asarray([float(a[0][key]), float(a[1][key])], jnp.float64)
+        return np.asarray([float(a[0][key]), float(a[1][key])], np.float64)
 
-    actuators = LinearActuators(
-        increment=pair("increment"),
-        initial_stroke_length=pair("initial_stroke_length"),
-        offset=pair("offset"),
-        pivot_radius=pair("pivot_radius"),
-        initial_angle=pair("initial_angle"),
-        sign=jnp.where(pair("clockwise_axis_movement") == 0, 1.0, -1.0),
-        min_counts=pair("min_increment"),
-        max_counts=pair("max_increment"),
-    )
-    pos = wgs84_to_enu(jnp.asarray(properties.position_lla, jnp.float64), jnp.asarray(origin_lla, jnp.float64))
-    return HeliostatGeometry.build(
-        pos,
+    actuators = {
+        "increment": pair("increment"),
+        "initial_stroke_length": pair("initial_stroke_length"),
+        "offset": pair("offset"),
+        "pivot_radius": pair("pivot_radius"),
+        "initial_angle": pair("initial_angle"),
+        "sign": np.where(pair("clockwise_axis_movement") == 0, 1.0, -1.0),
+        "min_counts": pair("min_increment"),
+        "max_counts": pair("max_increment"),
+    }
+    vec = lambda v: np.asarray(v, np.float64)  # noqa: E731
+    return _build_geometry(
+        vec(properties.position_lla),
+        vec(origin_lla),
         actuators,
-        jnp.asarray(properties.joint_translation_1, jnp.float64),
-        jnp.asarray(properties.joint_translation_2, jnp.float64),
-        jnp.asarray(properties.concentrator_translation, jnp.float64),
-        ideal_axes=tuple(a[i]["type_axis"] == "ideal" for i in range(2)),
+        vec(properties.joint_translation_1),
+        vec(properties.joint_translation_2),
+        vec(properties.concentrator_translation),
+        np.asarray([a[i]["type_axis"] == "ideal" for i in range(2)]),
     )
+
+
+@eqx.filter_jit
+def _build_geometry(position_lla, origin_lla, actuators, v01, v12, v2m, ideal_axes) -> HeliostatGeometry:
+    """:func:`geometry_from_properties`' arithmetic, compiled once."""
+    pos = wgs84_to_enu(position_lla, origin_lla)
+    return HeliostatGeometry.build(pos, LinearActuators(**actuators), v01, v12, v2m, ideal_axes=ideal_axes)
+
+
+@eqx.filter_jit
+def _record_poses(model, geometry, counts, sun_az_el_deg, spots_lla, origin_lla):
+    """Per record: the pose of its counts turned onto its focal spot, and the sun."""
+
+    def one(c, ae, spot):
+        sun = sun_direction(jnp.deg2rad(ae[0]), jnp.deg2rad(ae[1]))
+        return point_at(forward(model, geometry, c), sun, wgs84_to_enu(spot, origin_lla)), sun
+
+    return jax.vmap(one)(counts, sun_az_el_deg, spots_lla)
 
 
 def layout_from_properties(properties) -> FacetLayout:
@@ -170,9 +197,15 @@ def target_from_tower(tower, name: str) -> TargetPlane:
             if e.is_planar_target or all(f"receiver_outer_{c}" in e.points for c in corners)
         )
         raise DataError(tower.source, name, f"no such target with corners; the tower file has {', '.join(usable)}")
-    origin = jnp.asarray(tower.origin_lla, jnp.float64)
-    points = [wgs84_to_enu(jnp.asarray(entry.points[c], jnp.float64), origin) for c in names]
-    return TargetPlane.from_corners(*points)
+    lla = np.asarray([entry.points[c] for c in names], np.float64)
+    return _plane_from_corners(lla, np.asarray(tower.origin_lla, np.float64))
+
+
+@jax.jit
+def _plane_from_corners(corners_lla, origin_lla) -> TargetPlane:
+    """:func:`target_from_tower`'s arithmetic (corners UL, UR, LL, LR in WGS84), compiled once."""
+    points = jax.vmap(lambda p: wgs84_to_enu(p, origin_lla))(corners_lla)
+    return TargetPlane.from_corners(points[0], points[1], points[2], points[3])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -305,9 +338,10 @@ def compare_record(
     measured_c = remove_background(measured_c_raw)
 
     grid = ImageGrid.for_target(target, measured.shape)
-    trace = jax.jit(
-        lambda k, g: flux_image(k, surface, pose, sun, target, g, sunshape, rays_per_point=rays_per_point, steps=steps)
-    )
+
+    def trace(k, g):
+        return _trace_one(k, surface, pose, sun, target, g, sunshape, rays_per_point, steps)
+
     traced = np.asarray(trace(key, grid), np.float64)
     # centroid from a grid with a 10 m margin, so a spot partly off the target is not biased
     wide = ImageGrid(grid.u_min - 10.0, grid.u_max + 10.0, grid.v_min - 10.0, grid.v_max + 10.0, shape=(256, 256))
@@ -395,6 +429,12 @@ class FluxRecords(eqx.Module):
         )
 
 
+@eqx.filter_jit
+def _trace_one(key, surface, pose, sun, target, grid, sunshape, rays_per_point: int, steps: int):
+    """:func:`flux_image`, compiled once per shape (the surface is an argument, not a constant)."""
+    return flux_image(key, surface, pose, sun, target, grid, sunshape, rays_per_point=rays_per_point, steps=steps)
+
+
 def flux_records(
     records: list[tuple[Path, Path]],
     tower_path: str | os.PathLike,
@@ -410,11 +450,10 @@ def flux_records(
             ``-flux-centered.png`` whose size is not a multiple of ``pixels``.
     """
     tower = read_tower(tower_path)
-    origin = jnp.asarray(tower.origin_lla, jnp.float64)
     model = ActuatorModel.nominal(jnp.float64) if model is None else model
     props = read_heliostat_properties(records[0][1])
     geometry = geometry_from_properties(props, tower.origin_lla)
-    ids, images, poses, suns, targets, grids = [], [], [], [], [], []
+    ids, images, counts, az_el, spots, targets, grids = [], [], [], [], [], [], []
     for rec_path, _ in records:
         rec_path = Path(rec_path)
         record = read_calibration_record(rec_path, heliostat_id=props.heliostat_id)
@@ -422,10 +461,9 @@ def flux_records(
         if spot is None:
             raise DataError(rec_path, "focal_spot", "no focal spot")
         target = target_from_tower(tower, record.target_name)
-        sun = sun_direction(jnp.deg2rad(record.sun_azimuth_deg), jnp.deg2rad(record.sun_elevation_deg))
-        counts = jnp.asarray([record.axis_1_counts, record.axis_2_counts], jnp.float64)
-        spot_enu = wgs84_to_enu(jnp.asarray(spot, jnp.float64), origin)
-        pose = point_at(forward(model, geometry, counts), sun, spot_enu)
+        counts.append([record.axis_1_counts, record.axis_2_counts])
+        az_el.append([record.sun_azimuth_deg, record.sun_elevation_deg])
+        spots.append(spot)
         stem = rec_path.name.replace("-calibration-properties.json", "")
         full = remove_background(load_flux_png(rec_path.parent / f"{stem}-flux.png"))
         centre = image_centroid(full, ImageGrid.for_target(target, full.shape))
@@ -439,17 +477,17 @@ def flux_records(
             )
         images.append(centred.reshape(pixels, k, pixels, k).mean(axis=(1, 3)))
         ids.append(record.record_id)
-        poses.append(pose)
-        suns.append(sun)
         targets.append(target)
         grids.append(ImageGrid.centred(centre[0], centre[1], *CENTRED_WINDOW_M, shape=(pixels, pixels)))
     stack = lambda xs: jax.tree_util.tree_map(lambda *x: jnp.stack(x), *xs)  # noqa: E731
+    f64 = lambda x: np.asarray(x, np.float64)  # noqa: E731
+    poses, suns = _record_poses(model, geometry, f64(counts), f64(az_el), f64(spots), f64(tower.origin_lla))
     return FluxRecords(
         heliostat_id=props.heliostat_id,
         record_ids=tuple(ids),
         images=jnp.asarray(np.stack(images)),
-        poses=stack(poses),
-        suns=jnp.stack(suns),
+        poses=poses,
+        suns=suns,
         targets=stack(targets),
         grids=stack(grids),
         geometry=geometry,

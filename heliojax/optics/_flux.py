@@ -259,6 +259,7 @@ def _buffer_to_image(buf, shape):
     return b[..., 1:, 1:, 0] + b[..., 1:, :-1, 1] + b[..., :-1, 1:, 2] + b[..., :-1, :-1, 3]
 
 
+@eqx.filter_jit
 def flux_images(
     key: PRNGKeyArray,
     surfaces: SurfacePoints,

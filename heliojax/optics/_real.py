@@ -233,7 +233,9 @@ def records_figure(reconstruction: RecordsReconstruction, records: FluxRecords):
         for j, (name, img, extra) in enumerate(panels):
             ax = fig.add_subplot(grid[i, j])
             image_axes.append(ax)
-            im = ax.imshow(img / max(float(img.max()), 1e-300), extent=(-3.0, 3.0, -3.0, 3.0), cmap="inferno", vmin=0, vmax=1)
+            im = ax.imshow(
+                img / max(float(img.max()), 1e-300), extent=(-3.0, 3.0, -3.0, 3.0), cmap="inferno", vmin=0, vmax=1
+            )
             ax.set_title(f"{reconstruction.heliostat_id} {rid} ({role}): {name}{extra}", fontsize=8)
             ax.set_xlabel("u, along the target [m]", fontsize=8)
             ax.set_ylabel("v, up [m]", fontsize=8)
