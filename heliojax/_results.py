@@ -23,6 +23,8 @@ Schema (``H`` heliostats, ``M`` padded records; NaN / -1 where no record):
   positive east), ``target_index`` int (into ``target_names``, -1 padding),
   ``split`` int8 (0 unused/padding, 1 train, 2 validation, 3 test), ``weight``
   (robust weight of a training record, 0 otherwise), ``outlier`` bool,
+  ``superseded`` bool (a training record before the heliostat's change point,
+  left out of the refit),
   ``residual_mrad`` ``(H, M, 2)`` and ``residual_uncalibrated_mrad``,
   ``beam_error_mrad`` and ``beam_error_uncalibrated_mrad``, ``loo_mrad``
   (leave-one-out beam error of the records the fit used, NaN otherwise)
@@ -139,6 +141,8 @@ def write_results_h5(path: str | Path, run: typing.Any) -> None:
         f.create_dataset("split", data=split[:n])
         f.create_dataset("weight", data=np.asarray(run.weights, float)[:n])
         f.create_dataset("outlier", data=np.asarray(run.outlier, bool)[:n])
+        superseded = run.superseded if run.superseded is not None else np.zeros(np.shape(run.outlier), bool)
+        f.create_dataset("superseded", data=np.asarray(superseded, bool)[:n])
         f.create_dataset("residual_mrad", data=run.residuals_mrad[:n])
         f.create_dataset("residual_uncalibrated_mrad", data=run.uncalibrated_residuals_mrad[:n])
         f.create_dataset("beam_error_mrad", data=run.errors_mrad[:n])

@@ -363,9 +363,9 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
         if run.test_uncalibrated_mrad is not None
         else np.where(run.test_mask, run.uncalibrated_mrad, np.nan)
     )
-    train_err = np.where(run.train_mask, run.errors_mrad, np.nan)
-    val_err = np.where(run.val_mask, run.errors_mrad, np.nan)
     fit_mask = run.train_mask if run.superseded is None else run.train_mask & ~run.superseded
+    train_err = np.where(fit_mask, run.errors_mrad, np.nan)  # the training records the fit used
+    val_err = np.where(run.val_mask, run.errors_mrad, np.nan)
     loo_rms, unc_train_rms, worse = _worse_than_nominal(run, fit_mask)
     heliostats = {}
     pooled, pooled_unc = [], []

@@ -89,9 +89,17 @@ def test_calibrate_embedded_writes_schema(tmp_path, capsys):
             "split",
             "weight",
             "outlier",
+            "superseded",
             "beam_error_mrad",
         ):
             assert h[name].shape == h["record_id"].shape, name
+        # superseded records are training records, as many per heliostat as the summary leaves unused
+        superseded, split = h["superseded"][()], h["split"][()]
+        assert np.all(split[superseded] == 1)
+        for k, hid in enumerate(ids):
+            e = s["heliostats"][hid]
+            if e.get("n_train_used") is not None:
+                assert int(superseded[k].sum()) == e["n_train"] - e["n_train_used"], hid
     assert plot.stat().st_size > 1000
     # the fit reloads as a fitted fleet that reproduces the written beam errors
     res = hj.load_results(out)
