@@ -154,14 +154,13 @@ def test_chain_conventions_against_artist_equations():
         heliostats.append(type(h)(**{**h.__dict__, "deviations": dev}))
     scenario = type(original)(**{**original.__dict__, "heliostats": tuple(heliostats)})
     scene = scene_from_artist(scenario)
+    counts = rng.uniform(5000, 60000, (len(heliostats), 5, 2))
+    poses = jax.jit(jax.vmap(jax.vmap(hj.forward, in_axes=(None, None, 0))))(scene.model, scene.geometry, counts)
     for i, h in enumerate(heliostats):
-        for counts in rng.uniform(5000, 60000, (5, 2)):
-            normal, centre = _artist_pose(h, counts)
-            model = jax.tree.map(lambda x, i=i: x[i], scene.model)
-            geometry = jax.tree.map(lambda x, i=i: x[i], scene.geometry)
-            pose = hj.forward(model, geometry, jnp.asarray(counts))
-            np.testing.assert_allclose(np.asarray(pose.normal), normal, atol=1e-12)
-            np.testing.assert_allclose(np.asarray(pose.centre), centre, atol=1e-12)
+        for j, c in enumerate(counts[i]):
+            normal, centre = _artist_pose(h, c)
+            np.testing.assert_allclose(np.asarray(poses.normal[i, j]), normal, atol=1e-12)
+            np.testing.assert_allclose(np.asarray(poses.centre[i, j]), centre, atol=1e-12)
 
 
 @needs_scenarios
@@ -222,9 +221,10 @@ def test_imported_scene_traces_like_the_scene_from_paint_files():
     target = scene.targets["solar_tower_juelich_upper"]
     sun = hj.sun_direction(jnp.deg2rad(30.0), jnp.deg2rad(40.0))
     nominal = hj.ActuatorModel.nominal(jnp.float64)
-    counts = jax.vmap(lambda g: hj.inverse_aim(nominal, g, target.centre, sun))(geometry)
-    pose_paint = jax.vmap(lambda g, c: hj.forward(nominal, g, c))(geometry, counts)
-    pose_artist = jax.vmap(hj.forward)(scene.model, scene.geometry, counts)
+    counts = jax.jit(jax.vmap(lambda g: hj.inverse_aim(nominal, g, target.centre, sun)))(geometry)
+    both = jax.jit(jax.vmap(hj.forward, in_axes=(0, 0, 0)))
+    pose_paint = both(jax.tree.map(lambda x: jnp.broadcast_to(x, (4,) + x.shape), nominal), geometry, counts)
+    pose_artist = both(scene.model, scene.geometry, counts)
     grid = ImageGrid.for_target(target, (64, 64))
     key = jax.random.key(0)
     trace = jax.jit(  # one compiled program for both scenes

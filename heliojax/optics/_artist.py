@@ -147,6 +147,12 @@ def _target(t: ArtistPlanarTarget, dtype) -> TargetPlane:
     )
 
 
+@eqx.filter_jit
+def _build_geometry(position, actuators, v01, v12, v2m, ideal_axes) -> HeliostatGeometry:
+    """:meth:`HeliostatGeometry.build` (the actuator law's linearisation), compiled."""
+    return HeliostatGeometry.build(position, actuators, v01, v12, v2m, ideal_axes=ideal_axes)
+
+
 def scene_from_artist(scenario: ArtistScenario | str | os.PathLike, dtype=jnp.float64) -> Scene:
     """An ARTIST scenario (file or :class:`heliojax.paint.ArtistScenario`) as a :class:`Scene`.
 
@@ -199,13 +205,13 @@ def scene_from_artist(scenario: ArtistScenario | str | os.PathLike, dtype=jnp.fl
         min_counts=jnp.asarray([[a.min_max_motor_positions[0] for a in h.actuators] for h in hs], dtype),
         max_counts=jnp.asarray([[a.min_max_motor_positions[1] for a in h.actuators] for h in hs], dtype),
     )
-    geometry = HeliostatGeometry.build(
+    geometry = _build_geometry(
         jnp.asarray(np.stack([h.position for h in hs if h.position is not None]), dtype),
         actuators,
         jnp.asarray(vec("first_joint_translation"), dtype),
         jnp.asarray(vec("second_joint_translation"), dtype),
         jnp.asarray(vec("concentrator_translation"), dtype),
-        ideal_axes=np.asarray([[a.type == "ideal" for a in h.actuators] for h in hs]),
+        jnp.asarray([[a.type == "ideal" for a in h.actuators] for h in hs]),
     )
     z = jnp.zeros(len(hs), dtype)
     model = ActuatorModel(
