@@ -82,7 +82,6 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import h5py
     import jax
     import matplotlib
 
@@ -91,7 +90,6 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from .. import optics
-    from .._io import atomic_path, atomic_write
 
     real = args.paint is not None or args.heliostat is not None
     if args.learning_rate is None:
@@ -142,12 +140,6 @@ def run(args: argparse.Namespace) -> int:
         "loss_first": float(res.losses[0]),
         "loss_last": float(res.losses[-1]),
     }
-    with atomic_path(args.out / "control_points.h5") as tmp:
-        with h5py.File(tmp, "w") as f:
-            f.create_dataset("control_points", data=np.asarray(res.facets.control_points))
-            f.create_dataset("true_control_points", data=np.asarray(scene.truth.control_points))
-            f.create_dataset("translations", data=np.asarray(res.facets.translations))
-            f.attrs["degree"] = res.facets.degree
     fig, ax = plt.subplots(1, 3, figsize=(15, 4.6), layout="constrained")
     true_dz = np.asarray(scene.truth.control_points[..., 2] - scene.ideal.control_points[..., 2])
     lim = np.abs(true_dz).max() * 1e3
@@ -164,24 +156,16 @@ def run(args: argparse.Namespace) -> int:
     ax[2].set_title(f"normal RMS error vs truth: ideal {e_ideal:.2f} -> recovered {e_rec:.2f} mrad", fontsize=10)
     ax[2].legend(fontsize=8)
     ax[2].grid(alpha=0.3, which="both")
-    with atomic_path(args.out / "reconstruction.png") as tmp:
-        fig.savefig(tmp, dpi=90, format="png", bbox_inches="tight")
-    plt.close(fig)
-    with atomic_write(args.out / "reconstruction.json") as f:
-        json.dump(report, f, indent=2)
-    print(json.dumps(report, indent=2))
+    _write_outputs(args.out, res.facets, fig, report, extra={"true_control_points": scene.truth.control_points})
     return 0
 
 
 def _run_real(args: argparse.Namespace) -> int:
     """Reconstruction from a heliostat's real flux records."""
-    import h5py
     import jax
-    import numpy as np
 
     from .. import optics
     from .._errors import DataError
-    from .._io import atomic_path, atomic_write
 
     def fail(message: str) -> int:
         print(f"heliojax reconstruct: {message}", file=sys.stderr)
@@ -237,17 +221,33 @@ def _run_real(args: argparse.Namespace) -> int:
             name: optics.normal_deviation_mrad(f, references["deflectometry"])
             for name, f in (("ideal", rec.ideal), ("reconstructed", rec.result.facets))
         }
-    with atomic_path(args.out / "control_points.h5") as tmp:
+    attrs = {"heliostat": args.heliostat, "train_records": [records.record_ids[i] for i in rec.train]}
+    _write_outputs(args.out, rec.result.facets, optics.records_figure(rec, records), report, attrs=attrs)
+    return 0
+
+
+def _write_outputs(out: Path, facets, fig, report: dict, *, extra=None, attrs=None) -> None:
+    """OUT/control_points.h5 (the facets' control points, translations, degree, plus
+    ``extra`` datasets and ``attrs``), OUT/reconstruction.png and OUT/reconstruction.json
+    (also printed), each written atomically."""
+    import h5py
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from .._io import atomic_path, atomic_write
+
+    with atomic_path(out / "control_points.h5") as tmp:
         with h5py.File(tmp, "w") as f:
-            f.create_dataset("control_points", data=np.asarray(rec.result.facets.control_points))
-            f.create_dataset("translations", data=np.asarray(rec.result.facets.translations))
-            f.attrs["degree"] = rec.result.facets.degree
-            f.attrs["heliostat"] = args.heliostat
-            f.attrs["train_records"] = [records.record_ids[i] for i in rec.train]
-    fig = optics.records_figure(rec, records)
-    with atomic_path(args.out / "reconstruction.png") as tmp:
-        fig.savefig(tmp, dpi=80, format="png")
-    with atomic_write(args.out / "reconstruction.json") as f:
+            f.create_dataset("control_points", data=np.asarray(facets.control_points))
+            f.create_dataset("translations", data=np.asarray(facets.translations))
+            for name, value in (extra or {}).items():
+                f.create_dataset(name, data=np.asarray(value))
+            f.attrs["degree"] = facets.degree
+            for name, value in (attrs or {}).items():
+                f.attrs[name] = value
+    with atomic_path(out / "reconstruction.png") as tmp:
+        fig.savefig(tmp, dpi=90, format="png", bbox_inches="tight")
+    plt.close(fig)
+    with atomic_write(out / "reconstruction.json") as f:
         json.dump(report, f, indent=2)
     print(json.dumps(report, indent=2))
-    return 0

@@ -259,6 +259,7 @@ def scene_from_artist(scenario: ArtistScenario | str | os.PathLike, dtype=jnp.fl
     )
 
 
+@eqx.filter_jit
 def _exported_actuators(model: ActuatorModel, g: HeliostatGeometry) -> LinearActuators:
     """Actuator parameters that carry ``model``'s corrections: on linear axes the
     effective actuators (``angle_offset``, ``increment_scale``, ``stroke_offset``

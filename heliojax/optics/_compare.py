@@ -41,7 +41,7 @@ from .._heliostat import HeliostatGeometry, LinearActuators, Pose
 from .._kinematics import AbstractKinematicModel, ActuatorModel, forward
 from .._plotting import pyplot
 from ..paint import read_calibration_record, read_flux_png, read_heliostat_properties, read_tower
-from ._flux import ImageGrid, flux_image
+from ._flux import ImageGrid, centroid, flux_image
 from ._sunshape import AbstractSunShape, BuieSun, EffectiveSun
 from ._surfaces import FacetLayout, SurfacePoints, ideal_surface
 
@@ -108,16 +108,23 @@ def point_at(pose: Pose, sun, spot) -> Pose:
 
 
 def image_centroid(image: np.ndarray, grid: ImageGrid) -> np.ndarray:
-    """Centroid ``(u, v)`` in m of a (background-free) image on ``grid`` (numpy)."""
-    img = np.asarray(image, np.float64)
-    ny, nx = img.shape
-    u0, u1, v0, v1 = (float(x) for x in (grid.u_min, grid.u_max, grid.v_min, grid.v_max))
-    u = u0 + (np.arange(nx) + 0.5) * (u1 - u0) / nx
-    v = v1 - (np.arange(ny) + 0.5) * (v1 - v0) / ny  # rows top to bottom
-    total = img.sum()
-    if total <= 0:
-        return np.zeros(2)
-    return np.asarray([(img * u[None, :]).sum() / total, (img * v[:, None]).sum() / total])
+    """Centroid ``(u, v)`` in m of a (background-free) image on ``grid``."""
+    return np.asarray(_centroid(jnp.asarray(image, jnp.float64), grid), np.float64)
+
+
+_centroid = eqx.filter_jit(centroid)
+"""Compiled :func:`heliojax.optics.centroid` (one program per image shape, not an eager op-by-op call)."""
+
+
+def measured_images(record_path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """A record's ``-flux.png`` and ``-flux-centered.png`` (same folder, same ID),
+    background removed (:func:`remove_background`), relative brightness."""
+    record_path = Path(record_path)
+    stem = record_path.name.replace("-calibration-properties.json", "")
+    return tuple(  # pyright: ignore[reportReturnType]
+        remove_background(load_flux_png(record_path.parent / f"{stem}-{kind}.png"))
+        for kind in ("flux", "flux-centered")
+    )
 
 
 def geometry_from_properties(properties, origin_lla) -> HeliostatGeometry:
@@ -331,16 +338,12 @@ def compare_record(
             raise DataError(record_path, "focal_spot", "no focal spot to correct the pointing with")
         pose = point_at(pose, sun, spot_enu)
 
-    stem = record_path.name.replace("-calibration-properties.json", "")
-    measured_raw = load_flux_png(record_path.parent / f"{stem}-flux.png")
-    measured_c_raw = load_flux_png(record_path.parent / f"{stem}-flux-centered.png")
-    measured = remove_background(measured_raw)
-    measured_c = remove_background(measured_c_raw)
+    measured, measured_c = measured_images(record_path)
 
     grid = ImageGrid.for_target(target, measured.shape)
 
-    def trace(k, g):
-        return _trace_one(k, surface, pose, sun, target, g, sunshape, rays_per_point, steps)
+    def trace(k, g):  # flux_image is compiled; the surface is an argument, so every record reuses one program
+        return flux_image(k, surface, pose, sun, target, g, sunshape, rays_per_point=rays_per_point, steps=steps)
 
     traced = np.asarray(trace(key, grid), np.float64)
     # centroid from a grid with a 10 m margin, so a spot partly off the target is not biased
@@ -429,12 +432,6 @@ class FluxRecords(eqx.Module):
         )
 
 
-@eqx.filter_jit
-def _trace_one(key, surface, pose, sun, target, grid, sunshape, rays_per_point: int, steps: int):
-    """:func:`flux_image`, compiled once per shape (the surface is an argument, not a constant)."""
-    return flux_image(key, surface, pose, sun, target, grid, sunshape, rays_per_point=rays_per_point, steps=steps)
-
-
 def flux_records(
     records: list[tuple[Path, Path]],
     tower_path: str | os.PathLike,
@@ -464,14 +461,12 @@ def flux_records(
         counts.append([record.axis_1_counts, record.axis_2_counts])
         az_el.append([record.sun_azimuth_deg, record.sun_elevation_deg])
         spots.append(spot)
-        stem = rec_path.name.replace("-calibration-properties.json", "")
-        full = remove_background(load_flux_png(rec_path.parent / f"{stem}-flux.png"))
+        full, centred = measured_images(rec_path)
         centre = image_centroid(full, ImageGrid.for_target(target, full.shape))
-        centred = remove_background(load_flux_png(rec_path.parent / f"{stem}-flux-centered.png"))
         k = centred.shape[0] // pixels
         if centred.shape != (k * pixels, k * pixels):
             raise DataError(
-                rec_path.parent / f"{stem}-flux-centered.png",
+                rec_path.parent / rec_path.name.replace("-calibration-properties.json", "-flux-centered.png"),
                 None,
                 f"{centred.shape} pixels, not a multiple of {pixels}",
             )
@@ -561,6 +556,7 @@ __all__ = [
     "spot_widths",
     "layout_from_properties",
     "load_flux_png",
+    "measured_images",
     "normalised_cross_correlation",
     "remove_background",
     "target_from_tower",
