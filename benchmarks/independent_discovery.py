@@ -1,7 +1,18 @@
-"""Baseline for issue 13: heliojax discovery (black box, CLI) on suites of the independent simulator.
+"""Issue 13: heliojax discovery (black box, CLI) on suites of the independent simulator.
 
     PYTHONPATH=$PWD python benchmarks/independent_discovery.py --work /tmp/isd --seed 101 [--effects a,b]
     PYTHONPATH=$PWD python benchmarks/independent_discovery.py --work /tmp/isd --table-only
+    PYTHONPATH=$PWD python benchmarks/independent_discovery.py --work /tmp/isd --hit-rates --seeds 9001,9002
+
+``--hit-rates`` runs every effect at every seed and prints JSON: per effect the suites, the
+fraction where the expected outcome came first (a library effect: its name first in
+``named_effects``; a planted step: ``change_point`` with the true date within 10 days of the
+reported interval; an effect outside the library: the first ``unexplained`` variable is its
+driver; the null suite: nothing named and nothing unexplained), the fraction misnamed (a library
+name given to an effect outside the library, or anything named in a null suite), the held-out RMS
+over the noise floor, and the seconds per suite. Amplitudes are not compared: the two
+simulators' parameterisations differ (e.g. the independent simulator's gravity sag tilts the
+normal's elevation, heliojax's acts on the axis-1 angle).
 
 Each suite: 20 real heliostats x 60 records, noise 0.25 mrad, one hidden effect (tag `<effect>_out`: with
 5 % gross outliers). Prints a Markdown table: truth vs what discovery names.
@@ -10,9 +21,11 @@ Each suite: 20 real heliostats x 60 records, noise 0.25 mrad, one hidden effect 
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -39,9 +52,18 @@ DEFAULT = [
 ]
 
 
-def run_suite(work: Path, tag: str, seed: int) -> None:
+EXPECTED_VARIABLES = {
+    "lens_distortion": {"spot_u", "spot_v"},
+    "daily_periodic": {"time_of_day"},
+    "wind_direction": {"wind_direction"},
+}
+DAY_S = 86400.0
+
+
+def run_suite(work: Path, tag: str, seed: int) -> float:
     effect, outliers = (tag[:-4], 0.05) if tag.endswith("_out") else (tag, 0.0)
     generate(effect, work / tag, seed=seed, outliers=outliers)
+    t0 = time.perf_counter()
     subprocess.run(
         [
             sys.executable,
@@ -58,6 +80,90 @@ def run_suite(work: Path, tag: str, seed: int) -> None:
         check=False,
         stdout=subprocess.DEVNULL,
     )
+    return time.perf_counter() - t0
+
+
+def _ts(s: str | None) -> float:
+    return datetime.datetime.fromisoformat(s.replace("Z", "+00:00")).timestamp() if s else float("nan")
+
+
+def judge(truth: dict, rep: dict) -> dict:
+    """Outcome of one suite (see the module docstring)."""
+    effect = truth["effect"]
+    named = rep.get("named_effects", [])
+    first = named[0] if named else None
+    unexplained = [u["variable"] for u in rep.get("unexplained", [])]
+    library_names = [n for n in named if n != "change_point"]
+    out = {"named": named, "unexplained": unexplained}
+    if effect == "none":
+        out["hit"] = not named and not unexplained
+        out["misnamed"] = bool(named)
+    elif effect == "step":
+        cps = {c["heliostat"]: c for c in rep.get("change_points", [])}
+        dated = []
+        for st in truth["steps"]:
+            c = cps.get(st["heliostat"])
+            if c is None:
+                dated.append(False)
+                continue
+            t = _ts(st["time"])
+            lo, hi = _ts(c["previous_record_time"]) - 10 * DAY_S, _ts(c["time"]) + 10 * DAY_S
+            dated.append(lo <= t <= hi)
+        out["change_points_found"] = sum(st["heliostat"] in cps for st in truth["steps"]) / max(len(truth["steps"]), 1)
+        out["change_points_dated"] = sum(dated) / max(len(dated), 1)
+        out["hit"] = first == "change_point" and out["change_points_dated"] >= 0.9
+        out["misnamed"] = bool(library_names)
+    elif effect in EXPECTED_VARIABLES:
+        out["hit"] = bool(unexplained) and unexplained[0] in EXPECTED_VARIABLES[effect]
+        out["misnamed"] = bool(library_names)
+    else:
+        absorbed = {a["effect"] for a in rep.get("partly_absorbed", [])}
+        out["hit"] = first == effect or (effect == "gravity_sag" and not named and effect in absorbed)
+        out["misnamed"] = bool(named) and first != effect
+    floor = truth["noise_mrad"] * 2**0.5
+    out["heldout_over_floor"] = rep["heldout_rms_final_mrad"] / floor if rep.get("heldout_rms_final_mrad") else None
+    # what the effect leaves after the base model alone: ~1 means the base absorbs it (nothing to find)
+    out["base_heldout_over_floor"] = rep["heldout_rms_base_mrad"] / floor if rep.get("heldout_rms_base_mrad") else None
+    out["outliers_planted"] = len(truth.get("outliers", []))
+    planted = {(o["heliostat"], int(o["record_id"])) for o in truth.get("outliers", [])}
+    found = {(o["heliostat"], int(o["record_id"])) for o in rep.get("outliers", [])}
+    out["outliers_found"] = len(planted & found)
+    out["outliers_false"] = len(found - planted)
+    return out
+
+
+def hit_rates(work: Path, tags: list[str], seeds: list[int], judge_only: bool = False) -> dict:
+    per: dict[str, list] = {}
+    for seed in seeds:
+        for tag in tags:
+            d = work / f"s{seed}"
+            secs = float("nan") if judge_only else run_suite(d, tag, seed)
+            rep_path, truth_path = d / f"{tag}.report.json", d / tag / "truth.json"
+            if not rep_path.exists():
+                per.setdefault(tag, []).append({"seed": seed, "error": "no report"})
+                continue
+            o = judge(json.loads(truth_path.read_text()), json.loads(rep_path.read_text()))
+            o.update(seed=seed, seconds=round(secs, 1))
+            per.setdefault(tag, []).append(o)
+            print(json.dumps({"suite": tag, **o}), file=sys.stderr, flush=True)
+    summary = {}
+    for tag, runs in per.items():
+        ok = [r for r in runs if "error" not in r]
+        ratio = [r["heldout_over_floor"] for r in ok if r["heldout_over_floor"] is not None]
+        base = [r["base_heldout_over_floor"] for r in ok if r["base_heldout_over_floor"] is not None]
+        summary[tag] = {
+            "suites": len(runs),
+            "hit_rate": sum(r["hit"] for r in ok) / max(len(runs), 1),
+            "misnamed_rate": sum(r["misnamed"] for r in ok) / max(len(runs), 1),
+            "heldout_over_floor_median": sorted(ratio)[len(ratio) // 2] if ratio else None,
+            "base_heldout_over_floor_median": sorted(base)[len(base) // 2] if base else None,
+            "seconds_median": sorted(r["seconds"] for r in ok)[len(ok) // 2] if ok else None,
+            "outliers_planted": sum(r["outliers_planted"] for r in ok),
+            "outliers_found": sum(r["outliers_found"] for r in ok),
+            "outliers_false": sum(r["outliers_false"] for r in ok),
+            "runs": runs,
+        }
+    return {"simulator": "independent_sim", "seeds": seeds, "effects": summary}
 
 
 def table(work: Path) -> str:
@@ -100,7 +206,14 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=101)
     p.add_argument("--effects", default=",".join(DEFAULT))
     p.add_argument("--table-only", action="store_true")
+    p.add_argument("--hit-rates", action="store_true")
+    p.add_argument("--judge-only", action="store_true", help="with --hit-rates: judge existing reports")
+    p.add_argument("--seeds", default="9001,9002")
     a = p.parse_args()
+    if a.hit_rates:
+        seeds = [int(x) for x in a.seeds.split(",")]
+        print(json.dumps(hit_rates(a.work, a.effects.split(","), seeds, a.judge_only), indent=1))
+        return
     if not a.table_only:
         for tag in a.effects.split(","):
             run_suite(a.work, tag, a.seed)

@@ -9,15 +9,17 @@ does), :func:`compile_cached` also keeps the traced program, serialised with
 :func:`jax.export.export`, in ``DIR/heliojax-programs/`` and loads it instead of
 tracing again. The key is a SHA-256 of the function's name, everything static in
 its arguments (pickled: solver settings, parameter views, model classes and
-static fields), the shapes and dtypes of its array arguments, and the versions of
-heliojax, jax and jaxlib and the backend, so a changed option, shape or version
-never reuses a program. Arguments that cannot be pickled, and any failure to
-export or load, fall back to tracing (the result is the same either way).
+static fields), the shapes and dtypes of its array arguments, the versions of
+heliojax, jax and jaxlib, a digest of heliojax's source files and the backend,
+so a changed option, shape, version or source never reuses a program.
+Arguments that cannot be pickled, and any failure to export or load, fall back
+to tracing (the result is the same either way).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import logging
 import pickle
@@ -57,6 +59,7 @@ def _key(fn: typing.Any, stat: typing.Any, leaves: list) -> str | None:
                 stat,
                 [(tuple(x.shape), str(x.dtype)) for x in leaves],
                 __version__,
+                source_digest(),
                 jax.__version__,
                 jaxlib_version.__version__,
                 jax.default_backend(),
@@ -66,6 +69,18 @@ def _key(fn: typing.Any, stat: typing.Any, leaves: list) -> str | None:
     except Exception:  # noqa: BLE001 - unpicklable static parts (closures): no key, trace instead
         return None
     return hashlib.sha256(material).hexdigest()
+
+
+@functools.cache
+def source_digest() -> str:
+    """SHA-256 of heliojax's own source files: an edited checkout (same version
+    number, changed code) never loads a program traced from the old code."""
+    root = Path(__file__).resolve().parent
+    h = hashlib.sha256()
+    for f in sorted(root.rglob("*.py")):
+        h.update(str(f.relative_to(root)).encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
 
 
 def _program_dir() -> Path | None:

@@ -52,6 +52,7 @@ COUNTS = jnp.array([30000.0, 40000.0])
 SUN = hj.sun_direction(jnp.deg2rad(20.0), jnp.deg2rad(40.0))
 FOCAL = jnp.array([0.3, -3.2, 122.5])
 STONE = hj.StoneModel(*[jnp.asarray(v) for v in (1e-3, -2e-3, 5e-4, -1e-3, 4e-3, -3e-3, 1.002, 0.998)])
+ACTUATOR = hj.ActuatorModel.nominal(jnp.float64)
 
 
 def _context(**kw):
@@ -125,13 +126,18 @@ def test_backlash_is_half_the_dead_band_behind_the_motion():
 
 
 def test_thermal_hand_value_and_nan_temperature():
-    eff = Thermal(coefficient=jnp.array([1.5e-5, -1e-5]), reference=jnp.asarray(10.0))
+    eff = Thermal(coefficient=jnp.array([1.5e-5, -1e-5]), expansion=jnp.zeros(2), reference=jnp.asarray(10.0))
     np.testing.assert_allclose(_angle_shift(eff, _context(temperature=25.0)), [2.25e-4, -1.5e-4], rtol=1e-12)
+    # the spindle's expansion: a gear-ratio change in proportion to the temperature
+    ang = np.asarray(STONE.joint_angles(GEOM, COUNTS))
+    eff2 = Thermal(coefficient=jnp.zeros(2), expansion=jnp.array([1.2e-5, 2e-5]), reference=jnp.asarray(10.0))
+    want = [1.8e-4 * ang[0], 3e-4 * ang[1]]
+    np.testing.assert_allclose(_angle_shift(eff2, _context(temperature=25.0)), want, rtol=1e-9)
     np.testing.assert_allclose(_angle_shift(eff, _context(temperature=jnp.nan)), 0.0, atol=0)
 
     # no NaN reaches the gradient when the temperature is unknown
     def loss(k):
-        m = EffectModel(STONE, (Thermal(coefficient=k, reference=jnp.asarray(10.0)),))
+        m = EffectModel(STONE, (Thermal(coefficient=k, expansion=jnp.zeros(2), reference=jnp.asarray(10.0)),))
         return jnp.sum(m.beam_components(GEOM, COUNTS, _context(temperature=jnp.nan), FOCAL) ** 2)
 
     g = jax.grad(loss)(jnp.array([1e-5, 1e-5]))
@@ -149,15 +155,21 @@ def test_wind_head_on_and_cross():
     np.testing.assert_allclose(_angle_shift(eff, _context(wind_speed=jnp.nan)), 0.0, atol=0)
 
 
-def test_gravity_sag_follows_cos_elevation():
-    normal = STONE.pose(GEOM, COUNTS).normal
-    cos_e = float(np.hypot(normal[0], normal[1]))
-    d = _angle_shift(GravitySag(sag=jnp.asarray(1e-3)), _context())
-    np.testing.assert_allclose(d, [1e-3 * cos_e, 0.0], rtol=1e-12)
-    # the pose of the effect model is the chain at the shifted angles
-    model = EffectModel(STONE, (GravitySag(sag=jnp.asarray(1e-3)),))
-    want = chain_pose(STONE.tilts(), STONE.joint_angles(GEOM, COUNTS) + d, GEOM).normal
-    np.testing.assert_allclose(model.pose(GEOM, COUNTS, _context()).normal, want, atol=1e-15)
+def test_gravity_sag_tips_the_normal_toward_the_horizon_by_g_cos_elevation():
+    # gravity acts vertically: to first order the normal's elevation drops by g cos(e) and
+    # its azimuth stays, for the Stone chain and for the actuator model alike
+    g = 1e-4
+    for base in (STONE, ACTUATOR):
+        n0 = np.asarray(base.pose(GEOM, COUNTS).normal)
+        model = EffectModel(base, (GravitySag(sag=jnp.asarray(g)),))
+        n1 = np.asarray(model.pose(GEOM, COUNTS, _context()).normal)
+        e0, e1 = np.arcsin(n0[2]), np.arcsin(n1[2])
+        np.testing.assert_allclose(e1 - e0, -g * np.cos(e0), rtol=1e-3)
+        np.testing.assert_allclose(np.arctan2(n1[0], n1[1]), np.arctan2(n0[0], n0[1]), atol=1e-3 * g)
+        # the pose is the chain at corrected angles (no kink between angles and normal)
+        d = _angle_shift(GravitySag(sag=jnp.asarray(g)), _context(), base=base)
+        want = chain_pose(base.tilts(), base.joint_angles(GEOM, COUNTS) + d, GEOM).normal
+        np.testing.assert_allclose(n1, want, atol=1e-15)
 
 
 def test_encoder_wobble_hand_value():

@@ -51,6 +51,19 @@ def test_other_static_option_or_shape_is_another_program(program_dir):
     assert len(list(program_dir.glob("*.bin"))) == 4
 
 
+def test_edited_source_is_another_program(program_dir, monkeypatch):
+    """An edited checkout (same version number) never loads a program traced from
+    the old source: the key holds a digest of heliojax's source files."""
+    assert len(_programs.source_digest()) == 64
+    power = _programs.cached_jit(_power)
+    x = jnp.arange(3.0)
+    power(x, 2)
+    assert len(list(program_dir.glob("*.bin"))) == 1
+    monkeypatch.setattr(_programs, "source_digest", lambda: "edited")
+    power(x, 2)
+    assert len(list(program_dir.glob("*.bin"))) == 2
+
+
 def test_damaged_program_is_traced_again_and_replaced(program_dir):
     errors = jnp.arange(6.0).reshape(2, 3)
     square = _programs.cached_jit(_square)

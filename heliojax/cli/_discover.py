@@ -33,11 +33,13 @@ def add_parser(subparsers) -> None:
         "discover",
         help="find where the model and the measurements disagree and name the missing effects",
         description=(
-            "Fit the base model of every heliostat, screen the candidate effects ("
+            "Fit the base model robustly (gross errors left out and reported; change points - jumps of the "
+            "axis offsets - reported and each heliostat studied since its change), screen the candidate effects ("
             + ", ".join(EFFECT_CHOICES)
-            + ") with score tests on the residuals, report the ones the model absorbs as not identifiable, "
-            "refit the finalists and name an effect only when it passes Holm's family-wise control, "
-            "delta BIC > 0 and a blocked-by-day cross-validated held-out improvement; repeat. "
+            + ") with score tests on the residuals (largely absorbed ones on their remainder), refit every "
+            "significant one and name an effect only when it passes Holm's family-wise control, "
+            "delta BIC > 0 and a blocked-by-day cross-validated held-out improvement; repeat. Then test the "
+            "residuals against every recorded variable and report structure no library effect explains. "
             "Writes report.json, PNG figures and optionally a Markdown summary."
         ),
     )
@@ -54,6 +56,10 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--folds", type=integer(2), default=5, help="blocked cross-validation folds (by UTC day)")
     p.add_argument("--max-named", type=integer(0), default=6, help="most effects to name")
+    p.add_argument(
+        "--no-robust", action="store_true", help="keep every record (no gross-error flags; default: robust pre-pass)"
+    )
+    p.add_argument("--no-changes", action="store_true", help="no change-point scan (default: scan and report)")
     add_fit_arguments(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar or messages on stderr")
 
@@ -78,6 +84,8 @@ def run(args) -> int:
             n_folds=args.folds,
             max_named=args.max_named,
             start=args.start,
+            robust=not args.no_robust,
+            changes=not args.no_changes,
         )
     except ValueError as e:
         raise ConfigError(str(e)) from e

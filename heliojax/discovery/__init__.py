@@ -6,12 +6,27 @@ model; screen every candidate effect of :mod:`heliojax.effects` with score
 tests orthogonalised against the model's Jacobian; report candidates the model
 absorbs as not identifiable; refit the finalists with Levenberg-Marquardt;
 name an effect only when it passes Holm's family-wise control, delta BIC > 0
-and a blocked-by-day cross-validated held-out improvement; repeat).
+and a blocked-by-day cross-validated held-out improvement; repeat). It starts
+from a robust pre-pass (gross errors and change points left out and reported,
+:func:`clean`) and ends with residual diagnostics against every recorded
+variable (:func:`unexplained_structure`).
 :func:`write_report`, :func:`write_markdown` and :func:`write_figures` write
 report.json, a Markdown summary and PNG figures; :func:`simulate_fleet` makes
 hidden-effect test fleets.
 """
 
+from ._cleaning import (
+    Cleaning as Cleaning,
+    change_point_pvalues as change_point_pvalues,
+    clean as clean,
+    confirm_change_points as confirm_change_points,
+    fitted_start_geometry as fitted_start_geometry,
+)
+from ._diagnostics import (
+    Variable as Variable,
+    record_variables as record_variables,
+    unexplained_structure as unexplained_structure,
+)
 from ._identifiability import (
     ABSORBED_LIMIT as ABSORBED_LIMIT,
     CONDITION_INDEX_LIMIT as CONDITION_INDEX_LIMIT,
@@ -24,6 +39,7 @@ from ._report import (
     plot_effect_residuals as plot_effect_residuals,
     plot_heldout_per_step as plot_heldout_per_step,
     plot_screen as plot_screen,
+    plot_unexplained as plot_unexplained,
     write_figures as write_figures,
     write_markdown as write_markdown,
     write_report as write_report,
@@ -40,10 +56,16 @@ __all__ = [
     "ABSORBED_LIMIT",
     "CONDITION_INDEX_LIMIT",
     "CandidateScreen",
+    "Cleaning",
     "DiscoveryConfig",
     "DiscoveryResult",
+    "Variable",
     "absorbed_fractions",
     "build_report",
+    "change_point_pvalues",
+    "clean",
+    "confirm_change_points",
+    "fitted_start_geometry",
     "day_folds",
     "discover",
     "holm",
@@ -51,8 +73,11 @@ __all__ = [
     "plot_effect_residuals",
     "plot_heldout_per_step",
     "plot_screen",
+    "plot_unexplained",
     "random_actuator_models",
+    "record_variables",
     "simulate_fleet",
+    "unexplained_structure",
     "write_figures",
     "write_markdown",
     "write_report",

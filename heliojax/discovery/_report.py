@@ -9,15 +9,27 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
         {"effect": name, "mode": "shared" | "per_heliostat",
          "delta_bic": float,                       # BIC(before) - BIC(after) > 0
          "cv_heldout_rms_before_mrad": float, "cv_heldout_rms_after_mrad": float,
+         "cv_log_ratio": float,                    # held-out criterion (< 0), see cv_log_ratio
          "amplitude": {param: value},              # physical units (see "units")
          "amplitude_std": {param: value},
          "units": {param: unit},
          "heliostats": [ids],                      # heliostats the effect was fitted to
          "heliostats_significant": [ids],          # individually significant (Holm, alpha)
-         "p_value": float, "p_holm": float}
-      ],
-      "named_effects": [names],
-      "not_identifiable": [names],                 # absorbed by the model at some step, never named
+         "p_value": float, "p_holm": float,
+         "absorbed_fraction": float | null,        # of its best direction by the model before it
+         "ambiguous_with": [{"effect", "mode", "delta_bic", "cv_heldout_rms_after_mrad"}]}
+      ],                                           # (passing rivals within ambiguity_bic of delta BIC)
+      "named_effects": [names],                    # "change_point" first when any was found
+      "ambiguities": [{"step", "named", "alternatives": [...]}],
+      "outliers": [{"heliostat", "record_id"}],    # gross errors of the robust pre-pass (left out)
+      "change_points": [{"heliostat", "time": UTC ISO 8601 (first record since the change),
+                         "previous_record_time", "jump": {param: rad}, "jump_unit": "rad",
+                         "p", "p_holm", "n_records_before"}],   # records before it are left out
+      "change_points_withdrawn": [{"heliostat", "time", "p"}],  # pre-pass steps the final model explains
+      "unexplained": [{"variable", "p", "p_holm", "effect_size_mrad", "heliostats"}],
+      "variable_p_values": {variable: p},          # every recorded variable at the final model
+      "partly_absorbed": [{"effect", "absorbed_fraction", "remainder_p_holm"}],  # last screen
+      "not_identifiable": [names],                 # largely absorbed at some step (tested on the remainder), not named
       "untestable": [names],                       # the data do not drive them (e.g. no weather)
       "absorbed_fraction": {name: float | null},   # at the first screen
       "heldout_rms_base_mrad": float, "heldout_rms_final_mrad": float,
@@ -25,17 +37,20 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
       "train_rms_base_mrad": float, "train_rms_final_mrad": float,
       "noise_estimate_mrad": float,                # per tangent component, final model
       "screens": [{name: {"p", "p_shared", "p_per_heliostat", "p_holm", "absorbed_fraction",
-                          "identifiable", "testable"}}],  # one per step
+                          "identifiable", "tested", "testable"}}],  # one per step
       "refits": [[{"effect", "mode", "delta_bic", "cv_heldout_rms_before_mrad",
-                   "cv_heldout_rms_after_mrad", "passed"}]],
+                   "cv_heldout_rms_after_mrad", "cv_log_ratio", "passed"}]],
       "config": {...}, "data": {...}, "timing": {...}
     }
 
-Effect names come from :data:`heliojax.effects.EFFECT_NAMES`.
+Effect names come from :data:`heliojax.effects.EFFECT_NAMES` (and ``"change_point"``).
+The variables of ``"unexplained"`` are those of
+:func:`heliojax.discovery.record_variables`.
 """
 
 from __future__ import annotations
 
+import datetime
 import json
 import math
 from pathlib import Path
@@ -44,6 +59,7 @@ import numpy as np
 
 from .._io import atomic_write
 from .._plotting import pyplot, save_figure
+from ._diagnostics import record_variables
 
 
 def _f(x):
@@ -79,8 +95,36 @@ def cv_pair(before, after) -> tuple[float, float, int]:
     return (float(np.sqrt(np.mean(before.heldout_sq[both]))), float(np.sqrt(np.mean(after.heldout_sq[both]))), n)
 
 
-def build_report(result) -> dict:
-    """The report.json dictionary of a :class:`DiscoveryResult`."""
+def cv_log_ratio(before, after, heliostat: np.ndarray) -> float:
+    """Held-out log-likelihood ratio per record, each heliostat with its own noise
+    level (the held-out counterpart of the BIC's likelihood)::
+
+        sum_h n_h ln(MSE_h(after) / MSE_h(before)) / sum_h n_h
+
+    over the records held out and predicted by both (``heliostat``: ``(L,)`` the
+    heliostat of each lane). Negative when ``after`` predicts better. Unlike the
+    pooled RMS it cannot be dominated by one heliostat whose folds are poorly
+    determined (a few records, a degenerate fold): each heliostat enters by its
+    ratio, not by its size."""
+    both = np.isfinite(before.heldout_sq) & np.isfinite(after.heldout_sq)
+    total, n_all = 0.0, 0
+    for h in np.unique(heliostat):
+        rows = both[heliostat == h]
+        n = int(rows.sum())
+        if n == 0:
+            continue
+        mb = float(np.mean(before.heldout_sq[heliostat == h][rows]))
+        ma = float(np.mean(after.heldout_sq[heliostat == h][rows]))
+        if mb <= 0 or ma <= 0:
+            continue
+        total += n * np.log(ma / mb)
+        n_all += n
+    return float(total / n_all) if n_all else float("nan")
+
+
+def build_report(result, typical_start=None) -> dict:
+    """The report.json dictionary of a :class:`DiscoveryResult` (``typical_start``:
+    ``(H,)`` heliostats started from the fleet-typical actuators)."""
     cfg = result.config
     h = result.lanes.n_heliostats
     steps = []
@@ -93,6 +137,7 @@ def build_report(result) -> dict:
                 "delta_bic": _f(s.delta_bic),
                 "cv_heldout_rms_before_mrad": _f(s.cv_before),
                 "cv_heldout_rms_after_mrad": _f(s.cv_after),
+                "cv_log_ratio": _f(s.cv_log_ratio),
                 "amplitude": {k: _f(v) for k, v in s.amplitude.items()},
                 "amplitude_std": {k: _f(v) for k, v in s.amplitude_std.items()},
                 "units": units,
@@ -100,9 +145,20 @@ def build_report(result) -> dict:
                 "heliostats_significant": list(s.heliostats_significant),
                 "p_value": _f(s.p_value),
                 "p_holm": _f(s.p_holm),
+                "absorbed_fraction": _f(s.absorbed_fraction),
+                "ambiguous_with": [
+                    {
+                        "effect": a["effect"],
+                        "mode": a["mode"],
+                        "delta_bic": _f(a["delta_bic"]),
+                        "cv_heldout_rms_after_mrad": _f(a["cv_after"]),
+                    }
+                    for a in s.ambiguous_with
+                ],
             }
         )
-    named = [s.effect for s in result.steps]
+    cleaning = _cleaning_report(result)
+    named = (["change_point"] if cleaning["change_points"] else []) + [s.effect for s in result.steps]
     not_ident, untestable = [], []
     for entry in result.screens:
         for c, sc in entry["screens"].items():
@@ -119,12 +175,13 @@ def build_report(result) -> dict:
         screens.append(
             {
                 c: {
-                    "p": _f(sc.p) if sc.identifiable else None,
-                    "p_shared": _f(sc.p_shared) if sc.identifiable else None,
-                    "p_per_heliostat": _f(sc.p_per_heliostat) if sc.identifiable else None,
+                    "p": _f(sc.p) if sc.tested else None,
+                    "p_shared": _f(sc.p_shared) if sc.tested else None,
+                    "p_per_heliostat": _f(sc.p_per_heliostat) if sc.tested else None,
                     "p_holm": _f(entry["p_holm"].get(c)),
                     "absorbed_fraction": _f(sc.absorbed_fraction),
                     "identifiable": bool(sc.identifiable),
+                    "tested": bool(sc.tested),
                     "testable": bool(sc.testable),
                 }
                 for c, sc in entry["screens"].items()
@@ -138,6 +195,7 @@ def build_report(result) -> dict:
                 "delta_bic": _f(c.delta_bic),
                 "cv_heldout_rms_before_mrad": _f(c.cv_before),
                 "cv_heldout_rms_after_mrad": _f(c.cv_after),
+                "cv_log_ratio": _f(c.cv_log_ratio),
                 "passed": bool(c.passed),
             }
             for c in cands
@@ -151,10 +209,43 @@ def build_report(result) -> dict:
     first = result.screens[0]["screens"] if result.screens else {}
     fleet = result.fleet
     mask = np.asarray(fleet.mask)
+    typical = np.zeros(len(fleet.ids), bool) if typical_start is None else np.asarray(typical_start, bool)
+    last = result.screens[-1]["screens"] if result.screens else {}
+    last_holm = result.screens[-1]["p_holm"] if result.screens else {}
+    absorbed = [
+        {
+            "effect": c,
+            "absorbed_fraction": _f(sc.absorbed_fraction),
+            "remainder_p_holm": _f(last_holm.get(c)),
+        }
+        for c, sc in last.items()
+        if sc.testable and not sc.identifiable
+    ]
+    ambiguities = [
+        {"step": i + 1, "named": s["effect"], "alternatives": s["ambiguous_with"]}
+        for i, s in enumerate(steps)
+        if s["ambiguous_with"]
+    ]
     return {
         "base_model": cfg.base,
         "steps": steps,
         "named_effects": named,
+        "ambiguities": ambiguities,
+        "outliers": cleaning["outliers"],
+        "change_points": cleaning["change_points"],
+        "change_points_withdrawn": cleaning["change_points_withdrawn"],
+        "unexplained": [
+            {
+                "variable": u["variable"],
+                "p": _f(u["p"]),
+                "p_holm": _f(u["p_holm"]),
+                "effect_size_mrad": _f(u["effect_size_mrad"]),
+                "heliostats": list(u["heliostats"]),
+            }
+            for u in result.unexplained
+        ],
+        "variable_p_values": {k: _f(v) for k, v in result.variable_p.items()},
+        "partly_absorbed": absorbed,
         "not_identifiable": not_ident,
         "untestable": untestable,
         "absorbed_fraction": {c: _f(sc.absorbed_fraction) for c, sc in first.items()},
@@ -175,14 +266,79 @@ def build_report(result) -> dict:
             "absorbed_limit": cfg.absorbed_limit,
             "max_refits": cfg.max_refits,
             "start": cfg.start,
+            "robust": cfg.robust,
+            "changes": cfg.changes,
+            "ambiguity_bic": cfg.ambiguity_bic,
         },
         "data": {
             "source": getattr(getattr(fleet, "report", None), "source", None),
             "n_heliostats": int(sum(1 for i in fleet.ids if i)),
-            "n_records": int(mask.sum()),
+            "n_records": cleaning["n_records"],
+            "n_records_used": int(mask.sum()),
+            "n_outliers": len(cleaning["outliers"]),
+            "n_records_before_change_points": cleaning["n_superseded"],
+            "robust_noise_median_mrad": cleaning["robust_noise_median_mrad"],
+            "start_typical_actuators": [i for i, t in zip(fleet.ids, typical) if i and t],
             "heliostat_ids": [i for i in fleet.ids if i],
         },
         "timing": {k: _f(v) for k, v in result.timing.items()},
+    }
+
+
+def _utc(t: float) -> str | None:
+    if not math.isfinite(t):
+        return None
+    return datetime.datetime.fromtimestamp(float(t), tz=datetime.UTC).isoformat().replace("+00:00", "Z")
+
+
+def _cleaning_report(result) -> dict:
+    """Outliers, change points and record counts of the robust pre-pass."""
+    fleet = result.fleet
+    ids = list(fleet.ids)
+    cl = result.cleaning
+    if cl is None:
+        n = int(np.asarray(fleet.mask).sum())
+        return {
+            "outliers": [],
+            "change_points": [],
+            "change_points_withdrawn": [],
+            "n_records": n,
+            "n_superseded": 0,
+            "robust_noise_median_mrad": None,
+        }
+    rid = np.asarray(fleet.record_id)
+    outliers = [{"heliostat": ids[h], "record_id": int(rid[h, m])} for h, m in zip(*np.nonzero(cl.outlier)) if ids[h]]
+    changes = []
+    for h in np.nonzero(cl.change_found)[0]:
+        if not ids[h]:
+            continue
+        changes.append(
+            {
+                "heliostat": ids[h],
+                "time": _utc(float(cl.change_time_s[h])),
+                "previous_record_time": _utc(float(cl.change_previous_s[h])),
+                "jump": {n: _f(float(v) * 1e-3) for n, v in zip(cl.offsets, cl.change_jump_mrad[h])},
+                "jump_unit": "rad",
+                "p": _f(cl.change_p[h]),
+                "p_holm": _f(cl.change_p_holm[h]),
+                "n_records_before": int(cl.superseded[h].sum()),
+            }
+        )
+    withdrawn = []
+    if cl.withdrawn is not None:
+        for h in np.nonzero(cl.withdrawn)[0]:
+            if ids[h]:
+                when = _utc(float(cl.change_time_s[h]))
+                withdrawn.append({"heliostat": ids[h], "time": when, "p": _f(cl.change_p[h])})
+    real = np.array([bool(i) for i in ids])
+    noise = cl.noise_mrad[real & np.isfinite(cl.noise_mrad)]
+    return {
+        "outliers": outliers,
+        "change_points": changes,
+        "change_points_withdrawn": withdrawn,
+        "n_records": int(cl.valid.sum()),
+        "n_superseded": int(cl.superseded.sum()),
+        "robust_noise_median_mrad": _f(np.median(noise)) if noise.size else None,
     }
 
 
@@ -234,6 +390,42 @@ def markdown_summary(report: dict) -> str:
         lines.append("")
     else:
         lines += ["No effect passed (Holm-controlled score test, delta BIC > 0 and a held-out improvement).", ""]
+    for a in report.get("ambiguities", []):
+        alts = ", ".join(f"`{x['effect']}` (delta BIC {fmt(x['delta_bic'], '.1f')})" for x in a["alternatives"])
+        lines.append(
+            f"**Ambiguous** at step {a['step']}: `{a['named']}` and {alts} explain the same residual "
+            f"(delta BIC within {report['config'].get('ambiguity_bic', 10):g}); the name is not certain."
+        )
+    if report.get("change_points"):
+        lines += [
+            "",
+            f"Change points ({len(report['change_points'])} heliostats; the records before each are left out):",
+            "",
+            "| heliostat | first record since | last record before | jumps (mrad) | p (Holm) |",
+            "|---|---|---|---|---|",
+        ]
+        for c in report["change_points"]:
+            jumps = ", ".join(f"{k} {1e3 * v:+.2f}" for k, v in c["jump"].items() if v is not None)
+            when = f"{c['time']} | {c['previous_record_time']}"
+            lines.append(f"| {c['heliostat']} | {when} | {jumps} | {fmt(c['p_holm'], '.2g')} |")
+    if report.get("outliers") is not None:
+        lines.append(f"\nGross errors left out: {len(report['outliers'])} records.")
+    if report.get("unexplained"):
+        lines += [
+            "",
+            "Residual structure no named effect explains:",
+            "",
+            "| variable | p (Holm) | effect size (mrad) | heliostats (own p < alpha) |",
+            "|---|---|---|---|",
+        ]
+        for u in report["unexplained"]:
+            lines.append(
+                f"| {u['variable']} | {fmt(u['p_holm'], '.2g')} | {fmt(u['effect_size_mrad'])} | "
+                f"{', '.join(u['heliostats']) or '-'} |"
+            )
+    else:
+        lines.append("\nNo residual structure left against any recorded variable.")
+    lines.append("")
     lines += [
         f"Named: {', '.join(report['named_effects']) or 'none'}.",
         f"Not identifiable under this data's sampling (absorbed by the model's parameters): "
@@ -398,11 +590,16 @@ def plot_screen(report: dict, step: int = 0, *, ax=None):
     names = list(scr)
     vals = [0.0 if scr[n]["p_holm"] is None else -np.log10(max(scr[n]["p_holm"], 1e-300)) for n in names]
     heights = np.minimum(vals, 50)
-    untested = np.array([not scr[n]["identifiable"] for n in names], bool)
+    untested = np.array([not scr[n].get("tested", scr[n]["identifiable"]) for n in names], bool)
+    partly = np.array([not scr[n]["identifiable"] for n in names], bool) & ~untested
     index = np.arange(len(names))
-    ax.bar(index[~untested], heights[~untested], color="C0", label="tested: -log10 p (Holm)")
-    # not identifiable / untestable candidates have no p-value: a short hatched grey bar marks them
-    ax.bar(index[untested], 1.0, color="0.7", hatch="//", label="not identifiable / untestable (no p)")
+    full = ~untested & ~partly
+    ax.bar(index[full], heights[full], color="C0", label="identifiable: -log10 p (Holm)")
+    if partly.any():
+        ax.bar(index[partly], heights[partly], color="C1", label="largely absorbed: remainder's -log10 p (Holm)")
+    # fully absorbed / untestable candidates have no p-value: a short hatched grey bar marks them
+    if untested.any():
+        ax.bar(index[untested], 1.0, color="0.7", hatch="//", label="fully absorbed / untestable (no p)")
     for i in index[~untested]:
         p_i = scr[names[i]]["p_holm"]
         text = f"p={p_i:.1g}" if p_i > 0 else "p<1e-300"
@@ -418,9 +615,52 @@ def plot_screen(report: dict, step: int = 0, *, ax=None):
     return fig
 
 
+def plot_unexplained(result, index: int, *, axes=None):
+    """Residual components (mrad) of the base model (grey) and the final model
+    (colour) against the variable of ``result.unexplained[index]``, with binned means."""
+    plt = pyplot()
+    entry = result.unexplained[index]
+    fleet = result.fleet
+    h, m = np.asarray(fleet.mask).shape
+    used = result.lanes.train_mask[:h]
+    rb = _residuals(result.base, h, m)
+    ra = _residuals(result.final, h, m)
+    var = {v.name: v for v in record_variables(fleet, ra)}[entry["variable"]]
+    if axes is None:
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), squeeze=False)
+    else:
+        axes = np.atleast_2d(axes)
+        fig = axes.flat[0].figure
+    labels = ("horizontal component [mrad]", "vertical component [mrad]")
+    x = np.where(used, var.values, np.nan)
+    ok = used & np.isfinite(x)
+    jitter = 0.0
+    if var.kind == "categorical":
+        jitter = 0.08 * np.random.default_rng(0).standard_normal(int(ok.sum()))
+    for j in range(2):
+        ax = axes[0, j]
+        ax.scatter(x[ok] + jitter, rb[..., j][ok], s=6, color="0.6", alpha=0.5, label="records, base model")
+        ax.scatter(x[ok] + jitter, ra[..., j][ok], s=6, color="C0", alpha=0.6, label="records, final model")
+        for r_, c_, when in ((rb, "0.3", "base model"), (ra, "C3", "final model")):
+            xc, yc = _binned(x[ok], r_[..., j][ok])
+            ax.plot(xc, yc, "-o", color=c_, ms=3, lw=1.5, label=f"binned mean, {when}")
+        ax.axhline(0.0, color="k", lw=0.5)
+        ax.set_xlabel(var.label)
+        ax.set_ylabel(labels[j])
+        if j == 0:
+            ax.legend(loc="best", fontsize=8)
+    fig.suptitle(
+        f"unexplained structure against {entry['variable']}: p (Holm) = {entry['p_holm']:.2g}, "
+        f"binned-mean RMS {entry['effect_size_mrad']:.3f} mrad (no library effect explains it)"
+    )
+    fig.tight_layout()
+    return fig
+
+
 def write_figures(result, out_dir) -> list[Path]:
-    """Write the PNG figures: ``heldout_per_step.png``, ``screen_step<k>.png`` and
-    ``residuals_step<k>_<effect>.png``. Returns the paths."""
+    """Write the PNG figures: ``heldout_per_step.png``, ``screen_step<k>.png``,
+    ``residuals_step<k>_<effect>.png`` and ``unexplained_<k>_<variable>.png``.
+    Returns the paths."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
@@ -434,5 +674,9 @@ def write_figures(result, out_dir) -> list[Path]:
     for i, s in enumerate(result.steps):
         p = out / f"residuals_step{i + 1}_{s.effect}.png"
         save_figure(plot_effect_residuals(result, i), p)
+        paths.append(p)
+    for i, u in enumerate(result.unexplained):
+        p = out / f"unexplained_{i + 1}_{u['variable']}.png"
+        save_figure(plot_unexplained(result, i), p)
         paths.append(p)
     return paths

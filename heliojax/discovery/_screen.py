@@ -23,6 +23,11 @@ fleet or individual per heliostat:
   ``G = sum w_h B~_h^T B~_h``, the score statistic ``g^T G^+ g`` over ``k`` is
   referred to ``F(k, sum(n_h - p_h) - k)``.
 
+A candidate the model largely absorbs (not identifiable,
+:mod:`._identifiability`) is still tested on its remainder: its effect may be
+real and only partly mimicked by the model, and leaving it out of the family
+would hand its unabsorbed remainder to whichever other candidate resembles it.
+
 The candidate's p-value is the Bonferroni combination of the two,
 ``min(1, 2 min(p_shared, p_per_heliostat))``; the family of candidates is then
 controlled by Holm's step-down procedure (:mod:`._select`).
@@ -99,6 +104,10 @@ class CandidateScreen:
         information: noncentrality of a typical-size effect's non-absorbed
             remainder (best direction, shared form): ``(2 / 0.25)^2 = 64`` or more
             measures it to +-25 % at 2 sigma.
+        tested: score tests were computed on the non-absorbed remainder (every
+            testable candidate with some direction not absorbed to 1 - 1e-12);
+            a tested candidate that is not ``identifiable`` is *partly absorbed*:
+            it competes on its remainder and is reported with its absorbed fraction.
         p_shared, p_per_heliostat, p: score-test p-values (``p`` combines the two).
         stat_shared, k_shared: shared score statistic and its dimension.
         stat_per_heliostat, k_per_heliostat: chi-square sum and its dimension.
@@ -115,6 +124,7 @@ class CandidateScreen:
     testable: bool
     identifiable: bool
     information: float = 0.0
+    tested: bool = False
     p_shared: float = 1.0
     p_per_heliostat: float = 1.0
     p: float = 1.0
@@ -166,7 +176,7 @@ def screen_candidate(
     information = float(np.linalg.eigvalsh(info).max()) if k else 0.0
     testable = fractions.size > 0
     identifiable = testable and (is_identifiable(fractions, absorbed_limit) or information >= PRECISION_INFORMATION)
-    if not identifiable:
+    if not testable:
         return CandidateScreen(effect, fractions, testable, identifiable, information)
 
     n_total = sum(hb.n for hb in bases)
@@ -232,6 +242,7 @@ def screen_candidate(
         testable,
         identifiable,
         information,
+        tested=bool(k_sum or ks),
         p_shared=p_shared,
         p_per_heliostat=p_perhel,
         p=p,

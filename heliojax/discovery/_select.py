@@ -1,24 +1,41 @@
-"""The discovery workflow: fit, screen, check identifiability, refit, select, repeat.
+"""The discovery workflow: clean, fit, screen, check identifiability, refit, select,
+repeat, diagnose.
 
+0. **Robust pre-pass** (:mod:`._cleaning`): with ``start="auto"`` each heliostat
+   starts from the nominal or the fleet-typical actuators, whichever the base
+   model fits better; a robust fit of the base model flags gross errors (left
+   out, reported) and a scan finds change points (jumps of the axis offsets;
+   Holm over heliostats at ``alpha``); the records before a change are left out.
 1. **Fit the base model** on every lane (all records, and each blocked
    cross-validation fold held out in turn; :mod:`._lanes`).
 2. **Diagnose and screen** every candidate effect on the current model's
    residuals: score tests orthogonalised against the current model's Jacobian
    (:mod:`._screen`), shared and per-heliostat forms.
 3. **Identifiability**: the fraction of each candidate's signature the current
-   model absorbs (:mod:`._identifiability`); an absorbed candidate is reported
-   *not identifiable* and never named. A candidate the data do not drive at all
-   (e.g. no weather) is reported *untestable*.
-4. **Family-wise control**: Holm's step-down procedure over the identifiable
-   candidates' p-values at level ``alpha``; the rejected ones are finalists.
-5. **Refit the finalists** with Levenberg-Marquardt (the best ``max_refits`` by
-   linearised delta BIC, each in the form - shared or per heliostat - with the
-   larger linearised delta BIC; shared parameters by Gauss-Newton steps on the
-   profiled problem between LM fits).
-6. **Name** the finalist with the largest delta BIC among those with
-   ``delta BIC > 0`` *and* a lower pooled held-out RMS in the blocked
-   cross-validation (by UTC day); add it to the model and repeat from 2 until
-   nothing passes.
+   model absorbs (:mod:`._identifiability`). A largely absorbed candidate (*not
+   identifiable*) is still tested on its remainder and competes like the others
+   (reported with its absorbed fraction), so that its remainder is not handed to
+   a different effect. A candidate the data do not drive at all (e.g. no
+   weather) is reported *untestable*.
+4. **Family-wise control**: Holm's step-down procedure over the tested
+   candidates' p-values at level ``alpha``; every rejected one is eligible.
+5. **Refit the eligible candidates** with Levenberg-Marquardt in batches of
+   ``max_refits``, largest linearised delta BIC first, each in the form - shared
+   or per heliostat - with the larger linearised delta BIC (shared parameters
+   by Gauss-Newton steps on the profiled problem between LM fits). A step ends
+   with the first batch in which a candidate passes; only when none of the
+   eligible candidates passes does the workflow stop.
+6. **Name** the passing candidate with the largest delta BIC among those with
+   ``delta BIC > 0`` *and* a better held-out likelihood in the blocked
+   cross-validation by UTC day (:func:`._report.cv_log_ratio` < 0: each
+   heliostat with its own noise level, as in the BIC, so that one heliostat
+   with poorly determined folds cannot decide); passing rivals within ``ambiguity_bic`` of it
+   are reported as an ambiguity. Add it to the model and repeat from 2.
+7. **Confirm the change points** under the final model (a step that only was
+   the remainder of a named effect is withdrawn, and the workflow runs again with
+   those records back in) and **test the residuals against every recorded
+   variable** (:mod:`._diagnostics`): significant structure is reported as
+   *unexplained*, never given a library name.
 
 Under the global null (no effect present), a name needs a Holm rejection in
 the first step, so the probability of naming anything is at most ``alpha``
@@ -39,6 +56,7 @@ import logging
 import time
 
 import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
@@ -46,15 +64,21 @@ from .._fleet import bucket_size, pad_fleet
 from .._kinematics import nominal_model
 from .._progress import progress_bar
 from ..effects import EFFECT_NAMES
-from ..fitting import AbstractBatching, choose_start_geometry, default_solver
+from ..fitting import OFFSET_NAMES, AbstractBatching, default_solver
+from ._cleaning import Cleaning, clean, confirm_change_points, fitted_start_geometry
+from ._diagnostics import record_variables, unexplained_structure
 from ._identifiability import ABSORBED_LIMIT, column_basis
 from ._lanes import Engine, Lanes, Layout, make_lanes, make_layout
-from ._report import build_report, cv_pair
+from ._report import build_report, cv_log_ratio, cv_pair
 from ._screen import CandidateScreen, holm, prepare_bases, screen_candidate
 
 log = logging.getLogger(__name__)
 
 MODES = ("shared", "per_heliostat")
+
+AMBIGUITY_BIC = 10.0
+"""Delta BIC below which two explanations are not told apart (Kass & Raftery 1995:
+a BIC difference above 10 is "very strong" evidence)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,8 +98,16 @@ class DiscoveryConfig:
         max_steps: its step limit.
         batching: strategy over lanes (default :func:`heliojax.default_batching`).
         absorbed_limit: identifiability limit on the absorbed fraction.
-        start: ``"auto"`` (per heliostat the better of nominal / fleet-typical
-            actuators, :func:`heliojax.choose_start_geometry`) or ``"nominal"``.
+        start: ``"auto"`` (per heliostat the nominal or the fleet-typical actuators,
+            whichever the base model fits better,
+            :func:`heliojax.discovery.fitted_start_geometry`) or ``"nominal"``.
+        robust: leave out the gross errors a robust fit of the base model flags
+            (:mod:`._cleaning`).
+        changes: report change points (Holm over heliostats at ``alpha``) and study
+            each heliostat's state since its change.
+        ambiguity_bic: two passing candidates whose delta BIC differ by less than
+            this are reported as an ambiguity (default 10: Kass & Raftery's "very
+            strong" evidence, a published scale, not tuned).
     """
 
     base: str = "stone8"
@@ -90,6 +122,9 @@ class DiscoveryConfig:
     batching: AbstractBatching | None = None
     absorbed_limit: float = ABSORBED_LIMIT
     start: str = "auto"
+    robust: bool = True
+    changes: bool = True
+    ambiguity_bic: float = AMBIGUITY_BIC
 
     @property
     def candidates(self) -> tuple[str, ...]:
@@ -190,9 +225,17 @@ class _Workflow:
         for it in range(n_iter):
             expansion = self.engine.expand(p)
             out = self.engine.fit(p, fit_effect_cols, p, expansion)
-            ok = out["ok"]
             p = np.array(out["params"])
             r, jac = self.engine.jacobian(p)
+            # a lane whose fit left non-finite values is not fitted (it never spoils the others)
+            ok = (
+                np.asarray(out["ok"], bool)
+                & np.all(np.isfinite(p), axis=1)
+                & np.all(np.isfinite(r), axis=1)
+                & np.all(np.isfinite(jac), axis=(1, 2))
+            )
+            r = np.where(ok[:, None], r, 0.0)
+            jac = np.where(ok[:, None, None], jac, 0.0)
             if not eff_cols:
                 break
             # The fit saw the effects to first order about the previous point; it is
@@ -213,6 +256,7 @@ class _Workflow:
         n_res = 2 * used.sum(axis=1)
         assert r is not None and jac is not None
         rss = np.where(ok, np.sum(r**2, axis=1), np.nan)
+        p = np.where(ok[:, None], p, np.asarray(p_start, dtype=np.float64))  # no NaN carried to the next fit
         r_eval, _ = self.engine.jacobian(p, evaluate=True)
         m = used.shape[1]
         sq = r_eval.reshape(n_lanes, m, 2)
@@ -318,6 +362,7 @@ class Candidate:
     cv_before: float
     cv_after: float
     n_heldout: int
+    cv_log_ratio: float
     passed: bool
 
 
@@ -330,6 +375,7 @@ class Step:
     delta_bic: float
     cv_before: float
     cv_after: float
+    cv_log_ratio: float
     amplitude: dict
     amplitude_std: dict
     heliostats: list
@@ -338,6 +384,8 @@ class Step:
     p_holm: float
     before: ModelState
     after: ModelState
+    absorbed_fraction: float | None = None
+    ambiguous_with: tuple = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -355,6 +403,11 @@ class DiscoveryResult:
         screens: per step, ``{"screens": {effect: CandidateScreen}, "p_holm": {effect: p}}``.
         candidates: per step, the refitted finalists.
         report: the report dictionary (:func:`heliojax.discovery.build_report`).
+        cleaning: the robust pre-pass (outliers, change points; :mod:`._cleaning`).
+        typical_start: ``(H,)`` heliostats started from the fleet-typical actuators
+            (``start="auto"``, :func:`heliojax.discovery.fitted_start_geometry`).
+        unexplained: residual structure no named effect explains (:mod:`._diagnostics`).
+        variable_p: every recorded variable's p-value at the final model.
     """
 
     config: DiscoveryConfig
@@ -368,6 +421,10 @@ class DiscoveryResult:
     candidates: list
     report: dict
     timing: dict
+    cleaning: Cleaning | None = None
+    typical_start: np.ndarray | None = None
+    unexplained: tuple = ()
+    variable_p: dict = dataclasses.field(default_factory=dict)
 
 
 def _amplitude(wf: _Workflow, state: ModelState, effect: str, mode: str):
@@ -432,9 +489,33 @@ def discover(
     base = nominal_model(config.base, fleet.counts.dtype)
     n_real = sum(1 for i in fleet.ids if i)
     padded = pad_fleet(fleet, bucket_size(fleet.n_heliostats), bucket_size(fleet.n_records))
+    typical_start = np.zeros(padded.counts.shape[0], bool)
     if config.start == "auto":
-        geometry, _, _ = choose_start_geometry(padded, base)
-        padded = eqx.tree_at(lambda f: f.geometry, padded, geometry)
+        padded, typical_start = fitted_start_geometry(base, padded)
+    cleaning = clean(base, padded, config.alpha, outliers=config.robust, changes=config.changes)
+    result = _discover_cleaned(padded, base, cleaning, config, n_real, t_start)
+    withdrawn = result.cleaning.withdrawn if result.cleaning is not None else None
+    if withdrawn is not None and withdrawn.any():
+        # The final model explains some pre-pass change points: run again with those
+        # heliostats' earlier records back in (their change point stays withdrawn).
+        log.info(f"{int(withdrawn.sum())} change points withdrawn: discovery again with their records")
+        kept = cleaning.change_found & ~withdrawn
+        t = np.asarray(padded.context.unix_time, float)
+        with np.errstate(invalid="ignore"):
+            superseded = cleaning.superseded & (kept[:, None] & (t < cleaning.change_time_s[:, None]))
+        again = dataclasses.replace(cleaning, change_found=kept, superseded=superseded)
+        result = _discover_cleaned(padded, base, again, config, n_real, t_start)
+        assert result.cleaning is not None
+        later = result.cleaning.withdrawn
+        final = dataclasses.replace(result.cleaning, withdrawn=withdrawn if later is None else withdrawn | later)
+        result = dataclasses.replace(result, cleaning=final)
+    return dataclasses.replace(result, typical_start=typical_start, report=build_report(result, typical_start))
+
+
+def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig, n_real: int, t_start: float):
+    """The workflow on ``padded`` with the records ``cleaning`` excludes left out."""
+    inliers = eqx.tree_at(lambda f: f.mask, padded, jnp.asarray(cleaning.valid & ~cleaning.outlier))
+    padded = eqx.tree_at(lambda f: f.mask, padded, jnp.asarray(cleaning.valid & ~cleaning.excluded))
     layout, template = make_layout(base, config.candidates, padded)
     lanes = make_lanes(padded, config.n_folds)
     engine = Engine.create(layout, template, lanes, config.solver, config.max_steps, config.batching)
@@ -456,39 +537,42 @@ def discover(
         if not remaining:
             break
         screens = wf.screen(state, remaining)
-        testable = {c: s.p for c, s in screens.items() if s.identifiable}
+        # every candidate with a remainder the data drive is tested on it (partly absorbed ones too)
+        testable = {c: s.p for c, s in screens.items() if s.tested}
         adjusted, rejected = holm(testable, config.alpha) if testable else ({}, set())
         screens_log.append({"screens": screens, "p_holm": adjusted})
         log.info(
             "screen: "
             + ", ".join(
-                f"{c} p={s.p:.2g}" if s.identifiable else f"{c} ({'not identifiable' if s.testable else 'untestable'})"
+                f"{c} p={s.p:.2g}" if s.tested else f"{c} ({'fully absorbed' if s.testable else 'untestable'})"
                 for c, s in screens.items()
             )
         )
-        # largest linearised delta BIC first; the name breaks ties (sets iterate in a per-process order)
-        finalists = sorted(rejected, key=lambda c: (-max(_delta_bic(screens[c]).values()), c))[: config.max_refits]
+        # Every Holm-significant candidate is eligible. They are refitted in batches of
+        # ``max_refits``, largest linearised delta BIC first (the name breaks ties: sets
+        # iterate in a per-process order); the step ends with the first batch in which
+        # some candidate passes, the workflow only when none of them passes.
+        finalists = sorted(rejected, key=lambda c: (-max(_delta_bic(screens[c]).values()), c))
         if not finalists:
             candidates_log.append([])
             break
-        cands = []
-        for c in progress_bar(finalists, logger=log, desc=f"step {len(steps) + 1}: refits", unit="refit"):
-            scr = screens[c]
-            mode = max(MODES, key=lambda m: _delta_bic(scr)[m])
-            st = wf.fit_state(state.effects + ((c, mode),), wf.start_params(state, c, mode, scr))
-            b0, b1, _ = wf.bic_pair(state, st)
-            cv0, cv1, n_cv = wf.cv_pair(state, st)
-            passed = (b0 - b1 > 0) and np.isfinite(cv1) and (cv1 < cv0)
-            cands.append(Candidate(c, mode, st, b0 - b1, b0, b1, cv0, cv1, n_cv, passed))
-            log.info(
-                f"refit {c} ({mode}, {st.fit_s:.1f} s): delta BIC {b0 - b1:.1f}, held-out RMS "
-                f"{cv0:.3f} -> {cv1:.3f} mrad{'' if passed else ' (rejected)'}"
-            )
+        cands: list[Candidate] = []
+        batches = [finalists[i : i + config.max_refits] for i in range(0, len(finalists), config.max_refits)]
+        for batch in batches:
+            for c in progress_bar(batch, logger=log, desc=f"step {len(steps) + 1}: refits", unit="refit"):
+                cands.append(_refit(wf, state, c, screens[c]))
+            if any(c.passed for c in cands):
+                break
         candidates_log.append(cands)
         passing = [c for c in cands if c.passed]
         if not passing:
             break
         best = max(passing, key=lambda c: c.delta_bic)
+        rivals = tuple(
+            {"effect": c.effect, "mode": c.mode, "delta_bic": c.delta_bic, "cv_after": c.cv_after}
+            for c in passing
+            if c is not best and best.delta_bic - c.delta_bic < config.ambiguity_bic
+        )
         amp, std = _amplitude(wf, best.state, best.effect, best.mode)
         h = lanes.n_heliostats
         ids = list(padded.ids)
@@ -504,6 +588,7 @@ def discover(
                 delta_bic=best.delta_bic,
                 cv_before=best.cv_before,
                 cv_after=best.cv_after,
+                cv_log_ratio=best.cv_log_ratio,
                 amplitude=amp,
                 amplitude_std=std,
                 heliostats=fitted,
@@ -512,10 +597,33 @@ def discover(
                 p_holm=adjusted[best.effect],
                 before=state,
                 after=best.state,
+                absorbed_fraction=screens[best.effect].absorbed_fraction,
+                ambiguous_with=rivals,
             )
         )
-        log.info(f"named {best.effect} ({best.mode}): " + ", ".join(f"{k}={v:.4g}" for k, v in amp.items()))
+        log.info(
+            f"named {best.effect} ({best.mode}): "
+            + ", ".join(f"{k}={v:.4g}" for k, v in amp.items())
+            + (f"; ambiguous with {', '.join(r['effect'] for r in rivals)}" if rivals else "")
+        )
         state = best.state
+    if cleaning.change_found.any():
+        cleaning, withdrawn = _confirm_changes(wf, state, inliers, cleaning, config)
+        for i in withdrawn:
+            log.info(f"change point of {padded.ids[i]} withdrawn: the final model explains it")
+    n_params = len(wf.active_cols(state.effects))
+    ids = list(padded.ids)
+    m = lanes.train_mask.shape[1]
+    unexplained, variable_p = unexplained_structure(
+        record_variables(padded, state.r[:h].reshape(h, m, 2)),
+        state.r[:h].reshape(h, m, 2),
+        lanes.train_mask[:h] & state.ok[:h, None],
+        n_params,
+        config.alpha,
+        ids,
+    )
+    for u in unexplained:
+        log.info(f"unexplained structure against {u['variable']}: p={u['p']:.2g}, {u['effect_size_mrad']:.3f} mrad")
     timing = {"total_s": time.perf_counter() - t_start}
     result = DiscoveryResult(
         config=config,
@@ -529,5 +637,41 @@ def discover(
         candidates=candidates_log,
         report={},
         timing=timing,
+        cleaning=cleaning,
+        unexplained=tuple(unexplained),
+        variable_p=variable_p,
     )
     return dataclasses.replace(result, report=build_report(result))
+
+
+def _confirm_changes(wf: _Workflow, state: ModelState, inliers, cleaning: Cleaning, config: DiscoveryConfig):
+    """:func:`confirm_change_points` with the final model's residuals and Jacobian on
+    every inlier record (those before a change included)."""
+    h = wf.lanes.n_heliostats
+    lanes = make_lanes(inliers, config.n_folds)
+    r, jac = dataclasses.replace(wf.engine, lanes=lanes).jacobian(state.params, evaluate=True)
+    names = [wf.layout.view.names[i] for i in wf.free_index]
+    offsets = next((pair for pair in OFFSET_NAMES if all(n in names for n in pair)), None)
+    if offsets is None:
+        return cleaning, []
+    model_cols = wf.active_cols(state.effects) + wf.shared_cols(state.effects)
+    offset_cols = [names.index(n) for n in offsets]
+    t = np.asarray(inliers.context.unix_time, float)
+    targets = np.asarray(inliers.target_index)
+    return confirm_change_points(cleaning, r[:h], jac[:h], model_cols, offset_cols, t, config.alpha, targets)
+
+
+def _refit(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen) -> Candidate:
+    """Refit the current model with ``effect`` added (in the form with the larger
+    linearised delta BIC) and judge it: delta BIC > 0 and a lower held-out RMS."""
+    mode = max(MODES, key=lambda m: _delta_bic(scr)[m])
+    st = wf.fit_state(state.effects + ((effect, mode),), wf.start_params(state, effect, mode, scr))
+    b0, b1, _ = wf.bic_pair(state, st)
+    cv0, cv1, n_cv = wf.cv_pair(state, st)
+    ratio = float(cv_log_ratio(state, st, wf.lanes.heliostat))
+    passed = bool((b0 - b1 > 0) and np.isfinite(ratio) and (ratio < 0))
+    log.info(
+        f"refit {effect} ({mode}, {st.fit_s:.1f} s): delta BIC {b0 - b1:.1f}, held-out RMS "
+        f"{cv0:.3f} -> {cv1:.3f} mrad, held-out log ratio {ratio:+.4f}{'' if passed else ' (rejected)'}"
+    )
+    return Candidate(effect, mode, st, b0 - b1, b0, b1, cv0, cv1, n_cv, ratio, passed)

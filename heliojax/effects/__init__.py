@@ -14,11 +14,12 @@ name                 parameters (units)                    driving inputs       
 ``actuator_geometry`` ``curvature_1,2`` (1; stone8 base) or counts               curved in each axis's counts
                      ``pivot_scale_1,2`` (1; actuator base)
 ``backlash``         ``backlash_1,2`` (rad, dead-band width) approach directions   step between approach signs
-``thermal``          ``thermal_1,2`` (rad/K)                temperature           proportional to T - T_ref
+``thermal``          ``thermal_1,2`` (rad/K),               temperature           proportional to T - T_ref
+                     ``thermal_scale_1,2`` (1/K)                                  (and to the angle)
 ``wind``             ``wind_1,2`` (rad/(m/s)^2)             wind speed, direction v^2, by direction to mirror
 ``clock``            ``clock_offset`` (s), ``clock_drift``  time, sun             sun turned about the pole,
                      (s/day)                                                      growing with time
-``gravity_sag``      ``gravity_sag`` (rad)                  normal elevation      ~cos(elevation) on axis 1
+``gravity_sag``      ``gravity_sag`` (rad)                  normal elevation      normal droops by ~cos(elevation)
 ``encoder_wobble``   ``wobble_cos/sin_1,2`` (rad), n = 2    joint angles          sinusoid of n * angle
 ``refraction``       ``refraction_scale`` (1)               sun elevation         vertical, ~cot(elevation)
 ``survey_heliostat`` ``survey_heliostat_e,n,u`` (m)         geometry              direction to target

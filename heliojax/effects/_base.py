@@ -9,6 +9,8 @@ prediction, through hooks that default to the identity:
    angles ``(theta, tau)`` the base model computes from the motor counts; it
    sees the base angles, the counts, the record context and (when
    ``NEEDS_NORMAL``) the mirror normal of the uncorrected pose;
+   ``normal_tilt`` - an additive change ``(3,)`` of the mirror normal in space,
+   turned into joint angles through the chain's Jacobian;
 3. ``adjust_sun`` - the sun direction the model believes in;
 4. ``adjust_focal`` - the measured focal spot (target survey).
 
@@ -33,6 +35,7 @@ import collections.abc
 import typing
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -47,11 +50,14 @@ class AbstractEffect(eqx.Module):
         NAME: the effect's name (one of :data:`heliojax.effects.EFFECT_NAMES`).
         DRIVERS: names of the record inputs the effect needs.
         NEEDS_NORMAL: whether :meth:`angle_correction` uses the mirror normal.
+        TILTS_NORMAL: whether :meth:`normal_tilt` is overridden (the model then
+            computes the chain's Jacobian of the normal in the joint angles).
     """
 
     NAME: typing.ClassVar[str] = ""
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ()
     NEEDS_NORMAL: typing.ClassVar[bool] = False
+    TILTS_NORMAL: typing.ClassVar[bool] = False
 
     @classmethod
     def nominal(cls, inner: AbstractKinematicModel | None, dtype: typing.Any = None) -> AbstractEffect:
@@ -74,6 +80,17 @@ class AbstractEffect(eqx.Module):
     ) -> Float[Array, "2"] | None:
         """Additive joint-angle correction (rad), or None for none."""
         del geometry, counts, angles, context, normal
+        return None
+
+    def normal_tilt(
+        self, geometry: HeliostatGeometry, normal: Float[Array, "3"], context: RecordContext | None
+    ) -> Float[Array, "3"] | None:
+        """Additive change (rad, tangent to the unit sphere at ``normal``) of the
+        mirror normal, or None. The model turns it into joint-angle corrections by
+        least squares through the chain's Jacobian ``d normal / d angles``, so an
+        effect that acts on the normal in space (gravity acts vertically) is
+        written once for every kinematic chain."""
+        del geometry, normal, context
         return None
 
     def adjust_sun(self, sun: Float[Array, "3"], context: RecordContext) -> Float[Array, "3"]:
@@ -139,13 +156,22 @@ class EffectModel(AbstractModelWrapper):
         """The inner model's joint ``angles`` (rad) of one record plus every effect's
         correction (``geometry`` already adjusted)."""
         normal = None
-        if any(e.NEEDS_NORMAL for e in self.effects):
-            normal = chain_pose(self.inner.tilts(), angles, geometry).normal
+        tilts = self.inner.tilts()
+        if any(e.NEEDS_NORMAL or e.TILTS_NORMAL for e in self.effects):
+            normal = chain_pose(tilts, angles, geometry).normal
         total = angles
         for e in self.effects:
             d = e.angle_correction(geometry, counts, angles, context, normal)
             if d is not None:
                 total = total + d
+        if any(e.TILTS_NORMAL for e in self.effects):
+            assert normal is not None
+            dn = sum(
+                (t for t in (e.normal_tilt(geometry, normal, context) for e in self.effects) if t is not None),
+                jnp.zeros(3, normal.dtype),
+            )
+            jac = jax.jacfwd(lambda a: chain_pose(tilts, a, geometry).normal)(angles)  # (3, 2)
+            total = total + jnp.linalg.solve(jac.T @ jac, jac.T @ dn)
         return total
 
     def record_angles(self, geometry, counts, context):

@@ -24,19 +24,30 @@ class Thermal(AbstractEffect):
     """Thermal expansion of the drives and the structure.
 
     Physical meaning: the actuator, its mounts and the pylon expand with the
-    ambient temperature ``T``; a change of stroke or lever length changes each
-    joint angle in proportion (steel: ~12e-6/K on ~0.3 m strokes and levers
-    gives ~0.01 mrad/K). Correction: ``angle_i += k_i (T - T_ref)``.
+    ambient temperature ``T``. A change of a fixed length (a lever, a mount)
+    turns each joint by a constant angle per kelvin (steel: ~12e-6/K on ~0.3 m
+    gives ~0.01 mrad/K); the spindle of a linear actuator expands in proportion
+    to its extended length, which acts like a change of the gear ratio: the
+    angle moves in proportion to ``T - T_ref`` *and* to the angle itself.
+    Correction (first order in both)::
 
-    Parameters: ``thermal_1``, ``thermal_2`` (rad/K). Reference:
+        angle_i += (k_i + s_i angle_i) (T - T_ref)
+
+    with ``angle_i`` the base model's joint angle (rad).
+
+    Parameters: ``thermal_1``, ``thermal_2`` (rad/K), ``thermal_scale_1``,
+    ``thermal_scale_2`` (1/K; typical: steel's 12e-6/K). Reference:
     ``thermal_reference_c`` (deg C; the data's mean temperature, so the
     coefficients do not trade off against the base model's offsets).
     Driving input: ``temperature`` (records without one get no correction).
-    Residual signature: proportional to ``T - T_ref`` on each axis, independent
-    of the pose.
+    Residual signature: proportional to ``T - T_ref`` on each axis, growing
+    linearly with the joint angle for the gear-ratio part.
     """
 
     coefficient: Float[Array, "*h 2"] = parameter(unit="rad/K", scale=1e-4, typical=1.5e-5, name="thermal", shape=(2,))
+    expansion: Float[Array, "*h 2"] = parameter(
+        unit="1/K", scale=1e-4, typical=1.2e-5, name="thermal_scale", shape=(2,)
+    )
     reference: Float[Array, ""] = data_reference(unit="deg C", default=20.0, name="thermal_reference_c")
 
     NAME: typing.ClassVar[str] = "thermal"
@@ -44,13 +55,13 @@ class Thermal(AbstractEffect):
 
     @classmethod
     def nominal(cls, inner, dtype=None):
-        return cls(coefficient=zeros(dtype, 2), reference=jnp.asarray(20.0, dtype))
+        return cls(coefficient=zeros(dtype, 2), expansion=zeros(dtype, 2), reference=jnp.asarray(20.0, dtype))
 
     def angle_correction(self, geometry, counts, angles, context, normal):
         if context is None:
             return None
         dt = known(context.temperature, self.reference) - self.reference
-        return self.coefficient * dt
+        return (self.coefficient + self.expansion * angles) * dt
 
 
 @typing.final

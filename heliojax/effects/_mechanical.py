@@ -121,7 +121,10 @@ class GravitySag(AbstractEffect):
     Physical meaning: the mirror's weight acts with a lever arm that is largest
     when the mirror stands vertical; the structure yields and the normal tips
     toward the horizon by ``g * cos(e_n)``, ``e_n`` the elevation of the mirror
-    normal. Correction: ``theta += g * cos(e_n)`` (axis 1).
+    normal. Correction: the normal turns by ``-g cos(e_n)`` along the local
+    direction of increasing elevation (in the vertical plane through the normal,
+    whatever the chain), converted to joint angles through the chain's Jacobian
+    (:meth:`~heliojax.effects.AbstractEffect.normal_tilt`).
 
     Parameter: ``gravity_sag`` (rad, the tip at a vertical mirror).
     Driving input: the mirror normal's elevation (from the pose; no record
@@ -135,16 +138,19 @@ class GravitySag(AbstractEffect):
 
     NAME: typing.ClassVar[str] = "gravity_sag"
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("normal_elevation",)
-    NEEDS_NORMAL: typing.ClassVar[bool] = True
+    TILTS_NORMAL: typing.ClassVar[bool] = True
 
     @classmethod
     def nominal(cls, inner, dtype=None):
         return cls(sag=zeros(dtype))
 
-    def angle_correction(self, geometry, counts, angles, context, normal):
-        assert normal is not None  # NEEDS_NORMAL: the model passes the pose's normal
-        cos_e = jnp.sqrt(jnp.clip(normal[0] ** 2 + normal[1] ** 2, 0.0, 1.0))
-        return jnp.stack([self.sag * cos_e, jnp.zeros_like(cos_e)])
+    def normal_tilt(self, geometry, normal, context):
+        del geometry, context
+        horizontal_sq = normal[0] ** 2 + normal[1] ** 2
+        cos_e = jnp.sqrt(jnp.clip(horizontal_sq, 1e-30, 1.0))
+        # unit vector of increasing elevation at the normal: (z - (z . n) n) / cos(e)
+        up = jnp.stack([-normal[2] * normal[0], -normal[2] * normal[1], horizontal_sq]) / cos_e
+        return -self.sag * cos_e * up
 
 
 @typing.final

@@ -64,6 +64,7 @@ from ._records import (
 from ._robust import (
     RobustFit as RobustFit,
     fit_robust as fit_robust,
+    robust_component_noise as robust_component_noise,
     robust_noise as robust_noise,
 )
 from ._sharding import (

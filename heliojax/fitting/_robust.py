@@ -12,9 +12,10 @@ reflection) that dominate a least-squares fit. :func:`fit_robust`
 3. refits from there with the Cauchy loss of scale
    ``c = 2.3849 sigma`` (95 % efficiency under Gaussian noise);
 4. re-estimates ``sigma`` from the robust residuals and flags a record as an
-   outlier when its residual norm exceeds the 99.9 % point of the Rayleigh
-   distribution of ``sigma`` (``sqrt(-2 ln 0.001) sigma = 3.717 sigma``): under
-   Gaussian noise 0.1 % of clean records are flagged.
+   outlier when its residual, standardised by each component's own robust
+   scale (:func:`robust_component_noise`: the noise is rarely isotropic),
+   exceeds the 99.9 % point of the Rayleigh distribution (``sqrt(-2 ln 0.001)
+   = 3.717``): under Gaussian noise 0.1 % of clean records are flagged.
 
 Each record's weight is its Cauchy IRLS weight ``1 / (1 + |r|^2 / c^2)``. No
 constant is picked on any data set: the two numbers above are the Cauchy
@@ -29,7 +30,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._kinematics import AbstractKinematicModel
 from .._parameters import broadcast_model, is_batched
@@ -99,6 +100,31 @@ def robust_noise(
     own = np.where(np.isfinite(own) & (n > 0), own, fleet)
     sigma = np.sqrt((n * own**2 + NOISE_PRIOR_RECORDS * fleet**2) / (n + NOISE_PRIOR_RECORDS))
     return sigma, own
+
+
+def robust_component_noise(
+    residuals: Float[ArrayLike, "H M 2"], use: Bool[ArrayLike, "H M"], n_free: int
+) -> np.ndarray:
+    """``(H, 2)`` noise per residual component (mrad): the median absolute residual of
+    each component over ``Phi^-1(3/4) = 0.6745`` (Gaussian), corrected for the fitted
+    degrees of freedom and shrunk toward the fleet median like :func:`robust_noise`.
+    Measurement noise is rarely isotropic (a spot on an oblique target is measured
+    less precisely along one direction), so gross errors are judged per component."""
+    r = np.asarray(residuals, float)
+    used = np.asarray(use, bool) & np.all(np.isfinite(r), axis=-1)
+    n = used.sum(axis=1)
+    dof = np.maximum(2 * n - n_free, 1)
+    own = np.full((r.shape[0], 2), np.nan)
+    for j in range(2):
+        a = np.where(used, np.abs(np.where(np.isfinite(r[..., j]), r[..., j], 0.0)), np.nan)
+        with np.errstate(invalid="ignore"):
+            med = np.nanmedian(np.where(n[:, None] > 0, a, 0.0), axis=1) if a.size else np.zeros(0)
+        own[:, j] = med / 0.6744897501960817 * np.sqrt(np.maximum(2 * n, 1) / dof)
+    good = (2 * n >= 3 * n_free)[:, None] & np.isfinite(own) & (own > 0)
+    fleet = np.array([float(np.median(own[good[:, j], j])) if good[:, j].any() else 1.0 for j in range(2)])
+    fleet = np.where(np.isfinite(fleet) & (fleet > 0), fleet, 1.0)
+    own = np.where(np.isfinite(own) & (n[:, None] > 0), own, fleet)
+    return np.sqrt((n[:, None] * own**2 + NOISE_PRIOR_RECORDS * fleet**2) / (n[:, None] + NOISE_PRIOR_RECORDS))
 
 
 def _fitted(solution: FitSolution) -> np.ndarray:
@@ -182,8 +208,11 @@ def fit_robust(
     use = np.asarray(m, bool) & np.all(np.isfinite(np.asarray(r1)), axis=-1)
     c = CAUCHY_EFFICIENCY_FACTOR * sigma1
     weights = np.where(use, 1.0 / (1.0 + (norm / c[:, None]) ** 2), 0.0)
-    threshold = np.sqrt(-2.0 * np.log(OUTLIER_TAIL)) * sigma1
-    outlier = use & (norm > threshold[:, None])
+    # flags: the residual standardised per component (each heliostat's own scales) beyond
+    # the Rayleigh point of OUTLIER_TAIL
+    comp = robust_component_noise(r1, m, n_free)
+    z = np.where(np.isfinite(np.asarray(r1)), np.asarray(r1), 0.0) / comp[:, None, :]
+    outlier = use & (np.linalg.norm(z, axis=-1) > np.sqrt(-2.0 * np.log(OUTLIER_TAIL)))
     return RobustFit(
         compile_s=run.compile_s,
         run_s=run.run_s,

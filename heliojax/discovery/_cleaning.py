@@ -1,0 +1,305 @@
+"""Robust data cleaning before discovery: gross errors and change points.
+
+Real records carry gross errors (a spot centroid on a reflection, a wrong
+target) and maintenance steps (an axis re-zeroed, an actuator swapped). Left
+in, they dominate a least-squares fit: the noise estimate becomes the scatter
+of the gross errors, every score test reports structure, and an unmodelled step
+is named as whatever smooth effect best mimics it (a clock drift, a thermal
+term). So discovery starts from the calibration's robust, change-point-aware
+fit of the base model (:func:`heliojax.fitting.fit_robust`,
+:func:`heliojax.fitting.find_change_points`):
+
+* **outliers**: the records the robust fit flags (residual norm beyond the
+  99.9 % point of the Rayleigh distribution of the heliostat's robust noise) are
+  left out of discovery and reported; where change points are found, the flags
+  come from robust fits of each side of the change (the first fit saw the
+  unmodelled steps as residuals);
+* **change points**: per heliostat the most likely jump of both axis offsets.
+  Its evidence ``delta_chi2`` is a likelihood ratio with two degrees of freedom
+  at a given date; the scan over dates is paid for by Bonferroni over the
+  records scanned, ``p_h = min(1, n_h exp(-delta_chi2 / 2))`` (the chi-square(2)
+  tail), and the heliostats by Holm's procedure at the discovery's ``alpha``, so
+  that under the null (no step anywhere) a change point is reported in at most a
+  fraction ``alpha`` of fleets. A reported change point is one of the named
+  effects; the records before it (the earlier state of the heliostat) are left
+  out of discovery, which then studies each heliostat's current state. After the
+  library effects are named, each change point is tested again under the final
+  model (:func:`confirm_change_points`): a step that was only the remainder of
+  a named effect (backlash and thermal drifts are correlated in time) is
+  withdrawn and reported as such.
+
+Nothing here has a constant chosen on data: the outlier tail is the robust
+fit's, the family-wise level is the discovery's ``alpha``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import typing
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._errors import ConfigError
+from ..fitting import choose_start_geometry, find_change_points, fit_robust
+from ._screen import holm
+
+log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass(frozen=True)
+class Cleaning:
+    """What the robust pre-pass found (numpy arrays over the padded fleet).
+
+    Attributes:
+        valid: ``(H, M)`` the records before cleaning.
+        outlier: ``(H, M)`` gross errors (left out).
+        superseded: ``(H, M)`` records before a reported change point (left out).
+        change_found: ``(H,)`` a change point is reported.
+        change_time_s: ``(H,)`` unix time (s) of the first record at or after the
+            change (NaN where none).
+        change_previous_s: ``(H,)`` unix time (s) of the last record before it.
+        change_jump_mrad: ``(H, 2)`` jump of the two axis offsets (later minus earlier).
+        change_p: ``(H,)`` p-value of the change point (Bonferroni over dates; NaN where
+            no scan was possible).
+        change_p_holm: ``(H,)`` Holm-adjusted over heliostats.
+        offsets: names of the two offset parameters.
+        noise_mrad: ``(H,)`` robust noise per residual component (mrad) of the inliers.
+        withdrawn: ``(H,)`` change points of the pre-pass the final model explains
+            (:func:`confirm_change_points`; None before that test).
+    """
+
+    valid: np.ndarray
+    outlier: np.ndarray
+    superseded: np.ndarray
+    change_found: np.ndarray
+    change_time_s: np.ndarray
+    change_previous_s: np.ndarray
+    change_jump_mrad: np.ndarray
+    change_p: np.ndarray
+    change_p_holm: np.ndarray
+    offsets: tuple[str, ...]
+    noise_mrad: np.ndarray
+    withdrawn: np.ndarray | None = None
+
+    @property
+    def excluded(self) -> np.ndarray:
+        """``(H, M)`` records left out of discovery."""
+        return self.outlier | self.superseded
+
+    @classmethod
+    def none(cls, valid: np.ndarray) -> Cleaning:
+        """No cleaning (every valid record kept)."""
+        h = valid.shape[0]
+        nan = np.full(h, np.nan)
+        return cls(
+            valid=valid,
+            outlier=np.zeros_like(valid),
+            superseded=np.zeros_like(valid),
+            change_found=np.zeros(h, bool),
+            change_time_s=nan,
+            change_previous_s=nan,
+            change_jump_mrad=np.full((h, 2), np.nan),
+            change_p=nan,
+            change_p_holm=nan,
+            offsets=(),
+            noise_mrad=nan,
+        )
+
+
+def change_point_pvalues(delta_chi2: np.ndarray, n_scanned: np.ndarray) -> np.ndarray:
+    """Per heliostat, ``min(1, n exp(-delta_chi2 / 2))``: the chi-square(2) tail of the
+    likelihood ratio at the best date, Bonferroni over the ``n`` dates scanned
+    (NaN where there was no scan)."""
+    d = np.asarray(delta_chi2, float)
+    n = np.maximum(np.asarray(n_scanned, float), 1.0)
+    with np.errstate(over="ignore", invalid="ignore"):
+        p = np.minimum(1.0, n * np.exp(-0.5 * d))
+    return np.where(np.isfinite(d), p, np.nan)
+
+
+def clean(
+    base: typing.Any,
+    fleet: typing.Any,
+    alpha: float,
+    *,
+    outliers: bool = True,
+    changes: bool = True,
+) -> Cleaning:
+    """The robust pre-pass (module docstring) of ``fleet`` (padded) under ``base``.
+
+    Args:
+        base: the base kinematic model (start values).
+        fleet: the padded :class:`heliojax.Fleet`.
+        alpha: family-wise level of the change points (Holm over heliostats).
+        outliers: flag gross errors.
+        changes: scan for change points (needs a free pair of axis offsets).
+    """
+    valid = np.asarray(fleet.mask, bool)
+    out = Cleaning.none(valid)
+    if not (outliers or changes) or not valid.any():
+        return out
+    rf = fit_robust(base, fleet, mask=jnp.asarray(valid))
+    outlier = np.asarray(rf.outlier, bool) if outliers else np.zeros_like(valid)
+    out = dataclasses.replace(out, outlier=outlier, noise_mrad=np.asarray(rf.noise_mrad, float))
+    n_out = int(outlier.sum())
+    if n_out:
+        log.info(f"robust pre-pass: {n_out} gross errors left out")
+    if not changes:
+        return out
+    inliers = valid & ~outlier
+    try:
+        cp = find_change_points(rf.solution, fleet, jnp.asarray(inliers), jnp.asarray(inliers, fleet.counts.dtype))
+    except ConfigError as e:  # a base without a free pair of axis offsets
+        log.info(f"no change-point scan: {e}")
+        return out
+    p = change_point_pvalues(np.asarray(cp.delta_chi2), inliers.sum(axis=1))
+    tested = {str(i): float(p[i]) for i in range(valid.shape[0]) if np.isfinite(p[i])}
+    adjusted, rejected = holm(tested, alpha) if tested else ({}, set())
+    p_holm = np.array([adjusted.get(str(i), np.nan) for i in range(valid.shape[0])])
+    found = np.array([str(i) in rejected for i in range(valid.shape[0])], bool)
+    t = np.asarray(fleet.context.unix_time, float)
+    time_s = np.where(found, np.asarray(cp.time_s, float), np.nan)
+    with np.errstate(invalid="ignore"):
+        superseded = inliers & found[:, None] & (t < time_s[:, None])
+    if found.any():
+        log.info(f"change points in {int(found.sum())} heliostats: discovery studies their current state")
+        # the first pass saw the steps as residuals: flag the gross errors again on each
+        # side of the change (one robust fit per segment; the same compiled program)
+        with np.errstate(invalid="ignore"):
+            earlier = valid & found[:, None] & (t < time_s[:, None])
+        current = valid & ~earlier
+        now = fit_robust(base, fleet, mask=jnp.asarray(current))
+        if outliers:
+            before = fit_robust(base, fleet, mask=jnp.asarray(earlier))
+            outlier = (np.asarray(now.outlier, bool) & current) | (np.asarray(before.outlier, bool) & earlier)
+        else:
+            outlier = np.zeros_like(valid)
+        superseded = earlier & ~outlier
+        out = dataclasses.replace(out, outlier=outlier, noise_mrad=np.asarray(now.noise_mrad, float))
+    return dataclasses.replace(
+        out,
+        superseded=superseded,
+        change_found=found,
+        change_time_s=time_s,
+        change_previous_s=np.where(found, np.asarray(cp.previous_time_s, float), np.nan),
+        change_jump_mrad=np.where(found[:, None], np.asarray(cp.jump_mrad, float), np.nan),
+        change_p=p,
+        change_p_holm=p_holm,
+        offsets=tuple(cp.offsets),
+    )
+
+
+def confirm_change_points(
+    cleaning: Cleaning,
+    r: np.ndarray,
+    jac: np.ndarray,
+    model_cols: list[int],
+    offset_cols: list[int],
+    unix_time: np.ndarray,
+    alpha: float,
+    target_index: np.ndarray | None = None,
+) -> tuple[Cleaning, list[int]]:
+    """Test the pre-pass change points again under the final model.
+
+    A step found under the base model may be the remainder of an effect the base
+    lacks (backlash, a thermal drift: their residuals are correlated in time).
+    With the final model's residuals ``r`` ``(H, 2M)`` and Jacobian ``jac``
+    ``(H, 2M, F)`` evaluated on every inlier record - those before the change
+    included - each change point is tested again at its date: the likelihood
+    ratio of a jump of the two offsets (columns ``offset_cols``) on the records
+    before the change, with the model's columns ``model_cols`` refitted
+    (linearised), Bonferroni over the records and Holm over the heliostats as in
+    the pre-pass. With ``target_index`` ``(H, M)``, both hypotheses also get a
+    constant offset per target and residual component (a target's survey error
+    moves its spots by a fixed angle): a heliostat that only switched targets at
+    the "change" keeps no change point. Change points that no longer pass are
+    withdrawn (the report lists them).
+
+    Returns:
+        ``(cleaning, withdrawn)``: the updated cleaning and the withdrawn heliostats.
+    """
+    found = cleaning.change_found.copy()
+    if not found.any():
+        return cleaning, []
+    use = cleaning.valid & ~cleaning.outlier
+    p = np.asarray(cleaning.change_p, float).copy()
+    for h in np.nonzero(found)[0]:
+        rows = np.repeat(use[h], 2)
+        before = np.repeat(unix_time[h] < cleaning.change_time_s[h], 2)[rows]
+        rr = r[h][rows]
+        a = jac[h][rows][:, model_cols]
+        if target_index is not None:
+            a = np.concatenate([a, _target_columns(target_index[h], use[h])], axis=1)
+        step = np.where(before[:, None], jac[h][rows][:, offset_cols], 0.0)
+        rss0 = _lstsq_rss(a, rr)
+        rss1 = _lstsq_rss(np.concatenate([a, step], axis=1), rr)
+        d = rr.size * np.log(max(rss0, 1e-300) / max(rss1, 1e-300))
+        p[h] = float(change_point_pvalues(np.array([d]), np.array([use[h].sum()]))[0])
+    tested = {str(i): float(p[i]) for i in range(p.size) if np.isfinite(p[i])}
+    adjusted, rejected = holm(tested, alpha) if tested else ({}, set())
+    confirmed = np.array([found[i] and str(i) in rejected for i in range(p.size)], bool)
+    withdrawn = [int(i) for i in np.nonzero(found & ~confirmed)[0]]
+    p_holm = np.array([adjusted.get(str(i), np.nan) for i in range(p.size)])
+    return (
+        dataclasses.replace(
+            cleaning,
+            change_found=confirmed,
+            change_p=p,
+            change_p_holm=p_holm,
+            withdrawn=found & ~confirmed,
+        ),
+        withdrawn,
+    )
+
+
+def _target_columns(target: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """``(2 n_used, 2 (T - 1))`` indicator columns of each target but the most used one,
+    per residual component (rows interleaved as the residuals)."""
+    t = np.asarray(target)[use]
+    names, counts = np.unique(t, return_counts=True)
+    others = [v for v in names if v != names[np.argmax(counts)]] if names.size else []
+    cols = np.zeros((2 * t.size, 2 * len(others)))
+    comp = np.tile([True, False], t.size)
+    for k, v in enumerate(others):
+        hit = np.repeat(t == v, 2)
+        cols[:, 2 * k] = hit & comp
+        cols[:, 2 * k + 1] = hit & ~comp
+    return cols
+
+
+def _lstsq_rss(a: np.ndarray, y: np.ndarray) -> float:
+    x, *_ = np.linalg.lstsq(a, y, rcond=None)
+    return float(np.sum((y - a @ x) ** 2))
+
+
+def fitted_start_geometry(base: typing.Any, fleet: typing.Any) -> tuple[typing.Any, np.ndarray]:
+    """Per heliostat, the start geometry the base model *fits* better.
+
+    :func:`heliojax.choose_start_geometry` proposes the fleet-typical actuators for
+    heliostats whose nominal values look worse before any fit (PAINT's BF41). The
+    actuator model keeps the stroke offsets fixed, so a replaced geometry may be
+    one no parameter set fits exactly: the misfit would be residual structure
+    that discovery then reports. Here both starts are fitted robustly and each
+    heliostat keeps the one with the smaller robust noise (no threshold).
+
+    Returns:
+        ``(fleet, replaced)``: the fleet with the chosen geometry and ``(H,)`` the
+        heliostats that start from the fleet-typical actuators.
+    """
+    proposed, replaced, _ = choose_start_geometry(fleet, base)
+    replaced = np.asarray(replaced, bool)
+    if not replaced.any():
+        return fleet, replaced
+    own = np.asarray(fit_robust(base, fleet).noise_mrad, float)
+    alt_fleet = eqx.tree_at(lambda f: f.geometry, fleet, proposed)
+    alt = np.asarray(fit_robust(base, alt_fleet).noise_mrad, float)
+    take = replaced & (np.nan_to_num(alt, nan=np.inf) < np.nan_to_num(own, nan=np.inf))
+    take_j = jnp.asarray(take)
+    geometry = jax.tree.map(
+        lambda a, b: jnp.where(take_j.reshape((-1,) + (1,) * (jnp.ndim(a) - 1)), a, b), proposed, fleet.geometry
+    )
+    return eqx.tree_at(lambda f: f.geometry, fleet, geometry), take

@@ -1,0 +1,267 @@
+"""Open-world diagnostics: residual structure against every recorded variable.
+
+The effect library cannot know every effect a plant has. After the library
+effects are named, the final model's training residuals are tested against
+every variable a record carries (:func:`record_variables`): time, UTC time of
+day, sun azimuth and elevation, each axis's motor counts and approach
+direction, the target, the spot position on the target, temperature, wind
+speed and direction, and the heliostat's position in the field.
+
+Test (per variable): each heliostat's residual components are standardised by
+its own noise level (``sqrt(RSS_h / dof_h)``), the records are grouped into
+bins of the variable (:data:`N_BINS` quantile bins pooled over the fleet; the
+categories of a categorical variable), and a one-way analysis of variance of
+both components together gives ``F = (SS_between / (2 (B - 1))) / (SS_within /
+(2 (N - B)))``, referred to ``F(2 (B - 1), 2 (N - B))``. A bin needs
+:data:`MIN_PER_BIN` records. The variables are selected forward: the most
+significant variable is reported when its p-value passes Holm's threshold
+``alpha / (number of variables still in the family)``; its binned means are
+then removed from the residuals and the remaining variables are tested again,
+so that a variable that only echoes a reported one (time of day and sun
+azimuth) is not reported as well. The effect size is the RMS over records of
+the binned-mean curve (mrad, both components).
+
+The residuals of the final model include whatever the library effects named
+before explained, so a significant variable is structure *no named effect
+explains*: it is reported under ``"unexplained"``, never given a library name.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy import stats
+
+N_BINS = 8
+"""Quantile bins of a continuous variable (a design choice, not tuned on data)."""
+
+MIN_PER_BIN = 5
+"""Records a bin needs to take part in the test."""
+
+CONTINUOUS, CATEGORICAL = "continuous", "categorical"
+
+
+@dataclasses.dataclass(frozen=True)
+class Variable:
+    """A recorded variable per record ``(H, M)`` (NaN where unknown).
+
+    Attributes:
+        name: machine name (report key).
+        label: axis label with unit.
+        values: ``(H, M)``.
+        kind: ``"continuous"`` or ``"categorical"``.
+    """
+
+    name: str
+    label: str
+    values: np.ndarray
+    kind: str = CONTINUOUS
+
+
+def predicted_spot(fleet, residuals_mrad: np.ndarray | None) -> np.ndarray:
+    """``(H, M, 3)`` ENU m: where the model puts each record's spot on its target.
+
+    A residual structure must not be tested against the *measured* spot: the
+    measurement noise is in both, and binning by a noisy copy of the response
+    shows structure where there is none (regression dilution). The model's
+    spot is the measured direction from the heliostat with the residual
+    components (``d . e1``, ``d . e2``, :func:`heliojax.beam_error_components`)
+    taken out, intersected with the target plane (first order in the residual).
+    Without residuals the measured spot is returned.
+    """
+    focal = np.asarray(fleet.focal_spot, float)
+    if residuals_mrad is None:
+        return focal
+    pos = np.asarray(fleet.geometry.position, float)[:, None, :]
+    d = focal - pos
+    d /= np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
+    up = np.array([0.0, 0.0, 1.0])
+    e1 = np.cross(up, d)
+    e1 /= np.maximum(np.linalg.norm(e1, axis=-1, keepdims=True), 1e-12)
+    e2 = np.cross(d, e1)
+    c = np.nan_to_num(np.asarray(residuals_mrad, float)) * 1e-3
+    ray = d - c[..., :1] * e1 - c[..., 1:] * e2
+    ti = np.clip(np.asarray(fleet.target_index), 0, None)
+    centre = np.asarray(fleet.targets.centre, float)[ti]
+    normal = np.asarray(fleet.targets.normal, float)[ti]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.sum((centre - pos) * normal, axis=-1) / np.sum(ray * normal, axis=-1)
+    return pos + s[..., None] * ray
+
+
+def record_variables(fleet, residuals_mrad: np.ndarray | None = None) -> list[Variable]:
+    """Every variable the records carry (:class:`Variable` list) from a padded fleet;
+    the spot position is the model's (:func:`predicted_spot`, from the residuals
+    ``(H, M, 2)`` mrad when given)."""
+    ctx = fleet.context
+    h, m = np.asarray(fleet.mask).shape
+    sun = np.asarray(ctx.sun, float)
+    t = np.asarray(ctx.unix_time, float)
+    counts = np.asarray(fleet.counts, float)
+    approach = np.asarray(ctx.approach, float)
+    approach = np.where(approach == 0.0, np.nan, np.sign(approach))
+    focal = predicted_spot(fleet, residuals_mrad)
+    ti = np.clip(np.asarray(fleet.target_index), 0, None)
+    centre = np.asarray(fleet.targets.centre, float)[ti]
+    u_axis = np.asarray(fleet.targets.u_axis, float)[ti]
+    v_axis = np.asarray(fleet.targets.v_axis, float)[ti]
+    offset = focal - centre
+    pos = np.broadcast_to(np.asarray(fleet.geometry.position, float)[:, None, :], (h, m, 3))
+    t0 = np.nanmin(t) if np.isfinite(t).any() else 0.0
+    azimuth = np.degrees(np.arctan2(sun[..., 0], sun[..., 1]))
+    wind_from = np.degrees(np.asarray(ctx.wind_direction, float))
+    return [
+        Variable("time", "days since the first record", (t - t0) / 86400.0),
+        Variable("time_of_day", "UTC time of day [h]", np.mod(t, 86400.0) / 3600.0),
+        Variable("sun_azimuth", "sun azimuth [deg, north = 0, east = 90]", azimuth),
+        Variable("sun_elevation", "sun elevation [deg]", np.degrees(np.arcsin(np.clip(sun[..., 2], -1.0, 1.0)))),
+        Variable("counts_1", "axis-1 motor counts", counts[..., 0]),
+        Variable("counts_2", "axis-2 motor counts", counts[..., 1]),
+        Variable("approach_1", "axis-1 approach direction (-1 / +1)", approach[..., 0], CATEGORICAL),
+        Variable("approach_2", "axis-2 approach direction (-1 / +1)", approach[..., 1], CATEGORICAL),
+        Variable("target", "target (index in the tower file)", np.asarray(fleet.target_index, float), CATEGORICAL),
+        Variable("spot_u", "model spot position on the target, horizontal [m]", np.sum(offset * u_axis, axis=-1)),
+        Variable("spot_v", "model spot position on the target, vertical [m]", np.sum(offset * v_axis, axis=-1)),
+        Variable("temperature", "ambient temperature [deg C]", np.asarray(ctx.temperature, float)),
+        Variable("wind_speed", "wind speed [m/s]", np.asarray(ctx.wind_speed, float)),
+        Variable("wind_direction", "wind direction [deg from north]", wind_from),
+        Variable("field_east", "heliostat position, east [m]", pos[..., 0]),
+        Variable("field_north", "heliostat position, north [m]", pos[..., 1]),
+    ]
+
+
+def bin_index(values: np.ndarray, use: np.ndarray, kind: str) -> np.ndarray:
+    """Bin of every record ``(H, M)`` (-1 where unused, unknown or in a bin with fewer
+    than :data:`MIN_PER_BIN` records)."""
+    x = np.where(use, values, np.nan)
+    ok = np.isfinite(x)
+    idx = np.full(x.shape, -1, int)
+    if ok.sum() < 2 * MIN_PER_BIN:
+        return idx
+    if kind == CATEGORICAL:
+        cats, inv = np.unique(x[ok], return_inverse=True)
+        del cats
+        idx[ok] = inv
+    else:
+        edges = np.unique(np.quantile(x[ok], np.linspace(0.0, 1.0, N_BINS + 1)))
+        if edges.size < 2:
+            return idx
+        idx[ok] = np.clip(np.searchsorted(edges, x[ok], side="right") - 1, 0, edges.size - 2)
+    counts = np.bincount(idx[ok], minlength=int(idx.max()) + 1)
+    small = counts < MIN_PER_BIN
+    idx[(idx >= 0) & small[np.clip(idx, 0, None)]] = -1
+    # renumber the remaining bins 0..B-1
+    kept = np.unique(idx[idx >= 0])
+    remap = np.full(int(idx.max()) + 2, -1)
+    remap[kept] = np.arange(kept.size)
+    return np.where(idx >= 0, remap[np.clip(idx, 0, None)], -1)
+
+
+def anova(z: np.ndarray, idx: np.ndarray) -> tuple[float, np.ndarray]:
+    """p-value of binned structure in ``z`` ``(H, M, 2)`` (bins ``idx``), and the bin
+    means ``(B, 2)`` (see the module docstring)."""
+    ok = idx >= 0
+    n_bins = int(idx.max()) + 1 if ok.any() else 0
+    if n_bins < 2:
+        return float("nan"), np.zeros((0, 2))
+    zz = z[ok]
+    b = idx[ok]
+    n = np.bincount(b, minlength=n_bins).astype(float)
+    means = np.stack([np.bincount(b, weights=zz[:, j], minlength=n_bins) / n for j in range(2)], axis=1)
+    grand = zz.mean(axis=0)
+    ss_between = float(np.sum(n[:, None] * (means - grand) ** 2))
+    ss_within = float(np.sum((zz - means[b]) ** 2))
+    d1, d2 = 2 * (n_bins - 1), 2 * (zz.shape[0] - n_bins)
+    if d2 <= 0 or ss_within <= 0:
+        return float("nan"), means
+    f = (ss_between / d1) / (ss_within / d2)
+    return float(stats.f.sf(f, d1, d2)), means
+
+
+def heliostat_noise(r: np.ndarray, use: np.ndarray, n_params: int) -> np.ndarray:
+    """``(H,)`` noise per residual component, ``sqrt(RSS_h / (2 n_h - p))`` (NaN where
+    the heliostat has no residual degrees of freedom)."""
+    n = use.sum(axis=1)
+    rss = np.sum(np.where(use[..., None], r, 0.0) ** 2, axis=(1, 2))
+    dof = 2 * n - n_params
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(dof > 0, np.sqrt(rss / np.maximum(dof, 1)), np.nan)
+
+
+def unexplained_structure(
+    variables: list[Variable],
+    r: np.ndarray,
+    use: np.ndarray,
+    n_params: int,
+    alpha: float,
+    ids: list[str],
+) -> tuple[list[dict], dict[str, float]]:
+    """Forward selection of the variables residual structure depends on.
+
+    Args:
+        variables: from :func:`record_variables`.
+        r: ``(H, M, 2)`` residual components (mrad) of the final model.
+        use: ``(H, M)`` the records the model was fitted to.
+        n_params: fitted parameters per heliostat.
+        alpha: family-wise level (Holm over the variables).
+        ids: heliostat ids.
+
+    Returns:
+        ``(entries, first_p)``: the reported variables in the order selected, each
+        ``{"variable", "label", "p", "p_holm", "effect_size_mrad", "heliostats"}``
+        (heliostats whose own test has p < ``alpha``), and every variable's
+        p-value before any selection.
+    """
+    sigma = heliostat_noise(r, use, n_params)
+    use = use & np.isfinite(sigma)[:, None] & np.all(np.isfinite(r), axis=-1)
+    z = np.where(use[..., None], r / np.where(np.isfinite(sigma) & (sigma > 0), sigma, 1.0)[:, None, None], 0.0)
+    raw = np.where(use[..., None], r, 0.0)
+    bins = {v.name: bin_index(v.values, use, v.kind) for v in variables}
+    first = {v.name: anova(z, bins[v.name])[0] for v in variables}
+    remaining = [v for v in variables if np.isfinite(first[v.name])]
+    entries: list[dict] = []
+    running = 0.0
+    while remaining:
+        ps = {v.name: anova(z, bins[v.name])[0] for v in remaining}
+        best = min(remaining, key=lambda v: (np.nan_to_num(ps[v.name], nan=1.0), v.name))
+        p = ps[best.name]
+        running = max(running, min(1.0, len(remaining) * p))
+        if not (np.isfinite(p) and running <= alpha):
+            break
+        idx = bins[best.name]
+        _, means_z = anova(z, idx)
+        _, means_r = anova(raw, idx)
+        ok = idx >= 0
+        effect = float(np.sqrt(np.sum(means_r[idx[ok]] ** 2) / max(int(ok.sum()), 1)))
+        heliostats = []
+        for h in range(r.shape[0]):
+            row = np.full(idx.shape, -1)
+            row[h] = idx[h]
+            if (row >= 0).sum() >= 2 * MIN_PER_BIN:
+                p_h, _ = anova(z, _renumber(row))
+                if np.isfinite(p_h) and p_h < alpha and ids[h]:
+                    heliostats.append(ids[h])
+        entries.append(
+            {
+                "variable": best.name,
+                "label": best.label,
+                "p": float(p),
+                "p_holm": float(running),
+                "effect_size_mrad": effect,
+                "heliostats": heliostats,
+            }
+        )
+        # remove the structure found before testing the others
+        z = np.where(ok[..., None], z - means_z[np.clip(idx, 0, None)], z)
+        remaining = [v for v in remaining if v.name != best.name]
+    return entries, {k: float(v) for k, v in first.items()}
+
+
+def _renumber(idx: np.ndarray) -> np.ndarray:
+    kept = np.unique(idx[idx >= 0])
+    if kept.size == 0:
+        return idx
+    remap = np.full(int(kept.max()) + 1, -1)
+    remap[kept] = np.arange(kept.size)
+    return np.where(idx >= 0, remap[np.clip(idx, 0, None)], -1)
