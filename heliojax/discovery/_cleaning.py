@@ -44,7 +44,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._errors import ConfigError
-from ..fitting import choose_start_geometry, find_change_points, fit_robust
+from ..fitting import choose_start_geometry, find_change_points, fit_robust, robust_component_noise
+from ..fitting._robust import OUTLIER_TAIL
 from ._screen import holm
 
 log = logging.getLogger(__name__)
@@ -70,6 +71,8 @@ class Cleaning:
         noise_mrad: ``(H,)`` robust noise per residual component (mrad) of the inliers.
         withdrawn: ``(H,)`` change points of the pre-pass the final model explains
             (:func:`confirm_change_points`; None before that test).
+        restored: ``(H, M)`` records flagged under the base model that the final
+            model fits (:func:`recheck_outliers`; None before that test).
     """
 
     valid: np.ndarray
@@ -84,6 +87,7 @@ class Cleaning:
     offsets: tuple[str, ...]
     noise_mrad: np.ndarray
     withdrawn: np.ndarray | None = None
+    restored: np.ndarray | None = None
 
     @property
     def excluded(self) -> np.ndarray:
@@ -303,3 +307,23 @@ def fitted_start_geometry(base: typing.Any, fleet: typing.Any) -> tuple[typing.A
         lambda a, b: jnp.where(take_j.reshape((-1,) + (1,) * (jnp.ndim(a) - 1)), a, b), proposed, fleet.geometry
     )
     return eqx.tree_at(lambda f: f.geometry, fleet, geometry), take
+
+
+def recheck_outliers(cleaning: Cleaning, r: np.ndarray, n_params: int) -> Cleaning:
+    """Flag the gross errors again under the final model.
+
+    An effect the base model lacks has tails (a thermal term is largest on the
+    hottest days); the pre-pass, fitted with the base model, may flag them as
+    gross errors, which would then hide the effect. With the final model's
+    residuals ``r`` ``(H, M, 2)`` (mrad) on every valid record, each heliostat's
+    per-component robust scales (:func:`heliojax.fitting.robust_component_noise`)
+    are taken from its current inliers and the same Rayleigh point decides; a
+    record flagged before and within it now is *restored* (the flags of records
+    the final model still misses stay).
+    """
+    use = cleaning.valid & ~cleaning.outlier & ~cleaning.superseded
+    comp = robust_component_noise(r, use, n_params)
+    z = np.where(np.isfinite(r), r, 0.0) / comp[:, None, :]
+    still = np.linalg.norm(z, axis=-1) > np.sqrt(-2.0 * np.log(OUTLIER_TAIL))
+    restored = cleaning.outlier & ~still & np.all(np.isfinite(r), axis=-1)
+    return dataclasses.replace(cleaning, outlier=cleaning.outlier & ~restored, restored=restored)

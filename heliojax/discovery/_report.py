@@ -276,6 +276,7 @@ def build_report(result, typical_start=None) -> dict:
             "n_records": cleaning["n_records"],
             "n_records_used": int(mask.sum()),
             "n_outliers": len(cleaning["outliers"]),
+            "n_outliers_restored": cleaning["n_restored"],  # flagged under the base model, fit the final one
             "n_records_before_change_points": cleaning["n_superseded"],
             "robust_noise_median_mrad": cleaning["robust_noise_median_mrad"],
             "start_typical_actuators": [i for i, t in zip(fleet.ids, typical) if i and t],
@@ -304,6 +305,7 @@ def _cleaning_report(result) -> dict:
             "change_points_withdrawn": [],
             "n_records": n,
             "n_superseded": 0,
+            "n_restored": 0,
             "robust_noise_median_mrad": None,
         }
     rid = np.asarray(fleet.record_id)
@@ -338,6 +340,7 @@ def _cleaning_report(result) -> dict:
         "change_points_withdrawn": withdrawn,
         "n_records": int(cl.valid.sum()),
         "n_superseded": int(cl.superseded.sum()),
+        "n_restored": int(cl.restored.sum()) if cl.restored is not None else 0,
         "robust_noise_median_mrad": _f(np.median(noise)) if noise.size else None,
     }
 
@@ -642,16 +645,25 @@ def plot_unexplained(result, index: int, *, axes=None):
         ax.scatter(x[ok] + jitter, rb[..., j][ok], s=6, color="0.6", alpha=0.5, label="records, base model")
         ax.scatter(x[ok] + jitter, ra[..., j][ok], s=6, color="C0", alpha=0.6, label="records, final model")
         for r_, c_, when in ((rb, "0.3", "base model"), (ra, "C3", "final model")):
-            xc, yc = _binned(x[ok], r_[..., j][ok])
-            ax.plot(xc, yc, "-o", color=c_, ms=3, lw=1.5, label=f"binned mean, {when}")
+            if var.kind == "categorical":
+                xc = np.unique(x[ok])
+                yc = np.array([r_[..., j][ok][x[ok] == v].mean() for v in xc])
+                ax.plot(xc, yc, "o", color=c_, ms=7, mfc="none", mew=2, label=f"mean per category, {when}")
+            else:
+                xc, yc = _binned(x[ok], r_[..., j][ok])
+                ax.plot(xc, yc, "-o", color=c_, ms=3, lw=1.5, label=f"binned mean, {when}")
+        if var.kind == "categorical":
+            ax.set_xticks(np.unique(x[ok]))
         ax.axhline(0.0, color="k", lw=0.5)
         ax.set_xlabel(var.label)
         ax.set_ylabel(labels[j])
         if j == 0:
             ax.legend(loc="best", fontsize=8)
+    same = "; no effect named: base = final" if not result.steps else ""
     fig.suptitle(
         f"unexplained structure against {entry['variable']}: p (Holm) = {entry['p_holm']:.2g}, "
-        f"binned-mean RMS {entry['effect_size_mrad']:.3f} mrad (no library effect explains it)"
+        f"binned-mean RMS {entry['effect_size_mrad']:.3f} mrad\n(no library effect explains it{same}; "
+        "records of all heliostats, training residuals)"
     )
     fig.tight_layout()
     return fig

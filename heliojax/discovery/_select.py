@@ -65,7 +65,7 @@ from .._kinematics import nominal_model
 from .._progress import progress_bar
 from ..effects import EFFECT_NAMES
 from ..fitting import OFFSET_NAMES, AbstractBatching, default_solver
-from ._cleaning import Cleaning, clean, confirm_change_points, fitted_start_geometry
+from ._cleaning import Cleaning, clean, confirm_change_points, fitted_start_geometry, recheck_outliers
 from ._diagnostics import record_variables, unexplained_structure
 from ._identifiability import ABSORBED_LIMIT, column_basis
 from ._lanes import Engine, Lanes, Layout, make_lanes, make_layout
@@ -494,27 +494,41 @@ def discover(
         padded, typical_start = fitted_start_geometry(base, padded)
     cleaning = clean(base, padded, config.alpha, outliers=config.robust, changes=config.changes)
     result = _discover_cleaned(padded, base, cleaning, config, n_real, t_start)
-    withdrawn = result.cleaning.withdrawn if result.cleaning is not None else None
-    if withdrawn is not None and withdrawn.any():
-        # The final model explains some pre-pass change points: run again with those
-        # heliostats' earlier records back in (their change point stays withdrawn).
-        log.info(f"{int(withdrawn.sum())} change points withdrawn: discovery again with their records")
+    first = result.cleaning
+    assert first is not None
+    withdrawn = first.withdrawn if first.withdrawn is not None else np.zeros_like(first.change_found)
+    restored = first.restored if first.restored is not None else np.zeros_like(first.outlier)
+    if withdrawn.any() or restored.any():
+        # The final model explains some of what the base model's pre-pass left out
+        # (steps that were an effect's remainder, "gross errors" that were its tails):
+        # run once more with those records back in.
+        log.info(
+            f"{int(withdrawn.sum())} change points withdrawn, {int(restored.sum())} records restored: "
+            "discovery again with their records"
+        )
         kept = cleaning.change_found & ~withdrawn
         t = np.asarray(padded.context.unix_time, float)
         with np.errstate(invalid="ignore"):
-            superseded = cleaning.superseded & (kept[:, None] & (t < cleaning.change_time_s[:, None]))
-        again = dataclasses.replace(cleaning, change_found=kept, superseded=superseded)
+            superseded = cleaning.valid & ~first.outlier & (kept[:, None] & (t < cleaning.change_time_s[:, None]))
+        again = dataclasses.replace(
+            cleaning, outlier=first.outlier, change_found=kept, superseded=superseded, restored=None, withdrawn=None
+        )
         result = _discover_cleaned(padded, base, again, config, n_real, t_start)
         assert result.cleaning is not None
         later = result.cleaning.withdrawn
-        final = dataclasses.replace(result.cleaning, withdrawn=withdrawn if later is None else withdrawn | later)
+        later_restored = result.cleaning.restored
+        final = dataclasses.replace(
+            result.cleaning,
+            withdrawn=withdrawn if later is None else withdrawn | later,
+            restored=restored if later_restored is None else restored | later_restored,
+        )
         result = dataclasses.replace(result, cleaning=final)
     return dataclasses.replace(result, typical_start=typical_start, report=build_report(result, typical_start))
 
 
 def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig, n_real: int, t_start: float):
     """The workflow on ``padded`` with the records ``cleaning`` excludes left out."""
-    inliers = eqx.tree_at(lambda f: f.mask, padded, jnp.asarray(cleaning.valid & ~cleaning.outlier))
+    valid = eqx.tree_at(lambda f: f.mask, padded, jnp.asarray(cleaning.valid))
     padded = eqx.tree_at(lambda f: f.mask, padded, jnp.asarray(cleaning.valid & ~cleaning.excluded))
     layout, template = make_layout(base, config.candidates, padded)
     lanes = make_lanes(padded, config.n_folds)
@@ -607,10 +621,12 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
             + (f"; ambiguous with {', '.join(r['effect'] for r in rivals)}" if rivals else "")
         )
         state = best.state
-    if cleaning.change_found.any():
-        cleaning, withdrawn = _confirm_changes(wf, state, inliers, cleaning, config)
+    if cleaning.change_found.any() or (cleaning.outlier.any() and state.effects):
+        cleaning, withdrawn = _confirm_cleaning(wf, state, valid, cleaning, config)
         for i in withdrawn:
             log.info(f"change point of {padded.ids[i]} withdrawn: the final model explains it")
+        if cleaning.restored is not None and cleaning.restored.any():
+            log.info(f"{int(cleaning.restored.sum())} records flagged under the base model fit the final model")
     n_params = len(wf.active_cols(state.effects))
     ids = list(padded.ids)
     m = lanes.train_mask.shape[1]
@@ -644,20 +660,24 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
     return dataclasses.replace(result, report=build_report(result))
 
 
-def _confirm_changes(wf: _Workflow, state: ModelState, inliers, cleaning: Cleaning, config: DiscoveryConfig):
-    """:func:`confirm_change_points` with the final model's residuals and Jacobian on
-    every inlier record (those before a change included)."""
+def _confirm_cleaning(wf: _Workflow, state: ModelState, valid, cleaning: Cleaning, config: DiscoveryConfig):
+    """The pre-pass judged under the final model, with its residuals and Jacobian on
+    every valid record: gross errors flagged again (:func:`recheck_outliers`), then
+    the change points tested again (:func:`confirm_change_points`)."""
     h = wf.lanes.n_heliostats
-    lanes = make_lanes(inliers, config.n_folds)
+    lanes = make_lanes(valid, config.n_folds)
     r, jac = dataclasses.replace(wf.engine, lanes=lanes).jacobian(state.params, evaluate=True)
+    m = r.shape[1] // 2
+    if state.effects:  # under the base model the pre-pass already judged them
+        cleaning = recheck_outliers(cleaning, r[:h].reshape(h, m, 2), len(wf.active_cols(state.effects)))
     names = [wf.layout.view.names[i] for i in wf.free_index]
     offsets = next((pair for pair in OFFSET_NAMES if all(n in names for n in pair)), None)
-    if offsets is None:
+    if offsets is None or not cleaning.change_found.any():
         return cleaning, []
     model_cols = wf.active_cols(state.effects) + wf.shared_cols(state.effects)
     offset_cols = [names.index(n) for n in offsets]
-    t = np.asarray(inliers.context.unix_time, float)
-    targets = np.asarray(inliers.target_index)
+    t = np.asarray(valid.context.unix_time, float)
+    targets = np.asarray(valid.target_index)
     return confirm_change_points(cleaning, r[:h], jac[:h], model_cols, offset_cols, t, config.alpha, targets)
 
 
