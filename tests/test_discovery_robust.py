@@ -20,6 +20,7 @@ from heliojax.discovery import (
     change_point_pvalues,
     discover,
     unexplained_structure,
+    write_figures,
 )
 from heliojax.discovery._cleaning import confirm_change_points, recheck_outliers
 from heliojax.discovery._diagnostics import anova, bin_index, predicted_spot
@@ -184,7 +185,8 @@ def _ts(s):
 def test_planted_steps_are_change_points_and_gross_errors_are_left_out(shared_paint, tmp_path):
     truth = generate("step", tmp_path / "s", seed=11, outliers=0.05, source=shared_paint, **SUITE)
     fleet = load_paint_directory(tmp_path / "s")
-    rep = discover(fleet, base="actuator", effects=CANDIDATES).report
+    res = discover(fleet, base="actuator", effects=CANDIDATES)
+    rep = res.report
     assert rep["named_effects"][0] == "change_point"
     assert not [n for n in rep["named_effects"] if n != "change_point"]  # the steps named nothing else
     cps = {c["heliostat"]: c for c in rep["change_points"]}
@@ -199,6 +201,18 @@ def test_planted_steps_are_change_points_and_gross_errors_are_left_out(shared_pa
     assert planted and len(planted & found) >= 0.8 * len(planted)
     assert rep["noise_estimate_mrad"] < 1.4 * truth["noise_mrad"]  # the inliers' noise, not the gross errors'
     json.dumps(rep, allow_nan=False)
+    # the change-point figure shows the left-out records off by the jump, the rest around zero
+    cl = res.cleaning
+    assert cl is not None and cl.final_residuals is not None
+    h = int(np.argmax(np.abs(np.nan_to_num(cl.change_jump_mrad)).max(axis=1)))
+    keep = cl.valid[h] & ~cl.outlier[h]
+    before = keep & cl.superseded[h]
+    since = keep & ~cl.superseded[h]
+    assert before.any() and since.any()
+    offset = np.linalg.norm(cl.final_residuals[h][before].mean(axis=0))
+    assert offset > 0.5 * np.linalg.norm(cl.change_jump_mrad[h])
+    assert np.linalg.norm(cl.final_residuals[h][since].mean(axis=0)) < 0.2 * offset
+    assert (tmp_path / "fig" / "change_points.png") in write_figures(res, tmp_path / "fig")
 
 
 def test_effect_outside_the_library_is_unexplained_not_misnamed(shared_paint, tmp_path):
@@ -219,8 +233,6 @@ def null_suite(shared_paint, tmp_path_factory):
 
 
 def test_null_suite_names_nothing_and_finds_no_structure(null_suite, tmp_path):
-    from heliojax.discovery import write_figures
-
     res = discover(load_paint_directory(null_suite), base="actuator", effects=CANDIDATES)
     rep = res.report
     assert rep["named_effects"] == [] and rep["unexplained"] == [] and rep["change_points"] == []

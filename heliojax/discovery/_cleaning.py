@@ -73,6 +73,8 @@ class Cleaning:
             (:func:`confirm_change_points`; None before that test).
         restored: ``(H, M)`` records flagged under the base model that the final
             model fits (:func:`recheck_outliers`; None before that test).
+        final_residuals: ``(H, M, 2)`` residuals (mrad) of the final model on every
+            valid record, the left-out ones included (None before that test).
     """
 
     valid: np.ndarray
@@ -88,6 +90,7 @@ class Cleaning:
     noise_mrad: np.ndarray
     withdrawn: np.ndarray | None = None
     restored: np.ndarray | None = None
+    final_residuals: np.ndarray | None = None
 
     @property
     def excluded(self) -> np.ndarray:

@@ -292,6 +292,11 @@ def _utc(t: float) -> str | None:
     return datetime.datetime.fromtimestamp(float(t), tz=datetime.UTC).isoformat().replace("+00:00", "Z")
 
 
+def _confirmed_changes(cl) -> np.ndarray:
+    """``(H,)`` change points found and not withdrawn under the final model."""
+    return cl.change_found & ~(cl.withdrawn if cl.withdrawn is not None else False)
+
+
 def _cleaning_report(result) -> dict:
     """Outliers, change points and record counts of the robust pre-pass."""
     fleet = result.fleet
@@ -311,7 +316,7 @@ def _cleaning_report(result) -> dict:
     rid = np.asarray(fleet.record_id)
     outliers = [{"heliostat": ids[h], "record_id": int(rid[h, m])} for h, m in zip(*np.nonzero(cl.outlier)) if ids[h]]
     changes = []
-    for h in np.nonzero(cl.change_found)[0]:
+    for h in np.nonzero(_confirmed_changes(cl))[0]:
         if not ids[h]:
             continue
         changes.append(
@@ -669,9 +674,59 @@ def plot_unexplained(result, index: int, *, axes=None):
     return fig
 
 
+def plot_change_points(result, *, max_heliostats: int = 12):
+    """Final-model residual components (mrad) against time for the heliostats with a
+    change point: records before the change (left out of the fit, hollow) sit off by
+    the jump, records since it (used, filled) around zero. Returns None when there is
+    no change point or no final-model residuals."""
+    cl = result.cleaning
+    if cl is None or cl.final_residuals is None:
+        return None
+    found = np.nonzero(_confirmed_changes(cl))[0]
+    found = [h for h in found if result.fleet.ids[h]]
+    if not found:
+        return None
+    found = sorted(found, key=lambda h: cl.change_p_holm[h])[:max_heliostats]
+    plt = pyplot()
+    ncol = min(3, len(found))
+    nrow = -(-len(found) // ncol)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(4.6 * ncol, 3.3 * nrow + 0.8), squeeze=False)
+    t = np.asarray(result.fleet.context.unix_time, float)
+    for ax, h in zip(axes.flat, found):
+        days = (t[h] - cl.change_time_s[h]) / 86400.0
+        r = cl.final_residuals[h]
+        for j, (name, colour) in enumerate((("horizontal", "C0"), ("vertical", "C3"))):
+            since = cl.valid[h] & ~cl.outlier[h] & (days >= 0)
+            before = cl.valid[h] & ~cl.outlier[h] & (days < 0)
+            ax.plot(days[since], r[since, j], "o", color=colour, ms=3.5, label=f"{name}, since (fitted)")
+            ax.plot(
+                days[before], r[before, j], "o", mfc="none", color=colour, ms=3.5, label=f"{name}, before (left out)"
+            )
+        ax.axvline(0.0, color="k", ls="--", lw=1)
+        ax.axhline(0.0, color="k", lw=0.5)
+        jump = ", ".join(f"{v:+.2f}" for v in cl.change_jump_mrad[h])
+        when = (_utc(float(cl.change_time_s[h])) or "")[:10]
+        ax.set_title(
+            f"{result.fleet.ids[h]}: change {when}\njump of offsets ({jump}) mrad, p (Holm) {cl.change_p_holm[h]:.1g}",
+            fontsize=9,
+        )
+        ax.set_xlabel("days since the change point")
+        ax.set_ylabel("residual [mrad]")
+    for ax in list(axes.flat)[len(found) :]:
+        ax.set_visible(False)
+    handles, labels = axes.flat[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=4, fontsize=8, bbox_to_anchor=(0.5, 0.0))
+    more = len(np.nonzero(_confirmed_changes(cl))[0]) - len(found)
+    extra = f" ({more} more not shown)" if more > 0 else ""
+    fig.suptitle(f"change points{extra}: final-model residuals, both components, against time")
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    return fig
+
+
 def write_figures(result, out_dir) -> list[Path]:
     """Write the PNG figures: ``heldout_per_step.png``, ``screen_step<k>.png``,
-    ``residuals_step<k>_<effect>.png`` and ``unexplained_<k>_<variable>.png``.
+    ``residuals_step<k>_<effect>.png``, ``unexplained_<k>_<variable>.png`` and
+    ``change_points.png`` (when any).
     Returns the paths."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -690,5 +745,10 @@ def write_figures(result, out_dir) -> list[Path]:
     for i, u in enumerate(result.unexplained):
         p = out / f"unexplained_{i + 1}_{u['variable']}.png"
         save_figure(plot_unexplained(result, i), p)
+        paths.append(p)
+    fig = plot_change_points(result)
+    if fig is not None:
+        p = out / "change_points.png"
+        save_figure(fig, p)
         paths.append(p)
     return paths

@@ -668,6 +668,7 @@ def _confirm_cleaning(wf: _Workflow, state: ModelState, valid, cleaning: Cleanin
     lanes = make_lanes(valid, config.n_folds)
     r, jac = dataclasses.replace(wf.engine, lanes=lanes).jacobian(state.params, evaluate=True)
     m = r.shape[1] // 2
+    cleaning = dataclasses.replace(cleaning, final_residuals=np.asarray(r[:h]).reshape(h, m, 2))
     if state.effects:  # under the base model the pre-pass already judged them
         cleaning = recheck_outliers(cleaning, r[:h].reshape(h, m, 2), len(wf.active_cols(state.effects)))
     names = [wf.layout.view.names[i] for i in wf.free_index]
