@@ -10,9 +10,9 @@ fraction where the expected outcome came first (a library effect: its name first
 reported interval; an effect outside the library: the first ``unexplained`` variable is its
 driver; the null suite: nothing named and nothing unexplained), the fraction misnamed (a library
 name given to an effect outside the library, or anything named in a null suite), the held-out RMS
-over the noise floor, and the seconds per suite. Amplitudes are not compared: the two
-simulators' parameterisations differ (e.g. the independent simulator's gravity sag tilts the
-normal's elevation, heliojax's acts on the axis-1 angle).
+over the noise floor, and the seconds per suite. Amplitudes are not compared here: the two
+simulators' parameterisations differ for most effects (backlash as a stroke dead band vs a joint
+angle, thermal as spindle expansion vs an angle per kelvin).
 
 Each suite: 20 real heliostats x 60 records, noise 0.25 mrad, one hidden effect (tag `<effect>_out`: with
 5 % gross outliers). Prints a Markdown table: truth vs what discovery names.

@@ -118,7 +118,7 @@ def test_score_tests_are_calibrated_under_the_null_and_have_power():
 
 def _run(seed, effects=(), **kw):
     fleet, _ = simulate_fleet(seed, H, M, effects=effects, noise_mrad=NOISE)
-    return discover(fleet, DiscoveryConfig(**kw))
+    return discover(fleet, DiscoveryConfig(**{"base": "stone8", **kw}))
 
 
 def test_null_fleet_names_nothing():
@@ -139,6 +139,8 @@ def test_hidden_backlash_is_named_with_its_size():
     step = r["steps"][0]
     for k in ("backlash_1", "backlash_2"):
         assert abs(step["amplitude"][k] - 3e-4) < 0.25 * 3e-4
+        assert step["typical"][k] > 0
+    assert step["implausible"] == []  # a realistic size is not flagged
     assert step["delta_bic"] > 0
     assert step["cv_heldout_rms_after_mrad"] < step["cv_heldout_rms_before_mrad"]
     assert r["heldout_rms_final_mrad"] <= HELDOUT_BOUND

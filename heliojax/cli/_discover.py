@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ._common import add_data_argument, add_fit_arguments, enable_compilation_cache, integer, load_fleet, number
 
-BASES = ("stone8", "actuator")
+BASES = ("auto", "actuator", "stone8")
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +44,13 @@ def add_parser(subparsers) -> None:
         ),
     )
     add_data_argument(p)
-    p.add_argument("--base", choices=BASES, default="stone8", help="base kinematic model")
+    p.add_argument(
+        "--base",
+        choices=BASES,
+        default="auto",
+        help="base kinematic model: auto = the actuator model following each heliostat's declared actuators "
+        "(linear or ideal), stone8 = linear counts-to-angle map",
+    )
     p.add_argument("--report", type=Path, default=Path("report.json"), metavar="FILE", help="report.json path")
     p.add_argument(
         "--figures", type=Path, default=None, metavar="DIR", help="directory for the PNG figures (default: none)"

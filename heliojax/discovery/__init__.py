@@ -36,9 +36,9 @@ from ._lanes import day_folds as day_folds
 from ._report import (
     build_report as build_report,
     markdown_summary as markdown_summary,
+    plot_change_points as plot_change_points,
     plot_effect_residuals as plot_effect_residuals,
     plot_heldout_per_step as plot_heldout_per_step,
-    plot_change_points as plot_change_points,
     plot_screen as plot_screen,
     plot_unexplained as plot_unexplained,
     write_figures as write_figures,

@@ -4,7 +4,7 @@
 beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
 
     {
-      "base_model": "stone8" | "actuator",
+      "base_model": "auto" | "actuator" | "stone8",
       "steps": [                                   # one per named effect, in order
         {"effect": name, "mode": "shared" | "per_heliostat",
          "delta_bic": float,                       # BIC(before) - BIC(after) > 0
@@ -17,6 +17,8 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
          "heliostats_significant": [ids],          # individually significant (Holm, alpha)
          "p_value": float, "p_holm": float,
          "absorbed_fraction": float | null,        # of its best direction by the model before it
+         "typical": {param: value},                # documented typical size (physical units)
+         "implausible": [params],                  # beyond IMPLAUSIBLE_TYPICAL x typical
          "ambiguous_with": [{"effect", "mode", "delta_bic", "cv_heldout_rms_after_mrad"}]}
       ],                                           # (passing rivals within ambiguity_bic of delta BIC)
       "named_effects": [names],                    # "change_point" first when any was found
@@ -122,6 +124,12 @@ def cv_log_ratio(before, after, heliostat: np.ndarray) -> float:
     return float(total / n_all) if n_all else float("nan")
 
 
+IMPLAUSIBLE_TYPICAL = 10.0
+"""A named effect's parameter beyond this multiple of its documented typical size
+(:func:`heliojax.parameter`'s ``typical``, fixed a priori from the physics) is
+listed in the step's ``"implausible"``: the effect may stand in for something else."""
+
+
 def build_report(result, typical_start=None) -> dict:
     """The report.json dictionary of a :class:`DiscoveryResult` (``typical_start``:
     ``(H,)`` heliostats started from the fleet-typical actuators)."""
@@ -130,6 +138,12 @@ def build_report(result, typical_start=None) -> dict:
     steps = []
     for s in result.steps:
         units = dict(zip(result.layout.params(s.effect), result.layout.units(s.effect)))
+        typical = result.layout.typical(s.effect) * result.layout.scales[list(result.layout.cols(s.effect))]
+        implausible = [
+            n
+            for n, t in zip(result.layout.params(s.effect), typical)
+            if t > 0 and abs(s.amplitude.get(n, 0.0)) > IMPLAUSIBLE_TYPICAL * t
+        ]
         steps.append(
             {
                 "effect": s.effect,
@@ -146,6 +160,8 @@ def build_report(result, typical_start=None) -> dict:
                 "p_value": _f(s.p_value),
                 "p_holm": _f(s.p_holm),
                 "absorbed_fraction": _f(s.absorbed_fraction),
+                "typical": {n: _f(t) for n, t in zip(result.layout.params(s.effect), typical)},
+                "implausible": implausible,
                 "ambiguous_with": [
                     {
                         "effect": a["effect"],
@@ -390,6 +406,8 @@ def markdown_summary(report: dict) -> str:
                 for k, v in s["amplitude"].items()
                 if v is not None
             )
+            if s.get("implausible"):
+                amp += f" (implausible: {', '.join(s['implausible'])} > {IMPLAUSIBLE_TYPICAL:g} x typical)"
             lines.append(
                 f"| {i} | `{s['effect']}` | {s['mode'].replace('_', ' ')} | {fmt(s['delta_bic'], '.1f')} | "
                 f"{fmt(s['cv_heldout_rms_before_mrad'])} | {fmt(s['cv_heldout_rms_after_mrad'])} | "
@@ -583,7 +601,8 @@ def plot_heldout_per_step(report: dict, *, ax=None):
     ax.set_xticklabels(labels, rotation=20, ha="right")
     ax.set_ylabel("held-out RMS beam error [mrad]")
     ax.set_title("held-out error per discovery step")
-    ax.set_ylim(bottom=0)
+    finite = [v for v in vals if np.isfinite(v)]
+    ax.set_ylim(0, 1.2 * max(finite) if finite else 1.0)  # room for the value labels
     fig.tight_layout()
     return fig
 

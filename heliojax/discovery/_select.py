@@ -61,7 +61,7 @@ import numpy as np
 import optimistix as optx
 
 from .._fleet import bucket_size, pad_fleet
-from .._kinematics import nominal_model
+from .._kinematics import MODEL_KINDS, nominal_model
 from .._progress import progress_bar
 from ..effects import EFFECT_NAMES
 from ..fitting import OFFSET_NAMES, AbstractBatching, default_solver
@@ -86,7 +86,9 @@ class DiscoveryConfig:
     """Settings of :func:`discover`.
 
     Attributes:
-        base: ``"stone8"`` or ``"actuator"``.
+        base: ``"auto"`` (the default: the actuator model, which follows each
+            heliostat's declared actuator kind, linear or ideal), ``"actuator"``
+            (the same) or ``"stone8"`` (the Stone model, a linear counts-to-angle map).
         effects: candidate effects (names from :data:`heliojax.effects.EFFECT_NAMES`).
         alpha: family-wise error rate of each step's test family (Holm).
         n_folds: blocked cross-validation folds (by UTC day).
@@ -110,7 +112,7 @@ class DiscoveryConfig:
             strong" evidence, a published scale, not tuned).
     """
 
-    base: str = "stone8"
+    base: str = "auto"
     effects: tuple[str, ...] | None = None
     alpha: float = 0.01
     n_folds: int = 5
@@ -141,6 +143,8 @@ class DiscoveryConfig:
             raise ValueError(f"alpha must be in (0, 1), got {self.alpha}")
         if self.n_folds < 2:
             raise ValueError(f"n_folds must be >= 2, got {self.n_folds}")
+        if self.base not in MODEL_KINDS:
+            raise ValueError(f"base must be one of {MODEL_KINDS}, got {self.base!r}")
         if self.start not in ("auto", "nominal"):
             raise ValueError(f"start must be 'auto' or 'nominal', got {self.start!r}")
 
