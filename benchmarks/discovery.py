@@ -14,7 +14,8 @@ hidden effect at a realistic size (or none, or two), runs
 * ``heldout_ok``: the final held-out RMS (blocked CV) is at most 1.1 x the noise
   floor (``noise * sqrt(2)``, the RMS beam error of pure noise);
 * null scenario: ``false_positive`` = anything named;
-* gravity sag: ``not_identifiable`` = reported not identifiable (and not named);
+* gravity sag (largely absorbed by the base): ``gravity_ok`` = named first, or
+  reported not identifiable with nothing else named;
 * two effects: ``both`` = both named.
 
 Prints the summary as JSON (and writes it with ``--out``). Takes ~20-40 s per
@@ -116,10 +117,9 @@ def run_one(name: str, seed: int, n_heliostats: int, n_records: int) -> dict:
     if name == "null":
         out["false_positive"] = bool(r["named_effects"])
         out["heldout_ok"] = bool(out["heldout_ratio"] <= 1.1)
-    if name == "gravity_sag":
-        out["not_identifiable_ok"] = bool(
-            "gravity_sag" in r["not_identifiable"] and "gravity_sag" not in r["named_effects"]
-        )
+    if name == "gravity_sag":  # largely absorbed: named, or reported absorbed with nothing else named
+        named = r["named_effects"]
+        out["gravity_ok"] = bool(named[:1] == ["gravity_sag"] or ("gravity_sag" in r["not_identifiable"] and not named))
     if name == "two_effects":
         out["both"] = bool({"backlash", "thermal"} <= set(r["named_effects"]))
         out["heldout_ok"] = bool(out["heldout_ratio"] <= 1.1)
@@ -144,7 +144,7 @@ def summarise(runs: list[dict]) -> dict:
             "amplitude_all_ok",
             "heldout_ok",
             "false_positive",
-            "not_identifiable_ok",
+            "gravity_ok",
             "both",
         ):
             vals = [r[key] for r in rs if key in r]
