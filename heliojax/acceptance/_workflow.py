@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 
 import numpy as np
 from scipy import stats
 
 from .._geometry import TargetPlane
+from .._progress import progress_bar
 from ._clusters import ClusterResult, field_spacing, find_clusters, resampling_advice
 from ._extrapolate import Extrapolation, extrapolate_field
 from ._field import PARAMETERS, FieldData
@@ -16,6 +18,8 @@ from ._io import Contract
 from ._level1 import Level1Result, level1_test
 from ._sampling import sample_size
 from ._yield import SunSeries, YieldResult, field_efficiency, typical_year
+
+log = logging.getLogger(__name__)
 
 _YIELD_DEFAULTS = {"slope_mrad": 0.0, "reflectance": 1.0, "aperture_m2": 1.0}
 
@@ -115,7 +119,10 @@ def run_acceptance(
     level1, clusters, extrap = {}, {}, {}
     reasons = []
     inconclusive = False
-    for name, spec in contract.parameters.items():
+    parameters = progress_bar(
+        contract.parameters.items(), logger=log, desc="level 1: parameters", total=len(contract.parameters)
+    )
+    for name, spec in parameters:
         info = PARAMETERS[name]
         n_req = sample_size(
             spec.mean,
@@ -216,8 +223,12 @@ def run_acceptance(
         measured_kw[name] = extrap[name].values if name in extrap else c
     a_ref = contract.parameters["aperture_m2"].mean if "aperture_m2" in contract.parameters else 1.0
     common = {"reference_aperture_m2": a_ref, "sun_sigma_mrad": contract.sun_sigma_mrad}
-    yc = field_efficiency(field.positions, aperture, sun, **contract_kw, **common)
-    ym = field_efficiency(field.positions, aperture, sun, **measured_kw, **common)
+    yc, ym = (
+        field_efficiency(field.positions, aperture, sun, **kw, **common)
+        for kw in progress_bar(
+            (contract_kw, measured_kw), logger=log, desc="level 2: yield (contract, measured)", total=2, unit="field"
+        )
+    )
     rel = (ym.annual - yc.annual) / yc.annual
     report["level2"] = {
         "annual_efficiency_contract": yc.annual,
