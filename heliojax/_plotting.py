@@ -100,7 +100,8 @@ def _residual_panel(ax, pts, flagged, title, color, lim=None):
 
 def plot_calibration(run, *, axes=None):
     """Per-heliostat held-out RMS before and after calibration (unfitted heliostats
-    labelled with their status), and the held-out residuals on the target
+    labelled with their status; change points and the worse-than-nominal flag
+    marked), and the held-out residuals on the target
     (horizontal / vertical miss, mrad) before and after calibration, with the
     training records the robust fit flagged as outliers."""
     plt = pyplot()
@@ -126,13 +127,22 @@ def plot_calibration(run, *, axes=None):
     top = float(values.max()) if values.size else 10.0
     bottom = float(values.min()) if values.size else 0.1
     ax.set_yscale("log")
-    ax.set_ylim(bottom * 0.5, top * 30)
+    ax.set_ylim(bottom * 0.5, top * 90)
+    marks = {
+        "change_point": ("v", "tab:purple", "change point: fitted since it"),
+        "worse_than_nominal": ("X", "tab:red", "worse than nominal (use the nominal model)"),
+    }
+    for key, (marker, colour, label) in marks.items():
+        flagged = [i for i, h in enumerate(ids) if summary["heliostats"][h].get(key)]
+        if flagged:  # above the bars, below the status texts
+            level = top * (1.5 if key == "change_point" else 2.6)
+            ax.scatter(flagged, np.full(len(flagged), level), marker=marker, color=colour, s=40, label=label, zorder=3)
     for i, h in enumerate(ids):
         status = summary["heliostats"][h]["status"]
         if status != "converged":
             ax.text(
                 i + 0.15,
-                top * 1.5,
+                top * 4.5,
                 status.replace("_", " "),
                 rotation=90,
                 ha="center",

@@ -1,0 +1,59 @@
+"""The calibration figure marks what the summary flags."""
+
+from __future__ import annotations
+
+import types
+
+import matplotlib
+import numpy as np
+
+from heliojax._plotting import plot_calibration
+
+matplotlib.use("Agg")
+
+
+def _run(flags: dict[str, dict]):
+    ids = ["A", "B", "C"]
+    rng = np.random.default_rng(0)
+    heliostats = {
+        h: {
+            "status": "converged",
+            "uncalibrated_test_rms_mrad": 20.0,
+            "train_rms_mrad": 0.8,
+            "test_rms_mrad": 1.2,
+            "change_point": None,
+            "worse_than_nominal": False,
+            **flags.get(h, {}),
+        }
+        for h in ids
+    }
+    mask = np.ones((3, 4), bool)
+    return types.SimpleNamespace(
+        summary={"heliostats": heliostats, "model": "actuator", "split": "time"},
+        test_mask=mask,
+        fleet=types.SimpleNamespace(mask=mask),
+        outlier=np.zeros_like(mask),
+        residuals_mrad=rng.normal(size=(3, 4, 2)),
+        uncalibrated_residuals_mrad=rng.normal(scale=10.0, size=(3, 4, 2)),
+    )
+
+
+def _legend(fig) -> list[str]:
+    legend = fig.axes[0].get_legend()
+    return [t.get_text() for t in legend.get_texts()]
+
+
+def test_change_points_and_worse_than_nominal_are_marked():
+    flags = {"B": {"change_point": {"time": "2023-05-27T10:15:25Z"}}, "C": {"worse_than_nominal": True}}
+    fig = plot_calibration(_run(flags))
+    labels = _legend(fig)
+    assert any(label.startswith("change point") for label in labels)
+    assert any(label.startswith("worse than nominal") for label in labels)
+    # the marks sit over the flagged heliostats' bars
+    offsets = [c.get_offsets() for c in fig.axes[0].collections if len(c.get_offsets())]
+    assert sorted(float(o[0, 0]) for o in offsets) == [1.0, 2.0]
+
+
+def test_nothing_flagged_nothing_marked():
+    fig = plot_calibration(_run({}))
+    assert not any(label.startswith(("change point", "worse than")) for label in _legend(fig))
