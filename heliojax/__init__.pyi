@@ -65,6 +65,21 @@ from ._parameters import (
     reference as reference,
     set_references as set_references,
 )
+from ._plan import (
+    Candidates as Candidates,
+    MeasurementPlan as MeasurementPlan,
+    candidates_at_targets as candidates_at_targets,
+    candidates_from_records as candidates_from_records,
+    clear_sky_dni as clear_sky_dni,
+    envelope_matrices as envelope_matrices,
+    envelope_matrix as envelope_matrix,
+    operating_envelope as operating_envelope,
+    plan_calibration as plan_calibration,
+    plan_measurements as plan_measurements,
+    predicted_uncertainty_mrad as predicted_uncertainty_mrad,
+    prior_covariance as prior_covariance,
+    residual_jacobians as residual_jacobians,
+)
 from ._plotting import (
     plot_calibration as plot_calibration,
     plot_error_per_heliostat as plot_error_per_heliostat,

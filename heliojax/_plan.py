@@ -22,21 +22,54 @@ heliostat is scored at once)::
 
 Greedy selection for this (submodular-like) criterion is the standard
 sequential design; it is exact for one measurement.
+
+Starting covariance: a fitted heliostat's posterior (:attr:`CalibrationResults.covariance`),
+or, for a heliostat planned from scratch (retrospective studies, new heliostats), the
+fleet's empirical-Bayes prior (:func:`prior_covariance`): what the fleet says before
+this heliostat has a record.
+
+The operating envelope (:func:`operating_envelope`) is a year of sun positions
+above a minimum elevation, each weighted by its clear-sky direct normal
+irradiance (Meinel model with Kasten-Young air mass), with the heliostat aiming
+at the receiver: hours that deliver more energy count more.
 """
 
 from __future__ import annotations
 
+import collections.abc
 import typing
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float, Int
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._heliostat import HeliostatGeometry, RecordContext
-from ._kinematics import AbstractKinematicModel
+from ._kinematics import AbstractKinematicModel, inverse_aim
 from ._parameters import ParameterView
-from .fitting import sanitise
+from ._sun import solar_position
+from .fitting import prior_moments, sanitise
+
+SOLAR_CONSTANT_W_M2 = 1361.0
+"""Total solar irradiance (W/m^2) of the clear-sky DNI weights."""
+
+
+@eqx.filter_jit
+def _jacobian_program(view, models, geometry, counts, context, spots, mask):
+    idx = jnp.asarray(view.free_index, dtype=jnp.int32)
+
+    def one(model, g, c, x, f, m):
+        c, x, f, use, _ = sanitise(g, c, x, f, m)
+        p0 = view.to_vector(model)
+
+        def comp(q, ci, xi, fi):
+            return view.from_vector(model, p0.at[idx].set(q)).beam_components(g, ci, xi, fi) * 1e3
+
+        jac = jax.vmap(lambda ci, xi, fi: jax.jacfwd(comp)(p0[idx], ci, xi, fi))(c, x, f)
+        return jnp.where(use[:, None, None], jac, 0.0)
+
+    return jax.vmap(one)(models, geometry, counts, context, spots, mask)
 
 
 def residual_jacobians(
@@ -52,22 +85,99 @@ def residual_jacobians(
     parameters (physical units, :attr:`ParameterView.free_index` order); zero rows
     outside ``mask``."""
 
-    @eqx.filter_jit
-    def program(models, geometry, counts, context, spots, mask):
-        def one(model, g, c, x, f, m):
-            c, x, f, use, _ = sanitise(g, c, x, f, m)
-            p0 = view.to_vector(model)
-            idx = jnp.asarray(view.free_index, dtype=jnp.int32)
+    return _jacobian_program(view, models, geometry, counts, context, spots, mask)
 
-            def comp(q, ci, xi, fi):
-                return view.from_vector(model, p0.at[idx].set(q)).beam_components(g, ci, xi, fi) * 1e3
 
-            jac = jax.vmap(lambda ci, xi, fi: jax.jacfwd(comp)(p0[idx], ci, xi, fi))(c, x, f)
-            return jnp.where(use[:, None, None], jac, 0.0)
+def clear_sky_dni(elevation: Float[ArrayLike, "*n"]) -> Float[np.ndarray, "*n"]:
+    """Clear-sky direct normal irradiance (W/m^2) at sun ``elevation`` (rad): Meinel's
+    ``S0 * 0.7 ** (AM ** 0.678)`` with the Kasten-Young (1989) air mass; 0 below the horizon."""
+    el = np.asarray(elevation, float)
+    zenith = 90.0 - np.degrees(el)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        am = 1.0 / (np.cos(np.radians(zenith)) + 0.50572 * (96.07995 - zenith) ** -1.6364)
+        dni = SOLAR_CONSTANT_W_M2 * 0.7 ** (am**0.678)
+    return np.where(el > 0.0, dni, 0.0)
 
-        return jax.vmap(one)(models, geometry, counts, context, spots, mask)
 
-    return program(models, geometry, counts, context, spots, mask)
+def operating_envelope(
+    origin_lla: Float[ArrayLike, "3"],
+    *,
+    year: int = 2023,
+    day_step: int = 5,
+    hour_step: float = 1.0,
+    min_elevation_deg: float = 10.0,
+) -> tuple[Float[Array, "E 3"], Float[Array, " E"]]:
+    """Sun positions of a year at the site and their clear-sky DNI weights.
+
+    Args:
+        origin_lla: ``[lat_deg, lon_deg, alt_m]`` of the site.
+        year: the year sampled (UTC).
+        day_step: every ``day_step``-th day of the year.
+        hour_step: hours between instants of a day (UTC, starting at 00:00).
+        min_elevation_deg: instants with a lower sun are left out.
+
+    Returns:
+        ``(sun, weight)``: ``(E, 3)`` unit ENU vectors to the sun and ``(E,)``
+        clear-sky DNI (W/m^2) of each instant.
+    """
+    import datetime as dt
+
+    start = dt.datetime(year, 1, 1, tzinfo=dt.UTC).timestamp()
+    days = np.arange(0, 365, max(int(day_step), 1))
+    hours = np.arange(0.0, 24.0, float(hour_step))
+    unix = start + (days[:, None] * 86400.0 + hours[None, :] * 3600.0).ravel()
+    lat, lon, alt = (float(x) for x in np.asarray(origin_lla, float))
+    position = solar_position(jnp.asarray(unix, jnp.float64), lat, lon, alt)
+    el = np.asarray(position.elevation)
+    keep = el > np.radians(min_elevation_deg)
+    sun = np.asarray(position.direction_enu())[keep]
+    return jnp.asarray(sun), jnp.asarray(clear_sky_dni(el[keep]))
+
+
+@eqx.filter_jit
+def _envelope_program(view, models, geometry, sun, weight, aim_points, batch_size: int):
+    idx = jnp.asarray(view.free_index, dtype=jnp.int32)
+    w = weight / jnp.maximum(jnp.sum(weight), 1e-300)
+
+    def one(args):
+        model, g, point = args
+        p = view.to_vector(model)
+
+        def instant(s, wi):
+            counts = inverse_aim(model, g, point, s)
+            context = RecordContext.from_sun(s)
+
+            def direction_mrad(free):
+                return view.from_vector(model, p.at[idx].set(free)).beam_components(g, counts, context, point) * 1e3
+
+            jac = jax.jacfwd(direction_mrad)(p[idx])
+            ok = jnp.all(jnp.isfinite(jac))
+            return jnp.where(ok, wi * jac.T @ jac, 0.0), jnp.where(ok, wi, 0.0)
+
+        m, used = jax.vmap(instant)(sun, w)
+        return jnp.sum(m, axis=0) / jnp.maximum(jnp.sum(used), 1e-300)
+
+    return jax.lax.map(one, (models, geometry, aim_points), batch_size=batch_size)
+
+
+def envelope_matrices(
+    models: AbstractKinematicModel,
+    view: ParameterView,
+    geometry: HeliostatGeometry,
+    sun: Float[Array, "E 3"],
+    weight: Float[ArrayLike, " E"],
+    aim_points: Float[ArrayLike, "*h 3"],
+    *,
+    batch_size: int = 256,
+) -> Float[Array, "H F F"]:
+    """``M = sum_e w_e J_e^T J_e`` per heliostat over an operating envelope, where
+    ``J_e`` is the Jacobian of the beam direction (mrad, two tangent components)
+    w.r.t. the free parameters at the counts that aim at ``aim_points`` (ENU m,
+    ``(3,)`` or ``(H, 3)``) with the sun at ``sun[e]``; weights normalised to sum 1.
+    Heliostats are processed ``batch_size`` at a time (memory ``batch_size x E x 2 x F``)."""
+    h = int(jnp.shape(geometry.position)[0])
+    points = jnp.broadcast_to(jnp.asarray(aim_points, sun.dtype), (h, 3))
+    return _envelope_program(view, models, geometry, sun, jnp.asarray(weight, sun.dtype), points, int(batch_size))
 
 
 def envelope_matrix(jac: Float[Array, "H E 2 F"], weight: Float[Array, "*h E"]) -> Float[Array, "H F F"]:
@@ -97,13 +207,13 @@ class MeasurementPlan(eqx.Module):
 
 
 @eqx.filter_jit
-def _greedy(cov, cand_jac, cand_valid, m_env, noise, budget: int):
-    def one(c, jac, valid, m, sigma):
+def _greedy(cov, cand_jac, cand_valid, cand_slot, m_env, noise, budget: int):
+    def one(c, jac, valid, slot, m, sigma):
         eye = jnp.eye(2, dtype=c.dtype)
 
         def gains(c):
             a = jnp.einsum("kif,fg->kig", jac, c)  # J C
-            s = sigma**2 * eye + jnp.einsum("kif,kjf->kij", a, jac)
+            s = (sigma**2 * eye)[None] + jnp.einsum("kif,kjf->kij", a, jac)
             g = jnp.einsum("kif,fg,kjg->kij", a, m, a)
             return jnp.trace(jnp.linalg.solve(s, g), axis1=1, axis2=2), a, s
 
@@ -117,14 +227,14 @@ def _greedy(cov, cand_jac, cand_valid, m_env, noise, budget: int):
             c_new = c - ak.T @ jnp.linalg.solve(sk, ak)
             c_new = 0.5 * (c_new + c_new.T)
             c = jnp.where(ok, c_new, c)
-            avail = avail.at[k].set(False)
+            avail = avail & ~(ok & (slot == slot[k])) & (jnp.arange(avail.shape[0]) != k)
             return (c, avail), (jnp.where(ok, k, -1), jnp.sqrt(jnp.maximum(jnp.trace(c @ m), 0.0)))
 
         u0 = jnp.sqrt(jnp.maximum(jnp.trace(c @ m), 0.0))
         (c_end, _), (chosen, u) = jax.lax.scan(step, (c, valid), None, length=budget)
         return chosen, u0, u, c_end
 
-    return jax.vmap(one)(cov, cand_jac, cand_valid, m_env, noise)
+    return jax.vmap(one)(cov, cand_jac, cand_valid, cand_slot, m_env, noise)
 
 
 def plan_measurements(
@@ -132,8 +242,9 @@ def plan_measurements(
     candidate_jacobians: Float[Array, "H K 2 F"],
     candidate_valid: Bool[Array, "H K"],
     envelope: Float[Array, "H F F"],
-    noise_mrad: Float[Array, "*h"],
+    noise_mrad: Float[ArrayLike, "*h"],
     budget: int,
+    slot: Int[Array, "H K"] | None = None,
 ) -> MeasurementPlan:
     """Choose ``budget`` measurements per heliostat among its candidates.
 
@@ -145,13 +256,197 @@ def plan_measurements(
         envelope: ``M`` of :func:`envelope_matrix`.
         noise_mrad: measurement noise per residual component, scalar or ``(H,)``.
         budget: measurements per heliostat (static).
+        slot: ``(H, K)`` candidates of one slot exclude each other (one heliostat
+            measures one target at a time); default: every candidate its own slot.
     """
     h = covariance.shape[0]
     noise = jnp.broadcast_to(jnp.asarray(noise_mrad, covariance.dtype), (h,))
+    k = candidate_valid.shape[1]
+    slots = jnp.broadcast_to(jnp.arange(k, dtype=jnp.int32), (h, k)) if slot is None else jnp.asarray(slot, jnp.int32)
     chosen, u0, u, c_end = _greedy(
-        covariance, candidate_jacobians, jnp.asarray(candidate_valid, bool), envelope, noise, int(budget)
+        covariance, candidate_jacobians, jnp.asarray(candidate_valid, bool), slots, envelope, noise, int(budget)
     )
     return MeasurementPlan(chosen=chosen, uncertainty_before_mrad=u0, uncertainty_after_mrad=u, covariance_after=c_end)
+
+
+@typing.final
+class Candidates(eqx.Module):
+    """Candidate measurements per heliostat: what a camera-target record would be.
+
+    Attributes:
+        counts: ``(H, K, 2)`` motor counts of each candidate.
+        context: batched :class:`heliojax.RecordContext` ``(H, K)`` (sun, time, ...).
+        spots: ``(H, K, 3)`` ENU m, where the spot is expected (the target centre
+            for planned instants, the measured spot for existing records).
+        valid: ``(H, K)`` candidates that may be chosen.
+        slot: ``(H, K)`` candidates of one slot (one instant at several targets)
+            exclude each other.
+    """
+
+    counts: Float[Array, "H K 2"]
+    context: RecordContext
+    spots: Float[Array, "H K 3"]
+    valid: Bool[Array, "H K"]
+    slot: Int[Array, "H K"]
+
+
+@eqx.filter_jit
+def _target_candidates(models, geometry, sun, centres, min_sin_elevation):
+    def one(model, g):
+        def at(s, c):
+            return inverse_aim(model, g, c, s)
+
+        counts = jax.vmap(lambda s: jax.vmap(lambda c: at(s, c))(centres))(sun)  # (N, T, 2)
+        act = g.actuators
+        lo, hi = act.min_counts[None, None, :], act.max_counts[None, None, :]
+        inside = jnp.all((counts >= lo) & (counts <= hi) & jnp.isfinite(counts), axis=-1)
+        return counts, inside
+
+    counts, inside = jax.vmap(one)(models, geometry)
+    h, n, t = counts.shape[:3]
+    high = sun[:, 2] >= min_sin_elevation
+    valid = inside & high[None, :, None]
+    return counts.reshape(h, n * t, 2), valid.reshape(h, n * t)
+
+
+def candidates_at_targets(
+    models: AbstractKinematicModel,
+    geometry: HeliostatGeometry,
+    sun: Float[Array, "N 3"],
+    target_centres: Float[Array, "T 3"],
+    *,
+    unix_time: Float[ArrayLike, " N"] | None = None,
+    min_elevation_deg: float = 10.0,
+) -> Candidates:
+    """Candidates for future measurements: each heliostat aimed at each target's
+    centre at each instant, ``k = n * T + t``; valid where the sun is at least
+    ``min_elevation_deg`` high and the counts are inside the actuators' range."""
+    sun = jnp.asarray(sun)
+    centres = jnp.asarray(target_centres, sun.dtype)
+    h, n, t = int(jnp.shape(geometry.position)[0]), sun.shape[0], centres.shape[0]
+    counts, valid = _target_candidates(models, geometry, sun, centres, float(np.sin(np.radians(min_elevation_deg))))
+    sun_k = jnp.broadcast_to(jnp.repeat(sun, t, axis=0), (h, n * t, 3))
+    time_k = None if unix_time is None else jnp.repeat(jnp.asarray(unix_time, sun.dtype), t)
+    context = RecordContext.from_sun(sun_k, time_k)
+    spots = jnp.broadcast_to(jnp.tile(centres, (n, 1)), (h, n * t, 3))
+    slot = jnp.broadcast_to(jnp.repeat(jnp.arange(n, dtype=jnp.int32), t), (h, n * t))
+    return Candidates(counts=counts, context=context, spots=spots, valid=valid, slot=slot)
+
+
+def candidates_from_records(
+    fleet: typing.Any, ids: collections.abc.Sequence[str], usable: Bool[np.ndarray, "Hf M"] | None = None
+) -> tuple[Candidates, Int[np.ndarray, "H M"]]:
+    """Existing records as candidates (a retrospective plan), for the heliostats
+    ``ids`` in that order (a heliostat ``fleet`` does not hold gets none).
+
+    Args:
+        fleet: a :class:`heliojax.Fleet` (same ENU origin as the models to plan with).
+        ids: heliostat ids of the plan (e.g. :attr:`CalibrationResults.ids`).
+        usable: ``(H_fleet, M)`` records that may be chosen (default all valid ones).
+
+    Returns:
+        ``(candidates, record_id)``: the :class:`Candidates` ``(H, M)`` and the PAINT
+        record ids ``(H, M)`` (-1 where none).
+    """
+    fleet_ids = list(fleet.ids)
+    rows = np.array([fleet_ids.index(i) if i in fleet_ids else -1 for i in ids])
+    take = np.where(rows >= 0, rows, 0)
+    valid = np.asarray(fleet.mask) if usable is None else np.asarray(usable, bool) & np.asarray(fleet.mask)
+    valid = valid[take] & (rows >= 0)[:, None]
+    pick = lambda x: jnp.asarray(x)[jnp.asarray(take)]  # noqa: E731
+    candidates = Candidates(
+        counts=pick(fleet.counts),
+        context=jax.tree.map(pick, fleet.context),
+        spots=pick(fleet.focal_spot),
+        valid=jnp.asarray(valid),
+        slot=jnp.broadcast_to(jnp.arange(valid.shape[1], dtype=jnp.int32), valid.shape),
+    )
+    return candidates, np.where(valid, np.asarray(fleet.record_id)[take], -1)
+
+
+def prior_covariance(
+    view: ParameterView,
+    params: Float[np.ndarray, "H P"],
+    std: Float[np.ndarray, "H P"],
+    learn_from: Bool[np.ndarray, " H"],
+    fallback_centre: Float[np.ndarray, " P"],
+    *,
+    unknown_scales: float = 10.0,
+) -> tuple[Float[np.ndarray, " P"], Float[np.ndarray, "F F"]]:
+    """The fleet prior (:func:`heliojax.fitting.prior_moments`) as a starting point
+    for planning: its centre ``(P,)`` and the diagonal covariance ``(F, F)`` of the
+    free parameters (physical units). A parameter the fleet cannot tell (spread
+    ``inf``) gets ``unknown_scales`` solver scales."""
+    centre, spread = prior_moments(view, params, std, learn_from, fallback_centre)
+    idx = np.asarray(view.free_index)
+    s = spread[idx]
+    s = np.where(np.isfinite(s), s, unknown_scales * np.asarray(view.scales)[idx])
+    return centre, np.diag(s**2)
+
+
+PLAN_STARTS = ("posterior", "prior")
+"""Starting points of :func:`plan_calibration`."""
+
+
+def plan_calibration(
+    results: typing.Any,
+    candidates: Candidates,
+    *,
+    envelope_sun: Float[Array, "E 3"],
+    envelope_weight: Float[ArrayLike, " E"],
+    aim_point: Float[ArrayLike, "*h 3"],
+    budget: int,
+    start: str = "posterior",
+) -> tuple[MeasurementPlan, Float[Array, "H F F"]]:
+    """Plan ``budget`` measurements for every heliostat of a calibration read with
+    :func:`heliojax.load_results`.
+
+    Args:
+        results: a :class:`heliojax.CalibrationResults`.
+        candidates: :func:`candidates_at_targets` or existing records
+            (:class:`Candidates` of the same heliostats, in ``results.ids`` order).
+        envelope_sun, envelope_weight: the operating envelope
+            (:func:`operating_envelope`).
+        aim_point: ENU m where the heliostats aim in operation (the receiver).
+        budget: measurements per heliostat.
+        start: ``"posterior"``: each fitted heliostat's covariance and model (the
+            fleet prior for heliostats without a usable fit); ``"prior"``: every
+            heliostat planned from scratch, from the fleet prior (centre and
+            spread learnt from the fitted heliostats), as if it had no record.
+
+    Returns:
+        ``(plan, envelope)``: the :class:`MeasurementPlan` and the ``(H, F, F)``
+        envelope matrices (for :func:`predicted_uncertainty_mrad` of other covariances).
+    """
+    if start not in PLAN_STARTS:
+        raise ValueError(f"start must be one of {PLAN_STARTS}, not {start!r}")
+    view = results.view
+    fitted = np.asarray(results.fitted, bool)
+    params = np.asarray(results.params, float)
+    std = np.asarray(results.param_std, float)
+    good = fitted & np.all(np.isfinite(std), axis=1)
+    centre, cov0 = prior_covariance(view, params, std, good, params[0])
+    h = params.shape[0]
+    cov = np.asarray(results.covariance, float)
+    usable = fitted & np.all(np.isfinite(cov.reshape(h, -1)), axis=1) if cov.size else np.zeros(h, bool)
+    if start == "prior" or not cov.size:
+        usable = np.zeros(h, bool)
+    cov = np.where(usable[:, None, None], cov if cov.size else 0.0, cov0[None])
+    free = np.zeros(params.shape[1], bool)
+    free[list(view.free_index)] = True
+    vectors = np.where(~usable[:, None] & free[None, :], centre[None, :], params)
+    models = jax.vmap(view.from_vector)(results.model, jnp.asarray(vectors))
+    noise = np.asarray(results.noise_mrad, float)
+    fallback = float(np.nanmedian(noise)) if np.isfinite(noise).any() else 1.0
+    noise = np.where(np.isfinite(noise) & (noise > 0), noise, fallback)
+    m_env = envelope_matrices(models, view, results.geometry, envelope_sun, envelope_weight, aim_point)
+    jac = residual_jacobians(
+        models, view, results.geometry, candidates.counts, candidates.context, candidates.spots, candidates.valid
+    )
+    plan = plan_measurements(
+        jnp.asarray(cov), jac, candidates.valid, m_env, jnp.asarray(noise), budget, slot=candidates.slot
+    )
+    return plan, m_env
 
 
 def predicted_uncertainty_mrad(
@@ -163,7 +458,17 @@ def predicted_uncertainty_mrad(
 
 
 __all__ = [
+    "PLAN_STARTS",
+    "SOLAR_CONSTANT_W_M2",
+    "Candidates",
     "MeasurementPlan",
+    "candidates_at_targets",
+    "candidates_from_records",
+    "clear_sky_dni",
+    "envelope_matrices",
+    "operating_envelope",
+    "plan_calibration",
+    "prior_covariance",
     "envelope_matrix",
     "plan_measurements",
     "predicted_uncertainty_mrad",

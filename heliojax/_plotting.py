@@ -225,4 +225,53 @@ def plot_aim(ids, pointing_cov_mrad2, ok, distance_m, hours=None, start=None, *,
     return fig
 
 
-__all__ = ["plot_aim", "plot_calibration", "plot_error_per_heliostat", "pyplot", "save_figure"]
+def plot_plan(ids, before_mrad, after_mrad, chosen, changed=None):
+    """A calibration plan: each heliostat's predicted pointing uncertainty over the
+    operating envelope before and after its planned measurements (heliostats in
+    order of need, change points marked), and the fleet's uncertainty against the
+    number of planned measurements (median and 10-90 % band)."""
+    plt = pyplot()
+    before = np.asarray(before_mrad, float)
+    after = np.asarray(after_mrad, float)
+    chosen = np.asarray(chosen)
+    h, k = after.shape
+    changed = np.zeros(h, bool) if changed is None else np.asarray(changed, bool)
+    curve = np.concatenate([before[:, None], np.where(chosen >= 0, after, np.nan)], axis=1)
+    curve = np.fmin.accumulate(np.where(np.isnan(curve), np.inf, curve), axis=1)
+    final = curve[:, -1]
+    fig, axes = plt.subplots(
+        1, 2, figsize=(max(10.0, 4.0 + 0.32 * h), 5.0), gridspec_kw={"width_ratios": [max(2.0, h / 8), 1]}
+    )
+    ax = axes[0]
+    order = np.argsort(-before)
+    x = np.arange(h)
+    ax.bar(x - 0.2, before[order], 0.4, color="0.65", label="before (current knowledge)")
+    ax.bar(x + 0.2, final[order], 0.4, color="tab:blue", label="after the planned measurements")
+    if changed.any():
+        top = float(np.max(before)) * 1.05
+        ax.plot(x[changed[order]], np.full(int(changed.sum()), top), "v", color="tab:red", label="change point found")
+    ax.set_xticks(x, [ids[i] for i in order], rotation=90, fontsize=8)
+    ax.set_xlabel("heliostat (largest predicted uncertainty first)")
+    ax.set_ylabel("predicted pointing uncertainty over the envelope [mrad]")
+    ax.set_title("predicted RMS pointing error from parameter uncertainty", fontsize=10)
+    ax.legend(fontsize=8, loc="upper right")
+    ax.grid(axis="y", alpha=0.3)
+    ax = axes[1]
+    n = np.arange(k + 1)
+    ax.fill_between(
+        n, np.percentile(curve, 10, axis=0), np.percentile(curve, 90, axis=0), color="tab:blue", alpha=0.2,
+        label="10-90 % of heliostats",
+    )  # fmt: skip
+    ax.plot(n, np.median(curve, axis=0), "o-", color="tab:blue", label="median heliostat")
+    ax.set_xlabel("planned measurements per heliostat")
+    ax.set_ylabel("predicted pointing uncertainty [mrad]")
+    ax.set_title("fleet, by number of measurements", fontsize=10)
+    ax.set_xticks(n)
+    ax.set_ylim(bottom=0.0)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+__all__ = ["plot_aim", "plot_calibration", "plot_error_per_heliostat", "plot_plan", "pyplot", "save_figure"]

@@ -222,6 +222,7 @@ _RECORD_FIELDS = (
     "beam_error_mrad",
     "beam_error_uncalibrated_mrad",
     "loo_mrad",
+    "superseded",
 )
 
 

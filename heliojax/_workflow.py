@@ -127,6 +127,7 @@ def calibrate(
     robust: bool = True,
     pool: bool = True,
     changes: bool = True,
+    record_roles: collections.abc.Mapping[str, collections.abc.Mapping[int, str]] | None = None,
 ) -> CalibrationRun:
     """Split each heliostat's records, fit the model on the training records of all
     heliostats at once, and evaluate on the held-out ones.
@@ -154,6 +155,11 @@ def calibrate(
             offsets, :func:`heliojax.fitting.find_change_points`) and, where one is
             reported, fit again on the records since the change (the current
             state; with ``pool`` the fleet prior fills in what they leave open).
+        record_roles: instead of a split, heliostat id -> {PAINT record id: role}
+            with role ``"train"`` or ``"test"`` (e.g. a plan's choice among existing
+            records, :func:`heliojax.plan_calibration`). Records not named are
+            left out; if no record is named ``"test"``, every record not named
+            ``"train"`` is held out. Heliostats not named get no training records.
     """
     model0 = nominal_model(model, fleet.counts.dtype) if isinstance(model, str) else model
     n_real = len(fleet.ids)
@@ -163,6 +169,10 @@ def calibrate(
         train = np.asarray(fleet.mask).copy()
         val = np.zeros_like(train)
         test = np.zeros_like(train)
+        too_few = {}
+    elif record_roles is not None:
+        train, test = roles_to_masks(fleet, record_roles)
+        val = np.zeros_like(train)
         too_few = {}
     else:
         kw: dict[str, typing.Any] = dict(n_train=n_train, n_val=n_val, seed=seed)
@@ -246,7 +256,7 @@ def calibrate(
     run = CalibrationRun(
         fleet=padded,
         model0=model0,
-        split_kind=split if test_fleet is None else "test-data",
+        split_kind="test-data" if test_fleet is not None else "records" if record_roles is not None else split,
         train_mask=train,
         val_mask=val,
         test_mask=test,
@@ -271,6 +281,43 @@ def calibrate(
     )
     summary = _summarise(run, n_real, compile_s=compile_s, fit_s=fit_s)
     return dataclasses.replace(run, summary=summary)
+
+
+RECORD_ROLES = ("train", "test")
+"""Roles of a record in :func:`calibrate`'s ``record_roles``."""
+
+
+def roles_to_masks(
+    fleet, record_roles: collections.abc.Mapping[str, collections.abc.Mapping[int, str]]
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(train, test)`` masks ``(H, M)`` of ``fleet`` from ``record_roles`` (see
+    :func:`calibrate`).
+
+    Raises:
+        ConfigError: naming a heliostat or record that ``fleet`` does not hold, or a role
+            other than ``"train"`` / ``"test"``.
+    """
+    ids = list(fleet.ids)
+    record_id = np.asarray(fleet.record_id)
+    valid = np.asarray(fleet.mask)
+    train = np.zeros(valid.shape, bool)
+    test = np.zeros(valid.shape, bool)
+    any_test = False
+    for hid, roles in record_roles.items():
+        if hid not in ids:
+            raise ConfigError(f"record roles name heliostat {hid!r}, which the data do not hold")
+        i = ids.index(hid)
+        where = {int(r): j for j, r in enumerate(record_id[i]) if valid[i, j]}
+        for rid, role in roles.items():
+            if role not in RECORD_ROLES:
+                raise ConfigError(f"record {rid} of {hid}: role {role!r} is not one of {RECORD_ROLES}")
+            if int(rid) not in where:
+                raise ConfigError(f"record roles name record {rid} of {hid}, which the data do not hold")
+            (train if role == "train" else test)[i, where[int(rid)]] = True
+            any_test |= role == "test"
+    if not any_test:
+        test = valid & ~train
+    return train, test
 
 
 def _scan_changes(
@@ -492,4 +539,4 @@ def write_summary(path: str | Path, run: CalibrationRun) -> None:
         f.write("\n")
 
 
-__all__ = ["CalibrationRun", "calibrate", "write_summary"]
+__all__ = ["RECORD_ROLES", "CalibrationRun", "calibrate", "roles_to_masks", "write_summary"]

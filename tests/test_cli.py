@@ -337,3 +337,80 @@ def test_aim_points_from_a_csv_in_enu_or_wgs84_agree(results_h5, tmp_path, capsy
     argv = ["aim", str(results_h5), "--time", "2023-06-21T12:00", "--aim-csv", str(tmp_path / "short.csv")]
     assert main([*argv, "--out", str(tmp_path / "never.csv"), "--quiet"]) == 2
     assert "no aim point for BF56" in capsys.readouterr().err and not (tmp_path / "never.csv").exists()
+
+
+def test_plan_schedules_distinct_instants_and_ranks_the_fleet(results_h5, tmp_path, capsys):
+    out, ranking, plot = tmp_path / "plan.csv", tmp_path / "ranking.csv", tmp_path / "plan.png"
+    argv = ["plan", str(results_h5), "--date", "2024-06-21", "--step-minutes", "60", "--budget", "3"]
+    argv += ["--envelope-day-step", "30", "--out", str(out), "--ranking", str(ranking), "--plot", str(plot)]
+    assert main([*argv, "--cache-dir", "none", "--quiet"]) == 0
+    assert "median predicted pointing uncertainty" in capsys.readouterr().out
+    with open(out, newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 5 * 3
+    for hid in {r["heliostat_id"] for r in rows}:
+        mine = [r for r in rows if r["heliostat_id"] == hid]
+        assert len({r["time_utc"] for r in mine}) == 3  # one target per instant
+        assert all(float(r["sun_elevation_deg"]) >= 10.0 for r in mine)
+        after = [float(r["uncertainty_after_mrad"]) for r in mine]
+        assert after == sorted(after, reverse=True)
+    with open(ranking, newline="") as f:
+        ranked = list(csv.DictReader(f))
+    changed = [r["change_point"] == "1" for r in ranked]
+    assert changed == sorted(changed, reverse=True)  # heliostats with a change point first
+    for group in (True, False):  # then by predicted uncertainty
+        before = [float(r["uncertainty_before_mrad"]) for r, c in zip(ranked, changed, strict=True) if c == group]
+        assert before == sorted(before, reverse=True)
+    assert all(float(r["uncertainty_after_mrad"]) < float(r["uncertainty_before_mrad"]) for r in ranked)
+    assert plot.stat().st_size > 10_000
+
+
+def test_retrospective_plan_feeds_calibrate_records(results_h5, tmp_path, capsys):
+    data = hj.default_data_dir()
+    chosen = tmp_path / "chosen.csv"
+    argv = ["plan", str(results_h5), "--paint-dir", str(data), "--before", "2023-06-01", "--budget", "4"]
+    argv += ["--start-from", "prior", "--envelope-day-step", "30", "--records-out", str(chosen)]
+    assert main([*argv, "--out", str(tmp_path / "plan.csv"), "--cache-dir", "none", "--quiet"]) == 0
+    with open(chosen, newline="") as f:
+        rows = list(csv.DictReader(f))
+    fleet = hj.load_paint_directory(data)
+    times = {
+        (hid, int(r)): t
+        for hid, rids, ts, m in zip(fleet.ids, fleet.record_id, fleet.context.unix_time, fleet.mask, strict=True)
+        for r, t, ok in zip(np.asarray(rids), np.asarray(ts), np.asarray(m), strict=True)
+        if ok
+    }
+    cut = 1685577600.0  # 2023-06-01
+    train = [(r["heliostat_id"], int(r["record_id"])) for r in rows if r["role"] == "train"]
+    test = [(r["heliostat_id"], int(r["record_id"])) for r in rows if r["role"] == "test"]
+    assert train and all(times[k] < cut for k in train) and all(times[k] >= cut for k in test)
+    results = hj.load_results(results_h5)  # records before a change point of the fit are no candidates
+    old = {
+        (hid, int(r))
+        for hid, rids, sup in zip(results.ids, results.records["record_id"], results.records["superseded"], strict=True)
+        for r in np.asarray(rids)[np.asarray(sup, bool)]
+    }
+    n_before = {hid: sum(1 for k, t in times.items() if k[0] == hid and t < cut and k not in old) for hid in fleet.ids}
+    assert old and all(k not in old for k in train)
+    for hid in fleet.ids:
+        assert sum(1 for h, _ in train if h == hid) == min(4, n_before[hid])
+    report = tmp_path / "summary.json"
+    argv = ["calibrate", str(data), "--records", str(chosen), "--report", str(report), "--cache-dir", "none"]
+    assert main([*argv, "--quiet"]) == 0
+    summary = json.loads(report.read_text())
+    assert summary["split"] == "records"
+    for hid, h in summary["heliostats"].items():
+        assert h["n_train"] == min(4, n_before[hid])
+        assert h["n_test"] == sum(1 for k in test if k[0] == hid)
+
+
+def test_calibrate_records_file_errors_name_the_file_and_row(tmp_path, capsys):
+    bad = tmp_path / "records.csv"
+    bad.write_text("heliostat_id,record_id,role\nBE36,abc,train\n")
+    assert main(["calibrate", "--records", str(bad), "--cache-dir", "none", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "records.csv" in err and "row 2.record_id" in err
+    bad.write_text("heliostat_id,record_id\nBX99,1\n")
+    assert main(["calibrate", "--records", str(bad), "--cache-dir", "none", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "records.csv" in err and "BX99" in err and len(err.strip().splitlines()) <= 2

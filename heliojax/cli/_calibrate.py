@@ -6,7 +6,15 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from ._common import add_data_argument, add_fit_arguments, enable_compilation_cache, integer, load_fleet, number
+from ._common import (
+    add_data_argument,
+    add_fit_arguments,
+    enable_compilation_cache,
+    integer,
+    load_fleet,
+    number,
+    read_record_roles,
+)
 
 MODELS = ("auto", "stone8", "actuator", "auto+nn", "stone8+nn", "actuator+nn")
 NN_VARIANTS = ("residual", "paper")
@@ -89,6 +97,15 @@ def add_parser(subparsers) -> None:
         help="evaluate on the records of this directory (same heliostat ids) instead of a split",
     )
     p.add_argument(
+        "--records",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="instead of a split: CSV heliostat_id,record_id[,role] of the records that train (role train, "
+        "the default) and are held out (role test; if none is, every other record is), e.g. from "
+        "`heliojax plan --records-out`",
+    )
+    p.add_argument(
         "--prior", action="store_true", help="Tikhonov prior toward nominal for the weakly identified parameters"
     )
     p.add_argument("--max-steps", type=integer(1), default=64, help="Levenberg-Marquardt step limit per fit pass")
@@ -147,6 +164,18 @@ def run(args) -> int:
     test_fleet = None
     if args.test_data is not None:
         test_fleet = load_paint_directory(args.test_data, centroid=args.centroid)
+    roles = None
+    if args.records is not None:
+        from .._errors import ConfigError, DataError
+        from .._workflow import roles_to_masks
+
+        if args.test_data is not None:
+            raise ConfigError("--records and --test-data both choose the held-out records; give one")
+        roles = read_record_roles(args.records)
+        try:
+            roles_to_masks(fleet, roles)
+        except ConfigError as e:
+            raise DataError(args.records, None, str(e)) from None
     kind = args.model.removesuffix("+nn")
     model0 = nominal_model("actuator" if kind == "auto" else kind)
     fit_options = {"max_steps": args.max_steps, "batching": batching_from_name(args.strategy)}
@@ -171,6 +200,7 @@ def run(args) -> int:
         robust=args.robust,
         pool=args.pool,
         changes=args.changes,
+        record_roles=roles,
     )
     if neural:
         from ..neural import calibrate_neural

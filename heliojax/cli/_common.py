@@ -83,6 +83,52 @@ def _relative(file: str, root) -> str:
         return str(file)
 
 
+RECORDS_HEADER = ("heliostat_id", "record_id")
+"""Columns of a records file (``heliojax calibrate --records``, ``heliojax plan --records-out``);
+an optional third column ``role`` is ``train`` (default) or ``test``."""
+
+
+def read_record_roles(path: Path) -> dict[str, dict[int, str]]:
+    """Heliostat id -> {record id: role} from a records CSV (see :data:`RECORDS_HEADER`).
+
+    Raises:
+        DataError: naming the file and row of a missing column, a non-integer record
+            id, an unknown role or a record listed twice.
+    """
+    import csv
+
+    from .._errors import DataError
+
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            rows = list(csv.DictReader(f))
+            header = set(rows[0]) if rows else set()
+    except OSError as e:
+        raise DataError(path, None, f"cannot read: {e.strerror or e}") from None
+    except (UnicodeDecodeError, csv.Error) as e:
+        raise DataError(path, None, f"not a CSV file: {e}") from None
+    if not rows:
+        raise DataError(path, None, "no records listed")
+    if not set(RECORDS_HEADER) <= header:
+        raise DataError(path, None, f"needs the columns {', '.join(RECORDS_HEADER)} (and optionally role)")
+    roles: dict[str, dict[int, str]] = {}
+    for line, row in enumerate(rows, start=2):
+        hid = str(row["heliostat_id"] or "").strip()
+        try:
+            rid = int(str(row["record_id"]).strip())
+        except ValueError:
+            raise DataError(path, f"row {line}.record_id", f"not an integer: {row['record_id']!r}") from None
+        role = str(row.get("role") or "train").strip()
+        if role not in ("train", "test"):
+            raise DataError(path, f"row {line}.role", f"{role!r} is neither train nor test")
+        if not hid:
+            raise DataError(path, f"row {line}.heliostat_id", "empty")
+        if rid in roles.setdefault(hid, {}):
+            raise DataError(path, f"row {line}", f"record {rid} of {hid} listed twice")
+        roles[hid][rid] = role
+    return roles
+
+
 def configure_logging(quiet: bool) -> logging.Logger:
     """Show the library's INFO messages (progress) on stderr as ``[heliojax] ...``;
     only warnings with ``quiet``. Returns the ``heliojax`` logger."""

@@ -25,6 +25,7 @@ SUBCOMMANDS = {
     "inspect": "heliojax.cli._inspect",
     "calibrate": "heliojax.cli._calibrate",
     "aim": "heliojax.cli._aim",
+    "plan": "heliojax.cli._plan",
     "discover": "heliojax.cli._discover",
     "fetch": "heliojax.cli._fetch",
     "accept": "heliojax.cli._accept",

@@ -48,6 +48,7 @@ from ._loss import (
 from ._pooling import (
     flat_prior as flat_prior,
     fleet_prior as fleet_prior,
+    prior_moments as prior_moments,
     well_determined as well_determined,
 )
 from ._prior import (

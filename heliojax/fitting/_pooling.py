@@ -60,6 +60,34 @@ def well_determined(solution: FitSolution) -> np.ndarray:
     return (status == FitStatus.CONVERGED) & (n_res >= MIN_RESIDUALS_PER_PARAMETER * solution.view.n_free) & finite
 
 
+def prior_moments(
+    view: ParameterView,
+    params: Float[np.ndarray, "H P"],
+    std: Float[np.ndarray, "H P"],
+    learn_from: Bool[np.ndarray, " H"],
+    fallback_centre: Float[np.ndarray, " P"],
+) -> tuple[Float[np.ndarray, " P"], Float[np.ndarray, " P"]]:
+    """Centre and spread (physical units, vector order of ``view``) of the fleet
+    prior learnt from the heliostats ``learn_from`` (see the module docstring).
+    With fewer than three of them the centre is ``fallback_centre`` and every
+    spread ``inf``; non-free parameters have spread ``inf``."""
+    p = np.asarray(params, float)
+    scales = np.asarray(view.scales)
+    free = np.asarray(view.free)
+    centre = np.asarray(fallback_centre, float).copy()
+    spread = np.full(p.shape[1], np.inf)
+    good = np.asarray(learn_from, bool)
+    if good.sum() >= 3:
+        pg, sg = p[good], np.asarray(std, float)[good]
+        med = np.median(pg, axis=0)
+        mad_var = (1.4826 * np.median(np.abs(pg - med), axis=0)) ** 2
+        var = mad_var - np.mean(sg**2, axis=0)
+        floor = (SPREAD_FLOOR_SCALED * scales) ** 2
+        centre = np.where(free, med, centre)
+        spread = np.where(free, np.sqrt(np.maximum(var, floor)), np.inf)
+    return centre, spread
+
+
 def fleet_prior(
     solution: FitSolution,
     noise_mrad: Float[Array, " H"],
@@ -79,21 +107,10 @@ def fleet_prior(
     """
     view = solution.view
     p = np.asarray(solution.parameters())
-    std = np.asarray(solution.std)
     good = well_determined(solution) if learn_from is None else np.asarray(learn_from, bool)
     h = p.shape[0]
-    scales = np.asarray(view.scales)
-    free = np.asarray(view.free)
-    centre = np.asarray(view.to_vector(solution.heliostat_model(0)), float).copy()
-    spread = np.full(p.shape[1], np.inf)
-    if good.sum() >= 3:
-        pg, sg = p[good], std[good]
-        med = np.median(pg, axis=0)
-        mad_var = (1.4826 * np.median(np.abs(pg - med), axis=0)) ** 2
-        var = mad_var - np.mean(sg**2, axis=0)
-        floor = (SPREAD_FLOOR_SCALED * scales) ** 2
-        centre = np.where(free, med, centre)
-        spread = np.where(free, np.sqrt(np.maximum(var, floor)), np.inf)
+    fallback = np.asarray(view.to_vector(solution.heliostat_model(0)), float)
+    centre, spread = prior_moments(view, p, np.asarray(solution.std), good, fallback)
     centres = np.broadcast_to(centre, (h, centre.size))
     spreads = np.broadcast_to(spread, (h, spread.size))
     models = solution.model
@@ -105,4 +122,11 @@ def fleet_prior(
     )
 
 
-__all__ = ["MIN_RESIDUALS_PER_PARAMETER", "SPREAD_FLOOR_SCALED", "fleet_prior", "flat_prior", "well_determined"]
+__all__ = [
+    "MIN_RESIDUALS_PER_PARAMETER",
+    "SPREAD_FLOOR_SCALED",
+    "fleet_prior",
+    "flat_prior",
+    "prior_moments",
+    "well_determined",
+]

@@ -1,0 +1,313 @@
+"""``heliojax plan``: which calibration measurements to take next (thin over
+:func:`heliojax.plan_calibration`)."""
+
+from __future__ import annotations
+
+import csv
+import datetime as dt
+import logging
+from pathlib import Path
+
+from ._aim import _utc
+from ._common import RECORDS_HEADER, add_cache_argument, enable_compilation_cache, integer, number
+
+log = logging.getLogger(__name__)
+
+OUTPUT_FILES = ("out", "ranking", "records_out", "plot")
+OUTPUT_DIRS = ("cache_dir",)
+"""Output paths checked before any work (attribute names of the parsed arguments)."""
+
+EXAMPLES = """examples:
+  heliojax calibrate --out out/results.h5
+  heliojax plan out/results.h5 --date 2024-06-21 --budget 4 --plot out/plan.png --ranking out/ranking.csv
+  heliojax plan out/results.h5 --start 2024-06-21T05:00 --end 2024-06-23T19:00 --targets multi_focus_tower
+  heliojax calibrate ../shared/data/paint --records pool.csv --out pool.h5
+  heliojax plan pool.h5 --paint-dir ../shared/data/paint --before 2023-09-01 --start-from prior --budget 8 \\
+      --records-out chosen.csv && heliojax calibrate ../shared/data/paint --records chosen.csv"""
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "plan",
+        help="plan the next calibration measurements: which instants and targets, which heliostats first",
+        description=(
+            "For every heliostat of a fitted fleet (results.h5 of `heliojax calibrate`), choose --budget "
+            "camera-target measurements among candidates that most reduce the predicted pointing uncertainty "
+            "over the operating envelope (a year of sun positions weighted by clear-sky DNI, aiming at the "
+            "receiver): greedy I-optimal design with the model's Jacobian, the fit's covariance (or the fleet "
+            "prior) and the fit's noise. Candidates are future instants x calibration targets, or, with "
+            "--paint-dir and --before, the heliostat's existing records before a date (a retrospective plan, "
+            "to be judged on the later records with `heliojax calibrate --records`). Writes the schedule "
+            "(CSV), the fleet ranking (which heliostats most need measuring) and optionally a plot."
+        ),
+    )
+    p.add_argument("results", type=Path, metavar="RESULTS_H5", help="results.h5 of `heliojax calibrate`")
+    p.add_argument("--budget", type=integer(1, 1000), default=4, help="measurements per heliostat")
+    when = p.add_mutually_exclusive_group()
+    when.add_argument("--date", type=_utc, help="candidate instants: a whole day (UTC), with --step-minutes")
+    when.add_argument("--start", type=_utc, help="candidate instants: first one, ISO date-time (UTC), with --end")
+    p.add_argument("--end", type=_utc, help="last candidate instant with --start")
+    p.add_argument("--step-minutes", type=number(0.0, 1440.0, above=True), default=30.0, help="instant spacing")
+    p.add_argument(
+        "--targets",
+        nargs="+",
+        default=None,
+        metavar="NAME",
+        help="calibration targets to plan on (default: every planar target of the tower file)",
+    )
+    p.add_argument(
+        "--paint-dir",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="candidates are this PAINT directory's existing records (those before --before) instead of instants",
+    )
+    p.add_argument("--before", type=_utc, default=None, help="with --paint-dir: only records before this instant")
+    p.add_argument(
+        "--start-from",
+        choices=("posterior", "prior"),
+        default="posterior",
+        help="posterior: add to what each fit knows; prior: plan every heliostat from scratch from the fleet prior",
+    )
+    p.add_argument("--target", default="receiver", help="operating aim point: this target's centre in the tower file")
+    p.add_argument("--tower", type=Path, help="tower file (default: the embedded Jülich tower file)")
+    p.add_argument("--envelope-year", type=integer(1900, 2200), default=2023, help="year of the operating envelope")
+    p.add_argument("--envelope-day-step", type=integer(1, 365), default=5, help="every N-th day of the envelope year")
+    p.add_argument(
+        "--min-sun-elevation",
+        type=number(-90.0, 90.0),
+        default=10.0,
+        help="lowest sun (degrees) of the envelope and of candidate instants",
+    )
+    p.add_argument("--max-instants", type=integer(1), default=2_000, help="refuse longer candidate windows")
+    p.add_argument("--out", type=Path, default=Path("plan.csv"), metavar="FILE", help="schedule CSV")
+    p.add_argument(
+        "--ranking", type=Path, default=None, metavar="FILE", help="CSV of the heliostats, most in need first"
+    )
+    p.add_argument(
+        "--records-out",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="with --paint-dir: records CSV for `heliojax calibrate --records` "
+        "(chosen: train; at/after --before: test)",
+    )
+    p.add_argument("--plot", type=Path, default=None, metavar="FILE", help="figure of the predicted uncertainty (PNG)")
+    add_cache_argument(p)
+    p.add_argument("--quiet", action="store_true", help="no messages on stderr")
+
+
+def _instants(args) -> list[dt.datetime]:
+    from .._errors import ConfigError
+
+    step = dt.timedelta(minutes=args.step_minutes)
+    if args.start is not None:
+        if args.end is None or args.end < args.start:
+            raise ConfigError("--start needs an --end at or after it")
+        start, end = args.start, args.end
+    else:
+        day = args.date or dt.datetime.now(dt.UTC)
+        start = day.replace(hour=0, minute=0, second=0, microsecond=0)
+        end = start + dt.timedelta(days=1) - dt.timedelta(seconds=1)
+    n = int((end - start) / step) + 1
+    if n > args.max_instants:
+        raise ConfigError(f"{n} instants exceed --max-instants {args.max_instants}; use a larger --step-minutes")
+    return [start + k * step for k in range(n)]
+
+
+def _iso(unix: float) -> str:
+    if unix != unix:  # NaN
+        return ""
+    return dt.datetime.fromtimestamp(unix, dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def run(args) -> int:
+    import jax.numpy as jnp
+    import numpy as np
+
+    from .._errors import ConfigError
+    from .._geometry import direction_to_azimuth_elevation, enu_to_wgs84, wgs84_to_enu
+    from .._io import atomic_write
+    from .._plan import candidates_at_targets, candidates_from_records, operating_envelope, plan_calibration
+    from .._results import load_results
+    from .._sun import solar_position
+    from ..optics import target_from_tower
+    from ..paint import default_data_dir, load_paint_directory, read_tower
+
+    if args.paint_dir is None and (args.before is not None or args.records_out is not None):
+        raise ConfigError("--before and --records-out need --paint-dir")
+    if args.paint_dir is not None and (args.date or args.start or args.targets):
+        raise ConfigError("--paint-dir plans among existing records: no --date, --start or --targets")
+    if args.end is not None and args.start is None:
+        raise ConfigError("--end needs --start")
+    enable_compilation_cache(args.cache_dir)
+    results = load_results(args.results)
+    origin = np.asarray(results.attrs["origin_lla"], float)
+    tower = read_tower(args.tower or default_data_dir() / "WRI1030197-tower-measurements.json")
+
+    def centre(name: str) -> np.ndarray:
+        plane = target_from_tower(tower, name)
+        lla = enu_to_wgs84(plane.centre, jnp.asarray(tower.origin_lla))
+        return np.asarray(wgs84_to_enu(lla, jnp.asarray(origin)))
+
+    aim_point = centre(args.target)
+    h = len(results.ids)
+    record_ids = target_of = None
+    fleet = None
+    if args.paint_dir is not None:
+        fleet = load_paint_directory(args.paint_dir, heliostats=results.ids, origin=origin)
+        times = np.asarray(fleet.context.unix_time)
+        usable = np.asarray(fleet.mask) & np.isfinite(times)
+        if args.before is not None:
+            usable &= times < args.before.timestamp()
+        # Records the fit put before a change point describe a past state: not candidates.
+        if "superseded" in results.records and "record_id" in results.records:
+            old = {
+                (hid, int(rid))
+                for hid, rids, sup in zip(
+                    results.ids, results.records["record_id"], results.records["superseded"], strict=True
+                )
+                for rid in np.asarray(rids)[np.asarray(sup, bool)]
+            }
+            if old:
+                rid_f = np.asarray(fleet.record_id)
+                usable &= ~np.array(
+                    [[(hid, int(r)) in old for r in rid_f[k]] for k, hid in enumerate(fleet.ids)], bool
+                ).reshape(usable.shape)
+        candidates, record_ids = candidates_from_records(fleet, results.ids, usable)
+        rows = [list(fleet.ids).index(i) if i in fleet.ids else -1 for i in results.ids]
+        names = np.asarray(fleet.target_names + ("",))
+        target_of = np.stack(
+            [names[np.asarray(fleet.target_index)[r]] if r >= 0 else np.full(record_ids.shape[1], "") for r in rows]
+        )
+        source = f"{int(np.asarray(candidates.valid).sum())} existing records of {args.paint_dir}"
+    else:
+        instants = _instants(args)
+        targets = tuple(args.targets or tower.planar_target_names)
+        unix = np.array([t.timestamp() for t in instants])
+        lat, lon, alt = (float(x) for x in origin)
+        sun = solar_position(jnp.asarray(unix), lat, lon, alt).direction_enu()
+        centres = np.stack([centre(t) for t in targets])
+        candidates = candidates_at_targets(
+            results.model,
+            results.geometry,
+            sun,
+            jnp.asarray(centres),
+            unix_time=unix,
+            min_elevation_deg=args.min_sun_elevation,
+        )
+        target_of = np.broadcast_to(np.tile(np.asarray(targets), len(instants)), (h, len(instants) * len(targets)))
+        source = f"{len(instants)} instants x {len(targets)} targets"
+    log.info(f"planning {args.budget} measurement(s) for {h} heliostats among {source} ({args.start_from})")
+    sun_e, w_e = operating_envelope(
+        origin, year=args.envelope_year, day_step=args.envelope_day_step, min_elevation_deg=args.min_sun_elevation
+    )
+    plan, _ = plan_calibration(
+        results,
+        candidates,
+        envelope_sun=sun_e,
+        envelope_weight=w_e,
+        aim_point=jnp.asarray(aim_point),
+        budget=args.budget,
+        start=args.start_from,
+    )
+    chosen = np.asarray(plan.chosen)
+    before = np.asarray(plan.uncertainty_before_mrad)
+    after = np.asarray(plan.uncertainty_after_mrad)
+    unix_c = np.asarray(candidates.context.unix_time)
+    az, el = (np.degrees(np.asarray(x)) for x in direction_to_azimuth_elevation(candidates.context.sun))
+    with atomic_write(args.out, newline="") as f:
+        w = csv.writer(f)
+        w.writerow(
+            [
+                "heliostat_id",
+                "order",
+                "time_utc",
+                "target",
+                "sun_azimuth_deg",
+                "sun_elevation_deg",
+                "record_id",
+                "uncertainty_after_mrad",
+            ]
+        )
+        for i, hid in enumerate(results.ids):
+            for k, c in enumerate(chosen[i]):
+                if c < 0:
+                    continue
+                w.writerow(
+                    [
+                        hid,
+                        k + 1,
+                        _iso(float(unix_c[i, c])),
+                        str(target_of[i, c]),
+                        f"{az[i, c]:.4f}",
+                        f"{el[i, c]:.4f}",
+                        "" if record_ids is None else int(record_ids[i, c]),
+                        f"{after[i, k]:.4f}",
+                    ]
+                )
+    log.info(f"wrote {args.out}")
+    changed = np.zeros(h, bool)
+    if "superseded" in results.records:
+        changed = np.any(np.asarray(results.records["superseded"], bool), axis=1)
+    final = np.array([after[i][chosen[i] >= 0][-1] if (chosen[i] >= 0).any() else before[i] for i in range(h)])
+    order = np.lexsort((-before, ~changed))  # change points first, then the largest predicted uncertainty
+    if args.ranking is not None:
+        with atomic_write(args.ranking, newline="") as f:
+            w = csv.writer(f)
+            w.writerow(
+                [
+                    "rank",
+                    "heliostat_id",
+                    "status",
+                    "change_point",
+                    "uncertainty_before_mrad",
+                    "uncertainty_after_mrad",
+                    "n_planned",
+                ]
+            )
+            for rank, i in enumerate(order, start=1):
+                w.writerow(
+                    [
+                        rank,
+                        results.ids[i],
+                        results.status[i],
+                        int(changed[i]),
+                        f"{before[i]:.4f}",
+                        f"{final[i]:.4f}",
+                        int((chosen[i] >= 0).sum()),
+                    ]
+                )
+        log.info(f"wrote {args.ranking}")
+    if args.records_out is not None and fleet is not None and record_ids is not None:
+        later = np.zeros(np.asarray(fleet.mask).shape, bool)
+        if args.before is not None:
+            later = np.asarray(fleet.mask) & (np.asarray(fleet.context.unix_time) >= args.before.timestamp())
+        with atomic_write(args.records_out, newline="") as f:
+            w = csv.writer(f)
+            w.writerow([*RECORDS_HEADER, "role"])
+            for i, hid in enumerate(results.ids):
+                for c in chosen[i][chosen[i] >= 0]:
+                    w.writerow([hid, int(record_ids[i, c]), "train"])
+                if hid in fleet.ids:
+                    r = list(fleet.ids).index(hid)
+                    for rid in np.asarray(fleet.record_id)[r][later[r]]:
+                        w.writerow([hid, int(rid), "test"])
+        log.info(f"wrote {args.records_out}")
+    if args.plot is not None:
+        from .._plotting import plot_plan, save_figure
+
+        save_figure(plot_plan(list(results.ids), before, after, chosen, changed), args.plot)
+        log.info(f"wrote {args.plot}")
+    print(
+        f"{'rank':>4} {'heliostat':<10} {'change':>6} {'before':>8} {'after':>8}   [mrad, predicted over the envelope]"
+    )
+    for rank, i in enumerate(order[:10], start=1):
+        print(f"{rank:>4} {results.ids[i]:<10} {'yes' if changed[i] else '':>6} {before[i]:8.3f} {final[i]:8.3f}")
+    if h > 10:
+        print(f"     ... {h - 10} more in --ranking")
+    print(
+        f"fleet: median predicted pointing uncertainty {np.median(before):.3f} -> {np.median(final):.3f} mrad "
+        f"with {args.budget} planned measurement(s) per heliostat"
+    )
+    return 0

@@ -1,0 +1,161 @@
+"""Calibration planning: the greedy I-optimal choice against brute force, the
+operating envelope and its clear-sky weights against hand values, candidates that
+aim at the targets, slots that exclude each other, and record roles for
+``calibrate``."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import heliojax as hj
+from heliojax._workflow import roles_to_masks
+
+LAT, LON, ALT = 50.913421122592574, 6.387824755874856, 87.0
+
+
+def _integrated_variance(cov, m):
+    return float(np.trace(cov @ m))
+
+
+def test_greedy_choice_matches_brute_force_in_information_form():
+    rng = np.random.default_rng(3)
+    f, k = 5, 12
+    a = rng.normal(size=(f, f))
+    cov = a @ a.T + 0.5 * np.eye(f)
+    jac = rng.normal(size=(1, k, 2, f))
+    b = rng.normal(size=(3 * f, f))
+    m = b.T @ b / (3 * f)
+    sigma = 0.7
+    plan = hj.plan_measurements(
+        jnp.asarray(cov[None]), jnp.asarray(jac), jnp.ones((1, k), bool), jnp.asarray(m[None]), sigma, 3
+    )
+    chosen = np.asarray(plan.chosen)[0]
+    info = np.linalg.inv(cov)
+    expected_u = []
+    for _ in range(3):  # brute force: every remaining candidate's posterior, information form
+        left = [c for c in range(k) if c not in chosen[: len(expected_u)]]
+        u = {c: _integrated_variance(np.linalg.inv(info + jac[0, c].T @ jac[0, c] / sigma**2), m) for c in left}
+        best = min(u, key=lambda c: u[c])
+        assert best == chosen[len(expected_u)]
+        info = info + jac[0, best].T @ jac[0, best] / sigma**2
+        expected_u.append(np.sqrt(u[best]))
+    np.testing.assert_allclose(np.asarray(plan.uncertainty_after_mrad)[0], expected_u, rtol=1e-9)
+    np.testing.assert_allclose(float(plan.uncertainty_before_mrad[0]), np.sqrt(np.trace(cov @ m)), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(plan.covariance_after)[0], np.linalg.inv(info), rtol=1e-8, atol=1e-12)
+
+
+def test_slots_exclude_each_other_and_invalid_candidates_are_never_chosen():
+    rng = np.random.default_rng(4)
+    f, k = 4, 10
+    jac = jnp.asarray(rng.normal(size=(2, k, 2, f)))
+    cov = jnp.broadcast_to(jnp.eye(f), (2, f, f))
+    m = jnp.broadcast_to(jnp.eye(f), (2, f, f))
+    slot = jnp.asarray(np.broadcast_to(np.arange(k) // 2, (2, k)).astype(np.int32))
+    valid = jnp.asarray(np.array([[True] * k, [True, False] * 5]))
+    plan = hj.plan_measurements(cov, jac, valid, m, jnp.array([0.5, 0.5]), 6, slot=slot)
+    chosen = np.asarray(plan.chosen)
+    for i in range(2):
+        picked = chosen[i][chosen[i] >= 0]
+        assert len(set(np.asarray(slot)[i][picked])) == len(picked)  # one candidate per slot
+        assert np.asarray(valid)[i][picked].all()
+    assert (chosen[0] >= 0).sum() == 5  # 5 slots
+    assert (chosen[1] >= 0).sum() == 5 and (chosen[1][5:] == -1).all()
+    u = np.asarray(plan.uncertainty_after_mrad)
+    assert np.all(np.diff(u, axis=1) <= 1e-12)
+
+
+def test_clear_sky_dni_hand_values():
+    # Meinel with Kasten-Young air mass: zenith sun AM = 1/(1 + 0.50572 * 96.07995^-1.6364) = 0.99972
+    am_zenith = 1.0 / (1.0 + 0.50572 * 96.07995**-1.6364)
+    np.testing.assert_allclose(hj.clear_sky_dni(np.pi / 2), 1361.0 * 0.7 ** (am_zenith**0.678), rtol=1e-12)
+    assert abs(float(hj.clear_sky_dni(np.pi / 2)) - 952.8) < 0.5  # ~ 1361 * 0.7
+    # 30 deg elevation: AM ~ 1.994 -> 0.7^(1.994^0.678) = 0.7^1.596 = 0.566
+    assert 765.0 < float(hj.clear_sky_dni(np.radians(30.0))) < 775.0
+    assert float(hj.clear_sky_dni(np.radians(-1.0))) == 0.0
+
+
+def test_operating_envelope_is_above_the_limit_and_weighted_by_dni():
+    sun, weight = hj.operating_envelope(np.array([LAT, LON, ALT]), day_step=30, min_elevation_deg=15.0)
+    el = np.degrees(np.arcsin(np.asarray(sun)[:, 2]))
+    assert el.min() > 15.0 and el.max() < 90.0 - LAT + 23.5 + 0.5  # noon sun at the summer solstice
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(sun), axis=1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(weight), hj.clear_sky_dni(np.radians(el)), rtol=1e-10)
+    assert 13 * 6 < sun.shape[0] < 13 * 16  # 13 days, 6-16 hours above 15 deg at 51 N
+
+
+def _fleet_of_four():
+    """Four Jülich-like heliostats with true actuator models off nominal by ~2 solver scales."""
+    geometry = hj.synthetic_geometry(jax.random.key(5), 4)
+    base = hj.broadcast_model(hj.nominal_model("actuator"), 4)
+    view = hj.ParameterView.of(base)
+    p = np.asarray(jax.vmap(view.to_vector)(base))
+    step = np.zeros_like(p)
+    step[:, list(view.free_index)] = (
+        2.0 * np.asarray(view.free_scales(jnp.float64)) * np.random.default_rng(5).normal(size=(4, view.n_free))
+    )
+    return jax.vmap(view.from_vector)(base, jnp.asarray(p + step)), geometry, view
+
+
+def test_candidates_aim_at_the_targets_and_plans_reduce_uncertainty():
+    truth, geometry, view = _fleet_of_four()
+    target = hj.calibration_target()
+    unix = 1687330800.0 + np.arange(0.0, 12 * 3600.0, 3600.0)  # 2023-06-21 07:00 UTC on
+    sun = hj.solar_position(jnp.asarray(unix), LAT, LON, ALT).direction_enu()
+    centres = jnp.stack([target.centre, target.centre + jnp.array([0.0, 0.0, 8.0])])
+    cand = hj.candidates_at_targets(truth, geometry, sun, centres, unix_time=unix)
+    assert cand.counts.shape == (4, 24, 2)
+    valid = np.asarray(cand.valid)
+    assert valid.mean() > 0.5
+    np.testing.assert_array_equal(np.asarray(cand.slot)[0], np.repeat(np.arange(12), 2))
+
+    # the candidate counts point the true beam at the target centre
+    @jax.jit
+    def miss(truth, geometry, counts, context, spots):
+        def one(model, g, c, x, f):
+            return jax.vmap(lambda ci, xi, fi: model.beam_error(g, ci, xi, fi))(c, x, f) * 1e3
+
+        return jax.vmap(one)(truth, geometry, counts, context, spots)
+
+    err = np.asarray(miss(truth, geometry, cand.counts, cand.context, cand.spots))
+    assert np.all(err[valid] < 1e-6)
+
+    # the envelope matrix equals the weighted sum of the Jacobians at the counts that aim
+    # there (candidates of the same shapes aimed at the aim point, so no new program)
+    aim = target.centre + jnp.array([0.0, 0.0, 8.0])
+    sun_e = jnp.repeat(sun, 2, axis=0)
+    w_e = jnp.asarray(np.linspace(1.0, 2.0, 24))
+    m = hj.envelope_matrices(truth, view, geometry, sun_e, w_e, aim, batch_size=3)
+    at_aim = hj.candidates_at_targets(truth, geometry, sun, jnp.stack([aim, aim]))
+    all_on = jnp.ones((4, 24), bool)
+    jac_e = hj.residual_jacobians(truth, view, geometry, at_aim.counts, at_aim.context, at_aim.spots, all_on)
+    np.testing.assert_allclose(np.asarray(m), np.asarray(hj.envelope_matrix(jac_e, w_e)), rtol=1e-9, atol=1e-12)
+
+    cov = jnp.broadcast_to(jnp.diag(view.free_scales(jnp.float64) ** 2), (4, view.n_free, view.n_free))
+    jac = hj.residual_jacobians(truth, view, geometry, cand.counts, cand.context, cand.spots, cand.valid)
+    plan = hj.plan_measurements(cov, jac, cand.valid, m, 0.5, 4, slot=cand.slot)
+    before = np.asarray(plan.uncertainty_before_mrad)
+    after = np.asarray(plan.uncertainty_after_mrad)
+    assert np.all(after[:, -1] < 0.5 * before)
+    np.testing.assert_allclose(before, np.asarray(hj.predicted_uncertainty_mrad(cov, m)), rtol=1e-12)
+
+
+def test_record_roles_choose_the_training_and_held_out_records():
+    fleet = hj.load_paint_directory(hj.default_data_dir())
+    rid = np.asarray(fleet.record_id)
+    mask = np.asarray(fleet.mask)
+    hid = fleet.ids[0]
+    chosen = [int(r) for r in rid[0][mask[0]][:5]]
+    train, test = roles_to_masks(fleet, {hid: {r: "train" for r in chosen}})
+    assert train.sum() == 5 and set(rid[0][train[0]]) == set(chosen)
+    np.testing.assert_array_equal(test, mask & ~train)  # no test role: everything else is held out
+    train, test = roles_to_masks(fleet, {hid: {chosen[0]: "train", chosen[1]: "test"}})
+    assert train.sum() == 1 and test.sum() == 1
+    with pytest.raises(hj.ConfigError, match="BX99"):
+        roles_to_masks(fleet, {"BX99": {1: "train"}})
+    with pytest.raises(hj.ConfigError, match="record 1 of"):
+        roles_to_masks(fleet, {hid: {1: "train"}})
+    with pytest.raises(hj.ConfigError, match="role 'fit'"):
+        roles_to_masks(fleet, {hid: {chosen[0]: "fit"}})
