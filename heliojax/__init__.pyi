@@ -81,8 +81,10 @@ from ._plan import (
     residual_jacobians as residual_jacobians,
 )
 from ._plotting import (
+    plot_aim as plot_aim,
     plot_calibration as plot_calibration,
     plot_error_per_heliostat as plot_error_per_heliostat,
+    plot_plan as plot_plan,
     save_figure as save_figure,
 )
 from ._results import (

@@ -74,21 +74,34 @@ def _match_weather(unix_rec: float, good_unix: np.ndarray, used: np.ndarray) -> 
     return i
 
 
+def _apply_plant(nominal: Mount, info: dict) -> Mount:
+    scale = info["increment_scale"]
+    return nominal.with_changes(
+        base_q=small_rotation(info["base_rotvec_rad"]),
+        between_q=small_rotation(info["between_axes_rotvec_rad"]),
+        mirror_q=small_rotation(info["mirror_rotvec_rad"]),
+        zero_1=float(info["joint_zero_offsets_rad"][0]),
+        zero_2=float(info["joint_zero_offsets_rad"][1]),
+        act1=replace(nominal.act1, increment=nominal.act1.increment * scale[0]),
+        act2=replace(nominal.act2, increment=nominal.act2.increment * scale[1]),
+    )
+
+
+def plant_mount(suite_dir, heliostat: str) -> Mount:
+    """The true plant of `heliostat` in a written suite (its properties file + truth.json's plant state)."""
+    root = Path(suite_dir)
+    truth = json.loads((root / "truth.json").read_text())
+    _tower, frame, _targets = read_tower(root)
+    _raw, nominal = read_mount(root, heliostat, frame)
+    return _apply_plant(nominal, truth["heliostats"][heliostat]["plant"])
+
+
 def _draw_plant(nominal: Mount, rng: np.random.Generator, size: float) -> tuple[Mount, dict]:
     base = rng.normal(0, 3e-3 * size, 3)
     between = rng.normal(0, 1e-3 * size, 3)
     mirror = rng.normal(0, 2e-3 * size, 3)
     zeros = rng.normal(0, 5e-3 * size, 2)
     scale = 1.0 + rng.normal(0, 3e-3 * size, 2)
-    plant = nominal.with_changes(
-        base_q=small_rotation(base),
-        between_q=small_rotation(between),
-        mirror_q=small_rotation(mirror),
-        zero_1=float(zeros[0]),
-        zero_2=float(zeros[1]),
-        act1=replace(nominal.act1, increment=nominal.act1.increment * scale[0]),
-        act2=replace(nominal.act2, increment=nominal.act2.increment * scale[1]),
-    )
     info = {
         "base_rotvec_rad": base.tolist(),
         "between_axes_rotvec_rad": between.tolist(),
@@ -96,7 +109,7 @@ def _draw_plant(nominal: Mount, rng: np.random.Generator, size: float) -> tuple[
         "joint_zero_offsets_rad": zeros.tolist(),
         "increment_scale": scale.tolist(),
     }
-    return plant, info
+    return _apply_plant(nominal, info), info
 
 
 def _feasible(recs, raw: dict, controller: Mount, targets, margin: int = 600) -> np.ndarray:

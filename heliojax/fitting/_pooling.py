@@ -92,6 +92,8 @@ def fleet_prior(
     solution: FitSolution,
     noise_mrad: Float[Array, " H"],
     learn_from: Bool[Array, " H"] | None = None,
+    *,
+    leave_one_out: bool = False,
 ) -> GaussianPrior:
     """The fleet's empirical-Bayes prior (see the module docstring) for every
     heliostat of ``solution``.
@@ -100,19 +102,28 @@ def fleet_prior(
         solution: a fit of the fleet (e.g. the robust fit).
         noise_mrad: ``(H,)`` noise per residual component that scales the prior rows.
         learn_from: heliostats to learn from (default :func:`well_determined`).
+        leave_one_out: each heliostat's prior learnt from the *other* heliostats
+            (what the fleet knows before this heliostat has a record: retrospective
+            studies; ``O(H^2)`` work, for studies rather than plant-size fleets).
 
     Returns:
         A :class:`GaussianPrior` batched over the heliostats (centre and spread the
-        same for all, noise per heliostat).
+        same for all unless ``leave_one_out``, noise per heliostat).
     """
     view = solution.view
     p = np.asarray(solution.parameters())
     good = well_determined(solution) if learn_from is None else np.asarray(learn_from, bool)
     h = p.shape[0]
     fallback = np.asarray(view.to_vector(solution.heliostat_model(0)), float)
-    centre, spread = prior_moments(view, p, np.asarray(solution.std), good, fallback)
-    centres = np.broadcast_to(centre, (h, centre.size))
-    spreads = np.broadcast_to(spread, (h, spread.size))
+    std = np.asarray(solution.std)
+    if leave_one_out:
+        pairs = [prior_moments(view, p, std, good & (np.arange(h) != i), fallback) for i in range(h)]
+        centres = np.stack([c for c, _ in pairs])
+        spreads = np.stack([s for _, s in pairs])
+    else:
+        centre, spread = prior_moments(view, p, std, good, fallback)
+        centres = np.broadcast_to(centre, (h, centre.size))
+        spreads = np.broadcast_to(spread, (h, spread.size))
     models = solution.model
     dtype = jnp.asarray(p).dtype
     return GaussianPrior(
