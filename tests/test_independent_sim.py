@@ -103,3 +103,28 @@ def test_unknown_effect_is_rejected(tmp_path):
     assert {"wind_direction", "lens_distortion", "daily_periodic"} <= {
         k for k, v in EFFECTS.items() if not v.in_library
     }
+
+
+def test_plant_mount_reflects_every_noise_free_record_onto_its_spot(clean_suite):
+    """`plant_mount` (the truth the planning-coverage benchmark judges against) rebuilds
+    the plant that wrote the records: at each record's counts its beam passes through
+    the recorded spot (noise-free suite), in the simulator's own kinematics."""
+    from independent_sim import plant_mount, reflect
+    from independent_sim._paintio import read_records, read_tower
+
+    _tower, frame, _targets = read_tower(clean_suite)
+    misses = []
+    for hid in json.loads((clean_suite / "truth.json").read_text())["heliostats"]:
+        mount = plant_mount(clean_suite, hid)
+        for rec in read_records(clean_suite, hid).values():
+            c1 = float(rec["motor_position"]["axis_1_motor_position"])
+            c2 = float(rec["motor_position"]["axis_2_motor_position"])
+            normal, centre = mount.pose(mount.act1.angle(c1), mount.act2.angle(c2))
+            az, el = np.radians(float(rec["sun_azimuth"])), np.radians(float(rec["sun_elevation"]))
+            sun = np.array([np.cos(el) * np.sin(az), -np.cos(el) * np.cos(az), np.sin(el)])  # PAINT: 0 = south, east +
+            spot = frame.to_enu(rec["focal_spot"]["UTIS"])
+            r = reflect(sun, normal)
+            d = (spot - centre) / np.linalg.norm(spot - centre)
+            misses.append(np.arccos(np.clip(r @ d / np.linalg.norm(r), -1.0, 1.0)) * 1e3)
+    assert len(misses) == 6 * 24
+    assert max(misses) < 0.05  # mrad; refraction rounding of the written sun elevation aside
