@@ -50,6 +50,7 @@ def plot_error_per_heliostat(ids, errors_mrad, *, ax=None, title=None, label="be
     ax.set_xticklabels([ids[i] for i in keep], rotation=90)
     ax.set_yscale("log")
     ax.set_ylabel(label)
+    ax.set_xlabel("heliostat")
     if title:
         ax.set_title(title)
     ax.grid(alpha=0.3, which="both")
@@ -154,6 +155,7 @@ def plot_calibration(run, *, axes=None):
     ax.set_xticklabels(ids, rotation=90)
     ax.set_xlim(-0.8, len(ids) - 0.2)
     ax.set_ylabel("RMS beam pointing error [mrad]")
+    ax.set_xlabel("heliostat")
     ax.set_title(f"{summary['model']} model, {summary['split']} split (red: not calibrated, with the reason)")
     ax.legend(fontsize=8, loc="upper left", ncol=3)
     ax.grid(alpha=0.3, which="both")

@@ -72,3 +72,13 @@ def pytest_collection_modifyitems(config, items):
     rest = [it for it in items if not it.nodeid.startswith("tests/test_notebook_")]
     split = len(items) // 2 - len(heavy[::2])
     items[:] = heavy[::2] + rest[:split] + heavy[1::2] + rest[split:]
+
+
+@pytest.fixture(autouse=True)
+def _figures_are_readable(monkeypatch):
+    """Every figure a test saves is checked first (labels, colour bars, nothing cut
+    off; see tests/_figure_check.py)."""
+    from _figure_check import checked_savefig
+    from matplotlib.figure import Figure
+
+    monkeypatch.setattr(Figure, "savefig", checked_savefig)

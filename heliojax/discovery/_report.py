@@ -600,6 +600,7 @@ def plot_heldout_per_step(report: dict, *, ax=None):
     ax.set_xticks(range(len(vals)))
     ax.set_xticklabels(labels, rotation=20, ha="right")
     ax.set_ylabel("held-out RMS beam error [mrad]")
+    ax.set_xlabel("model after each discovery step")
     ax.set_title("held-out error per discovery step")
     finite = [v for v in vals if np.isfinite(v)]
     ax.set_ylim(0, 1.2 * max(finite) if finite else 1.0)  # room for the value labels
@@ -636,6 +637,7 @@ def plot_screen(report: dict, step: int = 0, *, ax=None):
     ax.set_xticks(index)
     ax.set_xticklabels(names, rotation=30, ha="right")
     ax.set_ylabel("-log10 p (Holm), capped at 50")
+    ax.set_xlabel("candidate effect")
     ax.set_title(f"screen at step {step + 1}")
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.tight_layout()
