@@ -227,11 +227,11 @@ def plot_aim(ids, pointing_cov_mrad2, ok, distance_m, hours=None, start=None, *,
     return fig
 
 
-def plot_plan(ids, before_mrad, after_mrad, chosen, changed=None):
+def plot_plan(ids, before_mrad, after_mrad, chosen, changed=None, *, max_bars: int = 40):
     """A calibration plan: each heliostat's predicted pointing uncertainty over the
-    operating envelope before and after its planned measurements (heliostats in
-    order of need, change points marked), and the fleet's uncertainty against the
-    number of planned measurements (median and 10-90 % band)."""
+    operating envelope before and after its planned measurements (the ``max_bars``
+    heliostats most in need, change points marked), and the fleet's uncertainty
+    against the number of planned measurements (median and 10-90 % band)."""
     plt = pyplot()
     before = np.asarray(before_mrad, float)
     after = np.asarray(after_mrad, float)
@@ -241,19 +241,26 @@ def plot_plan(ids, before_mrad, after_mrad, chosen, changed=None):
     curve = np.concatenate([before[:, None], np.where(chosen >= 0, after, np.nan)], axis=1)
     curve = np.fmin.accumulate(np.where(np.isnan(curve), np.inf, curve), axis=1)
     final = curve[:, -1]
+    order = np.argsort(-before)[:max_bars]
+    nb = order.size
     fig, axes = plt.subplots(
-        1, 2, figsize=(max(10.0, 4.0 + 0.32 * h), 5.0), gridspec_kw={"width_ratios": [max(2.0, h / 8), 1]}
+        1, 2, figsize=(max(10.0, 4.0 + 0.32 * nb), 5.0), gridspec_kw={"width_ratios": [max(2.0, nb / 8), 1]}
     )
     ax = axes[0]
-    order = np.argsort(-before)
-    x = np.arange(h)
+    x = np.arange(nb)
     ax.bar(x - 0.2, before[order], 0.4, color="0.65", label="before (current knowledge)")
     ax.bar(x + 0.2, final[order], 0.4, color="tab:blue", label="after the planned measurements")
-    if changed.any():
+    if changed[order].any():
         top = float(np.max(before)) * 1.05
-        ax.plot(x[changed[order]], np.full(int(changed.sum()), top), "v", color="tab:red", label="change point found")
+        ax.plot(
+            x[changed[order]], np.full(int(changed[order].sum()), top), "v", color="tab:red", label="change point found"
+        )
     ax.set_xticks(x, [ids[i] for i in order], rotation=90, fontsize=8)
-    ax.set_xlabel("heliostat (largest predicted uncertainty first)")
+    ax.set_xlabel(
+        "heliostat (largest predicted uncertainty first)"
+        if nb == h
+        else f"the {nb} of {h} heliostats with the largest predicted uncertainty"
+    )
     ax.set_ylabel("predicted pointing uncertainty over the envelope [mrad]")
     ax.set_title("predicted RMS pointing error from parameter uncertainty", fontsize=10)
     ax.legend(fontsize=8, loc="upper right")

@@ -57,3 +57,21 @@ def test_change_points_and_worse_than_nominal_are_marked():
 def test_nothing_flagged_nothing_marked():
     fig = plot_calibration(_run({}))
     assert not any(label.startswith(("change point", "worse than")) for label in _legend(fig))
+
+
+def test_plan_figure_keeps_a_readable_width_for_large_fleets(tmp_path):
+    from heliojax._plotting import plot_plan, save_figure
+
+    rng = np.random.default_rng(1)
+    h, k = 300, 4
+    before = rng.uniform(0.5, 5.0, h)
+    after = before[:, None] * np.linspace(0.8, 0.4, k)[None, :]
+    chosen = np.tile(np.arange(k), (h, 1))
+    changed = np.zeros(h, bool)
+    changed[np.argmax(before)] = True
+    fig = plot_plan([f"H{i:03d}" for i in range(h)], before, after, chosen, changed)
+    assert fig.get_size_inches()[0] < 20.0
+    bars = fig.axes[0]
+    assert len(bars.get_xticklabels()) == 40 and "40 of 300" in bars.get_xlabel()
+    save_figure(fig, tmp_path / "plan.png")  # the render check of every saved figure runs here
+    assert (tmp_path / "plan.png").stat().st_size > 10_000
