@@ -311,6 +311,8 @@ def test_trace_with_calibrated_kinematics_and_on_the_receiver(results_h5, tmp_pa
     assert main([*argv, "--out", str(out), *small]) == 0
     summary = json.loads((out / "BE36-az-20_el40-summary.json").read_text())
     assert summary["target"] == "receiver" and summary["power_w"] > 0
+    err = capsys.readouterr().err  # never silent while it traces
+    assert f"tracing {summary['rays']:,} rays of BE36 onto receiver" in err and "traced in" in err
 
 
 def test_aim_points_from_a_csv_in_enu_or_wgs84_agree(results_h5, tmp_path, capsys):

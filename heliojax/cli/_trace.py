@@ -5,10 +5,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
+import time
 from pathlib import Path
 
 from ._common import integer, number
+
+log = logging.getLogger(__name__)
 
 EXAMPLES = """examples:
   heliojax trace ../shared/data/paint/flux-samples --heliostat AA39 --record 203169 --out out/trace
@@ -159,6 +163,9 @@ def run(args: argparse.Namespace) -> int:
             counts = inverse_aim(model, geometry, target.centre, sun)
         pose = forward(model, geometry, counts)
         grid = optics.ImageGrid.for_target(target, (args.pixels, args.pixels))
+        n_rays = optics.ray_count(surface, args.rays_per_point, args.steps)
+        log.info(f"tracing {n_rays:,} rays of {args.heliostat} onto {target_name} (the first run compiles the tracer)")
+        t0 = time.perf_counter()
         image = optics.flux_image(
             jax.random.key(args.seed),
             surface,
@@ -173,6 +180,7 @@ def run(args: argparse.Namespace) -> int:
             reflectivity=args.reflectivity,
         )
         image = np.asarray(image, np.float64)
+        log.info(f"traced in {time.perf_counter() - t0:.1f} s")
         c = np.asarray(optics.centroid(jnp.asarray(image), grid))
         power = float(image.sum() * float(grid.pixel_area))
         summary = {
@@ -185,6 +193,7 @@ def run(args: argparse.Namespace) -> int:
         comparison_fig = None
         flux_png = hdir / "Calibration" / f"{args.record}-flux.png"
         if args.record is not None and flux_png.exists():  # read and compared before anything is written
+            log.info(f"comparing with the measured flux image {flux_png.name} (a second trace in its frame)")
             comp = optics.compare_record(
                 rec_path,
                 props_path,
@@ -229,6 +238,7 @@ def run(args: argparse.Namespace) -> int:
             plt.close(comparison_fig)
         with atomic_write(args.out / f"{args.heliostat}-{tag}-summary.json") as f:
             json.dump(summary, f, indent=2)
+        log.info(f"wrote {stem}.png, .h5 and the summary to {args.out}")
         print(json.dumps(summary, indent=2))
     except (HeliojaxError, FileNotFoundError) as e:
         print(f"heliojax trace: error: {e}", file=sys.stderr)
