@@ -263,6 +263,7 @@ def plot_plan(ids, before_mrad, after_mrad, chosen, changed=None, *, max_bars: i
     )
     ax.set_ylabel("predicted pointing uncertainty over the envelope [mrad]")
     ax.set_title("predicted RMS pointing error from parameter uncertainty", fontsize=10)
+    ax.set_ylim(0.0, 1.45 * float(np.max(before[order])))  # room above the bars and markers for the legend
     ax.legend(fontsize=8, loc="upper right")
     ax.grid(axis="y", alpha=0.3)
     ax = axes[1]
