@@ -91,20 +91,31 @@ def _aim_program(models, geometry, aim_points, sun):
     return jax.vmap(one)(models, geometry, aim_points)
 
 
+def direction_jacobian_mrad(
+    view: ParameterView,
+    model: AbstractKinematicModel,
+    geometry: HeliostatGeometry,
+    counts: Float[Array, "2"],
+    context: RecordContext,
+    spot: Float[Array, "3"],
+) -> Float[Array, "2 F"]:
+    """Jacobian of one record's two beam-error components (mrad) w.r.t. the free
+    parameters (physical units, :attr:`ParameterView.free_index` order) of one
+    heliostat's ``model``: how the beam direction at ``counts`` moves with them."""
+    idx = jnp.asarray(view.free_index, dtype=jnp.int32)
+    p = view.to_vector(model)
+
+    def direction_mrad(free):
+        return view.from_vector(model, p.at[idx].set(free)).beam_components(geometry, counts, context, spot) * 1e3
+
+    return jax.jacfwd(direction_mrad)(p[idx])
+
+
 @eqx.filter_jit
 def _pointing_covariance(view, models, geometry, counts, aim_points, sun, covariance):
-    idx = jnp.asarray(view.free_index, dtype=jnp.int32)
-
     def one(model, g, c_n, points, cov):
-        p = view.to_vector(model)
-
         def instant(c, point, s):
-            context = RecordContext.from_sun(s)
-
-            def direction_mrad(free):
-                return view.from_vector(model, p.at[idx].set(free)).beam_components(g, c, context, point) * 1e3
-
-            jac = jax.jacfwd(direction_mrad)(p[idx])  # (2, F)
+            jac = direction_jacobian_mrad(view, model, g, c, RecordContext.from_sun(s), point)  # (2, F)
             return jac @ cov @ jac.T
 
         return jax.vmap(instant)(c_n, points, sun)
@@ -195,4 +206,4 @@ def aim_results(
     )
 
 
-__all__ = ["REACH_TOLERANCE_MRAD", "AimResult", "aim_fleet", "aim_results"]
+__all__ = ["REACH_TOLERANCE_MRAD", "AimResult", "aim_fleet", "aim_results", "direction_jacobian_mrad"]

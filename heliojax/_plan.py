@@ -45,6 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from ._aim import direction_jacobian_mrad
 from ._heliostat import HeliostatGeometry, RecordContext
 from ._kinematics import AbstractKinematicModel, inverse_aim
 from ._parameters import ParameterView
@@ -57,16 +58,9 @@ SOLAR_CONSTANT_W_M2 = 1361.0
 
 @eqx.filter_jit
 def _jacobian_program(view, models, geometry, counts, context, spots, mask):
-    idx = jnp.asarray(view.free_index, dtype=jnp.int32)
-
     def one(model, g, c, x, f, m):
         c, x, f, use, _ = sanitise(g, c, x, f, m)
-        p0 = view.to_vector(model)
-
-        def comp(q, ci, xi, fi):
-            return view.from_vector(model, p0.at[idx].set(q)).beam_components(g, ci, xi, fi) * 1e3
-
-        jac = jax.vmap(lambda ci, xi, fi: jax.jacfwd(comp)(p0[idx], ci, xi, fi))(c, x, f)
+        jac = jax.vmap(lambda ci, xi, fi: direction_jacobian_mrad(view, model, g, ci, xi, fi))(c, x, f)
         return jnp.where(use[:, None, None], jac, 0.0)
 
     return jax.vmap(one)(models, geometry, counts, context, spots, mask)
@@ -136,21 +130,14 @@ def operating_envelope(
 
 @eqx.filter_jit
 def _envelope_program(view, models, geometry, sun, weight, aim_points, batch_size: int):
-    idx = jnp.asarray(view.free_index, dtype=jnp.int32)
     w = weight / jnp.maximum(jnp.sum(weight), 1e-300)
 
     def one(args):
         model, g, point = args
-        p = view.to_vector(model)
 
         def instant(s, wi):
             counts = inverse_aim(model, g, point, s)
-            context = RecordContext.from_sun(s)
-
-            def direction_mrad(free):
-                return view.from_vector(model, p.at[idx].set(free)).beam_components(g, counts, context, point) * 1e3
-
-            jac = jax.jacfwd(direction_mrad)(p[idx])
+            jac = direction_jacobian_mrad(view, model, g, counts, RecordContext.from_sun(s), point)
             ok = jnp.all(jnp.isfinite(jac))
             return jnp.where(ok, wi * jac.T @ jac, 0.0), jnp.where(ok, wi, 0.0)
 

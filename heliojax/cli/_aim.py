@@ -76,6 +76,26 @@ def add_parser(subparsers) -> None:
     p.add_argument("--quiet", action="store_true", help="no messages on stderr")
 
 
+def time_window(args) -> list[dt.datetime]:
+    """The instants of ``--start``/``--end`` or of the whole day ``--date`` (default:
+    today, UTC), ``--step-minutes`` apart, at most ``--max-instants``."""
+    from .._errors import ConfigError
+
+    step = dt.timedelta(minutes=args.step_minutes)
+    if args.start is not None:
+        if args.end is None or args.end < args.start:
+            raise ConfigError("--start needs an --end at or after it")
+        start, end = args.start, args.end
+    else:
+        day = args.date or dt.datetime.now(dt.UTC)
+        start = day.replace(hour=0, minute=0, second=0, microsecond=0)
+        end = start + dt.timedelta(days=1) - dt.timedelta(seconds=1)
+    n = int((end - start) / step) + 1
+    if n > args.max_instants:
+        raise ConfigError(f"{n} instants exceed --max-instants {args.max_instants}; use a larger --step-minutes")
+    return [start + k * step for k in range(n)]
+
+
 def _instants(args, origin_lla):
     """``(times or None, sun (N, 3))`` for the requested instants."""
     import jax.numpy as jnp
@@ -90,22 +110,7 @@ def _instants(args, origin_lla):
             raise ConfigError("--sun-azimuth and --sun-elevation go together")
         sun = sun_direction(jnp.deg2rad(jnp.array([args.sun_azimuth])), jnp.deg2rad(jnp.array([args.sun_elevation])))
         return None, sun
-    step = dt.timedelta(minutes=args.step_minutes)
-    if args.time is not None:
-        times = [args.time]
-    else:
-        if args.start is not None:
-            if args.end is None or args.end < args.start:
-                raise ConfigError("--start needs an --end at or after it")
-            start, end = args.start, args.end
-        else:
-            day = args.date or dt.datetime.now(dt.UTC)
-            start = day.replace(hour=0, minute=0, second=0, microsecond=0)
-            end = start + dt.timedelta(days=1) - dt.timedelta(seconds=1)
-        n = int((end - start) / step) + 1
-        if n > args.max_instants:
-            raise ConfigError(f"{n} instants exceed --max-instants {args.max_instants}; use a larger --step-minutes")
-        times = [start + k * step for k in range(n)]
+    times = [args.time] if args.time is not None else time_window(args)
     unix = np.array([t.timestamp() for t in times])
     lat, lon, alt = (float(x) for x in origin_lla)
     return times, solar_position(jnp.asarray(unix), lat, lon, alt).direction_enu()

@@ -8,7 +8,7 @@ import datetime as dt
 import logging
 from pathlib import Path
 
-from ._aim import _utc
+from ._aim import _utc, time_window
 from ._common import RECORDS_HEADER, add_cache_argument, enable_compilation_cache, integer, number
 
 log = logging.getLogger(__name__)
@@ -97,24 +97,6 @@ def add_parser(subparsers) -> None:
     p.add_argument("--quiet", action="store_true", help="no messages on stderr")
 
 
-def _instants(args) -> list[dt.datetime]:
-    from .._errors import ConfigError
-
-    step = dt.timedelta(minutes=args.step_minutes)
-    if args.start is not None:
-        if args.end is None or args.end < args.start:
-            raise ConfigError("--start needs an --end at or after it")
-        start, end = args.start, args.end
-    else:
-        day = args.date or dt.datetime.now(dt.UTC)
-        start = day.replace(hour=0, minute=0, second=0, microsecond=0)
-        end = start + dt.timedelta(days=1) - dt.timedelta(seconds=1)
-    n = int((end - start) / step) + 1
-    if n > args.max_instants:
-        raise ConfigError(f"{n} instants exceed --max-instants {args.max_instants}; use a larger --step-minutes")
-    return [start + k * step for k in range(n)]
-
-
 def _iso(unix: float) -> str:
     if unix != unix:  # NaN
         return ""
@@ -182,7 +164,7 @@ def run(args) -> int:
         )
         source = f"{int(np.asarray(candidates.valid).sum())} existing records of {args.paint_dir}"
     else:
-        instants = _instants(args)
+        instants = time_window(args)
         targets = tuple(args.targets or tower.planar_target_names)
         unix = np.array([t.timestamp() for t in instants])
         lat, lon, alt = (float(x) for x in origin)
@@ -250,7 +232,8 @@ def run(args) -> int:
     changed = np.zeros(h, bool)
     if "superseded" in results.records:
         changed = np.any(np.asarray(results.records["superseded"], bool), axis=1)
-    final = np.array([after[i][chosen[i] >= 0][-1] if (chosen[i] >= 0).any() else before[i] for i in range(h)])
+    planned = chosen >= 0  # the uncertainty after the last planned measurement (it only falls)
+    final = np.where(planned.any(axis=1), np.min(np.where(planned, after, np.inf), axis=1), before)
     order = np.lexsort((-before, ~changed))  # change points first, then the largest predicted uncertainty
     if args.ranking is not None:
         with atomic_write(args.ranking, newline="") as f:
