@@ -186,17 +186,30 @@ def catalogue(tmp_path):
 
 
 @contextlib.contextmanager
-def serve(directory: Path, log: list | None = None):
-    """Static HTTP server on 127.0.0.1 (ephemeral port) in a thread; shut down on exit."""
+def serve(directory: Path, log: list | None = None, errors: dict | None = None, agents: set | None = None):
+    """Static HTTP server on 127.0.0.1 (ephemeral port) in a thread; shut down on exit. ``log``
+    gets each request's path, ``agents`` each User-Agent; ``errors`` maps a path to the answers
+    given, one per request, before the file is served (0: the connection is closed unanswered)."""
+    lock = threading.Lock()
 
     class Handler(http.server.SimpleHTTPRequestHandler):
         def log_message(self, *args):  # keep test output clean
             pass
 
         def do_GET(self):
-            if log is not None:
-                log.append(self.path)
-            super().do_GET()
+            with lock:
+                if log is not None:
+                    log.append(self.path)
+                if agents is not None:
+                    agents.add(self.headers.get("User-Agent"))
+                queued = (errors or {}).get(self.path)
+                code = queued.pop(0) if queued else None
+            if code == 0:
+                self.close_connection = True
+            elif code is not None:
+                self.send_error(code)
+            else:
+                super().do_GET()
 
     srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Handler, directory=str(directory)))
     srv.daemon_threads = True
@@ -369,10 +382,7 @@ def test_interrupted_run_resumes(catalogue, tmp_path, midstream):
     assert verify_download(out) == []
 
 
-def test_transient_errors_are_retried(catalogue, tmp_path, monkeypatch):
-    import heliojax.paint._stac_io as stac
-
-    monkeypatch.setattr(stac, "_BACKOFF_S", 0.0)
+def test_transient_errors_are_retried(catalogue, tmp_path):
     root_json, expected = catalogue
     seen: set[str] = set()
     lock = threading.Lock()
@@ -390,6 +400,46 @@ def test_transient_errors_are_retried(catalogue, tmp_path, monkeypatch):
     assert rep.ok and files_under(out) == expected
     with pytest.raises(DataError, match="injected timeout"):
         fetch_catalog(root_json, tmp_path / "out2", transport=lambda h, t: flaky(str(tmp_path / "x"), t), retries=0)
+
+
+def test_http_retries_server_errors_but_not_404(catalogue, tmp_path):
+    """Over real HTTP (requests, urllib3's Retry): a dropped connection and answers 503 are
+    retried until the file comes; a 404 is asked for once and listed in ``failed``, and so is
+    a 503 that outlasts the retries; everything else is fetched."""
+    root_json, expected = catalogue
+    stac = root_json.parent
+    url_path = {p.name: "/" + p.relative_to(stac).as_posix() for p in stac.rglob("data/*")}
+    tower = url_path["WRI1030197-tower-measurements.json"]
+    flaky = url_path["118671-calibration-properties.json"]
+    gone = url_path["125284-flux.png"]
+    down = url_path["126372-flux.png"]
+    (stac / gone[1:]).unlink()
+    errors = {"/catalog.json": [503], tower: [0], flaky: [503, 503], down: [503, 503, 503]}
+    log: list[str] = []
+    agents: set[str] = set()
+    with serve(stac, log, errors, agents) as url:
+        rep = fetch_catalog(f"{url}/catalog.json", tmp_path / "out", calibration_assets=ALL_CAL, retries=2)
+    assert [log.count(p) for p in ("/catalog.json", tower, flaky)] == [2, 2, 3]  # retried until they came
+    assert log.count(gone) == 1 and log.count(down) == 3  # 404: not retried; 503: two retries, then given up
+    reasons = {href.rsplit("/", 1)[-1]: reason for href, reason in rep.failed}
+    assert set(reasons) == {"125284-flux.png", "126372-flux.png"} and not rep.ok
+    assert "404" in reasons["125284-flux.png"] and "503" in reasons["126372-flux.png"]
+    failed = ("125284-flux.png", "126372-flux.png")
+    assert files_under(tmp_path / "out") == {k: v for k, v in expected.items() if not k.endswith(failed)}
+    assert not list((tmp_path / "out").rglob("*.part"))
+    assert agents == {"heliojax-fetch"}
+
+
+def test_oversized_stac_file_over_http_is_not_read(catalogue, tmp_path, monkeypatch):
+    import heliojax.paint._stac_io as stac_io
+
+    root_json, _ = catalogue
+    assert root_json.stat().st_size > 100
+    monkeypatch.setattr(stac_io, "MAX_STAC_BYTES", 100)
+    with serve(root_json.parent) as url:
+        with pytest.raises(DataError, match="STAC file larger than 100 bytes") as ei:
+            fetch_catalog(f"{url}/catalog.json", tmp_path / "out")
+    assert ei.value.file == f"{url}/catalog.json"
 
 
 def test_resume_redownloads_corrupted_file_with_checksum(catalogue, tmp_path):
@@ -735,13 +785,16 @@ def test_new_user_path_fetch_inspect_calibrate(tmp_path, capsys):
 
 def test_lying_content_length_and_damaged_journal_are_clean_errors(tmp_path, capsys):
     """A catalogue whose server announces a huge body and sends a short one is a
-    one-line error naming it (no MemoryError); a damaged resume journal is read past."""
+    one-line error naming it (no MemoryError), asked for once (a broken-off body is not retried);
+    a damaged resume journal is read past."""
+    requests_seen: list[str] = []
 
     class Liar(http.server.BaseHTTPRequestHandler):
         def log_message(self, *args):
             pass
 
         def do_GET(self):
+            requests_seen.append(self.path)
             self.send_response(200)
             self.send_header("Content-Length", str(10**12))
             self.end_headers()
@@ -760,6 +813,7 @@ def test_lying_content_length_and_damaged_journal_are_clean_errors(tmp_path, cap
         srv.server_close()
     err = capsys.readouterr().err
     assert rc == 2 and "catalog.json" in err and len(err.strip().splitlines()) <= 2, err
+    assert requests_seen == ["/catalog.json"]
     root_json, expected = build_catalogue(tmp_path / "stac")
     out = tmp_path / "out"
     out.mkdir()

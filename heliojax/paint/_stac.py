@@ -55,9 +55,15 @@ is downloaded again. PAINT's catalogue has no ``file`` extension, so the journal
 is what makes a resumed PAINT download trustworthy. One fetch per output folder
 at a time: a run deletes stale ``.part`` files of the files it plans.
 
-Errors. Unsafe hrefs and an unreadable root raise :class:`DataError`; a STAC file
-below the root that cannot be read (network error after retries, broken JSON)
-and an asset that fails to download or verify are listed in
+Network. ``http(s)`` is streamed with :mod:`requests`; urllib3's ``Retry`` retries
+connection errors and the answers 408, 429, 500, 502, 503, 504, not others (404, ...)
+nor a broken-off body. A STAC JSON file is read to at most ``MAX_STAC_BYTES``
+(64 MiB) whatever its Content-Length says. Local paths and ``file://`` URLs are
+read with :func:`open`.
+
+Errors. Unsafe hrefs and an unreadable root raise :class:`DataError` naming the
+href; a STAC file below the root that cannot be read (network error after retries,
+broken JSON) and an asset that fails to download or verify are listed in
 :attr:`FetchReport.failed` and the run goes on; running it again retries them."""
 
 from __future__ import annotations
@@ -67,13 +73,10 @@ import contextlib
 import datetime as dt
 import functools
 import hashlib
-import http.client
 import os
 import re
 import tempfile
-import urllib.error
 import urllib.parse
-import urllib.request
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -82,7 +85,6 @@ import pystac
 from .._errors import DataError
 from ._common import TimestampEntry
 from ._stac_io import (
-    _CHUNK,
     _COLLECTION_SUFFIX,
     _FOLDER,
     _HELIOSTAT_SUFFIX,
@@ -95,7 +97,6 @@ from ._stac_io import (
     FetchReport,
     Transport,
     _Checker,
-    _default_open,
     _dest_name,
     _Failure,
     _hash_file,
@@ -176,9 +177,10 @@ def fetch_catalog(
             downloads everything again.
         include_tower: fetch the tower-measurements file linked from the root.
         workers: threads reading STAC items and downloading assets.
-        timeout_s, retries: per request; transient network errors are retried.
+        timeout_s, retries: per request: seconds to connect and between received bytes; retries of
+            connection errors and answers 408, 429, 500, 502, 503, 504 (see the module docstring).
         progress: called with one line of text per step (the CLI prints to stderr).
-        transport: replaces the opener (tests inject failures through it).
+        transport: replaces the reading of hrefs, see :data:`Transport` (tests inject failures through it).
 
     Returns:
         :class:`FetchReport`. Download failures are reported there, not raised.
@@ -204,40 +206,39 @@ def fetch_catalog(
 
     root_href = _root_href(source)
     scope = _Scope.of(root_href)
-    reader = _Reader(transport or _default_open, timeout_s, retries)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     out = out.resolve()
     journal = _Journal(out)
     wanted = None if heliostats is None else {h.strip() for h in heliostats if h.strip()}
     warnings: list[str] = []
-
-    root = reader.stac(root_href)
-    say(f"catalogue {root.id} ({root_href})")
-    child_hrefs = []
-    tower_hrefs = []
-    for field, raw in [("links.child", r) for r in _links(root, "child")] + [
-        ("links.item", r) for r in _links(root, "item")
-    ]:
-        href = scope.resolve(raw, root_href, root_href, field)
-        m = _HREF_HELIOSTAT_RE.search(raw)
-        if m:
-            if wanted is not None and m.group(1) not in wanted:
-                continue
-            child_hrefs.append(href)
-        elif "tower-measurements" in raw:
-            if include_tower:
-                tower_hrefs.append(href)
-        elif "weather" in raw:
-            continue
-        else:
-            child_hrefs.append(href)  # unknown naming: read it and look at its id
-
     all_tasks_done: dict[str, list] = {"downloaded": [], "skipped": [], "failed": []}
     timestamps: dict[int, TimestampEntry] = {}  # record id -> (heliostat, item datetime)
     nbytes = [0]
 
-    with cf.ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+    reader = _Reader(transport, timeout_s, retries, connections=workers)
+    with contextlib.closing(reader), cf.ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+        root = reader.stac(root_href)
+        say(f"catalogue {root.id} ({root_href})")
+        child_hrefs = []
+        tower_hrefs = []
+        for field, raw in [("links.child", r) for r in _links(root, "child")] + [
+            ("links.item", r) for r in _links(root, "item")
+        ]:
+            href = scope.resolve(raw, root_href, root_href, field)
+            m = _HREF_HELIOSTAT_RE.search(raw)
+            if m:
+                if wanted is not None and m.group(1) not in wanted:
+                    continue
+                child_hrefs.append(href)
+            elif "tower-measurements" in raw:
+                if include_tower:
+                    tower_hrefs.append(href)
+            elif "weather" in raw:
+                continue
+            else:
+                child_hrefs.append(href)  # unknown naming: read it and look at its id
+
         say(f"reading {len(child_hrefs)} child catalogue(s) of the root")
         children = list(pool.map(reader.stac_or_error, child_hrefs))
         catalogs: dict[str, tuple[pystac.STACObject, str]] = {}
@@ -506,8 +507,8 @@ def _fetch_one(task: _Task, reader: _Reader, journal: _Journal, resume: bool, ou
         size = 0
         try:
             with os.fdopen(fd, "wb") as f:
-                with reader.open_retrying(task.src) as src:
-                    for chunk in iter(lambda: src.read(_CHUNK), b""):
+                with reader.chunks(task.src) as chunks:
+                    for chunk in chunks:
                         f.write(chunk)
                         sha.update(chunk)
                         if other is not None:
@@ -515,7 +516,7 @@ def _fetch_one(task: _Task, reader: _Reader, journal: _Journal, resume: bool, ou
                         size += len(chunk)
                 f.flush()
                 os.fsync(f.fileno())
-        except (OSError, http.client.HTTPException) as e:
+        except OSError as e:
             raise _Failure(f"download failed: {e}") from e
         problem = checker.check(size, other if other is not None else sha) or _json_ok(tmp, dest.name)
         if problem:

@@ -1,25 +1,26 @@
-"""The plumbing of :func:`heliojax.paint.fetch_catalog`: reading bounded and
-retried, checksums, the resume journal, and the safety checks on catalogue hrefs."""
+"""The plumbing of :func:`heliojax.paint.fetch_catalog`: reading (requests, retried,
+bounded), checksums, the resume journal, and the safety checks on catalogue hrefs."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
-import http.client
 import io
 import json
 import os
 import re
 import threading
-import time
-import urllib.error
 import urllib.parse
-import urllib.request
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import pystac
+import requests
+from requests.adapters import HTTPAdapter
+from urllib3.exceptions import MaxRetryError
+from urllib3.util import Retry
 
 from .._errors import DataError
 
@@ -48,8 +49,7 @@ _TOWER_SUFFIX = "-tower-measurements"
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+-]{0,254}$")
 _HELIOSTAT_RE = re.compile(r"^[A-Za-z0-9_]{1,64}$")
 _HREF_HELIOSTAT_RE = re.compile(r"([A-Za-z0-9_]+)-heliostat-catalog")
-_CHUNK = 1 << 20
-_BACKOFF_S = 0.5  # first retry delay; doubles per retry
+_CHUNK = 1 << 20  # bytes per read
 
 # Multihash codes (https://github.com/multiformats/multicodec) -> hashlib constructor.
 _MULTIHASH: dict[int, Callable[[], Any]] = {
@@ -64,8 +64,9 @@ _MULTIHASH: dict[int, Callable[[], Any]] = {
 }
 
 Transport = Callable[[str, float], io.BufferedIOBase]
-"""``open(href, timeout_s) -> binary stream`` (a context manager). The default opens
-``http(s)`` URLs with :mod:`urllib` and local paths with :func:`open`."""
+"""``open(href, timeout_s) -> binary stream`` (a context manager) that replaces the default
+reading (:mod:`requests` for ``http(s)`` URLs, :func:`open` for local paths); it raises
+:class:`OSError`, and its ``TimeoutError`` and ``ConnectionError`` are retried."""
 
 
 # --------------------------------------------------------------------------- results
@@ -186,45 +187,64 @@ class _Scope:
 
 
 # --------------------------------------------------------------------------- I/O
-def _default_open(href: str, timeout_s: float) -> io.BufferedIOBase:
-    if _scheme(href) in ("http", "https"):
-        req = urllib.request.Request(href, headers={"User-Agent": "heliojax-fetch"})
-        return urllib.request.urlopen(req, timeout=timeout_s)  # noqa: S310 - scheme checked
-    return open(_local_path(href), "rb")
-
-
-def _transient(exc: BaseException) -> bool:
-    if isinstance(exc, urllib.error.HTTPError):
-        return exc.code >= 500 or exc.code in (408, 429)
-    return isinstance(exc, (urllib.error.URLError, TimeoutError, ConnectionError))
+_RETRY_STATUSES = (408, 429, 500, 502, 503, 504)
+_BACKOFF_FACTOR_S = 0.5  # urllib3's Retry: the first retry at once, retry k >= 2 after 0.5 * 2**(k - 1) s
 
 
 class _Reader:
-    """Reads STAC JSON through the transport, with retries; thread-safe."""
+    """Reads hrefs in chunks (see "Network" in :mod:`._stac`); thread-safe; :meth:`close` closes its session."""
 
-    def __init__(self, transport: Transport, timeout_s: float, retries: int):
-        self.transport, self.timeout_s, self.retries = transport, timeout_s, retries
+    def __init__(self, transport: Transport | None, timeout_s: float, retries: int, connections: int):
+        self.transport, self.timeout_s = transport, timeout_s
+        self.retry = Retry(
+            total=retries, backoff_factor=_BACKOFF_FACTOR_S, status_forcelist=_RETRY_STATUSES, allowed_methods={"GET"}
+        )
+        self.session = requests.Session()
+        self.session.headers["User-Agent"] = "heliojax-fetch"
+        adapter = HTTPAdapter(max_retries=self.retry, pool_maxsize=max(1, connections))
+        for prefix in ("http://", "https://"):
+            self.session.mount(prefix, adapter)
 
-    def open_retrying(self, href: str):
-        delay = _BACKOFF_S
-        for attempt in range(self.retries + 1):
+    def close(self) -> None:
+        self.session.close()
+
+    @contextlib.contextmanager
+    def chunks(self, href: str) -> Iterator[Iterator[bytes]]:
+        """The bytes of ``href`` in chunks of at most ``_CHUNK`` bytes, the response or file closed on exit;
+        an unreadable href or an HTTP error status (after the retries) raises :class:`OSError`."""
+        if self.transport is None and _scheme(href) in ("http", "https"):
+            with self.session.get(href, stream=True, timeout=self.timeout_s) as response:
+                response.raise_for_status()
+                yield response.iter_content(_CHUNK)
+        else:
+            with self._open(href) as f:
+                yield iter(lambda: f.read(_CHUNK), b"")
+
+    def _open(self, href: str):
+        """A local file, or the injected transport's stream, its ``TimeoutError`` and ``ConnectionError`` retried."""
+        if self.transport is None:
+            return open(_local_path(href), "rb")
+        retry = self.retry
+        while True:
             try:
                 return self.transport(href, self.timeout_s)
-            except BaseException as e:  # noqa: BLE001 - re-raised unless transient
-                if attempt == self.retries or not _transient(e):
-                    raise
-            time.sleep(delay)
-            delay *= 2
-        raise AssertionError("unreachable")
+            except (TimeoutError, ConnectionError) as e:
+                try:
+                    retry = retry.increment(method="GET", url=href, error=e)
+                except MaxRetryError:
+                    raise e from None
+                retry.sleep()
 
     def json(self, href: str) -> dict:
+        data = bytearray()
         try:
-            with self.open_retrying(href) as f:
-                data = f.read(MAX_STAC_BYTES + 1)  # bounded: a server's Content-Length is not trusted
-        except (OSError, urllib.error.URLError, http.client.HTTPException) as e:
+            with self.chunks(href) as chunks:
+                for chunk in chunks:
+                    data += chunk
+                    if len(data) > MAX_STAC_BYTES:  # bounded: a server's Content-Length is not trusted
+                        raise DataError(href, None, f"STAC file larger than {MAX_STAC_BYTES} bytes: not read")
+        except OSError as e:
             raise DataError(href, None, f"cannot read STAC file: {e!r}") from e
-        if len(data) > MAX_STAC_BYTES:
-            raise DataError(href, None, f"STAC file larger than {MAX_STAC_BYTES} bytes: not read")
         try:
             obj = json.loads(data.decode("utf-8"))
         except (UnicodeDecodeError, json.JSONDecodeError) as e:
