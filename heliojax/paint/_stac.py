@@ -57,7 +57,8 @@ at a time: a run deletes stale ``.part`` files of the files it plans.
 
 Network. ``http(s)`` is streamed with :mod:`requests`; urllib3's ``Retry`` retries
 connection errors and the answers 408, 429, 500, 502, 503, 504, not others (404, ...)
-nor a broken-off body. A STAC JSON file is read to at most ``MAX_STAC_BYTES``
+nor a broken-off body, after 0, 1, 2, 4, ... s (a server's Retry-After is not
+followed: it may ask for hours). A STAC JSON file is read to at most ``MAX_STAC_BYTES``
 (64 MiB) whatever its Content-Length says. Local paths and ``file://`` URLs are
 read with :func:`open`.
 

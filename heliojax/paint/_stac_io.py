@@ -197,7 +197,11 @@ class _Reader:
     def __init__(self, transport: Transport | None, timeout_s: float, retries: int, connections: int):
         self.transport, self.timeout_s = transport, timeout_s
         self.retry = Retry(
-            total=retries, backoff_factor=_BACKOFF_FACTOR_S, status_forcelist=_RETRY_STATUSES, allowed_methods={"GET"}
+            total=retries,
+            backoff_factor=_BACKOFF_FACTOR_S,
+            status_forcelist=_RETRY_STATUSES,
+            allowed_methods={"GET"},
+            respect_retry_after_header=False,  # a server's Retry-After may ask for hours: back off our way
         )
         self.session = requests.Session()
         self.session.headers["User-Agent"] = "heliojax-fetch"
