@@ -28,6 +28,13 @@ def _is_colorbar(ax) -> bool:
     return getattr(ax, "_colorbar", None) is not None
 
 
+def _drawn_tick_labels(axis) -> list:
+    """The tick labels ``axis`` draws: those of ticks inside its view limits (the
+    locator's ticks beyond them keep labels that are never drawn)."""
+    ticks = axis._update_ticks()  # noqa: SLF001 - the ticks Axis.draw draws
+    return [label for tick in ticks for label in (tick.label1, tick.label2) if label.get_visible()]
+
+
 def _mapped(ax) -> bool:
     artists = [*ax.images, *(c for c in ax.collections if isinstance(c, mcoll.QuadMesh))]
     return any(isinstance(a, mimage.AxesImage | mcoll.QuadMesh) and a.get_array() is not None for a in artists)
@@ -55,7 +62,7 @@ def figure_problems(fig: Figure) -> list[str]:
             if _mapped(ax) and not colorbars:
                 problems.append(f"{name}: image or mesh without a colour bar")
         texts = [ax.title, ax._left_title, ax._right_title, ax.xaxis.label, ax.yaxis.label]  # noqa: SLF001
-        texts += [t for t in ax.get_xticklabels() + ax.get_yticklabels() if t.get_text()]
+        texts += [t for t in _drawn_tick_labels(ax.xaxis) + _drawn_tick_labels(ax.yaxis) if t.get_text()]
         texts += list(ax.texts)
         legend = ax.get_legend()
         if legend is not None:
