@@ -341,6 +341,22 @@ def test_aim_points_from_a_csv_in_enu_or_wgs84_agree(results_h5, tmp_path, capsy
     assert "no aim point for BF56" in capsys.readouterr().err and not (tmp_path / "never.csv").exists()
 
 
+def test_aim_and_plan_write_beside_the_results_by_default(results_h5, tmp_path, monkeypatch):
+    """Without --out, the schedule lands beside results.h5, never in the working directory."""
+    fit = tmp_path / "fit"
+    fit.mkdir()
+    shutil.copy(results_h5, fit / "results.h5")
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    argv = ["--sun-azimuth", "-20", "--sun-elevation", "40", "--cache-dir", "none", "--quiet"]
+    assert main(["aim", str(fit / "results.h5"), *argv]) == 0
+    plan = ["--date", "2024-06-21", "--step-minutes", "60", "--budget", "3", "--envelope-day-step", "30"]
+    assert main(["plan", str(fit / "results.h5"), *plan, *argv[4:]]) == 0
+    assert (fit / "aim.csv").stat().st_size > 0 and (fit / "plan.csv").stat().st_size > 0
+    assert list(work.iterdir()) == []
+
+
 def test_plan_schedules_distinct_instants_and_ranks_the_fleet(results_h5, tmp_path, capsys):
     out, ranking, plot = tmp_path / "plan.csv", tmp_path / "ranking.csv", tmp_path / "plan.png"
     argv = ["plan", str(results_h5), "--date", "2024-06-21", "--step-minutes", "60", "--budget", "3"]

@@ -17,6 +17,14 @@ log = logging.getLogger(__name__)
 
 OUTPUT_FILES = ("out", "h5", "plot")
 OUTPUT_DIRS = ("cache_dir",)
+
+
+def default_outputs(args) -> None:
+    """The schedule goes beside the fit it was computed from unless ``--out`` names a file."""
+    if args.out is None:
+        args.out = Path(args.results).parent / "aim.csv"
+
+
 """Output paths checked before any work (attribute names of the parsed arguments)."""
 
 EXAMPLES = """examples:
@@ -69,7 +77,13 @@ def add_parser(subparsers) -> None:
         "--min-sun-elevation", type=number(-90.0, 90.0), default=5.0, help="flag instants with a lower sun (degrees)"
     )
     p.add_argument("--max-instants", type=integer(1), default=10_000, help="refuse longer schedules")
-    p.add_argument("--out", type=Path, default=Path("aim.csv"), metavar="FILE", help="CSV of the commands")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="CSV of the commands (default: aim.csv beside RESULTS_H5)",
+    )
     p.add_argument("--h5", type=Path, default=None, metavar="FILE", help="HDF5 with the full arrays")
     p.add_argument("--plot", type=Path, default=None, metavar="FILE", help="figure of the error bars (PNG)")
     add_cache_argument(p)
@@ -175,7 +189,8 @@ def run(args) -> int:
         raise ConfigError("--end needs --start")
     times, sun = _instants(args, origin)
     log.info(f"aiming {len(results.ids)} heliostats at {args.target} for {sun.shape[0]} instant(s)")
-    r = aim_results(results, sun, centre, min_sun_elevation_deg=args.min_sun_elevation)
+    unix = None if times is None else np.array([t.timestamp() for t in times])
+    r = aim_results(results, sun, centre, unix_time=unix, min_sun_elevation_deg=args.min_sun_elevation)
     counts = np.asarray(r.counts)
     std = np.asarray(r.pointing_std_mrad)
     az, el = (np.degrees(np.asarray(x)) for x in direction_to_azimuth_elevation(sun))

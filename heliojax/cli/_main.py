@@ -168,6 +168,8 @@ def main(argv: list[str] | None = None) -> int:
             args = parser.parse_args(argv)
         module = modules[args.command]
         logger = configure_logging(bool(getattr(args, "quiet", False)))
+        if hasattr(module, "default_outputs"):  # outputs whose default depends on the inputs
+            module.default_outputs(args)
         check_output_paths(args, getattr(module, "OUTPUT_FILES", ()), getattr(module, "OUTPUT_DIRS", ()))
         with logging_redirect_tqdm(loggers=[logger]):  # messages and progress bars share stderr
             return int(module.run(args) or 0)

@@ -15,6 +15,14 @@ log = logging.getLogger(__name__)
 
 OUTPUT_FILES = ("out", "ranking", "records_out", "plot")
 OUTPUT_DIRS = ("cache_dir",)
+
+
+def default_outputs(args) -> None:
+    """The schedule goes beside the fit it was computed from unless ``--out`` names a file."""
+    if args.out is None:
+        args.out = Path(args.results).parent / "plan.csv"
+
+
 """Output paths checked before any work (attribute names of the parsed arguments)."""
 
 EXAMPLES = """examples:
@@ -80,7 +88,9 @@ def add_parser(subparsers) -> None:
         help="lowest sun (degrees) of the envelope and of candidate instants",
     )
     p.add_argument("--max-instants", type=integer(1), default=2_000, help="refuse longer candidate windows")
-    p.add_argument("--out", type=Path, default=Path("plan.csv"), metavar="FILE", help="schedule CSV")
+    p.add_argument(
+        "--out", type=Path, default=None, metavar="FILE", help="schedule CSV (default: plan.csv beside RESULTS_H5)"
+    )
     p.add_argument(
         "--ranking", type=Path, default=None, metavar="FILE", help="CSV of the heliostats, most in need first"
     )
