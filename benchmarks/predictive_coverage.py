@@ -4,9 +4,12 @@ Calibrates a PAINT directory (default model, time split, robust, pooled), then f
 every held-out record of a converged heliostat compares its residual (mrad, two
 tangent components) with the predicted covariance ``J C J^T`` (the parameter
 covariance propagated through the residual's Jacobian, as ``heliojax aim`` does)
-and, optionally, plus the fit's noise per component. Prints JSON: the fraction of
-records inside the nominal 95 % ellipse (Mahalanobis d^2 < 5.991) and the median
-d^2 (1.386 for a correct Gaussian model).
+plus the fit's noise per component, plus the fleet's drift since each heliostat's
+last fitted record, its rate estimated from the training records alone
+(:func:`heliojax.temporal_drift`). Prints
+JSON: the fractions of records inside the nominal 68 % and 95 % ellipses
+(Mahalanobis d^2 < 2.279, 5.991) and the median d^2 (1.386 for a correct
+Gaussian model).
 
     python benchmarks/predictive_coverage.py ../shared/data/paint
 """
@@ -27,6 +30,7 @@ import heliojax as hj  # noqa: E402
 from heliojax.fitting import sanitise  # noqa: E402
 
 CHI2_2_95 = 5.991
+CHI2_2_68 = 2.279  # chi-square quantiles, 2 degrees of freedom
 
 
 def main() -> None:
@@ -60,16 +64,27 @@ def main() -> None:
     noise = np.asarray(run.noise_mrad)[:h]
     converged = np.array([run.summary["heliostats"][i]["status"] == "converged" for i in fleet.ids])
     held_out = np.asarray(run.test_mask)[:h] & converged[:, None]
-    out = {"benchmark": "predictive_coverage", "data": str(args.data_dir or "embedded"), "heliostats": h}
+    days = hj.days_since_fit(
+        run.train_mask & ~run.superseded, np.asarray(padded.context.unix_time), np.asarray(padded.context.unix_time)
+    )[:h]
+    drift = float(run.predictive["drift_mrad2_per_day"]) * np.nan_to_num(days)
+    out = {
+        "benchmark": "predictive_coverage",
+        "data": str(args.data_dir or "embedded"),
+        "heliostats": h,
+        "predictive": run.summary["predictive"],
+    }
     for name, total in (
         ("parameters_only", s),
         ("parameters_and_noise", s + noise[:, None, None, None] ** 2 * np.eye(2)),
+        ("parameters_noise_and_drift", s + (noise[:, None] ** 2 + drift)[..., None, None] * np.eye(2)),
     ):
         d2 = np.einsum("hmi,hmij,hmj->hm", r, np.linalg.inv(total + 1e-12 * np.eye(2)), r)
         use = held_out & np.isfinite(d2)
         per = [float(np.mean(d2[i][use[i]] < CHI2_2_95)) for i in range(h) if use[i].any()]
         out[name] = {
             "held_out_records": int(use.sum()),
+            "coverage_68": float(np.mean(d2[use] < CHI2_2_68)),
             "coverage_95": float(np.mean(d2[use] < CHI2_2_95)),
             "median_d2": float(np.median(d2[use])),
             "per_heliostat_coverage_min_median": [min(per), float(np.median(per))],

@@ -105,6 +105,8 @@ from ._splits import (
     SPLIT_NAMES as SPLIT_NAMES,
     FleetSplit as FleetSplit,
     SplitResult as SplitResult,
+    chronological_holdout as chronological_holdout,
+    days_since_fit as days_since_fit,
     split_fleet as split_fleet,
     split_records as split_records,
 )
@@ -118,6 +120,7 @@ from ._version import __version__ as __version__
 from ._workflow import (
     CalibrationRun as CalibrationRun,
     calibrate as calibrate,
+    temporal_drift as temporal_drift,
     write_summary as write_summary,
 )
 from .discovery import (

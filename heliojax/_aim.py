@@ -17,8 +17,10 @@ With the fitted parameters' covariance (``results.h5``), each command also gets
 its predicted pointing uncertainty: the 2x2 covariance (mrad^2) of the beam's
 direction in the tangent plane at the commanded counts, propagated linearly from
 the parameter covariance (``J C J^T`` with ``J`` the Jacobian of the beam
-direction with respect to the free parameters). It covers the uncertainty of the
-fit, not effects the model lacks (the fit's ``noise_mrad`` bounds those).
+direction with respect to the free parameters), plus the drift since the fit
+``q * dt * I`` (:func:`heliojax.temporal_drift`: a random walk at the rate ``q``
+that later training records showed; ``dt`` days since the heliostat's last fitted
+record).
 """
 
 from __future__ import annotations
@@ -54,7 +56,8 @@ class AimResult(eqx.Module):
         unreliable: ``(H,)``.
         unreachable: ``(H, N)``.
         pointing_cov_mrad2: ``(H, N, 2, 2)`` predicted covariance of the beam
-            direction (mrad^2) from the parameter covariance; NaN without one.
+            direction (mrad^2) from the parameter covariance and the drift since
+            the fit; NaN without a covariance.
     """
 
     counts: Float[Array, "H N 2"]
@@ -132,6 +135,7 @@ def aim_fleet(
     fitted: Bool[Array, " H"] | None = None,
     covariance: Float[ArrayLike, "H F F"] | None = None,
     view: ParameterView | None = None,
+    drift_variance_mrad2: Float[ArrayLike, "*drift"] | float = 0.0,
     min_sun_elevation_deg: float = 5.0,
     reach_tolerance_mrad: float = REACH_TOLERANCE_MRAD,
 ) -> AimResult:
@@ -148,6 +152,10 @@ def aim_fleet(
             units, :attr:`heliojax.FitSolution.covariance`) and ``view`` the
             :class:`heliojax.ParameterView` naming them: give both for the
             predicted pointing uncertainty.
+        drift_variance_mrad2: variance (mrad^2 per tangent component) of the drift
+            since the fit, broadcast to ``(H, N)`` (:func:`heliojax.temporal_drift`;
+            :func:`aim_results` computes it from the instants' times), added to that
+            uncertainty as ``drift_variance_mrad2 * I``.
         min_sun_elevation_deg: flag instants with the sun lower than this.
         reach_tolerance_mrad: largest forward-model miss still counted as reached.
 
@@ -173,6 +181,8 @@ def aim_fleet(
     if covariance is not None and view is not None:
         cov = jnp.asarray(covariance, sun.dtype)
         pointing = _pointing_covariance(view, models, geometry, counts, points, sun, cov)
+        drift = jnp.broadcast_to(jnp.asarray(drift_variance_mrad2, sun.dtype), (h, n))
+        pointing = pointing + drift[:, :, None, None] * jnp.eye(2, dtype=sun.dtype)[None, None, :, :]
     else:
         pointing = jnp.full((h, n, 2, 2), jnp.nan, sun.dtype)
     return AimResult(
@@ -189,11 +199,19 @@ def aim_fleet(
 
 
 def aim_results(
-    results: typing.Any, sun: Float[Array, "N 3"], aim_points: Float[Array, "*hn 3"], **options: typing.Any
+    results: typing.Any,
+    sun: Float[Array, "N 3"],
+    aim_points: Float[Array, "*hn 3"],
+    *,
+    unix_time: Float[ArrayLike, " N"] | None = None,
+    **options: typing.Any,
 ) -> AimResult:
     """:func:`aim_fleet` for a calibration read with :func:`heliojax.load_results`
-    (heliostats without a usable fit are flagged ``unreliable``), with the
-    predicted pointing uncertainty from the file's covariance."""
+    (heliostats without a usable fit are flagged ``unreliable``), with the predicted
+    pointing uncertainty from the file's covariance and, given the instants'
+    ``unix_time`` (s), the fleet's drift since each heliostat's last fitted record
+    (without times, no drift is added)."""
+    drift = 0.0 if unix_time is None else jnp.asarray(results.drift_variance_mrad2(unix_time))
     return aim_fleet(
         results.model,
         results.geometry,
@@ -202,6 +220,7 @@ def aim_results(
         fitted=jnp.asarray(results.fitted),
         covariance=results.covariance,
         view=results.view,
+        drift_variance_mrad2=drift,
         **options,
     )
 

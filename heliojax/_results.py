@@ -6,7 +6,9 @@ Schema (``H`` heliostats, ``M`` padded records; NaN / -1 where no record):
   ``"stone8+backlash"``), ``split``, ``heliojax_version``, ``param_names`` and
   ``param_units`` (JSON lists, vector order of :class:`heliojax.ParameterView`),
   ``free_params`` (JSON list), ``robust`` (bool), ``origin_lla`` (WGS84 lat deg,
-  lon deg, alt m of the ENU origin)
+  lon deg, alt m of the ENU origin), ``drift_mrad2_per_day`` (the fleet's
+  pointing drift per tangent component, :func:`heliojax.temporal_drift`; 0 when not
+  estimated)
 * ``heliostat_ids`` ``(H,)`` str; ``target_names`` ``(T,)`` str
 * ``params`` ``(H, P)`` float64, physical units; ``param_std`` ``(H, P)``
   Gauss-Newton standard errors; ``covariance`` ``(H, F, F)`` of the free parameters
@@ -45,6 +47,7 @@ import h5py
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import ArrayLike, Float
 
 from ._errors import DataError
 from ._geometry import direction_to_azimuth_elevation
@@ -52,6 +55,7 @@ from ._heliostat import HeliostatGeometry, LinearActuators
 from ._io import atomic_path
 from ._kinematics import AbstractKinematicModel, nominal_model
 from ._parameters import ParameterView, broadcast_model
+from ._splits import days_since_fit
 from ._version import __version__
 from .effects import with_effects
 from .fitting import FitStatus
@@ -115,6 +119,7 @@ def write_results_h5(path: str | Path, run: typing.Any) -> None:
         f.attrs["free_params"] = json.dumps(list(view.free_names))
         f.attrs["robust"] = bool(run.summary.get("robust", False))
         f.attrs["origin_lla"] = np.asarray(run.fleet.origin_lla, float)
+        f.attrs["drift_mrad2_per_day"] = float(run.predictive.get("drift_mrad2_per_day", 0.0))
         f.create_dataset("heliostat_ids", data=np.array(run.fleet.ids[:n], dtype=object), dtype=str_dt)
         f.create_dataset("target_names", data=np.array(run.fleet.target_names, dtype=object), dtype=str_dt)
         f.create_dataset("params", data=np.asarray(run.result.parameters())[:n])
@@ -191,6 +196,22 @@ class CalibrationResults:
     records: dict[str, np.ndarray]
     attrs: dict[str, typing.Any]
     source: str
+
+    @property
+    def drift_mrad2_per_day(self) -> float:
+        """The fleet's pointing drift (mrad^2 per day per tangent component; 0 in files
+        written without one), :func:`heliojax.temporal_drift`."""
+        return float(self.attrs.get("drift_mrad2_per_day", 0.0))
+
+    def drift_variance_mrad2(self, unix_time: Float[ArrayLike, " N"]) -> Float[np.ndarray, "H N"]:
+        """``(H, N)`` drift variance (mrad^2 per component) at ``unix_time`` (s): the
+        drift rate times the days since each heliostat's last fitted record (0 before
+        it; NaN for a heliostat without one)."""
+        if self.drift_mrad2_per_day == 0.0:
+            return np.zeros((len(self.ids), np.size(unix_time)))
+        fitted_records = (self.records["split"] == 1) & ~self.records["superseded"].astype(bool)
+        days = days_since_fit(fitted_records, self.records["unix_time"], np.atleast_1d(np.asarray(unix_time, float)))
+        return self.drift_mrad2_per_day * days
 
     @property
     def fitted(self) -> np.ndarray:

@@ -74,6 +74,8 @@ from ._errors import ConfigError
 
 __all__ = [
     "SPLIT_NAMES",
+    "chronological_holdout",
+    "days_since_fit",
     "FleetSplit",
     "SplitResult",
     "knn_mean_distance",
@@ -475,3 +477,46 @@ def split_dict(
     """Split ragged per-heliostat records: ``{id: (azimuth_rad, elevation_rad, unix_time_s)}``
     -> ``{id: SplitResult}`` (keyword arguments as in :func:`split_records`)."""
     return {hid: split_records(kind, *arrs, **kwargs) for hid, arrs in records.items()}
+
+
+def chronological_holdout(
+    fit_mask: np.ndarray, unix_time: np.ndarray, min_records: int, fraction: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(early, late)`` ``(H, M)`` masks: for every heliostat with at least
+    ``min_records`` records in ``fit_mask``, all with finite times, its latest
+    ``round(fraction * n)`` (at least 2) records are ``late``; every other record of
+    ``fit_mask`` is ``early`` (heliostats with fewer records keep all theirs there)."""
+    fit_mask = np.asarray(fit_mask, bool)
+    t = np.where(fit_mask, np.asarray(unix_time, float), np.inf)
+    order = np.argsort(t, axis=1, kind="stable")
+    rank = np.empty_like(order)
+    np.put_along_axis(rank, order, np.arange(t.shape[1])[None, :], axis=1)
+    n = fit_mask.sum(axis=1)
+    timed = ~np.any(fit_mask & ~np.isfinite(np.asarray(unix_time, float)), axis=1)
+    eligible = (n >= min_records) & timed
+    n_late = np.maximum(2, np.floor(fraction * n + 0.5)).astype(int)
+    late = fit_mask & eligible[:, None] & (rank >= (n - n_late)[:, None])
+    return fit_mask & ~late, late
+
+
+def days_since_fit(fit_mask: np.ndarray, record_time: np.ndarray, when: np.ndarray) -> np.ndarray:
+    """Effective age (days) of each heliostat's fitted state at ``when`` (unix s,
+    ``(H, N)`` or ``(N,)``), for a beam that drifts as a random walk: a fit to records
+    at times ``t_i`` (``fit_mask`` ``(H, M)``, times ``record_time`` unix s) pins
+    roughly their mean state, which lags the last record ``t_L`` by
+    ``c = (1/n^2) sum_ij min(t_L - t_i, t_L - t_j)`` (``T/3`` for ``n`` records evenly
+    spread over ``T`` days), so a record at ``t`` departs from it by a random walk of
+    ``max(0, t - t_L) + c`` days. NaN for a heliostat without a timed fitted record."""
+    fit_mask = np.asarray(fit_mask, bool)
+    t = np.asarray(record_time, float) / 86400.0
+    last = np.max(np.where(fit_mask, t, -np.inf), axis=1)
+    last = np.where(np.isfinite(last), last, np.nan)
+    lag = np.sort(np.where(fit_mask, last[:, None] - t, np.inf), axis=1)  # ascending, unused at the end
+    n = fit_mask.sum(axis=1)
+    k = np.arange(t.shape[1])[None, :]
+    weight = np.where(k < n[:, None], 2.0 * (n[:, None] - k) - 1.0, 0.0)  # times each sorted lag is a pair's min
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c = np.sum(np.where(weight > 0, lag * weight, 0.0), axis=1) / n.astype(float) ** 2
+    when = np.asarray(when, float) / 86400.0
+    when = np.broadcast_to(when, (last.shape[0], when.shape[-1]))
+    return np.maximum(0.0, when - last[:, None]) + c[:, None]

@@ -12,6 +12,7 @@ import dataclasses
 import datetime
 import json
 import logging
+import math
 import typing
 from pathlib import Path
 
@@ -25,7 +26,7 @@ from ._fleet import bucket_size, pad_fleet
 from ._geometry import direction_to_azimuth_elevation
 from ._io import atomic_write
 from ._kinematics import AbstractKinematicModel, nominal_model
-from ._splits import split_fleet
+from ._splits import chronological_holdout, days_since_fit, split_fleet
 from .fitting import (
     ChangePoints,
     FitSolution,
@@ -70,6 +71,8 @@ class CalibrationRun:
             (:func:`heliojax.fitting.find_change_points`), None when not run.
         superseded: ``(H, M)`` training records before a reported change point:
             not fitted (the fit calibrates the state since the change).
+        predictive: the pointing drift (:func:`temporal_drift`):
+            ``drift_mrad2_per_day`` and how it was estimated (``summary.json``'s ``predictive``).
     """
 
     fleet: typing.Any
@@ -96,6 +99,7 @@ class CalibrationRun:
     pooled: bool = False
     change_points: ChangePoints | None = None
     superseded: np.ndarray | None = None
+    predictive: dict = dataclasses.field(default_factory=lambda: {"drift_mrad2_per_day": 0.0})
 
 
 def _stats(x: np.ndarray) -> tuple[float, float]:
@@ -128,6 +132,7 @@ def calibrate(
     pool: bool = True,
     changes: bool = True,
     record_roles: collections.abc.Mapping[str, collections.abc.Mapping[int, str]] | None = None,
+    drift: bool = True,
 ) -> CalibrationRun:
     """Split each heliostat's records, fit the model on the training records of all
     heliostats at once, and evaluate on the held-out ones.
@@ -160,6 +165,9 @@ def calibrate(
             records, :func:`heliojax.plan_calibration`). Records not named are
             left out; if no record is named ``"test"``, every record not named
             ``"train"`` is held out. Heliostats not named get no training records.
+        drift: estimate the fleet's pointing drift (:func:`temporal_drift`: how fast
+            records later than the fitted ones depart from the fit beyond what the
+            parameter covariance and the noise explain); 0 when off.
     """
     model0 = nominal_model(model, fleet.counts.dtype) if isinstance(model, str) else model
     n_real = len(fleet.ids)
@@ -237,6 +245,20 @@ def calibrate(
             result, c2, f2, weights, outlier, noise = fit_on(train & ~superseded)
             compile_s, fit_s = compile_s + c2, fit_s + f2
     noise = np.asarray(noise)
+    fit_mask = train & ~superseded
+    if drift:
+
+        def fit_state(mask: np.ndarray) -> tuple[FitSolution, typing.Any]:
+            solution, *_, noise_mrad = fit_on(mask)
+            return solution, noise_mrad
+
+        predictive = temporal_drift(fit_state, padded, fit_mask)
+        log.info(
+            f"pointing drift {predictive['drift_mrad2_per_day']:.4f} mrad^2/day per component "
+            f"(from {predictive['validation_records']} later training records)"
+        )
+    else:
+        predictive = {"drift_mrad2_per_day": 0.0, "method": "not estimated"}
 
     all_valid = jnp.asarray(padded.mask)
     errors = np.asarray(fleet_beam_errors_mrad(result.model, padded, all_valid))
@@ -278,9 +300,104 @@ def calibrate(
         pooled=robust and pool,
         change_points=change_points,
         superseded=superseded,
+        predictive=predictive,
     )
     summary = _summarise(run, n_real, compile_s=compile_s, fit_s=fit_s)
     return dataclasses.replace(run, summary=summary)
+
+
+DRIFT_MIN_RECORDS = 8
+"""Heliostats with at least this many training records lend their latest ones to
+:func:`temporal_drift`'s validation."""
+DRIFT_HOLDOUT_FRACTION = 0.3
+"""Fraction of such a heliostat's training records (its latest) predicted, not fitted."""
+_CHI2_2_MEDIAN = 2.0 * math.log(2.0)  # median of a chi-square with 2 degrees of freedom
+
+
+def temporal_drift(
+    fit: collections.abc.Callable[[np.ndarray], tuple[FitSolution, typing.Any]],
+    fleet,
+    fit_mask: np.ndarray,
+    *,
+    min_records: int = DRIFT_MIN_RECORDS,
+    fraction: float = DRIFT_HOLDOUT_FRACTION,
+) -> dict:
+    """The fleet's pointing drift: how fast (mrad^2 per day, per tangent component)
+    records *later* than the fitted ones spread beyond what the parameter covariance
+    and the measurement noise predict (wear, settling, effects the model lacks).
+
+    Model: a random walk of the beam direction from the fitted state, the process
+    noise of a Kalman filter; a record ``dt`` days after the heliostat's last fitted
+    record is predicted with covariance ``S + q * dt * I``, where
+    ``S = J C J^T + noise^2 I`` (``J`` its Jacobian w.r.t. the free parameters, ``C``
+    the fit's covariance, ``noise`` the fit's noise per component).
+
+    ``q`` is estimated by time-blocked validation on the training records only (the
+    test records are never looked at): every heliostat with at least ``min_records``
+    records in ``fit_mask`` holds out its latest ``fraction`` of them; ``fit`` (the
+    calibration's own fit, ``mask -> (solution, noise_mrad (H,))``) is run on the
+    rest; ``q`` is the smallest value with ``median(r^T (S + q dt I)^-1 r) <= 2 ln 2``
+    over the held-out residuals ``r``, the median of the chi-square with 2 degrees of
+    freedom that a correct Gaussian prediction gives (a median: gross errors among the
+    held-out records do not move it).
+
+    Returns:
+        ``{"drift_mrad2_per_day", "validation_records", "validation_heliostats",
+        "validation_median_days", "median_d2_without", "method"}``;
+        ``drift_mrad2_per_day`` is 0 with fewer than 10 validation records.
+    """
+    from ._plan import residual_jacobians
+
+    fleet_mask = np.asarray(fleet.mask)
+    unix_time = np.asarray(fleet.context.unix_time, float)
+    early, late = chronological_holdout(np.asarray(fit_mask) & fleet_mask, unix_time, min_records, fraction)
+    method = (
+        f"random walk from the fitted state; rate from the latest {fraction:.0%} of the training records of "
+        f"heliostats with >= {min_records}, predicted from a fit on the earlier ones"
+    )
+    out: dict[str, typing.Any] = {"drift_mrad2_per_day": 0.0, "method": method}
+    if late.sum() < 10:
+        out.update(validation_records=int(late.sum()), validation_heliostats=0, median_d2_without=None)
+        return out
+    solution, noise = fit(early)
+    converged = np.asarray(solution.status) == FitStatus.CONVERGED
+    late = late & converged[:, None]
+    r = np.asarray(fleet_residuals_mrad(solution.model, fleet, jnp.asarray(late)))
+    jac = residual_jacobians(
+        solution.model,
+        solution.view,
+        fleet.geometry,
+        fleet.counts,
+        fleet.context,
+        fleet.focal_spot,
+        jnp.asarray(late),
+    )
+    s = np.einsum("hmif,hfg,hmjg->hmij", np.asarray(jac), np.asarray(solution.covariance), np.asarray(jac))
+    s = s + (np.asarray(noise, float) ** 2)[:, None, None, None] * np.eye(2)
+    days = days_since_fit(early, unix_time, unix_time)
+    use = late & np.all(np.isfinite(r), axis=-1) & np.all(np.isfinite(s), axis=(-2, -1)) & np.isfinite(days)
+    r, s, days = r[use], s[use], days[use]
+
+    def median_d2(q: float) -> float:
+        total = s + (q * days)[:, None, None] * np.eye(2)
+        return float(np.median(np.einsum("ni,nij,nj->n", r, np.linalg.inv(total), r)))
+
+    out.update(
+        validation_records=int(use.sum()),
+        validation_heliostats=int(np.any(use, axis=1).sum()),
+        validation_median_days=float(np.median(days)) if use.any() else None,
+        median_d2_without=median_d2(0.0) if use.any() else None,
+    )
+    if use.sum() < 10 or median_d2(0.0) <= _CHI2_2_MEDIAN:
+        return out
+    lo, hi = 0.0, 1e-3
+    while median_d2(hi) > _CHI2_2_MEDIAN and hi < 1e8:
+        lo, hi = hi, hi * 4.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if median_d2(mid) > _CHI2_2_MEDIAN else (lo, mid)
+    out["drift_mrad2_per_day"] = hi
+    return out
 
 
 RECORD_ROLES = ("train", "test")
@@ -489,6 +606,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
                 "no_training_records": int(np.sum(status[:n_real] == FitStatus.NO_RECORDS)),
             },
         },
+        "predictive": {k: (_json_float(v) if isinstance(v, float) else v) for k, v in run.predictive.items()},
         "timing": {"compile_s": float(compile_s), "fit_s": float(fit_s)},
     }
 
