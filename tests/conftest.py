@@ -5,7 +5,6 @@ pyproject.toml)."""
 from __future__ import annotations
 
 import logging
-import os
 from pathlib import Path
 
 import jax
@@ -42,37 +41,6 @@ def _restore_cli_process_settings():
         logger.removeHandler(handler)
     logger.propagate = True
     logger.setLevel(logging.NOTSET)
-
-
-@pytest.fixture(scope="session", autouse=True)
-def _shared_compilation_cache(tmp_path_factory):
-    """One persistent JAX compilation cache for the whole run, shared by the xdist
-    workers and the notebook kernels (they inherit the environment), small programs
-    included: a program compiled in one process is loaded in the others. heliojax's
-    kept traced programs, which a cache directory also switches on
-    (``heliojax._programs``), stay off in the test processes: exporting costs more
-    than it saves when each process traces a program once (tests/test_programs.py
-    covers them). ``HELIOJAX_TEST_COMPILATION_CACHE=0`` runs without the cache."""
-    if os.environ.get("HELIOJAX_TEST_COMPILATION_CACHE", "1") == "0":
-        yield
-        return
-    from heliojax import _programs
-
-    base = tmp_path_factory.getbasetemp()
-    shared = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base  # the run's folder, one per run
-    directory = shared / "jax-compilation-cache"
-    directory.mkdir(exist_ok=True)
-    settings = {
-        "jax_compilation_cache_dir": str(directory),
-        "jax_persistent_cache_min_compile_time_secs": 0.0,
-        "jax_persistent_cache_min_entry_size_bytes": 0,
-    }
-    with pytest.MonkeyPatch.context() as mp:
-        for name, value in settings.items():
-            mp.setenv(name.upper(), str(value))
-            jax.config.update(name, value)
-        mp.setattr(_programs, "_program_dir", lambda: None)
-        yield directory
 
 
 @pytest.fixture
