@@ -23,11 +23,9 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import heliojax as hj  # noqa: E402
-from heliojax.fitting import sanitise  # noqa: E402
 
 CHI2_2_95 = 5.991
 CHI2_2_68 = 2.279  # chi-square quantiles, 2 degrees of freedom
@@ -39,26 +37,8 @@ def main() -> None:
     args = ap.parse_args()
     fleet = hj.load_paint_directory(args.data_dir or hj.default_data_dir())
     run = hj.calibrate(fleet)
-    sol, padded = run.result, run.fleet
-    view = sol.view
-    free = jnp.asarray(view.free_index, dtype=jnp.int32)
-
-    def per_heliostat(model, g, counts, context, focal, mask, cov):
-        c2, x2, f2, _, _ = sanitise(g, counts, context, focal, mask)
-        p = view.to_vector(model)
-
-        def record(c, x, f):
-            def residual(y):
-                return view.from_vector(model, p.at[free].set(y)).beam_components(g, c, x, f) * 1e3
-
-            jac = jax.jacfwd(residual)(p[free])
-            return residual(p[free]), jac @ cov @ jac.T
-
-        return jax.vmap(record)(c2, x2, f2)
-
-    program = jax.jit(jax.vmap(per_heliostat))
-    r, s = program(sol.model, padded.geometry, padded.counts, padded.context, padded.focal_spot, padded.mask,
-                   sol.covariance)  # fmt: skip
+    padded = run.fleet
+    r, s = hj.residual_prediction(run.result, padded, np.asarray(padded.mask))
     h = len(fleet.ids)
     r, s = np.asarray(r)[:h], np.asarray(s)[:h]
     noise = np.asarray(run.noise_mrad)[:h]

@@ -120,6 +120,7 @@ from ._version import __version__ as __version__
 from ._workflow import (
     CalibrationRun as CalibrationRun,
     calibrate as calibrate,
+    residual_prediction as residual_prediction,
     temporal_drift as temporal_drift,
     write_summary as write_summary,
 )

@@ -314,6 +314,24 @@ DRIFT_HOLDOUT_FRACTION = 0.3
 _CHI2_2_MEDIAN = 2.0 * math.log(2.0)  # median of a chi-square with 2 degrees of freedom
 
 
+def residual_prediction(solution: FitSolution, fleet, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(residual, covariance)``: each record's residual (mrad, ``(H, M, 2)``) under the
+    fitted models and its predicted covariance from the parameters alone,
+    ``J C J^T`` (mrad^2, ``(H, M, 2, 2)``; ``J`` the record's Jacobian w.r.t. the free
+    parameters, ``C`` the fit's covariance); zero Jacobian rows outside ``mask``. Add
+    the noise (and the drift, :func:`temporal_drift`) for a record's full prediction."""
+    from ._plan import residual_jacobians
+
+    use = jnp.asarray(mask)
+    r = np.asarray(fleet_residuals_mrad(solution.model, fleet, use))
+    jac = np.asarray(
+        residual_jacobians(
+            solution.model, solution.view, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, use
+        )
+    )
+    return r, np.einsum("hmif,hfg,hmjg->hmij", jac, np.asarray(solution.covariance), jac)
+
+
 def temporal_drift(
     fit: collections.abc.Callable[[np.ndarray], tuple[FitSolution, typing.Any]],
     fleet,
@@ -346,8 +364,6 @@ def temporal_drift(
         "validation_median_days", "median_d2_without", "method"}``;
         ``drift_mrad2_per_day`` is 0 with fewer than 10 validation records.
     """
-    from ._plan import residual_jacobians
-
     fleet_mask = np.asarray(fleet.mask)
     unix_time = np.asarray(fleet.context.unix_time, float)
     early, late = chronological_holdout(np.asarray(fit_mask) & fleet_mask, unix_time, min_records, fraction)
@@ -362,17 +378,7 @@ def temporal_drift(
     solution, noise = fit(early)
     converged = np.asarray(solution.status) == FitStatus.CONVERGED
     late = late & converged[:, None]
-    r = np.asarray(fleet_residuals_mrad(solution.model, fleet, jnp.asarray(late)))
-    jac = residual_jacobians(
-        solution.model,
-        solution.view,
-        fleet.geometry,
-        fleet.counts,
-        fleet.context,
-        fleet.focal_spot,
-        jnp.asarray(late),
-    )
-    s = np.einsum("hmif,hfg,hmjg->hmij", np.asarray(jac), np.asarray(solution.covariance), np.asarray(jac))
+    r, s = residual_prediction(solution, fleet, late)
     s = s + (np.asarray(noise, float) ** 2)[:, None, None, None] * np.eye(2)
     days = days_since_fit(early, unix_time, unix_time)
     use = late & np.all(np.isfinite(r), axis=-1) & np.all(np.isfinite(s), axis=(-2, -1)) & np.isfinite(days)

@@ -13,7 +13,6 @@ import pytest
 import heliojax as hj
 from heliojax.discovery import simulate_fleet
 from heliojax.effects import make_effect
-from heliojax.fitting import fleet_residuals_mrad
 
 STONE = hj.nominal_model("stone8")
 CHI2_2_95 = 5.991  # 95 % quantile of the chi-square with 2 degrees of freedom
@@ -38,17 +37,8 @@ def _fit(fleet):
 
 def _coverage_95(fleet, train, test, rate: float) -> float:
     """Fraction of the test records inside the 95 % ellipse of the fit on ``train``."""
-    from heliojax._plan import residual_jacobians
-
     solution, noise = _fit(fleet)(train)
-    r = np.asarray(fleet_residuals_mrad(solution.model, fleet, jnp.asarray(test)))
-    jac = np.asarray(
-        residual_jacobians(
-            solution.model, solution.view, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot,
-            jnp.asarray(test),
-        )
-    )  # fmt: skip
-    s = np.einsum("hmif,hfg,hmjg->hmij", jac, np.asarray(solution.covariance), jac)
+    r, s = hj.residual_prediction(solution, fleet, test)
     days = hj.days_since_fit(train, np.asarray(fleet.context.unix_time), np.asarray(fleet.context.unix_time))
     s = s + (np.asarray(noise)[:, None] ** 2 + rate * days)[..., None, None] * np.eye(2)
     d2 = np.einsum("ni,nij,nj->n", r[test], np.linalg.inv(s[test]), r[test])
