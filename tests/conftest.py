@@ -1,15 +1,28 @@
 """Test configuration: float64 on (calibration and geodesy need it), strict rank and
 dtype promotion, shared-data paths (warnings are errors: ``filterwarnings`` in
-pyproject.toml)."""
+pyproject.toml), XLA's costly optimisations off.
+
+The suite is bound by XLA compilation: hundreds of distinct small programs, each run
+a few times. ``JAX_DISABLE_MOST_OPTIMIZATIONS=1`` (backend optimisation level 0, no
+expensive LLVM passes) compiles them ~1.6x faster; it is set in the environment, so
+the CLI subprocesses and notebook kernels that tests start inherit it. The programs
+compute the same values (no fast-math either way). Tests marked ``optimised`` do much
+work per program (ray tracing, reconstruction, discovery's many refits) and run with
+the optimisations on. A run with everything optimised, as users get it, is
+``JAX_DISABLE_MOST_OPTIMIZATIONS=0 python -m pytest -n 2 -q``.
+"""
 
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 
-import jax
-import jaxtyping
-import pytest
+os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
+
+import jax  # noqa: E402  (reads JAX_* variables at import)
+import jaxtyping  # noqa: E402
+import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 # Catch silent broadcasting and mixed-dtype arithmetic in heliojax and in the tests.
@@ -41,6 +54,26 @@ def _restore_cli_process_settings():
         logger.removeHandler(handler)
     logger.propagate = True
     logger.setLevel(logging.NOTSET)
+
+
+_optimised_now = [False]  # this process's last setting; programs compiled before a switch are reused
+
+
+@pytest.fixture(autouse=True)
+def _optimised_when_marked(request, monkeypatch):
+    """XLA's optimisations back on (in this process and its children) for tests
+    marked ``optimised``. On the switch to optimised, JAX's in-memory caches are
+    cleared (its jit cache does not key on the setting, so unoptimised programs of
+    earlier tests would be reused); consecutive marked tests share their programs."""
+    marked = request.node.get_closest_marker("optimised") is not None
+    default = os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] != "0"
+    if marked:
+        monkeypatch.setenv("JAX_DISABLE_MOST_OPTIMIZATIONS", "0")
+    if marked and default and not _optimised_now[0]:
+        jax.clear_caches()
+    jax.config.update("jax_disable_most_optimizations", default and not marked)
+    _optimised_now[0] = marked or not default
+    yield
 
 
 @pytest.fixture

@@ -8,6 +8,7 @@ from _notebooks import run_notebook
 from conftest import SHARED_PAINT
 
 
+@pytest.mark.optimised
 def test_notebook_real_surfaces_runs(tmp_path, monkeypatch):
     if not (SHARED_PAINT.parent / "artist-scenarios").exists():
         pytest.skip("needs ../shared/data (ARTIST scenarios and PAINT flux samples)")

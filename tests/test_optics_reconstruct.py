@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from heliojax._geometry import TargetPlane
 from heliojax.optics import FacetLayout, ImageGrid, NurbsFacets, PillboxSun, aim_pose, flux_images
@@ -46,6 +47,7 @@ def scene():
     return ideal, truth, target, grid, suns, poses
 
 
+@pytest.mark.optimised
 def test_reconstruction_recovers_hidden_bumps():
     ideal, truth, target, grid, suns, poses = scene()
     # the hidden deformation: bumps with 1-3 mrad maximum slope

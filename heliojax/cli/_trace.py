@@ -111,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
     from .._geometry import sun_direction
     from .._io import atomic_path, atomic_write
     from .._kinematics import ActuatorModel, forward, inverse_aim
+    from .._progress import progress_bar
     from ..paint import read_calibration_record, read_heliostat_properties, read_tower
 
     if (args.record is None) == (args.sun_azimuth is None or args.sun_elevation is None):
@@ -166,20 +167,27 @@ def run(args: argparse.Namespace) -> int:
         n_rays = optics.ray_count(surface, args.rays_per_point, args.steps)
         log.info(f"tracing {n_rays:,} rays of {args.heliostat} onto {target_name} (the first run compiles the tracer)")
         t0 = time.perf_counter()
-        image = optics.flux_image(
-            jax.random.key(args.seed),
-            surface,
-            pose,
-            sun,
-            target,
-            grid,
-            sunshape,
-            rays_per_point=args.rays_per_point,
-            steps=args.steps,
-            dni=args.dni,
-            reflectivity=args.reflectivity,
-        )
-        image = np.asarray(image, np.float64)
+        # One call per step (one compiled program, the step index an argument), so that
+        # a bar can show progress; the mean of the steps' images is the one-call image.
+        image = np.zeros(grid.shape, np.float64)
+        for step in progress_bar(range(args.steps), logger=log, desc="tracing", unit="step"):
+            image += np.asarray(
+                optics.flux_image(
+                    jax.random.key(args.seed),
+                    surface,
+                    pose,
+                    sun,
+                    target,
+                    grid,
+                    sunshape,
+                    rays_per_point=args.rays_per_point,
+                    first_step=jnp.asarray(step, jnp.int32),
+                    dni=args.dni,
+                    reflectivity=args.reflectivity,
+                ),
+                np.float64,
+            )
+        image /= args.steps
         log.info(f"traced in {time.perf_counter() - t0:.1f} s")
         c = np.asarray(optics.centroid(jnp.asarray(image), grid))
         power = float(image.sum() * float(grid.pixel_area))

@@ -56,7 +56,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
 from .._geometry import TargetPlane, bisector_normal, normalize
 from .._heliostat import Pose
@@ -271,6 +271,7 @@ def flux_images(
     *,
     rays_per_point: int = 16,
     steps: int = 1,
+    first_step: Int[ArrayLike, ""] = 0,
     dni: float | ArrayLike = 1000.0,
     reflectivity: float | ArrayLike = 1.0,
     combine: bool = False,
@@ -280,7 +281,7 @@ def flux_images(
     """Flux images (W/m^2) of one or several heliostats on planar targets.
 
     Args:
-        key: PRNG key; the rays of step ``j`` use ``fold_in(key, j)``.
+        key: PRNG key; the rays of step ``j`` use ``fold_in(key, first_step + j)``.
         surfaces: :class:`SurfacePoints` in the surface frame, ``(p, ...)`` for one
             heliostat or ``(h, p, ...)`` for a padded batch.
         poses: :class:`Pose` (``(3,)`` fields or batched ``(h, 3)``), e.g. from
@@ -292,6 +293,10 @@ def flux_images(
         rays_per_point: rays per surface point per step (static).
         steps: number of ``lax.scan`` steps (static); total rays per point =
             ``rays_per_point * steps``.
+        first_step: index of the first step. Pass it as an array (a Python int is a
+            static argument and compiles a program per value): ``n`` calls with
+            ``steps=s`` and ``first_step = 0, s, 2s, ...``, averaged, trace the same
+            rays as one call with ``steps = n * s`` (e.g. to show progress).
         dni: direct normal irradiance, W/m^2.
         reflectivity: mirror reflectivity.
         combine: sum all heliostats into one image (shared target and grid).
@@ -342,10 +347,11 @@ def flux_images(
         return buf + step_contribution(prep, jax.random.fold_in(key, j)), None
 
     buf0 = jnp.zeros((n_img * cells, 4), dtype)
+    first = jnp.asarray(first_step, jnp.int32)
     if steps == 1:
-        buf = step_contribution(prep, jax.random.fold_in(key, 0))
+        buf = step_contribution(prep, jax.random.fold_in(key, first))
     else:
-        buf, _ = jax.lax.scan(body, buf0, jnp.arange(steps))
+        buf, _ = jax.lax.scan(body, buf0, first + jnp.arange(steps, dtype=jnp.int32))
     image = _buffer_to_image(buf.reshape(n_img, cells, 4), shape)
     if single or combine:
         return image[0]
