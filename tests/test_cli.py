@@ -280,7 +280,7 @@ def test_aim_writes_commands_with_error_bars(results_h5, tmp_path, capsys):
     assert plot.stat().st_size > 10_000
 
 
-def test_trace_with_calibrated_kinematics_and_on_the_receiver(results_h5, tmp_path, capsys):
+def test_trace_with_calibrated_kinematics_and_on_the_receiver(results_h5, tmp_path, capsys, monkeypatch):
     """`trace --results` aims with the calibrated model: its spot lands within 0.5 m
     of the record's measured focal spot (BE36 is ~210 m from the tower and fits to
     ~1.6 mrad RMS, i.e. ~0.35 m; its residual on this record, one of its latest,
@@ -308,11 +308,14 @@ def test_trace_with_calibrated_kinematics_and_on_the_receiver(results_h5, tmp_pa
     assert miss["calibrated"] < 0.5 and miss["nominal"] > 3 * miss["calibrated"], miss
     out = tmp_path / "receiver"
     argv = ["trace", "--heliostat", "BE36", "--sun-azimuth", "-20", "--sun-elevation", "40", "--target", "receiver"]
-    assert main([*argv, "--out", str(out), *small]) == 0
+    with monkeypatch.context() as m:
+        m.setattr(sys.stderr, "isatty", lambda: True, raising=False)  # as on a terminal: a bar over the steps
+        assert main([*argv, "--out", str(out), *small[:-4], "--steps", "3", *small[-2:]]) == 0
     summary = json.loads((out / "BE36-az-20_el40-summary.json").read_text())
     assert summary["target"] == "receiver" and summary["power_w"] > 0
     err = capsys.readouterr().err  # never silent while it traces
     assert f"tracing {summary['rays']:,} rays of BE36 onto receiver" in err and "traced in" in err
+    assert "tracing:" in err and "0/3" in err, err  # the bar (tqdm) over the 3 steps
 
 
 def test_aim_points_from_a_csv_in_enu_or_wgs84_agree(results_h5, tmp_path, capsys):
