@@ -49,6 +49,7 @@ from ._aim import direction_jacobian_mrad
 from ._heliostat import HeliostatGeometry, RecordContext
 from ._kinematics import AbstractKinematicModel, inverse_aim
 from ._parameters import ParameterView
+from ._programs import cached_jit
 from ._sun import solar_position
 from .fitting import prior_moments, sanitise
 
@@ -56,7 +57,7 @@ SOLAR_CONSTANT_W_M2 = 1361.0
 """Total solar irradiance (W/m^2) of the clear-sky DNI weights."""
 
 
-@eqx.filter_jit
+@cached_jit  # traced once per machine when the CLI keeps programs (drift, planning)
 def _jacobian_program(view, models, geometry, counts, context, spots, mask):
     def one(model, g, c, x, f, m):
         c, x, f, use, _ = sanitise(g, c, x, f, m)

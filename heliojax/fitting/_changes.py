@@ -33,6 +33,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._errors import ConfigError
 from .._parameters import ParameterView
+from .._programs import cached_jit
 from ._fit import FitSolution
 from ._records import sanitise
 
@@ -78,7 +79,7 @@ def _offset_columns(view: ParameterView) -> tuple[tuple[str, str], list[int]]:
     )
 
 
-@eqx.filter_jit
+@cached_jit  # traced once per machine when the CLI keeps programs
 def _scan(view, columns, min_segment, model, geometry, counts, context, focal, mask, weight):
     def one(model, geometry, counts, context, focal, mask, weight):
         counts, context, focal, use, _ = sanitise(geometry, counts, context, focal, mask)
