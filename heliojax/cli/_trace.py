@@ -170,10 +170,11 @@ def run(args: argparse.Namespace) -> int:
         # One call per step (one compiled program, the step index an argument), so that
         # a bar can show progress; the mean of the steps' images is the one-call image.
         image = np.zeros(grid.shape, np.float64)
+        key = jax.random.key(args.seed)
         for step in progress_bar(range(args.steps), logger=log, desc="tracing", unit="step"):
             image += np.asarray(
                 optics.flux_image(
-                    jax.random.key(args.seed),
+                    key,
                     surface,
                     pose,
                     sun,
