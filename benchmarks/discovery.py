@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 import time
 
@@ -86,6 +87,7 @@ def run_one(name: str, seed: int, n_heliostats: int, n_records: int) -> dict:
         effects.append(make_effect(eff, nominal_model(base), **values))
     t0 = time.perf_counter()
     fleet, _ = simulate_fleet(seed, n_heliostats, n_records, effects=effects, base=base, noise_mrad=noise)
+    simulate_s = time.perf_counter() - t0
     res = discover(fleet, base=base)
     r = res.report
     floor = noise * np.sqrt(2.0)
@@ -99,6 +101,7 @@ def run_one(name: str, seed: int, n_heliostats: int, n_records: int) -> dict:
         "heldout_final_mrad": r["heldout_rms_final_mrad"],
         "heldout_ratio": r["heldout_rms_final_mrad"] / floor,
         "seconds": time.perf_counter() - t0,
+        "simulate_s": simulate_s,
     }
     if expected is not None:
         out["hit"] = bool(r["named_effects"][:1] == [expected])
@@ -169,7 +172,9 @@ def main(argv=None) -> int:
     ap.add_argument("--scenarios", default=",".join(SCENARIOS))
     ap.add_argument("--out", default=None)
     ap.add_argument("--cache-dir", default=None, help="persistent JAX compilation cache")
+    ap.add_argument("--log-level", default="WARNING", help="logging level of the stage messages (INFO: with times)")
     args = ap.parse_args(argv)
+    logging.basicConfig(level=args.log_level, format="%(relativeCreated)9.0f ms %(name)s: %(message)s")
 
     import jax
 
