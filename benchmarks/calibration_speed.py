@@ -306,24 +306,36 @@ def heliojax_data(geometry, context, counts, focal, mask, pad=True):
 
 
 def lm_solver(linear_solver: str):
-    """The Levenberg-Marquardt solver of the fit with the damped step solved by QR of
-    the stacked Jacobian (``"qr"``, optimistix's default and heliojax's) or by
-    Cholesky of the normal equations (``"cholesky"``: 8 x 8 systems instead of a QR
-    of a (2M + 8) x 8 matrix per heliostat and step)."""
+    """The Levenberg-Marquardt solver of the fit: heliojax's default for the backend
+    (``"auto"``: QR on CPU, Cholesky on accelerators), or with the damped step solved
+    by QR of the stacked Jacobian (``"qr"``, optimistix's default) or by Cholesky of
+    the normal equations (``"cholesky"``: 8 x 8 systems instead of a QR of a
+    (2M + 8) x 8 matrix per heliostat and step)."""
     import lineax as lx
     import optimistix as optx
 
-    from heliojax.fitting import default_solver
+    from heliojax.fitting import DEFAULT_ATOL, DEFAULT_RTOL, default_solver
 
-    if linear_solver == "qr":
+    if linear_solver == "auto":
         return default_solver()
+    if linear_solver == "qr":
+        return optx.LevenbergMarquardt(rtol=DEFAULT_RTOL, atol=DEFAULT_ATOL)
     if linear_solver == "cholesky":
-        d = default_solver()
-        return optx.LevenbergMarquardt(rtol=d.rtol, atol=d.atol, linear_solver=lx.Normal(lx.Cholesky()))
-    raise SystemExit(f"--linear-solver: unknown {linear_solver!r} (qr or cholesky)")
+        return optx.LevenbergMarquardt(rtol=DEFAULT_RTOL, atol=DEFAULT_ATOL, linear_solver=lx.Normal(lx.Cholesky()))
+    raise SystemExit(f"--linear-solver: unknown {linear_solver!r} (auto, qr or cholesky)")
 
 
-def time_heliojax(data, strategy, chunk_size, repeats, robust=False, linear_solver="qr"):
+def batching_of(strategy: str, chunk_size: int):
+    """The library's batching strategy of that name, or ``"vmap-restart"``: vmap with
+    the straggler restart of the accelerators' default."""
+    import heliojax as hj
+
+    if strategy == "vmap-restart":
+        return hj.Vmap(restart_after=hj.fitting.RESTART_AFTER)
+    return hj.fitting.batching_from_name(strategy, chunk_size)
+
+
+def time_heliojax(data, strategy, chunk_size, repeats, robust=False, linear_solver="auto"):
     """``(solution, first_call_s, best_later_s, later_calls)`` of :func:`heliojax.fit`
     (with ``robust``: of :func:`heliojax.fitting.fit_robust`, all its passes)."""
     import jax
@@ -331,7 +343,7 @@ def time_heliojax(data, strategy, chunk_size, repeats, robust=False, linear_solv
 
     import heliojax as hj
 
-    batching = hj.fitting.batching_from_name(strategy, chunk_size)
+    batching = batching_of(strategy, chunk_size)
     solver = lm_solver(linear_solver)
     model = hj.StoneModel.nominal(jnp.float64)
     times = []
@@ -345,6 +357,47 @@ def time_heliojax(data, strategy, chunk_size, repeats, robust=False, linear_solv
         jax.block_until_ready(result.cost)
         times.append(time.perf_counter() - t0)
     return result, times[0], min(times[1:]), times[1:]
+
+
+def profile_call(data, strategy, chunk_size, linear_solver, log_dir, top=25):
+    """One more warm call of the fit under ``jax.profiler.trace`` (a Perfetto trace in
+    ``log_dir``): the call's wall time, and per device the busy time and the ``top``
+    operations (kernels on a GPU) by total duration."""
+    import glob
+    import gzip
+
+    import jax
+    import jax.numpy as jnp
+
+    import heliojax as hj
+
+    batching = batching_of(strategy, chunk_size)
+    solver = lm_solver(linear_solver)
+    model = hj.StoneModel.nominal(jnp.float64)
+    with jax.profiler.trace(log_dir, create_perfetto_trace=True):
+        t0 = time.perf_counter()
+        jax.block_until_ready(hj.fit(model, data, batching=batching, solver=solver).cost)
+        wall = time.perf_counter() - t0
+    path = sorted(glob.glob(os.path.join(log_dir, "**", "perfetto_trace.json.gz"), recursive=True))[-1]
+    with gzip.open(path) as f:
+        trace = json.load(f)
+    events = trace["traceEvents"] if isinstance(trace, dict) else trace
+    process = {e["pid"]: e["args"]["name"] for e in events if e.get("ph") == "M" and e.get("name") == "process_name"}
+    per_device = {}
+    for e in events:
+        name = process.get(e.get("pid"), "")
+        if e.get("ph") != "X" or not ("device" in name.lower() or "gpu" in name.lower()):
+            continue
+        d = per_device.setdefault(name, {"busy_ms": 0.0, "events": 0, "ops": {}})
+        d["busy_ms"] += e.get("dur", 0.0) / 1e3
+        d["events"] += 1
+        op = d["ops"].setdefault(e["name"][:120], [0.0, 0])
+        op[0] += e.get("dur", 0.0) / 1e3
+        op[1] += 1
+    for d in per_device.values():
+        ranked = sorted(d.pop("ops").items(), key=lambda kv: -kv[1][0])[:top]
+        d["top_ms_count"] = [[k, round(v[0], 3), v[1]] for k, v in ranked]
+    return {"wall_s": wall, "trace": path, "processes": sorted(set(process.values())), "devices": per_device}
 
 
 def heldout_rms(params, geometry, context, counts, focal, mask):
@@ -388,12 +441,16 @@ def parse_args(argv=None):
     p.add_argument("--records", type=int, default=100)
     p.add_argument("--noise", type=float, default=0.2, help="measurement noise, mrad per component")
     p.add_argument("--train-fraction", type=float, default=0.7)
-    p.add_argument("--strategy", default="auto", help="auto|vmap|chunked|map, or a comma list to time several")
+    p.add_argument(
+        "--strategy", default="auto", help="auto|vmap|vmap-restart|chunked|map, or a comma list to time several"
+    )
     p.add_argument("--chunk-size", type=int, default=64)
+    p.add_argument("--profile", default=None, help="directory: profile one more warm call (JSON key 'profile')")
     p.add_argument(
         "--linear-solver",
-        default="qr",
-        help="LM step: qr (default, optimistix's) or cholesky (normal equations), or a comma list to time both",
+        default="auto",
+        help="LM step: auto (heliojax's default: qr on CPU, cholesky on accelerators), qr (optimistix's) or "
+        "cholesky (normal equations), or a comma list to time several",
     )
     p.add_argument("--skip-other-bucket", action="store_true", help="do not time the compile of a second bucket")
     p.add_argument("--repeats", type=int, default=2, help="timed calls after the compiling one")
@@ -469,7 +526,8 @@ def main(argv=None) -> int:
 
     backend = jax.default_backend()
     strategies = [s.strip() for s in args.strategy.split(",")]
-    auto = "map" if isinstance(default_batching(backend), hj.LaxMap) else "vmap"
+    default = default_batching(backend)
+    auto = "map" if isinstance(default, hj.LaxMap) else "vmap-restart" if default.restart_after else "vmap"
     resolved = [auto if s == "auto" else s for s in strategies]
     linear_solvers = [x.strip() for x in args.linear_solver.split(",")]
     per_strategy = {}
@@ -539,7 +597,10 @@ def main(argv=None) -> int:
         "converged_fraction": float(np.mean(status == 0)),
         "lm_steps_mean": float(steps.mean()),
         "lm_steps_max": int(steps.max()),
+        "lm_steps_quantiles": {q: float(np.quantile(steps, float(q))) for q in ("0.5", "0.9", "0.99", "0.999")},
     }
+    if args.profile:
+        out["profile"] = profile_call(data, strategy, args.chunk_size, linear_solver, args.profile)
     if not args.skip_robust:
         rms_r, _ = heldout_rms(np.asarray(res_r.parameters())[:n], geometry, test[0], test[1], test[2], test_mask)
         out.update(

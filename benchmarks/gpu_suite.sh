@@ -75,7 +75,7 @@ if wants calibration; then
     --strategy vmap --linear-solver qr,cholesky --json
   step calibration "${CAL_LIMIT:-200}" "$PY" benchmarks/calibration_speed.py \
     --heliostats "$CAL_N" --records 100 --skip-scipy --skip-robust --skip-other-bucket --repeats 2 \
-    --strategy "${CAL_STRATEGY:-vmap}" --linear-solver "${CAL_SOLVER:-cholesky}" --json
+    --strategy "${CAL_STRATEGY:-vmap,vmap-restart}" --linear-solver "${CAL_SOLVER:-auto}" --json
 fi
 if wants aim; then
   step aim "${AIM_LIMIT:-60}" "$PY" benchmarks/aim_speed.py --heliostats "$AIM_N" --instants 48

@@ -92,12 +92,36 @@ def test_strategies_agree(fleet100):
     *_, data, res = fleet100
     sub = _take(data, 8)
     ref = hj.fit(STONE, sub, batching=hj.LaxMap())
-    for batching in (hj.Vmap(), hj.Chunked(3)):
+    for batching in (hj.Vmap(), hj.Chunked(3), hj.Vmap(restart_after=2)):
         other = hj.fit(STONE, sub, batching=batching)
         np.testing.assert_allclose(other.parameters(), ref.parameters(), rtol=0, atol=PATH_ATOL)
         np.testing.assert_array_equal(other.status, ref.status)
+    # every lane needs more than 2 steps: all were restarted, and their steps add up
+    assert np.all(np.asarray(ref.n_steps) > 2)
+    assert np.all(np.asarray(other.n_steps) > 2)
     # the same program (lax.map) on a subset: bit for bit
     np.testing.assert_array_equal(np.asarray(ref.parameters()), np.asarray(res.parameters())[:8])
+
+
+def test_accelerator_step_by_cholesky_agrees_with_qr(fleet100):
+    """The LM step of accelerators (Cholesky of the normal equations) against CPU's
+    (QR of the stacked Jacobian), both run here: the same parameters to the solver's
+    tolerance, also under a prior and for a heliostat with fewer records (5) than
+    parameters, which the damping and the prior keep solvable."""
+    import lineax as lx
+
+    assert isinstance(hj.fitting.default_solver("gpu").descent.linear_solver, lx.Normal)
+    assert not isinstance(hj.fitting.default_solver("cpu").descent.linear_solver, lx.Normal)
+    *_, data, _ = fleet100
+    sub = _take(data, 6)
+    mask = np.asarray(sub.mask).copy()
+    mask[0, 5:] = False
+    prior = hj.gaussian_prior(STONE, {name: 3e-3 for name in ("alpha", "beta", "gamma", "delta", "theta_k", "tau_k")})
+    qr = hj.fit(STONE, sub, mask=jnp.asarray(mask), prior=prior, solver=hj.fitting.default_solver("cpu"))
+    chol = hj.fit(STONE, sub, mask=jnp.asarray(mask), prior=prior, solver=hj.fitting.default_solver("gpu"))
+    np.testing.assert_array_equal(chol.status, qr.status)
+    assert np.all(np.asarray(qr.status) == FitStatus.CONVERGED), qr.status
+    np.testing.assert_allclose(chol.parameters(), qr.parameters(), rtol=0, atol=PATH_ATOL)
 
 
 def test_padding_records_and_heliostats_change_nothing(fleet100):

@@ -10,6 +10,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import heliojax as hj
 from heliojax._simulate import calibration_target, simulate_records, synthetic_contexts, synthetic_geometry
@@ -60,3 +61,46 @@ def test_planted_jumps_are_found_and_dated_and_clean_heliostats_are_left_alone()
     assert np.mean(dated) >= 0.9, np.mean(dated)
     assert np.mean(clean_flags) <= 0.05, np.mean(clean_flags)
     assert np.median(jump_err) < 0.3, np.median(jump_err)
+
+
+@pytest.mark.parametrize("jump_is_base", [False, True])
+def test_jump_scan_matches_a_least_squares_solve_per_candidate(jump_is_base):
+    """The suffix-sum scan against the definition: per candidate date, numpy's lstsq of
+    the base design with the two jump columns on the records at or after that date
+    (records with tied times, unused records, and a rank-deficient base column). With
+    ``jump_is_base`` the jump columns are two of the base columns, as in the detector:
+    a step at the first date duplicates them and lowers nothing."""
+    from heliojax.fitting._changes import jump_scan
+
+    rng = np.random.default_rng(3)
+    m, f = 30, 6
+    base = rng.normal(size=(m, 2, f))
+    base[..., 5] = base[..., 4]  # rank-deficient base design
+    jump = base[..., :2].copy() if jump_is_base else rng.normal(size=(m, 2, 2))
+    residual = rng.normal(size=(m, 2))
+    time = rng.integers(0, 12, m).astype(float)  # ties
+    use = rng.random(m) > 0.15
+    time = np.where(use, time, np.inf)
+    rss0, (coef, drop), n_after = jax.jit(jump_scan)(base, jump, residual, time, use)
+
+    w = use[:, None, None]
+    design0 = (base * w).reshape(2 * m, f)
+    rr = (residual * use[:, None]).reshape(-1)
+    x0, *_ = np.linalg.lstsq(design0, rr, rcond=None)
+    want_rss0 = np.sum((rr - design0 @ x0) ** 2)
+    np.testing.assert_allclose(float(rss0), want_rss0, rtol=1e-10)
+    compared = 0
+    for c in range(m):
+        after = use & (time >= time[c])
+        assert int(n_after[c]) == after.sum()
+        design = np.concatenate([design0, (jump * after[:, None, None]).reshape(2 * m, 2)], axis=1)
+        x, *_ = np.linalg.lstsq(design, rr, rcond=None)
+        want_drop = want_rss0 - np.sum((rr - design @ x) ** 2)
+        if after.sum() == 0 or (jump_is_base and after.sum() == use.sum()):
+            assert float(drop[c]) == 0.0 and np.all(np.asarray(coef[c]) == 0.0)
+            assert abs(want_drop) < 1e-9 * want_rss0
+            continue
+        np.testing.assert_allclose(float(drop[c]), want_drop, rtol=1e-8, atol=1e-10 * want_rss0)
+        np.testing.assert_allclose(np.asarray(coef[c]), x[-2:], rtol=1e-7, atol=1e-9)
+        compared += 1
+    assert compared >= m // 2

@@ -4,6 +4,7 @@ workflow, with its losses, priors, batching strategies and evaluation."""
 from ._batching import (
     AXIS as AXIS,
     BATCHING_NAMES as BATCHING_NAMES,
+    RESTART_AFTER as RESTART_AFTER,
     AbstractBatching as AbstractBatching,
     Chunked as Chunked,
     LaxMap as LaxMap,

@@ -49,7 +49,25 @@ class AbstractBatching(eqx.Module):
 
 @typing.final
 class Vmap(AbstractBatching):
-    """``jax.vmap`` over heliostats (accelerators)."""
+    """``jax.vmap`` over heliostats (accelerators).
+
+    A vmapped while loop runs every lane until the slowest has converged: on a fleet
+    of 100,000 most heliostats converge in 5-6 Levenberg-Marquardt steps, a few take
+    30. With ``restart_after`` set, :func:`heliojax.fit` stops every lane after that
+    many steps and fits the lanes that had not converged again, from where they
+    stopped, in a batch of their own (padded to a power of two) with the remaining
+    steps. The restarted solver forgets its damping, so their parameters agree with a
+    single run to the solver's tolerance, not bit for bit.
+
+    Attributes:
+        restart_after: steps of the first pass (``None``: one pass).
+    """
+
+    restart_after: int | None = eqx.field(static=True, default=None)
+
+    def __check_init__(self):
+        if self.restart_after is not None and self.restart_after < 1:
+            raise ValueError(f"Vmap: restart_after must be >= 1 or None, got {self.restart_after}")
 
     def map(self, fn):
         return jax.vmap(fn)
@@ -77,11 +95,17 @@ class Chunked(AbstractBatching):
         return lambda *xs: jax.lax.map(lambda a: fn(*a), xs, batch_size=self.size)
 
 
+RESTART_AFTER = 12
+"""First-pass steps of the default :class:`Vmap` (over the 99.9th percentile of the
+steps a simulated fleet of 100 x 100 records needs: 12.6)."""
+
+
 def default_batching(backend: str | None = None) -> AbstractBatching:
     """:class:`LaxMap` on CPU (sequential lanes beat vmap's lock-step while loop
-    there), :class:`Vmap` on accelerators."""
+    there), :class:`Vmap` on accelerators, restarting the lanes that have not
+    converged after :data:`RESTART_AFTER` steps."""
     backend = backend or jax.default_backend()
-    return LaxMap() if backend == "cpu" else Vmap()
+    return LaxMap() if backend == "cpu" else Vmap(restart_after=RESTART_AFTER)
 
 
 BATCHING_NAMES = ("auto", "vmap", "chunked", "map")
@@ -164,6 +188,7 @@ class Sharded(AbstractBatching):
 __all__: Sequence[str] = (
     "AXIS",
     "BATCHING_NAMES",
+    "RESTART_AFTER",
     "AbstractBatching",
     "Chunked",
     "LaxMap",

@@ -79,6 +79,68 @@ def _offset_columns(view: ParameterView) -> tuple[tuple[str, str], list[int]]:
     )
 
 
+def jump_scan(
+    base: Float[Array, "M 2 F"],
+    jump: Float[Array, "M 2 2"],
+    residual: Float[Array, "M 2"],
+    time: Float[Array, " M"],
+    use: Bool[Array, " M"],
+) -> tuple[Float[Array, ""], tuple[Float[Array, "M 2"], Float[Array, " M"]], Int[Array, " M"]]:
+    """The linearised change-point problem of one heliostat, for every candidate date at once.
+
+    Each record time ``t_c`` is a candidate: the design ``base`` (rows of the records,
+    ``F`` columns) gets the two ``jump`` columns on the records at or after ``t_c``.
+    By the Frisch-Waugh-Lovell theorem the jump coefficients are ``C^-1 a`` with
+    ``a = E^T r_perp``, ``C = E^T E - E^T B (B^T B)^+ B^T E`` (``E``: the jump columns
+    after ``t_c``, ``r_perp``: the residual of the base fit), and the residual sum of
+    squares drops by ``a^T C^-1 a``. ``E^T r_perp``, ``E^T E`` and ``E^T B`` are
+    suffix sums over the records in time order: O(M F^2) for all candidates, not a
+    least-squares solve per candidate (``tests/test_changes.py`` checks it against
+    those solves).
+
+    Args:
+        base: ``(M, 2, F)`` weighted design rows of the free parameters.
+        jump: ``(M, 2, 2)`` weighted rows of the two jump columns (before masking).
+        residual: ``(M, 2)`` weighted residual rows.
+        time: ``(M,)`` record times (any unit; ``inf`` for unused records).
+        use: ``(M,)`` records that count.
+
+    Returns:
+        ``(rss0, (coef, rss_drop), n_after)``: the base fit's residual sum of squares;
+        per candidate the ``(M, 2)`` jump coefficients and the drop of the residual sum
+        of squares (0 where the jump columns are degenerate); the used records at or
+        after each candidate.
+    """
+    use_f = use.astype(base.dtype)
+    b, e, r = base * use_f[:, None, None], jump * use_f[:, None, None], residual * use_f[:, None]
+    gram = jnp.einsum("mif,mig->fg", b, b)
+    gram_pinv = jnp.linalg.pinv(gram, hermitian=True)
+    r_perp = r - jnp.einsum("mif,f->mi", b, gram_pinv @ jnp.einsum("mif,mi->f", b, r))
+    rss0 = jnp.sum(r_perp**2)
+    order = jnp.argsort(time)
+    t_sorted = time[order]
+
+    def suffix(x):  # sums over the records at or after each sorted position, then 0
+        x = x[order]
+        total = jnp.cumsum(x[::-1], axis=0)[::-1]
+        return jnp.concatenate([total, jnp.zeros((1,) + x.shape[1:], x.dtype)], axis=0)
+
+    first = jnp.searchsorted(t_sorted, time, side="left")  # ties: all records of t_c count as after
+    er = suffix(jnp.einsum("mij,mi->mj", e, r_perp))[first]  # (M, 2)
+    ee = suffix(jnp.einsum("mij,mik->mjk", e, e))[first]  # (M, 2, 2)
+    eb = suffix(jnp.einsum("mij,mif->mjf", e, b))[first]  # (M, 2, F)
+    n_after = suffix(use.astype(jnp.int32))[first]
+    c = ee - jnp.einsum("mjf,fg,mkg->mjk", eb, gram_pinv, eb)
+    det = c[:, 0, 0] * c[:, 1, 1] - c[:, 0, 1] * c[:, 1, 0]
+    size = jnp.maximum(c[:, 0, 0] + c[:, 1, 1], jnp.finfo(base.dtype).tiny)
+    proper = det > 1e-12 * size**2
+    safe_det = jnp.where(proper, det, 1.0)
+    inv = jnp.stack([jnp.stack([c[:, 1, 1], -c[:, 0, 1]], -1), jnp.stack([-c[:, 1, 0], c[:, 0, 0]], -1)], -2)
+    coef = jnp.where(proper[:, None], jnp.einsum("mjk,mk->mj", inv, er) / safe_det[:, None], 0.0)
+    drop = jnp.where(proper, jnp.sum(er * coef, axis=-1), 0.0)
+    return rss0, (coef, drop), n_after
+
+
 @cached_jit  # traced once per machine when the CLI keeps programs
 def _scan(view, columns, min_segment, model, geometry, counts, context, focal, mask, weight):
     def one(model, geometry, counts, context, focal, mask, weight):
@@ -98,25 +160,10 @@ def _scan(view, columns, min_segment, model, geometry, counts, context, focal, m
         jac = jac / scale[None, None, :]
         jump_cols = jac[:, :, jnp.asarray(columns)]  # (M, 2, 2)
         t = jnp.where(use, context.unix_time, jnp.inf)
-        rr = r.reshape(-1)
-        base = jac.reshape(rr.shape[0], -1)
-
-        def rss(design):
-            x, *_ = jnp.linalg.lstsq(design, rr)
-            return jnp.sum((rr - design @ x) ** 2), x
-
-        rss0, _ = rss(base)
-
-        def candidate(tc):
-            after = use & (t >= tc)
-            extra = jnp.where(after[:, None, None], jump_cols, 0.0).reshape(rr.shape[0], 2)
-            rss1, x = rss(jnp.concatenate([base, extra], axis=1))
-            n_after, n_before = jnp.sum(after), jnp.sum(use & ~after)
-            ok = (n_after >= min_segment) & (n_before >= min_segment)
-            jump = -x[-2:] / scale[jnp.asarray(columns)] * 1e3  # rows are residuals: the offsets move the other way
-            return jnp.where(ok, rss0 - rss1, -jnp.inf), jump, n_after
-
-        gain, jump, n_after = jax.vmap(candidate)(t)
+        rss0, (coef, drop), n_after = jump_scan(jac, jump_cols, r, t, use)
+        ok = (n_after >= min_segment) & (jnp.sum(use).astype(jnp.int32) - n_after >= min_segment)
+        gain = jnp.where(ok, drop, -jnp.inf)
+        jump = -coef / scale[None, jnp.asarray(columns)] * 1e3  # rows are residuals: the offsets move the other way
         best = jnp.argmax(gain)
         possible = jnp.isfinite(gain[best])
         n_rows = 2 * jnp.sum(use)

@@ -30,6 +30,7 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
@@ -49,10 +50,26 @@ DEFAULT_ATOL = 1e-5
 DEFAULT_MAX_STEPS = 64
 
 
-def default_solver() -> optx.LevenbergMarquardt:
+def default_solver(backend: str | None = None) -> optx.LevenbergMarquardt:
     """optimistix Levenberg-Marquardt with tolerances on the scaled parameters:
-    ``atol = 1e-5`` scaled units = 0.1 micro-radian on angles."""
-    return optx.LevenbergMarquardt(rtol=DEFAULT_RTOL, atol=DEFAULT_ATOL)
+    ``atol = 1e-5`` scaled units = 0.1 micro-radian on angles.
+
+    The damped step's linear solve depends on the backend (``backend``, default JAX's
+    default backend), as the batching does (:func:`default_batching`):
+
+    * CPU: QR of the stacked ``(R + F) x F`` Jacobian (optimistix's default).
+    * accelerators: Cholesky of the ``F x F`` normal equations
+      (``lineax.Normal(lineax.Cholesky())``). A batch of QRs of matrices taller than
+      32 rows runs on CUDA as one solver call per matrix; on an H200 a 1,000 x 100
+      fleet fitted in 1.37 s by QR and in 0.036 s by Cholesky (``benchmarks/
+      calibration_speed.py --linear-solver qr,cholesky``). The damping keeps the
+      normal matrix positive definite; the parameters agree with QR's to the solver's
+      tolerance (``tests/test_calibration.py``).
+    """
+    backend = backend or jax.default_backend()
+    if backend == "cpu":
+        return optx.LevenbergMarquardt(rtol=DEFAULT_RTOL, atol=DEFAULT_ATOL)
+    return optx.LevenbergMarquardt(rtol=DEFAULT_RTOL, atol=DEFAULT_ATOL, linear_solver=lx.Normal(lx.Cholesky()))
 
 
 class LeastSquaresOutcome(typing.NamedTuple):
@@ -361,8 +378,32 @@ def fit(
         A :class:`FitSolution`.
     """
     h, static, args = _prepare(model0, fleet, mask, free, solver, loss, prior, batching, max_steps)
-    out = _fit_compiled(*static, *args)
+    out = _fit_in_passes(static, args)
     return FitSolution(view=static[0], **static[-1].finish(out, h))
+
+
+def _fit_in_passes(static: tuple, args: tuple) -> dict[str, typing.Any]:
+    """The compiled fit; with ``Vmap(restart_after=K)``, a first pass of ``K`` steps,
+    then the lanes that hit that limit again, gathered into a batch of a power-of-two
+    size, with the remaining steps (see :class:`heliojax.Vmap`)."""
+    view, solver, loss, prior, max_steps, batching = static
+    first = getattr(batching, "restart_after", None)
+    if first is None or first >= max_steps:
+        return _fit_compiled(*static, *args)
+    out = _fit_compiled(view, solver, loss, prior, first, batching, *args)
+    late = np.flatnonzero(np.asarray(out["status"]) == FitStatus.MAX_STEPS)
+    if late.size == 0:
+        return out
+    size = min(1 << int(late.size - 1).bit_length(), int(np.shape(out["status"])[0]))
+    index = jnp.asarray(np.concatenate([late, np.full(size - late.size, late[-1])]))
+
+    def take(x):
+        return x[index] if eqx.is_array(x) else x
+
+    again = (jax.tree.map(take, out["model"]), *jax.tree.map(take, args[1:]))
+    rest = _fit_compiled(view, solver, loss, prior, max_steps - first, batching, *again)
+    rest["n_steps"] = rest["n_steps"] + first
+    return jax.tree.map(lambda a, b: a.at[index].set(b) if eqx.is_array(a) else a, out, rest)
 
 
 class CompiledFit:
