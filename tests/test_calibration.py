@@ -112,6 +112,8 @@ def test_accelerator_step_by_cholesky_agrees_with_qr(fleet100):
 
     assert isinstance(hj.fitting.default_solver("gpu").descent.linear_solver, lx.Normal)
     assert not isinstance(hj.fitting.default_solver("cpu").descent.linear_solver, lx.Normal)
+    assert hj.fitting.default_batching("gpu") == hj.Vmap(restart_after=hj.fitting.RESTART_AFTER)
+    assert hj.fitting.default_batching("cpu") == hj.LaxMap()
     *_, data, _ = fleet100
     sub = _take(data, 6)
     mask = np.asarray(sub.mask).copy()

@@ -96,8 +96,9 @@ class Chunked(AbstractBatching):
 
 
 RESTART_AFTER = 12
-"""First-pass steps of the default :class:`Vmap` (over the 99.9th percentile of the
-steps a simulated fleet of 100 x 100 records needs: 12.6)."""
+"""First-pass steps of the default :class:`Vmap`: about twice the median number of
+steps (5) of simulated fleets; at 100,000 x 100 records the 99th percentile was 16
+steps and the slowest lane 35, so 1-2 % of the lanes go on to the second pass."""
 
 
 def default_batching(backend: str | None = None) -> AbstractBatching:
