@@ -66,9 +66,9 @@ step() {  # step NAME LIMIT_S COMMAND...
 STEPS="${STEPS:-calibration aim raytrace discovery}"
 wants() { [[ " $STEPS " == *" $1 "* ]]; }
 
-# Which LM linear solve suits the device, at a hundredth of the size (on an H100, vmap
-# + QR took 23.7 s for 10,000 x 100: see the README), then the full size with the LM
-# step solved by Cholesky of the normal equations.
+# Which LM linear solve suits the device, at a hundredth of the size (H200, 1,000 x 100:
+# QR 1.37 s, Cholesky 0.036 s; see the README), then the full size with the library's
+# default step (Cholesky on GPUs), plain vmap against the straggler restart.
 if wants calibration; then
   step calibration_choice "${CHOICE_LIMIT:-120}" "$PY" benchmarks/calibration_speed.py \
     --heliostats "$((CAL_N / 100))" --records 100 --skip-scipy --skip-robust --skip-other-bucket --repeats 2 \
@@ -76,6 +76,11 @@ if wants calibration; then
   step calibration "${CAL_LIMIT:-200}" "$PY" benchmarks/calibration_speed.py \
     --heliostats "$CAL_N" --records 100 --skip-scipy --skip-robust --skip-other-bucket --repeats 2 \
     --strategy "${CAL_STRATEGY:-vmap,vmap-restart}" --linear-solver "${CAL_SOLVER:-auto}" --json
+  # The 100,000-heliostat fit spent 1.5 of 2.3 s in Triton GEMM fusions of tiny
+  # per-lane float64 products (H200 profile, README): the same fit with them left to cuBLAS.
+  XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_enable_triton_gemm=false" step calibration_no_triton_gemm "${CAL_LIMIT:-200}" \
+    "$PY" benchmarks/calibration_speed.py --heliostats "$CAL_N" --records 100 --skip-scipy --skip-robust \
+    --skip-other-bucket --repeats 2 --strategy vmap-restart --json
 fi
 if wants aim; then
   step aim "${AIM_LIMIT:-60}" "$PY" benchmarks/aim_speed.py --heliostats "$AIM_N" --instants 48

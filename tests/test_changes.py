@@ -63,13 +63,15 @@ def test_planted_jumps_are_found_and_dated_and_clean_heliostats_are_left_alone()
     assert np.median(jump_err) < 0.3, np.median(jump_err)
 
 
-@pytest.mark.parametrize("jump_is_base", [False, True])
-def test_jump_scan_matches_a_least_squares_solve_per_candidate(jump_is_base):
+@pytest.mark.parametrize(("jump_is_base", "undated"), [(False, 2), (True, 0), (True, 2)])
+def test_jump_scan_matches_a_least_squares_solve_per_candidate(jump_is_base, undated):
     """The suffix-sum scan against the definition: per candidate date, numpy's lstsq of
     the base design with the two jump columns on the records at or after that date
-    (records with tied times, unused records, and a rank-deficient base column). With
+    (records with tied times, unused records, used records without a time, and a
+    rank-deficient base column). With
     ``jump_is_base`` the jump columns are two of the base columns, as in the detector:
-    a step at the first date duplicates them and lowers nothing."""
+    with every record dated, a step at the first date duplicates them and lowers
+    nothing. ``undated`` used records have no time (NaN)."""
     from heliojax.fitting._changes import jump_scan
 
     rng = np.random.default_rng(3)
@@ -81,6 +83,7 @@ def test_jump_scan_matches_a_least_squares_solve_per_candidate(jump_is_base):
     time = rng.integers(0, 12, m).astype(float)  # ties
     use = rng.random(m) > 0.15
     time = np.where(use, time, np.inf)
+    time[np.flatnonzero(use)[:undated]] = np.nan  # used records without a time: never after a date
     rss0, (coef, drop), n_after = jax.jit(jump_scan)(base, jump, residual, time, use)
 
     w = use[:, None, None]
@@ -96,7 +99,7 @@ def test_jump_scan_matches_a_least_squares_solve_per_candidate(jump_is_base):
         design = np.concatenate([design0, (jump * after[:, None, None]).reshape(2 * m, 2)], axis=1)
         x, *_ = np.linalg.lstsq(design, rr, rcond=None)
         want_drop = want_rss0 - np.sum((rr - design @ x) ** 2)
-        if after.sum() == 0 or (jump_is_base and after.sum() == use.sum()):
+        if after.sum() == 0 or (jump_is_base and not undated and after.sum() == use.sum()):
             assert float(drop[c]) == 0.0 and np.all(np.asarray(coef[c]) == 0.0)
             assert abs(want_drop) < 1e-9 * want_rss0
             continue

@@ -102,7 +102,8 @@ def jump_scan(
         base: ``(M, 2, F)`` weighted design rows of the free parameters.
         jump: ``(M, 2, 2)`` weighted rows of the two jump columns (before masking).
         residual: ``(M, 2)`` weighted residual rows.
-        time: ``(M,)`` record times (any unit; ``inf`` for unused records).
+        time: ``(M,)`` record times (any unit; ``inf`` for unused records; NaN for
+            records without a time, which are never after a candidate).
         use: ``(M,)`` records that count.
 
     Returns:
@@ -117,15 +118,19 @@ def jump_scan(
     gram_pinv = jnp.linalg.pinv(gram, hermitian=True)
     r_perp = r - jnp.einsum("mif,f->mi", b, gram_pinv @ jnp.einsum("mif,mi->f", b, r))
     rss0 = jnp.sum(r_perp**2)
-    order = jnp.argsort(time)
-    t_sorted = time[order]
+    # Records without a time (NaN) are in the base design but never after a candidate:
+    # sorted first, so that no suffix of a dated candidate holds them.
+    key = jnp.where(jnp.isnan(time), -jnp.inf, time)
+    order = jnp.argsort(key)
+    t_sorted = key[order]
 
     def suffix(x):  # sums over the records at or after each sorted position, then 0
         x = x[order]
         total = jnp.cumsum(x[::-1], axis=0)[::-1]
         return jnp.concatenate([total, jnp.zeros((1,) + x.shape[1:], x.dtype)], axis=0)
 
-    first = jnp.searchsorted(t_sorted, time, side="left")  # ties: all records of t_c count as after
+    # ties: all records of t_c count as after; an undated candidate has none after it
+    first = jnp.where(jnp.isnan(time), time.shape[0], jnp.searchsorted(t_sorted, key, side="left"))
     er = suffix(jnp.einsum("mij,mi->mj", e, r_perp))[first]  # (M, 2)
     ee = suffix(jnp.einsum("mij,mik->mjk", e, e))[first]  # (M, 2, 2)
     eb = suffix(jnp.einsum("mij,mif->mjf", e, b))[first]  # (M, 2, F)
@@ -162,7 +167,7 @@ def _scan(view, columns, min_segment, model, geometry, counts, context, focal, m
         t = jnp.where(use, context.unix_time, jnp.inf)
         rss0, (coef, drop), n_after = jump_scan(jac, jump_cols, r, t, use)
         ok = (n_after >= min_segment) & (jnp.sum(use).astype(jnp.int32) - n_after >= min_segment)
-        gain = jnp.where(ok, drop, -jnp.inf)
+        gain = jnp.where(ok & jnp.isfinite(rss0) & jnp.isfinite(drop), drop, -jnp.inf)  # NaN rows: no candidate
         jump = -coef / scale[None, jnp.asarray(columns)] * 1e3  # rows are residuals: the offsets move the other way
         best = jnp.argmax(gain)
         possible = jnp.isfinite(gain[best])
