@@ -308,21 +308,15 @@ def heliojax_data(geometry, context, counts, focal, mask, pad=True):
 def lm_solver(linear_solver: str):
     """The Levenberg-Marquardt solver of the fit: heliojax's default for the backend
     (``"auto"``: QR on CPU, Cholesky on accelerators), or with the damped step solved
-    by QR of the stacked Jacobian (``"qr"``, optimistix's default) or by Cholesky of
-    the normal equations (``"cholesky"``: 8 x 8 systems instead of a QR of a
-    (2M + 8) x 8 matrix per heliostat and step)."""
-    import lineax as lx
-    import optimistix as optx
+    by QR of the stacked Jacobian (``"qr"``, the CPU default) or by Cholesky of the
+    normal equations (``"cholesky"``, the accelerators' default: 8 x 8 systems instead
+    of a QR of a (2M + 8) x 8 matrix per heliostat and step)."""
+    from heliojax.fitting import default_solver
 
-    from heliojax.fitting import DEFAULT_ATOL, DEFAULT_RTOL, default_solver
-
-    if linear_solver == "auto":
-        return default_solver()
-    if linear_solver == "qr":
-        return optx.LevenbergMarquardt(rtol=DEFAULT_RTOL, atol=DEFAULT_ATOL)
-    if linear_solver == "cholesky":
-        return optx.LevenbergMarquardt(rtol=DEFAULT_RTOL, atol=DEFAULT_ATOL, linear_solver=lx.Normal(lx.Cholesky()))
-    raise SystemExit(f"--linear-solver: unknown {linear_solver!r} (auto, qr or cholesky)")
+    backends = {"auto": None, "qr": "cpu", "cholesky": "gpu"}
+    if linear_solver not in backends:
+        raise SystemExit(f"--linear-solver: unknown {linear_solver!r} (auto, qr or cholesky)")
+    return default_solver(backends[linear_solver])
 
 
 def batching_of(strategy: str, chunk_size: int):

@@ -39,7 +39,7 @@ from .._heliostat import HeliostatGeometry, RecordContext
 from .._kinematics import AbstractKinematicModel
 from .._parameters import ParameterView, broadcast_model, is_batched
 from .._programs import compile_cached
-from ._batching import AbstractBatching, default_batching
+from ._batching import AbstractBatching, Vmap, default_batching
 from ._loss import AbstractLoss, LeastSquares
 from ._prior import AbstractPrior, NoPrior
 from ._records import sanitise
@@ -387,7 +387,7 @@ def _fit_in_passes(static: tuple, args: tuple) -> dict[str, typing.Any]:
     then the lanes that hit that limit again, gathered into a batch of a power-of-two
     size, with the remaining steps (see :class:`heliojax.Vmap`)."""
     view, solver, loss, prior, max_steps, batching = static
-    first = getattr(batching, "restart_after", None)
+    first = batching.restart_after if isinstance(batching, Vmap) else None
     if first is None or first >= max_steps:
         return _fit_compiled(*static, *args)
     out = _fit_compiled(view, solver, loss, prior, first, batching, *args)
