@@ -44,7 +44,7 @@ def beam_error_components(
     r = reflected_ray(pose, sun)
     d = normalize(jnp.asarray(focal_spot) - pose.centre)
     e1, e2 = tangent_basis(r)
-    return jnp.stack([d @ e1, d @ e2])
+    return jnp.stack([jnp.sum(d * e1, axis=-1), jnp.sum(d * e2, axis=-1)])
 
 
 def beam_pointing_error(pose: Pose, sun: Float[ArrayLike, "3"], focal_spot: Float[ArrayLike, "3"]) -> Float[Array, ""]:

@@ -44,7 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from ._geometry import rotation_x, rotation_y, rotation_z
+from ._geometry import matmul3, matvec3, rotation_x, rotation_y, rotation_z
 
 _HALF_PI = np.pi / 2.0
 N_BA = (0.0, -1.0, 0.0)
@@ -240,7 +240,7 @@ class Pose(eqx.Module):
 
 def _chain_rotations(tilts, angles):
     alpha, beta, gamma, delta = tilts[0], tilts[1], tilts[2], tilts[3]
-    r01 = rotation_y(alpha) @ rotation_z(beta)
+    r01 = matmul3(rotation_y(alpha), rotation_z(beta))
     r_theta = rotation_x(angles[0] - _HALF_PI)
     r12 = rotation_y(gamma)
     r_tau = rotation_z(angles[1])
@@ -252,16 +252,17 @@ def chain_pose(tilts: Float[Array, "4"], angles: Float[Array, "2"], geometry: He
     """The shared rotation chain: tilts ``(alpha, beta, gamma, delta)`` and joint
     angles ``(theta, tau)`` (rad) -> :class:`Pose`."""
     r01, r_theta, r12, r_tau, r2m = _chain_rotations(tilts, angles)
-    outer = r01 @ r_theta
-    body = outer @ r12 @ r_tau @ r2m
+    outer = matmul3(r01, r_theta)
+    inner = matmul3(r12, r_tau)
+    body = matmul3(matmul3(outer, inner), r2m)
     n_ba = jnp.asarray(N_BA, dtype=body.dtype)
-    normal = body @ n_ba
+    normal = matvec3(body, n_ba)
     centre = (
         geometry.position
         + geometry.joint_translation_1
-        + outer @ (geometry.joint_translation_2 + r12 @ r_tau @ geometry.concentrator_translation)
+        + matvec3(outer, geometry.joint_translation_2 + matvec3(inner, geometry.concentrator_translation))
     )
-    rotation = body @ rotation_x(jnp.asarray(_HALF_PI, body.dtype))
+    rotation = matmul3(body, rotation_x(jnp.asarray(_HALF_PI, body.dtype)))
     return Pose(normal=normal, centre=centre, rotation=rotation)
 
 
@@ -273,9 +274,9 @@ def solve_chain_angles(tilts, normal, tau_reference):
     components.
     """
     alpha, beta, gamma, delta = tilts[0], tilts[1], tilts[2], tilts[3]
-    r01 = rotation_y(alpha) @ rotation_z(beta)
-    m = r01.T @ normal
-    v = rotation_x(delta) @ jnp.asarray(N_BA, dtype=normal.dtype)
+    r01 = matmul3(rotation_y(alpha), rotation_z(beta))
+    m = matvec3(r01.T, normal)
+    v = matvec3(rotation_x(delta), jnp.asarray(N_BA, dtype=normal.dtype))
     a = jnp.cos(gamma) * v[0]
     b = -jnp.cos(gamma) * v[1]
     c = m[0] - jnp.sin(gamma) * v[2]
@@ -285,7 +286,7 @@ def solve_chain_angles(tilts, normal, tau_reference):
     tau_candidates = jnp.stack([phase - half, phase + half])
     wrapped = jnp.mod(tau_candidates - tau_reference + jnp.pi, 2 * jnp.pi) - jnp.pi + tau_reference
     tau = wrapped[jnp.argmin(jnp.abs(wrapped - tau_reference))]
-    u = rotation_y(gamma) @ rotation_z(tau) @ v
+    u = matvec3(rotation_y(gamma), matvec3(rotation_z(tau), v))
     phi = jnp.arctan2(m[2], m[1]) - jnp.arctan2(u[2], u[1])
     phi = jnp.mod(phi + jnp.pi, 2 * jnp.pi) - jnp.pi
     theta = phi + _HALF_PI

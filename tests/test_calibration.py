@@ -110,8 +110,8 @@ def test_accelerator_step_by_cholesky_agrees_with_qr(fleet100):
     parameters, which the damping and the prior keep solvable."""
     import lineax as lx
 
-    assert isinstance(hj.fitting.default_solver("gpu").descent.linear_solver, lx.Normal)
-    assert not isinstance(hj.fitting.default_solver("cpu").descent.linear_solver, lx.Normal)
+    assert isinstance(hj.fitting.default_solver("gpu").descent.linear_solver, hj.fitting.NormalCholesky)
+    assert isinstance(hj.fitting.default_solver("cpu").descent.linear_solver, lx.QR)
     assert hj.fitting.default_batching("gpu") == hj.Vmap(restart_after=hj.fitting.RESTART_AFTER)
     assert hj.fitting.default_batching("cpu") == hj.LaxMap()
     *_, data, _ = fleet100
@@ -124,6 +124,60 @@ def test_accelerator_step_by_cholesky_agrees_with_qr(fleet100):
     np.testing.assert_array_equal(chol.status, qr.status)
     assert np.all(np.asarray(qr.status) == FitStatus.CONVERGED), qr.status
     np.testing.assert_allclose(chol.parameters(), qr.parameters(), rtol=0, atol=PATH_ATOL)
+
+
+def test_products_by_reduction_give_the_same_poses_and_fit(fleet100, monkeypatch):
+    """On accelerators the hot path's small products are multiply-and-reduce, not
+    ``dot`` (``heliojax._geometry.products_by_reduction``). Both forms run here on the
+    CPU: the same poses to rounding, the same fitted parameters to the solver's path
+    tolerance. (The two fits have different record paddings, so neither reuses the
+    other's compiled program.)"""
+    from heliojax import _geometry
+    from heliojax._heliostat import chain_pose
+    from heliojax.fitting import _fit
+
+    *_, data, _ = fleet100
+    sub = _take(data, 5)
+    solver = hj.fitting.default_solver("gpu")
+    tilts = jnp.asarray([1e-3, -2e-3, 3e-3, 4e-3])
+    angles = jnp.asarray([0.7, -0.4])
+    geometry = jax.tree.map(lambda x: x[0], sub.geometry)
+    assert not _geometry.products_by_reduction()  # the CPU's form
+    dot_pose = chain_pose(tilts, angles, geometry)
+    dot_fit = hj.fit(STONE, hj.pad_fleet(sub, 5, 101), solver=solver)
+    monkeypatch.setattr(_geometry, "products_by_reduction", lambda: True)
+    monkeypatch.setattr(_fit, "products_by_reduction", lambda: True)
+    reduce_pose = chain_pose(tilts, angles, geometry)
+    reduce_fit = hj.fit(STONE, hj.pad_fleet(sub, 5, 102), solver=solver)
+    for a, b in zip(jax.tree.leaves(dot_pose), jax.tree.leaves(reduce_pose), strict=True):
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-13)
+    np.testing.assert_array_equal(reduce_fit.status, dot_fit.status)
+    np.testing.assert_allclose(reduce_fit.parameters(), dot_fit.parameters(), rtol=0, atol=PATH_ATOL)
+
+
+def test_normal_cholesky_matches_least_squares_and_its_transpose():
+    """The accelerators' LM step solver against numpy: the least-squares solution of a
+    tall pytree-structured system, and the minimum-norm solution of its transpose
+    (what lineax asks of a solver's ``transpose``)."""
+    import lineax as lx
+
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(23, 5))
+    b = rng.normal(size=23)
+    # The operator maps R^5 to a pair (18 rows, 5 rows), as optimistix's damped LM step does.
+    op = lx.FunctionLinearOperator(
+        lambda x: (jnp.asarray(a[:18]) @ x, jnp.asarray(a[18:]) @ x), jax.ShapeDtypeStruct((5,), jnp.float64)
+    )
+    sol = lx.linear_solve(op, (jnp.asarray(b[:18]), jnp.asarray(b[18:])), hj.fitting.NormalCholesky())
+    np.testing.assert_allclose(sol.value, np.linalg.lstsq(a, b, rcond=None)[0], rtol=0, atol=1e-12)
+    c = rng.normal(size=5)
+    solver = hj.fitting.NormalCholesky()
+    state, _ = solver.transpose(solver.init(op, {}), {})
+    x, result, _ = solver.compute(state, jnp.asarray(c), {})
+    assert result == lx.RESULTS.successful
+    np.testing.assert_allclose(np.concatenate(x), np.linalg.pinv(a.T) @ c, rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="tall"):
+        solver.init(op.transpose(), {})
 
 
 def test_padding_records_and_heliostats_change_nothing(fleet100):
