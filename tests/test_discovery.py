@@ -174,3 +174,22 @@ def test_two_hidden_effects_are_both_named():
     res = _run(104, effects)
     assert set(res.report["named_effects"][:2]) == {"backlash", "thermal"}
     assert res.report["heldout_rms_final_mrad"] <= HELDOUT_BOUND
+
+
+def test_column_bases_of_a_stack_equal_each_matrix_basis():
+    """The lanes' batched column bases (the shared Gauss-Newton step) against the
+    one-matrix basis: the same projector and rank, also for a rank-deficient matrix,
+    an all-zero one and one with zero (masked) rows."""
+    from heliojax.discovery._identifiability import column_bases, column_basis
+
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(4, 12, 5))
+    a[1, :, 3] = 2.0 * a[1, :, 0]  # rank 4
+    a[2] = 0.0  # rank 0
+    a[3, 7:] = 0.0  # masked rows
+    u, rank = column_bases(a)
+    for i in range(a.shape[0]):
+        ref = column_basis(a[i])
+        assert rank[i] == ref.shape[1]
+        np.testing.assert_allclose(u[i] @ u[i].T, ref @ ref.T, rtol=0, atol=1e-12)
+    assert list(rank) == [5, 4, 0, 5]

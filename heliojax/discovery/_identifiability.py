@@ -71,6 +71,16 @@ def column_basis(a: np.ndarray) -> np.ndarray:
     return u[:, s > s[0] * RANK_RTOL]
 
 
+def column_bases(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`column_basis` of a stack ``(L, n, c)`` at once: ``(L, n, c)`` bases
+    whose columns beyond each matrix's rank are zero, and the ranks ``(L,)``."""
+    if a.shape[-1] == 0 or a.shape[-2] == 0:
+        return np.zeros(a.shape), np.zeros(a.shape[0], np.int64)
+    u, s, _ = np.linalg.svd(a, full_matrices=False)
+    keep = (s > s[:, :1] * RANK_RTOL) & (s[:, :1] > 0)
+    return u * keep[:, None, :], keep.sum(axis=1)
+
+
 def absorbed_fractions(b_list, b_res_list) -> np.ndarray:
     """Absorbed fractions of the candidate's directions, ascending (best first).
 

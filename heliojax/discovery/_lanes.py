@@ -38,7 +38,15 @@ from .._kinematics import AbstractKinematicModel
 from .._parameters import ParameterView
 from .._programs import cached_jit
 from ..effects import EffectModel, with_data_references, with_effects
-from ..fitting import AbstractBatching, default_batching, default_solver, sanitise, solve_least_squares
+from ..fitting import (
+    AbstractBatching,
+    default_batching,
+    default_solver,
+    record_rows_and_jacobian,
+    residual_with_jacobian,
+    sanitise,
+    solve_least_squares,
+)
 
 Records = tuple[typing.Any, typing.Any, typing.Any, typing.Any, typing.Any]
 """``(geometry, counts, context, focal_spot, mask)`` of a (lane-tiled) fleet."""
@@ -196,19 +204,13 @@ def _linear_record(base, tilts, geometry, counts, context, focal, corr):
     return beam_error_components(pose, sun, focal + corr[5:8])
 
 
-def _lane_residual_fn(layout: Layout, template, geometry, counts, context, focal, use, p_exp, c0, dmat):
-    """``p -> residuals (2M,)`` in mrad with the effects to first order about ``p_exp``."""
+def _lane_row(layout: Layout, template, geometry, p_exp, p, counts, context, focal, c0, dmat):
+    """One record's two residual rows (mrad) at parameters ``p``, with the effects to
+    first order about ``p_exp`` (record corrections ``c0 + dmat (q - q_exp)``)."""
     eidx = jnp.asarray(layout.effect_index, dtype=jnp.int32)
-
-    def fn(p):
-        base = layout.model(template, p).inner
-        tilts = base.tilts()
-        dq = p[eidx] - p_exp[eidx]
-        corr = c0 + jnp.einsum("mij,j->mi", dmat, dq)
-        r = jax.vmap(lambda c, x, f, k: _linear_record(base, tilts, geometry, c, x, f, k))(counts, context, focal, corr)
-        return jnp.where(use[:, None], r * 1e3, 0.0).reshape(-1)
-
-    return fn
+    base = layout.model(template, p).inner
+    corr = c0 + dmat @ (p[eidx] - p_exp[eidx])
+    return _linear_record(base, base.tilts(), geometry, counts, context, focal, corr) * 1e3
 
 
 def _fit_lane(
@@ -237,7 +239,6 @@ def _fit_lane(
     all_scales = jnp.asarray(layout.view.scales, dtype)
     base_idx = jnp.asarray(layout.free_index[:n_base], dtype=jnp.int32)
     eff_idx = jnp.asarray(layout.effect_index, dtype=jnp.int32)[sel]
-    res = _lane_residual_fn(layout, template, geometry, counts, context, focal, use, p_exp, c0, dmat)
 
     def to_physical(y):
         p = p0.at[base_idx].add(y[:n_base] * all_scales[base_idx])
@@ -245,7 +246,13 @@ def _fit_lane(
             p = p.at[eff_idx].add(jnp.where(sel_valid, y[n_base:], 0.0) * all_scales[eff_idx])
         return p
 
-    out = solve_least_squares(lambda y: res(to_physical(y)), jnp.zeros(n_base + cap, dtype), solver, max_steps)
+    def row(y, c, x, f, k, d):
+        return _lane_row(layout, template, geometry, p_exp, to_physical(y), c, x, f, k, d)
+
+    residual = residual_with_jacobian(
+        lambda y: record_rows_and_jacobian(row, y, (counts, context, focal, c0, dmat), use)
+    )
+    out = solve_least_squares(residual, jnp.zeros(n_base + cap, dtype), solver, max_steps)
     p = to_physical(out.value)
     n_used = jnp.sum(use)
     n_active = n_base + jnp.sum(sel_valid)
@@ -289,13 +296,16 @@ def _jac_lane(layout: Layout, template, p, c0, dmat, geometry, counts, context, 
     dtype = counts.dtype
     idx = jnp.asarray(layout.free_index, dtype=jnp.int32)
     scales = jnp.asarray(layout.view.scales, dtype)[idx]
-    res = _lane_residual_fn(layout, template, geometry, counts, context, focal, use, p, c0, dmat)
+    records = (counts, context, focal, c0, dmat)
+    r = jax.vmap(lambda *rec: _lane_row(layout, template, geometry, p, p, *rec))(*records)
+    r = jnp.where(use[:, None], r, 0.0).reshape(-1)
     predicted = _predicted_focal(layout, template, p, c0, geometry, counts, context, focal)
-    res_pred = _lane_residual_fn(layout, template, geometry, counts, context, predicted, use, p, c0, dmat)
+
+    def row_at_predicted(y, c, x, f, k, d):
+        return _lane_row(layout, template, geometry, p, p.at[idx].add(y * scales), c, x, f, k, d)
+
     y0 = jnp.zeros(layout.n_free, dtype)
-    r = res(p)
-    _, lin = jax.linearize(lambda y: res_pred(p.at[idx].add(y * scales)), y0)
-    jac = jax.vmap(lin, out_axes=1)(jnp.eye(layout.n_free, dtype=dtype))
+    _, jac = record_rows_and_jacobian(row_at_predicted, y0, (counts, context, predicted, c0, dmat), use)
     return r, jac
 
 

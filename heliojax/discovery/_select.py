@@ -67,7 +67,7 @@ from ..effects import EFFECT_NAMES
 from ..fitting import OFFSET_NAMES, AbstractBatching, default_solver
 from ._cleaning import Cleaning, clean, confirm_change_points, fitted_start_geometry, recheck_outliers
 from ._diagnostics import record_variables, unexplained_structure
-from ._identifiability import ABSORBED_LIMIT, column_basis
+from ._identifiability import ABSORBED_LIMIT, column_bases
 from ._lanes import Engine, Lanes, Layout, make_lanes, make_layout
 from ._report import build_report, cv_log_ratio, cv_pair
 from ._screen import CandidateScreen, holm, prepare_bases, screen_candidate
@@ -271,32 +271,32 @@ class _Workflow:
 
     def _shared_step(self, r, jac, ok, act_cols, sh_cols):
         """Gauss-Newton step of the shared parameters per fold, the current model's
-        per-heliostat parameters profiled out; and the shared covariance."""
+        per-heliostat parameters profiled out; and the shared covariance. All lanes
+        at once: each lane's residual and shared columns are projected off its own
+        parameters' column space (training rows only), weighted by its noise."""
         lanes = self.lanes
-        used = np.repeat(lanes.train_mask, 2, axis=1)
+        used = np.repeat(lanes.train_mask, 2, axis=1)  # (L, 2M)
         k = len(sh_cols)
-        steps = np.zeros((lanes.n_folds + 1, k))
-        covs = np.full((lanes.n_folds + 1, k, k), np.nan)
-        for f in range(lanes.n_folds + 1):
-            g = np.zeros(k)
-            gm = np.zeros((k, k))
-            for lane in np.nonzero((lanes.fold == f) & ok)[0]:
-                rows = np.nonzero(used[lane])[0]
-                a = jac[lane][rows][:, act_cols]
-                b = jac[lane][rows][:, sh_cols]
-                u = column_basis(a)
-                rr = r[lane][rows]
-                bt = b - u @ (u.T @ b)
-                rt = rr - u @ (u.T @ rr)
-                dof = rows.size - u.shape[1]
-                if dof <= 0:
-                    continue
-                w = dof / max(float(rr @ rr), 1e-300)
-                g += w * (bt.T @ rt)
-                gm += w * (bt.T @ bt)
-            if np.any(gm):
-                pinv = np.linalg.pinv(gm, rcond=1e-10, hermitian=True)
-                steps[f] = -pinv @ g
+        n_folds = lanes.n_folds + 1
+        a = np.where(used[:, :, None], jac[:, :, act_cols], 0.0)
+        b = np.where(used[:, :, None], jac[:, :, sh_cols], 0.0)
+        rr = np.where(used, r, 0.0)
+        u, rank = column_bases(a)
+        bt = b - u @ np.einsum("lra,lrk->lak", u, b)
+        rt = rr - np.einsum("lra,la->lr", u, np.einsum("lra,lr->la", u, rr))
+        dof = used.sum(axis=1) - rank
+        take = ok & (dof > 0)
+        w = np.where(take, dof / np.maximum(np.sum(rr**2, axis=1), 1e-300), 0.0)
+        g = np.zeros((n_folds, k))
+        gm = np.zeros((n_folds, k, k))
+        np.add.at(g, lanes.fold, w[:, None] * np.einsum("lrk,lr->lk", bt, rt))
+        np.add.at(gm, lanes.fold, w[:, None, None] * np.einsum("lrk,lrj->lkj", bt, bt))
+        steps = np.zeros((n_folds, k))
+        covs = np.full((n_folds, k, k), np.nan)
+        for f in range(n_folds):  # folds, not lanes: K + 1 pseudo-inverses of k x k
+            if np.any(gm[f]):
+                pinv = np.linalg.pinv(gm[f], rcond=1e-10, hermitian=True)
+                steps[f] = -pinv @ g[f]
                 covs[f] = pinv
         return steps, covs
 
