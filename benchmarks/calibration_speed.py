@@ -308,21 +308,14 @@ def heliojax_data(geometry, context, counts, focal, mask, pad=True):
 def lm_solver(linear_solver: str):
     """The Levenberg-Marquardt solver of the fit: heliojax's default for the backend
     (``"auto"``: QR on CPU, Cholesky on accelerators), or with the damped step solved
-    by QR of the stacked Jacobian (``"qr"``, the CPU default), by Cholesky of the
-    normal equations with its products as multiply-and-reduce (``"cholesky"``,
-    :class:`heliojax.fitting.NormalCholesky`, the accelerators' default: 8 x 8 systems
-    instead of a QR of a (2M + 8) x 8 matrix per heliostat and step), or by lineax's
-    ``Normal(Cholesky())``, whose products are ``dot`` (``"cholesky-dot"``)."""
-    import lineax as lx
-    import optimistix as optx
+    by QR of the stacked Jacobian (``"qr"``, the CPU default) or by Cholesky of the
+    normal equations (``"cholesky"``, the accelerators' default: 8 x 8 systems instead
+    of a QR of a (2M + 8) x 8 matrix per heliostat and step)."""
+    from heliojax.fitting import default_solver
 
-    from heliojax.fitting import DEFAULT_ATOL, DEFAULT_RTOL, default_solver
-
-    if linear_solver == "cholesky-dot":
-        return optx.LevenbergMarquardt(rtol=DEFAULT_RTOL, atol=DEFAULT_ATOL, linear_solver=lx.Normal(lx.Cholesky()))
     backends = {"auto": None, "qr": "cpu", "cholesky": "gpu"}
     if linear_solver not in backends:
-        raise SystemExit(f"--linear-solver: unknown {linear_solver!r} (auto, qr, cholesky or cholesky-dot)")
+        raise SystemExit(f"--linear-solver: unknown {linear_solver!r} (auto, qr or cholesky)")
     return default_solver(backends[linear_solver])
 
 
@@ -450,9 +443,8 @@ def parse_args(argv=None):
     p.add_argument(
         "--linear-solver",
         default="auto",
-        help="LM step: auto (heliojax's default: qr on CPU, cholesky on accelerators), qr (optimistix's), "
-        "cholesky (normal equations, multiply-and-reduce products) or cholesky-dot (lineax's Normal(Cholesky())), "
-        "or a comma list to time several",
+        help="LM step: auto (heliojax's default: qr on CPU, cholesky on accelerators), qr (optimistix's) or "
+        "cholesky (normal equations), or a comma list to time several",
     )
     p.add_argument("--skip-other-bucket", action="store_true", help="do not time the compile of a second bucket")
     p.add_argument("--repeats", type=int, default=2, help="timed calls after the compiling one")

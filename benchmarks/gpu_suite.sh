@@ -67,23 +67,17 @@ STEPS="${STEPS:-calibration aim raytrace discovery}"
 wants() { [[ " $STEPS " == *" $1 "* ]]; }
 
 # Which LM linear solve suits the device, at a hundredth of the size (H200, 1,000 x 100:
-# QR 1.37 s, Cholesky 0.036 s; see the README), then the full size with the library's
-# default (Cholesky, products as multiply-and-reduce; vmap with the straggler restart)
-# against lineax's Normal(Cholesky()), whose dot products ran as batched GEMM kernels
-# (1.5 of 2.3 s in the H200 profile of the previous version), the default without
-# Triton GEMM fusions, and a profile of one more warm call of the default.
+# QR 1.22 s, Cholesky 0.039 s; see the README), then the full size with the library's
+# default step (Cholesky on GPUs), plain vmap against the straggler restart (the GPU
+# default), and a profile of one more warm call of the default.
 CAL_DATA="${CAL_DATA:-${TMPDIR:-/tmp}/heliojax_cal_${CAL_N}.npz}"
 if wants calibration; then
   step calibration_choice "${CHOICE_LIMIT:-120}" "$PY" benchmarks/calibration_speed.py \
     --heliostats "$((CAL_N / 100))" --records 100 --skip-scipy --skip-robust --skip-other-bucket --repeats 2 \
-    --strategy vmap --linear-solver qr,cholesky,cholesky-dot --json
+    --strategy vmap --linear-solver qr,cholesky --json
   step calibration "${CAL_LIMIT:-200}" "$PY" benchmarks/calibration_speed.py \
     --heliostats "$CAL_N" --records 100 --skip-scipy --skip-robust --skip-other-bucket --repeats 2 \
-    --strategy "${CAL_STRATEGY:-vmap-restart}" --linear-solver "${CAL_SOLVER:-auto,cholesky-dot}" \
-    --data "$CAL_DATA" --json
-  XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_enable_triton_gemm=false" step calibration_no_triton_gemm "${CAL_LIMIT:-200}" \
-    "$PY" benchmarks/calibration_speed.py --heliostats "$CAL_N" --records 100 --skip-scipy --skip-robust \
-    --skip-other-bucket --repeats 2 --strategy vmap-restart --data "$CAL_DATA" --json
+    --strategy "${CAL_STRATEGY:-vmap-restart,vmap}" --linear-solver "${CAL_SOLVER:-auto}" --data "$CAL_DATA" --json
   step calibration_profile "${CAL_LIMIT:-200}" "$PY" benchmarks/calibration_speed.py \
     --heliostats "$CAL_N" --records 100 --skip-scipy --skip-robust --skip-other-bucket --repeats 1 \
     --strategy vmap-restart --data "$CAL_DATA" --profile "${TMPDIR:-/tmp}/heliojax_profile" --json

@@ -335,8 +335,8 @@ def products_by_reduction() -> bool:
 
     Why: vmapped over heliostats and records (and transposed by reverse-mode
     differentiation) a 3 x 3 ``dot`` becomes a batched GEMM. On an H200 these ran as
-    Triton GEMM kernels that took 1.9 of the 2.3 s of a 100,000 x 100 fit; as
-    multiply-and-reduce they fuse into the surrounding kernels (0.47 s; README,
+    Triton GEMM kernels that took 1.5 of the 2.3 s of a 100,000 x 100 fit; as
+    multiply-and-reduce they fuse into the surrounding kernels (0.43-0.47 s; README,
     Benchmarks). On CPU the reverse holds: XLA's small-``dot`` emitter fits
     1,000 x 100 in 0.94 s, multiply-and-reduce in 2.0 s (one run each).
     """

@@ -110,7 +110,7 @@ def test_accelerator_step_by_cholesky_agrees_with_qr(fleet100):
     parameters, which the damping and the prior keep solvable."""
     import lineax as lx
 
-    assert isinstance(hj.fitting.default_solver("gpu").descent.linear_solver, hj.fitting.NormalCholesky)
+    assert isinstance(hj.fitting.default_solver("gpu").descent.linear_solver, lx.Normal)
     assert isinstance(hj.fitting.default_solver("cpu").descent.linear_solver, lx.QR)
     assert hj.fitting.default_batching("gpu") == hj.Vmap(restart_after=hj.fitting.RESTART_AFTER)
     assert hj.fitting.default_batching("cpu") == hj.LaxMap()
@@ -153,31 +153,6 @@ def test_products_by_reduction_give_the_same_poses_and_fit(fleet100, monkeypatch
         np.testing.assert_allclose(b, a, rtol=0, atol=1e-13)
     np.testing.assert_array_equal(reduce_fit.status, dot_fit.status)
     np.testing.assert_allclose(reduce_fit.parameters(), dot_fit.parameters(), rtol=0, atol=PATH_ATOL)
-
-
-def test_normal_cholesky_matches_least_squares_and_its_transpose():
-    """The accelerators' LM step solver against numpy: the least-squares solution of a
-    tall pytree-structured system, and the minimum-norm solution of its transpose
-    (what lineax asks of a solver's ``transpose``)."""
-    import lineax as lx
-
-    rng = np.random.default_rng(3)
-    a = rng.normal(size=(23, 5))
-    b = rng.normal(size=23)
-    # The operator maps R^5 to a pair (18 rows, 5 rows), as optimistix's damped LM step does.
-    op = lx.FunctionLinearOperator(
-        lambda x: (jnp.asarray(a[:18]) @ x, jnp.asarray(a[18:]) @ x), jax.ShapeDtypeStruct((5,), jnp.float64)
-    )
-    sol = lx.linear_solve(op, (jnp.asarray(b[:18]), jnp.asarray(b[18:])), hj.fitting.NormalCholesky())
-    np.testing.assert_allclose(sol.value, np.linalg.lstsq(a, b, rcond=None)[0], rtol=0, atol=1e-12)
-    c = rng.normal(size=5)
-    solver = hj.fitting.NormalCholesky()
-    state, _ = solver.transpose(solver.init(op, {}), {})
-    x, result, _ = solver.compute(state, jnp.asarray(c), {})
-    assert result == lx.RESULTS.successful
-    np.testing.assert_allclose(np.concatenate(x), np.linalg.pinv(a.T) @ c, rtol=0, atol=1e-12)
-    with pytest.raises(ValueError, match="tall"):
-        solver.init(op.transpose(), {})
 
 
 def test_padding_records_and_heliostats_change_nothing(fleet100):

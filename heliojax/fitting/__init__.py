@@ -48,7 +48,6 @@ from ._loss import (
     Cauchy as Cauchy,
     LeastSquares as LeastSquares,
 )
-from ._normal import NormalCholesky as NormalCholesky
 from ._pooling import (
     flat_prior as flat_prior,
     fleet_prior as fleet_prior,

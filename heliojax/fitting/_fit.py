@@ -30,6 +30,7 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
@@ -41,7 +42,6 @@ from .._parameters import ParameterView, broadcast_model, is_batched
 from .._programs import compile_cached
 from ._batching import AbstractBatching, Vmap, default_batching
 from ._loss import AbstractLoss, LeastSquares
-from ._normal import NormalCholesky
 from ._prior import AbstractPrior, NoPrior
 from ._records import sanitise
 from ._status import FitStatus
@@ -60,7 +60,7 @@ def default_solver(backend: str | None = None) -> optx.LevenbergMarquardt:
 
     * CPU: QR of the stacked ``(R + F) x F`` Jacobian (optimistix's default).
     * accelerators: Cholesky of the ``F x F`` normal equations
-      (:class:`NormalCholesky`, products as multiply-and-reduce). A batch of QRs of matrices taller than
+      (``lineax.Normal(lineax.Cholesky())``). A batch of QRs of matrices taller than
       32 rows runs on CUDA as one solver call per matrix; on an H200 a 1,000 x 100
       fleet fitted in 1.37 s by QR and in 0.036 s by Cholesky (``benchmarks/
       calibration_speed.py --linear-solver qr,cholesky``). The damping keeps the
@@ -70,7 +70,7 @@ def default_solver(backend: str | None = None) -> optx.LevenbergMarquardt:
     backend = backend or jax.default_backend()
     if backend == "cpu":
         return optx.LevenbergMarquardt(rtol=DEFAULT_RTOL, atol=DEFAULT_ATOL)
-    return optx.LevenbergMarquardt(rtol=DEFAULT_RTOL, atol=DEFAULT_ATOL, linear_solver=NormalCholesky())
+    return optx.LevenbergMarquardt(rtol=DEFAULT_RTOL, atol=DEFAULT_ATOL, linear_solver=lx.Normal(lx.Cholesky()))
 
 
 class LeastSquaresOutcome(typing.NamedTuple):
@@ -147,8 +147,7 @@ def residual_with_jacobian(
     def _residual_jvp(primals, tangents):
         (y,), (t,) = primals, tangents
         r, jac = residual_and_jacobian(y)
-        # On accelerators as multiply-and-reduce: vmapped over heliostats a matrix-
-        # vector dot becomes a batched GEMM of tiny matrices (see ``_normal``).
+        # On accelerators as multiply-and-reduce (see ``products_by_reduction``).
         if products_by_reduction():
             return r, jnp.sum(jac * t[None, :], axis=-1)
         return r, jac @ t
