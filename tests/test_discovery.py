@@ -193,3 +193,47 @@ def test_column_bases_of_a_stack_equal_each_matrix_basis():
         assert rank[i] == ref.shape[1]
         np.testing.assert_allclose(u[i] @ u[i].T, ref @ ref.T, rtol=0, atol=1e-12)
     assert list(rank) == [5, 4, 0, 5]
+
+
+def test_lane_groups_by_record_width_change_no_lane_result(monkeypatch):
+    """Lanes grouped by their heliostat's record width (each group its own compiled
+    programs, cut to its width) against all lanes in one group at the fleet's width:
+    the same fits and the same residuals and Jacobians, with heliostats of 12 to 70
+    records and a masked record in the middle of one."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    import heliojax as hj
+    from heliojax.discovery import _lanes
+
+    fleet, _ = simulate_fleet(3, 6, 70, effects=(make_effect("backlash"),), noise_mrad=NOISE)
+    mask = np.asarray(fleet.mask).copy()
+    mask[0, 12:] = False
+    mask[1, 30:] = False
+    mask[2, 5] = False
+    fleet = eqx.tree_at(lambda f: f.mask, fleet, jnp.asarray(mask))
+    layout, template = _lanes.make_layout(hj.nominal_model("stone8"), ("backlash", "thermal"), fleet)
+    lanes = _lanes.make_lanes(fleet, 3)
+    engine = _lanes.Engine.create(layout, template, lanes)
+    assert sorted(g.width for g in engine.groups) == [16, 32, 70]
+    p0 = np.broadcast_to(np.asarray(layout.view.to_vector(template)), (lanes.fold.shape[0], layout.view.n_parameters))
+    cols = [0, 1]
+
+    def run(e):
+        out = e.fit(p0, cols, p0, e.expand(p0))
+        p = out["params"] if reference is None else reference
+        return out, e.jacobian(p), e.jacobian(p, evaluate=True)
+
+    reference = None
+    grouped = run(engine)
+    reference = grouped[0]["params"]  # Jacobians of both at the same point
+    one = lambda ln: (_lanes.LaneGroup(np.arange(ln.fold.size), ln.fold.size, 70),)  # noqa: E731
+    monkeypatch.setattr(_lanes, "lane_groups", one)
+    single = run(_lanes.Engine.create(layout, template, lanes))
+    # fits: equal to the solver's path tolerance (10 x its step tolerance, per parameter scale)
+    path_atol = 10 * hj.fitting.DEFAULT_ATOL * np.asarray(layout.view.scales)
+    assert np.all(np.abs(grouped[0]["params"] - single[0]["params"]) <= path_atol)
+    np.testing.assert_array_equal(grouped[0]["ok"], single[0]["ok"])
+    np.testing.assert_array_equal(grouped[0]["n_used"], single[0]["n_used"])
+    for a, b in zip(grouped[1] + grouped[2], single[1] + single[2], strict=True):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-10)

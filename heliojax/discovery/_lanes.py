@@ -23,6 +23,7 @@ and counts every free parameter against a heliostat's records.)
 from __future__ import annotations
 
 import dataclasses
+import functools
 import typing
 
 import equinox as eqx
@@ -436,49 +437,142 @@ class Engine:
             default_batching() if batching is None else batching,
         )
 
-    def _data(self, evaluate: bool) -> Records:
-        return self.lanes.eval_data if evaluate else self.lanes.data
+    @functools.cached_property
+    def groups(self) -> tuple[LaneGroup, ...]:
+        """The lanes grouped by record width (see :func:`lane_groups`)."""
+        return lane_groups(self.lanes)
+
+    def _data(self, group: LaneGroup, evaluate: bool) -> Records:
+        data = self.lanes.eval_data if evaluate else self.lanes.data
+        return group.take(data)
 
     def expand(self, p, evaluate: bool = False):
-        """First-order effect corrections ``(c0, D)`` at ``p`` (device arrays)."""
-        return _corrections_compiled(self.layout, self.batching, self.template, jnp.asarray(p), self._data(evaluate))
+        """First-order effect corrections ``(c0, D)`` at ``p`` (device arrays), one
+        pair per lane group."""
+        p = np.asarray(p)
+        return tuple(
+            _corrections_compiled(
+                self.layout, self.batching, self.template, jnp.asarray(p[g.index]), self._data(g, evaluate)
+            )
+            for g in self.groups
+        )
 
     def fit(self, p0: np.ndarray, effect_cols, p_exp: np.ndarray, expansion) -> dict:
         """One Levenberg-Marquardt fit of every lane from ``p0``: the base's free
         parameters and the effect columns ``effect_cols`` (positions among the
-        effect columns) free, the effects expanded about ``p_exp``. The solver's
-        width is bucketed (0, 4, 8, 12, 16, 24, 32 effect columns) so that few
-        programs are compiled. ``cost`` is ``0.5 * sum r^2`` of the linearised model."""
-        c0, dmat = expansion
+        effect columns) free, the effects expanded about ``p_exp`` (``expansion``:
+        :meth:`expand` at ``p_exp``). The solver's width is bucketed (0, 4, 8, 12, 16,
+        24, 32 effect columns) so that few programs are compiled. ``cost`` is
+        ``0.5 * sum r^2`` of the linearised model."""
         k = len(effect_cols)
         cap = next(c for c in CAPS if c >= k) if k <= CAPS[-1] else k
-        n_lanes = p0.shape[0]
-        sel = np.zeros((n_lanes, cap), np.int32)
-        valid = np.zeros((n_lanes, cap), bool)
+        p0, p_exp = np.asarray(p0), np.asarray(p_exp)
+        sel = np.zeros((p0.shape[0], cap), np.int32)
+        valid = np.zeros((p0.shape[0], cap), bool)
         sel[:, :k] = np.asarray(effect_cols, np.int32)
         valid[:, :k] = True
-        out = _fit_lanes_compiled(
-            self.layout,
-            self.solver,
-            self.max_steps,
-            self.batching,
-            cap,
-            self.template,
-            jnp.asarray(p0),
-            jnp.asarray(sel),
-            jnp.asarray(valid),
-            jnp.asarray(p_exp),
-            c0,
-            dmat,
-            self.lanes.data,
-        )
-        return {k_: np.asarray(v) for k_, v in out.items()}
+        parts = []
+        for g, (c0, dmat) in zip(self.groups, expansion, strict=True):
+            i = g.index
+            out = _fit_lanes_compiled(
+                self.layout,
+                self.solver,
+                self.max_steps,
+                self.batching,
+                cap,
+                self.template,
+                jnp.asarray(p0[i]),
+                jnp.asarray(sel[i]),
+                jnp.asarray(valid[i]),
+                jnp.asarray(p_exp[i]),
+                c0,
+                dmat,
+                self._data(g, False),
+            )
+            parts.append(out)
+        return {key: _scatter([np.asarray(o[key]) for o in parts], self.groups, p0.shape[0]) for key in parts[0]}
 
     def jacobian(self, p: np.ndarray, evaluate: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Exact residuals ``(L, 2M)`` (mrad) and the expected (noise-free) Jacobian
         ``(L, 2M, F)`` (mrad per scaled unit) at ``p``; rows of records outside the training mask (with
         ``evaluate``: outside the valid records) are zero."""
-        data = self._data(evaluate)
-        c0, dmat = _corrections_compiled(self.layout, self.batching, self.template, jnp.asarray(p), data)
-        r, j = _jac_lanes_compiled(self.layout, self.batching, self.template, jnp.asarray(p), c0, dmat, data)
-        return np.asarray(r), np.asarray(j)
+        p = np.asarray(p)
+        rs, js = [], []
+        for g in self.groups:
+            data = self._data(g, evaluate)
+            pg = jnp.asarray(p[g.index])
+            c0, dmat = _corrections_compiled(self.layout, self.batching, self.template, pg, data)
+            r, j = _jac_lanes_compiled(self.layout, self.batching, self.template, pg, c0, dmat, data)
+            rs.append(np.asarray(r))
+            js.append(np.asarray(j))
+        n_lanes, width = p.shape[0], 2 * self.lanes.valid.shape[1]
+        return _scatter(rs, self.groups, n_lanes, width), _scatter(js, self.groups, n_lanes, width)
+
+
+@dataclasses.dataclass(frozen=True)
+class LaneGroup:
+    """Lanes whose heliostats' records all lie within the first ``width`` record slots.
+
+    Attributes:
+        index: ``(L_g,)`` lane indices; the first ``n`` are the group's, the rest repeat
+            the last one (padding to a multiple of :data:`LANE_MULTIPLE`, so that few
+            lane counts are compiled).
+        n: the group's lanes.
+        width: record slots kept (a power of two, at most the fleet's).
+    """
+
+    index: np.ndarray
+    n: int
+    width: int
+
+    def take(self, records: Records) -> Records:
+        """``records`` of the group's lanes, cut to ``width`` record slots."""
+        i = jnp.asarray(self.index)
+        geometry, *per_record = records
+        geometry = jax.tree.map(lambda x: x[i], geometry)
+        per_record = jax.tree.map(lambda x: x[i, : self.width], tuple(per_record))
+        return (geometry, *per_record)
+
+
+LANE_MULTIPLE = 16
+"""Lane counts of a group are padded to a multiple of this."""
+MIN_WIDTH = 16
+"""The narrowest group (record slots)."""
+
+
+def lane_groups(lanes: Lanes) -> tuple[LaneGroup, ...]:
+    """The lanes grouped by the record slots their heliostat uses.
+
+    Every lane is padded to the fleet's widest heliostat; with 8 to 164 records per
+    heliostat (the shared PAINT records, median 29), most of every lane's work went
+    to padding. A heliostat's width is one past its last valid record, rounded up to
+    a power of two (at least :data:`MIN_WIDTH`, at most the fleet's); lanes of equal
+    width form a group, fitted by its own compiled programs. With one width there is
+    one group of all lanes in order, the same program as without groups."""
+    n_slots = lanes.valid.shape[1]
+    last = np.where(lanes.valid.any(axis=1), n_slots - np.argmax(lanes.valid[:, ::-1], axis=1), 0)
+    width = np.minimum(2 ** np.ceil(np.log2(np.maximum(last, MIN_WIDTH))).astype(int), n_slots)
+    lane_width = width[lanes.heliostat]
+    groups = []
+    for w in np.unique(lane_width):
+        idx = np.flatnonzero(lane_width == w)
+        if idx.size == lane_width.size:
+            return (LaneGroup(idx, idx.size, n_slots),)
+        pad = -idx.size % LANE_MULTIPLE
+        groups.append(LaneGroup(np.concatenate([idx, np.full(pad, idx[-1])]), idx.size, int(w)))
+    return tuple(groups)
+
+
+def _scatter(parts: list[np.ndarray], groups: tuple[LaneGroup, ...], n_lanes: int, width: int | None = None):
+    """Per-group lane outputs back into one ``(n_lanes, ...)`` array; with ``width``,
+    axis 1 is zero-padded from each group's ``2 * width`` rows to ``width``."""
+    first = parts[0]
+    shape = (n_lanes,) + ((width,) + first.shape[2:] if width is not None else first.shape[1:])
+    out = np.zeros(shape, first.dtype)
+    for g, part in zip(groups, parts, strict=True):
+        rows = part[: g.n]
+        if width is None:
+            out[g.index[: g.n]] = rows
+        else:
+            out[g.index[: g.n], : rows.shape[1]] = rows
+    return out
