@@ -3,8 +3,10 @@ fit / Jacobian programs that run over all lanes at once.
 
 A *lane* is one heliostat under one record mask: lane ``(f, h)`` holds
 heliostat ``h`` with the records of every fold but ``f`` (``f = 0``: all
-records). Fitting all lanes in one compiled program gives the full-data fit
-and every cross-validation fit in one call.
+records). Fitting all lanes at once gives the full-data fit and every
+cross-validation fit in one call; lanes are grouped by their heliostat's record
+width (:func:`lane_groups`), one compiled program per group, so that a heliostat
+with few records does not run over the slots of the fleet's largest.
 
 The fit is the same Levenberg-Marquardt problem as :func:`heliojax.fit`
 (tangent-plane residuals in mrad, scaled parameters, masked records replaced
