@@ -87,12 +87,23 @@ def _env(**extra) -> dict:
     return env
 
 
+PATH_ATOL = 10 * hj.fitting.DEFAULT_ATOL * 1e-2
+"""Parameters (rad, or dimensionless gear ratios) of fits that reach the same optimum
+by different floating-point paths: 10x the solver's step tolerance in scaled units
+times the parameter scale (1e-2). One process's ``lax.map`` and another's sharded
+``vmap`` are different XLA programs; their rounding may end the LM loop a step apart."""
+
+
 def _assert_same(ref: dict, got: dict, what: str) -> None:
     for k in FIELDS:
         a, b = np.asarray(ref[k]), np.asarray(got[k])
         assert a.shape == b.shape, (what, k, a.shape, b.shape)
-        if a.dtype.kind == "f":
-            np.testing.assert_allclose(b, a, rtol=0, atol=1e-12, equal_nan=True, err_msg=f"{what}: {k}")
+        if k == "params":
+            np.testing.assert_allclose(b, a, rtol=0, atol=PATH_ATOL, equal_nan=True, err_msg=f"{what}: {k}")
+        elif k == "n_steps":
+            assert np.all(np.abs(b - a) <= 1), (what, k, a, b)
+        elif a.dtype.kind == "f":  # statistics at the optimum: as close as the optimum
+            np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-12, equal_nan=True, err_msg=f"{what}: {k}")
         else:
             np.testing.assert_array_equal(b, a, err_msg=f"{what}: {k}")
 
