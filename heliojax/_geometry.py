@@ -179,6 +179,7 @@ def sun_direction(azimuth: Float[ArrayLike, "..."], elevation: Float[ArrayLike, 
     return jnp.stack([ce * jnp.sin(az), -ce * jnp.cos(az), jnp.sin(el)], axis=-1)
 
 
+@jax.jit  # one program, not one per operation, when called outside a jitted function
 def direction_to_azimuth_elevation(
     direction: Float[ArrayLike, "... 3"],
 ) -> tuple[Float[Array, "..."], Float[Array, "..."]]:

@@ -156,10 +156,11 @@ def calibrate(
         pool: with ``robust``, finish under the fleet's empirical-Bayes prior
             (:func:`heliojax.fitting.fleet_prior`): heliostats with few records are
             calibrated too.
-        changes: scan the training records for change points (jumps of the axis
-            offsets, :func:`heliojax.fitting.find_change_points`) and, where one is
-            reported, fit again on the records since the change (the current
-            state; with ``pool`` the fleet prior fills in what they leave open).
+        changes: scan the training records for change points (a change of the
+            axis offsets, a jump or a drift, labelled by kind:
+            :func:`heliojax.fitting.find_change_points` with ``drift=False``) and,
+            where one is reported, fit again on the records since the change (the
+            current state; with ``pool`` the fleet prior fills in what they leave open).
         record_roles: instead of a split, heliostat id -> {PAINT record id: role}
             with role ``"train"`` or ``"test"`` (e.g. a plan's choice among existing
             records, :func:`heliojax.plan_calibration`). Records not named are
@@ -449,7 +450,8 @@ def _scan_changes(
     """The change-point scan of the converged heliostats' training records, and
     ``(H, M)`` the training records before a reported change."""
     try:
-        cp = find_change_points(result, fleet, jnp.asarray(train), jnp.asarray(weights))
+        # any change of state, a drift included: the records since describe the heliostat
+        cp = find_change_points(result, fleet, jnp.asarray(train), jnp.asarray(weights), drift=False)
     except ConfigError as e:  # a model without a free pair of axis offsets
         log.info(f"no change-point scan: {e}")
         return None, np.zeros_like(train)
@@ -457,7 +459,8 @@ def _scan_changes(
     t = np.asarray(fleet.context.unix_time)
     with np.errstate(invalid="ignore"):
         superseded = train & found[:, None] & (t < np.asarray(cp.time_s)[:, None])
-    return eqx.tree_at(lambda c: c.found, cp, jnp.asarray(found)), superseded
+    step = np.asarray(cp.is_step) & found
+    return eqx.tree_at(lambda c: (c.found, c.is_step), cp, (jnp.asarray(found), jnp.asarray(step))), superseded
 
 
 def _utc(t: float) -> str | None:
@@ -479,8 +482,10 @@ def _change_entry(run: CalibrationRun, i: int) -> dict[str, typing.Any]:
         "change_point": {
             "date_utc": _utc(float(np.asarray(cp.time_s)[i])),
             "previous_record_utc": _utc(float(np.asarray(cp.previous_time_s)[i])),
+            "kind": "step" if bool(np.asarray(cp.is_step)[i]) else "drift",
             "jump_mrad": {n: _json_float(float(v)) for n, v in zip(cp.offsets, jump)},
             "delta_chi2": dchi2,
+            "drift_delta_chi2": _json_float(float(np.asarray(cp.drift_delta_chi2)[i])),
             "threshold": _json_float(float(np.asarray(cp.threshold)[i])),
             "n_records_since": int(np.asarray(cp.n_after)[i]),
             "n_training_records_superseded": n_sup,

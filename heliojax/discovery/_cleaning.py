@@ -45,6 +45,7 @@ import numpy as np
 
 from .._errors import ConfigError
 from ..fitting import choose_start_geometry, find_change_points, fit_robust, robust_component_noise
+from ..fitting._changes import drift_coordinate
 from ..fitting._robust import OUTLIER_TAIL
 from ._screen import holm
 
@@ -218,8 +219,8 @@ def confirm_change_points(
     ``(H, 2M, F)`` evaluated on every inlier record - those before the change
     included - each change point is tested again at its date: the likelihood
     ratio of a jump of the two offsets (columns ``offset_cols``) on the records
-    before the change, with the model's columns ``model_cols`` refitted
-    (linearised), Bonferroni over the records and Holm over the heliostats as in
+    before the change, with the model's columns ``model_cols`` and a linear drift
+    of the offsets refitted (linearised), Bonferroni over the records and Holm over the heliostats as in
     the pre-pass. With ``target_index`` ``(H, M)``, both hypotheses also get a
     constant offset per target and residual component (a target's survey error
     moves its spots by a fixed angle): a heliostat that only switched targets at
@@ -241,6 +242,8 @@ def confirm_change_points(
         a = jac[h][rows][:, model_cols]
         if target_index is not None:
             a = np.concatenate([a, _target_columns(target_index[h], use[h])], axis=1)
+        tau = np.repeat(np.asarray(drift_coordinate(jnp.asarray(unix_time[h]), jnp.asarray(use[h]))), 2)[rows]
+        a = np.concatenate([a, jac[h][rows][:, offset_cols] * tau[:, None]], axis=1)  # drift: no jump
         step = np.where(before[:, None], jac[h][rows][:, offset_cols], 0.0)
         rss0 = _lstsq_rss(a, rr)
         rss1 = _lstsq_rss(np.concatenate([a, step], axis=1), rr)
