@@ -43,6 +43,7 @@ DEFAULT = [
     "lens_distortion",
     "wind_direction",
     "daily_periodic",
+    "offset_drift",
     "survey_target",
     "backlash_out",
     "actuator_geometry",

@@ -99,6 +99,13 @@ EFFECTS: dict[str, EffectSpec] = {
         True,
         "maintenance: both joint zeros jump by a (random signs and split) at a random date per heliostat",
     ),
+    "offset_drift": EffectSpec(
+        "mrad of joint zero drift over the records",
+        1.0,
+        "time",
+        True,
+        "creep: both joint zeros drift linearly in time, by a (random split) over a heliostat's records",
+    ),
     "wind_direction": EffectSpec(
         "mrad of axis-2 joint at 10 m/s",
         0.5,
@@ -143,6 +150,12 @@ def draw_parameters(
         elif effect == "survey_heliostat":
             v = rng.normal(size=3)
             p["offset_enu_m"] = (amplitude * v / np.linalg.norm(v)).tolist()
+        elif effect == "offset_drift":
+            t = np.asarray(times[h])
+            p["start_unix"], p["end_unix"] = float(t.min()), float(t.max())
+            ang = rng.uniform(0, 2 * np.pi)
+            p["drift_axis_1_mrad"] = float(amplitude * np.cos(ang))
+            p["drift_axis_2_mrad"] = float(amplitude * np.sin(ang))
         elif effect == "step":
             t = np.sort(times[h])
             lo, hi = t[len(t) // 4], t[(3 * len(t)) // 4]
@@ -175,6 +188,10 @@ def joint_change(effect, amplitude, theta1, theta2, ctx, hp) -> tuple[np.ndarray
         after = ctx["time"] >= hp["step_unix"]
         d1 = np.where(after, hp["jump_axis_1_mrad"] * 1e-3, 0.0)
         d2 = np.where(after, hp["jump_axis_2_mrad"] * 1e-3, 0.0)
+    elif effect == "offset_drift":
+        frac = (ctx["time"] - hp["start_unix"]) / max(hp["end_unix"] - hp["start_unix"], 1.0)
+        d1 = hp["drift_axis_1_mrad"] * 1e-3 * frac
+        d2 = hp["drift_axis_2_mrad"] * 1e-3 * frac
     elif effect == "wind_direction":
         mirror_az = theta2  # 0 = facing south, positive toward east (compass 180 - theta2)
         facing_compass = np.pi - mirror_az

@@ -176,6 +176,20 @@ def test_two_hidden_effects_are_both_named():
     assert res.report["heldout_rms_final_mrad"] <= HELDOUT_BOUND
 
 
+def test_a_drift_of_the_joint_zeros_is_named_offset_drift_not_clock():
+    """Joint zeros creeping by 1.5 mrad/year: named ``offset_drift`` (amplitude within
+    25 %), not ``clock`` (whose sun turn also grows with time), and the change-point
+    pre-pass does not read the drift as a step (its scan holds a drift)."""
+    drift = [make_effect("offset_drift", offset_drift_1=1.5e-3, offset_drift_2=-1.5e-3)]
+    fleet, _ = simulate_fleet(105, H, M, effects=drift, noise_mrad=NOISE)
+    r = discover(fleet, DiscoveryConfig(base="stone8", effects=("offset_drift", "clock"))).report
+    assert r["named_effects"][:1] == ["offset_drift"], r["named_effects"]
+    assert "clock" not in r["named_effects"] and not r["change_points"]
+    amp = r["steps"][0]["amplitude"]
+    np.testing.assert_allclose([amp["offset_drift_1"], amp["offset_drift_2"]], [1.5e-3, -1.5e-3], rtol=0.25)
+    assert r["heldout_rms_final_mrad"] <= HELDOUT_BOUND
+
+
 def test_column_bases_of_a_stack_equal_each_matrix_basis():
     """The lanes' batched column bases (the shared Gauss-Newton step) against the
     one-matrix basis: the same projector and rank, also for a rank-deficient matrix,

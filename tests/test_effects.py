@@ -22,6 +22,7 @@ from heliojax.effects import (
     EffectModel,
     EncoderWobble,
     GravitySag,
+    OffsetDrift,
     Refraction,
     SurveyHeliostat,
     SurveyTarget,
@@ -80,6 +81,7 @@ def test_effect_names_are_the_documented_list():
         "refraction",
         "survey_heliostat",
         "survey_target",
+        "offset_drift",
     )
     for name in EFFECT_NAMES:
         cls = effect_class(name)
@@ -141,6 +143,24 @@ def test_thermal_hand_value_and_nan_temperature():
         return jnp.sum(m.beam_components(GEOM, COUNTS, _context(temperature=jnp.nan), FOCAL) ** 2)
 
     g = jax.grad(loss)(jnp.array([1e-5, 1e-5]))
+    assert np.all(np.isfinite(g)) and np.all(g == 0)
+
+
+def test_offset_drift_hand_value_and_nan_time():
+    """Half a Julian year after the reference: half the yearly rate on each joint;
+    an unknown time gets no correction, and no NaN in the gradient."""
+    t_ref = 1.66e9
+    eff = OffsetDrift(rate=jnp.array([1e-3, -2e-3]), reference=jnp.asarray(t_ref))
+    half_year = 0.5 * 365.25 * 86400.0
+    np.testing.assert_allclose(_angle_shift(eff, _context(unix_time=t_ref + half_year)), [5e-4, -1e-3], rtol=1e-12)
+    np.testing.assert_allclose(_angle_shift(eff, _context(unix_time=t_ref)), 0.0, atol=1e-18)
+    np.testing.assert_allclose(_angle_shift(eff, _context(unix_time=jnp.nan)), 0.0, atol=0)
+
+    def loss(r):
+        m = EffectModel(STONE, (OffsetDrift(rate=r, reference=jnp.asarray(t_ref)),))
+        return jnp.sum(m.beam_components(GEOM, COUNTS, _context(unix_time=jnp.nan), FOCAL) ** 2)
+
+    g = jax.grad(loss)(jnp.array([1e-3, 1e-3]))
     assert np.all(np.isfinite(g)) and np.all(g == 0)
 
 

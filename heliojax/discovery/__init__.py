@@ -47,6 +47,8 @@ from ._report import (
 )
 from ._screen import CandidateScreen as CandidateScreen, holm as holm
 from ._select import (
+    DEFAULT_CANDIDATES as DEFAULT_CANDIDATES,
+    OPT_IN_EFFECTS as OPT_IN_EFFECTS,
     DiscoveryConfig as DiscoveryConfig,
     DiscoveryResult as DiscoveryResult,
     discover as discover,
@@ -57,6 +59,8 @@ __all__ = [
     "ABSORBED_LIMIT",
     "CONDITION_INDEX_LIMIT",
     "CandidateScreen",
+    "DEFAULT_CANDIDATES",
+    "OPT_IN_EFFECTS",
     "Cleaning",
     "DiscoveryConfig",
     "DiscoveryResult",

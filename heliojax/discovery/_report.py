@@ -511,7 +511,7 @@ def _drivers(fleet, effect: str) -> list[tuple[str, np.ndarray]]:
             ("v^2 cos(wind - facing) [m^2/s^2]", v2 * np.cos(rel)),
             ("v^2 sin(wind - facing) [m^2/s^2]", v2 * np.sin(rel)),
         ]
-    if effect == "clock":
+    if effect in ("clock", "offset_drift"):
         t = np.asarray(ctx.unix_time)
         return [("days since first record", (t - np.nanmin(t)) / 86400.0)]
     if effect == "gravity_sag":

@@ -81,6 +81,22 @@ AMBIGUITY_BIC = 10.0
 a BIC difference above 10 is "very strong" evidence)."""
 
 
+OPT_IN_EFFECTS: tuple[str, ...] = ("offset_drift",)
+"""Library effects that are candidates only when asked for (``effects=``, ``--effects``).
+
+``offset_drift`` (each heliostat's joint zeros creeping at their own rate): on
+simulated fleets it is named where planted and not where a clock drifts, but on the
+shared real records its per-heliostat form passed both criteria (delta BIC 452,
+held-out log ratio -0.17: most heliostats predicted better) while the pooled
+cross-validated RMS rose from 16.7 to 47.9 mrad: two free rates per heliostat
+extrapolate wildly for heliostats with a handful of records. Until per-heliostat
+effects are regularised (e.g. by a fleet prior), it is not screened by default."""
+
+DEFAULT_CANDIDATES: tuple[str, ...] = tuple(n for n in EFFECT_NAMES if n not in OPT_IN_EFFECTS)
+"""The candidate effects of :class:`DiscoveryConfig` by default: every library effect
+but :data:`OPT_IN_EFFECTS`."""
+
+
 @dataclasses.dataclass(frozen=True)
 class DiscoveryConfig:
     """Settings of :func:`discover`.
@@ -89,7 +105,8 @@ class DiscoveryConfig:
         base: ``"auto"`` (the default: the actuator model, which follows each
             heliostat's declared actuator kind, linear or ideal), ``"actuator"``
             (the same) or ``"stone8"`` (the Stone model, a linear counts-to-angle map).
-        effects: candidate effects (names from :data:`heliojax.effects.EFFECT_NAMES`).
+        effects: candidate effects (names from :data:`heliojax.effects.EFFECT_NAMES`;
+            default :data:`DEFAULT_CANDIDATES`).
         alpha: family-wise error rate of each step's test family (Holm).
         n_folds: blocked cross-validation folds (by UTC day).
         max_named: most effects to name.
@@ -130,12 +147,12 @@ class DiscoveryConfig:
 
     @property
     def candidates(self) -> tuple[str, ...]:
-        """The candidate effects (all of :data:`EFFECT_NAMES` when ``effects`` is None)."""
-        return EFFECT_NAMES if self.effects is None else tuple(self.effects)
+        """The candidate effects (:data:`DEFAULT_CANDIDATES` when ``effects`` is None)."""
+        return DEFAULT_CANDIDATES if self.effects is None else tuple(self.effects)
 
     def __post_init__(self):
         if self.effects is None:
-            object.__setattr__(self, "effects", EFFECT_NAMES)
+            object.__setattr__(self, "effects", DEFAULT_CANDIDATES)
         unknown = set(self.candidates) - set(EFFECT_NAMES)
         if unknown:
             raise ValueError(f"unknown effects {sorted(unknown)}; expected names from {EFFECT_NAMES}")

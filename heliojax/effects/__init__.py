@@ -24,6 +24,7 @@ name                 parameters (units)                    driving inputs       
 ``refraction``       ``refraction_scale`` (1)               sun elevation         vertical, ~cot(elevation)
 ``survey_heliostat`` ``survey_heliostat_e,n,u`` (m)         geometry              direction to target
 ``survey_target``    ``survey_target_e,n,u`` (m)            geometry              fixed shift on the target
+``offset_drift``     ``offset_drift_1,2`` (rad/year)        time                  offset growing with time
 ==================== ===================================== ===================== ==========================
 
 Each class's docstring gives the physical meaning and the exact correction.
@@ -36,7 +37,9 @@ from ._base import (
 )
 from ._environment import (
     SOLAR_RATE_RAD_S as SOLAR_RATE_RAD_S,
+    YEAR_S as YEAR_S,
     Clock as Clock,
+    OffsetDrift as OffsetDrift,
     Refraction as Refraction,
     Thermal as Thermal,
     Wind as Wind,

@@ -1,5 +1,5 @@
-"""Environmental and sun effects: thermal expansion, wind load, clock error,
-atmospheric refraction."""
+"""Environmental, time and sun effects: thermal expansion, wind load, clock error,
+drift of the joint zeros, atmospheric refraction."""
 
 from __future__ import annotations
 
@@ -166,6 +166,51 @@ class Clock(AbstractEffect):
         lat = jnp.deg2rad(self.latitude_deg)
         axis = jnp.stack([jnp.zeros_like(lat), jnp.cos(lat), jnp.sin(lat)])
         return rotate_about(sun, axis, -SOLAR_RATE_RAD_S * self.clock_error(context.unix_time))
+
+
+YEAR_S = 365.25 * 86400.0
+"""One Julian year (s): the time unit of :class:`OffsetDrift`'s rates."""
+
+
+@typing.final
+class OffsetDrift(AbstractEffect):
+    """Slow drift of the joint zeros: creep of the drives, settling of the
+    foundation, wear.
+
+    Physical meaning: each joint's zero moves at a constant rate, so the joint
+    angle the base model computes from the counts is off by an amount that grows
+    linearly with time. Correction::
+
+        angle_i += r_i (t - t_ref) / year
+
+    with ``angle_i`` the base model's joint angle (rad) and ``t`` the record's
+    time. A step (maintenance) is not this effect but a change point; a clock
+    error is not either (it turns the *sun* about the polar axis: its residual
+    depends on the sun's motion, this one does not).
+
+    Parameters: ``offset_drift_1``, ``offset_drift_2`` (rad/year). Reference:
+    ``offset_drift_reference_s`` (unix s; the data's mean time, so the rates do
+    not trade off against the base model's offsets).
+    Driving input: ``unix_time`` (records without one get no correction).
+    Residual signature: on each axis a constant offset growing linearly with time,
+    whatever the pose.
+    """
+
+    rate: Float[Array, "*h 2"] = parameter(unit="rad/year", scale=1e-3, typical=1e-3, name="offset_drift", shape=(2,))
+    reference: Float[Array, ""] = data_reference(unit="s", default=1.65e9, name="offset_drift_reference_s")
+
+    NAME: typing.ClassVar[str] = "offset_drift"
+    DRIVERS: typing.ClassVar[tuple[str, ...]] = ("unix_time",)
+
+    @classmethod
+    def nominal(cls, inner, dtype=None):
+        return cls(rate=zeros(dtype, 2), reference=jnp.asarray(1.65e9, dtype))
+
+    def angle_correction(self, geometry, counts, angles, context, normal):
+        if context is None:
+            return None
+        t = known(context.unix_time, self.reference)
+        return self.rate * ((t - self.reference) / YEAR_S)
 
 
 def standard_refraction(elevation: Float[Array, "..."]) -> Float[Array, "..."]:

@@ -11,7 +11,7 @@ import numpy as np
 from .._kinematics import AbstractKinematicModel
 from .._parameters import ModuleT as ModelT, ParameterView, reference_leaves, set_references
 from ._base import AbstractEffect, EffectModel, add_effects
-from ._environment import DEFAULT_LATITUDE_DEG, Clock, Refraction, Thermal, Wind
+from ._environment import DEFAULT_LATITUDE_DEG, Clock, OffsetDrift, Refraction, Thermal, Wind
 from ._mechanical import ActuatorGeometry, Backlash, EncoderWobble, GravitySag
 from ._survey import SurveyHeliostat, SurveyTarget
 
@@ -28,6 +28,7 @@ EFFECT_CLASSES: dict[str, type[AbstractEffect]] = {
         Refraction,
         SurveyHeliostat,
         SurveyTarget,
+        OffsetDrift,
     )
 }
 
@@ -57,7 +58,7 @@ def with_effects(model: AbstractKinematicModel, effects: collections.abc.Sequenc
 
 def data_references(fleet: typing.Any, mask: typing.Any = None) -> dict[str, float]:
     """Data-derived reference values: the mean known temperature (deg C), the
-    mean record time (unix s) over the valid records, and the plant latitude
+    mean record time (unix s; of the clock and the offset drift) over the valid records, and the plant latitude
     (deg, from ``fleet.origin_lla`` when the input has one)."""
     ctx = fleet.context
     m = np.asarray(fleet.mask if mask is None else mask, bool)
@@ -68,6 +69,7 @@ def data_references(fleet: typing.Any, mask: typing.Any = None) -> dict[str, flo
     t = np.asarray(ctx.unix_time)[m]
     t = t[np.isfinite(t)]
     refs["clock_reference_s"] = float(np.round(t.mean())) if t.size else 1.65e9
+    refs["offset_drift_reference_s"] = refs["clock_reference_s"]
     origin = getattr(fleet, "origin_lla", None)
     refs["clock_latitude_deg"] = float(np.asarray(origin)[0]) if origin is not None else DEFAULT_LATITUDE_DEG
     return refs
