@@ -53,6 +53,7 @@ def run_suite(source: Path, seed: int, amplitude_mrad: float) -> dict:
         "heliostats": len(fleet.ids),
         "statuses": sorted(set(robust.solution.status_labels())),
         "found": int(found.sum()),
+        "labelled_step": int((found & np.asarray(cp.is_step)).sum()),
         "dated": int(sum(dated)),
         "median_jump_error_mrad": float(np.median(err)) if err else None,
     }

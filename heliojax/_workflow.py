@@ -158,7 +158,7 @@ def calibrate(
             calibrated too.
         changes: scan the training records for change points (a change of the
             axis offsets, a jump or a drift, labelled by kind:
-            :func:`heliojax.fitting.find_change_points` with ``drift=False``) and,
+            :func:`heliojax.fitting.find_change_points`) and,
             where one is reported, fit again on the records since the change (the
             current state; with ``pool`` the fleet prior fills in what they leave open).
         record_roles: instead of a split, heliostat id -> {PAINT record id: role}
@@ -451,7 +451,7 @@ def _scan_changes(
     ``(H, M)`` the training records before a reported change."""
     try:
         # any change of state, a drift included: the records since describe the heliostat
-        cp = find_change_points(result, fleet, jnp.asarray(train), jnp.asarray(weights), drift=False)
+        cp = find_change_points(result, fleet, jnp.asarray(train), jnp.asarray(weights))
     except ConfigError as e:  # a model without a free pair of axis offsets
         log.info(f"no change-point scan: {e}")
         return None, np.zeros_like(train)

@@ -20,7 +20,9 @@ fit of the base model (:func:`heliojax.fitting.fit_robust`,
   records scanned, ``p_h = min(1, n_h exp(-delta_chi2 / 2))`` (the chi-square(2)
   tail), and the heliostats by Holm's procedure at the discovery's ``alpha``, so
   that under the null (no step anywhere) a change point is reported in at most a
-  fraction ``alpha`` of fleets. A reported change point is one of the named
+  fraction ``alpha`` of fleets. A change that a linear drift of the offsets
+  explains as well (``ChangePoints.is_step`` false: a creeping heliostat, a clock
+  running off) is no change point: its records stay. A reported change point is one of the named
   effects; the records before it (the earlier state of the heliostat) are left
   out of discovery, which then studies each heliostat's current state. After the
   library effects are named, each change point is tested again under the final
@@ -168,7 +170,10 @@ def clean(
     tested = {str(i): float(p[i]) for i in range(valid.shape[0]) if np.isfinite(p[i])}
     adjusted, rejected = holm(tested, alpha) if tested else ({}, set())
     p_holm = np.array([adjusted.get(str(i), np.nan) for i in range(valid.shape[0])])
-    found = np.array([str(i) in rejected for i in range(valid.shape[0])], bool)
+    changed = np.array([str(i) in rejected for i in range(valid.shape[0])], bool)
+    found = changed & np.asarray(cp.is_step, bool)  # a drift is no change point: its records stay
+    if (changed & ~found).any():
+        log.info(f"{int((changed & ~found).sum())} heliostats drift rather than jump: no change point")
     t = np.asarray(fleet.context.unix_time, float)
     time_s = np.where(found, np.asarray(cp.time_s, float), np.nan)
     with np.errstate(invalid="ignore"):
@@ -219,8 +224,9 @@ def confirm_change_points(
     ``(H, 2M, F)`` evaluated on every inlier record - those before the change
     included - each change point is tested again at its date: the likelihood
     ratio of a jump of the two offsets (columns ``offset_cols``) on the records
-    before the change, with the model's columns ``model_cols`` and a linear drift
-    of the offsets refitted (linearised), Bonferroni over the records and Holm over the heliostats as in
+    before the change, with the model's columns ``model_cols`` refitted
+    (linearised), a jump that a linear drift of the offsets explains as well (by
+    the Bayesian information criterion) counting as none, Bonferroni over the records and Holm over the heliostats as in
     the pre-pass. With ``target_index`` ``(H, M)``, both hypotheses also get a
     constant offset per target and residual component (a target's survey error
     moves its spots by a fixed angle): a heliostat that only switched targets at
@@ -243,12 +249,15 @@ def confirm_change_points(
         if target_index is not None:
             a = np.concatenate([a, _target_columns(target_index[h], use[h])], axis=1)
         tau = np.repeat(np.asarray(drift_coordinate(jnp.asarray(unix_time[h]), jnp.asarray(use[h]))), 2)[rows]
-        a = np.concatenate([a, jac[h][rows][:, offset_cols] * tau[:, None]], axis=1)  # drift: no jump
+        drift = jac[h][rows][:, offset_cols] * tau[:, None]
         step = np.where(before[:, None], jac[h][rows][:, offset_cols], 0.0)
         rss0 = _lstsq_rss(a, rr)
         rss1 = _lstsq_rss(np.concatenate([a, step], axis=1), rr)
         d = rr.size * np.log(max(rss0, 1e-300) / max(rss1, 1e-300))
+        d_drift = rr.size * np.log(max(rss0, 1e-300) / max(_lstsq_rss(np.concatenate([a, drift], axis=1), rr), 1e-300))
         p[h] = float(change_point_pvalues(np.array([d]), np.array([use[h].sum()]))[0])
+        if d - d_drift <= np.log(rr.size):  # a drift explains it as well (BIC): no jump
+            p[h] = 1.0
     tested = {str(i): float(p[i]) for i in range(p.size) if np.isfinite(p[i])}
     adjusted, rejected = holm(tested, alpha) if tested else ({}, set())
     confirmed = np.array([found[i] and str(i) in rejected for i in range(p.size)], bool)

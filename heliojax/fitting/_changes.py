@@ -9,15 +9,18 @@ after ``t_c`` (a jump of both offsets from ``t_c`` on). The candidate that lower
 the residual sum of squares most wins; its evidence is that drop in units of the
 likelihood ratio with the noise variance profiled out, ``delta_chi2 = n_rows
 ln(RSS_0 / RSS_c)`` (``n_rows`` = 2 x the records used), so that it does not
-depend on a noise estimate the jump itself inflates. Both hypotheses also hold a
-linear drift of the two offsets in time (two more columns, the offsets' Jacobian
-times the standardised record time; ``drift=True``, the default and what discovery
-uses): a heliostat whose offsets creep, or whose clock runs off, drifts; it does
-not jump, and a step is only reported for what a drift cannot explain.
-Calibration scans without the drift (``drift=False``): any change of state,
-step or drift, means the later records describe the heliostat better, and it
-labels each change a step or a drift by comparing their evidence
-(``ChangePoints.is_step``). A change point is reported
+depend on a noise estimate the jump itself inflates. Any change of state counts,
+a slow drift of the offsets included (its best step is where it splits the
+records best); each change is then labelled a step or a drift: the same
+likelihood ratio for a linear drift of the two offsets (two columns, the offsets'
+Jacobian times the standardised record time) against none gives
+``drift_delta_chi2``, and ``is_step`` says where the Bayesian information
+criterion prefers the step (three parameters) to the drift (two). Calibration
+acts on every change (the later records describe the heliostat better either
+way); discovery only on steps, so that a creeping heliostat or a clock running
+off is not split at a false date. Where the records cannot tell the two apart
+(two campaigns in time: a step between them and a drift fit alike) the step's
+extra fit decides. A change point is reported
 where the Bayesian information criterion prefers it: ``delta_chi2 > 3
 ln(n_rows)`` (two jumps and the location are three more parameters). For a
 clean heliostat the statistic at one candidate is about chi-square with 2
@@ -65,13 +68,11 @@ class ChangePoints(eqx.Module):
         n_after: records used at or after the change.
         drift_delta_chi2: the evidence of a linear drift of the two offsets against
             none (like ``delta_chi2``; two more parameters).
-        is_step: change points that are jumps rather than drifts: with ``drift``
-            every one; without it, those whose step the Bayesian information
-            criterion prefers to a linear drift (``delta_chi2 - 3 ln n >
-            drift_delta_chi2 - 2 ln n``, i.e. ``delta_chi2 - drift_delta_chi2 >
-            threshold / 3``).
+        is_step: change points that are jumps rather than drifts: those whose step
+            the Bayesian information criterion prefers to a linear drift of the two
+            offsets (``delta_chi2 - 3 ln n > drift_delta_chi2 - 2 ln n``, i.e.
+            ``delta_chi2 - drift_delta_chi2 > threshold / 3``).
         offsets: the names of the two offset parameters; static.
-        drift: whether the scan held a linear drift in both hypotheses; static.
     """
 
     found: Bool[Array, " H"]
@@ -85,7 +86,6 @@ class ChangePoints(eqx.Module):
     drift_delta_chi2: Float[Array, " H"]
     is_step: Bool[Array, " H"]
     offsets: tuple[str, str] = eqx.field(static=True)
-    drift: bool = eqx.field(static=True, default=True)
 
 
 def _offset_columns(view: ParameterView) -> tuple[tuple[str, str], list[int]]:
@@ -186,7 +186,7 @@ def _rss(design: Float[Array, "M 2 F"], residual: Float[Array, "M 2"], use: Bool
 
 
 @cached_jit  # traced once per machine when the CLI keeps programs
-def _scan(view, columns, min_segment, drift, model, geometry, counts, context, focal, mask, weight):
+def _scan(view, columns, min_segment, model, geometry, counts, context, focal, mask, weight):
     def one(model, geometry, counts, context, focal, mask, weight):
         counts, context, focal, use, _ = sanitise(geometry, counts, context, focal, mask)
         p = view.to_vector(model)
@@ -206,8 +206,7 @@ def _scan(view, columns, min_segment, drift, model, geometry, counts, context, f
         drift_cols = jump_cols * drift_coordinate(context.unix_time, use)[:, None, None]
         with_drift = jnp.concatenate([jac, drift_cols], axis=-1)
         t = jnp.where(use, context.unix_time, jnp.inf)
-        # drift: both hypotheses hold a linear drift of the offsets (a slow drift is no jump)
-        rss0, (coef, drop), n_after = jump_scan(with_drift if drift else jac, jump_cols, r, t, use)
+        rss0, (coef, drop), n_after = jump_scan(jac, jump_cols, r, t, use)
         ok = (n_after >= min_segment) & (jnp.sum(use).astype(jnp.int32) - n_after >= min_segment)
         gain = jnp.where(ok & jnp.isfinite(rss0) & jnp.isfinite(drop), drop, -jnp.inf)  # NaN rows: no candidate
         jump = -coef / scale[None, jnp.asarray(columns)] * 1e3  # rows are residuals: the offsets move the other way
@@ -219,8 +218,8 @@ def _scan(view, columns, min_segment, drift, model, geometry, counts, context, f
         dchi2 = jnp.where(possible, n_rows.astype(r.dtype) * jnp.log(jnp.maximum(rss0, 1e-300) / rss1), jnp.nan)
         t_best = t[best]
         before = jnp.where(use & (t < t_best), t, -jnp.inf)
-        rss_plain, rss_drift = _rss(jac, r, use), _rss(with_drift, r, use)
-        drift_dchi2 = n_rows.astype(r.dtype) * jnp.log(jnp.maximum(rss_plain, 1e-300) / jnp.maximum(rss_drift, 1e-300))
+        rss_drift = _rss(with_drift, r, use)
+        drift_dchi2 = n_rows.astype(r.dtype) * jnp.log(jnp.maximum(rss0, 1e-300) / jnp.maximum(rss_drift, 1e-300))
         found = possible & (dchi2 > threshold)
         return dict(
             found=found,
@@ -232,7 +231,7 @@ def _scan(view, columns, min_segment, drift, model, geometry, counts, context, f
             threshold=threshold,
             n_after=jnp.where(possible, n_after[best], 0).astype(jnp.int32),
             drift_delta_chi2=jnp.where(jnp.isfinite(drift_dchi2), drift_dchi2, jnp.nan),
-            is_step=found if drift else found & (dchi2 - drift_dchi2 > threshold / 3.0),
+            is_step=found & (dchi2 - drift_dchi2 > threshold / 3.0),
         )
 
     return jax.vmap(one)(model, geometry, counts, context, focal, mask, weight)
@@ -245,7 +244,6 @@ def find_change_points(
     weights: Float[Array, "H M"],
     *,
     min_segment: int | None = None,
-    drift: bool = True,
 ) -> ChangePoints:
     """The most likely jump of the axis offsets per heliostat (see the module docstring).
 
@@ -256,11 +254,6 @@ def find_change_points(
         weights: ``(H, M)`` robust record weights (1 for least squares; 0 ignores a record).
         min_segment: records each side of a change point at least (default: the
             number of free parameters).
-        drift: both hypotheses hold a linear drift of the offsets, so that only a
-            jump a drift cannot explain is a change point (default). Without it any
-            change of state counts, a drift included (its best step is where it
-            splits the records best); ``drift_delta_chi2`` and
-            ``is_step`` then tell the two apart.
 
     Raises:
         ConfigError: the model has no free pair of axis offsets.
@@ -270,7 +263,6 @@ def find_change_points(
         solution.view,
         tuple(columns),
         int(solution.view.n_free if min_segment is None else min_segment),
-        bool(drift),
         solution.model,
         fleet.geometry,
         fleet.counts,
@@ -279,4 +271,4 @@ def find_change_points(
         jnp.asarray(mask) & jnp.asarray(fleet.mask),
         jnp.asarray(weights, fleet.counts.dtype),
     )
-    return ChangePoints(offsets=names, drift=bool(drift), **out)
+    return ChangePoints(offsets=names, **out)
