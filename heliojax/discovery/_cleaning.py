@@ -241,6 +241,7 @@ def confirm_change_points(
         return cleaning, []
     use = cleaning.valid & ~cleaning.outlier
     p = np.asarray(cleaning.change_p, float).copy()
+    taus = np.asarray(jax.vmap(drift_coordinate)(jnp.asarray(unix_time, float), jnp.asarray(use)))  # (H, M)
     for h in np.nonzero(found)[0]:
         rows = np.repeat(use[h], 2)
         before = np.repeat(unix_time[h] < cleaning.change_time_s[h], 2)[rows]
@@ -248,7 +249,7 @@ def confirm_change_points(
         a = jac[h][rows][:, model_cols]
         if target_index is not None:
             a = np.concatenate([a, _target_columns(target_index[h], use[h])], axis=1)
-        tau = np.repeat(np.asarray(drift_coordinate(jnp.asarray(unix_time[h]), jnp.asarray(use[h]))), 2)[rows]
+        tau = np.repeat(taus[h], 2)[rows]
         drift = jac[h][rows][:, offset_cols] * tau[:, None]
         step = np.where(before[:, None], jac[h][rows][:, offset_cols], 0.0)
         rss0 = _lstsq_rss(a, rr)

@@ -132,10 +132,8 @@ def jump_scan(
         after each candidate.
     """
     use_f = use.astype(base.dtype)
-    b, e, r = base * use_f[:, None, None], jump * use_f[:, None, None], residual * use_f[:, None]
-    gram = jnp.einsum("mif,mig->fg", b, b)
-    gram_pinv = jnp.linalg.pinv(gram, hermitian=True)
-    r_perp = r - jnp.einsum("mif,f->mi", b, gram_pinv @ jnp.einsum("mif,mi->f", b, r))
+    b, e = base * use_f[:, None, None], jump * use_f[:, None, None]
+    gram_pinv, r_perp = _project_out(base, residual, use)
     rss0 = jnp.sum(r_perp**2)
     # Records without a time (NaN) are in the base design but never after a candidate:
     # sorted first, so that no suffix of a dated candidate holds them.
@@ -177,12 +175,15 @@ def drift_coordinate(unix_time: Float[Array, " M"], use: Bool[Array, " M"]) -> F
     return jnp.where(std > 0, d / jnp.where(std > 0, std, 1.0), 0.0)
 
 
-def _rss(design: Float[Array, "M 2 F"], residual: Float[Array, "M 2"], use: Bool[Array, " M"]) -> Float[Array, ""]:
-    """Residual sum of squares of ``residual`` after least squares in ``design`` (used rows)."""
+def _project_out(
+    design: Float[Array, "M 2 F"], residual: Float[Array, "M 2"], use: Bool[Array, " M"]
+) -> tuple[Float[Array, "F F"], Float[Array, "M 2"]]:
+    """``(G^+, r_perp)``: the pseudo-inverse of the used rows' Gram matrix of ``design``
+    and the used rows of ``residual`` after least squares in ``design`` (unused rows 0)."""
     u = use.astype(design.dtype)
     b, r = design * u[:, None, None], residual * u[:, None]
-    coef = jnp.linalg.pinv(jnp.einsum("mif,mig->fg", b, b), hermitian=True) @ jnp.einsum("mif,mi->f", b, r)
-    return jnp.sum((r - jnp.einsum("mif,f->mi", b, coef)) ** 2)
+    gram_pinv = jnp.linalg.pinv(jnp.einsum("mif,mig->fg", b, b), hermitian=True)
+    return gram_pinv, r - jnp.einsum("mif,f->mi", b, gram_pinv @ jnp.einsum("mif,mi->f", b, r))
 
 
 @cached_jit  # traced once per machine when the CLI keeps programs
@@ -218,7 +219,7 @@ def _scan(view, columns, min_segment, model, geometry, counts, context, focal, m
         dchi2 = jnp.where(possible, n_rows.astype(r.dtype) * jnp.log(jnp.maximum(rss0, 1e-300) / rss1), jnp.nan)
         t_best = t[best]
         before = jnp.where(use & (t < t_best), t, -jnp.inf)
-        rss_drift = _rss(with_drift, r, use)
+        rss_drift = jnp.sum(_project_out(with_drift, r, use)[1] ** 2)
         drift_dchi2 = n_rows.astype(r.dtype) * jnp.log(jnp.maximum(rss0, 1e-300) / jnp.maximum(rss_drift, 1e-300))
         found = possible & (dchi2 > threshold)
         return dict(
