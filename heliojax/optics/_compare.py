@@ -25,6 +25,7 @@ record's own focal-spot centroid (``focal_spot.UTIS``/``HeliOS``):
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
 import typing
 from pathlib import Path
@@ -40,10 +41,13 @@ from .._geometry import TargetPlane, bisector_normal, normalize, sun_direction, 
 from .._heliostat import HeliostatGeometry, LinearActuators, Pose
 from .._kinematics import AbstractKinematicModel, ActuatorModel, forward
 from .._plotting import pyplot
+from .._progress import progress_bar
 from ..paint import read_calibration_record, read_flux_png, read_heliostat_properties, read_tower
 from ._flux import ImageGrid, centroid, flux_image
 from ._sunshape import AbstractSunShape, BuieSun, EffectiveSun
 from ._surfaces import FacetLayout, SurfacePoints, ideal_surface
+
+log = logging.getLogger(__name__)
 
 load_flux_png = read_flux_png
 """Alias of :func:`heliojax.paint.read_flux_png`."""
@@ -345,13 +349,18 @@ def compare_record(
     def trace(k, g):  # flux_image is compiled; the surface is an argument, so every record reuses one program
         return flux_image(k, surface, pose, sun, target, g, sunshape, rays_per_point=rays_per_point, steps=steps)
 
-    traced = np.asarray(trace(key, grid), np.float64)
     # centroid from a grid with a 10 m margin, so a spot partly off the target is not biased
     wide = ImageGrid(grid.u_min - 10.0, grid.u_max + 10.0, grid.v_min - 10.0, grid.v_max + 10.0, shape=(256, 256))
-    c_traced = image_centroid(np.asarray(trace(jax.random.fold_in(key, 2), wide), np.float64), wide)
     c_measured = image_centroid(measured, grid)
-    grid_c = ImageGrid.centred(c_traced[0], c_traced[1], *CENTRED_WINDOW_M, shape=measured_c.shape)
-    traced_c = np.asarray(trace(jax.random.fold_in(key, 1), grid_c), np.float64)
+    images = ("record frame", "centroid frame", "centred frame")
+    for image in progress_bar(images, logger=log, desc="tracing the comparison", unit="image"):
+        if image == "record frame":
+            traced = np.asarray(trace(key, grid), np.float64)
+        elif image == "centroid frame":
+            c_traced = image_centroid(np.asarray(trace(jax.random.fold_in(key, 2), wide), np.float64), wide)
+        else:  # centred on the traced spot, in the measured cut-out's window
+            grid_c = ImageGrid.centred(c_traced[0], c_traced[1], *CENTRED_WINDOW_M, shape=measured_c.shape)
+            traced_c = np.asarray(trace(jax.random.fold_in(key, 1), grid_c), np.float64)
 
     if spot_enu is not None:
         spot_uv = np.asarray(target.to_plane(spot_enu))
