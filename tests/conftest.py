@@ -7,7 +7,9 @@ a few times. ``JAX_DISABLE_MOST_OPTIMIZATIONS=1`` (backend optimisation level 0,
 expensive LLVM passes) compiles them ~1.6x faster; it is set in the environment, so
 the CLI subprocesses and notebook kernels that tests start inherit it. The programs
 compute the same values to rounding (no fast-math either way; the fit benchmark's
-held-out RMS agreed to 1e-11 mrad). Tests marked ``optimised`` do much
+held-out RMS agreed to 1e-11 mrad). XLA's older CPU fusion emitters, as the
+``heliojax`` command uses them (``heliojax._xla_flags``; ``XLA_FLAGS``, inherited
+the same way), compile 2-3x faster again. Tests marked ``optimised`` do much
 work per program (ray tracing, reconstruction, discovery's many refits) and run with
 the optimisations on. A run with everything optimised, as users get it, is
 ``JAX_DISABLE_MOST_OPTIMIZATIONS=0 python -m pytest -n 2 -q``.
@@ -20,6 +22,10 @@ import os
 from pathlib import Path
 
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
+
+from heliojax._xla_flags import with_fast_cpu_compilation  # noqa: E402  (imports no JAX)
+
+os.environ["XLA_FLAGS"] = with_fast_cpu_compilation(os.environ.get("XLA_FLAGS", ""))
 
 import jax  # noqa: E402  (reads JAX_* variables at import)
 import jaxtyping  # noqa: E402

@@ -29,6 +29,25 @@ def test_inspect_embedded(tmp_path, capsys):
     assert "Load report" in out and plot.stat().st_size > 1000
 
 
+def test_cli_compiles_with_the_older_cpu_emitters_unless_told_otherwise(monkeypatch):
+    """The command sets XLA's older CPU fusion emitters for its process (faster
+    compiles; ``heliojax._xla_flags``); a user's own setting of that option, other
+    flags and jaxlib versions before the newer emitters are left alone."""
+    from heliojax import _xla_flags
+
+    flag = _xla_flags.LEGACY_CPU_EMITTERS
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_enable_fast_math=false")
+    assert main(["inspect"]) == 0
+    assert os.environ["XLA_FLAGS"] == f"--xla_cpu_enable_fast_math=false {flag}"
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
+    assert main(["inspect"]) == 0
+    assert os.environ["XLA_FLAGS"] == "--xla_cpu_use_fusion_emitters=true"
+    monkeypatch.setattr(_xla_flags, "_jaxlib_version", lambda: (0, 9, 0))
+    assert _xla_flags.with_fast_cpu_compilation("") == ""
+    monkeypatch.setattr(_xla_flags, "_jaxlib_version", lambda: (0, 9, 1))
+    assert _xla_flags.with_fast_cpu_compilation("") == flag
+
+
 def test_calibrate_embedded_writes_schema(tmp_path, capsys):
     report, out, plot = tmp_path / "s.json", tmp_path / "r.h5", tmp_path / "p.png"
     rc = main(

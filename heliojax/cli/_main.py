@@ -3,13 +3,17 @@
 Every subcommand accepts ``--config FILE.toml``: the table named after the
 subcommand (e.g. ``[calibrate]``) supplies option defaults (keys are the long
 option names with ``-`` or ``_``); flags on the command line override them.
-float64 is enabled for every command (calibration and geodesy need it).
+float64 is enabled for every command (calibration and geodesy need it), and
+XLA's CPU backend compiles with its older fusion emitters unless ``XLA_FLAGS``
+says otherwise (2-3x faster compiles for ~20 % slower runs: see
+``heliojax._xla_flags``).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 import tomllib
 import typing
@@ -18,6 +22,7 @@ from pathlib import Path
 
 from .._errors import ConfigError, HeliojaxError
 from .._version import __version__
+from .._xla_flags import with_fast_cpu_compilation
 from ._common import check_output_paths, configure_logging
 
 # subcommand -> module (each has add_parser(subparsers) and run(args) -> int)
@@ -158,6 +163,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
+    # before JAX starts its backend: this process compiles many small programs
+    os.environ["XLA_FLAGS"] = with_fast_cpu_compilation(os.environ.get("XLA_FLAGS", ""))
     import jax  # after parsing: --help and --version stay fast
     from tqdm.contrib.logging import logging_redirect_tqdm
 
