@@ -60,7 +60,7 @@ def add_parser(subparsers) -> None:
         "--effects",
         default=None,
         metavar="NAMES",
-        help="comma-separated candidate effects (default: all but offset_drift, screened only when named here)",
+        help="comma-separated candidate effects (default: every library effect)",
     )
     p.add_argument(
         "--alpha", type=number(0.0, 1.0, above=True), default=0.01, help="family-wise error rate per step (Holm), 0-1"

@@ -48,7 +48,6 @@ from ._report import (
 from ._screen import CandidateScreen as CandidateScreen, holm as holm
 from ._select import (
     DEFAULT_CANDIDATES as DEFAULT_CANDIDATES,
-    OPT_IN_EFFECTS as OPT_IN_EFFECTS,
     DiscoveryConfig as DiscoveryConfig,
     DiscoveryResult as DiscoveryResult,
     discover as discover,
@@ -60,7 +59,6 @@ __all__ = [
     "CONDITION_INDEX_LIMIT",
     "CandidateScreen",
     "DEFAULT_CANDIDATES",
-    "OPT_IN_EFFECTS",
     "Cleaning",
     "DiscoveryConfig",
     "DiscoveryResult",

@@ -101,6 +101,16 @@ class Layout:
         return np.asarray(dict(self.effect_typical)[effect])
 
     @property
+    def prior_weights(self) -> np.ndarray:
+        """Per effect column (in column order), the weight of its prior row: one over
+        its typical size in scaled units (0 where none is documented)."""
+        typical = np.zeros(self.n_free - len(self.base_cols))
+        n_base = len(self.base_cols)
+        for effect, cols in self.effect_cols:
+            typical[np.asarray(cols, int) - n_base] = self.typical(effect)
+        return np.where(typical > 0, 1.0 / np.where(typical > 0, typical, 1.0), 0.0)
+
+    @property
     def effect_index(self) -> tuple[int, ...]:
         """Positions (in ``view.names``) of all effect parameters, in column order."""
         return self.free_index[len(self.base_cols) :]
@@ -225,6 +235,7 @@ def _fit_lane(
     p0,
     sel,
     sel_valid,
+    prior_weight,
     p_exp,
     c0,
     dmat,
@@ -235,7 +246,10 @@ def _fit_lane(
     mask,
 ):
     """One lane's Levenberg-Marquardt fit: the base's free parameters plus up to
-    ``cap`` effect parameters (solver columns ``sel``, where ``sel_valid``)."""
+    ``cap`` effect parameters (solver columns ``sel``, where ``sel_valid``), each
+    effect parameter with a Gaussian prior row ``prior_weight * (q - q_none) /
+    scale`` (``q_none``: no effect; weight 0: no prior). ``cost`` is that of the
+    records' rows alone."""
     counts, context, focal, use, _ = sanitise(geometry, counts, context, focal, mask)
     dtype = counts.dtype
     n_base = len(layout.base_cols)
@@ -252,25 +266,37 @@ def _fit_lane(
     def row(y, c, x, f, k, d):
         return _lane_row(layout, template, geometry, p_exp, to_physical(y), c, x, f, k, d)
 
-    residual = residual_with_jacobian(
-        lambda y: record_rows_and_jacobian(row, y, (counts, context, focal, c0, dmat), use)
-    )
+    # the prior's rows are linear in y: (p0 - q_none) / scale + y, weighted
+    weight = jnp.where(sel_valid, prior_weight, 0.0)
+    none = layout.view.to_vector(template).astype(dtype)
+    prior_at_zero = weight * (p0[eff_idx] - none[eff_idx]) / all_scales[eff_idx]
+    prior_jac = jnp.concatenate([jnp.zeros((cap, n_base), dtype), jnp.diag(weight)], axis=1)
+
+    def rows_and_jacobian(y):
+        r, jac = record_rows_and_jacobian(row, y, (counts, context, focal, c0, dmat), use)
+        if not cap:
+            return r, jac
+        return jnp.concatenate([r, prior_at_zero + weight * y[n_base:]]), jnp.concatenate([jac, prior_jac])
+
+    residual = residual_with_jacobian(rows_and_jacobian)
     out = solve_least_squares(residual, jnp.zeros(n_base + cap, dtype), solver, max_steps)
+    prior_cost = 0.5 * jnp.sum((prior_at_zero + weight * out.value[n_base:]) ** 2) if cap else 0.0
     p = to_physical(out.value)
     n_used = jnp.sum(use)
     n_active = n_base + jnp.sum(sel_valid)
     ok = (2 * n_used > n_active) & jnp.all(jnp.isfinite(p))
     ok = ok & (out.result != optx.RESULTS.nonlinear_divergence)
     p = jnp.where(ok, p, p0)
-    return dict(params=p, ok=ok, cost=out.cost, n_used=n_used.astype(jnp.int32), n_steps=out.n_steps.astype(jnp.int32))
+    cost = out.cost - prior_cost
+    return dict(params=p, ok=ok, cost=cost, n_used=n_used.astype(jnp.int32), n_steps=out.n_steps.astype(jnp.int32))
 
 
 @cached_jit
 def _fit_lanes_compiled(
-    layout, solver, max_steps, batching, cap, template, p0, sel, sel_valid, p_exp, c0, dmat, records: Records
+    layout, solver, max_steps, batching, cap, template, p0, sel, sel_valid, prior_weight, p_exp, c0, dmat, records
 ):
     fn = lambda *a: _fit_lane(layout, solver, max_steps, cap, template, *a)  # noqa: E731
-    return batching.map(fn)(p0, sel, sel_valid, p_exp, c0, dmat, *records)
+    return batching.map(fn)(p0, sel, sel_valid, prior_weight, p_exp, c0, dmat, *records)
 
 
 def _predicted_focal(layout: Layout, template, p, c0, geometry, counts, context, focal):
@@ -411,6 +437,8 @@ class Engine:
         solver: the optimistix least-squares solver.
         max_steps: its step limit.
         batching: the strategy over lanes.
+        effect_prior: per-heliostat effect parameters get a Gaussian prior of their
+            typical size (:func:`heliojax.parameter`'s ``typical``) about no effect.
     """
 
     layout: Layout
@@ -419,6 +447,7 @@ class Engine:
     solver: optx.AbstractLeastSquaresSolver
     max_steps: int
     batching: AbstractBatching
+    effect_prior: bool = True
 
     @classmethod
     def create(
@@ -429,6 +458,7 @@ class Engine:
         solver=None,
         max_steps: int = 64,
         batching: AbstractBatching | None = None,
+        effect_prior: bool = True,
     ) -> Engine:
         return cls(
             layout,
@@ -437,7 +467,14 @@ class Engine:
             default_solver() if solver is None else solver,
             max_steps,
             default_batching() if batching is None else batching,
+            effect_prior,
         )
+
+    def prior_weights(self, noise_mrad: np.ndarray) -> np.ndarray:
+        """``(L, E)`` weights of the effect prior's rows per lane and effect column
+        (scaled units; see :meth:`fit`): noise over typical size; 0 without a prior."""
+        noise = np.where(np.isfinite(noise_mrad) & (noise_mrad > 0), noise_mrad, 0.0)
+        return noise[:, None] * self.layout.prior_weights[None, :] * float(self.effect_prior)
 
     @functools.cached_property
     def groups(self) -> tuple[LaneGroup, ...]:
@@ -459,13 +496,19 @@ class Engine:
             for g in self.groups
         )
 
-    def fit(self, p0: np.ndarray, effect_cols, p_exp: np.ndarray, expansion) -> dict:
+    def fit(
+        self, p0: np.ndarray, effect_cols, p_exp: np.ndarray, expansion, noise_mrad: np.ndarray | None = None
+    ) -> dict:
         """One Levenberg-Marquardt fit of every lane from ``p0``: the base's free
         parameters and the effect columns ``effect_cols`` (positions among the
         effect columns) free, the effects expanded about ``p_exp`` (``expansion``:
         :meth:`expand` at ``p_exp``). The solver's width is bucketed (0, 4, 8, 12, 16,
         24, 32 effect columns) so that few programs are compiled. ``cost`` is
-        ``0.5 * sum r^2`` of the linearised model."""
+        ``0.5 * sum r^2`` of the linearised model's record rows (the effect prior's
+        rows, with ``effect_prior``, left out). With ``effect_prior``, ``noise_mrad``
+        ``(L,)`` is each lane's noise per residual component: the prior rows are
+        ``noise * (q - q_none) / typical``, so that the fit is the posterior mode of
+        Gaussian records and a Gaussian prior (no prior where it is None)."""
         k = len(effect_cols)
         cap = next(c for c in CAPS if c >= k) if k <= CAPS[-1] else k
         p0, p_exp = np.asarray(p0), np.asarray(p_exp)
@@ -473,6 +516,9 @@ class Engine:
         valid = np.zeros((p0.shape[0], cap), bool)
         sel[:, :k] = np.asarray(effect_cols, np.int32)
         valid[:, :k] = True
+        weight = np.zeros((p0.shape[0], cap))
+        if self.effect_prior and k and noise_mrad is not None:
+            weight[:, :k] = self.prior_weights(noise_mrad)[:, np.asarray(effect_cols, int)]
         parts = []
         for g, (c0, dmat) in zip(self.groups, expansion, strict=True):
             i = g.index
@@ -486,6 +532,7 @@ class Engine:
                 jnp.asarray(p0[i]),
                 jnp.asarray(sel[i]),
                 jnp.asarray(valid[i]),
+                jnp.asarray(weight[i]),
                 jnp.asarray(p_exp[i]),
                 c0,
                 dmat,

@@ -1,0 +1,121 @@
+"""Discovery's lanes engine (the compiled fits over heliostat x fold lanes) against
+second computations: grouping by record width against one group, and the refits'
+effect prior against the fit core's Gaussian prior. Small fleets of their own
+shapes, so the programs compile unoptimised (see tests/conftest.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from heliojax.discovery import DiscoveryConfig, simulate_fleet
+from heliojax.effects import make_effect
+
+M, NOISE = 40, 0.25
+
+
+def test_lane_groups_by_record_width_change_no_lane_result(monkeypatch):
+    """Lanes grouped by their heliostat's record width (each group its own compiled
+    programs, cut to its width) against all lanes in one group at the fleet's width:
+    the same fits and the same residuals and Jacobians, with heliostats of 12 to 70
+    records and a masked record in the middle of one."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    import heliojax as hj
+    from heliojax.discovery import _lanes
+
+    fleet, _ = simulate_fleet(3, 6, 70, effects=(make_effect("backlash"),), noise_mrad=NOISE)
+    mask = np.asarray(fleet.mask).copy()
+    mask[0, 12:] = False
+    mask[1, 30:] = False
+    mask[2, 5] = False
+    fleet = eqx.tree_at(lambda f: f.mask, fleet, jnp.asarray(mask))
+    layout, template = _lanes.make_layout(hj.nominal_model("stone8"), ("backlash", "thermal"), fleet)
+    lanes = _lanes.make_lanes(fleet, 3)
+    engine = _lanes.Engine.create(layout, template, lanes)
+    assert sorted(g.width for g in engine.groups) == [16, 32, 70]
+    p0 = np.broadcast_to(np.asarray(layout.view.to_vector(template)), (lanes.fold.shape[0], layout.view.n_parameters))
+    cols = [0, 1]
+
+    def run(e):
+        out = e.fit(p0, cols, p0, e.expand(p0))
+        p = out["params"] if reference is None else reference
+        return out, e.jacobian(p), e.jacobian(p, evaluate=True)
+
+    reference = None
+    grouped = run(engine)
+    reference = grouped[0]["params"]  # Jacobians of both at the same point
+    one = lambda ln: (_lanes.LaneGroup(np.arange(ln.fold.size), ln.fold.size, 70),)  # noqa: E731
+    monkeypatch.setattr(_lanes, "lane_groups", one)
+    single = run(_lanes.Engine.create(layout, template, lanes))
+    # fits: equal to the solver's path tolerance (10 x its step tolerance, per parameter scale)
+    path_atol = 10 * hj.fitting.DEFAULT_ATOL * np.asarray(layout.view.scales)
+    assert np.all(np.abs(grouped[0]["params"] - single[0]["params"]) <= path_atol)
+    np.testing.assert_array_equal(grouped[0]["ok"], single[0]["ok"])
+    np.testing.assert_array_equal(grouped[0]["n_used"], single[0]["n_used"])
+    for a, b in zip(grouped[1] + grouped[2], single[1] + single[2], strict=True):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-10)
+
+
+def test_effect_prior_is_the_fit_cores_gaussian_prior_and_spares_well_sampled_heliostats():
+    """The refits' effect prior (``DiscoveryConfig.effect_prior``) against a second
+    implementation: :func:`heliojax.fit` of the same model with
+    :func:`heliojax.gaussian_prior` (typical sizes as standard deviations, the lane's
+    noise as scale) reaches the same posterior mode, to the solvers' path tolerance.
+    A heliostat whose 8 records span four weeks is held near no drift; the
+    well-sampled ones (40 records) keep their rates (within 2 % of the fit without the
+    prior; measured 1.1-1.3 %),
+    and the effective number of parameters counts the held one as less than free."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    import heliojax as hj
+    from heliojax.discovery import _lanes, _select
+
+    drift = [make_effect("offset_drift", offset_drift_1=1.5e-3, offset_drift_2=-1.5e-3)]
+    fleet, _ = simulate_fleet(107, 6, M, effects=drift, noise_mrad=NOISE)
+    mask = np.asarray(fleet.mask).copy()
+    mask[0, 8:] = False
+    fleet = eqx.tree_at(lambda f: f.mask, fleet, jnp.asarray(mask))
+    layout, template = _lanes.make_layout(hj.nominal_model("stone8"), ("offset_drift",), fleet)
+    lanes = _lanes.make_lanes(fleet, 2)
+    p_none = np.broadcast_to(np.asarray(layout.view.to_vector(template)), (lanes.fold.size, layout.view.n_parameters))
+    noise = np.full(lanes.fold.size, NOISE)
+
+    def solve(engine):  # expand and fit until the first-order expansion is exact
+        p = p_none
+        for _ in range(6):
+            p = engine.fit(p, [0, 1], p, engine.expand(p), noise)["params"]
+        return p
+
+    with_prior = solve(_lanes.Engine.create(layout, template, lanes))
+    without = solve(_lanes.Engine.create(layout, template, lanes, effect_prior=False))
+    typical = {n: float(t) for n, t in zip(layout.view.names, layout.view.typical, strict=True) if "drift" in n}
+    reference = hj.fit(template, fleet, prior=hj.gaussian_prior(template, typical, noise_mrad=NOISE))
+    assert np.all(np.asarray(reference.status) == hj.FitStatus.CONVERGED)
+    fold0 = np.flatnonzero(lanes.fold == 0)
+    path_atol = 10 * hj.fitting.DEFAULT_ATOL * np.asarray(layout.view.scales)
+    free = np.asarray(layout.free_index)
+    assert np.all(np.abs(with_prior[fold0][:, free] - np.asarray(reference.parameters())[:, free]) <= path_atol[free])
+    rates = [layout.view.names.index(n) for n in typical]
+    held, kept = with_prior[fold0][:, rates], without[fold0][:, rates]
+    assert np.all(np.abs(held[0]) < 0.5 * np.abs(kept[0]))  # measured: 0.54 / 5.0 and 0.10 / 0.69 mrad/year
+    np.testing.assert_allclose(held[1:], kept[1:], rtol=0.02)
+    wf = _select._Workflow(_lanes.Engine.create(layout, template, lanes), DiscoveryConfig(base="stone8"))
+    wf.noise = noise
+    r, jac = wf.engine.jacobian(with_prior)
+    state = _select.ModelState(
+        (("offset_drift", "per_heliostat"),),
+        with_prior,
+        np.ones(len(noise), bool),
+        r,
+        jac,
+        np.sum(r**2, axis=1),
+        2 * lanes.train_mask.sum(axis=1),
+        np.zeros_like(mask, float),
+        None,
+        0.0,
+    )
+    df = wf.effective_parameters(state, fold0)
+    n_active = len(wf.active_cols(state.effects))
+    assert df[0] < n_active - 0.5 and np.all(df[1:] > n_active - 0.1) and np.all(df <= n_active + 1e-9)
