@@ -206,6 +206,7 @@ def test_discover_command_on_paint_layout(paint_dir, tmp_path):
     ):
         assert key in r
     assert r["base_model"] == "stone8"
+    assert r["config"]["effect_prior"] is True
     assert set(r["named_effects"][:2]) == {"backlash", "thermal"}
     for s in r["steps"]:
         for key in (

@@ -71,6 +71,11 @@ def add_parser(subparsers) -> None:
         "--no-robust", action="store_true", help="keep every record (no gross-error flags; default: robust pre-pass)"
     )
     p.add_argument("--no-changes", action="store_true", help="no change-point scan (default: scan and report)")
+    p.add_argument(
+        "--no-effect-prior",
+        action="store_true",
+        help="refit per-heliostat effect parameters without the prior of their typical size (default: with it)",
+    )
     add_fit_arguments(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar or messages on stderr")
 
@@ -97,6 +102,7 @@ def run(args) -> int:
             start=args.start,
             robust=not args.no_robust,
             changes=not args.no_changes,
+            effect_prior=not args.no_effect_prior,
         )
     except ValueError as e:
         raise ConfigError(str(e)) from e

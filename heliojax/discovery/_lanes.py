@@ -295,6 +295,7 @@ def _fit_lane(
 def _fit_lanes_compiled(
     layout, solver, max_steps, batching, cap, template, p0, sel, sel_valid, prior_weight, p_exp, c0, dmat, records
 ):
+    """All lanes' fits (:func:`_fit_lane`); ``records``: :data:`Records`."""
     fn = lambda *a: _fit_lane(layout, solver, max_steps, cap, template, *a)  # noqa: E731
     return batching.map(fn)(p0, sel, sel_valid, prior_weight, p_exp, c0, dmat, *records)
 

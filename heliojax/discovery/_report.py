@@ -285,6 +285,7 @@ def build_report(result, typical_start=None) -> dict:
             "robust": cfg.robust,
             "changes": cfg.changes,
             "ambiguity_bic": cfg.ambiguity_bic,
+            "effect_prior": cfg.effect_prior,
         },
         "data": {
             "source": getattr(getattr(fleet, "report", None), "source", None),
