@@ -193,9 +193,15 @@ def fit_robust(
         r1 = fleet_residuals_mrad(sol.model, fleet, m)
         sigma1, _ = robust_noise(r1, m, n_free)
     if pool:
-        prior = fleet_prior(sol, jnp.asarray(sigma1, fleet.counts.dtype))
+        # Heliostats without a usable fit (too few records) have residuals of an unfitted
+        # model, whose spread is no noise estimate: the prior rows of those are scaled by
+        # the fitted heliostats' median noise instead (else the prior outweighs their records).
+        fitted = _fitted(sol)
+        typical = float(np.median(sigma1[fitted])) if fitted.any() else float(np.median(sigma1))
+        prior_noise = np.where(fitted, sigma1, typical)
+        prior = fleet_prior(sol, jnp.asarray(prior_noise, fleet.counts.dtype))
         # heliostats without a usable fit start from the fleet's centre
-        ok = jnp.asarray(_fitted(sol))
+        ok = jnp.asarray(fitted)
         start = jax.tree.map(
             lambda a, b: jnp.where(ok.reshape((-1,) + (1,) * (jnp.ndim(a) - 1)), a, b) if eqx.is_array(a) else a,
             sol.model,
