@@ -77,6 +77,22 @@ def test_confirm_keeps_a_real_step_and_withdraws_a_spurious_one():
     assert out.change_found.tolist() == [True, False]
     assert out.withdrawn is not None and out.withdrawn.tolist() == [False, True]
     assert out.change_p[0] < 1e-6 and out.change_p[1] > 1e-3
+    # Records the final model cannot evaluate (non-finite residual or Jacobian rows, e.g.
+    # a left-out record outside an actuator's range) take no part: the same outcome as
+    # with those records left out, and no exception.
+    bad_r, bad_jac = r.copy(), jac.copy()
+    bad_r[0, 2 * 5] = np.nan
+    bad_jac[0, 2 * 7 + 1, 2] = np.inf
+    bad_jac[1, 2 * 30, 0] = np.nan
+    cleaning = _cleaning_with_change(h, m, 20.0)
+    nan_out, nan_withdrawn = confirm_change_points(cleaning, bad_r, bad_jac, [0, 1, 2], [0, 1], t, 0.01)
+    valid = cleaning.valid.copy()
+    valid[0, [5, 7]] = False
+    valid[1, 30] = False
+    left_out = dataclasses.replace(cleaning, valid=valid)
+    ref, ref_withdrawn = confirm_change_points(left_out, r, jac, [0, 1, 2], [0, 1], t, 0.01)
+    assert nan_withdrawn == ref_withdrawn == [1]
+    np.testing.assert_allclose(nan_out.change_p, ref.change_p, rtol=1e-10)
 
 
 # --------------------------------------------------------------------------------------

@@ -242,13 +242,19 @@ def confirm_change_points(
     use = cleaning.valid & ~cleaning.outlier
     p = np.asarray(cleaning.change_p, float).copy()
     taus = np.asarray(jax.vmap(drift_coordinate)(jnp.asarray(unix_time, float), jnp.asarray(use)))  # (H, M)
+    m = use.shape[1]
     for h in np.nonzero(found)[0]:
-        rows = np.repeat(use[h], 2)
+        # records the final model cannot evaluate (non-finite rows, e.g. a left-out
+        # record outside an actuator's range) take no part; they never spoil the test
+        finite = np.all(np.isfinite(r[h].reshape(m, 2)), axis=1) & np.all(
+            np.isfinite(jac[h].reshape(m, 2, -1)[:, :, list(model_cols) + list(offset_cols)]), axis=(1, 2)
+        )
+        rows = np.repeat(use[h] & finite, 2)
         before = np.repeat(unix_time[h] < cleaning.change_time_s[h], 2)[rows]
         rr = r[h][rows]
         a = jac[h][rows][:, model_cols]
         if target_index is not None:
-            a = np.concatenate([a, _target_columns(target_index[h], use[h])], axis=1)
+            a = np.concatenate([a, _target_columns(target_index[h], use[h] & finite)], axis=1)
         tau = np.repeat(taus[h], 2)[rows]
         drift = jac[h][rows][:, offset_cols] * tau[:, None]
         step = np.where(before[:, None], jac[h][rows][:, offset_cols], 0.0)
@@ -256,7 +262,7 @@ def confirm_change_points(
         rss1 = _lstsq_rss(np.concatenate([a, step], axis=1), rr)
         d = rr.size * np.log(max(rss0, 1e-300) / max(rss1, 1e-300))
         d_drift = rr.size * np.log(max(rss0, 1e-300) / max(_lstsq_rss(np.concatenate([a, drift], axis=1), rr), 1e-300))
-        p[h] = float(change_point_pvalues(np.array([d]), np.array([use[h].sum()]))[0])
+        p[h] = float(change_point_pvalues(np.array([d]), np.array([(use[h] & finite).sum()]))[0])
         if d - d_drift <= np.log(rr.size):  # a drift explains it as well (BIC): no jump
             p[h] = 1.0
     tested = {str(i): float(p[i]) for i in range(p.size) if np.isfinite(p[i])}
@@ -292,7 +298,11 @@ def _target_columns(target: np.ndarray, use: np.ndarray) -> np.ndarray:
 
 
 def _lstsq_rss(a: np.ndarray, y: np.ndarray) -> float:
-    x, *_ = np.linalg.lstsq(a, y, rcond=None)
+    """Residual sum of squares of least squares in ``a`` (NaN where it cannot be solved)."""
+    try:
+        x, *_ = np.linalg.lstsq(a, y, rcond=None)
+    except np.linalg.LinAlgError:
+        return float("nan")
     return float(np.sum((y - a @ x) ** 2))
 
 
