@@ -19,10 +19,11 @@ T = typing.TypeVar("T")
 
 
 def progress_bar(
-    items: Iterable[T], *, logger: logging.Logger, desc: str, total: int | None = None, unit: str = "it"
-) -> Iterable[T]:
+    items: Iterable[T] | None, *, logger: logging.Logger, desc: str, total: int | None = None, unit: str = "it"
+) -> tqdm:
     """``items`` with a progress bar on stderr (see the module docstring for when it
-    is shown); the bar disappears when done."""
+    is shown); the bar disappears when done. With ``items`` None, a bar of ``total``
+    steps advanced by its ``update()`` (use it as a context manager)."""
     shown = logger.isEnabledFor(logging.INFO)
     return tqdm(
         items, desc=desc, total=total, unit=unit, leave=False, dynamic_ncols=True, disable=None if shown else True

@@ -101,9 +101,9 @@ class Layout:
         return np.asarray(dict(self.effect_typical)[effect])
 
     @property
-    def prior_weights(self) -> np.ndarray:
-        """Per effect column (in column order), the weight of its prior row: one over
-        its typical size in scaled units (0 where none is documented)."""
+    def inverse_typical(self) -> np.ndarray:
+        """Per effect column (in column order), one over its typical size in scaled
+        units (0 where none is documented): the effect prior's precision scale."""
         typical = np.zeros(self.n_free - len(self.base_cols))
         n_base = len(self.base_cols)
         for effect, cols in self.effect_cols:
@@ -475,7 +475,7 @@ class Engine:
         """``(L, E)`` weights of the effect prior's rows per lane and effect column
         (scaled units; see :meth:`fit`): noise over typical size; 0 without a prior."""
         noise = np.where(np.isfinite(noise_mrad) & (noise_mrad > 0), noise_mrad, 0.0)
-        return noise[:, None] * self.layout.prior_weights[None, :] * float(self.effect_prior)
+        return noise[:, None] * self.layout.inverse_typical[None, :] * float(self.effect_prior)
 
     @functools.cached_property
     def groups(self) -> tuple[LaneGroup, ...]:

@@ -352,15 +352,14 @@ def compare_record(
     # centroid from a grid with a 10 m margin, so a spot partly off the target is not biased
     wide = ImageGrid(grid.u_min - 10.0, grid.u_max + 10.0, grid.v_min - 10.0, grid.v_max + 10.0, shape=(256, 256))
     c_measured = image_centroid(measured, grid)
-    images = ("record frame", "centroid frame", "centred frame")
-    for image in progress_bar(images, logger=log, desc="tracing the comparison", unit="image"):
-        if image == "record frame":
-            traced = np.asarray(trace(key, grid), np.float64)
-        elif image == "centroid frame":
-            c_traced = image_centroid(np.asarray(trace(jax.random.fold_in(key, 2), wide), np.float64), wide)
-        else:  # centred on the traced spot, in the measured cut-out's window
-            grid_c = ImageGrid.centred(c_traced[0], c_traced[1], *CENTRED_WINDOW_M, shape=measured_c.shape)
-            traced_c = np.asarray(trace(jax.random.fold_in(key, 1), grid_c), np.float64)
+    with progress_bar(None, logger=log, desc="tracing the comparison", total=3, unit="image") as bar:
+        traced = np.asarray(trace(key, grid), np.float64)
+        bar.update()
+        c_traced = image_centroid(np.asarray(trace(jax.random.fold_in(key, 2), wide), np.float64), wide)
+        bar.update()
+        grid_c = ImageGrid.centred(c_traced[0], c_traced[1], *CENTRED_WINDOW_M, shape=measured_c.shape)
+        traced_c = np.asarray(trace(jax.random.fold_in(key, 1), grid_c), np.float64)
+        bar.update()
 
     if spot_enu is not None:
         spot_uv = np.asarray(target.to_plane(spot_enu))
