@@ -632,9 +632,19 @@ def plot_screen(report: dict, step: int = 0, *, ax=None):
     for i in index[~untested]:
         p_i = scr[names[i]]["p_holm"]
         text = f"p={p_i:.1g}" if p_i > 0 else "p<1e-300"
-        ax.annotate(text, (i, heights[i]), xytext=(0, 2), textcoords="offset points", ha="center", fontsize=7)
+        # vertical, so that neighbouring bars' labels never overlap (eleven or more candidates)
+        ax.annotate(
+            text,
+            (i, heights[i]),
+            xytext=(0, 2),
+            textcoords="offset points",
+            ha="center",
+            va="bottom",
+            rotation=90,
+            fontsize=7,
+        )
     ax.axhline(-np.log10(report["config"]["alpha"]), color="C3", lw=1, label=f"alpha = {report['config']['alpha']}")
-    ax.set_ylim(0, 56)
+    ax.set_ylim(0, 66)
     ax.set_xticks(index)
     ax.set_xticklabels(names, rotation=30, ha="right")
     ax.set_ylabel("-log10 p (Holm), capped at 50")
