@@ -87,6 +87,7 @@ from ._plotting import (
     plot_plan as plot_plan,
     save_figure as save_figure,
 )
+from ._predictive import fit_drift_and_tails as fit_drift_and_tails, prediction_region_d2 as prediction_region_d2
 from ._results import (
     CalibrationResults as CalibrationResults,
     load_results as load_results,

@@ -25,6 +25,7 @@ record).
 
 from __future__ import annotations
 
+import math
 import typing
 
 import equinox as eqx
@@ -36,6 +37,7 @@ from ._beam import beam_pointing_error
 from ._heliostat import HeliostatGeometry, RecordContext
 from ._kinematics import AbstractKinematicModel, forward, inverse_aim
 from ._parameters import ParameterView
+from ._predictive import prediction_region_d2
 
 REACH_TOLERANCE_MRAD = 1e-3
 """Largest forward-model miss (mrad) of commanded counts that still counts as reaching the aim point."""
@@ -55,9 +57,11 @@ class AimResult(eqx.Module):
         sun_low: ``(N,)``.
         unreliable: ``(H,)``.
         unreachable: ``(H, N)``.
-        pointing_cov_mrad2: ``(H, N, 2, 2)`` predicted covariance of the beam
-            direction (mrad^2) from the parameter covariance and the drift since
-            the fit; NaN without a covariance.
+        pointing_cov_mrad2: ``(H, N, 2, 2)`` predicted scale matrix of the beam
+            direction's error (mrad^2) from the parameter covariance and the drift
+            since the fit; NaN without a covariance. It is the covariance when
+            ``tail_dof`` is inf (Gaussian), the scale of a bivariate Student t otherwise.
+        tail_dof: degrees of freedom of the predicted error (:mod:`heliojax._predictive`).
     """
 
     counts: Float[Array, "H N 2"]
@@ -69,6 +73,18 @@ class AimResult(eqx.Module):
     unreliable: Bool[Array, " H"]
     unreachable: Bool[Array, "H N"]
     pointing_cov_mrad2: Float[Array, "H N 2 2"]
+    tail_dof: float = eqx.field(static=True, default=math.inf)
+
+    def __check_init__(self):
+        if not self.tail_dof > 0.0:
+            raise ValueError(f"tail_dof must be positive (inf: Gaussian); got {self.tail_dof}")
+
+    def pointing_radius_mrad(self, probability: float = 0.95) -> Float[Array, "H N"]:
+        """Radius (mrad) of the circle about the aim direction that holds the beam
+        with at least ``probability``: the prediction region's semi-major axis,
+        ``sqrt(d2 * largest eigenvalue)``, ``d2`` from :func:`heliojax.prediction_region_d2`."""
+        largest = jnp.linalg.eigvalsh(self.pointing_cov_mrad2)[..., -1]
+        return jnp.sqrt(prediction_region_d2(probability, self.tail_dof) * largest)
 
     @property
     def pointing_std_mrad(self) -> Float[Array, "H N"]:
@@ -136,6 +152,7 @@ def aim_fleet(
     covariance: Float[ArrayLike, "H F F"] | None = None,
     view: ParameterView | None = None,
     drift_variance_mrad2: Float[ArrayLike, "*drift"] | float = 0.0,
+    tail_dof: float = math.inf,
     min_sun_elevation_deg: float = 5.0,
     reach_tolerance_mrad: float = REACH_TOLERANCE_MRAD,
 ) -> AimResult:
@@ -156,6 +173,8 @@ def aim_fleet(
             since the fit, broadcast to ``(H, N)`` (:func:`heliojax.temporal_drift`;
             :func:`aim_results` computes it from the instants' times), added to that
             uncertainty as ``drift_variance_mrad2 * I``.
+        tail_dof: degrees of freedom of the predicted Student-t error (inf: Gaussian;
+            :func:`heliojax.temporal_drift`), kept in the result.
         min_sun_elevation_deg: flag instants with the sun lower than this.
         reach_tolerance_mrad: largest forward-model miss still counted as reached.
 
@@ -195,6 +214,7 @@ def aim_fleet(
         unreliable=unreliable,
         unreachable=unreachable,
         pointing_cov_mrad2=pointing,
+        tail_dof=tail_dof,
     )
 
 
@@ -210,7 +230,7 @@ def aim_results(
     (heliostats without a usable fit are flagged ``unreliable``), with the predicted
     pointing uncertainty from the file's covariance and, given the instants'
     ``unix_time`` (s), the fleet's drift since each heliostat's last fitted record
-    (without times, no drift is added)."""
+    (without times, no drift is added), and the file's ``tail_dof``."""
     drift = 0.0 if unix_time is None else jnp.asarray(results.drift_variance_mrad2(unix_time))
     return aim_fleet(
         results.model,
@@ -221,6 +241,7 @@ def aim_results(
         covariance=results.covariance,
         view=results.view,
         drift_variance_mrad2=drift,
+        tail_dof=results.tail_dof,
         **options,
     )
 

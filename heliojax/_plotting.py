@@ -4,12 +4,14 @@ the figure; ``save_figure`` writes atomically."""
 from __future__ import annotations
 
 import datetime
+import math
 from pathlib import Path
 
 import numpy as np
 
 from ._errors import ConfigError
 from ._io import atomic_path
+from ._predictive import prediction_region_d2
 
 
 def pyplot():
@@ -171,11 +173,13 @@ def plot_calibration(run, *, axes=None):
     return fig
 
 
-def plot_aim(ids, pointing_cov_mrad2, ok, distance_m, hours=None, start=None, *, axes=None):
-    """Error bars of aiming commands: 1-sigma ellipses of the beam's landing point on
-    the aim plane (cm; the beam's tangent plane scaled by each heliostat's distance)
-    at the instant with most usable commands, and each heliostat's predicted
-    pointing uncertainty (mrad) over the instants. Flagged commands are left out."""
+def plot_aim(ids, pointing_cov_mrad2, ok, distance_m, hours=None, start=None, *, tail_dof=math.inf, axes=None):
+    """Error bars of aiming commands: 68 % prediction regions of the beam's landing
+    point on the aim plane (cm; the beam's tangent plane scaled by each heliostat's
+    distance) at the instant with most usable commands, and over the instants each
+    heliostat's 68 % pointing radius (mrad, the region's semi-major axis). The
+    predicted error law: scale ``pointing_cov_mrad2``, ``tail_dof`` degrees of freedom
+    (:func:`heliojax.prediction_region_d2`). Flagged commands are left out."""
     plt = pyplot()
     from matplotlib.patches import Ellipse
 
@@ -185,13 +189,15 @@ def plot_aim(ids, pointing_cov_mrad2, ok, distance_m, hours=None, start=None, *,
         fig = axes[0].figure
     cov = np.asarray(pointing_cov_mrad2, float)
     ok = np.asarray(ok, bool)
-    std = np.sqrt(np.trace(cov, axis1=-2, axis2=-1))
+    d2 = prediction_region_d2(0.68, tail_dof)
+    radius = np.sqrt(d2 * np.linalg.eigvalsh(np.where(np.isfinite(cov), cov, 0.0))[..., -1])
+    radius = np.where(np.all(np.isfinite(cov), axis=(-2, -1)), radius, np.nan)
     j = int(np.argmax(ok.sum(axis=0)))
     ax = axes[0]
     colours = plt.get_cmap("viridis")(np.linspace(0, 1, max(len(ids), 2)))
     extent = 0.0
     for i in np.flatnonzero(ok[:, j] & np.all(np.isfinite(cov[:, j]), axis=(-2, -1))):
-        vals, vecs = np.linalg.eigh(cov[i, j] * (distance_m[i] * 1e-3 * 100.0) ** 2)  # mrad^2 -> cm^2
+        vals, vecs = np.linalg.eigh(d2 * cov[i, j] * (distance_m[i] * 1e-3 * 100.0) ** 2)  # mrad^2 -> cm^2
         w, h = 2.0 * np.sqrt(np.clip(vals, 0.0, None))
         angle = float(np.degrees(np.arctan2(vecs[1, 1], vecs[0, 1])))
         ax.add_patch(Ellipse((0.0, 0.0), float(h), float(w), angle=angle, fill=False, color=colours[i], lw=1))
@@ -209,17 +215,18 @@ def plot_aim(ids, pointing_cov_mrad2, ok, distance_m, hours=None, start=None, *,
     else:
         when = f"{start + datetime.timedelta(hours=float(hours[j])):%Y-%m-%d %H:%M} UTC"
     ax.set_title(
-        f"1-sigma landing ellipses of {int(ok[:, j].sum())} heliostats\n{when}; colours as in the legend", fontsize=10
+        f"68 % landing regions of {int(ok[:, j].sum())} heliostats\n{when}; colours as in the legend", fontsize=10
     )
     ax = axes[1]
-    x = np.arange(std.shape[1]) if hours is None or start is None else hours
+    x = np.arange(radius.shape[1]) if hours is None or start is None else hours
     for i, hid in enumerate(ids):
-        y = np.where(ok[i], std[i], np.nan)
+        y = np.where(ok[i], radius[i], np.nan)
         if np.isfinite(y).any():
             ax.plot(x, y, marker="o", ms=3, lw=1, color=colours[i], label=hid)
     ax.set_xlabel("instant" if hours is None or start is None else f"hours after {start:%Y-%m-%d %H:%M} UTC")
-    ax.set_ylabel("predicted pointing uncertainty, radial RMS [mrad]")
-    ax.set_title("predicted pointing uncertainty of the usable commands", fontsize=10)
+    ax.set_ylabel("radius holding the beam with 68 % [mrad]")
+    law = "Gaussian" if math.isinf(tail_dof) else f"Student t, {tail_dof:.2g} degrees of freedom"
+    ax.set_title(f"predicted pointing uncertainty of the usable commands ({law})", fontsize=10)
     ax.grid(alpha=0.3)
     if len(ids) <= 30:
         ax.legend(fontsize=7, ncol=2, loc="upper left", bbox_to_anchor=(1.01, 1.0), title="heliostat")

@@ -8,7 +8,8 @@ Schema (``H`` heliostats, ``M`` padded records; NaN / -1 where no record):
   ``free_params`` (JSON list), ``robust`` (bool), ``origin_lla`` (WGS84 lat deg,
   lon deg, alt m of the ENU origin), ``drift_mrad2_per_day`` (the fleet's
   pointing drift per tangent component, :func:`heliojax.temporal_drift`; 0 when not
-  estimated)
+  estimated), ``tail_dof`` (degrees of freedom of the predicted Student-t pointing
+  error, :mod:`heliojax._predictive`; inf: Gaussian, also in files written without it)
 * ``heliostat_ids`` ``(H,)`` str; ``target_names`` ``(T,)`` str
 * ``params`` ``(H, P)`` float64, physical units; ``param_std`` ``(H, P)``
   Gauss-Newton standard errors; ``covariance`` ``(H, F, F)`` of the free parameters
@@ -39,6 +40,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import typing
 from pathlib import Path
 
@@ -120,6 +122,7 @@ def write_results_h5(path: str | Path, run: typing.Any) -> None:
         f.attrs["robust"] = bool(run.summary.get("robust", False))
         f.attrs["origin_lla"] = np.asarray(run.fleet.origin_lla, float)
         f.attrs["drift_mrad2_per_day"] = float(run.predictive.get("drift_mrad2_per_day", 0.0))
+        f.attrs["tail_dof"] = float(run.predictive.get("tail_dof", math.inf))
         f.create_dataset("heliostat_ids", data=np.array(run.fleet.ids[:n], dtype=object), dtype=str_dt)
         f.create_dataset("target_names", data=np.array(run.fleet.target_names, dtype=object), dtype=str_dt)
         f.create_dataset("params", data=np.asarray(run.result.parameters())[:n])
@@ -202,6 +205,12 @@ class CalibrationResults:
         """The fleet's pointing drift (mrad^2 per day per tangent component; 0 in files
         written without one), :func:`heliojax.temporal_drift`."""
         return float(self.attrs.get("drift_mrad2_per_day", 0.0))
+
+    @property
+    def tail_dof(self) -> float:
+        """Degrees of freedom of the predicted Student-t pointing error (inf:
+        Gaussian; :func:`heliojax.temporal_drift`)."""
+        return float(self.attrs.get("tail_dof", math.inf))
 
     def drift_variance_mrad2(self, unix_time: Float[ArrayLike, " N"]) -> Float[np.ndarray, "H N"]:
         """``(H, N)`` drift variance (mrad^2 per component) at ``unix_time`` (s): the

@@ -26,6 +26,7 @@ from ._fleet import bucket_size, pad_fleet
 from ._geometry import direction_to_azimuth_elevation
 from ._io import atomic_write
 from ._kinematics import AbstractKinematicModel, nominal_model
+from ._predictive import fit_drift_and_tails
 from ._splits import chronological_holdout, days_since_fit, split_fleet
 from .fitting import (
     ChangePoints,
@@ -256,10 +257,11 @@ def calibrate(
         predictive = temporal_drift(fit_state, padded, fit_mask)
         log.info(
             f"pointing drift {predictive['drift_mrad2_per_day']:.4f} mrad^2/day per component "
-            f"(from {predictive['validation_records']} later training records)"
+            f"(from {predictive['validation_records']} later training records), tails: "
+            f"{predictive['tail_dof']:.3g} degrees of freedom"
         )
     else:
-        predictive = {"drift_mrad2_per_day": 0.0, "method": "not estimated"}
+        predictive = {"drift_mrad2_per_day": 0.0, "tail_dof": math.inf, "method": "not estimated"}
 
     all_valid = jnp.asarray(padded.mask)
     errors = np.asarray(fleet_beam_errors_mrad(result.model, padded, all_valid))
@@ -312,7 +314,6 @@ DRIFT_MIN_RECORDS = 8
 :func:`temporal_drift`'s validation."""
 DRIFT_HOLDOUT_FRACTION = 0.3
 """Fraction of such a heliostat's training records (its latest) predicted, not fitted."""
-_CHI2_2_MEDIAN = 2.0 * math.log(2.0)  # median of a chi-square with 2 degrees of freedom
 
 
 def residual_prediction(solution: FitSolution, fleet, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -345,34 +346,37 @@ def temporal_drift(
     records *later* than the fitted ones spread beyond what the parameter covariance
     and the measurement noise predict (wear, settling, effects the model lacks).
 
-    Model: a random walk of the beam direction from the fitted state, the process
-    noise of a Kalman filter; a record ``dt`` days after the heliostat's last fitted
-    record is predicted with covariance ``S + q * dt * I``, where
-    ``S = J C J^T + noise^2 I`` (``J`` its Jacobian w.r.t. the free parameters, ``C``
-    the fit's covariance, ``noise`` the fit's noise per component).
+    Model (:mod:`heliojax._predictive`): a random walk of the beam direction from the
+    fitted state, the process noise of a Kalman filter, with heavy tails; a record
+    ``dt`` days after the heliostat's last fitted record is predicted as a bivariate
+    Student t with scale matrix ``S + q * dt * I`` and ``tail_dof`` degrees of freedom
+    (``inf``: the Gaussian), where ``S = J C J^T + noise^2 I`` (``J`` its Jacobian
+    w.r.t. the free parameters, ``C`` the fit's covariance, ``noise`` the fit's noise
+    per component). Its prediction regions: :func:`heliojax.prediction_region_d2`.
 
-    ``q`` is estimated by time-blocked validation on the training records only (the
-    test records are never looked at): every heliostat with at least ``min_records``
-    records in ``fit_mask`` holds out its latest ``fraction`` of them; ``fit`` (the
-    calibration's own fit, ``mask -> (solution, noise_mrad (H,))``) is run on the
-    rest; ``q`` is the smallest value with ``median(r^T (S + q dt I)^-1 r) <= 2 ln 2``
-    over the held-out residuals ``r``, the median of the chi-square with 2 degrees of
-    freedom that a correct Gaussian prediction gives (a median: gross errors among the
-    held-out records do not move it).
+    ``q`` and ``tail_dof`` are estimated by time-blocked validation on the training
+    records only (the test records are never looked at): every heliostat with at
+    least ``min_records`` records in ``fit_mask`` holds out its latest ``fraction`` of
+    them; ``fit`` (the calibration's own fit, ``mask -> (solution, noise_mrad (H,))``)
+    is run on the rest; ``(q, tail_dof)`` maximise the likelihood of the held-out
+    residuals (:func:`heliojax.fit_drift_and_tails`). Gross errors and maintenance
+    episodes among the held-out records lower ``tail_dof`` instead of inflating ``q``.
 
     Returns:
-        ``{"drift_mrad2_per_day", "validation_records", "validation_heliostats",
-        "validation_median_days", "median_d2_without", "method"}``;
-        ``drift_mrad2_per_day`` is 0 with fewer than 10 validation records.
+        ``{"drift_mrad2_per_day", "tail_dof", "validation_records",
+        "validation_heliostats", "validation_median_days", "median_d2_without",
+        "method"}``; ``drift_mrad2_per_day`` is 0 and ``tail_dof`` inf with fewer than
+        10 validation records.
     """
     fleet_mask = np.asarray(fleet.mask)
     unix_time = np.asarray(fleet.context.unix_time, float)
     early, late = chronological_holdout(np.asarray(fit_mask) & fleet_mask, unix_time, min_records, fraction)
     method = (
-        f"random walk from the fitted state; rate from the latest {fraction:.0%} of the training records of "
-        f"heliostats with >= {min_records}, predicted from a fit on the earlier ones"
+        "random walk from the fitted state, bivariate Student t (maximum likelihood); rate and tails from the "
+        f"latest {fraction:.0%} of the training records of heliostats with >= {min_records}, predicted from a fit "
+        "on the earlier ones"
     )
-    out: dict[str, typing.Any] = {"drift_mrad2_per_day": 0.0, "method": method}
+    out: dict[str, typing.Any] = {"drift_mrad2_per_day": 0.0, "tail_dof": math.inf, "method": method}
     if late.sum() < 10:
         out.update(validation_records=int(late.sum()), validation_heliostats=0, median_d2_without=None)
         return out
@@ -395,15 +399,9 @@ def temporal_drift(
         validation_median_days=float(np.median(days)) if use.any() else None,
         median_d2_without=median_d2(0.0) if use.any() else None,
     )
-    if use.sum() < 10 or median_d2(0.0) <= _CHI2_2_MEDIAN:
+    if use.sum() < 10:
         return out
-    lo, hi = 0.0, 1e-3
-    while median_d2(hi) > _CHI2_2_MEDIAN and hi < 1e8:
-        lo, hi = hi, hi * 4.0
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if median_d2(mid) > _CHI2_2_MEDIAN else (lo, mid)
-    out["drift_mrad2_per_day"] = hi
+    out["drift_mrad2_per_day"], out["tail_dof"] = fit_drift_and_tails(r, s, days)
     return out
 
 
@@ -467,6 +465,42 @@ def _utc(t: float) -> str | None:
     if not np.isfinite(t):
         return None
     return datetime.datetime.fromtimestamp(float(t), tz=datetime.UTC).isoformat().replace("+00:00", "Z")
+
+
+RECENT_OUTLIERS_WARN = 2
+"""A heliostat whose latest this-many (or more) fitted records are all gross errors is
+warned about: one glitch is common, a run of them at the end is how a change that has
+just started looks (too few records after it for a change point)."""
+
+
+def _recent_outliers(run: CalibrationRun, fit_mask: np.ndarray, i: int) -> dict[str, typing.Any]:
+    """The run of gross errors at the end of heliostat ``i``'s fitted records (by time):
+    its length, first record's time and median beam error, and a warning from
+    :data:`RECENT_OUTLIERS_WARN` records on."""
+    none = {"recent_outliers": 0, "recent_outliers_since": None, "recent_outliers_median_mrad": None, "warning": None}
+    if run.outlier is None:
+        return none
+    t = np.asarray(run.fleet.context.unix_time, float)[i]
+    used = fit_mask[i] & np.isfinite(t)
+    order = np.argsort(np.where(used, t, -np.inf))[::-1][: int(used.sum())]  # latest first
+    flagged = np.asarray(run.outlier[i])[order]
+    n = int(np.argmin(flagged)) if not flagged.all() else int(flagged.size)
+    if n == 0:
+        return none
+    first = order[n - 1]
+    median = float(np.median(run.errors_mrad[i][order[:n]]))
+    warning = None
+    if n >= RECENT_OUTLIERS_WARN:
+        warning = (
+            f"its latest {n} fitted records (since {_utc(t[first])}) are all gross errors, median {median:.1f} mrad: "
+            "a change may have started; measure it again before aiming with this calibration"
+        )
+    return {
+        "recent_outliers": n,
+        "recent_outliers_since": _utc(t[first]),
+        "recent_outliers_median_mrad": _json_float(median),
+        "warning": warning,
+    }
 
 
 def _change_entry(run: CalibrationRun, i: int) -> dict[str, typing.Any]:
@@ -570,6 +604,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
             "uncalibrated_train_rms_mrad": _json_float(unc_train_rms[i]),
             "worse_than_nominal": bool(worse[i]),
             **_change_entry(run, i),
+            **_recent_outliers(run, fit_mask, i),
             "lm_steps": int(np.asarray(res.n_steps)[i]),
             "noise_mrad": _json_float(float(run.noise_mrad[i])) if run.noise_mrad is not None else None,
             "n_outliers": int(np.sum(run.outlier[i])) if run.outlier is not None else 0,

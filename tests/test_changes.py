@@ -6,6 +6,8 @@ Independent of the detector: the truth is two simulations of the same records
 
 from __future__ import annotations
 
+import datetime
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -130,3 +132,32 @@ def test_jump_scan_matches_a_least_squares_solve_per_candidate(jump_is_base, und
         np.testing.assert_allclose(np.asarray(coef[c]), x[-2:], rtol=1e-7, atol=1e-9)
         compared += 1
     assert compared >= m // 2
+
+
+def test_a_run_of_gross_errors_at_the_end_is_warned_about():
+    """Heliostat 0's latest 3 training records all sit 15 mrad off in one direction (a
+    change that has just started: too few records after it for a change point). The
+    robust fit flags them; summary.json warns about heliostat 0 alone, with the run's
+    length, start and size; the clean fleet gets no warning."""
+    h, m = 6, 40
+    k = jax.random.split(jax.random.PRNGKey(8), 3)
+    geometry = synthetic_geometry(k[0], h)
+    contexts = synthetic_contexts(k[1], h, m)
+    fleet = simulate_records(k[2], hj.broadcast_model(hj.StoneModel.nominal(), h), geometry, contexts,
+                             calibration_target(), noise_mrad=0.3)  # fmt: skip
+    clean = hj.calibrate(fleet, model="stone8", split="time")
+    assert all(e["warning"] is None for e in clean.summary["heliostats"].values())
+    t = np.asarray(fleet.context.unix_time)
+    latest = np.argsort(np.where(clean.train_mask[0, :m], t[0], -np.inf))[::-1][:3]  # the run's fleet is padded
+    spot = np.array(fleet.focal_spot)
+    d = spot[0, latest] - np.asarray(geometry.position)[0]
+    side = np.cross(d, [0.0, 0.0, 1.0])
+    spot[0, latest] += side / np.linalg.norm(side, axis=-1, keepdims=True) * np.linalg.norm(d, axis=-1)[:, None] * 15e-3
+    moved = eqx.tree_at(lambda f: f.focal_spot, fleet, jnp.asarray(spot))
+    s = hj.calibrate(moved, model="stone8", split="time").summary["heliostats"]
+    first = s[fleet.ids[0]]
+    assert first["recent_outliers"] == 3 and "measure it again" in first["warning"]
+    assert abs(first["recent_outliers_median_mrad"] - 15.0) < 1.5
+    since = datetime.datetime.fromtimestamp(t[0, latest[-1]], tz=datetime.UTC)
+    assert first["recent_outliers_since"] == since.strftime("%Y-%m-%dT%H:%M:%S") + "Z"
+    assert all(s[i]["warning"] is None and s[i]["recent_outliers"] <= 1 for i in fleet.ids[1:])

@@ -292,10 +292,14 @@ def test_aim_writes_commands_with_error_bars(results_h5, tmp_path, capsys):
     assert len(usable) > 40 and all(r["flags"] == "" for r in usable)
     assert all(float(r["sun_elevation_deg"]) >= 5.0 for r in usable)
     assert all(0.0 < float(r["pointing_std_mrad"]) < 20.0 for r in usable)
+    # the 95 % radius is at least the Gaussian's for the scale's radial RMS over sqrt(2)
+    gaussian95 = hj.prediction_region_d2(0.95)
+    assert all(float(r["pointing_r95_mrad"]) >= np.sqrt(gaussian95 / 2) * float(r["pointing_std_mrad"]) for r in usable)
     night = [r for r in rows if float(r["sun_elevation_deg"]) < 0]
     assert night and all("sun_low" in r["flags"] and r["ok"] == "0" for r in night)
     with h5py.File(h5) as f:
         assert f["counts"].shape == (5, 24, 2) and f["pointing_cov_mrad2"].shape == (5, 24, 2, 2)
+        assert f.attrs["tail_dof"] == hj.load_results(results_h5).tail_dof
     assert plot.stat().st_size > 10_000
 
 

@@ -193,6 +193,7 @@ def run(args) -> int:
     r = aim_results(results, sun, centre, unix_time=unix, min_sun_elevation_deg=args.min_sun_elevation)
     counts = np.asarray(r.counts)
     std = np.asarray(r.pointing_std_mrad)
+    radius95 = np.asarray(r.pointing_radius_mrad(0.95))
     az, el = (np.degrees(np.asarray(x)) for x in direction_to_azimuth_elevation(sun))
     flags = {
         "counts_out_of_range": np.asarray(r.counts_out_of_range),
@@ -212,6 +213,7 @@ def run(args) -> int:
                 "axis_1_counts",
                 "axis_2_counts",
                 "pointing_std_mrad",
+                "pointing_r95_mrad",
                 "ok",
                 "flags",
             ]
@@ -228,6 +230,7 @@ def run(args) -> int:
                         int(round(c[0])) if np.isfinite(c[0]) else "",
                         int(round(c[1])) if np.isfinite(c[1]) else "",
                         f"{std[i, j]:.4f}" if np.isfinite(std[i, j]) else "",
+                        f"{radius95[i, j]:.4f}" if np.isfinite(radius95[i, j]) else "",
                         int(ok[i, j]),
                         ";".join(k for k, v in flags.items() if v[i, j]),
                     ]
@@ -239,6 +242,7 @@ def run(args) -> int:
         with atomic_path(args.h5) as tmp, h5py.File(tmp, "w") as f:
             f.attrs["target"] = args.target
             f.attrs["origin_lla"] = origin
+            f.attrs["tail_dof"] = r.tail_dof
             f.create_dataset("heliostat_id", data=np.array(results.ids, dtype=object), dtype=h5py.string_dtype())
             if times is not None:
                 f.create_dataset("unix_time", data=np.array([t.timestamp() for t in times])).attrs["units"] = "s"
@@ -256,12 +260,19 @@ def run(args) -> int:
         distance = np.linalg.norm(np.asarray(centre)[None, :] - np.asarray(results.geometry.position), axis=-1)
         hours = None if times is None else np.array([(t - times[0]).total_seconds() / 3600.0 for t in times])
         fig = plot_aim(
-            list(results.ids), np.asarray(r.pointing_cov_mrad2), ok, distance, hours, times[0] if times else None
+            list(results.ids),
+            np.asarray(r.pointing_cov_mrad2),
+            ok,
+            distance,
+            hours,
+            times[0] if times else None,
+            tail_dof=r.tail_dof,
         )
         save_figure(fig, args.plot)
         log.info(f"wrote {args.plot}")
     print(
         f"{int(ok.sum())} of {ok.size} commands without a flag; median predicted pointing uncertainty "
-        f"{np.nanmedian(np.where(ok, std, np.nan)) if ok.any() else float('nan'):.3f} mrad"
+        f"{np.nanmedian(np.where(ok, std, np.nan)) if ok.any() else float('nan'):.3f} mrad (radial scale), "
+        f"95 % radius {np.nanmedian(np.where(ok, radius95, np.nan)) if ok.any() else float('nan'):.3f} mrad"
     )
     return 0

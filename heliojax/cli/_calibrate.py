@@ -226,6 +226,8 @@ def run(args) -> int:
     for hid, h in s["heliostats"].items():
         if h.get("status_reason"):
             print(f"  {hid}: {h['status']}: {h['status_reason']}")
+        if h.get("warning"):
+            print(f"  {hid}: warning: {h['warning']}")
     f = s["fleet"]
     print(
         f"fleet: {f['n_converged']}/{f['n_heliostats']} converged; held-out median {fmt(f['test_median_mrad'])} "
