@@ -49,8 +49,9 @@ def add_parser(subparsers) -> None:
         description=(
             "Read a fitted fleet (results.h5 of `heliojax calibrate`), compute for every heliostat and "
             "instant the motor counts that put its beam on the aim point (the receiver by default) with "
-            "the calibrated inverse kinematics, the predicted pointing uncertainty (mrad, from the fit's "
-            "parameter covariance) and flags (counts outside the actuator range, sun low, no usable fit, "
+            "the calibrated inverse kinematics, the predicted pointing uncertainty (mrad: radial scale and 95 % "
+            "radius, from the fit's parameter covariance, the drift since the fit and the fitted tails) and "
+            "flags (counts outside the actuator range, sun low, no usable fit, "
             "aim point not reached). Writes a CSV (one row per heliostat and instant), optionally HDF5 "
             "and a plot."
         ),
