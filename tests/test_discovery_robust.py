@@ -93,6 +93,12 @@ def test_confirm_keeps_a_real_step_and_withdraws_a_spurious_one():
     ref, ref_withdrawn = confirm_change_points(left_out, r, jac, [0, 1, 2], [0, 1], t, 0.01)
     assert nan_withdrawn == ref_withdrawn == [1]
     np.testing.assert_allclose(nan_out.change_p, ref.change_p, rtol=1e-10)
+    # A heliostat whose records the final model cannot evaluate at all has no evidence
+    # for its change point: withdrawn (p = 1), without a warning (seen on the real records)
+    none_r = r.copy()
+    none_r[0] = np.nan
+    none_out, none_withdrawn = confirm_change_points(cleaning, none_r, jac, [0, 1, 2], [0, 1], t, 0.01)
+    assert none_withdrawn == [0, 1] and none_out.change_p[0] == 1.0
 
 
 # --------------------------------------------------------------------------------------

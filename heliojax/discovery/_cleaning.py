@@ -255,6 +255,9 @@ def confirm_change_points(
         a = jac[h][rows][:, model_cols]
         if target_index is not None:
             a = np.concatenate([a, _target_columns(target_index[h], use[h] & finite)], axis=1)
+        if rr.size <= a.shape[1] + 2 * len(offset_cols):  # too few evaluable rows to test a jump: no evidence
+            p[h] = 1.0
+            continue
         tau = np.repeat(taus[h], 2)[rows]
         drift = jac[h][rows][:, offset_cols] * tau[:, None]
         step = np.where(before[:, None], jac[h][rows][:, offset_cols], 0.0)
