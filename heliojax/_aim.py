@@ -62,6 +62,8 @@ class AimResult(eqx.Module):
             since the fit; NaN without a covariance. It is the covariance when
             ``tail_dof`` is inf (Gaussian), the scale of a bivariate Student t otherwise.
         tail_dof: degrees of freedom of the predicted error (:mod:`heliojax._predictive`).
+            They are fitted on record residuals, which include the measurement noise,
+            and applied here to the beam's own uncertainty: an approximation.
     """
 
     counts: Float[Array, "H N 2"]
