@@ -120,20 +120,19 @@ def execute_notebook(path: Path, tmp_path: Path, monkeypatch, overrides: dict | 
         pytest.skip(f"kernel python3 runs {spec.argv[0]}, not {sys.executable}")
     setup, report = _render_check_cells(nbformat)
     nb.cells = [setup, *nb.cells, report]
-    from jupyter_client.manager import KernelManager
+    from traitlets.config import Config
 
     # IPC sockets, not TCP ports: kernels started at once by the xdist workers picked the same free
-    # port now and then ("Address already in use", the kernel died before replying).
+    # port now and then ("Address already in use", the kernel died before replying). nbclient still
+    # creates, owns and closes the kernel manager and its client.
     sockets = tempfile.mkdtemp(prefix="hjk")  # short: a Unix socket path has ~100 characters
-    km = KernelManager(kernel_name="python3", transport="ipc", ip=os.path.join(sockets, "k"))
+    config = Config({"KernelManager": {"transport": "ipc", "ip": os.path.join(sockets, "k")}})
     client = nbclient.NotebookClient(
-        nb, km=km, kernel_name="python3", timeout=timeout, resources={"metadata": {"path": str(tmp_path)}}
+        nb, kernel_name="python3", timeout=timeout, resources={"metadata": {"path": str(tmp_path)}}, config=config
     )
     try:
         client.execute()
     finally:
-        if km.has_kernel:
-            km.shutdown_kernel(now=True)
         shutil.rmtree(sockets, ignore_errors=True)
     assert not setup.get("outputs"), f"the render check's setup cell showed {setup.outputs}"
     nb.cells = nb.cells[1:-1]
