@@ -37,7 +37,7 @@ from ._beam import beam_pointing_error
 from ._heliostat import HeliostatGeometry, RecordContext
 from ._kinematics import AbstractKinematicModel, forward, inverse_aim
 from ._parameters import ParameterView
-from ._predictive import prediction_region_d2
+from ._predictive import region_radius
 
 REACH_TOLERANCE_MRAD = 1e-3
 """Largest forward-model miss (mrad) of commanded counts that still counts as reaching the aim point."""
@@ -85,8 +85,7 @@ class AimResult(eqx.Module):
         """Radius (mrad) of the circle about the aim direction that holds the beam
         with at least ``probability``: the prediction region's semi-major axis,
         ``sqrt(d2 * largest eigenvalue)``, ``d2`` from :func:`heliojax.prediction_region_d2`."""
-        largest = jnp.linalg.eigvalsh(self.pointing_cov_mrad2)[..., -1]
-        return jnp.sqrt(prediction_region_d2(probability, self.tail_dof) * largest)
+        return region_radius(jnp.linalg.eigvalsh(self.pointing_cov_mrad2)[..., -1], probability, self.tail_dof)
 
     @property
     def pointing_std_mrad(self) -> Float[Array, "H N"]:

@@ -11,7 +11,7 @@ import numpy as np
 
 from ._errors import ConfigError
 from ._io import atomic_path
-from ._predictive import prediction_region_d2
+from ._predictive import prediction_region_d2, region_radius
 
 
 def pyplot():
@@ -190,7 +190,7 @@ def plot_aim(ids, pointing_cov_mrad2, ok, distance_m, hours=None, start=None, *,
     cov = np.asarray(pointing_cov_mrad2, float)
     ok = np.asarray(ok, bool)
     d2 = prediction_region_d2(0.68, tail_dof)
-    radius = np.sqrt(d2 * np.linalg.eigvalsh(np.where(np.isfinite(cov), cov, 0.0))[..., -1])
+    radius = region_radius(np.linalg.eigvalsh(np.where(np.isfinite(cov), cov, 0.0))[..., -1], 0.68, tail_dof)
     radius = np.where(np.all(np.isfinite(cov), axis=(-2, -1)), radius, np.nan)
     j = int(np.argmax(ok.sum(axis=0)))
     ax = axes[0]

@@ -44,6 +44,14 @@ def prediction_region_d2(probability: float, tail_dof: float = math.inf) -> floa
     return tail_dof * math.expm1(-2.0 / tail_dof * math.log1p(-probability))
 
 
+def region_radius(largest_scale_eigenvalue, probability: float, tail_dof: float = math.inf):
+    """Radius (the scale's units' square root, mrad) of the circle that holds the
+    predicted error with at least ``probability``: the region's semi-major axis
+    ``sqrt(prediction_region_d2(probability, tail_dof) * largest eigenvalue)``. Works on
+    NumPy and JAX arrays alike."""
+    return (prediction_region_d2(probability, tail_dof) * largest_scale_eigenvalue) ** 0.5
+
+
 def _log_likelihood(
     d2: Float[np.ndarray, "Q N"], logdet: Float[np.ndarray, "Q N"], dof: float
 ) -> Float[np.ndarray, " Q"]:
@@ -81,4 +89,4 @@ def fit_drift_and_tails(
     return float(_DRIFT_GRID[iq]), float(_DOF_GRID[::-1][iv])
 
 
-__all__ = ["fit_drift_and_tails", "prediction_region_d2"]
+__all__ = ["fit_drift_and_tails", "prediction_region_d2", "region_radius"]

@@ -209,7 +209,8 @@ def fit_robust(
         )
         sol = run(start, loss=Cauchy(scale), prior=prior)
         r1 = fleet_residuals_mrad(sol.model, fleet, m)
-        sigma1 = np.where(np.isfinite(robust_noise(r1, m, n_free)[0]), robust_noise(r1, m, n_free)[0], sigma1)
+        pooled_sigma, _ = robust_noise(r1, m, n_free)
+        sigma1 = np.where(np.isfinite(pooled_sigma), pooled_sigma, sigma1)
     norm = np.linalg.norm(np.where(np.isfinite(np.asarray(r1)), np.asarray(r1), 0.0), axis=-1)
     use = np.asarray(m, bool) & np.all(np.isfinite(np.asarray(r1)), axis=-1)
     c = CAUCHY_EFFICIENCY_FACTOR * sigma1
