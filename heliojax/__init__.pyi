@@ -17,6 +17,14 @@ from ._beam import (
     reflected_ray as reflected_ray,
     target_miss_distance as target_miss_distance,
 )
+from ._discrepancy import (
+    ModelDiscrepancy as ModelDiscrepancy,
+    augment_jacobian as augment_jacobian,
+    discrepancy_features as discrepancy_features,
+    estimate_discrepancy as estimate_discrepancy,
+    inducing_normals as inducing_normals,
+    mirror_normals as mirror_normals,
+)
 from ._errors import ConfigError as ConfigError, DataError as DataError, HeliojaxError as HeliojaxError
 from ._fleet import (
     Fleet as Fleet,
@@ -67,10 +75,13 @@ from ._parameters import (
 )
 from ._plan import (
     Candidates as Candidates,
+    DiscrepancyDesign as DiscrepancyDesign,
     MeasurementPlan as MeasurementPlan,
     candidates_at_targets as candidates_at_targets,
     candidates_from_records as candidates_from_records,
     clear_sky_dni as clear_sky_dni,
+    discrepancy_design as discrepancy_design,
+    discrepancy_from_results as discrepancy_from_results,
     envelope_matrices as envelope_matrices,
     envelope_matrix as envelope_matrix,
     operating_envelope as operating_envelope,

@@ -28,6 +28,16 @@ or, for a heliostat planned from scratch (retrospective studies, new heliostats)
 fleet's empirical-Bayes prior (:func:`prior_covariance`): what the fleet says before
 this heliostat has a record.
 
+A model that is not exact (:mod:`heliojax._discrepancy`): trusting the model, the
+criterion puts measurements where the model has the most leverage, the extreme
+poses, where a real heliostat deviates most from any parametric model. With a
+:class:`heliojax.ModelDiscrepancy` (a Gaussian process over the mirror normal,
+learnt from the fleet's residuals), :func:`discrepancy_design` appends the
+discrepancy's whitened coefficients at inducing normals to the parameters, and the
+same criterion then also counts the discrepancy where the heliostat operates: a
+measurement near the operating poses teaches about it, one far away is diluted by
+its own discrepancy. ``U`` then includes the discrepancy's variance over the envelope.
+
 The operating envelope (:func:`operating_envelope`) is a year of sun positions
 above a minimum elevation, each weighted by its clear-sky direct normal
 irradiance (Meinel model with Kasten-Young air mass), with the heliostat aiming
@@ -46,6 +56,16 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._aim import direction_jacobian_mrad
+from ._discrepancy import (
+    DISCREPANCY_INDUCING,
+    ModelDiscrepancy,
+    augment_jacobian,
+    discrepancy_features,
+    estimate_discrepancy,
+    inducing_normals,
+    mirror_normals,
+)
+from ._geometry import sun_direction
 from ._heliostat import HeliostatGeometry, RecordContext
 from ._kinematics import AbstractKinematicModel, inverse_aim
 from ._parameters import ParameterView
@@ -130,22 +150,25 @@ def operating_envelope(
 
 
 @eqx.filter_jit
-def _envelope_program(view, models, geometry, sun, weight, aim_points, batch_size: int):
+def _envelope_program(view, models, geometry, sun, weight, aim_points, discrepancy, inducing, batch_size: int):
     w = weight / jnp.maximum(jnp.sum(weight), 1e-300)
 
     def one(args):
-        model, g, point = args
+        model, g, point, u = args
 
         def instant(s, wi):
             counts = inverse_aim(model, g, point, s)
             jac = direction_jacobian_mrad(view, model, g, counts, RecordContext.from_sun(s), point)
+            if discrepancy is not None:
+                normal = mirror_normals(g.position, s[None], point[None])[0]
+                jac = augment_jacobian(jac, discrepancy_features(discrepancy, normal, u))
             ok = jnp.all(jnp.isfinite(jac))
             return jnp.where(ok, wi * jac.T @ jac, 0.0), jnp.where(ok, wi, 0.0)
 
         m, used = jax.vmap(instant)(sun, w)
         return jnp.sum(m, axis=0) / jnp.maximum(jnp.sum(used), 1e-300)
 
-    return jax.lax.map(one, (models, geometry, aim_points), batch_size=batch_size)
+    return jax.lax.map(one, (models, geometry, aim_points, inducing), batch_size=batch_size)
 
 
 def envelope_matrices(
@@ -156,16 +179,26 @@ def envelope_matrices(
     weight: Float[ArrayLike, " E"],
     aim_points: Float[ArrayLike, "*h 3"],
     *,
+    discrepancy: ModelDiscrepancy | None = None,
+    inducing: Float[Array, "H B 3"] | None = None,
     batch_size: int = 256,
-) -> Float[Array, "H F F"]:
+) -> Float[Array, "H G G"]:
     """``M = sum_e w_e J_e^T J_e`` per heliostat over an operating envelope, where
     ``J_e`` is the Jacobian of the beam direction (mrad, two tangent components)
     w.r.t. the free parameters at the counts that aim at ``aim_points`` (ENU m,
     ``(3,)`` or ``(H, 3)``) with the sun at ``sun[e]``; weights normalised to sum 1.
-    Heliostats are processed ``batch_size`` at a time (memory ``batch_size x E x 2 x F``)."""
+    With ``discrepancy`` and its ``inducing`` normals, ``J_e`` gains the whitened
+    discrepancy coefficients (:func:`heliojax.augment_jacobian`): ``G = F + 2 B``,
+    else ``G = F``. Heliostats are processed ``batch_size`` at a time (memory
+    ``batch_size x E x 2 x G``)."""
     h = int(jnp.shape(geometry.position)[0])
     points = jnp.broadcast_to(jnp.asarray(aim_points, sun.dtype), (h, 3))
-    return _envelope_program(view, models, geometry, sun, jnp.asarray(weight, sun.dtype), points, int(batch_size))
+    if (discrepancy is None) != (inducing is None):
+        raise ValueError("envelope_matrices: discrepancy and inducing go together")
+    u = jnp.zeros((h, 1, 3), sun.dtype) if inducing is None else jnp.asarray(inducing, sun.dtype)
+    return _envelope_program(
+        view, models, geometry, sun, jnp.asarray(weight, sun.dtype), points, discrepancy, u, int(batch_size)
+    )
 
 
 def envelope_matrix(jac: Float[Array, "H E 2 F"], weight: Float[Array, "*h E"]) -> Float[Array, "H F F"]:
@@ -185,13 +218,16 @@ class MeasurementPlan(eqx.Module):
         uncertainty_before_mrad: ``(H,)`` ``sqrt(U)``: RMS predicted pointing error
             over the envelope from parameter uncertainty, before.
         uncertainty_after_mrad: ``(H, K)`` the same after each chosen measurement.
-        covariance_after: ``(H, F, F)`` the predicted covariance after all of them.
+        covariance_after: ``(H, G, G)`` the predicted covariance after all of them
+            (``G = F`` free parameters; planned with a model discrepancy
+            (:func:`discrepancy_design`), the parameters' block first, then the
+            discrepancy coefficients').
     """
 
     chosen: Int[Array, "H K"]
     uncertainty_before_mrad: Float[Array, " H"]
     uncertainty_after_mrad: Float[Array, "H K"]
-    covariance_after: Float[Array, "H F F"]
+    covariance_after: Float[Array, "H G G"]
 
 
 @eqx.filter_jit
@@ -372,6 +408,77 @@ def prior_covariance(
     return centre, np.diag(s**2)
 
 
+class DiscrepancyDesign(typing.NamedTuple):
+    """The planner's inputs extended by the model discrepancy (:func:`discrepancy_design`)."""
+
+    covariance: Float[Array, "H G G"]
+    """``blockdiag(C, I_2B)``: the parameters' covariance and the whitened coefficients'."""
+    candidate_jacobians: Float[Array, "H K 2 G"]
+    """The candidates' Jacobians with the discrepancy features appended."""
+    inducing: Float[Array, "H B 3"]
+    """Inducing normals, for :func:`envelope_matrices`."""
+
+
+def discrepancy_design(
+    discrepancy: ModelDiscrepancy,
+    geometry: HeliostatGeometry,
+    covariance: Float[Array, "H F F"],
+    candidate_jacobians: Float[Array, "H K 2 F"],
+    candidates: Candidates,
+    envelope_sun: Float[Array, "E 3"],
+    aim_point: Float[ArrayLike, "*h 3"],
+    *,
+    inducing: int = DISCREPANCY_INDUCING,
+) -> DiscrepancyDesign:
+    """Extend a plan's inputs by the model discrepancy (:mod:`heliojax._discrepancy`):
+    inducing normals spread over the heliostat's operating envelope and its valid
+    candidates, the candidates' Jacobians with their discrepancy features, and the
+    covariance with the coefficients' identity block. Pass the result to
+    :func:`plan_measurements` with ``envelope_matrices(..., discrepancy=, inducing=)``."""
+    h = int(jnp.shape(geometry.position)[0])
+    dtype = covariance.dtype
+    aim = jnp.broadcast_to(jnp.asarray(aim_point, dtype), (h, 3))
+    sun_e = jnp.asarray(envelope_sun, dtype)
+    sun_h = jnp.broadcast_to(sun_e, (h, *sun_e.shape))
+    env = mirror_normals(geometry.position, sun_h, jnp.broadcast_to(aim[:, None, :], sun_h.shape))
+    cand = mirror_normals(geometry.position, candidates.context.sun, candidates.spots)
+    points = jnp.concatenate([env, cand], axis=1)
+    ok = jnp.concatenate([jnp.ones(env.shape[:2], bool), jnp.asarray(candidates.valid, bool)], axis=1)
+    ok &= jnp.all(jnp.isfinite(points), axis=-1)
+    u = inducing_normals(jnp.where(ok[..., None], points, 0.0), ok, inducing)
+    phi = jax.vmap(lambda n, ui: discrepancy_features(discrepancy, n, ui))(jnp.where(jnp.isfinite(cand), cand, 0.0), u)
+    phi = jnp.where(jnp.asarray(candidates.valid)[..., None], phi, 0.0)
+    jac = augment_jacobian(candidate_jacobians, phi)
+    f, b = covariance.shape[-1], u.shape[1]
+    cov = jnp.zeros((h, f + 2 * b, f + 2 * b), dtype)
+    cov = cov.at[:, :f, :f].set(covariance).at[:, f:, f:].set(jnp.eye(2 * b, dtype=dtype))
+    return DiscrepancyDesign(covariance=cov, candidate_jacobians=jac, inducing=u)
+
+
+def discrepancy_from_results(results: typing.Any, target_centres: Float[ArrayLike, "T 3"]) -> ModelDiscrepancy:
+    """:func:`heliojax.estimate_discrepancy` from a calibration read with
+    :func:`heliojax.load_results`: the training inliers of its fitted heliostats,
+    each record's mirror normal from its sun position and the centre of its target
+    (``target_centres`` in the file's ``target_index`` order, ENU m of the file's origin)."""
+    rec = results.records
+    az = np.radians(np.asarray(rec["sun_azimuth_deg"], float))
+    el = np.radians(np.asarray(rec["sun_elevation_deg"], float))
+    sun = np.asarray(sun_direction(az, el))
+    index = np.asarray(rec["target_index"], int)
+    centres = np.asarray(target_centres, float)
+    known = (index >= 0) & (index < centres.shape[0])
+    aim = np.where(known[..., None], centres[np.where(known, index, 0)], np.nan)
+    normals = np.asarray(mirror_normals(np.asarray(results.geometry.position, float), sun, aim))
+    use = (
+        known
+        & (np.asarray(rec["split"]) == 1)
+        & ~np.asarray(rec["outlier"], bool)
+        & ~np.asarray(rec["superseded"], bool)
+        & np.asarray(results.fitted, bool)[:, None]
+    )
+    return estimate_discrepancy(rec["residual_mrad"], normals, use)
+
+
 PLAN_STARTS = ("posterior", "prior")
 """Starting points of :func:`plan_calibration`."""
 
@@ -385,7 +492,8 @@ def plan_calibration(
     aim_point: Float[ArrayLike, "*h 3"],
     budget: int,
     start: str = "posterior",
-) -> tuple[MeasurementPlan, Float[Array, "H F F"]]:
+    discrepancy: ModelDiscrepancy | None = None,
+) -> tuple[MeasurementPlan, Float[Array, "H G G"]]:
     """Plan ``budget`` measurements for every heliostat of a calibration read with
     :func:`heliojax.load_results`.
 
@@ -401,10 +509,13 @@ def plan_calibration(
             fleet prior for heliostats without a usable fit); ``"prior"``: every
             heliostat planned from scratch, from the fleet prior (centre and
             spread learnt from the fitted heliostats), as if it had no record.
+        discrepancy: plan for a model that is not exact (:func:`discrepancy_design`;
+            e.g. :func:`discrepancy_from_results`); ``None``: the model is exact.
 
     Returns:
-        ``(plan, envelope)``: the :class:`MeasurementPlan` and the ``(H, F, F)``
-        envelope matrices (for :func:`predicted_uncertainty_mrad` of other covariances).
+        ``(plan, envelope)``: the :class:`MeasurementPlan` and the ``(H, G, G)``
+        envelope matrices (for :func:`predicted_uncertainty_mrad` of other covariances;
+        ``G = F``, or ``F + 2 B`` with a discrepancy, the parameters first).
     """
     if start not in PLAN_STARTS:
         raise ValueError(f"start must be one of {PLAN_STARTS}, not {start!r}")
@@ -427,13 +538,27 @@ def plan_calibration(
     noise = np.asarray(results.noise_mrad, float)
     fallback = float(np.nanmedian(noise)) if np.isfinite(noise).any() else 1.0
     noise = np.where(np.isfinite(noise) & (noise > 0), noise, fallback)
-    m_env = envelope_matrices(models, view, results.geometry, envelope_sun, envelope_weight, aim_point)
     jac = residual_jacobians(
         models, view, results.geometry, candidates.counts, candidates.context, candidates.spots, candidates.valid
     )
-    plan = plan_measurements(
-        jnp.asarray(cov), jac, candidates.valid, m_env, jnp.asarray(noise), budget, slot=candidates.slot
+    cov = jnp.asarray(cov)
+    inducing = None
+    if discrepancy is not None:
+        design = discrepancy_design(
+            discrepancy, results.geometry, cov, jac, candidates, jnp.asarray(envelope_sun), aim_point
+        )
+        cov, jac, inducing = design.covariance, design.candidate_jacobians, design.inducing
+    m_env = envelope_matrices(
+        models,
+        view,
+        results.geometry,
+        envelope_sun,
+        envelope_weight,
+        aim_point,
+        discrepancy=discrepancy,
+        inducing=inducing,
     )
+    plan = plan_measurements(cov, jac, candidates.valid, m_env, jnp.asarray(noise), budget, slot=candidates.slot)
     return plan, m_env
 
 
@@ -449,10 +574,13 @@ __all__ = [
     "PLAN_STARTS",
     "SOLAR_CONSTANT_W_M2",
     "Candidates",
+    "DiscrepancyDesign",
     "MeasurementPlan",
     "candidates_at_targets",
     "candidates_from_records",
     "clear_sky_dni",
+    "discrepancy_design",
+    "discrepancy_from_results",
     "envelope_matrices",
     "operating_envelope",
     "plan_calibration",

@@ -234,11 +234,12 @@ def plot_aim(ids, pointing_cov_mrad2, ok, distance_m, hours=None, start=None, *,
     return fig
 
 
-def plot_plan(ids, before_mrad, after_mrad, chosen, changed=None, *, max_bars: int = 40):
+def plot_plan(ids, before_mrad, after_mrad, chosen, changed=None, *, max_bars: int = 40, discrepancy: bool = False):
     """A calibration plan: each heliostat's predicted pointing uncertainty over the
     operating envelope before and after its planned measurements (the ``max_bars``
     heliostats most in need, change points marked), and the fleet's uncertainty
-    against the number of planned measurements (median and 10-90 % band)."""
+    against the number of planned measurements (median and 10-90 % band).
+    ``discrepancy``: the plan counted a model discrepancy (named in the title)."""
     plt = pyplot()
     before = np.asarray(before_mrad, float)
     after = np.asarray(after_mrad, float)
@@ -269,7 +270,8 @@ def plot_plan(ids, before_mrad, after_mrad, chosen, changed=None, *, max_bars: i
         else f"the {nb} of {h} heliostats with the largest predicted uncertainty"
     )
     ax.set_ylabel("predicted pointing uncertainty over the envelope [mrad]")
-    ax.set_title("predicted RMS pointing error from parameter uncertainty", fontsize=10)
+    source = "parameter uncertainty and model discrepancy" if discrepancy else "parameter uncertainty"
+    ax.set_title(f"predicted RMS pointing error from {source}", fontsize=10)
     ax.set_ylim(0.0, 1.45 * float(np.max(before[order])))  # room above the bars and markers for the legend
     ax.legend(fontsize=8, loc="upper right")
     ax.grid(axis="y", alpha=0.3)

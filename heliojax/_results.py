@@ -184,6 +184,7 @@ class CalibrationResults:
             ``unix_time``, ``split``, ``weight``, ``outlier``, ``residual_mrad``, ...).
         attrs: the file's attributes.
         source: the file.
+        target_names: the names ``records["target_index"]`` points into.
     """
 
     ids: tuple[str, ...]
@@ -199,6 +200,7 @@ class CalibrationResults:
     records: dict[str, np.ndarray]
     attrs: dict[str, typing.Any]
     source: str
+    target_names: tuple[str, ...] = ()
 
     @property
     def drift_mrad2_per_day(self) -> float:
@@ -293,6 +295,10 @@ def load_results(path: str | Path) -> CalibrationResults:
         if geometry is None:
             raise DataError(source, "geometry", "missing group (written by an older heliojax?)")
         records = {k: np.asarray(f[k][()]) for k in _RECORD_FIELDS if k in f}  # pyright: ignore[reportIndexIssue]
+        targets = tuple(
+            x.decode() if isinstance(x, bytes) else str(x)
+            for x in (np.asarray(f["target_names"][()]) if "target_names" in f else ())  # pyright: ignore[reportIndexIssue]
+        )
         status = tuple(x.decode() if isinstance(x, bytes) else str(x) for x in need("status_labels"))
         std = np.asarray(need("param_std"), float)
         cov = np.asarray(f["covariance"][()]) if "covariance" in f else np.full((len(ids), 0, 0), np.nan)  # pyright: ignore[reportIndexIssue]
@@ -326,6 +332,7 @@ def load_results(path: str | Path) -> CalibrationResults:
         records=records,
         attrs=attrs,
         source=source,
+        target_names=targets,
     )
 
 

@@ -124,6 +124,7 @@ def test_calibrate_embedded_writes_schema(tmp_path, capsys):
     res = hj.load_results(out)
     assert res.ids == tuple(s["heliostats"]) and res.status[-1] == "converged"
     fleet = hj.load_paint_directory(hj.default_data_dir())
+    assert res.target_names == fleet.target_names  # what records["target_index"] points into
     i = res.ids.index("BE36")
     model, geometry = res.heliostat("BE36")
     k = int(np.sum(res.records["record_id"][i] >= 0))

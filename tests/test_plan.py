@@ -141,6 +141,29 @@ def test_candidates_aim_at_the_targets_and_plans_reduce_uncertainty():
     assert np.all(after[:, -1] < 0.5 * before)
     np.testing.assert_allclose(before, np.asarray(hj.predicted_uncertainty_mrad(cov, m)), rtol=1e-12)
 
+    # planning for a model that is not exact: with a discrepancy of amplitude 0 the plan is
+    # the exact-model plan; with one, the parameters' block of the envelope matrix is still M
+    # and the predicted uncertainty adds the discrepancy's
+    f = view.n_free
+    for amplitude in (0.0, 0.5):
+        process = hj.ModelDiscrepancy(amplitude_mrad=amplitude, length=0.2)
+        design = hj.discrepancy_design(process, geometry, cov, jac, cand, sun_e, aim, inducing=8)
+        assert design.covariance.shape == (4, f + 16, f + 16)
+        assert design.candidate_jacobians.shape == (4, 24, 2, f + 16)
+        m_d = hj.envelope_matrices(
+            truth, view, geometry, sun_e, w_e, aim, discrepancy=process, inducing=design.inducing, batch_size=3
+        )
+        np.testing.assert_allclose(np.asarray(m_d)[:, :f, :f], np.asarray(m), rtol=1e-9, atol=1e-12)
+        plan_d = hj.plan_measurements(
+            design.covariance, design.candidate_jacobians, cand.valid, m_d, 0.5, 4, slot=cand.slot
+        )
+        if amplitude == 0.0:
+            np.testing.assert_array_equal(np.asarray(plan_d.chosen), np.asarray(plan.chosen))
+            np.testing.assert_allclose(np.asarray(plan_d.uncertainty_after_mrad), after, rtol=1e-9)
+        else:
+            assert np.all(np.asarray(plan_d.uncertainty_before_mrad) > before)
+            assert np.all(np.asarray(plan_d.uncertainty_before_mrad) ** 2 <= before**2 + 0.5**2 * 2 * (1 + 1e-6))
+
 
 def test_record_roles_choose_the_training_and_held_out_records():
     fleet = hj.load_paint_directory(hj.default_data_dir())

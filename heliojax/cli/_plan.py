@@ -43,8 +43,9 @@ def add_parser(subparsers) -> None:
             "camera-target measurements among candidates that most reduce the predicted pointing uncertainty "
             "over the operating envelope (a year of sun positions weighted by clear-sky DNI, aiming at the "
             "receiver): greedy I-optimal design with the model's Jacobian, the fit's covariance (or the fleet "
-            "prior) and the fit's noise. Candidates are future instants x calibration targets, or, with "
-            "--paint-dir and --before, the heliostat's existing records before a date (a retrospective plan, "
+            "prior), the fit's noise and a model discrepancy learnt from the fit's residuals. Candidates "
+            "are future instants x calibration targets, or, with --paint-dir and --before, the heliostat's "
+            "existing records before a date (a retrospective plan, "
             "to be judged on the later records with `heliojax calibrate --records`). Writes the schedule "
             "(CSV), the fleet ranking (which heliostats most need measuring) and optionally a plot."
         ),
@@ -76,6 +77,13 @@ def add_parser(subparsers) -> None:
         choices=("posterior", "prior"),
         default="posterior",
         help="posterior: add to what each fit knows; prior: plan every heliostat from scratch from the fleet prior",
+    )
+    p.add_argument(
+        "--model-discrepancy",
+        choices=("estimate", "none"),
+        default="estimate",
+        help="estimate: plan for a model that is not exact, with a discrepancy process over the mirror normal "
+        "learnt from the fit's residuals (heliojax.discrepancy_from_results); none: trust the model exactly",
     )
     p.add_argument("--target", default="receiver", help="operating aim point: this target's centre in the tower file")
     p.add_argument("--tower", type=Path, help="tower file (default: the embedded Jülich tower file)")
@@ -120,7 +128,13 @@ def run(args) -> int:
     from .._errors import ConfigError
     from .._geometry import direction_to_azimuth_elevation, enu_to_wgs84, wgs84_to_enu
     from .._io import atomic_write
-    from .._plan import candidates_at_targets, candidates_from_records, operating_envelope, plan_calibration
+    from .._plan import (
+        candidates_at_targets,
+        candidates_from_records,
+        discrepancy_from_results,
+        operating_envelope,
+        plan_calibration,
+    )
     from .._results import load_results
     from .._sun import solar_position
     from ..optics import target_from_tower
@@ -141,6 +155,19 @@ def run(args) -> int:
         plane = target_from_tower(tower, name)
         lla = enu_to_wgs84(plane.centre, jnp.asarray(tower.origin_lla))
         return np.asarray(wgs84_to_enu(lla, jnp.asarray(origin)))
+
+    discrepancy = None
+    if args.model_discrepancy == "estimate":
+        known = set(tower.targets)
+        centres_r = np.stack(
+            [centre(t) if t in known else np.full(3, np.nan) for t in results.target_names] or [np.full(3, np.nan)]
+        )
+        discrepancy = discrepancy_from_results(results, centres_r)
+        log.info(
+            f"model discrepancy learnt from the fit's residuals: {float(discrepancy.amplitude_mrad):.3f} mrad, "
+            f"correlation length {float(discrepancy.length):.3f} (chord of mirror normals), "
+            f"beside {float(discrepancy.nugget_mrad):.3f} mrad noise"
+        )
 
     aim_point = centre(args.target)
     h = len(results.ids)
@@ -202,6 +229,7 @@ def run(args) -> int:
         aim_point=jnp.asarray(aim_point),
         budget=args.budget,
         start=args.start_from,
+        discrepancy=discrepancy,
     )
     chosen = np.asarray(plan.chosen)
     before = np.asarray(plan.uncertainty_before_mrad)
@@ -290,7 +318,8 @@ def run(args) -> int:
     if args.plot is not None:
         from .._plotting import plot_plan, save_figure
 
-        save_figure(plot_plan(list(results.ids), before, after, chosen, changed), args.plot)
+        figure = plot_plan(list(results.ids), before, after, chosen, changed, discrepancy=discrepancy is not None)
+        save_figure(figure, args.plot)
         log.info(f"wrote {args.plot}")
     print(
         f"{'rank':>4} {'heliostat':<10} {'change':>6} {'before':>8} {'after':>8}   [mrad, predicted over the envelope]"
