@@ -15,7 +15,7 @@ Protocol, per seed:
    model (target: at least 50 % below; also "as aimed", where fits flagged
    ``worse_than_nominal`` give way to the nominal model, as ``heliojax aim`` does);
    coverage of the predicted distribution (:mod:`heliojax._predictive`: scale
-   ``J C J^T + (noise^2 + q a) I``, ``tail_dof``) on their held-out records and on
+   ``J C J^T + (noise^2 + q a) I``, the fitted error law) on their held-out records and on
    the well-sampled heliostats' (targets 60-76 % and 90-98 % inside the 68 % and
    95 % regions).
 
@@ -66,13 +66,13 @@ def _roles(fleet, rng: np.random.Generator, few: int) -> tuple[dict, np.ndarray,
     return roles, is_few, k_of
 
 
-def _coverage(d2: np.ndarray, dof: float) -> dict:
+def _coverage(d2: np.ndarray, law: hj.PointingErrorLaw) -> dict:
     if not d2.size:
         return {"records": 0}
     return {
         "records": int(d2.size),
-        "inside_68": float(np.mean(d2 <= hj.prediction_region_d2(0.68, dof))),
-        "inside_95": float(np.mean(d2 <= hj.prediction_region_d2(0.95, dof))),
+        "inside_68": float(np.mean(d2 <= hj.prediction_region_d2(0.68, law))),
+        "inside_95": float(np.mean(d2 <= hj.prediction_region_d2(0.95, law))),
     }
 
 
@@ -84,17 +84,9 @@ def one_seed(seed: int, workdir: Path, args) -> dict:
     roles, is_few, k_of = _roles(fleet, rng, args.few)
     run = hj.calibrate(fleet, model="actuator", record_roles=roles)
     h = len(fleet.ids)
-    padded = run.fleet
-    r, s = hj.residual_prediction(run.result, padded, np.asarray(padded.mask))
-    r, s = np.asarray(r)[:h], np.asarray(s)[:h]
-    unix = np.asarray(padded.context.unix_time)
-    days = hj.days_since_fit(run.train_mask & ~run.superseded, unix, unix)[:h]
     q = float(run.predictive["drift_mrad2_per_day"])
-    dof = run.predictive.get("tail_dof")
-    dof = np.inf if dof is None else float(dof)
-    noise = np.asarray(run.noise_mrad)[:h]
-    total = s + (noise[:, None] ** 2 + q * np.nan_to_num(days))[..., None, None] * np.eye(2)
-    d2 = np.einsum("hmi,hmij,hmj->hm", r, np.linalg.inv(total + 1e-12 * np.eye(2)), r)
+    law = hj.PointingErrorLaw.from_dict(run.predictive["error_law"])
+    d2 = hj.prediction_d2(run)[:h]
     test = np.asarray(run.test_mask)[:h] & np.isfinite(d2)
     err, unc = np.asarray(run.errors_mrad)[:h], np.asarray(run.uncalibrated_mrad)[:h]
     few_test = test & is_few[:, None]
@@ -112,15 +104,15 @@ def one_seed(seed: int, workdir: Path, args) -> dict:
         "few_record_heliostats": int(is_few.sum()),
         "few_record_statuses": sorted({statuses[i] for i in np.flatnonzero(is_few)}),
         "drift_mrad2_per_day": q,
-        "tail_dof": None if np.isinf(dof) else dof,
+        "error_law": law.to_dict(),
         "few_heldout_median_mrad": float(np.median(err[few_test])),
         "few_nominal_median_mrad": float(np.median(unc[few_test])),
         "few_below_nominal": float(1.0 - np.median(err[few_test]) / np.median(unc[few_test])),
         "few_flagged_worse_than_nominal": [fleet.ids[i] for i in np.flatnonzero(is_few & flagged)],
         "few_below_nominal_as_aimed": float(1.0 - np.median(as_aimed[few_test]) / np.median(unc[few_test])),
         "few_by_k_median_mrad": per_k,
-        "few_coverage": _coverage(d2[few_test], dof),
-        "well_sampled_coverage": _coverage(d2[test & ~is_few[:, None]], dof),
+        "few_coverage": _coverage(d2[few_test], law),
+        "well_sampled_coverage": _coverage(d2[test & ~is_few[:, None]], law),
         "few_d2": d2[few_test].tolist(),
         "well_d2": d2[test & ~is_few[:, None]].tolist(),
     }
@@ -144,15 +136,15 @@ def main() -> None:
             print(json.dumps({k: v for k, v in out.items() if not k.endswith("_d2")}), file=sys.stderr, flush=True)
     few = np.concatenate([np.asarray(o["few_d2"]) for o in runs])
     well = np.concatenate([np.asarray(o["well_d2"]) for o in runs])
-    dofs = [o["tail_dof"] for o in runs]
+    laws = [o["error_law"] for o in runs]
     # pooled over seeds, each record judged by its own seed's law
     few_in = {p: [] for p in (0.68, 0.95)}
     well_in = {p: [] for p in (0.68, 0.95)}
-    for o, dof in zip(runs, dofs, strict=True):
-        nu = np.inf if dof is None else dof
+    for o, law in zip(runs, laws, strict=True):
+        law = hj.PointingErrorLaw.from_dict(law)
         for p in (0.68, 0.95):
-            few_in[p] += (np.asarray(o["few_d2"]) <= hj.prediction_region_d2(p, nu)).tolist()
-            well_in[p] += (np.asarray(o["well_d2"]) <= hj.prediction_region_d2(p, nu)).tolist()
+            few_in[p] += (np.asarray(o["few_d2"]) <= hj.prediction_region_d2(p, law)).tolist()
+            well_in[p] += (np.asarray(o["well_d2"]) <= hj.prediction_region_d2(p, law)).tolist()
     print(
         json.dumps(
             {
@@ -166,7 +158,7 @@ def main() -> None:
                 "few_coverage_68_95": [float(np.mean(few_in[0.68])), float(np.mean(few_in[0.95]))],
                 "well_sampled_coverage_68_95": [float(np.mean(well_in[0.68])), float(np.mean(well_in[0.95]))],
                 "records_few_well": [int(few.size), int(well.size)],
-                "tail_dof_per_seed": dofs,
+                "error_law_per_seed": laws,
             },
             indent=2,
         )

@@ -6,10 +6,11 @@ tangent components) with the predicted covariance ``J C J^T`` (the parameter
 covariance propagated through the residual's Jacobian, as ``heliojax aim`` does)
 plus the fit's noise per component, plus the fleet's drift since each heliostat's
 last fitted record, its rate estimated from the training records alone
-(:func:`heliojax.temporal_drift`), the scale of a bivariate Student t whose degrees of
-freedom ``tail_dof`` come from the same training records. Prints JSON: the fractions of
+(:func:`heliojax.temporal_drift`), the scale of the error law
+(:class:`heliojax.PointingErrorLaw`, a Student t or a Gaussian with an outlier
+component) fitted on the same training records. Prints JSON: the fractions of
 records inside the nominal 68 % and 95 % regions, for the Gaussian (Mahalanobis
-d^2 < 2.279, 5.991) and for the fitted t (:func:`heliojax.prediction_region_d2`), and
+d^2 < 2.279, 5.991) and for the fitted law (:func:`heliojax.prediction_region_d2`), and
 the median d^2 (1.386 for a correct Gaussian model).
 
     python benchmarks/predictive_coverage.py ../shared/data/paint
@@ -46,7 +47,7 @@ def main() -> None:
         run.train_mask & ~run.superseded, np.asarray(padded.context.unix_time), np.asarray(padded.context.unix_time)
     )[:h]
     drift = float(run.predictive["drift_mrad2_per_day"]) * np.nan_to_num(days)
-    dof = float(run.predictive["tail_dof"] if run.predictive.get("tail_dof") is not None else np.inf)
+    law = hj.PointingErrorLaw.from_dict(run.predictive["error_law"])
     out = {
         "benchmark": "predictive_coverage",
         "data": str(args.data_dir or "embedded"),
@@ -61,10 +62,10 @@ def main() -> None:
         d2 = np.einsum("hmi,hmij,hmj->hm", r, np.linalg.inv(total + 1e-12 * np.eye(2)), r)
         use = held_out & np.isfinite(d2)
         out[name] = {"held_out_records": int(use.sum()), "median_d2": float(np.median(d2[use]))}
-        for law, nu in (("gaussian", np.inf), ("student_t", dof)):
-            x68, x95 = hj.prediction_region_d2(0.68, nu), hj.prediction_region_d2(0.95, nu)
+        for name_law, fitted in (("gaussian", hj.PointingErrorLaw()), ("fitted_law", law)):
+            x68, x95 = hj.prediction_region_d2(0.68, fitted), hj.prediction_region_d2(0.95, fitted)
             per = [float(np.mean(d2[i][use[i]] < x95)) for i in range(h) if use[i].any()]
-            out[name][law] = {
+            out[name][name_law] = {
                 "coverage_68": float(np.mean(d2[use] < x68)),
                 "coverage_95": float(np.mean(d2[use] < x95)),
                 "per_heliostat_coverage_95_min_median": [min(per), float(np.median(per))],

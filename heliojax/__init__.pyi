@@ -98,7 +98,12 @@ from ._plotting import (
     plot_plan as plot_plan,
     save_figure as save_figure,
 )
-from ._predictive import fit_drift_and_tails as fit_drift_and_tails, prediction_region_d2 as prediction_region_d2
+from ._predictive import (
+    PointingErrorLaw as PointingErrorLaw,
+    fit_drift_and_law as fit_drift_and_law,
+    fit_drift_and_tails as fit_drift_and_tails,
+    prediction_region_d2 as prediction_region_d2,
+)
 from ._results import (
     CalibrationResults as CalibrationResults,
     load_results as load_results,
@@ -132,6 +137,7 @@ from ._version import __version__ as __version__
 from ._workflow import (
     CalibrationRun as CalibrationRun,
     calibrate as calibrate,
+    prediction_d2 as prediction_d2,
     residual_prediction as residual_prediction,
     temporal_drift as temporal_drift,
     write_summary as write_summary,

@@ -25,7 +25,6 @@ record).
 
 from __future__ import annotations
 
-import math
 import typing
 
 import equinox as eqx
@@ -37,7 +36,7 @@ from ._beam import beam_pointing_error
 from ._heliostat import HeliostatGeometry, RecordContext
 from ._kinematics import AbstractKinematicModel, forward, inverse_aim
 from ._parameters import ParameterView
-from ._predictive import region_radius
+from ._predictive import PointingErrorLaw, region_radius
 
 REACH_TOLERANCE_MRAD = 1e-3
 """Largest forward-model miss (mrad) of commanded counts that still counts as reaching the aim point."""
@@ -60,10 +59,10 @@ class AimResult(eqx.Module):
         pointing_cov_mrad2: ``(H, N, 2, 2)`` predicted scale matrix of the beam
             direction's error (mrad^2) from the parameter covariance and the drift
             since the fit; NaN without a covariance. It is the covariance when
-            ``tail_dof`` is inf (Gaussian), the scale of a bivariate Student t otherwise.
-        tail_dof: degrees of freedom of the predicted error (:mod:`heliojax._predictive`).
-            They are fitted on record residuals, which include the measurement noise,
-            and applied here to the beam's own uncertainty: an approximation.
+            ``error_law`` is Gaussian, the scale of its law otherwise.
+        error_law: the predicted error's :class:`heliojax.PointingErrorLaw`. It is
+            fitted on record residuals, which include the measurement noise, and
+            applied here to the beam's own uncertainty: an approximation.
     """
 
     counts: Float[Array, "H N 2"]
@@ -75,17 +74,13 @@ class AimResult(eqx.Module):
     unreliable: Bool[Array, " H"]
     unreachable: Bool[Array, "H N"]
     pointing_cov_mrad2: Float[Array, "H N 2 2"]
-    tail_dof: float = eqx.field(static=True, default=math.inf)
-
-    def __check_init__(self):
-        if not self.tail_dof > 0.0:
-            raise ValueError(f"tail_dof must be positive (inf: Gaussian); got {self.tail_dof}")
+    error_law: PointingErrorLaw = eqx.field(static=True, default=PointingErrorLaw())
 
     def pointing_radius_mrad(self, probability: float = 0.95) -> Float[Array, "H N"]:
         """Radius (mrad) of the circle about the aim direction that holds the beam
         with at least ``probability``: the prediction region's semi-major axis,
         ``sqrt(d2 * largest eigenvalue)``, ``d2`` from :func:`heliojax.prediction_region_d2`."""
-        return region_radius(jnp.linalg.eigvalsh(self.pointing_cov_mrad2)[..., -1], probability, self.tail_dof)
+        return region_radius(jnp.linalg.eigvalsh(self.pointing_cov_mrad2)[..., -1], probability, self.error_law)
 
     @property
     def pointing_std_mrad(self) -> Float[Array, "H N"]:
@@ -153,7 +148,7 @@ def aim_fleet(
     covariance: Float[ArrayLike, "H F F"] | None = None,
     view: ParameterView | None = None,
     drift_variance_mrad2: Float[ArrayLike, "*drift"] | float = 0.0,
-    tail_dof: float = math.inf,
+    error_law: PointingErrorLaw = PointingErrorLaw(),  # noqa: B008 (frozen, static)
     min_sun_elevation_deg: float = 5.0,
     reach_tolerance_mrad: float = REACH_TOLERANCE_MRAD,
 ) -> AimResult:
@@ -174,8 +169,8 @@ def aim_fleet(
             since the fit, broadcast to ``(H, N)`` (:func:`heliojax.temporal_drift`;
             :func:`aim_results` computes it from the instants' times), added to that
             uncertainty as ``drift_variance_mrad2 * I``.
-        tail_dof: degrees of freedom of the predicted Student-t error (inf: Gaussian;
-            :func:`heliojax.temporal_drift`), kept in the result.
+        error_law: the predicted error's :class:`heliojax.PointingErrorLaw`
+            (:func:`heliojax.temporal_drift`; default Gaussian), kept in the result.
         min_sun_elevation_deg: flag instants with the sun lower than this.
         reach_tolerance_mrad: largest forward-model miss still counted as reached.
 
@@ -215,7 +210,7 @@ def aim_fleet(
         unreliable=unreliable,
         unreachable=unreachable,
         pointing_cov_mrad2=pointing,
-        tail_dof=tail_dof,
+        error_law=error_law,
     )
 
 
@@ -231,7 +226,7 @@ def aim_results(
     (heliostats without a usable fit are flagged ``unreliable``), with the predicted
     pointing uncertainty from the file's covariance and, given the instants'
     ``unix_time`` (s), the fleet's drift since each heliostat's last fitted record
-    (without times, no drift is added), and the file's ``tail_dof``."""
+    (without times, no drift is added), and the file's error law."""
     drift = 0.0 if unix_time is None else jnp.asarray(results.drift_variance_mrad2(unix_time))
     return aim_fleet(
         results.model,
@@ -242,7 +237,7 @@ def aim_results(
         covariance=results.covariance,
         view=results.view,
         drift_variance_mrad2=drift,
-        tail_dof=results.tail_dof,
+        error_law=results.error_law,
         **options,
     )
 

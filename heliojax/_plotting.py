@@ -4,14 +4,13 @@ the figure; ``save_figure`` writes atomically."""
 from __future__ import annotations
 
 import datetime
-import math
 from pathlib import Path
 
 import numpy as np
 
 from ._errors import ConfigError
 from ._io import atomic_path
-from ._predictive import prediction_region_d2, region_radius
+from ._predictive import PointingErrorLaw, prediction_region_d2, region_radius
 
 
 def pyplot():
@@ -173,13 +172,14 @@ def plot_calibration(run, *, axes=None):
     return fig
 
 
-def plot_aim(ids, pointing_cov_mrad2, ok, distance_m, hours=None, start=None, *, tail_dof=math.inf, axes=None):
+def plot_aim(ids, pointing_cov_mrad2, ok, distance_m, hours=None, start=None, *, error_law=None, axes=None):
     """Error bars of aiming commands: 68 % prediction regions of the beam's landing
     point on the aim plane (cm; the beam's tangent plane scaled by each heliostat's
     distance) at the instant with most usable commands, and over the instants each
     heliostat's 68 % pointing radius (mrad, the region's semi-major axis). The
-    predicted error law: scale ``pointing_cov_mrad2``, ``tail_dof`` degrees of freedom
-    (:func:`heliojax.prediction_region_d2`). Flagged commands are left out."""
+    predicted error law: scale ``pointing_cov_mrad2``, ``error_law`` a
+    :class:`heliojax.PointingErrorLaw` (default Gaussian;
+    :func:`heliojax.prediction_region_d2`). Flagged commands are left out."""
     plt = pyplot()
     from matplotlib.patches import Ellipse
 
@@ -187,10 +187,11 @@ def plot_aim(ids, pointing_cov_mrad2, ok, distance_m, hours=None, start=None, *,
         fig, axes = plt.subplots(1, 2, figsize=(13, 5.5), gridspec_kw={"width_ratios": [1, 1.5]})
     else:
         fig = axes[0].figure
+    error_law = PointingErrorLaw() if error_law is None else error_law
     cov = np.asarray(pointing_cov_mrad2, float)
     ok = np.asarray(ok, bool)
-    d2 = prediction_region_d2(0.68, tail_dof)
-    radius = region_radius(np.linalg.eigvalsh(np.where(np.isfinite(cov), cov, 0.0))[..., -1], 0.68, tail_dof)
+    d2 = prediction_region_d2(0.68, error_law)
+    radius = region_radius(np.linalg.eigvalsh(np.where(np.isfinite(cov), cov, 0.0))[..., -1], 0.68, error_law)
     radius = np.where(np.all(np.isfinite(cov), axis=(-2, -1)), radius, np.nan)
     j = int(np.argmax(ok.sum(axis=0)))
     ax = axes[0]
@@ -225,8 +226,7 @@ def plot_aim(ids, pointing_cov_mrad2, ok, distance_m, hours=None, start=None, *,
             ax.plot(x, y, marker="o", ms=3, lw=1, color=colours[i], label=hid)
     ax.set_xlabel("instant" if hours is None or start is None else f"hours after {start:%Y-%m-%d %H:%M} UTC")
     ax.set_ylabel("radius holding the beam with 68 % [mrad]")
-    law = "Gaussian" if math.isinf(tail_dof) else f"Student t, {tail_dof:.2g} degrees of freedom"
-    ax.set_title(f"predicted pointing uncertainty of the usable commands ({law})", fontsize=10)
+    ax.set_title(f"predicted pointing uncertainty of the usable commands ({error_law.describe()})", fontsize=10)
     ax.grid(alpha=0.3)
     if len(ids) <= 30:
         ax.legend(fontsize=7, ncol=2, loc="upper left", bbox_to_anchor=(1.01, 1.0), title="heliostat")

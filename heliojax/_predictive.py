@@ -13,43 +13,147 @@ heliostats heavier-tailed than a Gaussian (README, "Predictive uncertainty"). Wi
 ``d^2 = r^T (S + q dt I)^-1 r``, ``P(d^2 <= x) = 1 - (1 + x / nu)^(-nu / 2)``
 (``d^2 / 2`` follows an F(2, nu) law), which tends to the chi-square(2)
 ``1 - exp(-x / 2)`` as ``nu -> inf``.
+
+A t cannot describe a mostly Gaussian sample with a few gross errors: the low
+``nu`` that the far records need widens its core too. The other law fitted is the
+two-component Gaussian scale mixture ``(1 - e) N(0, S') + e N(0, k^2 S')``
+(``e``: :attr:`PointingErrorLaw.outlier_fraction`, ``k``:
+:attr:`PointingErrorLaw.outlier_scale`), ``P(d^2 <= x) = (1 - e)(1 - exp(-x / 2)) +
+e (1 - exp(-x / 2 k^2))``. :func:`fit_drift_and_law` fits both by maximum likelihood
+and keeps the one with the lower Bayesian information criterion (the mixture has
+one parameter more). The law is one :class:`PointingErrorLaw`.
 """
 
 from __future__ import annotations
 
+import collections.abc
 import math
+import typing
 
+import equinox as eqx
 import numpy as np
 from jaxtyping import Float
 
 _DRIFT_GRID = np.concatenate([[0.0], np.geomspace(1e-6, 1e3, 91)])  # mrad^2 / day
 _DOF_GRID = np.concatenate([np.geomspace(0.5, 1e3, 67), [np.inf]])
+_FRACTION_GRID = np.geomspace(0.003, 0.5, 24)
+_SCALE_GRID = np.geomspace(1.5, 1e3, 29)
 
 
-def prediction_region_d2(probability: float, tail_dof: float = math.inf) -> float:
+@typing.final
+class PointingErrorLaw(eqx.Module):
+    """Radial law of the predicted 2-D pointing error, a Gaussian scale mixture
+    (module docstring): a Student t (``tail_dof`` finite), a two-component mixture
+    (``outlier_fraction > 0``) or the Gaussian (neither).
+
+    Attributes:
+        tail_dof: degrees of freedom of the t; ``inf``: a Gaussian core.
+        outlier_fraction: ``e``, the share of the broad component (0: none).
+        outlier_scale: ``k``, the broad component's scale over the core's (>= 1).
+    """
+
+    tail_dof: float = eqx.field(static=True, default=math.inf, converter=float)
+    outlier_fraction: float = eqx.field(static=True, default=0.0, converter=float)
+    outlier_scale: float = eqx.field(static=True, default=1.0, converter=float)
+
+    def __check_init__(self):
+        if not self.tail_dof > 0.0:
+            raise ValueError(f"tail_dof must be positive (inf: Gaussian); got {self.tail_dof}")
+        if not 0.0 <= self.outlier_fraction < 1.0:
+            raise ValueError(f"outlier_fraction must be in [0, 1); got {self.outlier_fraction}")
+        if not (math.isfinite(self.outlier_scale) and self.outlier_scale >= 1.0):
+            raise ValueError(f"outlier_scale must be finite and >= 1; got {self.outlier_scale}")
+        if self.outlier_fraction > 0.0 and math.isfinite(self.tail_dof):
+            raise ValueError("a PointingErrorLaw is a Student t or a two-component mixture, not both")
+
+    @property
+    def kind(self) -> str:
+        """``"gaussian"``, ``"student_t"`` or ``"gaussian_mixture"``."""
+        if math.isfinite(self.tail_dof):
+            return "student_t"
+        return "gaussian_mixture" if self.outlier_fraction > 0.0 else "gaussian"
+
+    def cdf(self, d2: Float[np.ndarray, "*n"]) -> Float[np.ndarray, "*n"]:
+        """``P(d^2 <= x)`` at ``x = d2`` (squared Mahalanobis radius in the scale)."""
+        x = np.maximum(np.asarray(d2, float), 0.0)
+        if self.kind == "student_t":
+            return np.asarray(-np.expm1(-self.tail_dof / 2.0 * np.log1p(x / self.tail_dof)))
+        e, k = self.outlier_fraction, self.outlier_scale
+        return np.asarray((1.0 - e) * -np.expm1(-x / 2.0) + e * -np.expm1(-x / (2.0 * k * k)))
+
+    def region_d2(self, probability: float) -> float:
+        """The squared Mahalanobis radius ``x`` with ``P(d^2 <= x) = probability``
+        (closed form for the Gaussian and the t, bisection for the mixture).
+
+        Raises:
+            ValueError: ``probability`` outside (0, 1).
+        """
+        if not 0.0 < probability < 1.0:
+            raise ValueError(f"probability must be in (0, 1); got {probability}")
+        if self.kind == "gaussian":
+            return -2.0 * math.log1p(-probability)
+        if self.kind == "student_t":
+            return self.tail_dof * math.expm1(-2.0 / self.tail_dof * math.log1p(-probability))
+        # between the core's and the broad component's own quantiles; bisection in log x
+        lo = -2.0 * math.log1p(-probability)
+        hi = lo * self.outlier_scale**2
+        for _ in range(200):
+            mid = math.sqrt(lo * hi)
+            lo, hi = (mid, hi) if float(self.cdf(np.asarray(mid))) < probability else (lo, mid)
+            if hi / lo < 1.0 + 1e-13:
+                break
+        return math.sqrt(lo * hi)
+
+    def describe(self) -> str:
+        """A short name for titles and logs."""
+        if self.kind == "student_t":
+            return f"Student t, {self.tail_dof:.2g} degrees of freedom"
+        if self.kind == "gaussian_mixture":
+            return f"Gaussian + {100 * self.outlier_fraction:.2g} % at {self.outlier_scale:.3g}x scale"
+        return "Gaussian"
+
+    @classmethod
+    def from_dict(cls, data: collections.abc.Mapping[str, typing.Any] | None) -> PointingErrorLaw:
+        """Inverse of :meth:`to_dict` (``None`` or missing keys: the Gaussian's values)."""
+        data = data or {}
+        dof = data.get("tail_dof")
+        return cls(
+            tail_dof=math.inf if dof is None else float(dof),
+            outlier_fraction=float(data.get("outlier_fraction", 0.0)),
+            outlier_scale=float(data.get("outlier_scale", 1.0)),
+        )
+
+    def to_dict(self) -> dict[str, typing.Any]:
+        """JSON form (``tail_dof`` null for a Gaussian core)."""
+        return {
+            "kind": self.kind,
+            "tail_dof": None if math.isinf(self.tail_dof) else self.tail_dof,
+            "outlier_fraction": self.outlier_fraction,
+            "outlier_scale": self.outlier_scale,
+        }
+
+
+def prediction_region_d2(probability: float, law: PointingErrorLaw | float = math.inf) -> float:
     """The squared Mahalanobis radius ``x`` with ``P(d^2 <= x) = probability`` of the
-    predicted 2-D pointing error (see the module docstring): ``-2 ln(1 - p)`` for a
-    Gaussian (``tail_dof = inf``; 5.991 at 95 %), ``nu ((1 - p)^(-2 / nu) - 1)``
-    for a Student t with ``nu = tail_dof`` degrees of freedom.
+    predicted 2-D pointing error (see the module docstring) under ``law`` (a
+    :class:`PointingErrorLaw`, or a number: the t's degrees of freedom, ``inf`` the
+    Gaussian): ``-2 ln(1 - p)`` for a Gaussian (5.991 at 95 %),
+    ``nu ((1 - p)^(-2 / nu) - 1)`` for a Student t with ``nu`` degrees of freedom.
 
     Raises:
-        ValueError: ``probability`` outside (0, 1) or ``tail_dof`` not positive.
+        ValueError: ``probability`` outside (0, 1) or a degrees of freedom not positive.
     """
-    if not 0.0 < probability < 1.0:
-        raise ValueError(f"probability must be in (0, 1); got {probability}")
-    if not tail_dof > 0.0:
-        raise ValueError(f"tail_dof must be positive (inf: Gaussian); got {tail_dof}")
-    if math.isinf(tail_dof):
-        return -2.0 * math.log1p(-probability)
-    return tail_dof * math.expm1(-2.0 / tail_dof * math.log1p(-probability))
+    if not isinstance(law, PointingErrorLaw):
+        law = PointingErrorLaw(tail_dof=law)
+    return law.region_d2(probability)
 
 
-def region_radius(largest_scale_eigenvalue, probability: float, tail_dof: float = math.inf):
+def region_radius(largest_scale_eigenvalue, probability: float, law: PointingErrorLaw | float = math.inf):
     """Radius (the scale's units' square root, mrad) of the circle that holds the
     predicted error with at least ``probability``: the region's semi-major axis
-    ``sqrt(prediction_region_d2(probability, tail_dof) * largest eigenvalue)``. Works on
+    ``sqrt(prediction_region_d2(probability, law) * largest eigenvalue)``. Works on
     NumPy and JAX arrays alike."""
-    return (prediction_region_d2(probability, tail_dof) * largest_scale_eigenvalue) ** 0.5
+    return (prediction_region_d2(probability, law) * largest_scale_eigenvalue) ** 0.5
 
 
 def _log_likelihood(
@@ -89,4 +193,58 @@ def fit_drift_and_tails(
     return float(_DRIFT_GRID[iq]), float(_DOF_GRID[::-1][iv])
 
 
-__all__ = ["fit_drift_and_tails", "prediction_region_d2", "region_radius"]
+def _mixture_log_likelihood(
+    d2: Float[np.ndarray, "Q N"], logdet: Float[np.ndarray, "Q N"], fraction: float, scale: float
+) -> Float[np.ndarray, " Q"]:
+    core = math.log1p(-fraction) - 0.5 * d2
+    broad = math.log(fraction) - 2.0 * math.log(scale) - 0.5 * d2 / scale**2
+    return np.sum(np.logaddexp(core, broad) - 0.5 * logdet, axis=-1)
+
+
+def fit_drift_and_law(
+    residual_mrad: Float[np.ndarray, "N 2"],
+    scale_mrad2: Float[np.ndarray, "N 2 2"],
+    days: Float[np.ndarray, " N"],
+) -> tuple[float, PointingErrorLaw]:
+    """Maximum-likelihood drift ``q`` (mrad^2/day per component) and the error law
+    (module docstring) from validation residuals with their fitted scale ``S`` and
+    days since the fit: the Student t family (:func:`fit_drift_and_tails`, the
+    Gaussian included) and the two-component mixture (``e`` in 0.003-0.5, ``k`` in
+    1.5-1000, ratio ~1.25 each, on the same ``q`` grid), the one with the lower
+    Bayesian information criterion kept (``-2 ln L + p ln N``; ``p`` = 2 for the t,
+    1 for the Gaussian, 3 for the mixture).
+
+    Returns:
+        ``(q, law)``.
+    """
+    r = np.asarray(residual_mrad, float)
+    s = np.asarray(scale_mrad2, float)
+    t = np.asarray(days, float)
+    n = r.shape[0]
+    q_t, dof = fit_drift_and_tails(r, s, t)
+    total = s[None] + (_DRIFT_GRID[:, None] * t[None, :])[..., None, None] * np.eye(2)
+    d2 = np.einsum("ni,qnij,nj->qn", r, np.linalg.inv(total), r)
+    logdet = np.linalg.slogdet(total)[1]
+    iq_t = int(np.flatnonzero(_DRIFT_GRID == q_t)[0])
+    ll_t = float(_log_likelihood(d2[iq_t : iq_t + 1], logdet[iq_t : iq_t + 1], dof)[0])
+    bic_t = -2.0 * ll_t + (1 if math.isinf(dof) else 2) * math.log(max(n, 1))
+    best = (math.inf, 0.0, 0.0, 1.0)
+    for e in _FRACTION_GRID:
+        for k in _SCALE_GRID:
+            ll = _mixture_log_likelihood(d2, logdet, float(e), float(k))
+            j = int(np.argmax(ll))
+            bic = -2.0 * float(ll[j]) + 3 * math.log(max(n, 1))
+            if bic < best[0]:
+                best = (bic, float(_DRIFT_GRID[j]), float(e), float(k))
+    if best[0] < bic_t:
+        return best[1], PointingErrorLaw(outlier_fraction=best[2], outlier_scale=best[3])
+    return q_t, PointingErrorLaw(tail_dof=dof)
+
+
+__all__ = [
+    "PointingErrorLaw",
+    "fit_drift_and_law",
+    "fit_drift_and_tails",
+    "prediction_region_d2",
+    "region_radius",
+]

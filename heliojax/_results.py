@@ -8,8 +8,10 @@ Schema (``H`` heliostats, ``M`` padded records; NaN / -1 where no record):
   ``free_params`` (JSON list), ``robust`` (bool), ``origin_lla`` (WGS84 lat deg,
   lon deg, alt m of the ENU origin), ``drift_mrad2_per_day`` (the fleet's
   pointing drift per tangent component, :func:`heliojax.temporal_drift`; 0 when not
-  estimated), ``tail_dof`` (degrees of freedom of the predicted Student-t pointing
-  error, :mod:`heliojax._predictive`; inf: Gaussian, also in files written without it)
+  estimated), the predicted pointing-error law (:class:`heliojax.PointingErrorLaw`):
+  ``tail_dof`` (degrees of freedom of a Student t; inf: a Gaussian core, also in files
+  written without it), ``outlier_fraction`` and ``outlier_scale`` (the broad
+  component of a two-component mixture; 0 and 1: none, also when absent)
 * ``heliostat_ids`` ``(H,)`` str; ``target_names`` ``(T,)`` str
 * ``params`` ``(H, P)`` float64, physical units; ``param_std`` ``(H, P)``
   Gauss-Newton standard errors; ``covariance`` ``(H, F, F)`` of the free parameters
@@ -57,6 +59,7 @@ from ._heliostat import HeliostatGeometry, LinearActuators
 from ._io import atomic_path
 from ._kinematics import AbstractKinematicModel, nominal_model
 from ._parameters import ParameterView, broadcast_model
+from ._predictive import PointingErrorLaw
 from ._splits import days_since_fit
 from ._version import __version__
 from .effects import with_effects
@@ -122,7 +125,10 @@ def write_results_h5(path: str | Path, run: typing.Any) -> None:
         f.attrs["robust"] = bool(run.summary.get("robust", False))
         f.attrs["origin_lla"] = np.asarray(run.fleet.origin_lla, float)
         f.attrs["drift_mrad2_per_day"] = float(run.predictive.get("drift_mrad2_per_day", 0.0))
-        f.attrs["tail_dof"] = float(run.predictive.get("tail_dof", math.inf))
+        law = PointingErrorLaw.from_dict(run.predictive.get("error_law"))
+        f.attrs["tail_dof"] = law.tail_dof
+        f.attrs["outlier_fraction"] = law.outlier_fraction
+        f.attrs["outlier_scale"] = law.outlier_scale
         f.create_dataset("heliostat_ids", data=np.array(run.fleet.ids[:n], dtype=object), dtype=str_dt)
         f.create_dataset("target_names", data=np.array(run.fleet.target_names, dtype=object), dtype=str_dt)
         f.create_dataset("params", data=np.asarray(run.result.parameters())[:n])
@@ -209,10 +215,14 @@ class CalibrationResults:
         return float(self.attrs.get("drift_mrad2_per_day", 0.0))
 
     @property
-    def tail_dof(self) -> float:
-        """Degrees of freedom of the predicted Student-t pointing error (inf:
-        Gaussian; :func:`heliojax.temporal_drift`)."""
-        return float(self.attrs.get("tail_dof", math.inf))
+    def error_law(self) -> PointingErrorLaw:
+        """The predicted pointing-error law (:func:`heliojax.temporal_drift`; the
+        Gaussian in files written without one)."""
+        return PointingErrorLaw(
+            tail_dof=float(self.attrs.get("tail_dof", math.inf)),
+            outlier_fraction=float(self.attrs.get("outlier_fraction", 0.0)),
+            outlier_scale=float(self.attrs.get("outlier_scale", 1.0)),
+        )
 
     def drift_variance_mrad2(self, unix_time: Float[ArrayLike, " N"]) -> Float[np.ndarray, "H N"]:
         """``(H, N)`` drift variance (mrad^2 per component) at ``unix_time`` (s): the

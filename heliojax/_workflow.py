@@ -26,7 +26,7 @@ from ._fleet import bucket_size, pad_fleet
 from ._geometry import direction_to_azimuth_elevation
 from ._io import atomic_write
 from ._kinematics import AbstractKinematicModel, nominal_model
-from ._predictive import fit_drift_and_tails
+from ._predictive import PointingErrorLaw, fit_drift_and_law
 from ._splits import chronological_holdout, days_since_fit, split_fleet
 from .fitting import (
     ChangePoints,
@@ -257,11 +257,16 @@ def calibrate(
         predictive = temporal_drift(fit_state, padded, fit_mask)
         log.info(
             f"pointing drift {predictive['drift_mrad2_per_day']:.4f} mrad^2/day per component "
-            f"(from {predictive['validation_records']} later training records), tails: "
-            f"{predictive['tail_dof']:.3g} degrees of freedom"
+            f"(from {predictive['validation_records']} later training records), error law: "
+            f"{PointingErrorLaw.from_dict(predictive['error_law']).describe()}"
         )
     else:
-        predictive = {"drift_mrad2_per_day": 0.0, "tail_dof": math.inf, "method": "not estimated"}
+        predictive = {
+            "drift_mrad2_per_day": 0.0,
+            "tail_dof": math.inf,
+            "error_law": PointingErrorLaw().to_dict(),
+            "method": "not estimated",
+        }
 
     all_valid = jnp.asarray(padded.mask)
     errors = np.asarray(fleet_beam_errors_mrad(result.model, padded, all_valid))
@@ -334,6 +339,35 @@ def residual_prediction(solution: FitSolution, fleet, mask: np.ndarray) -> tuple
     return r, np.einsum("hmif,hfg,hmjg->hmij", jac, np.asarray(solution.covariance), jac)
 
 
+def prediction_d2(run: CalibrationRun, mask: np.ndarray | None = None) -> np.ndarray:
+    """``(H, M)`` squared Mahalanobis distance ``d^2 = r^T P^-1 r`` of each record's
+    residual ``r`` under its full predicted scale ``P = J C J^T + (noise^2 + q a) I``
+    (:func:`residual_prediction`, the fit's noise per component, the drift rate ``q``
+    of :func:`temporal_drift` and the fitted state's age ``a`` in days,
+    :func:`heliojax.days_since_fit`); NaN outside ``mask`` (default: every record of
+    ``run.fleet``). A record lies in the ``p`` prediction region when
+    ``d^2 <= heliojax.prediction_region_d2(p, law)``, ``law`` the run's
+    :class:`heliojax.PointingErrorLaw` (``run.predictive["error_law"]``)."""
+    padded = run.fleet
+    use = np.asarray(padded.mask, bool) if mask is None else np.asarray(mask, bool) & np.asarray(padded.mask, bool)
+    r, s = residual_prediction(run.result, padded, use)
+    unix = np.asarray(padded.context.unix_time, float)
+    fitted = np.asarray(run.train_mask, bool)
+    if run.superseded is not None:
+        fitted = fitted & ~np.asarray(run.superseded, bool)
+    days = days_since_fit(fitted, unix, unix)
+    h = r.shape[0]
+    noise = np.full(h, np.nan) if run.noise_mrad is None else np.asarray(run.noise_mrad, float)
+    noise = np.pad(noise, (0, max(h - noise.size, 0)), constant_values=np.nan)[:h]
+    q = float(run.predictive.get("drift_mrad2_per_day", 0.0))
+    total = s + (noise[:, None] ** 2 + q * np.nan_to_num(days))[..., None, None] * np.eye(2)
+    ok = use & np.all(np.isfinite(r), axis=-1) & np.all(np.isfinite(total), axis=(-2, -1))
+    safe = np.where(ok[..., None, None], total, np.eye(2))
+    r = np.where(ok[..., None], r, 0.0)
+    d2 = np.einsum("hmi,hmij,hmj->hm", r, np.linalg.inv(safe), r)
+    return np.where(ok, d2, np.nan)
+
+
 def temporal_drift(
     fit: collections.abc.Callable[[np.ndarray], tuple[FitSolution, typing.Any]],
     fleet,
@@ -348,35 +382,45 @@ def temporal_drift(
 
     Model (:mod:`heliojax._predictive`): a random walk of the beam direction from the
     fitted state, the process noise of a Kalman filter, with heavy tails; a record
-    ``dt`` days after the heliostat's last fitted record is predicted as a bivariate
-    Student t with scale matrix ``S + q * dt * I`` and ``tail_dof`` degrees of freedom
-    (``inf``: the Gaussian), where ``S = J C J^T + noise^2 I`` (``J`` its Jacobian
-    w.r.t. the free parameters, ``C`` the fit's covariance, ``noise`` the fit's noise
-    per component). Its prediction regions: :func:`heliojax.prediction_region_d2`.
+    ``dt`` days after the heliostat's last fitted record is predicted with scale
+    matrix ``S + q * dt * I`` under a :class:`heliojax.PointingErrorLaw` (a bivariate
+    Student t with ``tail_dof`` degrees of freedom, ``inf``: the Gaussian, or a
+    Gaussian with a broad outlier component), where ``S = J C J^T + noise^2 I`` (``J``
+    its Jacobian w.r.t. the free parameters, ``C`` the fit's covariance, ``noise`` the
+    fit's noise per component). Its prediction regions:
+    :func:`heliojax.prediction_region_d2`.
 
-    ``q`` and ``tail_dof`` are estimated by time-blocked validation on the training
+    ``q`` and the law are estimated by time-blocked validation on the training
     records only (the test records are never looked at): every heliostat with at
     least ``min_records`` records in ``fit_mask`` holds out its latest ``fraction`` of
     them; ``fit`` (the calibration's own fit, ``mask -> (solution, noise_mrad (H,))``)
-    is run on the rest; ``(q, tail_dof)`` maximise the likelihood of the held-out
-    residuals (:func:`heliojax.fit_drift_and_tails`). Gross errors and maintenance
-    episodes among the held-out records lower ``tail_dof`` instead of inflating ``q``.
+    is run on the rest; ``q`` and the law maximise the likelihood of the held-out
+    residuals, the family chosen by BIC (:func:`heliojax.fit_drift_and_law`). Gross
+    errors and maintenance episodes among the held-out records go into the law's
+    tails instead of inflating ``q``.
 
     Returns:
-        ``{"drift_mrad2_per_day", "tail_dof", "validation_records",
+        ``{"drift_mrad2_per_day", "tail_dof", "error_law", "validation_records",
         "validation_heliostats", "validation_median_days", "median_d2_without",
-        "method"}``; ``drift_mrad2_per_day`` is 0 and ``tail_dof`` inf with fewer than
-        10 validation records.
+        "method"}`` (``error_law``: :meth:`PointingErrorLaw.to_dict`; ``tail_dof`` the
+        t's degrees of freedom, inf for the other laws); ``drift_mrad2_per_day`` is 0
+        and the law Gaussian with fewer than 10 validation records.
     """
     fleet_mask = np.asarray(fleet.mask)
     unix_time = np.asarray(fleet.context.unix_time, float)
     early, late = chronological_holdout(np.asarray(fit_mask) & fleet_mask, unix_time, min_records, fraction)
     method = (
-        "random walk from the fitted state, bivariate Student t (maximum likelihood); rate and tails from the "
+        "random walk from the fitted state, bivariate Student t or Gaussian with an outlier component (maximum "
+        "likelihood, the family by BIC); rate and tails from the "
         f"latest {fraction:.0%} of the training records of heliostats with >= {min_records}, predicted from a fit "
         "on the earlier ones"
     )
-    out: dict[str, typing.Any] = {"drift_mrad2_per_day": 0.0, "tail_dof": math.inf, "method": method}
+    out: dict[str, typing.Any] = {
+        "drift_mrad2_per_day": 0.0,
+        "tail_dof": math.inf,
+        "error_law": PointingErrorLaw().to_dict(),
+        "method": method,
+    }
     if late.sum() < 10:
         out.update(validation_records=int(late.sum()), validation_heliostats=0, median_d2_without=None)
         return out
@@ -401,7 +445,8 @@ def temporal_drift(
     )
     if use.sum() < 10:
         return out
-    out["drift_mrad2_per_day"], out["tail_dof"] = fit_drift_and_tails(r, s, days)
+    q, law = fit_drift_and_law(r, s, days)
+    out.update(drift_mrad2_per_day=q, tail_dof=law.tail_dof, error_law=law.to_dict())
     return out
 
 

@@ -300,7 +300,8 @@ def test_aim_writes_commands_with_error_bars(results_h5, tmp_path, capsys):
     assert night and all("sun_low" in r["flags"] and r["ok"] == "0" for r in night)
     with h5py.File(h5) as f:
         assert f["counts"].shape == (5, 24, 2) and f["pointing_cov_mrad2"].shape == (5, 24, 2, 2)
-        assert f.attrs["tail_dof"] == hj.load_results(results_h5).tail_dof
+        law = hj.load_results(results_h5).error_law
+        assert f.attrs["tail_dof"] == law.tail_dof and f.attrs["outlier_fraction"] == law.outlier_fraction
     assert plot.stat().st_size > 10_000
 
 

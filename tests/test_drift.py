@@ -117,11 +117,23 @@ def test_calibrate_reports_the_drift_and_aiming_adds_it(tmp_path):
     run = hj.calibrate(fleet, robust=False, changes=False)
     predictive = run.summary["predictive"]
     assert predictive["validation_records"] > 0 and predictive["drift_mrad2_per_day"] > 0.0
+    # each record's d^2 under its full predicted scale: parameters + noise + drift x age
+    d2 = hj.prediction_d2(run, np.asarray(run.test_mask))
+    padded = run.fleet
+    r, cov = hj.residual_prediction(run.result, padded, np.asarray(run.test_mask))
+    unix = np.asarray(padded.context.unix_time)
+    age = hj.days_since_fit(np.asarray(run.train_mask), unix, unix)
+    h, j = np.argwhere(np.isfinite(d2))[0]
+    scale = cov[h, j] + (run.noise_mrad[h] ** 2 + predictive["drift_mrad2_per_day"] * age[h, j]) * np.eye(2)
+    assert d2[h, j] == pytest.approx(r[h, j] @ np.linalg.solve(scale, r[h, j]), rel=1e-10)
+    assert np.all(np.isnan(d2[~np.asarray(run.test_mask)]))
+    assert np.isfinite(d2).sum() >= 0.9 * int(np.asarray(run.test_mask)[np.asarray(run.result.status) == 0].sum())
     hj.write_results_h5(tmp_path / "results.h5", run)
     results = hj.load_results(tmp_path / "results.h5")
     assert results.drift_mrad2_per_day == pytest.approx(predictive["drift_mrad2_per_day"], rel=1e-12)
+    assert results.error_law == hj.PointingErrorLaw.from_dict(predictive["error_law"])
     dof = math.inf if predictive["tail_dof"] is None else predictive["tail_dof"]  # JSON null: Gaussian
-    assert results.tail_dof == dof
+    assert results.error_law.tail_dof == dof
     unix = np.array([hj.datetime_to_unix("2024-06-21T12:00:00Z")])
     sun = hj.solar_position(jnp.asarray(unix), *np.asarray(results.attrs["origin_lla"])).direction_enu()
     aim = jnp.asarray([0.0, 0.0, 60.0])
@@ -141,8 +153,8 @@ def test_calibrate_reports_the_drift_and_aiming_adds_it(tmp_path):
     expected = np.array(expected)
     assert np.all(expected > 0.0)
     np.testing.assert_allclose(difference[fitted][:, 0], expected[:, None, None] * np.eye(2), rtol=1e-9, atol=1e-12)
-    # the 95 % radius by hand: the semi-major axis of the region d^2 <= prediction_region_d2(0.95, tail_dof)
-    assert with_drift.tail_dof == results.tail_dof
+    # the 95 % radius by hand: the semi-major axis of the region d^2 <= prediction_region_d2(0.95, law)
+    assert with_drift.error_law == results.error_law
     cov = np.asarray(with_drift.pointing_cov_mrad2)[fitted][:, 0]
-    radius = np.sqrt(hj.prediction_region_d2(0.95, results.tail_dof) * np.linalg.eigvalsh(cov)[:, -1])
+    radius = np.sqrt(hj.prediction_region_d2(0.95, results.error_law) * np.linalg.eigvalsh(cov)[:, -1])
     np.testing.assert_allclose(np.asarray(with_drift.pointing_radius_mrad(0.95))[fitted][:, 0], radius, rtol=1e-12)

@@ -1,7 +1,8 @@
 """The predicted pointing-error law (heliojax._predictive): prediction regions of the
 bivariate Student t against scipy's F and chi-square quantiles and against sampling,
-and the maximum-likelihood drift and tails recovered from residuals drawn with known
-values."""
+of the two-component mixture against its closed-form CDF and sampling, the
+maximum-likelihood drift and tails recovered from residuals drawn with known values,
+and the BIC choosing the family that generated them."""
 
 from __future__ import annotations
 
@@ -71,3 +72,67 @@ def test_maximum_likelihood_recovers_drift_and_tails():
     r, s, days = _validation(rng, 3000, 0.01, 1.5)
     q, dof = hj.fit_drift_and_tails(r, s, days)
     assert q == pytest.approx(0.01, rel=0.35) and dof == pytest.approx(1.5, rel=0.2)
+
+
+def _mixture_residuals(rng, scale, fraction, ratio, n):
+    """``(n, 2)`` draws of ``(1 - e) N(0, S) + e N(0, k^2 S)``."""
+    z = np.einsum("nij,nj->ni", np.linalg.cholesky(scale), rng.normal(size=(n, 2)))
+    return np.where((rng.uniform(size=n) < fraction)[:, None], ratio * z, z)
+
+
+def test_mixture_region_against_its_cdf_and_by_sampling():
+    law = hj.PointingErrorLaw(outlier_fraction=0.05, outlier_scale=40.0)
+    assert law.kind == "gaussian_mixture"
+    for p in (0.5, 0.68, 0.95, 0.99):
+        x = hj.prediction_region_d2(p, law)
+        # the closed form by hand: (1 - e)(1 - exp(-x/2)) + e (1 - exp(-x / 2k^2))
+        assert 0.95 * (1 - math.exp(-x / 2)) + 0.05 * (1 - math.exp(-x / 3200.0)) == pytest.approx(p, abs=1e-12)
+    # 68 %: inside the core's own 71.6 % quantile (0.68 / 0.95), far inside the t's of the same tail mass
+    assert hj.prediction_region_d2(0.68, law) == pytest.approx(stats.chi2.ppf(0.68 / 0.95, 2), rel=1e-3)
+    rng = np.random.default_rng(5)
+    n = 40_000
+    scale = np.broadcast_to(np.array([[1.5, -0.4], [-0.4, 0.7]]), (n, 2, 2))
+    r = _mixture_residuals(rng, scale, 0.05, 40.0, n)
+    d2 = np.einsum("ni,nij,nj->n", r, np.linalg.inv(scale), r)
+    for p in (0.68, 0.95):
+        assert np.mean(d2 <= hj.prediction_region_d2(p, law)) == pytest.approx(p, abs=0.01)
+    # the Gaussian and the t as laws give the plain numbers
+    assert hj.prediction_region_d2(0.95, hj.PointingErrorLaw()) == pytest.approx(stats.chi2.ppf(0.95, 2), rel=1e-12)
+    assert hj.prediction_region_d2(0.95, hj.PointingErrorLaw(tail_dof=3.0)) == hj.prediction_region_d2(0.95, 3.0)
+
+
+def test_error_law_rejects_bad_values_and_round_trips():
+    with pytest.raises(ValueError, match="outlier_fraction"):
+        hj.PointingErrorLaw(outlier_fraction=1.0)
+    with pytest.raises(ValueError, match="outlier_scale"):
+        hj.PointingErrorLaw(outlier_fraction=0.1, outlier_scale=0.5)
+    with pytest.raises(ValueError, match="not both"):
+        hj.PointingErrorLaw(tail_dof=2.0, outlier_fraction=0.1, outlier_scale=10.0)
+    for law in (
+        hj.PointingErrorLaw(),
+        hj.PointingErrorLaw(tail_dof=1.3),
+        hj.PointingErrorLaw(0.0 + math.inf, 0.2, 9.0),
+    ):
+        assert hj.PointingErrorLaw.from_dict(law.to_dict()) == law
+    assert hj.PointingErrorLaw.from_dict(None) == hj.PointingErrorLaw()
+
+
+def test_bic_chooses_the_family_that_generated_the_residuals():
+    rng = np.random.default_rng(7)
+    # a Gaussian with 5 % gross errors at 30x the scale: the mixture, its fraction and scale recovered
+    a = rng.uniform(0.3, 1.0, size=(3000, 2, 2)) * np.array([[1.0, 0.3], [0.0, 1.0]])
+    s = np.einsum("nij,nkj->nik", a, a) + 0.05 * np.eye(2)
+    days = rng.uniform(1.0, 200.0, size=3000)
+    r = _mixture_residuals(rng, s, 0.05, 30.0, 3000)
+    q, law = hj.fit_drift_and_law(r, s, days)
+    assert law.kind == "gaussian_mixture"
+    assert law.outlier_fraction == pytest.approx(0.05, rel=0.3) and law.outlier_scale == pytest.approx(30.0, rel=0.3)
+    assert q * 200.0 < 0.1
+    # a t with 1.5 degrees of freedom: the t
+    r, s, days = _validation(rng, 3000, 0.01, 1.5)
+    q, law = hj.fit_drift_and_law(r, s, days)
+    assert law.kind == "student_t" and law.tail_dof == pytest.approx(1.5, rel=0.2)
+    # a Gaussian with drift: the Gaussian (or a t so light that it is one), not a mixture
+    r, s, days = _validation(rng, 3000, 0.01, math.inf)
+    q, law = hj.fit_drift_and_law(r, s, days)
+    assert law.kind != "gaussian_mixture" and law.tail_dof >= 50.0 and q == pytest.approx(0.01, rel=0.25)

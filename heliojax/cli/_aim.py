@@ -243,7 +243,9 @@ def run(args) -> int:
         with atomic_path(args.h5) as tmp, h5py.File(tmp, "w") as f:
             f.attrs["target"] = args.target
             f.attrs["origin_lla"] = origin
-            f.attrs["tail_dof"] = r.tail_dof
+            f.attrs["tail_dof"] = r.error_law.tail_dof
+            f.attrs["outlier_fraction"] = r.error_law.outlier_fraction
+            f.attrs["outlier_scale"] = r.error_law.outlier_scale
             f.create_dataset("heliostat_id", data=np.array(results.ids, dtype=object), dtype=h5py.string_dtype())
             if times is not None:
                 f.create_dataset("unix_time", data=np.array([t.timestamp() for t in times])).attrs["units"] = "s"
@@ -267,7 +269,7 @@ def run(args) -> int:
             distance,
             hours,
             times[0] if times else None,
-            tail_dof=r.tail_dof,
+            error_law=r.error_law,
         )
         save_figure(fig, args.plot)
         log.info(f"wrote {args.plot}")
