@@ -93,11 +93,25 @@ def compile_cached(fn: Callable, *args: typing.Any) -> Callable[..., typing.Any]
     returned as a callable of the same arguments (of the same shapes and static
     parts). With a compilation cache directory configured, the traced program is
     loaded from / saved to it (see the module docstring); otherwise this is
-    ``fn.lower(*args).compile()``."""
+    ``fn.lower(*args).compile()``. A program compiled once in this process (same
+    key) is returned again without lowering or compiling (the CLI's calibration
+    compiles one fit program and runs it for the fit, the drift's validation and
+    the change-point refit)."""
     directory = _program_dir()
     dyn, stat = eqx.partition(args, eqx.is_array)
     leaves, treedef = jax.tree.flatten(dyn)
-    key = _key(fn, stat, leaves) if directory is not None else None
+    key = _key(fn, stat, leaves)
+    if key is not None and key in _COMPILED:  # compiled in this process already
+        return _COMPILED[key]
+    program = _compile(fn, args, stat, treedef, leaves, key, directory)
+    if key is not None:
+        _COMPILED[key] = program
+    return program
+
+
+def _compile(
+    fn: Callable, args: tuple, stat: typing.Any, treedef: typing.Any, leaves: list, key: str | None, directory
+) -> Callable[..., typing.Any]:
     if directory is None or key is None:
         return fn.lower(*args).compile()  # pyright: ignore[reportAttributeAccessIssue]
     path = directory / f"{key}.bin"

@@ -33,12 +33,33 @@ def test_kept_fit_program_gives_the_traced_result(program_dir, monkeypatch):
     written = sorted(program_dir.glob("*.bin"))
     assert len(written) == 1
     monkeypatch.setattr(_programs, "_export", _no_export)  # from now on only loading is allowed
+    _programs._COMPILED.clear()  # as a new process: load from the directory
     kept = CompiledFit(model0, fleet, max_steps=16)(model0)
     for a, b in zip(jax.tree.leaves(reference.model), jax.tree.leaves(kept.model), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     np.testing.assert_array_equal(np.asarray(reference.status), np.asarray(kept.status))
     np.testing.assert_array_equal(np.asarray(reference.covariance), np.asarray(kept.covariance))
     assert sorted(program_dir.glob("*.bin")) == written
+
+
+def test_a_program_compiled_in_this_process_is_not_lowered_again(monkeypatch):
+    """The same key in one process (the CLI fits, validates the drift and refits after
+    a change point with one program) returns the compiled program itself, with or
+    without a cache directory."""
+    monkeypatch.setattr(_programs, "_COMPILED", {})
+    fleet = zoo("actuator").fleet
+    model0 = hj.ActuatorModel.nominal()
+    monkeypatch.setattr(_programs, "_program_dir", lambda: None)
+    first = CompiledFit(model0, fleet, max_steps=16)
+    lowered = []
+    original = _programs._compile
+    monkeypatch.setattr(_programs, "_compile", lambda *a: lowered.append(1) or original(*a))
+    second = CompiledFit(model0, fleet, max_steps=16)
+    assert lowered == [] and second._compiled is first._compiled
+    third = CompiledFit(model0, fleet, max_steps=15)  # another static option: compiled
+    assert lowered == [1] and third._compiled is not first._compiled
+    a, b = first(model0), second(model0)
+    np.testing.assert_array_equal(np.asarray(a.status), np.asarray(b.status))
 
 
 def test_other_static_option_or_shape_is_another_program(program_dir):
