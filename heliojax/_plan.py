@@ -65,6 +65,7 @@ from ._discrepancy import (
     inducing_normals,
     mirror_normals,
 )
+from ._errors import DataError
 from ._geometry import sun_direction
 from ._heliostat import HeliostatGeometry, RecordContext
 from ._kinematics import AbstractKinematicModel, inverse_aim
@@ -459,8 +460,17 @@ def discrepancy_from_results(results: typing.Any, target_centres: Float[ArrayLik
     """:func:`heliojax.estimate_discrepancy` from a calibration read with
     :func:`heliojax.load_results`: the training inliers of its fitted heliostats,
     each record's mirror normal from its sun position and the centre of its target
-    (``target_centres`` in the file's ``target_index`` order, ENU m of the file's origin)."""
+    (``target_centres`` in the file's ``target_index`` order, ENU m of the file's origin).
+
+    Raises:
+        DataError: the file lacks a per-record dataset this needs (written by an
+            older heliojax), naming it.
+    """
     rec = results.records
+    for name in ("sun_azimuth_deg", "sun_elevation_deg", "target_index", "split", "residual_mrad"):
+        if name not in rec:
+            raise DataError(results.source, name, "missing dataset (needed to learn the model discrepancy)")
+    shape = np.shape(rec["split"])
     az = np.radians(np.asarray(rec["sun_azimuth_deg"], float))
     el = np.radians(np.asarray(rec["sun_elevation_deg"], float))
     sun = np.asarray(sun_direction(az, el))
@@ -472,8 +482,8 @@ def discrepancy_from_results(results: typing.Any, target_centres: Float[ArrayLik
     use = (
         known
         & (np.asarray(rec["split"]) == 1)
-        & ~np.asarray(rec["outlier"], bool)
-        & ~np.asarray(rec["superseded"], bool)
+        & ~np.asarray(rec.get("outlier", np.zeros(shape, bool)), bool)
+        & ~np.asarray(rec.get("superseded", np.zeros(shape, bool)), bool)
         & np.asarray(results.fitted, bool)[:, None]
     )
     return estimate_discrepancy(rec["residual_mrad"], normals, use)

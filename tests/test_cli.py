@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import importlib.metadata
 import json
 import logging
@@ -460,3 +461,13 @@ def test_calibrate_records_file_errors_name_the_file_and_row(tmp_path, capsys):
     assert main(["calibrate", "--records", str(bad), "--cache-dir", "none", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "records.csv" in err and "BX99" in err and len(err.strip().splitlines()) <= 2
+
+
+def test_discrepancy_from_results_names_a_missing_dataset(results_h5):
+    results = hj.load_results(results_h5)
+    centres = np.zeros((len(results.target_names), 3))
+    process = hj.discrepancy_from_results(results, centres + np.array([0.0, 0.0, 60.0]))
+    assert np.isfinite(float(process.amplitude_mrad)) and float(process.nugget_mrad) > 0.0
+    old = dataclasses.replace(results, records={k: v for k, v in results.records.items() if k != "target_index"})
+    with pytest.raises(hj.DataError, match="target_index"):
+        hj.discrepancy_from_results(old, centres)

@@ -125,7 +125,7 @@ def run(args) -> int:
     import jax.numpy as jnp
     import numpy as np
 
-    from .._errors import ConfigError
+    from .._errors import ConfigError, DataError
     from .._geometry import direction_to_azimuth_elevation, enu_to_wgs84, wgs84_to_enu
     from .._io import atomic_write
     from .._plan import (
@@ -162,7 +162,10 @@ def run(args) -> int:
         centres_r = np.stack(
             [centre(t) if t in known else np.full(3, np.nan) for t in results.target_names] or [np.full(3, np.nan)]
         )
-        discrepancy = discrepancy_from_results(results, centres_r)
+        try:
+            discrepancy = discrepancy_from_results(results, centres_r)
+        except DataError as e:
+            raise ConfigError(f"{e}; plan with --model-discrepancy none") from e
         log.info(
             f"model discrepancy learnt from the fit's residuals: {float(discrepancy.amplitude_mrad):.3f} mrad, "
             f"correlation length {float(discrepancy.length):.3f} (chord of mirror normals), "
