@@ -439,21 +439,36 @@ def discrepancy_design(
     h = int(jnp.shape(geometry.position)[0])
     dtype = covariance.dtype
     aim = jnp.broadcast_to(jnp.asarray(aim_point, dtype), (h, 3))
-    sun_e = jnp.asarray(envelope_sun, dtype)
-    sun_h = jnp.broadcast_to(sun_e, (h, *sun_e.shape))
-    env = mirror_normals(geometry.position, sun_h, jnp.broadcast_to(aim[:, None, :], sun_h.shape))
-    cand = mirror_normals(geometry.position, candidates.context.sun, candidates.spots)
-    points = jnp.concatenate([env, cand], axis=1)
-    ok = jnp.concatenate([jnp.ones(env.shape[:2], bool), jnp.asarray(candidates.valid, bool)], axis=1)
-    ok &= jnp.all(jnp.isfinite(points), axis=-1)
-    u = inducing_normals(jnp.where(ok[..., None], points, 0.0), ok, inducing)
-    phi = jax.vmap(lambda n, ui: discrepancy_features(discrepancy, n, ui))(jnp.where(jnp.isfinite(cand), cand, 0.0), u)
-    phi = jnp.where(jnp.asarray(candidates.valid)[..., None], phi, 0.0)
-    jac = augment_jacobian(candidate_jacobians, phi)
-    f, b = covariance.shape[-1], u.shape[1]
-    cov = jnp.zeros((h, f + 2 * b, f + 2 * b), dtype)
-    cov = cov.at[:, :f, :f].set(covariance).at[:, f:, f:].set(jnp.eye(2 * b, dtype=dtype))
+    cov, jac, u = _design_program(
+        discrepancy,
+        geometry.position,
+        candidates.context.sun,
+        candidates.spots,
+        jnp.asarray(candidates.valid, bool),
+        jnp.asarray(envelope_sun, dtype),
+        aim,
+        covariance,
+        candidate_jacobians,
+        int(inducing),
+    )
     return DiscrepancyDesign(covariance=cov, candidate_jacobians=jac, inducing=u)
+
+
+@eqx.filter_jit
+def _design_program(discrepancy, position, sun, spots, valid, envelope_sun, aim, covariance, jacobians, count: int):
+    h = position.shape[0]
+    sun_h = jnp.broadcast_to(envelope_sun, (h, *envelope_sun.shape))
+    env = mirror_normals(position, sun_h, jnp.broadcast_to(aim[:, None, :], sun_h.shape))
+    cand = mirror_normals(position, sun, spots)
+    points = jnp.concatenate([env, cand], axis=1)
+    ok = jnp.concatenate([jnp.ones(env.shape[:2], bool), valid], axis=1) & jnp.all(jnp.isfinite(points), axis=-1)
+    u = inducing_normals(jnp.where(ok[..., None], points, 0.0), ok, count)
+    phi = jax.vmap(lambda n, ui: discrepancy_features(discrepancy, n, ui))(jnp.where(jnp.isfinite(cand), cand, 0.0), u)
+    jac = augment_jacobian(jacobians, jnp.where(valid[..., None], phi, 0.0))
+    f, b = covariance.shape[-1], u.shape[1]
+    cov = jnp.zeros((h, f + 2 * b, f + 2 * b), covariance.dtype)
+    cov = cov.at[:, :f, :f].set(covariance).at[:, f:, f:].set(jnp.eye(2 * b, dtype=covariance.dtype))
+    return cov, jac, u
 
 
 def discrepancy_from_results(results: typing.Any, target_centres: Float[ArrayLike, "T 3"]) -> ModelDiscrepancy:
