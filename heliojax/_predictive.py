@@ -165,6 +165,24 @@ def _log_likelihood(
     return np.sum(kernel - 0.5 * logdet, axis=-1)
 
 
+def _grid(
+    residual_mrad: Float[np.ndarray, "N 2"], scale_mrad2: Float[np.ndarray, "N 2 2"], days: Float[np.ndarray, " N"]
+) -> tuple[Float[np.ndarray, "Q N"], Float[np.ndarray, "Q N"]]:
+    """``d^2`` and ``ln det`` of every residual under its scale plus each drift of the grid."""
+    r = np.asarray(residual_mrad, float)
+    t = np.asarray(days, float)
+    total = np.asarray(scale_mrad2, float)[None] + (_DRIFT_GRID[:, None] * t[None, :])[..., None, None] * np.eye(2)
+    return np.einsum("ni,qnij,nj->qn", r, np.linalg.inv(total), r), np.linalg.slogdet(total)[1]
+
+
+def _best_t(d2: Float[np.ndarray, "Q N"], logdet: Float[np.ndarray, "Q N"]) -> tuple[int, float, float]:
+    """``(drift index, tail_dof, log-likelihood)`` of the most likely t (Gaussian included)."""
+    ll = np.stack([_log_likelihood(d2, logdet, float(v)) for v in _DOF_GRID], axis=1)  # (Q, V)
+    # the last index of the maximum: among equally likely values, the Gaussian and the smallest drift
+    iq, iv = np.unravel_index(np.argmax(ll[:, ::-1]), ll.shape)
+    return int(iq), float(_DOF_GRID[::-1][iv]), float(ll[iq, ll.shape[1] - 1 - iv])
+
+
 def fit_drift_and_tails(
     residual_mrad: Float[np.ndarray, "N 2"],
     scale_mrad2: Float[np.ndarray, "N 2 2"],
@@ -181,24 +199,8 @@ def fit_drift_and_tails(
     Returns:
         ``(q, tail_dof)``.
     """
-    r = np.asarray(residual_mrad, float)
-    s = np.asarray(scale_mrad2, float)
-    t = np.asarray(days, float)
-    total = s[None] + (_DRIFT_GRID[:, None] * t[None, :])[..., None, None] * np.eye(2)
-    d2 = np.einsum("ni,qnij,nj->qn", r, np.linalg.inv(total), r)
-    logdet = np.linalg.slogdet(total)[1]
-    ll = np.stack([_log_likelihood(d2, logdet, float(v)) for v in _DOF_GRID], axis=1)  # (Q, V)
-    # the last index of the maximum: among equally likely values, the Gaussian and the smallest drift
-    iq, iv = np.unravel_index(np.argmax(ll[:, ::-1]), ll.shape)
-    return float(_DRIFT_GRID[iq]), float(_DOF_GRID[::-1][iv])
-
-
-def _mixture_log_likelihood(
-    d2: Float[np.ndarray, "Q N"], logdet: Float[np.ndarray, "Q N"], fraction: float, scale: float
-) -> Float[np.ndarray, " Q"]:
-    core = math.log1p(-fraction) - 0.5 * d2
-    broad = math.log(fraction) - 2.0 * math.log(scale) - 0.5 * d2 / scale**2
-    return np.sum(np.logaddexp(core, broad) - 0.5 * logdet, axis=-1)
+    iq, dof, _ = _best_t(*_grid(residual_mrad, scale_mrad2, days))
+    return float(_DRIFT_GRID[iq]), dof
 
 
 def fit_drift_and_law(
@@ -208,7 +210,7 @@ def fit_drift_and_law(
 ) -> tuple[float, PointingErrorLaw]:
     """Maximum-likelihood drift ``q`` (mrad^2/day per component) and the error law
     (module docstring) from validation residuals with their fitted scale ``S`` and
-    days since the fit: the Student t family (:func:`fit_drift_and_tails`, the
+    days since the fit: the Student t family (as :func:`fit_drift_and_tails`, the
     Gaussian included) and the two-component mixture (``e`` in 0.003-0.5, ``k`` in
     1.5-1000, ratio ~1.25 each, on the same ``q`` grid), the one with the lower
     Bayesian information criterion kept (``-2 ln L + p ln N``; ``p`` = 2 for the t,
@@ -217,28 +219,23 @@ def fit_drift_and_law(
     Returns:
         ``(q, law)``.
     """
-    r = np.asarray(residual_mrad, float)
-    s = np.asarray(scale_mrad2, float)
-    t = np.asarray(days, float)
-    n = r.shape[0]
-    q_t, dof = fit_drift_and_tails(r, s, t)
-    total = s[None] + (_DRIFT_GRID[:, None] * t[None, :])[..., None, None] * np.eye(2)
-    d2 = np.einsum("ni,qnij,nj->qn", r, np.linalg.inv(total), r)
-    logdet = np.linalg.slogdet(total)[1]
-    iq_t = int(np.flatnonzero(_DRIFT_GRID == q_t)[0])
-    ll_t = float(_log_likelihood(d2[iq_t : iq_t + 1], logdet[iq_t : iq_t + 1], dof)[0])
-    bic_t = -2.0 * ll_t + (1 if math.isinf(dof) else 2) * math.log(max(n, 1))
-    best = (math.inf, 0.0, 0.0, 1.0)
-    for e in _FRACTION_GRID:
-        for k in _SCALE_GRID:
-            ll = _mixture_log_likelihood(d2, logdet, float(e), float(k))
-            j = int(np.argmax(ll))
-            bic = -2.0 * float(ll[j]) + 3 * math.log(max(n, 1))
-            if bic < best[0]:
-                best = (bic, float(_DRIFT_GRID[j]), float(e), float(k))
+    d2, logdet = _grid(residual_mrad, scale_mrad2, days)
+    penalty = math.log(max(d2.shape[1], 1))
+    iq_t, dof, ll_t = _best_t(d2, logdet)
+    bic_t = -2.0 * ll_t + (1 if math.isinf(dof) else 2) * penalty
+    k = _SCALE_GRID[:, None, None]
+    best = (math.inf, 0, 0.0, 1.0)
+    for e in _FRACTION_GRID:  # every scale and drift at once, (K, Q)
+        core = math.log1p(-e) - 0.5 * d2
+        broad = math.log(e) - 2.0 * np.log(k) - 0.5 * d2 / k**2
+        ll = np.sum(np.logaddexp(core, broad) - 0.5 * logdet, axis=-1)
+        ik, iq = np.unravel_index(np.argmax(ll), ll.shape)
+        bic = -2.0 * float(ll[ik, iq]) + 3 * penalty
+        if bic < best[0]:
+            best = (bic, int(iq), float(e), float(_SCALE_GRID[ik]))
     if best[0] < bic_t:
-        return best[1], PointingErrorLaw(outlier_fraction=best[2], outlier_scale=best[3])
-    return q_t, PointingErrorLaw(tail_dof=dof)
+        return float(_DRIFT_GRID[best[1]]), PointingErrorLaw(outlier_fraction=best[2], outlier_scale=best[3])
+    return float(_DRIFT_GRID[iq_t]), PointingErrorLaw(tail_dof=dof)
 
 
 __all__ = [

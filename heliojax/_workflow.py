@@ -261,12 +261,7 @@ def calibrate(
             f"{PointingErrorLaw.from_dict(predictive['error_law']).describe()}"
         )
     else:
-        predictive = {
-            "drift_mrad2_per_day": 0.0,
-            "tail_dof": math.inf,
-            "error_law": PointingErrorLaw().to_dict(),
-            "method": "not estimated",
-        }
+        predictive = _no_drift("not estimated")
 
     all_valid = jnp.asarray(padded.mask)
     errors = np.asarray(fleet_beam_errors_mrad(result.model, padded, all_valid))
@@ -368,6 +363,16 @@ def prediction_d2(run: CalibrationRun, mask: np.ndarray | None = None) -> np.nda
     return np.where(ok, d2, np.nan)
 
 
+def _no_drift(method: str) -> dict[str, typing.Any]:
+    """The predictive entry without a drift and with the Gaussian law."""
+    return {
+        "drift_mrad2_per_day": 0.0,
+        "tail_dof": math.inf,
+        "error_law": PointingErrorLaw().to_dict(),
+        "method": method,
+    }
+
+
 def temporal_drift(
     fit: collections.abc.Callable[[np.ndarray], tuple[FitSolution, typing.Any]],
     fleet,
@@ -415,12 +420,7 @@ def temporal_drift(
         f"latest {fraction:.0%} of the training records of heliostats with >= {min_records}, predicted from a fit "
         "on the earlier ones"
     )
-    out: dict[str, typing.Any] = {
-        "drift_mrad2_per_day": 0.0,
-        "tail_dof": math.inf,
-        "error_law": PointingErrorLaw().to_dict(),
-        "method": method,
-    }
+    out = _no_drift(method)
     if late.sum() < 10:
         out.update(validation_records=int(late.sum()), validation_heliostats=0, median_d2_without=None)
         return out
