@@ -27,6 +27,7 @@ from ._geometry import direction_to_azimuth_elevation
 from ._io import atomic_write
 from ._kinematics import AbstractKinematicModel, nominal_model
 from ._predictive import PointingErrorLaw, fit_drift_and_law
+from ._progress import activity
 from ._splits import chronological_holdout, days_since_fit, split_fleet
 from .fitting import (
     ChangePoints,
@@ -220,7 +221,8 @@ def calibrate(
 
     nominal_geometry = padded.geometry  # the plant's own values: the uncalibrated baseline
     if start == "auto":
-        geometry, replaced, sources = choose_start_geometry(padded, model0, jnp.asarray(train))
+        with activity("choosing start geometries", logger=log):
+            geometry, replaced, sources = choose_start_geometry(padded, model0, jnp.asarray(train))
         padded = _with_geometry(padded, geometry)
     else:
         replaced = sources = np.zeros(h_pad, bool)
@@ -236,15 +238,18 @@ def calibrate(
         w = np.where(mask & np.asarray(padded.mask), 1.0, 0.0)
         return res, c_s, f_s, w, np.zeros_like(mask), res.noise_mrad
 
-    result, compile_s, fit_s, weights, outlier, noise = fit_on(train)
+    with activity(f"fitting {n_real} heliostats", logger=log):
+        result, compile_s, fit_s, weights, outlier, noise = fit_on(train)
     log.info(f"fitted in {fit_s:.2f} s (compile {compile_s:.2f} s)")
     change_points, superseded = None, np.zeros_like(train)
     if changes:
-        change_points, superseded = _scan_changes(result, padded, train, weights)
+        with activity("change-point scan", logger=log):
+            change_points, superseded = _scan_changes(result, padded, train, weights)
         if superseded.any():
             n_changed = int(np.any(superseded, axis=1).sum())
             log.info(f"change points in {n_changed} heliostats: fitting their current state")
-            result, c2, f2, weights, outlier, noise = fit_on(train & ~superseded)
+            with activity(f"fitting the current state of {n_changed} heliostats", logger=log):
+                result, c2, f2, weights, outlier, noise = fit_on(train & ~superseded)
             compile_s, fit_s = compile_s + c2, fit_s + f2
     noise = np.asarray(noise)
     fit_mask = train & ~superseded
@@ -254,7 +259,8 @@ def calibrate(
             solution, *_, noise_mrad = fit_on(mask)
             return solution, noise_mrad
 
-        predictive = temporal_drift(fit_state, padded, fit_mask)
+        with activity("pointing drift and error law", logger=log):
+            predictive = temporal_drift(fit_state, padded, fit_mask)
         log.info(
             f"pointing drift {predictive['drift_mrad2_per_day']:.4f} mrad^2/day per component "
             f"(from {predictive['validation_records']} later training records), error law: "

@@ -8,9 +8,12 @@ import importlib.metadata
 import json
 import logging
 import os
+import re
 import shutil
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import h5py
@@ -247,6 +250,31 @@ def test_progress_messages_go_through_logging(caplog):
     assert any(m.startswith("fitting 5 heliostats") for m in messages), messages
 
 
+def test_a_long_step_shows_a_bar_whose_time_moves(monkeypatch, capsys):
+    """A step that cannot count its progress (one compiled call) shows its name and
+    the time spent so far, redrawn while it runs; nothing when quiet or not on a
+    terminal; its redraw thread ends with the step."""
+    from heliojax._progress import activity
+
+    logger = logging.getLogger("heliojax.test_activity")
+    threads = threading.active_count()
+    with activity("a long step", logger=logger):  # not a terminal: no bar
+        time.sleep(0.6)
+    assert capsys.readouterr().err == ""
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True, raising=False)
+    for level, shown in ((logging.WARNING, False), (logging.INFO, True)):
+        logger.setLevel(level)
+        with activity("a long step", logger=logger):
+            time.sleep(1.3)
+        err = capsys.readouterr().err
+        assert (err.count("a long step: 00:0") >= 3) == shown, err  # drawn, then redrawn twice a second
+        assert not shown or "a long step: 00:01" in err
+    deadline = time.monotonic() + 5
+    while threading.active_count() > threads and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert threading.active_count() == threads
+
+
 def test_heliostats_without_training_records_say_why(tmp_path, capsys):
     report = tmp_path / "summary.json"
     argv = ["calibrate", "--split", "azimuth", "--train", "100", "--no-robust", "--no-pool"]
@@ -278,8 +306,44 @@ def test_time_split_without_times_is_a_clear_error(tmp_path, capsys):
 def results_h5(tmp_path_factory) -> Path:
     """results.h5 of `heliojax calibrate` on the embedded data (default model)."""
     path = tmp_path_factory.mktemp("calibrated") / "results.h5"
-    assert main(["calibrate", "--out", str(path), "--cache-dir", "none", "--quiet"]) == 0
+    report = path.with_name("summary.json")
+    assert main(["calibrate", "--out", str(path), "--report", str(report), "--cache-dir", "none", "--quiet"]) == 0
     return path
+
+
+def _documented_names() -> set[str]:
+    """The names written in backticks in the README's "Output files" section."""
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    section = readme.split("\n## Output files\n", 1)[1].split("\n## ", 1)[0]
+    names = {name for quoted in re.findall(r"`([^`]+)`", section) for name in re.split(r"[ ,]+", quoted)}
+    return names | {part for name in names for part in name.split("/")}
+
+
+def test_output_schemas_are_documented(results_h5):
+    """Every key of summary.json and every dataset and attribute of results.h5 that
+    `calibrate` writes is named in the README's "Output files" section."""
+    documented = _documented_names()
+    summary = json.loads(results_h5.with_name("summary.json").read_text())
+    keys: set[str] = set()
+
+    def walk(entry: dict, free_names: bool) -> None:  # free_names: the keys are ids or parameter names
+        for key, value in entry.items():
+            if not free_names:
+                keys.add(key)
+            if isinstance(value, dict):
+                walk(
+                    value,
+                    free_names=key in ("heliostats", "params", "param_std", "param_units", "jump_mrad", "statuses"),
+                )
+
+    walk(summary, free_names=False)
+    assert {"status_reason", "jump_mrad", "outlier_scale"} <= keys  # per heliostat, change point, error law
+    with h5py.File(results_h5) as f:
+        keys |= set(f.attrs)
+        f.visit(lambda name: keys.add(name.rsplit("/", 1)[-1]))
+    assert {"origin_lla", "pivot_radius", "residual_mrad"} <= keys  # attributes, nested geometry, datasets
+    missing = sorted(k for k in keys if k not in documented)
+    assert not missing, f"not documented in README 'Output files': {missing}"
 
 
 def test_aim_writes_commands_with_error_bars(results_h5, tmp_path, capsys):

@@ -248,7 +248,9 @@ def run(args) -> int:
         log.info(f"wrote {args.out}")
     if args.plot is not None:
         from .._plotting import plot_calibration, save_figure
+        from .._progress import activity
 
-        save_figure(plot_calibration(run_), args.plot)
+        with activity("drawing the plot", logger=log):
+            save_figure(plot_calibration(run_), args.plot)
         log.info(f"wrote {args.plot}")
     return 0

@@ -53,10 +53,12 @@ def add_data_argument(p) -> None:
 def load_fleet(args):
     """The fleet of ``args.data_dir`` (default: the embedded subset); says what was
     loaded, and names what was skipped (warnings, shown even with ``--quiet``)."""
+    from .._progress import activity
     from ..paint import default_data_dir, load_paint_directory
 
     path = args.data_dir if args.data_dir is not None else default_data_dir()
-    fleet = load_paint_directory(path, centroid=args.centroid)
+    with activity(f"loading {path}", logger=log):
+        fleet = load_paint_directory(path, centroid=args.centroid)
     report = fleet.report
     log.info(f"loaded {report.heliostats_loaded} heliostats, {report.records_loaded} records from {path}")
     if report.skipped:

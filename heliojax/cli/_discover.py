@@ -82,6 +82,7 @@ def add_parser(subparsers) -> None:
 
 def run(args) -> int:
     from .._errors import ConfigError
+    from .._progress import activity
     from ..discovery import DiscoveryConfig, discover, markdown_summary, write_figures, write_markdown, write_report
     from ..effects import EFFECT_NAMES
 
@@ -114,7 +115,8 @@ def run(args) -> int:
         write_markdown(args.markdown, result.report)
         log.info(f"wrote {args.markdown}")
     if args.figures is not None:
-        paths = write_figures(result, args.figures)
+        with activity("drawing the figures", logger=log):
+            paths = write_figures(result, args.figures)
         log.info(f"wrote {len(paths)} figures to {args.figures}")
     print(markdown_summary(result.report))
     return 0

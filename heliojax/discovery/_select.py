@@ -64,7 +64,7 @@ import optimistix as optx
 
 from .._fleet import bucket_size, pad_fleet
 from .._kinematics import MODEL_KINDS, nominal_model
-from .._progress import progress_bar
+from .._progress import activity, progress_bar
 from ..effects import EFFECT_NAMES
 from ..fitting import OFFSET_NAMES, AbstractBatching, default_solver
 from ._cleaning import Cleaning, clean, confirm_change_points, fitted_start_geometry, recheck_outliers
@@ -536,8 +536,10 @@ def discover(
     padded = pad_fleet(fleet, bucket_size(fleet.n_heliostats), bucket_size(fleet.n_records))
     typical_start = np.zeros(padded.counts.shape[0], bool)
     if config.start == "auto":
-        padded, typical_start = fitted_start_geometry(base, padded)
-    cleaning = clean(base, padded, config.alpha, outliers=config.robust, changes=config.changes)
+        with activity("choosing start geometries", logger=log):
+            padded, typical_start = fitted_start_geometry(base, padded)
+    with activity("robust pre-pass and change-point scan", logger=log):
+        cleaning = clean(base, padded, config.alpha, outliers=config.robust, changes=config.changes)
     result = _discover_cleaned(padded, base, cleaning, config, n_real, t_start)
     first = result.cleaning
     assert first is not None
@@ -596,7 +598,8 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
         f"{n_real} heliostats, {int(np.asarray(padded.mask).sum())} records; base {config.base}; "
         f"{len(config.candidates)} candidates; {config.n_folds} folds by day ({lanes.fold.shape[0]} lanes)"
     )
-    state = wf.fit_state((), p0)
+    with activity(f"fitting the base model ({lanes.fold.shape[0]} lanes)", logger=log):
+        state = wf.fit_state((), p0)
     base_state = state
     wf.noise = _lane_noise(state, len(layout.base_cols))
     h = lanes.n_heliostats
@@ -608,7 +611,8 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
         remaining = [c for c in config.candidates if c not in state.names]
         if not remaining:
             break
-        screens = wf.screen(state, remaining)
+        with activity(f"step {len(steps) + 1}: screening {len(remaining)} candidates", logger=log):
+            screens = wf.screen(state, remaining)
         # every candidate with a remainder the data drive is tested on it (partly absorbed ones too)
         testable = {c: s.p for c, s in screens.items() if s.tested}
         adjusted, rejected = holm(testable, config.alpha) if testable else ({}, set())
@@ -680,7 +684,8 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
         )
         state = best.state
     if cleaning.change_found.any() or (cleaning.outlier.any() and state.effects):
-        cleaning, withdrawn = _confirm_cleaning(wf, state, valid, cleaning, config)
+        with activity("checking change points and gross errors under the final model", logger=log):
+            cleaning, withdrawn = _confirm_cleaning(wf, state, valid, cleaning, config)
         for i in withdrawn:
             log.info(f"change point of {padded.ids[i]} withdrawn: the final model explains it")
         if cleaning.restored is not None and cleaning.restored.any():
@@ -688,14 +693,15 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
     n_params = len(wf.active_cols(state.effects))
     ids = list(padded.ids)
     m = lanes.train_mask.shape[1]
-    unexplained, variable_p = unexplained_structure(
-        record_variables(padded, state.r[:h].reshape(h, m, 2)),
-        state.r[:h].reshape(h, m, 2),
-        lanes.train_mask[:h] & state.ok[:h, None],
-        n_params,
-        config.alpha,
-        ids,
-    )
+    with activity("searching the residuals for unexplained structure", logger=log):
+        unexplained, variable_p = unexplained_structure(
+            record_variables(padded, state.r[:h].reshape(h, m, 2)),
+            state.r[:h].reshape(h, m, 2),
+            lanes.train_mask[:h] & state.ok[:h, None],
+            n_params,
+            config.alpha,
+            ids,
+        )
     for u in unexplained:
         log.info(f"unexplained structure against {u['variable']}: p={u['p']:.2g}, {u['effect_size_mrad']:.3f} mrad")
     timing = {"total_s": time.perf_counter() - t_start}
