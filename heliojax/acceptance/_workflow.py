@@ -10,7 +10,7 @@ import numpy as np
 from scipy import stats
 
 from .._geometry import TargetPlane
-from .._progress import progress_bar
+from .._progress import activity, progress_bar
 from ._clusters import ClusterResult, field_spacing, find_clusters, resampling_advice
 from ._extrapolate import Extrapolation, extrapolate_field
 from ._field import PARAMETERS, FieldData
@@ -206,12 +206,13 @@ def run_acceptance(
 
     # ---- level 2
     if sun is None:
-        sun = typical_year(
-            *plant_lla,
-            year=contract.year,
-            step_minutes=contract.step_minutes,
-            min_elevation_deg=contract.min_elevation_deg,
-        )
+        with activity("level 2: a typical year of sun positions", logger=log):
+            sun = typical_year(
+                *plant_lla,
+                year=contract.year,
+                step_minutes=contract.step_minutes,
+                min_elevation_deg=contract.min_elevation_deg,
+            )
     contract_kw, measured_kw = {}, {}
     for i, name in enumerate(("tracking_mrad", "slope_mrad", "reflectance", "aperture_m2")):
         spec = contract.parameters.get(name)

@@ -172,6 +172,7 @@ def run(args) -> int:
     from .._errors import ConfigError
     from .._geometry import direction_to_azimuth_elevation, enu_to_wgs84, wgs84_to_enu
     from .._io import atomic_path, atomic_write
+    from .._progress import activity
     from .._results import load_results
     from ..optics import target_from_tower
     from ..paint import default_data_dir, read_tower
@@ -191,7 +192,8 @@ def run(args) -> int:
     times, sun = _instants(args, origin)
     log.info(f"aiming {len(results.ids)} heliostats at {args.target} for {sun.shape[0]} instant(s)")
     unix = None if times is None else np.array([t.timestamp() for t in times])
-    r = aim_results(results, sun, centre, unix_time=unix, min_sun_elevation_deg=args.min_sun_elevation)
+    with activity("aiming", logger=log):
+        r = aim_results(results, sun, centre, unix_time=unix, min_sun_elevation_deg=args.min_sun_elevation)
     counts = np.asarray(r.counts)
     std = np.asarray(r.pointing_std_mrad)
     radius95 = np.asarray(r.pointing_radius_mrad(0.95))

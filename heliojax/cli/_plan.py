@@ -135,6 +135,7 @@ def run(args) -> int:
         operating_envelope,
         plan_calibration,
     )
+    from .._progress import activity
     from .._results import load_results
     from .._sun import solar_position
     from ..optics import target_from_tower
@@ -163,7 +164,8 @@ def run(args) -> int:
             [centre(t) if t in known else np.full(3, np.nan) for t in results.target_names] or [np.full(3, np.nan)]
         )
         try:
-            discrepancy = discrepancy_from_results(results, centres_r)
+            with activity("learning the model discrepancy", logger=log):
+                discrepancy = discrepancy_from_results(results, centres_r)
         except DataError as e:
             raise ConfigError(f"{e}; plan with --model-discrepancy none") from e
         log.info(
@@ -221,19 +223,20 @@ def run(args) -> int:
         target_of = np.broadcast_to(np.tile(np.asarray(targets), len(instants)), (h, len(instants) * len(targets)))
         source = f"{len(instants)} instants x {len(targets)} targets"
     log.info(f"planning {args.budget} measurement(s) for {h} heliostats among {source} ({args.start_from})")
-    sun_e, w_e = operating_envelope(
-        origin, year=args.envelope_year, day_step=args.envelope_day_step, min_elevation_deg=args.min_sun_elevation
-    )
-    plan, _ = plan_calibration(
-        results,
-        candidates,
-        envelope_sun=sun_e,
-        envelope_weight=w_e,
-        aim_point=jnp.asarray(aim_point),
-        budget=args.budget,
-        start=args.start_from,
-        discrepancy=discrepancy,
-    )
+    with activity("planning", logger=log):
+        sun_e, w_e = operating_envelope(
+            origin, year=args.envelope_year, day_step=args.envelope_day_step, min_elevation_deg=args.min_sun_elevation
+        )
+        plan, _ = plan_calibration(
+            results,
+            candidates,
+            envelope_sun=sun_e,
+            envelope_weight=w_e,
+            aim_point=jnp.asarray(aim_point),
+            budget=args.budget,
+            start=args.start_from,
+            discrepancy=discrepancy,
+        )
     chosen = np.asarray(plan.chosen)
     before = np.asarray(plan.uncertainty_before_mrad)
     after = np.asarray(plan.uncertainty_after_mrad)
