@@ -190,12 +190,14 @@ class FitSolution(eqx.Module):
             of ``view`` (0 for fixed parameters, NaN where undetermined).
         covariance: ``(H, F, F)`` covariance of the free parameters, physical units.
         status: ``(H,)`` :class:`FitStatus` codes.
-        n_steps: ``(H,)`` solver steps.
+        n_steps: ``(H,)`` solver steps (1 for a heliostat with too few records: its
+            records are not fitted).
         n_used: ``(H,)`` records used.
-        rms_mrad: ``(H,)`` RMS beam pointing error over the fitted records (mrad).
+        rms_mrad: ``(H,)`` RMS beam pointing error over the fitted records (mrad;
+            NaN with too few records).
         cost: ``(H,)`` ``0.5 * sum of squared rows`` (mrad^2, prior rows included).
         noise_mrad: ``(H,)`` residual standard deviation per component (mrad),
-            ``sqrt(sum r^2 / (2 n - F))`` of the data rows.
+            ``sqrt(sum r^2 / (2 n - F))`` of the data rows (NaN with too few records).
         loo_mrad: ``(H, M)`` linearised leave-one-out beam error of every record
             used (mrad; NaN for records not used): the error the fit would leave on
             the record had it been fitted without it, ``|(I - H_ii)^-1 b_i|`` with
@@ -267,8 +269,15 @@ def _fit_one(
     def prior_rows(y):
         return prior.rows(view, physical(y), prior_h)
 
+    # An unconstrained fit is never reported (TOO_FEW_RECORDS below), so its records are
+    # not iterated on: without them the solve stops at once instead of spending up to
+    # max_steps on a problem with more unknowns than equations.
+    n_prior = prior.n_constrained(view, prior_h)
+    too_few = (n_used < 1) | (n_used + n_prior.astype(n_used.dtype) < view.n_free)
+    solved = use & ~too_few
+
     def residual_and_jacobian(y):
-        r, jac = record_rows_and_jacobian(record_row, y, (counts, context, focal), use)
+        r, jac = record_rows_and_jacobian(record_row, y, (counts, context, focal), solved)
         pr = prior_rows(y)
         if pr.shape[0]:
             r = jnp.concatenate([r, pr])
@@ -285,7 +294,6 @@ def _fit_one(
     # With a prior that constrains the parameters, few records suffice; the noise
     # then comes from the prior (the fleet's) while the heliostat's own residuals
     # have fewer degrees of freedom than parameters.
-    n_prior = prior.n_constrained(view, prior_h)
     prior_noise = prior.noise_mrad_of(prior_h)
     sigma2 = jnp.where((2 * n_used - view.n_free < view.n_free) & (n_prior > 0), prior_noise**2, sigma2)
     a_inv = psd_inverse(out.jacobian.T @ out.jacobian)
@@ -309,7 +317,6 @@ def _fit_one(
     status = status_code(out.result)
     status = jnp.where(jnp.all(jnp.isfinite(params)) & jnp.isfinite(out.cost), status, FitStatus.DIVERGED)
     status = jnp.where(bad_input, FitStatus.NON_FINITE_INPUT, status)
-    too_few = (n_used < 1) | (n_used + n_prior.astype(n_used.dtype) < view.n_free)
     status = jnp.where(too_few, FitStatus.TOO_FEW_RECORDS, status)
     status = jnp.where(jnp.any(mask), status, FitStatus.NO_RECORDS)
     # An unconstrained fit is never reported: keep the start values where too few records.
@@ -323,9 +330,9 @@ def _fit_one(
         status=status.astype(jnp.int32),
         n_steps=out.n_steps.astype(jnp.int32),
         n_used=n_used.astype(jnp.int32),
-        rms_mrad=rms,
+        rms_mrad=jnp.where(too_few, jnp.nan, rms),
         cost=out.cost,
-        noise_mrad=jnp.sqrt(sigma2),
+        noise_mrad=jnp.where(too_few, jnp.nan, jnp.sqrt(sigma2)),
         loo_mrad=jnp.where(use & ~too_few, loo, jnp.nan),
     )
 
