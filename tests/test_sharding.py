@@ -166,6 +166,9 @@ def reference(fleet_npz) -> dict:
 def test_reference_statuses(reference):
     status = [FitStatus(int(s)) for s in reference["status"]]
     assert status[1] is FitStatus.TOO_FEW_RECORDS
+    # never reported, so never iterated on: its solve stops at once, it has no noise or RMS
+    assert reference["n_steps"][1] <= 2 < reference["n_steps"][0]
+    assert np.isnan(reference["rms_mrad"][1]) and np.isnan(reference["noise_mrad"][1])
     assert status[3] is FitStatus.NON_FINITE_INPUT
     assert status[0] is FitStatus.CONVERGED
 
