@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import csv
 import datetime as dt
 import functools
 import hashlib
@@ -763,10 +764,11 @@ def test_paint_style_catalogue_with_absolute_urls(tmp_path):
     assert not any("weather" in p for p in log)  # the weather collection is never read
 
 
-def test_new_user_path_fetch_inspect_calibrate(tmp_path, capsys):
+def test_new_user_path_fetch_inspect_calibrate_aim(tmp_path, capsys):
     """A new user's path over HTTP: serve a catalogue of the embedded records on
     127.0.0.1, fetch it, inspect and calibrate it with the defaults (time split from
-    the items' datetimes): every command exits 0 and every heliostat is fitted."""
+    the items' datetimes) and aim with the fit: every command exits 0, every heliostat
+    is fitted and gets usable commands."""
     from heliojax.cli._main import main
 
     build_catalogue(tmp_path / "site", _embedded_records())
@@ -775,12 +777,20 @@ def test_new_user_path_fetch_inspect_calibrate(tmp_path, capsys):
         assert main(["fetch", f"{url}/catalog.json", "--out", str(out), "--quiet"]) == 0
     assert main(["inspect", str(out), "--cache-dir", "none"]) == 0
     assert "BE36" in capsys.readouterr().out
-    report = tmp_path / "summary.json"
-    assert main(["calibrate", str(out), "--report", str(report), "--cache-dir", "none", "--quiet"]) == 0
+    report, results = tmp_path / "summary.json", tmp_path / "results.h5"
+    argv = ["calibrate", str(out), "--report", str(report), "--out", str(results), "--cache-dir", "none", "--quiet"]
+    assert main(argv) == 0
     s = json.loads(report.read_text())
     assert s["split"] == "time" and s["fleet"]["n_heliostats"] == 5
     assert {h["status"] for h in s["heliostats"].values()} == {"converged"}
     assert all(h["n_train"] > 0 and h["n_test"] > 0 for h in s["heliostats"].values())
+    aim = tmp_path / "aim.csv"
+    argv = ["aim", str(results), "--date", "2023-06-21", "--step-minutes", "120", "--out", str(aim), "--quiet"]
+    assert main([*argv, "--cache-dir", "none"]) == 0
+    with open(aim, newline="") as f:
+        rows = list(csv.DictReader(f))
+    usable = {r["heliostat_id"] for r in rows if r["ok"] == "1"}
+    assert usable == set(s["heliostats"])  # every fitted heliostat gets commands without a flag
 
 
 def test_lying_content_length_and_damaged_journal_are_clean_errors(tmp_path, capsys):
