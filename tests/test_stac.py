@@ -830,3 +830,88 @@ def test_lying_content_length_and_damaged_journal_are_clean_errors(tmp_path, cap
     (out / JOURNAL_NAME).write_bytes(b"\xff\xfe garbage\n{not json\n")
     rep = fetch_catalog(root_json, out)
     assert rep.ok and files_under(out) == {k: v for k, v in expected.items() if "flux" not in k}
+
+
+@contextlib.contextmanager
+def _serve_hostile(directory: Path, answers: dict):
+    """Static server of ``directory`` where ``answers`` maps a path to ``(body, headers)``."""
+
+    class Handler(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+        def do_GET(self):
+            if self.path not in answers:
+                return super().do_GET()
+            body, headers = answers[self.path]
+            self.send_response(200)
+            for k, v in {"Content-Length": str(len(body)), **headers}.items():
+                self.send_header(k, v)
+            self.end_headers()
+            self.wfile.write(body)
+
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Handler, directory=str(directory)))
+    srv.daemon_threads = True
+    th = threading.Thread(target=srv.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
+    th.start()
+    try:
+        yield f"http://127.0.0.1:{srv.server_address[1]}"
+    finally:
+        srv.shutdown()
+        srv.server_close()
+
+
+_ITEM = "/AA31-heliostat-catalog/AA31-calibration-collection/126372/126372.json"
+_ASSET = "/AA31-heliostat-catalog/AA31-calibration-collection/126372/data/126372-calibration-properties.json"
+
+
+@pytest.mark.parametrize(
+    ("path", "body", "headers", "message"),
+    [
+        (_ITEM, b'{"a":' * 100_000, {}, "RecursionError"),  # nesting deeper than json's recursion limit
+        (_ITEM, b'{"id": ' + b"9" * 5000 + b"}", {}, "ValueError"),  # an int of over 4300 digits
+        (_ASSET, b"[" * 100_000, {}, "does not parse"),
+        (_ASSET, b"9" * 5000, {}, "does not parse"),
+        (_ASSET, __import__("gzip").compress(b"{}" + b" " * (40 * 2**20)), {"Content-Encoding": "gzip"}, "bomb"),
+    ],
+    ids=["item nested", "item huge int", "asset nested", "asset huge int", "asset gzip bomb"],
+)
+def test_hostile_server_answers_are_reported_per_file(tmp_path, path, body, headers, message):
+    """Answers that break the JSON parser or inflate a few kB to many MB fail that one
+    file, named with its reason; the rest of the catalogue is fetched."""
+    build_catalogue(tmp_path / "site")
+    out = tmp_path / "out"
+    with _serve_hostile(tmp_path / "site", {path: (body, headers)}) as url:
+        rep = fetch_catalog(f"{url}/catalog.json", out, heliostats=["AA31"], include_tower=False)
+    assert len(rep.failed) == 1 and rep.failed[0][0].endswith(path) and message in rep.failed[0][1], rep.failed
+    assert (out / "AA31/Calibration/125284-calibration-properties.json").is_file()
+    assert not (out / "AA31/Calibration/126372-calibration-properties.json").exists()
+    assert not [p for p in out.rglob("*") if p.name.endswith(".part")]
+
+
+def test_hostile_root_journal_and_naive_datetimes(tmp_path, capsys):
+    """A root that breaks the parser is a one-line error and leaves no output folder; a
+    resume journal that is a symbolic link is refused (nothing appended through it); an
+    item datetime without a time zone is UTC (filtered, and written as such)."""
+    build_catalogue(tmp_path / "site")
+    item = json.loads((tmp_path / "site" / _ITEM[1:]).read_text())
+    item["properties"]["datetime"] = "2022-07-11T12:00:00"  # no zone
+    answers = {"/bad.json": (b"[" * 100_000, {}), _ITEM: (json.dumps(item).encode(), {})}
+    out = tmp_path / "out"
+    with _serve_hostile(tmp_path / "site", answers) as url:
+        rc = _cli(["fetch", f"{url}/bad.json", "--out", str(out), "--quiet"])
+        err = capsys.readouterr().err
+        assert rc == 2 and "bad.json" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+        assert not out.exists()
+        rep = fetch_catalog(f"{url}/catalog.json", out, heliostats=["AA31"], start=dt.date(2022, 7, 5))
+        assert rep.ok
+        stamps = json.loads((out / "calibration-timestamps.json").read_text())
+        assert stamps == {"126372": {"heliostat_id": "AA31", "datetime": "2022-07-11T12:00:00Z"}}
+        victim = tmp_path / "victim.txt"
+        victim.write_text("v\n")
+        other = tmp_path / "other"
+        other.mkdir()
+        (other / JOURNAL_NAME).symlink_to(victim)
+        with pytest.raises(DataError, match="symbolic link"):
+            fetch_catalog(f"{url}/catalog.json", other, heliostats=["AA31"])
+    assert victim.read_text() == "v\n"

@@ -174,8 +174,10 @@ def check_output_paths(args, files: tuple[str, ...] = (), directories: tuple[str
             value = getattr(args, name, None)
             if value is None or (name == "cache_dir" and str(value).lower() == "none"):
                 continue
-            path = Path(value)
             flag = "--" + name.replace("_", "-")
+            if not str(value).strip():  # Path("") is the working directory: never what was meant
+                raise ConfigError(f"{flag}: empty path")
+            path = Path(value)
             if is_dir and path.exists() and not path.is_dir():
                 raise ConfigError(f"{flag} {path}: exists and is not a directory")
             if not is_dir and path.is_dir():

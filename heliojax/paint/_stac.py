@@ -60,7 +60,9 @@ connection errors and the answers 408, 429, 500, 502, 503, 504, not others (404,
 nor a broken-off body, after 0, 1, 2, 4, ... s (a server's Retry-After is not
 followed: it may ask for hours). A STAC JSON file is read to at most ``MAX_STAC_BYTES``
 (64 MiB) whatever its Content-Length says. Local paths and ``file://`` URLs are
-read with :func:`open`.
+read with :func:`open`. A compressed (``Content-Encoding``) body that inflates to more
+than ``MAX_INFLATION`` (100) times the bytes received, beyond its first 16 MiB, is broken
+off (a gzip bomb).
 
 Errors. Unsafe hrefs and an unreadable root raise :class:`DataError` naming the
 href; a STAC file below the root that cannot be read (network error after retries,
@@ -116,10 +118,11 @@ from ._timestamps import read_timestamps, write_timestamps
 
 
 def _item_time(item: pystac.Item) -> dt.datetime | None:
-    if item.datetime is not None:
-        return item.datetime
-    start = item.common_metadata.start_datetime
-    return start
+    """The item's ``datetime`` (else ``start_datetime``); one without a time zone is UTC."""
+    when = item.datetime if item.datetime is not None else item.common_metadata.start_datetime
+    if when is not None and when.tzinfo is None:
+        when = when.replace(tzinfo=dt.UTC)  # not the local time of this machine
+    return when
 
 
 def _as_utc(t: dt.datetime | dt.date | None, end: bool) -> dt.datetime | None:
@@ -208,9 +211,6 @@ def fetch_catalog(
     root_href = _root_href(source)
     scope = _Scope.of(root_href)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    out = out.resolve()
-    journal = _Journal(out)
     wanted = None if heliostats is None else {h.strip() for h in heliostats if h.strip()}
     warnings: list[str] = []
     all_tasks_done: dict[str, list] = {"downloaded": [], "skipped": [], "failed": []}
@@ -219,7 +219,10 @@ def fetch_catalog(
 
     reader = _Reader(transport, timeout_s, retries, connections=workers)
     with contextlib.closing(reader), cf.ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        root = reader.stac(root_href)
+        root = reader.stac(root_href)  # before the output folder is made: a bad root leaves nothing behind
+        out.mkdir(parents=True, exist_ok=True)
+        out = out.resolve()
+        journal = _Journal(out)
         say(f"catalogue {root.id} ({root_href})")
         child_hrefs = []
         tower_hrefs = []

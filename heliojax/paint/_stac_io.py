@@ -219,7 +219,7 @@ class _Reader:
         if self.transport is None and _scheme(href) in ("http", "https"):
             with self.session.get(href, stream=True, timeout=self.timeout_s) as response:
                 response.raise_for_status()
-                yield response.iter_content(_CHUNK)
+                yield _inflation_bounded(response)
         else:
             with self._open(href) as f:
                 yield iter(lambda: f.read(_CHUNK), b"")
@@ -253,6 +253,8 @@ class _Reader:
             obj = json.loads(data.decode("utf-8"))
         except (UnicodeDecodeError, json.JSONDecodeError) as e:
             raise DataError(href, None, f"not a JSON file: {e}") from e
+        except (ValueError, RecursionError) as e:  # a number of over 4300 digits, nesting too deep
+            raise DataError(href, None, f"not a usable JSON file: {type(e).__name__}: {e}") from None
         if not isinstance(obj, dict):
             raise DataError(href, None, "STAC file is not a JSON object")
         return obj
@@ -270,6 +272,30 @@ class _Reader:
             return pystac.read_dict(d, href=href)
         except Exception as e:  # pystac raises several types for malformed STAC
             raise DataError(href, None, f"not a valid STAC object: {e}") from e
+
+
+MAX_INFLATION = 100
+"""Largest ratio of decoded to received bytes of a compressed (``Content-Encoding``) HTTP
+body beyond its first ``_INFLATION_FREE`` bytes: a gzip bomb (a few kB that inflate to
+GB) is broken off instead of filling the disk."""
+_INFLATION_FREE = 16 * _CHUNK
+
+
+def _inflation_bounded(response: requests.Response) -> Iterator[bytes]:
+    """``response``'s decoded body in chunks; :class:`OSError` once a compressed body
+    inflates beyond :data:`MAX_INFLATION` times the bytes received."""
+    encoding = response.headers.get("Content-Encoding", "identity").strip().lower()
+    decoded = 0
+    for chunk in response.iter_content(_CHUNK):
+        decoded += len(chunk)
+        if encoding != "identity" and decoded > _INFLATION_FREE:
+            received = response.raw.tell()  # bytes over the wire, before decoding
+            if decoded > MAX_INFLATION * max(received, 1):
+                raise OSError(
+                    f"Content-Encoding {encoding}: {received} bytes received inflate to over {decoded}: "
+                    "refused as a decompression bomb"
+                )
+        yield chunk
 
 
 # --------------------------------------------------------------------------- checksums
@@ -337,6 +363,8 @@ def _json_ok(path: Path, name: str | None = None) -> str | None:
             json.load(f)
     except (UnicodeDecodeError, json.JSONDecodeError) as e:
         return f"downloaded JSON does not parse: {e}"
+    except (ValueError, RecursionError) as e:  # a number of over 4300 digits, nesting too deep
+        return f"downloaded JSON does not parse: {type(e).__name__}"
     return None
 
 
@@ -350,6 +378,8 @@ class _Journal:
         self.path = out / JOURNAL_NAME
         self.lock = threading.Lock()
         self.records: dict[str, dict] = {}
+        if self.path.is_symlink():  # appending through it would write outside the output folder
+            raise DataError(self.path, None, "the resume journal is a symbolic link; delete it to start over")
         if self.path.exists():
             try:
                 with open(self.path, encoding="utf-8", errors="replace") as f:
@@ -361,7 +391,7 @@ class _Journal:
             for line in lines:
                 try:
                     rec = json.loads(line)
-                except json.JSONDecodeError:
+                except (ValueError, RecursionError):  # JSONDecodeError, a number of over 4300 digits, deep nesting
                     continue  # a torn last line of an interrupted run, or damage: that file is fetched again
                 if isinstance(rec, dict) and isinstance(rec.get("path"), str):
                     self.records[rec["path"]] = rec
