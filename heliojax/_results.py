@@ -79,11 +79,17 @@ def _geometry_items(geometry: eqx.Module, prefix: str = "geometry") -> dict[str,
     return out
 
 
-def _read_geometry(group: h5py.Group, source: str) -> HeliostatGeometry:
+def _read_geometry(group: h5py.Group, source: str, n: int) -> HeliostatGeometry:
     def arr(name):
-        if name not in group:
+        if name not in group or not isinstance(group[name], h5py.Dataset):
             raise DataError(source, f"geometry/{name}", "missing dataset")
-        return jnp.asarray(group[name][()])  # pyright: ignore[reportIndexIssue]
+        value = np.asarray(group[name][()])  # pyright: ignore[reportIndexIssue]
+        if value.dtype.kind not in "biuf":
+            raise DataError(source, f"geometry/{name}", f"not numeric (dtype {value.dtype})")
+        want = (n, 3 if name == "position" or name.endswith("translation") or "translation_" in name else 2)
+        if value.shape != want:
+            raise DataError(source, f"geometry/{name}", f"shape {value.shape}, expected {want}")
+        return jnp.asarray(value)
 
     act = LinearActuators(**{f.name: arr(f"actuators/{f.name}") for f in dataclasses.fields(LinearActuators)})
     kw = {f.name: arr(f.name) for f in dataclasses.fields(HeliostatGeometry) if f.name != "actuators"}
@@ -99,8 +105,11 @@ def model_from_label(label: str, dtype: typing.Any = jnp.float64) -> AbstractKin
         raise DataError(
             None, "model", f"a model with a neural correction ({label!r}) cannot be rebuilt from results.h5"
         )
-    model = nominal_model(base, dtype)
-    return with_effects(model, effects) if effects else model
+    try:
+        model = nominal_model(base, dtype)
+        return with_effects(model, effects) if effects else model
+    except (ValueError, KeyError, TypeError) as e:
+        raise DataError(None, "model", f"unknown model label {label!r}: {e}") from None
 
 
 def write_results_h5(path: str | Path, run: typing.Any) -> None:
@@ -268,6 +277,40 @@ _RECORD_FIELDS = (
 )
 
 
+_LAW_ATTRS = (
+    ("drift_mrad2_per_day", 0.0, math.inf),
+    ("tail_dof", 0.0, math.inf),
+    ("outlier_fraction", 0.0, 1.0),
+    ("outlier_scale", 0.0, math.inf),
+)
+"""Numeric attributes of results.h5 and their ranges."""
+
+
+def _numeric(value: typing.Any, source: str, field: str, shape: tuple[int, ...]) -> np.ndarray:
+    """``value`` as a numeric array whose shape begins with ``shape``, else DataError."""
+    a = np.asarray(value)
+    if a.dtype.kind not in "biuf":
+        raise DataError(source, field, f"not numeric (dtype {a.dtype})")
+    if a.shape[: len(shape)] != shape:
+        raise DataError(
+            source, field, f"shape {a.shape}, expected {shape + ('...',) if a.ndim > len(shape) else shape}"
+        )
+    return a.astype(float) if a.dtype.kind == "f" else a
+
+
+def _strings(value: typing.Any, source: str, field: str, n: int | None = None) -> tuple[str, ...]:
+    """A 1-D dataset of strings (of length ``n``), else DataError."""
+    a = np.asarray(value)
+    if a.ndim != 1 or (n is not None and len(a) != n) or a.dtype.kind not in "OSU":
+        raise DataError(
+            source, field, f"expected {n if n is not None else 'a list of'} strings, got {a.dtype} {a.shape}"
+        )
+    try:
+        return tuple(x.decode() if isinstance(x, bytes) else str(x) for x in a)
+    except UnicodeDecodeError as e:
+        raise DataError(source, field, f"not UTF-8 text ({e})") from None
+
+
 def load_results(path: str | Path) -> CalibrationResults:
     """Read ``results.h5`` into a :class:`CalibrationResults` (models, the geometry
     the fit used, statuses, covariance, per-record residuals and times).
@@ -283,49 +326,96 @@ def load_results(path: str | Path) -> CalibrationResults:
     with f:
 
         def need(name: str) -> typing.Any:
-            if name not in f:
+            if name not in f or not isinstance(f[name], h5py.Dataset):
                 raise DataError(source, name, "missing dataset")
-            return f[name][()]  # pyright: ignore[reportIndexIssue]
+            try:
+                return f[name][()]  # pyright: ignore[reportIndexIssue]
+            except (OSError, ValueError, TypeError) as e:  # damaged or unreadable data
+                raise DataError(source, name, f"unreadable dataset ({e})") from None
 
-        attrs: dict[str, typing.Any] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+        attrs: dict[str, typing.Any] = {}
+        for k in f.attrs:
+            try:
+                v = f.attrs[k]
+                attrs[k] = v.decode() if isinstance(v, bytes) else v
+            except (OSError, UnicodeDecodeError, TypeError, ValueError) as e:
+                raise DataError(source, k, f"unreadable attribute ({e})") from None
         for key in ("model", "param_names", "param_units"):
             if key not in attrs:
                 raise DataError(source, key, "missing attribute")
-        try:
-            names = tuple(json.loads(attrs["param_names"]))
-            attrs["param_names"] = list(names)
-            attrs["param_units"] = json.loads(attrs["param_units"])
-            attrs["free_params"] = json.loads(attrs.get("free_params", "[]"))
-        except (json.JSONDecodeError, TypeError) as e:
-            raise DataError(source, "param_names", f"malformed parameter attributes ({e})") from e
-        ids = tuple(x.decode() if isinstance(x, bytes) else str(x) for x in need("heliostat_ids"))
-        params = np.asarray(need("params"), float)
+        for key, default in (("param_names", None), ("param_units", None), ("free_params", "[]")):
+            try:
+                value = json.loads(attrs.get(key, default))
+            except (ValueError, TypeError, RecursionError) as e:
+                raise DataError(source, key, f"not a JSON list ({e})") from None
+            if not isinstance(value, list) or not all(isinstance(x, str) for x in value):
+                raise DataError(source, key, f"not a JSON list of strings: {value!r}"[:200])
+            attrs[key] = value
+        names = tuple(attrs["param_names"])
+        ids = _strings(need("heliostat_ids"), source, "heliostat_ids")
+        if len(set(ids)) != len(ids):
+            raise DataError(source, "heliostat_ids", "an id is listed twice")
+        params = _numeric(need("params"), source, "params", (len(ids), len(names)))
         group = f.get("geometry")
-        geometry = _read_geometry(group, source) if isinstance(group, h5py.Group) else None
+        geometry = _read_geometry(group, source, len(ids)) if isinstance(group, h5py.Group) else None
         if geometry is None:
             raise DataError(source, "geometry", "missing group (written by an older heliojax?)")
-        records = {k: np.asarray(f[k][()]) for k in _RECORD_FIELDS if k in f}  # pyright: ignore[reportIndexIssue]
-        targets = tuple(
-            x.decode() if isinstance(x, bytes) else str(x)
-            for x in (np.asarray(f["target_names"][()]) if "target_names" in f else ())  # pyright: ignore[reportIndexIssue]
+        records = {k: _numeric(need(k), source, k, (len(ids),)) for k in _RECORD_FIELDS if k in f}
+        shapes = {
+            k: v.shape[:2] for k, v in records.items() if k not in ("beam_error_mrad", "beam_error_uncalibrated_mrad")
+        }
+        for k, shape in shapes.items():
+            if shape != next(iter(shapes.values())):
+                raise DataError(source, k, f"shape {records[k].shape} differs from the other per-record datasets")
+        targets = _strings(need("target_names"), source, "target_names") if "target_names" in f else ()
+        if "target_index" in records and np.any(records["target_index"] >= max(len(targets), 1)):
+            raise DataError(source, "target_index", f"points beyond the {len(targets)} target_names")
+        status = _strings(need("status_labels"), source, "status_labels", len(ids))
+        std = _numeric(need("param_std"), source, "param_std", (len(ids), len(names)))
+        unknown = sorted(set(attrs["free_params"]) - set(names))
+        if unknown:
+            raise DataError(source, "free_params", f"{unknown} are not among param_names")
+        free = len(attrs["free_params"]) or len(names)
+        cov = (
+            _numeric(need("covariance"), source, "covariance", (len(ids), free, free))
+            if "covariance" in f
+            else np.full((len(ids), 0, 0), np.nan)
         )
-        status = tuple(x.decode() if isinstance(x, bytes) else str(x) for x in need("status_labels"))
-        std = np.asarray(need("param_std"), float)
-        cov = np.asarray(f["covariance"][()]) if "covariance" in f else np.full((len(ids), 0, 0), np.nan)  # pyright: ignore[reportIndexIssue]
-        noise = np.asarray(f["noise_mrad"][()]) if "noise_mrad" in f else np.full(len(ids), np.nan)  # pyright: ignore[reportIndexIssue]
+        noise = (
+            _numeric(need("noise_mrad"), source, "noise_mrad", (len(ids),))
+            if "noise_mrad" in f
+            else np.full(len(ids), np.nan)
+        )
         worse = (
-            np.asarray(f["worse_than_nominal"][()], bool)  # pyright: ignore[reportIndexIssue]
+            _numeric(need("worse_than_nominal"), source, "worse_than_nominal", (len(ids),)).astype(bool)
             if "worse_than_nominal" in f
             else np.zeros(len(ids), bool)
         )
-    template = model_from_label(str(attrs["model"]))
+    for key, low, high in _LAW_ATTRS:
+        if key in attrs:
+            try:
+                x = float(attrs[key])
+            except (TypeError, ValueError):
+                raise DataError(source, key, f"not a number: {attrs[key]!r}") from None
+            if math.isnan(x) or not low <= x <= high:
+                raise DataError(source, key, f"{x} is outside [{low}, {high}]")
+    usable = np.array([s in (FitStatus.CONVERGED.label, FitStatus.MAX_STEPS.label) for s in status])
+    if not np.isfinite(params[usable]).all():
+        raise DataError(source, "params", "not finite for a heliostat whose fit converged")
+    try:
+        template = model_from_label(str(attrs["model"]))
+    except DataError as e:
+        raise DataError(source, "model", e.reason) from None
     view = ParameterView.of(template)
     if view.names != names:
         raise DataError(
             source, "param_names", f"parameters {names} do not match model {attrs['model']!r} ({view.names})"
         )
     if attrs["free_params"]:
-        view = view.with_free(attrs["free_params"])
+        try:
+            view = view.with_free(attrs["free_params"])
+        except (ValueError, KeyError) as e:
+            raise DataError(source, "free_params", str(e)) from None
     batched = broadcast_model(template, len(ids))
     model = jax.vmap(view.from_vector)(batched, jnp.asarray(params))
     return CalibrationResults(

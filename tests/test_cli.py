@@ -535,3 +535,58 @@ def test_discrepancy_from_results_names_a_missing_dataset(results_h5):
     old = dataclasses.replace(results, records={k: v for k, v in results.records.items() if k != "target_index"})
     with pytest.raises(hj.DataError, match="target_index"):
         hj.discrepancy_from_results(old, centres)
+
+
+def _replace(name, value):
+    def damage(f):
+        del f[name]
+        f[name] = value
+
+    return damage
+
+
+def _attr(name, value):
+    def damage(f):
+        f.attrs[name] = value
+
+    return damage
+
+
+DAMAGED_RESULTS = [  # (case, damage of an h5py.File, field named)
+    ("params wrong width", _replace("params", np.zeros((5, 3))), "params"),
+    ("params strings", _replace("params", np.array([[b"x"] * 10] * 5)), "params"),
+    ("params nan for a converged fit", _replace("params", np.full((5, 10), np.nan)), "params"),
+    ("ids twice", _replace("heliostat_ids", np.array([b"BE36"] * 5, dtype="S4")), "heliostat_ids"),
+    ("ids not UTF-8", _replace("heliostat_ids", np.array([b"\xff\xfe"] * 5, dtype="S2")), "heliostat_ids"),
+    ("status labels short", _replace("status_labels", np.array([b"converged"] * 3)), "status_labels"),
+    ("position of 2 components", _replace("geometry/position", np.zeros((5, 2))), "geometry/position"),
+    ("covariance flat", _replace("covariance", np.zeros((5, 2))), "covariance"),
+    ("records of other heliostats", _replace("unix_time", np.zeros((2, 192))), "unix_time"),
+    ("target index beyond the names", _replace("target_index", np.full((5, 192), 99, np.int32)), "target_index"),
+    ("unknown model label", _attr("model", "bogus"), "model"),
+    ("free parameter unknown", _attr("free_params", '["nope"]'), "free_params"),
+    ("free parameters not a list", _attr("free_params", "5"), "free_params"),
+    ("parameter names not UTF-8", _attr("param_names", np.bytes_(b"\xff\xfe")), "param_names"),
+    ("drift nan", _attr("drift_mrad2_per_day", np.nan), "drift_mrad2_per_day"),
+    ("outlier fraction above 1", _attr("outlier_fraction", 7.0), "outlier_fraction"),
+]
+
+
+@pytest.mark.parametrize(("damage", "field"), [c[1:] for c in DAMAGED_RESULTS], ids=[c[0] for c in DAMAGED_RESULTS])
+def test_damaged_results_are_named_errors(results_h5, tmp_path, capsys, damage, field):
+    """A results.h5 with a dataset of the wrong shape or type, or a garbage attribute, is a
+    DataError naming the file and the field (no KeyError / ValueError from h5py or vmap),
+    and `heliojax aim` says so in one line."""
+    import h5py
+
+    bad = tmp_path / "results.h5"
+    shutil.copy(results_h5, bad)
+    with h5py.File(bad, "a") as f:
+        damage(f)
+    with pytest.raises(hj.DataError) as e:
+        hj.load_results(bad)
+    assert e.value.file == str(bad) and e.value.field == field, e.value
+    assert main(["aim", str(bad), "--sun-azimuth", "-20", "--sun-elevation", "40"]) == 2
+    err = capsys.readouterr().err
+    assert "results.h5" in err and field in err and "Traceback" not in err and len(err.strip().splitlines()) <= 2, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["results.h5"]
