@@ -124,6 +124,45 @@ CASES = [
         "summary.json",
     ),
     ("accept sampling not a table", lambda t: _accept(t, "f.csv", "sampling = 5\n" + CONTRACT), "[sampling]"),
+    ("accept contract year -5", lambda t: _accept(t, "f.csv", CONTRACT + "[yield]\nyear = -5\n"), "year"),
+    (
+        "accept contract bandwidth inf",
+        lambda t: _accept(t, "f.csv", CONTRACT + "[extrapolation]\nbandwidth = inf\n"),
+        "bandwidth",
+    ),
+    ("accept contract seed 2.5", lambda t: _accept(t, "f.csv", CONTRACT + "[extrapolation]\nseed = 2.5\n"), "seed"),
+    (
+        "accept contract min_samples 0.5",
+        lambda t: _accept(t, "f.csv", CONTRACT + "[clusters]\nmin_samples = 0.5\n"),
+        "min_samples",
+    ),
+    (
+        "accept contract step 1e-9 min",
+        lambda t: _accept(t, "f.csv", CONTRACT + "[yield]\nstep_minutes = 1e-9\n"),
+        "step_minutes",
+    ),
+    ("accept contract rel_error 1e300", lambda t: _accept(t, "f.csv", CONTRACT.replace("0.04", "1e300")), "rel_error"),
+    (
+        "accept summary nested too deep",
+        lambda t: [*_accept(t, _file(t, "summary.json", b"[" * 100_000)), "--paint", str(hj.default_data_dir())],
+        "summary.json",
+    ),
+    (
+        "accept field CSV column twice",
+        lambda t: _accept(t, _file(t, "field.csv", "heliostat_id,east_m,north_m,slope_mrad,slope_mrad\nA,1,50,1,2\n")),
+        "slope_mrad",
+    ),
+    (
+        "accept field CSV two heliostats in one place",
+        lambda t: _accept(t, _file(t, "field.csv", "heliostat_id,east_m,north_m\nA,1,50\nB,1,50\n")),
+        "line 3",
+    ),
+    (
+        "accept field CSV heliostat far away",
+        lambda t: _accept(t, _file(t, "field.csv", "heliostat_id,east_m,north_m\nA,1e300,50\nB,1,50\n")),
+        "east_m",
+    ),
+    ("fetch out empty", lambda t: ["fetch", "--out", ""], "--out"),
     (
         "accept tower file missing",
         lambda t: _accept(t, "f.csv", CONTRACT + '[yield]\ntower_file = "nowhere.json"\n'),

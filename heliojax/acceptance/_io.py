@@ -23,6 +23,11 @@ from ._field import PARAMETERS, FieldData
 _BAD_STATUS = {"failed", "error", "skipped", "excluded"}
 
 
+MAX_FIELD_EXTENT_M = 20_000.0
+"""Largest distance (m, per ENU component) of a heliostat from the tower: the largest fields
+reach about 2 km."""
+
+
 def _float(path, field, text) -> float:
     try:
         x = float(text)
@@ -58,6 +63,11 @@ def read_field_csv(path: str | os.PathLike) -> FieldData:
     for col in ("heliostat_id", "east_m", "north_m"):
         if col not in header:
             raise DataError(path, col, "missing column")
+    with open(path, newline="", encoding="utf-8") as f:
+        names = next(csv.reader(f))
+    twice = sorted({c for c in names if names.count(c) > 1})
+    if twice:
+        raise DataError(path, twice[0], "column listed twice (only its last cells would be read)")
     unknown = [c for c in header if c not in ("heliostat_id", "east_m", "north_m", "up_m", *PARAMETERS)]
     if unknown:
         raise DataError(path, str(unknown[0]), f"unknown column; known parameters: {sorted(PARAMETERS)}")
@@ -88,6 +98,18 @@ def read_field_csv(path: str | os.PathLike) -> FieldData:
     if len(set(ids)) != len(ids):
         dup = sorted({h for h in ids if ids.count(h) > 1})[0]
         raise DataError(path, "heliostat_id", f"duplicate ID {dup!r}")
+    for i, (e, n, u) in enumerate(pos, start=2):
+        if max(abs(e), abs(n), abs(u)) > MAX_FIELD_EXTENT_M:
+            raise DataError(
+                path, f"line {i}: east_m/north_m/up_m", f"more than {MAX_FIELD_EXTENT_M:g} m from the tower"
+            )
+    seen: dict[tuple[float, float], int] = {}
+    for i, (e, n, _) in enumerate(pos, start=2):
+        if (e, n) in seen:
+            raise DataError(
+                path, f"line {i}: east_m/north_m", f"the position of line {seen[e, n]}: two heliostats in one place"
+            )
+        seen[e, n] = i
     return FieldData(
         ids=tuple(ids),
         positions=np.asarray(pos, dtype=float),
@@ -116,6 +138,8 @@ def read_summary(path: str | os.PathLike) -> dict[str, float]:
         raise DataError(path, None, f"cannot read: {e}") from e
     except UnicodeDecodeError as e:
         raise DataError(path, None, f"not UTF-8 text (byte {e.start}): not a summary.json") from None
+    except (ValueError, RecursionError) as e:  # a number of over 4300 digits, nesting too deep
+        raise DataError(path, None, f"not a usable JSON file: {type(e).__name__}") from None
     table = doc.get("heliostats") if isinstance(doc, dict) else None
     if not isinstance(table, dict):
         raise DataError(path, "heliostats", "missing or not an object")
@@ -248,7 +272,7 @@ def load_contract(path: str | os.PathLike) -> Contract:
         if not isinstance(value, dict):
             raise ConfigError(f"{path}: [{section}] must be a table, got {value!r}")
 
-    def num(sec, key, default=None, positive=False):
+    def num(sec, key, default=None, positive=False, low=-math.inf, high=math.inf, integer=False):
         table = doc.get(sec, {})
         if key not in table:
             if default is None:
@@ -257,8 +281,12 @@ def load_contract(path: str | os.PathLike) -> Contract:
         x = table[key]
         if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
             raise ConfigError(f"{path}: [{sec}] {key} must be a finite number, got {x!r}")
+        if integer and x != int(x):
+            raise ConfigError(f"{path}: [{sec}] {key} must be an integer, got {x!r}")
         if positive and x <= 0:
             raise ConfigError(f"{path}: [{sec}] {key} must be > 0, got {x}")
+        if not low <= x <= high:
+            raise ConfigError(f"{path}: [{sec}] {key} must lie in {'(0' if positive else f'[{low}'}, {high}], got {x}")
         return x
 
     params = {}
@@ -273,6 +301,8 @@ def load_contract(path: str | os.PathLike) -> Contract:
             x = spec.get(key)
             if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) or x <= 0:
                 raise ConfigError(f"{path}: [{sec}] {key} must be a number > 0, got {x!r}")
+            if key == "rel_error" and x >= 1:
+                raise ConfigError(f"{path}: [{sec}] rel_error must be below 1 (a fraction of the mean), got {x!r}")
             vals[key] = float(x)
         params[name] = ParameterSpec(**vals)
     if "tracking_mrad" not in params:
@@ -288,14 +318,15 @@ def load_contract(path: str | os.PathLike) -> Contract:
     if set(clusters) - _CLUSTER_KEYS:
         raise ConfigError(f"{path}: [clusters] unknown key(s) {sorted(set(clusters) - _CLUSTER_KEYS)}")
     for k in clusters:
-        num("clusters", k, positive=True)
+        counts = k in ("min_samples", "k_neighbours")
+        num("clusters", k, positive=True, high=10_000 if counts else 1e6, integer=counts)
     ex = doc.get("extrapolation", {})
     bandwidth = ex.get("bandwidth", "cv")
     if not (
         bandwidth in ("cv", "scott", "silverman")
-        or (isinstance(bandwidth, (int, float)) and not isinstance(bandwidth, bool) and bandwidth > 0)
+        or (isinstance(bandwidth, (int, float)) and not isinstance(bandwidth, bool) and 0 < bandwidth <= 100)
     ):
-        raise ConfigError(f"{path}: [extrapolation] bandwidth must be cv, scott, silverman or > 0")
+        raise ConfigError(f"{path}: [extrapolation] bandwidth must be cv, scott, silverman or a factor in (0, 100]")
     y = doc.get("yield", {})
     tower = y.get("tower_file")
     if tower is not None and not isinstance(tower, str):
@@ -306,14 +337,14 @@ def load_contract(path: str | os.PathLike) -> Contract:
         parameters=params,
         confidence=float(confidence),
         formula=formula,
-        z=None if "z" not in sampling else float(num("sampling", "z", positive=True)),
+        z=None if "z" not in sampling else float(num("sampling", "z", positive=True, high=10.0)),
         clusters=clusters,
         bandwidth=bandwidth,
-        seed=int(num("extrapolation", "seed", 0)),
+        seed=int(num("extrapolation", "seed", 0, low=0, high=2**32 - 1, integer=True)),
         tower_file=None if tower is None else (path.parent / tower).resolve(),
-        year=int(num("yield", "year", 2023)),
-        step_minutes=float(num("yield", "step_minutes", 30.0, positive=True)),
-        min_elevation_deg=float(num("yield", "min_elevation_deg", 5.0)),
-        sun_sigma_mrad=float(num("yield", "sun_sigma_mrad", 2.51, positive=True)),
-        tolerance=float(num("yield", "tolerance", 0.0)),
+        year=int(num("yield", "year", 2023, low=1900, high=2200, integer=True)),
+        step_minutes=float(num("yield", "step_minutes", 30.0, low=1.0, high=1440.0)),
+        min_elevation_deg=float(num("yield", "min_elevation_deg", 5.0, low=0.0, high=89.0)),
+        sun_sigma_mrad=float(num("yield", "sun_sigma_mrad", 2.51, positive=True, high=100.0)),
+        tolerance=float(num("yield", "tolerance", 0.0, low=0.0, high=0.99)),
     )

@@ -9,6 +9,7 @@ import math
 import numpy as np
 from scipy import stats
 
+from .._errors import ConfigError
 from .._geometry import TargetPlane
 from .._progress import activity, progress_bar
 from ._clusters import ClusterResult, field_spacing, find_clusters, resampling_advice
@@ -212,6 +213,11 @@ def run_acceptance(
                 year=contract.year,
                 step_minutes=contract.step_minutes,
                 min_elevation_deg=contract.min_elevation_deg,
+            )
+        if len(sun.unix_time_s) == 0:
+            raise ConfigError(
+                f"contract [yield] min_elevation_deg = {contract.min_elevation_deg}: the sun never rises that "
+                f"high at the plant (latitude {plant_lla[0]:.2f}) in {contract.year}"
             )
     contract_kw, measured_kw = {}, {}
     for i, name in enumerate(("tracking_mrad", "slope_mrad", "reflectance", "aperture_m2")):
