@@ -70,6 +70,30 @@ CASES = [
     ("zero pixels", lambda t: ["trace", str(t), "--heliostat", "AA39", "--pixels", "0"], "--pixels"),
     ("zero rays", lambda t: ["trace", str(t), "--heliostat", "AA39", "--rays-per-point", "0"], "--rays-per-point"),
     ("sun below the horizon", lambda t: ["trace", str(t), "--heliostat", "AA39", "--sun-elevation", "-30"], "--sun"),
+    ("trace csr of 1", lambda t: ["trace", str(t), "--heliostat", "AA39", "--csr", "1"], "--csr"),
+    ("trace dni above the sun's", lambda t: ["trace", str(t), "--heliostat", "AA39", "--dni", "1500"], "--dni"),
+    ("trace heliostat id a path", lambda t: ["trace", str(t), "--heliostat", "../AA39"], "--heliostat"),
+    (
+        "trace sun where it never stands",
+        lambda t: [
+            "trace",
+            "--heliostat",
+            "BE36",
+            "--sun-azimuth",
+            "180",
+            "--sun-elevation",
+            "5",
+            "--out",
+            str(t / "o"),
+        ],
+        "--sun-azimuth 180",
+    ),
+    ("reconstruct learning rate of 2 m", lambda t: ["reconstruct", "--learning-rate", "2"], "--learning-rate"),
+    (
+        "reconstruct heliostat id a path",
+        lambda t: ["reconstruct", "--paint", str(t), "--heliostat", "a/b"],
+        "--heliostat",
+    ),
     ("negative timeout", lambda t: ["fetch", "--out", str(t / "o"), "--timeout", "-1"], "--timeout"),
     ("no workers", lambda t: ["fetch", "--out", str(t / "o"), "--workers", "0"], "--workers"),
     ("alpha of 0", lambda t: ["discover", "--alpha", "0"], "--alpha"),
@@ -252,3 +276,38 @@ def test_temporaries_of_a_killed_run_are_removed_before_the_next(tmp_path, capsy
     rc, _, err = _run(["inspect", "--plot", str(tmp_path / "x.png"), "--cache-dir", "none"], capsys)
     assert rc == 0, err
     assert not stale.exists() and fresh.exists()
+
+
+def test_flux_images_blank_tiny_or_16_bit(tmp_path):
+    """A blank or tiny measured flux PNG is a DataError naming it (no NaN comparison); a
+    16-bit one reads as the same image as its 8-bit copy (not clipped at 255)."""
+    import numpy as np
+    from PIL import Image
+
+    from heliojax.optics._compare import measured_images
+    from heliojax.paint import read_flux_png
+
+    spot = np.zeros((64, 64), np.uint8)
+    spot[20:40, 25:45] = 200
+    cases = {"blank": np.zeros((64, 64), np.uint8), "white": np.full((64, 64), 255, np.uint8)}
+    cases["tiny"] = np.zeros((1, 64), np.uint8)
+    for name, image in cases.items():
+        Image.fromarray(image).save(tmp_path / "1-flux.png")
+        Image.fromarray(spot).save(tmp_path / "1-flux-centered.png")
+        with pytest.raises(hj.DataError) as e:
+            measured_images(tmp_path / "1-calibration-properties.json")
+        assert e.value.file == str(tmp_path / "1-flux.png"), name
+    Image.fromarray(spot.astype(np.uint16) * 257).save(tmp_path / "deep.png")
+    Image.fromarray(spot).save(tmp_path / "plain.png")
+    assert np.allclose(read_flux_png(tmp_path / "deep.png"), read_flux_png(tmp_path / "plain.png"))
+
+
+def test_trace_output_name_taken_writes_nothing(tmp_path, capsys):
+    """An output name of trace taken by a folder is found before the work: nothing is
+    written (no .h5 beside a failed .png)."""
+    out = tmp_path / "o"
+    (out / "BE36-az10_el30-flux.png").mkdir(parents=True)
+    argv = ["trace", "--heliostat", "BE36", "--sun-azimuth", "10", "--sun-elevation", "30", "--out", str(out)]
+    rc, _, err = _run([*argv, "--pixels", "8", "--rays-per-point", "1", "--steps", "1", "--resolution", "2"], capsys)
+    assert rc == 2 and "--out" in err and "Traceback" not in err, err
+    assert [p.name for p in out.iterdir()] == ["BE36-az10_el30-flux.png"]

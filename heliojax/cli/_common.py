@@ -195,6 +195,19 @@ def check_output_paths(args, files: tuple[str, ...] = (), directories: tuple[str
                     log.info(f"removed {stale}, left by an interrupted run")
 
 
+HELIOSTAT_ID_RE = r"^[A-Za-z0-9_]{1,64}$"
+"""A heliostat id as a folder name (PAINT's are like ``AA39``): no path separators."""
+
+
+def heliostat_id(value: str) -> str:
+    """An argparse ``type``: a heliostat id (:data:`HELIOSTAT_ID_RE`), never a path."""
+    import re
+
+    if not re.match(HELIOSTAT_ID_RE, value):
+        raise argparse.ArgumentTypeError(f"{value!r} is not a heliostat id (letters, digits, _)")
+    return value
+
+
 def integer(minimum: int | None = None, maximum: int | None = None):
     """An argparse ``type``: an integer in ``[minimum, maximum]`` (from a command
     line string or a config number), else a message naming the range."""
@@ -216,9 +229,9 @@ def integer(minimum: int | None = None, maximum: int | None = None):
     return parse
 
 
-def number(minimum: float | None = None, maximum: float | None = None, *, above: bool = False):
-    """An argparse ``type``: a finite number in ``[minimum, maximum]`` (``(minimum,
-    maximum]`` with ``above``), else a message naming the range."""
+def number(minimum: float | None = None, maximum: float | None = None, *, above: bool = False, below: bool = False):
+    """An argparse ``type``: a finite number in ``[minimum, maximum]`` (open at the
+    bottom with ``above``, at the top with ``below``), else a message naming the range."""
 
     def parse(value: str | float) -> float:
         if isinstance(value, bool):
@@ -228,9 +241,12 @@ def number(minimum: float | None = None, maximum: float | None = None, *, above:
         except (TypeError, ValueError):
             raise argparse.ArgumentTypeError(f"expected a number, got {value!r}") from None
         low_ok = minimum is None or (x > minimum if above else x >= minimum)
-        if not math.isfinite(x) or not low_ok or (maximum is not None and x > maximum):
-            bracket = "(" if above else "["
-            raise argparse.ArgumentTypeError(f"{x} is outside {bracket}{minimum}, {maximum}]".replace("None", "..."))
+        high_ok = maximum is None or (x < maximum if below else x <= maximum)
+        if not math.isfinite(x) or not low_ok or not high_ok:
+            brackets = ("(" if above else "[", ")" if below else "]")
+            raise argparse.ArgumentTypeError(
+                f"{x} is outside {brackets[0]}{minimum}, {maximum}{brackets[1]}".replace("None", "...")
+            )
         return x
 
     parse.__name__ = "number"

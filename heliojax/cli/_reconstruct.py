@@ -9,7 +9,7 @@ import math
 import sys
 from pathlib import Path
 
-from ._common import integer, number
+from ._common import heliostat_id, integer, number
 
 EXAMPLES = """examples:
   heliojax reconstruct --out out/reconstruction
@@ -46,19 +46,19 @@ def add_parser(subparsers) -> None:
     p.add_argument("--steps", type=integer(1), default=150, help="optimiser steps (>= 1)")
     p.add_argument(
         "--learning-rate",
-        type=number(0.0, above=True),
+        type=number(0.0, 1.0, above=True),
         default=None,
         help="Adam step (m of control height); default 2.5e-4 synthetic, 5e-5 real records",
     )
     p.add_argument("--rays-per-point", type=integer(1), default=32, help="rays per surface point per image and step")
     p.add_argument(
         "--smoothness",
-        type=number(0.0),
+        type=number(0.0, 1e6),
         default=None,
         help="weight of the curvature penalty on the control heights (1/m^2); default 1e-3 synthetic, 1e-2 real",
     )
     p.add_argument(
-        "--flux-weight", type=number(0.0), default=1.0, help="weight of the flux-conservation term (dimensionless)"
+        "--flux-weight", type=number(0.0, 1e6), default=1.0, help="weight of the flux-conservation term (dimensionless)"
     )
     p.add_argument(
         "--paint",
@@ -66,7 +66,9 @@ def add_parser(subparsers) -> None:
         default=None,
         help="PAINT directory with <H>/Calibration flux records (e.g. ../shared/data/paint/flux-samples)",
     )
-    p.add_argument("--heliostat", default=None, help="heliostat id of the real records (with --paint)")
+    p.add_argument(
+        "--heliostat", default=None, type=heliostat_id, help="heliostat id of the real records (with --paint)"
+    )
     p.add_argument(
         "--tower", type=Path, default=None, help="tower-measurements JSON (default: the one in --paint or its parent)"
     )
@@ -234,8 +236,15 @@ def _write_outputs(out: Path, facets, fig, report: dict, *, extra=None, attrs=No
     import matplotlib.pyplot as plt
     import numpy as np
 
+    from .._errors import ConfigError
     from .._io import atomic_path, atomic_write
 
+    bad = _non_finite(report)
+    if bad or not np.isfinite(np.asarray(facets.control_points)).all():
+        raise ConfigError(
+            f"the reconstruction diverged ({', '.join(bad[:3]) or 'control points'} not finite): "
+            "lower --learning-rate or --flux-weight; nothing written"
+        )
     with atomic_path(out / "control_points.h5") as tmp:
         with h5py.File(tmp, "w") as f:
             f.create_dataset("control_points", data=np.asarray(facets.control_points))
@@ -251,3 +260,14 @@ def _write_outputs(out: Path, facets, fig, report: dict, *, extra=None, attrs=No
     with atomic_write(out / "reconstruction.json") as f:
         json.dump(report, f, indent=2)
     print(json.dumps(report, indent=2))
+
+
+def _non_finite(value, where: str = "") -> list[str]:
+    """Paths (``a.b[2]``) of the NaN / inf numbers in a JSON-able ``value``."""
+    if isinstance(value, dict):
+        return [p for k, v in value.items() for p in _non_finite(v, f"{where}.{k}" if where else str(k))]
+    if isinstance(value, list | tuple):
+        return [p for i, v in enumerate(value) for p in _non_finite(v, f"{where}[{i}]")]
+    if isinstance(value, float) and not math.isfinite(value):
+        return [where]
+    return []

@@ -10,13 +10,18 @@ import sys
 import time
 from pathlib import Path
 
-from ._common import integer, number
+from ._common import heliostat_id, integer, number
 
 log = logging.getLogger(__name__)
 
 EXAMPLES = """examples:
   heliojax trace ../shared/data/paint/flux-samples --heliostat AA39 --record 203169 --out out/trace
   heliojax trace PAINT_DIR --heliostat AA39 --sun-azimuth -20 --sun-elevation 35 --sunshape pillbox"""
+
+SOLAR_CONSTANT_PERIHELION = 1413.0
+"""W/m^2 above the atmosphere at the sun's closest: no DNI on the ground exceeds it."""
+MAX_DECLINATION_DEG = 23.45
+"""The sun's declination stays within +-23.45 degrees."""
 
 OUTPUT_FILES = ()
 OUTPUT_DIRS = ("out",)
@@ -45,7 +50,7 @@ def add_parser(subparsers) -> None:
         metavar="PAINT_DIR",
         help="PAINT-layout directory (<H>/Properties, <H>/Calibration; default: the embedded real subset)",
     )
-    p.add_argument("--heliostat", required=True, help="heliostat id, e.g. AA39")
+    p.add_argument("--heliostat", required=True, type=heliostat_id, help="heliostat id, e.g. AA39")
     p.add_argument("--record", type=integer(0), help="calibration record id (counts, sun and target of the record)")
     p.add_argument(
         "--sun-azimuth", type=number(-360.0, 360.0), help="sun azimuth in degrees, 0 = south, positive toward east"
@@ -68,7 +73,9 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--sunshape", choices=("buie", "gaussian", "pillbox"), default="buie", help="sun shape of the ray directions"
     )
-    p.add_argument("--csr", type=number(0.0, 1.0), default=0.05, help="Buie circumsolar ratio (0-1)")
+    p.add_argument(
+        "--csr", type=number(0.0, 1.0, above=True, below=True), default=0.05, help="Buie circumsolar ratio in (0, 1)"
+    )
     p.add_argument("--sigma-mrad", type=number(0.0, above=True), default=2.51, help="Gaussian sun sigma per axis, mrad")
     p.add_argument(
         "--slope-error-mrad", type=number(0.0), default=1.5, help="Gaussian mirror slope error per axis, mrad (0: none)"
@@ -79,7 +86,12 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--resolution", type=integer(2), default=32, help="surface points per facet edge")
     p.add_argument("--pixels", type=integer(1, 4096), default=256, help="image pixels per side (>= 1)")
-    p.add_argument("--dni", type=number(0.0, above=True), default=1000.0, help="direct normal irradiance, W/m^2")
+    p.add_argument(
+        "--dni",
+        type=number(0.0, SOLAR_CONSTANT_PERIHELION, above=True),
+        default=1000.0,
+        help=f"direct normal irradiance, W/m^2 (at most {SOLAR_CONSTANT_PERIHELION:g}, the sun's above the air)",
+    )
     p.add_argument("--reflectivity", type=number(0.0, 1.0), default=1.0, help="mirror reflectivity (0-1)")
     p.add_argument("--seed", type=integer(0, 2**32 - 1), default=0, help="seed of the ray sampling")
     p.add_argument("--out", type=Path, default=Path("trace"), help="output directory")
@@ -94,6 +106,23 @@ def _tower_path(args) -> Path:
         if found:
             return found[0]
     raise FileNotFoundError(f"no *tower-measurements.json in {args.paint} or its parent; pass --tower")
+
+
+def _check_sun_possible(azimuth_deg: float, elevation_deg: float, latitude_deg: float) -> None:
+    """ConfigError unless the sun can stand at ``azimuth_deg`` (0 = south, positive east) and
+    ``elevation_deg`` at ``latitude_deg``: its declination must lie within the tropics."""
+    import math
+
+    from .._errors import ConfigError
+
+    az, el, lat = (math.radians(x) for x in (azimuth_deg, elevation_deg, latitude_deg))
+    north = -math.cos(el) * math.cos(az)
+    declination = math.degrees(math.asin(max(-1.0, min(1.0, math.sin(lat) * math.sin(el) + math.cos(lat) * north))))
+    if abs(declination) > MAX_DECLINATION_DEG:
+        raise ConfigError(
+            f"--sun-azimuth {azimuth_deg:g} --sun-elevation {elevation_deg:g}: the sun never stands there at "
+            f"latitude {latitude_deg:.2f} (declination {declination:.1f}, beyond +-{MAX_DECLINATION_DEG})"
+        )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -117,6 +146,13 @@ def run(args: argparse.Namespace) -> int:
     if (args.record is None) == (args.sun_azimuth is None or args.sun_elevation is None):
         print("heliojax trace: error: give either --record or both --sun-azimuth and --sun-elevation", file=sys.stderr)
         return 2
+    tag = str(args.record) if args.record is not None else f"az{args.sun_azimuth:g}_el{args.sun_elevation:g}"
+    outputs = [args.out / f"{args.heliostat}-{tag}-{kind}" for kind in ("flux.h5", "flux.png", "comparison.png")]
+    outputs.append(args.out / f"{args.heliostat}-{tag}-summary.json")
+    for path in outputs:  # before any work: an output that cannot be written would leave the others behind
+        if path.is_dir() or path.is_symlink():
+            print(f"heliojax trace: error: --out {args.out}: {path.name} is a directory or a link", file=sys.stderr)
+            return 2
     try:
         if args.paint is None:
             from ..paint import default_data_dir
@@ -124,6 +160,8 @@ def run(args: argparse.Namespace) -> int:
             args.paint = default_data_dir()
         tower_path = _tower_path(args)
         tower = read_tower(tower_path)
+        if args.record is None:
+            _check_sun_possible(args.sun_azimuth, args.sun_elevation, tower.origin_lla[0])
         hdir = args.paint / args.heliostat
         props_path = hdir / "Properties" / f"{args.heliostat}-heliostat-properties.json"
         props = read_heliostat_properties(props_path)
@@ -154,10 +192,8 @@ def run(args: argparse.Namespace) -> int:
             record = read_calibration_record(rec_path, heliostat_id=args.heliostat)
             az, el, target_name = record.sun_azimuth_deg, record.sun_elevation_deg, record.target_name
             counts = jnp.asarray([record.axis_1_counts, record.axis_2_counts], jnp.float64)
-            tag = str(args.record)
         else:
             az, el, target_name = args.sun_azimuth, args.sun_elevation, args.target
-            tag = f"az{az:g}_el{el:g}"
         target = optics.target_from_tower(tower, target_name)
         sun = sun_direction(jnp.deg2rad(az), jnp.deg2rad(el))  # pyright: ignore[reportArgumentType]
         if args.record is None:

@@ -125,10 +125,21 @@ def measured_images(record_path: str | os.PathLike) -> tuple[np.ndarray, np.ndar
     background removed (:func:`remove_background`), relative brightness."""
     record_path = Path(record_path)
     stem = record_path.name.replace("-calibration-properties.json", "")
-    return tuple(  # pyright: ignore[reportReturnType]
-        remove_background(load_flux_png(record_path.parent / f"{stem}-{kind}.png"))
-        for kind in ("flux", "flux-centered")
-    )
+    images = []
+    for kind in ("flux", "flux-centered"):
+        path = record_path.parent / f"{stem}-{kind}.png"
+        image = load_flux_png(path)
+        if min(image.shape) < MIN_FLUX_PIXELS:
+            raise DataError(path, None, f"image of {image.shape[1]} x {image.shape[0]} pixels: too small for a spot")
+        image = remove_background(image)
+        if not image.any():
+            raise DataError(path, None, "no flux spot: the image is uniform after removing its border's level")
+        images.append(image)
+    return images[0], images[1]
+
+
+MIN_FLUX_PIXELS = 8
+"""Fewest pixels per side of a measured flux image (PAINT's are 256 or 512)."""
 
 
 def geometry_from_properties(properties, origin_lla) -> HeliostatGeometry:

@@ -26,6 +26,11 @@ def read_flux_png(path: str | os.PathLike) -> np.ndarray:
             w, h = im.size
             if w * h > MAX_FLUX_PIXELS:
                 raise DataError(path, None, f"image of {w} x {h} pixels exceeds {MAX_FLUX_PIXELS} pixels")
+            if im.mode in ("I;16", "I;16B", "I;16L", "I"):  # 16-bit grey: "L" would clip it at 255
+                image = np.asarray(im, np.float64)
+                if image.min() < 0 or image.max() > 65535:
+                    raise DataError(path, None, f"{im.mode} pixel values outside 0..65535")
+                return image / 65535.0
             return np.asarray(im.convert("L"), np.float64) / 255.0
     except (OSError, Image.DecompressionBombError, ValueError) as e:
         raise DataError(path, None, f"cannot read PNG: {e}") from e
