@@ -6,6 +6,7 @@ file it replaces), not the private ``0o600`` of a temporary file."""
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import tempfile
 import time
@@ -41,6 +42,8 @@ def _umask() -> int:
 def _publish(tmp: str, path: Path) -> None:
     """Give ``tmp`` the mode a plain ``open(path, "w")`` would have, then rename it
     onto ``path``."""
+    if path.is_dir():  # name the destination, not the temporary, and never give it a folder's mode
+        raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(path))
     try:
         mode = path.stat().st_mode & 0o7777
     except FileNotFoundError:

@@ -915,3 +915,12 @@ def test_hostile_root_journal_and_naive_datetimes(tmp_path, capsys):
         with pytest.raises(DataError, match="symbolic link"):
             fetch_catalog(f"{url}/catalog.json", other, heliostats=["AA31"])
     assert victim.read_text() == "v\n"
+
+
+def test_timestamps_name_taken_by_a_folder_is_refused_before_downloading(catalogue, tmp_path):
+    root_json, _ = catalogue
+    out = tmp_path / "out"
+    (out / "calibration-timestamps.json").mkdir(parents=True)
+    with pytest.raises(DataError, match="calibration-timestamps.json"):
+        fetch_catalog(root_json, out, heliostats=["AA31"])
+    assert sorted(p.name for p in out.iterdir()) == ["calibration-timestamps.json"]

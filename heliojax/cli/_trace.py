@@ -108,13 +108,15 @@ def _tower_path(args) -> Path:
     raise FileNotFoundError(f"no *tower-measurements.json in {args.paint} or its parent; pass --tower")
 
 
-def _check_sun_possible(azimuth_deg: float, elevation_deg: float, latitude_deg: float) -> None:
+def _check_sun_possible(azimuth_deg: float | None, elevation_deg: float | None, latitude_deg: float) -> None:
     """ConfigError unless the sun can stand at ``azimuth_deg`` (0 = south, positive east) and
     ``elevation_deg`` at ``latitude_deg``: its declination must lie within the tropics."""
     import math
 
     from .._errors import ConfigError
 
+    if azimuth_deg is None or elevation_deg is None:
+        return
     az, el, lat = (math.radians(x) for x in (azimuth_deg, elevation_deg, latitude_deg))
     north = -math.cos(el) * math.cos(az)
     declination = math.degrees(math.asin(max(-1.0, min(1.0, math.sin(lat) * math.sin(el) + math.cos(lat) * north))))
@@ -160,7 +162,7 @@ def run(args: argparse.Namespace) -> int:
             args.paint = default_data_dir()
         tower_path = _tower_path(args)
         tower = read_tower(tower_path)
-        if args.record is None:
+        if args.record is None:  # a record's sun is measured
             _check_sun_possible(args.sun_azimuth, args.sun_elevation, tower.origin_lla[0])
         hdir = args.paint / args.heliostat
         props_path = hdir / "Properties" / f"{args.heliostat}-heliostat-properties.json"

@@ -223,6 +223,8 @@ def fetch_catalog(
         out.mkdir(parents=True, exist_ok=True)
         out = out.resolve()
         journal = _Journal(out)
+        if (out / TIMESTAMPS_FILE).is_dir():  # found now, not after the downloads
+            raise DataError(out / TIMESTAMPS_FILE, None, "is a folder: the record times cannot be written")
         say(f"catalogue {root.id} ({root_href})")
         child_hrefs = []
         tower_hrefs = []
