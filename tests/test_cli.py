@@ -432,6 +432,25 @@ def test_aim_points_from_a_csv_in_enu_or_wgs84_agree(results_h5, tmp_path, capsy
     argv = ["aim", str(results_h5), "--time", "2023-06-21T12:00", "--aim-csv", str(tmp_path / "short.csv")]
     assert main([*argv, "--out", str(tmp_path / "never.csv"), "--quiet"]) == 2
     assert "no aim point for BF56" in capsys.readouterr().err and not (tmp_path / "never.csv").exists()
+    rows = "".join(f"{h},0,0,60\n" for h in ids)
+    damaged = {  # a second point for a heliostat, a latitude beyond the pole, a point 50 km away
+        "twice": (
+            "heliostat_id,east_m,north_m,up_m\n" + rows + "BF56,1,1,60\n",
+            "'row 7': a second aim point for BF56",
+        ),
+        "pole": ("heliostat_id,lat_deg,lon_deg,alt_m\n" + rows.replace(",0,0,", ",91,6,"), "'row 2': latitude 91"),
+        "far": (
+            "heliostat_id,east_m,north_m,up_m\n" + rows.replace("BG23,0,0", "BG23,50000,0"),
+            "'row 4': the aim point of BG23",
+        ),
+    }
+    for name, (text, expected) in damaged.items():
+        (tmp_path / f"{name}.csv").write_text(text)
+        argv = ["aim", str(results_h5), "--time", "2023-06-21T12:00", "--aim-csv", str(tmp_path / f"{name}.csv")]
+        assert main([*argv, "--out", str(tmp_path / "never.csv"), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert f"{name}.csv" in err and expected in err and "Traceback" not in err, err
+        assert not (tmp_path / "never.csv").exists()
 
 
 def test_aim_and_plan_write_beside_the_results_by_default(results_h5, tmp_path, monkeypatch):

@@ -149,6 +149,7 @@ def _aim_points_csv(path: Path, ids: tuple[str, ...], origin_lla) -> np.ndarray:
     if "heliostat_id" not in header or cols is None:
         raise DataError(path, None, f"needs heliostat_id and {', '.join(enu_cols)} or {', '.join(lla_cols)}")
     points: dict[str, np.ndarray] = {}
+    lines: dict[str, int] = {}
     for line, row in enumerate(rows, start=2):
         try:
             xyz = np.array([float(row[c]) for c in cols])
@@ -156,12 +157,26 @@ def _aim_points_csv(path: Path, ids: tuple[str, ...], origin_lla) -> np.ndarray:
             raise DataError(path, f"row {line}", "non-numeric coordinate") from None
         if not np.all(np.isfinite(xyz)):
             raise DataError(path, f"row {line}", "non-finite coordinate")
-        points[str(row["heliostat_id"]).strip()] = xyz
+        if cols == lla_cols and not (abs(xyz[0]) <= 90.0 and abs(xyz[1]) <= 180.0):
+            raise DataError(path, f"row {line}", f"latitude {xyz[0]:g} / longitude {xyz[1]:g} out of range")
+        hid = str(row["heliostat_id"]).strip()
+        if hid in points:
+            raise DataError(path, f"row {line}", f"a second aim point for {hid} (the first in row {lines[hid]})")
+        points[hid], lines[hid] = xyz, line
     missing = [h for h in ids if h not in points]
     if missing:
         raise DataError(path, "heliostat_id", f"no aim point for {', '.join(missing)}")
     out = np.stack([points[h] for h in ids])
-    return out if cols == enu_cols else np.asarray(wgs84_to_enu(out, np.asarray(origin_lla)))
+    enu = out if cols == enu_cols else np.asarray(wgs84_to_enu(out, np.asarray(origin_lla)))
+    far = np.linalg.norm(enu, axis=-1) > MAX_AIM_DISTANCE_M
+    if far.any():
+        h = ids[int(np.argmax(far))]
+        raise DataError(path, f"row {lines[h]}", f"the aim point of {h} is over {MAX_AIM_DISTANCE_M / 1e3:g} km away")
+    return enu
+
+
+MAX_AIM_DISTANCE_M = 20_000.0
+"""An aim point farther than this from the field's origin is a data error (no tower is)."""
 
 
 def run(args) -> int:
