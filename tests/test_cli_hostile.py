@@ -34,6 +34,12 @@ def _a_file(tmp: Path) -> Path:
     return path
 
 
+def _read_only_file(tmp: Path) -> Path:
+    path = _a_file(tmp)
+    path.chmod(0o444)
+    return path
+
+
 def _a_dir(tmp: Path) -> Path:
     path = tmp / "a-dir"
     path.mkdir(exist_ok=True)
@@ -137,6 +143,25 @@ CASES = [
         lambda t: ["accept", "--results", "r.csv", "--contract", "c.toml", "--report", str(_a_dir(t))],
         "--report",
     ),
+    ("config inf for an int", lambda t: ["calibrate", "--config", _config(t, "[calibrate]\nseed = inf\n")], "seed"),
+    (
+        "config number in a list option",
+        lambda t: ["plan", "r.h5", "--config", _config(t, '[plan]\ntargets = ["multi_focus_tower", 5]\n')],
+        "targets",
+    ),
+    (
+        "out and report the same file",
+        lambda t: ["calibrate", "--out", str(t / "x"), "--report", str(t / "x")],
+        "names the same path",
+    ),
+    (
+        "markdown and report the same file",
+        lambda t: ["discover", "--report", str(t / "r.json"), "--markdown", str(t / "r.json")],
+        "--markdown",
+    ),
+    ("report a read-only file", lambda t: ["calibrate", "--report", str(_read_only_file(t))], "read-only"),
+    ("plot of an unknown format", lambda t: ["inspect", "--plot", str(t / "figure.txt")], "--plot"),
+    ("aim plot of an unknown format", lambda t: ["aim", "r.h5", "--plot", str(t / "aim.docx")], "--plot"),
     ("data directory missing", lambda t: ["calibrate", str(t / "missing")], "missing"),
     ("aim without results", lambda t: ["aim", str(t / "results.h5")], "results.h5"),
     ("aim start without end", lambda t: ["aim", str(_a_file(t)), "--start", "2023-06-21"], "a-file"),
@@ -311,3 +336,51 @@ def test_trace_output_name_taken_writes_nothing(tmp_path, capsys):
     rc, _, err = _run([*argv, "--pixels", "8", "--rays-per-point", "1", "--steps", "1", "--resolution", "2"], capsys)
     assert rc == 2 and "--out" in err and "Traceback" not in err, err
     assert [p.name for p in out.iterdir()] == ["BE36-az10_el30-flux.png"]
+
+
+def test_time_windows_of_sub_second_steps_or_past_the_last_day_are_refused():
+    import argparse
+    import datetime as dt
+
+    from heliojax.cli._aim import time_window
+
+    day = dt.datetime(2023, 6, 21, tzinfo=dt.UTC)
+    last = dt.datetime(9999, 12, 31, tzinfo=dt.UTC)
+    for date, step, flag in ((day, 1e-9, "--step-minutes"), (last, 30.0, "--date")):
+        args = argparse.Namespace(start=None, end=None, date=date, step_minutes=step, max_instants=10_000)
+        with pytest.raises(hj.ConfigError, match=flag):
+            time_window(args)
+
+
+def test_a_config_string_for_a_list_option_is_one_value():
+    from heliojax.cli._main import _config_value, build_parser
+
+    _, _, subparsers = build_parser()
+    targets = next(a for a in subparsers["plan"]._actions if a.dest == "targets")
+    assert _config_value(targets, "multi_focus_tower", "c.toml") == ["multi_focus_tower"]
+    assert _config_value(targets, ["a", "b"], "c.toml") == ["a", "b"]
+
+
+def test_spots_far_from_their_target_and_heliostats_far_from_the_plant_are_skipped(tmp_path):
+    """Values that parse but cannot be a measurement of this plant: named in the load
+    report, the heliostat or record skipped, the others loaded as before."""
+    data = tmp_path / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    record = sorted((data / "BE36" / "Calibration").iterdir())[0]
+    r = json.loads(record.read_text())
+    r["focal_spot"]["UTIS"] = [10.0, 100.0, 122.0]  # thousands of km from the tower
+    record.write_text(json.dumps(r))
+    props = data / "BL14" / "Properties" / "BL14-heliostat-properties.json"
+    p = json.loads(props.read_text())
+    p["heliostat_position"][0] = -p["heliostat_position"][0]  # the other hemisphere
+    props.write_text(json.dumps(p))
+    weather = data / "calibration-with-weather.csv"
+    weather.unlink()
+    weather.mkdir()
+    report = hj.load_paint_directory(data).report
+    skipped = {(Path(e.file).name, e.field) for e in report.skipped}
+    assert (record.name, "focal_spot.UTIS") in skipped
+    assert (props.name, "heliostat_position") in skipped
+    assert (weather.name, None) in skipped
+    assert report.heliostats_loaded == 4 and report.heliostats_skipped == 1
+    assert report.records_skipped == 1 + 9

@@ -97,6 +97,8 @@ def time_window(args) -> list[dt.datetime]:
     from .._errors import ConfigError
 
     step = dt.timedelta(minutes=args.step_minutes)
+    if step < dt.timedelta(seconds=1):
+        raise ConfigError(f"--step-minutes {args.step_minutes:g}: instants must be at least a second apart")
     if args.start is not None:
         if args.end is None or args.end < args.start:
             raise ConfigError("--start needs an --end at or after it")
@@ -104,6 +106,8 @@ def time_window(args) -> list[dt.datetime]:
     else:
         day = args.date or dt.datetime.now(dt.UTC)
         start = day.replace(hour=0, minute=0, second=0, microsecond=0)
+        if start.date() == dt.date.max:
+            raise ConfigError(f"--date {start.date()}: the day after it is out of range")
         end = start + dt.timedelta(days=1) - dt.timedelta(seconds=1)
     n = int((end - start) / step) + 1
     if n > args.max_instants:

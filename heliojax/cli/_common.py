@@ -169,6 +169,7 @@ def check_output_paths(args, files: tuple[str, ...] = (), directories: tuple[str
     from .._errors import ConfigError
     from .._io import remove_stale_temporaries
 
+    seen: dict[Path, str] = {}
     for names, is_dir in ((files, False), (directories, True)):
         for name in names:
             value = getattr(args, name, None)
@@ -178,10 +179,17 @@ def check_output_paths(args, files: tuple[str, ...] = (), directories: tuple[str
             if not str(value).strip():  # Path("") is the working directory: never what was meant
                 raise ConfigError(f"{flag}: empty path")
             path = Path(value)
+            same = flag if is_dir else seen.setdefault(path.resolve(), flag)
+            if same != flag:
+                raise ConfigError(f"{flag} {path}: {same} names the same path; give each output its own")
             if is_dir and path.exists() and not path.is_dir():
                 raise ConfigError(f"{flag} {path}: exists and is not a directory")
             if not is_dir and path.is_dir():
                 raise ConfigError(f"{flag} {path}: is a directory, expected a file name")
+            if not is_dir and path.is_file() and (not os.access(path, os.W_OK) or not path.stat().st_mode & 0o222):
+                raise ConfigError(f"{flag} {path}: exists and is read-only")
+            if not is_dir and name == "plot":
+                _check_figure_format(flag, path)
             ancestor = path if is_dir else path.parent
             while not ancestor.exists() and ancestor != ancestor.parent:
                 ancestor = ancestor.parent
@@ -208,6 +216,18 @@ def heliostat_id(value: str) -> str:
     return value
 
 
+def _check_figure_format(flag: str, path: Path) -> None:
+    """A figure's format (its suffix; none is PNG) must be one matplotlib writes."""
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    from .._errors import ConfigError
+
+    suffix = path.suffix.lstrip(".").lower()
+    formats = FigureCanvasBase.get_supported_filetypes()
+    if suffix and suffix not in formats:
+        raise ConfigError(f"{flag} {path}: unknown figure format {suffix!r}; use one of {', '.join(sorted(formats))}")
+
+
 def integer(minimum: int | None = None, maximum: int | None = None):
     """An argparse ``type``: an integer in ``[minimum, maximum]`` (from a command
     line string or a config number), else a message naming the range."""
@@ -217,7 +237,7 @@ def integer(minimum: int | None = None, maximum: int | None = None):
             raise argparse.ArgumentTypeError(f"expected an integer, got {value!r}")
         try:
             number = int(value)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):  # OverflowError: a config's inf
             raise argparse.ArgumentTypeError(f"expected an integer, got {value!r}") from None
         if isinstance(value, float) and number != value:
             raise argparse.ArgumentTypeError(f"expected an integer, got {value!r}")

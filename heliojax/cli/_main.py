@@ -129,6 +129,11 @@ def _config_value(action: argparse.Action, value: object, where: str) -> object:
         if not isinstance(value, bool):
             raise ConfigError(f"{where}: expected true or false, got {value!r}")
         return value  # the option's own value: `robust = false` is --no-robust
+    if action.nargs in ("+", "*"):  # a list option: an array of values (one string is a list of one)
+        items = value if isinstance(value, list) else [value]
+        if not items and action.nargs == "+":
+            raise ConfigError(f"{where}: expected at least one value, got an empty array")
+        return [_config_value(_one_of(action), v, where) for v in items]
     kind = action.type
     if kind is int:
         if isinstance(value, bool) or not isinstance(value, int):
@@ -151,6 +156,11 @@ def _config_value(action: argparse.Action, value: object, where: str) -> object:
     if action.choices is not None and value not in action.choices:
         raise ConfigError(f"{where}: {value!r} is not one of {list(action.choices)}")
     return value
+
+
+def _one_of(action: argparse.Action) -> argparse.Action:
+    """``action`` for one value of a list option (its type and choices, no ``nargs``)."""
+    return argparse.Action(action.option_strings, action.dest, type=action.type, choices=action.choices)  # pyright: ignore[reportArgumentType]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -12,6 +12,8 @@ from typing import Any
 from .._errors import DataError
 from ._common import (
     CALIBRATION_SUFFIX,
+    CORNERS,
+    MAX_SPOT_DISTANCE_M,
     PROPERTIES_SUFFIX,
     TIMESTAMPS_FILE,
     WEATHER_KEYS,
@@ -22,6 +24,7 @@ from ._common import (
     Vec3,
     _check,
     _check_datetime,
+    _distance_m,
     _join,
     _latlon_ok,
     _load_json,
@@ -108,7 +111,8 @@ def check_record_context(
 
     Raises:
         DataError: (file = ``record.source``) for a ``target_name`` that is not a
-            planar target of ``tower``; for a heliostat missing from ``properties``
+            planar target of ``tower``; for a focal spot more than
+            :data:`MAX_SPOT_DISTANCE_M` from its target's centre; for a heliostat missing from ``properties``
             (when a mapping id -> properties is given); for motor counts outside
             ``[min_increment, max_increment]``.
     """
@@ -123,6 +127,19 @@ def check_record_context(
             )
         if not t.is_planar_target:
             raise DataError(file, "target_name", f"{record.target_name!r} is not a planar calibration target")
+        centre: Vec3 = tuple(sum(t.points[c][k] for c in CORNERS) / len(CORNERS) for k in range(3))  # pyright: ignore[reportAssignmentType]
+        for field, spot in (
+            ("focal_spot.UTIS", record.focal_spot_utis),
+            ("focal_spot.HeliOS", record.focal_spot_helios),
+        ):
+            distance = 0.0 if spot is None else _distance_m(spot, centre)
+            if distance > MAX_SPOT_DISTANCE_M:
+                raise DataError(
+                    file,
+                    field,
+                    f"{distance:.4g} m from the centre of target {record.target_name!r} "
+                    f"(more than {MAX_SPOT_DISTANCE_M:g} m: not a spot on it)",
+                )
     if properties is None:
         return
     if isinstance(properties, Mapping):

@@ -401,6 +401,20 @@ def _latlon_ok(file: str, field: str, lla: Vec3) -> None:
     _check(abs(lla[2]) <= 1e5, file, field, f"altitude {lla[2]!r} m is not near the Earth's surface")
 
 
+def _distance_m(a: Vec3, b: Vec3) -> float:
+    """Distance (m) of two WGS84 points [lat_deg, lon_deg, alt_m], local flat-Earth
+    approximation (good to a fraction of a percent over a plant; used for sanity bounds)."""
+    north = math.radians(a[0] - b[0]) * 6_371_000.0
+    east = math.radians((a[1] - b[1] + 180.0) % 360.0 - 180.0) * 6_371_000.0 * math.cos(math.radians(b[0]))
+    return math.sqrt(north**2 + east**2 + (a[2] - b[2]) ** 2)
+
+
+MAX_SPOT_DISTANCE_M = 1_000.0
+"""A focal spot farther than this from its target's centre is not a measurement of that target."""
+MAX_HELIOSTAT_DISTANCE_M = 50_000.0
+"""A heliostat farther than this from the plant's reference point is not part of the plant."""
+
+
 def _record_id_from_name(path: Path) -> int:
     name = path.name
     if not name.endswith(CALIBRATION_SUFFIX) or not _ID_RE.match(name[: -len(CALIBRATION_SUFFIX)]):

@@ -89,7 +89,7 @@ def _check_actuator_law(p: HeliostatProperties) -> None:
                 p.source,
                 f"kinematics_properties.actuators[{i}]",
                 f"the actuator law gives no usable angle range over [min_increment, max_increment] "
-                f"(angles {lo!r} .. {hi!r} rad)",
+                f"(angles {float(lo)!r} .. {float(hi)!r} rad)",
             )
 
 

@@ -28,6 +28,7 @@ from ._calibration import check_record_context, heliostat_properties_path, read_
 from ._common import (
     CALIBRATION_SUFFIX,
     CORNERS,
+    MAX_HELIOSTAT_DISTANCE_M,
     PROPERTIES_SUFFIX,
     TIMESTAMPS_FILE,
     TOWER_FILE_SUFFIX,
@@ -35,6 +36,7 @@ from ._common import (
     CalibrationRecord,
     HeliostatProperties,
     TowerFile,
+    _distance_m,
 )
 from ._flags import (
     EARLIEST_RECORD_TIME,
@@ -152,11 +154,20 @@ def _assemble(
         raise ValueError(f"origin must be 3 finite numbers [lat_deg, lon_deg, alt_m], got {origin!r}")
 
     props_by_id: dict[str, HeliostatProperties] = {}
+    bad_props: set[str] = set()  # heliostats counted as skipped already
     for p in sorted(properties, key=lambda p: p.heliostat_id):
         try:
             if validate:
                 p = validate_properties(p)
             _check_actuator_law(p)
+            distance = _distance_m(p.position_lla, origin_lla)  # pyright: ignore[reportArgumentType]
+            if distance > MAX_HELIOSTAT_DISTANCE_M:
+                raise DataError(
+                    p.source,
+                    "heliostat_position",
+                    f"{distance / 1000:.4g} km from the plant's reference point "
+                    f"(more than {MAX_HELIOSTAT_DISTANCE_M / 1000:g} km: not a heliostat of this plant)",
+                )
             if p.heliostat_id in props_by_id:
                 raise DataError(
                     p.source,
@@ -165,7 +176,8 @@ def _assemble(
                     f"(first: {props_by_id[p.heliostat_id].source})",
                 )
         except DataError as e:
-            log.skip(e, heliostats=1)
+            log.skip(e, heliostats=int(p.heliostat_id not in bad_props))
+            bad_props.add(p.heliostat_id)
             continue
         props_by_id[p.heliostat_id] = p
 
@@ -185,10 +197,11 @@ def _assemble(
             DataError(
                 _common_dir([r.source for r in rs]),
                 "heliostat_id",
-                f"{len(rs)} calibration record(s) of heliostat {hid!r} skipped: no properties file",
+                f"{len(rs)} calibration record(s) of heliostat {hid!r} skipped: "
+                + ("bad properties file" if hid in bad_props else "no properties file"),
             ),
             records=len(rs),
-            heliostats=1,
+            heliostats=int(hid not in bad_props),
         )
 
     ids = tuple(sorted(props_by_id))
@@ -463,6 +476,8 @@ def load_paint_directory(
         except DataError as e:
             log.skip(e)
     else:
+        if ts_path.exists():
+            log.skip(DataError(ts_path, None, "not a file"))
         log.notes.append(f"no {TIMESTAMPS_FILE}: every record's time is unknown")
 
     weather: dict[tuple[str, int], dict[str, float]] = {}
@@ -477,6 +492,8 @@ def load_paint_directory(
         weather = {(r.heliostat_id, r.record_id): r.weather for r in rows}
         _flag_repeated_weather(rows, str(csv_path), log)
         _flag_weather_gaps(rows, str(csv_path), log)
+    elif csv_path.exists():
+        log.skip(DataError(csv_path, None, "not a file: no weather"))
 
     dirs = sorted(
         d for d in root.iterdir() if d.is_dir() and ((d / "Properties").is_dir() or (d / "Calibration").is_dir())
