@@ -336,6 +336,26 @@ def test_bad_timestamps(tmp_path):
     assert [x.field for x in errors] == ["2.datetime", "x3", "4.heliostat_id"]
 
 
+def test_a_record_listed_twice_in_the_timestamps_is_named(tmp_path):
+    """JSON keeps the last of two equal keys without a word; a record id given twice with
+    different entries (also as "7" and "07") is named and neither entry is used; an exact
+    repeat is harmless."""
+    f = tmp_path / "calibration-timestamps.json"
+    entry = '{"heliostat_id": "AA", "datetime": "2022-06-10T12:15:59Z"}'
+    other = '{"heliostat_id": "AB", "datetime": "2022-06-10T12:15:59Z"}'
+    f.write_text(f'{{"1": {entry}, "2": {entry}, "1": {other}}}')
+    with pytest.raises(DataError) as e:
+        read_timestamps(f)
+    assert (e.value.file, e.value.field) == (str(f), "1") and "twice" in e.value.reason
+    errors = []
+    assert sorted(read_timestamps(f, on_error=errors.append)) == [2]  # the other entries are kept
+    assert [(x.field, "twice" in x.reason) for x in errors] == [("1", True)]
+    f.write_text(f'{{"1": {entry}, "2": {entry}, "1": {entry}, "7": {entry}, "07": {other}, "3": {entry}}}')
+    errors = []
+    assert sorted(read_timestamps(f, on_error=errors.append)) == [1, 2, 3]
+    assert [(x.field, "twice" in x.reason) for x in errors] == [("07", True)]
+
+
 def test_bad_weather_csv(tmp_path):
     src = (EMB / "calibration-with-weather.csv").read_text().splitlines()
     cells = src[2].split(",")

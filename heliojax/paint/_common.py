@@ -4,6 +4,7 @@ dataclasses of file values), validation helpers and the JSON writer."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -270,8 +271,35 @@ class TimestampEntry:
 # ======================================================================================
 
 
-def _load_json(path: str | os.PathLike) -> Any:
-    """Parse a JSON file; every failure becomes a DataError naming the file."""
+class _DuplicateKeyError(ValueError):
+    def __init__(self, key: str) -> None:
+        super().__init__(key)
+        self.key = key
+
+
+_TWICE = "listed twice with different values (which one holds is ambiguous)"
+AMBIGUOUS = object()
+"""The value of a JSON key given twice with different values (see :func:`_load_json`)."""
+
+
+def _unique_keys(pairs: list[tuple[str, Any]], *, mark: bool = False) -> dict[str, Any]:
+    """A JSON object's dict; a key given twice with different values (the json module
+    would silently keep the last) is an error, or with ``mark`` holds :data:`AMBIGUOUS`."""
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out and out[key] != value:
+            if not mark:
+                raise _DuplicateKeyError(key)
+            value = AMBIGUOUS
+        out[key] = value
+    return out
+
+
+def _load_json(path: str | os.PathLike, *, mark_ambiguous: bool = False) -> Any:
+    """Parse a JSON file; every failure becomes a DataError naming the file. A key given
+    twice with different values is one too, or, with ``mark_ambiguous`` (a file of
+    independent entries, where one bad entry must not spoil the others), holds
+    :data:`AMBIGUOUS`, which :class:`_Node` reports as that entry's error."""
     try:
         raw = Path(path).read_bytes()
     except OSError as e:
@@ -281,9 +309,11 @@ def _load_json(path: str | os.PathLike) -> Any:
     except UnicodeDecodeError as e:
         raise DataError(path, None, f"not UTF-8 text (byte {e.start})") from None
     try:
-        return json.loads(text)
+        return json.loads(text, object_pairs_hook=functools.partial(_unique_keys, mark=mark_ambiguous))
     except json.JSONDecodeError as e:
         raise DataError(path, None, f"malformed JSON: {e.msg} at line {e.lineno} column {e.colno}") from None
+    except _DuplicateKeyError as e:
+        raise DataError(path, e.key, _TWICE) from None
     except (ValueError, RecursionError) as e:
         raise DataError(path, None, f"malformed JSON: {type(e).__name__}") from None
 
@@ -302,6 +332,8 @@ class _Node:
     __slots__ = ("file", "data", "prefix")
 
     def __init__(self, file: str, data: Any, prefix: str = ""):
+        if data is AMBIGUOUS:
+            raise DataError(file, prefix or None, _TWICE)
         if not isinstance(data, dict):
             raise DataError(file, prefix or None, f"expected a JSON object, got {_type_name(data)}")
         self.file = file
@@ -317,6 +349,10 @@ class _Node:
     def get(self, key: str) -> Any:
         if key not in self.data:
             raise DataError(self.file, self.field(key), "missing")
+        if self.data[key] is AMBIGUOUS:
+            raise DataError(
+                self.file, self.field(key), "listed twice with different values (which one holds is ambiguous)"
+            )
         return self.data[key]
 
     def node(self, key: str) -> _Node:

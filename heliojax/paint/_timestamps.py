@@ -28,8 +28,9 @@ def read_timestamps(
             (field ``"<ID>.datetime"`` etc.) when ``on_error`` is None.
     """
     file = str(path)
-    root = _Node(file, _load_json(path))
+    root = _Node(file, _load_json(path, mark_ambiguous=True))
     out: dict[int, TimestampEntry] = {}
+    ambiguous: set[int] = set()  # ids written twice (e.g. "7" and "07") with different entries
     for key, value in root.data.items():
         try:
             if not _ID_RE.match(key):
@@ -38,7 +39,12 @@ def read_timestamps(
             hid = entry.string("heliostat_id")
             _check(bool(hid), file, entry.field("heliostat_id"), "empty")
             dt = _check_datetime(file, entry.field("datetime"), entry.get("datetime"))
-            out[int(key)] = TimestampEntry(hid, dt)
+            rid = int(key)
+            if rid in ambiguous or out.get(rid, TimestampEntry(hid, dt)) != TimestampEntry(hid, dt):
+                ambiguous.add(rid)
+                out.pop(rid, None)
+                raise DataError(file, key, f"record {rid} is listed twice with different entries: neither is used")
+            out[rid] = TimestampEntry(hid, dt)
         except DataError as e:
             if on_error is None:
                 raise
