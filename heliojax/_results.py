@@ -16,6 +16,7 @@ Schema (``H`` heliostats, ``M`` padded records; NaN / -1 where no record):
 * ``params`` ``(H, P)`` float64, physical units; ``param_std`` ``(H, P)``
   Gauss-Newton standard errors; ``covariance`` ``(H, F, F)`` of the free parameters
 * ``status`` ``(H,)`` int32 (:class:`heliojax.FitStatus`), ``status_labels`` ``(H,)`` str
+  (the labels of ``summary.json``: ``no_training_records`` for ``FitStatus.NO_RECORDS``)
 * ``noise_mrad`` ``(H,)`` noise per residual component (robust estimate)
 * ``worse_than_nominal`` ``(H,)`` bool: the fit's leave-one-out RMS error on its
   training records is not below the uncalibrated model's (not used for aiming)
@@ -144,7 +145,11 @@ def write_results_h5(path: str | Path, run: typing.Any) -> None:
         f.create_dataset("param_std", data=np.asarray(run.result.std)[:n])
         f.create_dataset("covariance", data=np.asarray(run.result.covariance)[:n])
         f.create_dataset("status", data=np.asarray(run.result.status)[:n].astype(np.int32))
-        f.create_dataset("status_labels", data=np.array(run.result.status_labels()[:n], dtype=object), dtype=str_dt)
+        # the summary's labels: a real heliostat with no record selected has none to train on
+        labels = [
+            "no_training_records" if x == FitStatus.NO_RECORDS.label else x for x in run.result.status_labels()[:n]
+        ]
+        f.create_dataset("status_labels", data=np.array(labels, dtype=object), dtype=str_dt)
         f.create_dataset("noise_mrad", data=np.asarray(run.noise_mrad, float)[:n])
         worse = run.summary["fleet"].get("worse_than_nominal", [])
         f.create_dataset("worse_than_nominal", data=np.array([i in worse for i in run.fleet.ids[:n]], bool))

@@ -278,9 +278,13 @@ def test_a_long_step_shows_a_bar_whose_time_moves(monkeypatch, capsys):
 def test_heliostats_without_training_records_say_why(tmp_path, capsys):
     report = tmp_path / "summary.json"
     argv = ["calibrate", "--split", "azimuth", "--train", "100", "--no-robust", "--no-pool"]
-    assert main([*argv, "--report", str(report), "--cache-dir", "none", "--quiet"]) == 0
+    assert (
+        main([*argv, "--report", str(report), "--out", str(tmp_path / "r.h5"), "--cache-dir", "none", "--quiet"]) == 0
+    )
     out = capsys.readouterr().out
     s = json.loads(report.read_text())
+    saved = hj.load_results(tmp_path / "r.h5")  # results.h5 says the same
+    assert dict(zip(saved.ids, saved.status)) == {h: v["status"] for h, v in s["heliostats"].items()}
     short = {h: v for h, v in s["heliostats"].items() if v["status"] != "converged"}
     assert set(short) == {"BG23", "BH20", "BL14"}  # 52, 30 and 9 records; BE36 and BF56 have more than 100
     for hid, h in short.items():
