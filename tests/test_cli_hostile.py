@@ -166,6 +166,8 @@ CASES = [
     ("aim without results", lambda t: ["aim", str(t / "results.h5")], "results.h5"),
     ("aim start without end", lambda t: ["aim", str(_a_file(t)), "--start", "2023-06-21"], "a-file"),
     ("aim bad date", lambda t: ["aim", "r.h5", "--date", "midsummer"], "--date"),
+    ("aim date in year 1", lambda t: ["aim", "r.h5", "--time", "0001-01-01T12:00"], "--time"),
+    ("plan date in year 9999", lambda t: ["plan", "r.h5", "--date", "9999-06-21"], "--date"),
     ("accept binary field CSV", lambda t: _accept(t, _file(t, "field.csv", b"\xff\xfe\x00\x81garbage")), "field.csv"),
     (
         "accept binary summary",

@@ -33,12 +33,19 @@ EXAMPLES = """examples:
   heliojax aim out/results.h5 --sun-azimuth -20 --sun-elevation 40 --target solar_tower_juelich_lower"""
 
 
+YEARS = (1900, 2200)
+"""Years an instant may fall in: the span of the solar position algorithm's tables
+kept here (and of any plant's operation)."""
+
+
 def _utc(value: str) -> dt.datetime:
-    """``YYYY-MM-DD[THH:MM[:SS]][Z|+hh:mm]``; naive means UTC."""
+    """``YYYY-MM-DD[THH:MM[:SS]][Z|+hh:mm]``; naive means UTC; a year in :data:`YEARS`."""
     try:
         t = dt.datetime.fromisoformat(value.replace("Z", "+00:00"))
     except ValueError as e:
         raise argparse.ArgumentTypeError(f"not an ISO date-time: {value!r}") from e
+    if not YEARS[0] <= t.year <= YEARS[1]:
+        raise argparse.ArgumentTypeError(f"{value!r}: the year must lie in {YEARS[0]}-{YEARS[1]}")
     return t if t.tzinfo is not None else t.replace(tzinfo=dt.UTC)
 
 
