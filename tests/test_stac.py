@@ -832,6 +832,44 @@ def test_lying_content_length_and_damaged_journal_are_clean_errors(tmp_path, cap
     assert rep.ok and files_under(out) == {k: v for k, v in expected.items() if "flux" not in k}
 
 
+def test_a_server_that_drips_is_broken_off(tmp_path, capsys):
+    """A server that sends a byte now and then, each within the read timeout, holds no
+    download for longer than the timeout: slower than MIN_BYTES_PER_S it is an error
+    naming the file."""
+    import time
+
+    class Drip(http.server.BaseHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+        def do_GET(self):
+            self.send_response(200)
+            self.send_header("Content-Length", "100000")
+            self.end_headers()
+            try:
+                for _ in range(200):  # 40 s at most
+                    self.wfile.write(b" ")
+                    self.wfile.flush()
+                    time.sleep(0.2)
+            except OSError:  # the client broke it off
+                pass
+            self.close_connection = True
+
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Drip)
+    th = threading.Thread(target=srv.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
+    th.start()
+    t0 = time.monotonic()
+    try:
+        url = f"http://127.0.0.1:{srv.server_address[1]}/catalog.json"
+        rc = _cli(["fetch", url, "--out", str(tmp_path / "o"), "--timeout", "1", "--quiet"])
+    finally:
+        srv.shutdown()
+        srv.server_close()
+    err = capsys.readouterr().err
+    assert rc == 2 and "catalog.json" in err and "bytes/s" in err, err
+    assert time.monotonic() - t0 < 10
+
+
 @contextlib.contextmanager
 def _serve_hostile(directory: Path, answers: dict):
     """Static server of ``directory`` where ``answers`` maps a path to ``(body, headers)``."""

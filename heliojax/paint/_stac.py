@@ -62,7 +62,8 @@ followed: it may ask for hours). A STAC JSON file is read to at most ``MAX_STAC_
 (64 MiB) whatever its Content-Length says. Local paths and ``file://`` URLs are
 read with :func:`open`. A compressed (``Content-Encoding``) body that inflates to more
 than ``MAX_INFLATION`` (100) times the bytes received, beyond its first 16 MiB, is broken
-off (a gzip bomb).
+off (a gzip bomb), as is a body slower than ``MIN_BYTES_PER_S`` (1 KiB/s) on average once
+the timeout has passed (a server that drips a byte within each read timeout).
 
 Errors. Unsafe hrefs and an unreadable root raise :class:`DataError` naming the
 href; a STAC file below the root that cannot be read (network error after retries,

@@ -11,6 +11,7 @@ import json
 import os
 import re
 import threading
+import time
 import urllib.parse
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
@@ -18,6 +19,7 @@ from typing import Any
 
 import pystac
 import requests
+import urllib3
 from requests.adapters import HTTPAdapter
 from urllib3.exceptions import MaxRetryError
 from urllib3.util import Retry
@@ -219,7 +221,7 @@ class _Reader:
         if self.transport is None and _scheme(href) in ("http", "https"):
             with self.session.get(href, stream=True, timeout=self.timeout_s) as response:
                 response.raise_for_status()
-                yield _inflation_bounded(response)
+                yield _bounded_body(response, self.timeout_s)
         else:
             with self._open(href) as f:
                 yield iter(lambda: f.read(_CHUNK), b"")
@@ -281,20 +283,35 @@ GB) is broken off instead of filling the disk."""
 _INFLATION_FREE = 16 * _CHUNK
 
 
-def _inflation_bounded(response: requests.Response) -> Iterator[bytes]:
-    """``response``'s decoded body in chunks; :class:`OSError` once a compressed body
-    inflates beyond :data:`MAX_INFLATION` times the bytes received."""
+MIN_BYTES_PER_S = 1024
+"""Slowest body accepted once :data:`timeout_s` has passed (a server that drips a byte
+now and then, each read within the timeout, would otherwise hold a download forever)."""
+
+
+def _bounded_body(response: requests.Response, timeout_s: float) -> Iterator[bytes]:
+    """``response``'s decoded body in chunks as they arrive; :class:`OSError` once a
+    compressed body inflates beyond :data:`MAX_INFLATION` times the bytes received, or
+    once, after ``timeout_s``, fewer than :data:`MIN_BYTES_PER_S` per second came in."""
     encoding = response.headers.get("Content-Encoding", "identity").strip().lower()
     decoded = 0
-    for chunk in response.iter_content(_CHUNK):
+    start = time.monotonic()
+    while True:
+        try:
+            chunk = response.raw.read1(_CHUNK, decode_content=True)  # what arrived: no waiting for a full chunk
+        except urllib3.exceptions.HTTPError as e:  # a broken-off body, a read timeout
+            raise OSError(f"body broken off: {e}") from e
+        if not chunk:
+            return
         decoded += len(chunk)
-        if encoding != "identity" and decoded > _INFLATION_FREE:
-            received = response.raw.tell()  # bytes over the wire, before decoding
-            if decoded > MAX_INFLATION * max(received, 1):
-                raise OSError(
-                    f"Content-Encoding {encoding}: {received} bytes received inflate to over {decoded}: "
-                    "refused as a decompression bomb"
-                )
+        received = response.raw.tell()  # bytes over the wire, before decoding
+        if encoding != "identity" and decoded > _INFLATION_FREE and decoded > MAX_INFLATION * max(received, 1):
+            raise OSError(
+                f"Content-Encoding {encoding}: {received} bytes received inflate to over {decoded}: "
+                "refused as a decompression bomb"
+            )
+        elapsed = time.monotonic() - start
+        if elapsed > timeout_s and received < MIN_BYTES_PER_S * elapsed:
+            raise OSError(f"{received} bytes in {elapsed:.0f} s, slower than {MIN_BYTES_PER_S} bytes/s: broken off")
         yield chunk
 
 
