@@ -175,6 +175,25 @@ CASES = [
         "summary.json",
     ),
     ("accept sampling not a table", lambda t: _accept(t, "f.csv", "sampling = 5\n" + CONTRACT), "[sampling]"),
+    (
+        "accept field value beyond any measurement",
+        lambda t: _accept(t, _file(t, "field.csv", "heliostat_id,east_m,north_m,tracking_mrad\nA1,0,0,1e300\n")),
+        "line 2: tracking_mrad",
+    ),
+    (
+        "accept summary error beyond any measurement",
+        lambda t: [
+            *_accept(t, _file(t, "summary.json", '{"heliostats": {"BE36": {"test_rms_mrad": 1e300}}}')),
+            "--paint",
+            str(hj.default_data_dir()),
+        ],
+        "heliostats.BE36.test_rms_mrad",
+    ),
+    (
+        "accept contract mean beyond any measurement",
+        lambda t: _accept(t, "f.csv", CONTRACT.replace("mean = 2.0", "mean = 1e300")),
+        "mean must be at most",
+    ),
     ("accept contract year -5", lambda t: _accept(t, "f.csv", CONTRACT + "[yield]\nyear = -5\n"), "year"),
     (
         "accept contract bandwidth inf",

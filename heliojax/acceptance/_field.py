@@ -21,19 +21,22 @@ class ParameterInfo:
         support: ``"positive"`` (KDE on log-values) or ``"unit"`` (KDE on logits).
         distribution: ``"radial"`` (2-D radial error; Rayleigh/Weibull-like) or
             ``"normal"``.
+        maximum: the largest value that can be a measurement of a heliostat (in
+            ``unit``); a larger one is a data error.
     """
 
     unit: str
     sense: Literal["lower", "higher", "two-sided"]
     support: Literal["positive", "unit", "real"]
     distribution: Literal["radial", "normal"]
+    maximum: float
 
 
 PARAMETERS: dict[str, ParameterInfo] = {
-    "tracking_mrad": ParameterInfo("mrad", "lower", "positive", "radial"),
-    "slope_mrad": ParameterInfo("mrad", "lower", "positive", "radial"),
-    "reflectance": ParameterInfo("1", "higher", "unit", "normal"),
-    "aperture_m2": ParameterInfo("m^2", "higher", "positive", "normal"),
+    "tracking_mrad": ParameterInfo("mrad", "lower", "positive", "radial", 1000.0),  # a beam 57 deg off
+    "slope_mrad": ParameterInfo("mrad", "lower", "positive", "radial", 1000.0),
+    "reflectance": ParameterInfo("1", "higher", "unit", "normal", 1.0),
+    "aperture_m2": ParameterInfo("m^2", "higher", "positive", "normal", 10_000.0),  # the largest are ~200 m^2
 }
 """The parameters of the guideline, keyed by their CSV column name.
 

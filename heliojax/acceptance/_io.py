@@ -94,6 +94,9 @@ def read_field_csv(path: str | os.PathLike) -> FieldData:
                 sup = PARAMETERS[p].support
                 if (sup == "positive" and x <= 0) or (sup == "unit" and not 0 < x < 1):
                     raise DataError(path, f"line {i}: {p}", f"{x} outside the {sup} range")
+                info = PARAMETERS[p]
+                if x > info.maximum:
+                    raise DataError(path, f"line {i}: {p}", f"{x} above {info.maximum:g} {info.unit}: no measurement")
             vals[p].append(x)
     if len(set(ids)) != len(ids):
         dup = sorted({h for h in ids if ids.count(h) > 1})[0]
@@ -155,8 +158,12 @@ def read_summary(path: str | os.PathLike) -> dict[str, float]:
         if isinstance(x, bool) or not isinstance(x, (int, float)):
             raise DataError(path, f"heliostats.{hid}.test_rms_mrad", f"not a number: {x!r}")
         if math.isfinite(x):
-            if x <= 0:
-                raise DataError(path, f"heliostats.{hid}.test_rms_mrad", f"must be > 0, got {x}")
+            if not 0 < x <= PARAMETERS["tracking_mrad"].maximum:
+                raise DataError(
+                    path,
+                    f"heliostats.{hid}.test_rms_mrad",
+                    f"must be in (0, {PARAMETERS['tracking_mrad'].maximum:g}] mrad, got {x}",
+                )
             out[hid] = float(x)
     return out
 
@@ -301,6 +308,11 @@ def load_contract(path: str | os.PathLike) -> Contract:
             x = spec.get(key)
             if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) or x <= 0:
                 raise ConfigError(f"{path}: [{sec}] {key} must be a number > 0, got {x!r}")
+            if key in ("mean", "std") and name in PARAMETERS and x > PARAMETERS[name].maximum:
+                raise ConfigError(
+                    f"{path}: [{sec}] {key} must be at most {PARAMETERS[name].maximum:g} {PARAMETERS[name].unit}, "
+                    f"got {x!r}"
+                )
             if key == "rel_error" and x >= 1:
                 raise ConfigError(f"{path}: [{sec}] rel_error must be below 1 (a fraction of the mean), got {x!r}")
             vals[key] = float(x)
