@@ -663,3 +663,30 @@ def test_record_with_a_non_string_heliostat_id_is_skipped_not_crashing(raw_emb, 
     assert f.report.skipped[-1].field == "heliostat_id"
     with pytest.raises(DataError, match="heliostat_id"):
         records_to_fleet(tower, [p], [bad] + rs[1:], strict=True)
+
+
+def test_unreadable_folders_are_named_not_silently_empty(tmp_path, monkeypatch):
+    """A heliostat folder or a Calibration folder the process may not read (a listing
+    that fails looks like an empty or missing folder) is named in the load report; the
+    other heliostats load as before. Permissions are simulated: the tests may run as root."""
+    import os
+    import shutil
+
+    data = tmp_path / "paint"
+    shutil.copytree(default_data_dir(), data)
+    locked_heliostat, locked_calibration = data / "BG23", data / "BF56" / "Calibration"
+    real_access, real_scandir = os.access, os.scandir
+    monkeypatch.setattr(os, "access", lambda p, mode, **kw: Path(p) != locked_heliostat and real_access(p, mode, **kw))
+
+    def scandir(path=".", *args, **kwargs):
+        if Path(path) == locked_calibration:
+            raise PermissionError(13, "Permission denied", str(path))
+        return real_scandir(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "scandir", scandir)
+    fleet = load_paint_directory(data)
+    assert set(fleet.ids) == {"BE36", "BF56", "BH20", "BL14"}
+    named = {Path(e.file).relative_to(data).as_posix(): e.reason for e in fleet.report.skipped}
+    assert "permission denied" in named["BG23"].lower() and "Permission denied" in named["BF56/Calibration"]
+    assert not np.asarray(fleet.mask)[list(fleet.ids).index("BF56")].any()
+    assert np.asarray(fleet.mask)[list(fleet.ids).index("BE36")].sum() == 164

@@ -424,6 +424,19 @@ def records_to_fleet(
 # ======================================================================================
 
 
+def _listing(folder: Path, suffix: str, log: _Log) -> list[Path]:
+    """The files in ``folder`` whose names end in ``suffix`` (not hidden), sorted; none
+    for a missing folder; an unreadable one is named in the load report."""
+    try:
+        with os.scandir(folder) as entries:
+            return sorted(Path(e.path) for e in entries if e.name.endswith(suffix) and not e.name.startswith("."))
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+    except OSError as e:
+        log.skip(DataError(folder, None, f"cannot list folder: {e.strerror or e}"))
+        return []
+
+
 def load_paint_directory(
     path: str | os.PathLike | None = None,
     *,
@@ -495,9 +508,14 @@ def load_paint_directory(
     elif csv_path.exists():
         log.skip(DataError(csv_path, None, "not a file: no weather"))
 
-    dirs = sorted(
-        d for d in root.iterdir() if d.is_dir() and ((d / "Properties").is_dir() or (d / "Calibration").is_dir())
-    )
+    dirs = []
+    for d in sorted(root.iterdir()):
+        if not d.is_dir():
+            continue
+        if not os.access(d, os.R_OK | os.X_OK):  # is_dir() of its subfolders would say False: name it
+            log.skip(DataError(d, None, "cannot read folder: permission denied"))
+        elif (d / "Properties").is_dir() or (d / "Calibration").is_dir():
+            dirs.append(d)
     if heliostats is not None:
         wanted = set(heliostats)
         for hid in sorted(wanted - {d.name for d in dirs}):
@@ -508,8 +526,8 @@ def load_paint_directory(
     records: list[CalibrationRecord] = []
     for d in dirs:
         hid = d.name
-        prop_files = sorted((d / "Properties").glob("*" + PROPERTIES_SUFFIX))
-        cal_files = sorted((d / "Calibration").glob("*" + CALIBRATION_SUFFIX))
+        prop_files = _listing(d / "Properties", PROPERTIES_SUFFIX, log)
+        cal_files = _listing(d / "Calibration", CALIBRATION_SUFFIX, log)
         log.files_seen += len(prop_files) + len(cal_files)
         expected = heliostat_properties_path(root, hid)
         try:
