@@ -377,7 +377,7 @@ def test_a_config_string_for_a_list_option_is_one_value():
     from heliojax.cli._main import _config_value, build_parser
 
     _, _, subparsers = build_parser()
-    targets = next(a for a in subparsers["plan"]._actions if a.dest == "targets")
+    targets = subparsers["plan"].options["targets"]
     assert _config_value(targets, "multi_focus_tower", "c.toml") == ["multi_focus_tower"]
     assert _config_value(targets, ["a", "b"], "c.toml") == ["a", "b"]
 

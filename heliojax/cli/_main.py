@@ -49,10 +49,36 @@ def _available():
 
 
 class _Parser(argparse.ArgumentParser):
-    """Usage errors in two lines: the error naming the flag, and where to find help."""
+    """Usage errors in two lines: the error naming the flag, and where to find help;
+    :attr:`options` (dest -> action) holds every option added, for configs to be read
+    as the command line would be."""
+
+    def __init__(self, *args: typing.Any, **kwargs: typing.Any) -> None:
+        self.options: dict[str, argparse.Action] = {}
+        super().__init__(*args, **kwargs)
+
+    def add_argument(self, *args: typing.Any, **kwargs: typing.Any) -> argparse.Action:
+        action = super().add_argument(*args, **kwargs)
+        self.options[action.dest] = action
+        return action
+
+    def add_mutually_exclusive_group(self, **kwargs: typing.Any) -> typing.Any:
+        return _RecordedGroup(super().add_mutually_exclusive_group(**kwargs), self.options)
 
     def error(self, message: str) -> typing.NoReturn:
         self.exit(2, f"{self.prog}: error: {message}\nsee '{self.prog} --help'\n")
+
+
+class _RecordedGroup:
+    """A mutually exclusive group whose options are recorded in its parser's ``options``."""
+
+    def __init__(self, group: typing.Any, options: dict[str, argparse.Action]) -> None:
+        self.group, self.options = group, options
+
+    def add_argument(self, *args: typing.Any, **kwargs: typing.Any) -> argparse.Action:
+        action = self.group.add_argument(*args, **kwargs)
+        self.options[action.dest] = action
+        return action
 
 
 class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
@@ -113,7 +139,7 @@ def _apply_config(subparser: argparse.ArgumentParser, command: str, path: Path, 
     table = doc.get(command, {})
     if not isinstance(table, dict):
         raise ConfigError(f"{path}: [{command}] must be a table")
-    known = {a.dest: a for a in subparser._actions}
+    known = subparser.options if isinstance(subparser, _Parser) else {}
     defaults = {}
     for key, value in table.items():
         dest = key.replace("-", "_")
