@@ -13,6 +13,7 @@ import io
 import json
 import os
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 import pystac
@@ -212,7 +213,14 @@ def serve(directory: Path, log: list | None = None, errors: dict | None = None, 
             else:
                 super().do_GET()
 
-    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Handler, directory=str(directory)))
+    with _http_server(functools.partial(Handler, directory=str(directory))) as url:
+        yield url
+
+
+@contextlib.contextmanager
+def _http_server(handler) -> Iterator[str]:
+    """A threading HTTP server of ``handler`` on 127.0.0.1; yields its base URL."""
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
     srv.daemon_threads = True
     th = threading.Thread(target=srv.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
     th.start()
@@ -812,15 +820,9 @@ def test_lying_content_length_and_damaged_journal_are_clean_errors(tmp_path, cap
             self.wfile.flush()
             self.close_connection = True
 
-    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Liar)
-    th = threading.Thread(target=srv.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
-    th.start()
-    try:
-        url = f"http://127.0.0.1:{srv.server_address[1]}/catalog.json"
+    with _http_server(Liar) as base:
+        url = f"{base}/catalog.json"
         rc = _cli(["fetch", url, "--out", str(tmp_path / "o"), "--timeout", "5", "--quiet"])
-    finally:
-        srv.shutdown()
-        srv.server_close()
     err = capsys.readouterr().err
     assert rc == 2 and "catalog.json" in err and len(err.strip().splitlines()) <= 2, err
     assert requests_seen == ["/catalog.json"]
@@ -855,16 +857,10 @@ def test_a_server_that_drips_is_broken_off(tmp_path, capsys):
                 pass
             self.close_connection = True
 
-    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Drip)
-    th = threading.Thread(target=srv.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
-    th.start()
     t0 = time.monotonic()
-    try:
-        url = f"http://127.0.0.1:{srv.server_address[1]}/catalog.json"
+    with _http_server(Drip) as base:
+        url = f"{base}/catalog.json"
         rc = _cli(["fetch", url, "--out", str(tmp_path / "o"), "--timeout", "1", "--quiet"])
-    finally:
-        srv.shutdown()
-        srv.server_close()
     err = capsys.readouterr().err
     assert rc == 2 and "catalog.json" in err and "bytes/s" in err, err
     assert time.monotonic() - t0 < 10
@@ -888,15 +884,8 @@ def _serve_hostile(directory: Path, answers: dict):
             self.end_headers()
             self.wfile.write(body)
 
-    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Handler, directory=str(directory)))
-    srv.daemon_threads = True
-    th = threading.Thread(target=srv.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
-    th.start()
-    try:
-        yield f"http://127.0.0.1:{srv.server_address[1]}"
-    finally:
-        srv.shutdown()
-        srv.server_close()
+    with _http_server(functools.partial(Handler, directory=str(directory))) as url:
+        yield url
 
 
 _ITEM = "/AA31-heliostat-catalog/AA31-calibration-collection/126372/126372.json"
