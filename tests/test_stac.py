@@ -90,8 +90,11 @@ def _source_records() -> dict:
                     dt.datetime(2022, 7, 1 + 10 * k, 12, tzinfo=UTC),
                     {
                         "calibration_properties": (f"{cid}-calibration-properties.json", rec(k)),
-                        "flux_image": (f"{cid}-flux.png", b"\x89PNG-flux" + bytes(200 + k)),
-                        "flux_centered_image": (f"{cid}-flux-centered.png", b"\x89PNG-centered" + bytes(300 + k)),
+                        "flux_image": (f"{cid}-flux.png", b"\x89PNG\r\n\x1a\n-flux" + bytes(200 + k)),
+                        "flux_centered_image": (
+                            f"{cid}-flux-centered.png",
+                            b"\x89PNG\r\n\x1a\n-centered" + bytes(300 + k),
+                        ),
                     },
                 )
                 for k, cid in enumerate(("125284", "126372"))
@@ -722,7 +725,7 @@ def _write_paint_style(site: Path, base: str, records: dict) -> dict[str, bytes]
     for cid, when, assets in rec["items"]:
         name, data = assets["calibration_properties"]
         put(f"{h}/Calibration/{name}", data)
-        put(f"{h}/Calibration/{cid}-raw.png", b"\x89PNG raw")
+        put(f"{h}/Calibration/{cid}-raw.png", b"\x89PNG\r\n\x1a\n raw")
         expected[f"{h}/Calibration/{name}"] = data
         put(
             f"{h}/Calibration/{cid}-calibration-item-stac.json",
@@ -951,3 +954,83 @@ def test_timestamps_name_taken_by_a_folder_is_refused_before_downloading(catalog
     with pytest.raises(DataError, match="calibration-timestamps.json"):
         fetch_catalog(root_json, out, heliostats=["AA31"])
     assert sorted(p.name for p in out.iterdir()) == ["calibration-timestamps.json"]
+
+
+@pytest.mark.parametrize("body", [b"<html><body>503 Service Unavailable</body></html>", b""], ids=["html", "empty"])
+def test_a_png_answered_with_an_html_page_or_nothing_is_not_kept(tmp_path, body):
+    """A flux PNG answered with status 200 and an HTML error page (or an empty body) fails
+    that file, named; it is neither kept nor journalled (a resume would skip it for good)."""
+    build_catalogue(tmp_path / "site")
+    png = _ASSET.replace("calibration-properties.json", "flux.png")
+    out = tmp_path / "out"
+    with _serve_hostile(tmp_path / "site", {png: (body, {"Content-Type": "image/png"})}) as url:
+        rep = fetch_catalog(
+            f"{url}/catalog.json", out, heliostats=["AA31"], calibration_assets=ALL_CAL, include_tower=False
+        )
+    assert len(rep.failed) == 1 and rep.failed[0][0].endswith(png) and "not a PNG" in rep.failed[0][1], rep.failed
+    assert not (out / "AA31/Calibration/126372-flux.png").exists()
+    assert (out / "AA31/Calibration/125284-flux.png").is_file()
+    assert "126372-flux.png" not in (out / JOURNAL_NAME).read_text()
+
+
+@pytest.mark.parametrize("item_id", ["²", "9" * 5000])
+def test_an_item_id_of_odd_digits_is_no_record_id(catalogue, tmp_path, item_id):
+    """An item id of digits that int() refuses (a superscript, 5000 digits) gave a bare
+    "invalid literal for int()" without a file; it is simply not a record id."""
+    root_json, _ = catalogue
+    p = item_json(root_json.parent, "AA31", "126372")
+    d = json.loads(p.read_text())
+    d["id"] = item_id
+    data = p.parent / "data"
+    (data / "126372-calibration-properties.json").rename(data / "x.json")
+    d["assets"]["calibration_properties"]["href"] = "./data/x.json"
+    p.write_text(json.dumps(d))
+    rep = fetch_catalog(root_json, tmp_path / "out", heliostats=["AA31"])
+    assert rep.ok and (tmp_path / "out/AA31/Calibration/x.json").is_file()
+    stamps = json.loads((tmp_path / "out/calibration-timestamps.json").read_text())
+    assert set(stamps) == {"125284"}
+
+
+def test_two_items_giving_one_record_keep_its_time_and_are_named(catalogue, tmp_path):
+    """Item 126372's asset pointing at 125284's file moved 125284's time to 126372's
+    without a word; the first item's time is kept and both items are named."""
+    root_json, _ = catalogue
+    site = root_json.parent
+    other = item_json(site, "AA31", "125284").parent / "data" / "125284-calibration-properties.json"
+    edit_asset(site, "AA31", "126372", "calibration_properties", href=str(other))
+    rep = fetch_catalog(root_json, tmp_path / "out", heliostats=["AA31"])
+    stamps = json.loads((tmp_path / "out/calibration-timestamps.json").read_text())
+    assert stamps["125284"]["datetime"] == "2022-07-01T12:00:00Z"
+    assert any("125284" in w and "126372.json" in w for w in rep.warnings), rep.warnings
+
+
+def test_a_second_catalogue_of_one_heliostat_is_named_and_links_are_read_once(catalogue, tmp_path):
+    root_json, _ = catalogue
+    site = root_json.parent
+    import shutil
+
+    shutil.copytree(site / "AA31-heliostat-catalog", site / "AA31-copy")
+    root = json.loads(root_json.read_text())
+    root["links"] += [{"rel": "child", "href": "./AA31-heliostat-catalog/catalog.json"}] * 500
+    root["links"].append({"rel": "child", "href": "./AA31-copy/catalog.json"})
+    root_json.write_text(json.dumps(root))
+    seen: list[str] = []
+
+    def transport(href, timeout_s):
+        seen.append(href)
+        return open(href, "rb")
+
+    rep = fetch_catalog(root_json, tmp_path / "out", heliostats=["AA31"], transport=transport)
+    assert rep.ok and rep.heliostats == ("AA31",)
+    assert sum(h.endswith("AA31-heliostat-catalog/catalog.json") for h in seen) == 1
+    assert any("AA31-copy" in w and "ignored" in w for w in rep.warnings), rep.warnings
+
+
+def test_a_relative_href_with_query_in_a_remote_catalogue_names_its_path(tmp_path):
+    build_catalogue(tmp_path / "site")
+    item = json.loads((tmp_path / "site" / _ITEM[1:]).read_text())
+    item["assets"]["calibration_properties"]["href"] += "?v=1#part"
+    out = tmp_path / "out"
+    with _serve_hostile(tmp_path / "site", {_ITEM: (json.dumps(item).encode(), {})}) as url:
+        rep = fetch_catalog(f"{url}/catalog.json", out, heliostats=["AA31"], include_tower=False)
+    assert rep.ok and (out / "AA31/Calibration/126372-calibration-properties.json").is_file()

@@ -46,7 +46,8 @@ Resume and verification. Every file is streamed to a hidden temporary file
 (``.<name>.<random>.part``) in its destination folder, checked, and renamed onto
 its name: an interrupted download never looks complete. Checked are the size
 and checksum from the STAC ``file`` extension (``file:size``, ``file:checksum``,
-a multihash) when the asset has them, and that a ``.json`` file parses. Each
+a multihash) when the asset has them, that a ``.json`` file parses, and that a
+``.png`` or ``.h5`` file starts with its format's signature (not an HTML error page). Each
 completed file is appended to the journal ``<out>/.heliojax-fetch.jsonl``
 (path, source href, size, SHA-256). With ``resume=True`` a file that already
 exists is skipped when it matches the asset's ``file:size``/``file:checksum``, or,
@@ -101,13 +102,13 @@ from ._stac_io import (
     FetchReport,
     Transport,
     _Checker,
+    _content_ok,
     _dest_name,
     _Failure,
     _hash_file,
     _heliostat_id,
     _is_url,
     _Journal,
-    _json_ok,
     _parse_multihash,
     _Reader,
     _safe_dest,
@@ -246,6 +247,7 @@ def fetch_catalog(
             else:
                 child_hrefs.append(href)  # unknown naming: read it and look at its id
 
+        child_hrefs = list(dict.fromkeys(child_hrefs))  # a child linked many times is read once
         say(f"reading {len(child_hrefs)} child catalogue(s) of the root")
         children = list(pool.map(reader.stac_or_error, child_hrefs))
         catalogs: dict[str, tuple[pystac.STACObject, str]] = {}
@@ -262,6 +264,10 @@ def fetch_catalog(
                 continue  # weather collection or something else
             hid = _heliostat_id(obj.id, href)
             if wanted is not None and hid not in wanted:
+                continue
+            if hid in catalogs:
+                first = catalogs[hid][1]
+                warnings.append(f"two heliostat catalogues give {hid}: {first} and {href}; the second is ignored")
                 continue
             catalogs[hid] = (obj, href)
         missing = tuple(sorted(wanted - set(catalogs))) if wanted is not None else ()
@@ -360,7 +366,7 @@ def _plan_asset(
     if ".." in urllib.parse.unquote(raw_path).replace("\\", "/").split("/"):
         raise DataError(owner, field, f"asset href {raw!r} contains a '..' segment (path traversal)")
     src = scope.resolve(raw, owner, owner, field)
-    name = _dest_name(raw, owner, field)
+    name = _dest_name(src if _scheme(src) in ("http", "https") else raw, owner, field)  # no ?query, #fragment
     for part in folder:
         if not _NAME_RE.match(part):
             raise DataError(owner, field, f"unsafe folder name {part!r}")
@@ -411,6 +417,7 @@ def _plan_heliostat(
                 if obj.id.endswith(suffix):
                     found[name] = (obj, href)
     tasks: list[_Task] = []
+    record_items: dict[int, str] = {}  # calibration record id -> the item that gave it
     for name in collections:
         if name not in found:
             warnings.append(f"{hid}: no {name} collection")
@@ -438,7 +445,13 @@ def _plan_heliostat(
         for when, _, item, href in selected:
             if name == "calibration" and when is not None:
                 record_id = _record_id(item)
-                if record_id is not None:
+                if record_id is not None and record_id in record_items:
+                    warnings.append(
+                        f"{hid}: items {record_items[record_id]} and {href} both give calibration record {record_id}; "
+                        f"its time is taken from the first"
+                    )
+                elif record_id is not None:
+                    record_items[record_id] = href
                     utc = when.astimezone(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
                     timestamps[record_id] = TimestampEntry(hid, utc)
             for key, asset in item.assets.items():  # pyright: ignore[reportAttributeAccessIssue]
@@ -454,7 +467,8 @@ def _plan_heliostat(
 
 
 TIMESTAMPS_FILE = "calibration-timestamps.json"
-_RECORD_ID_RE = re.compile(r"(\d+)-calibration-properties\.json$")
+_RECORD_ID_RE = re.compile(r"(?<![0-9])([0-9]{1,18})-calibration-properties\.json$")
+_ITEM_ID_RE = re.compile(r"[0-9]{1,18}")  # ASCII digits that fit an int64 (not "²", not 5000 digits)
 
 
 def _record_id(item: pystac.Item) -> int | None:
@@ -464,7 +478,7 @@ def _record_id(item: pystac.Item) -> int | None:
     m = _RECORD_ID_RE.search(urllib.parse.urlparse(asset.href).path) if asset is not None else None
     if m:
         return int(m.group(1))
-    return int(item.id) if item.id.isdigit() else None
+    return int(item.id) if _ITEM_ID_RE.fullmatch(item.id) else None
 
 
 def _merge_timestamps(path: Path, new: dict[int, TimestampEntry]) -> None:
@@ -491,7 +505,7 @@ def _fetch_one(task: _Task, reader: _Reader, journal: _Journal, resume: bool, ou
         hs = _hash_file(dest, algos)
         size = dest.stat().st_size
         if checker.has_reference:
-            if checker.check(size, hs[-1]) is None and _json_ok(dest) is None:
+            if checker.check(size, hs[-1]) is None and _content_ok(dest) is None:
                 return "skipped", 0
         else:
             rec = journal.records.get(task.rel)
@@ -500,7 +514,7 @@ def _fetch_one(task: _Task, reader: _Reader, journal: _Journal, resume: bool, ou
                 and rec.get("href") == task.src
                 and rec.get("size") == size
                 and rec.get("sha256") == hs[0].hexdigest()
-                and _json_ok(dest) is None
+                and _content_ok(dest) is None
             ):
                 return "skipped", 0
     dest.parent.mkdir(parents=True, exist_ok=True)
@@ -525,7 +539,7 @@ def _fetch_one(task: _Task, reader: _Reader, journal: _Journal, resume: bool, ou
                 os.fsync(f.fileno())
         except OSError as e:
             raise _Failure(f"download failed: {e}") from e
-        problem = checker.check(size, other if other is not None else sha) or _json_ok(tmp, dest.name)
+        problem = checker.check(size, other if other is not None else sha) or _content_ok(tmp, dest.name)
         if problem:
             raise _Failure(problem)
         os.chmod(tmp, _FILE_MODE)  # mkstemp creates 0600; give the usual umask-based mode
@@ -581,7 +595,7 @@ def verify_download(out_dir: str | os.PathLike) -> list[str]:
         if _hash_file(p, [hashlib.sha256])[0].hexdigest() != rec.get("sha256"):
             problems.append(f"{rel}: SHA-256 differs from the journal")
             continue
-        bad = _json_ok(p)
+        bad = _content_ok(p)
         if bad:
             problems.append(f"{rel}: {bad}")
     return problems

@@ -371,6 +371,25 @@ class _Checker:
         return None
 
 
+_SIGNATURES = {".png": (b"\x89PNG\r\n\x1a\n", (0,)), ".h5": (b"\x89HDF\r\n\x1a\n", (0, 512, 1024, 2048))}
+"""File signature of a PNG, and of an HDF5 file (at 0 or after a user block), by file name suffix."""
+
+
+def _content_ok(path: Path, name: str | None = None) -> str | None:
+    """Problem with ``path`` judged by ``name`` (default: its own name): a ``.json`` file
+    that does not parse, a ``.png`` or ``.h5`` file without its format's signature (an
+    HTML error page or an empty body served with status 200)."""
+    suffix = os.path.splitext(name or path.name)[1].lower()
+    if suffix in _SIGNATURES:
+        magic, offsets = _SIGNATURES[suffix]
+        with open(path, "rb") as f:
+            head = f.read(offsets[-1] + len(magic))
+        if not any(head[o : o + len(magic)] == magic for o in offsets):
+            return f"downloaded file is not a {suffix[1:].upper()} file (starts with {head[:16]!r})"
+        return None
+    return _json_ok(path, name)
+
+
 def _json_ok(path: Path, name: str | None = None) -> str | None:
     """Problem with ``path`` if ``name`` (default: its own name) ends in ``.json`` and it does not parse."""
     if not (name or path.name).lower().endswith(".json"):
