@@ -234,6 +234,16 @@ CASES = [
     ),
     ("fetch out empty", lambda t: ["fetch", "--out", ""], "--out"),
     (
+        "trace sun sigma of a radian",
+        lambda t: ["trace", str(t), "--heliostat", "AA39", "--sigma-mrad", "1e9"],
+        "--sigma-mrad",
+    ),
+    (
+        "trace slope error of a radian",
+        lambda t: ["trace", str(t), "--heliostat", "AA39", "--slope-error-mrad", "1e6"],
+        "--slope-error-mrad",
+    ),
+    (
         "accept tower file missing",
         lambda t: _accept(t, "f.csv", CONTRACT + '[yield]\ntower_file = "nowhere.json"\n'),
         "nowhere.json",
@@ -405,3 +415,45 @@ def test_spots_far_from_their_target_and_heliostats_far_from_the_plant_are_skipp
     assert (weather.name, None) in skipped
     assert report.heliostats_loaded == 4 and report.heliostats_skipped == 1
     assert report.records_skipped == 1 + 9
+
+
+def test_flux_pngs_that_are_jpegs_turned_or_transparent_are_refused(tmp_path):
+    """A JPEG named .png, a PNG with an EXIF orientation and one with transparent pixels
+    were read as if plain (lossy, unturned, alpha dropped); each is a DataError naming it."""
+    import numpy as np
+    from PIL import Image
+
+    from heliojax.paint import read_flux_png
+
+    spot = np.zeros((64, 64), np.uint8)
+    spot[20:40, 25:45] = 200
+    im = Image.fromarray(spot)
+    im.convert("RGB").save(tmp_path / "jpeg.png", format="JPEG")
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    im.save(tmp_path / "turned.png", exif=exif)
+    Image.merge("LA", (im, Image.fromarray(np.where(spot > 0, 0, 255).astype(np.uint8)))).save(tmp_path / "la.png")
+    for name, message in [("jpeg", "JPEG"), ("turned", "orientation 6"), ("la", "transparent")]:
+        with pytest.raises(hj.DataError, match=message) as e:
+            read_flux_png(tmp_path / f"{name}.png")
+        assert e.value.file == str(tmp_path / f"{name}.png") and "cannot read PNG" not in str(e.value)
+    Image.merge("LA", (im, Image.fromarray(np.full((64, 64), 255, np.uint8)))).save(tmp_path / "opaque.png")
+    im.save(tmp_path / "plain.png")
+    assert np.array_equal(read_flux_png(tmp_path / "opaque.png"), read_flux_png(tmp_path / "plain.png"))
+
+
+def test_trace_summary_is_strict_json_and_a_missing_flux_png_is_named(tmp_path, capsys, caplog):
+    """NaN (the correlation of a trace that missed) is null in the summary, and a record
+    without its measured flux PNG is traced with a warning that names the PNG."""
+    from heliojax.cli._trace import _finite
+
+    assert _finite({"ncc": float("nan"), "w": [float("inf"), 1.0], "n": 3}) == {"ncc": None, "w": [None, 1.0], "n": 3}
+    data = tmp_path / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    record = sorted((data / "BE36" / "Calibration").glob("*-calibration-properties.json"))[0]
+    rid = record.name.split("-")[0]
+    argv = ["trace", str(data), "--heliostat", "BE36", "--record", rid, "--out", str(tmp_path / "o")]
+    with caplog.at_level("WARNING"):
+        rc, _, err = _run([*argv, "--pixels", "8", "--rays-per-point", "1", "--steps", "1", "--quiet"], capsys)
+    assert rc == 0, err
+    assert f"{rid}-flux.png" in caplog.text + err, caplog.text + err

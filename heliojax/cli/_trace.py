@@ -14,6 +14,23 @@ from ._common import heliostat_id, integer, number
 
 log = logging.getLogger(__name__)
 
+MAX_MRAD = 100.0
+"""Largest --sigma-mrad and --slope-error-mrad: 100 mrad (5.7 degrees) per axis is already
+no sun or mirror (the sun's disc has a half-angle of 4.65 mrad); beyond, every ray misses."""
+
+
+def _finite(v):
+    """``v`` with NaN and infinities (e.g. the correlation of a trace that missed the
+    target) as None: the summary is strict JSON."""
+    if isinstance(v, float):
+        return v if v == v and abs(v) != float("inf") else None
+    if isinstance(v, dict):
+        return {k: _finite(x) for k, x in v.items()}
+    if isinstance(v, list | tuple):
+        return [_finite(x) for x in v]
+    return v
+
+
 EXAMPLES = """examples:
   heliojax trace ../shared/data/paint/flux-samples --heliostat AA39 --record 203169 --out out/trace
   heliojax trace PAINT_DIR --heliostat AA39 --sun-azimuth -20 --sun-elevation 35 --sunshape pillbox"""
@@ -76,9 +93,17 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--csr", type=number(0.0, 1.0, above=True, below=True), default=0.05, help="Buie circumsolar ratio in (0, 1)"
     )
-    p.add_argument("--sigma-mrad", type=number(0.0, above=True), default=2.51, help="Gaussian sun sigma per axis, mrad")
     p.add_argument(
-        "--slope-error-mrad", type=number(0.0), default=1.5, help="Gaussian mirror slope error per axis, mrad (0: none)"
+        "--sigma-mrad",
+        type=number(0.0, MAX_MRAD, above=True),
+        default=2.51,
+        help=f"Gaussian sun sigma per axis, mrad (the sun's disc is 4.65; at most {MAX_MRAD:g})",
+    )
+    p.add_argument(
+        "--slope-error-mrad",
+        type=number(0.0, MAX_MRAD),
+        default=1.5,
+        help=f"Gaussian mirror slope error per axis, mrad (0: none; at most {MAX_MRAD:g})",
     )
     p.add_argument("--rays-per-point", type=integer(1), default=64, help="rays per surface point and chunk (>= 1)")
     p.add_argument(
@@ -253,6 +278,8 @@ def run(args: argparse.Namespace) -> int:
             )
             summary["comparison"] = comp.summary()
             comparison_fig = optics.comparison_figure(comp)
+        elif args.record is not None:
+            log.warning(f"no measured flux image {flux_png}: no comparison")
         stem = args.out / f"{args.heliostat}-{tag}-flux"
         extent = [float(grid.u_min), float(grid.u_max), float(grid.v_min), float(grid.v_max)]
         with atomic_path(stem.with_suffix(".h5")) as tmp:
@@ -283,10 +310,11 @@ def run(args: argparse.Namespace) -> int:
             with atomic_path(args.out / f"{args.heliostat}-{tag}-comparison.png") as tmp:
                 comparison_fig.savefig(tmp, dpi=90, format="png", bbox_inches="tight")
             plt.close(comparison_fig)
+        summary = _finite(summary)
         with atomic_write(args.out / f"{args.heliostat}-{tag}-summary.json") as f:
-            json.dump(summary, f, indent=2)
+            json.dump(summary, f, indent=2, allow_nan=False)
         log.info(f"wrote {stem}.png, .h5 and the summary to {args.out}")
-        print(json.dumps(summary, indent=2))
+        print(json.dumps(summary, indent=2, allow_nan=False))
     except (HeliojaxError, FileNotFoundError) as e:
         print(f"heliojax trace: error: {e}", file=sys.stderr)
         return 2

@@ -19,19 +19,32 @@ def read_flux_png(path: str | os.PathLike) -> np.ndarray:
     """A PAINT flux PNG as a float64 ``(rows, cols)`` array in ``[0, 1]``.
 
     Raises:
-        DataError: unreadable or not an image, or larger than :data:`MAX_FLUX_PIXELS`.
+        DataError: unreadable or not a PNG (a JPEG named ``.png``), larger than
+            :data:`MAX_FLUX_PIXELS`, rotated or mirrored by an EXIF orientation, or
+            with transparent pixels.
     """
     try:
         with Image.open(path) as im:
             w, h = im.size
             if w * h > MAX_FLUX_PIXELS:
                 raise DataError(path, None, f"image of {w} x {h} pixels exceeds {MAX_FLUX_PIXELS} pixels")
+            if im.format != "PNG":  # Pillow reads by content: a JPEG named .png is lossy and not PAINT's
+                raise DataError(path, None, f"is a {im.format or 'non-PNG'} file, not a PNG")
+            orientation = im.getexif().get(0x0112, 1)
+            if orientation != 1:  # a viewer would show it turned: which way is up is unclear
+                raise DataError(path, None, f"EXIF orientation {orientation} (rotated or mirrored) is not supported")
+            if im.mode in ("LA", "La", "PA", "RGBA", "RGBa") or "transparency" in im.info:
+                alpha = np.asarray(im.convert("RGBA"))[..., 3]
+                if alpha.min() < 255:  # a transparent pixel's grey value is no brightness
+                    raise DataError(path, None, f"{int((alpha < 255).sum())} pixels are transparent (alpha < 255)")
             if im.mode in ("I;16", "I;16B", "I;16L", "I"):  # 16-bit grey: "L" would clip it at 255
                 image = np.asarray(im, np.float64)
                 if image.min() < 0 or image.max() > 65535:
                     raise DataError(path, None, f"{im.mode} pixel values outside 0..65535")
                 return image / 65535.0
             return np.asarray(im.convert("L"), np.float64) / 255.0
+    except DataError:
+        raise
     except (OSError, Image.DecompressionBombError, ValueError) as e:
         raise DataError(path, None, f"cannot read PNG: {e}") from e
 
