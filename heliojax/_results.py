@@ -345,6 +345,10 @@ def load_results(path: str | Path) -> CalibrationResults:
                 attrs[k] = v.decode() if isinstance(v, bytes) else v
             except (OSError, UnicodeDecodeError, TypeError, ValueError) as e:
                 raise DataError(source, k, f"unreadable attribute ({e})") from None
+        if "model" not in attrs and "aim_point_enu" in f:
+            raise DataError(
+                source, None, "is the HDF5 file of `heliojax aim`, not a results.h5 of `heliojax calibrate`"
+            )
         for key in ("model", "param_names", "param_units"):
             if key not in attrs:
                 raise DataError(source, key, "missing attribute")

@@ -457,3 +457,38 @@ def test_trace_summary_is_strict_json_and_a_missing_flux_png_is_named(tmp_path, 
         rc, _, err = _run([*argv, "--pixels", "8", "--rays-per-point", "1", "--steps", "1", "--quiet"], capsys)
     assert rc == 0, err
     assert f"{rid}-flux.png" in caplog.text + err, caplog.text + err
+
+
+def test_trace_refuses_an_unfitted_heliostat_of_results_and_an_aim_h5(tmp_path, capsys):
+    """--results whose heliostat was never fitted (too few records: its model is the start)
+    traced as if calibrated; an aim.h5 given for a results.h5 was 'missing attribute model'."""
+    import h5py
+    import numpy as np
+
+    results = tmp_path / "results.h5"
+    argv = ["calibrate", "--model", "stone8", "--max-steps", "3", "--out", str(results), "--cache-dir", "none"]
+    assert main([*argv, "--report", str(tmp_path / "summary.json"), "--quiet"]) == 0
+    status = json.loads((tmp_path / "summary.json").read_text())["heliostats"]["BL14"]["status"]
+    assert status == "too_few_records"
+    trace = [
+        "trace",
+        "--heliostat",
+        "BL14",
+        "--sun-azimuth",
+        "10",
+        "--sun-elevation",
+        "40",
+        "--out",
+        str(tmp_path / "o"),
+    ]
+    rc, _, err = _run(
+        [*trace, "--results", str(results), "--pixels", "8", "--rays-per-point", "1", "--steps", "1"], capsys
+    )
+    assert rc == 2 and "--results" in err and "too_few_records" in err and "Traceback" not in err, err
+    assert not (tmp_path / "o").exists()
+    aim = tmp_path / "aim.h5"
+    with h5py.File(aim, "w") as f:
+        f.create_dataset("aim_point_enu", data=np.zeros((2, 3)))
+        f.attrs["target"] = "receiver"
+    with pytest.raises(hj.DataError, match="heliojax aim"):
+        hj.load_results(aim)
