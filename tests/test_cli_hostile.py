@@ -234,6 +234,21 @@ CASES = [
     ),
     ("fetch out empty", lambda t: ["fetch", "--out", ""], "--out"),
     (
+        "accept contract key misspelt in [sampling]",
+        lambda t: _accept(t, "f.csv", CONTRACT + "[sampling]\nconfidance = 0.99\n"),
+        "confidance",
+    ),
+    (
+        "accept contract date in [yield]",
+        lambda t: _accept(t, "f.csv", CONTRACT + "[yield]\nday = 2023-06-21\n"),
+        "unknown key(s) ['day']",
+    ),
+    (
+        "accept field CSV separated by semicolons",
+        lambda t: _accept(t, _file(t, "field.csv", "heliostat_id;east_m;north_m\nA;1;50\n")),
+        "separated by ';'",
+    ),
+    (
         "trace sun sigma of a radian",
         lambda t: ["trace", str(t), "--heliostat", "AA39", "--sigma-mrad", "1e9"],
         "--sigma-mrad",
@@ -492,3 +507,18 @@ def test_trace_refuses_an_unfitted_heliostat_of_results_and_an_aim_h5(tmp_path, 
         f.attrs["target"] = "receiver"
     with pytest.raises(hj.DataError, match="heliojax aim"):
         hj.load_results(aim)
+
+
+def test_accept_reads_a_field_csv_with_a_byte_order_mark_and_skips_diverged_fits(tmp_path):
+    """A spreadsheet's UTF-8 CSV (byte-order mark, CRLF, quoted cells) read as 'missing
+    column heliostat_id'; a summary.json heliostat whose fit diverged counted as measured."""
+    from heliojax.acceptance import read_field_csv, read_summary
+
+    text = 'heliostat_id,east_m,north_m,tracking_mrad\r\n"A1","0","50","1.5"\r\nA2,10,50,\r\n'
+    (tmp_path / "bom.csv").write_bytes(b"\xef\xbb\xbf" + text.encode())
+    (tmp_path / "plain.csv").write_text(text.replace("\r\n", "\n").replace('"', ""))
+    a, b = read_field_csv(tmp_path / "bom.csv"), read_field_csv(tmp_path / "plain.csv")
+    assert a.ids == b.ids == ("A1", "A2")
+    summary = {"heliostats": {h: {"status": s, "test_rms_mrad": 40.0} for h, s in [("A1", "diverged"), ("A2", "ok")]}}
+    (tmp_path / "summary.json").write_text(json.dumps(summary))
+    assert read_summary(tmp_path / "summary.json") == {"A2": 40.0}

@@ -20,7 +20,13 @@ from .._geometry import wgs84_to_enu
 from ..paint import TOWER_FILE_SUFFIX, read_heliostat_properties, read_tower
 from ._field import PARAMETERS, FieldData
 
-_BAD_STATUS = {"failed", "error", "skipped", "excluded"}
+_BAD_STATUS = {"failed", "error", "skipped", "excluded"} | {
+    "diverged",
+    "non_finite_input",
+    "too_few_records",
+    "no_records",
+    "no_training_records",
+}  # the last five: heliojax's own fit statuses of no calibration (its test error measures no heliostat)
 
 
 MAX_FIELD_EXTENT_M = 20_000.0
@@ -49,7 +55,7 @@ def read_field_csv(path: str | os.PathLike) -> FieldData:
             values outside the parameter's support.
     """
     try:
-        with open(path, newline="", encoding="utf-8") as f:
+        with open(path, newline="", encoding="utf-8-sig") as f:
             rows = list(csv.DictReader(f))
             header = rows and list(rows[0].keys())
     except OSError as e:
@@ -62,8 +68,11 @@ def read_field_csv(path: str | os.PathLike) -> FieldData:
         raise DataError(path, None, "no rows")
     for col in ("heliostat_id", "east_m", "north_m"):
         if col not in header:
-            raise DataError(path, col, "missing column")
-    with open(path, newline="", encoding="utf-8") as f:
+            hint = ""
+            if len(header) == 1 and ";" in str(header[0]):
+                hint = " (the header is separated by ';': a field CSV is separated by ',')"
+            raise DataError(path, col, f"missing column{hint}")
+    with open(path, newline="", encoding="utf-8-sig") as f:
         names = next(csv.reader(f))
     twice = sorted({c for c in names if names.count(c) > 1})
     if twice:
@@ -125,7 +134,8 @@ def read_summary(path: str | os.PathLike) -> dict[str, float]:
 
     The tracking error of a heliostat is its ``test_rms_mrad`` (radial RMS beam
     pointing error on the held-out records). Heliostats whose ``status`` is
-    failed / error / skipped / excluded, or whose ``test_rms_mrad`` is null or
+    failed / error / skipped / excluded (or a fit status of no calibration: diverged,
+    non_finite_input, too_few_records, no_records, no_training_records), or whose ``test_rms_mrad`` is null or
     not finite (no test records), count as not measured.
 
     Returns:
@@ -259,6 +269,12 @@ class Contract:
 
 
 _CLUSTER_KEYS = {"eps", "min_samples", "value_factor", "length_factor", "z_threshold", "k_neighbours"}
+_SECTION_KEYS = {
+    "sampling": {"formula", "confidence", "z"},
+    "extrapolation": {"bandwidth", "seed"},
+    "yield": {"tower_file", "year", "step_minutes", "min_elevation_deg", "sun_sigma_mrad", "tolerance"},
+}
+"""Keys of the contract's plain sections ([parameters] and [clusters] are checked on their own)."""
 
 
 def load_contract(path: str | os.PathLike) -> Contract:
@@ -278,6 +294,11 @@ def load_contract(path: str | os.PathLike) -> Contract:
     for section, value in doc.items():
         if not isinstance(value, dict):
             raise ConfigError(f"{path}: [{section}] must be a table, got {value!r}")
+        extra = set(value) - _SECTION_KEYS.get(section, set(value))
+        if extra:  # a misspelt key would silently leave its default in force
+            raise ConfigError(
+                f"{path}: [{section}] unknown key(s) {sorted(extra)}; known: {sorted(_SECTION_KEYS[section])}"
+            )
 
     def num(sec, key, default=None, positive=False, low=-math.inf, high=math.inf, integer=False):
         table = doc.get(sec, {})
