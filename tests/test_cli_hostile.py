@@ -522,3 +522,24 @@ def test_accept_reads_a_field_csv_with_a_byte_order_mark_and_skips_diverged_fits
     summary = {"heliostats": {h: {"status": s, "test_rms_mrad": 40.0} for h, s in [("A1", "diverged"), ("A2", "ok")]}}
     (tmp_path / "summary.json").write_text(json.dumps(summary))
     assert read_summary(tmp_path / "summary.json") == {"A2": 40.0}
+
+
+def test_a_sun_below_the_horizon_and_a_copied_record_are_skipped(tmp_path):
+    """A record whose sun is below the horizon cannot be a measurement, and the same
+    measurement under a second record id is a copy: both are named in the load report
+    and skipped (they had been fitted as if real, moving every heliostat's result)."""
+    data = tmp_path / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    below, original = sorted((data / "BH20" / "Calibration").iterdir())[:2]
+    r = json.loads(below.read_text())
+    r["sun_elevation"] = -10.0
+    below.write_text(json.dumps(r))
+    copy = original.parent / "999999-calibration-properties.json"
+    shutil.copy(original, copy)
+    stamps = json.loads((data / "calibration-timestamps.json").read_text())
+    stamps["999999"] = stamps[original.name.split("-")[0]]
+    (data / "calibration-timestamps.json").write_text(json.dumps(stamps))
+    report = hj.load_paint_directory(data).report
+    skipped = {(Path(e.file).name, e.field) for e in report.skipped}
+    assert skipped == {(below.name, "sun_elevation"), (copy.name, "record_id")}
+    assert report.records_skipped == 2 and report.heliostats_loaded == 5

@@ -95,6 +95,33 @@ def _chronological(records: list[CalibrationRecord], times: list[float]) -> list
     return order
 
 
+def _measurement(r: CalibrationRecord) -> tuple:
+    """What a measurement is made of: two records alike in all of it are copies."""
+    return (
+        r.datetime,
+        r.axis_1_counts,
+        r.axis_2_counts,
+        r.target_name,
+        r.sun_azimuth_deg,
+        r.sun_elevation_deg,
+        r.focal_spot_helios,
+        r.focal_spot_utis,
+    )
+
+
+def _first_of_each_measurement(records: Iterable[CalibrationRecord]) -> dict[tuple, int]:
+    """Measurement -> the lowest record id holding it (the one kept of identical copies)."""
+    first: dict[tuple, int] = {}
+    for r in records:
+        try:
+            key = _measurement(r)
+            if key not in first or r.record_id < first[key]:
+                first[key] = r.record_id
+        except TypeError:  # an unvalidated record with unhashable parts: checked later
+            continue
+    return first
+
+
 def _approach(counts: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """``(H, M, 2)`` sign of the last count change before each record (valid
     records first along M, in chronological order)."""
@@ -215,6 +242,7 @@ def _assemble(
         props = props_by_id[hid]
         good: list[CalibrationRecord] = []
         seen: set[int] = set()
+        first = _first_of_each_measurement(by_h.get(hid, []))
         for r in by_h.get(hid, []):
             try:
                 if validate:
@@ -224,6 +252,14 @@ def _assemble(
                     raise DataError(r.source, "focal_spot.HeliOS", "missing (centroid='helios' uses HeliOS only)")
                 if r.record_id in seen:
                     raise DataError(r.source, "record_id", f"duplicate record id {r.record_id} of {hid!r}")
+                same = first.get(_measurement(r), r.record_id)
+                if same != r.record_id:
+                    raise DataError(
+                        r.source,
+                        "record_id",
+                        f"the same measurement as record {same} of {hid!r} (identical time, counts, sun and "
+                        "spots): a copy, counted once",
+                    )
             except DataError as e:
                 log.skip_record(e)
                 continue
