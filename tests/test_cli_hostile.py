@@ -543,3 +543,16 @@ def test_a_sun_below_the_horizon_and_a_copied_record_are_skipped(tmp_path):
     skipped = {(Path(e.file).name, e.field) for e in report.skipped}
     assert skipped == {(below.name, "sun_elevation"), (copy.name, "record_id")}
     assert report.records_skipped == 2 and report.heliostats_loaded == 5
+
+
+def test_a_properties_file_copied_to_another_heliostat_skips_both(tmp_path):
+    """BE36's properties copied over BL14's put two heliostats in one place; which one
+    the file describes is unknown: both are named and skipped, the others loaded."""
+    data = tmp_path / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    target = data / "BL14" / "Properties" / "BL14-heliostat-properties.json"
+    shutil.copy(data / "BE36" / "Properties" / "BE36-heliostat-properties.json", target)
+    fleet = hj.load_paint_directory(data)
+    skipped = {(Path(e.file).name, e.field) for e in fleet.report.skipped}
+    assert {(target.name, "heliostat_position"), ("BE36-heliostat-properties.json", "heliostat_position")} <= skipped
+    assert fleet.ids == ("BF56", "BG23", "BH20") and fleet.report.heliostats_skipped == 2

@@ -207,6 +207,21 @@ def _assemble(
             bad_props.add(p.heliostat_id)
             continue
         props_by_id[p.heliostat_id] = p
+    at: dict[tuple, list[str]] = collections.defaultdict(list)
+    for hid, p in props_by_id.items():
+        at[tuple(p.position_lla)].append(hid)
+    for same in (hids for hids in at.values() if len(hids) > 1):
+        for hid in same:  # a properties file copied in: which heliostat it describes is unknown
+            others = ", ".join(repr(o) for o in same if o != hid)
+            log.skip(
+                DataError(
+                    props_by_id.pop(hid).source,
+                    "heliostat_position",
+                    f"the same position as heliostat {others}: one properties file copied to the other's place",
+                ),
+                heliostats=1,
+            )
+            bad_props.add(hid)
 
     by_h: dict[str, list[CalibrationRecord]] = collections.defaultdict(list)
     for r in records:
