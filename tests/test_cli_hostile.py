@@ -234,6 +234,11 @@ CASES = [
     ),
     ("fetch out empty", lambda t: ["fetch", "--out", ""], "--out"),
     (
+        "records row with more cells than the header",
+        lambda t: ["calibrate", "--records", _file(t, "field.csv", "heliostat_id,record_id\nBL14,264706,test\n")],
+        "row 2",
+    ),
+    (
         "accept contract key misspelt in [sampling]",
         lambda t: _accept(t, "f.csv", CONTRACT + "[sampling]\nconfidance = 0.99\n"),
         "confidance",
@@ -556,3 +561,12 @@ def test_a_properties_file_copied_to_another_heliostat_skips_both(tmp_path):
     skipped = {(Path(e.file).name, e.field) for e in fleet.report.skipped}
     assert {(target.name, "heliostat_position"), ("BE36-heliostat-properties.json", "heliostat_position")} <= skipped
     assert fleet.ids == ("BF56", "BG23", "BH20") and fleet.report.heliostats_skipped == 2
+
+
+def test_a_records_file_saved_by_a_spreadsheet_reads(tmp_path):
+    """A byte-order mark and blanks around the column names (as spreadsheets write
+    them) are not a missing column."""
+    from heliojax.cli._common import read_record_roles
+
+    path = Path(_file(tmp_path, "records.csv", "\ufeffheliostat_id, record_id , role\nBL14,5,test\n"))
+    assert read_record_roles(path) == {"BL14": {5: "test"}}

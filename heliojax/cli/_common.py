@@ -102,8 +102,11 @@ def read_record_roles(path: Path) -> dict[str, dict[int, str]]:
     from .._errors import DataError
 
     try:
-        with open(path, newline="", encoding="utf-8") as f:
-            rows = list(csv.DictReader(f))
+        with open(path, newline="", encoding="utf-8-sig") as f:  # -sig: a spreadsheet's byte-order mark
+            reader = csv.DictReader(f)
+            if reader.fieldnames is not None:
+                reader.fieldnames = [name.strip() for name in reader.fieldnames]
+            rows = list(reader)
             header = set(rows[0]) if rows else set()
     except OSError as e:
         raise DataError(path, None, f"cannot read: {e.strerror or e}") from None
@@ -115,6 +118,8 @@ def read_record_roles(path: Path) -> dict[str, dict[int, str]]:
         raise DataError(path, None, f"needs the columns {', '.join(RECORDS_HEADER)} (and optionally role)")
     roles: dict[str, dict[int, str]] = {}
     for line, row in enumerate(rows, start=2):
+        if None in row:
+            raise DataError(path, f"row {line}", f"more cells than the header has columns: {row[None]!r}")
         hid = str(row["heliostat_id"] or "").strip()
         try:
             rid = int(str(row["record_id"]).strip())
