@@ -570,3 +570,15 @@ def test_a_records_file_saved_by_a_spreadsheet_reads(tmp_path):
 
     path = Path(_file(tmp_path, "records.csv", "\ufeffheliostat_id, record_id , role\nBL14,5,test\n"))
     assert read_record_roles(path) == {"BL14": {5: "test"}}
+
+
+def test_test_data_of_other_heliostats_is_an_error(tmp_path, capsys):
+    """--test-data sharing no heliostat with the data evaluated nothing, exit 0."""
+    data = tmp_path / "test"
+    shutil.copytree(hj.default_data_dir(), data, ignore=shutil.ignore_patterns("B[EFGH]*"))
+    (data / "BL14").rename(data / "ZZ99")
+    props = data / "ZZ99" / "Properties"
+    (props / "BL14-heliostat-properties.json").rename(props / "ZZ99-heliostat-properties.json")
+    rc, _, err = _run(["calibrate", "--test-data", str(data), "--report", str(tmp_path / "s.json")], capsys)
+    assert rc == 2 and "--test-data holds none" in err and "Traceback" not in err, err
+    assert not (tmp_path / "s.json").exists()

@@ -164,6 +164,12 @@ def run(args) -> int:
     test_fleet = None
     if args.test_data is not None:
         test_fleet = load_paint_directory(args.test_data, centroid=args.centroid)
+        if not set(test_fleet.ids) & set(fleet.ids):
+            from .._errors import DataError
+
+            raise DataError(
+                args.test_data, None, f"--test-data holds none of the heliostats fitted ({', '.join(fleet.ids)})"
+            )
     roles = None
     if args.records is not None:
         from .._errors import ConfigError, DataError
