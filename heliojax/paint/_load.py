@@ -267,7 +267,10 @@ def _assemble(
                     raise DataError(r.source, "focal_spot.HeliOS", "missing (centroid='helios' uses HeliOS only)")
                 if r.record_id in seen:
                     raise DataError(r.source, "record_id", f"duplicate record id {r.record_id} of {hid!r}")
-                same = first.get(_measurement(r), r.record_id)
+                try:
+                    same = first.get(_measurement(r), r.record_id)
+                except TypeError:  # an unvalidated record with unhashable parts: not compared
+                    same = r.record_id
                 if same != r.record_id:
                     raise DataError(
                         r.source,
