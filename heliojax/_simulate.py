@@ -118,20 +118,28 @@ def calibration_times(
 ) -> tuple[Float[Array, "..."], Float[Array, "... 3"]]:
     """Random calibration times (unix s) and sun vectors, daytime only.
 
-    Days are uniform over ``days`` from ``start_unix``; the hour is uniform over
-    the day and resampled (a fixed number of rounds, vectorised) until the sun is
-    above ``min_elevation_deg``.
+    Days are uniform over ``days`` from ``start_unix``; the hour (UTC) is uniform
+    over 04-20 h and resampled (a fixed number of rounds, vectorised) until the sun
+    is above ``min_elevation_deg``. Where no round finds it that high (short winter
+    days, high latitudes), the candidate with the highest sun is kept, and local
+    solar noon is always among the candidates, so no record is ever drawn at night
+    wherever the sun rises that day.
+
+    **Returns:** ``(times, sun)``: times ``shape`` (unix s, whole seconds) and unit
+    vectors towards the sun ``(*shape, 3)`` (local ENU).
     """
 
     k_day, k_hour = jax.random.split(key)
     midnight = np.floor(start_unix / 86400.0) * 86400.0  # hours below are UTC hours of the day
     day = jnp.floor(jax.random.uniform(k_day, shape, jnp.float64, 0.0, days))
-    rounds = 12  # candidate hours per record; the first with the sun high enough wins (else the last)
+    rounds = 12  # random candidate hours per record; the first with the sun high enough wins
     hour = jax.vmap(lambda kk: jax.random.uniform(kk, shape, jnp.float64, 4.0, 20.0))(jax.random.split(k_hour, rounds))
-    cand = jnp.round(midnight + day[None] * 86400.0 + hour * 3600.0)  # (rounds, *shape), whole seconds
+    noon = jnp.full((1, *shape), (12.0 - longitude_deg / 15.0) % 24.0)  # local solar noon (UTC h), within ~16 min
+    hour = jnp.concatenate([hour, noon], axis=0)
+    cand = jnp.round(midnight + day[None] * 86400.0 + hour * 3600.0)  # (rounds + 1, *shape), whole seconds
     pos = solar_position(cand, latitude_deg, longitude_deg, JUELICH_LAT_LON_ALT[2])
-    good = pos.elevation > jnp.deg2rad(min_elevation_deg)
-    first = jnp.where(jnp.any(good, axis=0), jnp.argmax(good, axis=0), rounds - 1)
+    good = pos.elevation[:rounds] > jnp.deg2rad(min_elevation_deg)
+    first = jnp.where(jnp.any(good, axis=0), jnp.argmax(good, axis=0), jnp.argmax(pos.elevation, axis=0))
     t = jnp.take_along_axis(cand, first[None], axis=0)[0]
     sun = jnp.take_along_axis(pos.direction_enu(), first[None, ..., None], axis=0)[0]
     return t, sun

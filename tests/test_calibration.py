@@ -69,15 +69,22 @@ def test_simulated_fleet_recovers_parameters_and_reaches_the_noise_floor(fleet10
     assert res.view.names == STONE8_NAMES
     tp = np.asarray(res.view.to_vector(true))
     err = np.asarray(res.parameters()) - tp
+    # Every parameter is recovered to what the noise allows: its RMS error over the fleet
+    # is within 30 % of its RMS predicted standard error (and the errors are small).
     rms = np.sqrt(np.mean(err**2, axis=0))
-    named = dict(zip(STONE8_NAMES, rms))
-    assert named["alpha"] < 0.3e-3 and named["beta"] < 0.3e-3 and named["tau_k"] < 0.3e-3
-    assert named["gr1"] < 2e-4 and named["gr2"] < 2e-4
+    expected = np.sqrt(np.mean(np.asarray(res.std) ** 2, axis=0))
+    assert np.all(rms < 1.3 * expected), dict(zip(STONE8_NAMES, rms / expected))
+    assert np.all(rms < 0.5e-3), dict(zip(STONE8_NAMES, rms))
     # Held-out beam error vs the noise-only floor (the true model on the same records).
     e_fit = np.asarray(hj.beam_errors_mrad(res.model, g, sim.counts, ctx, sim.focal_spot, test))
     e_true = np.asarray(hj.beam_errors_mrad(true, g, sim.counts, ctx, sim.focal_spot, test))
     ratio = np.sqrt(np.nanmean(e_fit**2, 1)) / np.sqrt(np.nanmean(e_true**2, 1))
-    assert np.mean(ratio <= 1.1) >= 0.99, np.sort(ratio)[-5:]
+    # Theory: the fitted model's held-out mean square is the noise's times 1 + p / (2 n)
+    # (p = 8 parameters, 2 n residuals of n training records); each heliostat's ratio
+    # scatters about it by its ~30 held-out records.
+    excess = 1.0 + 8.0 / (2.0 * np.asarray(train).sum(1))
+    assert abs(np.mean(ratio**2 / excess) - 1.0) < 0.03, np.mean(ratio**2 / excess)
+    assert np.mean(ratio <= 1.1) >= 0.95 and ratio.max() < 1.2, np.sort(ratio)[-5:]
     # The Gauss-Newton standard errors describe the actual errors (z-scores ~ N(0, 1)).
     z = err / np.asarray(res.std)
     assert 0.75 < np.sqrt(np.mean(z**2)) < 1.3
@@ -164,7 +171,11 @@ def test_padding_records_and_heliostats_change_nothing(fleet100):
     junk_counts = padded.counts.at[:, 100:].set(7.0e3)
     padded = eqx.tree_at(lambda f: f.counts, padded, junk_counts)
     out = hj.fit(STONE, padded)
-    np.testing.assert_allclose(out.parameters()[:6], ref.parameters(), rtol=0, atol=1e-12)
+    # another shape is another program (its sums round differently, and the last LM step
+    # may fall either side of the stopping test): equal to the solver's tolerance, while
+    # one garbage record let in would move the parameters by milliradians
+    np.testing.assert_array_equal(out.status[:6], ref.status)
+    np.testing.assert_allclose(out.parameters()[:6], ref.parameters(), rtol=0, atol=PATH_ATOL)
     assert [FitStatus(int(s)) for s in out.status[6:]] == [FitStatus.NO_RECORDS] * 2
 
 

@@ -529,12 +529,16 @@ def test_accept_reads_a_field_csv_with_a_byte_order_mark_and_skips_diverged_fits
     assert read_summary(tmp_path / "summary.json") == {"A2": 40.0}
 
 
-def test_a_copied_record_is_skipped(tmp_path):
-    """The same measurement under a second record id is a copy: it is named in the load
-    report and skipped (it had been fitted as if real, moving every heliostat's result)."""
+def test_a_sun_below_the_horizon_and_a_copied_record_are_skipped(tmp_path):
+    """A record whose sun is below the horizon cannot be a measurement, and the same
+    measurement under a second record id is a copy: both are named in the load report
+    and skipped (they had been fitted as if real, moving every heliostat's result)."""
     data = tmp_path / "paint"
     shutil.copytree(hj.default_data_dir(), data)
-    original = sorted((data / "BH20" / "Calibration").iterdir())[1]
+    below, original = sorted((data / "BH20" / "Calibration").iterdir())[:2]
+    r = json.loads(below.read_text())
+    r["sun_elevation"] = -10.0
+    below.write_text(json.dumps(r))
     copy = original.parent / "999999-calibration-properties.json"
     shutil.copy(original, copy)
     stamps = json.loads((data / "calibration-timestamps.json").read_text())
@@ -542,8 +546,8 @@ def test_a_copied_record_is_skipped(tmp_path):
     (data / "calibration-timestamps.json").write_text(json.dumps(stamps))
     report = hj.load_paint_directory(data).report
     skipped = {(Path(e.file).name, e.field) for e in report.skipped}
-    assert skipped == {(copy.name, "record_id")}
-    assert report.records_skipped == 1 and report.heliostats_loaded == 5
+    assert skipped == {(below.name, "sun_elevation"), (copy.name, "record_id")}
+    assert report.records_skipped == 2 and report.heliostats_loaded == 5
 
 
 def test_a_properties_file_copied_to_another_heliostat_skips_both(tmp_path):

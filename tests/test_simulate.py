@@ -11,6 +11,7 @@ import heliojax as hj
 from heliojax._simulate import (
     approach_directions,
     calibration_target,
+    calibration_times,
     random_stone_models,
     simulate_records,
     synthetic_contexts,
@@ -109,3 +110,19 @@ def test_simulator_paint_round_trip_is_bit_identical(small_sim, tmp_path):
     res = hj.fit(hj.StoneModel.nominal(jnp.float64), loaded)
     err = np.asarray(hj.fleet_beam_errors_mrad(res.model, loaded))
     assert np.nanmax(err[:4]) < 1e-3
+
+
+def test_calibration_times_are_daytime_even_on_short_winter_days():
+    """In a high-latitude December no hour sees the sun above 15 deg; the fallback must
+    still be daylight (it had been the last random hour, often at night, which the
+    loader rightly refuses), and with local solar noon among the candidates the sun is
+    about as high as it gets that day: 90 - 58 - 23.4 = 8.6 deg on 21 December,
+    9.7 deg on 8 January (declination -22.3 deg)."""
+    lat, lon = 58.0, 6.36
+    start = 1.7030e9  # 2023-12-19
+    t, sun = calibration_times(
+        jax.random.key(3), (400,), start_unix=start, days=20.0, latitude_deg=lat, longitude_deg=lon
+    )
+    elevation = np.rad2deg(np.arcsin(np.asarray(sun)[:, 2]))
+    assert elevation.min() > 7.5 and elevation.max() < 10.5
+    assert np.all((np.asarray(t) >= start - 86400.0) & (np.asarray(t) < start + 21 * 86400.0))

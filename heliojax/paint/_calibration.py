@@ -57,6 +57,7 @@ def _record_from_json(
     el = float(root.number("sun_elevation"))
     az = float(root.number("sun_azimuth"))
     _check(-90.0 <= el <= 90.0, file, "sun_elevation", f"{el!r} outside [-90, 90] deg")
+    _check(el > 0.0, file, "sun_elevation", f"{el!r} deg: the sun is below the horizon (no reflection to measure)")
     _check(-360.0 <= az <= 360.0, file, "sun_azimuth", f"{az!r} outside [-360, 360] deg")
     fs = root.node("focal_spot")
     spots: dict[str, Vec3 | None] = {}

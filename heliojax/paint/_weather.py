@@ -119,6 +119,12 @@ def read_weather_csv(
             dt = _check_datetime(file, f"{where}.timestamp", ts) if ts else None
             el, az = num("sun_elevation"), num("sun_azimuth")
             _check(-90.0 <= el <= 90.0, file, f"{where}.sun_elevation", f"{el!r} outside [-90, 90] deg")
+            _check(
+                el > 0.0,
+                file,
+                f"{where}.sun_elevation",
+                f"{el!r} deg: the sun is below the horizon (no reflection to measure)",
+            )
             _check(-360.0 <= az <= 360.0, file, f"{where}.sun_azimuth", f"{az!r} outside [-360, 360] deg")
             c1 = _csv_int(file, f"{where}.axis_1_motor_position", cells[col["axis_1_motor_position"]])
             c2 = _csv_int(file, f"{where}.axis_2_motor_position", cells[col["axis_2_motor_position"]])
