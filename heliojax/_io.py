@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import json
+import math
 import os
 import tempfile
 import time
@@ -96,3 +98,27 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+def json_safe(value):
+    """``value`` (nested dicts, lists, tuples, numbers) with NaN and infinities as
+    ``None`` and numpy scalars as Python numbers: what strict JSON can hold."""
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_safe(v) for v in value]
+    if isinstance(value, bool | str) or value is None:
+        return value
+    if hasattr(value, "item") and getattr(value, "shape", None) == ():  # numpy or JAX scalar
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def write_json(path: str | os.PathLike, data) -> None:
+    """Write ``data`` as strict, indented JSON, atomically (:func:`atomic_write`);
+    non-finite numbers become ``null`` (:func:`json_safe`)."""
+    with atomic_write(path) as f:
+        json.dump(json_safe(data), f, indent=2, allow_nan=False)
+        f.write("\n")

@@ -242,6 +242,30 @@ def test_atomic_write_keeps_the_mode_of_the_file_it_replaces(tmp_path):
     assert target.read_text() == "[1]" and target.stat().st_mode & 0o777 == 0o640
 
 
+def test_write_json_is_strict_json_with_null_for_non_finite_numbers(tmp_path):
+    """What trace and accept write: NaN and infinities (numpy, JAX or Python, nested in
+    dicts, lists and tuples) as null, numpy scalars as numbers, parseable by a strict reader."""
+    import jax.numpy as jnp
+
+    from heliojax._io import write_json
+
+    data = {
+        "a": float("nan"),
+        "b": [1.5, float("-inf"), (np.float32(2.5), np.int64(3))],
+        "c": {"d": jnp.asarray(np.nan)},
+    }
+    write_json(tmp_path / "x.json", data)
+
+    def strict(token):
+        raise AssertionError(f"non-standard JSON token {token}")
+
+    assert json.loads((tmp_path / "x.json").read_text(), parse_constant=strict) == {
+        "a": None,
+        "b": [1.5, None, [2.5, 3]],
+        "c": {"d": None},
+    }
+
+
 def test_progress_messages_go_through_logging(caplog):
     """The library reports progress by logging (logger ``heliojax``), never print."""
     fleet = hj.load_paint_directory(hj.default_data_dir())

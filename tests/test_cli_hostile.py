@@ -465,9 +465,9 @@ def test_flux_pngs_that_are_jpegs_turned_or_transparent_are_refused(tmp_path):
 def test_trace_summary_is_strict_json_and_a_missing_flux_png_is_named(tmp_path, capsys, caplog):
     """NaN (the correlation of a trace that missed) is null in the summary, and a record
     without its measured flux PNG is traced with a warning that names the PNG."""
-    from heliojax.cli._trace import _finite
+    from heliojax._io import json_safe
 
-    assert _finite({"ncc": float("nan"), "w": [float("inf"), 1.0], "n": 3}) == {"ncc": None, "w": [None, 1.0], "n": 3}
+    assert json_safe({"ncc": float("nan"), "w": [float("inf"), 1.0], "n": 3}) == {"ncc": None, "w": [None, 1.0], "n": 3}
     data = tmp_path / "paint"
     shutil.copytree(hj.default_data_dir(), data)
     record = sorted((data / "BE36" / "Calibration").glob("*-calibration-properties.json"))[0]

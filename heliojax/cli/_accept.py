@@ -5,7 +5,6 @@ level-2 efficiency contract vs measured)."""
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -58,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     jax.config.update("jax_enable_x64", True)
     from .. import acceptance as acc
     from .._errors import ConfigError, HeliojaxError
-    from .._io import atomic_write
+    from .._io import write_json
 
     try:
         contract = acc.load_contract(args.contract)
@@ -86,9 +85,7 @@ def run(args: argparse.Namespace) -> int:
         result = acc.run_acceptance(field, contract, aperture, plant)
         report = dict(result.report)
         report["inputs"] = {"results": str(args.results), "contract": str(args.contract), "receiver": receiver_source}
-        with atomic_write(args.report) as f:
-            json.dump(report, f, indent=2)
-            f.write("\n")
+        write_json(args.report, report)
         if args.figures is not None:
             acc.plot_all(result, args.figures)
     except HeliojaxError as e:

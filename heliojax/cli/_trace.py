@@ -19,18 +19,6 @@ MAX_MRAD = 100.0
 no sun or mirror (the sun's disc has a half-angle of 4.65 mrad); beyond, every ray misses."""
 
 
-def _finite(v):
-    """``v`` with NaN and infinities (e.g. the correlation of a trace that missed the
-    target) as None: the summary is strict JSON."""
-    if isinstance(v, float):
-        return v if v == v and abs(v) != float("inf") else None
-    if isinstance(v, dict):
-        return {k: _finite(x) for k, x in v.items()}
-    if isinstance(v, list | tuple):
-        return [_finite(x) for x in v]
-    return v
-
-
 EXAMPLES = """examples:
   heliojax trace ../shared/data/paint/flux-samples --heliostat AA39 --record 203169 --out out/trace
   heliojax trace PAINT_DIR --heliostat AA39 --sun-azimuth -20 --sun-elevation 35 --sunshape pillbox"""
@@ -165,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
     from .. import optics
     from .._errors import ConfigError, HeliojaxError
     from .._geometry import sun_direction
-    from .._io import atomic_path, atomic_write
+    from .._io import atomic_path, json_safe, write_json
     from .._kinematics import ActuatorModel, forward, inverse_aim
     from .._progress import progress_bar
     from ..paint import read_calibration_record, read_heliostat_properties, read_tower
@@ -314,9 +302,8 @@ def run(args: argparse.Namespace) -> int:
             with atomic_path(args.out / f"{args.heliostat}-{tag}-comparison.png") as tmp:
                 comparison_fig.savefig(tmp, dpi=90, format="png", bbox_inches="tight")
             plt.close(comparison_fig)
-        summary = _finite(summary)
-        with atomic_write(args.out / f"{args.heliostat}-{tag}-summary.json") as f:
-            json.dump(summary, f, indent=2, allow_nan=False)
+        summary = json_safe(summary)  # e.g. the correlation of a trace that missed the target: null
+        write_json(args.out / f"{args.heliostat}-{tag}-summary.json", summary)
         log.info(f"wrote {stem}.png, .h5 and the summary to {args.out}")
         print(json.dumps(summary, indent=2, allow_nan=False))
     except (HeliojaxError, FileNotFoundError) as e:
