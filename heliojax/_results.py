@@ -283,12 +283,33 @@ _RECORD_FIELDS = (
 
 
 _LAW_ATTRS = (
-    ("drift_mrad2_per_day", 0.0, math.inf),
+    ("drift_mrad2_per_day", 0.0, 1e6),  # a beam spread by a radian a day is no calibration
     ("tail_dof", 0.0, math.inf),
     ("outlier_fraction", 0.0, 1.0),
     ("outlier_scale", 0.0, math.inf),
 )
 """Numeric attributes of results.h5 and their ranges."""
+
+
+_MAX_SCALED_STEP = 1e6
+"""Most solver scales (:attr:`heliojax.ParameterView.scales`) a usable fit may lie
+from the nominal parameters."""
+
+_STATUS_LABELS = frozenset(s.label for s in FitStatus) | {"no_training_records"}
+"""The status labels results.h5 may hold."""
+
+
+def _check_covariance(cov: np.ndarray, source: str) -> None:
+    """DataError unless every ``(F, F)`` matrix of ``cov`` (those of usable fits) is a
+    finite, symmetric, positive semi-definite covariance (to rounding)."""
+    for i, c in enumerate(cov):
+        if not np.isfinite(c).all():
+            raise DataError(source, "covariance", "not finite for a heliostat whose fit converged")
+        scale = float(np.max(np.abs(c), initial=0.0))
+        if np.max(np.abs(c - c.T), initial=0.0) > 1e-6 * scale:
+            raise DataError(source, "covariance", f"not symmetric (heliostat {i})")
+        if c.size and np.linalg.eigvalsh(c).min() < -1e-6 * scale:
+            raise DataError(source, "covariance", f"not positive semi-definite (heliostat {i})")
 
 
 def _numeric(value: typing.Any, source: str, field: str, shape: tuple[int, ...]) -> np.ndarray:
@@ -362,8 +383,13 @@ def load_results(path: str | Path) -> CalibrationResults:
             attrs[key] = value
         names = tuple(attrs["param_names"])
         ids = _strings(need("heliostat_ids"), source, "heliostat_ids")
+        if not ids:
+            raise DataError(source, "heliostat_ids", "no heliostat")
         if len(set(ids)) != len(ids):
             raise DataError(source, "heliostat_ids", "an id is listed twice")
+        bad = [h for h in ids if not h.strip() or h != h.strip() or not h.isprintable()]
+        if bad:
+            raise DataError(source, "heliostat_ids", f"{bad[0]!r} is not a heliostat id (blank or control characters)")
         params = _numeric(need("params"), source, "params", (len(ids), len(names)))
         group = f.get("geometry")
         geometry = _read_geometry(group, source, len(ids)) if isinstance(group, h5py.Group) else None
@@ -379,17 +405,24 @@ def load_results(path: str | Path) -> CalibrationResults:
         targets = _strings(need("target_names"), source, "target_names") if "target_names" in f else ()
         if "target_index" in records and np.any(records["target_index"] >= max(len(targets), 1)):
             raise DataError(source, "target_index", f"points beyond the {len(targets)} target_names")
+        if "target_index" in records and np.any(records["target_index"] < -1):
+            raise DataError(source, "target_index", "negative (-1 marks padding)")
+        if "split" in records and not np.isin(records["split"], list(SPLIT_CODES.values())).all():
+            raise DataError(source, "split", f"a code not among {sorted(SPLIT_CODES.values())} ({SPLIT_CODES})")
+        if "split" in records and "unix_time" in records:
+            if not np.isfinite(records["unix_time"][records["split"] != 0]).all():
+                raise DataError(source, "unix_time", "not finite for a record of the fit's split")
         status = _strings(need("status_labels"), source, "status_labels", len(ids))
+        unknown_status = sorted(set(status) - _STATUS_LABELS)
+        if unknown_status:
+            raise DataError(source, "status_labels", f"unknown status {unknown_status[0]!r}")
         std = _numeric(need("param_std"), source, "param_std", (len(ids), len(names)))
         unknown = sorted(set(attrs["free_params"]) - set(names))
         if unknown:
             raise DataError(source, "free_params", f"{unknown} are not among param_names")
         free = len(attrs["free_params"]) or len(names)
-        cov = (
-            _numeric(need("covariance"), source, "covariance", (len(ids), free, free))
-            if "covariance" in f
-            else np.full((len(ids), 0, 0), np.nan)
-        )
+        cov = _numeric(need("covariance"), source, "covariance", (len(ids), free, free))
+        has_noise = "noise_mrad" in f
         noise = (
             _numeric(need("noise_mrad"), source, "noise_mrad", (len(ids),))
             if "noise_mrad" in f
@@ -408,9 +441,34 @@ def load_results(path: str | Path) -> CalibrationResults:
                 raise DataError(source, key, f"not a number: {attrs[key]!r}") from None
             if math.isnan(x) or not low <= x <= high:
                 raise DataError(source, key, f"{x} is outside [{low}, {high}]")
+    origin = attrs.get("origin_lla")
+    try:
+        origin = np.asarray(origin, float) if origin is not None else None
+    except (TypeError, ValueError):
+        origin = np.full(1, np.nan)
+    if origin is None:
+        raise DataError(source, "origin_lla", "missing attribute")
+    if origin.shape != (3,) or not np.isfinite(origin).all() or abs(origin[0]) > 90 or abs(origin[1]) > 180:
+        raise DataError(source, "origin_lla", f"not a WGS84 latitude, longitude, altitude: {origin!r}"[:200])
+    attrs["origin_lla"] = origin
+    geometry_leaves = jax.tree_util.tree_leaves_with_path(geometry)
+    for path_, leaf in geometry_leaves:
+        if not np.isfinite(np.asarray(leaf, float)).all():
+            name = "/".join(str(getattr(k, "name", k)) for k in path_)
+            raise DataError(source, f"geometry/{name}", "not finite")
+    if not (np.asarray(geometry.actuators.increment) > 0).all():
+        raise DataError(source, "geometry/actuators/increment", "not positive (counts per metre)")
     usable = np.array([s in (FitStatus.CONVERGED.label, FitStatus.MAX_STEPS.label) for s in status])
     if not np.isfinite(params[usable]).all():
         raise DataError(source, "params", "not finite for a heliostat whose fit converged")
+    _check_covariance(cov[usable], source)
+    if has_noise and not (np.isfinite(noise[usable]) & (noise[usable] >= 0)).all():
+        raise DataError(source, "noise_mrad", "not a finite non-negative noise for a heliostat whose fit converged")
+    if float(attrs.get("drift_mrad2_per_day", 0.0)) != 0.0:
+        for key in ("split", "unix_time"):
+            if key not in records:
+                raise DataError(source, key, "missing dataset (needed for the drift since the fit)")
+    records.setdefault("superseded", np.zeros(next(iter(shapes.values()), (len(ids), 0)), bool))
     try:
         template = model_from_label(str(attrs["model"]))
     except DataError as e:
@@ -425,6 +483,12 @@ def load_results(path: str | Path) -> CalibrationResults:
             view = view.with_free(attrs["free_params"])
         except (ValueError, KeyError) as e:
             raise DataError(source, "free_params", str(e)) from None
+    # a usable fit moved a million solver scales (about a thousand radians of beam) from
+    # nominal is garbage, not a calibration
+    far = np.abs(params[usable] - np.asarray(view.nominal)) > _MAX_SCALED_STEP * np.asarray(view.scales)
+    if far.any():
+        name = view.names[int(np.argwhere(far)[0, 1])]
+        raise DataError(source, "params", f"{name} is implausibly far from nominal for a heliostat whose fit converged")
     batched = broadcast_model(template, len(ids))
     model = jax.vmap(view.from_vector)(batched, jnp.asarray(params))
     return CalibrationResults(

@@ -600,6 +600,62 @@ def _attr(name, value):
     return damage
 
 
+def _edit(name, change):
+    """Replace dataset ``name`` by ``change`` of a copy of its values."""
+
+    def damage(f):
+        value = np.array(f[name][()])
+        change(value)
+        del f[name]
+        f[name] = value
+
+    return damage
+
+
+def _set(index, value):
+    def change(a):
+        a[index] = value
+
+    return change
+
+
+def _ids(*ids):
+    def damage(f):
+        import h5py
+
+        del f["heliostat_ids"]
+        f.create_dataset("heliostat_ids", data=np.array(ids, dtype=object), dtype=h5py.string_dtype())
+
+    return damage
+
+
+def _del(name):
+    def damage(f):
+        del f[name]
+
+    return damage
+
+
+def _del_attr(name):
+    def damage(f):
+        del f.attrs[name]
+
+    return damage
+
+
+def _empty_fleet(f):
+    """Every per-heliostat dataset cut to no heliostat."""
+    import h5py
+
+    names = []
+    f.visititems(lambda n, o: names.append(n) if isinstance(o, h5py.Dataset) and o.shape[:1] == (5,) else None)
+    for n in names:
+        value = f[n][()][:0]
+        dtype = f[n].dtype
+        del f[n]
+        f.create_dataset(n, data=value, dtype=dtype)
+
+
 DAMAGED_RESULTS = [  # (case, damage of an h5py.File, field named)
     ("params wrong width", _replace("params", np.zeros((5, 3))), "params"),
     ("params strings", _replace("params", np.array([[b"x"] * 10] * 5)), "params"),
@@ -617,6 +673,34 @@ DAMAGED_RESULTS = [  # (case, damage of an h5py.File, field named)
     ("parameter names not UTF-8", _attr("param_names", np.bytes_(b"\xff\xfe")), "param_names"),
     ("drift nan", _attr("drift_mrad2_per_day", np.nan), "drift_mrad2_per_day"),
     ("outlier fraction above 1", _attr("outlier_fraction", 7.0), "outlier_fraction"),
+    ("no heliostat", _empty_fleet, "heliostat_ids"),
+    ("id empty", _ids("BE36", "", "BG23", "BH20", "BL14"), "heliostat_ids"),
+    ("id with a newline", _ids("BE36", "BF\n56", "BG23", "BH20", "BL14"), "heliostat_ids"),
+    ("status unknown", _replace("status_labels", np.array([b"bogus"] * 5)), "status_labels"),
+    ("status empty", _replace("status_labels", np.array([b"converged"] * 4 + [b""])), "status_labels"),
+    ("covariance missing", _del("covariance"), "covariance"),
+    ("covariance nan", _edit("covariance", _set((0, 0, 0), np.nan)), "covariance"),
+    ("covariance inf", _edit("covariance", _set(..., np.inf)), "covariance"),
+    ("covariance negative definite", _edit("covariance", _set(0, -np.eye(8))), "covariance"),
+    ("covariance not symmetric", _edit("covariance", _set((0, 0, 1), 1.0)), "covariance"),
+    ("noise nan", _edit("noise_mrad", _set(0, np.nan)), "noise_mrad"),
+    ("noise negative", _edit("noise_mrad", _set(0, -1.0)), "noise_mrad"),
+    ("params a thousand radians off", _edit("params", _set((1, 0), 1e300)), "params"),
+    ("position nan", _edit("geometry/position", _set((0, 0), np.nan)), "geometry/position"),
+    (
+        "actuator increment nan",
+        _edit("geometry/actuators/increment", _set(..., np.nan)),
+        "geometry/actuators/increment",
+    ),
+    ("actuator increment zero", _edit("geometry/actuators/increment", _set(..., 0.0)), "geometry/actuators/increment"),
+    ("split missing", _del("split"), "split"),
+    ("unix time missing", _del("unix_time"), "unix_time"),
+    ("unix time nan", _edit("unix_time", _set(..., np.nan)), "unix_time"),
+    ("split code unknown", _edit("split", _set(..., 7)), "split"),
+    ("target index below -1", _edit("target_index", _set((0, 0), -7)), "target_index"),
+    ("origin missing", _del_attr("origin_lla"), "origin_lla"),
+    ("origin nan", _attr("origin_lla", np.array([np.nan, 0.0, 0.0])), "origin_lla"),
+    ("drift 1e300", _attr("drift_mrad2_per_day", 1e300), "drift_mrad2_per_day"),
 ]
 
 
