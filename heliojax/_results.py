@@ -312,11 +312,13 @@ def _check_covariance(cov: np.ndarray, source: str) -> None:
             raise DataError(source, "covariance", f"not positive semi-definite (heliostat {i})")
 
 
-def _numeric(value: typing.Any, source: str, field: str, shape: tuple[int, ...]) -> np.ndarray:
-    """``value`` as a numeric array whose shape begins with ``shape``, else DataError."""
+def _numeric(value: typing.Any, source: str, field: str, shape: tuple[int, ...], kinds: str = "biuf") -> np.ndarray:
+    """``value`` as a numeric array (of a dtype kind in ``kinds``) whose shape begins
+    with ``shape``, else DataError."""
     a = np.asarray(value)
-    if a.dtype.kind not in "biuf":
-        raise DataError(source, field, f"not numeric (dtype {a.dtype})")
+    if a.dtype.kind not in kinds:
+        what = "floating-point" if kinds == "f" else "numeric"
+        raise DataError(source, field, f"not {what} (dtype {a.dtype})")
     if a.shape[: len(shape)] != shape:
         raise DataError(
             source, field, f"shape {a.shape}, expected {shape + ('...',) if a.ndim > len(shape) else shape}"
@@ -390,7 +392,7 @@ def load_results(path: str | Path) -> CalibrationResults:
         bad = [h for h in ids if not h.strip() or h != h.strip() or not h.isprintable()]
         if bad:
             raise DataError(source, "heliostat_ids", f"{bad[0]!r} is not a heliostat id (blank or control characters)")
-        params = _numeric(need("params"), source, "params", (len(ids), len(names)))
+        params = _numeric(need("params"), source, "params", (len(ids), len(names)), "f")
         group = f.get("geometry")
         geometry = _read_geometry(group, source, len(ids)) if isinstance(group, h5py.Group) else None
         if geometry is None:
@@ -416,15 +418,15 @@ def load_results(path: str | Path) -> CalibrationResults:
         unknown_status = sorted(set(status) - _STATUS_LABELS)
         if unknown_status:
             raise DataError(source, "status_labels", f"unknown status {unknown_status[0]!r}")
-        std = _numeric(need("param_std"), source, "param_std", (len(ids), len(names)))
+        std = _numeric(need("param_std"), source, "param_std", (len(ids), len(names)), "f")
         unknown = sorted(set(attrs["free_params"]) - set(names))
         if unknown:
             raise DataError(source, "free_params", f"{unknown} are not among param_names")
         free = len(attrs["free_params"]) or len(names)
-        cov = _numeric(need("covariance"), source, "covariance", (len(ids), free, free))
+        cov = _numeric(need("covariance"), source, "covariance", (len(ids), free, free), "f")
         has_noise = "noise_mrad" in f
         noise = (
-            _numeric(need("noise_mrad"), source, "noise_mrad", (len(ids),))
+            _numeric(need("noise_mrad"), source, "noise_mrad", (len(ids),), "f")
             if "noise_mrad" in f
             else np.full(len(ids), np.nan)
         )
@@ -464,6 +466,11 @@ def load_results(path: str | Path) -> CalibrationResults:
     _check_covariance(cov[usable], source)
     if has_noise and not (np.isfinite(noise[usable]) & (noise[usable] >= 0)).all():
         raise DataError(source, "noise_mrad", "not a finite non-negative noise for a heliostat whose fit converged")
+    if "split" in records:
+        for key in ("residual_mrad", "residual_uncalibrated_mrad"):
+            fitted_records = (records["split"] != 0) & usable[:, None]
+            if key in records and not np.isfinite(records[key][fitted_records]).all():
+                raise DataError(source, key, "not finite for a record of a heliostat whose fit converged")
     if float(attrs.get("drift_mrad2_per_day", 0.0)) != 0.0:
         for key in ("split", "unix_time"):
             if key not in records:
