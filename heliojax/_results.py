@@ -301,15 +301,19 @@ _STATUS_LABELS = frozenset(s.label for s in FitStatus) | {"no_training_records"}
 
 def _check_covariance(cov: np.ndarray, source: str) -> None:
     """DataError unless every ``(F, F)`` matrix of ``cov`` (those of usable fits) is a
-    finite, symmetric, positive semi-definite covariance (to rounding)."""
-    for i, c in enumerate(cov):
-        if not np.isfinite(c).all():
-            raise DataError(source, "covariance", "not finite for a heliostat whose fit converged")
-        scale = float(np.max(np.abs(c), initial=0.0))
-        if np.max(np.abs(c - c.T), initial=0.0) > 1e-6 * scale:
-            raise DataError(source, "covariance", f"not symmetric (heliostat {i})")
-        if c.size and np.linalg.eigvalsh(c).min() < -1e-6 * scale:
-            raise DataError(source, "covariance", f"not positive semi-definite (heliostat {i})")
+    finite, symmetric, positive semi-definite covariance (to rounding); one batched
+    check, not a loop over heliostats."""
+    if not np.isfinite(cov).all():
+        raise DataError(source, "covariance", "not finite for a heliostat whose fit converged")
+    if cov.size == 0:
+        return
+    scale = np.max(np.abs(cov), axis=(1, 2))
+    asymmetric = np.max(np.abs(cov - np.swapaxes(cov, 1, 2)), axis=(1, 2)) > 1e-6 * scale
+    if asymmetric.any():
+        raise DataError(source, "covariance", f"not symmetric (heliostat {int(np.argmax(asymmetric))})")
+    indefinite = np.linalg.eigvalsh(cov).min(axis=1) < -1e-6 * scale
+    if indefinite.any():
+        raise DataError(source, "covariance", f"not positive semi-definite (heliostat {int(np.argmax(indefinite))})")
 
 
 def _numeric(value: typing.Any, source: str, field: str, shape: tuple[int, ...], kinds: str = "biuf") -> np.ndarray:
@@ -467,8 +471,8 @@ def load_results(path: str | Path) -> CalibrationResults:
     if has_noise and not (np.isfinite(noise[usable]) & (noise[usable] >= 0)).all():
         raise DataError(source, "noise_mrad", "not a finite non-negative noise for a heliostat whose fit converged")
     if "split" in records:
+        fitted_records = (records["split"] != 0) & usable[:, None]
         for key in ("residual_mrad", "residual_uncalibrated_mrad"):
-            fitted_records = (records["split"] != 0) & usable[:, None]
             if key in records and not np.isfinite(records[key][fitted_records]).all():
                 raise DataError(source, key, "not finite for a record of a heliostat whose fit converged")
     if float(attrs.get("drift_mrad2_per_day", 0.0)) != 0.0:

@@ -153,6 +153,7 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
+    from .._errors import ConfigError, DataError
     from .._kinematics import nominal_model
     from .._results import write_results_h5
     from .._workflow import calibrate, write_summary
@@ -165,14 +166,11 @@ def run(args) -> int:
     if args.test_data is not None:
         test_fleet = load_paint_directory(args.test_data, centroid=args.centroid)
         if not set(test_fleet.ids) & set(fleet.ids):
-            from .._errors import DataError
-
             raise DataError(
                 args.test_data, None, f"--test-data holds none of the heliostats fitted ({', '.join(fleet.ids)})"
             )
     roles = None
     if args.records is not None:
-        from .._errors import ConfigError, DataError
         from .._workflow import roles_to_masks
 
         if args.test_data is not None:
