@@ -48,7 +48,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-__all__ = ["SolarPosition", "datetime_to_unix", "julian_day", "solar_position"]
+__all__ = ["SolarPosition", "datetime_to_unix", "julian_day", "solar_position", "utc_datetime"]
 
 # --------------------------------------------------------------------------------------
 # Constants
@@ -504,13 +504,50 @@ def julian_day(unix_time_s: ArrayLike) -> Float[Array, "..."]:
     return t / _SECONDS_PER_DAY + _UNIX_EPOCH_JD
 
 
+def utc_datetime(value: _dt.datetime | str) -> _dt.datetime:
+    """The one reading of a date-time (a data file's, a STAC item's, a command line's)
+    as an aware UTC :class:`datetime.datetime`.
+
+    PAINT's convention: every PAINT time is UTC. PAINT writes its times as
+    ``%Y-%m-%dT%H:%M:%SZ`` (``TIME_FORMAT`` of ``paint/util/paint_mappings.py``) and,
+    since PAINT 3.0 ("time stamp conversion from local time to UTC has been
+    clarified", PR 129), localises the database's times as UTC
+    (``paint.util.utils.localize_utc``), not as Jülich's local time. So a time
+    **without a zone is UTC** (not this machine's local time, not Europe/Berlin), and
+    one with an offset (``+02:00``) is converted to UTC.
+
+    Args:
+        value: a :class:`datetime.datetime` or an ISO-8601 string such as
+            ``"2022-06-10T12:15:59Z"`` or ``"2022-06-10 14:15:59+02:00"``.
+
+    Raises:
+        ValueError: if the string is not ISO-8601.
+        TypeError: for any other input type.
+    """
+    if isinstance(value, str):
+        text = value.strip()
+        if text.endswith(("Z", "z")):
+            text = text[:-1] + "+00:00"
+        try:
+            dt = _dt.datetime.fromisoformat(text)
+        except ValueError as err:
+            raise ValueError(f"not an ISO-8601 date-time: {value!r}") from err
+    elif isinstance(value, _dt.datetime):
+        dt = value
+    else:
+        raise TypeError(f"expected a datetime or an ISO-8601 string, got {type(value).__name__}")
+    if dt.tzinfo is None:
+        return dt.replace(tzinfo=_dt.UTC)  # PAINT's convention, see above
+    return dt.astimezone(_dt.UTC)
+
+
 def datetime_to_unix(dt_or_iso_string: _dt.datetime | str) -> float:
     """Seconds since the unix epoch of a UTC instant (data-boundary helper, not traceable).
 
     Args:
         dt_or_iso_string: a :class:`datetime.datetime` or an ISO-8601 string such as
-            ``"2022-06-10T12:15:59Z"`` or ``"2022-06-10 14:15:59+02:00"``. A naive
-            datetime / string without offset is taken as **UTC**.
+            ``"2022-06-10T12:15:59Z"`` or ``"2022-06-10 14:15:59+02:00"``, read by
+            :func:`utc_datetime`: one without offset is **UTC** (PAINT's convention).
 
     Returns:
         Unix time in seconds (Python float, exact to the microsecond).
@@ -519,21 +556,7 @@ def datetime_to_unix(dt_or_iso_string: _dt.datetime | str) -> float:
         ValueError: if the string is not ISO-8601.
         TypeError: for any other input type.
     """
-    if isinstance(dt_or_iso_string, str):
-        text = dt_or_iso_string.strip()
-        if text.endswith(("Z", "z")):
-            text = text[:-1] + "+00:00"
-        try:
-            dt = _dt.datetime.fromisoformat(text)
-        except ValueError as err:
-            raise ValueError(f"not an ISO-8601 date-time: {dt_or_iso_string!r}") from err
-    elif isinstance(dt_or_iso_string, _dt.datetime):
-        dt = dt_or_iso_string
-    else:
-        raise TypeError(f"expected a datetime or an ISO-8601 string, got {type(dt_or_iso_string).__name__}")
-    if dt.tzinfo is None:
-        dt = dt.replace(tzinfo=_dt.UTC)
-    delta = dt - _dt.datetime(1970, 1, 1, tzinfo=_dt.UTC)
+    delta = utc_datetime(dt_or_iso_string) - _dt.datetime(1970, 1, 1, tzinfo=_dt.UTC)
     # Exact integer arithmetic before the single rounding to float.
     micro = (delta.days * 86400 + delta.seconds) * 1_000_000 + delta.microseconds
     return micro / 1e6

@@ -3,10 +3,13 @@
 
 from __future__ import annotations
 
+import datetime as dt
 import json
+import math
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import heliojax as hj
@@ -303,7 +306,9 @@ def test_damaged_data_is_named_and_the_good_heliostats_are_fitted(tmp_path, caps
     truncated.write_text(truncated.read_text()[:40])
     stamps = json.loads((data / "calibration-timestamps.json").read_text())
     future = sorted(k for k, v in stamps.items() if v["heliostat_id"] == "BF56")[-1]
-    stamps[future]["datetime"] = "3000-01-01T00:00:00Z"
+    when = dt.datetime.fromisoformat(stamps[future]["datetime"])
+    when = when.replace(year=when.year + 12)  # in the future, the record's sun (to 0.1 deg) kept
+    stamps[future]["datetime"] = when.isoformat()
     (data / "calibration-timestamps.json").write_text(json.dumps(stamps))
     report = tmp_path / "summary.json"
     rc, out, err = _run(["calibrate", str(data), "--report", str(report), "--cache-dir", "none", "--quiet"], capsys)
@@ -313,10 +318,7 @@ def test_damaged_data_is_named_and_the_good_heliostats_are_fitted(tmp_path, caps
     assert set(s["heliostats"]) == {"BE36", "BF56", "BG23", "BH20"}
     assert {h["status"] for h in s["heliostats"].values()} == {"converged"}
     flags = [(e.field, e.reason) for e in hj.load_paint_directory(data).report.flags]
-    assert (
-        "datetime",
-        "3000-01-01T00:00:00+00:00 is before 2000 or in the future: record kept, check its time",
-    ) in flags
+    assert ("datetime", f"{when.isoformat()} is before 2000 or in the future: record kept, check its time") in flags
     del out
 
 
@@ -582,3 +584,37 @@ def test_test_data_of_other_heliostats_is_an_error(tmp_path, capsys):
     rc, _, err = _run(["calibrate", "--test-data", str(data), "--report", str(tmp_path / "s.json")], capsys)
     assert rc == 2 and "--test-data holds none" in err and "Traceback" not in err, err
     assert not (tmp_path / "s.json").exists()
+
+
+def test_a_sun_that_does_not_match_its_time_is_skipped(tmp_path, capsys):
+    """A record's stored sun must be the sun at its own time seen from its heliostat: one
+    given in radians, and one whose time is half a year off (another season), are named
+    and skipped; a time written with +02:00 or without a zone (PAINT's UTC) is the same
+    instant and kept; every other record loads as before."""
+    data = tmp_path / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    stamps = json.loads((data / "calibration-timestamps.json").read_text())
+    radians, season, offset, naive = sorted((data / "BH20" / "Calibration").iterdir())[:4]
+    r = json.loads(radians.read_text())
+    r["sun_azimuth"], r["sun_elevation"] = math.radians(r["sun_azimuth"]), math.radians(r["sun_elevation"])
+    radians.write_text(json.dumps(r))
+    rid = {p: p.name.split("-")[0] for p in (season, offset, naive)}
+    when = dt.datetime.fromisoformat(stamps[rid[season]]["datetime"])
+    stamps[rid[season]]["datetime"] = (when + dt.timedelta(days=182)).isoformat()
+    when = dt.datetime.fromisoformat(stamps[rid[offset]]["datetime"])
+    stamps[rid[offset]]["datetime"] = when.astimezone(dt.timezone(dt.timedelta(hours=2))).isoformat()
+    stamps[rid[naive]]["datetime"] = stamps[rid[naive]]["datetime"].removesuffix("Z")
+    (data / "calibration-timestamps.json").write_text(json.dumps(stamps))
+    fleet = hj.load_paint_directory(data)
+    skipped = {(Path(e.file).name, e.field) for e in fleet.report.skipped}
+    assert skipped == {(radians.name, "sun_azimuth"), (season.name, "sun_elevation")}
+    assert fleet.report.records_skipped == 2 and fleet.report.records_loaded == 392 - 2
+    original = hj.load_paint_directory(hj.default_data_dir())
+    h = fleet.index("BH20")
+    for path in (offset, naive):
+        j = list(np.asarray(fleet.record_id[h])).index(int(rid[path]))
+        k = list(np.asarray(original.record_id[h])).index(int(rid[path]))
+        assert float(fleet.context.unix_time[h, j]) == float(original.context.unix_time[h, k])
+    rc, out, err = _run(["inspect", str(data)], capsys)
+    assert rc == 0, err
+    assert radians.name in out + err and season.name in out + err and "Traceback" not in err

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
+import heliojax as hj
 from heliojax._errors import DataError
 from heliojax._fleet import (
     OUTLIER_FLOOR,
@@ -182,6 +183,13 @@ def test_weather_join(emb_fleet):
     assert n == 100
 
 
+def _sun_at(when: str, lla) -> dict[str, float]:
+    """The sun of a record at ``when`` seen from ``lla`` (the loader skips any other)."""
+    with jax.enable_x64(True):
+        pos = hj.solar_position(hj.datetime_to_unix(when), *lla)
+    return {"sun_azimuth_deg": math.degrees(pos.azimuth), "sun_elevation_deg": math.degrees(pos.elevation)}
+
+
 def test_approach_by_hand(raw_emb):
     tower, props, _ = raw_emb
     p = next(p for p in props if p.heliostat_id == "BL14")
@@ -203,6 +211,7 @@ def test_approach_by_hand(raw_emb):
         (6, 30, 450, "2023-01-02T11:00:00Z"),
     ]
     recs = [CalibrationRecord(record_id=i, axis_1_counts=a, axis_2_counts=b, datetime=t, **base) for i, a, b, t in seq]
+    recs = [r if r.datetime is None else dataclasses.replace(r, **_sun_at(r.datetime, p.position_lla)) for r in recs]
     f = records_to_fleet(tower, [p], recs[::-1])
     assert np.asarray(f.record_id[0]).tolist() == [1, 2, 3, 4, 5, 6]
     # Axis 1: 10 -> 20 (+), 20 (no move: keeps +), 15 (-), 15 (keeps -), 30 (+).

@@ -449,6 +449,10 @@ MAX_SPOT_DISTANCE_M = 1_000.0
 """A focal spot farther than this from its target's centre is not a measurement of that target."""
 MAX_HELIOSTAT_DISTANCE_M = 50_000.0
 """A heliostat farther than this from the plant's reference point is not part of the plant."""
+MAX_SUN_GAP_DEG = 2.0
+"""A stored sun direction farther than this from the sun computed for the record's time
+at its heliostat is not the sun of that record (real PAINT data: within 0.03 deg; a sun
+given in radians, or from another day or hour, is off by far more)."""
 
 
 def _record_id_from_name(path: Path) -> int:

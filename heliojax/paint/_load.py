@@ -23,12 +23,13 @@ from .._fleet import CENTROIDS, Centroid, Fleet, ReportEntry, bucket_size
 from .._geometry import TargetPlane, sun_direction, wgs84_to_enu
 from .._heliostat import HeliostatGeometry, LinearActuators, RecordContext
 from .._programs import cached_jit
-from .._sun import datetime_to_unix
+from .._sun import datetime_to_unix, solar_position
 from ._calibration import check_record_context, heliostat_properties_path, read_calibration_record, validate_record
 from ._common import (
     CALIBRATION_SUFFIX,
     CORNERS,
     MAX_HELIOSTAT_DISTANCE_M,
+    MAX_SUN_GAP_DEG,
     PROPERTIES_SUFFIX,
     TIMESTAMPS_FILE,
     TOWER_FILE_SUFFIX,
@@ -156,11 +157,64 @@ def _target_planes(*corners):
     return jax.vmap(TargetPlane.from_corners)(*corners)
 
 
+def _sun_gap(unix_time, lla, azimuth_deg, elevation_deg):
+    """Angle (deg) between the stored sun and the sun computed (SPA, with refraction) for
+    the time at the position; and the computed azimuth and elevation (deg)."""
+    pos = solar_position(unix_time, lla[:, 0], lla[:, 1], lla[:, 2])
+    stored = _sun_vectors(azimuth_deg, elevation_deg)
+    computed = pos.direction_enu()
+    cross = jnp.linalg.norm(jnp.cross(stored, computed), axis=-1)
+    gap = jnp.arctan2(cross, jnp.sum(stored * computed, axis=-1))
+    return jnp.rad2deg(gap), jnp.rad2deg(pos.azimuth), jnp.rad2deg(pos.elevation)
+
+
 # jitted once per shape bucket; traced programs kept across processes (heliojax._programs)
 _enu_kernel = cached_jit(wgs84_to_enu)
 _sun_kernel = cached_jit(_sun_vectors)
 _geometry_kernel = cached_jit(HeliostatGeometry.build)
 _targets_kernel = cached_jit(_target_planes)
+_sun_gap_kernel = cached_jit(_sun_gap)
+_SUN_CHUNK = 256
+
+
+def _drop_sun_mismatches(
+    goods: list[list[CalibrationRecord]], positions: Sequence, log: _Log
+) -> list[list[CalibrationRecord]]:
+    """Skip (and name) every timed record whose stored sun lies more than
+    :data:`MAX_SUN_GAP_DEG` from the sun computed for its time at its heliostat
+    (``positions[i]``, WGS84): one batched solar-position call over all records."""
+    where = [(i, k) for i, rs in enumerate(goods) for k, r in enumerate(rs) if r.datetime is not None]
+    if not where:
+        return goods
+    rs = [goods[i][k] for i, k in where]
+    t = np.array([datetime_to_unix(r.datetime) for r in rs])  # pyright: ignore[reportArgumentType]
+    lla = np.array([positions[i] for i, _ in where], dtype=np.float64)
+    az = np.array([r.sun_azimuth_deg for r in rs], dtype=np.float64)
+    el = np.array([r.sun_elevation_deg for r in rs], dtype=np.float64)
+    n = len(rs)
+    size = -(-n // _SUN_CHUNK) * _SUN_CHUNK  # one compiled shape for every fleet (SPA compiles slowly)
+    cols = [np.concatenate([x, np.repeat(x[:1], size - n, axis=0)]) for x in (t, lla, az, el)]
+    parts = []
+    with jax.enable_x64(True):
+        for a in range(0, size, _SUN_CHUNK):
+            parts.append([np.asarray(x) for x in _sun_gap_kernel(*(c[a : a + _SUN_CHUNK] for c in cols))])
+    gap, az_c, el_c = (np.concatenate(x)[:n] for x in zip(*parts))
+    drop: set[tuple[int, int]] = set()
+    for j in np.nonzero(~(gap <= MAX_SUN_GAP_DEG))[0]:
+        r = rs[j]
+        d_az = abs((az[j] - az_c[j] + 180.0) % 360.0 - 180.0) * math.cos(math.radians(el_c[j]))
+        field = "sun_elevation" if abs(el[j] - el_c[j]) > d_az else "sun_azimuth"
+        log.skip_record(
+            DataError(
+                r.source,
+                field,
+                f"the stored sun (azimuth {az[j]:.6g}, elevation {el[j]:.6g} deg) is {gap[j]:.3g} deg from the sun "
+                f"at the record's time {r.datetime} seen from heliostat {r.heliostat_id!r} (azimuth {az_c[j]:.4g}, "
+                f"elevation {el_c[j]:.4g} deg; more than {MAX_SUN_GAP_DEG:g} deg: a sun in radians, or another time?)",
+            )
+        )
+        drop.add(where[j])
+    return [[r for k, r in enumerate(rs_i) if (i, k) not in drop] for i, rs_i in enumerate(goods)]
 
 
 def _assemble(
@@ -250,9 +304,7 @@ def _assemble(
     if not ids:
         rep = log.report()
         raise DataError(log.source, None, "no heliostat could be loaded\n" + rep.format())
-    per_h: list[list[CalibrationRecord]] = []
-    per_t: list[list[float]] = []
-    n_fallback = 0
+    goods: list[list[CalibrationRecord]] = []
     for hid in ids:
         props = props_by_id[hid]
         good: list[CalibrationRecord] = []
@@ -283,6 +335,13 @@ def _assemble(
                 continue
             seen.add(r.record_id)
             good.append(r)
+        goods.append(good)
+    goods = _drop_sun_mismatches(goods, [props_by_id[hid].position_lla for hid in ids], log)
+    per_h: list[list[CalibrationRecord]] = []
+    per_t: list[list[float]] = []
+    n_fallback = 0
+    for hid, good in zip(ids, goods):
+        props = props_by_id[hid]
         times = [math.nan if r.datetime is None else datetime_to_unix(r.datetime) for r in good]
         order = _chronological(good, times)
         per_h.append([good[k] for k in order])

@@ -88,6 +88,7 @@ from pathlib import Path
 import pystac
 
 from .._errors import DataError
+from .._sun import utc_datetime
 from ._common import TimestampEntry
 from ._stac_io import (
     _COLLECTION_SUFFIX,
@@ -122,9 +123,7 @@ from ._timestamps import read_timestamps, write_timestamps
 def _item_time(item: pystac.Item) -> dt.datetime | None:
     """The item's ``datetime`` (else ``start_datetime``); one without a time zone is UTC."""
     when = item.datetime if item.datetime is not None else item.common_metadata.start_datetime
-    if when is not None and when.tzinfo is None:
-        when = when.replace(tzinfo=dt.UTC)  # not the local time of this machine
-    return when
+    return None if when is None else utc_datetime(when)  # naive: UTC (PAINT's convention), not local time
 
 
 def _as_utc(t: dt.datetime | dt.date | None, end: bool) -> dt.datetime | None:
@@ -132,9 +131,7 @@ def _as_utc(t: dt.datetime | dt.date | None, end: bool) -> dt.datetime | None:
         return None
     if not isinstance(t, dt.datetime):
         t = dt.datetime.combine(t, dt.time.max if end else dt.time.min)
-    if t.tzinfo is None:
-        t = t.replace(tzinfo=dt.UTC)
-    return t
+    return utc_datetime(t)
 
 
 def _links(obj: pystac.STACObject, *rels: str) -> list[str]:
