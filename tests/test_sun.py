@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from heliojax._sun import SolarPosition, _spa, datetime_to_unix, julian_day, solar_position
+from heliojax._sun import SolarPosition, _spa, datetime_to_unix, julian_day, solar_position, utc_datetime
 
 # --------------------------------------------------------------------------------------
 # The paper's worked example
@@ -142,6 +142,23 @@ def test_julian_day_and_datetime_to_unix():
         datetime_to_unix("10/06/2022 12:15")
     with pytest.raises(TypeError):
         datetime_to_unix(1654863359)  # type: ignore[arg-type]
+
+
+def test_a_time_with_an_offset_is_the_same_instant_and_sun_as_in_utc():
+    """PAINT's convention in one function: naive = UTC, an offset converted (a string or
+    a datetime); the sun at the instant does not depend on how it was written."""
+    z = utc_datetime("2022-06-10T12:15:59Z")
+    plus2 = dt.timezone(dt.timedelta(hours=2))
+    for other in (
+        "2022-06-10T14:15:59+02:00",
+        "2022-06-10 12:15:59",
+        dt.datetime(2022, 6, 10, 14, 15, 59, tzinfo=plus2),
+    ):
+        assert utc_datetime(other) == z and utc_datetime(other).utcoffset() == dt.timedelta(0)
+    with jax.enable_x64(True):
+        a = solar_position(datetime_to_unix("2022-06-10T14:15:59+02:00"), 50.9, 6.39, 87.0)
+        b = solar_position(datetime_to_unix("2022-06-10T12:15:59Z"), 50.9, 6.39, 87.0)
+    assert float(a.azimuth) == float(b.azimuth) and float(a.elevation) == float(b.elevation)
 
 
 def test_float32_time_warns():
