@@ -618,3 +618,28 @@ def test_a_sun_that_does_not_match_its_time_is_skipped(tmp_path, capsys):
     rc, out, err = _run(["inspect", str(data)], capsys)
     assert rc == 0, err
     assert radians.name in out + err and season.name in out + err and "Traceback" not in err
+
+
+@pytest.fixture(scope="module")
+def two_records(tmp_path_factory) -> Path:
+    """The embedded data with only two records per heliostat: nothing can be fitted."""
+    data = tmp_path_factory.mktemp("two") / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    for folder in data.glob("*/Calibration"):
+        keep = sorted({p.name.split("-")[0] for p in folder.iterdir()})[:2]
+        for record in folder.iterdir():
+            if record.name.split("-")[0] not in keep:
+                record.unlink()
+    return data
+
+
+def test_aim_without_a_usable_fit_says_so_and_prints_no_nan(two_records, tmp_path, capsys):
+    """Every heliostat too_few_records: aim printed 'median ... nan mrad'."""
+    results = tmp_path / "results.h5"
+    argv = ["calibrate", str(two_records), "--out", str(results), "--max-steps", "3", "--cache-dir", "none"]
+    assert main([*argv, "--quiet"]) == 0
+    capsys.readouterr()
+    rc, out, err = _run(["aim", str(results), "--date", "2023-06-21", "--step-minutes", "240", "--quiet"], capsys)
+    assert rc == 0, err
+    assert "nan" not in out.lower(), out
+    assert "no heliostat has a usable fit (too_few_records: 5 of 5)" in out and "unreliable 30" in out, out

@@ -186,6 +186,27 @@ def _aim_points_csv(path: Path, ids: tuple[str, ...], origin_lla) -> np.ndarray:
     return enu
 
 
+def summary_line(ok, std, radius95, flags: dict, ids, status) -> str:
+    """The printed summary: the median uncertainty of the commands without a flag, or,
+    when there is none, why (no usable fit, and the flags the rows carry): never a NaN."""
+    good = ok & np.isfinite(std) & np.isfinite(radius95)
+    head = f"{int(ok.sum())} of {ok.size} commands without a flag"
+    if good.any():
+        return (
+            f"{head}; median predicted pointing uncertainty {np.median(std[good]):.3f} mrad (radial scale), "
+            f"95 % radius {np.median(radius95[good]):.3f} mrad"
+        )
+    carried = ", ".join(f"{k} {int(v.sum())}" for k, v in flags.items() if v.any()) or "none"
+    if flags["unreliable"].all():
+        counts: dict[str, int] = {}
+        for s in status:
+            counts[str(s)] = counts.get(str(s), 0) + 1
+        why = f"no heliostat has a usable fit ({', '.join(f'{k}: {n} of {len(ids)}' for k, n in counts.items())})"
+    else:
+        why = "every command carries a flag"
+    return f"{head}: no pointing uncertainty to report, {why}; flags of the rows: {carried}"
+
+
 MAX_AIM_DISTANCE_M = 20_000.0
 """An aim point farther than this from the field's origin is a data error (no tower is)."""
 
@@ -301,9 +322,5 @@ def run(args) -> int:
         )
         save_figure(fig, args.plot)
         log.info(f"wrote {args.plot}")
-    print(
-        f"{int(ok.sum())} of {ok.size} commands without a flag; median predicted pointing uncertainty "
-        f"{np.nanmedian(np.where(ok, std, np.nan)) if ok.any() else float('nan'):.3f} mrad (radial scale), "
-        f"95 % radius {np.nanmedian(np.where(ok, radius95, np.nan)) if ok.any() else float('nan'):.3f} mrad"
-    )
+    print(summary_line(ok, std, radius95, flags, results.ids, results.status))
     return 0
