@@ -643,3 +643,18 @@ def test_aim_without_a_usable_fit_says_so_and_prints_no_nan(two_records, tmp_pat
     assert rc == 0, err
     assert "nan" not in out.lower(), out
     assert "no heliostat has a usable fit (too_few_records: 5 of 5)" in out and "unreliable 30" in out, out
+
+
+def test_discover_on_too_few_records_says_nothing_was_tested(two_records, tmp_path, capsys):
+    """Two records per heliostat (4 residual components for 8 parameters) reported
+    'No residual structure left against any recorded variable'."""
+    report = tmp_path / "report.json"
+    argv = ["discover", str(two_records), "--report", str(report), "--effects", "thermal", "--folds", "2"]
+    rc, out, err = _run([*argv, "--no-changes", "--cache-dir", "none", "--quiet"], capsys)
+    assert rc == 0, err
+    assert "No residual structure" not in out and "No effect passed" not in out, out
+    reason = "too few records: at most 2 per heliostat (4 residual components) for 8 base-model parameters"
+    assert reason in out and reason in err, out + err
+    r = json.loads(report.read_text())
+    assert r["screens_run"] is False and reason in r["not_tested_reason"]
+    assert r["data"]["max_records_per_heliostat"] == 2 and r["data"]["n_base_parameters"] == 8

@@ -118,5 +118,7 @@ def run(args) -> int:
         with activity("drawing the figures", logger=log):
             paths = write_figures(result, args.figures)
         log.info(f"wrote {len(paths)} figures to {args.figures}")
+    if result.report.get("not_tested_reason"):
+        log.warning(f"nothing tested: {result.report['not_tested_reason']}")
     print(markdown_summary(result.report))
     return 0

@@ -33,6 +33,8 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
       "partly_absorbed": [{"effect", "absorbed_fraction", "remainder_p_holm"}],  # last screen
       "not_identifiable": [names],                 # largely absorbed at some step (tested on the remainder), not named
       "untestable": [names],                       # the data do not drive them (e.g. no weather)
+      "screens_run": bool,                         # false: nothing was tested (see not_tested_reason)
+      "not_tested_reason": str | null,             # why, e.g. too few records for the parameters
       "absorbed_fraction": {name: float | null},   # at the first screen
       "heldout_rms_base_mrad": float, "heldout_rms_final_mrad": float,
       "heldout_median_base_mrad": float, "heldout_median_final_mrad": float,
@@ -186,6 +188,7 @@ def build_report(result, typical_start=None) -> dict:
             elif not sc.identifiable and c not in not_ident:
                 not_ident.append(c)
     untestable = [c for c in untestable if c not in not_ident]
+    not_tested = _not_tested_reason(result)
     screens = []
     for entry in result.screens:
         screens.append(
@@ -264,6 +267,8 @@ def build_report(result, typical_start=None) -> dict:
         "partly_absorbed": absorbed,
         "not_identifiable": not_ident,
         "untestable": untestable,
+        "screens_run": not_tested is None,
+        "not_tested_reason": not_tested,
         "absorbed_fraction": {c: _f(sc.absorbed_fraction) for c, sc in first.items()},
         "heldout_rms_base_mrad": _f(cv_base),
         "heldout_rms_final_mrad": _f(cv_final),
@@ -298,9 +303,37 @@ def build_report(result, typical_start=None) -> dict:
             "robust_noise_median_mrad": cleaning["robust_noise_median_mrad"],
             "start_typical_actuators": [i for i, t in zip(fleet.ids, typical) if i and t],
             "heliostat_ids": [i for i in fleet.ids if i],
+            "max_records_per_heliostat": _max_records(fleet),
+            "n_base_parameters": len(result.layout.base_cols),
         },
         "timing": {k: _f(v) for k, v in result.timing.items()},
     }
+
+
+def _max_records(fleet) -> int:
+    """The most records a heliostat of ``fleet`` has (padding rows left out)."""
+    real = np.array([bool(i) for i in fleet.ids])
+    counts = np.asarray(fleet.mask).sum(axis=1)[real]
+    return int(counts.max()) if counts.size else 0
+
+
+def _not_tested_reason(result) -> str | None:
+    """Why no screen and no residual test ran, or None when any did: with no residual
+    degrees of freedom (records x 2 components <= parameters) there is nothing to test,
+    which is no evidence of the absence of residual structure."""
+    tested = any(sc.tested for entry in result.screens for sc in entry["screens"].values())
+    if tested or any(v is not None and math.isfinite(v) for v in result.variable_p.values()):
+        return None
+    m, k = _max_records(result.fleet), len(result.layout.base_cols)
+    if 2 * m <= k:
+        return (
+            f"too few records: at most {m} per heliostat ({2 * m} residual components) for {k} base-model "
+            "parameters per heliostat, no residual degrees of freedom"
+        )
+    h = result.lanes.n_heliostats
+    if not np.any(result.base.ok[:h]):
+        return "the base model could not be fitted to any heliostat"
+    return "no candidate effect and no recorded variable could be tested on these records"
 
 
 def _utc(t: float) -> str | None:
@@ -415,6 +448,12 @@ def markdown_summary(report: dict) -> str:
                 f"{fmt(s['p_holm'], '.2g')} | {amp} |"
             )
         lines.append("")
+    elif report.get("not_tested_reason"):
+        lines += [
+            f"**Nothing tested**: {report['not_tested_reason']}; no screen could run, so this is no evidence "
+            "either way. Add records.",
+            "",
+        ]
     else:
         lines += ["No effect passed (Holm-controlled score test, delta BIC > 0 and a held-out improvement).", ""]
     for a in report.get("ambiguities", []):
@@ -450,14 +489,16 @@ def markdown_summary(report: dict) -> str:
                 f"| {u['variable']} | {fmt(u['p_holm'], '.2g')} | {fmt(u['effect_size_mrad'])} | "
                 f"{', '.join(u['heliostats']) or '-'} |"
             )
-    else:
+    elif not report.get("not_tested_reason"):
         lines.append("\nNo residual structure left against any recorded variable.")
     lines.append("")
     lines += [
         f"Named: {', '.join(report['named_effects']) or 'none'}.",
         f"Not identifiable under this data's sampling (absorbed by the model's parameters): "
         f"{', '.join(report['not_identifiable']) or 'none'}.",
-        f"Untestable (no driving data): {', '.join(report['untestable']) or 'none'}.",
+        f"Untestable (no driving data): {', '.join(report['untestable']) or 'none'}."
+        if not report.get("not_tested_reason")
+        else "Untestable: every candidate (nothing could be tested, see above).",
         "",
         "Absorbed fraction of each candidate's best-determined direction (first screen; "
         f"limit {report['config']['absorbed_limit']:.5f}):",
