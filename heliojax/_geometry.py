@@ -51,6 +51,10 @@ WGS84_A = 6378137.0
 """Semi-major axis in metres."""
 WGS84_F = 1.0 / 298.257223563
 """Flattening."""
+MAX_FIELD_EXTENT_M = 20_000.0
+"""Largest distance (m) of a point of a plant (a heliostat, an aim point) from its
+field's origin: the largest fields reach about 2 km; a point farther away in an input
+file is a data error (``heliojax accept``'s field CSV, ``heliojax aim --aim-csv``)."""
 WGS84_B = WGS84_A * (1.0 - WGS84_F)
 WGS84_E2 = WGS84_F * (2.0 - WGS84_F)
 """First eccentricity squared."""
@@ -391,6 +395,7 @@ def rotation_z(angle: Float[ArrayLike, ""]) -> Float[Array, "3 3"]:
 
 
 __all__ = [
+    "MAX_FIELD_EXTENT_M",
     "PlaneHit",
     "TargetPlane",
     "WGS84_A",

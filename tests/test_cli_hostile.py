@@ -658,3 +658,13 @@ def test_discover_on_too_few_records_says_nothing_was_tested(two_records, tmp_pa
     r = json.loads(report.read_text())
     assert r["screens_run"] is False and reason in r["not_tested_reason"]
     assert r["data"]["max_records_per_heliostat"] == 2 and r["data"]["n_base_parameters"] == 8
+
+
+def test_one_limit_for_how_far_a_point_of_the_field_may_be():
+    """aim's aim points and accept's field CSV had two 20 km constants of their own."""
+    import heliojax.acceptance._io as acceptance_io
+    import heliojax.cli._aim as aim
+    from heliojax._geometry import MAX_FIELD_EXTENT_M
+
+    assert not hasattr(aim, "MAX_AIM_DISTANCE_M")
+    assert acceptance_io.MAX_FIELD_EXTENT_M is MAX_FIELD_EXTENT_M

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._errors import ConfigError, DataError
-from .._geometry import wgs84_to_enu
+from .._geometry import MAX_FIELD_EXTENT_M, wgs84_to_enu
 from ..paint import TOWER_FILE_SUFFIX, read_heliostat_properties, read_tower
 from ._field import PARAMETERS, FieldData
 
@@ -27,11 +27,6 @@ _BAD_STATUS = {"failed", "error", "skipped", "excluded"} | {
     "no_records",
     "no_training_records",
 }  # the last five: heliojax's own fit statuses of no calibration (its test error measures no heliostat)
-
-
-MAX_FIELD_EXTENT_M = 20_000.0
-"""Largest distance (m, per ENU component) of a heliostat from the tower: the largest fields
-reach about 2 km."""
 
 
 def _float(path, field, text) -> float:

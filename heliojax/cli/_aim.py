@@ -145,7 +145,7 @@ def _instants(args, origin_lla):
 def _aim_points_csv(path: Path, ids: tuple[str, ...], origin_lla) -> np.ndarray:
     """``(H, 3)`` ENU aim points (m) of the heliostats ``ids`` from a CSV (see ``--aim-csv``)."""
     from .._errors import DataError
-    from .._geometry import wgs84_to_enu
+    from .._geometry import MAX_FIELD_EXTENT_M, wgs84_to_enu
 
     enu_cols, lla_cols = ("east_m", "north_m", "up_m"), ("lat_deg", "lon_deg", "alt_m")
     try:
@@ -179,10 +179,10 @@ def _aim_points_csv(path: Path, ids: tuple[str, ...], origin_lla) -> np.ndarray:
         raise DataError(path, "heliostat_id", f"no aim point for {', '.join(missing)}")
     out = np.stack([points[h] for h in ids])
     enu = out if cols == enu_cols else np.asarray(wgs84_to_enu(out, np.asarray(origin_lla)))
-    far = np.linalg.norm(enu, axis=-1) > MAX_AIM_DISTANCE_M
+    far = np.linalg.norm(enu, axis=-1) > MAX_FIELD_EXTENT_M
     if far.any():
         h = ids[int(np.argmax(far))]
-        raise DataError(path, f"row {lines[h]}", f"the aim point of {h} is over {MAX_AIM_DISTANCE_M / 1e3:g} km away")
+        raise DataError(path, f"row {lines[h]}", f"the aim point of {h} is over {MAX_FIELD_EXTENT_M / 1e3:g} km away")
     return enu
 
 
@@ -205,10 +205,6 @@ def summary_line(ok, std, radius95, flags: dict, ids, status) -> str:
     else:
         why = "every command carries a flag"
     return f"{head}: no pointing uncertainty to report, {why}; flags of the rows: {carried}"
-
-
-MAX_AIM_DISTANCE_M = 20_000.0
-"""An aim point farther than this from the field's origin is a data error (no tower is)."""
 
 
 def run(args) -> int:
