@@ -1,7 +1,9 @@
 """Atomic output: every file heliojax writes goes through :func:`atomic_write` or
 :func:`atomic_path`. The file appears under its name only when complete, with the
 permissions :func:`open` would give it (``0o666`` less the umask, or the mode of the
-file it replaces), not the private ``0o600`` of a temporary file."""
+file it replaces), not the private ``0o600`` of a temporary file. A destination that
+is a symbolic link is written through, as :func:`open` would: the file it points at is
+replaced and the link kept (renaming onto the link would replace the link itself)."""
 
 from __future__ import annotations
 
@@ -35,6 +37,12 @@ def remove_stale_temporaries(directory: str | os.PathLike, older_than_s: float =
     return removed
 
 
+def _destination(path: str | os.PathLike) -> Path:
+    """``path``, or the file it points at when it is a symbolic link."""
+    path = Path(path)
+    return Path(os.path.realpath(path)) if path.is_symlink() else path
+
+
 def _umask() -> int:
     mask = os.umask(0o022)  # the only portable way to read it
     os.umask(mask)
@@ -65,7 +73,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **kwargs) -> Iterator
         mode: ``"w"`` (text) or ``"wb"`` (binary).
         **kwargs: passed to :func:`open` (e.g. ``encoding``).
     """
-    path = Path(path)
+    path = _destination(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=TEMPORARY_MARK)
     os.close(fd)
@@ -87,7 +95,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **kwargs) -> Iterator
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path`` (for writers that want a file name,
     such as h5py or matplotlib); on success rename it onto ``path``."""
-    path = Path(path)
+    path = _destination(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=TEMPORARY_MARK + path.suffix)
     os.close(fd)

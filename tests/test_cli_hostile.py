@@ -49,6 +49,13 @@ def _a_dir(tmp: Path) -> Path:
     return path
 
 
+def _dangling(tmp: Path, target: str = "missing-folder/x") -> str:
+    """A symbolic link ``a-link`` to ``target`` (relative to ``tmp``), which does not exist."""
+    link = tmp / "a-link"
+    link.symlink_to(tmp / target)
+    return str(link)
+
+
 CONTRACT = """
 [parameters.tracking_mrad]
 mean = 2.0
@@ -271,6 +278,19 @@ CASES = [
         lambda t: _accept(t, "f.csv", CONTRACT + '[yield]\ntower_file = "nowhere.json"\n'),
         "nowhere.json",
     ),
+    ("calibrate out a dangling link", lambda t: ["calibrate", "--out", _dangling(t)], "--out"),
+    ("calibrate report a link to no file", lambda t: ["calibrate", "--report", _dangling(t, "r.json")], "--report"),
+    ("calibrate out below a dangling link", lambda t: ["calibrate", "--out", _dangling(t) + "/r.h5"], "--out"),
+    ("cache dir a dangling link", lambda t: ["calibrate", "--cache-dir", _dangling(t)], "--cache-dir"),
+    ("inspect plot a dangling link", lambda t: ["inspect", "--plot", _dangling(t, "p.png")], "--plot"),
+    ("discover figures a dangling link", lambda t: ["discover", "--figures", _dangling(t)], "--figures"),
+    ("discover markdown a dangling link", lambda t: ["discover", "--markdown", _dangling(t)], "--markdown"),
+    ("accept report a dangling link", lambda t: [*_accept(t, "f.csv"), "--report", _dangling(t)], "--report"),
+    ("aim out a dangling link", lambda t: ["aim", "r.h5", "--out", _dangling(t, "aim.csv")], "--out"),
+    ("plan ranking a dangling link", lambda t: ["plan", "r.h5", "--ranking", _dangling(t)], "--ranking"),
+    ("trace out a dangling link", lambda t: ["trace", "--heliostat", "AA39", "--out", _dangling(t)], "--out"),
+    ("reconstruct out a dangling link", lambda t: ["reconstruct", "--out", _dangling(t)], "--out"),
+    ("fetch out a dangling link", lambda t: ["fetch", "--out", _dangling(t)], "--out"),
 ]
 
 
@@ -282,7 +302,8 @@ def test_bad_input_is_a_short_clean_error(argv, expected, tmp_path, capsys, monk
     assert rc == 2, err
     assert expected in err and "Traceback" not in err, err
     assert len(err.strip().splitlines()) <= 2, err
-    inputs = {tmp_path / n for n in ("a-dir", "a-file", "config.toml", "contract.toml", "field.csv", "summary.json")}
+    names = ("a-dir", "a-file", "a-link", "config.toml", "contract.toml", "field.csv", "summary.json")
+    inputs = {tmp_path / n for n in names}
     assert {p for p in tmp_path.rglob("*")} - before <= inputs  # no output written
 
 
@@ -668,3 +689,24 @@ def test_one_limit_for_how_far_a_point_of_the_field_may_be():
 
     assert not hasattr(aim, "MAX_AIM_DISTANCE_M")
     assert acceptance_io.MAX_FIELD_EXTENT_M is MAX_FIELD_EXTENT_M
+
+
+def test_an_output_that_is_a_symbolic_link_is_written_through(tmp_path):
+    """Renaming the finished file onto a link replaced the link by a file of its own
+    (the file it pointed at kept its old content); now the file it points at is replaced."""
+    from heliojax._io import atomic_path, atomic_write
+
+    (tmp_path / "real").mkdir()
+    for name in ("a.json", "b.h5"):
+        target = tmp_path / "real" / name
+        target.write_text("old")
+        link = tmp_path / name
+        link.symlink_to(target)
+        if name == "a.json":
+            with atomic_write(link) as f:
+                f.write("new")
+        else:
+            with atomic_path(link) as tmp:
+                tmp.write_text("new")
+        assert link.is_symlink() and target.read_text() == "new"
+    assert sorted(p.name for p in (tmp_path / "real").iterdir()) == ["a.json", "b.h5"]

@@ -184,6 +184,7 @@ def check_output_paths(args, files: tuple[str, ...] = (), directories: tuple[str
             if not str(value).strip():  # Path("") is the working directory: never what was meant
                 raise ConfigError(f"{flag}: empty path")
             path = Path(value)
+            _check_no_dangling_link(flag, path)
             same = flag if is_dir else seen.setdefault(path.resolve(), flag)
             if same != flag:
                 raise ConfigError(f"{flag} {path}: {same} names the same path; give each output its own")
@@ -197,6 +198,7 @@ def check_output_paths(args, files: tuple[str, ...] = (), directories: tuple[str
                 _check_figure_format(flag, path)
             ancestor = path if is_dir else path.parent
             while not ancestor.exists() and ancestor != ancestor.parent:
+                _check_no_dangling_link(flag, path, ancestor)
                 ancestor = ancestor.parent
             if not ancestor.is_dir():
                 raise ConfigError(f"{flag} {path}: {ancestor} is not a directory")
@@ -206,6 +208,23 @@ def check_output_paths(args, files: tuple[str, ...] = (), directories: tuple[str
             if folder.is_dir() and name != "cache_dir":
                 for stale in remove_stale_temporaries(folder):
                     log.info(f"removed {stale}, left by an interrupted run")
+
+
+def _check_no_dangling_link(flag: str, path: Path, link: Path | None = None) -> None:
+    """An output ``path`` (or its folder ``link``) that is a symbolic link must point at
+    something that exists: a live link is written through (the file it points at is
+    replaced, see :func:`heliojax._io.atomic_write`); a dangling one, often a stale link
+    to a disk not mounted, is refused rather than replaced by a file of its own or
+    followed into folders made up on the way."""
+    from .._errors import ConfigError
+
+    link = path if link is None else link
+    if link.is_symlink() and not link.exists():
+        where = "" if link == path else f"{link} is "
+        raise ConfigError(
+            f"{flag} {path}: {where}a symbolic link to {os.readlink(link)}, which does not exist; "
+            "remove the link or create what it points at"
+        )
 
 
 HELIOSTAT_ID_RE = r"^[A-Za-z0-9_]{1,64}$"
