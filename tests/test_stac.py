@@ -1034,3 +1034,63 @@ def test_a_relative_href_with_query_in_a_remote_catalogue_names_its_path(tmp_pat
     with _serve_hostile(tmp_path / "site", {_ITEM: (json.dumps(item).encode(), {})}) as url:
         rep = fetch_catalog(f"{url}/catalog.json", out, heliostats=["AA31"], include_tower=False)
     assert rep.ok and (out / "AA31/Calibration/126372-calibration-properties.json").is_file()
+
+
+@contextlib.contextmanager
+def _static_server(directory: Path, host: str, redirects: dict | None = None) -> Iterator[str]:
+    """A static server of ``directory`` on ``host``; ``redirects`` maps a path to the URL
+    it answers with a 302 redirect."""
+
+    class Handler(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+        def do_GET(self):
+            if self.path in (redirects or {}):
+                self.send_response(302)
+                self.send_header("Location", redirects[self.path])
+                self.send_header("Content-Length", "0")
+                self.end_headers()
+                return
+            super().do_GET()
+
+    srv = http.server.ThreadingHTTPServer((host, 0), functools.partial(Handler, directory=str(directory)))
+    srv.daemon_threads = True
+    th = threading.Thread(target=srv.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
+    th.start()
+    try:
+        yield f"http://{host}:{srv.server_address[1]}"
+    finally:
+        srv.shutdown()
+        srv.server_close()
+        th.join(timeout=5)
+
+
+def test_a_redirect_to_another_host_is_refused_unless_allowed(tmp_path, capsys):
+    """A redirect from 127.0.0.1 to 127.0.0.2 was followed silently: the root is a
+    one-line error naming the URL and the target, an asset a failed file; with
+    --allow-redirects-to-other-hosts both are followed. A redirect on the same host is
+    followed as before."""
+    from heliojax.paint._stac_io import _Reader
+
+    build_catalogue(tmp_path / "site")
+    with _static_server(tmp_path / "site", "127.0.0.2") as other:
+        target, asset = f"{other}/catalog.json", f"{other}{_ASSET}"
+        moves = {"/moved.json": target, "/here.json": "/catalog.json", _ASSET: asset}
+        with _static_server(tmp_path / "site", "127.0.0.1", moves) as url:
+            out = tmp_path / "o"
+            rc = _cli(["fetch", f"{url}/moved.json", "--out", str(out), "--quiet"])
+            err = capsys.readouterr().err
+            assert rc == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+            assert f"{url}/moved.json: redirects to another host, {target}: not followed" in err, err
+            assert "--allow-redirects-to-other-hosts" in err and not out.exists()
+            rep = fetch_catalog(f"{url}/catalog.json", tmp_path / "a", heliostats=["AA31"])
+            assert [f[0] for f in rep.failed] == [f"{url}{_ASSET}"], rep.failed
+            assert f"download failed: redirects to another host, {asset}: not followed" in rep.failed[0][1]
+            argv = ["fetch", f"{url}/moved.json", "--out", str(out), "--heliostats", "AA31", "--quiet"]
+            assert _cli([*argv, "--allow-redirects-to-other-hosts"]) == 0, capsys.readouterr().err
+            assert (out / "AA31/Calibration/126372-calibration-properties.json").is_file()
+            reader = _Reader(None, 5.0, 0, 1)
+            with reader.chunks(f"{url}/here.json") as chunks:
+                assert json.loads(b"".join(chunks))["type"] == "Catalog"
+            reader.close()

@@ -89,6 +89,11 @@ def add_parser(subparsers) -> None:
     p.add_argument("--no-tower", dest="tower", action="store_false", help="skip the tower-measurements file")
     p.add_argument("--workers", type=integer(1, 64), default=8, help="parallel downloads")
     p.add_argument("--timeout", type=number(0.0, above=True), default=60.0, help="seconds per request (> 0)")
+    p.add_argument(
+        "--allow-redirects-to-other-hosts",
+        action="store_true",
+        help="follow an HTTP redirect to another host (default: refused, naming the URL and the target)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
 
 
@@ -115,6 +120,7 @@ def run(args) -> int:
             workers=args.workers,
             timeout_s=args.timeout,
             progress=None if args.quiet else progress,
+            allow_redirects_to_other_hosts=args.allow_redirects_to_other_hosts,
         )
     except (HeliojaxError, ValueError) as e:
         print(f"heliojax fetch: error: {e}", file=sys.stderr)

@@ -64,7 +64,10 @@ followed: it may ask for hours). A STAC JSON file is read to at most ``MAX_STAC_
 read with :func:`open`. A compressed (``Content-Encoding``) body that inflates to more
 than ``MAX_INFLATION`` (100) times the bytes received, beyond its first 16 MiB, is broken
 off (a gzip bomb), as is a body slower than ``MIN_BYTES_PER_S`` (1 KiB/s) on average once
-the timeout has passed (a server that drips a byte within each read timeout).
+the timeout has passed (a server that drips a byte within each read timeout). An HTTP
+redirect is followed only to http or https on the same host: one to another host is
+refused (the root is a :class:`DataError`, an asset a failed file), naming the URL and
+the target, unless ``allow_redirects_to_other_hosts``.
 
 Errors. Unsafe hrefs and an unreadable root raise :class:`DataError` naming the
 href; a STAC file below the root that cannot be read (network error after retries,
@@ -101,6 +104,7 @@ from ._stac_io import (
     CALIBRATION_ASSETS,
     COLLECTIONS,
     FetchReport,
+    RedirectRefused,
     Transport,
     _Checker,
     _content_ok,
@@ -159,6 +163,7 @@ def fetch_catalog(
     retries: int = 2,
     progress: Callable[[str], None] | None = None,
     transport: Transport | None = None,
+    allow_redirects_to_other_hosts: bool = False,
 ) -> FetchReport:
     """Download a PAINT-style STAC catalogue's assets into PAINT's layout.
 
@@ -184,6 +189,8 @@ def fetch_catalog(
             connection errors and answers 408, 429, 500, 502, 503, 504 (see the module docstring).
         progress: called with one line of text per step (the CLI prints to stderr).
         transport: replaces the reading of hrefs, see :data:`Transport` (tests inject failures through it).
+        allow_redirects_to_other_hosts: follow an HTTP redirect to another host (default:
+            refused, naming the URL and the redirect's target; see "Network").
 
     Returns:
         :class:`FetchReport`. Download failures are reported there, not raised.
@@ -216,7 +223,7 @@ def fetch_catalog(
     timestamps: dict[int, TimestampEntry] = {}  # record id -> (heliostat, item datetime)
     nbytes = [0]
 
-    reader = _Reader(transport, timeout_s, retries, connections=workers)
+    reader = _Reader(transport, timeout_s, retries, connections=workers, other_hosts=allow_redirects_to_other_hosts)
     with contextlib.closing(reader), cf.ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         root = reader.stac(root_href)  # before the output folder is made: a bad root leaves nothing behind
         out.mkdir(parents=True, exist_ok=True)
@@ -534,6 +541,8 @@ def _fetch_one(task: _Task, reader: _Reader, journal: _Journal, resume: bool, ou
                         size += len(chunk)
                 f.flush()
                 os.fsync(f.fileno())
+        except RedirectRefused as e:  # the failure is listed with the href: not named twice
+            raise _Failure(f"download failed: {e.reason if e.source == task.src else e}") from None
         except OSError as e:
             raise _Failure(f"download failed: {e}") from e
         problem = checker.check(size, other if other is not None else sha) or _content_ok(tmp, dest.name)

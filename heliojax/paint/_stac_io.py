@@ -193,10 +193,53 @@ _RETRY_STATUSES = (408, 429, 500, 502, 503, 504)
 _BACKOFF_FACTOR_S = 0.5  # urllib3's Retry: the first retry at once, retry k >= 2 after 0.5 * 2**(k - 1) s
 
 
+class RedirectRefused(requests.RequestException):
+    """An HTTP redirect not followed: to another host (unless allowed) or to a scheme
+    other than http/https. ``source``: the URL that redirected; ``reason``: the message
+    without it."""
+
+    def __init__(self, source: str, reason: str, response: requests.Response):
+        super().__init__(f"{source} {reason}", response=response)
+        self.source, self.reason = source, reason
+
+
+def _redirect_hook(other_hosts: bool) -> Callable[..., Any]:
+    """A requests response hook that refuses, before it is followed, a redirect to
+    another host (unless ``other_hosts``) or to a scheme other than http/https."""
+
+    def check(response: requests.Response, *args, **kwargs) -> requests.Response:
+        if not response.is_redirect:
+            return response
+        source = str(response.url)
+        target = urllib.parse.urljoin(source, response.headers.get("location", ""))
+        src, dst = urllib.parse.urlsplit(source), urllib.parse.urlsplit(target)
+        problem = None
+        if dst.scheme not in ("http", "https"):
+            problem = f"redirects to {target}: only http and https redirects are followed"
+        elif not other_hosts and (dst.hostname or "").lower() != (src.hostname or "").lower():
+            problem = (
+                f"redirects to another host, {target}: not followed "
+                "(heliojax fetch --allow-redirects-to-other-hosts follows it)"
+            )
+        if problem is not None:
+            response.close()
+            raise RedirectRefused(source, problem, response)
+        return response
+
+    return check
+
+
 class _Reader:
     """Reads hrefs in chunks (see "Network" in :mod:`._stac`); thread-safe; :meth:`close` closes its session."""
 
-    def __init__(self, transport: Transport | None, timeout_s: float, retries: int, connections: int):
+    def __init__(
+        self,
+        transport: Transport | None,
+        timeout_s: float,
+        retries: int,
+        connections: int,
+        other_hosts: bool = False,
+    ):
         self.transport, self.timeout_s = transport, timeout_s
         self.retry = Retry(
             total=retries,
@@ -207,6 +250,7 @@ class _Reader:
         )
         self.session = requests.Session()
         self.session.headers["User-Agent"] = "heliojax-fetch"
+        self.session.hooks["response"].append(_redirect_hook(other_hosts))
         adapter = HTTPAdapter(max_retries=self.retry, pool_maxsize=max(1, connections))
         for prefix in ("http://", "https://"):
             self.session.mount(prefix, adapter)
@@ -249,6 +293,8 @@ class _Reader:
                     data += chunk
                     if len(data) > MAX_STAC_BYTES:  # bounded: a server's Content-Length is not trusted
                         raise DataError(href, None, f"STAC file larger than {MAX_STAC_BYTES} bytes: not read")
+        except RedirectRefused as e:
+            raise DataError(href, None, e.reason if e.source == href else str(e)) from None
         except OSError as e:
             raise DataError(href, None, f"cannot read STAC file: {e!r}") from e
         try:
