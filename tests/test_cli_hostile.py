@@ -681,16 +681,6 @@ def test_discover_on_too_few_records_says_nothing_was_tested(two_records, tmp_pa
     assert r["data"]["max_records_per_heliostat"] == 2 and r["data"]["n_base_parameters"] == 8
 
 
-def test_one_limit_for_how_far_a_point_of_the_field_may_be():
-    """aim's aim points and accept's field CSV had two 20 km constants of their own."""
-    import heliojax.acceptance._io as acceptance_io
-    import heliojax.cli._aim as aim
-    from heliojax._geometry import MAX_FIELD_EXTENT_M
-
-    assert not hasattr(aim, "MAX_AIM_DISTANCE_M")
-    assert acceptance_io.MAX_FIELD_EXTENT_M is MAX_FIELD_EXTENT_M
-
-
 def test_an_output_that_is_a_symbolic_link_is_written_through(tmp_path):
     """Renaming the finished file onto a link replaced the link by a file of its own
     (the file it pointed at kept its old content); now the file it points at is replaced."""
