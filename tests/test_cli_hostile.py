@@ -184,6 +184,11 @@ CASES = [
         lambda t: [*_accept(t, _file(t, "summary.json", b"\x89\xff\x00")), "--paint", str(hj.default_data_dir())],
         "summary.json",
     ),
+    (
+        "accept heliostat 30 km away",
+        lambda t: _accept(t, _file(t, "field.csv", "heliostat_id,east_m,north_m,tracking_mrad\nA1,30000,0,1\n")),
+        "east_m/north_m/up_m",
+    ),
     ("accept sampling not a table", lambda t: _accept(t, "f.csv", "sampling = 5\n" + CONTRACT), "[sampling]"),
     (
         "accept field value beyond any measurement",
