@@ -1066,11 +1066,10 @@ def _static_server(directory: Path, host: str, redirects: dict | None = None) ->
         th.join(timeout=5)
 
 
-def test_a_redirect_to_another_host_is_refused_unless_allowed(tmp_path, capsys):
-    """A redirect from 127.0.0.1 to 127.0.0.2 was followed silently: the root is a
-    one-line error naming the URL and the target, an asset a failed file; with
-    --allow-redirects-to-other-hosts both are followed. A redirect on the same host is
-    followed as before."""
+def test_redirects_to_another_host_are_followed_unless_same_host_only(tmp_path, capsys):
+    """A redirect from 127.0.0.1 to 127.0.0.2 (a CDN, a moved site) is followed; with
+    --same-host-only the root is a one-line error naming the URL and the target and an
+    asset a failed file. A redirect on the same host is followed either way."""
     from heliojax.paint._stac_io import _Reader
 
     build_catalogue(tmp_path / "site")
@@ -1079,18 +1078,46 @@ def test_a_redirect_to_another_host_is_refused_unless_allowed(tmp_path, capsys):
         moves = {"/moved.json": target, "/here.json": "/catalog.json", _ASSET: asset}
         with _static_server(tmp_path / "site", "127.0.0.1", moves) as url:
             out = tmp_path / "o"
-            rc = _cli(["fetch", f"{url}/moved.json", "--out", str(out), "--quiet"])
+            argv = ["fetch", f"{url}/moved.json", "--out", str(out), "--heliostats", "AA31", "--quiet"]
+            rc = _cli([*argv, "--same-host-only"])
             err = capsys.readouterr().err
             assert rc == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
             assert f"{url}/moved.json: redirects to another host, {target}: not followed" in err, err
-            assert "--allow-redirects-to-other-hosts" in err and not out.exists()
-            rep = fetch_catalog(f"{url}/catalog.json", tmp_path / "a", heliostats=["AA31"])
+            assert "--same-host-only" in err and not out.exists()
+            rep = fetch_catalog(f"{url}/catalog.json", tmp_path / "a", heliostats=["AA31"], same_host_only=True)
             assert [f[0] for f in rep.failed] == [f"{url}{_ASSET}"], rep.failed
             assert f"download failed: redirects to another host, {asset}: not followed" in rep.failed[0][1]
-            argv = ["fetch", f"{url}/moved.json", "--out", str(out), "--heliostats", "AA31", "--quiet"]
-            assert _cli([*argv, "--allow-redirects-to-other-hosts"]) == 0, capsys.readouterr().err
+            assert _cli(argv) == 0, capsys.readouterr().err
             assert (out / "AA31/Calibration/126372-calibration-properties.json").is_file()
-            reader = _Reader(None, 5.0, 0, 1)
-            with reader.chunks(f"{url}/here.json") as chunks:
-                assert json.loads(b"".join(chunks))["type"] == "Catalog"
-            reader.close()
+            for same_host_only in (False, True):
+                reader = _Reader(None, 5.0, 0, 1, same_host_only=same_host_only)
+                with reader.chunks(f"{url}/here.json") as chunks:
+                    assert json.loads(b"".join(chunks))["type"] == "Catalog"
+                reader.close()
+
+
+@pytest.mark.parametrize(
+    ("source", "location", "refused"),
+    [
+        ("https://a.example/x.json", "http://a.example/x.json", "from https to plain http"),
+        ("https://a.example/x.json", "file:///etc/passwd", "only http and https"),
+        ("https://a.example/x.json", "https://b.example/x.json", None),
+        ("http://a.example/x.json", "https://a.example/x.json", None),
+    ],
+)
+def test_a_redirect_down_to_http_or_to_another_scheme_is_refused(source, location, refused):
+    """The redirect check itself (no network): https -> http and non-http targets are
+    refused before they are followed; another host and an upgrade to https are not."""
+    import requests
+
+    from heliojax.paint._stac_io import RedirectRefused, _redirect_hook
+
+    response = requests.Response()
+    response.url, response.status_code, response.raw = source, 302, io.BytesIO(b"")
+    response.headers["location"] = location
+    check = _redirect_hook(same_host_only=False)
+    if refused is None:
+        assert check(response) is response
+    else:
+        with pytest.raises(RedirectRefused, match=refused):
+            check(response)

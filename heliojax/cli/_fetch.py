@@ -90,9 +90,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--workers", type=integer(1, 64), default=8, help="parallel downloads")
     p.add_argument("--timeout", type=number(0.0, above=True), default=60.0, help="seconds per request (> 0)")
     p.add_argument(
-        "--allow-redirects-to-other-hosts",
+        "--same-host-only",
         action="store_true",
-        help="follow an HTTP redirect to another host (default: refused, naming the URL and the target)",
+        help="refuse an HTTP redirect to another host (default: followed; https -> http never is)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
 
@@ -120,7 +120,7 @@ def run(args) -> int:
             workers=args.workers,
             timeout_s=args.timeout,
             progress=None if args.quiet else progress,
-            allow_redirects_to_other_hosts=args.allow_redirects_to_other_hosts,
+            same_host_only=args.same_host_only,
         )
     except (HeliojaxError, ValueError) as e:
         print(f"heliojax fetch: error: {e}", file=sys.stderr)

@@ -65,9 +65,9 @@ read with :func:`open`. A compressed (``Content-Encoding``) body that inflates t
 than ``MAX_INFLATION`` (100) times the bytes received, beyond its first 16 MiB, is broken
 off (a gzip bomb), as is a body slower than ``MIN_BYTES_PER_S`` (1 KiB/s) on average once
 the timeout has passed (a server that drips a byte within each read timeout). An HTTP
-redirect is followed only to http or https on the same host: one to another host is
-refused (the root is a :class:`DataError`, an asset a failed file), naming the URL and
-the target, unless ``allow_redirects_to_other_hosts``.
+redirect is followed only to http or https, never from https down to http, and with
+``same_host_only`` only on the same host; one refused (the root is a :class:`DataError`,
+an asset a failed file) names the URL and the target.
 
 Errors. Unsafe hrefs and an unreadable root raise :class:`DataError` naming the
 href; a STAC file below the root that cannot be read (network error after retries,
@@ -163,7 +163,7 @@ def fetch_catalog(
     retries: int = 2,
     progress: Callable[[str], None] | None = None,
     transport: Transport | None = None,
-    allow_redirects_to_other_hosts: bool = False,
+    same_host_only: bool = False,
 ) -> FetchReport:
     """Download a PAINT-style STAC catalogue's assets into PAINT's layout.
 
@@ -189,8 +189,8 @@ def fetch_catalog(
             connection errors and answers 408, 429, 500, 502, 503, 504 (see the module docstring).
         progress: called with one line of text per step (the CLI prints to stderr).
         transport: replaces the reading of hrefs, see :data:`Transport` (tests inject failures through it).
-        allow_redirects_to_other_hosts: follow an HTTP redirect to another host (default:
-            refused, naming the URL and the redirect's target; see "Network").
+        same_host_only: refuse an HTTP redirect to another host (default: followed, as a
+            CDN or a moved site needs; see "Network").
 
     Returns:
         :class:`FetchReport`. Download failures are reported there, not raised.
@@ -223,7 +223,7 @@ def fetch_catalog(
     timestamps: dict[int, TimestampEntry] = {}  # record id -> (heliostat, item datetime)
     nbytes = [0]
 
-    reader = _Reader(transport, timeout_s, retries, connections=workers, other_hosts=allow_redirects_to_other_hosts)
+    reader = _Reader(transport, timeout_s, retries, connections=workers, same_host_only=same_host_only)
     with contextlib.closing(reader), cf.ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         root = reader.stac(root_href)  # before the output folder is made: a bad root leaves nothing behind
         out.mkdir(parents=True, exist_ok=True)

@@ -203,9 +203,10 @@ class RedirectRefused(requests.RequestException):
         self.source, self.reason = source, reason
 
 
-def _redirect_hook(other_hosts: bool) -> Callable[..., Any]:
-    """A requests response hook that refuses, before it is followed, a redirect to
-    another host (unless ``other_hosts``) or to a scheme other than http/https."""
+def _redirect_hook(same_host_only: bool) -> Callable[..., Any]:
+    """A requests response hook that refuses, before it is followed, a redirect to a
+    scheme other than http/https, from https to plain http (a downgrade), or, with
+    ``same_host_only``, to another host."""
 
     def check(response: requests.Response, *args, **kwargs) -> requests.Response:
         if not response.is_redirect:
@@ -216,11 +217,10 @@ def _redirect_hook(other_hosts: bool) -> Callable[..., Any]:
         problem = None
         if dst.scheme not in ("http", "https"):
             problem = f"redirects to {target}: only http and https redirects are followed"
-        elif not other_hosts and (dst.hostname or "").lower() != (src.hostname or "").lower():
-            problem = (
-                f"redirects to another host, {target}: not followed "
-                "(heliojax fetch --allow-redirects-to-other-hosts follows it)"
-            )
+        elif src.scheme == "https" and dst.scheme == "http":
+            problem = f"redirects from https to plain http, {target}: not followed"
+        elif same_host_only and (dst.hostname or "").lower() != (src.hostname or "").lower():
+            problem = f"redirects to another host, {target}: not followed (--same-host-only)"
         if problem is not None:
             response.close()
             raise RedirectRefused(source, problem, response)
@@ -238,7 +238,7 @@ class _Reader:
         timeout_s: float,
         retries: int,
         connections: int,
-        other_hosts: bool = False,
+        same_host_only: bool = False,
     ):
         self.transport, self.timeout_s = transport, timeout_s
         self.retry = Retry(
@@ -250,7 +250,7 @@ class _Reader:
         )
         self.session = requests.Session()
         self.session.headers["User-Agent"] = "heliojax-fetch"
-        self.session.hooks["response"].append(_redirect_hook(other_hosts))
+        self.session.hooks["response"].append(_redirect_hook(same_host_only))
         adapter = HTTPAdapter(max_retries=self.retry, pool_maxsize=max(1, connections))
         for prefix in ("http://", "https://"):
             self.session.mount(prefix, adapter)
