@@ -296,6 +296,20 @@ CASES = [
     ("trace out a dangling link", lambda t: ["trace", "--heliostat", "AA39", "--out", _dangling(t)], "--out"),
     ("reconstruct out a dangling link", lambda t: ["reconstruct", "--out", _dangling(t)], "--out"),
     ("fetch out a dangling link", lambda t: ["fetch", "--out", _dangling(t)], "--out"),
+    ("data directory empty", lambda t: ["inspect", ""], "DATA_DIR: empty path"),
+    (
+        "config empty input path",
+        lambda t: ["calibrate", "--config", _config(t, '[calibrate]\nrecords = ""\n')],
+        "records: empty path",
+    ),
+    (
+        "config path with a NUL byte",
+        lambda t: ["calibrate", "--config", _config(t, '[calibrate]\ntest_data = "a\\u0000b"\n')],
+        "test_data",
+    ),
+    ("plot name too long", lambda t: ["inspect", "--plot", "x" * 5000], "--plot"),
+    ("calibrate --prior with the fleet prior", lambda t: ["calibrate", "--prior"], "--prior"),
+    ("calibrate --val no heliostat has", lambda t: ["calibrate", "--val", "1000"], "--val 1000"),
 ]
 
 

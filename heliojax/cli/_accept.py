@@ -8,6 +8,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from ._common import path_type
+
 EXAMPLES = """examples:
   heliojax accept --results field.csv --contract configs/contract.toml --figures out/acceptance
   heliojax accept --results out/summary.json --paint ../shared/data/paint --contract configs/contract.toml"""
@@ -29,22 +31,22 @@ def add_parser(subparsers) -> None:
             "test_rms_mrad), which needs the field's positions from --positions or --paint."
         ),
     )
-    p.add_argument("--results", required=True, type=Path, help="measured-field CSV or summary.json")
-    p.add_argument("--contract", required=True, type=Path, help="contract TOML (see configs/contract.toml)")
-    p.add_argument("--report", type=Path, default=Path("acceptance.json"), help="output JSON report")
-    p.add_argument("--figures", type=Path, default=None, help="directory for the three PNG figures")
+    p.add_argument("--results", required=True, type=path_type, help="measured-field CSV or summary.json")
+    p.add_argument("--contract", required=True, type=path_type, help="contract TOML (see configs/contract.toml)")
+    p.add_argument("--report", type=path_type, default=Path("acceptance.json"), help="output JSON report")
+    p.add_argument("--figures", type=path_type, default=None, help="directory for the three PNG figures")
     p.add_argument(
         "--positions",
-        type=Path,
+        type=path_type,
         default=None,
         help="CSV heliostat_id,east_m,north_m[,up_m] of every heliostat of the field (with a summary.json)",
     )
     p.add_argument(
-        "--paint", type=Path, default=None, help="PAINT download directory: heliostat positions and the tower file"
+        "--paint", type=path_type, default=None, help="PAINT download directory: heliostat positions and the tower file"
     )
     p.add_argument(
         "--tower",
-        type=Path,
+        type=path_type,
         default=None,
         help="tower file with the receiver (default: --paint's, else the contract's "
         "[yield] tower_file, else the built-in Jülich receiver)",

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._common import add_cache_argument, enable_compilation_cache, integer, number
+from ._common import add_cache_argument, enable_compilation_cache, integer, number, path_type
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +63,7 @@ def add_parser(subparsers) -> None:
             "and a plot."
         ),
     )
-    p.add_argument("results", type=Path, metavar="RESULTS_H5", help="results.h5 of `heliojax calibrate`")
+    p.add_argument("results", type=path_type, metavar="RESULTS_H5", help="results.h5 of `heliojax calibrate`")
     when = p.add_mutually_exclusive_group()
     when.add_argument("--date", type=_utc, help="a whole day (UTC), with --step-minutes (default: today)")
     when.add_argument("--start", type=_utc, help="first instant, ISO date-time (UTC), with --end")
@@ -75,25 +75,25 @@ def add_parser(subparsers) -> None:
     p.add_argument("--target", default="receiver", help="aim point: this target's centre in the tower file")
     p.add_argument(
         "--aim-csv",
-        type=Path,
+        type=path_type,
         metavar="FILE",
         help="per-heliostat aim points instead of --target: CSV heliostat_id,east_m,north_m,up_m (ENU of the "
         "fit's origin) or heliostat_id,lat_deg,lon_deg,alt_m (WGS84)",
     )
-    p.add_argument("--tower", type=Path, help="tower file (default: the embedded Jülich tower file)")
+    p.add_argument("--tower", type=path_type, help="tower file (default: the embedded Jülich tower file)")
     p.add_argument(
         "--min-sun-elevation", type=number(-90.0, 90.0), default=5.0, help="flag instants with a lower sun (degrees)"
     )
     p.add_argument("--max-instants", type=integer(1), default=10_000, help="refuse longer schedules")
     p.add_argument(
         "--out",
-        type=Path,
+        type=path_type,
         default=None,
         metavar="FILE",
         help="CSV of the commands (default: aim.csv beside RESULTS_H5)",
     )
-    p.add_argument("--h5", type=Path, default=None, metavar="FILE", help="HDF5 with the full arrays")
-    p.add_argument("--plot", type=Path, default=None, metavar="FILE", help="figure of the error bars (PNG)")
+    p.add_argument("--h5", type=path_type, default=None, metavar="FILE", help="HDF5 with the full arrays")
+    p.add_argument("--plot", type=path_type, default=None, metavar="FILE", help="figure of the error bars (PNG)")
     add_cache_argument(p)
     p.add_argument("--quiet", action="store_true", help="no messages on stderr")
 

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 
 from ._common import (
     add_data_argument,
@@ -13,6 +12,7 @@ from ._common import (
     integer,
     load_fleet,
     number,
+    path_type,
     read_record_roles,
 )
 
@@ -91,14 +91,14 @@ def add_parser(subparsers) -> None:
     p.add_argument("--seed", type=integer(0, 2**32 - 1), default=42, help="seed of the random splits")
     p.add_argument(
         "--test-data",
-        type=Path,
+        type=path_type,
         default=None,
         metavar="DIR",
         help="evaluate on the records of this directory (same heliostat ids) instead of a split",
     )
     p.add_argument(
         "--records",
-        type=Path,
+        type=path_type,
         default=None,
         metavar="FILE",
         help="instead of a split: CSV heliostat_id,record_id[,role] of the records that train (role train, "
@@ -136,19 +136,19 @@ def add_parser(subparsers) -> None:
     add_fit_arguments(p)
     p.add_argument(
         "--out",
-        type=Path,
+        type=path_type,
         default=None,
         metavar="FILE",
         help="results.h5: fitted parameters, covariance, per-record residuals (default: none)",
     )
     p.add_argument(
         "--report",
-        type=Path,
+        type=path_type,
         default=None,
         metavar="FILE",
         help="summary.json: statuses and errors per heliostat in mrad (default: none)",
     )
-    p.add_argument("--plot", type=Path, default=None, metavar="FILE", help="calibration figure, PNG")
+    p.add_argument("--plot", type=path_type, default=None, metavar="FILE", help="calibration figure, PNG")
     p.add_argument("--quiet", action="store_true", help="no progress bar or messages on stderr")
 
 
@@ -160,6 +160,8 @@ def run(args) -> int:
     from ..fitting import batching_from_name, gaussian_prior
     from ..paint import load_paint_directory
 
+    if args.prior and args.robust and args.pool:  # fit_robust(pool=True) learns its own prior
+        raise ConfigError("--prior: the robust fit's fleet prior takes its place; give --no-pool or --no-robust")
     enable_compilation_cache(args.cache_dir)
     fleet = load_fleet(args)
     test_fleet = None
@@ -180,6 +182,8 @@ def run(args) -> int:
             roles_to_masks(fleet, roles)
         except ConfigError as e:
             raise DataError(args.records, None, str(e)) from None
+    if roles is None and test_fleet is None:
+        _check_split_sizes(args, fleet)
     kind = args.model.removesuffix("+nn")
     model0 = nominal_model("actuator" if kind == "auto" else kind)
     fit_options = {"max_steps": args.max_steps, "batching": batching_from_name(args.strategy)}
@@ -258,3 +262,24 @@ def run(args) -> int:
             save_figure(plot_calibration(run_), args.plot)
         log.info(f"wrote {args.plot}")
     return 0
+
+
+def _check_split_sizes(args, fleet) -> None:
+    """Before any work: ``--train`` / ``--val`` that no heliostat of the data has the
+    records for (every fit would be skipped, exit 0 with nothing calibrated)."""
+    import numpy as np
+
+    from .._errors import ConfigError
+    from .._splits import minimum_records
+
+    if args.train is None and not args.val:
+        return
+    most = int(np.asarray(fleet.mask).sum(axis=1).max(initial=0))
+    need = minimum_records(args.train or 1, args.val)
+    if need > most:
+        given = (("--train", args.train), ("--val", args.val))
+        flags = " and ".join(f"{flag} {value}" for flag, value in given if value)
+        raise ConfigError(
+            f"{flags}: the {args.split} split needs at least {need} records per heliostat; "
+            f"the most any heliostat of the data has is {most}"
+        )

@@ -37,7 +37,7 @@ def add_data_argument(p) -> None:
     p.add_argument(
         "data_dir",
         nargs="?",
-        type=Path,
+        type=path_type,
         default=None,
         metavar="DATA_DIR",
         help="PAINT-layout directory (default: the embedded real subset of PAINT)",
@@ -172,7 +172,6 @@ def check_output_paths(args, files: tuple[str, ...] = (), directories: tuple[str
     """Before any work: every output file / directory named by ``args`` (attribute
     names; None = not requested) can be written. Raises ConfigError naming the flag."""
     from .._errors import ConfigError
-    from .._io import remove_stale_temporaries
 
     seen: dict[Path, str] = {}
     for names, is_dir in ((files, False), (directories, True)):
@@ -208,6 +207,46 @@ def check_output_paths(args, files: tuple[str, ...] = (), directories: tuple[str
             if folder.is_dir() and name != "cache_dir":
                 for stale in remove_stale_temporaries(folder):
                     log.info(f"removed {stale}, left by an interrupted run")
+
+            try:
+                _check_output_path(flag, path, name, is_dir, seen)
+            except OSError as e:  # a name too long, a loop of links: the flag, not a bare OSError
+                raise ConfigError(f"{flag} {_shown(path)}: {e.strerror or e}") from None
+
+
+def _shown(path: Path, most: int = 120) -> str:
+    """``path`` as shown in a message: at most ``most`` characters."""
+    text = str(path)
+    return text if len(text) <= most else f"{text[: most // 2]}...{text[-most // 2 :]}"
+
+
+def _check_output_path(flag: str, path: Path, name: str, is_dir: bool, seen: dict[Path, str]) -> None:
+    """One output of :func:`check_output_paths`; ``seen``: resolved file -> its flag."""
+    from .._errors import ConfigError
+    from .._io import remove_stale_temporaries
+
+    same = flag if is_dir else seen.setdefault(path.resolve(), flag)
+    if same != flag:
+        raise ConfigError(f"{flag} {path}: {same} names the same path; give each output its own")
+    if is_dir and path.exists() and not path.is_dir():
+        raise ConfigError(f"{flag} {path}: exists and is not a directory")
+    if not is_dir and path.is_dir():
+        raise ConfigError(f"{flag} {path}: is a directory, expected a file name")
+    if not is_dir and path.is_file() and (not os.access(path, os.W_OK) or not path.stat().st_mode & 0o222):
+        raise ConfigError(f"{flag} {path}: exists and is read-only")
+    if not is_dir and name == "plot":
+        _check_figure_format(flag, path)
+    ancestor = path if is_dir else path.parent
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise ConfigError(f"{flag} {path}: {ancestor} is not a directory")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise ConfigError(f"{flag} {path}: {ancestor} is not writable")
+    folder = path if is_dir else path.parent
+    if folder.is_dir() and name != "cache_dir":
+        for stale in remove_stale_temporaries(folder):
+            log.info(f"removed {stale}, left by an interrupted run")
 
 
 def _check_no_dangling_link(flag: str, path: Path, link: Path | None = None) -> None:
@@ -250,6 +289,16 @@ def _check_figure_format(flag: str, path: Path) -> None:
     formats = FigureCanvasBase.get_supported_filetypes()
     if suffix and suffix not in formats:
         raise ConfigError(f"{flag} {path}: unknown figure format {suffix!r}; use one of {', '.join(sorted(formats))}")
+
+
+def path_type(value: str) -> Path:
+    """An argparse ``type``: a file or directory name; an empty one (``Path("")`` is the
+    working directory, never what was meant) or one with a NUL byte is refused."""
+    if not str(value).strip():
+        raise argparse.ArgumentTypeError("empty path")
+    if "\0" in str(value):
+        raise argparse.ArgumentTypeError(f"{value!r}: a path cannot hold a NUL byte")
+    return Path(value)
 
 
 def integer(minimum: int | None = None, maximum: int | None = None):

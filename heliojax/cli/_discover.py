@@ -6,7 +6,15 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from ._common import add_data_argument, add_fit_arguments, enable_compilation_cache, integer, load_fleet, number
+from ._common import (
+    add_data_argument,
+    add_fit_arguments,
+    enable_compilation_cache,
+    integer,
+    load_fleet,
+    number,
+    path_type,
+)
 
 BASES = ("auto", "actuator", "stone8")
 
@@ -51,11 +59,11 @@ def add_parser(subparsers) -> None:
         help="base kinematic model: auto = the actuator model following each heliostat's declared actuators "
         "(linear or ideal), stone8 = linear counts-to-angle map",
     )
-    p.add_argument("--report", type=Path, default=Path("report.json"), metavar="FILE", help="report.json path")
+    p.add_argument("--report", type=path_type, default=Path("report.json"), metavar="FILE", help="report.json path")
     p.add_argument(
-        "--figures", type=Path, default=None, metavar="DIR", help="directory for the PNG figures (default: none)"
+        "--figures", type=path_type, default=None, metavar="DIR", help="directory for the PNG figures (default: none)"
     )
-    p.add_argument("--markdown", type=Path, default=None, metavar="FILE", help="Markdown summary file")
+    p.add_argument("--markdown", type=path_type, default=None, metavar="FILE", help="Markdown summary file")
     p.add_argument(
         "--effects",
         default=None,

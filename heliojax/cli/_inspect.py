@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._common import add_cache_argument, add_data_argument, enable_compilation_cache, load_fleet
+from ._common import add_cache_argument, add_data_argument, enable_compilation_cache, load_fleet, path_type
 
 EXAMPLES = """examples:
   heliojax inspect
@@ -31,7 +31,10 @@ def add_parser(subparsers) -> None:
     add_data_argument(p)
     add_cache_argument(p)
     p.add_argument(
-        "--plot", type=Path, metavar="FILE", help="write a box plot of the uncalibrated errors, PNG (default: none)"
+        "--plot",
+        type=path_type,
+        metavar="FILE",
+        help="write a box plot of the uncalibrated errors, PNG (default: none)",
     )
 
 

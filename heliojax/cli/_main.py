@@ -23,7 +23,7 @@ from pathlib import Path
 from .._errors import ConfigError, HeliojaxError
 from .._version import __version__
 from .._xla_flags import with_fast_cpu_compilation
-from ._common import check_output_paths, configure_logging
+from ._common import check_output_paths, configure_logging, path_type
 
 # subcommand -> module (each has add_parser(subparsers) and run(args) -> int)
 SUBCOMMANDS = {
@@ -119,7 +119,9 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict, dict[str, argparse.Ar
         sp = subparsers[name] = sub.choices[name]
         sp.formatter_class = _HelpFormatter
         sp.epilog = module.EXAMPLES
-        sp.add_argument("--config", type=Path, metavar="FILE", help=f"TOML file with option defaults (table [{name}])")
+        sp.add_argument(
+            "--config", type=path_type, metavar="FILE", help=f"TOML file with option defaults (table [{name}])"
+        )
     return parser, modules, subparsers
 
 
@@ -168,9 +170,14 @@ def _config_value(action: argparse.Action, value: object, where: str) -> object:
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ConfigError(f"{where}: expected a number, got {value!r}")
         value = float(value)
-    elif kind is None or kind is str or kind is Path:
+    elif kind is None or kind is str or kind is Path or kind is path_type:
         if not isinstance(value, str):
             raise ConfigError(f"{where}: expected a string, got {value!r}")
+        if kind is path_type:
+            try:
+                value = path_type(value)
+            except argparse.ArgumentTypeError as e:
+                raise ConfigError(f"{where}: {e}") from e
         value = Path(value) if kind is Path else value
     else:  # the option's own parser (ranges, lists, dates): strings, and numbers where it takes them
         if isinstance(value, bool) or not isinstance(value, str | int | float):

@@ -9,7 +9,7 @@ import logging
 from pathlib import Path
 
 from ._aim import _utc, time_window
-from ._common import RECORDS_HEADER, add_cache_argument, enable_compilation_cache, integer, number
+from ._common import RECORDS_HEADER, add_cache_argument, enable_compilation_cache, integer, number, path_type
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +50,7 @@ def add_parser(subparsers) -> None:
             "(CSV), the fleet ranking (which heliostats most need measuring) and optionally a plot."
         ),
     )
-    p.add_argument("results", type=Path, metavar="RESULTS_H5", help="results.h5 of `heliojax calibrate`")
+    p.add_argument("results", type=path_type, metavar="RESULTS_H5", help="results.h5 of `heliojax calibrate`")
     p.add_argument("--budget", type=integer(1, 1000), default=4, help="measurements per heliostat")
     when = p.add_mutually_exclusive_group()
     when.add_argument("--date", type=_utc, help="candidate instants: a whole day (UTC), with --step-minutes")
@@ -66,7 +66,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument(
         "--paint-dir",
-        type=Path,
+        type=path_type,
         default=None,
         metavar="DIR",
         help="candidates are this PAINT directory's existing records (those before --before) instead of instants",
@@ -86,7 +86,7 @@ def add_parser(subparsers) -> None:
         "learnt from the fit's residuals (heliojax.discrepancy_from_results); none: trust the model exactly",
     )
     p.add_argument("--target", default="receiver", help="operating aim point: this target's centre in the tower file")
-    p.add_argument("--tower", type=Path, help="tower file (default: the embedded Jülich tower file)")
+    p.add_argument("--tower", type=path_type, help="tower file (default: the embedded Jülich tower file)")
     p.add_argument("--envelope-year", type=integer(1900, 2200), default=2023, help="year of the operating envelope")
     p.add_argument("--envelope-day-step", type=integer(1, 365), default=5, help="every N-th day of the envelope year")
     p.add_argument(
@@ -97,20 +97,22 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--max-instants", type=integer(1), default=2_000, help="refuse longer candidate windows")
     p.add_argument(
-        "--out", type=Path, default=None, metavar="FILE", help="schedule CSV (default: plan.csv beside RESULTS_H5)"
+        "--out", type=path_type, default=None, metavar="FILE", help="schedule CSV (default: plan.csv beside RESULTS_H5)"
     )
     p.add_argument(
-        "--ranking", type=Path, default=None, metavar="FILE", help="CSV of the heliostats, most in need first"
+        "--ranking", type=path_type, default=None, metavar="FILE", help="CSV of the heliostats, most in need first"
     )
     p.add_argument(
         "--records-out",
-        type=Path,
+        type=path_type,
         default=None,
         metavar="FILE",
         help="with --paint-dir: records CSV for `heliojax calibrate --records` "
         "(chosen: train; at/after --before: test)",
     )
-    p.add_argument("--plot", type=Path, default=None, metavar="FILE", help="figure of the predicted uncertainty (PNG)")
+    p.add_argument(
+        "--plot", type=path_type, default=None, metavar="FILE", help="figure of the predicted uncertainty (PNG)"
+    )
     add_cache_argument(p)
     p.add_argument("--quiet", action="store_true", help="no messages on stderr")
 

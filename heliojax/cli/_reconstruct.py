@@ -9,7 +9,7 @@ import math
 import sys
 from pathlib import Path
 
-from ._common import heliostat_id, integer, number
+from ._common import heliostat_id, integer, number, path_type
 
 EXAMPLES = """examples:
   heliojax reconstruct --out out/reconstruction
@@ -62,7 +62,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument(
         "--paint",
-        type=Path,
+        type=path_type,
         default=None,
         help="PAINT directory with <H>/Calibration flux records (e.g. ../shared/data/paint/flux-samples)",
     )
@@ -70,16 +70,22 @@ def add_parser(subparsers) -> None:
         "--heliostat", default=None, type=heliostat_id, help="heliostat id of the real records (with --paint)"
     )
     p.add_argument(
-        "--tower", type=Path, default=None, help="tower-measurements JSON (default: the one in --paint or its parent)"
+        "--tower",
+        type=path_type,
+        default=None,
+        help="tower-measurements JSON (default: the one in --paint or its parent)",
     )
     p.add_argument("--held-out", nargs="*", type=int, default=[], help="record ids kept out of the reconstruction")
     p.add_argument(
-        "--scenario", type=Path, default=None, help="ARTIST scenario HDF5 whose surface of --heliostat is scored too"
+        "--scenario",
+        type=path_type,
+        default=None,
+        help="ARTIST scenario HDF5 whose surface of --heliostat is scored too",
     )
     p.add_argument(
         "--n-ctrl", type=integer(4, 32), default=8, help="control points per facet and direction (real mode)"
     )
-    p.add_argument("--out", type=Path, default=Path("reconstruction"), help="output directory")
+    p.add_argument("--out", type=path_type, default=Path("reconstruction"), help="output directory")
     p.add_argument("--quiet", action="store_true", help="no progress bar or messages on stderr")
 
 

@@ -10,7 +10,7 @@ import sys
 import time
 from pathlib import Path
 
-from ._common import heliostat_id, integer, number
+from ._common import heliostat_id, integer, number, path_type
 
 log = logging.getLogger(__name__)
 
@@ -49,7 +49,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument(
         "paint",
-        type=Path,
+        type=path_type,
         nargs="?",
         default=None,
         metavar="PAINT_DIR",
@@ -66,11 +66,11 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--target", default="solar_tower_juelich_lower", help="target name with --sun-* (aimed at its centre)"
     )
-    p.add_argument("--tower", type=Path, help="tower file (default: PAINT_DIR's or its parent's)")
-    p.add_argument("--deflectometry", type=Path, help="PAINT deflectometry HDF5: fit NURBS facets to it")
+    p.add_argument("--tower", type=path_type, help="tower file (default: PAINT_DIR's or its parent's)")
+    p.add_argument("--deflectometry", type=path_type, help="PAINT deflectometry HDF5: fit NURBS facets to it")
     p.add_argument(
         "--results",
-        type=Path,
+        type=path_type,
         metavar="FILE",
         help="results.h5 of `heliojax calibrate`: trace with the heliostat's calibrated model and geometry "
         "(default: nominal linear-actuator kinematics)",
@@ -107,7 +107,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--reflectivity", type=number(0.0, 1.0), default=1.0, help="mirror reflectivity (0-1)")
     p.add_argument("--seed", type=integer(0, 2**32 - 1), default=0, help="seed of the ray sampling")
-    p.add_argument("--out", type=Path, default=Path("trace"), help="output directory")
+    p.add_argument("--out", type=path_type, default=Path("trace"), help="output directory")
     p.add_argument("--quiet", action="store_true", help="no messages on stderr (the summary still goes to stdout)")
 
 
