@@ -310,6 +310,27 @@ CASES = [
     ("plot name too long", lambda t: ["inspect", "--plot", "x" * 5000], "--plot"),
     ("calibrate --prior with the fleet prior", lambda t: ["calibrate", "--prior"], "--prior"),
     ("calibrate --val no heliostat has", lambda t: ["calibrate", "--val", "1000"], "--val 1000"),
+    (
+        "config 1e308 for an int",
+        lambda t: ["calibrate", "--config", _config(t, "[calibrate]\nmax_steps = 1e308\n")],
+        "max_steps",
+    ),
+    (
+        "trace rays beyond memory",
+        lambda t: [
+            "trace",
+            "--heliostat",
+            "BE36",
+            "--sun-azimuth",
+            "10",
+            "--sun-elevation",
+            "30",
+            "--resolution",
+            "4096",
+        ],
+        "--resolution 4096",
+    ),
+    ("reconstruct rays beyond memory", lambda t: ["reconstruct", "--rays-per-point", "1000000"], "--rays-per-point"),
 ]
 
 

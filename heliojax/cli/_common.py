@@ -301,9 +301,15 @@ def path_type(value: str) -> Path:
     return Path(value)
 
 
+LARGEST_INTEGER = 2**31 - 1
+"""Largest value of an integer option without its own maximum (counts, ids, steps)."""
+
+
 def integer(minimum: int | None = None, maximum: int | None = None):
     """An argparse ``type``: an integer in ``[minimum, maximum]`` (from a command
-    line string or a config number), else a message naming the range."""
+    line string or a config number), else a message naming the range; no ``maximum``
+    is :data:`LARGEST_INTEGER` (a config's 1e308 is an integer, one no program takes)."""
+    top = LARGEST_INTEGER if maximum is None else maximum
 
     def parse(value: str | int | float) -> int:
         if isinstance(value, bool):
@@ -314,8 +320,9 @@ def integer(minimum: int | None = None, maximum: int | None = None):
             raise argparse.ArgumentTypeError(f"expected an integer, got {value!r}") from None
         if isinstance(value, float) and number != value:
             raise argparse.ArgumentTypeError(f"expected an integer, got {value!r}")
-        if (minimum is not None and number < minimum) or (maximum is not None and number > maximum):
-            raise argparse.ArgumentTypeError(f"{number} is outside [{minimum}, {maximum}]".replace("None", "..."))
+        if (minimum is not None and number < minimum) or number > top:
+            shown = value if isinstance(value, float) else number  # not 1e308's 309 digits
+            raise argparse.ArgumentTypeError(f"{shown} is outside [{minimum}, {top}]".replace("None", "..."))
         return number
 
     parse.__name__ = "integer"

@@ -43,14 +43,16 @@ def add_parser(subparsers) -> None:
         "--images", type=integer(1, 32), default=6, help="number of flux images (sun positions), 4-8 typical"
     )
     p.add_argument("--seed", type=integer(0, 2**32 - 1), default=1, help="seed of the hidden surface and of the rays")
-    p.add_argument("--steps", type=integer(1), default=150, help="optimiser steps (>= 1)")
+    p.add_argument("--steps", type=integer(1, 100_000), default=150, help="optimiser steps (>= 1)")
     p.add_argument(
         "--learning-rate",
         type=number(0.0, 1.0, above=True),
         default=None,
         help="Adam step (m of control height); default 2.5e-4 synthetic, 5e-5 real records",
     )
-    p.add_argument("--rays-per-point", type=integer(1), default=32, help="rays per surface point per image and step")
+    p.add_argument(
+        "--rays-per-point", type=integer(1, 512), default=32, help="rays per surface point per image and step"
+    )
     p.add_argument(
         "--smoothness",
         type=number(0.0, 1e6),

@@ -93,11 +93,13 @@ def add_parser(subparsers) -> None:
         default=1.5,
         help=f"Gaussian mirror slope error per axis, mrad (0: none; at most {MAX_MRAD:g})",
     )
-    p.add_argument("--rays-per-point", type=integer(1), default=64, help="rays per surface point and chunk (>= 1)")
     p.add_argument(
-        "--steps", type=integer(1), default=4, help="lax.scan chunks (rays per point = rays-per-point x steps)"
+        "--rays-per-point", type=integer(1, 2**16), default=64, help="rays per surface point and chunk (>= 1)"
     )
-    p.add_argument("--resolution", type=integer(2), default=32, help="surface points per facet edge")
+    p.add_argument(
+        "--steps", type=integer(1, 10_000), default=4, help="lax.scan chunks (rays per point = rays-per-point x steps)"
+    )
+    p.add_argument("--resolution", type=integer(2, 4096), default=32, help="surface points per facet edge")
     p.add_argument("--pixels", type=integer(1, 4096), default=256, help="image pixels per side (>= 1)")
     p.add_argument(
         "--dni",
@@ -140,6 +142,11 @@ def _check_sun_possible(azimuth_deg: float | None, elevation_deg: float | None, 
         )
 
 
+MAX_RAYS_PER_FACET = 2**24
+"""Largest --resolution squared x --rays-per-point: rays per facet traced at once (held in
+memory; the defaults trace 2**16)."""
+
+
 def run(args: argparse.Namespace) -> int:
     import h5py
     import jax
@@ -160,6 +167,14 @@ def run(args: argparse.Namespace) -> int:
 
     if (args.record is None) == (args.sun_azimuth is None or args.sun_elevation is None):
         print("heliojax trace: error: give either --record or both --sun-azimuth and --sun-elevation", file=sys.stderr)
+        return 2
+    per_chunk = args.resolution**2 * args.rays_per_point
+    if per_chunk > MAX_RAYS_PER_FACET:  # before any work: the chunk would not fit in memory
+        print(
+            f"heliojax trace: error: --resolution {args.resolution} and --rays-per-point {args.rays_per_point}: "
+            f"{per_chunk:.3g} rays per facet and step; at most {MAX_RAYS_PER_FACET:.3g}",
+            file=sys.stderr,
+        )
         return 2
     tag = str(args.record) if args.record is not None else f"az{args.sun_azimuth:g}_el{args.sun_elevation:g}"
     outputs = [args.out / f"{args.heliostat}-{tag}-{kind}" for kind in ("flux.h5", "flux.png", "comparison.png")]
