@@ -331,6 +331,9 @@ CASES = [
         "--resolution 4096",
     ),
     ("reconstruct rays beyond memory", lambda t: ["reconstruct", "--rays-per-point", "1000000"], "--rays-per-point"),
+    ("discover unknown effect", lambda t: ["discover", "--effects", "abc"], "--effects"),
+    ("discover no effect named", lambda t: ["discover", "--effects", " , "], "--effects"),
+    ("discover folds beyond any data", lambda t: ["discover", "--folds", "100000"], "--folds"),
 ]
 
 

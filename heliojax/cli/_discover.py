@@ -36,6 +36,10 @@ OUTPUT_DIRS = ("figures", "cache_dir")
 """Output paths checked before any work (attribute names of the parsed arguments)."""
 
 
+MAX_FOLDS = 100
+"""Most --folds: the fit runs once per fold and once on all records, the fleet copied for each."""
+
+
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "discover",
@@ -73,7 +77,7 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--alpha", type=number(0.0, 1.0, above=True), default=0.01, help="family-wise error rate per step (Holm), 0-1"
     )
-    p.add_argument("--folds", type=integer(2), default=5, help="blocked cross-validation folds (by UTC day)")
+    p.add_argument("--folds", type=integer(2, MAX_FOLDS), default=5, help="blocked cross-validation folds (by UTC day)")
     p.add_argument("--max-named", type=integer(0), default=6, help="most effects to name")
     p.add_argument(
         "--no-robust", action="store_true", help="keep every record (no gross-error flags; default: robust pre-pass)"
@@ -96,11 +100,15 @@ def run(args) -> int:
 
     enable_compilation_cache(args.cache_dir)
     effects = None
-    if args.effects:
+    if args.effects is not None:
         effects = tuple(e.strip() for e in args.effects.split(",") if e.strip())
+        if not effects:
+            raise ConfigError(
+                f"--effects {args.effects!r}: no effect named; expected names from {', '.join(EFFECT_NAMES)}"
+            )
         unknown = sorted(set(effects) - set(EFFECT_NAMES))
         if unknown:
-            raise ConfigError(f"unknown effects {unknown}; expected names from {', '.join(EFFECT_NAMES)}")
+            raise ConfigError(f"--effects: unknown effects {unknown}; expected names from {', '.join(EFFECT_NAMES)}")
     try:
         config = DiscoveryConfig(
             base=args.base,
