@@ -334,6 +334,12 @@ CASES = [
     ("discover unknown effect", lambda t: ["discover", "--effects", "abc"], "--effects"),
     ("discover no effect named", lambda t: ["discover", "--effects", " , "], "--effects"),
     ("discover folds beyond any data", lambda t: ["discover", "--folds", "100000"], "--folds"),
+    (
+        "reconstruct --tower of the synthetic scene",
+        lambda t: ["reconstruct", "--tower", str(_a_file(t)), "--steps", "1", "--out", str(t / "o")],
+        "--tower",
+    ),
+    ("trace reflectivity 0", lambda t: ["trace", "--heliostat", "BE36", "--reflectivity", "0"], "--reflectivity"),
 ]
 
 

@@ -107,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
     if args.smoothness is None:
         args.smoothness = 1e-2 if real else 1e-3
     if not 1 <= args.images <= 32:
-        print("heliojax reconstruct: --images must lie in 1..32", file=sys.stderr)
+        print("heliojax reconstruct: error: --images must lie in 1..32", file=sys.stderr)
         return 2
     for flag, value, ok in (
         ("--steps", args.steps, args.steps >= 1),
@@ -117,10 +117,21 @@ def run(args: argparse.Namespace) -> int:
         ("--flux-weight", args.flux_weight, math.isfinite(args.flux_weight) and args.flux_weight >= 0),
     ):
         if not ok:
-            print(f"heliojax reconstruct: {flag} {value} is out of range (see --help)", file=sys.stderr)
+            print(f"heliojax reconstruct: error: {flag} {value} is out of range (see --help)", file=sys.stderr)
             return 2
     if real:
         return _run_real(args)
+    ignored = [
+        flag
+        for flag, value in (("--tower", args.tower), ("--scenario", args.scenario), ("--held-out", args.held_out))
+        if value
+    ]
+    if ignored:  # the synthetic scene has no tower, scenario or records: it would run as if they were not given
+        print(
+            f"heliojax reconstruct: error: {', '.join(ignored)}: only with --paint and --heliostat (real records)",
+            file=sys.stderr,
+        )
+        return 2
     scene = optics.synthetic_scene(seed=args.seed, n_images=args.images)
     losses = []
     res = optics.reconstruct_surface(
@@ -178,7 +189,7 @@ def _run_real(args: argparse.Namespace) -> int:
     from .._errors import DataError
 
     def fail(message: str) -> int:
-        print(f"heliojax reconstruct: {message}", file=sys.stderr)
+        print(f"heliojax reconstruct: error: {message}", file=sys.stderr)
         return 2
 
     if args.paint is None or args.heliostat is None:

@@ -107,7 +107,9 @@ def add_parser(subparsers) -> None:
         default=1000.0,
         help=f"direct normal irradiance, W/m^2 (at most {SOLAR_CONSTANT_PERIHELION:g}, the sun's above the air)",
     )
-    p.add_argument("--reflectivity", type=number(0.0, 1.0), default=1.0, help="mirror reflectivity (0-1)")
+    p.add_argument(
+        "--reflectivity", type=number(0.0, 1.0, above=True), default=1.0, help="mirror reflectivity in (0, 1]"
+    )
     p.add_argument("--seed", type=integer(0, 2**32 - 1), default=0, help="seed of the ray sampling")
     p.add_argument("--out", type=path_type, default=Path("trace"), help="output directory")
     p.add_argument("--quiet", action="store_true", help="no messages on stderr (the summary still goes to stdout)")
