@@ -340,6 +340,8 @@ CASES = [
         "--tower",
     ),
     ("trace reflectivity 0", lambda t: ["trace", "--heliostat", "BE36", "--reflectivity", "0"], "--reflectivity"),
+    ("plan empty target", lambda t: ["plan", "r.h5", "--targets", ""], "--targets"),
+    ("aim target name of a page", lambda t: ["aim", "r.h5", "--target", "x" * 5000], "--target"),
 ]
 
 

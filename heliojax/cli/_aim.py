@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._common import add_cache_argument, enable_compilation_cache, integer, number, path_type
+from ._common import add_cache_argument, enable_compilation_cache, integer, number, path_type, target_name
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +72,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--end", type=_utc, help="last instant with --start")
     p.add_argument("--sun-elevation", type=number(0.0, 90.0, above=True), help="sun elevation in degrees")
     p.add_argument("--step-minutes", type=number(0.0, 1440.0, above=True), default=30.0, help="instant spacing")
-    p.add_argument("--target", default="receiver", help="aim point: this target's centre in the tower file")
+    p.add_argument(
+        "--target", type=target_name, default="receiver", help="aim point: this target's centre in the tower file"
+    )
     p.add_argument(
         "--aim-csv",
         type=path_type,

@@ -305,6 +305,18 @@ LARGEST_INTEGER = 2**31 - 1
 """Largest value of an integer option without its own maximum (counts, ids, steps)."""
 
 
+def target_name(value: str) -> str:
+    """An argparse ``type``: a target of the tower file by name (``receiver``), not blank,
+    without control characters and at most 100 characters."""
+    if not isinstance(value, str) or not value.strip():
+        raise argparse.ArgumentTypeError(f"expected a target name, got {value!r}")
+    if len(value) > 100 or any(ord(c) < 32 for c in value):
+        raise argparse.ArgumentTypeError(
+            f"{value[:40]!r}... is not a target name" if len(value) > 40 else f"{value!r} is not a target name"
+        )
+    return value
+
+
 def integer(minimum: int | None = None, maximum: int | None = None):
     """An argparse ``type``: an integer in ``[minimum, maximum]`` (from a command
     line string or a config number), else a message naming the range; no ``maximum``

@@ -9,7 +9,15 @@ import logging
 from pathlib import Path
 
 from ._aim import _utc, time_window
-from ._common import RECORDS_HEADER, add_cache_argument, enable_compilation_cache, integer, number, path_type
+from ._common import (
+    RECORDS_HEADER,
+    add_cache_argument,
+    enable_compilation_cache,
+    integer,
+    number,
+    path_type,
+    target_name,
+)
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +68,7 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--targets",
         nargs="+",
+        type=target_name,
         default=None,
         metavar="NAME",
         help="calibration targets to plan on (default: every planar target of the tower file)",
@@ -85,7 +94,12 @@ def add_parser(subparsers) -> None:
         help="estimate: plan for a model that is not exact, with a discrepancy process over the mirror normal "
         "learnt from the fit's residuals (heliojax.discrepancy_from_results); none: trust the model exactly",
     )
-    p.add_argument("--target", default="receiver", help="operating aim point: this target's centre in the tower file")
+    p.add_argument(
+        "--target",
+        type=target_name,
+        default="receiver",
+        help="operating aim point: this target's centre in the tower file",
+    )
     p.add_argument("--tower", type=path_type, help="tower file (default: the embedded Jülich tower file)")
     p.add_argument("--envelope-year", type=integer(1900, 2200), default=2023, help="year of the operating envelope")
     p.add_argument("--envelope-day-step", type=integer(1, 365), default=5, help="every N-th day of the envelope year")

@@ -10,7 +10,7 @@ import sys
 import time
 from pathlib import Path
 
-from ._common import heliostat_id, integer, number, path_type
+from ._common import heliostat_id, integer, number, path_type, target_name
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +64,10 @@ def add_parser(subparsers) -> None:
         "--sun-elevation", type=number(0.0, 90.0, above=True), help="sun elevation in degrees above the horizon (> 0)"
     )
     p.add_argument(
-        "--target", default="solar_tower_juelich_lower", help="target name with --sun-* (aimed at its centre)"
+        "--target",
+        type=target_name,
+        default="solar_tower_juelich_lower",
+        help="target name with --sun-* (aimed at its centre)",
     )
     p.add_argument("--tower", type=path_type, help="tower file (default: PAINT_DIR's or its parent's)")
     p.add_argument("--deflectometry", type=path_type, help="PAINT deflectometry HDF5: fit NURBS facets to it")
