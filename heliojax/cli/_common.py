@@ -305,7 +305,7 @@ LARGEST_INTEGER = 2**31 - 1
 """Largest value of an integer option without its own maximum (counts, ids, steps)."""
 
 
-def target_name(value: str) -> str:
+def target_name(value: object) -> str:
     """An argparse ``type``: a target of the tower file by name (``receiver``), not blank,
     without control characters and at most 100 characters."""
     if not isinstance(value, str) or not value.strip():
