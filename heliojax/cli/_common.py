@@ -183,31 +183,6 @@ def check_output_paths(args, files: tuple[str, ...] = (), directories: tuple[str
             if not str(value).strip():  # Path("") is the working directory: never what was meant
                 raise ConfigError(f"{flag}: empty path")
             path = Path(value)
-            _check_no_dangling_link(flag, path)
-            same = flag if is_dir else seen.setdefault(path.resolve(), flag)
-            if same != flag:
-                raise ConfigError(f"{flag} {path}: {same} names the same path; give each output its own")
-            if is_dir and path.exists() and not path.is_dir():
-                raise ConfigError(f"{flag} {path}: exists and is not a directory")
-            if not is_dir and path.is_dir():
-                raise ConfigError(f"{flag} {path}: is a directory, expected a file name")
-            if not is_dir and path.is_file() and (not os.access(path, os.W_OK) or not path.stat().st_mode & 0o222):
-                raise ConfigError(f"{flag} {path}: exists and is read-only")
-            if not is_dir and name == "plot":
-                _check_figure_format(flag, path)
-            ancestor = path if is_dir else path.parent
-            while not ancestor.exists() and ancestor != ancestor.parent:
-                _check_no_dangling_link(flag, path, ancestor)
-                ancestor = ancestor.parent
-            if not ancestor.is_dir():
-                raise ConfigError(f"{flag} {path}: {ancestor} is not a directory")
-            if not os.access(ancestor, os.W_OK | os.X_OK):
-                raise ConfigError(f"{flag} {path}: {ancestor} is not writable")
-            folder = path if is_dir else path.parent
-            if folder.is_dir() and name != "cache_dir":
-                for stale in remove_stale_temporaries(folder):
-                    log.info(f"removed {stale}, left by an interrupted run")
-
             try:
                 _check_output_path(flag, path, name, is_dir, seen)
             except OSError as e:  # a name too long, a loop of links: the flag, not a bare OSError
@@ -225,6 +200,7 @@ def _check_output_path(flag: str, path: Path, name: str, is_dir: bool, seen: dic
     from .._errors import ConfigError
     from .._io import remove_stale_temporaries
 
+    _check_no_dangling_link(flag, path)
     same = flag if is_dir else seen.setdefault(path.resolve(), flag)
     if same != flag:
         raise ConfigError(f"{flag} {path}: {same} names the same path; give each output its own")
@@ -238,6 +214,7 @@ def _check_output_path(flag: str, path: Path, name: str, is_dir: bool, seen: dic
         _check_figure_format(flag, path)
     ancestor = path if is_dir else path.parent
     while not ancestor.exists() and ancestor != ancestor.parent:
+        _check_no_dangling_link(flag, path, ancestor)
         ancestor = ancestor.parent
     if not ancestor.is_dir():
         raise ConfigError(f"{flag} {path}: {ancestor} is not a directory")
