@@ -74,8 +74,23 @@ def _accept(tmp: Path, results: str, contract: str = CONTRACT) -> list[str]:
     return ["accept", "--results", results, "--contract", _file(tmp, "contract.toml", contract)]
 
 
+def _tower_linked_to_dev_zero(tmp: Path) -> str:
+    """A copy of the embedded data whose tower file is a link to /dev/zero (read forever)."""
+    data = tmp / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    tower = data / "WRI1030197-tower-measurements.json"
+    tower.unlink()
+    tower.symlink_to("/dev/zero")
+    return str(data)
+
+
 # (case, argv from the temporary directory, text the error must contain)
 CASES = [
+    (
+        "tower file a link to /dev/zero",
+        lambda t: ["inspect", _tower_linked_to_dev_zero(t), "--cache-dir", "none"],
+        "WRI1030197-tower-measurements.json: not a regular file",
+    ),
     ("negative seed", lambda t: ["calibrate", "--seed", "-1"], "--seed"),
     ("zero steps", lambda t: ["calibrate", "--max-steps", "0"], "--max-steps"),
     ("train fraction above 1", lambda t: ["calibrate", "--train-fraction", "1.5"], "--train-fraction"),
@@ -355,6 +370,9 @@ def test_bad_input_is_a_short_clean_error(argv, expected, tmp_path, capsys, monk
     assert len(err.strip().splitlines()) <= 2, err
     names = ("a-dir", "a-file", "a-link", "config.toml", "contract.toml", "field.csv", "summary.json")
     inputs = {tmp_path / n for n in names}
+
+    inputs = {tmp_path / n for n in ("a-dir", "a-file", "config.toml", "contract.toml", "field.csv", "summary.json")}
+    before |= {p for p in tmp_path.rglob("*") if p.is_relative_to(tmp_path / "paint")}  # the input data
     assert {p for p in tmp_path.rglob("*")} - before <= inputs  # no output written
 
 
@@ -751,3 +769,88 @@ def test_an_output_that_is_a_symbolic_link_is_written_through(tmp_path):
                 tmp.write_text("new")
         assert link.is_symlink() and target.read_text() == "new"
     assert sorted(p.name for p in (tmp_path / "real").iterdir()) == ["a.json", "b.h5"]
+
+
+def _edit_record(data: Path, heliostat: str, edit) -> str:
+    """Apply ``edit`` to the first calibration record of ``heliostat``; its file name."""
+    path = sorted((data / heliostat / "Calibration").iterdir())[0]
+    r = json.loads(path.read_text())
+    edit(r)
+    path.write_text(json.dumps(r))
+    return path.name
+
+
+def _round_sun(r: dict) -> None:
+    r["sun_elevation"], r["sun_azimuth"] = float(round(r["sun_elevation"])), float(round(r["sun_azimuth"]))
+
+
+def _link_record_to_dev_zero(data: Path, heliostat: str) -> str:
+    path = sorted((data / heliostat / "Calibration").iterdir())[0]
+    path.unlink()
+    path.symlink_to("/dev/zero")
+    return path.name
+
+
+def _edit_weather(data: Path, column: str, value: str) -> str:
+    """Set ``column`` of the weather CSV's first data row to ``value``; the field it names."""
+    path = data / "calibration-with-weather.csv"
+    lines = path.read_text().splitlines()
+    header = lines[0].split(",")
+    cells = lines[1].split(",")
+    cells[header.index(column)] = value
+    lines[1] = ",".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+    return "row 2." + column
+
+
+# (case, edit of a copy of the embedded data -> (file name, field), "skipped" or "flagged",
+# records of the fleet lost): field-level fuzz of the data files found these values
+# accepted silently, each changing the fit of its heliostat
+DAMAGED_DATA = [
+    (
+        "spot altitude 0 (100 m below its target)",
+        lambda d: (_edit_record(d, "BE36", lambda r: r["focal_spot"]["UTIS"].__setitem__(2, 0.0)), "focal_spot.UTIS"),
+        "skipped",
+        1,
+    ),
+    (
+        "spot altitude of the wrong sign",
+        lambda d: (
+            _edit_record(d, "BF56", lambda r: r["focal_spot"]["HeliOS"].__setitem__(2, -r["focal_spot"]["HeliOS"][2])),
+            "focal_spot.HeliOS",
+        ),
+        "skipped",
+        1,
+    ),
+    ("sun rounded to whole degrees", lambda d: (_edit_record(d, "BH20", _round_sun), "sun_azimuth"), "flagged", 0),
+    (
+        "record a link to /dev/zero",
+        lambda d: (_link_record_to_dev_zero(d, "BG23"), None),
+        "skipped",
+        1,
+    ),
+    (
+        "negative wind speed",
+        lambda d: ("calibration-with-weather.csv", _edit_weather(d, "wind_speed", "-1")),
+        "skipped",
+        0,
+    ),
+    (
+        "temperature of 1e308",
+        lambda d: ("calibration-with-weather.csv", _edit_weather(d, "temperature", "1e308")),
+        "skipped",
+        0,
+    ),
+]
+
+
+@pytest.mark.parametrize(("edit", "how", "lost"), [c[1:] for c in DAMAGED_DATA], ids=[c[0] for c in DAMAGED_DATA])
+def test_damaged_values_are_named_and_the_rest_loads(edit, how, lost, tmp_path):
+    data = tmp_path / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    name, field = edit(data)
+    report = hj.load_paint_directory(data).report
+    entries = report.skipped if how == "skipped" else report.flags
+    named = {(Path(e.file.rsplit(":", 1)[0]).name, e.field) for e in entries}
+    assert (name, field) in named, entries
+    assert report.records_loaded == 392 - lost and report.heliostats_loaded == 5

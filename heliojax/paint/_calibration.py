@@ -15,6 +15,7 @@ from ._common import (
     CORNERS,
     MAX_SPOT_DISTANCE_M,
     PROPERTIES_SUFFIX,
+    SPOT_TARGET_RADII,
     TIMESTAMPS_FILE,
     WEATHER_KEYS,
     CalibrationRecord,
@@ -24,6 +25,7 @@ from ._common import (
     Vec3,
     _check,
     _check_datetime,
+    _check_weather_value,
     _distance_m,
     _join,
     _latlon_ok,
@@ -113,7 +115,8 @@ def check_record_context(
     Raises:
         DataError: (file = ``record.source``) for a ``target_name`` that is not a
             planar target of ``tower``; for a focal spot more than
-            :data:`MAX_SPOT_DISTANCE_M` from its target's centre; for a heliostat missing from ``properties``
+            :data:`SPOT_TARGET_RADII` target radii (at most
+            :data:`MAX_SPOT_DISTANCE_M`) from its target's centre; for a heliostat missing from ``properties``
             (when a mapping id -> properties is given); for motor counts outside
             ``[min_increment, max_increment]``.
     """
@@ -129,17 +132,19 @@ def check_record_context(
         if not t.is_planar_target:
             raise DataError(file, "target_name", f"{record.target_name!r} is not a planar calibration target")
         centre: Vec3 = tuple(sum(t.points[c][k] for c in CORNERS) / len(CORNERS) for k in range(3))  # pyright: ignore[reportAssignmentType]
+        radius = max(_distance_m(t.points[c], centre) for c in CORNERS)
+        limit = min(MAX_SPOT_DISTANCE_M, max(SPOT_TARGET_RADII * radius, 1.0))
         for field, spot in (
             ("focal_spot.UTIS", record.focal_spot_utis),
             ("focal_spot.HeliOS", record.focal_spot_helios),
         ):
             distance = 0.0 if spot is None else _distance_m(spot, centre)
-            if distance > MAX_SPOT_DISTANCE_M:
+            if distance > limit:
                 raise DataError(
                     file,
                     field,
                     f"{distance:.4g} m from the centre of target {record.target_name!r} "
-                    f"(more than {MAX_SPOT_DISTANCE_M:g} m: not a spot on it)",
+                    f"(more than {limit:.3g} m, {SPOT_TARGET_RADII:g} times the target's radius: not a spot on it)",
                 )
     if properties is None:
         return
@@ -202,6 +207,7 @@ def _check_weather(file: str, field: str, weather: Any) -> dict[str, float]:
         v = float(v)
         if math.isinf(v):
             raise DataError(file, _join(field, k), f"not finite ({v!r}); use NaN for unknown")
+        _check_weather_value(file, _join(field, k), k, v)
         out[k] = math.nan if math.isnan(v) else v
     return out
 

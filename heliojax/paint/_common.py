@@ -9,6 +9,7 @@ import json
 import math
 import os
 import re
+import stat
 from pathlib import Path
 from typing import Any, no_type_check
 
@@ -31,6 +32,16 @@ ACTUATOR_TYPES = ("linear", "ideal")
 
 WEATHER_KEYS = ("temperature", "wind_speed", "wind_direction", "dni", "humidity", "pressure")
 """Weather of a record (file units: deg C, m/s, deg, W/m^2, %, hPa); NaN = unknown."""
+WEATHER_RANGES = {
+    "temperature": (-90.0, 60.0, "deg C"),
+    "wind_speed": (0.0, 120.0, "m/s"),
+    "wind_direction": (-360.0, 360.0, "deg"),
+    "dni": (0.0, 1500.0, "W/m^2"),
+    "humidity": (0.0, 100.0, "%"),
+    "pressure": (300.0, 1100.0, "hPa"),
+}
+"""Physically possible weather at a plant on the ground (file units); a value outside
+(a negative wind speed, a temperature of 1e308, a pressure in Pa) is not a measurement."""
 
 CORNERS = ("upper_left", "upper_right", "lower_left", "lower_right")
 """Corner points that make a tower entry a usable planar target."""
@@ -295,15 +306,23 @@ def _unique_keys(pairs: list[tuple[str, Any]], *, mark: bool = False) -> dict[st
     return out
 
 
+def _read_regular_file(path: str | os.PathLike) -> bytes:
+    """The bytes of a regular file; a device, pipe or socket in its place (a link to
+    /dev/zero reads forever, a pipe blocks) and an unreadable file are DataErrors."""
+    try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            raise DataError(path, None, "not a regular file (a device, pipe or socket)")
+        return Path(path).read_bytes()
+    except OSError as e:
+        raise DataError(path, None, f"cannot read file: {e.strerror or e}") from None
+
+
 def _load_json(path: str | os.PathLike, *, mark_ambiguous: bool = False) -> Any:
     """Parse a JSON file; every failure becomes a DataError naming the file. A key given
     twice with different values is one too, or, with ``mark_ambiguous`` (a file of
     independent entries, where one bad entry must not spoil the others), holds
     :data:`AMBIGUOUS`, which :class:`_Node` reports as that entry's error."""
-    try:
-        raw = Path(path).read_bytes()
-    except OSError as e:
-        raise DataError(path, None, f"cannot read file: {e.strerror or e}") from None
+    raw = _read_regular_file(path)
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as e:
@@ -431,6 +450,14 @@ def _check(cond: bool, file: str, field: str | None, reason: str) -> None:
 
 
 @no_type_check
+@no_type_check
+def _check_weather_value(file: str, field: str, key: str, v: float) -> None:
+    """A known (not NaN) weather value ``key`` must lie in :data:`WEATHER_RANGES`."""
+    lo, hi, unit = WEATHER_RANGES[key]
+    _check(math.isnan(v) or lo <= v <= hi, file, field, f"{v!r} {unit} outside [{lo:g}, {hi:g}] {unit}: not a {key}")
+
+
+@no_type_check
 def _latlon_ok(file: str, field: str, lla: Vec3) -> None:
     _check(-90.0 <= lla[0] <= 90.0, file, field, f"latitude {lla[0]!r} outside [-90, 90] deg")
     _check(-180.0 <= lla[1] <= 360.0, file, field, f"longitude {lla[1]!r} outside [-180, 360] deg")
@@ -447,12 +474,21 @@ def _distance_m(a: Vec3, b: Vec3) -> float:
 
 MAX_SPOT_DISTANCE_M = 1_000.0
 """A focal spot farther than this from its target's centre is not a measurement of that target."""
+SPOT_TARGET_RADII = 4.0
+"""A focal spot farther from its target's centre than this many times the target's
+radius (its farthest corner from the centre) is not on that target either: a spot is
+measured on the target (real PAINT spots: within 3.1 m of the centre of targets of about
+5 m radius); an altitude of 0 or of the wrong sign put the spot 100 m or more away."""
 MAX_HELIOSTAT_DISTANCE_M = 50_000.0
 """A heliostat farther than this from the plant's reference point is not part of the plant."""
 MAX_SUN_GAP_DEG = 2.0
 """A stored sun direction farther than this from the sun computed for the record's time
 at its heliostat is not the sun of that record (real PAINT data: within 0.03 deg; a sun
 given in radians, or from another day or hour, is off by far more)."""
+SUN_FLAG_DEG = 0.1
+"""A stored sun farther than this (but within :data:`MAX_SUN_GAP_DEG`) from the sun
+computed for the record's time is kept and flagged: real PAINT suns lie within 0.03 deg;
+one rounded to whole degrees is off by up to 0.7 deg (12 mrad, many times a tracking error)."""
 
 
 def _record_id_from_name(path: Path) -> int:

@@ -31,6 +31,7 @@ from ._common import (
     MAX_HELIOSTAT_DISTANCE_M,
     MAX_SUN_GAP_DEG,
     PROPERTIES_SUFFIX,
+    SUN_FLAG_DEG,
     TIMESTAMPS_FILE,
     TOWER_FILE_SUFFIX,
     WEATHER_CSV_FILE,
@@ -182,7 +183,8 @@ def _drop_sun_mismatches(
 ) -> list[list[CalibrationRecord]]:
     """Skip (and name) every timed record whose stored sun lies more than
     :data:`MAX_SUN_GAP_DEG` from the sun computed for its time at its heliostat
-    (``positions[i]``, WGS84): one batched solar-position call over all records."""
+    (``positions[i]``, WGS84), flag those more than :data:`SUN_FLAG_DEG` from it: one
+    batched solar-position call over all records."""
     where = [(i, k) for i, rs in enumerate(goods) for k, r in enumerate(rs) if r.datetime is not None]
     if not where:
         return goods
@@ -200,10 +202,19 @@ def _drop_sun_mismatches(
             parts.append([np.asarray(x) for x in _sun_gap_kernel(*(c[a : a + _SUN_CHUNK] for c in cols))])
     gap, az_c, el_c = (np.concatenate(x)[:n] for x in zip(*parts))
     drop: set[tuple[int, int]] = set()
-    for j in np.nonzero(~(gap <= MAX_SUN_GAP_DEG))[0]:
+    for j in np.nonzero(~(gap <= SUN_FLAG_DEG))[0]:
         r = rs[j]
         d_az = abs((az[j] - az_c[j] + 180.0) % 360.0 - 180.0) * math.cos(math.radians(el_c[j]))
         field = "sun_elevation" if abs(el[j] - el_c[j]) > d_az else "sun_azimuth"
+        if gap[j] <= MAX_SUN_GAP_DEG:
+            log.flag(
+                r.source,
+                field,
+                f"the stored sun (azimuth {az[j]:.6g}, elevation {el[j]:.6g} deg) is {gap[j]:.3g} deg from the sun at "
+                f"the record's time {r.datetime} (azimuth {az_c[j]:.6g}, elevation {el_c[j]:.6g} deg; more than "
+                f"{SUN_FLAG_DEG:g} deg: rounded, or a time off by minutes?): record kept, check its sun and time",
+            )
+            continue
         log.skip_record(
             DataError(
                 r.source,

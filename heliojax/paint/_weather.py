@@ -7,7 +7,6 @@ import io
 import math
 import os
 from collections.abc import Callable, Iterable, Mapping
-from pathlib import Path
 from typing import no_type_check
 
 from .._errors import DataError
@@ -21,8 +20,10 @@ from ._common import (
     TowerFile,
     _check,
     _check_datetime,
+    _check_weather_value,
     _latlon_ok,
     _nan_weather,
+    _read_regular_file,
 )
 
 # ======================================================================================
@@ -82,9 +83,7 @@ def read_weather_csv(
     """
     file = str(path)
     try:
-        text = Path(path).read_bytes().decode("utf-8-sig")
-    except OSError as e:
-        raise DataError(file, None, f"cannot read file: {e.strerror or e}") from None
+        text = _read_regular_file(path).decode("utf-8-sig")
     except UnicodeDecodeError as e:
         raise DataError(file, None, f"not UTF-8 text (byte {e.start})") from None
     try:
@@ -135,6 +134,7 @@ def read_weather_csv(
             weather = _nan_weather()
             for k, c in wcols:
                 v = _csv_float(file, f"{where}.{k}", cells[c], allow_empty=True)
+                _check_weather_value(file, f"{where}.{k}", k, v)
                 if not math.isnan(v):
                     weather[k] = v
             out.append(
