@@ -450,7 +450,6 @@ def _check(cond: bool, file: str, field: str | None, reason: str) -> None:
 
 
 @no_type_check
-@no_type_check
 def _check_weather_value(file: str, field: str, key: str, v: float) -> None:
     """A known (not NaN) weather value ``key`` must lie in :data:`WEATHER_RANGES`."""
     lo, hi, unit = WEATHER_RANGES[key]
