@@ -370,8 +370,6 @@ def test_bad_input_is_a_short_clean_error(argv, expected, tmp_path, capsys, monk
     assert len(err.strip().splitlines()) <= 2, err
     names = ("a-dir", "a-file", "a-link", "config.toml", "contract.toml", "field.csv", "summary.json")
     inputs = {tmp_path / n for n in names}
-
-    inputs = {tmp_path / n for n in ("a-dir", "a-file", "config.toml", "contract.toml", "field.csv", "summary.json")}
     before |= {p for p in tmp_path.rglob("*") if p.is_relative_to(tmp_path / "paint")}  # the input data
     assert {p for p in tmp_path.rglob("*")} - before <= inputs  # no output written
 
