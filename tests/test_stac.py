@@ -221,14 +221,14 @@ def serve(directory: Path, log: list | None = None, errors: dict | None = None, 
 
 
 @contextlib.contextmanager
-def _http_server(handler) -> Iterator[str]:
-    """A threading HTTP server of ``handler`` on 127.0.0.1; yields its base URL."""
-    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+def _http_server(handler, host: str = "127.0.0.1") -> Iterator[str]:
+    """A threading HTTP server of ``handler`` on ``host`` (a loopback address); yields its base URL."""
+    srv = http.server.ThreadingHTTPServer((host, 0), handler)
     srv.daemon_threads = True
     th = threading.Thread(target=srv.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
     th.start()
     try:
-        yield f"http://127.0.0.1:{srv.server_address[1]}"
+        yield f"http://{host}:{srv.server_address[1]}"
     finally:
         srv.shutdown()
         srv.server_close()
@@ -1054,16 +1054,8 @@ def _static_server(directory: Path, host: str, redirects: dict | None = None) ->
                 return
             super().do_GET()
 
-    srv = http.server.ThreadingHTTPServer((host, 0), functools.partial(Handler, directory=str(directory)))
-    srv.daemon_threads = True
-    th = threading.Thread(target=srv.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
-    th.start()
-    try:
-        yield f"http://{host}:{srv.server_address[1]}"
-    finally:
-        srv.shutdown()
-        srv.server_close()
-        th.join(timeout=5)
+    with _http_server(functools.partial(Handler, directory=str(directory)), host) as url:
+        yield url
 
 
 def test_redirects_to_another_host_are_followed_unless_same_host_only(tmp_path, capsys):
