@@ -15,7 +15,6 @@ from ._common import (
     CORNERS,
     MAX_SPOT_DISTANCE_M,
     PROPERTIES_SUFFIX,
-    SPOT_TARGET_RADII,
     TIMESTAMPS_FILE,
     WEATHER_KEYS,
     CalibrationRecord,
@@ -115,8 +114,7 @@ def check_record_context(
     Raises:
         DataError: (file = ``record.source``) for a ``target_name`` that is not a
             planar target of ``tower``; for a focal spot more than
-            :data:`SPOT_TARGET_RADII` target radii (at most
-            :data:`MAX_SPOT_DISTANCE_M`) from its target's centre; for a heliostat missing from ``properties``
+            :data:`MAX_SPOT_DISTANCE_M` from its target's centre; for a heliostat missing from ``properties``
             (when a mapping id -> properties is given); for motor counts outside
             ``[min_increment, max_increment]``.
     """
@@ -132,19 +130,17 @@ def check_record_context(
         if not t.is_planar_target:
             raise DataError(file, "target_name", f"{record.target_name!r} is not a planar calibration target")
         centre: Vec3 = tuple(sum(t.points[c][k] for c in CORNERS) / len(CORNERS) for k in range(3))  # pyright: ignore[reportAssignmentType]
-        radius = max(_distance_m(t.points[c], centre) for c in CORNERS)
-        limit = min(MAX_SPOT_DISTANCE_M, max(SPOT_TARGET_RADII * radius, 1.0))
         for field, spot in (
             ("focal_spot.UTIS", record.focal_spot_utis),
             ("focal_spot.HeliOS", record.focal_spot_helios),
         ):
             distance = 0.0 if spot is None else _distance_m(spot, centre)
-            if distance > limit:
+            if distance > MAX_SPOT_DISTANCE_M:
                 raise DataError(
                     file,
                     field,
                     f"{distance:.4g} m from the centre of target {record.target_name!r} "
-                    f"(more than {limit:.3g} m, {SPOT_TARGET_RADII:g} times the target's radius: not a spot on it)",
+                    f"(more than {MAX_SPOT_DISTANCE_M:g} m: not a spot on it)",
                 )
     if properties is None:
         return

@@ -473,11 +473,6 @@ def _distance_m(a: Vec3, b: Vec3) -> float:
 
 MAX_SPOT_DISTANCE_M = 1_000.0
 """A focal spot farther than this from its target's centre is not a measurement of that target."""
-SPOT_TARGET_RADII = 4.0
-"""A focal spot farther from its target's centre than this many times the target's
-radius (its farthest corner from the centre) is not on that target either: a spot is
-measured on the target (real PAINT spots: within 3.1 m of the centre of targets of about
-5 m radius); an altitude of 0 or of the wrong sign put the spot 100 m or more away."""
 MAX_HELIOSTAT_DISTANCE_M = 50_000.0
 """A heliostat farther than this from the plant's reference point is not part of the plant."""
 MAX_SUN_GAP_DEG = 2.0

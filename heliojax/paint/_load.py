@@ -184,7 +184,8 @@ def _drop_sun_mismatches(
     """Skip (and name) every timed record whose stored sun lies more than
     :data:`MAX_SUN_GAP_DEG` from the sun computed for its time at its heliostat
     (``positions[i]``, WGS84), flag those more than :data:`SUN_FLAG_DEG` from it: one
-    batched solar-position call over all records."""
+    batched solar-position call over all records. When most timed records disagree, the
+    data set follows another convention: all are kept and one flag says so."""
     where = [(i, k) for i, rs in enumerate(goods) for k, r in enumerate(rs) if r.datetime is not None]
     if not where:
         return goods
@@ -201,6 +202,19 @@ def _drop_sun_mismatches(
         for a in range(0, size, _SUN_CHUNK):
             parts.append([np.asarray(x) for x in _sun_gap_kernel(*(c[a : a + _SUN_CHUNK] for c in cols))])
     gap, az_c, el_c = (np.concatenate(x)[:n] for x in zip(*parts))
+    far = ~(gap <= MAX_SUN_GAP_DEG)
+    if 2 * int(far.sum()) > n:
+        # Most suns disagree with their times: a convention of the whole data set (times in
+        # another zone, suns from another model), not a damaged record each: keep them all.
+        j = int(np.argmax(far))
+        log.flag(
+            rs[j].source,
+            "sun_azimuth",
+            f"{int(far.sum())} of {n} timed records have a stored sun more than {MAX_SUN_GAP_DEG:g} deg from the "
+            f"sun at their time (e.g. {gap[j]:.3g} deg here): times in another zone, or suns from another model? "
+            "All kept; check the data's time convention",
+        )
+        return goods
     drop: set[tuple[int, int]] = set()
     for j in np.nonzero(~(gap <= SUN_FLAG_DEG))[0]:
         r = rs[j]
