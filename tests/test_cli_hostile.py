@@ -70,6 +70,11 @@ def _file(tmp: Path, name: str, content: str | bytes) -> str:
     return str(path)
 
 
+def _field(tmp: Path) -> str:
+    """A measured-field CSV of one heliostat (for cases about the contract)."""
+    return _file(tmp, "field.csv", "heliostat_id,east_m,north_m,tracking_mrad\nA1,0,0,1\n")
+
+
 def _accept(tmp: Path, results: str, contract: str = CONTRACT) -> list[str]:
     return ["accept", "--results", results, "--contract", _file(tmp, "contract.toml", contract)]
 
@@ -204,7 +209,7 @@ CASES = [
         lambda t: _accept(t, _file(t, "field.csv", "heliostat_id,east_m,north_m,tracking_mrad\nA1,30000,0,1\n")),
         "east_m/north_m/up_m",
     ),
-    ("accept sampling not a table", lambda t: _accept(t, "f.csv", "sampling = 5\n" + CONTRACT), "[sampling]"),
+    ("accept sampling not a table", lambda t: _accept(t, _field(t), "sampling = 5\n" + CONTRACT), "[sampling]"),
     (
         "accept field value beyond any measurement",
         lambda t: _accept(t, _file(t, "field.csv", "heliostat_id,east_m,north_m,tracking_mrad\nA1,0,0,1e300\n")),
@@ -221,27 +226,31 @@ CASES = [
     ),
     (
         "accept contract mean beyond any measurement",
-        lambda t: _accept(t, "f.csv", CONTRACT.replace("mean = 2.0", "mean = 1e300")),
+        lambda t: _accept(t, _field(t), CONTRACT.replace("mean = 2.0", "mean = 1e300")),
         "mean must be at most",
     ),
-    ("accept contract year -5", lambda t: _accept(t, "f.csv", CONTRACT + "[yield]\nyear = -5\n"), "year"),
+    ("accept contract year -5", lambda t: _accept(t, _field(t), CONTRACT + "[yield]\nyear = -5\n"), "year"),
     (
         "accept contract bandwidth inf",
-        lambda t: _accept(t, "f.csv", CONTRACT + "[extrapolation]\nbandwidth = inf\n"),
+        lambda t: _accept(t, _field(t), CONTRACT + "[extrapolation]\nbandwidth = inf\n"),
         "bandwidth",
     ),
-    ("accept contract seed 2.5", lambda t: _accept(t, "f.csv", CONTRACT + "[extrapolation]\nseed = 2.5\n"), "seed"),
+    ("accept contract seed 2.5", lambda t: _accept(t, _field(t), CONTRACT + "[extrapolation]\nseed = 2.5\n"), "seed"),
     (
         "accept contract min_samples 0.5",
-        lambda t: _accept(t, "f.csv", CONTRACT + "[clusters]\nmin_samples = 0.5\n"),
+        lambda t: _accept(t, _field(t), CONTRACT + "[clusters]\nmin_samples = 0.5\n"),
         "min_samples",
     ),
     (
         "accept contract step 1e-9 min",
-        lambda t: _accept(t, "f.csv", CONTRACT + "[yield]\nstep_minutes = 1e-9\n"),
+        lambda t: _accept(t, _field(t), CONTRACT + "[yield]\nstep_minutes = 1e-9\n"),
         "step_minutes",
     ),
-    ("accept contract rel_error 1e300", lambda t: _accept(t, "f.csv", CONTRACT.replace("0.04", "1e300")), "rel_error"),
+    (
+        "accept contract rel_error 1e300",
+        lambda t: _accept(t, _field(t), CONTRACT.replace("0.04", "1e300")),
+        "rel_error",
+    ),
     (
         "accept summary nested too deep",
         lambda t: [*_accept(t, _file(t, "summary.json", b"[" * 100_000)), "--paint", str(hj.default_data_dir())],
@@ -270,12 +279,12 @@ CASES = [
     ),
     (
         "accept contract key misspelt in [sampling]",
-        lambda t: _accept(t, "f.csv", CONTRACT + "[sampling]\nconfidance = 0.99\n"),
+        lambda t: _accept(t, _field(t), CONTRACT + "[sampling]\nconfidance = 0.99\n"),
         "confidance",
     ),
     (
         "accept contract date in [yield]",
-        lambda t: _accept(t, "f.csv", CONTRACT + "[yield]\nday = 2023-06-21\n"),
+        lambda t: _accept(t, _field(t), CONTRACT + "[yield]\nday = 2023-06-21\n"),
         "unknown key(s) ['day']",
     ),
     (
@@ -295,7 +304,7 @@ CASES = [
     ),
     (
         "accept tower file missing",
-        lambda t: _accept(t, "f.csv", CONTRACT + '[yield]\ntower_file = "nowhere.json"\n'),
+        lambda t: _accept(t, _field(t), CONTRACT + '[yield]\ntower_file = "nowhere.json"\n'),
         "nowhere.json",
     ),
     ("calibrate out a dangling link", lambda t: ["calibrate", "--out", _dangling(t)], "--out"),
@@ -305,7 +314,7 @@ CASES = [
     ("inspect plot a dangling link", lambda t: ["inspect", "--plot", _dangling(t, "p.png")], "--plot"),
     ("discover figures a dangling link", lambda t: ["discover", "--figures", _dangling(t)], "--figures"),
     ("discover markdown a dangling link", lambda t: ["discover", "--markdown", _dangling(t)], "--markdown"),
-    ("accept report a dangling link", lambda t: [*_accept(t, "f.csv"), "--report", _dangling(t)], "--report"),
+    ("accept report a dangling link", lambda t: [*_accept(t, _field(t)), "--report", _dangling(t)], "--report"),
     ("aim out a dangling link", lambda t: ["aim", "r.h5", "--out", _dangling(t, "aim.csv")], "--out"),
     ("plan ranking a dangling link", lambda t: ["plan", "r.h5", "--ranking", _dangling(t)], "--ranking"),
     ("trace out a dangling link", lambda t: ["trace", "--heliostat", "AA39", "--out", _dangling(t)], "--out"),
@@ -349,6 +358,7 @@ CASES = [
     ("discover unknown effect", lambda t: ["discover", "--effects", "abc"], "--effects"),
     ("discover no effect named", lambda t: ["discover", "--effects", " , "], "--effects"),
     ("discover folds beyond any data", lambda t: ["discover", "--folds", "100000"], "--folds"),
+    ("discover folds beyond the data's days", lambda t: ["discover", "--folds", "99"], "98 UTC days"),
     (
         "reconstruct --tower of the synthetic scene",
         lambda t: ["reconstruct", "--tower", str(_a_file(t)), "--steps", "1", "--out", str(t / "o")],
@@ -356,6 +366,13 @@ CASES = [
     ),
     ("trace reflectivity 0", lambda t: ["trace", "--heliostat", "BE36", "--reflectivity", "0"], "--reflectivity"),
     ("plan empty target", lambda t: ["plan", "r.h5", "--targets", ""], "--targets"),
+    ("data folder missing", lambda t: ["calibrate", str(t / "nowhere")], "DATA_DIR"),
+    ("data folder a file", lambda t: ["inspect", str(_a_file(t))], "DATA_DIR"),
+    ("test data a file", lambda t: ["calibrate", "--test-data", str(_a_file(t))], "--test-data"),
+    ("records file a folder", lambda t: ["calibrate", "--records", str(_a_dir(t))], "--records"),
+    ("results file missing", lambda t: ["aim", str(t / "r.h5")], "RESULTS_H5"),
+    ("trace tower a folder", lambda t: ["trace", "--heliostat", "BE36", "--tower", str(_a_dir(t))], "--tower"),
+    ("reconstruct scenario missing", lambda t: ["reconstruct", "--scenario", str(t / "s.h5")], "--scenario"),
     ("aim target name of a page", lambda t: ["aim", "r.h5", "--target", "x" * 5000], "--target"),
 ]
 
@@ -468,15 +485,37 @@ def test_flux_images_blank_tiny_or_16_bit(tmp_path):
     assert np.allclose(read_flux_png(tmp_path / "deep.png"), read_flux_png(tmp_path / "plain.png"))
 
 
-def test_trace_output_name_taken_writes_nothing(tmp_path, capsys):
-    """An output name of trace taken by a folder is found before the work: nothing is
-    written (no .h5 beside a failed .png)."""
+TRACE_AT_A_SUN = ["trace", "--heliostat", "BE36", "--sun-azimuth", "10", "--sun-elevation", "30"]
+
+
+@pytest.mark.parametrize("taken", ["folder", "dangling link"])
+@pytest.mark.parametrize(
+    ("argv", "name"),
+    [
+        ([*TRACE_AT_A_SUN, "--pixels", "8", "--rays-per-point", "1", "--resolution", "2"], "BE36-az10_el30-flux.png"),
+        (
+            [*TRACE_AT_A_SUN, "--pixels", "8", "--rays-per-point", "1", "--resolution", "2"],
+            "BE36-az10_el30-summary.json",
+        ),
+        (["reconstruct", "--steps", "1"], "reconstruction.json"),
+        (["reconstruct", "--steps", "1"], "control_points.h5"),
+    ],
+    ids=["trace png", "trace summary", "reconstruct json", "reconstruct h5"],
+)
+def test_an_output_name_taken_in_the_out_folder_writes_nothing(argv, name, taken, tmp_path, capsys):
+    """A file name that trace or reconstruct writes in --out, taken by a folder or a
+    dangling link, is found before the work: nothing is written (no .h5 beside a failed
+    .png)."""
     out = tmp_path / "o"
-    (out / "BE36-az10_el30-flux.png").mkdir(parents=True)
-    argv = ["trace", "--heliostat", "BE36", "--sun-azimuth", "10", "--sun-elevation", "30", "--out", str(out)]
-    rc, _, err = _run([*argv, "--pixels", "8", "--rays-per-point", "1", "--steps", "1", "--resolution", "2"], capsys)
-    assert rc == 2 and "--out" in err and "Traceback" not in err, err
-    assert [p.name for p in out.iterdir()] == ["BE36-az10_el30-flux.png"]
+    out.mkdir()
+    if taken == "folder":
+        (out / name).mkdir()
+    else:
+        (out / name).symlink_to(tmp_path / "missing")
+    rc, _, err = _run([*argv, "--out", str(out)], capsys)
+    assert rc == 2 and f"--out {out / name}" in err and "Traceback" not in err, err
+    assert len(err.strip().splitlines()) <= 2, err
+    assert [p.name for p in out.iterdir()] == [name]
 
 
 def test_time_windows_of_sub_second_steps_or_past_the_last_day_are_refused():
@@ -836,6 +875,12 @@ DAMAGED_DATA = [
     (
         "temperature of 1e308",
         lambda d: ("calibration-with-weather.csv", _edit_weather(d, "temperature", "1e308")),
+        "skipped",
+        0,
+    ),
+    (
+        "weather sample id of 1e308",
+        lambda d: ("calibration-with-weather.csv", _edit_weather(d, "sample_id", "1e308")),
         "skipped",
         0,
     ),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import collections.abc
 import logging
 import math
 import os
@@ -168,25 +169,66 @@ def enable_compilation_cache(cache_dir: str | os.PathLike | None) -> None:
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 
-def check_output_paths(args, files: tuple[str, ...] = (), directories: tuple[str, ...] = ()) -> None:
+def check_output_paths(
+    args,
+    files: tuple[str, ...] = (),
+    directories: tuple[str, ...] = (),
+    inside: collections.abc.Iterable[tuple[str, Path]] = (),
+) -> None:
     """Before any work: every output file / directory named by ``args`` (attribute
-    names; None = not requested) can be written. Raises ConfigError naming the flag."""
+    names; None = not requested) can be written, and so can each file ``inside`` an
+    output directory (``(attribute name of the directory, file path)``: a directory or a
+    dangling link in its place is refused before the first file is written). Raises
+    ConfigError naming the flag."""
     from .._errors import ConfigError
 
     seen: dict[Path, str] = {}
-    for names, is_dir in ((files, False), (directories, True)):
-        for name in names:
-            value = getattr(args, name, None)
-            if value is None or (name == "cache_dir" and str(value).lower() == "none"):
-                continue
-            flag = "--" + name.replace("_", "-")
-            if not str(value).strip():  # Path("") is the working directory: never what was meant
-                raise ConfigError(f"{flag}: empty path")
-            path = Path(value)
-            try:
-                _check_output_path(flag, path, name, is_dir, seen)
-            except OSError as e:  # a name too long, a loop of links: the flag, not a bare OSError
-                raise ConfigError(f"{flag} {_shown(path)}: {e.strerror or e}") from None
+    checks = [(name, getattr(args, name, None), False) for name in files]
+    checks += [(name, getattr(args, name, None), True) for name in directories]
+    checks += [(name, path, False) for name, path in inside if getattr(args, name, None) is not None]
+    for name, value, is_dir in checks:
+        if value is None or (name == "cache_dir" and str(value).lower() == "none"):
+            continue
+        flag = "--" + name.replace("_", "-")
+        if not str(value).strip():  # Path("") is the working directory: never what was meant
+            raise ConfigError(f"{flag}: empty path")
+        path = Path(value)
+        try:
+            _check_output_path(flag, path, name, is_dir, seen)
+        except OSError as e:  # a name too long, a loop of links: the flag, not a bare OSError
+            raise ConfigError(f"{flag} {_shown(path)}: {e.strerror or e}") from None
+
+
+INPUT_DIRECTORIES = frozenset({"data_dir", "test_data", "paint_dir", "paint"})
+"""Input paths (attribute names of the parsed arguments) that name a directory; every
+other input path names a file."""
+
+
+def check_input_paths(parser: argparse.ArgumentParser, args, outputs: collections.abc.Container[str]) -> None:
+    """Before any work: every input path option of ``parser`` (type :func:`path_type`,
+    not one of ``outputs``) that ``args`` sets exists and is a directory
+    (:data:`INPUT_DIRECTORIES`) or a file. Raises ConfigError naming the flag (the
+    metavar of a positional argument)."""
+    from .._errors import ConfigError
+
+    for action in parser._actions:  # noqa: SLF001 - argparse keeps no public list of a parser's options
+        value = getattr(args, action.dest, None)
+        if action.type is not path_type or action.dest in outputs or value is None:
+            continue
+        flag = action.option_strings[-1] if action.option_strings else str(action.metavar or action.dest.upper())
+        path = Path(value)
+        want_dir = action.dest in INPUT_DIRECTORIES
+        try:
+            exists, is_dir = path.exists(), path.is_dir()
+        except OSError as e:  # a name too long, a loop of links
+            raise ConfigError(f"{flag} {_shown(path)}: {e.strerror or e}") from None
+        if not exists:
+            what = "directory" if want_dir else "file"
+            raise ConfigError(f"{flag} {_shown(path)}: no such {what}")
+        if want_dir and not is_dir:
+            raise ConfigError(f"{flag} {_shown(path)}: is a file, expected a directory")
+        if not want_dir and is_dir:
+            raise ConfigError(f"{flag} {_shown(path)}: is a directory, expected a file")
 
 
 def _shown(path: Path, most: int = 120) -> str:

@@ -93,9 +93,19 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
+    import numpy as np
+
     from .._errors import ConfigError
     from .._progress import activity
-    from ..discovery import DiscoveryConfig, discover, markdown_summary, write_figures, write_markdown, write_report
+    from ..discovery import (
+        DiscoveryConfig,
+        discover,
+        fold_blocks,
+        markdown_summary,
+        write_figures,
+        write_markdown,
+        write_report,
+    )
     from ..effects import EFFECT_NAMES
 
     enable_compilation_cache(args.cache_dir)
@@ -124,6 +134,12 @@ def run(args) -> int:
     except ValueError as e:
         raise ConfigError(str(e)) from e
     fleet = load_fleet(args)
+    blocks = fold_blocks(np.asarray(fleet.context.unix_time), np.asarray(fleet.mask))
+    if 2 <= blocks < args.folds:  # (fewer than 2: discover says nothing can be tested)
+        raise ConfigError(
+            f"--folds {args.folds}: the records span only {blocks} UTC days (a record without a time counts as "
+            f"one), so some folds would hold no record; at most --folds {blocks}"
+        )
     result = discover(fleet, config)
     write_report(args.report, result.report)
     log.info(f"wrote {args.report}")

@@ -23,7 +23,7 @@ from pathlib import Path
 from .._errors import ConfigError, HeliojaxError
 from .._version import __version__
 from .._xla_flags import with_fast_cpu_compilation
-from ._common import check_output_paths, configure_logging, path_type
+from ._common import check_input_paths, check_output_paths, configure_logging, path_type
 
 # subcommand -> module (each has add_parser(subparsers) and run(args) -> int)
 SUBCOMMANDS = {
@@ -220,7 +220,10 @@ def main(argv: list[str] | None = None) -> int:
         logger = configure_logging(bool(getattr(args, "quiet", False)))
         if hasattr(module, "default_outputs"):  # outputs whose default depends on the inputs
             module.default_outputs(args)
-        check_output_paths(args, getattr(module, "OUTPUT_FILES", ()), getattr(module, "OUTPUT_DIRS", ()))
+        inside = module.outputs_inside(args) if hasattr(module, "outputs_inside") else ()
+        outputs = (*getattr(module, "OUTPUT_FILES", ()), *getattr(module, "OUTPUT_DIRS", ()))
+        check_output_paths(args, getattr(module, "OUTPUT_FILES", ()), getattr(module, "OUTPUT_DIRS", ()), inside)
+        check_input_paths(subparsers[args.command], args, outputs)
         with logging_redirect_tqdm(loggers=[logger]):  # messages and progress bars share stderr
             return int(module.run(args) or 0)
     except HeliojaxError as e:

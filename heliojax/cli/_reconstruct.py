@@ -20,6 +20,13 @@ EXAMPLES = """examples:
 OUTPUT_FILES = ()
 OUTPUT_DIRS = ("out",)
 """Output paths checked before any work (attribute names of the parsed arguments)."""
+OUTPUT_NAMES = ("control_points.h5", "reconstruction.png", "reconstruction.json")
+"""The files written in ``--out``."""
+
+
+def outputs_inside(args) -> list[tuple[str, Path]]:
+    """The files this command writes in its output directory, checked before any work."""
+    return [("out", args.out / name) for name in OUTPUT_NAMES]
 
 
 def add_parser(subparsers) -> None:

@@ -33,6 +33,20 @@ OUTPUT_DIRS = ("out",)
 """Output paths checked before any work (attribute names of the parsed arguments)."""
 
 
+def _tag(args) -> str:
+    """The part of the output file names naming the record or the sun."""
+    return str(args.record) if args.record is not None else f"az{args.sun_azimuth:g}_el{args.sun_elevation:g}"
+
+
+def outputs_inside(args) -> list[tuple[str, Path]]:
+    """The files this command writes in ``--out``, checked before any work (none while
+    the record / sun flags are incomplete: :func:`run` names that error)."""
+    if args.record is None and (args.sun_azimuth is None or args.sun_elevation is None):
+        return []
+    stem = f"{args.heliostat}-{_tag(args)}"
+    return [("out", args.out / f"{stem}-{kind}") for kind in ("flux.h5", "flux.png", "comparison.png", "summary.json")]
+
+
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "trace",
@@ -171,23 +185,14 @@ def run(args: argparse.Namespace) -> int:
     from ..paint import read_calibration_record, read_heliostat_properties, read_tower
 
     if (args.record is None) == (args.sun_azimuth is None or args.sun_elevation is None):
-        print("heliojax trace: error: give either --record or both --sun-azimuth and --sun-elevation", file=sys.stderr)
-        return 2
+        raise ConfigError("give either --record or both --sun-azimuth and --sun-elevation")
     per_chunk = args.resolution**2 * args.rays_per_point
     if per_chunk > MAX_RAYS_PER_FACET:  # before any work: the chunk would not fit in memory
-        print(
-            f"heliojax trace: error: --resolution {args.resolution} and --rays-per-point {args.rays_per_point}: "
-            f"{per_chunk:.3g} rays per facet and step; at most {MAX_RAYS_PER_FACET:.3g}",
-            file=sys.stderr,
+        raise ConfigError(
+            f"--resolution {args.resolution} and --rays-per-point {args.rays_per_point}: "
+            f"{per_chunk:.3g} rays per facet and step; at most {MAX_RAYS_PER_FACET:.3g}"
         )
-        return 2
-    tag = str(args.record) if args.record is not None else f"az{args.sun_azimuth:g}_el{args.sun_elevation:g}"
-    outputs = [args.out / f"{args.heliostat}-{tag}-{kind}" for kind in ("flux.h5", "flux.png", "comparison.png")]
-    outputs.append(args.out / f"{args.heliostat}-{tag}-summary.json")
-    for path in outputs:  # before any work: an output that cannot be written would leave the others behind
-        if path.is_dir() or path.is_symlink():
-            print(f"heliojax trace: error: --out {args.out}: {path.name} is a directory or a link", file=sys.stderr)
-            return 2
+    tag = _tag(args)
     try:
         if args.paint is None:
             from ..paint import default_data_dir

@@ -32,7 +32,7 @@ from ._identifiability import (
     CONDITION_INDEX_LIMIT as CONDITION_INDEX_LIMIT,
     absorbed_fractions as absorbed_fractions,
 )
-from ._lanes import day_folds as day_folds
+from ._lanes import day_folds as day_folds, fold_blocks as fold_blocks
 from ._report import (
     build_report as build_report,
     markdown_summary as markdown_summary,
@@ -70,6 +70,7 @@ __all__ = [
     "confirm_change_points",
     "fitted_start_geometry",
     "day_folds",
+    "fold_blocks",
     "discover",
     "holm",
     "markdown_summary",

@@ -386,6 +386,17 @@ class Lanes:
         return (rf == self.fold[:, None]) & (self.fold[:, None] > 0) & self.valid[self.heliostat]
 
 
+def fold_blocks(unix_time: np.ndarray, valid: np.ndarray) -> int:
+    """Number of blocks :func:`day_folds` deals to the folds: the distinct UTC days of
+    the valid timed records plus one per valid record without a time (``unix_time``: s,
+    ``valid``: bool, same shape)."""
+    t = np.asarray(unix_time, float)
+    valid = np.asarray(valid, bool)
+    day = np.floor(t / 86400.0)
+    timed = valid & np.isfinite(day)
+    return len(np.unique(day[timed])) + int((valid & ~timed).sum())
+
+
 def day_folds(unix_time: np.ndarray, valid: np.ndarray, record_id: np.ndarray | None, n_folds: int) -> np.ndarray:
     """Blocked folds by UTC day: the fleet's distinct days, in chronological order,
     are dealt to folds ``1..K`` in turn (so every fold spans the season); all

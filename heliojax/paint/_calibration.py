@@ -15,6 +15,7 @@ from ._common import (
     CORNERS,
     MAX_SPOT_DISTANCE_M,
     PROPERTIES_SUFFIX,
+    RECORD_ID_LIMIT,
     TIMESTAMPS_FILE,
     WEATHER_KEYS,
     CalibrationRecord,
@@ -177,7 +178,7 @@ def validate_record(record: CalibrationRecord) -> CalibrationRecord:
     """
     file = record.source
     rid = record.record_id
-    if isinstance(rid, bool) or not isinstance(rid, numbers.Integral) or not 0 <= rid < 2**31:
+    if isinstance(rid, bool) or not isinstance(rid, numbers.Integral) or not 0 <= rid < RECORD_ID_LIMIT:
         raise DataError(file, "record_id", f"expected an integer in [0, 2**31), got {rid!r}")
     if not isinstance(record.heliostat_id, str) or not record.heliostat_id:
         raise DataError(file, "heliostat_id", "expected a non-empty string")

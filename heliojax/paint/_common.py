@@ -443,6 +443,10 @@ def _vec3(file: str, field: str, v: Any) -> Vec3:
     return tuple(float(_number(file, _join(field, i), x)) for i, x in enumerate(v))  # type: ignore[return-value]
 
 
+RECORD_ID_LIMIT = 2**31
+"""Record ids are integers in ``[0, RECORD_ID_LIMIT)`` (they are stored as int32)."""
+
+
 @no_type_check
 def _check(cond: bool, file: str, field: str | None, reason: str) -> None:
     if not cond:

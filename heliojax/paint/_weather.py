@@ -14,6 +14,7 @@ from .._io import atomic_write
 from ._common import (
     _CSV_REQUIRED,
     CSV_COLUMNS,
+    RECORD_ID_LIMIT,
     WEATHER_KEYS,
     CalibrationRecord,
     HeliostatProperties,
@@ -113,7 +114,9 @@ def read_weather_csv(
             hid = cells[col["heliostat_id"]].strip()
             _check(bool(hid), file, f"{where}.heliostat_id", "missing (empty cell)")
             rid = _csv_int(file, f"{where}.sample_id", cells[col["sample_id"]])
-            _check(rid >= 0, file, f"{where}.sample_id", "negative")
+            _check(
+                0 <= rid < RECORD_ID_LIMIT, file, f"{where}.sample_id", f"expected an integer in [0, 2**31), got {rid}"
+            )
             ts = cells[col["timestamp"]].strip()
             dt = _check_datetime(file, f"{where}.timestamp", ts) if ts else None
             el, az = num("sun_elevation"), num("sun_azimuth")
