@@ -516,6 +516,20 @@ def test_unreadable_item_is_reported_and_the_rest_fetched(catalogue, tmp_path):
     assert rep.ok and [q.name for q in rep.downloaded] == ["118750-calibration-properties.json"]
 
 
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("file:size", -1), ("file:size", "big"), ("file:checksum", "zz"), ("href", ""), ("href", 5)],
+)
+def test_an_asset_with_broken_metadata_fails_alone(catalogue, tmp_path, field, value):
+    """Broken (not hostile) asset metadata fails that file; the other files are fetched."""
+    root_json, _ = catalogue
+    edit_asset(root_json.parent, "BE36", "118750", "calibration_properties", **{field: value})
+    rep = fetch_catalog(root_json, tmp_path / "out", heliostats=["BE36"])
+    assert len(rep.failed) == 1 and rep.failed[0][0].endswith("118750.json"), rep.failed
+    assert f"assets.calibration_properties.{field}" in rep.failed[0][1] or field == "href", rep.failed
+    assert len(rep.downloaded) == 4  # tower, properties, the two other calibration records
+
+
 def test_invalid_json_asset_is_not_kept(catalogue, tmp_path):
     root_json, _ = catalogue
     p = item_json(root_json.parent, "AA31", "125284").parent / "data" / "125284-calibration-properties.json"

@@ -302,13 +302,13 @@ def fetch_catalog(
         # The tower file.
         for href in dict.fromkeys(tower_hrefs):
             item = reader.stac_or_error(href)
+            if not isinstance(item, DataError | pystac.Item | pystac.Collection):  # a catalogue has no assets
+                item = DataError(href, "type", f"expected a STAC item with the tower file, got {type(item).__name__}")
             if isinstance(item, DataError):
                 all_tasks_done["failed"].append((href, item.reason))
                 say(f"  FAILED {href}: {item.reason}")
                 continue
-            tasks = []
-            for key, asset in item.assets.items():  # pyright: ignore[reportAttributeAccessIssue]
-                tasks.append(_plan_asset(scope, out, (), asset, key, href, warnings))
+            tasks = _plan_assets(scope, out, (), item, lambda _: True, href, warnings, all_tasks_done["failed"])
             d, s, f = run(tasks)
             say(f"tower {item.id}: {d} downloaded, {s} already complete, {f} failed")
 
@@ -361,11 +361,42 @@ def _root_href(source: str | os.PathLike) -> str:
     return str(p.resolve())
 
 
+class _MalformedAsset(DataError):
+    """An asset whose metadata is broken (an empty href, a size or checksum that is not
+    one), not hostile: that file fails, the others are fetched. Hostile hrefs (leaving
+    the catalogue or the output folder) raise :class:`DataError` and stop the fetch."""
+
+
+def _plan_assets(
+    scope: _Scope,
+    out: Path,
+    folder: tuple[str, ...],
+    item: pystac.Item | pystac.Collection,
+    keys: Callable[[str], bool],
+    owner: str,
+    warnings: list[str],
+    failed: list[tuple[str, str]],
+) -> list[_Task]:
+    """:func:`_plan_asset` of each asset of ``item`` whose key passes ``keys``; one with
+    broken metadata goes to ``failed`` (``(owner, reason)``) instead."""
+    tasks = []
+    for key, asset in item.assets.items():
+        if not keys(key):
+            continue
+        try:
+            tasks.append(_plan_asset(scope, out, folder, asset, key, owner, warnings))
+        except _MalformedAsset as e:
+            failed.append((owner, f"field '{e.field}': {e.reason}; that file is not fetched"))
+    return tasks
+
+
 def _plan_asset(
     scope: _Scope, out: Path, folder: tuple[str, ...], asset: pystac.Asset, key: str, owner: str, warnings: list[str]
 ) -> _Task:
     field = f"assets.{key}.href"
     raw = asset.href
+    if not isinstance(raw, str) or not raw.strip():
+        raise _MalformedAsset(owner, field, "empty or non-string href")
     raw_path = urllib.parse.urlsplit(raw).path if _is_url(raw) else raw
     if ".." in urllib.parse.unquote(raw_path).replace("\\", "/").split("/"):
         raise DataError(owner, field, f"asset href {raw!r} contains a '..' segment (path traversal)")
@@ -377,13 +408,13 @@ def _plan_asset(
     dest = _safe_dest(out, (*folder, name), owner, field)
     size = asset.extra_fields.get("file:size")
     if size is not None and (not isinstance(size, int) or isinstance(size, bool) or size < 0):
-        raise DataError(owner, f"assets.{key}.file:size", f"not a non-negative integer: {size!r}")
+        raise _MalformedAsset(owner, f"assets.{key}.file:size", f"not a non-negative integer: {size!r}")
     checksum = asset.extra_fields.get("file:checksum")
     if checksum is not None:
         try:
             code, _ = _parse_multihash(str(checksum))
         except ValueError as e:
-            raise DataError(owner, f"assets.{key}.file:checksum", f"not a multihash: {e}") from e
+            raise _MalformedAsset(owner, f"assets.{key}.file:checksum", f"not a multihash: {e}") from e
         if code not in _MULTIHASH:
             warnings.append(f"{owner}: asset {key}: multihash code 0x{code:x} unsupported; checksum not verified")
             checksum = None
@@ -458,10 +489,8 @@ def _plan_heliostat(
                     record_items[record_id] = href
                     utc = when.astimezone(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
                     timestamps[record_id] = TimestampEntry(hid, utc)
-            for key, asset in item.assets.items():  # pyright: ignore[reportAttributeAccessIssue]
-                if name == "calibration" and key not in calibration_assets:
-                    continue
-                tasks.append(_plan_asset(scope, out, (hid, _FOLDER[name]), asset, key, href, warnings))
+            wanted = (lambda key: key in calibration_assets) if name == "calibration" else (lambda _: True)
+            tasks += _plan_assets(scope, out, (hid, _FOLDER[name]), item, wanted, href, warnings, failed)
     seen: dict[Path, _Task] = {}
     for t in tasks:
         if t.dest in seen and seen[t.dest].src != t.src:
