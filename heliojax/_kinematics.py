@@ -37,6 +37,7 @@ import typing
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._beam import beam_error_components, beam_pointing_error
@@ -243,8 +244,9 @@ class StoneModel(AbstractKinematicModel):
 
     @classmethod
     def nominal(cls, dtype=None) -> StoneModel:
-        z = jnp.zeros((), dtype)
-        o = jnp.ones((), dtype)
+        dtype = _float_dtype(dtype)  # NumPy arrays put on the device: no eager XLA ops
+        z = jax.device_put(np.zeros((), dtype))
+        o = jax.device_put(np.ones((), dtype))
         return cls(alpha=z, beta=z, gamma=z, delta=z, theta_k=z, tau_k=z, gr1=o, gr2=o)
 
     def tilts(self):
@@ -304,8 +306,9 @@ class ActuatorModel(AbstractKinematicModel):
 
     @classmethod
     def nominal(cls, dtype=None) -> ActuatorModel:
-        z = jnp.zeros((), dtype)
-        z2 = jnp.zeros((2,), dtype)
+        dtype = _float_dtype(dtype)  # NumPy arrays put on the device: no eager XLA ops
+        z = jax.device_put(np.zeros((), dtype))
+        z2 = jax.device_put(np.zeros((2,), dtype))
         return cls(alpha=z, beta=z, gamma=z, delta=z, angle_offset=z2, increment_scale=z2, stroke_offset=z2)
 
     def tilts(self):
@@ -348,6 +351,11 @@ MODEL_KINDS = ("auto", "stone8", "actuator")
 """Names of the base models (configs and the command line name them so). ``"auto"``
 is the actuator model, which follows each heliostat's declared actuator kind
 (law of cosines for linear actuators, a linear map for ideal ones)."""
+
+
+def _float_dtype(dtype: typing.Any) -> typing.Any:
+    """``jnp.zeros((), dtype).dtype``: the default float type for None."""
+    return jax.dtypes.canonicalize_dtype(np.float64 if dtype is None else dtype)
 
 
 def nominal_model(kind: str, dtype: typing.Any = None) -> AbstractKinematicModel:

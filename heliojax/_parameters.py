@@ -299,12 +299,39 @@ class ParameterView:
     def to_vector(self, model: eqx.Module) -> Float[Array, "*b P"]:
         """Physical values of every parameter, ``(P,)`` (or ``(..., P)`` for a model
         batched along leading axes)."""
+        xs = [_get(model, leaf.path) for leaf in self.leaves]
+        if on_host(*xs) and len({x.dtype for x in xs}) == 1:
+            # concrete arrays of one dtype: the same values without an eager XLA op per
+            # call (each costs a lowering and a compilation-cache lookup in a new process)
+            host = [np.asarray(x) for x in xs]
+            return jax.device_put(
+                np.concatenate(
+                    [
+                        np.reshape(x, x.shape[: x.ndim - len(leaf.info.shape)] + (leaf.size,))
+                        for leaf, x in zip(self.leaves, host)
+                    ],
+                    axis=-1,
+                )
+            )
         parts = []
         for leaf in self.leaves:
             x = jnp.asarray(_get(model, leaf.path))
             batch = x.shape[: x.ndim - len(leaf.info.shape)]
             parts.append(jnp.reshape(x, batch + (leaf.size,)))
         return jnp.concatenate(parts, axis=-1)
+
+    def _from_vectors(self, models: ModuleT, vectors: Float[Array, "H P"]) -> ModuleT:
+        """``jax.vmap(self.from_vector)(models, vectors)``; for concrete arrays computed
+        on the host (the same values, no eager XLA ops)."""
+        if not self.leaves or not on_host(vectors, *jax.tree.leaves(models)):
+            return jax.vmap(self.from_vector)(models, vectors)
+        v = np.asarray(vectors)
+        values = []
+        start = 0
+        for leaf in self.leaves:
+            values.append(jax.device_put(np.reshape(v[:, start : start + leaf.size], (v.shape[0], *leaf.info.shape))))
+            start += leaf.size
+        return eqx.tree_at(lambda m: [_get(m, leaf.path) for leaf in self.leaves], models, values)
 
     def from_vector(self, model: ModuleT, vector: Float[Array, " P"]) -> ModuleT:
         """``model`` with its parameters replaced by ``vector`` (one heliostat: use
@@ -349,8 +376,34 @@ def set_references(model: ModuleT, values: collections.abc.Mapping[str, float]) 
     return eqx.tree_at(where, model, new)
 
 
+def on_host(*xs: typing.Any) -> bool:
+    """Whether every ``x`` is a concrete array (NumPy, or JAX outside a trace): array
+    plumbing on them (reshape, slice, broadcast, select) can be done with NumPy and the
+    result put on the device, the same values without an eager XLA op each (each costs
+    a lowering and a compilation-cache lookup in a new process)."""
+    return all(
+        isinstance(x, np.ndarray)
+        or (isinstance(x, jax.Array) and not isinstance(x, jax.core.Tracer) and not x.weak_type)  # pyright: ignore[reportAttributeAccessIssue]
+        for x in xs
+    )
+
+
+def and_masks(mask: typing.Any, valid: typing.Any) -> typing.Any:
+    """``jnp.asarray(mask) & valid``; for concrete boolean arrays computed on the host
+    (:func:`on_host`)."""
+    if on_host(mask, valid) and mask.dtype == bool and valid.dtype == bool:
+        return jax.device_put(np.asarray(mask) & np.asarray(valid))
+    return jnp.asarray(mask) & valid
+
+
 def broadcast_model(model: ModuleT, n: int) -> ModuleT:
     """``n`` copies of an unbatched model stacked along a new leading axis."""
+    arrays = [x for x in jax.tree.leaves(model) if eqx.is_array(x)]
+    if on_host(*arrays):
+        return jax.tree.map(
+            lambda x: jax.device_put(np.broadcast_to(np.asarray(x), (n, *np.shape(x)))) if eqx.is_array(x) else x,
+            model,
+        )
     return jax.tree.map(lambda x: jnp.broadcast_to(x, (n,) + jnp.shape(x)) if eqx.is_array(x) else x, model)
 
 

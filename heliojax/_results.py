@@ -159,7 +159,7 @@ def write_results_h5(path: str | Path, run: typing.Any) -> None:
             data=np.array(["fleet_typical" if r else "nominal" for r in run.start_replaced[:n]], dtype=object),
             dtype=str_dt,
         )
-        for name, value in _geometry_items(jax.tree.map(lambda x: x[:n], run.fleet.geometry)).items():
+        for name, value in _geometry_items(jax.tree.map(lambda x: np.asarray(x)[:n], run.fleet.geometry)).items():
             f.create_dataset(name, data=value)
         f.create_dataset("record_id", data=np.asarray(run.fleet.record_id)[:n].astype(np.int64))
         f.create_dataset("unix_time", data=np.where(mask, np.asarray(run.fleet.context.unix_time), np.nan)[:n])

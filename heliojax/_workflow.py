@@ -222,7 +222,7 @@ def calibrate(
     nominal_geometry = padded.geometry  # the plant's own values: the uncalibrated baseline
     if start == "auto":
         with activity("choosing start geometries", logger=log):
-            geometry, replaced, sources = choose_start_geometry(padded, model0, jnp.asarray(train))
+            geometry, replaced, sources = choose_start_geometry(padded, model0, train)
         padded = _with_geometry(padded, geometry)
     else:
         replaced = sources = np.zeros(h_pad, bool)
@@ -232,9 +232,9 @@ def calibrate(
 
     def fit_on(mask: np.ndarray):
         if robust:
-            rf = fit_robust(model0, padded, mask=jnp.asarray(mask), pool=pool, **options)
+            rf = fit_robust(model0, padded, mask=mask, pool=pool, **options)
             return rf.solution, rf.compile_s, rf.run_s, np.asarray(rf.weights), np.asarray(rf.outlier), rf.noise_mrad
-        res, c_s, f_s = fit_timed(model0, padded, mask=jnp.asarray(mask), **options)
+        res, c_s, f_s = fit_timed(model0, padded, mask=jax.device_put(mask), **options)
         w = np.where(mask & np.asarray(padded.mask), 1.0, 0.0)
         return res, c_s, f_s, w, np.zeros_like(mask), res.noise_mrad
 
@@ -500,7 +500,7 @@ def _scan_changes(
     ``(H, M)`` the training records before a reported change."""
     try:
         # any change of state, a drift included: the records since describe the heliostat
-        cp = find_change_points(result, fleet, jnp.asarray(train), jnp.asarray(weights))
+        cp = find_change_points(result, fleet, jax.device_put(train), jax.device_put(weights))
     except ConfigError as e:  # a model without a free pair of axis offsets
         log.info(f"no change-point scan: {e}")
         return None, np.zeros_like(train)
@@ -509,7 +509,7 @@ def _scan_changes(
     with np.errstate(invalid="ignore"):
         superseded = train & found[:, None] & (t < np.asarray(cp.time_s)[:, None])
     step = np.asarray(cp.is_step) & found
-    return eqx.tree_at(lambda c: (c.found, c.is_step), cp, (jnp.asarray(found), jnp.asarray(step))), superseded
+    return eqx.tree_at(lambda c: (c.found, c.is_step), cp, (jax.device_put(found), jax.device_put(step))), superseded
 
 
 def _utc(t: float) -> str | None:

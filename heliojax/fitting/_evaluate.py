@@ -11,7 +11,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._heliostat import HeliostatGeometry, RecordContext
 from .._kinematics import AbstractKinematicModel
-from .._parameters import broadcast_model, is_batched
+from .._parameters import and_masks, broadcast_model, is_batched
 from .._programs import cached_jit
 from ._records import sanitise
 
@@ -64,7 +64,7 @@ def fleet_beam_errors_mrad(
 ) -> Float[Array, "H M"]:
     """Per-record beam error (mrad) of ``models`` (one model, or batched over the
     fleet's heliostats, e.g. ``solution.model``) on ``fleet``; NaN outside ``mask``."""
-    m = fleet.mask if mask is None else (jnp.asarray(mask) & fleet.mask)
+    m = fleet.mask if mask is None else and_masks(mask, fleet.mask)
     models = _batched_models(models, int(np.shape(fleet.mask)[0]))
     return beam_errors_mrad(models, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, m)
 
@@ -73,7 +73,7 @@ def fleet_residuals_mrad(
     models: AbstractKinematicModel, fleet: typing.Any, mask: Bool[Array, "H M"] | None = None
 ) -> Float[Array, "H M 2"]:
     """Per-record residual components (mrad) of ``models`` on ``fleet``."""
-    m = fleet.mask if mask is None else (jnp.asarray(mask) & fleet.mask)
+    m = fleet.mask if mask is None else and_masks(mask, fleet.mask)
     models = _batched_models(models, int(np.shape(fleet.mask)[0]))
     return residuals_mrad(models, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, m)
 
@@ -115,18 +115,18 @@ def choose_start_geometry(
         ``(H,)`` (started from the typical actuators) and ``sources`` bool ``(H,)``
         (the heliostats the typical actuators came from).
     """
-    m = fleet.mask if mask is None else (jnp.asarray(mask) & fleet.mask)
+    m = fleet.mask if mask is None else and_masks(mask, fleet.mask)
     h = int(np.shape(fleet.mask)[0])
     models = _batched_models(model, h)
     e_own = beam_errors_mrad(models, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, m)
     own = _row_median(e_own)
-    sources = np.asarray(jnp.any(m, axis=1)) & np.isfinite(own)
+    sources = np.any(np.asarray(m), axis=1) & np.isfinite(own)
     if not sources.any():
         return fleet.geometry, np.zeros(h, bool), sources
     alt = _with_actuators(fleet.geometry, typical_actuators(fleet.geometry, sources))
     e_alt = beam_errors_mrad(models, alt, fleet.counts, fleet.context, fleet.focal_spot, m)
     replaced = np.isfinite(_row_median(e_alt)) & (_row_median(e_alt) < own)
-    return _select_geometry(jnp.asarray(replaced), alt, fleet.geometry), replaced, sources
+    return _select_geometry(replaced, alt, fleet.geometry), replaced, sources
 
 
 @cached_jit

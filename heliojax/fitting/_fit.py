@@ -38,7 +38,7 @@ from jaxtyping import Array, Bool, Float, Int
 from .._geometry import products_by_reduction
 from .._heliostat import HeliostatGeometry, RecordContext
 from .._kinematics import AbstractKinematicModel
-from .._parameters import ParameterView, broadcast_model, is_batched
+from .._parameters import ParameterView, and_masks, broadcast_model, is_batched, on_host
 from .._programs import compile_cached
 from ._batching import AbstractBatching, Vmap, default_batching
 from ._loss import AbstractLoss, LeastSquares
@@ -231,6 +231,8 @@ class FitSolution(eqx.Module):
 
     def heliostat_model(self, i: int) -> AbstractKinematicModel:
         """The fitted model of heliostat ``i``."""
+        if on_host(*(x for x in jax.tree.leaves(self.model) if eqx.is_array(x))):
+            return jax.tree.map(lambda x: jax.device_put(np.asarray(x)[i]) if eqx.is_array(x) else x, self.model)
         return jax.tree.map(lambda x: x[i] if eqx.is_array(x) else x, self.model)
 
     def status_labels(self) -> list[str]:
@@ -371,7 +373,7 @@ def _prepare(model0, fleet, mask, free, solver, loss, prior, batching, max_steps
     loss = LeastSquares() if loss is None else loss
     prior = NoPrior() if prior is None else prior
     batching = default_batching() if batching is None else batching
-    m = fleet.mask if mask is None else (jnp.asarray(mask) & fleet.mask)
+    m = fleet.mask if mask is None else and_masks(mask, fleet.mask)
     args = (
         model0,
         prior.per_heliostat(h),

@@ -43,13 +43,13 @@ def flat_prior(model: AbstractKinematicModel, n: int, noise_mrad: float = 1.0) -
     fits with it run the same compiled program as fits with a learnt prior."""
     models = model if is_batched(model) else broadcast_model(model, n)
     view = ParameterView.of(models)
-    inf = jnp.full((n, view.n_parameters), jnp.inf, jnp.asarray(view.to_vector(models)).dtype)
+    inf = np.full((n, view.n_parameters), np.inf, jnp.asarray(view.to_vector(models)).dtype)
     sigma = _from_vectors(view, models, inf)
     return GaussianPrior(centre=models, sigma=sigma, noise_mrad=jnp.full((n,), noise_mrad))
 
 
 def _from_vectors(view: ParameterView, models: AbstractKinematicModel, vectors: Float[Array, "H P"]):
-    return jax.vmap(view.from_vector)(models, vectors)
+    return view._from_vectors(models, vectors)
 
 
 def well_determined(solution: FitSolution) -> np.ndarray:
@@ -125,10 +125,10 @@ def fleet_prior(
         centres = np.broadcast_to(centre, (h, centre.size))
         spreads = np.broadcast_to(spread, (h, spread.size))
     models = solution.model
-    dtype = jnp.asarray(p).dtype
+    dtype = jax.dtypes.canonicalize_dtype(p.dtype)
     return GaussianPrior(
-        centre=_from_vectors(view, models, jnp.asarray(centres, dtype)),
-        sigma=_from_vectors(view, models, jnp.asarray(spreads, dtype)),
+        centre=_from_vectors(view, models, np.asarray(centres, dtype)),
+        sigma=_from_vectors(view, models, np.asarray(spreads, dtype)),
         noise_mrad=jnp.asarray(noise_mrad, dtype),
     )
 

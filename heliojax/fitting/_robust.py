@@ -33,7 +33,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._kinematics import AbstractKinematicModel
-from .._parameters import broadcast_model, is_batched
+from .._parameters import and_masks, broadcast_model, is_batched, on_host
 from ._evaluate import fleet_residuals_mrad
 from ._fit import CompiledFit, FitSolution
 from ._loss import CAUCHY_EFFICIENCY_FACTOR, Cauchy
@@ -161,9 +161,9 @@ def fit_robust(
     """
     if "loss" in fit_options:
         raise TypeError("fit_robust chooses the loss itself")
-    m = fleet.mask if mask is None else (jnp.asarray(mask) & fleet.mask)
+    m = fleet.mask if mask is None else and_masks(mask, fleet.mask)
     h = int(np.shape(fleet.mask)[0])
-    least_squares = Cauchy(jnp.full((h,), jnp.inf, fleet.counts.dtype))
+    least_squares = Cauchy(jax.device_put(np.full((h,), np.inf, fleet.counts.dtype)))
     if pool:
         if "prior" in fit_options:
             raise TypeError("fit_robust(pool=True) learns the prior itself")
@@ -176,12 +176,7 @@ def fit_robust(
     sigma0, _ = robust_noise(r0, m, n_free)
     scale = jnp.asarray(CAUCHY_EFFICIENCY_FACTOR * sigma0, fleet.counts.dtype)
     # warm start from the least-squares fit where it succeeded
-    ok = jnp.asarray(_fitted(ls))
-    start = jax.tree.map(
-        lambda a, b: jnp.where(ok.reshape((-1,) + (1,) * (jnp.ndim(a) - 1)), a, b) if eqx.is_array(a) else a,
-        ls.model,
-        _batched_like(model0, ls.model),
-    )
+    start = _select_models(_fitted(ls), ls.model, _batched_like(model0, ls.model))
     sol = run(start, loss=Cauchy(scale))
     r1 = fleet_residuals_mrad(sol.model, fleet, m)
     sigma1, _ = robust_noise(r1, m, n_free)
@@ -201,12 +196,7 @@ def fit_robust(
         prior_noise = np.where(fitted, sigma1, typical)
         prior = fleet_prior(sol, jnp.asarray(prior_noise, fleet.counts.dtype))
         # heliostats without a usable fit start from the fleet's centre
-        ok = jnp.asarray(fitted)
-        start = jax.tree.map(
-            lambda a, b: jnp.where(ok.reshape((-1,) + (1,) * (jnp.ndim(a) - 1)), a, b) if eqx.is_array(a) else a,
-            sol.model,
-            prior.centre,
-        )
+        start = _select_models(fitted, sol.model, prior.centre)
         sol = run(start, loss=Cauchy(scale), prior=prior)
         r1 = fleet_residuals_mrad(sol.model, fleet, m)
         pooled_sigma, _ = robust_noise(r1, m, n_free)
@@ -225,11 +215,25 @@ def fit_robust(
         run_s=run.run_s,
         solution=sol,
         least_squares=ls,
-        weights=jnp.asarray(weights),
-        outlier=jnp.asarray(outlier),
-        noise_mrad=jnp.asarray(sigma1),
+        weights=jax.device_put(weights),
+        outlier=jax.device_put(outlier),
+        noise_mrad=jax.device_put(np.asarray(sigma1)),
         scale_mrad=scale,
     )
+
+
+def _select_models(ok: np.ndarray, a: AbstractKinematicModel, b: AbstractKinematicModel) -> AbstractKinematicModel:
+    """Per heliostat (leading axis), ``a`` where ``ok`` else ``b``."""
+
+    def select(x, y):
+        if not eqx.is_array(x):
+            return x
+        if on_host(x, y) and x.dtype == y.dtype:
+            return jax.device_put(np.where(np.reshape(ok, (-1,) + (1,) * (np.ndim(x) - 1)), np.asarray(x), np.asarray(y)))
+        k = jnp.asarray(ok)
+        return jnp.where(k.reshape((-1,) + (1,) * (jnp.ndim(x) - 1)), x, y)
+
+    return jax.tree.map(select, a, b)
 
 
 def _batched_like(model: AbstractKinematicModel, batched: AbstractKinematicModel) -> AbstractKinematicModel:

@@ -460,14 +460,14 @@ def _assemble(
         )
     }
     actuators = LinearActuators(
-        increment=jnp.asarray(_bucket_rows(acts["increment"])),
-        initial_stroke_length=jnp.asarray(_bucket_rows(acts["initial_stroke_length"])),
-        offset=jnp.asarray(_bucket_rows(acts["offset"])),
-        pivot_radius=jnp.asarray(_bucket_rows(acts["pivot_radius"])),
-        initial_angle=jnp.asarray(_bucket_rows(acts["initial_angle"])),
-        sign=jnp.asarray(_bucket_rows(np.where(acts["clockwise_axis_movement"] == 0, 1.0, -1.0))),
-        min_counts=jnp.asarray(_bucket_rows(acts["min_increment"])),
-        max_counts=jnp.asarray(_bucket_rows(acts["max_increment"])),
+        increment=jax.device_put(_bucket_rows(acts["increment"])),
+        initial_stroke_length=jax.device_put(_bucket_rows(acts["initial_stroke_length"])),
+        offset=jax.device_put(_bucket_rows(acts["offset"])),
+        pivot_radius=jax.device_put(_bucket_rows(acts["pivot_radius"])),
+        initial_angle=jax.device_put(_bucket_rows(acts["initial_angle"])),
+        sign=jax.device_put(_bucket_rows(np.where(acts["clockwise_axis_movement"] == 0, 1.0, -1.0))),
+        min_counts=jax.device_put(_bucket_rows(acts["min_increment"])),
+        max_counts=jax.device_put(_bucket_rows(acts["max_increment"])),
     )
     with jax.enable_x64(True):
         geometry = _geometry_kernel(
