@@ -330,7 +330,7 @@ def residual_prediction(solution: FitSolution, fleet, mask: np.ndarray) -> tuple
     the noise (and the drift, :func:`temporal_drift`) for a record's full prediction."""
     from ._plan import residual_jacobians
 
-    use = jnp.asarray(mask)
+    use = jax.device_put(mask) if isinstance(mask, np.ndarray) else jnp.asarray(mask)  # no eager XLA op
     r = np.asarray(fleet_residuals_mrad(solution.model, fleet, use))
     jac = np.asarray(
         residual_jacobians(

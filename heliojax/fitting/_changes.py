@@ -43,7 +43,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from .._errors import ConfigError
-from .._parameters import ParameterView
+from .._parameters import ParameterView, and_masks
 from .._programs import cached_jit
 from ._fit import FitSolution
 from ._records import sanitise
@@ -269,7 +269,7 @@ def find_change_points(
         fleet.counts,
         fleet.context,
         fleet.focal_spot,
-        jnp.asarray(mask) & jnp.asarray(fleet.mask),
+        and_masks(mask, fleet.mask),
         jnp.asarray(weights, fleet.counts.dtype),
     )
     return ChangePoints(offsets=names, **out)
