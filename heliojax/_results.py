@@ -48,7 +48,6 @@ import typing
 from pathlib import Path
 
 import equinox as eqx
-import h5py
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -66,6 +65,9 @@ from ._version import __version__
 from .effects import with_effects
 from .fitting import FitStatus
 
+if typing.TYPE_CHECKING:
+    import h5py
+
 SPLIT_CODES = {"unused": 0, "train": 1, "validation": 2, "test": 3}
 
 
@@ -81,6 +83,8 @@ def _geometry_items(geometry: eqx.Module, prefix: str = "geometry") -> dict[str,
 
 
 def _read_geometry(group: h5py.Group, source: str, n: int) -> HeliostatGeometry:
+    import h5py  # only for results files: ~35 ms of import a calibration without --out never needs
+
     def arr(name):
         if name not in group or not isinstance(group[name], h5py.Dataset):
             raise DataError(source, f"geometry/{name}", "missing dataset")
@@ -116,6 +120,8 @@ def model_from_label(label: str, dtype: typing.Any = jnp.float64) -> AbstractKin
 def write_results_h5(path: str | Path, run: typing.Any) -> None:
     """Write ``results.h5`` atomically for a :class:`heliojax.CalibrationRun`
     (schema in the module docstring)."""
+    import h5py  # only for results files: ~35 ms of import a calibration without --out never needs
+
     n = len(run.summary["heliostats"])
     view = run.result.view
     split = np.zeros(run.train_mask.shape, np.int8)
@@ -350,6 +356,8 @@ def load_results(path: str | Path) -> CalibrationResults:
     Raises:
         DataError: naming the file and field when something is missing or malformed.
     """
+    import h5py  # only for results files: ~35 ms of import a calibration without --out never needs
+
     source = str(path)
     try:
         f = h5py.File(path, "r")

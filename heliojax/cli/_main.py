@@ -15,7 +15,6 @@ import argparse
 import importlib
 import os
 import sys
-import tomllib
 import typing
 from collections.abc import Iterable
 from pathlib import Path
@@ -126,6 +125,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict, dict[str, argparse.Ar
 
 
 def _apply_config(subparser: argparse.ArgumentParser, command: str, path: Path, commands: Iterable[str]) -> None:
+    import tomllib  # only with --config
+
     try:
         with open(path, "rb") as f:
             doc = tomllib.load(f)
@@ -209,7 +210,6 @@ def main(argv: list[str] | None = None) -> int:
     # before JAX starts its backend: this process compiles many small programs
     os.environ["XLA_FLAGS"] = with_fast_cpu_compilation(os.environ.get("XLA_FLAGS", ""))
     import jax  # after parsing: --help and --version stay fast
-    from tqdm.contrib.logging import logging_redirect_tqdm
 
     jax.config.update("jax_enable_x64", True)
     try:
@@ -224,6 +224,10 @@ def main(argv: list[str] | None = None) -> int:
         outputs = (*getattr(module, "OUTPUT_FILES", ()), *getattr(module, "OUTPUT_DIRS", ()))
         check_output_paths(args, getattr(module, "OUTPUT_FILES", ()), getattr(module, "OUTPUT_DIRS", ()), inside)
         check_input_paths(subparsers[args.command], args, outputs)
+        if getattr(args, "quiet", False):  # no bars (INFO is off): nothing to share stderr with
+            return int(module.run(args) or 0)
+        from tqdm.contrib.logging import logging_redirect_tqdm
+
         with logging_redirect_tqdm(loggers=[logger]):  # messages and progress bars share stderr
             return int(module.run(args) or 0)
     except HeliojaxError as e:

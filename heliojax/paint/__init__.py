@@ -57,18 +57,9 @@ Facts about the real files (checked on the shared download)
   W/m^2, ``humidity`` %, ``pressure`` hPa.
 """
 
-from ._artist import (
-    ACTUATOR_PARAMETERS as ACTUATOR_PARAMETERS,
-    DEVIATIONS as DEVIATIONS,
-    ArtistActuator as ArtistActuator,
-    ArtistFacet as ArtistFacet,
-    ArtistHeliostat as ArtistHeliostat,
-    ArtistLightSource as ArtistLightSource,
-    ArtistPlanarTarget as ArtistPlanarTarget,
-    ArtistScenario as ArtistScenario,
-    read_artist_scenario as read_artist_scenario,
-    write_artist_scenario as write_artist_scenario,
-)
+import importlib as _importlib
+import typing as _typing
+
 from ._calibration import (
     calibration_record_path as calibration_record_path,
     check_record_context as check_record_context,
@@ -97,14 +88,9 @@ from ._common import (
     TowerFile as TowerFile,
     Vec3 as Vec3,
 )
-from ._deflectometry import (
-    read_deflectometry_facets as read_deflectometry_facets,
-    write_deflectometry as write_deflectometry,
-)
 from ._directory import (
     write_paint_directory as write_paint_directory,
 )
-from ._flux import MAX_FLUX_PIXELS as MAX_FLUX_PIXELS, read_flux_png as read_flux_png
 from ._load import (
     default_data_dir as default_data_dir,
     load_paint_directory as load_paint_directory,
@@ -116,16 +102,6 @@ from ._properties import (
     read_heliostat_properties as read_heliostat_properties,
     validate_properties as validate_properties,
     write_heliostat_properties as write_heliostat_properties,
-)
-from ._stac import (
-    fetch_catalog as fetch_catalog,
-    verify_download as verify_download,
-)
-from ._stac_io import (
-    CALIBRATION_ASSETS as CALIBRATION_ASSETS,
-    COLLECTIONS as COLLECTIONS,
-    JOURNAL_NAME as JOURNAL_NAME,
-    FetchReport as FetchReport,
 )
 from ._timestamps import (
     read_timestamps as read_timestamps,
@@ -139,3 +115,70 @@ from ._weather import (
     read_weather_csv as read_weather_csv,
     write_weather_csv as write_weather_csv,
 )
+
+# Loaded on first use (PEP 562): the STAC client (pystac, requests), PNG (Pillow) and
+# HDF5 (h5py) readers cost ~0.15 s of import that loading a PAINT directory never needs.
+_LAZY = {
+    "ACTUATOR_PARAMETERS": "_artist",
+    "DEVIATIONS": "_artist",
+    "ArtistActuator": "_artist",
+    "ArtistFacet": "_artist",
+    "ArtistHeliostat": "_artist",
+    "ArtistLightSource": "_artist",
+    "ArtistPlanarTarget": "_artist",
+    "ArtistScenario": "_artist",
+    "read_artist_scenario": "_artist",
+    "write_artist_scenario": "_artist",
+    "read_deflectometry_facets": "_deflectometry",
+    "write_deflectometry": "_deflectometry",
+    "MAX_FLUX_PIXELS": "_flux",
+    "read_flux_png": "_flux",
+    "fetch_catalog": "_stac",
+    "verify_download": "_stac",
+    "CALIBRATION_ASSETS": "_stac_io",
+    "COLLECTIONS": "_stac_io",
+    "JOURNAL_NAME": "_stac_io",
+    "FetchReport": "_stac_io",
+}
+
+if _typing.TYPE_CHECKING:
+    from ._artist import (
+        ACTUATOR_PARAMETERS as ACTUATOR_PARAMETERS,
+        DEVIATIONS as DEVIATIONS,
+        ArtistActuator as ArtistActuator,
+        ArtistFacet as ArtistFacet,
+        ArtistHeliostat as ArtistHeliostat,
+        ArtistLightSource as ArtistLightSource,
+        ArtistPlanarTarget as ArtistPlanarTarget,
+        ArtistScenario as ArtistScenario,
+        read_artist_scenario as read_artist_scenario,
+        write_artist_scenario as write_artist_scenario,
+    )
+    from ._deflectometry import (
+        read_deflectometry_facets as read_deflectometry_facets,
+        write_deflectometry as write_deflectometry,
+    )
+    from ._flux import MAX_FLUX_PIXELS as MAX_FLUX_PIXELS, read_flux_png as read_flux_png
+    from ._stac import (
+        fetch_catalog as fetch_catalog,
+        verify_download as verify_download,
+    )
+    from ._stac_io import (
+        CALIBRATION_ASSETS as CALIBRATION_ASSETS,
+        COLLECTIONS as COLLECTIONS,
+        JOURNAL_NAME as JOURNAL_NAME,
+        FetchReport as FetchReport,
+    )
+
+
+def __getattr__(name: str) -> _typing.Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(_importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
