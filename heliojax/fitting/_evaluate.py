@@ -11,7 +11,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._heliostat import HeliostatGeometry, RecordContext
 from .._kinematics import AbstractKinematicModel
-from .._parameters import and_masks, broadcast_model, is_batched
+from .._parameters import and_masks, broadcast_model, is_batched, on_host
 from .._programs import cached_jit
 from ._records import sanitise
 
@@ -126,6 +126,17 @@ def choose_start_geometry(
     alt = _with_actuators(fleet.geometry, typical_actuators(fleet.geometry, sources))
     e_alt = beam_errors_mrad(models, alt, fleet.counts, fleet.context, fleet.focal_spot, m)
     replaced = np.isfinite(_row_median(e_alt)) & (_row_median(e_alt) < own)
+    a, b = jax.tree.leaves(alt), jax.tree.leaves(fleet.geometry)
+    if on_host(*a, *b) and all(x.dtype == y.dtype for x, y in zip(a, b, strict=True)):
+        # a per-heliostat select of concrete arrays: on the host, no program to load
+        geometry = jax.tree.map(
+            lambda x, y: jax.device_put(
+                np.where(np.reshape(replaced, (-1,) + (1,) * (np.ndim(x) - 1)), np.asarray(x), np.asarray(y))
+            ),
+            alt,
+            fleet.geometry,
+        )
+        return geometry, replaced, sources
     return _select_geometry(replaced, alt, fleet.geometry), replaced, sources
 
 

@@ -170,10 +170,20 @@ def _sun_gap(unix_time, lla, azimuth_deg, elevation_deg):
 
 
 # jitted once per shape bucket; traced programs kept across processes (heliojax._programs)
-_enu_kernel = cached_jit(wgs84_to_enu)
-_sun_kernel = cached_jit(_sun_vectors)
-_geometry_kernel = cached_jit(HeliostatGeometry.build)
-_targets_kernel = cached_jit(_target_planes)
+def _enu_and_suns(points_lla, origin_lla, azimuth_deg, elevation_deg):
+    """:func:`wgs84_to_enu` of the points and :func:`_sun_vectors` of the suns: two
+    independent computations in one program (one program to load, not two)."""
+    return wgs84_to_enu(points_lla, origin_lla), _sun_vectors(azimuth_deg, elevation_deg)
+
+
+def _geometry_and_targets(position, actuators, joint_1, joint_2, concentrator, ideal, corners):
+    """:meth:`HeliostatGeometry.build` and :func:`_target_planes` of ``corners`` (a
+    tuple): two independent computations in one program."""
+    return HeliostatGeometry.build(position, actuators, joint_1, joint_2, concentrator, ideal), _target_planes(*corners)
+
+
+_enu_sun_kernel = cached_jit(_enu_and_suns)
+_geometry_targets_kernel = cached_jit(_geometry_and_targets)
 _sun_gap_kernel = cached_jit(_sun_gap)
 _SUN_CHUNK = 256
 
@@ -426,8 +436,14 @@ def _assemble(
     # Geodesy in float64 on one flat, bucketed batch (one compilation per bucket).
     flat = np.concatenate([pos_lla, spot_lla.reshape(-1, 3), corners_lla.reshape(-1, 3)])
     with jax.enable_x64(True):
-        enu = np.array(_enu_kernel(_bucket_rows(flat), np.asarray(origin_lla, np.float64)))[: len(flat)]
-        sun = np.asarray(_sun_kernel(_bucket_rows(az.reshape(-1)), _bucket_rows(el.reshape(-1))))
+        enu, sun = _enu_sun_kernel(
+            _bucket_rows(flat),
+            np.asarray(origin_lla, np.float64),
+            _bucket_rows(az.reshape(-1)),
+            _bucket_rows(el.reshape(-1)),
+        )
+        enu = np.array(enu)[: len(flat)]
+        sun = np.asarray(sun)
     sun = sun[: h * m].reshape(h, m, 3)
     pos_enu = enu[:h]
     spot_enu = enu[h : h + h * m].reshape(h, m, 3)
@@ -470,7 +486,7 @@ def _assemble(
         max_counts=jax.device_put(_bucket_rows(acts["max_increment"])),
     )
     with jax.enable_x64(True):
-        geometry = _geometry_kernel(
+        geometry, targets = _geometry_targets_kernel(
             _bucket_rows(pos_enu),
             actuators,
             _bucket_rows(np.array([props_by_id[k].joint_translation_1 for k in ids])),
@@ -479,8 +495,8 @@ def _assemble(
             _bucket_rows(
                 np.array([[props_by_id[k].actuators[i]["type_axis"] == "ideal" for i in range(2)] for k in ids])
             ),
+            tuple(corners_enu[:, c] for c in range(4)),
         )
-        targets = _targets_kernel(*(corners_enu[:, c] for c in range(4)))
     geometry = jax.tree.map(
         lambda x: jax.device_put(np.asarray(x)[:h]) if x.dtype == bool else _f(np.asarray(x)[:h]), geometry
     )
