@@ -222,7 +222,7 @@ def calibrate(
     nominal_geometry = padded.geometry  # the plant's own values: the uncalibrated baseline
     if start == "auto":
         with activity("choosing start geometries", logger=log):
-            geometry, replaced, sources = choose_start_geometry(padded, model0, train)
+            geometry, replaced, sources = choose_start_geometry(padded, model0, jax.device_put(train))
         padded = _with_geometry(padded, geometry)
     else:
         replaced = sources = np.zeros(h_pad, bool)
@@ -232,7 +232,7 @@ def calibrate(
 
     def fit_on(mask: np.ndarray):
         if robust:
-            rf = fit_robust(model0, padded, mask=mask, pool=pool, **options)
+            rf = fit_robust(model0, padded, mask=jax.device_put(mask), pool=pool, **options)
             return rf.solution, rf.compile_s, rf.run_s, np.asarray(rf.weights), np.asarray(rf.outlier), rf.noise_mrad
         res, c_s, f_s = fit_timed(model0, padded, mask=jax.device_put(mask), **options)
         w = np.where(mask & np.asarray(padded.mask), 1.0, 0.0)

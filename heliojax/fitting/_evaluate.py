@@ -137,7 +137,7 @@ def choose_start_geometry(
             fleet.geometry,
         )
         return geometry, replaced, sources
-    return _select_geometry(replaced, alt, fleet.geometry), replaced, sources
+    return _select_geometry(jax.device_put(replaced), alt, fleet.geometry), replaced, sources
 
 
 @cached_jit

@@ -43,7 +43,7 @@ def flat_prior(model: AbstractKinematicModel, n: int, noise_mrad: float = 1.0) -
     fits with it run the same compiled program as fits with a learnt prior."""
     models = model if is_batched(model) else broadcast_model(model, n)
     view = ParameterView.of(models)
-    inf = np.full((n, view.n_parameters), np.inf, jnp.asarray(view.to_vector(models)).dtype)
+    inf = jax.device_put(np.full((n, view.n_parameters), np.inf, jnp.asarray(view.to_vector(models)).dtype))
     sigma = _from_vectors(view, models, inf)
     return GaussianPrior(centre=models, sigma=sigma, noise_mrad=jnp.full((n,), noise_mrad))
 
@@ -127,8 +127,8 @@ def fleet_prior(
     models = solution.model
     dtype = jax.dtypes.canonicalize_dtype(p.dtype)
     return GaussianPrior(
-        centre=_from_vectors(view, models, np.asarray(centres, dtype)),
-        sigma=_from_vectors(view, models, np.asarray(spreads, dtype)),
+        centre=_from_vectors(view, models, jax.device_put(np.asarray(centres, dtype))),
+        sigma=_from_vectors(view, models, jax.device_put(np.asarray(spreads, dtype))),
         noise_mrad=jnp.asarray(noise_mrad, dtype),
     )
 
