@@ -222,14 +222,15 @@ def fit_robust(
     )
 
 
-def _select_models(ok: np.ndarray, a: AbstractKinematicModel, b: AbstractKinematicModel) -> AbstractKinematicModel:
+def _select_models(ok: np.ndarray, a: AbstractKinematicModel, b: typing.Any) -> AbstractKinematicModel:
     """Per heliostat (leading axis), ``a`` where ``ok`` else ``b``."""
 
     def select(x, y):
         if not eqx.is_array(x):
             return x
         if on_host(x, y) and x.dtype == y.dtype:
-            return jax.device_put(np.where(np.reshape(ok, (-1,) + (1,) * (np.ndim(x) - 1)), np.asarray(x), np.asarray(y)))
+            take = np.reshape(ok, (-1,) + (1,) * (np.ndim(x) - 1))
+            return jax.device_put(np.where(take, np.asarray(x), np.asarray(y)))
         k = jnp.asarray(ok)
         return jnp.where(k.reshape((-1,) + (1,) * (jnp.ndim(x) - 1)), x, y)
 
