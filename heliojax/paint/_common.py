@@ -479,6 +479,14 @@ MAX_SPOT_DISTANCE_M = 1_000.0
 """A focal spot farther than this from its target's centre is not a measurement of that target."""
 MAX_HELIOSTAT_DISTANCE_M = 50_000.0
 """A heliostat farther than this from the plant's reference point is not part of the plant."""
+MAX_HELIOSTAT_HEIGHT_M = 1_000.0
+"""A heliostat more than this above or below the plant's reference point is not on the
+plant's ground (the tallest solar towers are about 260 m; an altitude given in feet, or
+from another datum, is off by more)."""
+MAX_HELIOSTAT_SIZE_M = 100.0
+"""A heliostat's width, height and every mount offset (joint and concentrator
+translations) are at most this: the largest heliostats built are about 12 m across; a
+width of 1e6 m or a translation of 1e308 m is not a heliostat."""
 MAX_SUN_GAP_DEG = 2.0
 """A stored sun direction farther than this from the sun computed for the record's time
 at its heliostat is not the sun of that record (real PAINT data: within 0.03 deg; a sun

@@ -29,6 +29,7 @@ from ._common import (
     CALIBRATION_SUFFIX,
     CORNERS,
     MAX_HELIOSTAT_DISTANCE_M,
+    MAX_HELIOSTAT_HEIGHT_M,
     MAX_SUN_GAP_DEG,
     PROPERTIES_SUFFIX,
     SUN_FLAG_DEG,
@@ -283,6 +284,14 @@ def _assemble(
                     "heliostat_position",
                     f"{distance / 1000:.4g} km from the plant's reference point "
                     f"(more than {MAX_HELIOSTAT_DISTANCE_M / 1000:g} km: not a heliostat of this plant)",
+                )
+            rise = p.position_lla[2] - origin_lla[2]
+            if abs(rise) > MAX_HELIOSTAT_HEIGHT_M:
+                raise DataError(
+                    p.source,
+                    "heliostat_position",
+                    f"altitude {p.position_lla[2]!r} m is {rise:+.4g} m from the plant's reference point "
+                    f"(more than {MAX_HELIOSTAT_HEIGHT_M:g} m: not on the plant's ground)",
                 )
             if p.heliostat_id in props_by_id:
                 raise DataError(

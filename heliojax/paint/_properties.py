@@ -12,6 +12,7 @@ from ._common import (
     ACTUATOR_KEYS,
     ACTUATOR_REQUIRED,
     ACTUATOR_TYPES,
+    MAX_HELIOSTAT_SIZE_M,
     PROPERTIES_SUFFIX,
     Facet,
     HeliostatProperties,
@@ -112,6 +113,8 @@ def _properties_from_json(file: str, data: Any, heliostat_id: str) -> HeliostatP
     height = float(root.number("height"))
     _check(width > 0, file, "width", f"must be positive, got {width!r}")
     _check(height > 0, file, "height", f"must be positive, got {height!r}")
+    for key, v in (("width", width), ("height", height)):
+        _check(v <= MAX_HELIOSTAT_SIZE_M, file, key, f"{v!r} m is more than {MAX_HELIOSTAT_SIZE_M:g} m: no heliostat")
     orient = root.vec3("initial_orientation")
     norm = math.sqrt(sum(x * x for x in orient))
     _check(norm > 0, file, "initial_orientation", "zero vector")
@@ -132,7 +135,17 @@ def _properties_from_json(file: str, data: Any, heliostat_id: str) -> HeliostatP
     )
 
     def triple(fmt: str) -> Vec3:
-        return tuple(float(kin.number(fmt.format(c))) for c in "enu")  # type: ignore[return-value]
+        out = []
+        for c in "enu":
+            v = float(kin.number(fmt.format(c)))
+            _check(
+                abs(v) <= MAX_HELIOSTAT_SIZE_M,
+                file,
+                kin.field(fmt.format(c)),
+                f"{v!r} m is more than {MAX_HELIOSTAT_SIZE_M:g} m: not an offset within a heliostat",
+            )
+            out.append(v)
+        return tuple(out)  # type: ignore[return-value]
 
     jt1 = triple("joint_translation_{}_1")
     jt2 = triple("joint_translation_{}_2")
