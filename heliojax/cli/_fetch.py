@@ -30,6 +30,28 @@ def _csv(value: str) -> list[str]:
     return [v.strip() for v in value.split(",") if v.strip()]
 
 
+def _csv_of(choices: tuple[str, ...], what: str, *extra: str):
+    """An argparse ``type``: comma-separated names, each one of ``choices`` (or ``extra``)."""
+
+    def parse(value: str) -> list[str]:
+        names = _csv(value)
+        unknown = [n for n in names if n not in choices and n not in extra]
+        if unknown:
+            shown = ", ".join(repr(n[:60]) for n in unknown[:5])
+            raise argparse.ArgumentTypeError(f"unknown {what} {shown}; choose from {','.join(choices + extra)}")
+        return names
+
+    return parse
+
+
+def _source(value: str) -> str:
+    """An argparse ``type``: a non-empty catalogue URL or path (an empty one would be the
+    working directory, never what was meant)."""
+    if not value.strip():
+        raise argparse.ArgumentTypeError("empty: give a catalogue URL or path")
+    return value
+
+
 def _when(value: str) -> dt.datetime | dt.date:
     """``YYYY-MM-DD`` (a whole day) or an ISO 8601 date-time (naive means UTC)."""
     try:
@@ -61,6 +83,7 @@ def add_parser(subparsers) -> None:
         "source",
         metavar="SOURCE",
         nargs="?",
+        type=_source,
         default=PAINT_CATALOGUE,
         help=f"root catalogue: URL or path to its JSON file or folder (default: {PAINT_CATALOGUE})",
     )
@@ -69,14 +92,14 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--collections",
         metavar="NAMES",
-        type=_csv,
+        type=_csv_of(tuple(COLLECTIONS), "collection"),
         default=["properties", "calibration"],
         help=f"comma-separated, from {','.join(COLLECTIONS)} (default: properties,calibration)",
     )
     p.add_argument(
         "--assets",
         metavar="KEYS",
-        type=_csv,
+        type=_csv_of(tuple(CALIBRATION_ASSETS), "calibration asset", "all"),
         default=["calibration_properties"],
         help=f"calibration asset keys, from {','.join(CALIBRATION_ASSETS)} or 'all' (default: calibration_properties)",
     )
@@ -128,7 +151,7 @@ def run(args) -> int:
     for w in report.warnings:
         print(f"warning: {w}", file=sys.stderr)
     if report.missing:
-        print(f"heliojax fetch: not in the catalogue: {', '.join(report.missing)}", file=sys.stderr)
+        print(f"heliojax fetch: --heliostats: not in the catalogue: {', '.join(report.missing)}", file=sys.stderr)
     for href, reason in report.failed:
         print(f"heliojax fetch: failed {href}: {reason}", file=sys.stderr)
     if report.failed:
