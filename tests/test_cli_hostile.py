@@ -315,6 +315,25 @@ CASES = [
     ("discover figures a dangling link", lambda t: ["discover", "--figures", _dangling(t)], "--figures"),
     ("discover markdown a dangling link", lambda t: ["discover", "--markdown", _dangling(t)], "--markdown"),
     ("accept report a dangling link", lambda t: [*_accept(t, _field(t)), "--report", _dangling(t)], "--report"),
+    ("accept results a dangling link", lambda t: _accept(t, _dangling(t)), "--results"),
+    ("accept summary.json missing", lambda t: _accept(t, str(t / "out" / "summary.json")), "--results"),
+    (
+        "accept positions beside a field CSV",
+        lambda t: [
+            *_accept(t, _file(t, "field.csv", "heliostat_id,east_m,north_m,tracking_mrad\nA1,0,50,1\n")),
+            "--positions",
+            str(_a_file(t)),
+        ],
+        "--positions",
+    ),
+    (
+        "accept paint a file",
+        lambda t: [*_accept(t, _file(t, "summary.json", "{}")), "--paint", str(_a_file(t))],
+        "--paint",
+    ),
+    ("fetch unknown collection", lambda t: ["fetch", "--out", str(t / "o"), "--collections", "nan"], "--collections"),
+    ("fetch unknown asset", lambda t: ["fetch", "--out", str(t / "o"), "--assets", "1e308"], "--assets"),
+    ("fetch empty source", lambda t: ["fetch", "", "--out", str(t / "o")], "SOURCE"),
     ("aim out a dangling link", lambda t: ["aim", "r.h5", "--out", _dangling(t, "aim.csv")], "--out"),
     ("plan ranking a dangling link", lambda t: ["plan", "r.h5", "--ranking", _dangling(t)], "--ranking"),
     ("trace out a dangling link", lambda t: ["trace", "--heliostat", "AA39", "--out", _dangling(t)], "--out"),
@@ -855,6 +874,26 @@ def _edit_weather(data: Path, column: str, value: str) -> str:
     return "row 2." + column
 
 
+def _edit_properties(data: Path, heliostat: str, edit) -> str:
+    """Apply ``edit`` to the heliostat-properties JSON of ``heliostat``; its file name."""
+    path = data / heliostat / "Properties" / f"{heliostat}-heliostat-properties.json"
+    p = json.loads(path.read_text())
+    edit(p)
+    path.write_text(json.dumps(p))
+    return path.name
+
+
+def _set(path: tuple, value):
+    """An edit of a JSON document: set the value at ``path`` (keys and indices)."""
+
+    def edit(doc) -> None:
+        for k in path[:-1]:
+            doc = doc[k]
+        doc[path[-1]] = value
+
+    return edit
+
+
 # (case, edit of a copy of the embedded data -> (file name, field), "skipped" or "flagged",
 # records of the fleet lost): field-level fuzz of the data files found these values
 # accepted silently, each changing the fit of its heliostat
@@ -884,6 +923,36 @@ DAMAGED_DATA = [
         "skipped",
         0,
     ),
+    (
+        "joint translation of 1e308 m",
+        lambda d: (
+            _edit_properties(d, "BL14", _set(("kinematics_properties", "joint_translation_e_1"), 1e308)),
+            "kinematics_properties.joint_translation_e_1",
+        ),
+        "skipped",
+        9,
+    ),
+    (
+        "concentrator translation of 1 km",
+        lambda d: (
+            _edit_properties(d, "BL14", _set(("kinematics_properties", "concentrator_translation_n"), 1000.0)),
+            "kinematics_properties.concentrator_translation_n",
+        ),
+        "skipped",
+        9,
+    ),
+    (
+        "heliostat 1e6 m wide",
+        lambda d: (_edit_properties(d, "BL14", _set(("width",), 1e6)), "width"),
+        "skipped",
+        9,
+    ),
+    (
+        "heliostat 5 km above the plant",
+        lambda d: (_edit_properties(d, "BL14", _set(("heliostat_position", 2), 5000.0)), "heliostat_position"),
+        "skipped",
+        9,
+    ),
 ]
 
 
@@ -896,4 +965,5 @@ def test_damaged_values_are_named_and_the_rest_loads(edit, how, lost, tmp_path):
     entries = report.skipped if how == "skipped" else report.flags
     named = {(Path(e.file.rsplit(":", 1)[0]).name, e.field) for e in entries}
     assert (name, field) in named, entries
-    assert report.records_loaded == 392 - lost and report.heliostats_loaded == 5
+    heliostats_lost = int(how == "skipped" and name.endswith("-heliostat-properties.json"))
+    assert report.records_loaded == 392 - lost and report.heliostats_loaded == 5 - heliostats_lost
