@@ -272,12 +272,15 @@ def _assemble(
 
     props_by_id: dict[str, HeliostatProperties] = {}
     bad_props: set[str] = set()  # heliostats counted as skipped already
+    far = 0  # heliostats skipped for their distance from the reference point
     for p in sorted(properties, key=lambda p: p.heliostat_id):
         try:
             if validate:
                 p = validate_properties(p)
             _check_actuator_law(p)
             distance = _distance_m(p.position_lla, origin_lla)  # pyright: ignore[reportArgumentType]
+            rise = p.position_lla[2] - origin_lla[2]
+            far += distance > MAX_HELIOSTAT_DISTANCE_M or abs(rise) > MAX_HELIOSTAT_HEIGHT_M
             if distance > MAX_HELIOSTAT_DISTANCE_M:
                 raise DataError(
                     p.source,
@@ -285,7 +288,6 @@ def _assemble(
                     f"{distance / 1000:.4g} km from the plant's reference point "
                     f"(more than {MAX_HELIOSTAT_DISTANCE_M / 1000:g} km: not a heliostat of this plant)",
                 )
-            rise = p.position_lla[2] - origin_lla[2]
             if abs(rise) > MAX_HELIOSTAT_HEIGHT_M:
                 raise DataError(
                     p.source,
@@ -345,6 +347,13 @@ def _assemble(
         )
 
     ids = tuple(sorted(props_by_id))
+    if not ids and far and far == len({p.heliostat_id for p in properties}):
+        raise DataError(
+            tower.source if origin is None else None,
+            "power_plant_properties.coordinates" if origin is None else "origin",
+            f"every heliostat ({far}) is more than {MAX_HELIOSTAT_DISTANCE_M / 1000:g} km from, or "
+            f"{MAX_HELIOSTAT_HEIGHT_M:g} m above or below, the plant's reference point {list(origin_lla)}",
+        )
     if not ids:
         rep = log.report()
         raise DataError(log.source, None, "no heliostat could be loaded\n" + rep.format())
@@ -467,6 +476,16 @@ def _assemble(
                 f"{name}.coordinates",
                 f"degenerate target corners (width {width:.3g} m, height {height:.3g} m)",
             )
+        for side, a, b in (("upper", ul - ur, ll - lr), ("left", ul - ll, ur - lr)):
+            la, lb = np.linalg.norm(a), np.linalg.norm(b)
+            if max(la, lb) > 2.0 * min(la, lb):  # a rectangle's opposite edges are equal
+                other = {"upper": "lower", "left": "right"}[side]
+                raise DataError(
+                    tower.source,
+                    f"{name}.coordinates",
+                    f"the corners are no rectangle: the {side} edge is {la:.4g} m long, the {other} edge "
+                    f"{lb:.4g} m (one corner misplaced)",
+                )
     centres = corners_enu.mean(axis=1)
     for i in np.nonzero(n_valid == 0)[0]:
         spot_enu[i] = centres[0]
