@@ -89,12 +89,36 @@ def _tower_linked_to_dev_zero(tmp: Path) -> str:
     return str(data)
 
 
+def _tower_edited(tmp: Path, edit) -> str:
+    """A copy of the embedded data with ``edit`` applied to its tower file."""
+    data = tmp / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    tower = data / "WRI1030197-tower-measurements.json"
+    doc = json.loads(tower.read_text())
+    edit(doc)
+    tower.write_text(json.dumps(doc))
+    return str(data)
+
+
 # (case, argv from the temporary directory, text the error must contain)
 CASES = [
     (
         "tower file a link to /dev/zero",
         lambda t: ["inspect", _tower_linked_to_dev_zero(t), "--cache-dir", "none"],
         "WRI1030197-tower-measurements.json: not a regular file",
+    ),
+    (
+        "tower reference point 500 km off",
+        lambda t: ["inspect", _tower_edited(t, _set(("power_plant_properties", "coordinates", 0), 55.4))],
+        "power_plant_properties.coordinates",
+    ),
+    (
+        "tower target corner at altitude 0",
+        lambda t: [
+            "inspect",
+            _tower_edited(t, _set(("solar_tower_juelich_upper", "coordinates", "upper_left", 2), 0.0)),
+        ],
+        "solar_tower_juelich_upper.coordinates",
     ),
     ("negative seed", lambda t: ["calibrate", "--seed", "-1"], "--seed"),
     ("zero steps", lambda t: ["calibrate", "--max-steps", "0"], "--max-steps"),
