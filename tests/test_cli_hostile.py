@@ -972,6 +972,15 @@ DAMAGED_DATA = [
         9,
     ),
     (
+        "actuator increment of 1e-300 counts/m (a stroke of 1e304 m)",
+        lambda d: (
+            _edit_properties(d, "BL14", _set(("kinematics_properties", "actuators", 1, "increment"), 1e-300)),
+            "kinematics_properties.actuators[1].initial_stroke_length",
+        ),
+        "flagged",
+        0,
+    ),
+    (
         "heliostat 5 km above the plant",
         lambda d: (_edit_properties(d, "BL14", _set(("heliostat_position", 2), 5000.0)), "heliostat_position"),
         "skipped",
