@@ -318,6 +318,14 @@ def test_fetch_over_http_with_filters(catalogue, tmp_path):
     assert all(got[k] == expected[k] for k in want)
 
 
+def test_only_unknown_heliostats_is_an_error_and_writes_nothing(catalogue, tmp_path):
+    root_json, _ = catalogue
+    out = tmp_path / "out"
+    with pytest.raises(ValueError, match="heliostats: none of ZZ98, ZZ99"):
+        fetch_catalog(root_json, out, heliostats=["ZZ99", "ZZ98"])
+    assert not [p for p in out.rglob("*") if p.is_file()]  # not even the tower file
+
+
 def test_date_filter_excludes_items_but_keeps_properties(catalogue, tmp_path):
     root_json, _ = catalogue
     out = tmp_path / "out"

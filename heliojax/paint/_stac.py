@@ -275,6 +275,8 @@ def fetch_catalog(
                 continue
             catalogs[hid] = (obj, href)
         missing = tuple(sorted(wanted - set(catalogs))) if wanted is not None else ()
+        if wanted and not catalogs:  # nothing to fetch: no tower file without its heliostats either
+            raise ValueError(f"heliostats: none of {', '.join(missing)} is in the catalogue {source}")
         if missing:
             say(f"not in the catalogue: {', '.join(missing)}")
         say(f"{len(catalogs)} heliostat catalogue(s) selected")
