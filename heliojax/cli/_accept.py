@@ -8,7 +8,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from ._common import check_input_paths, path_type
+from ._common import path_type
 
 EXAMPLES = """examples:
   heliojax accept --results field.csv --contract configs/contract.toml --figures out/acceptance
@@ -17,9 +17,6 @@ EXAMPLES = """examples:
 OUTPUT_FILES = ("report",)
 OUTPUT_DIRS = ("figures",)
 """Output paths checked before any work (attribute names of the parsed arguments)."""
-INPUT_FILES = ("results", "positions", "tower")
-INPUT_DIRS = ("paint",)
-"""Input paths checked once the contract is read: each must exist and be of its kind."""
 
 
 def add_parser(subparsers) -> None:
@@ -66,7 +63,6 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         contract = acc.load_contract(args.contract)
-        check_input_paths(args, INPUT_FILES, INPUT_DIRS)
         if args.results.suffix.lower() == ".json":
             if args.positions is not None:
                 ids, pos = acc.read_positions_csv(args.positions)

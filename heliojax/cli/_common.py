@@ -220,6 +220,9 @@ def check_input_paths(parser: argparse.ArgumentParser, args, outputs: collection
         want_dir = action.dest in INPUT_DIRECTORIES
         try:
             exists, is_dir = path.exists(), path.is_dir()
+            if not exists and path.is_symlink():
+                target = os.readlink(path)
+                raise ConfigError(f"{flag} {_shown(path)}: a symbolic link to {target}, which does not exist")
         except OSError as e:  # a name too long, a loop of links
             raise ConfigError(f"{flag} {_shown(path)}: {e.strerror or e}") from None
         if not exists:
@@ -229,32 +232,6 @@ def check_input_paths(parser: argparse.ArgumentParser, args, outputs: collection
             raise ConfigError(f"{flag} {_shown(path)}: is a file, expected a directory")
         if not want_dir and is_dir:
             raise ConfigError(f"{flag} {_shown(path)}: is a directory, expected a file")
-
-
-def check_input_paths(args, files: tuple[str, ...] = (), directories: tuple[str, ...] = ()) -> None:
-    """Before any work: every input file / directory named by ``args`` (attribute names;
-    None = not given) exists and is of its kind. Raises ConfigError naming the flag."""
-    from .._errors import ConfigError
-
-    for names, is_dir in ((files, False), (directories, True)):
-        for name in names:
-            value = getattr(args, name, None)
-            if value is None:
-                continue
-            flag = "--" + name.replace("_", "-")
-            path = Path(value)
-            try:
-                if path.is_symlink() and not path.exists():
-                    target = os.readlink(path)
-                    raise ConfigError(f"{flag} {_shown(path)}: a symbolic link to {target}, which does not exist")
-                if not path.exists():
-                    raise ConfigError(f"{flag} {_shown(path)}: no such {'directory' if is_dir else 'file'}")
-                if is_dir and not path.is_dir():
-                    raise ConfigError(f"{flag} {_shown(path)}: not a directory")
-                if not is_dir and path.is_dir():
-                    raise ConfigError(f"{flag} {_shown(path)}: is a directory, expected a file")
-            except OSError as e:  # a name too long, a loop of links
-                raise ConfigError(f"{flag} {_shown(path)}: {e.strerror or e}") from None
 
 
 def _shown(path: Path, most: int = 120) -> str:
