@@ -129,9 +129,10 @@ def four_device_run(fleet_npz, tmp_path_factory):
         assert len(jax.devices()) == 4, jax.devices()
         shards = []
         _put = jax.device_put
-        def spy(x, s=None, **kw):
+        def spy(x, s=None, **kw):  # the placements with a sharding (others put host arrays on the default device)
             y = _put(x, s, **kw)
-            shards.append(max(len(l.sharding.device_set) for l in jax.tree.leaves(y)))
+            if s is not None:
+                shards.append(max(len(l.sharding.device_set) for l in jax.tree.leaves(y)))
             return y
         _batching.jax.device_put = spy
         res = hj.fit(STONE, load(), batching=hj.Sharded())
