@@ -155,7 +155,11 @@ def run(args) -> int:
     for href, reason in report.failed:
         print(f"heliojax fetch: failed {href}: {reason}", file=sys.stderr)
     if report.failed:
-        print("heliojax fetch: run the same command again to retry the failed files", file=sys.stderr)
+        print(
+            "heliojax fetch: run the same command again to retry the failed downloads "
+            "(a file whose catalogue entry is broken fails again until the catalogue is mended)",
+            file=sys.stderr,
+        )
     return 0 if report.ok else 1
 
 

@@ -224,9 +224,13 @@ def fetch_catalog(
     nbytes = [0]
 
     reader = _Reader(transport, timeout_s, retries, connections=workers, same_host_only=same_host_only)
-    with contextlib.closing(reader), cf.ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+    with (
+        contextlib.ExitStack() as stack,
+        contextlib.closing(reader),
+        cf.ThreadPoolExecutor(max_workers=max(1, workers)) as pool,
+    ):
         root = reader.stac(root_href)  # before the output folder is made: a bad root leaves nothing behind
-        out.mkdir(parents=True, exist_ok=True)
+        stack.enter_context(_made_folder(out))
         out = out.resolve()
         journal = _Journal(out)
         if (out / TIMESTAMPS_FILE).is_dir():  # found now, not after the downloads
@@ -343,6 +347,20 @@ def fetch_catalog(
         f"{len(report.skipped)} already complete, {len(report.failed)} failed"
     )
     return report
+
+
+@contextlib.contextmanager
+def _made_folder(folder: Path):
+    """Make ``folder`` (and its parents); if the block raises while the folder is new and
+    still empty (an error found before the first download), remove it again."""
+    made = not folder.exists()
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        yield
+    except BaseException:
+        if made and folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()
+        raise
 
 
 def _root_href(source: str | os.PathLike) -> str:
