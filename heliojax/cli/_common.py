@@ -204,14 +204,16 @@ INPUT_DIRECTORIES = frozenset({"data_dir", "test_data", "paint_dir", "paint"})
 other input path names a file."""
 
 
-def check_input_paths(parser: argparse.ArgumentParser, args, outputs: collections.abc.Container[str]) -> None:
-    """Before any work: every input path option of ``parser`` (type :func:`path_type`,
-    not one of ``outputs``) that ``args`` sets exists and is a directory
-    (:data:`INPUT_DIRECTORIES`) or a file. Raises ConfigError naming the flag (the
-    metavar of a positional argument)."""
+def check_input_paths(
+    options: collections.abc.Mapping[str, argparse.Action], args, outputs: collections.abc.Container[str]
+) -> None:
+    """Before any work: every input path option among ``options`` (dest -> action, as
+    the CLI's parsers record them; type :func:`path_type`, not one of ``outputs``) that
+    ``args`` sets exists and is a directory (:data:`INPUT_DIRECTORIES`) or a file.
+    Raises ConfigError naming the flag (the metavar of a positional argument)."""
     from .._errors import ConfigError
 
-    for action in parser._actions:  # noqa: SLF001 - argparse keeps no public list of a parser's options
+    for action in options.values():
         value = getattr(args, action.dest, None)
         if action.type is not path_type or action.dest in outputs or value is None:
             continue

@@ -223,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
         inside = module.outputs_inside(args) if hasattr(module, "outputs_inside") else ()
         outputs = (*getattr(module, "OUTPUT_FILES", ()), *getattr(module, "OUTPUT_DIRS", ()))
         check_output_paths(args, getattr(module, "OUTPUT_FILES", ()), getattr(module, "OUTPUT_DIRS", ()), inside)
-        check_input_paths(subparsers[args.command], args, outputs)
+        check_input_paths(getattr(subparsers[args.command], "options", {}), args, outputs)
         if getattr(args, "quiet", False):  # no bars (INFO is off): nothing to share stderr with
             return int(module.run(args) or 0)
         from tqdm.contrib.logging import logging_redirect_tqdm
