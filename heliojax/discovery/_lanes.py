@@ -386,15 +386,21 @@ class Lanes:
         return (rf == self.fold[:, None]) & (self.fold[:, None] > 0) & self.valid[self.heliostat]
 
 
+def _utc_days(unix_time: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(valid, day, timed, days)``: the mask as bool, each record's UTC day number,
+    the valid records with a time, and their distinct days in order."""
+    valid = np.asarray(valid, bool)
+    day = np.floor(np.asarray(unix_time, float) / 86400.0)
+    timed = valid & np.isfinite(day)
+    return valid, day, timed, np.unique(day[timed])
+
+
 def fold_blocks(unix_time: np.ndarray, valid: np.ndarray) -> int:
     """Number of blocks :func:`day_folds` deals to the folds: the distinct UTC days of
     the valid timed records plus one per valid record without a time (``unix_time``: s,
     ``valid``: bool, same shape)."""
-    t = np.asarray(unix_time, float)
-    valid = np.asarray(valid, bool)
-    day = np.floor(t / 86400.0)
-    timed = valid & np.isfinite(day)
-    return len(np.unique(day[timed])) + int((valid & ~timed).sum())
+    valid, _, timed, days = _utc_days(unix_time, valid)
+    return len(days) + int((valid & ~timed).sum())
 
 
 def day_folds(unix_time: np.ndarray, valid: np.ndarray, record_id: np.ndarray | None, n_folds: int) -> np.ndarray:
@@ -402,22 +408,14 @@ def day_folds(unix_time: np.ndarray, valid: np.ndarray, record_id: np.ndarray | 
     are dealt to folds ``1..K`` in turn (so every fold spans the season); all
     records of a day share a fold. A record without a time is its own block,
     dealt after the days in record-id order. Invalid records get fold 0."""
-    t = np.asarray(unix_time, float)
-    valid = np.asarray(valid, bool)
-    day = np.floor(t / 86400.0)
-    timed = valid & np.isfinite(day)
-    days = np.unique(day[timed])
-    rank = {d: i for i, d in enumerate(days)}
+    valid, day, timed, days = _utc_days(unix_time, valid)
     out = np.zeros(valid.shape, np.int64)
-    for i, j in zip(*np.nonzero(timed)):
-        out[i, j] = rank[day[i, j]] % n_folds + 1
-    untimed = np.argwhere(valid & ~np.isfinite(day))
+    out[timed] = np.searchsorted(days, day[timed]) % n_folds + 1  # a day's rank among the fleet's days
+    untimed = np.argwhere(valid & ~timed)
     if len(untimed):
         key = np.asarray(record_id)[tuple(untimed.T)] if record_id is not None else np.arange(len(untimed))
         order = np.argsort(key, kind="stable")
-        for k, idx in enumerate(order):
-            i, j = untimed[idx]
-            out[i, j] = (len(days) + k) % n_folds + 1
+        out[tuple(untimed[order].T)] = (len(days) + np.arange(len(order))) % n_folds + 1
     return out
 
 
