@@ -43,8 +43,12 @@ def outputs_inside(args) -> list[tuple[str, Path]]:
     the record / sun flags are incomplete: :func:`run` names that error)."""
     if args.record is None and (args.sun_azimuth is None or args.sun_elevation is None):
         return []
-    stem = f"{args.heliostat}-{_tag(args)}"
-    return [("out", args.out / f"{stem}-{kind}") for kind in ("flux.h5", "flux.png", "comparison.png", "summary.json")]
+    return [("out", _output(args, kind)) for kind in ("flux.h5", "flux.png", "comparison.png", "summary.json")]
+
+
+def _output(args, kind: str) -> Path:
+    """The output file ``kind`` (``flux.h5``, ``flux.png``, ``comparison.png``, ``summary.json``) in ``--out``."""
+    return args.out / f"{args.heliostat}-{_tag(args)}-{kind}"
 
 
 def add_parser(subparsers) -> None:
@@ -297,9 +301,8 @@ def run(args: argparse.Namespace) -> int:
             comparison_fig = optics.comparison_figure(comp)
         elif args.record is not None:
             log.warning(f"no measured flux image {flux_png}: no comparison")
-        stem = args.out / f"{args.heliostat}-{tag}-flux"
         extent = [float(grid.u_min), float(grid.u_max), float(grid.v_min), float(grid.v_max)]
-        with atomic_path(stem.with_suffix(".h5")) as tmp:
+        with atomic_path(_output(args, "flux.h5")) as tmp:
             with h5py.File(tmp, "w") as f:
                 d = f.create_dataset("flux", data=image.astype(np.float32))
                 d.attrs["units"] = "W/m^2"
@@ -320,16 +323,16 @@ def run(args: argparse.Namespace) -> int:
         ax.set_xlabel("u, along the target [m]")
         ax.set_ylabel("v, up the target [m]")
         ax.set_title(f"{args.heliostat} {tag} on {target_name}", fontsize=9)
-        with atomic_path(stem.with_suffix(".png")) as tmp:
+        with atomic_path(_output(args, "flux.png")) as tmp:
             fig.savefig(tmp, dpi=100, format="png", bbox_inches="tight")
         plt.close(fig)
         if comparison_fig is not None:
-            with atomic_path(args.out / f"{args.heliostat}-{tag}-comparison.png") as tmp:
+            with atomic_path(_output(args, "comparison.png")) as tmp:
                 comparison_fig.savefig(tmp, dpi=90, format="png", bbox_inches="tight")
             plt.close(comparison_fig)
         summary = json_safe(summary)  # e.g. the correlation of a trace that missed the target: null
-        write_json(args.out / f"{args.heliostat}-{tag}-summary.json", summary)
-        log.info(f"wrote {stem}.png, .h5 and the summary to {args.out}")
+        write_json(_output(args, "summary.json"), summary)
+        log.info(f"wrote {_output(args, 'flux')}.png, .h5 and the summary to {args.out}")
         print(json.dumps(summary, indent=2, allow_nan=False))
     except (HeliojaxError, FileNotFoundError) as e:
         print(f"heliojax trace: error: {e}", file=sys.stderr)
