@@ -33,6 +33,8 @@ from ._fit import (
     CompiledFit as CompiledFit,
     FitSolution as FitSolution,
     LeastSquaresOutcome as LeastSquaresOutcome,
+    LevenbergMarquardt as LevenbergMarquardt,
+    ToleranceTrustRegion as ToleranceTrustRegion,
     default_solver as default_solver,
     fit as fit,
     fit_timed as fit_timed,

@@ -51,9 +51,92 @@ DEFAULT_ATOL = 1e-5
 DEFAULT_MAX_STEPS = 64
 
 
-def default_solver(backend: str | None = None) -> optx.LevenbergMarquardt:
-    """optimistix Levenberg-Marquardt with tolerances on the scaled parameters:
-    ``atol = 1e-5`` scaled units = 0.1 micro-radian on angles.
+def _no_verbose(**kwargs: typing.Any) -> None:
+    del kwargs
+
+
+class ToleranceTrustRegion(optx.AbstractSearch):
+    """optimistix's :class:`optimistix.ClassicalTrustRegion`, except that a step the
+    solver's own termination test calls converged is accepted even when rounding
+    makes the cost rise.
+
+    At a minimum the predicted reduction of a Levenberg-Marquardt step is far below
+    the rounding noise of the cost (about ``1e-13`` relative for the beam errors), so
+    the classical test rejects the step, shrinks the trust region and tries again,
+    until the step underflows: a fit started at (or reaching) its minimum spent up to
+    16 further steps there. A step within the termination tolerances (parameter
+    change ``<= atol + rtol |y|`` and residual change ``<= atol + rtol |r|``, both in
+    ``norm``) moves the solution by less than the solver resolves, so accepting it
+    costs nothing and ends the solve at once. Every other step is judged exactly as
+    by the classical trust region.
+
+    Attributes:
+        rtol, atol: the solver's termination tolerances.
+        norm: the solver's norm.
+        classical: the trust region that judges every other step.
+    """
+
+    rtol: float
+    atol: float
+    norm: Callable[[typing.Any], Array] = optx.max_norm
+    classical: optx.ClassicalTrustRegion = optx.ClassicalTrustRegion()
+
+    def init(self, y, f_info_struct):
+        return self.classical.init(y, f_info_struct)
+
+    def step(self, first_step, y, y_eval, f_info, f_eval_info, state):
+        step_size, accept, result, new_state = self.classical.step(first_step, y, y_eval, f_info, f_eval_info, state)
+        y_diff = jax.tree.map(lambda a, b: a - b, y_eval, y)
+        f_diff = jax.tree.map(lambda a, b: a - b, f_eval_info.residual, f_info.residual)
+        converged = (self.norm(y_diff) <= self.atol + self.rtol * self.norm(y_eval)) & (
+            self.norm(f_diff) <= self.atol + self.rtol * self.norm(f_eval_info.residual)
+        )
+        rescued = converged & ~accept
+        # a rescued step keeps the trust region it was proposed with
+        new_state = jax.tree.map(lambda old, new: jnp.where(rescued, old, new), state, new_state)
+        step_size = jnp.where(rescued, jnp.asarray(state.step_size, jnp.result_type(step_size)), step_size)
+        return step_size, accept | converged, result, new_state
+
+
+class LevenbergMarquardt(optx.AbstractGaussNewton):
+    """optimistix's Levenberg-Marquardt (damped Newton descent, classical trust
+    region, Cauchy termination) with the trust region of :class:`ToleranceTrustRegion`:
+    a step already within the termination tolerances is accepted, so that a fit at its
+    minimum stops instead of shrinking its trust region through rounding noise.
+
+    Attributes:
+        rtol, atol: termination tolerances (parameter and residual change).
+        norm: norm of the termination test.
+        descent: the damped Newton descent (its linear solver: QR or Cholesky).
+        search: the trust region.
+        verbose: optimistix's progress callback (silent).
+    """
+
+    rtol: float
+    atol: float
+    norm: Callable[[typing.Any], Array]
+    descent: optx.DampedNewtonDescent
+    search: ToleranceTrustRegion
+    verbose: Callable[..., None]
+
+    def __init__(
+        self,
+        rtol: float,
+        atol: float,
+        linear_solver: lx.AbstractLinearSolver | None = None,
+        norm: Callable[[typing.Any], Array] = optx.max_norm,
+    ):
+        self.rtol = rtol
+        self.atol = atol
+        self.norm = norm
+        self.descent = optx.DampedNewtonDescent(linear_solver=lx.QR() if linear_solver is None else linear_solver)
+        self.search = ToleranceTrustRegion(rtol=rtol, atol=atol, norm=norm)
+        self.verbose = _no_verbose
+
+
+def default_solver(backend: str | None = None) -> LevenbergMarquardt:
+    """Levenberg-Marquardt (:class:`LevenbergMarquardt`) with tolerances on the scaled
+    parameters: ``atol = 1e-5`` scaled units = 0.1 micro-radian on angles.
 
     The damped step's linear solve depends on the backend (``backend``, default JAX's
     default backend), as the batching does (:func:`default_batching`):
@@ -69,8 +152,8 @@ def default_solver(backend: str | None = None) -> optx.LevenbergMarquardt:
     """
     backend = backend or jax.default_backend()
     if backend == "cpu":
-        return optx.LevenbergMarquardt(rtol=DEFAULT_RTOL, atol=DEFAULT_ATOL)
-    return optx.LevenbergMarquardt(rtol=DEFAULT_RTOL, atol=DEFAULT_ATOL, linear_solver=lx.Normal(lx.Cholesky()))
+        return LevenbergMarquardt(rtol=DEFAULT_RTOL, atol=DEFAULT_ATOL)
+    return LevenbergMarquardt(rtol=DEFAULT_RTOL, atol=DEFAULT_ATOL, linear_solver=lx.Normal(lx.Cholesky()))
 
 
 class LeastSquaresOutcome(typing.NamedTuple):
