@@ -12,11 +12,41 @@ import errno
 import json
 import math
 import os
+import re
+import stat
 import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
+
+MAX_INPUT_BYTES = 2**30
+"""An input file larger than this (1 GiB) is refused before it is read: a PAINT file of
+the whole plant is tens of MB; a sparse or runaway file of many GB would fill memory."""
+
+
+def input_file_problem(path: str | os.PathLike) -> str | None:
+    """Why ``path`` cannot be read as an input file, or None: not a regular file (a
+    link to /dev/zero is read forever, a FIFO blocks the open), or over
+    :data:`MAX_INPUT_BYTES`. OSErrors of the stat (missing, a loop of links) propagate."""
+    info = os.stat(path)
+    if not stat.S_ISREG(info.st_mode):
+        return "not a regular file (a device, pipe or socket)"
+    if info.st_size > MAX_INPUT_BYTES:
+        return f"{info.st_size} bytes: larger than {MAX_INPUT_BYTES} (1 GiB), not read"
+    return None
+
+
+_DECIMAL = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+
+
+def is_decimal(text: str) -> bool:
+    """Whether ``text`` (blanks around it aside) is a number as a CSV cell writes it: ASCII
+    digits, a point, an exponent. Python's float() and int() also take ``1_000``, digits
+    of other scripts (``١٢``) and ``infinity``; none is a number in a data file (``1_000``
+    read as 1000 joined a row to another record)."""
+    return _DECIMAL.fullmatch(text.strip()) is not None
+
 
 TEMPORARY_MARK = ".heliojax-tmp"
 """In the name of every temporary file heliojax writes (so that stale ones, left by

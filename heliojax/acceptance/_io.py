@@ -17,6 +17,7 @@ import numpy as np
 
 from .._errors import ConfigError, DataError
 from .._geometry import MAX_FIELD_EXTENT_M, wgs84_to_enu
+from .._io import is_decimal
 from ..paint import TOWER_FILE_SUFFIX, read_heliostat_properties, read_tower
 from ._field import PARAMETERS, FieldData
 
@@ -36,6 +37,8 @@ def _float(path, field, text) -> float:
         raise DataError(path, field, f"not a number: {text!r}") from None
     if not math.isfinite(x):
         raise DataError(path, field, f"not finite: {text!r}")
+    if not is_decimal(text):
+        raise DataError(path, field, f"not a decimal number: {text!r}")
     return x
 
 
@@ -283,6 +286,8 @@ def load_contract(path: str | os.PathLike) -> Contract:
         doc = tomllib.loads(path.read_text("utf-8"))
     except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise ConfigError(f"{path}: cannot read contract: {e}") from e
+    except RecursionError:  # tomllib recurses once per level of nested arrays or tables
+        raise ConfigError(f"{path}: malformed TOML: nested too deep") from None
     unknown = set(doc) - {"sampling", "parameters", "clusters", "extrapolation", "yield"}
     if unknown:
         raise ConfigError(f"{path}: unknown section(s) {sorted(unknown)}")

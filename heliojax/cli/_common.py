@@ -101,6 +101,7 @@ def read_record_roles(path: Path) -> dict[str, dict[int, str]]:
     import csv
 
     from .._errors import DataError
+    from .._io import is_decimal
 
     try:
         with open(path, newline="", encoding="utf-8-sig") as f:  # -sig: a spreadsheet's byte-order mark
@@ -123,6 +124,8 @@ def read_record_roles(path: Path) -> dict[str, dict[int, str]]:
             raise DataError(path, f"row {line}", f"more cells than the header has columns: {row[None]!r}")
         hid = str(row["heliostat_id"] or "").strip()
         try:
+            if not is_decimal(str(row["record_id"])):
+                raise ValueError
             rid = int(str(row["record_id"]).strip())
         except ValueError:
             raise DataError(path, f"row {line}.record_id", f"not an integer: {row['record_id']!r}") from None
@@ -234,6 +237,23 @@ def check_input_paths(
             raise ConfigError(f"{flag} {_shown(path)}: is a file, expected a directory")
         if not want_dir and is_dir:
             raise ConfigError(f"{flag} {_shown(path)}: is a directory, expected a file")
+        if not want_dir:
+            check_input_file(flag, path)
+
+
+def check_input_file(flag: str, path: Path) -> None:
+    """An input file ``path`` that exists (flag ``flag``) can be read: a regular file of at
+    most :data:`heliojax._io.MAX_INPUT_BYTES` (a FIFO blocks the open, /dev/zero is read
+    forever). Raises ConfigError naming the flag."""
+    from .._errors import ConfigError
+    from .._io import input_file_problem
+
+    try:
+        problem = input_file_problem(path)
+    except OSError as e:
+        raise ConfigError(f"{flag} {_shown(path)}: {e.strerror or e}") from None
+    if problem is not None:
+        raise ConfigError(f"{flag} {_shown(path)}: {problem}")
 
 
 def _shown(path: Path, most: int = 120) -> str:
@@ -290,7 +310,7 @@ def _check_no_dangling_link(flag: str, path: Path, link: Path | None = None) -> 
         )
 
 
-HELIOSTAT_ID_RE = r"^[A-Za-z0-9_]{1,64}$"
+HELIOSTAT_ID_RE = r"^[A-Za-z0-9_]{1,64}\Z"
 """A heliostat id as a folder name (PAINT's are like ``AA39``): no path separators."""
 
 

@@ -127,6 +127,9 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict, dict[str, argparse.Ar
 def _apply_config(subparser: argparse.ArgumentParser, command: str, path: Path, commands: Iterable[str]) -> None:
     import tomllib  # only with --config
 
+    from ._common import check_input_file
+
+    check_input_file("--config", path)
     try:
         with open(path, "rb") as f:
             doc = tomllib.load(f)
@@ -134,6 +137,8 @@ def _apply_config(subparser: argparse.ArgumentParser, command: str, path: Path, 
         raise ConfigError(f"{path}: cannot read config: {e}") from e
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise ConfigError(f"{path}: malformed TOML: {e}") from e
+    except RecursionError:  # tomllib recurses once per level of nested arrays or tables
+        raise ConfigError(f"{path}: malformed TOML: nested too deep") from None
     unknown_tables = sorted(set(doc) - set(commands))
     if unknown_tables:
         raise ConfigError(

@@ -9,12 +9,11 @@ import json
 import math
 import os
 import re
-import stat
 from pathlib import Path
 from typing import Any, no_type_check
 
 from .._errors import DataError
-from .._io import atomic_write
+from .._io import atomic_write, input_file_problem
 from .._sun import datetime_to_unix
 
 Vec3 = tuple[float, float, float]
@@ -128,7 +127,7 @@ _CSV_REQUIRED = (
 )
 
 _MEMORY = "<memory>"
-_ID_RE = re.compile(r"^[0-9]+$")
+_ID_RE = re.compile(r"[0-9]{1,18}\Z")  # ASCII digits only, no trailing line break, fits int64
 
 
 # The per-field scalar helpers below are ``@no_type_check``: they carry no array
@@ -308,10 +307,13 @@ def _unique_keys(pairs: list[tuple[str, Any]], *, mark: bool = False) -> dict[st
 
 def _read_regular_file(path: str | os.PathLike) -> bytes:
     """The bytes of a regular file; a device, pipe or socket in its place (a link to
-    /dev/zero reads forever, a pipe blocks) and an unreadable file are DataErrors."""
+    /dev/zero reads forever, a pipe blocks), a file over :data:`~heliojax._io.MAX_INPUT_BYTES`
+    and an
+    unreadable file are DataErrors."""
     try:
-        if not stat.S_ISREG(os.stat(path).st_mode):
-            raise DataError(path, None, "not a regular file (a device, pipe or socket)")
+        problem = input_file_problem(path)
+        if problem is not None:
+            raise DataError(path, None, problem)
         return Path(path).read_bytes()
     except OSError as e:
         raise DataError(path, None, f"cannot read file: {e.strerror or e}") from None

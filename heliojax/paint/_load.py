@@ -664,7 +664,7 @@ def load_paint_directory(
 
     timestamps: Mapping = {}
     ts_path = root / TIMESTAMPS_FILE
-    if ts_path.is_file():
+    if ts_path.is_file() or ts_path.is_symlink():  # a dangling or looping link is named, not taken for no file
         log.files_seen += 1
         try:
             timestamps = read_timestamps(ts_path, on_error=log.skip_entry)
@@ -677,7 +677,7 @@ def load_paint_directory(
 
     weather: dict[tuple[str, int], dict[str, float]] = {}
     csv_path = root / WEATHER_CSV_FILE
-    if csv_path.is_file():
+    if csv_path.is_file() or csv_path.is_symlink():
         log.files_seen += 1
         try:
             rows = read_weather_csv(csv_path, on_error=log.skip_entry)

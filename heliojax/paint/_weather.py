@@ -10,7 +10,7 @@ from collections.abc import Callable, Iterable, Mapping
 from typing import no_type_check
 
 from .._errors import DataError
-from .._io import atomic_write
+from .._io import atomic_write, is_decimal
 from ._common import (
     _CSV_REQUIRED,
     CSV_COLUMNS,
@@ -45,16 +45,19 @@ def _csv_float(file: str, field: str, text: str, *, allow_empty: bool) -> float:
         raise DataError(file, field, f"not a number: {text!r}") from None
     if not math.isfinite(v):
         raise DataError(file, field, f"not finite ({text!r})")
+    if not is_decimal(s):
+        raise DataError(file, field, f"not a decimal number: {text!r}")
     return v
 
 
 @no_type_check
 def _csv_int(file: str, field: str, text: str) -> int:
     s = text.strip()
-    try:
-        return int(s)
-    except ValueError:
-        pass
+    if is_decimal(s):
+        try:
+            return int(s)
+        except ValueError:
+            pass
     v = _csv_float(file, field, text, allow_empty=False)
     if not v.is_integer():
         raise DataError(file, field, f"expected an integer, got {text!r}")
@@ -95,6 +98,9 @@ def read_weather_csv(
     missing = [c for c in _CSV_REQUIRED if c not in header]
     if missing:
         raise DataError(file, missing[0], f"missing column(s): {', '.join(missing)}")
+    twice = sorted({c for c in header if c in CSV_COLUMNS and header.count(c) > 1})
+    if twice:
+        raise DataError(file, twice[0], f"column(s) {', '.join(twice)} given twice (which one holds is ambiguous)")
     col = {name: header.index(name) for name in set(header)}
     ncols = len(header)
     wcols = [(k, col[k]) for k in WEATHER_KEYS if k in col]
