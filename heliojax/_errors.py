@@ -25,8 +25,9 @@ class DataError(HeliojaxError, ValueError):
 
     def __init__(self, file: str | os.PathLike | None, field: str | None, reason: str):
         self.file = None if file is None else str(file)
-        self.field = field
-        self.reason = reason
+        self.field = None if field is None else _clip(_printable(field), MAX_FIELD_CHARS)
+        self.reason = "\n".join(_clip(line, MAX_REASON_LINE_CHARS) for line in reason.split("\n"))
+        field, reason = self.field, self.reason
         where = self.file if self.file is not None else "<unknown file>"
         if field is not None:
             where = f"{where}: field '{field}'"
@@ -34,6 +35,28 @@ class DataError(HeliojaxError, ValueError):
 
     def __reduce__(self):
         return (type(self), (self.file, self.field, self.reason))
+
+
+MAX_FIELD_CHARS = 200
+"""A field name longer than this (a JSON key of a megabyte) is shortened in messages."""
+MAX_REASON_LINE_CHARS = 1000
+"""A line of a reason longer than this (it quotes a value of a megabyte) is shortened."""
+
+
+def _printable(text: str) -> str:
+    """``text`` with control and other unprintable characters escaped (a key holding a
+    line break would otherwise print as two lines of the message)."""
+    return text if text.isprintable() else repr(text)[1:-1]
+
+
+def _clip(text: str, limit: int) -> str:
+    """``text``, or its head and tail with the middle left out, at most ``limit`` characters."""
+    if len(text) <= limit:
+        return text
+    marker = f" ... [{len(text)} characters, the middle left out] ... "
+    head = (limit - len(marker)) * 2 // 3
+    tail = limit - len(marker) - head
+    return text[:head] + marker + text[len(text) - tail :]
 
 
 class ConfigError(HeliojaxError, ValueError):
