@@ -100,6 +100,27 @@ def _tower_edited(tmp: Path, edit) -> str:
     return str(data)
 
 
+def _fifo(tmp: Path, name: str = "a-file") -> str:
+    """A named pipe ``name``: opening it for reading blocks until a writer comes."""
+    import os
+
+    path = tmp / name
+    os.mkfifo(path)
+    return str(path)
+
+
+def _sparse(tmp: Path, name: str, size: int = 2**30 + 1) -> str:
+    """A sparse file of ``size`` bytes (no disk used): one byte over the input limit."""
+    path = tmp / name
+    with open(path, "wb") as f:
+        f.truncate(size)
+    return str(path)
+
+
+def _nested_toml(depth: int = 100_000) -> str:
+    return "[calibrate]\nmax_steps = " + "[" * depth + "]" * depth + "\n"
+
+
 # (case, argv from the temporary directory, text the error must contain)
 CASES = [
     (
@@ -417,6 +438,25 @@ CASES = [
     ("trace tower a folder", lambda t: ["trace", "--heliostat", "BE36", "--tower", str(_a_dir(t))], "--tower"),
     ("reconstruct scenario missing", lambda t: ["reconstruct", "--scenario", str(t / "s.h5")], "--scenario"),
     ("aim target name of a page", lambda t: ["aim", "r.h5", "--target", "x" * 5000], "--target"),
+    ("config a named pipe (the open blocked)", lambda t: ["calibrate", "--config", _fifo(t)], "not a regular file"),
+    ("records file a named pipe", lambda t: ["calibrate", "--records", _fifo(t)], "--records"),
+    ("config nested too deep", lambda t: ["calibrate", "--config", _config(t, _nested_toml())], "nested too deep"),
+    (
+        "accept contract nested too deep",
+        lambda t: _accept(t, _field(t), CONTRACT + "[yield]\nyear = " + "[" * 100_000 + "]" * 100_000 + "\n"),
+        "nested too deep",
+    ),
+    ("records file over 1 GiB (sparse)", lambda t: ["calibrate", "--records", _sparse(t, "a-file")], "1 GiB"),
+    (
+        "records id with an underscore",
+        lambda t: ["calibrate", "--records", _file(t, "field.csv", "heliostat_id,record_id\nBL14,264_706\n")],
+        "row 2.record_id",
+    ),
+    (
+        "accept field CSV number with an underscore",
+        lambda t: _accept(t, _file(t, "field.csv", "heliostat_id,east_m,north_m,tracking_mrad\nA1,1_0,50,1\n")),
+        "line 2: east_m",
+    ),
 ]
 
 
@@ -918,6 +958,23 @@ def _set(path: tuple, value):
     return edit
 
 
+def _weather_column_twice(data: Path) -> str:
+    """Name the weather CSV's temperature column ``pressure`` (then given twice)."""
+    path = data / "calibration-with-weather.csv"
+    lines = path.read_text().splitlines()
+    lines[0] = lines[0].replace("temperature", "pressure")
+    path.write_text("\n".join(lines) + "\n")
+    return path.name
+
+
+def _replace_by(data: Path, name: str, make) -> str:
+    """Replace ``data/name`` by what ``make(path)`` puts there; the file name."""
+    path = data / name
+    path.unlink()
+    make(path)
+    return path.name
+
+
 # (case, edit of a copy of the embedded data -> (file name, field), "skipped" or "flagged",
 # records of the fleet lost): field-level fuzz of the data files found these values
 # accepted silently, each changing the fit of its heliostat
@@ -986,6 +1043,51 @@ DAMAGED_DATA = [
         "skipped",
         9,
     ),
+    (
+        "weather sample id with an underscore (read as another record's)",
+        lambda d: ("calibration-with-weather.csv", _edit_weather(d, "sample_id", "1_000")),
+        "skipped",
+        0,
+    ),
+    (
+        "weather temperature in Arabic-Indic digits",
+        lambda d: ("calibration-with-weather.csv", _edit_weather(d, "temperature", "\u0661\u0662")),
+        "skipped",
+        0,
+    ),
+    ("weather CSV column given twice", lambda d: (_weather_column_twice(d), "pressure"), "skipped", 0),
+    (
+        "weather CSV a link in a loop (read as no weather file)",
+        lambda d: (_replace_by(d, "calibration-with-weather.csv", lambda p: p.symlink_to(p.name)), None),
+        "skipped",
+        0,
+    ),
+    (
+        "timestamps a dangling link (read as no timestamps file)",
+        lambda d: (_replace_by(d, "calibration-timestamps.json", lambda p: p.symlink_to("gone.json")), None),
+        "skipped",
+        0,
+    ),
+    (
+        "facet canting vector zero (its rays lost without a word)",
+        lambda d: (
+            _edit_properties(d, "BL14", _set(("facet_properties", "facets", 0, "canting_e"), [0.0, 0.0, 0.0])),
+            "facet_properties.facets[0].canting_e",
+        ),
+        "skipped",
+        9,
+    ),
+    (
+        "facet 1e300 m from the heliostat's centre",
+        lambda d: (
+            _edit_properties(
+                d, "BL14", _set(("facet_properties", "facets", 1, "translation_vector"), [1e300, 0.0, 0.0])
+            ),
+            "facet_properties.facets[1].translation_vector",
+        ),
+        "skipped",
+        9,
+    ),
 ]
 
 
@@ -1000,3 +1102,23 @@ def test_damaged_values_are_named_and_the_rest_loads(edit, how, lost, tmp_path):
     assert (name, field) in named, entries
     heliostats_lost = int(how == "skipped" and name.endswith("-heliostat-properties.json"))
     assert report.records_loaded == 392 - lost and report.heliostats_loaded == 5 - heliostats_lost
+
+
+def test_huge_keys_and_values_are_named_in_short_lines(tmp_path, capsys):
+    """A calibration-timestamps.json key of 5000 digits ended in a traceback (int() refuses
+    it); a target name of a megabyte was quoted whole in the message; a key holding a line
+    break printed as two lines."""
+    data = tmp_path / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    stamps = json.loads((data / "calibration-timestamps.json").read_text())
+    stamps["9" * 5000] = stamps["a\nb"] = next(iter(stamps.values()))
+    (data / "calibration-timestamps.json").write_text(json.dumps(stamps))
+    _edit_record(data, "BH20", _set(("target_name",), "x" * 1_000_000))
+    rc, out, err = _run(["inspect", str(data)], capsys)
+    assert rc == 0 and "Traceback" not in out + err, err
+    assert max(len(line) for line in (out + err).splitlines()) < 1500
+    report = hj.load_paint_directory(data).report
+    fields = {e.field for e in report.skipped}
+    assert "a\\nb" in fields and "target_name" in fields
+    assert any(f is not None and f.startswith("9" * 50) and len(f) <= 200 for f in fields), fields
+    assert report.records_skipped == 1

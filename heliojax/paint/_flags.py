@@ -123,7 +123,7 @@ def _flag_properties(props: list[HeliostatProperties], log: _Log) -> None:
             log.flag(
                 props[h].source,
                 f"kinematics_properties.actuators[{i}].initial_stroke_length",
-                f"stroke {stroke[h, i]:.4f} m at {end} = {int(a[end][h, i])} lies outside the actuator "
+                f"stroke {stroke[h, i]:.4g} m at {end} = {a[end][h, i]:.8g} lies outside the actuator "
                 f"triangle [{lo[h, i]:.4f}, {hi[h, i]:.4f}] m (law of cosines saturates)",
             )
     # Majority direction of motion.

@@ -68,6 +68,45 @@ def _actuator_from_json(file: str, node: _Node) -> dict[str, Any]:
     return out
 
 
+MIN_FACET_HALF_SIZE_M = 1e-3
+"""A canting vector (half a facet's edge, m) shorter than this is no facet (a zero
+vector has no direction: its normal would be NaN and its rays lost without a word)."""
+MIN_CANTING_SINE = 0.1
+"""The canting vectors of a facet span its rectangle: at an angle whose sine is below
+this (under ~6 deg) they are (nearly) parallel and the facet has no normal."""
+
+
+def _facet(file: str, fn: _Node) -> Facet:
+    """One facet entry: its translation within :data:`MAX_HELIOSTAT_SIZE_M` of the
+    heliostat's centre, canting vectors of at most that length and at least
+    :data:`MIN_FACET_HALF_SIZE_M`, not parallel."""
+    t, e, n = fn.vec3("translation_vector"), fn.vec3("canting_e"), fn.vec3("canting_n")
+    for key, v in (("translation_vector", t), ("canting_e", e), ("canting_n", n)):
+        size = math.hypot(*v)
+        _check(
+            size <= MAX_HELIOSTAT_SIZE_M,
+            file,
+            fn.field(key),
+            f"{size:.4g} m long, more than {MAX_HELIOSTAT_SIZE_M:g} m: not within a heliostat",
+        )
+        if key != "translation_vector":
+            _check(
+                size >= MIN_FACET_HALF_SIZE_M,
+                file,
+                fn.field(key),
+                f"{size:.4g} m long, less than {MIN_FACET_HALF_SIZE_M:g} m: no facet edge",
+            )
+    cross = (e[1] * n[2] - e[2] * n[1], e[2] * n[0] - e[0] * n[2], e[0] * n[1] - e[1] * n[0])
+    sine = math.hypot(*cross) / (math.hypot(*e) * math.hypot(*n))
+    _check(
+        sine >= MIN_CANTING_SINE,
+        file,
+        fn.field("canting_n"),
+        f"(nearly) parallel to canting_e (sine of the angle {sine:.3g}): the facet has no normal",
+    )
+    return Facet(t, e, n)
+
+
 def _facets_from_json(file: str, root: _Node) -> tuple[tuple[Facet, ...], str | None]:
     facets: tuple[Facet, ...] = ()
     canting_type = None
@@ -81,7 +120,7 @@ def _facets_from_json(file: str, root: _Node) -> tuple[tuple[Facet, ...], str | 
         fl = []
         for i, fd in enumerate(raw):
             fn = _Node(file, fd, _join(fp.field("facets"), i))
-            fl.append(Facet(fn.vec3("translation_vector"), fn.vec3("canting_e"), fn.vec3("canting_n")))
+            fl.append(_facet(file, fn))
         facets = tuple(fl)
         if fp.has("number_of_facets"):
             n = fp.integer("number_of_facets")
