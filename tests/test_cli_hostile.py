@@ -674,6 +674,30 @@ def test_flux_pngs_that_are_jpegs_turned_or_transparent_are_refused(tmp_path):
     assert np.array_equal(read_flux_png(tmp_path / "opaque.png"), read_flux_png(tmp_path / "plain.png"))
 
 
+def test_flux_pngs_in_colour_or_a_named_pipe_are_refused(tmp_path):
+    """A false-colour PNG was read as the luminance of its colour map, and a named pipe in
+    place of a flux PNG blocked the open for ever; a grey RGB or palette PNG reads as grey."""
+    import os
+
+    import numpy as np
+    from PIL import Image
+
+    from heliojax.paint import read_flux_png
+
+    spot = np.zeros((64, 64), np.uint8)
+    spot[20:40, 25:45] = 200
+    Image.fromarray(np.stack([spot, spot // 2, 255 - spot], axis=-1)).save(tmp_path / "colour.png")
+    os.mkfifo(tmp_path / "pipe.png")
+    for name, message in [("colour", "a colour image"), ("pipe", "not a regular file")]:
+        with pytest.raises(hj.DataError, match=message):
+            read_flux_png(tmp_path / f"{name}.png")
+    Image.fromarray(spot).save(tmp_path / "plain.png")
+    Image.fromarray(spot).convert("RGB").save(tmp_path / "grey-rgb.png")
+    Image.fromarray(spot).convert("P").save(tmp_path / "palette.png")
+    for name in ("grey-rgb", "palette"):
+        assert np.array_equal(read_flux_png(tmp_path / f"{name}.png"), read_flux_png(tmp_path / "plain.png"))
+
+
 def test_trace_summary_is_strict_json_and_a_missing_flux_png_is_named(tmp_path, capsys, caplog):
     """NaN (the correlation of a trace that missed) is null in the summary, and a record
     without its measured flux PNG is traced with a warning that names the PNG."""

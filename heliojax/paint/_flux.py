@@ -9,6 +9,7 @@ import numpy as np
 from PIL import Image
 
 from .._errors import DataError
+from .._io import input_file_problem
 
 MAX_FLUX_PIXELS = 4096 * 4096
 """Largest image (pixels) read; PAINT's flux images are 512 x 512. A larger
@@ -21,9 +22,13 @@ def read_flux_png(path: str | os.PathLike) -> np.ndarray:
     Raises:
         DataError: unreadable or not a PNG (a JPEG named ``.png``), larger than
             :data:`MAX_FLUX_PIXELS`, rotated or mirrored by an EXIF orientation, or
-            with transparent pixels.
+            with transparent pixels, in colour (channels that differ: a false-colour
+            rendering is no brightness), or not a regular file (a FIFO blocked the open).
     """
     try:
+        problem = input_file_problem(path)
+        if problem is not None:
+            raise DataError(path, None, problem)
         with Image.open(path) as im:
             w, h = im.size
             if w * h > MAX_FLUX_PIXELS:
@@ -42,6 +47,12 @@ def read_flux_png(path: str | os.PathLike) -> np.ndarray:
                 if image.min() < 0 or image.max() > 65535:
                     raise DataError(path, None, f"{im.mode} pixel values outside 0..65535")
                 return image / 65535.0
+            if im.mode not in ("1", "L", "LA", "La", "I;16", "I;16B", "I;16L", "I"):  # palette, RGB, CMYK, ...
+                rgb = np.asarray(im.convert("RGB"), np.int16)
+                spread = int((rgb.max(axis=-1) - rgb.min(axis=-1)).max())
+                if spread > 0:  # "L" would weigh the channels into a luminance of a colour map
+                    why = f"a colour image ({im.mode}; channels differ by up to {spread}), not grey"
+                    raise DataError(path, None, why)
             return np.asarray(im.convert("L"), np.float64) / 255.0
     except DataError:
         raise
