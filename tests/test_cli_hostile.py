@@ -453,6 +453,11 @@ CASES = [
         "row 2.record_id",
     ),
     (
+        "accept field CSV heliostat id with a NUL byte",
+        lambda t: _accept(t, _file(t, "field.csv", "heliostat_id,east_m,north_m,tracking_mrad\nA\x001,0,50,1\n")),
+        "line 2: heliostat_id",
+    ),
+    (
         "accept field CSV number with an underscore",
         lambda t: _accept(t, _file(t, "field.csv", "heliostat_id,east_m,north_m,tracking_mrad\nA1,1_0,50,1\n")),
         "line 2: east_m",

@@ -85,6 +85,8 @@ def read_field_csv(path: str | os.PathLike) -> FieldData:
         hid = (row["heliostat_id"] or "").strip()
         if not hid:
             raise DataError(path, f"line {i}: heliostat_id", "empty")
+        if not hid.isprintable():  # a NUL or a line break inside quotes: not an id to print in a report
+            raise DataError(path, f"line {i}: heliostat_id", f"{hid!r} holds unprintable characters")
         ids.append(hid)
         up = row.get("up_m")
         pos.append(
