@@ -17,14 +17,15 @@ class DataError(HeliojaxError, ValueError):
     """Bad input data: malformed file, missing / non-numeric / non-finite field.
 
     Attributes:
-        file: path of the offending file (or a description such as ``"<memory>"``).
+        file: path of the offending file (or a description such as ``"<memory>"``); a
+            control character in it (a folder named with a line break) is escaped.
         field: dotted name of the offending field (``"motor_position.axis_1_motor_position"``),
             or ``None`` when the whole file is bad.
         reason: human-readable reason.
     """
 
     def __init__(self, file: str | os.PathLike | None, field: str | None, reason: str):
-        self.file = None if file is None else str(file)
+        self.file = None if file is None else _printable(str(file))
         self.field = None if field is None else _clip(_printable(field), MAX_FIELD_CHARS)
         self.reason = "\n".join(_clip(line, MAX_REASON_LINE_CHARS) for line in reason.split("\n"))
         field, reason = self.field, self.reason

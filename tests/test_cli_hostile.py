@@ -1151,3 +1151,16 @@ def test_huge_keys_and_values_are_named_in_short_lines(tmp_path, capsys):
     assert "a\\nb" in fields and "target_name" in fields
     assert any(f is not None and f.startswith("9" * 50) and len(f) <= 200 for f in fields), fields
     assert report.records_skipped == 1
+
+
+def test_a_heliostat_folder_named_with_a_line_break_is_skipped(tmp_path, capsys):
+    """A folder 'BL\\n14' loaded as heliostat 'BL\\n14': its id and every path in its
+    messages printed as two lines."""
+    data = tmp_path / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    (data / "BL14").rename(data / "BL\n14")
+    rc, out, err = _run(["inspect", str(data)], capsys)
+    assert rc == 0 and "Traceback" not in err, err
+    assert "BL\\n14" in out + err and not any(line.startswith("14") for line in (out + err).splitlines())
+    fleet = hj.load_paint_directory(data)
+    assert fleet.ids == ("BE36", "BF56", "BG23", "BH20") and fleet.report.heliostats_skipped == 1

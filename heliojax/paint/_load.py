@@ -696,6 +696,8 @@ def load_paint_directory(
             continue
         if not os.access(d, os.R_OK | os.X_OK):  # is_dir() of its subfolders would say False: name it
             log.skip(DataError(d, None, "cannot read folder: permission denied"))
+        elif not d.name.isprintable() and ((d / "Properties").is_dir() or (d / "Calibration").is_dir()):
+            log.skip(DataError(d, None, "folder name holds unprintable characters: not a heliostat id"), heliostats=1)
         elif (d / "Properties").is_dir() or (d / "Calibration").is_dir():
             dirs.append(d)
     if heliostats is not None:
