@@ -1072,6 +1072,7 @@ DAMAGED_DATA = [
         "skipped",
         9,
     ),
+    ("mirror 5e-324 m wide", lambda d: (_edit_properties(d, "BL14", _set(("width",), 5e-324)), "width"), "flagged", 0),
     (
         "weather sample id with an underscore (read as another record's)",
         lambda d: ("calibration-with-weather.csv", _edit_weather(d, "sample_id", "1_000")),

@@ -180,6 +180,9 @@ def _flag_properties(props: list[HeliostatProperties], log: _Log) -> None:
             )
         )
     width = np.median([p.width for p in props])
+    for key in ("width", "height"):  # a mirror of 5e-324 m is no heliostat (the size bounds only cap it)
+        sizes = np.array([getattr(p, key) for p in props])
+        checks.append((key, sizes, np.median(sizes), "m"))  # pyright: ignore[reportArgumentType]
     for name, attr in (
         ("joint_translation_{}_1", "joint_translation_1"),
         ("joint_translation_{}_2", "joint_translation_2"),
