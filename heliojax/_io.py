@@ -3,7 +3,9 @@
 permissions :func:`open` would give it (``0o666`` less the umask, or the mode of the
 file it replaces), not the private ``0o600`` of a temporary file. A destination that
 is a symbolic link is written through, as :func:`open` would: the file it points at is
-replaced and the link kept (renaming onto the link would replace the link itself)."""
+replaced and the link kept (renaming onto the link would replace the link itself). A
+destination that is a device (``/dev/null``), a pipe or a socket is refused: renaming
+onto it would replace it."""
 
 from __future__ import annotations
 
@@ -68,9 +70,14 @@ def remove_stale_temporaries(directory: str | os.PathLike, older_than_s: float =
 
 
 def _destination(path: str | os.PathLike) -> Path:
-    """``path``, or the file it points at when it is a symbolic link."""
+    """``path``, or the file it points at when it is a symbolic link; OSError when that
+    exists and is neither a regular file nor a folder (a device such as ``/dev/null``, a
+    pipe, a socket: renaming the output onto it would replace it)."""
     path = Path(path)
-    return Path(os.path.realpath(path)) if path.is_symlink() else path
+    path = Path(os.path.realpath(path)) if path.is_symlink() else path
+    if path.exists() and not path.is_file() and not path.is_dir():
+        raise OSError(errno.EINVAL, "not a regular file (a device, a pipe or a socket): not replaced", str(path))
+    return path
 
 
 def _umask() -> int:

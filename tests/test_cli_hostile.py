@@ -6,6 +6,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import math
+import os
 import shutil
 from pathlib import Path
 
@@ -47,6 +48,13 @@ def _a_dir(tmp: Path) -> Path:
     path = tmp / "a-dir"
     path.mkdir(exist_ok=True)
     return path
+
+
+def _a_fifo(tmp: Path) -> str:
+    """A named pipe ``a-fifo`` (as ``/dev/null`` or ``/dev/stdout`` is a device: not a regular file)."""
+    path = tmp / "a-fifo"
+    os.mkfifo(path)
+    return str(path)
 
 
 def _dangling(tmp: Path, target: str = "missing-folder/x") -> str:
@@ -462,6 +470,17 @@ CASES = [
         lambda t: _accept(t, _file(t, "field.csv", "heliostat_id,east_m,north_m,tracking_mrad\nA1,1_0,50,1\n")),
         "line 2: east_m",
     ),
+    ("plot onto a pipe (or /dev/null)", lambda t: ["inspect", "--plot", _a_fifo(t), "--cache-dir", "none"], "--plot"),
+    (
+        "report onto the contract",
+        lambda t: [*_accept(t, _field(t)), "--report", str(t / "contract.toml")],
+        "--report",
+    ),
+    (
+        "report onto the config",
+        lambda t: ["calibrate", "--config", (c := _config(t, "[calibrate]\nseed = 1\n")), "--report", c],
+        "--report",
+    ),
 ]
 
 
@@ -473,7 +492,7 @@ def test_bad_input_is_a_short_clean_error(argv, expected, tmp_path, capsys, monk
     assert rc == 2, err
     assert expected in err and "Traceback" not in err, err
     assert len(err.strip().splitlines()) <= 2, err
-    names = ("a-dir", "a-file", "a-link", "config.toml", "contract.toml", "field.csv", "summary.json")
+    names = ("a-dir", "a-fifo", "a-file", "a-link", "config.toml", "contract.toml", "field.csv", "summary.json")
     inputs = {tmp_path / n for n in names}
     before |= {p for p in tmp_path.rglob("*") if p.is_relative_to(tmp_path / "paint")}  # the input data
     assert {p for p in tmp_path.rglob("*")} - before <= inputs  # no output written
@@ -1165,3 +1184,16 @@ def test_a_heliostat_folder_named_with_a_line_break_is_skipped(tmp_path, capsys)
     assert "BL\\n14" in out + err and not any(line.startswith("14") for line in (out + err).splitlines())
     fleet = hj.load_paint_directory(data)
     assert fleet.ids == ("BE36", "BF56", "BG23", "BH20") and fleet.report.heliostats_skipped == 1
+
+
+def test_atomic_output_never_replaces_a_device_or_pipe(tmp_path):
+    """The library's own writers refuse, as the CLI's check does, to rename a file onto a
+    pipe or device (as root, ``--out /dev/null`` would have replaced /dev/null)."""
+    from heliojax._io import atomic_path, atomic_write
+
+    fifo = Path(_a_fifo(tmp_path))
+    with pytest.raises(OSError, match="not a regular file"), atomic_write(fifo) as f:
+        f.write("x")
+    with pytest.raises(OSError, match="not a regular file"), atomic_path(fifo):
+        pass
+    assert fifo.is_fifo() and list(tmp_path.iterdir()) == [fifo]

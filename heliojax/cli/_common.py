@@ -208,11 +208,12 @@ other input path names a file."""
 
 
 def check_input_paths(
-    options: collections.abc.Mapping[str, argparse.Action], args, outputs: collections.abc.Container[str]
+    options: collections.abc.Mapping[str, argparse.Action], args, outputs: collections.abc.Collection[str]
 ) -> None:
     """Before any work: every input path option among ``options`` (dest -> action, as
     the CLI's parsers record them; type :func:`path_type`, not one of ``outputs``) that
-    ``args`` sets exists and is a directory (:data:`INPUT_DIRECTORIES`) or a file.
+    ``args`` sets exists and is a directory (:data:`INPUT_DIRECTORIES`) or a file, and
+    no output of ``outputs`` names that same file (the input would be replaced).
     Raises ConfigError naming the flag (the metavar of a positional argument)."""
     from .._errors import ConfigError
 
@@ -239,6 +240,7 @@ def check_input_paths(
             raise ConfigError(f"{flag} {_shown(path)}: is a directory, expected a file")
         if not want_dir:
             check_input_file(flag, path)
+            _check_not_an_output(flag, path, args, outputs)
 
 
 def check_input_file(flag: str, path: Path) -> None:
@@ -254,6 +256,27 @@ def check_input_file(flag: str, path: Path) -> None:
         raise ConfigError(f"{flag} {_shown(path)}: {e.strerror or e}") from None
     if problem is not None:
         raise ConfigError(f"{flag} {_shown(path)}: {problem}")
+
+
+def _check_not_an_output(flag: str, path: Path, args, outputs: collections.abc.Iterable[str]) -> None:
+    """No output (attribute names ``outputs`` of ``args``) is the input file ``path``
+    (also through a link or another name of it): writing it would replace the input."""
+    from .._errors import ConfigError
+
+    for name in outputs:
+        value = getattr(args, name, None)
+        if value is None or name == "cache_dir" or not str(value).strip():
+            continue
+        try:
+            same = Path(value).is_file() and os.path.samefile(value, path)
+        except OSError:  # an output not there yet, a name too long: not the input
+            same = False
+        if same:
+            out_flag = "--" + name.replace("_", "-")
+            raise ConfigError(
+                f"{out_flag} {_shown(Path(value))}: is {flag}, an input, which writing it would replace; "
+                "give the output its own name"
+            )
 
 
 def _shown(path: Path, most: int = 120) -> str:
@@ -275,6 +298,11 @@ def _check_output_path(flag: str, path: Path, name: str, is_dir: bool, seen: dic
         raise ConfigError(f"{flag} {path}: exists and is not a directory")
     if not is_dir and path.is_dir():
         raise ConfigError(f"{flag} {path}: is a directory, expected a file name")
+    if not is_dir and path.exists() and not path.is_file():  # /dev/null, /dev/stdout, a FIFO
+        raise ConfigError(
+            f"{flag} {path}: exists and is not a regular file (a device, a pipe or a socket, which "
+            "writing the output beside it and renaming it onto its name would replace); give a file name"
+        )
     if not is_dir and path.is_file() and (not os.access(path, os.W_OK) or not path.stat().st_mode & 0o222):
         raise ConfigError(f"{flag} {path}: exists and is read-only")
     if not is_dir and name == "plot":
