@@ -521,7 +521,8 @@ def utc_datetime(value: _dt.datetime | str) -> _dt.datetime:
             ``"2022-06-10T12:15:59Z"`` or ``"2022-06-10 14:15:59+02:00"``.
 
     Raises:
-        ValueError: if the string is not ISO-8601.
+        ValueError: if the string is not ISO-8601, or the instant in UTC falls outside
+            the years 1-9999 (``9999-12-31T23:00-05:00``).
         TypeError: for any other input type.
     """
     if isinstance(value, str):
@@ -538,7 +539,10 @@ def utc_datetime(value: _dt.datetime | str) -> _dt.datetime:
         raise TypeError(f"expected a datetime or an ISO-8601 string, got {type(value).__name__}")
     if dt.tzinfo is None:
         return dt.replace(tzinfo=_dt.UTC)  # PAINT's convention, see above
-    return dt.astimezone(_dt.UTC)
+    try:
+        return dt.astimezone(_dt.UTC)
+    except OverflowError:  # a year-1 or year-9999 time whose offset carries it out of datetime's range
+        raise ValueError(f"{value!r} in UTC falls outside the years 1-9999") from None
 
 
 def datetime_to_unix(dt_or_iso_string: _dt.datetime | str) -> float:

@@ -1117,6 +1117,8 @@ def test_redirects_to_another_host_are_followed_unless_same_host_only(tmp_path, 
         ("https://a.example/x.json", "file:///etc/passwd", "only http and https"),
         ("https://a.example/x.json", "https://b.example/x.json", None),
         ("http://a.example/x.json", "https://a.example/x.json", None),
+        ("https://a.example/x.json", "http://[::1", "not a URL"),
+        ("https://a.example/x.json", "https://a.example:99999/x.json", "not a URL"),
     ],
 )
 def test_a_redirect_down_to_http_or_to_another_scheme_is_refused(source, location, refused):
@@ -1135,3 +1137,56 @@ def test_a_redirect_down_to_http_or_to_another_scheme_is_refused(source, locatio
     else:
         with pytest.raises(RedirectRefused, match=refused):
             check(response)
+
+
+def test_a_source_or_asset_href_that_is_no_url_is_named(catalogue, tmp_path, capsys):
+    """``http://[::1`` (urllib's "Invalid IPv6 URL") as the source is a one-line error
+    naming it; as an asset href that one file fails, named, and the rest is fetched."""
+    root_json, _ = catalogue
+    out = tmp_path / "out"
+    assert _cli(["fetch", "http://[::1/catalog.json", "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "http://[::1/catalog.json: not a URL" in err and len(err.strip().splitlines()) == 1, err
+    assert not out.exists()
+    edit_asset(root_json.parent, "AA31", "126372", "calibration_properties", href="http://[::1/x.json")
+    rep = fetch_catalog(root_json, out, heliostats=["AA31"], include_tower=False)
+    assert len(rep.failed) == 1 and "not a URL" in rep.failed[0][1], rep.failed
+    assert (out / "AA31/Calibration/125284-calibration-properties.json").is_file()
+
+
+def test_a_time_beyond_the_years_of_utc_is_named(catalogue, tmp_path, capsys):
+    """An item datetime or a --start whose offset carries it past year 9999 or before
+    year 1 in UTC (an OverflowError of datetime) fails that item / is a usage error."""
+    root_json, _ = catalogue
+    p = item_json(root_json.parent, "AA31", "126372")
+    d = json.loads(p.read_text())
+    d["properties"]["datetime"] = "9999-12-31T23:59:59-23:59"
+    p.write_text(json.dumps(d))
+    rep = fetch_catalog(root_json, tmp_path / "out", heliostats=["AA31"], include_tower=False)
+    assert len(rep.failed) == 1 and "outside the years 1-9999" in rep.failed[0][1], rep.failed
+    assert not (tmp_path / "out/AA31/Calibration/126372-calibration-properties.json").exists()
+    with pytest.raises(SystemExit):
+        _cli(["fetch", str(root_json), "--out", str(tmp_path / "o"), "--start", "0001-01-01T00:00+01:00"])
+    err = capsys.readouterr().err
+    assert "--start" in err and "outside the years 1-9999" in err and "Traceback" not in err, err
+
+
+def test_an_asset_longer_than_allowed_is_broken_off(catalogue, tmp_path, monkeypatch):
+    """An asset without file:size is read to at most MAX_ASSET_BYTES (MAX_STAC_BYTES for
+    JSON): a server streaming without end does not fill the disk; nothing partial is kept."""
+    from heliojax.paint import _stac_io
+
+    monkeypatch.setattr(_stac_io, "MAX_ASSET_BYTES", 100)
+    root_json, _ = catalogue
+    out = tmp_path / "out"
+    rep = fetch_catalog(root_json, out, heliostats=["AA31"], calibration_assets=["flux_image"], include_tower=False)
+    assert len(rep.failed) == 2 and all("more than 100 bytes" in f[1] for f in rep.failed), rep.failed
+    assert not list(out.rglob("*.png")) and not list(out.rglob("*.part"))
+
+
+def test_a_catalogue_with_a_byte_order_mark_reads(catalogue, tmp_path):
+    """A STAC file saved with a UTF-8 byte-order mark (an editor's) is read."""
+    root_json, _ = catalogue
+    root_json.write_bytes(b"\xef\xbb\xbf" + root_json.read_bytes())
+    rep = fetch_catalog(root_json, tmp_path / "out", heliostats=["AA31"], include_tower=False)
+    assert rep.ok and rep.downloaded, rep

@@ -57,9 +57,15 @@ def _when(value: str) -> dt.datetime | dt.date:
     try:
         if len(value) == 10:
             return dt.date.fromisoformat(value)
-        return dt.datetime.fromisoformat(value.replace("Z", "+00:00"))
+        t = dt.datetime.fromisoformat(value.replace("Z", "+00:00"))
     except ValueError as e:
         raise argparse.ArgumentTypeError(f"not a date or ISO date-time: {value!r}") from e
+    if t.tzinfo is not None:  # compared in UTC: an offset may carry year 1 or 9999 out of range
+        try:
+            t.astimezone(dt.UTC)
+        except OverflowError:
+            raise argparse.ArgumentTypeError(f"{value!r} in UTC falls outside the years 1-9999") from None
+    return t
 
 
 OUTPUT_FILES = ()

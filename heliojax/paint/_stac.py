@@ -60,7 +60,9 @@ Network. ``http(s)`` is streamed with :mod:`requests`; urllib3's ``Retry`` retri
 connection errors and the answers 408, 429, 500, 502, 503, 504, not others (404, ...)
 nor a broken-off body, after 0, 1, 2, 4, ... s (a server's Retry-After is not
 followed: it may ask for hours). A STAC JSON file is read to at most ``MAX_STAC_BYTES``
-(64 MiB) whatever its Content-Length says. Local paths and ``file://`` URLs are
+(64 MiB) whatever its Content-Length says (a UTF-8 byte-order mark is allowed), an asset
+to at most its ``file:size``, else ``MAX_ASSET_BYTES`` (4 GiB; a ``.json`` asset
+``MAX_STAC_BYTES``): a body without end is broken off before it fills the disk. Local paths and ``file://`` URLs are
 read with :func:`open`. A compressed (``Content-Encoding``) body that inflates to more
 than ``MAX_INFLATION`` (100) times the bytes received, beyond its first 16 MiB, is broken
 off (a gzip bomb), as is a body slower than ``MIN_BYTES_PER_S`` (1 KiB/s) on average once
@@ -114,6 +116,7 @@ from ._stac_io import (
     _heliostat_id,
     _is_url,
     _Journal,
+    _most_bytes,
     _parse_multihash,
     _Reader,
     _safe_dest,
@@ -366,8 +369,13 @@ def _made_folder(folder: Path):
 def _root_href(source: str | os.PathLike) -> str:
     s = os.fspath(source)
     if _is_url(s):
-        if _scheme(s) not in ("http", "https", "file"):
-            raise DataError(s, None, f"unsupported scheme {_scheme(s)!r} (http, https, file)")
+        try:
+            scheme = _scheme(s)
+            urllib.parse.urlsplit(s).port  # noqa: B018 - raises ValueError for a port out of range
+        except ValueError as e:  # "http://[::1": the URL, not a bare "Invalid IPv6 URL"
+            raise DataError(s, None, f"not a URL: {e}") from None
+        if scheme not in ("http", "https", "file"):
+            raise DataError(s, None, f"unsupported scheme {scheme!r} (http, https, file)")
         return s
     p = Path(s)
     if p.is_dir():
@@ -417,7 +425,10 @@ def _plan_asset(
     raw = asset.href
     if not isinstance(raw, str) or not raw.strip():
         raise _MalformedAsset(owner, field, "empty or non-string href")
-    raw_path = urllib.parse.urlsplit(raw).path if _is_url(raw) else raw
+    try:
+        raw_path = urllib.parse.urlsplit(raw).path if _is_url(raw) else raw
+    except ValueError as e:  # "http://[::1": broken, not hostile
+        raise _MalformedAsset(owner, field, f"href {raw[:200]!r} is not a URL: {e}") from None
     if ".." in urllib.parse.unquote(raw_path).replace("\\", "/").split("/"):
         raise DataError(owner, field, f"asset href {raw!r} contains a '..' segment (path traversal)")
     src = scope.resolve(raw, owner, owner, field)
@@ -487,7 +498,11 @@ def _plan_heliostat(
                 continue
             if not isinstance(item, pystac.Item):
                 raise DataError(href, "type", f"expected a STAC item in {coll.id}, got {type(item).__name__}")
-            when = _item_time(item)
+            try:
+                when = _item_time(item)
+            except ValueError as e:  # a datetime that UTC cannot hold: that item fails, the others are fetched
+                failed.append((href, f"field 'properties.datetime': {e}"))
+                continue
             if name != "properties" and (t0 is not None or t1 is not None):
                 if when is None or (t0 is not None and when < t0) or (t1 is not None and when > t1):
                     continue
@@ -528,7 +543,10 @@ def _record_id(item: pystac.Item) -> int | None:
     """The calibration record id of ``item``: from its calibration-properties asset's
     file name (PAINT's ``<ID>-calibration-properties.json``), else an all-digit item id."""
     asset = item.assets.get("calibration_properties")
-    m = _RECORD_ID_RE.search(urllib.parse.urlparse(asset.href).path) if asset is not None else None
+    try:
+        m = _RECORD_ID_RE.search(urllib.parse.urlparse(asset.href).path) if asset is not None else None
+    except ValueError:  # an href that is no URL fails when its asset is planned
+        m = None
     if m:
         return int(m.group(1))
     return int(item.id) if _ITEM_ID_RE.fullmatch(item.id) else None
@@ -579,10 +597,14 @@ def _fetch_one(task: _Task, reader: _Reader, journal: _Journal, resume: bool, ou
         sha = hashlib.sha256()
         other = checker.algo() if checker.algo else None
         size = 0
+        most = _most_bytes(task.size, dest.name)
         try:
             with os.fdopen(fd, "wb") as f:
                 with reader.chunks(task.src) as chunks:
                     for chunk in chunks:
+                        if size + len(chunk) > most:
+                            said = "the catalogue's file:size" if task.size is not None else "the most accepted"
+                            raise _Failure(f"more than {most} bytes ({said}): download broken off")
                         f.write(chunk)
                         sha.update(chunk)
                         if other is not None:

@@ -169,8 +169,12 @@ class _Scope:
             raise DataError(where, field, "empty or non-string href")
         if "\x00" in raw:
             raise DataError(where, field, f"href {raw!r} contains a NUL character")
-        href = _resolve(raw, owner)
-        scheme = _scheme(href)
+        try:
+            href = _resolve(raw, owner)
+            scheme = _scheme(href)
+            urllib.parse.urlsplit(href).port  # noqa: B018 - raises ValueError for a port out of range
+        except ValueError as e:  # "http://[::1": the href, not a bare "Invalid IPv6 URL"
+            raise DataError(where, field, f"href {raw[:200]!r} is not a URL: {e}") from None
         relative = not _is_url(raw) and not os.path.isabs(raw)
         if scheme in ("http", "https"):
             if relative and self.remote and not href.startswith(self.base):
@@ -212,8 +216,15 @@ def _redirect_hook(same_host_only: bool) -> Callable[..., Any]:
         if not response.is_redirect:
             return response
         source = str(response.url)
-        target = urllib.parse.urljoin(source, response.headers.get("location", ""))
-        src, dst = urllib.parse.urlsplit(source), urllib.parse.urlsplit(target)
+        location = response.headers.get("location", "")
+        try:
+            target = urllib.parse.urljoin(source, location)
+            src, dst = urllib.parse.urlsplit(source), urllib.parse.urlsplit(target)
+            dst.port  # noqa: B018 - raises ValueError for a port out of range
+        except ValueError as e:  # "http://[::1": not a URL
+            response.close()
+            reason = f"redirects to {location[:200]!r}, not a URL ({e}): not followed"
+            raise RedirectRefused(source, reason, response) from None
         problem = None
         if dst.scheme not in ("http", "https"):
             problem = f"redirects to {target}: only http and https redirects are followed"
@@ -298,7 +309,7 @@ class _Reader:
         except OSError as e:
             raise DataError(href, None, f"cannot read STAC file: {e!r}") from e
         try:
-            obj = json.loads(data.decode("utf-8"))
+            obj = json.loads(data.decode("utf-8-sig"))  # -sig: a byte-order mark an editor left
         except (UnicodeDecodeError, json.JSONDecodeError) as e:
             raise DataError(href, None, f"not a JSON file: {e}") from e
         except (ValueError, RecursionError) as e:  # a number of over 4300 digits, nesting too deep
@@ -452,7 +463,20 @@ def _json_ok(path: Path, name: str | None = None) -> str | None:
 
 # --------------------------------------------------------------------------- journal
 MAX_STAC_BYTES = 64 * 2**20
-"""Largest STAC JSON file read (PAINT's largest collection is well below 1 MB)."""
+"""Largest STAC JSON file read (PAINT's largest collection is well below 1 MB), and
+largest ``.json`` asset downloaded without a ``file:size``."""
+
+MAX_ASSET_BYTES = 4 * 2**30
+"""Largest other asset downloaded without a ``file:size`` (PAINT's largest files, the
+deflectometry HDF5 files, are well below); one with a ``file:size`` is broken off once
+it exceeds that size. A server that streams without end would otherwise fill the disk."""
+
+
+def _most_bytes(size: int | None, name: str) -> int:
+    """Bytes after which the download of an asset named ``name`` with ``file:size`` ``size`` is broken off."""
+    if size is not None:
+        return size
+    return MAX_STAC_BYTES if name.lower().endswith(".json") else MAX_ASSET_BYTES
 
 
 class _Journal:
