@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import json
 import math
@@ -1197,3 +1198,32 @@ def test_atomic_output_never_replaces_a_device_or_pipe(tmp_path):
     with pytest.raises(OSError, match="not a regular file"), atomic_path(fifo):
         pass
     assert fifo.is_fifo() and list(tmp_path.iterdir()) == [fifo]
+
+
+@pytest.mark.parametrize(
+    ("argv", "flag", "text"),
+    [
+        (lambda t, p: ["aim", str(t / "r.h5"), "--config", p], "--config", "[aim]\n"),
+        (lambda t, p: ["calibrate", "--records", p], "--records", "heliostat_id,record_id\nZZ99,1\n"),
+        (lambda t, p: ["aim", p], "RESULTS_H5", ""),
+    ],
+    ids=["config", "records", "results"],
+)
+def test_an_input_that_is_a_pipe_or_device_is_refused_unread(argv, flag, text, tmp_path, capsys):
+    """An input file that is a pipe (or /dev/zero) is refused before it is opened: read,
+    it waits for a writer (or never ends). A writer is given so that a run that reads it
+    ends (with another error) instead of hanging."""
+    import threading
+
+    fifo = _a_fifo(tmp_path)
+
+    def feed() -> None:
+        with contextlib.suppress(OSError), open(fifo, "w") as f:
+            f.write(text)
+
+    threading.Thread(target=feed, daemon=True).start()
+    try:
+        rc, _, err = _run(argv(tmp_path, fifo), capsys)
+    finally:  # let the writer go
+        os.close(os.open(fifo, os.O_RDONLY | os.O_NONBLOCK))
+    assert rc == 2 and f"{flag} {fifo}: not a regular file" in err and len(err.strip().splitlines()) == 1, err

@@ -212,7 +212,7 @@ def check_input_paths(
 ) -> None:
     """Before any work: every input path option among ``options`` (dest -> action, as
     the CLI's parsers record them; type :func:`path_type`, not one of ``outputs``) that
-    ``args`` sets exists and is a directory (:data:`INPUT_DIRECTORIES`) or a file, and
+    ``args`` sets exists and is a directory (:data:`INPUT_DIRECTORIES`) or a regular file, and
     no output of ``outputs`` names that same file (the input would be replaced).
     Raises ConfigError naming the flag (the metavar of a positional argument)."""
     from .._errors import ConfigError
@@ -225,7 +225,7 @@ def check_input_paths(
         path = Path(value)
         want_dir = action.dest in INPUT_DIRECTORIES
         try:
-            exists, is_dir = path.exists(), path.is_dir()
+            exists, is_dir, is_file = path.exists(), path.is_dir(), path.is_file()
             if not exists and path.is_symlink():
                 target = os.readlink(path)
                 raise ConfigError(f"{flag} {_shown(path)}: a symbolic link to {target}, which does not exist")
@@ -238,6 +238,8 @@ def check_input_paths(
             raise ConfigError(f"{flag} {_shown(path)}: is a file, expected a directory")
         if not want_dir and is_dir:
             raise ConfigError(f"{flag} {_shown(path)}: is a directory, expected a file")
+        if not want_dir and not is_file:  # /dev/zero would be read forever, a pipe wait for a writer
+            raise ConfigError(f"{flag} {_shown(path)}: not a regular file (a device, a pipe or a socket)")
         if not want_dir:
             check_input_file(flag, path)
             _check_not_an_output(flag, path, args, outputs)
