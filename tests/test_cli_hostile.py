@@ -471,6 +471,7 @@ CASES = [
         lambda t: _accept(t, _file(t, "field.csv", "heliostat_id,east_m,north_m,tracking_mrad\nA1,1_0,50,1\n")),
         "line 2: east_m",
     ),
+    ("trace heliostat id with a final newline", lambda t: ["trace", "--heliostat", "BE36\n"], "--heliostat"),
     ("plot onto a pipe (or /dev/null)", lambda t: ["inspect", "--plot", _a_fifo(t), "--cache-dir", "none"], "--plot"),
     (
         "report onto the contract",

@@ -1190,3 +1190,14 @@ def test_a_catalogue_with_a_byte_order_mark_reads(catalogue, tmp_path):
     root_json.write_bytes(b"\xef\xbb\xbf" + root_json.read_bytes())
     rep = fetch_catalog(root_json, tmp_path / "out", heliostats=["AA31"], include_tower=False)
     assert rep.ok and rep.downloaded, rep
+
+
+def test_a_heliostat_id_with_a_final_newline_is_no_folder_name(catalogue, tmp_path):
+    """``AA31\\n-heliostat-catalog`` gave the folder ``AA31\\n`` ("$" of a regular
+    expression matches before a final newline): refused like any unsafe name."""
+    root_json, _ = catalogue
+    p = root_json.parent / "AA31-heliostat-catalog" / "catalog.json"
+    p.write_text(json.dumps({**json.loads(p.read_text()), "id": "AA31\n-heliostat-catalog"}))
+    with pytest.raises(DataError, match="unsafe folder name"):
+        fetch_catalog(root_json, tmp_path / "out", heliostats=None, include_tower=False)
+    assert not [q for q in tmp_path.rglob("*") if "\n" in q.name]

@@ -57,7 +57,7 @@ DEVIATIONS = (
 )
 """Kinematic deviations of ARTIST's rigid-body kinematics (m for translations, rad for tilts)."""
 
-_NUMBERED = re.compile(r"^(?:actuator|facet)_(\d+)$")
+_NUMBERED = re.compile(r"^(?:actuator|facet)_(\d+)\Z")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -14,7 +14,7 @@ from numpy.typing import ArrayLike
 from .._errors import DataError
 from .._io import atomic_path
 
-_FACET_GROUP = re.compile(r"^facet(\d+)$")
+_FACET_GROUP = re.compile(r"^facet(\d+)\Z")
 
 
 def read_deflectometry_facets(path: str | os.PathLike) -> list[tuple[np.ndarray, np.ndarray]]:

@@ -48,8 +48,8 @@ _COLLECTION_SUFFIX = {
 }
 _HELIOSTAT_SUFFIX = "-heliostat-catalog"
 _TOWER_SUFFIX = "-tower-measurements"
-_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+-]{0,254}$")
-_HELIOSTAT_RE = re.compile(r"^[A-Za-z0-9_]{1,64}$")
+_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+-]{0,254}\Z")  # \Z: "$" would let a final newline in
+_HELIOSTAT_RE = re.compile(r"^[A-Za-z0-9_]{1,64}\Z")
 _HREF_HELIOSTAT_RE = re.compile(r"([A-Za-z0-9_]+)-heliostat-catalog")
 _CHUNK = 1 << 20  # bytes per read
 
