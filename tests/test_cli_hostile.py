@@ -1228,3 +1228,22 @@ def test_an_input_that_is_a_pipe_or_device_is_refused_unread(argv, flag, text, t
     finally:  # let the writer go
         os.close(os.open(fifo, os.O_RDONLY | os.O_NONBLOCK))
     assert rc == 2 and f"{flag} {fifo}: not a regular file" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_sigterm_is_a_line_and_exit_143(tmp_path):
+    """SIGTERM ends a command like Ctrl-C (exit 130): one line, exit 143, no traceback,
+    cleanups run (before, the process died where it stood)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import os, signal\n"
+        "from heliojax.cli import _inspect\n"
+        "from heliojax.cli._main import main\n"
+        "_inspect.run = lambda args: os.kill(os.getpid(), signal.SIGTERM)\n"
+        "raise SystemExit(main(['inspect', '--cache-dir', 'none']))\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env, cwd=tmp_path)
+    assert r.returncode == 143, (r.returncode, r.stderr)
+    assert r.stderr.strip() == "heliojax inspect: terminated: outputs not finished were not written", r.stderr

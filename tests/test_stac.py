@@ -1201,3 +1201,45 @@ def test_a_heliostat_id_with_a_final_newline_is_no_folder_name(catalogue, tmp_pa
     with pytest.raises(DataError, match="unsafe folder name"):
         fetch_catalog(root_json, tmp_path / "out", heliostats=None, include_tower=False)
     assert not [q for q in tmp_path.rglob("*") if "\n" in q.name]
+
+
+def test_ctrl_c_cancels_the_queued_downloads_and_leaves_no_temporaries(catalogue, tmp_path):
+    """Ctrl-C while files download: those queued are not started, the one under way breaks
+    off at its next chunk and its temporary file is removed (the pool's exit waited for
+    every queued file before)."""
+    import signal
+    import time
+
+    root_json, _ = catalogue
+    calls: list[str] = []
+
+    class Slow(io.RawIOBase):
+        def __init__(self, f):
+            self.f, self.left = f, 40
+
+        def readable(self):
+            return True
+
+        def read(self, n=-1):
+            time.sleep(0.02)
+            self.left -= 1
+            return self.f.read(1) if self.left > 0 else b""
+
+        def close(self):
+            self.f.close()
+            super().close()
+
+    def transport(href, timeout_s):
+        f = open(href, "rb")  # noqa: SIM115 - closed by Slow
+        if "/data/" not in href:
+            return f
+        calls.append(href)
+        if len(calls) == 1:
+            os.kill(os.getpid(), signal.SIGINT)
+        return Slow(f)
+
+    out = tmp_path / "out"
+    with pytest.raises(KeyboardInterrupt):
+        fetch_catalog(root_json, out, calibration_assets=ALL_CAL, transport=transport, workers=1, include_tower=False)
+    assert len(calls) <= 2, calls
+    assert not [p for p in out.rglob("*") if p.name.endswith(".part")]

@@ -14,7 +14,9 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import signal
 import sys
+import threading
 import typing
 from collections.abc import Iterable
 from pathlib import Path
@@ -204,8 +206,39 @@ def _one_of(action: argparse.Action) -> argparse.Action:
     return argparse.Action(action.option_strings, action.dest, type=action.type, choices=action.choices)  # pyright: ignore[reportArgumentType]
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread like Ctrl-C's KeyboardInterrupt so that every
+    ``finally`` and cleanup runs (temporary files removed, partial outputs not renamed)."""
+
+
+def _terminate(signum: int, frame: object) -> typing.NoReturn:
+    raise Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
+    """``heliojax COMMAND ...``; the exit status: 0, 1 (fetch: some files failed), 2
+    (bad input, a usage error), 130 (Ctrl-C) or 143 (SIGTERM): interrupted, a line
+    without a traceback, and no output half written."""
     argv = sys.argv[1:] if argv is None else list(argv)
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminate) if in_main_thread else None
+    try:
+        return _main(argv)
+    except KeyboardInterrupt as e:
+        terminated = isinstance(e, Terminated)
+        command = next((a for a in argv if a in SUBCOMMANDS), "")
+        print(
+            f"heliojax{' ' + command if command else ''}: {'terminated' if terminated else 'interrupted'}: "
+            "outputs not finished were not written",
+            file=sys.stderr,
+        )
+        return 143 if terminated else 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _main(argv: list[str]) -> int:
     parser, modules, subparsers = build_parser()
     args = parser.parse_args(argv)
     if args.version:

@@ -231,6 +231,7 @@ def fetch_catalog(
         contextlib.ExitStack() as stack,
         contextlib.closing(reader),
         cf.ThreadPoolExecutor(max_workers=max(1, workers)) as pool,
+        _stopped_on_error(pool, reader),
     ):
         root = reader.stac(root_href)  # before the output folder is made: a bad root leaves nothing behind
         stack.enter_context(_made_folder(out))
@@ -350,6 +351,19 @@ def fetch_catalog(
         f"{len(report.skipped)} already complete, {len(report.failed)} failed"
     )
     return report
+
+
+@contextlib.contextmanager
+def _stopped_on_error(pool: cf.ThreadPoolExecutor, reader: _Reader):
+    """On an exception (Ctrl-C, SIGTERM, an unsafe href) the downloads not started are
+    cancelled and those under way break off at their next chunk, removing their
+    temporary files: the pool's own exit would otherwise wait for every queued file."""
+    try:
+        yield
+    except BaseException:
+        reader.stopped.set()
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
 
 
 @contextlib.contextmanager
@@ -602,6 +616,8 @@ def _fetch_one(task: _Task, reader: _Reader, journal: _Journal, resume: bool, ou
             with os.fdopen(fd, "wb") as f:
                 with reader.chunks(task.src) as chunks:
                     for chunk in chunks:
+                        if reader.stopped.is_set():
+                            raise _Failure("stopped: the run was interrupted")
                         if size + len(chunk) > most:
                             said = "the catalogue's file:size" if task.size is not None else "the most accepted"
                             raise _Failure(f"more than {most} bytes ({said}): download broken off")

@@ -259,6 +259,7 @@ class _Reader:
             allowed_methods={"GET"},
             respect_retry_after_header=False,  # a server's Retry-After may ask for hours: back off our way
         )
+        self.stopped = threading.Event()  # set when the run stops: downloads under way break off
         self.session = requests.Session()
         self.session.headers["User-Agent"] = "heliojax-fetch"
         self.session.hooks["response"].append(_redirect_hook(same_host_only))
