@@ -1247,3 +1247,29 @@ def test_sigterm_is_a_line_and_exit_143(tmp_path):
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env, cwd=tmp_path)
     assert r.returncode == 143, (r.returncode, r.stderr)
     assert r.stderr.strip() == "heliojax inspect: terminated: outputs not finished were not written", r.stderr
+
+
+def test_a_cache_folder_that_cannot_be_made_is_named_or_done_without(tmp_path, capsys, monkeypatch):
+    """$HELIOJAX_CACHE_DIR naming a file is an error naming it (was a bare "File exists");
+    the default cache under a $HOME that is a file is done without, with a warning."""
+    monkeypatch.setenv("HELIOJAX_CACHE_DIR", str(_a_file(tmp_path)))
+    rc, _, err = _run(["inspect"], capsys)
+    assert rc == 2 and "$HELIOJAX_CACHE_DIR" in err and len(err.strip().splitlines()) == 1, err
+    monkeypatch.delenv("HELIOJAX_CACHE_DIR")
+    monkeypatch.setenv("HOME", str(tmp_path / "a-file"))
+    rc, _, err = _run(["inspect", "--centroid", "helios"], capsys)
+    assert rc == 0 and "no compilation cache" in err, err
+
+
+def test_a_jax_platform_that_cannot_start_is_one_line(capsys, monkeypatch):
+    """JAX_PLATFORMS=cuda on a machine without a GPU: one line naming it, not JAX's
+    traceback from deep inside the first computation."""
+    import jax
+
+    def no_backend(*args, **kwargs):
+        raise AssertionError()  # what JAX_PLATFORMS=cuda without a GPU raises
+
+    monkeypatch.setenv("JAX_PLATFORMS", "cuda")
+    monkeypatch.setattr(jax, "devices", no_backend)
+    rc, _, err = _run(["inspect", "--cache-dir", "none"], capsys)
+    assert rc == 2 and "JAX_PLATFORMS=cuda" in err and len(err.strip().splitlines()) == 1, err

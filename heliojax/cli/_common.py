@@ -163,10 +163,23 @@ def enable_compilation_cache(cache_dir: str | os.PathLike | None) -> None:
     """
     import jax
 
+    from .._errors import ConfigError
+
     if cache_dir is not None and str(cache_dir).lower() == "none":
         return
-    path = Path(cache_dir or os.environ.get("HELIOJAX_CACHE_DIR") or Path.home() / ".cache" / "heliojax" / "jax")
-    path.mkdir(parents=True, exist_ok=True)
+    chosen = cache_dir or os.environ.get("HELIOJAX_CACHE_DIR")
+    try:
+        path = Path(chosen or Path.home() / ".cache" / "heliojax" / "jax")
+        path.mkdir(parents=True, exist_ok=True)
+        if not os.access(path, os.W_OK | os.X_OK):
+            raise PermissionError(13, "not writable")
+    except (OSError, RuntimeError) as e:  # RuntimeError: Path.home() without $HOME or a user entry
+        reason = getattr(e, "strerror", None) or str(e)
+        if not chosen:  # the default: a convenience, not worth failing a run for
+            log.warning(f"no compilation cache ({reason}); --cache-dir DIR keeps one, --cache-dir none silences this")
+            return
+        where = "--cache-dir" if cache_dir else "$HELIOJAX_CACHE_DIR"
+        raise ConfigError(f"{where} {_shown(Path(chosen))}: cannot hold the compilation cache: {reason}") from None
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)  # keep small programs too
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)

@@ -252,6 +252,18 @@ def _main(argv: list[str]) -> int:
     import jax  # after parsing: --help and --version stay fast
 
     jax.config.update("jax_enable_x64", True)
+    platforms = os.environ.get("JAX_PLATFORMS", "").strip()
+    if platforms:  # a backend named but not usable here fails on the first array, deep in a command
+        try:
+            jax.devices()
+        except Exception as e:  # RuntimeError (unknown backend), AssertionError (CUDA without a GPU), ...
+            detail = str(e).strip().splitlines()[0][:200] if str(e).strip() else type(e).__name__
+            print(
+                f"heliojax {args.command}: error: JAX_PLATFORMS={platforms[:60]}: JAX cannot start it here "
+                f"({detail}); unset JAX_PLATFORMS or set it to cpu",
+                file=sys.stderr,
+            )
+            return 2
     try:
         if getattr(args, "config", None) is not None:
             _apply_config(subparsers[args.command], args.command, args.config, modules)
