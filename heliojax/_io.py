@@ -122,6 +122,12 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **kwargs) -> Iterator
             f.flush()
             os.fsync(f.fileno())
         _publish(tmp, path)
+    except OSError as e:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        if e.filename is None:  # a write's ENOSPC names no file: name the output, not a temporary
+            raise OSError(e.errno, e.strerror or str(e), str(path)) from e
+        raise
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
@@ -143,6 +149,23 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+@contextlib.contextmanager
+def atomic_h5(path: str | os.PathLike) -> Iterator:
+    """An :class:`h5py.File` to fill, built in memory and written to ``path`` with
+    :func:`atomic_write` once closed: a disk that fills up is one :class:`OSError`
+    naming ``path`` (HDF5 writing to the disk itself spewed an ignored exception per
+    buffer and could crash the process), and nothing partial is left."""
+    import io
+
+    import h5py
+
+    buffer = io.BytesIO()
+    with h5py.File(buffer, "w") as f:
+        yield f
+    with atomic_write(path, "wb") as out:
+        out.write(buffer.getbuffer())
 
 
 def json_safe(value):

@@ -56,7 +56,7 @@ from jaxtyping import ArrayLike, Float
 from ._errors import DataError
 from ._geometry import direction_to_azimuth_elevation
 from ._heliostat import HeliostatGeometry, LinearActuators
-from ._io import atomic_path
+from ._io import atomic_h5
 from ._kinematics import AbstractKinematicModel, nominal_model
 from ._parameters import ParameterView, broadcast_model
 from ._predictive import PointingErrorLaw
@@ -131,7 +131,7 @@ def write_results_h5(path: str | Path, run: typing.Any) -> None:
     az, el = direction_to_azimuth_elevation(run.fleet.context.sun)
     mask = np.asarray(run.fleet.mask)
     str_dt = h5py.string_dtype()
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+    with atomic_h5(path) as f:
         f.attrs["model"] = run.model0.label()
         f.attrs["split"] = run.split_kind
         f.attrs["heliojax_version"] = __version__

@@ -1273,3 +1273,33 @@ def test_a_jax_platform_that_cannot_start_is_one_line(capsys, monkeypatch):
     monkeypatch.setattr(jax, "devices", no_backend)
     rc, _, err = _run(["inspect", "--cache-dir", "none"], capsys)
     assert rc == 2 and "JAX_PLATFORMS=cuda" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_full_disk_is_one_error_naming_the_output(tmp_path, monkeypatch):
+    """ENOSPC (a write names no file) is an OSError naming the output, not its temporary,
+    and nothing is left; HDF5 files are built in memory (HDF5 writing to a full disk
+    printed an ignored exception per buffer and could crash) and written the same way."""
+    import errno
+
+    from heliojax._io import atomic_h5, atomic_write
+
+    out = tmp_path / "r.json"
+    with pytest.raises(OSError) as info, atomic_write(out) as f:
+        f.write("x")
+        raise OSError(errno.ENOSPC, "No space left on device")
+    assert info.value.filename == str(out) and list(tmp_path.iterdir()) == []
+    with atomic_h5(tmp_path / "ok.h5") as h:
+        h["x"] = np.arange(3)
+    import h5py
+
+    with h5py.File(tmp_path / "ok.h5") as h:
+        assert list(h["x"][()]) == [0, 1, 2]
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", full)
+    with pytest.raises(OSError, match="No space") as info, atomic_h5(tmp_path / "r.h5") as h:
+        h["x"] = np.arange(3)
+    assert info.value.filename == str(tmp_path / "r.h5")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ok.h5"]

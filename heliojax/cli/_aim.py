@@ -216,7 +216,7 @@ def run(args) -> int:
     from .._aim import aim_results
     from .._errors import ConfigError
     from .._geometry import direction_to_azimuth_elevation, enu_to_wgs84, wgs84_to_enu
-    from .._io import atomic_path, atomic_write
+    from .._io import atomic_h5, atomic_write
     from .._progress import activity
     from .._results import load_results
     from ..optics import target_from_tower
@@ -287,7 +287,7 @@ def run(args) -> int:
     if args.h5 is not None:
         import h5py
 
-        with atomic_path(args.h5) as tmp, h5py.File(tmp, "w") as f:
+        with atomic_h5(args.h5) as f:
             f.attrs["target"] = args.target
             f.attrs["origin_lla"] = origin
             f.attrs["tail_dof"] = r.error_law.tail_dof

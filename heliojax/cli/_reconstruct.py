@@ -258,12 +258,11 @@ def _write_outputs(out: Path, facets, fig, report: dict, *, extra=None, attrs=No
     """OUT/control_points.h5 (the facets' control points, translations, degree, plus
     ``extra`` datasets and ``attrs``), OUT/reconstruction.png and OUT/reconstruction.json
     (also printed), each written atomically."""
-    import h5py
     import matplotlib.pyplot as plt
     import numpy as np
 
     from .._errors import ConfigError
-    from .._io import atomic_path, atomic_write
+    from .._io import atomic_h5, atomic_path, atomic_write
 
     bad = _non_finite(report)
     if bad or not np.isfinite(np.asarray(facets.control_points)).all():
@@ -271,15 +270,14 @@ def _write_outputs(out: Path, facets, fig, report: dict, *, extra=None, attrs=No
             f"the reconstruction diverged ({', '.join(bad[:3]) or 'control points'} not finite): "
             "lower --learning-rate or --flux-weight; nothing written"
         )
-    with atomic_path(out / "control_points.h5") as tmp:
-        with h5py.File(tmp, "w") as f:
-            f.create_dataset("control_points", data=np.asarray(facets.control_points))
-            f.create_dataset("translations", data=np.asarray(facets.translations))
-            for name, value in (extra or {}).items():
-                f.create_dataset(name, data=np.asarray(value))
-            f.attrs["degree"] = facets.degree
-            for name, value in (attrs or {}).items():
-                f.attrs[name] = value
+    with atomic_h5(out / "control_points.h5") as f:
+        f.create_dataset("control_points", data=np.asarray(facets.control_points))
+        f.create_dataset("translations", data=np.asarray(facets.translations))
+        for name, value in (extra or {}).items():
+            f.create_dataset(name, data=np.asarray(value))
+        f.attrs["degree"] = facets.degree
+        for name, value in (attrs or {}).items():
+            f.attrs[name] = value
     with atomic_path(out / "reconstruction.png") as tmp:
         fig.savefig(tmp, dpi=90, format="png", bbox_inches="tight")
     plt.close(fig)

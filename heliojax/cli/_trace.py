@@ -171,7 +171,6 @@ memory; the defaults trace 2**16)."""
 
 
 def run(args: argparse.Namespace) -> int:
-    import h5py
     import jax
     import jax.numpy as jnp
     import matplotlib
@@ -183,7 +182,7 @@ def run(args: argparse.Namespace) -> int:
     from .. import optics
     from .._errors import ConfigError, HeliojaxError
     from .._geometry import sun_direction
-    from .._io import atomic_path, json_safe, write_json
+    from .._io import atomic_h5, atomic_path, json_safe, write_json
     from .._kinematics import ActuatorModel, forward, inverse_aim
     from .._progress import progress_bar
     from ..paint import read_calibration_record, read_heliostat_properties, read_tower
@@ -302,21 +301,20 @@ def run(args: argparse.Namespace) -> int:
         elif args.record is not None:
             log.warning(f"no measured flux image {flux_png}: no comparison")
         extent = [float(grid.u_min), float(grid.u_max), float(grid.v_min), float(grid.v_max)]
-        with atomic_path(_output(args, "flux.h5")) as tmp:
-            with h5py.File(tmp, "w") as f:
-                d = f.create_dataset("flux", data=image.astype(np.float32))
-                d.attrs["units"] = "W/m^2"
-                d.attrs["extent_uv_m"] = extent
-                d.attrs["orientation"] = "row 0 = top (max v), column 0 = left (min u)"
-                f.attrs.update(
-                    heliostat=args.heliostat,
-                    target=target_name,
-                    sun_azimuth_deg=az,
-                    sun_elevation_deg=el,
-                    counts=np.asarray(counts),
-                    centroid_uv_m=c,
-                    power_w=power,
-                )
+        with atomic_h5(_output(args, "flux.h5")) as f:
+            d = f.create_dataset("flux", data=image.astype(np.float32))
+            d.attrs["units"] = "W/m^2"
+            d.attrs["extent_uv_m"] = extent
+            d.attrs["orientation"] = "row 0 = top (max v), column 0 = left (min u)"
+            f.attrs.update(
+                heliostat=args.heliostat,
+                target=target_name,
+                sun_azimuth_deg=az,
+                sun_elevation_deg=el,
+                counts=np.asarray(counts),
+                centroid_uv_m=c,
+                power_w=power,
+            )
         fig, ax = plt.subplots(figsize=(5, 4.4))
         im = ax.imshow(image, extent=extent, origin="upper", cmap="inferno")  # pyright: ignore[reportArgumentType]
         fig.colorbar(im, ax=ax, label="flux density [W/m$^2$]")

@@ -35,7 +35,7 @@ import h5py
 import numpy as np
 
 from .._errors import DataError
-from .._io import atomic_path
+from .._io import atomic_h5
 
 ACTUATOR_PARAMETERS = ("increment", "initial_angle", "initial_stroke_length", "offset", "pivot_radius")
 """Parameters of an ARTIST actuator (m, rad; ``increment`` counts per metre)."""
@@ -344,7 +344,7 @@ def _write_heliostat(g: Any, h: ArtistHeliostat) -> None:
 def write_artist_scenario(path: str | os.PathLike, scenario: ArtistScenario) -> None:
     """Write ``scenario`` in ARTIST's layout (float32 numbers, as ARTIST writes them),
     atomically."""
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+    with atomic_h5(path) as f:
         f.attrs["version"] = np.float64(scenario.version)
         f["power_plant/position"] = np.asarray(scenario.plant_position_lla, np.float64)
         if scenario.number_of_heliostat_groups is not None:

@@ -12,7 +12,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .._errors import DataError
-from .._io import atomic_path
+from .._io import atomic_h5
 
 _FACET_GROUP = re.compile(r"^facet(\d+)\Z")
 
@@ -52,7 +52,7 @@ def read_deflectometry_facets(path: str | os.PathLike) -> list[tuple[np.ndarray,
 
 def write_deflectometry(path: str | os.PathLike, facets: Sequence[tuple[ArrayLike, ArrayLike]]) -> None:
     """Write per-facet ``(points [n_i, 3], normals [n_i, 3])`` in PAINT's layout (float32), atomically."""
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+    with atomic_h5(path) as f:
         for i, (p, q) in enumerate(facets, start=1):
             g = f.create_group(f"facet{i}")
             g.create_dataset("surface_points", data=np.asarray(p, np.float32))
