@@ -1303,3 +1303,24 @@ def test_a_full_disk_is_one_error_naming_the_output(tmp_path, monkeypatch):
         h["x"] = np.arange(3)
     assert info.value.filename == str(tmp_path / "r.h5")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ok.h5"]
+
+
+@pytest.mark.parametrize(("error", "rc", "said"), [("ENOSPC", 2, "standard output: "), ("EPIPE", 141, "")])
+def test_standard_output_full_is_named_and_a_closed_pipe_is_quiet(error, rc, said, capsys, monkeypatch):
+    """``> /dev/full``: an error naming standard output (an OSError of a write names no
+    file); ``| head -1``: a quiet end with 141, as a Unix tool killed by SIGPIPE."""
+    import errno
+    import sys
+
+    class Failing:
+        def write(self, text):
+            raise OSError(getattr(errno, error), os.strerror(getattr(errno, error)))
+
+        def flush(self):
+            pass
+
+    monkeypatch.setattr(sys, "stdout", Failing())
+    got, _, err = _run(["inspect", "--cache-dir", "none", "--centroid", "helios"], capsys)
+    assert got == rc, err
+    lines = [line for line in err.splitlines() if not line.startswith("[heliojax]")]
+    assert lines == ([f"heliojax inspect: error: {said}{os.strerror(errno.ENOSPC)}"] if said else []), err

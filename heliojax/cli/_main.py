@@ -206,6 +206,29 @@ def _one_of(action: argparse.Action) -> argparse.Action:
     return argparse.Action(action.option_strings, action.dest, type=action.type, choices=action.choices)  # pyright: ignore[reportArgumentType]
 
 
+class _NamedStdout:
+    """``sys.stdout`` whose write errors (a full disk, ``> /dev/full``) name it: an
+    OSError of a write carries no file name, and the error line would name nothing."""
+
+    def __init__(self, stream: typing.Any) -> None:
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except OSError as e:
+            raise OSError(e.errno, e.strerror or str(e), "standard output") from None
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except OSError as e:
+            raise OSError(e.errno, e.strerror or str(e), "standard output") from None
+
+    def __getattr__(self, name: str) -> typing.Any:
+        return getattr(self._stream, name)
+
+
 class Terminated(KeyboardInterrupt):
     """SIGTERM, raised in the main thread like Ctrl-C's KeyboardInterrupt so that every
     ``finally`` and cleanup runs (temporary files removed, partial outputs not renamed)."""
@@ -222,6 +245,8 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _terminate) if in_main_thread else None
+    stdout = sys.stdout
+    sys.stdout = _NamedStdout(stdout)
     try:
         return _main(argv)
     except KeyboardInterrupt as e:
@@ -234,8 +259,18 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 143 if terminated else 130
     finally:
+        sys.stdout = stdout
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+
+
+def _silence_stdout() -> None:
+    """Point standard output at /dev/null: the flush at exit would fail on the closed pipe again."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.__stdout__.fileno() if sys.__stdout__ is not None else 1)
+    except (OSError, ValueError):  # no file descriptor (a test's captured stdout)
+        pass
 
 
 def _main(argv: list[str]) -> int:
@@ -286,6 +321,9 @@ def _main(argv: list[str]) -> int:
         print(f"heliojax {args.command}: error: {e}", file=sys.stderr)
         return 2
     except OSError as e:  # a file that vanished or turned unwritable while running
+        if isinstance(e, BrokenPipeError) and e.filename == "standard output":
+            _silence_stdout()  # `heliojax inspect | head -1`: the reader had enough, as with any Unix tool
+            return 141  # 128 + SIGPIPE
         where = f"{e.filename}: " if e.filename else ""
         print(f"heliojax {args.command}: error: {where}{e.strerror or e}", file=sys.stderr)
         return 2
