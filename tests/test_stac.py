@@ -1243,3 +1243,15 @@ def test_ctrl_c_cancels_the_queued_downloads_and_leaves_no_temporaries(catalogue
         fetch_catalog(root_json, out, calibration_assets=ALL_CAL, transport=transport, workers=1, include_tower=False)
     assert len(calls) <= 2, calls
     assert not [p for p in out.rglob("*") if p.name.endswith(".part")]
+
+
+def test_a_list_option_that_names_nothing_is_a_usage_error(catalogue, tmp_path, capsys):
+    """``--heliostats ,,,`` fetched the tower file only and said nothing; ``all`` among
+    other asset keys is all of them."""
+    root_json, _ = catalogue
+    with pytest.raises(SystemExit):
+        _cli(["fetch", str(root_json), "--out", str(tmp_path / "o"), "--heliostats", ",,,"])
+    assert "--heliostats" in capsys.readouterr().err and not (tmp_path / "o").exists()
+    argv = ["fetch", str(root_json), "--out", str(tmp_path / "a"), "--heliostats", "AA31", "--assets", "all,flux_image"]
+    assert _cli([*argv, "--quiet", "--no-tower"]) == 0, capsys.readouterr().err
+    assert (tmp_path / "a/AA31/Calibration/125284-flux-centered.png").is_file()

@@ -27,7 +27,11 @@ PAINT_CATALOGUE = "https://paint-database.org/WRI1030197/WRI1030197-catalog-stac
 
 
 def _csv(value: str) -> list[str]:
-    return [v.strip() for v in value.split(",") if v.strip()]
+    """An argparse ``type``: comma-separated names, at least one (``,,,`` fetched nothing and said so nowhere)."""
+    names = [v.strip() for v in value.split(",") if v.strip()]
+    if not names:
+        raise argparse.ArgumentTypeError(f"{value[:40]!r} names nothing: give comma-separated names")
+    return names
 
 
 def _csv_of(choices: tuple[str, ...], what: str, *extra: str):
@@ -129,7 +133,7 @@ def add_parser(subparsers) -> None:
 def run(args) -> int:
     from ..paint import fetch_catalog
 
-    assets = list(CALIBRATION_ASSETS) if args.assets == ["all"] else args.assets
+    assets = list(CALIBRATION_ASSETS) if "all" in args.assets else args.assets
 
     def progress(msg: str) -> None:
         print(msg, file=sys.stderr, flush=True)
