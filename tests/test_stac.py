@@ -1255,3 +1255,12 @@ def test_a_list_option_that_names_nothing_is_a_usage_error(catalogue, tmp_path, 
     argv = ["fetch", str(root_json), "--out", str(tmp_path / "a"), "--heliostats", "AA31", "--assets", "all,flux_image"]
     assert _cli([*argv, "--quiet", "--no-tower"]) == 0, capsys.readouterr().err
     assert (tmp_path / "a/AA31/Calibration/125284-flux-centered.png").is_file()
+
+
+def test_a_long_hostile_href_is_shown_shortened(catalogue, tmp_path):
+    """An href of 5000 characters is refused with a message of a line, not of 10 kB."""
+    root_json, _ = catalogue
+    edit_asset(root_json.parent, "AA31", "126372", "calibration_properties", href="data/" + "a" * 5000 + "?.json")
+    with pytest.raises(DataError, match="unsafe or empty file name") as info:
+        fetch_catalog(root_json, tmp_path / "out", heliostats=["AA31"], include_tower=False)
+    assert len(str(info.value)) < 600, len(str(info.value))

@@ -122,6 +122,7 @@ from ._stac_io import (
     _safe_dest,
     _scheme,
     _Scope,
+    _short,
     _Task,
 )
 from ._timestamps import read_timestamps, write_timestamps
@@ -442,9 +443,9 @@ def _plan_asset(
     try:
         raw_path = urllib.parse.urlsplit(raw).path if _is_url(raw) else raw
     except ValueError as e:  # "http://[::1": broken, not hostile
-        raise _MalformedAsset(owner, field, f"href {raw[:200]!r} is not a URL: {e}") from None
+        raise _MalformedAsset(owner, field, f"href {_short(raw)} is not a URL: {e}") from None
     if ".." in urllib.parse.unquote(raw_path).replace("\\", "/").split("/"):
-        raise DataError(owner, field, f"asset href {raw!r} contains a '..' segment (path traversal)")
+        raise DataError(owner, field, f"asset href {_short(raw)} contains a '..' segment (path traversal)")
     src = scope.resolve(raw, owner, owner, field)
     name = _dest_name(src if _scheme(src) in ("http", "https") else raw, owner, field)  # no ?query, #fragment
     for part in folder:

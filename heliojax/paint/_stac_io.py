@@ -119,6 +119,12 @@ class _Failure(Exception):
 
 
 # --------------------------------------------------------------------------- hrefs
+def _short(text: str, most: int = 120) -> str:
+    """``repr(text)`` for a message, at most ``most`` characters of it (a catalogue's href
+    of 5000 characters made an error line of 10 kB)."""
+    return repr(text) if len(text) <= most else f"{text[: most // 2]!r}...{text[-most // 2 :]!r}"
+
+
 def _is_url(href: str) -> bool:
     return bool(re.match(r"^[A-Za-z][A-Za-z0-9+.-]*://", href))
 
@@ -168,26 +174,26 @@ class _Scope:
         if not isinstance(raw, str) or not raw:
             raise DataError(where, field, "empty or non-string href")
         if "\x00" in raw:
-            raise DataError(where, field, f"href {raw!r} contains a NUL character")
+            raise DataError(where, field, f"href {_short(raw)} contains a NUL character")
         try:
             href = _resolve(raw, owner)
             scheme = _scheme(href)
             urllib.parse.urlsplit(href).port  # noqa: B018 - raises ValueError for a port out of range
         except ValueError as e:  # "http://[::1": the href, not a bare "Invalid IPv6 URL"
-            raise DataError(where, field, f"href {raw[:200]!r} is not a URL: {e}") from None
+            raise DataError(where, field, f"href {_short(raw)} is not a URL: {e}") from None
         relative = not _is_url(raw) and not os.path.isabs(raw)
         if scheme in ("http", "https"):
             if relative and self.remote and not href.startswith(self.base):
-                raise DataError(where, field, f"relative href {raw!r} leaves the catalogue folder {self.base}")
+                raise DataError(where, field, f"relative href {_short(raw)} leaves the catalogue folder {self.base}")
             return href
         if scheme not in ("", "file"):
-            raise DataError(where, field, f"href {raw!r}: scheme {scheme!r} is not supported (http, https, file)")
+            raise DataError(where, field, f"href {_short(raw)}: scheme {scheme!r} is not supported (http, https, file)")
         if self.remote:
-            raise DataError(where, field, f"href {raw!r}: a remote catalogue may not point at local files")
+            raise DataError(where, field, f"href {_short(raw)}: a remote catalogue may not point at local files")
         if not self._inside_local(_local_path(href)):
             kind = "relative href" if relative else "absolute path"
             raise DataError(
-                where, field, f"{kind} {raw!r} points outside the catalogue folder {self.base} (path traversal)"
+                where, field, f"{kind} {_short(raw)} points outside the catalogue folder {self.base} (path traversal)"
             )
         return href
 
@@ -519,7 +525,7 @@ def _dest_name(href: str, where: str, field: str) -> str:
     seg = path.replace("\\", "/").rsplit("/", 1)[-1]
     name = urllib.parse.unquote(seg)
     if not _NAME_RE.match(name) or "/" in name or "\\" in name:
-        raise DataError(where, field, f"href {href!r} gives the unsafe or empty file name {name!r}")
+        raise DataError(where, field, f"href {_short(href)} gives the unsafe or empty file name {_short(name)}")
     return name
 
 
