@@ -1324,3 +1324,11 @@ def test_standard_output_full_is_named_and_a_closed_pipe_is_quiet(error, rc, sai
     assert got == rc, err
     lines = [line for line in err.splitlines() if not line.startswith("[heliojax]")]
     assert lines == ([f"heliojax inspect: error: {said}{os.strerror(errno.ENOSPC)}"] if said else []), err
+
+
+def test_a_closed_standard_output_prints_nothing(capsys, monkeypatch):
+    """Started with standard output closed (``>&-``, ``sys.stdout`` is None): prints go nowhere."""
+    import sys
+
+    monkeypatch.setattr(sys, "stdout", None)
+    assert main(["--version"]) == 0

@@ -246,7 +246,8 @@ def main(argv: list[str] | None = None) -> int:
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _terminate) if in_main_thread else None
     stdout = sys.stdout
-    sys.stdout = _NamedStdout(stdout)
+    if stdout is not None:  # None: started with standard output closed (`>&-`); print() writes nothing
+        sys.stdout = _NamedStdout(stdout)
     try:
         return _main(argv)
     except KeyboardInterrupt as e:
