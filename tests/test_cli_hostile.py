@@ -51,13 +51,6 @@ def _a_dir(tmp: Path) -> Path:
     return path
 
 
-def _a_fifo(tmp: Path) -> str:
-    """A named pipe ``a-fifo`` (as ``/dev/null`` or ``/dev/stdout`` is a device: not a regular file)."""
-    path = tmp / "a-fifo"
-    os.mkfifo(path)
-    return str(path)
-
-
 def _dangling(tmp: Path, target: str = "missing-folder/x") -> str:
     """A symbolic link ``a-link`` to ``target`` (relative to ``tmp``), which does not exist."""
     link = tmp / "a-link"
@@ -109,10 +102,9 @@ def _tower_edited(tmp: Path, edit) -> str:
     return str(data)
 
 
-def _fifo(tmp: Path, name: str = "a-file") -> str:
-    """A named pipe ``name``: opening it for reading blocks until a writer comes."""
-    import os
-
+def _fifo(tmp: Path, name: str = "a-fifo") -> str:
+    """A named pipe ``name``: opening it for reading blocks until a writer comes (as
+    ``/dev/null`` or ``/dev/stdout`` is a device, it is no regular file)."""
     path = tmp / name
     os.mkfifo(path)
     return str(path)
@@ -472,7 +464,7 @@ CASES = [
         "line 2: east_m",
     ),
     ("trace heliostat id with a final newline", lambda t: ["trace", "--heliostat", "BE36\n"], "--heliostat"),
-    ("plot onto a pipe (or /dev/null)", lambda t: ["inspect", "--plot", _a_fifo(t), "--cache-dir", "none"], "--plot"),
+    ("plot onto a pipe (or /dev/null)", lambda t: ["inspect", "--plot", _fifo(t), "--cache-dir", "none"], "--plot"),
     (
         "report onto the contract",
         lambda t: [*_accept(t, _field(t)), "--report", str(t / "contract.toml")],
@@ -1193,7 +1185,7 @@ def test_atomic_output_never_replaces_a_device_or_pipe(tmp_path):
     pipe or device (as root, ``--out /dev/null`` would have replaced /dev/null)."""
     from heliojax._io import atomic_path, atomic_write
 
-    fifo = Path(_a_fifo(tmp_path))
+    fifo = Path(_fifo(tmp_path))
     with pytest.raises(OSError, match="not a regular file"), atomic_write(fifo) as f:
         f.write("x")
     with pytest.raises(OSError, match="not a regular file"), atomic_path(fifo):
@@ -1216,7 +1208,7 @@ def test_an_input_that_is_a_pipe_or_device_is_refused_unread(argv, flag, text, t
     ends (with another error) instead of hanging."""
     import threading
 
-    fifo = _a_fifo(tmp_path)
+    fifo = _fifo(tmp_path)
 
     def feed() -> None:
         with contextlib.suppress(OSError), open(fifo, "w") as f:

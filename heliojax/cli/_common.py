@@ -238,7 +238,7 @@ def check_input_paths(
         path = Path(value)
         want_dir = action.dest in INPUT_DIRECTORIES
         try:
-            exists, is_dir, is_file = path.exists(), path.is_dir(), path.is_file()
+            exists, is_dir = path.exists(), path.is_dir()
             if not exists and path.is_symlink():
                 target = os.readlink(path)
                 raise ConfigError(f"{flag} {_shown(path)}: a symbolic link to {target}, which does not exist")
@@ -251,8 +251,6 @@ def check_input_paths(
             raise ConfigError(f"{flag} {_shown(path)}: is a file, expected a directory")
         if not want_dir and is_dir:
             raise ConfigError(f"{flag} {_shown(path)}: is a directory, expected a file")
-        if not want_dir and not is_file:  # /dev/zero would be read forever, a pipe wait for a writer
-            raise ConfigError(f"{flag} {_shown(path)}: not a regular file (a device, a pipe or a socket)")
         if not want_dir:
             check_input_file(flag, path)
             _check_not_an_output(flag, path, args, outputs)

@@ -133,8 +133,6 @@ def _apply_config(subparser: argparse.ArgumentParser, command: str, path: Path, 
 
     check_input_file("--config", path)
     try:
-        if path.exists() and not path.is_file() and not path.is_dir():  # /dev/zero: read forever, a pipe: a wait
-            raise ConfigError(f"--config {path}: not a regular file (a device, a pipe or a socket)")
         with open(path, "rb") as f:
             doc = tomllib.load(f)
     except OSError as e:
