@@ -400,6 +400,43 @@ CASES = [
     ("calibrate --prior with the fleet prior", lambda t: ["calibrate", "--prior"], "--prior"),
     ("calibrate --val no heliostat has", lambda t: ["calibrate", "--val", "1000"], "--val 1000"),
     (
+        "config one option under two spellings",
+        lambda t: ["calibrate", "--config", _config(t, '[calibrate]\nmax_steps = 3\n"max-steps" = 4\n')],
+        "same option",
+    ),
+    (
+        "config options that exclude each other",
+        lambda t: ["aim", "r.h5", "--config", _config(t, "[aim]\ndate = 2023-06-21\ntime = 2023-06-21T12:00:00Z\n")],
+        "date and time exclude each other",
+    ),
+    (
+        "config option required on the command line",
+        lambda t: ["fetch", "--out", "o", "--config", _config(t, '[fetch]\nout = "p"\n')],
+        "required on the command line",
+    ),
+    (
+        "config cache folder with a NUL byte",
+        lambda t: ["inspect", "--config", _config(t, '[inspect]\ncache_dir = "a\\u0000b"\n')],
+        "cache_dir",
+    ),
+    ("config number for a date", lambda t: ["aim", "r.h5", "--config", _config(t, "[aim]\ndate = 5\n")], "a string"),
+    (
+        "aim window of 10 years in minutes",
+        lambda t: [
+            "aim",
+            "r.h5",
+            "--start",
+            "2015-01-01",
+            "--end",
+            "2025-01-01",
+            "--step-minutes",
+            "1",
+            "--max-instants",
+            "2147483647",
+        ],
+        "--max-instants",
+    ),
+    (
         "config 1e308 for an int",
         lambda t: ["calibrate", "--config", _config(t, "[calibrate]\nmax_steps = 1e308\n")],
         "max_steps",
@@ -640,6 +677,29 @@ def test_a_config_string_for_a_list_option_is_one_value():
     targets = subparsers["plan"].options["targets"]
     assert _config_value(targets, "multi_focus_tower", "c.toml") == ["multi_focus_tower"]
     assert _config_value(targets, ["a", "b"], "c.toml") == ["a", "b"]
+
+
+def _parsed_with_config(argv: list[str]):
+    """``argv`` parsed as ``main`` parses it with its ``--config`` (no command run)."""
+    from heliojax.cli._main import _apply_config, build_parser
+
+    parser, modules, subparsers = build_parser()
+    args = parser.parse_args(argv)
+    module = modules[args.command]
+    _apply_config(subparsers[args.command], args.command, args.config, modules, args, getattr(module, "PARTNERS", None))
+    return parser.parse_args(argv)
+
+
+def test_configs_with_a_byte_order_mark_toml_dates_and_a_command_line_that_wins(tmp_path):
+    bom = _config(tmp_path, b"\xef\xbb\xbf[calibrate]\r\nmax_steps = 3\r\n")  # Notepad's UTF-8, CRLF
+    assert _parsed_with_config(["calibrate", "--config", bom]).max_steps == 3
+    toml_dates = _config(tmp_path, "[aim]\nstart = 2023-06-21T06:00:00+02:00\nend = 2023-06-21\n")
+    args = _parsed_with_config(["aim", "r.h5", "--config", toml_dates])
+    assert args.start == dt.datetime(2023, 6, 21, 4, tzinfo=dt.UTC) and args.end == dt.datetime(
+        2023, 6, 21, tzinfo=dt.UTC
+    )
+    args = _parsed_with_config(["aim", "r.h5", "--date", "2023-06-22", "--config", toml_dates])
+    assert (args.date.day, args.start, args.end) == (22, None, None)  # not the config's window
 
 
 def test_spots_far_from_their_target_and_heliostats_far_from_the_plant_are_skipped(tmp_path):

@@ -17,6 +17,8 @@ log = logging.getLogger(__name__)
 
 OUTPUT_FILES = ("out", "h5", "plot")
 OUTPUT_DIRS = ("cache_dir",)
+PARTNERS = {"start": ("end",)}
+"""Options that go with another (a config's ``end`` is dropped with its ``start``)."""
 
 
 def default_outputs(args) -> None:
@@ -86,7 +88,7 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--min-sun-elevation", type=number(-90.0, 90.0), default=5.0, help="flag instants with a lower sun (degrees)"
     )
-    p.add_argument("--max-instants", type=integer(1), default=10_000, help="refuse longer schedules")
+    p.add_argument("--max-instants", type=integer(1, 100_000), default=10_000, help="refuse longer schedules")
     p.add_argument(
         "--out",
         type=path_type,

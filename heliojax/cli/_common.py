@@ -28,6 +28,7 @@ def add_cache_argument(p) -> None:
     """``--cache-dir``: compiled and traced programs kept across runs."""
     p.add_argument(
         "--cache-dir",
+        type=path_type,
         default=None,
         help="persistent JAX compilation cache and heliojax's traced programs "
         "(default $HELIOJAX_CACHE_DIR or ~/.cache/heliojax/jax; 'none' disables)",

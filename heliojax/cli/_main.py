@@ -12,6 +12,7 @@ says otherwise (2-3x faster compiles for ~20 % slower runs: see
 from __future__ import annotations
 
 import argparse
+import datetime as dt
 import importlib
 import os
 import signal
@@ -126,7 +127,18 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict, dict[str, argparse.Ar
     return parser, modules, subparsers
 
 
-def _apply_config(subparser: argparse.ArgumentParser, command: str, path: Path, commands: Iterable[str]) -> None:
+def _apply_config(
+    subparser: argparse.ArgumentParser,
+    command: str,
+    path: Path,
+    commands: Iterable[str],
+    given: argparse.Namespace | None = None,
+    partners: dict[str, tuple[str, ...]] | None = None,
+) -> None:
+    """Option defaults from the ``[command]`` table of ``path``. ``given``: the command
+    line parsed alone; an option of a mutually exclusive group given there drops the
+    config's values of the group's other options (and of their ``partners``, e.g.
+    ``--start``'s ``--end``): the command line wins, as with any other option."""
     import tomllib  # only with --config
 
     from ._common import check_input_file
@@ -134,7 +146,8 @@ def _apply_config(subparser: argparse.ArgumentParser, command: str, path: Path, 
     check_input_file("--config", path)
     try:
         with open(path, "rb") as f:
-            doc = tomllib.load(f)
+            text = f.read()
+        doc = tomllib.loads(text.decode().removeprefix("\ufeff"))  # a byte order mark: saved by Notepad
     except OSError as e:
         raise ConfigError(f"{path}: cannot read config: {e}") from e
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
@@ -150,12 +163,27 @@ def _apply_config(subparser: argparse.ArgumentParser, command: str, path: Path, 
     if not isinstance(table, dict):
         raise ConfigError(f"{path}: [{command}] must be a table")
     known = subparser.options if isinstance(subparser, _Parser) else {}
-    defaults = {}
+    defaults, keys = {}, {}
     for key, value in table.items():
         dest = key.replace("-", "_")
         if dest not in known or dest in ("help", "config"):
             raise ConfigError(f"{path}: [{command}] unknown option {key!r}")
+        if dest in keys:  # max_steps and "max-steps": one would silently win
+            raise ConfigError(f"{path}: [{command}] {keys[dest]!r} and {key!r} are the same option: give it once")
+        if known[dest].required:  # argparse asks the command line for it before the config is read
+            raise ConfigError(f"{path}: [{command}] {key}: required on the command line, where it must be given")
+        keys[dest] = key
         defaults[dest] = _config_value(known[dest], value, f"{path}: [{command}] {key}")
+    for group in getattr(subparser, "_mutually_exclusive_groups", ()):
+        members = [a.dest for a in group._group_actions]
+        set_here = [keys[d] for d in members if d in keys]
+        if len(set_here) > 1:
+            raise ConfigError(f"{path}: [{command}] {' and '.join(set_here)} exclude each other: give one")
+        on_line = [d for d in members if getattr(given, d, None) is not None]
+        for dest in members if on_line else ():
+            if dest not in on_line:
+                for dropped in (dest, *(partners or {}).get(dest, ())):
+                    defaults.pop(dropped, None)
     subparser.set_defaults(**defaults)
 
 
@@ -188,11 +216,15 @@ def _config_value(action: argparse.Action, value: object, where: str) -> object:
                 raise ConfigError(f"{where}: {e}") from e
         value = Path(value) if kind is Path else value
     else:  # the option's own parser (ranges, lists, dates): strings, and numbers where it takes them
+        if isinstance(value, dt.date):  # dt.datetime too
+            value = value.isoformat()  # a TOML date or date-time, read as its ISO text would be
         if isinstance(value, bool) or not isinstance(value, str | int | float):
             raise ConfigError(f"{where}: expected a string or a number, got {value!r}")
         try:
             value = kind(value)  # pyright: ignore[reportCallIssue, reportArgumentType]
         except (ValueError, TypeError, AttributeError, argparse.ArgumentTypeError) as e:
+            if not isinstance(value, str) and isinstance(e, TypeError | AttributeError):  # a parser of strings only
+                raise ConfigError(f"{where}: expected a string, got {value!r}") from None
             raise ConfigError(f"{where}: {e}") from e
     if action.choices is not None and value not in action.choices:
         raise ConfigError(f"{where}: {value!r} is not one of {list(action.choices)}")
@@ -300,7 +332,9 @@ def _main(argv: list[str]) -> int:
             return 2
     try:
         if getattr(args, "config", None) is not None:
-            _apply_config(subparsers[args.command], args.command, args.config, modules)
+            module = modules[args.command]
+            partners = getattr(module, "PARTNERS", None)
+            _apply_config(subparsers[args.command], args.command, args.config, modules, args, partners)
             args = parser.parse_args(argv)
         module = modules[args.command]
         logger = configure_logging(bool(getattr(args, "quiet", False)))

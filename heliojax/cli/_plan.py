@@ -23,6 +23,8 @@ log = logging.getLogger(__name__)
 
 OUTPUT_FILES = ("out", "ranking", "records_out", "plot")
 OUTPUT_DIRS = ("cache_dir",)
+PARTNERS = {"start": ("end",)}
+"""Options that go with another (a config's ``end`` is dropped with its ``start``)."""
 
 
 def default_outputs(args) -> None:
@@ -109,7 +111,7 @@ def add_parser(subparsers) -> None:
         default=10.0,
         help="lowest sun (degrees) of the envelope and of candidate instants",
     )
-    p.add_argument("--max-instants", type=integer(1), default=2_000, help="refuse longer candidate windows")
+    p.add_argument("--max-instants", type=integer(1, 20_000), default=2_000, help="refuse longer candidate windows")
     p.add_argument(
         "--out", type=path_type, default=None, metavar="FILE", help="schedule CSV (default: plan.csv beside RESULTS_H5)"
     )
