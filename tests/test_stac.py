@@ -326,6 +326,23 @@ def test_only_unknown_heliostats_is_an_error_and_writes_nothing(catalogue, tmp_p
     assert not out.exists()  # not even the tower file, nor an empty folder
 
 
+def test_heliostat_catalogues_nested_below_the_root_are_an_error_not_an_empty_fetch(catalogue, tmp_path):
+    root_json, _ = catalogue
+    root = json.loads(root_json.read_text())
+    children = [link for link in root["links"] if link["rel"] == "child"]
+    wrapper = {"type": "Catalog", "id": "deeper", "stac_version": "1.1.0", "description": "one level down"}
+    wrapper["links"] = [{"rel": "child", "href": "../" + link["href"].removeprefix("./")} for link in children]
+    (root_json.parent / "deeper").mkdir()
+    (root_json.parent / "deeper" / "catalog.json").write_text(json.dumps(wrapper))
+    root["links"] = [link for link in root["links"] if link["rel"] != "child"]
+    root["links"].append({"rel": "child", "href": "./deeper/catalog.json"})
+    root_json.write_text(json.dumps(root))
+    out = tmp_path / "out"
+    with pytest.raises(ValueError, match="no heliostat catalogue"):  # was: exit 0, the tower file alone
+        fetch_catalog(root_json, out)
+    assert not out.exists()
+
+
 def test_date_filter_excludes_items_but_keeps_properties(catalogue, tmp_path):
     root_json, _ = catalogue
     out = tmp_path / "out"

@@ -286,6 +286,11 @@ def fetch_catalog(
         missing = tuple(sorted(wanted - set(catalogs))) if wanted is not None else ()
         if wanted and not catalogs:  # nothing to fetch: no tower file without its heliostats either
             raise ValueError(f"heliostats: none of {', '.join(missing)} is in the catalogue {source}")
+        if not catalogs and wanted is None and not all_tasks_done["failed"]:  # exit 0 with no heliostat said nothing
+            raise ValueError(
+                f"no heliostat catalogue (<id>-heliostat-catalog) among the {len(child_hrefs)} child(ren) of the "
+                f"root of {_short(str(source))}: not a PAINT-style catalogue"
+            )
         if missing:
             say(f"not in the catalogue: {', '.join(missing)}")
         say(f"{len(catalogs)} heliostat catalogue(s) selected")
