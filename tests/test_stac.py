@@ -343,6 +343,21 @@ def test_heliostat_catalogues_nested_below_the_root_are_an_error_not_an_empty_fe
     assert not out.exists()
 
 
+def test_a_percent_encoded_relative_href_reads_the_local_file(catalogue, tmp_path):
+    root_json, expected = catalogue
+    edit_asset(
+        root_json.parent,
+        "AA31",
+        "126372",
+        "calibration_properties",
+        href="./data/./126372%2Dcalibration-properties.json",
+    )
+    rep = fetch_catalog(root_json, tmp_path / "out", heliostats=["AA31"])
+    assert not rep.failed  # was: the file "126372%2Dcalibration-properties.json" was looked for
+    name = "AA31/Calibration/126372-calibration-properties.json"
+    assert (tmp_path / "out" / name).read_bytes() == expected[name]
+
+
 def test_date_filter_excludes_items_but_keeps_properties(catalogue, tmp_path):
     root_json, _ = catalogue
     out = tmp_path / "out"

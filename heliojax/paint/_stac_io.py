@@ -147,7 +147,8 @@ def _resolve(raw: str, owner: str) -> str:
         return urllib.parse.urljoin(owner, raw)
     if os.path.isabs(raw):
         return os.path.normpath(raw)
-    return os.path.normpath(os.path.join(os.path.dirname(_local_path(owner)), raw))
+    # a relative href is a URI reference: %2D is "-" on disk too, as a web server reads it (and as the file is named)
+    return os.path.normpath(os.path.join(os.path.dirname(_local_path(owner)), urllib.parse.unquote(raw)))
 
 
 @dataclasses.dataclass(frozen=True)
