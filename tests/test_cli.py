@@ -524,6 +524,13 @@ def test_plan_schedules_distinct_instants_and_ranks_the_fleet(results_h5, tmp_pa
     assert plot.stat().st_size > 10_000
 
 
+def test_plan_says_when_the_window_holds_fewer_instants_than_the_budget(results_h5, tmp_path, capsys):
+    argv = ["plan", str(results_h5), "--start", "2024-06-21T10:00", "--end", "2024-06-21T11:00", "--budget", "5"]
+    argv += ["--envelope-day-step", "60", "--out", str(tmp_path / "plan.csv"), "--cache-dir", "none", "--quiet"]
+    assert main(argv) == 0
+    assert "got fewer, as few as" in capsys.readouterr().out  # was: "with 5 planned measurement(s)" alone
+
+
 def test_retrospective_plan_feeds_calibrate_records(results_h5, tmp_path, capsys):
     data = hj.default_data_dir()
     chosen = tmp_path / "chosen.csv"

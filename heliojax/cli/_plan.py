@@ -352,8 +352,15 @@ def run(args) -> int:
         print(f"{rank:>4} {results.ids[i]:<10} {'yes' if changed[i] else '':>6} {before[i]:8.3f} {final[i]:8.3f}")
     if h > 10:
         print(f"     ... {h - 10} more in --ranking")
+    fewest = int(planned.sum(axis=1).min()) if h else args.budget
+    short = (  # a window of fewer usable instants than --budget: not the budget's worth, and said so
+        f" ({int((planned.sum(axis=1) < args.budget).sum())} heliostat(s) got fewer, as few as {fewest}: "
+        "the window has no more usable instants)"
+        if fewest < args.budget
+        else ""
+    )
     print(
         f"fleet: median predicted pointing uncertainty {np.median(before):.3f} -> {np.median(final):.3f} mrad "
-        f"with {args.budget} planned measurement(s) per heliostat"
+        f"with {args.budget} planned measurement(s) per heliostat{short}"
     )
     return 0
