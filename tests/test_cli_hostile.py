@@ -1384,3 +1384,21 @@ def test_a_closed_standard_output_prints_nothing(capsys, monkeypatch):
 
     monkeypatch.setattr(sys, "stdout", None)
     assert main(["--version"]) == 0
+
+
+def test_an_unreadable_data_folder_or_heliostat_folder_is_named(tmp_path, capsys, monkeypatch):
+    """A data folder the user cannot list is that, not "found 0 tower files"; an
+    unlistable heliostat folder counts as a skipped heliostat (was: "skipped 0
+    heliostat(s)" above its own line). As root, os.access stands in for chmod 000."""
+    data = tmp_path / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    denied: set[Path] = set()
+    access = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode, **kw: Path(p) not in denied and access(p, mode, **kw))
+    denied.add(data)
+    rc, _, err = _run(["inspect", str(data), "--cache-dir", "none"], capsys)
+    assert rc == 2 and "cannot read folder" in err and len(err.strip().splitlines()) == 1, err
+    denied.clear()
+    denied.add(data / "BE36")
+    report = hj.load_paint_directory(data).report
+    assert report.heliostats_skipped == 1 and report.heliostats_loaded == 4, report

@@ -655,6 +655,8 @@ def load_paint_directory(
     root = default_data_dir() if path is None else Path(path)
     if not root.is_dir():
         raise DataError(root, None, "not a directory")
+    if not os.access(root, os.R_OK | os.X_OK):  # else its listing is empty: "found 0" tower files
+        raise DataError(root, None, "cannot read folder: permission denied")
     log = _Log(str(root), strict, centroid)
     towers = sorted(root.glob("*" + TOWER_FILE_SUFFIX))
     if len(towers) != 1:
@@ -695,7 +697,7 @@ def load_paint_directory(
         if not d.is_dir():
             continue
         if not os.access(d, os.R_OK | os.X_OK):  # is_dir() of its subfolders would say False: name it
-            log.skip(DataError(d, None, "cannot read folder: permission denied"))
+            log.skip(DataError(d, None, "cannot read folder: permission denied"), heliostats=1)
         elif not d.name.isprintable() and ((d / "Properties").is_dir() or (d / "Calibration").is_dir()):
             log.skip(DataError(d, None, "folder name holds unprintable characters: not a heliostat id"), heliostats=1)
         elif (d / "Properties").is_dir() or (d / "Calibration").is_dir():
