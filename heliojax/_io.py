@@ -32,6 +32,8 @@ def input_file_problem(path: str | os.PathLike) -> str | None:
     link to /dev/zero is read forever, a FIFO blocks the open), or over
     :data:`MAX_INPUT_BYTES`. OSErrors of the stat (missing, a loop of links) propagate."""
     info = os.stat(path)
+    if stat.S_ISDIR(info.st_mode):
+        return "a directory, not a file"
     if not stat.S_ISREG(info.st_mode):
         return "not a regular file (a device, pipe or socket)"
     if info.st_size > MAX_INPUT_BYTES:
