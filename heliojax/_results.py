@@ -64,6 +64,7 @@ from ._splits import days_since_fit
 from ._version import __version__
 from .effects import with_effects
 from .fitting import FitStatus
+from .paint._common import MAX_HELIOSTAT_DISTANCE_M, MAX_HELIOSTAT_HEIGHT_M
 
 if typing.TYPE_CHECKING:
     import h5py
@@ -238,11 +239,7 @@ class CalibrationResults:
     def error_law(self) -> PointingErrorLaw:
         """The predicted pointing-error law (:func:`heliojax.temporal_drift`; the
         Gaussian in files written without one)."""
-        return PointingErrorLaw(
-            tail_dof=float(self.attrs.get("tail_dof", math.inf)),
-            outlier_fraction=float(self.attrs.get("outlier_fraction", 0.0)),
-            outlier_scale=float(self.attrs.get("outlier_scale", 1.0)),
-        )
+        return _error_law(self.attrs)
 
     def drift_variance_mrad2(self, unix_time: Float[ArrayLike, " N"]) -> Float[np.ndarray, "H N"]:
         """``(H, N)`` drift variance (mrad^2 per component) at ``unix_time`` (s): the
@@ -296,6 +293,19 @@ _LAW_ATTRS = (
 )
 """Numeric attributes of results.h5 and their ranges."""
 
+
+def _error_law(attrs: dict) -> PointingErrorLaw:
+    """The pointing-error law of results.h5's attributes ``attrs`` (the Gaussian without
+    them). Raises ValueError naming the attribute the law refuses."""
+    return PointingErrorLaw(
+        tail_dof=float(attrs.get("tail_dof", math.inf)),
+        outlier_fraction=float(attrs.get("outlier_fraction", 0.0)),
+        outlier_scale=float(attrs.get("outlier_scale", 1.0)),
+    )
+
+
+_MAX_NOISE_MRAD = 1e4
+"""Largest noise (mrad) of a usable fit: no beam misses by more than pi radians."""
 
 _MAX_SCALED_STEP = 1e6
 """Most solver scales (:attr:`heliojax.ParameterView.scales`) a usable fit may lie
@@ -430,6 +440,15 @@ def load_results(path: str | Path) -> CalibrationResults:
         unknown_status = sorted(set(status) - _STATUS_LABELS)
         if unknown_status:
             raise DataError(source, "status_labels", f"unknown status {unknown_status[0]!r}")
+        if "status" in f:  # the codes of the labels (FitStatus), never another count of them
+            codes = _numeric(need("status"), source, "status", (len(ids),), "iu")
+            labels = {s.value: "no_training_records" if s == FitStatus.NO_RECORDS else s.label for s in FitStatus}
+            wrong = [j for j, c in enumerate(codes) if labels.get(int(c)) != status[j]]
+            if wrong:
+                j = wrong[0]
+                raise DataError(
+                    source, "status", f"code {int(codes[j])} of {ids[j]!r} is not its status {status[j]!r} (FitStatus)"
+                )
         std = _numeric(need("param_std"), source, "param_std", (len(ids), len(names)), "f")
         unknown = sorted(set(attrs["free_params"]) - set(names))
         if unknown:
@@ -455,6 +474,12 @@ def load_results(path: str | Path) -> CalibrationResults:
                 raise DataError(source, key, f"not a number: {attrs[key]!r}") from None
             if math.isnan(x) or not low <= x <= high:
                 raise DataError(source, key, f"{x} is outside [{low}, {high}]")
+            attrs[key] = x
+    try:  # the law's own checks (tail_dof 0, outlier_scale below 1)
+        _error_law(attrs)
+    except ValueError as e:
+        key = next((k for k, _, _ in _LAW_ATTRS if k in str(e)), None)
+        raise DataError(source, key, str(e)) from None
     origin = attrs.get("origin_lla")
     try:
         origin = np.asarray(origin, float) if origin is not None else None
@@ -476,8 +501,12 @@ def load_results(path: str | Path) -> CalibrationResults:
     if not np.isfinite(params[usable]).all():
         raise DataError(source, "params", "not finite for a heliostat whose fit converged")
     _check_covariance(cov[usable], source)
-    if has_noise and not (np.isfinite(noise[usable]) & (noise[usable] >= 0)).all():
-        raise DataError(source, "noise_mrad", "not a finite non-negative noise for a heliostat whose fit converged")
+    if has_noise and not ((noise[usable] >= 0) & (noise[usable] <= _MAX_NOISE_MRAD)).all():
+        raise DataError(
+            source,
+            "noise_mrad",
+            f"not a noise in [0, {_MAX_NOISE_MRAD:g}] mrad for a heliostat whose fit converged",
+        )
     if "split" in records:
         fitted_records = (records["split"] != 0) & usable[:, None]
         for key in ("residual_mrad", "residual_uncalibrated_mrad"):
@@ -503,11 +532,31 @@ def load_results(path: str | Path) -> CalibrationResults:
         except (ValueError, KeyError) as e:
             raise DataError(source, "free_params", str(e)) from None
     # a usable fit moved a million solver scales (about a thousand radians of beam) from
-    # nominal is garbage, not a calibration
-    far = np.abs(params[usable] - np.asarray(view.nominal)) > _MAX_SCALED_STEP * np.asarray(view.scales)
-    if far.any():
-        name = view.names[int(np.argwhere(far)[0, 1])]
-        raise DataError(source, "params", f"{name} is implausibly far from nominal for a heliostat whose fit converged")
+    # nominal is garbage, not a calibration; nor is an uncertainty of as many
+    scales = np.asarray(view.scales)
+    free = list(view.free_index) if attrs["free_params"] else list(range(len(names)))
+    spreads = [
+        ("params", "is implausibly far from nominal", np.abs(params[usable] - np.asarray(view.nominal)), scales),
+        ("param_std", "has an implausible standard error", std[usable], scales),
+    ]
+    if len(free) == cov.shape[-1]:
+        diagonal = np.sqrt(np.abs(np.diagonal(cov[usable], axis1=-2, axis2=-1)))
+        spreads.append(("covariance", "has an implausible variance", diagonal, scales[free]))
+    for field, what, spread, scale in spreads:
+        far = ~((spread >= 0) & (spread <= _MAX_SCALED_STEP * scale))  # NaN of a usable fit too
+        if far.any():
+            name = view.names[(free if field == "covariance" else list(range(len(names))))[int(np.argwhere(far)[0, 1])]]
+            raise DataError(source, field, f"{name} {what} for a heliostat whose fit converged")
+    position = np.asarray(geometry.position, float)
+    far_off = np.hypot(position[:, 0], position[:, 1]) > MAX_HELIOSTAT_DISTANCE_M
+    far_off |= np.abs(position[:, 2]) > MAX_HELIOSTAT_HEIGHT_M
+    if far_off.any():
+        raise DataError(
+            source,
+            "geometry/position",
+            f"heliostat {ids[int(np.argmax(far_off))]!r} lies more than {MAX_HELIOSTAT_DISTANCE_M / 1000:g} km "
+            f"or {MAX_HELIOSTAT_HEIGHT_M:g} m from the plant's origin",
+        )
     batched = broadcast_model(template, len(ids))
     model = jax.vmap(view.from_vector)(batched, jnp.asarray(params))
     return CalibrationResults(

@@ -1402,3 +1402,61 @@ def test_an_unreadable_data_folder_or_heliostat_folder_is_named(tmp_path, capsys
     denied.add(data / "BE36")
     report = hj.load_paint_directory(data).report
     assert report.heliostats_skipped == 1 and report.heliostats_loaded == 4, report
+
+
+def test_an_input_folder_in_place_of_a_file_is_named_a_directory(tmp_path):
+    """A folder where a file was expected (a record replaced by a folder, or named
+    ``*-calibration-properties.json``) was called "a device, pipe or socket"."""
+    from heliojax._io import input_file_problem
+
+    assert input_file_problem(_a_dir(tmp_path)) == "a directory, not a file"
+
+
+@pytest.fixture(scope="module")
+def fitted_h5(tmp_path_factory) -> Path:
+    """A results.h5 of the embedded data (a quick stone8 fit)."""
+    results = tmp_path_factory.mktemp("fitted") / "results.h5"
+    argv = ["calibrate", "--model", "stone8", "--max-steps", "3", "--out", str(results), "--cache-dir", "none"]
+    assert main([*argv, "--quiet"]) == 0
+    return results
+
+
+def _edit_h5(name: str, index, value):
+    def edit(f):
+        a = f[name][()]
+        a[index] = value
+        f[name][...] = a
+
+    return edit
+
+
+def _set_attr(key: str, value):
+    def edit(f):
+        f.attrs[key] = value
+
+    return edit
+
+
+# (case, edit of an open results.h5, field the error names): each was read without a word
+EDITED_RESULTS = [
+    ("tail_dof 0 (a traceback)", _set_attr("tail_dof", 0.0), "tail_dof"),
+    ("outlier_scale below 1 (a traceback)", _set_attr("outlier_scale", 0.5), "outlier_scale"),
+    ("status code out of range", _edit_h5("status", 1, 99), "status"),
+    ("covariance 1e300 (pointing std 1e152 mrad)", _edit_h5("covariance", (0, 0, 0), 1e300), "covariance"),
+    ("param_std negative", _edit_h5("param_std", (0, 1), -3.0), "param_std"),
+    ("noise 1e300 (plan: NaN uncertainty)", _edit_h5("noise_mrad", 0, 1e300), "noise_mrad"),
+    ("heliostat 10 000 km away", _edit_h5("geometry/position", (0, 0), 1e7), "geometry/position"),
+]
+
+
+@pytest.mark.parametrize(("edit", "field"), [c[1:] for c in EDITED_RESULTS], ids=[c[0] for c in EDITED_RESULTS])
+def test_an_edited_results_h5_is_named(edit, field, fitted_h5, tmp_path, capsys):
+    import h5py
+
+    results = tmp_path / "results.h5"
+    shutil.copy(fitted_h5, results)
+    with h5py.File(results, "r+") as f:
+        edit(f)
+    rc, _, err = _run(["aim", str(results), "--date", "2024-06-01", "--out", str(tmp_path / "aim.csv")], capsys)
+    assert rc == 2 and f"field '{field}'" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "aim.csv").exists()
