@@ -82,6 +82,19 @@ def _destination(path: str | os.PathLike) -> Path:
     return path
 
 
+def _make_folder(path: Path) -> None:
+    """Create the folder of the output ``path``; a file or a dangling link in its place
+    (replaced while the run went on) is an OSError naming the output (was "File exists"
+    naming the folder)."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except FileExistsError as e:
+        where = e.filename or path.parent
+        raise NotADirectoryError(
+            errno.ENOTDIR, f"cannot write it: {where} is a file or a dangling link, not a folder", str(path)
+        ) from None
+
+
 def _umask() -> int:
     mask = os.umask(0o022)  # the only portable way to read it
     os.umask(mask)
@@ -113,7 +126,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **kwargs) -> Iterator
         **kwargs: passed to :func:`open` (e.g. ``encoding``).
     """
     path = _destination(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    _make_folder(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=TEMPORARY_MARK)
     os.close(fd)
     try:
@@ -141,7 +154,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path`` (for writers that want a file name,
     such as h5py or matplotlib); on success rename it onto ``path``."""
     path = _destination(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    _make_folder(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=TEMPORARY_MARK + path.suffix)
     os.close(fd)
     try:

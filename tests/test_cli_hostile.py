@@ -1460,3 +1460,16 @@ def test_an_edited_results_h5_is_named(edit, field, fitted_h5, tmp_path, capsys)
     rc, _, err = _run(["aim", str(results), "--date", "2024-06-01", "--out", str(tmp_path / "aim.csv")], capsys)
     assert rc == 2 and f"field '{field}'" in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "aim.csv").exists()
+
+
+def test_an_output_folder_replaced_by_a_file_mid_run_names_the_output(tmp_path):
+    """An output folder replaced by a file (or a dangling link) while the run went on was
+    "<folder>: File exists"; now the output and why."""
+    from heliojax._io import atomic_path, atomic_write
+
+    folder = _a_file(tmp_path)
+    for writer in (atomic_write, atomic_path):
+        with pytest.raises(OSError, match="not a folder") as caught, writer(folder / "summary.json"):
+            pass
+        assert caught.value.filename == str(folder / "summary.json")
+    assert folder.read_text() == "x" and sorted(p.name for p in tmp_path.iterdir()) == ["a-file"]
