@@ -118,6 +118,12 @@ def _sparse(tmp: Path, name: str, size: int = 2**30 + 1) -> str:
     return str(path)
 
 
+def _summary(tmp: Path, extra: str) -> str:
+    """A summary.json of heliostat BE36 followed by the entry ``extra``."""
+    entry = '"BE36": {"status": "converged", "test_rms_mrad": 2.0}'
+    return _file(tmp, "summary.json", '{"heliostats": {' + entry + ", " + extra + "}}")
+
+
 def _nested_toml(depth: int = 100_000) -> str:
     return "[calibrate]\nmax_steps = " + "[" * depth + "]" * depth + "\n"
 
@@ -511,6 +517,16 @@ CASES = [
         "report onto the config",
         lambda t: ["calibrate", "--config", (c := _config(t, "[calibrate]\nseed = 1\n")), "--report", c],
         "--report",
+    ),
+    (
+        "summary.json heliostat given twice (the last one was read)",
+        lambda t: [*_accept(t, _summary(t, '"BE36": {"test_rms_mrad": 0.001}')), "--paint", str(hj.default_data_dir())],
+        "BE36': listed twice",
+    ),
+    (
+        "summary.json unknown status (was read as calibrated)",
+        lambda t: [*_accept(t, _summary(t, '"BF56": {"status": "sideways"}')), "--paint", str(hj.default_data_dir())],
+        "heliostats.BF56.status",
     ),
 ]
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import glob
-import json
 import math
 import os
 import tomllib
@@ -19,6 +18,7 @@ from .._errors import ConfigError, DataError
 from .._geometry import MAX_FIELD_EXTENT_M, wgs84_to_enu
 from .._io import is_decimal
 from ..paint import TOWER_FILE_SUFFIX, read_heliostat_properties, read_tower
+from ..paint._common import _load_json
 from ._field import PARAMETERS, FieldData
 
 _BAD_STATUS = {"failed", "error", "skipped", "excluded"} | {
@@ -28,6 +28,8 @@ _BAD_STATUS = {"failed", "error", "skipped", "excluded"} | {
     "no_records",
     "no_training_records",
 }  # the last five: heliojax's own fit statuses of no calibration (its test error measures no heliostat)
+_GOOD_STATUS = {"", "ok", "converged", "max_steps"}
+"""Statuses of a calibrated heliostat (none given: calibrated); any other is an error."""
 
 
 def _float(path, field, text) -> float:
@@ -144,15 +146,7 @@ def read_summary(path: str | os.PathLike) -> dict[str, float]:
     Raises:
         DataError: unreadable file, missing ``heliostats`` table, non-numeric value.
     """
-    try:
-        with open(path, encoding="utf-8") as f:
-            doc = json.load(f)
-    except (OSError, json.JSONDecodeError) as e:
-        raise DataError(path, None, f"cannot read: {e}") from e
-    except UnicodeDecodeError as e:
-        raise DataError(path, None, f"not UTF-8 text (byte {e.start}): not a summary.json") from None
-    except (ValueError, RecursionError) as e:  # a number of over 4300 digits, nesting too deep
-        raise DataError(path, None, f"not a usable JSON file: {type(e).__name__}") from None
+    doc = _load_json(path)  # a key given twice (the json module kept the last) is an error
     table = doc.get("heliostats") if isinstance(doc, dict) else None
     if not isinstance(table, dict):
         raise DataError(path, "heliostats", "missing or not an object")
@@ -160,8 +154,11 @@ def read_summary(path: str | os.PathLike) -> dict[str, float]:
     for hid, rec in table.items():
         if not isinstance(rec, dict):
             raise DataError(path, f"heliostats.{hid}", "not an object")
-        if str(rec.get("status", "")).lower() in _BAD_STATUS:
+        status = str(rec.get("status", "")).lower()
+        if status in _BAD_STATUS:
             continue
+        if status not in _GOOD_STATUS:
+            raise DataError(path, f"heliostats.{hid}.status", f"unknown status {rec.get('status')!r}"[:200])
         x = rec.get("test_rms_mrad")
         if x is None:
             continue
