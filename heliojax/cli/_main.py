@@ -52,11 +52,13 @@ def _available():
 
 class _Parser(argparse.ArgumentParser):
     """Usage errors in two lines: the error naming the flag, and where to find help;
-    :attr:`options` (dest -> action) holds every option added, for configs to be read
-    as the command line would be."""
+    :attr:`options` (dest -> action) holds every option added, and :attr:`exclusive`
+    the dests of each mutually exclusive group, for configs to be read as the command
+    line would be."""
 
     def __init__(self, *args: typing.Any, **kwargs: typing.Any) -> None:
         self.options: dict[str, argparse.Action] = {}
+        self.exclusive: list[list[str]] = []
         super().__init__(*args, **kwargs)
 
     def add_argument(self, *args: typing.Any, **kwargs: typing.Any) -> argparse.Action:
@@ -65,21 +67,25 @@ class _Parser(argparse.ArgumentParser):
         return action
 
     def add_mutually_exclusive_group(self, **kwargs: typing.Any) -> typing.Any:
-        return _RecordedGroup(super().add_mutually_exclusive_group(**kwargs), self.options)
+        members: list[str] = []
+        self.exclusive.append(members)
+        return _RecordedGroup(super().add_mutually_exclusive_group(**kwargs), self.options, members)
 
     def error(self, message: str) -> typing.NoReturn:
         self.exit(2, f"{self.prog}: error: {message}\nsee '{self.prog} --help'\n")
 
 
 class _RecordedGroup:
-    """A mutually exclusive group whose options are recorded in its parser's ``options``."""
+    """A mutually exclusive group whose options are recorded in its parser's ``options``
+    and, by dest, in ``members`` (one entry of the parser's ``exclusive``)."""
 
-    def __init__(self, group: typing.Any, options: dict[str, argparse.Action]) -> None:
-        self.group, self.options = group, options
+    def __init__(self, group: typing.Any, options: dict[str, argparse.Action], members: list[str]) -> None:
+        self.group, self.options, self.members = group, options, members
 
     def add_argument(self, *args: typing.Any, **kwargs: typing.Any) -> argparse.Action:
         action = self.group.add_argument(*args, **kwargs)
         self.options[action.dest] = action
+        self.members.append(action.dest)
         return action
 
 
@@ -174,8 +180,7 @@ def _apply_config(
             raise ConfigError(f"{path}: [{command}] {key}: required on the command line, where it must be given")
         keys[dest] = key
         defaults[dest] = _config_value(known[dest], value, f"{path}: [{command}] {key}")
-    for group in getattr(subparser, "_mutually_exclusive_groups", ()):
-        members = [a.dest for a in group._group_actions]
+    for members in subparser.exclusive if isinstance(subparser, _Parser) else ():
         set_here = [keys[d] for d in members if d in keys]
         if len(set_here) > 1:
             raise ConfigError(f"{path}: [{command}] {' and '.join(set_here)} exclude each other: give one")
