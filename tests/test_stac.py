@@ -1267,7 +1267,10 @@ def test_ctrl_c_cancels_the_queued_downloads_and_leaves_no_temporaries(catalogue
             return f
         calls.append(href)
         if len(calls) == 1:
-            os.kill(os.getpid(), signal.SIGINT)
+            # to the main thread, as a terminal's Ctrl-C reaches the waiting command: a signal
+            # sent to the process may land in any of its threads (JAX's, the pool's), and the
+            # main thread's wait would only see it once that wait ends (a flaky test in CI)
+            signal.pthread_kill(threading.main_thread().ident or 0, signal.SIGINT)
         return Slow(f)
 
     out = tmp_path / "out"
