@@ -1274,8 +1274,15 @@ def test_ctrl_c_cancels_the_queued_downloads_and_leaves_no_temporaries(catalogue
         return Slow(f)
 
     out = tmp_path / "out"
-    with pytest.raises(KeyboardInterrupt):
-        fetch_catalog(root_json, out, calibration_assets=ALL_CAL, transport=transport, workers=1, include_tower=False)
+    # Python's own Ctrl-C handler, whatever an earlier test in this process left installed
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            fetch_catalog(
+                root_json, out, calibration_assets=ALL_CAL, transport=transport, workers=1, include_tower=False
+            )
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert len(calls) <= 2, calls
     assert not [p for p in out.rglob("*") if p.name.endswith(".part")]
 
