@@ -9,6 +9,7 @@ import json
 import logging
 import os
 import re
+import shlex
 import shutil
 import subprocess
 import sys
@@ -209,6 +210,49 @@ def test_help_needs_no_jax_and_documents_every_option():
         assert len(sub.options) > 3, name  # every option is recorded for configs
         for action in sub.options.values():
             assert action.help and action.help.strip(), f"{name} {action.option_strings or action.dest}: no help"
+
+
+def _help_examples(text: str) -> list[list[str]]:
+    """The commands of a help text's ``examples:`` block (continued lines joined,
+    ``&&`` chains split), each as argv without the leading ``heliojax``."""
+    block = text.split("examples:", 1)[1]
+    block = re.sub(r"\\\n\s*", " ", block)
+    commands = []
+    for line in block.splitlines():
+        for part in line.split("&&"):
+            words = shlex.split(part)
+            if words[:1] == ["heliojax"]:
+                commands.append(words[1:])
+    return commands
+
+
+def test_every_help_example_parses_and_names_files_that_exist(shared_paint):
+    """A user copies the examples of ``--help``: each must parse (flags and values the
+    parser takes), its ``configs/`` files must exist in the repository, and the shared
+    data it names (folders, a record of ``trace --record``/``reconstruct --held-out``)
+    must exist in ``../shared``."""
+    repo = Path(__file__).resolve().parents[1]
+    parser, _, subparsers = build_parser()
+    n = 0
+    for name, sub in subparsers.items():
+        for argv in _help_examples(sub.format_help()):
+            n += 1
+            args = parser.parse_args(argv)  # SystemExit (a failure) on an unknown flag or a bad value
+            for word in argv:
+                if word.startswith("configs/"):
+                    assert (repo / word).is_file(), f"heliojax {name} --help names {word}, which does not exist"
+                if word.startswith("../shared/"):
+                    path = shared_paint.parents[1] / word.removeprefix("../shared/")
+                    assert path.exists(), f"heliojax {name} --help names {word}, which is not in ../shared"
+            records = [args.record] if name == "trace" and args.record is not None else []
+            records += list(args.held_out) if name == "reconstruct" else []
+            folder = str(getattr(args, "paint", None))
+            if records and folder.startswith("../shared/"):
+                heliostat = shared_paint.parents[1] / folder.removeprefix("../shared/") / args.heliostat
+                calibration = heliostat / "Calibration"
+                for record in records:
+                    assert list(calibration.glob(f"{record}-*")), f"heliojax {name} --help: no record {record} there"
+    assert n >= 2 * len(subparsers)
 
 
 def test_cli_choices_match_the_library():

@@ -34,7 +34,7 @@ BATCHING_CHOICES = ("auto", "vmap", "chunked", "map")
 EXAMPLES = """examples:
   heliojax calibrate --out out/results.h5 --report out/summary.json --plot out/calibration.png
   heliojax calibrate ../shared/data/paint --split azimuth --train 20 --no-pool
-  heliojax calibrate DATA --config configs/paint-benchmark.toml"""
+  heliojax calibrate ../shared/data/paint --config configs/calibrate_paint_benchmark.toml"""
 
 OUTPUT_FILES = ("out", "report", "plot")
 OUTPUT_DIRS = ("cache_dir",)

@@ -20,7 +20,7 @@ no sun or mirror (the sun's disc has a half-angle of 4.65 mrad); beyond, every r
 
 
 EXAMPLES = """examples:
-  heliojax trace ../shared/data/paint/flux-samples --heliostat AA39 --record 203169 --out out/trace
+  heliojax trace ../shared/data/paint/flux-samples --heliostat AA39 --record 270398 --out out/trace
   heliojax trace PAINT_DIR --heliostat AA39 --sun-azimuth -20 --sun-elevation 35 --sunshape pillbox"""
 
 SOLAR_CONSTANT_PERIHELION = 1413.0
