@@ -11,8 +11,10 @@ from pathlib import Path
 from ._common import path_type
 
 EXAMPLES = """examples:
-  heliojax accept --results field.csv --contract configs/contract.toml --figures out/acceptance
-  heliojax accept --results out/summary.json --paint ../shared/data/paint --contract configs/contract.toml"""
+  heliojax accept --results field.csv --contract configs/contract.toml --report out/acceptance.json \\
+      --figures out/acceptance
+  heliojax accept --results out/summary.json --paint ../shared/data/paint --contract configs/contract.toml \\
+      --report out/acceptance.json"""
 
 OUTPUT_FILES = ("report",)
 OUTPUT_DIRS = ("figures",)

@@ -21,7 +21,7 @@ no sun or mirror (the sun's disc has a half-angle of 4.65 mrad); beyond, every r
 
 EXAMPLES = """examples:
   heliojax trace ../shared/data/paint/flux-samples --heliostat AA39 --record 270398 --out out/trace
-  heliojax trace PAINT_DIR --heliostat AA39 --sun-azimuth -20 --sun-elevation 35 --sunshape pillbox"""
+  heliojax trace PAINT_DIR --heliostat AA39 --sun-azimuth -20 --sun-elevation 35 --sunshape pillbox --out out/trace"""
 
 SOLAR_CONSTANT_PERIHELION = 1413.0
 """W/m^2 above the atmosphere at the sun's closest: no DNI on the ground exceeds it."""
