@@ -64,7 +64,8 @@ from ._splits import days_since_fit
 from ._version import __version__
 from .effects import with_effects
 from .fitting import FitStatus
-from .paint._common import MAX_HELIOSTAT_DISTANCE_M, MAX_HELIOSTAT_HEIGHT_M
+from .paint._common import MAX_HELIOSTAT_DISTANCE_M, MAX_HELIOSTAT_HEIGHT_M, MAX_HELIOSTAT_SIZE_M, actuator_problem
+from .paint._flags import actuator_law_problem
 
 if typing.TYPE_CHECKING:
     import h5py
@@ -95,11 +96,67 @@ def _read_geometry(group: h5py.Group, source: str, n: int) -> HeliostatGeometry:
         want = (n, 3 if name == "position" or name.endswith("translation") or "translation_" in name else 2)
         if value.shape != want:
             raise DataError(source, f"geometry/{name}", f"shape {value.shape}, expected {want}")
+        if name == "ideal_axes" and not np.isin(value, (0, 1)).all():
+            raise DataError(source, f"geometry/{name}", "not a flag (0 or 1, false or true)")
         return jnp.asarray(value)
 
     act = LinearActuators(**{f.name: arr(f"actuators/{f.name}") for f in dataclasses.fields(LinearActuators)})
     kw = {f.name: arr(f.name) for f in dataclasses.fields(HeliostatGeometry) if f.name != "actuators"}
     return HeliostatGeometry(actuators=act, **kw)
+
+
+_GEOMETRY_ACTUATOR_NAMES = {
+    "min_increment": "min_counts",
+    "max_increment": "max_counts",
+    "clockwise_axis_movement": "sign",
+}
+"""The geometry's names of the actuator keys of a properties file whose names differ."""
+
+
+def _check_geometry(geometry: HeliostatGeometry, ids: tuple[str, ...], source: str) -> None:
+    """DataError unless every heliostat's (finite) geometry keeps the properties reader's
+    bounds: each actuator :func:`~heliojax.paint._common.actuator_problem` and
+    :func:`~heliojax.paint._flags.actuator_law_problem` (``sign`` is +1 or -1 for
+    ``clockwise_axis_movement`` 0 or 1), every mount translation within
+    :data:`~heliojax.paint._common.MAX_HELIOSTAT_SIZE_M`, a nonzero Stone slope."""
+    act = {f.name: np.asarray(getattr(geometry.actuators, f.name), float) for f in dataclasses.fields(LinearActuators)}
+    sign = act["sign"]
+    clockwise = np.where(sign == 1.0, 0, np.where(sign == -1.0, 1, -1))
+    for h, i in np.ndindex(*sign.shape):
+        a = {
+            "increment": float(act["increment"][h, i]),
+            "offset": float(act["offset"][h, i]),
+            "pivot_radius": float(act["pivot_radius"][h, i]),
+            "initial_stroke_length": float(act["initial_stroke_length"][h, i]),
+            "initial_angle": float(act["initial_angle"][h, i]),
+            "min_increment": float(act["min_counts"][h, i]),
+            "max_increment": float(act["max_counts"][h, i]),
+            "clockwise_axis_movement": int(clockwise[h, i]),
+        }
+        problem = actuator_problem(a)
+        if problem is None and (law := actuator_law_problem(a)) is not None:
+            problem = ("", law)
+        if problem is not None:
+            key, reason = problem
+            if key == "clockwise_axis_movement":
+                reason = f"must be +1 or -1, got {float(sign[h, i])!r}"
+            field = "/".join(("geometry/actuators", _GEOMETRY_ACTUATOR_NAMES.get(key, key))).rstrip("/")
+            raise DataError(source, field, f"heliostat {ids[h]!r} axis {i + 1}: {reason}")
+    for name in ("joint_translation_1", "joint_translation_2", "concentrator_translation"):
+        far = np.abs(np.asarray(getattr(geometry, name), float)) > MAX_HELIOSTAT_SIZE_M
+        if far.any():
+            h = int(np.argwhere(far)[0, 0])
+            raise DataError(
+                source,
+                f"geometry/{name}",
+                f"heliostat {ids[h]!r}: more than {MAX_HELIOSTAT_SIZE_M:g} m, not an offset within a heliostat",
+            )
+    zero = np.asarray(geometry.linear_slope, float) == 0
+    if zero.any():
+        h, i = np.argwhere(zero)[0]
+        raise DataError(
+            source, "geometry/linear_slope", f"heliostat {ids[h]!r} axis {i + 1}: zero (the counts move no joint)"
+        )
 
 
 def model_from_label(label: str, dtype: typing.Any = jnp.float64) -> AbstractKinematicModel:
@@ -495,8 +552,7 @@ def load_results(path: str | Path) -> CalibrationResults:
         if not np.isfinite(np.asarray(leaf, float)).all():
             name = "/".join(str(getattr(k, "name", k)) for k in path_)
             raise DataError(source, f"geometry/{name}", "not finite")
-    if not (np.asarray(geometry.actuators.increment) > 0).all():
-        raise DataError(source, "geometry/actuators/increment", "not positive (counts per metre)")
+    _check_geometry(geometry, ids, source)
     usable = np.array([s in (FitStatus.CONVERGED.label, FitStatus.MAX_STEPS.label) for s in status])
     if not np.isfinite(params[usable]).all():
         raise DataError(source, "params", "not finite for a heliostat whose fit converged")

@@ -82,6 +82,17 @@ ACTUATOR_KEYS = (
 """Keys of an actuator entry, in PAINT's order. The first group
 (:data:`ACTUATOR_REQUIRED`) is required; the rest are kept when present."""
 
+ACTUATOR_BOUNDS = (
+    ("increment", "positive"),
+    ("offset", "positive"),
+    ("pivot_radius", "positive"),
+    ("initial_stroke_length", "non-negative"),
+)
+"""Sign bounds of an actuator's numbers (counts per metre of stroke, the two sides of
+the actuator triangle, m, and the stroke at count 0, m); with ``min_increment <
+max_increment`` and ``clockwise_axis_movement`` in {0, 1} the bounds of
+:func:`actuator_problem`, which the properties reader and ``load_results`` share."""
+
 CSV_COLUMNS = (
     "heliostat_id",
     "timestamp",
@@ -453,6 +464,22 @@ RECORD_ID_LIMIT = 2**31
 def _check(cond: bool, file: str, field: str | None, reason: str) -> None:
     if not cond:
         raise DataError(file, field, reason)
+
+
+@no_type_check
+def actuator_problem(a: dict[str, Any]) -> tuple[str, str] | None:
+    """The first bound of :data:`ACTUATOR_BOUNDS` (or ``min_increment < max_increment``,
+    ``clockwise_axis_movement`` in {0, 1}) that the actuator ``a`` (PAINT keys, finite
+    numbers) breaks, as ``(key, reason)``; None when it keeps them all."""
+    if a["clockwise_axis_movement"] not in (0, 1):
+        return "clockwise_axis_movement", "must be 0 or 1"
+    if not a["min_increment"] < a["max_increment"]:
+        return "max_increment", f"max_increment {a['max_increment']} is not above min_increment {a['min_increment']}"
+    for key, what in ACTUATOR_BOUNDS:
+        v = a[key]
+        if not (v > 0 if what == "positive" else v >= 0):
+            return key, f"must be {what}, got {v!r}"
+    return None
 
 
 @no_type_check

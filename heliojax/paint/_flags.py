@@ -74,24 +74,30 @@ def _actuator_law(*args):
     return ang0 + sign * (psi(counts / inc + s0) - psi(s0))
 
 
+def actuator_law_problem(a: dict) -> str | None:
+    """Why the counts-to-angle law of the actuator ``a`` (PAINT keys) gives no finite,
+    distinct angles at its two count limits, or None when it does."""
+    with np.errstate(all="ignore"):
+        args = [
+            np.float64(a[k]) for k in ("increment", "initial_stroke_length", "offset", "pivot_radius", "initial_angle")
+        ]
+        sign = 1.0 if a["clockwise_axis_movement"] == 0 else -1.0
+        lo, hi = (_actuator_law(*args, sign, np.float64(a[k])) for k in ("min_increment", "max_increment"))
+        slope = (hi - lo) / (np.float64(a["max_increment"]) - np.float64(a["min_increment"]))
+    if np.isfinite(lo) and np.isfinite(hi) and np.isfinite(slope) and slope != 0:
+        return None
+    return (
+        f"the actuator law gives no usable angle range over [min_increment, max_increment] "
+        f"(angles {float(lo)!r} .. {float(hi)!r} rad)"
+    )
+
+
 def _check_actuator_law(p: HeliostatProperties) -> None:
     """The counts-to-angle law must give finite, distinct angles at both count limits."""
     for i, a in enumerate(p.actuators):
-        with np.errstate(all="ignore"):
-            args = [
-                np.float64(a[k])
-                for k in ("increment", "initial_stroke_length", "offset", "pivot_radius", "initial_angle")
-            ]
-            sign = 1.0 if a["clockwise_axis_movement"] == 0 else -1.0
-            lo, hi = (_actuator_law(*args, sign, np.float64(a[k])) for k in ("min_increment", "max_increment"))
-            slope = (hi - lo) / (np.float64(a["max_increment"]) - np.float64(a["min_increment"]))
-        if not (np.isfinite(lo) and np.isfinite(hi) and np.isfinite(slope) and slope != 0):
-            raise DataError(
-                p.source,
-                f"kinematics_properties.actuators[{i}]",
-                f"the actuator law gives no usable angle range over [min_increment, max_increment] "
-                f"(angles {float(lo)!r} .. {float(hi)!r} rad)",
-            )
+        problem = actuator_law_problem(a)
+        if problem is not None:
+            raise DataError(p.source, f"kinematics_properties.actuators[{i}]", problem)
 
 
 def _flag_properties(props: list[HeliostatProperties], log: _Log) -> None:

@@ -25,6 +25,7 @@ from ._common import (
     _roundtrip,
     _type_name,
     _write_json,
+    actuator_problem,
 )
 
 # ======================================================================================
@@ -49,22 +50,9 @@ def _actuator_from_json(file: str, node: _Node) -> dict[str, Any]:
             out[key] = node.integer(key)
         else:
             out[key] = node.number(key)
-    f = node.field
-    _check(out["clockwise_axis_movement"] in (0, 1), file, f("clockwise_axis_movement"), "must be 0 or 1")
-    _check(
-        out["min_increment"] < out["max_increment"],
-        file,
-        f("max_increment"),
-        f"max_increment {out['max_increment']} is not above min_increment {out['min_increment']}",
-    )
-    for key in ("increment", "offset", "pivot_radius"):
-        _check(out[key] > 0, file, f(key), f"must be positive, got {out[key]!r}")
-    _check(
-        out["initial_stroke_length"] >= 0,
-        file,
-        f("initial_stroke_length"),
-        f"must be non-negative, got {out['initial_stroke_length']!r}",
-    )
+    problem = actuator_problem(out)
+    if problem is not None:
+        raise DataError(file, node.field(problem[0]), problem[1])
     return out
 
 
