@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import csv
-import io
 import math
 import os
+import re
 from collections.abc import Callable, Iterable, Mapping
 from typing import no_type_check
 
@@ -30,6 +30,9 @@ from ._common import (
 # ======================================================================================
 # The CSV form
 # ======================================================================================
+
+_LINE_END = re.compile(r"\r\n|\r|\n")
+"""The line ends the csv module knows."""
 
 
 @no_type_check
@@ -90,11 +93,15 @@ def read_weather_csv(
         text = _read_regular_file(path).decode("utf-8-sig")
     except UnicodeDecodeError as e:
         raise DataError(file, None, f"not UTF-8 text (byte {e.start})") from None
+    # one row a line (no multi-line cells here), each parsed alone: a row the csv module
+    # refuses (a cell over its field limit) is that row's error, not the whole file's
+    lines = _LINE_END.split(text)
+    if lines and lines[-1] == "":
+        lines.pop()
     try:
-        table = list(csv.reader(io.StringIO(text, newline="")))
+        header = [h.strip() for h in next(csv.reader(lines[:1]), [])]
     except csv.Error as e:
-        raise DataError(file, None, f"malformed CSV: {e}") from None
-    header = [h.strip() for h in table[0]] if table else []
+        raise DataError(file, "row 1", f"malformed CSV header: {e}") from None
     missing = [c for c in _CSV_REQUIRED if c not in header]
     if missing:
         raise DataError(file, missing[0], f"missing column(s): {', '.join(missing)}")
@@ -105,11 +112,15 @@ def read_weather_csv(
     ncols = len(header)
     wcols = [(k, col[k]) for k in WEATHER_KEYS if k in col]
     out = []
-    for line, cells in enumerate(table[1:], start=2):  # header is line 1; no multi-line cells here
-        if not cells:
-            continue
+    for line, text_line in enumerate(lines[1:], start=2):  # header is line 1
         where = f"row {line}"
         try:
+            try:
+                cells = next(csv.reader([text_line]), [])
+            except csv.Error as e:
+                raise DataError(file, where, f"malformed CSV row: {e}") from None
+            if not cells:
+                continue
             if len(cells) != ncols:
                 raise DataError(file, where, f"{len(cells)} cells, the header has {ncols}")
 
@@ -119,6 +130,12 @@ def read_weather_csv(
 
             hid = cells[col["heliostat_id"]].strip()
             _check(bool(hid), file, f"{where}.heliostat_id", "missing (empty cell)")
+            _check(
+                hid.isprintable(),
+                file,
+                f"{where}.heliostat_id",
+                f"{hid[:40]!r} is not a heliostat id (control characters)",
+            )
             rid = _csv_int(file, f"{where}.sample_id", cells[col["sample_id"]])
             _check(
                 0 <= rid < RECORD_ID_LIMIT, file, f"{where}.sample_id", f"expected an integer in [0, 2**31), got {rid}"
