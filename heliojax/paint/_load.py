@@ -24,7 +24,12 @@ from .._geometry import TargetPlane, sun_direction, wgs84_to_enu
 from .._heliostat import HeliostatGeometry, LinearActuators, RecordContext
 from .._programs import cached_jit
 from .._sun import datetime_to_unix, solar_position
-from ._calibration import check_record_context, heliostat_properties_path, read_calibration_record, validate_record
+from ._calibration import (
+    check_record_context,
+    heliostat_properties_path,
+    read_calibration_record,
+    validate_record,
+)
 from ._common import (
     CALIBRATION_SUFFIX,
     CORNERS,
@@ -175,6 +180,38 @@ def _enu_and_suns(points_lla, origin_lla, azimuth_deg, elevation_deg):
     """:func:`wgs84_to_enu` of the points and :func:`_sun_vectors` of the suns: two
     independent computations in one program (one program to load, not two)."""
     return wgs84_to_enu(points_lla, origin_lla), _sun_vectors(azimuth_deg, elevation_deg)
+
+
+MAX_TARGET_NORMAL_GAP_DEG = 45.0
+"""A planar target's corners (left to right, lower to upper, as PAINT names them) span
+a plane whose normal lies within this of the entry's ``normal_vector``: farther, two
+corners are swapped (the target mirrored or turned, every spot on it misplaced)."""
+
+
+def _check_target_orientation(tower: TowerFile, name: str, ul, ur, ll, lr) -> None:
+    """DataError unless the ``upper`` corners of target ``name`` lie above its ``lower``
+    ones and its corners face its ``normal_vector`` (:data:`MAX_TARGET_NORMAL_GAP_DEG`)."""
+    u = (ur + lr) / 2 - (ul + ll) / 2  # left to right
+    v = (ul + ur) / 2 - (ll + lr) / 2  # lower to upper
+    if not v[2] > 0.0:
+        raise DataError(
+            tower.source,
+            f"{name}.coordinates",
+            f"the upper corners lie {-v[2]:.3g} m below the lower ones (corners swapped)",
+        )
+    normal = tower.targets[name].normal
+    if normal is None:
+        return
+    n = np.cross(u, v)
+    cosine = float(np.dot(n, normal) / (np.linalg.norm(n) * np.linalg.norm(normal)))
+    gap = math.degrees(math.acos(min(1.0, max(-1.0, cosine))))
+    if gap > MAX_TARGET_NORMAL_GAP_DEG:
+        raise DataError(
+            tower.source,
+            f"{name}.coordinates",
+            f"the corners face {gap:.3g} deg away from normal_vector {list(normal)} (left and right, or "
+            f"upper and lower, corners swapped)",
+        )
 
 
 def _geometry_and_targets(position, actuators, joint_1, joint_2, concentrator, ideal, corners):
@@ -486,6 +523,7 @@ def _assemble(
                     f"the corners are no rectangle: the {side} edge is {la:.4g} m long, the {other} edge "
                     f"{lb:.4g} m (one corner misplaced)",
                 )
+        _check_target_orientation(tower, name, ul, ur, ll, lr)
     centres = corners_enu.mean(axis=1)
     for i in np.nonzero(n_valid == 0)[0]:
         spot_enu[i] = centres[0]
