@@ -105,6 +105,25 @@ def _record_to_json(r: CalibrationRecord) -> dict:
     }
 
 
+def spot_off_target(record: CalibrationRecord, tower: TowerFile) -> tuple[str, str] | None:
+    """``(field, reason)`` for a focal spot of ``record`` farther from its (planar) target's
+    centre than the target's farthest corner: no spot on the target (a camera sees only
+    the target; real PAINT spots lie within 0.6 of that distance), or None."""
+    t = tower.targets.get(record.target_name)
+    if t is None or not t.is_planar_target:
+        return None
+    centre: Vec3 = tuple(sum(t.points[c][k] for c in CORNERS) / len(CORNERS) for k in range(3))  # pyright: ignore[reportAssignmentType]
+    reach = max(_distance_m(t.points[c], centre) for c in CORNERS)
+    for field, spot in (("focal_spot.UTIS", record.focal_spot_utis), ("focal_spot.HeliOS", record.focal_spot_helios)):
+        distance = 0.0 if spot is None else _distance_m(spot, centre)
+        if distance > reach:
+            return field, (
+                f"{distance:.4g} m from the centre of target {record.target_name!r}, beyond its corners "
+                f"({reach:.3g} m): not a spot on it; record kept, check its spot and target"
+            )
+    return None
+
+
 def check_record_context(
     record: CalibrationRecord,
     tower: TowerFile | None = None,

@@ -12,7 +12,7 @@ import numpy as np
 from .._errors import DataError
 from .._fleet import MIN_FLEET_FOR_OUTLIERS, OUTLIER_FLOOR, OUTLIER_K, LoadReport, ReportEntry
 from .._sun import datetime_to_unix
-from ._common import WEATHER_KEYS, CalibrationRecord, HeliostatProperties
+from ._common import MAX_HELIOSTAT_HEIGHT_M, WEATHER_KEYS, CalibrationRecord, HeliostatProperties
 
 
 class _Log:
@@ -197,6 +197,10 @@ def _flag_properties(props: list[HeliostatProperties], log: _Log) -> None:
         vals = np.array([getattr(p, attr) for p in props])
         for j, c in enumerate("enu"):
             checks.append((f"kinematics_properties.{name.format(c)}", vals[:, j], width, "m"))  # pyright: ignore[reportArgumentType]
+    # an altitude from another datum, in feet, or 0 for unknown puts a heliostat tens of
+    # metres above or below its neighbours (the floor: 5 x 0.01 x 1000 m = 50 m)
+    altitudes = np.array([p.position_lla[2] for p in props])
+    checks.append(("heliostat_position", altitudes, MAX_HELIOSTAT_HEIGHT_M, "m altitude"))  # pyright: ignore[reportArgumentType]
     for field, v, scale, unit in checks:
         med = np.median(v)
         mad = np.median(np.abs(v - med))

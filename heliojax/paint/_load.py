@@ -28,6 +28,7 @@ from ._calibration import (
     check_record_context,
     heliostat_properties_path,
     read_calibration_record,
+    spot_off_target,
     validate_record,
 )
 from ._common import (
@@ -425,6 +426,9 @@ def _assemble(
                 continue
             seen.add(r.record_id)
             good.append(r)
+            off_target = spot_off_target(r, tower)
+            if off_target is not None:
+                log.flag(r.source, *off_target)
         goods.append(good)
     goods = _drop_sun_mismatches(goods, [props_by_id[hid].position_lla for hid in ids], log)
     per_h: list[list[CalibrationRecord]] = []
