@@ -43,6 +43,8 @@ from .._kinematics import AbstractKinematicModel, ActuatorModel, forward
 from .._plotting import pyplot
 from .._progress import progress_bar
 from ..paint import read_calibration_record, read_flux_png, read_heliostat_properties, read_tower
+from ..paint._common import MAX_HELIOSTAT_DISTANCE_M
+from ..paint._tower import check_target_corners
 from ._flux import ImageGrid, centroid, flux_image
 from ._sunshape import AbstractSunShape, BuieSun, EffectiveSun
 from ._surfaces import FacetLayout, SurfacePoints, ideal_surface
@@ -220,13 +222,28 @@ def target_from_tower(tower, name: str) -> TargetPlane:
         )
         raise DataError(tower.source, name, f"no such target with corners; the tower file has {', '.join(usable)}")
     lla = np.asarray([entry.points[c] for c in names], np.float64)
-    return _plane_from_corners(lla, np.asarray(tower.origin_lla, np.float64))
+    points = np.asarray(_enu_of_corners(lla, np.asarray(tower.origin_lla, np.float64)))
+    check_target_corners(tower.source, f"{name}.coordinates", *points, normal=entry.normal)
+    distance = float(np.hypot(*points.mean(axis=0)[:2]))
+    if not distance <= MAX_HELIOSTAT_DISTANCE_M:
+        raise DataError(
+            tower.source,
+            f"{name}.coordinates",
+            f"{distance / 1000:.4g} km from the plant's reference point (more than "
+            f"{MAX_HELIOSTAT_DISTANCE_M / 1000:g} km: not a target of this plant)",
+        )
+    return _plane_from_corners(jnp.asarray(points))
 
 
 @jax.jit
-def _plane_from_corners(corners_lla, origin_lla) -> TargetPlane:
-    """:func:`target_from_tower`'s arithmetic (corners UL, UR, LL, LR in WGS84), compiled once."""
-    points = jax.vmap(lambda p: wgs84_to_enu(p, origin_lla))(corners_lla)
+def _enu_of_corners(corners_lla, origin_lla):
+    """:func:`target_from_tower`'s geodesy (corners UL, UR, LL, LR in WGS84 to ENU m), compiled once."""
+    return jax.vmap(lambda p: wgs84_to_enu(p, origin_lla))(corners_lla)
+
+
+@jax.jit
+def _plane_from_corners(points) -> TargetPlane:
+    """:func:`target_from_tower`'s plane of ENU corners UL, UR, LL, LR, compiled once."""
     return TargetPlane.from_corners(points[0], points[1], points[2], points[3])
 
 

@@ -57,7 +57,7 @@ from ._flags import (
 )
 from ._properties import read_heliostat_properties, validate_properties
 from ._timestamps import read_timestamps
-from ._tower import read_tower
+from ._tower import check_target_corners, read_tower
 from ._weather import read_weather_csv
 
 
@@ -181,38 +181,6 @@ def _enu_and_suns(points_lla, origin_lla, azimuth_deg, elevation_deg):
     """:func:`wgs84_to_enu` of the points and :func:`_sun_vectors` of the suns: two
     independent computations in one program (one program to load, not two)."""
     return wgs84_to_enu(points_lla, origin_lla), _sun_vectors(azimuth_deg, elevation_deg)
-
-
-MAX_TARGET_NORMAL_GAP_DEG = 45.0
-"""A planar target's corners (left to right, lower to upper, as PAINT names them) span
-a plane whose normal lies within this of the entry's ``normal_vector``: farther, two
-corners are swapped (the target mirrored or turned, every spot on it misplaced)."""
-
-
-def _check_target_orientation(tower: TowerFile, name: str, ul, ur, ll, lr) -> None:
-    """DataError unless the ``upper`` corners of target ``name`` lie above its ``lower``
-    ones and its corners face its ``normal_vector`` (:data:`MAX_TARGET_NORMAL_GAP_DEG`)."""
-    u = (ur + lr) / 2 - (ul + ll) / 2  # left to right
-    v = (ul + ur) / 2 - (ll + lr) / 2  # lower to upper
-    if not v[2] > 0.0:
-        raise DataError(
-            tower.source,
-            f"{name}.coordinates",
-            f"the upper corners lie {-v[2]:.3g} m below the lower ones (corners swapped)",
-        )
-    normal = tower.targets[name].normal
-    if normal is None:
-        return
-    n = np.cross(u, v)
-    cosine = float(np.dot(n, normal) / (np.linalg.norm(n) * np.linalg.norm(normal)))
-    gap = math.degrees(math.acos(min(1.0, max(-1.0, cosine))))
-    if gap > MAX_TARGET_NORMAL_GAP_DEG:
-        raise DataError(
-            tower.source,
-            f"{name}.coordinates",
-            f"the corners face {gap:.3g} deg away from normal_vector {list(normal)} (left and right, or "
-            f"upper and lower, corners swapped)",
-        )
 
 
 def _geometry_and_targets(position, actuators, joint_1, joint_2, concentrator, ideal, corners):
@@ -508,26 +476,7 @@ def _assemble(
     spot_enu = enu[h : h + h * m].reshape(h, m, 3)
     corners_enu = enu[h + h * m :].reshape(n_t, 4, 3)
     for k, name in enumerate(planar):
-        ul, ur, ll, lr = corners_enu[k]
-        width = np.linalg.norm((ur + lr) / 2 - (ul + ll) / 2)
-        height = np.linalg.norm((ul + ur) / 2 - (ll + lr) / 2)
-        if not (width > 1e-3 and height > 1e-3):
-            raise DataError(
-                tower.source,
-                f"{name}.coordinates",
-                f"degenerate target corners (width {width:.3g} m, height {height:.3g} m)",
-            )
-        for side, a, b in (("upper", ul - ur, ll - lr), ("left", ul - ll, ur - lr)):
-            la, lb = np.linalg.norm(a), np.linalg.norm(b)
-            if max(la, lb) > 2.0 * min(la, lb):  # a rectangle's opposite edges are equal
-                other = {"upper": "lower", "left": "right"}[side]
-                raise DataError(
-                    tower.source,
-                    f"{name}.coordinates",
-                    f"the corners are no rectangle: the {side} edge is {la:.4g} m long, the {other} edge "
-                    f"{lb:.4g} m (one corner misplaced)",
-                )
-        _check_target_orientation(tower, name, ul, ur, ll, lr)
+        check_target_corners(tower.source, f"{name}.coordinates", *corners_enu[k], normal=tower.targets[name].normal)
     centres = corners_enu.mean(axis=1)
     for i in np.nonzero(n_valid == 0)[0]:
         spot_enu[i] = centres[0]

@@ -6,6 +6,8 @@ import math
 import os
 from typing import Any
 
+import numpy as np
+
 from .._errors import DataError
 from ._common import (
     CORNERS,
@@ -23,6 +25,55 @@ from ._common import (
 # ======================================================================================
 # Tower file
 # ======================================================================================
+
+
+MIN_TARGET_SIZE_M = 1e-3
+"""A target narrower or lower than this (between the means of its opposite corners) has
+no area: its corners coincide."""
+MAX_TARGET_NORMAL_GAP_DEG = 45.0
+"""A target's corners (left to right, lower to upper, as PAINT names them) span a plane
+whose normal lies within this of the entry's ``normal_vector``: farther, two corners
+are swapped (the target mirrored or turned, every spot on it misplaced)."""
+
+
+def check_target_corners(
+    source: str | os.PathLike, field: str, ul: Any, ur: Any, ll: Any, lr: Any, *, normal: Any = None
+) -> None:
+    """DataError (``source``, ``field``) unless the ENU corner points (m) upper left,
+    upper right, lower left, lower right make a target: at least
+    :data:`MIN_TARGET_SIZE_M` wide and high, opposite edges within a factor 2 of each
+    other (a rectangle, no corner misplaced), the upper corners above the lower ones and,
+    when ``normal`` (ENU) is given, facing within :data:`MAX_TARGET_NORMAL_GAP_DEG` of it."""
+    ul, ur, ll, lr = (np.asarray(c, np.float64) for c in (ul, ur, ll, lr))
+    u = (ur + lr) / 2 - (ul + ll) / 2  # left to right
+    v = (ul + ur) / 2 - (ll + lr) / 2  # lower to upper
+    width, height = float(np.linalg.norm(u)), float(np.linalg.norm(v))
+    if not (width > MIN_TARGET_SIZE_M and height > MIN_TARGET_SIZE_M):
+        raise DataError(source, field, f"degenerate target corners (width {width:.3g} m, height {height:.3g} m)")
+    for side, a, b in (("upper", ul - ur, ll - lr), ("left", ul - ll, ur - lr)):
+        la, lb = np.linalg.norm(a), np.linalg.norm(b)
+        if max(la, lb) > 2.0 * min(la, lb):  # a rectangle's opposite edges are equal
+            other = {"upper": "lower", "left": "right"}[side]
+            raise DataError(
+                source,
+                field,
+                f"the corners are no rectangle: the {side} edge is {la:.4g} m long, the {other} edge "
+                f"{lb:.4g} m (one corner misplaced)",
+            )
+    if not v[2] > 0.0:
+        raise DataError(source, field, f"the upper corners lie {-v[2]:.3g} m below the lower ones (corners swapped)")
+    if normal is None:
+        return
+    n = np.cross(u, v)
+    cosine = float(np.dot(n, normal) / (np.linalg.norm(n) * np.linalg.norm(normal)))
+    gap = math.degrees(math.acos(min(1.0, max(-1.0, cosine))))
+    if gap > MAX_TARGET_NORMAL_GAP_DEG:
+        raise DataError(
+            source,
+            field,
+            f"the corners face {gap:.3g} deg away from normal_vector {list(normal)} (left and right, or "
+            f"upper and lower, corners swapped)",
+        )
 
 
 def _tower_from_json(file: str, data: Any) -> TowerFile:
