@@ -124,6 +124,17 @@ def _summary(tmp: Path, extra: str) -> str:
     return _file(tmp, "summary.json", '{"heliostats": {' + entry + ", " + extra + "}}")
 
 
+def _swap_corners(*pairs: str, target: str = "solar_tower_juelich_lower"):
+    """An edit of the tower file: swap the corners of ``target`` pairwise (a, b, c, d: a<->b, c<->d)."""
+
+    def edit(doc) -> None:
+        c = doc[target]["coordinates"]
+        for a, b in zip(pairs[::2], pairs[1::2]):
+            c[a], c[b] = c[b], c[a]
+
+    return edit
+
+
 def _nested_toml(depth: int = 100_000) -> str:
     return "[calibrate]\nmax_steps = " + "[" * depth + "]" * depth + "\n"
 
@@ -147,6 +158,27 @@ CASES = [
             _tower_edited(t, _set(("solar_tower_juelich_upper", "coordinates", "upper_left", 2), 0.0)),
         ],
         "solar_tower_juelich_upper.coordinates",
+    ),
+    (
+        "tower target mirrored (left and right corners swapped)",
+        lambda t: [
+            "inspect",
+            _tower_edited(t, _swap_corners("upper_left", "upper_right", "lower_left", "lower_right")),
+        ],
+        "solar_tower_juelich_lower.coordinates",
+    ),
+    (
+        "tower target upside down (upper and lower corners swapped)",
+        lambda t: [
+            "inspect",
+            _tower_edited(t, _swap_corners("upper_left", "lower_left", "upper_right", "lower_right")),
+        ],
+        "solar_tower_juelich_lower.coordinates",
+    ),
+    (
+        "tower target corners turned (upper left and lower right swapped)",
+        lambda t: ["inspect", _tower_edited(t, _swap_corners("upper_left", "lower_right"))],
+        "solar_tower_juelich_lower.coordinates",
     ),
     ("negative seed", lambda t: ["calibrate", "--seed", "-1"], "--seed"),
     ("zero steps", lambda t: ["calibrate", "--max-steps", "0"], "--max-steps"),
@@ -1176,6 +1208,42 @@ DAMAGED_DATA = [
     ),
     ("weather CSV column given twice", lambda d: (_weather_column_twice(d), "pressure"), "skipped", 0),
     (
+        "weather cell of 200 000 characters (dropped the whole weather file)",
+        lambda d: ("calibration-with-weather.csv", _edit_weather(d, "target_name", "x" * 200_000)[:5]),
+        "skipped",
+        0,
+    ),
+    (
+        "weather quoted cell of 200 000 digits (dropped the whole weather file)",
+        lambda d: ("calibration-with-weather.csv", _edit_weather(d, "temperature", '"' + "1" * 200_000 + '"')[:5]),
+        "skipped",
+        0,
+    ),
+    (
+        "weather heliostat id with a NUL byte (its row joined no record, silently)",
+        lambda d: ("calibration-with-weather.csv", _edit_weather(d, "heliostat_id", "BE\x0036")),
+        "skipped",
+        0,
+    ),
+    (
+        "heliostat altitude 0 (88 m below its neighbours)",
+        lambda d: (_edit_properties(d, "BL14", _set(("heliostat_position", 2), 0.0)), "heliostat_position"),
+        "flagged",
+        0,
+    ),
+    (
+        "heliostat altitude -500 m",
+        lambda d: (_edit_properties(d, "BG23", _set(("heliostat_position", 2), -500.0)), "heliostat_position"),
+        "flagged",
+        0,
+    ),
+    (
+        "focal spot 360 m above its target",
+        lambda d: (_edit_record(d, "BL14", _set(("focal_spot", "HeliOS", 2), 500.0)), "focal_spot.HeliOS"),
+        "flagged",
+        0,
+    ),
+    (
         "weather CSV a link in a loop (read as no weather file)",
         lambda d: (_replace_by(d, "calibration-with-weather.csv", lambda p: p.symlink_to(p.name)), None),
         "skipped",
@@ -1446,6 +1514,17 @@ def _edit_h5(name: str, index, value):
     return edit
 
 
+def _replace_h5(name: str, make):
+    """An edit of a results.h5: replace dataset ``name`` by ``make(its array)``."""
+
+    def edit(f):
+        a = make(f[name][()])
+        del f[name]
+        f[name] = a
+
+    return edit
+
+
 def _set_attr(key: str, value):
     def edit(f):
         f.attrs[key] = value
@@ -1462,6 +1541,32 @@ EDITED_RESULTS = [
     ("param_std negative", _edit_h5("param_std", (0, 1), -3.0), "param_std"),
     ("noise 1e300 (plan: NaN uncertainty)", _edit_h5("noise_mrad", 0, 1e300), "noise_mrad"),
     ("heliostat 10 000 km away", _edit_h5("geometry/position", (0, 0), 1e7), "geometry/position"),
+    # the properties reader's bounds (aim flagged rows, plan planned, with impossible actuators)
+    ("pivot radius 0", _edit_h5("geometry/actuators/pivot_radius", (0, 0), 0.0), "geometry/actuators/pivot_radius"),
+    ("actuator offset negative", _edit_h5("geometry/actuators/offset", (1, 1), -0.3), "geometry/actuators/offset"),
+    (
+        "stroke at count 0 negative",
+        _edit_h5("geometry/actuators/initial_stroke_length", (0, 1), -1.0),
+        "geometry/actuators/initial_stroke_length",
+    ),
+    (
+        "min_counts above max_counts",
+        _edit_h5("geometry/actuators/min_counts", (0, 0), 1e6),
+        "geometry/actuators/max_counts",
+    ),
+    ("direction sign 0.5", _edit_h5("geometry/actuators/sign", (2, 0), 0.5), "geometry/actuators/sign"),
+    (
+        "concentrator 1 km off its joint",
+        _edit_h5("geometry/concentrator_translation", (0, 1), 1e3),
+        "geometry/concentrator_translation",
+    ),
+    ("joint translation 1e6 m", _edit_h5("geometry/joint_translation_2", (3, 2), 1e6), "geometry/joint_translation_2"),
+    ("Stone slope 0", _edit_h5("geometry/linear_slope", (0, 1), 0.0), "geometry/linear_slope"),
+    (
+        "ideal axes flag 7",
+        _replace_h5("geometry/ideal_axes", lambda a: np.where(a, 1, 7).astype(np.int8)),
+        "geometry/ideal_axes",
+    ),
 ]
 
 
@@ -1489,3 +1594,74 @@ def test_an_output_folder_replaced_by_a_file_mid_run_names_the_output(tmp_path):
             pass
         assert caught.value.filename == str(folder / "summary.json")
     assert folder.read_text() == "x" and sorted(p.name for p in tmp_path.iterdir()) == ["a-file"]
+
+
+def _receiver_corners(edit):
+    """An edit of the tower file: ``edit`` the receiver's outer aperture corners (a dict
+    upper_left, ... -> WGS84 point)."""
+
+    def apply(doc) -> None:
+        c = doc["receiver"]["coordinates"]
+        corners = {k: c[f"receiver_outer_{k}"] for k in ("upper_left", "upper_right", "lower_left", "lower_right")}
+        edit(corners)
+        for k, v in corners.items():
+            c[f"receiver_outer_{k}"] = v
+
+    return apply
+
+
+def _collapse(c: dict) -> None:
+    for k in c:
+        c[k] = c["upper_left"]
+
+
+def _upside_down(c: dict) -> None:
+    c["upper_left"], c["lower_left"], c["upper_right"], c["lower_right"] = (
+        c["lower_left"],
+        c["upper_left"],
+        c["lower_right"],
+        c["upper_right"],
+    )
+
+
+def _moved_north(c: dict) -> None:
+    for k in c:
+        c[k] = [c[k][0] + 0.5, *c[k][1:]]  # 55 km
+
+
+# (case, command: "aim" or "trace", edit of the tower file, field the error names): the
+# tower file given to aim or trace was never checked as the loader checks its targets
+TOWER_TARGETS = [
+    ("receiver corners coincide (aimed at one corner)", "aim", _receiver_corners(_collapse), "receiver.coordinates"),
+    ("receiver upside down", "aim", _receiver_corners(_upside_down), "receiver.coordinates"),
+    (
+        "receiver 55 km away (every row flagged, the tower not named)",
+        "aim",
+        _receiver_corners(_moved_north),
+        "receiver",
+    ),
+    (
+        "trace onto a target whose corners coincide (a traceback)",
+        "trace",
+        lambda doc: _collapse(doc["solar_tower_juelich_lower"]["coordinates"]),
+        "solar_tower_juelich_lower.coordinates",
+    ),
+]
+
+
+@pytest.mark.parametrize(
+    ("command", "edit", "field"), [c[1:] for c in TOWER_TARGETS], ids=[c[0] for c in TOWER_TARGETS]
+)
+def test_a_broken_target_of_the_tower_file_given_to_aim_or_trace_is_named(
+    command, edit, field, fitted_h5, tmp_path, capsys
+):
+    tower = Path(_tower_edited(tmp_path, edit)) / "WRI1030197-tower-measurements.json"
+    out = tmp_path / "out"
+    if command == "aim":
+        argv = ["aim", str(fitted_h5), "--date", "2024-06-01", "--tower", str(tower), "--out", str(out / "aim.csv")]
+    else:
+        sun = ["--sun-azimuth", "-30", "--sun-elevation", "40", "--pixels", "16", "--rays-per-point", "1"]
+        argv = ["trace", "--heliostat", "BE36", "--tower", str(tower), *sun, "--out", str(out)]
+    rc, _, err = _run(argv, capsys)
+    assert rc == 2 and f"field '{field}" in err and len(err.strip().splitlines()) == 1, err
+    assert not out.exists() or not any(out.iterdir())
