@@ -11,6 +11,7 @@ import json
 import math
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 
@@ -54,9 +55,14 @@ def _write_like_another_program(root: Path, fleet) -> None:
     act = g.actuators
     timestamps = {}
     rows = []
-    ctx = fleet.context
-    sun = np.asarray(ctx.sun)
+    # numpy copies up front: indexing a JAX array with Python ints in the loops below
+    # compiled a program per index (thousands of them)
+    ctx = jax.tree.map(np.asarray, fleet.context)
+    sun = ctx.sun
+    record_id, fleet_counts = np.asarray(fleet.record_id), np.asarray(fleet.counts)
+    act = jax.tree.map(np.asarray, act)
     spots = np.asarray(hj.enu_to_wgs84(np.asarray(fleet.focal_spot), np.asarray(PLANT)))
+    centre_lla = _lla(c)
     positions = np.asarray(hj.enu_to_wgs84(np.asarray(g.position), np.asarray(PLANT)))
     for i, hid in enumerate(fleet.ids):
         props = {
@@ -82,7 +88,7 @@ def _write_like_another_program(root: Path, fleet) -> None:
                 **{f"joint_translation_{k}_{n}": 0.0 for n in (1, 2) for k in "enu"},
                 **{
                     f"concentrator_translation_{k}": float(x)
-                    for k, x in zip("enu", np.asarray(g.concentrator_translation[i]))
+                    for k, x in zip("enu", np.asarray(g.concentrator_translation)[i])
                 },
             },
         }
@@ -90,12 +96,12 @@ def _write_like_another_program(root: Path, fleet) -> None:
         (root / hid / "Calibration").mkdir(parents=True)
         (root / hid / "Properties" / f"{hid}-heliostat-properties.json").write_text(json.dumps(props))
         for j in range(fleet.n_records):
-            rid = int(fleet.record_id[i, j])
+            rid = int(record_id[i, j])
             s = sun[i, j]
             az = math.degrees(math.atan2(s[0], -s[1]))
             el = math.degrees(math.asin(s[2]))
             spot = [float(x) for x in spots[i, j]]
-            counts = [int(round(float(x))) for x in np.asarray(fleet.counts[i, j])]
+            counts = [int(round(float(x))) for x in fleet_counts[i, j]]
             rec = {
                 "motor_position": {"axis_1_motor_position": counts[0], "axis_2_motor_position": counts[1]},
                 "target_name": TARGET,
@@ -123,9 +129,9 @@ def _write_like_another_program(root: Path, fleet) -> None:
                     "focal_spot_lat": spot[0],
                     "focal_spot_lon": spot[1],
                     "focal_spot_alt": spot[2],
-                    "target_center_lat": _lla(c)[0],
-                    "target_center_lon": _lla(c)[1],
-                    "target_center_alt": _lla(c)[2],
+                    "target_center_lat": centre_lla[0],
+                    "target_center_lon": centre_lla[1],
+                    "target_center_alt": centre_lla[2],
                     "tracking_error_lat": "",
                     "tracking_error_lon": "",
                     "tracking_error_alt": "",
