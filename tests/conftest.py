@@ -105,11 +105,19 @@ def shared_paint() -> Path:
 def pytest_collection_modifyitems(config, items):
     """Start each xdist worker's share with half of the notebook runs (the longest
     tests, ~20-60 s each, no shared fixtures): work stealing then evens out the
-    short tests at the end instead of one worker finishing a notebook alone."""
+    short tests at the end instead of one worker finishing a notebook alone.
+
+    The tests marked ``optimised`` come next, together, in the first share (each share's
+    notebooks end with an optimised one): a switch to the optimised setting clears
+    JAX's caches in the process, so optimised files between unoptimised ones dropped
+    the programs compiled so far (and test_discovery_paint recompiled the discovery
+    programs test_discovery had compiled, optimised, before test_discovery_lanes)."""
     if not config.pluginmanager.hasplugin("xdist") or not getattr(config.option, "numprocesses", None):
         return
     heavy = [it for it in items if it.nodeid.startswith("tests/test_notebook_")]
     rest = [it for it in items if not it.nodeid.startswith("tests/test_notebook_")]
+    optimised = [it.get_closest_marker("optimised") is not None for it in rest]
+    rest = [it for it, o in zip(rest, optimised) if o] + [it for it, o in zip(rest, optimised) if not o]
     split = len(items) // 2 - len(heavy[::2])
     items[:] = heavy[::2] + rest[:split] + heavy[1::2] + rest[split:]
 
