@@ -61,4 +61,14 @@ def _clip(text: str, limit: int) -> str:
 
 
 class ConfigError(HeliojaxError, ValueError):
-    """Bad configuration (TOML file or command-line flags)."""
+    """Bad configuration (TOML file or command-line flags); its message is one line
+    (:func:`one_line`: a path with a line break, a value of a megabyte)."""
+
+    def __init__(self, message: str = "", *args: object):
+        super().__init__(one_line(str(message)), *args)
+
+
+def one_line(text: str, limit: int = MAX_REASON_LINE_CHARS) -> str:
+    """``text`` as one line of a message: control characters escaped, at most ``limit``
+    characters (the middle left out)."""
+    return _clip(_printable(text), limit)

@@ -560,6 +560,46 @@ CASES = [
         lambda t: [*_accept(t, _summary(t, '"BF56": {"status": "sideways"}')), "--paint", str(hj.default_data_dir())],
         "heliostats.BF56.status",
     ),
+    ("fetch --out the catalogue folder", lambda t: ["fetch", str(_a_dir(t)), "--out", str(_a_dir(t))], "is SOURCE"),
+    ("plot onto '-' (a file named - was written)", lambda t: ["inspect", "--plot", "-"], "--plot -"),
+    ("steps with an underscore (ran 1000)", lambda t: ["calibrate", "--max-steps", "1_000"], "--max-steps"),
+    ("seed in Arabic-Indic digits (ran as 12)", lambda t: ["calibrate", "--seed", "\u0661\u0662"], "--seed"),
+    (
+        "sun elevation in full-width digits (aimed at 40)",
+        lambda t: ["aim", "r.h5", "--sun-azimuth", "10", "--sun-elevation", "\uff14\uff10"],
+        "--sun-elevation",
+    ),
+    (
+        "held-out record with an underscore",
+        lambda t: ["reconstruct", "--paint", str(t), "--heliostat", "AA39", "--held-out", "270_398"],
+        "--held-out",
+    ),
+    (
+        "fetch --end in basic form (midnight: its day left out)",
+        lambda t: ["fetch", "--out", "o", "--end", "20230331"],
+        "--end",
+    ),
+    ("aim --time a week date (a Monday)", lambda t: ["aim", "r.h5", "--time", "2023-W13"], "--time"),
+    (
+        "fetch --start of 100 digits (year 1111)",
+        lambda t: ["fetch", str(t / "missing.json"), "--out", "o", "--start", "1" * 100],
+        "--start",
+    ),
+    (
+        "fetch timeout of 1e10 s (overflowed the socket)",
+        lambda t: ["fetch", "--out", "o", "--timeout", "1e10"],
+        "--timeout",
+    ),
+    (
+        "trace --out the PAINT folder",
+        lambda t: ["trace", (p := _tower_edited(t, lambda d: None)), "--heliostat", "BE36", "--out", p],
+        "is PAINT_DIR, an input folder",
+    ),
+    (
+        "inspect --cache-dir the PAINT folder",
+        lambda t: ["inspect", (p := _tower_edited(t, lambda d: None)), "--cache-dir", p],
+        "is DATA_DIR, an input folder",
+    ),
 ]
 
 
@@ -575,6 +615,48 @@ def test_bad_input_is_a_short_clean_error(argv, expected, tmp_path, capsys, monk
     inputs = {tmp_path / n for n in names}
     before |= {p for p in tmp_path.rglob("*") if p.is_relative_to(tmp_path / "paint")}  # the input data
     assert {p for p in tmp_path.rglob("*")} - before <= inputs  # no output written
+
+
+PAGE = "x" * 100_000
+
+
+@pytest.mark.parametrize(
+    ("argv", "flag"),
+    [
+        (["calibrate", "--max-steps", PAGE], "--max-steps"),
+        (["calibrate", "--max-steps", "9" * 5000], "--max-steps"),  # int() refuses 4300+ digits, quoting them
+        (["reconstruct", "--held-out", "9" * 5000], "--held-out"),
+        (["calibrate", "--model", PAGE], "--model"),  # argparse's own 'invalid choice'
+        (["calibrate", "--" + PAGE], "unrecognized arguments"),
+        (["trace", "--heliostat", PAGE], "--heliostat"),
+        (["aim", "r.h5", "--time", PAGE], "--time"),
+        (["calibrate", "--records", "a\nb.csv"], "--records a\\nb.csv"),
+        (["inspect", "--plot", "a\nb.xyz"], "--plot a\\nb.xyz"),
+        (["calibrate", "--config", "config.toml"], "model"),
+    ],
+    ids=[
+        "int",
+        "int-digits",
+        "int-list",
+        "choice",
+        "flag",
+        "heliostat",
+        "date",
+        "line-break",
+        "line-break-out",
+        "config",
+    ],
+)
+def test_a_value_of_a_page_or_with_a_line_break_is_named_in_one_short_line(argv, flag, tmp_path, capsys, monkeypatch):
+    """The message quotes a value of 100k characters shortened (it was one line of
+    100k characters) and a path with a line break escaped (it was two lines)."""
+    monkeypatch.chdir(tmp_path)
+    _config(tmp_path, '[calibrate]\nmodel = "' + PAGE + '"\n')
+    rc, _, err = _run(argv, capsys)
+    lines = err.strip().splitlines()
+    assert rc == 2 and flag in lines[0] and "Traceback" not in err, err[:2000]
+    assert len(lines) == (2 if "see 'heliojax" in err else 1), err[:2000]  # argparse's: and where to find help
+    assert all(len(line) <= 1100 for line in lines), [len(line) for line in lines]
 
 
 def test_inspect_survives_a_heliostat_without_usable_records(tmp_path, capsys):

@@ -11,7 +11,16 @@ from pathlib import Path
 
 import numpy as np
 
-from ._common import add_cache_argument, enable_compilation_cache, integer, number, path_type, target_name
+from ._common import (
+    add_cache_argument,
+    enable_compilation_cache,
+    integer,
+    is_iso_date_time,
+    number,
+    path_type,
+    shown_value,
+    target_name,
+)
 
 log = logging.getLogger(__name__)
 
@@ -43,9 +52,11 @@ kept here (and of any plant's operation)."""
 def _utc(value: str) -> dt.datetime:
     """``YYYY-MM-DD[THH:MM[:SS]][Z|+hh:mm]``; naive means UTC; a year in :data:`YEARS`."""
     try:
+        if not is_iso_date_time(value):
+            raise ValueError
         t = dt.datetime.fromisoformat(value.replace("Z", "+00:00"))
     except ValueError as e:
-        raise argparse.ArgumentTypeError(f"not an ISO date-time: {value!r}") from e
+        raise argparse.ArgumentTypeError(f"not an ISO date-time: {shown_value(value)}") from e
     if not YEARS[0] <= t.year <= YEARS[1]:
         raise argparse.ArgumentTypeError(f"{value!r}: the year must lie in {YEARS[0]}-{YEARS[1]}")
     return t if t.tzinfo is not None else t.replace(tzinfo=dt.UTC)

@@ -7,6 +7,7 @@ import collections.abc
 import logging
 import math
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -209,6 +210,8 @@ def check_output_paths(
         flag = "--" + name.replace("_", "-")
         if not str(value).strip():  # Path("") is the working directory: never what was meant
             raise ConfigError(f"{flag}: empty path")
+        if str(value).strip() == "-":  # a file named '-' in the working directory, where standard output was meant
+            raise ConfigError(f"{flag} -: outputs are written to files, not to standard output; give a file name")
         path = Path(value)
         try:
             _check_output_path(flag, path, name, is_dir, seen)
@@ -254,7 +257,7 @@ def check_input_paths(
             raise ConfigError(f"{flag} {_shown(path)}: is a directory, expected a file")
         if not want_dir:
             check_input_file(flag, path)
-            _check_not_an_output(flag, path, args, outputs)
+        check_not_an_output(flag, path, args, outputs)
 
 
 def check_input_file(flag: str, path: Path) -> None:
@@ -272,25 +275,32 @@ def check_input_file(flag: str, path: Path) -> None:
         raise ConfigError(f"{flag} {_shown(path)}: {problem}")
 
 
-def _check_not_an_output(flag: str, path: Path, args, outputs: collections.abc.Iterable[str]) -> None:
-    """No output (attribute names ``outputs`` of ``args``) is the input file ``path``
-    (also through a link or another name of it): writing it would replace the input."""
+def check_not_an_output(flag: str, path: Path, args, outputs: collections.abc.Iterable[str]) -> None:
+    """No output (attribute names ``outputs`` of ``args``) is the input file or folder
+    ``path`` (also through a link or another name of it): writing it would replace the
+    input file, or put the outputs (a compilation cache, figures) among the input's files."""
     from .._errors import ConfigError
 
     for name in outputs:
         value = getattr(args, name, None)
-        if value is None or name == "cache_dir" or not str(value).strip():
+        if value is None or not str(value).strip() or (name == "cache_dir" and str(value).lower() == "none"):
             continue
         try:
-            same = Path(value).is_file() and os.path.samefile(value, path)
-        except OSError:  # an output not there yet, a name too long: not the input
+            same = Path(value).exists() and os.path.samefile(value, path)
+        except (OSError, ValueError):  # an output not there yet, a name too long: not the input
             same = False
-        if same:
-            out_flag = "--" + name.replace("_", "-")
+        if not same:
+            continue
+        out_flag = "--" + name.replace("_", "-")
+        if Path(path).is_dir():
             raise ConfigError(
-                f"{out_flag} {_shown(Path(value))}: is {flag}, an input, which writing it would replace; "
-                "give the output its own name"
+                f"{out_flag} {_shown(Path(value))}: is {flag}, an input folder, among whose files the outputs "
+                "would be written; give the output its own folder"
             )
+        raise ConfigError(
+            f"{out_flag} {_shown(Path(value))}: is {flag}, an input, which writing it would replace; "
+            "give the output its own name"
+        )
 
 
 def _shown(path: Path, most: int = 120) -> str:
@@ -361,7 +371,7 @@ def heliostat_id(value: str) -> str:
     import re
 
     if not re.match(HELIOSTAT_ID_RE, value):
-        raise argparse.ArgumentTypeError(f"{value!r} is not a heliostat id (letters, digits, _)")
+        raise argparse.ArgumentTypeError(f"{shown_value(value)} is not a heliostat id (letters, digits, _)")
     return value
 
 
@@ -387,6 +397,36 @@ def path_type(value: str) -> Path:
     return Path(value)
 
 
+_ISO_DATE_TIME = re.compile(
+    r"\d{4}-\d{2}-\d{2}(?:[T ]\d{2}(?::\d{2}(?::\d{2}(?:[.,]\d+)?)?)?(?:Z|[+-]\d{2}(?::?\d{2})?)?)?", re.ASCII
+)
+
+
+def is_iso_date_time(text: str) -> bool:
+    """Whether ``text`` is written ``YYYY-MM-DD[THH[:MM[:SS[.ffffff]]]][Z|+hh:mm]``, the form
+    the date options name. Python's ``fromisoformat`` also reads ``20230331`` (at midnight:
+    an inclusive ``--end 20230331`` left out its own day), week dates (``2023-W13``, a
+    Monday) and any run of digits (100 ones are 1111-11-11T11:11:11.111111)."""
+    return _ISO_DATE_TIME.fullmatch(text) is not None
+
+
+def _is_ascii_number(text: str, special: bool = False) -> bool:
+    """Whether ``text`` is a number written as a command line writes one: ASCII digits,
+    a sign, a point, an exponent (:func:`heliojax._io.is_decimal`; with ``special`` also
+    nan and inf, which the range check names). Python's int() and float() also take
+    ``1_000``, digits of other scripts (``١٢``, full-width ``１２``): read silently as
+    another number than the one meant, or as one where none was meant."""
+    from .._io import is_decimal
+
+    return is_decimal(text) or (special and text.strip().lower().lstrip("+-") in ("nan", "inf", "infinity"))
+
+
+def shown_value(value: object, most: int = 60) -> str:
+    """``repr(value)`` as shown in a message: at most about ``most`` characters."""
+    text = repr(value)
+    return text if len(text) <= most else f"{text[: most // 2]}...{text[-most // 2 :]} ({len(str(value))} characters)"
+
+
 LARGEST_INTEGER = 2**31 - 1
 """Largest value of an integer option without its own maximum (counts, ids, steps)."""
 
@@ -410,12 +450,12 @@ def integer(minimum: int | None = None, maximum: int | None = None):
     top = LARGEST_INTEGER if maximum is None else maximum
 
     def parse(value: str | int | float) -> int:
-        if isinstance(value, bool):
-            raise argparse.ArgumentTypeError(f"expected an integer, got {value!r}")
+        if isinstance(value, bool) or (isinstance(value, str) and not _is_ascii_number(value)):
+            raise argparse.ArgumentTypeError(f"expected an integer, got {shown_value(value)}")
         try:
             number = int(value)
         except (TypeError, ValueError, OverflowError):  # OverflowError: a config's inf
-            raise argparse.ArgumentTypeError(f"expected an integer, got {value!r}") from None
+            raise argparse.ArgumentTypeError(f"expected an integer, got {shown_value(value)}") from None
         if isinstance(value, float) and number != value:
             raise argparse.ArgumentTypeError(f"expected an integer, got {value!r}")
         if (minimum is not None and number < minimum) or number > top:
@@ -432,12 +472,12 @@ def number(minimum: float | None = None, maximum: float | None = None, *, above:
     bottom with ``above``, at the top with ``below``), else a message naming the range."""
 
     def parse(value: str | float) -> float:
-        if isinstance(value, bool):
-            raise argparse.ArgumentTypeError(f"expected a number, got {value!r}")
+        if isinstance(value, bool) or (isinstance(value, str) and not _is_ascii_number(value, special=True)):
+            raise argparse.ArgumentTypeError(f"expected a number, got {shown_value(value)}")
         try:
             x = float(value)
         except (TypeError, ValueError):
-            raise argparse.ArgumentTypeError(f"expected a number, got {value!r}") from None
+            raise argparse.ArgumentTypeError(f"expected a number, got {shown_value(value)}") from None
         low_ok = minimum is None or (x > minimum if above else x >= minimum)
         high_ok = maximum is None or (x < maximum if below else x <= maximum)
         if not math.isfinite(x) or not low_ok or not high_ok:

@@ -7,7 +7,7 @@ import datetime as dt
 import sys
 
 from .._errors import HeliojaxError
-from ._common import integer, number
+from ._common import check_not_an_output, integer, is_iso_date_time, number, path_type, shown_value
 
 COLLECTIONS = ("properties", "calibration", "deflectometry")
 """``heliojax.paint.COLLECTIONS`` (kept here so that ``--help`` needs no JAX; a test
@@ -59,11 +59,13 @@ def _source(value: str) -> str:
 def _when(value: str) -> dt.datetime | dt.date:
     """``YYYY-MM-DD`` (a whole day) or an ISO 8601 date-time (naive means UTC)."""
     try:
+        if not is_iso_date_time(value):
+            raise ValueError
         if len(value) == 10:
             return dt.date.fromisoformat(value)
         t = dt.datetime.fromisoformat(value.replace("Z", "+00:00"))
     except ValueError as e:
-        raise argparse.ArgumentTypeError(f"not a date or ISO date-time: {value!r}") from e
+        raise argparse.ArgumentTypeError(f"not a date or ISO date-time: {shown_value(value)}") from e
     if t.tzinfo is not None:  # compared in UTC: an offset may carry year 1 or 9999 out of range
         try:
             t.astimezone(dt.UTC)
@@ -71,6 +73,10 @@ def _when(value: str) -> dt.datetime | dt.date:
             raise argparse.ArgumentTypeError(f"{value!r} in UTC falls outside the years 1-9999") from None
     return t
 
+
+MAX_TIMEOUT_S = 86400.0
+"""Longest ``--timeout``: a day per request (the socket takes no more than about 68 years,
+and 1e10 s failed inside it, with a traceback)."""
 
 OUTPUT_FILES = ()
 OUTPUT_DIRS = ("out",)
@@ -97,7 +103,7 @@ def add_parser(subparsers) -> None:
         default=PAINT_CATALOGUE,
         help=f"root catalogue: URL or path to its JSON file or folder (default: {PAINT_CATALOGUE})",
     )
-    p.add_argument("--out", metavar="DIR", required=True, help="output folder")
+    p.add_argument("--out", metavar="DIR", type=path_type, required=True, help="output folder")
     p.add_argument("--heliostats", metavar="IDS", type=_csv, help="comma-separated heliostat ids (default: all)")
     p.add_argument(
         "--collections",
@@ -121,7 +127,12 @@ def add_parser(subparsers) -> None:
     p.add_argument("--no-resume", dest="resume", action="store_false", help="download everything again")
     p.add_argument("--no-tower", dest="tower", action="store_false", help="skip the tower-measurements file")
     p.add_argument("--workers", type=integer(1, 64), default=8, help="parallel downloads")
-    p.add_argument("--timeout", type=number(0.0, above=True), default=60.0, help="seconds per request (> 0)")
+    p.add_argument(
+        "--timeout",
+        type=number(0.0, MAX_TIMEOUT_S, above=True),
+        default=60.0,
+        help=f"seconds per request, in (0, {MAX_TIMEOUT_S:g}]",
+    )
     p.add_argument(
         "--same-host-only",
         action="store_true",
@@ -131,8 +142,13 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
+    from pathlib import Path
+
     from ..paint import fetch_catalog
 
+    if "://" not in args.source and Path(args.source).exists():  # a local catalogue: its folder is an input
+        folder = Path(args.source) if Path(args.source).is_dir() else Path(args.source).parent
+        check_not_an_output("SOURCE", folder, args, OUTPUT_DIRS)
     assets = list(CALIBRATION_ASSETS) if "all" in args.assets else args.assets
 
     def progress(msg: str) -> None:

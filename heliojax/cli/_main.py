@@ -22,7 +22,7 @@ import typing
 from collections.abc import Iterable
 from pathlib import Path
 
-from .._errors import ConfigError, HeliojaxError
+from .._errors import ConfigError, HeliojaxError, one_line
 from .._version import __version__
 from .._xla_flags import with_fast_cpu_compilation
 from ._common import check_input_paths, check_output_paths, configure_logging, path_type
@@ -72,7 +72,7 @@ class _Parser(argparse.ArgumentParser):
         return _RecordedGroup(super().add_mutually_exclusive_group(**kwargs), self.options, members)
 
     def error(self, message: str) -> typing.NoReturn:
-        self.exit(2, f"{self.prog}: error: {message}\nsee '{self.prog} --help'\n")
+        self.exit(2, f"{self.prog}: error: {one_line(message)}\nsee '{self.prog} --help'\n")
 
 
 class _RecordedGroup:
@@ -363,7 +363,7 @@ def _main(argv: list[str]) -> int:
             _silence_stdout()  # `heliojax inspect | head -1`: the reader had enough, as with any Unix tool
             return 141  # 128 + SIGPIPE
         where = f"{e.filename}: " if e.filename else ""
-        print(f"heliojax {args.command}: error: {where}{e.strerror or e}", file=sys.stderr)
+        print(f"heliojax {args.command}: error: {one_line(f'{where}{e.strerror or e}')}", file=sys.stderr)
         return 2
 
 

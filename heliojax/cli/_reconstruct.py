@@ -84,7 +84,9 @@ def add_parser(subparsers) -> None:
         default=None,
         help="tower-measurements JSON (default: the one in --paint or its parent)",
     )
-    p.add_argument("--held-out", nargs="*", type=int, default=[], help="record ids kept out of the reconstruction")
+    p.add_argument(
+        "--held-out", nargs="*", type=integer(0), default=[], help="record ids kept out of the reconstruction"
+    )
     p.add_argument(
         "--scenario",
         type=path_type,
