@@ -659,6 +659,45 @@ def test_a_value_of_a_page_or_with_a_line_break_is_named_in_one_short_line(argv,
     assert all(len(line) <= 1100 for line in lines), [len(line) for line in lines]
 
 
+@pytest.mark.parametrize(
+    ("env", "argv", "rc", "said"),
+    [
+        ({"JAX_ENABLE_X64": "junk"}, [], 2, "JAX_ENABLE_X64"),  # read when JAX is imported: a traceback
+        ({"JAX_NUM_CPU_DEVICES": "two"}, [], 2, "jax_num_cpu_devices"),
+        ({"MPLBACKEND": "bogus"}, ["--plot", "p.png"], 0, "wrote p.png"),  # matplotlib refused it on import
+        ({"HELIOJAX_CACHE_DIR": "\udcff\udcfe"}, [], 2, "$HELIOJAX_CACHE_DIR \\udcff\\udcfe"),  # JAX: TypeError
+        ({"HELIOJAX_CACHE_DIR": "  "}, [], 0, "Flags"),  # was a cache folder named '  ' in the working directory
+    ],
+    ids=["x64", "devices", "mpl-backend", "cache-not-utf8", "cache-blank"],
+)
+def test_a_bad_environment_is_one_line_or_done_without(env, argv, rc, said, tmp_path):
+    import subprocess
+    import sys
+
+    environ = {**os.environ, "PYTHONPATH": str(Path(hj.__file__).parents[1]), **env}
+    run = subprocess.run(
+        [sys.executable, "-m", "heliojax.cli._main", "inspect", *argv],
+        cwd=tmp_path,
+        env=environ,
+        capture_output=True,
+        text=True,
+        errors="replace",
+        timeout=600,
+    )
+    lines = [line for line in run.stderr.splitlines() if not line.startswith(("[heliojax]", "findfont"))]
+    assert run.returncode == rc, run.stderr[-2000:]
+    assert said in run.stdout + run.stderr and "Traceback" not in run.stderr, run.stderr[-2000:]
+    assert rc == 0 or len(lines) == 1, lines
+    assert not (tmp_path / "  ").exists()
+
+
+def test_a_closed_standard_error_runs_quietly(capsys, monkeypatch):
+    """``2>&-``: sys.stderr is None; the progress bars wrote to it and failed (exit 1)."""
+    monkeypatch.setattr("sys.stderr", None)
+    assert main(["inspect", "--cache-dir", "none"]) == 0
+    assert main(["inspect", "--cache-dir", "none", "--plot", "p.xyz"]) == 2
+
+
 def test_inspect_survives_a_heliostat_without_usable_records(tmp_path, capsys):
     data = tmp_path / "paint"
     shutil.copytree(hj.default_data_dir(), data)

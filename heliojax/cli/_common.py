@@ -169,9 +169,12 @@ def enable_compilation_cache(cache_dir: str | os.PathLike | None) -> None:
 
     if cache_dir is not None and str(cache_dir).lower() == "none":
         return
-    chosen = cache_dir or os.environ.get("HELIOJAX_CACHE_DIR")
+    chosen = cache_dir or os.environ.get("HELIOJAX_CACHE_DIR", "").strip() or None  # blank: unset, not a folder "  "
+    where = "--cache-dir" if cache_dir else "$HELIOJAX_CACHE_DIR"
     try:
         path = Path(chosen or Path.home() / ".cache" / "heliojax" / "jax")
+        if not _is_utf8(str(path)):  # bytes of another encoding in the name: JAX took it with a TypeError
+            raise OSError(0, "the name is not UTF-8 text, which JAX needs")
         path.mkdir(parents=True, exist_ok=True)
         if not os.access(path, os.W_OK | os.X_OK):
             raise PermissionError(13, "not writable")
@@ -180,11 +183,19 @@ def enable_compilation_cache(cache_dir: str | os.PathLike | None) -> None:
         if not chosen:  # the default: a convenience, not worth failing a run for
             log.warning(f"no compilation cache ({reason}); --cache-dir DIR keeps one, --cache-dir none silences this")
             return
-        where = "--cache-dir" if cache_dir else "$HELIOJAX_CACHE_DIR"
         raise ConfigError(f"{where} {_shown(Path(chosen))}: cannot hold the compilation cache: {reason}") from None
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)  # keep small programs too
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+def _is_utf8(text: str) -> bool:
+    """Whether ``text`` (a file name: bytes not UTF-8 are read as lone surrogates) is UTF-8 text."""
+    try:
+        text.encode()
+    except UnicodeEncodeError:
+        return False
+    return True
 
 
 def check_output_paths(

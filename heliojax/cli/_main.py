@@ -280,9 +280,11 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _terminate) if in_main_thread else None
-    stdout = sys.stdout
+    stdout, stderr = sys.stdout, sys.stderr
     if stdout is not None:  # None: started with standard output closed (`>&-`); print() writes nothing
         sys.stdout = _NamedStdout(stdout)
+    if stderr is None:  # started with standard error closed (`2>&-`): progress bars wrote to None and failed
+        sys.stderr = open(os.devnull, "w")  # noqa: SIM115 (closed in the finally below)
     try:
         return _main(argv)
     except KeyboardInterrupt as e:
@@ -296,6 +298,9 @@ def main(argv: list[str] | None = None) -> int:
         return 143 if terminated else 130
     finally:
         sys.stdout = stdout
+        if stderr is None:
+            sys.stderr.close()
+            sys.stderr = stderr
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
 
@@ -320,9 +325,19 @@ def _main(argv: list[str]) -> int:
         return 2
     # before JAX starts its backend: this process compiles many small programs
     os.environ["XLA_FLAGS"] = with_fast_cpu_compilation(os.environ.get("XLA_FLAGS", ""))
-    import jax  # after parsing: --help and --version stay fast
+    # figures go to files only: the environment's backend (a GUI's, a bogus name: matplotlib
+    # refused it on import, with a traceback) is none of the command's business
+    os.environ["MPLBACKEND"] = "Agg"
+    try:
+        import jax  # after parsing: --help and --version stay fast
 
-    jax.config.update("jax_enable_x64", True)
+        jax.config.update("jax_enable_x64", True)
+    except (ValueError, TypeError) as e:  # JAX_ENABLE_X64=junk, JAX_NUM_CPU_DEVICES=junk: read on import
+        print(
+            f"heliojax {args.command}: error: JAX does not start with this environment: {one_line(str(e), 300)}",
+            file=sys.stderr,
+        )
+        return 2
     platforms = os.environ.get("JAX_PLATFORMS", "").strip()
     if platforms:  # a backend named but not usable here fails on the first array, deep in a command
         try:
