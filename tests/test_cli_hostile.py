@@ -561,6 +561,7 @@ CASES = [
         "heliostats.BF56.status",
     ),
     ("fetch --out the catalogue folder", lambda t: ["fetch", str(_a_dir(t)), "--out", str(_a_dir(t))], "is SOURCE"),
+    ("out ending with '/' (a file 'x.h5' was written)", lambda t: ["calibrate", "--out", "x.h5/"], "--out x.h5/"),
     ("plot onto '-' (a file named - was written)", lambda t: ["inspect", "--plot", "-"], "--plot -"),
     ("steps with an underscore (ran 1000)", lambda t: ["calibrate", "--max-steps", "1_000"], "--max-steps"),
     ("seed in Arabic-Indic digits (ran as 12)", lambda t: ["calibrate", "--seed", "\u0661\u0662"], "--seed"),

@@ -224,6 +224,8 @@ def check_output_paths(
         if str(value).strip() == "-":  # a file named '-' in the working directory, where standard output was meant
             raise ConfigError(f"{flag} -: outputs are written to files, not to standard output; give a file name")
         path = Path(value)
+        if not is_dir and str(value).endswith(("/", os.sep)) and not path.is_dir():  # Path() drops the '/'
+            raise ConfigError(f"{flag} {_shown(path)}/: ends with '/', naming a folder; give a file name")
         try:
             _check_output_path(flag, path, name, is_dir, seen)
         except OSError as e:  # a name too long, a loop of links: the flag, not a bare OSError
