@@ -561,6 +561,11 @@ CASES = [
         "heliostats.BF56.status",
     ),
     ("fetch --out the catalogue folder", lambda t: ["fetch", str(_a_dir(t)), "--out", str(_a_dir(t))], "is SOURCE"),
+    (
+        "report in /proc (os.access said yes to root: failed after the run)",
+        lambda t: ["discover", "--report", "/proc/r.json"],
+        "/proc",
+    ),
     ("out ending with '/' (a file 'x.h5' was written)", lambda t: ["calibrate", "--out", "x.h5/"], "--out x.h5/"),
     ("plot onto '-' (a file named - was written)", lambda t: ["inspect", "--plot", "-"], "--plot -"),
     ("steps with an underscore (ran 1000)", lambda t: ["calibrate", "--max-steps", "1_000"], "--max-steps"),

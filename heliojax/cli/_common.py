@@ -224,7 +224,8 @@ def check_output_paths(
         if str(value).strip() == "-":  # a file named '-' in the working directory, where standard output was meant
             raise ConfigError(f"{flag} -: outputs are written to files, not to standard output; give a file name")
         path = Path(value)
-        if not is_dir and str(value).endswith(("/", os.sep)) and not path.is_dir():  # Path() drops the '/'
+        given_as_folder = isinstance(value, FolderPath) or str(value).endswith(("/", os.sep))  # Path() drops it
+        if not is_dir and given_as_folder and not path.is_dir():
             raise ConfigError(f"{flag} {_shown(path)}/: ends with '/', naming a folder; give a file name")
         try:
             _check_output_path(flag, path, name, is_dir, seen)
@@ -352,10 +353,30 @@ def _check_output_path(flag: str, path: Path, name: str, is_dir: bool, seen: dic
         raise ConfigError(f"{flag} {path}: {ancestor} is not a directory")
     if not os.access(ancestor, os.W_OK | os.X_OK):
         raise ConfigError(f"{flag} {path}: {ancestor} is not writable")
+    _check_a_file_can_be_made(flag, path, ancestor)
     folder = path if is_dir else path.parent
     if folder.is_dir() and name != "cache_dir":
         for stale in remove_stale_temporaries(folder):
             log.info(f"removed {stale}, left by an interrupted run")
+
+
+def _check_a_file_can_be_made(flag: str, path: Path, folder: Path) -> None:
+    """A file can be made in ``folder`` (tried: an empty temporary file, removed at once).
+    ``os.access`` says yes to root everywhere, also in /proc or /sys, where no file can be
+    made: the command ran for minutes and then failed on writing its output."""
+    import tempfile
+
+    from .._errors import ConfigError
+    from .._io import TEMPORARY_MARK
+
+    try:
+        fd, probe = tempfile.mkstemp(dir=folder, prefix=".probe.", suffix=TEMPORARY_MARK)
+    except OSError as e:
+        raise ConfigError(
+            f"{flag} {_shown(path)}: no file can be made in {_shown(folder)}: {e.strerror or e}"
+        ) from None
+    os.close(fd)
+    os.unlink(probe)
 
 
 def _check_no_dangling_link(flag: str, path: Path, link: Path | None = None) -> None:
@@ -407,7 +428,12 @@ def path_type(value: str) -> Path:
         raise argparse.ArgumentTypeError("empty path")
     if "\0" in str(value):
         raise argparse.ArgumentTypeError(f"{value!r}: a path cannot hold a NUL byte")
-    return Path(value)
+    return FolderPath(value) if str(value).endswith(("/", os.sep)) else Path(value)
+
+
+class FolderPath(type(Path())):
+    """A path given with a final ``/``, which ``Path`` drops: it names a folder (an output
+    file ``x.h5/`` is refused, not written as ``x.h5``)."""
 
 
 _ISO_DATE_TIME = re.compile(
