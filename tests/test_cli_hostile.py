@@ -831,6 +831,16 @@ def test_an_output_name_taken_in_the_out_folder_writes_nothing(argv, name, taken
     assert [p.name for p in out.iterdir()] == [name]
 
 
+def test_an_output_folder_given_with_a_final_slash_is_written(tmp_path, capsys):
+    """``--out DIR/`` (as a shell's completion writes a folder) names the folder: the
+    files inside it are written (only a *file* output ending with '/' is refused)."""
+    out = tmp_path / "o"
+    argv = [*TRACE_AT_A_SUN, "--pixels", "8", "--rays-per-point", "1", "--resolution", "2"]
+    rc, _, err = _run([*argv, "--out", f"{out}/"], capsys)
+    assert rc == 0, err
+    assert {p.name for p in out.iterdir()} >= {"BE36-az10_el30-flux.png", "BE36-az10_el30-summary.json"}
+
+
 def test_time_windows_of_sub_second_steps_or_past_the_last_day_are_refused():
     import argparse
     import datetime as dt

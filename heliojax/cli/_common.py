@@ -212,10 +212,10 @@ def check_output_paths(
     from .._errors import ConfigError
 
     seen: dict[Path, str] = {}
-    checks = [(name, getattr(args, name, None), False) for name in files]
-    checks += [(name, getattr(args, name, None), True) for name in directories]
-    checks += [(name, path, False) for name, path in inside if getattr(args, name, None) is not None]
-    for name, value, is_dir in checks:
+    checks = [(name, getattr(args, name, None), False, True) for name in files]
+    checks += [(name, getattr(args, name, None), True, True) for name in directories]
+    checks += [(name, path, False, False) for name, path in inside if getattr(args, name, None) is not None]
+    for name, value, is_dir, given in checks:
         if value is None or (name == "cache_dir" and str(value).lower() == "none"):
             continue
         flag = "--" + name.replace("_", "-")
@@ -224,7 +224,8 @@ def check_output_paths(
         if str(value).strip() == "-":  # a file named '-' in the working directory, where standard output was meant
             raise ConfigError(f"{flag} -: outputs are written to files, not to standard output; give a file name")
         path = Path(value)
-        given_as_folder = isinstance(value, FolderPath) or str(value).endswith(("/", os.sep))  # Path() drops it
+        # a value as given (not a file inside an output folder, which `OUT/` / name keeps a FolderPath)
+        given_as_folder = given and (isinstance(value, FolderPath) or str(value).endswith(("/", os.sep)))
         if not is_dir and given_as_folder and not path.is_dir():
             raise ConfigError(f"{flag} {_shown(path)}/: ends with '/', naming a folder; give a file name")
         try:
