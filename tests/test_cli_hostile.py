@@ -568,6 +568,24 @@ CASES = [
     ),
     ("out ending with '/' (a file 'x.h5' was written)", lambda t: ["calibrate", "--out", "x.h5/"], "--out x.h5/"),
     ("plot onto '-' (a file named - was written)", lambda t: ["inspect", "--plot", "-"], "--plot -"),
+    ("plot ending with '/.' (a file 'x' was written)", lambda t: ["inspect", "--plot", "x/."], "--plot x/"),
+    (
+        "out ending with '/..' (refused after the run, a folder 'y' left)",
+        lambda t: ["calibrate", "--out", "y/.."],
+        "--out y/..",
+    ),
+    ("seed '--' (argparse set it to []: ran without one)", lambda t: ["calibrate", "--seed=--"], "--seed"),
+    ("aim --out=-- (argparse set it to []: a traceback)", lambda t: ["aim", "r.h5", "--out=--"], "--out"),
+    (
+        "aim --time with 7 fractional digits (the 7th dropped)",
+        lambda t: ["aim", "r.h5", "--time", "2023-06-21T12:00:00.1234567"],
+        "--time",
+    ),
+    (
+        "aim --time in 2201 in UTC (the year checked before the offset)",
+        lambda t: ["aim", "r.h5", "--time", "2200-12-31T23:00-05:00"],
+        "--time",
+    ),
     ("steps with an underscore (ran 1000)", lambda t: ["calibrate", "--max-steps", "1_000"], "--max-steps"),
     ("seed in Arabic-Indic digits (ran as 12)", lambda t: ["calibrate", "--seed", "\u0661\u0662"], "--seed"),
     (

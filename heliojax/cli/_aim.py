@@ -57,9 +57,13 @@ def _utc(value: str) -> dt.datetime:
         t = dt.datetime.fromisoformat(value.replace("Z", "+00:00"))
     except ValueError as e:
         raise argparse.ArgumentTypeError(f"not an ISO date-time: {shown_value(value)}") from e
+    # the year in UTC: 2200-12-31T23:00-05:00 is in 2201
     if not YEARS[0] <= t.year <= YEARS[1]:
         raise argparse.ArgumentTypeError(f"{value!r}: the year must lie in {YEARS[0]}-{YEARS[1]}")
-    return t if t.tzinfo is not None else t.replace(tzinfo=dt.UTC)
+    t = t if t.tzinfo is not None else t.replace(tzinfo=dt.UTC)
+    if not YEARS[0] <= t.astimezone(dt.UTC).year <= YEARS[1]:
+        raise argparse.ArgumentTypeError(f"{value!r}: the year in UTC must lie in {YEARS[0]}-{YEARS[1]}")
+    return t
 
 
 def add_parser(subparsers) -> None:

@@ -225,9 +225,10 @@ def check_output_paths(
             raise ConfigError(f"{flag} -: outputs are written to files, not to standard output; give a file name")
         path = Path(value)
         # a value as given (not a file inside an output folder, which `OUT/` / name keeps a FolderPath)
-        given_as_folder = given and (isinstance(value, FolderPath) or str(value).endswith(("/", os.sep)))
+        given_as_folder = given and (isinstance(value, FolderPath) or _names_a_folder(str(value)))
         if not is_dir and given_as_folder and not path.is_dir():
-            raise ConfigError(f"{flag} {_shown(path)}/: ends with '/', naming a folder; give a file name")
+            shown = _shown(path) if path.name == ".." else f"{_shown(path)}/"
+            raise ConfigError(f"{flag} {shown}: ends with '/', '.' or '..', naming a folder; give a file name")
         try:
             _check_output_path(flag, path, name, is_dir, seen)
         except OSError as e:  # a name too long, a loop of links: the flag, not a bare OSError
@@ -429,22 +430,30 @@ def path_type(value: str) -> Path:
         raise argparse.ArgumentTypeError("empty path")
     if "\0" in str(value):
         raise argparse.ArgumentTypeError(f"{value!r}: a path cannot hold a NUL byte")
-    return FolderPath(value) if str(value).endswith(("/", os.sep)) else Path(value)
+    return FolderPath(value) if _names_a_folder(str(value)) else Path(value)
+
+
+def _names_a_folder(text: str) -> bool:
+    """Whether a path as given names a folder by its form: a final ``/``, ``.`` or ``..``
+    (``Path`` drops a final ``/`` and ``/.``: ``x.h5/.`` was written as a file ``x.h5``)."""
+    last = text.rstrip("/" + os.sep).replace(os.sep, "/").rsplit("/", 1)[-1]
+    return text.endswith(("/", os.sep)) or last in (".", "..")
 
 
 class FolderPath(type(Path())):
-    """A path given with a final ``/``, which ``Path`` drops: it names a folder (an output
-    file ``x.h5/`` is refused, not written as ``x.h5``)."""
+    """A path given with a final ``/`` (or ``/.``, ``/..``), which ``Path`` drops or keeps as
+    a name: it names a folder (an output file ``x.h5/`` is refused, not written as ``x.h5``)."""
 
 
 _ISO_DATE_TIME = re.compile(
-    r"\d{4}-\d{2}-\d{2}(?:[T ]\d{2}(?::\d{2}(?::\d{2}(?:[.,]\d+)?)?)?(?:Z|[+-]\d{2}(?::?\d{2})?)?)?", re.ASCII
+    r"\d{4}-\d{2}-\d{2}(?:[T ]\d{2}(?::\d{2}(?::\d{2}(?:[.,]\d{1,6})?)?)?(?:Z|[+-]\d{2}(?::?\d{2})?)?)?", re.ASCII
 )
 
 
 def is_iso_date_time(text: str) -> bool:
     """Whether ``text`` is written ``YYYY-MM-DD[THH[:MM[:SS[.ffffff]]]][Z|+hh:mm]``, the form
-    the date options name. Python's ``fromisoformat`` also reads ``20230331`` (at midnight:
+    the date options name (at most 6 fractional digits: Python dropped the 7th on, a
+    nanosecond time silently read as another). Python's ``fromisoformat`` also reads ``20230331`` (at midnight:
     an inclusive ``--end 20230331`` left out its own day), week dates (``2023-W13``, a
     Monday) and any run of digits (100 ones are 1111-11-11T11:11:11.111111)."""
     return _ISO_DATE_TIME.fullmatch(text) is not None
@@ -499,7 +508,8 @@ def integer(minimum: int | None = None, maximum: int | None = None):
         if isinstance(value, float) and number != value:
             raise argparse.ArgumentTypeError(f"expected an integer, got {value!r}")
         if (minimum is not None and number < minimum) or number > top:
-            shown = value if isinstance(value, float) else number  # not 1e308's 309 digits
+            shown = str(value if isinstance(value, float) else number)  # not 1e308's 309 digits
+            shown = shown if len(shown) <= 40 else f"{shown[:20]}...({len(shown)} digits)"  # nor 4000 typed ones
             raise argparse.ArgumentTypeError(f"{shown} is outside [{minimum}, {top}]".replace("None", "..."))
         return number
 

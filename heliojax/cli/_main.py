@@ -74,6 +74,13 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> typing.NoReturn:
         self.exit(2, f"{self.prog}: error: {one_line(message)}\nsee '{self.prog} --help'\n")
 
+    def _get_values(self, action: argparse.Action, arg_strings: list[str]) -> typing.Any:
+        # argparse drops a value '--' (``--out=--``) and sets the option to [] without its
+        # type: a TypeError deep in a command, or ``--seed=--`` run with no seed
+        if action.nargs in (None, argparse.OPTIONAL) and action.option_strings and arg_strings == ["--"]:
+            self.error(f"argument {'/'.join(action.option_strings)}: '--' is not a value")
+        return super()._get_values(action, arg_strings)  # pyright: ignore[reportAttributeAccessIssue]
+
 
 class _RecordedGroup:
     """A mutually exclusive group whose options are recorded in its parser's ``options``
