@@ -1820,3 +1820,20 @@ def test_a_broken_target_of_the_tower_file_given_to_aim_or_trace_is_named(
     rc, _, err = _run(argv, capsys)
     assert rc == 2 and f"field '{field}" in err and len(err.strip().splitlines()) == 1, err
     assert not out.exists() or not any(out.iterdir())
+
+
+@pytest.mark.parametrize("scale", [1e-300, 1e300])
+def test_a_tiny_or_huge_target_normal_is_read_by_its_direction(scale):
+    """A normal_vector of [0, 1e-300, 0] (its norm underflowed to 0: a division by zero, and
+    any orientation passed) or of [0, 1e300, 0] (overflowed: warnings on stderr)."""
+    import warnings
+
+    from heliojax._errors import DataError
+    from heliojax.paint._tower import check_target_corners
+
+    corners = [(3.0, 0.0, 5.0), (-3.0, 0.0, 5.0), (3.0, 0.0, 0.0), (-3.0, 0.0, 0.0)]  # facing north
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_target_corners("tower.json", "t.coordinates", *corners, normal=(0.0, scale, 0.0))
+        with pytest.raises(DataError, match="180 deg away"):
+            check_target_corners("tower.json", "t.coordinates", *corners, normal=(0.0, -scale, 0.0))

@@ -65,7 +65,9 @@ def check_target_corners(
     if normal is None:
         return
     n = np.cross(u, v)
-    cosine = float(np.dot(n, normal) / (np.linalg.norm(n) * np.linalg.norm(normal)))
+    m = np.asarray(normal, np.float64)
+    m = m / np.max(np.abs(m))  # its direction only: [0, 1e-300, 0]'s norm underflowed to 0, 1e300's overflowed
+    cosine = float(np.dot(n, m) / (np.linalg.norm(n) * np.linalg.norm(m)))
     gap = math.degrees(math.acos(min(1.0, max(-1.0, cosine))))
     if gap > MAX_TARGET_NORMAL_GAP_DEG:
         raise DataError(
