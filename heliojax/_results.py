@@ -151,12 +151,40 @@ def _check_geometry(geometry: HeliostatGeometry, ids: tuple[str, ...], source: s
                 f"geometry/{name}",
                 f"heliostat {ids[h]!r}: more than {MAX_HELIOSTAT_SIZE_M:g} m, not an offset within a heliostat",
             )
-    zero = np.asarray(geometry.linear_slope, float) == 0
+    slope = np.asarray(geometry.linear_slope, float)
+    zero = slope == 0
     if zero.any():
         h, i = np.argwhere(zero)[0]
         raise DataError(
             source, "geometry/linear_slope", f"heliostat {ids[h]!r} axis {i + 1}: zero (the counts move no joint)"
         )
+    # the joint's turn over the count range (an actuator's is below pi): a slope of 1e300 aimed
+    # with 0 counts, one of 1e-300 (or an intercept of 1e300) with counts of 300 digits
+    swing = np.abs(slope) * (act["max_counts"] - act["min_counts"])
+    bad = ~((swing >= MIN_SWING_RAD) & (swing <= MAX_SWING_RAD))
+    if bad.any():
+        h, i = np.argwhere(bad)[0]
+        raise DataError(
+            source,
+            "geometry/linear_slope",
+            f"heliostat {ids[h]!r} axis {i + 1}: turns the joint {swing[h, i]:.3g} rad over the count range, "
+            f"outside [{MIN_SWING_RAD:g}, {MAX_SWING_RAD:.3g}]",
+        )
+    far = ~(np.abs(np.asarray(geometry.linear_intercept, float)) <= MAX_SWING_RAD)
+    if far.any():
+        h, i = np.argwhere(far)[0]
+        raise DataError(
+            source,
+            "geometry/linear_intercept",
+            f"heliostat {ids[h]!r} axis {i + 1}: {float(geometry.linear_intercept[h, i])!r} rad, more than "
+            f"{MAX_SWING_RAD:.3g} (two turns)",
+        )
+
+
+MIN_SWING_RAD = 1e-3
+MAX_SWING_RAD = 4 * math.pi
+"""Bounds of a joint's turn over its count range (rad; an actuator's is below pi) and of
+the Stone map's angle at count 0 (two turns)."""
 
 
 def model_from_label(label: str, dtype: typing.Any = jnp.float64) -> AbstractKinematicModel:

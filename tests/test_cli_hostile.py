@@ -1718,6 +1718,22 @@ EDITED_RESULTS = [
     ("joint translation 1e6 m", _edit_h5("geometry/joint_translation_2", (3, 2), 1e6), "geometry/joint_translation_2"),
     ("Stone slope 0", _edit_h5("geometry/linear_slope", (0, 1), 0.0), "geometry/linear_slope"),
     (
+        "Stone slope 1e300 (aimed with 0 counts, unflagged)",
+        _edit_h5("geometry/linear_slope", (0, 0), 1e300),
+        "geometry/linear_slope",
+    ),
+    (
+        "Stone slope 1e-300 (counts of 300 digits)",
+        _edit_h5("geometry/linear_slope", (0, 0), 1e-300),
+        "geometry/linear_slope",
+    ),
+    ("Stone intercept 1e300", _edit_h5("geometry/linear_intercept", (1, 1), 1e300), "geometry/linear_intercept"),
+    (
+        "count range 1e-9 wide",
+        lambda f: _edit_h5("geometry/actuators/min_counts", (0, 0), f["geometry/actuators/max_counts"][0, 0] - 1e-9)(f),
+        "geometry/linear_slope",
+    ),
+    (
         "ideal axes flag 7",
         _replace_h5("geometry/ideal_axes", lambda a: np.where(a, 1, 7).astype(np.int8)),
         "geometry/ideal_axes",
