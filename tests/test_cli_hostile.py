@@ -1853,3 +1853,19 @@ def test_a_tiny_or_huge_target_normal_is_read_by_its_direction(scale):
         check_target_corners("tower.json", "t.coordinates", *corners, normal=(0.0, scale, 0.0))
         with pytest.raises(DataError, match="180 deg away"):
             check_target_corners("tower.json", "t.coordinates", *corners, normal=(0.0, -scale, 0.0))
+
+
+def test_a_weather_cell_quoted_over_two_lines_names_both_lines(tmp_path):
+    """A quoted cell with a line break (``"1008.5<newline>"``, the last cell): the reader
+    parses line by line; the first line, its quote left open, was read as the whole row."""
+    from heliojax.paint import read_weather_csv
+
+    lines = (hj.default_data_dir() / "calibration-with-weather.csv").read_text().splitlines()
+    cells = lines[1].split(",")
+    cells[-1] = '"' + cells[-1] + '\n"'
+    path = tmp_path / "calibration-with-weather.csv"
+    path.write_text("\n".join([lines[0], ",".join(cells), *lines[2:]]) + "\n")
+    errors = []
+    records = read_weather_csv(path, on_error=errors.append)
+    assert [e.field for e in errors] == ["row 2", "row 3"], errors
+    assert len(records) == len(lines) - 2

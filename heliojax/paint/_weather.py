@@ -116,7 +116,9 @@ def read_weather_csv(
         where = f"row {line}"
         try:
             try:
-                cells = next(csv.reader([text_line]), [])
+                # strict: a quote left open is a cell going on past its line (its rest, the next
+                # line, was named alone while this part was read as the row), a stray one an error
+                cells = next(csv.reader([text_line], strict=True), [])
             except csv.Error as e:
                 raise DataError(file, where, f"malformed CSV row: {e}") from None
             if not cells:
