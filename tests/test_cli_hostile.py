@@ -560,6 +560,20 @@ CASES = [
         lambda t: [*_accept(t, _summary(t, '"BF56": {"status": "sideways"}')), "--paint", str(hj.default_data_dir())],
         "heliostats.BF56.status",
     ),
+    (
+        "tower target without normal_vector, left and right swapped (mirrored unseen)",
+        lambda t: [
+            "inspect",
+            _tower_edited(
+                t,
+                lambda d: (
+                    _swap_corners("upper_left", "upper_right", "lower_left", "lower_right")(d),
+                    d["solar_tower_juelich_lower"].pop("normal_vector"),
+                ),
+            ),
+        ],
+        "solar_tower_juelich_lower.normal_vector",
+    ),
     ("fetch --out the catalogue folder", lambda t: ["fetch", str(_a_dir(t)), "--out", str(_a_dir(t))], "is SOURCE"),
     (
         "report in /proc (os.access said yes to root: failed after the run)",

@@ -110,7 +110,11 @@ def _tower_from_json(file: str, data: Any) -> TowerFile:
             for c in CORNERS:
                 if c not in points:
                     raise DataError(file, coords.field(c), "missing (a planar target needs four corners)")
-            if normal is not None and math.hypot(*normal) == 0.0:
+            if normal is None:  # the corners alone face either way: left and right swapped went unseen
+                raise DataError(
+                    file, entry.field("normal_vector"), "missing (a planar target's left and right corners need it)"
+                )
+            if math.hypot(*normal) == 0.0:
                 raise DataError(file, entry.field("normal_vector"), "zero vector")
         targets[name] = TargetEntry(name=name, type=ttype, normal=normal, points=points, extra=extra)
     tower = TowerFile(plant_id=str(plant_id), origin_lla=origin, targets=targets, source=file)
