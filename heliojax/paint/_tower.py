@@ -140,8 +140,8 @@ def read_tower(path: str | os.PathLike) -> TowerFile:
 
     Every entry besides ``power_plant_properties`` is kept (the receiver too);
     ``planar`` entries must carry the four corners ``upper_left``,
-    ``upper_right``, ``lower_left``, ``lower_right`` and are the calibration
-    targets (:attr:`TowerFile.planar_target_names`).
+    ``upper_right``, ``lower_left``, ``lower_right`` and a ``normal_vector``, and are
+    the calibration targets (:attr:`TowerFile.planar_target_names`).
 
     Raises:
         DataError: naming the file and the field.
