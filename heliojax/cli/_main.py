@@ -74,12 +74,15 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> typing.NoReturn:
         self.exit(2, f"{self.prog}: error: {one_line(message)}\nsee '{self.prog} --help'\n")
 
-    def _get_values(self, action: argparse.Action, arg_strings: list[str]) -> typing.Any:
+    def parse_known_args(self, args=None, namespace=None):  # pyright: ignore[reportIncompatibleMethodOverride]
         # argparse drops a value '--' (``--out=--``) and sets the option to [] without its
         # type: a TypeError deep in a command, or ``--seed=--`` run with no seed
-        if action.nargs in (None, argparse.OPTIONAL) and action.option_strings and arg_strings == ["--"]:
-            self.error(f"argument {'/'.join(action.option_strings)}: '--' is not a value")
-        return super()._get_values(action, arg_strings)  # pyright: ignore[reportAttributeAccessIssue]
+        for arg in list(args if args is not None else sys.argv[1:]):
+            if arg == "--":  # the end of the options: what follows is no option
+                break
+            if arg.startswith("-") and arg.endswith("=--"):
+                self.error(f"argument {arg.split('=', 1)[0]}: '--' is not a value")
+        return super().parse_known_args(args, namespace)
 
 
 class _RecordedGroup:
