@@ -152,33 +152,29 @@ def _check_geometry(geometry: HeliostatGeometry, ids: tuple[str, ...], source: s
                 f"heliostat {ids[h]!r}: more than {MAX_HELIOSTAT_SIZE_M:g} m, not an offset within a heliostat",
             )
     slope = np.asarray(geometry.linear_slope, float)
-    zero = slope == 0
-    if zero.any():
-        h, i = np.argwhere(zero)[0]
-        raise DataError(
-            source, "geometry/linear_slope", f"heliostat {ids[h]!r} axis {i + 1}: zero (the counts move no joint)"
-        )
+    intercept = np.asarray(geometry.linear_intercept, float)
     # the joint's turn over the count range (an actuator's is below pi): a slope of 1e300 aimed
     # with 0 counts, one of 1e-300 (or an intercept of 1e300) with counts of 300 digits
     swing = np.abs(slope) * (act["max_counts"] - act["min_counts"])
-    bad = ~((swing >= MIN_SWING_RAD) & (swing <= MAX_SWING_RAD))
-    if bad.any():
-        h, i = np.argwhere(bad)[0]
-        raise DataError(
-            source,
-            "geometry/linear_slope",
-            f"heliostat {ids[h]!r} axis {i + 1}: turns the joint {swing[h, i]:.3g} rad over the count range, "
-            f"outside [{MIN_SWING_RAD:g}, {MAX_SWING_RAD:.3g}]",
-        )
-    far = ~(np.abs(np.asarray(geometry.linear_intercept, float)) <= MAX_SWING_RAD)
-    if far.any():
-        h, i = np.argwhere(far)[0]
-        raise DataError(
-            source,
-            "geometry/linear_intercept",
-            f"heliostat {ids[h]!r} axis {i + 1}: {float(geometry.linear_intercept[h, i])!r} rad, more than "
-            f"{MAX_SWING_RAD:.3g} (two turns)",
-        )
+    for field, bad, reason in (
+        ("linear_slope", slope == 0, lambda h, i: "zero (the counts move no joint)"),
+        (
+            "linear_slope",
+            ~((swing >= MIN_SWING_RAD) & (swing <= MAX_SWING_RAD)),
+            lambda h, i: (
+                f"turns the joint {swing[h, i]:.3g} rad over the count range, "
+                f"outside [{MIN_SWING_RAD:g}, {MAX_SWING_RAD:.3g}]"
+            ),
+        ),
+        (
+            "linear_intercept",
+            ~(np.abs(intercept) <= MAX_SWING_RAD),
+            lambda h, i: f"{float(intercept[h, i])!r} rad, more than {MAX_SWING_RAD:.3g} (two turns)",
+        ),
+    ):
+        if bad.any():
+            h, i = np.argwhere(bad)[0]
+            raise DataError(source, f"geometry/{field}", f"heliostat {ids[h]!r} axis {i + 1}: {reason(h, i)}")
 
 
 MIN_SWING_RAD = 1e-3
