@@ -64,8 +64,13 @@ from ._splits import days_since_fit
 from ._version import __version__
 from .effects import with_effects
 from .fitting import FitStatus
-from .paint._common import MAX_HELIOSTAT_DISTANCE_M, MAX_HELIOSTAT_HEIGHT_M, MAX_HELIOSTAT_SIZE_M, actuator_problem
-from .paint._flags import actuator_law_problem
+from .paint._common import (
+    MAX_HELIOSTAT_DISTANCE_M,
+    MAX_HELIOSTAT_HEIGHT_M,
+    MAX_HELIOSTAT_SIZE_M,
+    actuator_problem,
+)
+from .paint._flags import actuator_bounds_kept, actuator_law_kept, actuator_law_problem
 
 if typing.TYPE_CHECKING:
     import h5py
@@ -122,17 +127,19 @@ def _check_geometry(geometry: HeliostatGeometry, ids: tuple[str, ...], source: s
     act = {f.name: np.asarray(getattr(geometry.actuators, f.name), float) for f in dataclasses.fields(LinearActuators)}
     sign = act["sign"]
     clockwise = np.where(sign == 1.0, 0, np.where(sign == -1.0, 1, -1))
-    for h, i in np.ndindex(*sign.shape):
-        a = {
-            "increment": float(act["increment"][h, i]),
-            "offset": float(act["offset"][h, i]),
-            "pivot_radius": float(act["pivot_radius"][h, i]),
-            "initial_stroke_length": float(act["initial_stroke_length"][h, i]),
-            "initial_angle": float(act["initial_angle"][h, i]),
-            "min_increment": float(act["min_counts"][h, i]),
-            "max_increment": float(act["max_counts"][h, i]),
-            "clockwise_axis_movement": int(clockwise[h, i]),
-        }
+    fleet = {
+        "increment": act["increment"],
+        "offset": act["offset"],
+        "pivot_radius": act["pivot_radius"],
+        "initial_stroke_length": act["initial_stroke_length"],
+        "initial_angle": act["initial_angle"],
+        "min_increment": act["min_counts"],
+        "max_increment": act["max_counts"],
+        "clockwise_axis_movement": clockwise,
+    }
+    broken = ~(actuator_bounds_kept(fleet) & actuator_law_kept(fleet))  # (H, 2), one vectorised screen
+    for h, i in np.argwhere(broken)[:1]:  # the first broken actuator, named by the readers' own checks
+        a = {key: value[h, i].item() for key, value in fleet.items()}
         problem = actuator_problem(a)
         if problem is None and (law := actuator_law_problem(a)) is not None:
             problem = ("", law)

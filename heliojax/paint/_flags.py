@@ -12,7 +12,13 @@ import numpy as np
 from .._errors import DataError
 from .._fleet import MIN_FLEET_FOR_OUTLIERS, OUTLIER_FLOOR, OUTLIER_K, LoadReport, ReportEntry
 from .._sun import datetime_to_unix
-from ._common import MAX_HELIOSTAT_HEIGHT_M, WEATHER_KEYS, CalibrationRecord, HeliostatProperties
+from ._common import (
+    ACTUATOR_BOUNDS,
+    MAX_HELIOSTAT_HEIGHT_M,
+    WEATHER_KEYS,
+    CalibrationRecord,
+    HeliostatProperties,
+)
 
 
 class _Log:
@@ -74,18 +80,44 @@ def _actuator_law(*args):
     return ang0 + sign * (psi(counts / inc + s0) - psi(s0))
 
 
+def _law_at_limits(a: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The counts-to-angle law of the actuator(s) ``a`` (PAINT keys; numbers or arrays,
+    elementwise) at its two count limits and its mean slope: ``(lo, hi, slope)``."""
+    with np.errstate(all="ignore"):
+        args = [
+            np.asarray(a[k], np.float64)
+            for k in ("increment", "initial_stroke_length", "offset", "pivot_radius", "initial_angle")
+        ]
+        sign = np.where(np.asarray(a["clockwise_axis_movement"]) == 0, 1.0, -1.0)
+        lo, hi = (_actuator_law(*args, sign, np.asarray(a[k], np.float64)) for k in ("min_increment", "max_increment"))
+        slope = (hi - lo) / (np.asarray(a["max_increment"], np.float64) - np.asarray(a["min_increment"], np.float64))
+    return np.asarray(lo), np.asarray(hi), np.asarray(slope)
+
+
+def actuator_bounds_kept(a: dict) -> np.ndarray:
+    """Elementwise over the actuator(s) ``a`` (PAINT keys; numbers or arrays): whether
+    :func:`~heliojax.paint._common.actuator_problem` finds nothing (one vectorised screen of a whole fleet)."""
+    ok = np.isin(np.asarray(a["clockwise_axis_movement"]), (0, 1))
+    ok = ok & (np.asarray(a["min_increment"]) < np.asarray(a["max_increment"]))
+    for key, what in ACTUATOR_BOUNDS:
+        v = np.asarray(a[key])
+        ok = ok & ((v > 0) if what == "positive" else (v >= 0))
+    return np.asarray(ok)
+
+
+def actuator_law_kept(a: dict) -> np.ndarray:
+    """Elementwise over the actuator(s) ``a`` (PAINT keys, numbers or arrays): whether
+    :func:`actuator_law_problem` finds nothing."""
+    lo, hi, slope = _law_at_limits(a)
+    return np.asarray(np.isfinite(lo) & np.isfinite(hi) & np.isfinite(slope) & (slope != 0))
+
+
 def actuator_law_problem(a: dict) -> str | None:
     """Why the counts-to-angle law of the actuator ``a`` (PAINT keys) gives no finite,
     distinct angles at its two count limits, or None when it does."""
-    with np.errstate(all="ignore"):
-        args = [
-            np.float64(a[k]) for k in ("increment", "initial_stroke_length", "offset", "pivot_radius", "initial_angle")
-        ]
-        sign = 1.0 if a["clockwise_axis_movement"] == 0 else -1.0
-        lo, hi = (_actuator_law(*args, sign, np.float64(a[k])) for k in ("min_increment", "max_increment"))
-        slope = (hi - lo) / (np.float64(a["max_increment"]) - np.float64(a["min_increment"]))
-    if np.isfinite(lo) and np.isfinite(hi) and np.isfinite(slope) and slope != 0:
+    if actuator_law_kept(a):
         return None
+    lo, hi, _ = _law_at_limits(a)
     return (
         f"the actuator law gives no usable angle range over [min_increment, max_increment] "
         f"(angles {float(lo)!r} .. {float(hi)!r} rad)"
