@@ -10,14 +10,6 @@ Every figure a notebook shows or saves is render-checked (``tests/_render_check.
 with the rules of ``tests/_figure_check.py``): a hidden first cell installs the check
 in the kernel and a hidden last cell reports what it found; both are taken out of the
 returned notebook again.
-
-The kernels of one test session share a JAX compilation cache (with it heliojax's
-kept programs, ``heliojax._programs``), in a folder of the session's temporary
-directory that tests/conftest.py names in ``$HELIOJAX_TEST_KERNEL_CACHE``: several
-notebooks calibrate the embedded fleet with the same models, and each kernel is a
-new process that would trace and compile those programs again (~90 % of a
-calibration's time there). Every program is still compiled once per session, by
-the first kernel that runs it; the notebooks compute the same values either way.
 """
 
 from __future__ import annotations
@@ -35,7 +27,6 @@ import pytest
 TESTS = Path(__file__).resolve().parent
 NOTEBOOKS = TESTS.parent / "notebooks"
 RENDER_CHECK = "render-check"  # the tag of the hidden cells
-KERNEL_CACHE_ENV = "HELIOJAX_TEST_KERNEL_CACHE"  # set by tests/conftest.py for the session
 
 
 def parameters_cell(nb) -> int:
@@ -122,11 +113,6 @@ def execute_notebook(path: Path, tmp_path: Path, monkeypatch, overrides: dict | 
     root = str(NOTEBOOKS.parent)
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")])))
     monkeypatch.delenv("MPLBACKEND", raising=False)  # let the kernel use its inline backend
-    cache = os.environ.get(KERNEL_CACHE_ENV)
-    if cache:  # the session's notebooks share their compiled programs (see the module docstring)
-        monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", cache)
-        monkeypatch.setenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
-        monkeypatch.setenv("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
     from jupyter_client.kernelspec import KernelSpecManager
 
     spec = KernelSpecManager().get_kernel_spec("python3")

@@ -122,25 +122,6 @@ def pytest_collection_modifyitems(config, items):
     items[:] = heavy[::2] + rest[:split] + heavy[1::2] + rest[split:]
 
 
-@pytest.fixture(scope="session", autouse=True)
-def _notebook_kernel_cache(tmp_path_factory):
-    """A compilation cache folder for the session's notebook kernels (see
-    tests/_notebooks.py), shared by the xdist workers (their temporary directories
-    lie in one folder per session)."""
-    from _notebooks import KERNEL_CACHE_ENV
-
-    base = tmp_path_factory.getbasetemp()
-    folder = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "notebook-jax-cache"
-    folder.mkdir(exist_ok=True)
-    previous = os.environ.get(KERNEL_CACHE_ENV)
-    os.environ[KERNEL_CACHE_ENV] = str(folder)
-    yield
-    if previous is None:
-        os.environ.pop(KERNEL_CACHE_ENV, None)
-    else:
-        os.environ[KERNEL_CACHE_ENV] = previous
-
-
 @pytest.fixture(autouse=True)
 def _figures_are_readable(monkeypatch):
     """Every figure a test saves is checked first (labels, colour bars, nothing cut

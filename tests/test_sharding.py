@@ -22,6 +22,7 @@ import pytest
 import heliojax as hj
 from heliojax import FitStatus, forward, process_slice, reflected_ray
 from heliojax._simulate import random_stone_models, synthetic_geometry
+from heliojax._xla_flags import with_fast_cpu_compilation
 
 REPO = Path(__file__).resolve().parents[1]
 FIELDS = ("params", "std", "covariance", "status", "n_steps", "n_used", "rms_mrad", "cost", "noise_mrad")
@@ -84,6 +85,8 @@ def _env(**extra) -> dict:
     env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
     env["JAX_PLATFORMS"] = "cpu"
     env.update(extra)
+    # the suite's faster-compiling CPU emitters (tests/conftest.py), beside the test's own flags
+    env["XLA_FLAGS"] = with_fast_cpu_compilation(extra.get("XLA_FLAGS", ""))
     return env
 
 
