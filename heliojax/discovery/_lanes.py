@@ -45,6 +45,7 @@ from ..fitting import (
     AbstractBatching,
     default_batching,
     default_solver,
+    record_rows,
     record_rows_and_jacobian,
     residual_with_jacobian,
     sanitise,
@@ -272,13 +273,17 @@ def _fit_lane(
     prior_at_zero = weight * (p0[eff_idx] - none[eff_idx]) / all_scales[eff_idx]
     prior_jac = jnp.concatenate([jnp.zeros((cap, n_base), dtype), jnp.diag(weight)], axis=1)
 
+    def rows(y):
+        r = record_rows(row, y, (counts, context, focal, c0, dmat), use)
+        return jnp.concatenate([r, prior_at_zero + weight * y[n_base:]]) if cap else r
+
     def rows_and_jacobian(y):
         r, jac = record_rows_and_jacobian(row, y, (counts, context, focal, c0, dmat), use)
         if not cap:
             return r, jac
         return jnp.concatenate([r, prior_at_zero + weight * y[n_base:]]), jnp.concatenate([jac, prior_jac])
 
-    residual = residual_with_jacobian(rows_and_jacobian)
+    residual = residual_with_jacobian(rows, rows_and_jacobian)
     out = solve_least_squares(residual, jnp.zeros(n_base + cap, dtype), solver, max_steps)
     prior_cost = 0.5 * jnp.sum((prior_at_zero + weight * out.value[n_base:]) ** 2) if cap else 0.0
     p = to_physical(out.value)

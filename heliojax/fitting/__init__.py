@@ -39,6 +39,7 @@ from ._fit import (
     fit as fit,
     fit_timed as fit_timed,
     psd_inverse as psd_inverse,
+    record_rows as record_rows,
     record_rows_and_jacobian as record_rows_and_jacobian,
     residual_with_jacobian as residual_with_jacobian,
     solve_least_squares as solve_least_squares,
