@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import math
 import typing
 from pathlib import Path
@@ -70,10 +71,12 @@ from .paint._common import (
     MAX_HELIOSTAT_SIZE_M,
     actuator_problem,
 )
-from .paint._flags import actuator_bounds_kept, actuator_law_kept, actuator_law_problem
+from .paint._flags import actuator_bounds_kept, actuator_law_kept, actuator_law_problem, fleet_outliers
 
 if typing.TYPE_CHECKING:
     import h5py
+
+log = logging.getLogger(__name__)
 
 SPLIT_CODES = {"unused": 0, "train": 1, "validation": 2, "test": 3}
 
@@ -300,6 +303,9 @@ class CalibrationResults:
         attrs: the file's attributes.
         source: the file.
         target_names: the names ``records["target_index"]`` points into.
+        flags: heliostat id -> why its geometry is suspect (a position far from the
+            fleet's, by the properties reader's outlier rule); such a heliostat is
+            not :attr:`fitted` (aim flags its commands ``unreliable``).
     """
 
     ids: tuple[str, ...]
@@ -316,6 +322,7 @@ class CalibrationResults:
     attrs: dict[str, typing.Any]
     source: str
     target_names: tuple[str, ...] = ()
+    flags: dict[str, str] = dataclasses.field(default_factory=dict)
 
     @property
     def drift_mrad2_per_day(self) -> float:
@@ -341,10 +348,11 @@ class CalibrationResults:
 
     @property
     def fitted(self) -> np.ndarray:
-        """``(H,)`` heliostats with a usable fit: converged or at the step limit, and
-        not flagged ``worse_than_nominal``."""
+        """``(H,)`` heliostats with a usable fit: converged or at the step limit, not
+        flagged ``worse_than_nominal``, and a geometry without a :attr:`flags` entry."""
         ok = (FitStatus.CONVERGED.label, FitStatus.MAX_STEPS.label)
-        return np.array([s in ok for s in self.status]) & ~self.worse_than_nominal
+        usable = np.array([s in ok and h not in self.flags for s, h in zip(self.status, self.ids)])
+        return usable & ~self.worse_than_nominal
 
     def heliostat(self, heliostat_id: str) -> tuple[AbstractKinematicModel, HeliostatGeometry]:
         """The fitted model and geometry of one heliostat."""
@@ -644,6 +652,14 @@ def load_results(path: str | Path) -> CalibrationResults:
             f"heliostat {ids[int(np.argmax(far_off))]!r} lies more than {MAX_HELIOSTAT_DISTANCE_M / 1000:g} km "
             f"or {MAX_HELIOSTAT_HEIGHT_M:g} m from the plant's origin",
         )
+    # the properties reader's rule: an altitude from another datum, in feet, or 0 puts a
+    # heliostat tens of metres above or below its neighbours; aimed with, silently, before
+    flags = {
+        ids[h]: f"geometry/position: heliostat {ids[h]!r} height {reason}"
+        for h, reason in fleet_outliers(position[:, 2], MAX_HELIOSTAT_HEIGHT_M, "m")
+    }
+    for reason in flags.values():
+        log.warning(f"{source}: {reason}; its fit is not used")
     batched = broadcast_model(template, len(ids))
     model = jax.vmap(view.from_vector)(batched, jnp.asarray(params))
     return CalibrationResults(
@@ -661,6 +677,7 @@ def load_results(path: str | Path) -> CalibrationResults:
         attrs=attrs,
         source=source,
         target_names=targets,
+        flags=flags,
     )
 
 

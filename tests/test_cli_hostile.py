@@ -1347,14 +1347,27 @@ DAMAGED_DATA = [
         "skipped",
         9,
     ),
-    (
-        "actuator increment of 1e-300 counts/m (a stroke of 1e304 m)",
-        lambda d: (
-            _edit_properties(d, "BL14", _set(("kinematics_properties", "actuators", 1, "increment"), 1e-300)),
-            "kinematics_properties.actuators[1].initial_stroke_length",
-        ),
-        "flagged",
-        0,
+    # the actuator bounds are physical ranges, not signs (a stroke of 1e304 m was only flagged)
+    *(
+        (
+            f"actuator {key} of {value:g}",
+            lambda d, key=key, value=value: (
+                _edit_properties(d, "BL14", _set(("kinematics_properties", "actuators", 1, key), value)),
+                f"kinematics_properties.actuators[1].{key}",
+            ),
+            "skipped",
+            9,
+        )
+        for key, value in (
+            ("increment", 1e-300),
+            ("increment", 1e12),
+            ("pivot_radius", 1e-300),
+            ("offset", 50.0),
+            ("initial_stroke_length", 1e6),
+            ("min_increment", -1e12),
+            ("max_increment", 10**15),
+            ("max_increment", 2_000_000),  # a stroke travel of 13 m
+        )
     ),
     (
         "heliostat 5 km above the plant",
@@ -1747,6 +1760,19 @@ EDITED_RESULTS = [
         lambda f: _edit_h5("geometry/actuators/min_counts", (0, 0), f["geometry/actuators/max_counts"][0, 0] - 1e-9)(f),
         "geometry/linear_slope",
     ),
+    # physically absurd values of the right sign (aimed with, exit 0)
+    *(
+        (f"{name} {value:g}", _edit_h5(f"geometry/actuators/{name}", (1, 0), value), f"geometry/actuators/{field}")
+        for name, value, field in (
+            ("pivot_radius", 1e-300, "pivot_radius"),
+            ("offset", 1e-300, "offset"),
+            ("increment", 1e-300, "increment"),
+            ("increment", 1e300, "increment"),
+            ("initial_stroke_length", 1e9, "initial_stroke_length"),
+            ("min_counts", -1e12, "min_counts"),
+            ("max_counts", 3e9, "max_counts"),
+        )
+    ),
     (
         "ideal axes flag 7",
         _replace_h5("geometry/ideal_axes", lambda a: np.where(a, 1, 7).astype(np.int8)),
@@ -1766,6 +1792,27 @@ def test_an_edited_results_h5_is_named(edit, field, fitted_h5, tmp_path, capsys)
     rc, _, err = _run(["aim", str(results), "--date", "2024-06-01", "--out", str(tmp_path / "aim.csv")], capsys)
     assert rc == 2 and f"field '{field}'" in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "aim.csv").exists()
+
+
+@pytest.mark.parametrize("up", [-500.0, 300.0, -60.0])
+def test_a_heliostat_of_results_h5_far_above_or_below_the_others_is_not_aimed(up, fitted_h5, tmp_path, capsys):
+    """The properties reader flags a heliostat > 50 m from the fleet's median altitude;
+    load_results aimed with one 500 m below the others without a word."""
+    import csv
+
+    import h5py
+
+    results = tmp_path / "results.h5"
+    shutil.copy(fitted_h5, results)
+    with h5py.File(results, "r+") as f:
+        _edit_h5("geometry/position", (2, 2), f["geometry/position"][2, 2] + up)(f)
+        victim = f["heliostat_ids"][2].decode()
+    rc, _, err = _run(["aim", str(results), "--date", "2024-06-01", "--out", str(tmp_path / "aim.csv")], capsys)
+    assert rc == 0 and f"geometry/position: heliostat {victim!r} height" in err, err
+    rows = list(csv.DictReader((tmp_path / "aim.csv").read_text().splitlines()))
+    assert all("unreliable" in r["flags"].split(";") for r in rows if r["heliostat_id"] == victim)
+    assert hj.load_results(results).flags.keys() == {victim}
+    assert not hj.load_results(fitted_h5).flags
 
 
 def test_an_output_folder_replaced_by_a_file_mid_run_names_the_output(tmp_path):

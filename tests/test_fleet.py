@@ -588,7 +588,9 @@ def test_subset_heliostat_and_jit(emb_fleet):
 def test_degenerate_actuator_is_skipped(raw_emb):
     tower, props, recs = raw_emb
     bl14 = next(p for p in props if p.heliostat_id == "BL14")
-    a0 = dict(bl14.actuators[0], offset=1e300)  # finite, but the law overflows
+    # each side within the bounds, but the stroke never closes the triangle: one angle
+    # at both count limits (offset 1e300, which the law overflowed on, is out of bounds now)
+    a0 = dict(bl14.actuators[0], offset=5.0, pivot_radius=0.02)
     bad = dataclasses.replace(bl14, actuators=(a0, bl14.actuators[1]))
     others = [p for p in props if p.heliostat_id in ("BH20",)]
     f = records_to_fleet(tower, [bad] + others, [r for r in recs if r.heliostat_id in ("BL14", "BH20")])

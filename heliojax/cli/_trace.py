@@ -219,7 +219,9 @@ def run(args: argparse.Namespace) -> int:
                 raise ConfigError(f"--results {args.results}: no heliostat {args.heliostat!r} in it")
             i = results.ids.index(args.heliostat)
             if not results.fitted[i]:  # its model is the nominal start or a diverged fit: no calibration
-                why = "worse than nominal" if results.worse_than_nominal[i] else results.status[i]
+                why = results.flags.get(args.heliostat) or (
+                    "worse than nominal" if results.worse_than_nominal[i] else results.status[i]
+                )
                 raise ConfigError(f"--results {args.results}: {args.heliostat} has no usable fit ({why})")
             model, geometry = results.heliostat(args.heliostat)
         if args.deflectometry is not None:

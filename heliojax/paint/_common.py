@@ -82,16 +82,33 @@ ACTUATOR_KEYS = (
 """Keys of an actuator entry, in PAINT's order. The first group
 (:data:`ACTUATOR_REQUIRED`) is required; the rest are kept when present."""
 
+MAX_COUNTS = 2**31 - 1
+"""Largest magnitude of a motor count (``min_increment``, ``max_increment``): an
+actuator's encoder position is a 32-bit register (PAINT's counts stay below 80 000)."""
+MAX_ACTUATOR_LENGTH_M = 10.0
+"""Longest side of an actuator triangle (``offset``, ``pivot_radius``), stroke at count
+0 and stroke travel over the count range, m (PAINT: 0.07-0.49 m; a heliostat is at most
+:data:`MAX_HELIOSTAT_SIZE_M` across, its actuators far less)."""
+
 ACTUATOR_BOUNDS = (
-    ("increment", "positive"),
-    ("offset", "positive"),
-    ("pivot_radius", "positive"),
-    ("initial_stroke_length", "non-negative"),
+    ("increment", "positive", 1e3, 1e8, "counts/m"),
+    ("offset", "positive", 1e-2, MAX_ACTUATOR_LENGTH_M, "m"),
+    ("pivot_radius", "positive", 1e-2, MAX_ACTUATOR_LENGTH_M, "m"),
+    ("initial_stroke_length", "non-negative", 0.0, MAX_ACTUATOR_LENGTH_M, "m"),
+    ("min_increment", "", -MAX_COUNTS, MAX_COUNTS, "counts"),
+    ("max_increment", "", -MAX_COUNTS, MAX_COUNTS, "counts"),
 )
-"""Sign bounds of an actuator's numbers (counts per metre of stroke, the two sides of
-the actuator triangle, m, and the stroke at count 0, m); with ``min_increment <
-max_increment`` and ``clockwise_axis_movement`` in {0, 1} the bounds of
-:func:`actuator_problem`, which the properties reader and ``load_results`` share."""
+"""Bounds of an actuator's numbers: ``(key, sign, low, high, unit)``. The sign is what
+the geometry needs (a pivot radius of 0 has no triangle); ``[low, high]`` is what a
+heliostat's actuator can physically be: counts per metre of stroke from 1e3 (a 1 mm
+step, too coarse to point within a mrad) to 1e8 (a 10 nm step), triangle sides from
+1 cm to :data:`MAX_ACTUATOR_LENGTH_M`, counts within :data:`MAX_COUNTS` (PAINT's:
+154 167 counts/m, sides 0.32-0.34 m, strokes 0.07-0.24 m, counts 0-76 112). A pivot
+radius of 1e-300 m or a count limit of -1e12 kept the signs and was aimed with.
+With ``min_increment < max_increment``, a stroke travel over the count range of at
+most :data:`MAX_ACTUATOR_LENGTH_M` and ``clockwise_axis_movement`` in {0, 1} the
+bounds of :func:`actuator_problem`, which the properties reader and ``load_results``
+share (:func:`heliojax.paint._flags.actuator_bounds_kept` is the vectorised screen)."""
 
 CSV_COLUMNS = (
     "heliostat_id",
@@ -469,16 +486,24 @@ def _check(cond: bool, file: str, field: str | None, reason: str) -> None:
 @no_type_check
 def actuator_problem(a: dict[str, Any]) -> tuple[str, str] | None:
     """The first bound of :data:`ACTUATOR_BOUNDS` (or ``min_increment < max_increment``,
-    ``clockwise_axis_movement`` in {0, 1}) that the actuator ``a`` (PAINT keys, finite
-    numbers) breaks, as ``(key, reason)``; None when it keeps them all."""
+    the stroke travel, ``clockwise_axis_movement`` in {0, 1}) that the actuator ``a``
+    (PAINT keys, finite numbers) breaks, as ``(key, reason)``; None when it keeps them all."""
     if a["clockwise_axis_movement"] not in (0, 1):
         return "clockwise_axis_movement", "must be 0 or 1"
+    for key, sign, low, high, unit in ACTUATOR_BOUNDS:
+        v = a[key]
+        if sign and not (v > 0 if sign == "positive" else v >= 0):
+            return key, f"must be {sign}, got {v!r}"
+        if not low <= v <= high:
+            return key, f"{v!r} {unit} is outside [{low:g}, {high:g}] {unit}: not a heliostat actuator's"
     if not a["min_increment"] < a["max_increment"]:
         return "max_increment", f"max_increment {a['max_increment']} is not above min_increment {a['min_increment']}"
-    for key, what in ACTUATOR_BOUNDS:
-        v = a[key]
-        if not (v > 0 if what == "positive" else v >= 0):
-            return key, f"must be {what}, got {v!r}"
+    travel = (a["max_increment"] - a["min_increment"]) / a["increment"]
+    if not travel <= MAX_ACTUATOR_LENGTH_M:
+        return "max_increment", (
+            f"the count range is a stroke travel of {travel:.4g} m, more than {MAX_ACTUATOR_LENGTH_M:g} m: "
+            "not a heliostat actuator's"
+        )
     return None
 
 

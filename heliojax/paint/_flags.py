@@ -14,6 +14,7 @@ from .._fleet import MIN_FLEET_FOR_OUTLIERS, OUTLIER_FLOOR, OUTLIER_K, LoadRepor
 from .._sun import datetime_to_unix
 from ._common import (
     ACTUATOR_BOUNDS,
+    MAX_ACTUATOR_LENGTH_M,
     MAX_HELIOSTAT_HEIGHT_M,
     WEATHER_KEYS,
     CalibrationRecord,
@@ -98,10 +99,14 @@ def actuator_bounds_kept(a: dict) -> np.ndarray:
     """Elementwise over the actuator(s) ``a`` (PAINT keys; numbers or arrays): whether
     :func:`~heliojax.paint._common.actuator_problem` finds nothing (one vectorised screen of a whole fleet)."""
     ok = np.isin(np.asarray(a["clockwise_axis_movement"]), (0, 1))
-    ok = ok & (np.asarray(a["min_increment"]) < np.asarray(a["max_increment"]))
-    for key, what in ACTUATOR_BOUNDS:
+    for key, sign, low, high, _ in ACTUATOR_BOUNDS:
         v = np.asarray(a[key])
-        ok = ok & ((v > 0) if what == "positive" else (v >= 0))
+        ok = ok & (low <= v) & (v <= high)
+        if sign:
+            ok = ok & ((v > 0) if sign == "positive" else (v >= 0))
+    lo, hi = np.asarray(a["min_increment"]), np.asarray(a["max_increment"])
+    with np.errstate(all="ignore"):
+        ok = ok & (lo < hi) & ((hi - lo) / np.asarray(a["increment"]) <= MAX_ACTUATOR_LENGTH_M)
     return np.asarray(ok)
 
 
@@ -234,17 +239,30 @@ def _flag_properties(props: list[HeliostatProperties], log: _Log) -> None:
     altitudes = np.array([p.position_lla[2] for p in props])
     checks.append(("heliostat_position", altitudes, MAX_HELIOSTAT_HEIGHT_M, "m altitude"))  # pyright: ignore[reportArgumentType]
     for field, v, scale, unit in checks:
-        med = np.median(v)
-        mad = np.median(np.abs(v - med))
-        thr = OUTLIER_K * max(1.4826 * mad, OUTLIER_FLOOR * float(scale))
-        for h in np.nonzero(np.abs(v - med) > thr)[0]:
-            log.flag(
-                props[h].source,
-                field,
-                f"{v[h]:.6g} {unit} is far from the fleet median {med:.6g} "
-                f"(|dev| {abs(v[h] - med):.3g} > {thr:.3g} = {OUTLIER_K:g} x max(1.4826 MAD, "
-                f"{OUTLIER_FLOOR:g} x scale))",
-            )
+        for h, reason in fleet_outliers(v, float(scale), unit):
+            log.flag(props[h].source, field, reason)
+
+
+def fleet_outliers(v: np.ndarray, scale: float, unit: str) -> list[tuple[int, str]]:
+    """The robust outlier rule of the load's fleet checks: ``(index, reason)`` of each
+    value of ``v`` (one per heliostat) farther than ``OUTLIER_K x max(1.4826 MAD,
+    OUTLIER_FLOOR x scale)`` from the fleet median (shared by the properties reader and
+    ``load_results``; empty below ``MIN_FLEET_FOR_OUTLIERS`` heliostats)."""
+    v = np.asarray(v, float)
+    if v.size < MIN_FLEET_FOR_OUTLIERS:
+        return []
+    med = np.median(v)
+    mad = np.median(np.abs(v - med))
+    thr = OUTLIER_K * max(1.4826 * mad, OUTLIER_FLOOR * scale)
+    return [
+        (
+            int(h),
+            f"{v[h]:.6g} {unit} is far from the fleet median {med:.6g} "
+            f"(|dev| {abs(v[h] - med):.3g} > {thr:.3g} = {OUTLIER_K:g} x max(1.4826 MAD, "
+            f"{OUTLIER_FLOOR:g} x scale))",
+        )
+        for h in np.nonzero(np.abs(v - med) > thr)[0]
+    ]
 
 
 EARLIEST_RECORD_TIME = 946684800.0
