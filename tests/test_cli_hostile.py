@@ -8,6 +8,7 @@ import datetime as dt
 import json
 import math
 import os
+import re
 import shutil
 from pathlib import Path
 
@@ -804,6 +805,80 @@ def test_temporaries_of_a_killed_run_are_removed_before_the_next(tmp_path, capsy
     rc, _, err = _run(["inspect", "--plot", str(tmp_path / "x.png"), "--cache-dir", "none"], capsys)
     assert rc == 0, err
     assert not stale.exists() and fresh.exists()
+
+
+def _png(depth: int, colour_type: int, rows: np.ndarray, palette: bytes = b"") -> bytes:
+    """A PNG written byte by byte (Pillow writes no 2- or 4-bit grey)."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    raw = b""
+    for row in rows:
+        bits = "".join(format(int(v), f"0{depth}b") for v in row)
+        bits += "0" * (-len(bits) % 8)
+        raw += b"\0" + int(bits, 2).to_bytes(len(bits) // 8, "big")
+    header = struct.pack(">IIBBBBB", len(rows[0]), len(rows), depth, colour_type, 0, 0, 0)
+    body = chunk(b"PLTE", palette) if palette else b""
+    return (
+        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + body + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b"")
+    )
+
+
+def _spot(levels: int) -> np.ndarray:
+    return np.array([[(levels - 1) * (10 <= i < 30 and 12 <= j < 40) for j in range(48)] for i in range(48)])
+
+
+def _saved(mode: str, convert=None):
+    def make(path: Path) -> None:
+        from PIL import Image
+
+        spot = np.zeros((48, 48), np.uint8)
+        spot[10:30, 12:40] = 200
+        image = Image.fromarray(spot)
+        (convert(image) if convert else image.convert(mode)).save(path, format="PNG" if mode != "F" else "TIFF")
+
+    return make
+
+
+# (case, writer of a flux PNG, a word of the error or None: read as the grey spot)
+FLUX_MODES = [
+    ("1-bit grey (mode 1)", _saved("1"), "1-bit grey image (mode 1"),
+    ("1-bit grey by hand", lambda p: p.write_bytes(_png(1, 0, _spot(2))), "1-bit grey"),
+    ("2-bit grey", lambda p: p.write_bytes(_png(2, 0, _spot(4))), "2-bit grey"),
+    ("4-bit grey", lambda p: p.write_bytes(_png(4, 0, _spot(16))), "4-bit grey"),
+    ("1-bit palette", lambda p: p.write_bytes(_png(1, 3, _spot(2), bytes([0, 0, 0, 255, 255, 255]))), "1-bit palette"),
+    ("4-bit palette", lambda p: p.write_bytes(_png(4, 3, _spot(16), bytes(range(48)))), "4-bit palette"),
+    ("8-bit grey palette", _saved("P"), None),
+    ("16-bit grey", lambda p: __import__("PIL.Image").Image.fromarray(_spot(2**16).astype(np.uint16)).save(p), None),
+    ("grey and opaque alpha", _saved("LA"), None),
+    ("grey RGB", _saved("RGB"), None),
+    ("a float TIFF named .png (mode F)", _saved("F", lambda im: im.convert("F")), "not a PNG"),
+    (
+        "CMYK (a JPEG named .png)",
+        lambda p: __import__("PIL.Image").Image.new("CMYK", (48, 48)).save(p, "JPEG"),
+        "not a PNG",
+    ),
+]
+
+
+@pytest.mark.parametrize(("make", "refused"), [c[1:] for c in FLUX_MODES], ids=[c[0] for c in FLUX_MODES])
+def test_flux_png_modes_are_read_as_grey_or_refused_by_name(make, refused, tmp_path):
+    """A 1-bit flux PNG (mode ``1``: a thresholded spot, 2 levels) was read as a flux
+    image; every mode is either the spot's grey or a one-line error naming the file."""
+    from heliojax.paint import read_flux_png
+
+    path = tmp_path / "1-flux.png"
+    make(path)
+    if refused is None:
+        image = read_flux_png(path)
+        assert image.shape == (48, 48) and image[20, 20] > 0.5 > image[0, 0] == 0.0
+        return
+    with pytest.raises(hj.DataError, match=re.escape(refused)) as e:
+        read_flux_png(path)
+    assert e.value.file == str(path) and "\n" not in str(e.value)
 
 
 def test_flux_images_blank_tiny_or_16_bit(tmp_path):

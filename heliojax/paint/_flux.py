@@ -16,12 +16,29 @@ MAX_FLUX_PIXELS = 4096 * 4096
 declared size is refused before decoding (a decompression bomb)."""
 
 
+MIN_FLUX_BITS = 8
+"""Fewest bits per sample (or per palette index) of a flux PNG: a camera's flux image
+has 8 or 16; one of 1, 2 or 4 bits (mode ``1``, a 2-colour palette) is thresholded
+or posterised, and its 2-16 levels are no brightness to compare a traced flux with."""
+
+
+def _png_bit_depth(path: str | os.PathLike) -> tuple[int, int]:
+    """``(bit depth, colour type)`` of a PNG's header (its first chunk, IHDR, by the PNG
+    standard; the caller has had Pillow identify the file as a PNG)."""
+    with open(path, "rb") as f:
+        head = f.read(26)
+    if len(head) < 26 or head[12:16] != b"IHDR":
+        raise DataError(path, None, "cannot read PNG: no IHDR header chunk first")
+    return head[24], head[25]
+
+
 def read_flux_png(path: str | os.PathLike) -> np.ndarray:
     """A PAINT flux PNG as a float64 ``(rows, cols)`` array in ``[0, 1]``.
 
     Raises:
         DataError: unreadable or not a PNG (a JPEG named ``.png``), larger than
-            :data:`MAX_FLUX_PIXELS`, rotated or mirrored by an EXIF orientation, or
+            :data:`MAX_FLUX_PIXELS`, of fewer than :data:`MIN_FLUX_BITS` bits per
+            sample (mode ``1``), rotated or mirrored by an EXIF orientation, or
             with transparent pixels, in colour (channels that differ: a false-colour
             rendering is no brightness), or not a regular file (a FIFO blocked the open).
     """
@@ -35,6 +52,15 @@ def read_flux_png(path: str | os.PathLike) -> np.ndarray:
                 raise DataError(path, None, f"image of {w} x {h} pixels exceeds {MAX_FLUX_PIXELS} pixels")
             if im.format != "PNG":  # Pillow reads by content: a JPEG named .png is lossy and not PAINT's
                 raise DataError(path, None, f"is a {im.format or 'non-PNG'} file, not a PNG")
+            depth, colour_type = _png_bit_depth(path)
+            if depth < MIN_FLUX_BITS:  # a thresholded (1-bit) or posterised spot is no brightness
+                kind = "palette" if colour_type == 3 else "grey" if colour_type in (0, 4) else "colour"
+                raise DataError(
+                    path,
+                    None,
+                    f"a {depth}-bit {kind} image (mode {im.mode}, at most {2**depth} brightness levels): "
+                    f"a flux image needs at least {MIN_FLUX_BITS} bits (256 levels)",
+                )
             orientation = im.getexif().get(0x0112, 1)
             if orientation != 1:  # a viewer would show it turned: which way is up is unclear
                 raise DataError(path, None, f"EXIF orientation {orientation} (rotated or mirrored) is not supported")
@@ -60,4 +86,4 @@ def read_flux_png(path: str | os.PathLike) -> np.ndarray:
         raise DataError(path, None, f"cannot read PNG: {e}") from e
 
 
-__all__ = ["MAX_FLUX_PIXELS", "read_flux_png"]
+__all__ = ["MAX_FLUX_PIXELS", "MIN_FLUX_BITS", "read_flux_png"]
