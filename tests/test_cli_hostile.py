@@ -136,6 +136,13 @@ def _swap_corners(*pairs: str, target: str = "solar_tower_juelich_lower"):
     return edit
 
 
+def _paint(tmp: Path) -> str:
+    """A copy of the embedded data (``paint``) and a link to it (``paint-link``)."""
+    data = _tower_edited(tmp, lambda doc: None)
+    (tmp / "paint-link").symlink_to(data)
+    return data
+
+
 def _nested_toml(depth: int = 100_000) -> str:
     return "[calibrate]\nmax_steps = " + "[" * depth + "]" * depth + "\n"
 
@@ -639,6 +646,66 @@ CASES = [
         lambda t: ["inspect", (p := _tower_edited(t, lambda d: None)), "--cache-dir", p],
         "is DATA_DIR, an input folder",
     ),
+    # an output inside an input folder, where its next load reads (a heliostat folder, a
+    # folder among them, a file of a name the scan reads): was written there, exit 0
+    *(
+        (
+            f"{cmd[0]} {flag} inside the data folder: {inside}",
+            lambda t, c=cmd, f=flag, i=inside: [c[0], _paint(t), *c[1:], f, i.format(t=t)],
+            f"inside {folder} ",
+        )
+        for cmd, flag, inside, folder in (
+            (["calibrate"], "--out", "{t}/paint/sub/out/results.h5", "DATA_DIR"),
+            (["calibrate"], "--report", "{t}/paint/BE36/summary.json", "DATA_DIR"),
+            (["inspect"], "--plot", "{t}/paint/./figs/../figs/p.png", "DATA_DIR"),
+            (["inspect"], "--cache-dir", "{t}/paint/BE36/cache", "DATA_DIR"),
+            (["discover"], "--figures", "{t}/paint/BE36/Calibration/figures", "DATA_DIR"),
+            (["discover"], "--report", "{t}/paint/a/b/c/report.json", "DATA_DIR"),
+            (["calibrate", "--quiet"], "--report", "{t}/paint/AB01-tower-measurements.json", "DATA_DIR"),
+            (["calibrate"], "--plot", "{t}/paint-link/BE36/p.png", "DATA_DIR"),  # a link to the folder
+            (["trace", "--heliostat", "BE36"], "--out", "{t}/paint/BF56/traces", "PAINT_DIR"),
+            (["trace", "--heliostat", "BE36"], "--out", "{t}/paint/BE36", "PAINT_DIR"),  # a heliostat's folder
+        )
+    ),
+    # output paths in a config keep the command line's rules; a control character in any
+    # output name (a file 'results.h5<newline>' was written) is refused, naming flag or key
+    *(
+        (
+            f"config {key} = {value!r}",
+            lambda t, c=cmd, k=key, v=value: [*c, "--config", _config(t, f"[{c[0]}]\n{k} = {v}\n")],
+            f"] {key}: ",
+        )
+        for cmd, key, value in (
+            (["calibrate"], "out", '"--"'),
+            (["calibrate"], "report", '"--"'),
+            (["calibrate"], "plot", '"-"'),
+            (["discover"], "figures", '"--"'),
+            (["inspect"], "cache_dir", '" -- "'),
+            (["calibrate"], "out", '"results.h5\\n"'),
+            (["calibrate"], "report", '"s\\u001bx.json"'),
+            (["accept", "--results", "r", "--contract", "c"], "figures", '"figs\\u2028"'),
+            (["aim", "r.h5"], "h5", '"aim\\u202eh5.csv"'),
+            # TOML date-times of 7+ fractional digits: tomllib drops the rest without a word
+            (["aim", "r.h5"], "start", "2024-06-01T10:00:00.1234567Z"),
+            (["aim", "r.h5"], "start", "2024-06-01 10:00:00.123456789"),
+            (["plan", "r.h5"], "start", "2024-06-01t10:00:00.0000001+02:00"),
+            (["aim", "r.h5"], "time", "2024-06-01T11:00:00.00000001"),
+        )
+    ),
+    *(
+        (f"unseen character in {argv[0]} {argv[-2]} {argv[-1]!r}", lambda t, a=argv: a, f"{argv[-2]} {shown}: {why}")
+        for argv, shown, why in (
+            (["calibrate", "--out", "results.h5\n"], "results.h5\\n", "holds a control character"),
+            (["inspect", "--plot", "p\tq.png"], "p\\tq.png", "holds a control character"),
+            (["discover", "--figures", "figs\x1b[31m"], "figs\\x1b[31m", "holds a control character"),
+            (["calibrate", "--cache-dir", "c\x7f"], "c\\x7f", "holds a control character"),
+            (["aim", "r.h5", "--out", "a\u202egnp.csv"], "a\\u202egnp.csv", "holds a control character"),
+            (["reconstruct", "--out", "r\u2029"], "r\\u2029", "holds a control character"),
+            (["calibrate", "--report", "summary.json "], "summary.json ", "the name 'summary.json ' begins or ends"),
+            (["aim", "r.h5", "--h5", " out/aim.h5"], " out/aim.h5", "the name ' out' begins or ends"),
+            (["discover", "--figures", "figs\u00a0/x"], "figs\\xa0/x", "the name 'figs\\xa0' begins or ends"),
+        )
+    ),
 ]
 
 
@@ -650,7 +717,17 @@ def test_bad_input_is_a_short_clean_error(argv, expected, tmp_path, capsys, monk
     assert rc == 2, err
     assert expected in err and "Traceback" not in err, err
     assert len(err.strip().splitlines()) <= 2, err
-    names = ("a-dir", "a-fifo", "a-file", "a-link", "config.toml", "contract.toml", "field.csv", "summary.json")
+    names = (
+        "a-dir",
+        "a-fifo",
+        "a-file",
+        "a-link",
+        "config.toml",
+        "contract.toml",
+        "field.csv",
+        "summary.json",
+        "paint-link",
+    )
     inputs = {tmp_path / n for n in names}
     before |= {p for p in tmp_path.rglob("*") if p.is_relative_to(tmp_path / "paint")}  # the input data
     assert {p for p in tmp_path.rglob("*")} - before <= inputs  # no output written

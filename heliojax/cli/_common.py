@@ -219,10 +219,9 @@ def check_output_paths(
         if value is None or (name == "cache_dir" and str(value).lower() == "none"):
             continue
         flag = "--" + name.replace("_", "-")
-        if not str(value).strip():  # Path("") is the working directory: never what was meant
-            raise ConfigError(f"{flag}: empty path")
-        if str(value).strip() == "-":  # a file named '-' in the working directory, where standard output was meant
-            raise ConfigError(f"{flag} -: outputs are written to files, not to standard output; give a file name")
+        problem = output_path_problem(str(value))
+        if problem is not None:
+            raise ConfigError(f"{flag}{' ' if str(value).strip() else ''}{_shown(Path(str(value)))}: {problem}")
         path = Path(value)
         # a value as given (not a file inside an output folder, which `OUT/` / name keeps a FolderPath)
         given_as_folder = given and (isinstance(value, FolderPath) or _names_a_folder(str(value)))
@@ -233,6 +232,42 @@ def check_output_paths(
             _check_output_path(flag, path, name, is_dir, seen)
         except OSError as e:  # a name too long, a loop of links: the flag, not a bare OSError
             raise ConfigError(f"{flag} {_shown(path)}: {e.strerror or e}") from None
+
+
+_UNSEEN_CATEGORIES = frozenset({"Cc", "Cf", "Zl", "Zp"})
+"""Unicode categories of characters a file name must not hold: controls (a line break, a
+tab, an escape), format characters (a right-to-left override shows ``gnp.exe`` as
+``exe.png``) and line or paragraph separators: a listing shows no such name as it is."""
+
+
+def output_path_problem(text: str) -> str | None:
+    """Why ``text`` is no output path (the command line's and a config's rules: both
+    go through here), or None. Refused: an empty name (``Path("")`` is the working
+    directory), ``-`` (standard output was meant), ``--`` (the end of the options, which
+    argparse drops from ``--out=--``), a name (of the path's folders or file) that
+    begins or ends with white space, and a name holding a character of
+    :data:`_UNSEEN_CATEGORIES` (``results.h5\\n`` was written as a file whose name ends
+    with a line break)."""
+    import unicodedata
+
+    if not text.strip():
+        return "empty path"
+    if text.strip() == "-":
+        return "outputs are written to files, not to standard output; give a file name"
+    if text.strip() == "--":
+        return "'--' is not a value (it ends the options on a command line); give a file name"
+    for c in text:
+        if not _is_utf8(c):
+            continue  # a byte that is not UTF-8 (a lone surrogate): the file system's, named elsewhere
+        if unicodedata.category(c) in _UNSEEN_CATEGORIES:
+            name = unicodedata.name(c, "")
+            code = f"{name}, U+{ord(c):04X}" if name else f"U+{ord(c):04X}"
+            return f"holds a control character ({code}), which no listing shows; give a plain name"
+    parts = text.replace(os.sep, "/").split("/")
+    padded = next((part for part in parts if part != part.strip()), None)
+    if padded is not None:  # 'results.h5 ' and 'results.h5' look alike in every listing
+        return f"the name '{padded}' begins or ends with white space, which no listing shows; give a plain name"
+    return None
 
 
 INPUT_DIRECTORIES = frozenset({"data_dir", "test_data", "paint_dir", "paint"})
@@ -246,8 +281,10 @@ def check_input_paths(
     """Before any work: every input path option among ``options`` (dest -> action, as
     the CLI's parsers record them; type :func:`path_type`, not one of ``outputs``) that
     ``args`` sets exists and is a directory (:data:`INPUT_DIRECTORIES`) or a regular file, and
-    no output of ``outputs`` names that same file (the input would be replaced).
-    Raises ConfigError naming the flag (the metavar of a positional argument)."""
+    no output of ``outputs`` names that same file (the input
+    would be replaced) or lies where a load of an input folder reads
+    (:func:`check_not_an_output`). Raises ConfigError naming the flag (the metavar of a
+    positional argument)."""
     from .._errors import ConfigError
 
     for action in options.values():
@@ -273,7 +310,7 @@ def check_input_paths(
             raise ConfigError(f"{flag} {_shown(path)}: is a directory, expected a file")
         if not want_dir:
             check_input_file(flag, path)
-        check_not_an_output(flag, path, args, outputs)
+        check_not_an_output(flag, path, args, outputs, scanned=want_dir)
 
 
 def check_input_file(flag: str, path: Path) -> None:
@@ -291,10 +328,35 @@ def check_input_file(flag: str, path: Path) -> None:
         raise ConfigError(f"{flag} {_shown(path)}: {problem}")
 
 
-def check_not_an_output(flag: str, path: Path, args, outputs: collections.abc.Iterable[str]) -> None:
+def _read_back(output: Path, folder: Path) -> bool:
+    """Whether an output at ``output`` lies where a load of the input folder ``folder``
+    reads (both resolved through links): in a subfolder of it (a heliostat's folder,
+    or a tree that the records CSV's search for ``**/Properties`` walks), a heliostat's
+    folder itself (a folder output's files go in it), or by a name
+    the scan reads (the tower file, the timestamps, the weather CSV). An entry of its
+    own directly in the folder (``--out DATA/results.h5``, ``reconstruct``'s default
+    folder run from inside the data) is read by nothing."""
+    from ..paint._common import TIMESTAMPS_FILE, TOWER_FILE_SUFFIX, WEATHER_CSV_FILE
+
+    try:
+        inside = output.resolve().relative_to(folder.resolve()).parts
+    except (ValueError, OSError, RuntimeError):  # not below it, a loop of links
+        return False
+    if len(inside) >= 2:
+        return True
+    if inside and ((folder / inside[0] / "Properties").is_dir() or (folder / inside[0] / "Calibration").is_dir()):
+        return True  # a heliostat's own folder: a folder output's files would go in it
+    return bool(inside) and (inside[0].endswith(TOWER_FILE_SUFFIX) or inside[0] in (TIMESTAMPS_FILE, WEATHER_CSV_FILE))
+
+
+def check_not_an_output(
+    flag: str, path: Path, args, outputs: collections.abc.Iterable[str], *, scanned: bool = False
+) -> None:
     """No output (attribute names ``outputs`` of ``args``) is the input file or folder
     ``path`` (also through a link or another name of it): writing it would replace the
-    input file, or put the outputs (a compilation cache, figures) among the input's files."""
+    input file, or put the outputs (a compilation cache, figures) among the input's
+    files; nor, for a PAINT folder that loads scan (``scanned``), lies inside it where
+    its next load reads (:func:`_read_back`: ``calibrate DATA --out DATA/sub/out``)."""
     from .._errors import ConfigError
 
     for name in outputs:
@@ -305,9 +367,15 @@ def check_not_an_output(flag: str, path: Path, args, outputs: collections.abc.It
             same = Path(value).exists() and os.path.samefile(value, path)
         except (OSError, ValueError):  # an output not there yet, a name too long: not the input
             same = False
+        out_flag = "--" + name.replace("_", "-")
+        if not same and scanned and Path(path).is_dir() and _read_back(Path(value), Path(path)):
+            raise ConfigError(
+                f"{out_flag} {_shown(Path(value))}: inside {flag} {_shown(Path(path))}, an input folder, in a "
+                "subfolder (searched for heliostat data) or by a name its loads read; write it outside the "
+                "folder or directly in it under another name"
+            )
         if not same:
             continue
-        out_flag = "--" + name.replace("_", "-")
         if Path(path).is_dir():
             raise ConfigError(
                 f"{out_flag} {_shown(Path(value))}: is {flag}, an input folder, among whose files the outputs "

@@ -15,6 +15,7 @@ import argparse
 import datetime as dt
 import importlib
 import os
+import re
 import signal
 import sys
 import threading
@@ -150,14 +151,17 @@ def _apply_config(
     commands: Iterable[str],
     given: argparse.Namespace | None = None,
     partners: dict[str, tuple[str, ...]] | None = None,
+    outputs: Iterable[str] = (),
 ) -> None:
     """Option defaults from the ``[command]`` table of ``path``. ``given``: the command
     line parsed alone; an option of a mutually exclusive group given there drops the
     config's values of the group's other options (and of their ``partners``, e.g.
-    ``--start``'s ``--end``): the command line wins, as with any other option."""
+    ``--start``'s ``--end``): the command line wins, as with any other option.
+    ``outputs``: the command's output options, whose values keep the command line's
+    rules (:func:`~heliojax.cli._common.output_path_problem`), named by their key."""
     import tomllib  # only with --config
 
-    from ._common import check_input_file
+    from ._common import check_input_file, output_path_problem
 
     check_input_file("--config", path)
     try:
@@ -180,6 +184,7 @@ def _apply_config(
         raise ConfigError(f"{path}: [{command}] must be a table")
     known = subparser.options if isinstance(subparser, _Parser) else {}
     defaults, keys = {}, {}
+    finer = {m[1].upper().replace(" ", "T") for m in _FINER_THAN_MICROSECONDS.finditer(text.decode(errors="replace"))}
     for key, value in table.items():
         dest = key.replace("-", "_")
         if dest not in known or dest in ("help", "config"):
@@ -189,7 +194,13 @@ def _apply_config(
         if known[dest].required:  # argparse asks the command line for it before the config is read
             raise ConfigError(f"{path}: [{command}] {key}: required on the command line, where it must be given")
         keys[dest] = key
-        defaults[dest] = _config_value(known[dest], value, f"{path}: [{command}] {key}")
+        where = f"{path}: [{command}] {key}"
+        _check_sub_microseconds(value, where, finer)
+        defaults[dest] = _config_value(known[dest], value, where)
+        if dest in outputs and defaults[dest] is not None:
+            problem = output_path_problem(str(defaults[dest]))
+            if problem is not None:
+                raise ConfigError(f"{where}: {str(defaults[dest])!r}: {problem}")
     for members in subparser.exclusive if isinstance(subparser, _Parser) else ():
         set_here = [keys[d] for d in members if d in keys]
         if len(set_here) > 1:
@@ -200,6 +211,25 @@ def _apply_config(
                 for dropped in (dest, *(partners or {}).get(dest, ())):
                     defaults.pop(dropped, None)
     subparser.set_defaults(**defaults)
+
+
+_FINER_THAN_MICROSECONDS = re.compile(r"(\d{4}-\d{2}-\d{2}[Tt ]\d{2}:\d{2}:\d{2})\.\d{7,}", re.ASCII)
+"""A TOML date-time written with more than 6 fractional-second digits (group 1: its
+date and time to the second)."""
+
+
+def _check_sub_microseconds(value: object, where: str, finer: set[str]) -> None:
+    """A TOML date-time (or an array of them) of a config key that the file wrote with
+    more than 6 fractional digits (``finer``: their date and time to the second, from
+    :data:`_FINER_THAN_MICROSECONDS`): tomllib keeps microseconds and drops the rest
+    without a word, where the command line refuses the 7th digit
+    (:func:`~heliojax.cli._common.is_iso_date_time`)."""
+    for item in value if isinstance(value, list) else [value]:
+        if isinstance(item, dt.datetime) and item.strftime("%Y-%m-%dT%H:%M:%S") in finer:
+            raise ConfigError(
+                f"{where}: a date-time with more than 6 fractional-second digits (read, the rest would be "
+                "dropped without a word); give at most 6 (microseconds)"
+            )
 
 
 def _config_value(action: argparse.Action, value: object, where: str) -> object:
@@ -364,7 +394,8 @@ def _main(argv: list[str]) -> int:
         if getattr(args, "config", None) is not None:
             module = modules[args.command]
             partners = getattr(module, "PARTNERS", None)
-            _apply_config(subparsers[args.command], args.command, args.config, modules, args, partners)
+            outputs = (*getattr(module, "OUTPUT_FILES", ()), *getattr(module, "OUTPUT_DIRS", ()))
+            _apply_config(subparsers[args.command], args.command, args.config, modules, args, partners, outputs)
             args = parser.parse_args(argv)
         module = modules[args.command]
         logger = configure_logging(bool(getattr(args, "quiet", False)))
