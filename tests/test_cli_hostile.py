@@ -920,6 +920,18 @@ def _saved(mode: str, convert=None):
     return make
 
 
+class _Animated:
+    """An image whose ``save`` writes an animated PNG of it and its negative."""
+
+    def __init__(self, image) -> None:
+        self.image = image
+
+    def save(self, path, format=None) -> None:
+        from PIL import ImageOps
+
+        self.image.save(path, format="PNG", save_all=True, append_images=[ImageOps.invert(self.image)])
+
+
 # (case, writer of a flux PNG, a word of the error or None: read as the grey spot)
 FLUX_MODES = [
     ("1-bit grey (mode 1)", _saved("1"), "1-bit grey image (mode 1"),
@@ -932,6 +944,7 @@ FLUX_MODES = [
     ("16-bit grey", lambda p: __import__("PIL.Image").Image.fromarray(_spot(2**16).astype(np.uint16)).save(p), None),
     ("grey and opaque alpha", _saved("LA"), None),
     ("grey RGB", _saved("RGB"), None),
+    ("animated, 2 frames", _saved("L", lambda im: _Animated(im)), "an animated PNG of 2 frames"),
     ("a float TIFF named .png (mode F)", _saved("F", lambda im: im.convert("F")), "not a PNG"),
     (
         "CMYK (a JPEG named .png)",
@@ -1517,6 +1530,7 @@ DAMAGED_DATA = [
             ("offset", 50.0),
             ("initial_stroke_length", 1e6),
             ("min_increment", -1e12),
+            ("initial_angle", 7.0),  # more than a turn
             ("max_increment", 10**15),
             ("max_increment", 2_000_000),  # a stroke travel of 13 m
         )
@@ -1922,6 +1936,7 @@ EDITED_RESULTS = [
             ("increment", 1e300, "increment"),
             ("initial_stroke_length", 1e9, "initial_stroke_length"),
             ("min_counts", -1e12, "min_counts"),
+            ("initial_angle", -1e10, "initial_angle"),
             ("max_counts", 3e9, "max_counts"),
         )
     ),

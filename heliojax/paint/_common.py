@@ -95,6 +95,7 @@ ACTUATOR_BOUNDS = (
     ("offset", "positive", 1e-2, MAX_ACTUATOR_LENGTH_M, "m"),
     ("pivot_radius", "positive", 1e-2, MAX_ACTUATOR_LENGTH_M, "m"),
     ("initial_stroke_length", "non-negative", 0.0, MAX_ACTUATOR_LENGTH_M, "m"),
+    ("initial_angle", "", -2 * math.pi, 2 * math.pi, "rad"),
     ("min_increment", "", -MAX_COUNTS, MAX_COUNTS, "counts"),
     ("max_increment", "", -MAX_COUNTS, MAX_COUNTS, "counts"),
 )
@@ -102,8 +103,9 @@ ACTUATOR_BOUNDS = (
 the geometry needs (a pivot radius of 0 has no triangle); ``[low, high]`` is what a
 heliostat's actuator can physically be: counts per metre of stroke from 1e3 (a 1 mm
 step, too coarse to point within a mrad) to 1e8 (a 10 nm step), triangle sides from
-1 cm to :data:`MAX_ACTUATOR_LENGTH_M`, counts within :data:`MAX_COUNTS` (PAINT's:
-154 167 counts/m, sides 0.32-0.34 m, strokes 0.07-0.24 m, counts 0-76 112). A pivot
+1 cm to :data:`MAX_ACTUATOR_LENGTH_M`, the joint angle at count 0 within a turn,
+counts within :data:`MAX_COUNTS` (PAINT's: 154 167 counts/m, sides 0.32-0.34 m,
+strokes 0.07-0.24 m, angles -0.22-0.97 rad, counts 0-76 112). A pivot
 radius of 1e-300 m or a count limit of -1e12 kept the signs and was aimed with.
 With ``min_increment < max_increment``, a stroke travel over the count range of at
 most :data:`MAX_ACTUATOR_LENGTH_M` and ``clockwise_axis_movement`` in {0, 1} the

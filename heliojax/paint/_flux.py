@@ -38,7 +38,7 @@ def read_flux_png(path: str | os.PathLike) -> np.ndarray:
     Raises:
         DataError: unreadable or not a PNG (a JPEG named ``.png``), larger than
             :data:`MAX_FLUX_PIXELS`, of fewer than :data:`MIN_FLUX_BITS` bits per
-            sample (mode ``1``), rotated or mirrored by an EXIF orientation, or
+            sample (mode ``1``), animated, rotated or mirrored by an EXIF orientation, or
             with transparent pixels, in colour (channels that differ: a false-colour
             rendering is no brightness), or not a regular file (a FIFO blocked the open).
     """
@@ -61,6 +61,9 @@ def read_flux_png(path: str | os.PathLike) -> np.ndarray:
                     f"a {depth}-bit {kind} image (mode {im.mode}, at most {2**depth} brightness levels): "
                     f"a flux image needs at least {MIN_FLUX_BITS} bits (256 levels)",
                 )
+            frames = getattr(im, "n_frames", 1)
+            if frames != 1:  # an animated PNG: which frame is the flux image is unclear
+                raise DataError(path, None, f"an animated PNG of {frames} frames, not one flux image")
             orientation = im.getexif().get(0x0112, 1)
             if orientation != 1:  # a viewer would show it turned: which way is up is unclear
                 raise DataError(path, None, f"EXIF orientation {orientation} (rotated or mirrored) is not supported")
