@@ -704,6 +704,8 @@ CASES = [
             (["calibrate", "--report", "summary.json "], "summary.json ", "the name 'summary.json ' begins or ends"),
             (["aim", "r.h5", "--h5", " out/aim.h5"], " out/aim.h5", "the name ' out' begins or ends"),
             (["discover", "--figures", "figs\u00a0/x"], "figs\\xa0/x", "the name 'figs\\xa0' begins or ends"),
+            (["inspect", "--plot", "p\u00ad.png"], "p\\xad.png", "holds a control character (SOFT HYPHEN"),
+            (["inspect", "--plot", "\udcff.png"], "\\udcff.png", "is not UTF-8 text (byte 0xFF)"),  # bytes b'\xff.png'
         )
     ),
 ]

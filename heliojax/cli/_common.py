@@ -247,7 +247,7 @@ def output_path_problem(text: str) -> str | None:
     argparse drops from ``--out=--``), a name (of the path's folders or file) that
     begins or ends with white space, and a name holding a character of
     :data:`_UNSEEN_CATEGORIES` (``results.h5\\n`` was written as a file whose name ends
-    with a line break)."""
+    with a line break) or a byte that is not UTF-8."""
     import unicodedata
 
     if not text.strip():
@@ -257,8 +257,9 @@ def output_path_problem(text: str) -> str | None:
     if text.strip() == "--":
         return "'--' is not a value (it ends the options on a command line); give a file name"
     for c in text:
-        if not _is_utf8(c):
-            continue  # a byte that is not UTF-8 (a lone surrogate): the file system's, named elsewhere
+        if not _is_utf8(c):  # a byte that is not UTF-8, read as a lone surrogate: shown as '\ufffd'
+            byte = f"0x{ord(c) - 0xDC00:02X}" if 0xDC80 <= ord(c) <= 0xDCFF else f"U+{ord(c):04X}"
+            return f"is not UTF-8 text (byte {byte}), which no listing shows as it is; give a plain name"
         if unicodedata.category(c) in _UNSEEN_CATEGORIES:
             name = unicodedata.name(c, "")
             code = f"{name}, U+{ord(c):04X}" if name else f"U+{ord(c):04X}"
