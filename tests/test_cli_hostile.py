@@ -655,12 +655,12 @@ CASES = [
             f"inside {folder} ",
         )
         for cmd, flag, inside, folder in (
-            (["calibrate"], "--out", "{t}/paint/sub/out/results.h5", "DATA_DIR"),
+            (["calibrate"], "--out", "{t}/paint/BE36/sub/out/results.h5", "DATA_DIR"),
             (["calibrate"], "--report", "{t}/paint/BE36/summary.json", "DATA_DIR"),
-            (["inspect"], "--plot", "{t}/paint/./figs/../figs/p.png", "DATA_DIR"),
+            (["inspect"], "--plot", "{t}/paint/./BE36/../BE36/p.png", "DATA_DIR"),
             (["inspect"], "--cache-dir", "{t}/paint/BE36/cache", "DATA_DIR"),
             (["discover"], "--figures", "{t}/paint/BE36/Calibration/figures", "DATA_DIR"),
-            (["discover"], "--report", "{t}/paint/a/b/c/report.json", "DATA_DIR"),
+            (["discover"], "--report", "{t}/paint/BF56/a/b/report.json", "DATA_DIR"),
             (["calibrate", "--quiet"], "--report", "{t}/paint/AB01-tower-measurements.json", "DATA_DIR"),
             (["calibrate"], "--plot", "{t}/paint-link/BE36/p.png", "DATA_DIR"),  # a link to the folder
             (["trace", "--heliostat", "BE36"], "--out", "{t}/paint/BF56/traces", "PAINT_DIR"),
@@ -884,6 +884,22 @@ def test_temporaries_of_a_killed_run_are_removed_before_the_next(tmp_path, capsy
     rc, _, err = _run(["inspect", "--plot", str(tmp_path / "x.png"), "--cache-dir", "none"], capsys)
     assert rc == 0, err
     assert not stale.exists() and fresh.exists()
+
+
+def test_an_output_in_a_new_folder_inside_the_data_is_written_and_read_by_nothing(tmp_path, capsys):
+    """A user working inside a download writes ``DATA/out/...``: no load reads that
+    folder (only heliostat folders and the tower, timestamps and weather names), so it
+    is allowed, and the next load finds the same heliostats, records and flags."""
+    data = Path(_paint(tmp_path))
+    before = hj.load_paint_directory(data)
+    out = data / "out"
+    argv = ["calibrate", str(data), "--out", str(out / "results.h5"), "--report", str(out / "summary.json")]
+    assert main([*argv, "--cache-dir", "none", "--quiet"]) == 0, capsys.readouterr().err
+    assert (out / "results.h5").is_file() and (out / "summary.json").is_file()
+    after = hj.load_paint_directory(data)
+    assert after.ids == before.ids
+    np.testing.assert_array_equal(np.asarray(after.mask), np.asarray(before.mask))
+    assert after.report.format() == before.report.format()
 
 
 def _png(depth: int, colour_type: int, rows: np.ndarray, palette: bytes = b"") -> bytes:

@@ -331,23 +331,26 @@ def check_input_file(flag: str, path: Path) -> None:
 
 def _read_back(output: Path, folder: Path) -> bool:
     """Whether an output at ``output`` lies where a load of the input folder ``folder``
-    reads (both resolved through links): in a subfolder of it (a heliostat's folder,
-    or a tree that the records CSV's search for ``**/Properties`` walks), a heliostat's
-    folder itself (a folder output's files go in it), or by a name
-    the scan reads (the tower file, the timestamps, the weather CSV). An entry of its
-    own directly in the folder (``--out DATA/results.h5``, ``reconstruct``'s default
-    folder run from inside the data) is read by nothing."""
+    reads (both resolved through links): in a heliostat's folder at any depth (one
+    with ``Properties`` or ``Calibration``; the records CSV's search for
+    ``**/Properties`` finds nested ones) or that folder itself (a folder output's
+    files go in it), or directly in ``folder`` by a name the scan reads (the tower
+    file, the timestamps, the weather CSV). Any other entry is read by nothing:
+    ``--out DATA/results.h5``, ``--out DATA/out/results.h5`` (a user working inside
+    the download), ``reconstruct``'s default folder run from inside the data."""
     from ..paint._common import TIMESTAMPS_FILE, TOWER_FILE_SUFFIX, WEATHER_CSV_FILE
 
     try:
-        inside = output.resolve().relative_to(folder.resolve()).parts
+        root = folder.resolve()
+        inside = output.resolve().relative_to(root).parts
     except (ValueError, OSError, RuntimeError):  # not below it, a loop of links
         return False
-    if len(inside) >= 2:
-        return True
-    if inside and ((folder / inside[0] / "Properties").is_dir() or (folder / inside[0] / "Calibration").is_dir()):
-        return True  # a heliostat's own folder: a folder output's files would go in it
-    return bool(inside) and (inside[0].endswith(TOWER_FILE_SUFFIX) or inside[0] in (TIMESTAMPS_FILE, WEATHER_CSV_FILE))
+    for depth in range(1, len(inside) + 1):
+        part = root.joinpath(*inside[:depth])
+        if (part / "Properties").is_dir() or (part / "Calibration").is_dir():
+            return True  # a heliostat's folder, or inside one
+    name = inside[0] if len(inside) == 1 else ""
+    return name.endswith(TOWER_FILE_SUFFIX) or name in (TIMESTAMPS_FILE, WEATHER_CSV_FILE)
 
 
 def check_not_an_output(
@@ -357,7 +360,7 @@ def check_not_an_output(
     ``path`` (also through a link or another name of it): writing it would replace the
     input file, or put the outputs (a compilation cache, figures) among the input's
     files; nor, for a PAINT folder that loads scan (``scanned``), lies inside it where
-    its next load reads (:func:`_read_back`: ``calibrate DATA --out DATA/sub/out``)."""
+    its next load reads (:func:`_read_back`: ``calibrate DATA --out DATA/BE36/out``)."""
     from .._errors import ConfigError
 
     for name in outputs:
@@ -372,8 +375,7 @@ def check_not_an_output(
         if not same and scanned and Path(path).is_dir() and _read_back(Path(value), Path(path)):
             raise ConfigError(
                 f"{out_flag} {_shown(Path(value))}: inside {flag} {_shown(Path(path))}, an input folder, in a "
-                "subfolder (searched for heliostat data) or by a name its loads read; write it outside the "
-                "folder or directly in it under another name"
+                "heliostat's folder or by a name its loads read; write it outside them"
             )
         if not same:
             continue
