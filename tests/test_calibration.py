@@ -326,3 +326,33 @@ def test_component_noise_follows_anisotropic_scales():
     assert np.mean(z > limit) < 0.003
     iso = np.sqrt(np.mean(sig[0] ** 2))
     assert np.mean(np.linalg.norm(r[0], axis=-1) / iso > limit) > 0.005
+
+
+def test_rows_only_residual_equals_the_rows_of_the_jacobian_path():
+    """The solvers trace ``fitting.record_rows`` (the primal of
+    ``residual_with_jacobian``) for shapes and run the linearisation: both must give
+    the same rows, and the linearisation the explicit Jacobian (against
+    ``jax.jacfwd`` of the rows), with masked records' rows and Jacobian rows zero."""
+    rng = np.random.default_rng(3)
+    a, b = jnp.asarray(rng.normal(size=(7, 4))), jnp.asarray(rng.normal(size=(7, 4)))
+    use = jnp.asarray([True, True, False, True, True, False, True])
+    y = jnp.asarray(rng.normal(size=4))
+
+    def row(p, ai, bi):
+        return jnp.stack([jnp.sin(p @ ai), (p @ bi) ** 2])
+
+    def both(p):
+        return hj.fitting.record_rows_and_jacobian(row, p, (a, b), use)
+
+    rows = hj.fitting.record_rows(row, y, (a, b), use)
+    r, jac = both(y)
+    np.testing.assert_array_equal(rows, r)
+    np.testing.assert_array_equal(np.asarray(rows).reshape(7, 2)[~np.asarray(use)], 0.0)
+    residual = hj.fitting.residual_with_jacobian(lambda p: hj.fitting.record_rows(row, p, (a, b), use), both)
+    np.testing.assert_allclose(jax.jit(residual)(y), r, rtol=0, atol=1e-14)  # compiled: rounding may differ
+    tangent = jnp.asarray(rng.normal(size=4))
+    value, jvp = jax.jvp(residual, (y,), (tangent,))
+    np.testing.assert_allclose(value, r, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(jvp, jac @ tangent, rtol=1e-12, atol=1e-12)
+    reference = jax.jacfwd(lambda p: hj.fitting.record_rows(row, p, (a, b), use))(y)
+    np.testing.assert_allclose(jac, reference, rtol=1e-12, atol=1e-12)
