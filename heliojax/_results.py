@@ -69,9 +69,10 @@ from .paint._common import (
     MAX_HELIOSTAT_DISTANCE_M,
     MAX_HELIOSTAT_HEIGHT_M,
     MAX_HELIOSTAT_SIZE_M,
+    actuator_bounds_kept,
     actuator_problem,
 )
-from .paint._flags import actuator_bounds_kept, actuator_law_kept, actuator_law_problem, fleet_outliers
+from .paint._flags import actuator_law_kept, actuator_law_problem, fleet_outliers
 
 if typing.TYPE_CHECKING:
     import h5py

@@ -13,8 +13,6 @@ from .._errors import DataError
 from .._fleet import MIN_FLEET_FOR_OUTLIERS, OUTLIER_FLOOR, OUTLIER_K, LoadReport, ReportEntry
 from .._sun import datetime_to_unix
 from ._common import (
-    ACTUATOR_BOUNDS,
-    MAX_ACTUATOR_LENGTH_M,
     MAX_HELIOSTAT_HEIGHT_M,
     WEATHER_KEYS,
     CalibrationRecord,
@@ -95,34 +93,22 @@ def _law_at_limits(a: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.asarray(lo), np.asarray(hi), np.asarray(slope)
 
 
-def actuator_bounds_kept(a: dict) -> np.ndarray:
-    """Elementwise over the actuator(s) ``a`` (PAINT keys; numbers or arrays): whether
-    :func:`~heliojax.paint._common.actuator_problem` finds nothing (one vectorised screen of a whole fleet)."""
-    ok = np.isin(np.asarray(a["clockwise_axis_movement"]), (0, 1))
-    for key, sign, low, high, _ in ACTUATOR_BOUNDS:
-        v = np.asarray(a[key])
-        ok = ok & (low <= v) & (v <= high)
-        if sign:
-            ok = ok & ((v > 0) if sign == "positive" else (v >= 0))
-    lo, hi = np.asarray(a["min_increment"]), np.asarray(a["max_increment"])
-    with np.errstate(all="ignore"):
-        ok = ok & (lo < hi) & ((hi - lo) / np.asarray(a["increment"]) <= MAX_ACTUATOR_LENGTH_M)
-    return np.asarray(ok)
+def _law_kept(lo: np.ndarray, hi: np.ndarray, slope: np.ndarray) -> np.ndarray:
+    return np.asarray(np.isfinite(lo) & np.isfinite(hi) & np.isfinite(slope) & (slope != 0))
 
 
 def actuator_law_kept(a: dict) -> np.ndarray:
     """Elementwise over the actuator(s) ``a`` (PAINT keys, numbers or arrays): whether
     :func:`actuator_law_problem` finds nothing."""
-    lo, hi, slope = _law_at_limits(a)
-    return np.asarray(np.isfinite(lo) & np.isfinite(hi) & np.isfinite(slope) & (slope != 0))
+    return _law_kept(*_law_at_limits(a))
 
 
 def actuator_law_problem(a: dict) -> str | None:
     """Why the counts-to-angle law of the actuator ``a`` (PAINT keys) gives no finite,
     distinct angles at its two count limits, or None when it does."""
-    if actuator_law_kept(a):
+    lo, hi, slope = _law_at_limits(a)
+    if _law_kept(lo, hi, slope):
         return None
-    lo, hi, _ = _law_at_limits(a)
     return (
         f"the actuator law gives no usable angle range over [min_increment, max_increment] "
         f"(angles {float(lo)!r} .. {float(hi)!r} rad)"
