@@ -10,6 +10,7 @@ from scipy import stats
 
 from heliojax.discovery import (
     ABSORBED_LIMIT,
+    MIN_DELTA_BIC,
     DiscoveryConfig,
     absorbed_fractions,
     day_folds,
@@ -18,6 +19,7 @@ from heliojax.discovery import (
     simulate_fleet,
 )
 from heliojax.discovery._screen import prepare_bases, screen_candidate
+from heliojax.discovery._select import refit_passes
 from heliojax.effects import make_effect
 
 # Many small refits per test: the programs run far longer than they compile.
@@ -145,7 +147,7 @@ def test_hidden_backlash_is_named_with_its_size():
         assert abs(step["amplitude"][k] - 3e-4) < 0.25 * 3e-4
         assert step["typical"][k] > 0
     assert step["implausible"] == []  # a realistic size is not flagged
-    assert step["delta_bic"] > 0
+    assert step["delta_bic"] > MIN_DELTA_BIC
     assert step["cv_heldout_rms_after_mrad"] < step["cv_heldout_rms_before_mrad"]
     assert r["heldout_rms_final_mrad"] <= HELDOUT_BOUND
     assert set(step["heliostats"]) == {f"S{i:03d}" for i in range(H)}
@@ -207,3 +209,14 @@ def test_column_bases_of_a_stack_equal_each_matrix_basis():
         assert rank[i] == ref.shape[1]
         np.testing.assert_allclose(u[i] @ u[i].T, ref @ ref.T, rtol=0, atol=1e-12)
     assert list(rank) == [5, 4, 0, 5]
+
+
+def test_a_refit_needs_positive_evidence_and_a_held_out_gain():
+    """Kass & Raftery's scale: delta BIC <= 2 is "not worth more than a bare mention"
+    (the remainder of an undetected step named `clock` at 0.6 in an independent suite)."""
+    assert MIN_DELTA_BIC == 2.0 and DiscoveryConfig().min_delta_bic == MIN_DELTA_BIC
+    assert refit_passes(2.5, -0.01)
+    assert not refit_passes(1.5, -0.01)  # passed with the earlier rule (delta BIC > 0)
+    assert not refit_passes(2.0, -0.01)
+    assert not refit_passes(50.0, 0.01) and not refit_passes(50.0, float("nan"))
+    assert refit_passes(1.5, -0.01, min_delta_bic=0.0)

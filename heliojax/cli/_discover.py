@@ -50,7 +50,7 @@ def add_parser(subparsers) -> None:
             + ", ".join(EFFECT_CHOICES)
             + ") with score tests on the residuals (largely absorbed ones on their remainder), refit every "
             "significant one and name an effect only when it passes Holm's family-wise control, "
-            "delta BIC > 0 and a blocked-by-day cross-validated held-out improvement; repeat. Then test the "
+            "delta BIC > 2 and a blocked-by-day cross-validated held-out improvement; repeat. Then test the "
             "residuals against every recorded variable and report structure no library effect explains. "
             "Writes report.json, PNG figures and optionally a Markdown summary."
         ),

@@ -5,7 +5,7 @@ effect, add it, and show the gap shrink.
 model; screen every candidate effect of :mod:`heliojax.effects` with score
 tests orthogonalised against the model's Jacobian; report candidates the model
 absorbs as not identifiable; refit the finalists with Levenberg-Marquardt;
-name an effect only when it passes Holm's family-wise control, delta BIC > 0
+name an effect only when it passes Holm's family-wise control, delta BIC > 2
 and a blocked-by-day cross-validated held-out improvement; repeat). It starts
 from a robust pre-pass (gross errors and change points left out and reported,
 :func:`clean`) and ends with residual diagnostics against every recorded
@@ -47,7 +47,9 @@ from ._report import (
 )
 from ._screen import CandidateScreen as CandidateScreen, holm as holm
 from ._select import (
+    AMBIGUITY_BIC as AMBIGUITY_BIC,
     DEFAULT_CANDIDATES as DEFAULT_CANDIDATES,
+    MIN_DELTA_BIC as MIN_DELTA_BIC,
     DiscoveryConfig as DiscoveryConfig,
     DiscoveryResult as DiscoveryResult,
     discover as discover,
@@ -56,9 +58,11 @@ from ._suites import random_actuator_models as random_actuator_models, simulate_
 
 __all__ = [
     "ABSORBED_LIMIT",
+    "AMBIGUITY_BIC",
     "CONDITION_INDEX_LIMIT",
     "CandidateScreen",
     "DEFAULT_CANDIDATES",
+    "MIN_DELTA_BIC",
     "Cleaning",
     "DiscoveryConfig",
     "DiscoveryResult",

@@ -289,6 +289,7 @@ def build_report(result, typical_start=None) -> dict:
             "start": cfg.start,
             "robust": cfg.robust,
             "changes": cfg.changes,
+            "min_delta_bic": cfg.min_delta_bic,
             "ambiguity_bic": cfg.ambiguity_bic,
             "effect_prior": cfg.effect_prior,
         },
@@ -455,7 +456,11 @@ def markdown_summary(report: dict) -> str:
             "",
         ]
     else:
-        lines += ["No effect passed (Holm-controlled score test, delta BIC > 0 and a held-out improvement).", ""]
+        lines += [
+            f"No effect passed (Holm-controlled score test, delta BIC > {report['config'].get('min_delta_bic', 2):g} "
+            "and a held-out improvement).",
+            "",
+        ]
     for a in report.get("ambiguities", []):
         alts = ", ".join(f"`{x['effect']}` (delta BIC {fmt(x['delta_bic'], '.1f')})" for x in a["alternatives"])
         lines.append(

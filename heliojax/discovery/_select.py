@@ -28,7 +28,7 @@ repeat, diagnose.
    with the first batch in which a candidate passes; only when none of the
    eligible candidates passes does the workflow stop.
 6. **Name** the passing candidate with the largest delta BIC among those with
-   ``delta BIC > 0`` *and* a better held-out likelihood in the blocked
+   ``delta BIC > min_delta_bic`` (2) *and* a better held-out likelihood in the blocked
    cross-validation by UTC day (:func:`._report.cv_log_ratio` < 0: each
    heliostat with its own noise level, as in the BIC, so that one heliostat
    with poorly determined folds cannot decide); passing rivals within ``ambiguity_bic`` of it
@@ -78,6 +78,13 @@ log = logging.getLogger(__name__)
 
 MODES = ("shared", "per_heliostat")
 
+MIN_DELTA_BIC = 2.0
+"""Delta BIC a refit must exceed to name its effect (Kass & Raftery 1995: a BIC
+difference of 0-2 is "not worth more than a bare mention", 2-6 "positive"
+evidence). A published scale, not tuned: an effect named on less than positive
+evidence is as likely the remainder of another (an undetected step, an effect
+outside the library) as itself."""
+
 AMBIGUITY_BIC = 10.0
 """Delta BIC below which two explanations are not told apart (Kass & Raftery 1995:
 a BIC difference above 10 is "very strong" evidence)."""
@@ -121,6 +128,8 @@ class DiscoveryConfig:
             (:mod:`._cleaning`).
         changes: report change points (Holm over heliostats at ``alpha``) and study
             each heliostat's state since its change.
+        min_delta_bic: delta BIC a refit must exceed to pass (default
+            :data:`MIN_DELTA_BIC` = 2, Kass & Raftery's "positive" evidence).
         ambiguity_bic: two passing candidates whose delta BIC differ by less than
             this are reported as an ambiguity (default 10: Kass & Raftery's "very
             strong" evidence, a published scale, not tuned).
@@ -146,6 +155,7 @@ class DiscoveryConfig:
     start: str = "auto"
     robust: bool = True
     changes: bool = True
+    min_delta_bic: float = MIN_DELTA_BIC
     ambiguity_bic: float = AMBIGUITY_BIC
     effect_prior: bool = True
 
@@ -760,14 +770,21 @@ def _refits(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen,
     return out
 
 
+def refit_passes(delta_bic: float, cv_log_ratio: float, min_delta_bic: float = MIN_DELTA_BIC) -> bool:
+    """Whether a refit names its effect: ``delta_bic > min_delta_bic`` (positive
+    evidence, :data:`MIN_DELTA_BIC`) and a better held-out likelihood
+    (``cv_log_ratio < 0``, finite)."""
+    return bool(delta_bic > min_delta_bic and np.isfinite(cv_log_ratio) and cv_log_ratio < 0)
+
+
 def _refit(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen, mode: str) -> Candidate:
     """Refit the current model with ``effect`` added in form ``mode`` and judge it:
-    delta BIC > 0 and a better held-out likelihood."""
+    delta BIC > ``min_delta_bic`` and a better held-out likelihood."""
     st = wf.fit_state(state.effects + ((effect, mode),), wf.start_params(state, effect, mode, scr))
     b0, b1, _ = wf.bic_pair(state, st)
     cv0, cv1, n_cv = wf.cv_pair(state, st)
     ratio = float(cv_log_ratio(state, st, wf.lanes.heliostat))
-    passed = bool((b0 - b1 > 0) and np.isfinite(ratio) and (ratio < 0))
+    passed = refit_passes(b0 - b1, ratio, wf.config.min_delta_bic)
     log.info(
         f"refit {effect} ({mode}, {st.fit_s:.1f} s): delta BIC {b0 - b1:.1f}, held-out RMS "
         f"{cv0:.3f} -> {cv1:.3f} mrad, held-out log ratio {ratio:+.4f}{'' if passed else ' (rejected)'}"
