@@ -2115,3 +2115,25 @@ def test_a_weather_cell_quoted_over_two_lines_names_both_lines(tmp_path):
     records = read_weather_csv(path, on_error=errors.append)
     assert [e.field for e in errors] == ["row 2", "row 3"], errors
     assert len(records) == len(lines) - 2
+
+
+def test_a_fine_date_time_in_a_comment_or_string_refuses_no_key():
+    """Only bare TOML date-times count as written with 7+ fractional digits: the same
+    time in a comment or a string (basic, literal, multi-line) says nothing about a
+    key's value, which tomllib read exactly."""
+    import tomllib
+
+    from heliojax.cli._main import finer_date_times
+
+    text = (
+        "# was 2024-06-01T10:00:00.1234567Z\n[aim]\n"
+        "start = 2024-06-01T10:00:00.5Z  # 2024-06-02T10:00:00.1234567Z\n"
+        'note = "2024-06-03T10:00:00.1234567Z \\" 2024-06-04T10:00:00.1234567"\n'
+        "lit = '2024-06-05T10:00:00.1234567'\n"
+        'multi = """\n2024-06-06T10:00:00.1234567 ""\n"""""\n'
+        "ml = '''2024-06-07 10:00:00.1234567'''\n"
+        "end = 2024-06-08t10:00:00.12345678+01:00\n"
+        'arr = [2024-06-09 10:00:00.1234567, "x#y", 1]\n'
+    )
+    tomllib.loads(text)  # valid TOML
+    assert finer_date_times(text) == {"2024-06-08T10:00:00", "2024-06-09T10:00:00"}

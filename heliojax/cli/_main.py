@@ -184,7 +184,7 @@ def _apply_config(
         raise ConfigError(f"{path}: [{command}] must be a table")
     known = subparser.options if isinstance(subparser, _Parser) else {}
     defaults, keys = {}, {}
-    finer = {m[1].upper().replace(" ", "T") for m in _FINER_THAN_MICROSECONDS.finditer(text.decode(errors="replace"))}
+    finer = finer_date_times(text.decode(errors="replace"))
     for key, value in table.items():
         dest = key.replace("-", "_")
         if dest not in known or dest in ("help", "config"):
@@ -216,6 +216,41 @@ def _apply_config(
 _FINER_THAN_MICROSECONDS = re.compile(r"(\d{4}-\d{2}-\d{2}[Tt ]\d{2}:\d{2}:\d{2})\.\d{7,}", re.ASCII)
 """A TOML date-time written with more than 6 fractional-second digits (group 1: its
 date and time to the second)."""
+
+
+def _bare_toml(text: str) -> str:
+    """``text`` with its comments and string literals (basic, literal, multi-line)
+    blanked out: what is left are keys, tables and bare values (numbers, booleans,
+    dates). The file has parsed already, so every literal is closed."""
+    out: list[str] = []
+    i, n = 0, len(text)
+    while i < n:
+        c = text[i]
+        if c == "#":
+            j = text.find("\n", i)
+            i = n if j < 0 else j
+            continue
+        if c in "\"'":
+            quote = c * 3 if text.startswith(c * 3, i) else c
+            j = i + len(quote)
+            while j < n and not text.startswith(quote, j):
+                j += 2 if (c == '"' and text[j] == "\\") else 1
+            j += len(quote)
+            while quote != c and j < n and text[j] == c:  # up to two quotes close a multi-line string too
+                j += 1
+            out.append(" ")
+            i = j
+            continue
+        out.append(c)
+        i += 1
+    return "".join(out)
+
+
+def finer_date_times(text: str) -> set[str]:
+    """Date and time to the second (``YYYY-MM-DDTHH:MM:SS``) of the TOML date-times in
+    ``text`` written with more than 6 fractional-second digits, comments and strings
+    left out (a comment with such a time says nothing about a key's value)."""
+    return {m[1].upper().replace(" ", "T") for m in _FINER_THAN_MICROSECONDS.finditer(_bare_toml(text))}
 
 
 def _check_sub_microseconds(value: object, where: str, finer: set[str]) -> None:
