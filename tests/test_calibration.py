@@ -110,7 +110,22 @@ def test_strategies_agree(fleet100):
     np.testing.assert_array_equal(np.asarray(ref.parameters()), np.asarray(res.parameters())[:8])
 
 
-def test_accelerator_step_by_cholesky_agrees_with_qr(fleet100):
+@pytest.fixture(scope="module")
+def six_under_prior(fleet100):
+    """6 heliostats of the fleet, the first with 5 records, under a prior on the angles,
+    fitted with the CPU's LM step (QR) and the accelerators' (Cholesky): ``(sub, mask,
+    prior, qr, chol)``. Shared, with their compiled programs, by the tests below."""
+    *_, data, _ = fleet100
+    sub = _take(data, 6)
+    mask = np.asarray(sub.mask).copy()
+    mask[0, 5:] = False
+    prior = hj.gaussian_prior(STONE, {name: 3e-3 for name in ("alpha", "beta", "gamma", "delta", "theta_k", "tau_k")})
+    qr = hj.fit(STONE, sub, mask=jnp.asarray(mask), prior=prior, solver=hj.fitting.default_solver("cpu"))
+    chol = hj.fit(STONE, sub, mask=jnp.asarray(mask), prior=prior, solver=hj.fitting.default_solver("gpu"))
+    return sub, mask, prior, qr, chol
+
+
+def test_accelerator_step_by_cholesky_agrees_with_qr(six_under_prior):
     """The LM step of accelerators (Cholesky of the normal equations) against CPU's
     (QR of the stacked Jacobian), both run here: the same parameters to the solver's
     tolerance, also under a prior and for a heliostat with fewer records (5) than
@@ -121,13 +136,7 @@ def test_accelerator_step_by_cholesky_agrees_with_qr(fleet100):
     assert isinstance(hj.fitting.default_solver("cpu").descent.linear_solver, lx.QR)
     assert hj.fitting.default_batching("gpu") == hj.Vmap(restart_after=hj.fitting.RESTART_AFTER)
     assert hj.fitting.default_batching("cpu") == hj.LaxMap()
-    *_, data, _ = fleet100
-    sub = _take(data, 6)
-    mask = np.asarray(sub.mask).copy()
-    mask[0, 5:] = False
-    prior = hj.gaussian_prior(STONE, {name: 3e-3 for name in ("alpha", "beta", "gamma", "delta", "theta_k", "tau_k")})
-    qr = hj.fit(STONE, sub, mask=jnp.asarray(mask), prior=prior, solver=hj.fitting.default_solver("cpu"))
-    chol = hj.fit(STONE, sub, mask=jnp.asarray(mask), prior=prior, solver=hj.fitting.default_solver("gpu"))
+    _, _, _, qr, chol = six_under_prior
     np.testing.assert_array_equal(chol.status, qr.status)
     assert np.all(np.asarray(qr.status) == FitStatus.CONVERGED), qr.status
     np.testing.assert_allclose(chol.parameters(), qr.parameters(), rtol=0, atol=PATH_ATOL)
@@ -139,14 +148,15 @@ def test_a_fit_started_at_its_minimum_stops_at_once_and_agrees_with_optimistix(f
     optimistix's own LM rejects such steps and shrinks its trust region until the step
     underflows: restarted at the minimum, some of these heliostats took 10-18 steps
     there. Both solvers reach the same parameters (to the solver's tolerance), and
-    heliojax's stops after two steps (the evaluation and one accepted step)."""
+    heliojax's stops after two steps (the evaluation and one accepted step). (The
+    restart is the whole fleet's: the fixture's compiled program, on 100 heliostats.)"""
     import optimistix as optx
 
     *_, data, res = fleet100
     sub = _take(data, 40)
-    again = hj.fit(_take_model(res.model, 40), sub)
+    again = hj.fit(res.model, data)
     assert np.all(np.asarray(again.n_steps) == 2), np.bincount(np.asarray(again.n_steps))
-    np.testing.assert_allclose(again.parameters(), np.asarray(res.parameters())[:40], rtol=0, atol=PATH_ATOL)
+    np.testing.assert_allclose(again.parameters(), res.parameters(), rtol=0, atol=PATH_ATOL)
     classical = optx.LevenbergMarquardt(rtol=hj.fitting.DEFAULT_RTOL, atol=hj.fitting.DEFAULT_ATOL)
     theirs = hj.fit(STONE, sub, solver=classical)
     np.testing.assert_array_equal(theirs.status, np.asarray(res.status)[:40])
@@ -155,33 +165,28 @@ def test_a_fit_started_at_its_minimum_stops_at_once_and_agrees_with_optimistix(f
     assert np.asarray(res.n_steps).max() <= 8, np.bincount(np.asarray(res.n_steps))
 
 
-def _take_model(model, n):
-    return jax.tree.map(lambda x: x[:n] if eqx.is_array(x) and np.ndim(x) else x, model)
-
-
-def test_products_by_reduction_give_the_same_poses_and_fit(fleet100, monkeypatch):
+def test_products_by_reduction_give_the_same_poses_and_fit(six_under_prior, monkeypatch):
     """On accelerators the hot path's small products are multiply-and-reduce, not
     ``dot`` (``heliojax._geometry.products_by_reduction``). Both forms run here on the
     CPU: the same poses to rounding, the same fitted parameters to the solver's path
-    tolerance. (The two fits have different record paddings, so neither reuses the
-    other's compiled program.)"""
+    tolerance. (The dot form's fit is the accelerator step's fit of ``six_under_prior``;
+    the reduction form's fit has another record padding, so it cannot reuse that
+    compiled program.)"""
     from heliojax import _geometry
     from heliojax._heliostat import chain_pose
     from heliojax.fitting import _fit
 
-    *_, data, _ = fleet100
-    sub = _take(data, 5)
+    sub, mask, prior, _, dot_fit = six_under_prior
     solver = hj.fitting.default_solver("gpu")
     tilts = jnp.asarray([1e-3, -2e-3, 3e-3, 4e-3])
     angles = jnp.asarray([0.7, -0.4])
     geometry = jax.tree.map(lambda x: x[0], sub.geometry)
     assert not _geometry.products_by_reduction()  # the CPU's form
     dot_pose = chain_pose(tilts, angles, geometry)
-    dot_fit = hj.fit(STONE, hj.pad_fleet(sub, 5, 101), solver=solver)
     monkeypatch.setattr(_geometry, "products_by_reduction", lambda: True)
     monkeypatch.setattr(_fit, "products_by_reduction", lambda: True)
     reduce_pose = chain_pose(tilts, angles, geometry)
-    reduce_fit = hj.fit(STONE, hj.pad_fleet(sub, 5, 102), solver=solver)
+    reduce_fit = hj.fit(STONE, hj.pad_fleet(_with_mask(sub, mask), 6, 101), prior=prior, solver=solver)
     for a, b in zip(jax.tree.leaves(dot_pose), jax.tree.leaves(reduce_pose), strict=True):
         np.testing.assert_allclose(b, a, rtol=0, atol=1e-13)
     np.testing.assert_array_equal(reduce_fit.status, dot_fit.status)
@@ -191,7 +196,8 @@ def test_products_by_reduction_give_the_same_poses_and_fit(fleet100, monkeypatch
 def test_padding_records_and_heliostats_change_nothing(fleet100):
     *_, data, res = fleet100
     sub = _take(data, 6)
-    ref = hj.fit(STONE, sub)
+    # the unpadded fit of these 6: the fleet's own (lanes are independent; no new program)
+    ref_status, ref_parameters = np.asarray(res.status)[:6], np.asarray(res.parameters())[:6]
     # 20 masked garbage records and 2 empty heliostats appended
     padded = hj.pad_fleet(sub, 8, 120)
     junk_counts = padded.counts.at[:, 100:].set(7.0e3)
@@ -200,8 +206,8 @@ def test_padding_records_and_heliostats_change_nothing(fleet100):
     # another shape is another program (its sums round differently, and the last LM step
     # may fall either side of the stopping test): equal to the solver's tolerance, while
     # one garbage record let in would move the parameters by milliradians
-    np.testing.assert_array_equal(out.status[:6], ref.status)
-    np.testing.assert_allclose(out.parameters()[:6], ref.parameters(), rtol=0, atol=PATH_ATOL)
+    np.testing.assert_array_equal(out.status[:6], ref_status)
+    np.testing.assert_allclose(out.parameters()[:6], ref_parameters, rtol=0, atol=PATH_ATOL)
     assert [FitStatus(int(s)) for s in out.status[6:]] == [FitStatus.NO_RECORDS] * 2
 
 
@@ -235,13 +241,13 @@ def test_bad_heliostats_do_not_spoil_a_fleet_of_1000():
 
 def test_prior_pulls_weak_parameters_toward_nominal(fleet100):
     *_, data, res = fleet100
-    sub = _take(data, 4)
+    sub = _take(data, 6)  # the shape (and prior) of the Cholesky-QR test's fit: its compiled program
     strong = hj.gaussian_prior(STONE, {"gamma": 1e-6, "delta": 1e-6})
     out = hj.fit(STONE, sub, prior=strong)
     gi = STONE8_NAMES.index("gamma")
     di = STONE8_NAMES.index("delta")
     assert np.max(np.abs(np.asarray(out.parameters())[:, [gi, di]])) < 1e-5
-    assert np.max(np.abs(np.asarray(res.parameters())[:4, [gi, di]])) > 1e-4
+    assert np.max(np.abs(np.asarray(res.parameters())[:6, [gi, di]])) > 1e-4
     # The other parameters still fit (partly absorbing the pinned pair's signature).
     assert all(lab == "converged" for lab in out.status_labels())
     assert np.all(np.asarray(out.rms_mrad) < 3.0)
