@@ -206,10 +206,14 @@ class HeliostatRecords(eqx.Module):
     counts: Float[Array, "M 2"]
     context: RecordContext
     focal_spot: Float[Array, "M 3"]
-    target_index: Int[Array, " M"]
     record_id: Int[Array, " M"]
     mask: Bool[Array, " M"]
     id: str = eqx.field(static=True)
+
+    @property
+    def target_index(self) -> Int[Array, " M"]:
+        """``(M,)`` the records' targets, ``context.target`` (-1 unknown)."""
+        return self.context.target
 
 
 @typing.final
@@ -222,9 +226,10 @@ class Fleet(eqx.Module):
         context: batched :class:`RecordContext` ``(H, M, ...)``: ``sun`` unit ENU
             vectors from the recorded azimuth/elevation, ``unix_time`` s (NaN unknown),
             ``temperature`` deg C, ``wind_speed`` m/s, ``wind_direction`` rad (NaN
-            unknown), ``approach`` ``(H, M, 2)`` in {-1, 0, +1}.
+            unknown), ``approach`` ``(H, M, 2)`` in {-1, 0, +1}, ``target``
+            ``(H, M)`` int, the record's calibration target: index into ``targets`` /
+            ``target_names``, -1 unknown (also :attr:`target_index`).
         focal_spot: ``(H, M, 3)`` ENU m, the selected centroid.
-        target_index: ``(H, M)`` index into ``targets`` / ``target_names``.
         record_id: ``(H, M)`` PAINT record id, -1 for padding.
         mask: ``(H, M)`` True for valid records.
         targets: batched :class:`TargetPlane` ``(T,)``, the tower file's planar targets.
@@ -244,7 +249,6 @@ class Fleet(eqx.Module):
     counts: Float[Array, "H M 2"]
     context: RecordContext
     focal_spot: Float[Array, "H M 3"]
-    target_index: Int[Array, "H M"]
     record_id: Int[Array, "H M"]
     mask: Bool[Array, "H M"]
     targets: TargetPlane
@@ -258,7 +262,7 @@ class Fleet(eqx.Module):
         checks = {
             "counts": (jnp.shape(self.counts), (h, m, 2)),
             "focal_spot": (jnp.shape(self.focal_spot), (h, m, 3)),
-            "target_index": (jnp.shape(self.target_index), (h, m)),
+            "context.target": (jnp.shape(self.context.target), (h, m)),
             "record_id": (jnp.shape(self.record_id), (h, m)),
             "context.sun": (jnp.shape(self.context.sun), (h, m, 3)),
             "context.approach": (jnp.shape(self.context.approach), (h, m, 2)),
@@ -271,6 +275,12 @@ class Fleet(eqx.Module):
             raise ValueError(f"Fleet.ids has {len(self.ids)} entries for {h} heliostats")
         if len(self.target_names) != jnp.shape(self.targets.centre)[0]:
             raise ValueError("Fleet.target_names does not match targets")
+
+    @property
+    def target_index(self) -> Int[Array, "H M"]:
+        """``(H, M)`` each record's target, an index into ``targets`` /
+        ``target_names`` (-1 unknown): the contexts' ``target`` (one array, not a copy)."""
+        return self.context.target
 
     @property
     def n_heliostats(self) -> int:
@@ -302,14 +312,13 @@ class Fleet(eqx.Module):
             counts=self.counts[i],
             context=jax.tree.map(take, self.context),
             focal_spot=self.focal_spot[i],
-            target_index=self.target_index[i],
             record_id=self.record_id[i],
             mask=self.mask[i],
             id=self.ids[i],
         )
 
 
-_PER_HELIOSTAT = ("geometry", "counts", "context", "focal_spot", "target_index", "record_id", "mask")
+_PER_HELIOSTAT = ("geometry", "counts", "context", "focal_spot", "record_id", "mask")
 
 
 def _replace(fleet: Fleet, **changes) -> Fleet:
@@ -377,7 +386,7 @@ def pad_fleet(fleet: Fleet, n_heliostats: int | None = None, n_records: int | No
     if nh < h or nm < m:
         raise ValueError(f"cannot pad a fleet of shape ({h}, {m}) to ({nh}, {nm})")
     xp = _backend(fleet)
-    rec = {k: getattr(fleet, k) for k in ("counts", "context", "focal_spot", "target_index")}
+    rec = {k: getattr(fleet, k) for k in ("counts", "context", "focal_spot")}
     rec = jax.tree.map(xp.asarray, rec)
     record_id = xp.asarray(fleet.record_id)
     mask = xp.asarray(fleet.mask)
@@ -446,9 +455,11 @@ def fleet_from_arrays(
     """A :class:`Fleet` from arrays of one's own (simulations, other data sources):
     batched geometry ``(H, ...)``, counts ``(H, M, 2)``, contexts ``(H, M)``,
     focal spots ``(H, M, 3)`` ENU m, and a mask (default: every finite record).
-    Ids default to ``H000, H001, ...``; there are no calibration targets."""
+    Ids default to ``H000, H001, ...``; there are no calibration targets (every
+    context's ``target`` is set to -1, unknown)."""
     counts = jnp.asarray(counts)
     h, m = counts.shape[:2]
+    context = eqx.tree_at(lambda c: c.target, context, jnp.full((h, m), -1, jnp.int32))
     focal_spot = jnp.asarray(focal_spot, counts.dtype)
     if mask is None:
         mask = jnp.all(jnp.isfinite(counts), -1) & jnp.all(jnp.isfinite(focal_spot), -1)
@@ -458,7 +469,6 @@ def fleet_from_arrays(
         counts=counts,
         context=context,
         focal_spot=focal_spot,
-        target_index=jnp.full((h, m), -1, jnp.int32),
         record_id=jnp.asarray(np.arange(h * m).reshape(h, m), jnp.int64),
         mask=jnp.asarray(mask, bool),
         targets=targets,

@@ -42,7 +42,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._geometry import matmul3, matvec3, rotation_x, rotation_y, rotation_z
 
@@ -198,6 +198,9 @@ class RecordContext(eqx.Module):
         wind_direction: rad, direction the wind comes from, clockwise from north.
         approach: ``(2,)`` sign (+1/-1, 0 unknown) of the last motion of each axis
             before the record (for backlash / hysteresis).
+        target: int, the calibration target the spot was measured on: an index into
+            the fleet's ``target_names`` (``-1`` unknown). In a
+            :class:`~heliojax.Fleet` this *is* ``Fleet.target_index`` (one array).
     """
 
     sun: Float[Array, "*b 3"]
@@ -206,13 +209,16 @@ class RecordContext(eqx.Module):
     wind_speed: Float[Array, "*b"]
     wind_direction: Float[Array, "*b"]
     approach: Float[Array, "*b 2"]
+    target: Int[Array, "*b"]
 
     @classmethod
-    def from_sun(cls, sun, unix_time=None) -> RecordContext:
-        """A context with only the sun direction (and optionally the time) known."""
+    def from_sun(cls, sun, unix_time=None, target=None) -> RecordContext:
+        """A context with only the sun direction (and optionally the time and the
+        target index; default ``-1``, unknown) known."""
         sun = jnp.asarray(sun)
         nan = jnp.full(sun.shape[:-1], jnp.nan, sun.dtype)
         t = nan if unix_time is None else jnp.broadcast_to(jnp.asarray(unix_time, sun.dtype), nan.shape)
+        k = -1 if target is None else target
         return cls(
             sun=sun,
             unix_time=t,
@@ -220,6 +226,7 @@ class RecordContext(eqx.Module):
             wind_speed=nan,
             wind_direction=nan,
             approach=jnp.zeros(sun.shape[:-1] + (2,), sun.dtype),
+            target=jnp.broadcast_to(jnp.asarray(k, jnp.int32), nan.shape),
         )
 
 

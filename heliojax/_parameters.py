@@ -18,7 +18,8 @@ so the free set is a partition of the model, not a list of name strings.
 
 Names: a scalar field is named after the field (or its ``name``); a field of
 shape ``(k,)`` gives ``name_1 .. name_k`` (or ``name_<suffix>`` with
-``suffixes``).
+``suffixes``); one of shape ``(r, k)`` gives ``name_1_<suffix> .. name_r_<suffix>``
+(row-major, as the solver's vector).
 """
 
 from __future__ import annotations
@@ -84,8 +85,9 @@ def parameter(
         typical: a realistic physical size, documented a priori (discovery judges
             identifiability at this size).
         name: report name (default: the field name).
-        shape: the field's shape for one heliostat (``()`` or ``(k,)``).
-        suffixes: element name suffixes for ``shape == (k,)`` (default ``1..k``).
+        shape: the field's shape for one heliostat (``()``, ``(k,)`` or ``(r, k)``).
+        suffixes: element name suffixes of the last axis (default ``1..k``); a
+            ``(r, k)`` field's elements are ``name_<row>_<suffix>``, rows from 1.
         nominal: the value that means "no correction".
     """
     info = ParameterInfo(
@@ -140,6 +142,10 @@ class ReferenceLeaf:
 def _element_names(name: str, info: ParameterInfo) -> tuple[str, ...]:
     if info.shape == ():
         return (name,)
+    if len(info.shape) == 2:  # rows numbered from 1, then the suffixes of the last axis
+        rows, k = info.shape
+        inner = _element_names("", dataclasses.replace(info, shape=(k,)))
+        return tuple(f"{name}_{r + 1}{s}" for r in range(rows) for s in inner)
     (k,) = info.shape
     suffixes = info.suffixes or tuple(str(i + 1) for i in range(k))
     if len(suffixes) != k:

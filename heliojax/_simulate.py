@@ -214,9 +214,8 @@ def simulate_records(
     return Fleet(
         geometry=geometry,
         counts=counts,
-        context=context,
+        context=eqx.tree_at(lambda c: c.target, context, jnp.zeros((h, m), jnp.int32)),
         focal_spot=spot,
-        target_index=jnp.zeros((h, m), jnp.int32),
         record_id=jnp.asarray(np.arange(h * m).reshape(h, m) + 100000, jnp.int64),
         mask=hit,
         targets=jax.tree.map(lambda x: jnp.asarray(x)[None], target),
@@ -235,7 +234,8 @@ def synthetic_contexts(
     :func:`calibration_times`, plus (if ``weather``) a simple synthetic weather
     (temperature with seasonal and daily cycles, Weibull-like wind speed, uniform
     wind direction); records are in chronological order per heliostat and
-    ``approach`` is left 0 (the simulator fills it from the counts' order)."""
+    ``approach`` is left 0 (the simulator fills it from the counts' order) and
+    ``target`` is 0 (the one simulated target)."""
     k_t, k_w1, k_w2, k_w3 = jax.random.split(key, 4)
     t, sun = calibration_times(k_t, (n_heliostats, n_records), **time_kwargs)
     order = jnp.argsort(t, axis=1)
@@ -262,6 +262,7 @@ def synthetic_contexts(
         wind_speed=wind_speed,
         wind_direction=wind_direction,
         approach=jnp.zeros(shape + (2,)),
+        target=jnp.zeros(shape, jnp.int32),
     )
 
 

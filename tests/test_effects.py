@@ -16,6 +16,7 @@ import heliojax as hj
 from heliojax._heliostat import chain_pose
 from heliojax.effects import (
     EFFECT_NAMES,
+    TARGET_SLOTS,
     ActuatorGeometry,
     Backlash,
     Clock,
@@ -64,6 +65,7 @@ def _context(**kw):
         wind_speed=jnp.asarray(6.0),
         wind_direction=jnp.asarray(1.0),
         approach=jnp.array([1.0, -1.0]),
+        target=jnp.asarray(0, jnp.int32),
     )
     base.update({k: jnp.asarray(v) for k, v in kw.items()})
     return hj.RecordContext(**base)
@@ -263,10 +265,85 @@ def test_survey_effects_move_heliostat_and_spot():
     np.testing.assert_allclose(
         m.beam_components(GEOM, COUNTS, ctx, FOCAL), STONE.beam_components(moved, COUNTS, ctx, FOCAL), atol=1e-15
     )
-    m = EffectModel(STONE, (SurveyTarget(delta=d),))
+    m = EffectModel(STONE, (SurveyTarget(delta=jnp.zeros((TARGET_SLOTS, 3)).at[0].set(d)),))
     np.testing.assert_allclose(
         m.beam_components(GEOM, COUNTS, ctx, FOCAL), STONE.beam_components(GEOM, COUNTS, ctx, FOCAL + d), atol=1e-15
     )
+
+
+# records on targets 0, 1, 2, 3, unknown (-1) and beyond the slots (4)
+TARGETS = jnp.array([0, 1, 2, 3, -1, TARGET_SLOTS], jnp.int32)
+SHIFTS = jnp.array([[0.05, -0.1, 0.02], [-0.08, 0.0, 0.11], [0.0, 0.03, -0.04], [0.02, 0.02, 0.02]])
+
+
+def _per_target_beams(model, targets=TARGETS):
+    n = targets.shape[0]
+    ctx = jax.tree.map(lambda x: jnp.broadcast_to(x, (n,) + jnp.shape(x)), _context())
+    ctx = eqx.tree_at(lambda c: c.target, ctx, targets)
+    return jax.vmap(lambda x: model.beam_components(GEOM, COUNTS, x, FOCAL))(ctx)
+
+
+@pytest.mark.parametrize("k", range(TARGET_SLOTS))
+def test_survey_target_moves_exactly_the_spots_on_its_target(k):
+    """A shift d on target k moves the spot of exactly the records measured on k by d;
+    the others, those of an unknown target (-1) and of a target beyond the slots
+    are unchanged."""
+    d = SHIFTS[k]
+    model = EffectModel(STONE, (SurveyTarget(delta=jnp.zeros((TARGET_SLOTS, 3)).at[k].set(d)),))
+    got = _per_target_beams(model)
+    plain = STONE.beam_components(GEOM, COUNTS, _context(), FOCAL)
+    moved = STONE.beam_components(GEOM, COUNTS, _context(), FOCAL + d)
+    for i, t in enumerate(np.asarray(TARGETS)):
+        np.testing.assert_allclose(got[i], moved if t == k else plain, rtol=0, atol=1e-15)
+    assert float(jnp.max(jnp.abs(moved - plain))) > 1e-5  # a visible shift (d_perp / ~250 m)
+
+
+def test_survey_target_all_targets_jit_and_gradient():
+    """Every target shifted at once: each record sees its own target's shift (the
+    same under jit); the gradient of a record's beam error in the offsets equals
+    finite differences and is zero for the other targets' offsets (and for a record
+    of an unknown target: no NaN, no gradient)."""
+    model = EffectModel(STONE, (SurveyTarget(delta=SHIFTS),))
+    got = _per_target_beams(model)
+    for i, t in enumerate(np.asarray(TARGETS)):
+        spot = FOCAL + (SHIFTS[t] if 0 <= t < TARGET_SLOTS else 0.0)
+        np.testing.assert_allclose(got[i], STONE.beam_components(GEOM, COUNTS, _context(), spot), atol=1e-15)
+    np.testing.assert_array_equal(np.asarray(jax.jit(_per_target_beams)(model)), np.asarray(got))
+
+    def beam(delta, target):
+        ctx = eqx.tree_at(lambda c: c.target, _context(), jnp.asarray(target, jnp.int32))
+        return EffectModel(STONE, (SurveyTarget(delta=delta),)).beam_components(GEOM, COUNTS, ctx, FOCAL)[0]
+
+    for target in (1, -1):
+        g = np.asarray(jax.grad(beam)(SHIFTS, target))
+        assert np.all(np.isfinite(g))
+        fd = np.zeros_like(g)
+        eps = 1e-6
+        for t in range(TARGET_SLOTS):
+            for c in range(3):
+                up, down = SHIFTS.at[t, c].add(eps), SHIFTS.at[t, c].add(-eps)
+                fd[t, c] = (float(beam(up, target)) - float(beam(down, target))) / (2 * eps)
+        np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-9)
+        others = [t for t in range(TARGET_SLOTS) if t != target]
+        np.testing.assert_array_equal(g[others], 0.0)
+        assert (np.abs(g[target]).max() > 1e-4) == (target >= 0)
+
+
+def test_survey_target_parameters_are_named_per_target_slot():
+    view = hj.ParameterView.of(SurveyTarget.nominal(STONE, jnp.float64))
+    assert view.names == tuple(f"survey_target_{k}_{c}" for k in range(1, TARGET_SLOTS + 1) for c in "enu")
+    e = make_effect("survey_target", survey_target_2_u=0.07)
+    expected = np.zeros((TARGET_SLOTS, 3))
+    expected[1, 2] = 0.07
+    np.testing.assert_array_equal(np.asarray(e.delta), expected)
+    # the slots a fleet's valid records use (the others are fixed by discovery)
+    from heliojax.discovery import simulate_fleet
+
+    fleet, _ = simulate_fleet(1, 2, 6)
+    fleet = eqx.tree_at(lambda f: f.context.target, fleet, jnp.array([[0, 2, 2, -1, 0, 5]] * 2, jnp.int32))
+    used = e.driven(fleet).reshape(TARGET_SLOTS, 3)
+    np.testing.assert_array_equal(used[:, 0], [True, False, True, False])
+    assert fleet.target_index is fleet.context.target  # one array, not a copy
 
 
 def test_add_effects_appends_and_wrappers_nest():

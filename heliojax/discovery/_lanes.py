@@ -129,7 +129,10 @@ def make_layout(
     base: AbstractKinematicModel, effects: tuple[str, ...], fleet: typing.Any
 ) -> tuple[Layout, EffectModel]:
     """The column layout and the universal model (``base`` wrapped by every
-    candidate effect at no effect, references from ``fleet``'s valid records)."""
+    candidate effect at no effect, references from ``fleet``'s valid records).
+    Effect elements ``fleet``'s valid records cannot drive
+    (:meth:`heliojax.effects.AbstractEffect.driven`, e.g. the offset of a target no
+    record uses) get no column: they stay at no effect and count nowhere."""
     template = with_data_references(with_effects(base, effects), fleet)
     view = ParameterView.of(template)
     n_base = ParameterView.of(base).n_parameters
@@ -142,7 +145,8 @@ def make_layout(
     for k, e in enumerate(effects):
         effect = template.effects[k]
         ev = ParameterView.of(effect)
-        cols = [offset + i for i in range(ev.n_parameters) if free[offset + i]]
+        driven = effect.driven(fleet)
+        cols = [offset + i for i in range(ev.n_parameters) if free[offset + i] and (driven is None or bool(driven[i]))]
         start = len(free_index)
         free_index += cols
         effect_cols.append((e, tuple(range(start, len(free_index)))))

@@ -19,6 +19,7 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
          "absorbed_fraction": float | null,        # of its best direction by the model before it
          "typical": {param: value},                # documented typical size (physical units)
          "implausible": [params],                  # beyond IMPLAUSIBLE_TYPICAL x typical
+         "per_target": {target: {"e", "n", "u", "norm"}},  # survey_target only: offsets (m) by target name
          "ambiguous_with": [{"effect", "mode", "delta_bic", "cv_heldout_rms_after_mrad"}]}
       ],                                           # (passing rivals within ambiguity_bic of delta BIC)
       "named_effects": [names],                    # "change_point" first when any was found
@@ -175,6 +176,8 @@ def build_report(result, typical_start=None) -> dict:
                 ],
             }
         )
+        if s.effect == "survey_target":
+            steps[-1]["per_target"] = _per_target(s.amplitude, tuple(getattr(result.fleet, "target_names", ())))
     cleaning = _cleaning_report(result)
     named = (["change_point"] if cleaning["change_points"] else []) + [s.effect for s in result.steps]
     not_ident, untestable = [], []
@@ -309,6 +312,18 @@ def build_report(result, typical_start=None) -> dict:
         },
         "timing": {k: _f(v) for k, v in result.timing.items()},
     }
+
+
+def _per_target(amplitude: dict, target_names: tuple[str, ...]) -> dict:
+    """``survey_target``'s fitted offsets by target name: ``{name: {"e", "n", "u",
+    "norm"}}`` (m) for the slots the records use (slot ``k`` is target ``k - 1``)."""
+    out = {}
+    for k, name in enumerate(target_names):
+        keys = [f"survey_target_{k + 1}_{c}" for c in "enu"]
+        if all(key in amplitude for key in keys):
+            v = [float(amplitude[key]) for key in keys]
+            out[name] = {"e": _f(v[0]), "n": _f(v[1]), "u": _f(v[2]), "norm": _f(math.hypot(*v))}
+    return out
 
 
 def _max_records(fleet) -> int:
@@ -570,6 +585,8 @@ def _drivers(fleet, effect: str) -> list[tuple[str, np.ndarray]]:
         return [("cos(mirror normal elevation)", np.hypot(n[..., 0], n[..., 1]))]
     if effect == "refraction":
         return [("sun elevation [deg]", np.degrees(np.arcsin(np.clip(sun[..., 2], -1, 1))))]
+    if effect == "survey_target":
+        return [("target (index in the tower file)", np.asarray(fleet.target_index, float))]
     return [("sun azimuth [deg]", np.degrees(np.arctan2(sun[..., 0], -sun[..., 1])))]
 
 
@@ -610,7 +627,7 @@ def plot_effect_residuals(result, step_index: int, *, axes=None):
             xv = np.where(used, x, np.nan)
             ok = used & np.isfinite(xv)
             jitter = 0.0
-            if step.effect == "backlash":
+            if step.effect in ("backlash", "survey_target"):  # categorical drivers
                 jitter = 0.08 * np.random.default_rng(0).standard_normal(ok.sum())
             ax.scatter(xv[ok] + jitter, rb[..., j][ok], s=6, color="0.6", alpha=0.5, label="before")
             ax.scatter(xv[ok] + jitter, ra[..., j][ok], s=6, color="C0", alpha=0.6, label="after")

@@ -23,7 +23,8 @@ name                 parameters (units)                    driving inputs       
 ``encoder_wobble``   ``wobble_cos/sin_1,2`` (rad), n = 2    joint angles          sinusoid of n * angle
 ``refraction``       ``refraction_scale`` (1)               sun elevation         vertical, ~cot(elevation)
 ``survey_heliostat`` ``survey_heliostat_e,n,u`` (m)         geometry              direction to target
-``survey_target``    ``survey_target_e,n,u`` (m)            geometry              fixed shift on the target
+``survey_target``    ``survey_target_<k>_e,n,u`` (m), one   the record's target   fixed shift on each target
+                     per target slot k = 1..4
 ``offset_drift``     ``offset_drift_1,2`` (rad/year)        time                  offset growing with time
 ==================== ===================================== ===================== ==========================
 
@@ -60,4 +61,8 @@ from ._spec import (
     with_data_references as with_data_references,
     with_effects as with_effects,
 )
-from ._survey import SurveyHeliostat as SurveyHeliostat, SurveyTarget as SurveyTarget
+from ._survey import (
+    TARGET_SLOTS as TARGET_SLOTS,
+    SurveyHeliostat as SurveyHeliostat,
+    SurveyTarget as SurveyTarget,
+)

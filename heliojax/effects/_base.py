@@ -37,6 +37,7 @@ import typing
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from .._heliostat import HeliostatGeometry, RecordContext, chain_pose
@@ -64,6 +65,15 @@ class AbstractEffect(eqx.Module):
         """The effect with every parameter at its no-effect value (references at
         their defaults), for a model wrapping ``inner``."""
         raise NotImplementedError
+
+    def driven(self, fleet: typing.Any) -> np.ndarray | None:
+        """Per parameter element (the effect's :class:`~heliojax.ParameterView`
+        order), whether ``fleet``'s valid records can determine it at all; None: every
+        element. Discovery fixes the others at their no-effect value, so they enter
+        neither its fits nor its parameter counts (e.g. the offset of a target no
+        record was measured on)."""
+        del fleet
+        return None
 
     # -- hooks (identity by default) ----------------------------------------------
 

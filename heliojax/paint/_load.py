@@ -527,6 +527,7 @@ def _assemble(
         wind_speed=_f(weather[..., 1]),
         wind_direction=_f(np.deg2rad(weather[..., 2])),
         approach=_f(approach),
+        target=jax.device_put(tidx),
     )
     _flag_properties([props_by_id[k] for k in ids], log)
     report = log.report(
@@ -541,7 +542,6 @@ def _assemble(
         counts=_f(counts),
         context=context,
         focal_spot=_f(spot_enu),
-        target_index=jax.device_put(tidx),
         record_id=jax.device_put(rid),
         mask=jax.device_put(mask),
         targets=targets,
