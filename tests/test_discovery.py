@@ -281,4 +281,7 @@ def test_per_target_survey_offsets_are_named_and_fitted_back():
     assert set(per) == {"lower", "upper"}
     fitted = np.array([[per[t][c] for c in "enu"] for t in ("lower", "upper")])
     np.testing.assert_allclose(fitted[1] - fitted[0], shifts[1] - shifts[0], atol=0.03)
+    relative = np.array([[per[t]["relative"][c] for c in "enu"] for t in ("lower", "upper")])
+    np.testing.assert_allclose(relative, shifts - shifts.mean(axis=0), atol=0.02)
+    assert all(per[t]["std"]["e"] > 0 for t in per)
     assert r["heldout_rms_final_mrad"] <= HELDOUT_BOUND < r["heldout_rms_base_mrad"]

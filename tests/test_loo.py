@@ -32,7 +32,7 @@ def test_linearised_leave_one_out_equals_refits_without_the_record():
     m = fleet.mask.shape[1]
     # One refit per left-out record, all in one batched fit: heliostat h, record k.
     drop = ~np.eye(m, dtype=bool)  # (K, M): row k leaves record k out
-    per_heliostat = lambda f: (f.geometry, f.counts, f.context, f.focal_spot, f.target_index, f.record_id, f.mask)  # noqa: E731
+    per_heliostat = lambda f: (f.geometry, f.counts, f.context, f.focal_spot, f.record_id, f.mask)  # noqa: E731
     rep = eqx.tree_at(per_heliostat, fleet, jax.tree.map(lambda x: jnp.repeat(x, m, axis=0), per_heliostat(fleet)))
     rep = dataclasses.replace(rep, ids=tuple(f"{i}-{k}" for i in fleet.ids for k in range(m)))
     mask = jnp.asarray(np.tile(drop, (2, 1)) & np.repeat(np.asarray(fleet.mask), m, axis=0))

@@ -19,7 +19,9 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
          "absorbed_fraction": float | null,        # of its best direction by the model before it
          "typical": {param: value},                # documented typical size (physical units)
          "implausible": [params],                  # beyond IMPLAUSIBLE_TYPICAL x typical
-         "per_target": {target: {"e", "n", "u", "norm"}},  # survey_target only: offsets (m) by target name
+         "per_target": {target: {"e", "n", "u", "norm", "std": {..}, "relative": {..}}},
+                                                   # survey_target only: offsets (m) by target name;
+                                                   # relative = less the targets' mean (see _per_target)
          "ambiguous_with": [{"effect", "mode", "delta_bic", "cv_heldout_rms_after_mrad"}]}
       ],                                           # (passing rivals within ambiguity_bic of delta BIC)
       "named_effects": [names],                    # "change_point" first when any was found
@@ -177,7 +179,8 @@ def build_report(result, typical_start=None) -> dict:
             }
         )
         if s.effect == "survey_target":
-            steps[-1]["per_target"] = _per_target(s.amplitude, tuple(getattr(result.fleet, "target_names", ())))
+            names = tuple(getattr(result.fleet, "target_names", ()))
+            steps[-1]["per_target"] = _per_target(s.amplitude, s.amplitude_std, names)
     cleaning = _cleaning_report(result)
     named = (["change_point"] if cleaning["change_points"] else []) + [s.effect for s in result.steps]
     not_ident, untestable = [], []
@@ -314,16 +317,31 @@ def build_report(result, typical_start=None) -> dict:
     }
 
 
-def _per_target(amplitude: dict, target_names: tuple[str, ...]) -> dict:
-    """``survey_target``'s fitted offsets by target name: ``{name: {"e", "n", "u",
-    "norm"}}`` (m) for the slots the records use (slot ``k`` is target ``k - 1``)."""
-    out = {}
+def _per_target(amplitude: dict, std: dict, target_names: tuple[str, ...]) -> dict:
+    """``survey_target``'s fitted offsets (m) by target name, for the slots the records
+    use (slot ``k`` is target ``k - 1``): ``{name: {"e", "n", "u", "norm", "std":
+    {"e", "n", "u"}, "relative": {"e", "n", "u"}}}``. ``relative`` is the offset less
+    the mean offset of the targets listed: a shift common to every target is nearly a
+    fixed beam rotation per heliostat that its tilts absorb, so the differences are
+    what the records determine best (``std`` includes the common part's spread)."""
+    offsets, stds = {}, {}
     for k, name in enumerate(target_names):
         keys = [f"survey_target_{k + 1}_{c}" for c in "enu"]
         if all(key in amplitude for key in keys):
-            v = [float(amplitude[key]) for key in keys]
-            out[name] = {"e": _f(v[0]), "n": _f(v[1]), "u": _f(v[2]), "norm": _f(math.hypot(*v))}
-    return out
+            offsets[name] = np.array([float(amplitude[key]) for key in keys])
+            stds[name] = [float(std.get(key, float("nan"))) for key in keys]
+    if not offsets:
+        return {}
+    mean = np.mean(list(offsets.values()), axis=0)
+    return {
+        name: {
+            **{c: _f(x) for c, x in zip("enu", v)},
+            "norm": _f(np.linalg.norm(v)),
+            "std": {c: _f(x) for c, x in zip("enu", stds[name])},
+            "relative": {c: _f(x) for c, x in zip("enu", v - mean)},
+        }
+        for name, v in offsets.items()
+    }
 
 
 def _max_records(fleet) -> int:
