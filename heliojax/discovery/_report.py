@@ -611,8 +611,8 @@ def _drivers(fleet, effect: str) -> list[tuple[str, np.ndarray]]:
 def _binned(x, y, bins=8):
     ok = np.isfinite(x) & np.isfinite(y)
     x, y = x[ok], y[ok]
-    if x.size < 2 or np.ptp(x) == 0:
-        u = np.unique(x)
+    u = np.unique(x)
+    if x.size < 2 or u.size <= bins:  # a categorical driver (target, approach sign): a mean per value
         return u, np.array([y[x == v].mean() for v in u])
     edges = np.quantile(x, np.linspace(0, 1, bins + 1))
     edges = np.unique(edges)
