@@ -23,8 +23,9 @@ repeat, diagnose.
    ``max_refits``, largest linearised delta BIC first, each in the form - shared
    or per heliostat - with the larger linearised delta BIC, and where that fails
    in the other form too if its own score test is significant (shared parameters
-   by Gauss-Newton steps on the profiled problem between LM fits; per-heliostat
-   effect parameters under a prior of their typical size, ``effect_prior``). A step ends
+   by Gauss-Newton steps on the profiled problem between LM fits; effect parameters
+   under a prior of their typical size, ``effect_prior``: per heliostat, and the
+   shared form's once for the fleet). A step ends
    with the first batch in which a candidate passes; only when none of the
    eligible candidates passes does the workflow stop.
 6. **Name** the passing candidate with the largest delta BIC among those with
@@ -138,7 +139,11 @@ class DiscoveryConfig:
             standard deviation (:func:`heliojax.parameter`'s ``typical``, fixed a
             priori from the physics): a heliostat whose records cannot determine an
             effect keeps it near none instead of extrapolating a wild value; one
-            with many records is not pulled measurably.
+            with many records is not pulled measurably. The shared form's
+            parameters get the same prior once for the fleet: a direction of them
+            the records hardly determine (e.g. a shift common to every target, which
+            each heliostat's tilts absorb) stays near none instead of wandering to
+            metres to fit what the library does not hold.
     """
 
     base: str = "auto"
@@ -280,7 +285,7 @@ class _Workflow:
             linear = float(np.sum(2.0 * out["cost"][ok]))
             converged = abs(exact - linear) <= 1e-4 * max(exact, 1e-300)
             if sh_cols:
-                step, cov = self._shared_step(r, jac, ok, act_cols, sh_cols)
+                step, cov = self._shared_step(r, jac, ok, act_cols, sh_cols, p)
                 if it < n_iter - 1 and float(np.max(np.abs(step))) > 1e-3:
                     idx = self.free_index[sh_cols]
                     for f in range(lanes.n_folds + 1):
@@ -301,11 +306,14 @@ class _Workflow:
         heldout_sq = np.where(held, sq, np.nan)
         return ModelState(tuple(effects), p, ok, r, jac, rss, n_res, heldout_sq, cov, time.perf_counter() - t0)
 
-    def _shared_step(self, r, jac, ok, act_cols, sh_cols):
+    def _shared_step(self, r, jac, ok, act_cols, sh_cols, p):
         """Gauss-Newton step of the shared parameters per fold, the current model's
         per-heliostat parameters profiled out; and the shared covariance. All lanes
         at once: each lane's residual and shared columns are projected off its own
-        parameters' column space (training rows only), weighted by its noise."""
+        parameters' column space (training rows only), weighted by its noise. With
+        ``effect_prior``, each shared parameter's Gaussian prior about no effect (its
+        typical size as standard deviation, once per fold) adds to the normal
+        equations: the step and covariance are the posterior's."""
         lanes = self.lanes
         used = np.repeat(lanes.train_mask, 2, axis=1)  # (L, 2M)
         k = len(sh_cols)
@@ -323,6 +331,16 @@ class _Workflow:
         gm = np.zeros((n_folds, k, k))
         np.add.at(g, lanes.fold, w[:, None] * np.einsum("lrk,lr->lk", bt, rt))
         np.add.at(gm, lanes.fold, w[:, None, None] * np.einsum("lrk,lrj->lkj", bt, bt))
+        if self.config.effect_prior:
+            # rows (q - q_none) / (scale * typical) of unit weight, in the units of w r^2
+            n_base = len(self.layout.base_cols)
+            inv_typ = self.layout.inverse_typical[np.asarray(sh_cols) - n_base]
+            idx = self.free_index[sh_cols]
+            none = np.asarray(self.layout.view.nominal)[idx]
+            first = np.array([np.argmax(lanes.fold == f) for f in range(n_folds)])  # shared: equal in a fold
+            q = (p[first][:, idx] - none) / self.scales[sh_cols]
+            g += inv_typ**2 * q
+            gm += np.diag(inv_typ**2)
         steps = np.zeros((n_folds, k))
         covs = np.full((n_folds, k, k), np.nan)
         for f in range(n_folds):  # folds, not lanes: K + 1 pseudo-inverses of k x k
