@@ -645,13 +645,16 @@ def plot_effect_residuals(result, step_index: int, *, axes=None):
             xv = np.where(used, x, np.nan)
             ok = used & np.isfinite(xv)
             jitter = 0.0
-            if step.effect in ("backlash", "survey_target"):  # categorical drivers
+            categorical = step.effect in ("backlash", "survey_target")  # drivers with a few values
+            if categorical:
                 jitter = 0.08 * np.random.default_rng(0).standard_normal(ok.sum())
+                ax.set_xticks(np.unique(xv[ok]))
             ax.scatter(xv[ok] + jitter, rb[..., j][ok], s=6, color="0.6", alpha=0.5, label="before")
             ax.scatter(xv[ok] + jitter, ra[..., j][ok], s=6, color="C0", alpha=0.6, label="after")
             for r_, c_, when in ((rb, "0.3", "before"), (ra, "C3", "after")):
                 xc, yc = _binned(xv[ok], r_[..., j][ok])
-                ax.plot(xc, yc, "-o", color=c_, ms=3, lw=1.5, label=f"binned mean, {when}")
+                mean = "mean per value" if categorical else "binned mean"
+                ax.plot(xc, yc, "-o", color=c_, ms=3, lw=1.5, label=f"{mean}, {when}")
             ax.axhline(0.0, color="k", lw=0.5)
             ax.set_xlabel(name)
             ax.set_ylabel(labels[j])
@@ -659,7 +662,7 @@ def plot_effect_residuals(result, step_index: int, *, axes=None):
                 ax.legend(loc="best", fontsize=8)
     fig.suptitle(
         f"step {step_index + 1}: {step.effect} ({step.mode.replace('_', ' ')}) - training residuals before / after "
-        "adding it (points: records, lines: means in bins of the driving variable)"
+        "adding it (points: records, lines: means of the records in bins or per value of the driving variable)"
     )
     fig.tight_layout()
     return fig
