@@ -608,11 +608,21 @@ def _drivers(fleet, effect: str) -> list[tuple[str, np.ndarray]]:
     return [("sun azimuth [deg]", np.degrees(np.arctan2(sun[..., 0], -sun[..., 1])))]
 
 
-def _binned(x, y, bins=8):
+BINS = 8
+"""Bins of a driving variable's binned means; one with at most this many values (the
+record's target, an approach sign) is categorical: a mean per value instead."""
+
+
+def _categorical(x) -> bool:
+    """Whether the driving variable ``x`` takes at most :data:`BINS` values."""
+    return np.unique(x[np.isfinite(x)]).size <= BINS
+
+
+def _binned(x, y, bins=BINS):
     ok = np.isfinite(x) & np.isfinite(y)
     x, y = x[ok], y[ok]
-    u = np.unique(x)
-    if x.size < 2 or u.size <= bins:  # a categorical driver (target, approach sign): a mean per value
+    if x.size < 2 or _categorical(x):
+        u = np.unique(x)
         return u, np.array([y[x == v].mean() for v in u])
     edges = np.quantile(x, np.linspace(0, 1, bins + 1))
     edges = np.unique(edges)
@@ -645,7 +655,7 @@ def plot_effect_residuals(result, step_index: int, *, axes=None):
             xv = np.where(used, x, np.nan)
             ok = used & np.isfinite(xv)
             jitter = 0.0
-            categorical = step.effect in ("backlash", "survey_target")  # drivers with a few values
+            categorical = _categorical(xv[ok])
             if categorical:
                 jitter = 0.08 * np.random.default_rng(0).standard_normal(ok.sum())
                 ax.set_xticks(np.unique(xv[ok]))
