@@ -170,6 +170,7 @@ from .fitting import (
     choose_start_geometry as choose_start_geometry,
     default_batching as default_batching,
     fit as fit,
+    fitted_start_geometry as fitted_start_geometry,
     fleet_beam_errors_mrad as fleet_beam_errors_mrad,
     fleet_residuals_mrad as fleet_residuals_mrad,
     gather_solutions as gather_solutions,

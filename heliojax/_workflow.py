@@ -38,6 +38,8 @@ from .fitting import (
     find_change_points,
     fit_robust,
     fit_timed,
+    fitted_start_geometry,
+    flat_prior,
     fleet_beam_errors_mrad,
     fleet_residuals_mrad,
 )
@@ -151,8 +153,11 @@ def calibrate(
             ``loss``, ``prior``, ``batching``, ``max_steps``).
         test_fleet: evaluate on this fleet's records (same heliostat ids) instead of
             the split's test records; then all of ``fleet``'s records may train.
-        start: ``"auto"`` (per heliostat the better of nominal / fleet-typical
-            actuators, see :func:`heliojax.choose_start_geometry`) or ``"nominal"``.
+        start: ``"auto"`` (per heliostat the nominal or the fleet-typical
+            actuators, whichever the robust fit is better with,
+            :func:`heliojax.fitting.fitted_start_geometry`; without ``robust``, the
+            better before the fit, :func:`heliojax.choose_start_geometry`) or
+            ``"nominal"``.
         robust: robust fit (:func:`heliojax.fitting.fit_robust`: Cauchy loss with a
             per-heliostat scale, record weights and outlier flags) instead of least squares.
         pool: with ``robust``, finish under the fleet's empirical-Bayes prior
@@ -220,14 +225,24 @@ def calibrate(
     train, val, test = pad_mask(train), pad_mask(val), pad_mask(test)
 
     nominal_geometry = padded.geometry  # the plant's own values: the uncalibrated baseline
+    options = dict(fit_options or {})
     if start == "auto":
         with activity("choosing start geometries", logger=log):
-            geometry, replaced, sources = choose_start_geometry(padded, model0, jax.device_put(train))
+            # judged by the fit: pooled fits run with a flat prior first, so these
+            # robust fits share their compiled program
+            judge = dict(options)
+            if robust and pool and "prior" not in judge:
+                judge["prior"] = flat_prior(model0, h_pad)
+            mask_j = jax.device_put(train)
+            geometry, replaced, sources = (
+                fitted_start_geometry(model0, padded, mask=mask_j, **judge)
+                if robust
+                else choose_start_geometry(padded, model0, mask_j)
+            )
         padded = _with_geometry(padded, geometry)
     else:
         replaced = sources = np.zeros(h_pad, bool)
 
-    options = dict(fit_options or {})
     log.info(f"fitting {n_real} heliostats ({model0.label()}, padded to {h_pad} x {m_pad})")
 
     def fit_on(mask: np.ndarray):

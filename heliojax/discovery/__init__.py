@@ -20,7 +20,6 @@ from ._cleaning import (
     change_point_pvalues as change_point_pvalues,
     clean as clean,
     confirm_change_points as confirm_change_points,
-    fitted_start_geometry as fitted_start_geometry,
 )
 from ._diagnostics import (
     Variable as Variable,
@@ -72,7 +71,6 @@ __all__ = [
     "change_point_pvalues",
     "clean",
     "confirm_change_points",
-    "fitted_start_geometry",
     "day_folds",
     "fold_blocks",
     "discover",

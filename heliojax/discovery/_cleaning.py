@@ -40,13 +40,12 @@ import dataclasses
 import logging
 import typing
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._errors import ConfigError
-from ..fitting import choose_start_geometry, find_change_points, fit_robust, robust_component_noise
+from ..fitting import find_change_points, fit_robust, robust_component_noise
 from ..fitting._changes import drift_coordinate
 from ..fitting._robust import OUTLIER_TAIL
 from ._screen import holm
@@ -307,35 +306,6 @@ def _lstsq_rss(a: np.ndarray, y: np.ndarray) -> float:
     except np.linalg.LinAlgError:
         return float("nan")
     return float(np.sum((y - a @ x) ** 2))
-
-
-def fitted_start_geometry(base: typing.Any, fleet: typing.Any) -> tuple[typing.Any, np.ndarray]:
-    """Per heliostat, the start geometry the base model *fits* better.
-
-    :func:`heliojax.choose_start_geometry` proposes the fleet-typical actuators for
-    heliostats whose nominal values look worse before any fit (PAINT's BF41). The
-    actuator model keeps the stroke offsets fixed, so a replaced geometry may be
-    one no parameter set fits exactly: the misfit would be residual structure
-    that discovery then reports. Here both starts are fitted robustly and each
-    heliostat keeps the one with the smaller robust noise (no threshold).
-
-    Returns:
-        ``(fleet, replaced)``: the fleet with the chosen geometry and ``(H,)`` the
-        heliostats that start from the fleet-typical actuators.
-    """
-    proposed, replaced, _ = choose_start_geometry(fleet, base)
-    replaced = np.asarray(replaced, bool)
-    if not replaced.any():
-        return fleet, replaced
-    own = np.asarray(fit_robust(base, fleet).noise_mrad, float)
-    alt_fleet = eqx.tree_at(lambda f: f.geometry, fleet, proposed)
-    alt = np.asarray(fit_robust(base, alt_fleet).noise_mrad, float)
-    take = replaced & (np.nan_to_num(alt, nan=np.inf) < np.nan_to_num(own, nan=np.inf))
-    take_j = jnp.asarray(take)
-    geometry = jax.tree.map(
-        lambda a, b: jnp.where(take_j.reshape((-1,) + (1,) * (jnp.ndim(a) - 1)), a, b), proposed, fleet.geometry
-    )
-    return eqx.tree_at(lambda f: f.geometry, fleet, geometry), take
 
 
 def recheck_outliers(cleaning: Cleaning, r: np.ndarray, n_params: int) -> Cleaning:

@@ -67,8 +67,8 @@ from .._fleet import bucket_size, pad_fleet
 from .._kinematics import MODEL_KINDS, nominal_model
 from .._progress import activity, progress_bar
 from ..effects import EFFECT_NAMES
-from ..fitting import OFFSET_NAMES, AbstractBatching, default_solver
-from ._cleaning import Cleaning, clean, confirm_change_points, fitted_start_geometry, recheck_outliers
+from ..fitting import OFFSET_NAMES, AbstractBatching, default_solver, fitted_start_geometry
+from ._cleaning import Cleaning, clean, confirm_change_points, recheck_outliers
 from ._diagnostics import record_variables, unexplained_structure
 from ._identifiability import ABSORBED_LIMIT, column_bases
 from ._lanes import Engine, Lanes, Layout, make_lanes, make_layout
@@ -124,7 +124,7 @@ class DiscoveryConfig:
         absorbed_limit: identifiability limit on the absorbed fraction.
         start: ``"auto"`` (per heliostat the nominal or the fleet-typical actuators,
             whichever the base model fits better,
-            :func:`heliojax.discovery.fitted_start_geometry`) or ``"nominal"``.
+            :func:`heliojax.fitting.fitted_start_geometry`) or ``"nominal"``.
         robust: leave out the gross errors a robust fit of the base model flags
             (:mod:`._cleaning`).
         changes: report change points (Holm over heliostats at ``alpha``) and study
@@ -478,7 +478,7 @@ class DiscoveryResult:
         report: the report dictionary (:func:`heliojax.discovery.build_report`).
         cleaning: the robust pre-pass (outliers, change points; :mod:`._cleaning`).
         typical_start: ``(H,)`` heliostats started from the fleet-typical actuators
-            (``start="auto"``, :func:`heliojax.discovery.fitted_start_geometry`).
+            (``start="auto"``, :func:`heliojax.fitting.fitted_start_geometry`).
         unexplained: residual structure no named effect explains (:mod:`._diagnostics`).
         variable_p: every recorded variable's p-value at the final model.
     """
@@ -565,7 +565,8 @@ def discover(
     typical_start = np.zeros(padded.counts.shape[0], bool)
     if config.start == "auto":
         with activity("choosing start geometries", logger=log):
-            padded, typical_start = fitted_start_geometry(base, padded)
+            geometry, typical_start, _ = fitted_start_geometry(base, padded)
+            padded = eqx.tree_at(lambda f: f.geometry, padded, geometry)
     with activity("robust pre-pass and change-point scan", logger=log):
         cleaning = clean(base, padded, config.alpha, outliers=config.robust, changes=config.changes)
     result = _discover_cleaned(padded, base, cleaning, config, n_real, t_start)

@@ -71,6 +71,7 @@ from ._records import (
 from ._robust import (
     RobustFit as RobustFit,
     fit_robust as fit_robust,
+    fitted_start_geometry as fitted_start_geometry,
     robust_component_noise as robust_component_noise,
     robust_noise as robust_noise,
 )
