@@ -24,7 +24,8 @@ Protocol (issue 15, fixed before looking at any result):
 
 Prints JSON: per K the median over heliostats of the held-out median (planner,
 first K, random: median over draws), how often the planner is at least as good
-as random, and the issue's goal (planner with K at or below first-in-time with
+as random (the median of its draws), per heliostat the share of random draws that
+beat the planner (``*_beaten_by_random_share``: 0.5 is as good as random), and the issue's goal (planner with K at or below first-in-time with
 2K). ``--figure PATH`` draws the table.
 
     python benchmarks/planning_study.py ../shared/data/paint --figure docs/figures/planning_study.png
@@ -234,13 +235,19 @@ def study(
     per_heliostat: dict[str, dict] = {}
     for k in BUDGETS:
         rowk = {"planner": [], "planner_discrepancy": [], "first": [], "random": []}
+        share = {"planner": [], "planner_discrepancy": []}
         for i in study:
             got = {m: [v for v, key in zip(lane_median, lanes_key, strict=True) if key[:3] == (ids[i], k, m)]
                    for m in rowk}  # fmt: skip
             vals = {m: float(np.median(v)) for m, v in got.items()}
             for m in rowk:
                 rowk[m].append(vals[m])
-            per_heliostat.setdefault(ids[i], {})[str(k)] = {m: round(v, 3) for m, v in vals.items()}
+            draws_i = np.asarray(got["random"])
+            for m in share:  # the share of random draws that beat this selection
+                share[m].append(float(np.mean(draws_i < vals[m])))
+            per_heliostat.setdefault(ids[i], {})[str(k)] = {m: round(v, 3) for m, v in vals.items()} | {
+                f"{m}_beaten_by_random_share": round(share[m][-1], 2) for m in share
+            }
         arr = {m: np.asarray(v) for m, v in rowk.items()}
         table[str(k)] = {
             "planner_mrad": float(np.median(arr["planner"])),
@@ -252,6 +259,16 @@ def study(
             "planner_discrepancy_not_worse_than_random": (
                 f"{int(np.sum(arr['planner_discrepancy'] <= arr['random']))}/{s}"
             ),
+            # per heliostat, the share of the random draws that beat the selection:
+            # 0.5 is as good as random, above 0.75 clearly worse
+            **{
+                f"{m}_beaten_by_random_share": {
+                    "median": float(np.median(v)),
+                    "max": float(np.max(v)),
+                    "heliostats_above_0.75": f"{int(np.sum(np.asarray(v) > 0.75))}/{s}",
+                }
+                for m, v in share.items()
+            },
         }
     goal = {}
     for k in BUDGETS:
