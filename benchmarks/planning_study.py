@@ -25,8 +25,9 @@ Protocol (issue 15, fixed before looking at any result):
 Prints JSON: per K the median over heliostats of the held-out median (planner,
 first K, random: median over draws), how often the planner is at least as good
 as random (the median of its draws), per heliostat the share of random draws that
-beat the planner (``*_beaten_by_random_share``: 0.5 is as good as random), and the issue's goal (planner with K at or below first-in-time with
-2K). ``--figure PATH`` draws the table.
+beat the planner (``*_beaten_by_random_share``: 0.5 is as good as random), and
+the issue's goal (planner with K at or below first-in-time with 2K). ``--figure
+PATH`` draws the table.
 
     python benchmarks/planning_study.py ../shared/data/paint --figure docs/figures/planning_study.png
 """
