@@ -37,6 +37,12 @@ Schema (``H`` heliostats, ``M`` padded records; NaN / -1 where no record):
 * with ``--test-data``: group ``test_data`` with ``record_id``, ``unix_time``,
   ``beam_error_mrad``, ``beam_error_uncalibrated_mrad`` ``(H, M')`` re-indexed to
   the fitted heliostats' rows
+* ``row_checksum`` ``(H,)`` uint64, written last: per heliostat a 64-bit checksum of
+  its rows of every other dataset with the file's attributes and ``target_names``.
+  :func:`load_results` recomputes it and flags a heliostat whose rows changed since
+  (an edit within every plausibility bound, e.g. of an actuator length, is found
+  too); files without it (older versions) are not checked. It detects changes, it
+  does not authenticate: whoever edits on purpose can recompute it.
 """
 
 from __future__ import annotations
@@ -210,6 +216,72 @@ def model_from_label(label: str, dtype: typing.Any = jnp.float64) -> AbstractKin
         raise DataError(None, "model", f"unknown model label {label!r}: {e}") from None
 
 
+CHECKSUM_DATASET = "row_checksum"
+"""Dataset of results.h5 with one 64-bit checksum per heliostat (see :func:`_row_checksums`)."""
+
+_FILE_LEVEL = frozenset({"target_names"})
+"""Datasets that describe the file, not a heliostat's row, whatever their length."""
+
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+"""An odd 64-bit constant (2^64 / golden ratio): the checksum's multipliers are its odd multiples."""
+
+
+def _word_sums(rows: np.ndarray) -> np.ndarray:
+    """``(n,)`` uint64 polynomial checksum of each row of ``rows`` ``(n, B)`` uint8:
+    the row's little-endian 64-bit words times odd multipliers, summed modulo 2^64
+    (a change of any one word changes the sum)."""
+    n, width = rows.shape
+    words = -(-width // 8)
+    padded = np.zeros((n, words * 8), np.uint8)
+    padded[:, :width] = rows
+    w = padded.view("<u8")
+    with np.errstate(over="ignore"):
+        k = (np.arange(words, dtype=np.uint64) * np.uint64(2) + np.uint64(1)) * _GOLDEN  # odd, distinct
+        return (w * k[None, :]).sum(axis=1, dtype=np.uint64) + np.uint64(width)
+
+
+def _as_rows(value: typing.Any, n: int) -> np.ndarray:
+    """``value`` (a dataset's or attribute's content) as ``(n, B)`` bytes, one row per
+    heliostat (``n`` = 1: the whole value)."""
+    x = np.asarray(value)
+    if x.dtype == object or x.dtype.kind in "SU":
+        flat = [v.encode() if isinstance(v, str) else bytes(v) for v in x.reshape(-1)]
+        x = np.array(flat if flat else [b""], dtype=bytes).reshape(x.shape if flat else (1,))
+    x = np.ascontiguousarray(x)
+    head = np.frombuffer(f"{x.dtype.str}{x.shape[1:] if n > 1 else x.shape}".encode(), np.uint8)
+    body = x.reshape(n, -1).view(np.uint8).reshape(n, -1) if x.size else np.zeros((n, 0), np.uint8)
+    return np.concatenate([np.broadcast_to(head, (n, head.size)), body], axis=1)
+
+
+def _row_checksums(f: typing.Any, n: int) -> np.ndarray:
+    """``(n,)`` uint64: one checksum per heliostat over its rows of every dataset
+    whose first axis is the heliostats', together with the file's attributes and
+    file-level datasets (so an edit of those changes every heliostat's). Vectorised
+    over the heliostats; no loop over them."""
+    import h5py
+
+    common = np.uint64(0)
+    rows = np.zeros(n, np.uint64)
+    with np.errstate(over="ignore"):
+        for k in sorted(f.attrs):
+            common = (
+                common * np.uint64(1_000_003) + _word_sums(_as_rows(k, 1))[0] + _word_sums(_as_rows(f.attrs[k], 1))[0]
+            )
+        names: list[str] = []
+        f.visititems(lambda name, obj: names.append(name) if isinstance(obj, h5py.Dataset) else None)
+        for name in sorted(names):
+            if name == CHECKSUM_DATASET:
+                continue
+            value = f[name][()]
+            tag = _word_sums(_as_rows(name, 1))[0]
+            per_row = name not in _FILE_LEVEL and np.ndim(value) >= 1 and np.shape(value)[0] == n
+            if per_row:
+                rows = rows * np.uint64(1_000_003) + tag + _word_sums(_as_rows(value, n))
+            else:
+                common = common * np.uint64(1_000_003) + tag + _word_sums(_as_rows(value, 1))[0]
+        return rows * _GOLDEN + common
+
+
 def write_results_h5(path: str | Path, run: typing.Any) -> None:
     """Write ``results.h5`` atomically for a :class:`heliojax.CalibrationRun`
     (schema in the module docstring)."""
@@ -278,6 +350,8 @@ def write_results_h5(path: str | Path, run: typing.Any) -> None:
             g = f.create_group("test_data")
             g.create_dataset("beam_error_mrad", data=np.asarray(run.test_errors_mrad)[:n])
             g.create_dataset("beam_error_uncalibrated_mrad", data=np.asarray(run.test_uncalibrated_mrad)[:n])
+        # last: what heliojax wrote, row by row (load_results flags rows changed since)
+        f.create_dataset(CHECKSUM_DATASET, data=_row_checksums(f, n))
 
 
 @typing.final
@@ -304,9 +378,10 @@ class CalibrationResults:
         attrs: the file's attributes.
         source: the file.
         target_names: the names ``records["target_index"]`` points into.
-        flags: heliostat id -> why its geometry is suspect (a position far from the
-            fleet's, by the properties reader's outlier rule); such a heliostat is
-            not :attr:`fitted` (aim flags its commands ``unreliable``).
+        flags: heliostat id -> why its fit is suspect: a position far from the
+            fleet's (the properties reader's outlier rule), or rows of the file
+            changed after heliojax wrote them (``row_checksum``); such a heliostat
+            is not :attr:`fitted` (aim flags its commands ``unreliable``).
     """
 
     ids: tuple[str, ...]
@@ -511,6 +586,15 @@ def load_results(path: str | Path) -> CalibrationResults:
         bad = [h for h in ids if not h.strip() or h != h.strip() or not h.isprintable()]
         if bad:
             raise DataError(source, "heliostat_ids", f"{bad[0]!r} is not a heliostat id (blank or control characters)")
+        changed = np.zeros(len(ids), bool)
+        if CHECKSUM_DATASET in f:  # files of older heliojax versions have none
+            stored = _numeric(need(CHECKSUM_DATASET), source, CHECKSUM_DATASET, (len(ids),), "u")
+            if stored.ndim != 1:
+                raise DataError(source, CHECKSUM_DATASET, f"shape {stored.shape}, expected ({len(ids)},)")
+            try:
+                changed = stored != _row_checksums(f, len(ids))
+            except (OSError, ValueError, TypeError) as e:  # an unreadable dataset: named by the checks below
+                log.debug(f"{source}: row checksums not computed ({e})")
         params = _numeric(need("params"), source, "params", (len(ids), len(names)), "f")
         group = f.get("geometry")
         geometry = _read_geometry(group, source, len(ids)) if isinstance(group, h5py.Group) else None
@@ -661,6 +745,21 @@ def load_results(path: str | Path) -> CalibrationResults:
     }
     for reason in flags.values():
         log.warning(f"{source}: {reason}; its fit is not used")
+    if changed.all() and len(ids) > 1:
+        log.warning(
+            f"{source}: {CHECKSUM_DATASET}: every heliostat's rows, or the file's attributes, changed after "
+            "heliojax wrote them; no fit of this file is used"
+        )
+    elif changed.any():
+        log.warning(
+            f"{source}: {CHECKSUM_DATASET}: the rows of {', '.join(ids[h] for h in np.flatnonzero(changed))} "
+            "changed after heliojax wrote them; their fits are not used"
+        )
+    for h in np.flatnonzero(changed):
+        flags.setdefault(
+            ids[h],
+            f"{CHECKSUM_DATASET}: its rows of the file (or the file's attributes) changed after heliojax wrote them",
+        )
     batched = broadcast_model(template, len(ids))
     model = jax.vmap(view.from_vector)(batched, jnp.asarray(params))
     return CalibrationResults(

@@ -2000,6 +2000,50 @@ def test_a_heliostat_of_results_h5_far_above_or_below_the_others_is_not_aimed(up
     assert not hj.load_results(fitted_h5).flags
 
 
+def test_an_edit_within_every_bound_is_found_by_the_row_checksum(fitted_h5, tmp_path, capsys):
+    """An actuator 1 % longer passes every plausibility bound; the row checksum written
+    with the file finds it: that heliostat's commands are flagged unreliable, the others
+    are aimed as before. An edited attribute flags every heliostat (one warning line);
+    a file without the checksum (older versions) is not checked."""
+    import csv
+
+    import h5py
+
+    def aim_rows(path):
+        rc, _, err = _run(["aim", str(path), "--date", "2024-06-01", "--out", str(tmp_path / "aim.csv")], capsys)
+        assert rc == 0, err
+        return list(csv.DictReader((tmp_path / "aim.csv").read_text().splitlines())), err
+
+    clean_rows, _ = aim_rows(fitted_h5)
+    results = tmp_path / "results.h5"
+    shutil.copy(fitted_h5, results)
+    with h5py.File(results, "r+") as f:
+        _edit_h5("geometry/actuators/pivot_radius", (2, 0), f["geometry/actuators/pivot_radius"][2, 0] * 1.01)(f)
+        victim = f["heliostat_ids"][2].decode()
+    rows, err = aim_rows(results)
+    assert f"row_checksum: the rows of {victim} changed" in err, err
+    assert hj.load_results(results).flags.keys() == {victim}
+    capsys.readouterr()  # that load's warning
+    for row, clean in zip(rows, clean_rows, strict=True):
+        if row["heliostat_id"] == victim:
+            assert "unreliable" in row["flags"].split(";")
+        else:
+            assert row == clean
+
+    shutil.copy(fitted_h5, results)
+    with h5py.File(results, "r+") as f:
+        f.attrs["split"] = "azimuth"
+    rows, err = aim_rows(results)
+    assert sum("row_checksum" in line for line in err.splitlines()) == 1, err
+    assert all("unreliable" in r["flags"].split(";") for r in rows)
+
+    shutil.copy(fitted_h5, results)
+    with h5py.File(results, "r+") as f:
+        del f["row_checksum"]
+        _edit_h5("geometry/actuators/pivot_radius", (2, 0), f["geometry/actuators/pivot_radius"][2, 0] * 1.01)(f)
+    assert not hj.load_results(results).flags
+
+
 def test_an_output_folder_replaced_by_a_file_mid_run_names_the_output(tmp_path):
     """An output folder replaced by a file (or a dangling link) while the run went on was
     "<folder>: File exists"; now the output and why."""
