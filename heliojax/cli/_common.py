@@ -20,7 +20,7 @@ def add_fit_arguments(p) -> None:
         "--start",
         choices=("auto", "nominal"),
         default="auto",
-        help="start geometry: per heliostat the better of nominal / fleet-typical actuators",
+        help="start geometry: per heliostat its own (nominal) or the fleet-typical actuators, whichever it fits better",
     )
     add_cache_argument(p)
 
