@@ -126,18 +126,22 @@ def choose_start_geometry(
     alt = _with_actuators(fleet.geometry, typical_actuators(fleet.geometry, sources))
     e_alt = beam_errors_mrad(models, alt, fleet.counts, fleet.context, fleet.focal_spot, m)
     replaced = np.isfinite(_row_median(e_alt)) & (_row_median(e_alt) < own)
-    a, b = jax.tree.leaves(alt), jax.tree.leaves(fleet.geometry)
-    if on_host(*a, *b) and all(x.dtype == y.dtype for x, y in zip(a, b, strict=True)):
+    return select_geometry(replaced, alt, fleet.geometry), replaced, sources
+
+
+def select_geometry(take: np.ndarray, a: HeliostatGeometry, b: HeliostatGeometry) -> HeliostatGeometry:
+    """Per heliostat, geometry ``a`` where ``take`` ``(H,)`` else ``b`` (both batched)."""
+    la, lb = jax.tree.leaves(a), jax.tree.leaves(b)
+    if on_host(*la, *lb) and all(x.dtype == y.dtype for x, y in zip(la, lb, strict=True)):
         # a per-heliostat select of concrete arrays: on the host, no program to load
-        geometry = jax.tree.map(
+        return jax.tree.map(
             lambda x, y: jax.device_put(
-                np.where(np.reshape(replaced, (-1,) + (1,) * (np.ndim(x) - 1)), np.asarray(x), np.asarray(y))
+                np.where(np.reshape(take, (-1,) + (1,) * (np.ndim(x) - 1)), np.asarray(x), np.asarray(y))
             ),
-            alt,
-            fleet.geometry,
+            a,
+            b,
         )
-        return geometry, replaced, sources
-    return _select_geometry(jax.device_put(replaced), alt, fleet.geometry), replaced, sources
+    return _select_geometry(jax.device_put(np.asarray(take, bool)), a, b)
 
 
 @cached_jit

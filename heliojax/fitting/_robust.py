@@ -35,7 +35,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from .._heliostat import HeliostatGeometry
 from .._kinematics import AbstractKinematicModel
 from .._parameters import and_masks, broadcast_model, is_batched, on_host
-from ._evaluate import choose_start_geometry, fleet_residuals_mrad
+from ._evaluate import choose_start_geometry, fleet_residuals_mrad, select_geometry
 from ._fit import CompiledFit, FitSolution
 from ._loss import CAUCHY_EFFICIENCY_FACTOR, Cauchy
 from ._pooling import flat_prior, fleet_prior
@@ -265,11 +265,7 @@ def fitted_start_geometry(
     alt_fleet = eqx.tree_at(lambda f: f.geometry, fleet, proposed)
     alt = np.asarray(fit_robust(model0, alt_fleet, mask=mask, **fit_options).noise_mrad, float)
     take = replaced & (np.nan_to_num(alt, nan=np.inf) < np.nan_to_num(own, nan=np.inf))
-    take_j = jnp.asarray(take)
-    geometry = jax.tree.map(
-        lambda a, b: jnp.where(take_j.reshape((-1,) + (1,) * (jnp.ndim(a) - 1)), a, b), proposed, fleet.geometry
-    )
-    return geometry, take, sources
+    return select_geometry(take, proposed, fleet.geometry), take, sources
 
 
 def _select_models(ok: np.ndarray, a: AbstractKinematicModel, b: typing.Any) -> AbstractKinematicModel:
