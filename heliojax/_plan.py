@@ -341,18 +341,27 @@ def candidates_at_targets(
     target_centres: Float[Array, "T 3"],
     *,
     unix_time: Float[ArrayLike, " N"] | None = None,
+    target_index: Int[ArrayLike, " T"] | None = None,
     min_elevation_deg: float = 10.0,
 ) -> Candidates:
     """Candidates for future measurements: each heliostat aimed at each target's
     centre at each instant, ``k = n * T + t``; valid where the sun is at least
-    ``min_elevation_deg`` high and the counts are inside the actuators' range."""
+    ``min_elevation_deg`` high and the counts are inside the actuators' range.
+
+    ``target_index`` ``(T,)``: each target's index in the fitted fleet's
+    ``target_names`` (-1 for a target it never used), carried in the candidates'
+    context so that target-dependent effects (``survey_target``) enter the
+    candidates' Jacobians; default -1 (unknown) for every target."""
     sun = jnp.asarray(sun)
     centres = jnp.asarray(target_centres, sun.dtype)
     h, n, t = int(jnp.shape(geometry.position)[0]), sun.shape[0], centres.shape[0]
+    if target_index is not None and np.shape(target_index) != (t,):
+        raise ValueError(f"target_index has shape {np.shape(target_index)}, expected ({t},): one per target centre")
     counts, valid = _target_candidates(models, geometry, sun, centres, float(np.sin(np.radians(min_elevation_deg))))
     sun_k = jnp.broadcast_to(jnp.repeat(sun, t, axis=0), (h, n * t, 3))
     time_k = None if unix_time is None else jnp.repeat(jnp.asarray(unix_time, sun.dtype), t)
-    context = RecordContext.from_sun(sun_k, time_k)
+    target_k = None if target_index is None else jnp.tile(jnp.asarray(target_index, jnp.int32), n)
+    context = RecordContext.from_sun(sun_k, time_k, target_k)
     spots = jnp.broadcast_to(jnp.tile(centres, (n, 1)), (h, n * t, 3))
     slot = jnp.broadcast_to(jnp.repeat(jnp.arange(n, dtype=jnp.int32), t), (h, n * t))
     return Candidates(counts=counts, context=context, spots=spots, valid=valid, slot=slot)

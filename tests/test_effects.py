@@ -433,6 +433,50 @@ def test_wrappers_compose_in_any_order():
 
 
 @pytest.mark.slow
+def test_psd_inverse_leaves_out_parameters_that_nothing_determines():
+    """An all-zero row and column (a parameter no row depends on) is left out: the
+    rest is the inverse of the remaining block (numpy), the dead row and column are 0."""
+    rng = np.random.default_rng(0)
+    j = rng.normal(size=(12, 4))
+    block = j.T @ j
+    full = np.zeros((6, 6))
+    keep = [0, 2, 3, 5]
+    full[np.ix_(keep, keep)] = block
+    got = np.asarray(hj.fitting.psd_inverse(jnp.asarray(full)))
+    expected = np.zeros((6, 6))
+    expected[np.ix_(keep, keep)] = np.linalg.inv(block)
+    np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-14)
+    # a singular determined block is still reported as singular (NaN), not hidden
+    singular = full.copy()
+    singular[np.ix_(keep, keep)] = np.outer(j[0], j[0])
+    assert np.isnan(np.asarray(hj.fitting.psd_inverse(jnp.asarray(singular)))).any()
+
+
+def test_fit_covariance_of_a_per_heliostat_survey_target_model_is_finite():
+    """A survey-target slot that no record of a heliostat uses has a zero Jacobian
+    column: the fit reports its standard deviation as NaN and keeps the covariance
+    of every determined parameter finite (it used to be NaN throughout)."""
+    from heliojax.discovery import simulate_fleet
+
+    fleet, _ = simulate_fleet(3, 3, 30, noise_mrad=0.1)
+    targets = jnp.asarray(np.tile(np.arange(30) % 2 * 2, (3, 1)), jnp.int32)  # targets 0 and 2
+    fleet = eqx.tree_at(lambda f: f.context.target, fleet, targets)
+    res = hj.fit(with_effects(hj.StoneModel.nominal(jnp.float64), ["survey_target"]), fleet, max_steps=64)
+    names = res.view.names
+    unused = [i for i, n in enumerate(names) if n.startswith(("survey_target_2_", "survey_target_4_"))]
+    used = [i for i in range(len(names)) if i not in unused]
+    std = np.asarray(res.std)
+    assert np.isnan(std[:, unused]).all()
+    assert np.isfinite(std[:, used]).all() and (std[:, used] > 0).all()
+    cov = np.asarray(res.covariance)
+    free = list(res.view.free_index)
+    rows = [free.index(i) for i in used]
+    assert np.isfinite(cov).all()
+    np.testing.assert_allclose(
+        np.sqrt(np.diagonal(cov[:, rows][:, :, rows], axis1=1, axis2=2)), std[:, used], rtol=1e-12
+    )
+
+
 def test_fit_recovers_an_effect_through_the_wrapped_model():
     """A model with effects is again a model: the fit core fits it unchanged."""
     from heliojax.discovery import simulate_fleet

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import jaxtyping
 import numpy as np
 import pytest
 
@@ -110,6 +111,13 @@ def test_candidates_aim_at_the_targets_and_plans_reduce_uncertainty():
     valid = np.asarray(cand.valid)
     assert valid.mean() > 0.5
     np.testing.assert_array_equal(np.asarray(cand.slot)[0], np.repeat(np.arange(12), 2))
+    # each candidate carries its target (the fleet's index, for target-dependent effects)
+    np.testing.assert_array_equal(np.asarray(cand.context.target), -1)  # unknown unless given
+    named = hj.candidates_at_targets(truth, geometry, sun, centres, unix_time=unix, target_index=np.array([1, -1]))
+    np.testing.assert_array_equal(np.asarray(named.context.target), np.tile([1, -1], (4, 12)))
+    np.testing.assert_array_equal(np.asarray(named.counts), np.asarray(cand.counts))
+    with pytest.raises((ValueError, jaxtyping.TypeCheckError), match="one per target centre|target_index"):
+        hj.candidates_at_targets(truth, geometry, sun, centres, target_index=np.array([0]))
 
     # the candidate counts point the true beam at the target centre
     @jax.jit

@@ -230,12 +230,16 @@ def run(args) -> int:
         lat, lon, alt = (float(x) for x in origin)
         sun = solar_position(jnp.asarray(unix), lat, lon, alt).direction_enu()
         centres = np.stack([centre(t) for t in targets])
+        known = tuple(results.target_names)
         candidates = candidates_at_targets(
             results.model,
             results.geometry,
             sun,
             jnp.asarray(centres),
             unix_time=unix,
+            target_index=np.array(
+                [results.target_names.index(t) if t in results.target_names else -1 for t in targets]
+            ),
             min_elevation_deg=args.min_sun_elevation,
         )
         target_of = np.broadcast_to(np.tile(np.asarray(targets), len(instants)), (h, len(instants) * len(targets)))

@@ -256,13 +256,22 @@ def residual_with_jacobian(
 
 def psd_inverse(a: Float[Array, "F F"]) -> Float[Array, "F F"]:
     """Inverse of a symmetric positive semi-definite matrix via a Jacobi-scaled
-    Cholesky factorisation; NaN where it is singular."""
-    d = jnp.sqrt(jnp.clip(jnp.diag(a), 1e-300))
-    scaled = a / d[:, None] / d[None, :]
-    chol = jnp.linalg.cholesky(scaled)
+    Cholesky factorisation; NaN where it is singular.
+
+    A parameter with an all-zero row and column (no record and no prior row
+    depends on it, e.g. a survey-target slot that none of a heliostat's records
+    uses) is not determined: it is left out of the inversion and its row and column
+    of the result are zero (:func:`fit` reports its standard deviation as NaN), so
+    that the determined parameters keep a finite covariance."""
+    diag = jnp.diag(a)
+    dead = diag <= 0.0
+    d = jnp.sqrt(jnp.where(dead, 1.0, jnp.clip(diag, 1e-300)))
     eye = jnp.eye(a.shape[0], dtype=a.dtype)
+    scaled = jnp.where(dead[:, None] | dead[None, :], eye, a / d[:, None] / d[None, :])
+    chol = jnp.linalg.cholesky(scaled)
     inv_l = jax.scipy.linalg.solve_triangular(chol, eye, lower=True)
-    return (inv_l.T @ inv_l) / d[:, None] / d[None, :]
+    inv = (inv_l.T @ inv_l) / d[:, None] / d[None, :]
+    return jnp.where(dead[:, None] | dead[None, :], 0.0, inv)
 
 
 def status_code(result: optx.RESULTS) -> Int[Array, ""]:
@@ -287,7 +296,9 @@ class FitSolution(eqx.Module):
             (``heliostat_model(i)`` gives one).
         std: ``(H, P)`` Gauss-Newton standard errors in physical units, vector order
             of ``view`` (0 for fixed parameters, NaN where undetermined).
-        covariance: ``(H, F, F)`` covariance of the free parameters, physical units.
+        covariance: ``(H, F, F)`` covariance of the free parameters, physical units
+            (zero rows and columns for a parameter that nothing determines, see
+            :func:`psd_inverse`).
         status: ``(H,)`` :class:`FitStatus` codes.
         n_steps: ``(H,)`` solver steps (1 for a heliostat with too few records: its
             records are not fitted).
@@ -401,10 +412,12 @@ def _fit_one(
     # have fewer degrees of freedom than parameters.
     prior_noise = prior.noise_mrad_of(prior_h)
     sigma2 = jnp.where((2 * n_used - view.n_free < view.n_free) & (n_prior > 0), prior_noise**2, sigma2)
-    a_inv = psd_inverse(out.jacobian.T @ out.jacobian)
+    normal = out.jacobian.T @ out.jacobian
+    a_inv = psd_inverse(normal)
     cov_scaled = a_inv * sigma2
     cov = cov_scaled * free_scales[:, None] * free_scales[None, :]
-    std_free = jnp.sqrt(jnp.clip(jnp.diag(cov_scaled), 0.0)) * free_scales
+    undetermined = jnp.diag(normal) <= 0.0
+    std_free = jnp.where(undetermined, jnp.nan, jnp.sqrt(jnp.clip(jnp.diag(cov_scaled), 0.0)) * free_scales)
     std = jnp.zeros_like(p0).at[idx].set(std_free)
 
     params = physical(out.value)
