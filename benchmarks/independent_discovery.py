@@ -61,9 +61,9 @@ EXPECTED_VARIABLES = {
 DAY_S = 86400.0
 
 
-def run_suite(work: Path, tag: str, seed: int) -> float:
+def run_suite(work: Path, tag: str, seed: int, amplitude_scale: float = 1.0) -> float:
     effect, outliers = (tag[:-4], 0.05) if tag.endswith("_out") else (tag, 0.0)
-    generate(effect, work / tag, seed=seed, outliers=outliers)
+    generate(effect, work / tag, seed=seed, outliers=outliers, amplitude=EFFECTS[effect].default * amplitude_scale)
     t0 = time.perf_counter()
     subprocess.run(
         [
@@ -133,12 +133,14 @@ def judge(truth: dict, rep: dict) -> dict:
     return out
 
 
-def hit_rates(work: Path, tags: list[str], seeds: list[int], judge_only: bool = False) -> dict:
+def hit_rates(
+    work: Path, tags: list[str], seeds: list[int], judge_only: bool = False, amplitude_scale: float = 1.0
+) -> dict:
     per: dict[str, list] = {}
     for seed in seeds:
         for tag in tags:
             d = work / f"s{seed}"
-            secs = float("nan") if judge_only else run_suite(d, tag, seed)
+            secs = float("nan") if judge_only else run_suite(d, tag, seed, amplitude_scale)
             rep_path, truth_path = d / f"{tag}.report.json", d / tag / "truth.json"
             if not rep_path.exists():
                 per.setdefault(tag, []).append({"seed": seed, "error": "no report"})
@@ -164,7 +166,7 @@ def hit_rates(work: Path, tags: list[str], seeds: list[int], judge_only: bool = 
             "outliers_false": sum(r["outliers_false"] for r in ok),
             "runs": runs,
         }
-    return {"simulator": "independent_sim", "seeds": seeds, "effects": summary}
+    return {"simulator": "independent_sim", "seeds": seeds, "amplitude_scale": amplitude_scale, "effects": summary}
 
 
 def table(work: Path) -> str:
@@ -210,14 +212,20 @@ def main() -> None:
     p.add_argument("--hit-rates", action="store_true")
     p.add_argument("--judge-only", action="store_true", help="with --hit-rates: judge existing reports")
     p.add_argument("--seeds", default="9001,9002")
+    p.add_argument(
+        "--amplitude-scale",
+        type=float,
+        default=1.0,
+        help="each hidden effect at this multiple of the simulator's default amplitude (a detection-limit sweep)",
+    )
     a = p.parse_args()
     if a.hit_rates:
         seeds = [int(x) for x in a.seeds.split(",")]
-        print(json.dumps(hit_rates(a.work, a.effects.split(","), seeds, a.judge_only), indent=1))
+        print(json.dumps(hit_rates(a.work, a.effects.split(","), seeds, a.judge_only, a.amplitude_scale), indent=1))
         return
     if not a.table_only:
         for tag in a.effects.split(","):
-            run_suite(a.work, tag, a.seed)
+            run_suite(a.work, tag, a.seed, a.amplitude_scale)
     print(table(a.work))
 
 
