@@ -21,6 +21,20 @@ so that a variable that only echoes a reported one (time of day and sun
 azimuth) is not reported as well. The effect size is the RMS over records of
 the binned-mean curve (mrad, both components).
 
+Each variable is tested in two forms. The *fleet* form above finds a dependence
+that the heliostats share. The *per-heliostat* form finds one whose shape differs
+from heliostat to heliostat (a daily tilt of each pylon with its own phase: the
+fleet's binned means of such a structure average out): cells are (heliostat, bin)
+with at least 2 records, each heliostat's own mean is taken out, and the analysis
+of variance of both components gives ``F = (SS_cells / (2 (C - H'))) /
+(SS_within / (2 (N - C)))`` over ``C`` cells of ``H'`` heliostats, referred to
+``F(2 (C - H'), 2 (N - C))`` (bins of one variable are fixed by the variable, not
+by the residuals, so the test is exact under Gaussian noise; the fit's residuals
+make it conservative). Both forms of every variable are one Holm family, and the
+forward selection removes the chosen form's means (per cell for the per-heliostat
+form). An entry says which form it is (``"form"``: ``"fleet"`` or
+``"per_heliostat"``).
+
 The residuals of the final model include whatever the library effects named
 before explained, so a significant variable is structure *no named effect
 explains*: it is reported under ``"unexplained"``, never given a library name.
@@ -179,6 +193,45 @@ def anova(z: np.ndarray, idx: np.ndarray) -> tuple[float, np.ndarray]:
     return float(stats.f.sf(f, d1, d2)), means
 
 
+MIN_PER_CELL = 2
+"""Records a (heliostat, bin) cell needs in the per-heliostat form."""
+
+FLEET, PER_HELIOSTAT = "fleet", "per_heliostat"
+
+
+def anova_per_heliostat(z: np.ndarray, idx: np.ndarray) -> tuple[float, np.ndarray]:
+    """p-value of binned structure in ``z`` ``(H, M, 2)`` whose shape may differ
+    between heliostats (cells = (heliostat, bin) of ``idx`` with at least
+    :data:`MIN_PER_CELL` records, each heliostat's mean taken out; see the module
+    docstring), and each record's cell mean minus its heliostat's mean ``(H, M, 2)``
+    (0 outside the cells)."""
+    h = idx.shape[0]
+    n_bins = int(idx.max()) + 1 if (idx >= 0).any() else 0
+    cell = np.where(idx >= 0, np.arange(h)[:, None] * max(n_bins, 1) + idx, -1)
+    if n_bins > 0:
+        sizes = np.bincount(cell[cell >= 0], minlength=h * n_bins)
+        cell = np.where((cell >= 0) & (sizes[np.clip(cell, 0, None)] >= MIN_PER_CELL), cell, -1)
+    ok = cell >= 0
+    deviation = np.zeros(z.shape)
+    if not ok.any():
+        return float("nan"), deviation
+    _, c = np.unique(cell[ok], return_inverse=True)
+    _, k = np.unique(np.broadcast_to(np.arange(h)[:, None], idx.shape)[ok], return_inverse=True)
+    zz = z[ok]
+    n_c, n_k = np.bincount(c).astype(float), np.bincount(k).astype(float)
+    mean_c = np.stack([np.bincount(c, weights=zz[:, j]) / n_c for j in range(2)], axis=1)
+    mean_k = np.stack([np.bincount(k, weights=zz[:, j]) / n_k for j in range(2)], axis=1)
+    dev = mean_c[c] - mean_k[k]
+    deviation[ok] = dev
+    ss_between = float(np.sum(dev**2))
+    ss_within = float(np.sum((zz - mean_c[c]) ** 2))
+    d1, d2 = 2 * (n_c.size - n_k.size), 2 * (zz.shape[0] - n_c.size)
+    if d1 <= 0 or d2 <= 0 or ss_within <= 0:
+        return float("nan"), deviation
+    f = (ss_between / d1) / (ss_within / d2)
+    return float(stats.f.sf(f, d1, d2)), deviation
+
+
 def heliostat_noise(r: np.ndarray, use: np.ndarray, n_params: int) -> np.ndarray:
     """``(H,)`` noise per residual component, ``sqrt(RSS_h / (2 n_h - p))`` (NaN where
     the heliostat has no residual degrees of freedom)."""
@@ -209,31 +262,49 @@ def unexplained_structure(
 
     Returns:
         ``(entries, first_p)``: the reported variables in the order selected, each
-        ``{"variable", "label", "p", "p_holm", "effect_size_mrad", "heliostats"}``
-        (heliostats whose own test has p < ``alpha``), and every variable's
-        p-value before any selection.
+        ``{"variable", "form", "label", "p", "p_holm", "effect_size_mrad",
+        "heliostats"}`` (``form`` ``"fleet"`` or ``"per_heliostat"``; heliostats
+        whose own test has p < ``alpha``), and every variable's p-value before any
+        selection (the per-heliostat form under ``"<variable> (per heliostat)"``).
     """
     sigma = heliostat_noise(r, use, n_params)
     use = use & np.isfinite(sigma)[:, None] & np.all(np.isfinite(r), axis=-1)
     z = np.where(use[..., None], r / np.where(np.isfinite(sigma) & (sigma > 0), sigma, 1.0)[:, None, None], 0.0)
     raw = np.where(use[..., None], r, 0.0)
     bins = {v.name: bin_index(v.values, use, v.kind) for v in variables}
-    first = {v.name: anova(z, bins[v.name])[0] for v in variables}
-    remaining = [v for v in variables if np.isfinite(first[v.name])]
+
+    def test(z_now: np.ndarray, name: str, form: str) -> float:
+        idx = bins[name]
+        return anova(z_now, idx)[0] if form == FLEET else anova_per_heliostat(z_now, idx)[0]
+
+    def key(name: str, form: str) -> str:
+        return name if form == FLEET else f"{name} (per heliostat)"
+
+    by_name = {v.name: v for v in variables}
+    first = {key(v.name, f): test(z, v.name, f) for v in variables for f in (FLEET, PER_HELIOSTAT)}
+    remaining = [(v.name, f) for v in variables for f in (FLEET, PER_HELIOSTAT) if np.isfinite(first[key(v.name, f)])]
     entries: list[dict] = []
     running = 0.0
     while remaining:
-        ps = {v.name: anova(z, bins[v.name])[0] for v in remaining}
-        best = min(remaining, key=lambda v: (np.nan_to_num(ps[v.name], nan=1.0), v.name))
-        p = ps[best.name]
+        ps = {c: test(z, *c) for c in remaining}
+        best = min(remaining, key=lambda c: (np.nan_to_num(ps[c], nan=1.0), c[1] != FLEET, c[0]))
+        p = ps[best]
         running = max(running, min(1.0, len(remaining) * p))
         if not (np.isfinite(p) and running <= alpha):
             break
-        idx = bins[best.name]
-        _, means_z = anova(z, idx)
-        _, means_r = anova(raw, idx)
+        name, form = best
+        idx = bins[name]
         ok = idx >= 0
-        effect = float(np.sqrt(np.sum(means_r[idx[ok]] ** 2) / max(int(ok.sum()), 1)))
+        if form == FLEET:
+            _, means_z = anova(z, idx)
+            _, means_r = anova(raw, idx)
+            shift_z = np.where(ok[..., None], means_z[np.clip(idx, 0, None)], 0.0)
+            effect = float(np.sqrt(np.sum(means_r[idx[ok]] ** 2) / max(int(ok.sum()), 1)))
+        else:
+            _, shift_z = anova_per_heliostat(z, idx)
+            _, shift_r = anova_per_heliostat(raw, idx)
+            inside = np.any(shift_r != 0.0, axis=-1)
+            effect = float(np.sqrt(np.sum(shift_r**2) / max(int(inside.sum()), 1)))
         heliostats = []
         for h in range(r.shape[0]):
             row = np.full(idx.shape, -1)
@@ -244,8 +315,9 @@ def unexplained_structure(
                     heliostats.append(ids[h])
         entries.append(
             {
-                "variable": best.name,
-                "label": best.label,
+                "variable": name,
+                "form": form,
+                "label": by_name[name].label,
                 "p": float(p),
                 "p_holm": float(running),
                 "effect_size_mrad": effect,
@@ -253,8 +325,8 @@ def unexplained_structure(
             }
         )
         # remove the structure found before testing the others
-        z = np.where(ok[..., None], z - means_z[np.clip(idx, 0, None)], z)
-        remaining = [v for v in remaining if v.name != best.name]
+        z = z - shift_z
+        remaining = [c for c in remaining if c != best]
     return entries, {k: float(v) for k, v in first.items()}
 
 

@@ -31,8 +31,10 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
                          "previous_record_time", "jump": {param: rad}, "jump_unit": "rad",
                          "p", "p_holm", "n_records_before"}],   # records before it are left out
       "change_points_withdrawn": [{"heliostat", "time", "p"}],  # pre-pass steps the final model explains
-      "unexplained": [{"variable", "p", "p_holm", "effect_size_mrad", "heliostats"}],
+      "unexplained": [{"variable", "form", "p", "p_holm", "effect_size_mrad", "heliostats"}],
+                                                   # form "fleet" (shared shape) or "per_heliostat"
       "variable_p_values": {variable: p},          # every recorded variable at the final model
+                                                   # (per-heliostat form: "<variable> (per heliostat)")
       "partly_absorbed": [{"effect", "absorbed_fraction", "remainder_p_holm"}],  # last screen
       "not_identifiable": [names],                 # largely absorbed at some step (tested on the remainder), not named
       "untestable": [names],                       # the data do not drive them (e.g. no weather)
@@ -262,6 +264,7 @@ def build_report(result, typical_start=None) -> dict:
         "unexplained": [
             {
                 "variable": u["variable"],
+                "form": u.get("form", "fleet"),
                 "p": _f(u["p"]),
                 "p_holm": _f(u["p_holm"]),
                 "effect_size_mrad": _f(u["effect_size_mrad"]),
@@ -519,12 +522,13 @@ def markdown_summary(report: dict) -> str:
             "",
             "Residual structure no named effect explains:",
             "",
-            "| variable | p (Holm) | effect size (mrad) | heliostats (own p < alpha) |",
-            "|---|---|---|---|",
+            "| variable | form | p (Holm) | effect size (mrad) | heliostats (own p < alpha) |",
+            "|---|---|---|---|---|",
         ]
         for u in report["unexplained"]:
+            form = "per heliostat" if u.get("form") == "per_heliostat" else "fleet"
             lines.append(
-                f"| {u['variable']} | {fmt(u['p_holm'], '.2g')} | {fmt(u['effect_size_mrad'])} | "
+                f"| {u['variable']} | {form} | {fmt(u['p_holm'], '.2g')} | {fmt(u['effect_size_mrad'])} | "
                 f"{', '.join(u['heliostats']) or '-'} |"
             )
     elif not report.get("not_tested_reason"):
@@ -768,6 +772,8 @@ def plot_unexplained(result, index: int, *, axes=None):
     labels = ("horizontal component [mrad]", "vertical component [mrad]")
     x = np.where(used, var.values, np.nan)
     ok = used & np.isfinite(x)
+    if entry.get("form") == "per_heliostat":
+        return _plot_unexplained_per_heliostat(fig, axes, entry, var, x, ok, ra, list(fleet.ids), labels)
     jitter = 0.0
     if var.kind == "categorical":
         jitter = 0.08 * np.random.default_rng(0).standard_normal(int(ok.sum()))
@@ -795,6 +801,38 @@ def plot_unexplained(result, index: int, *, axes=None):
         f"unexplained structure against {entry['variable']}: p (Holm) = {entry['p_holm']:.2g}, "
         f"binned-mean RMS {entry['effect_size_mrad']:.3f} mrad\n(no library effect explains it{same}; "
         "records of all heliostats, training residuals)"
+    )
+    fig.tight_layout()
+    return fig
+
+
+def _plot_unexplained_per_heliostat(fig, axes, entry, var, x, ok, ra, ids, labels, shown: int = 4):
+    """The per-heliostat form of :func:`plot_unexplained`: final-model residuals of
+    the ``shown`` heliostats with the largest binned structure, each in its colour with
+    its own binned means (their shapes differ, so fleet means would hide them)."""
+    size = []
+    for h in range(ra.shape[0]):
+        if ok[h].sum() >= 4 and ids[h]:
+            curves = [_binned(x[h][ok[h]], ra[h, :, j][ok[h]])[1] for j in range(2)]
+            size.append((float(np.sqrt(np.mean(np.concatenate(curves) ** 2))), h))
+    picked = [h for _, h in sorted(size, reverse=True)[:shown]]
+    for j in range(2):
+        ax = axes[0, j]
+        for n, h in enumerate(picked):
+            colour = f"C{n}"
+            ax.scatter(x[h][ok[h]], ra[h, :, j][ok[h]], s=8, color=colour, alpha=0.45)
+            xc, yc = _binned(x[h][ok[h]], ra[h, :, j][ok[h]])
+            ax.plot(xc, yc, "-o", color=colour, ms=3, lw=1.5, label=f"{ids[h]}: records and binned mean")
+        ax.axhline(0.0, color="k", lw=0.5)
+        ax.set_xlabel(var.label)
+        ax.set_ylabel(labels[j])
+        if j == 0 and picked:
+            ax.legend(loc="best", fontsize=8)
+    fig.suptitle(
+        f"unexplained structure against {entry['variable']}, its shape differing per heliostat: "
+        f"p (Holm) = {entry['p_holm']:.2g}, RMS {entry['effect_size_mrad']:.3f} mrad\n"
+        f"(no library effect explains it; final-model training residuals of the {len(picked)} heliostats "
+        "with the largest binned structure)"
     )
     fig.tight_layout()
     return fig

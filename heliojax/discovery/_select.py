@@ -732,7 +732,9 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
             ids,
         )
     for u in unexplained:
-        log.info(f"unexplained structure against {u['variable']}: p={u['p']:.2g}, {u['effect_size_mrad']:.3f} mrad")
+        form = " (its shape differing per heliostat)" if u["form"] == "per_heliostat" else ""
+        size = f"{u['effect_size_mrad']:.3f} mrad"
+        log.info(f"unexplained structure against {u['variable']}{form}: p={u['p']:.2g}, {size}")
     timing = {"total_s": time.perf_counter() - t_start}
     result = DiscoveryResult(
         config=config,
