@@ -52,6 +52,56 @@ def is_decimal(text: str) -> bool:
     return _DECIMAL.fullmatch(text.strip()) is not None
 
 
+def read_csv_rows(path: str | os.PathLike, what: str) -> tuple[list[str], list[tuple[int, dict[str, str | None]]]]:
+    """Header and ``(row number, {column: cell})`` rows of a comma-separated file
+    (UTF-8; a spreadsheet's byte-order mark is allowed; blank lines are skipped; a
+    row with fewer cells than the header gives ``None`` for the missing ones).
+
+    Args:
+        path: the file.
+        what: what the file is, for the messages (e.g. ``"an aim-point CSV"``).
+
+    Raises:
+        DataError: naming the file (and the column or row): unreadable, not UTF-8
+            text, malformed CSV, no header, a header separated by ``;`` or tabs, a
+            column listed twice (only its last cells would be read), a row with more
+            cells than the header has columns.
+    """
+    import csv
+
+    from ._errors import DataError
+
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            reader = csv.reader(f)
+            header = next(reader, None)
+            cells = [(reader.line_num, row) for row in reader]
+    except OSError as e:
+        raise DataError(path, None, f"cannot read: {e.strerror or e}") from None
+    except UnicodeDecodeError as e:
+        raise DataError(path, None, f"not UTF-8 text (byte {e.start}): not {what}") from None
+    except csv.Error as e:
+        raise DataError(path, None, f"malformed CSV: {e}") from None
+    if not header:
+        raise DataError(path, None, f"empty: {what} starts with a header row")
+    header = [name.strip() for name in header]
+    if len(header) == 1:
+        for sep, name in ((";", "';'"), ("\t", "tabs")):
+            if sep in header[0]:
+                raise DataError(path, None, f"the header is separated by {name}: {what} is separated by ','")
+    twice = sorted({name for name in header if header.count(name) > 1})
+    if twice:
+        raise DataError(path, twice[0], "column listed twice (only its last cells would be read)")
+    rows: list[tuple[int, dict[str, str | None]]] = []
+    for line, row in cells:
+        if not row:
+            continue
+        if len(row) > len(header):
+            raise DataError(path, f"row {line}", f"more cells than the header has columns: {row[len(header) :]!r}")
+        rows.append((line, dict(zip(header, [*row, *([None] * (len(header) - len(row)))], strict=True))))
+    return header, rows
+
+
 TEMPORARY_MARK = ".heliojax-tmp"
 """In the name of every temporary file heliojax writes (so that stale ones, left by
 a killed run, can be recognised and removed: :func:`remove_stale_temporaries`)."""

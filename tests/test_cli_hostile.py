@@ -1191,6 +1191,15 @@ def test_trace_summary_is_strict_json_and_a_missing_flux_png_is_named(tmp_path, 
         rc, _, err = _run([*argv, "--pixels", "8", "--rays-per-point", "1", "--steps", "1", "--quiet"], capsys)
     assert rc == 0, err
     assert f"{rid}-flux.png" in caplog.text + err, caplog.text + err
+    # an irradiance that underflows (or a beam that misses): no made-up centroid at (0, 0)
+    caplog.clear()
+    argv = [*TRACE_AT_A_SUN, "--dni", "1e-300", "--pixels", "8", "--rays-per-point", "1", "--steps", "1"]
+    with caplog.at_level("WARNING"):
+        rc, _, err = _run([*argv, "--out", str(tmp_path / "z"), "--quiet"], capsys)
+    assert rc == 0, err
+    summary = json.loads(next((tmp_path / "z").glob("*summary.json")).read_text())
+    assert summary["power_w"] == 0.0 and summary["centroid_uv_m"] is None
+    assert "centroid is undefined" in caplog.text + err
 
 
 def test_trace_refuses_an_unfitted_heliostat_of_results_and_an_aim_h5(tmp_path, capsys):
@@ -2181,3 +2190,116 @@ def test_a_fine_date_time_in_a_comment_or_string_refuses_no_key():
     )
     tomllib.loads(text)  # valid TOML
     assert finer_date_times(text) == {"2024-06-08T10:00:00", "2024-06-09T10:00:00"}
+
+
+_IDS = ("BE36", "BF56", "BG23", "BH20", "BL14")
+_ENU = "heliostat_id,east_m,north_m,up_m\n"
+
+
+def _aim_rows(first: str = "", header: str = _ENU) -> str:
+    """An aim-point CSV for the embedded heliostats, ``first`` in place of BE36's row."""
+    rows = [first or "BE36,0,0,60"] + [f"{h},0,0,60" for h in _IDS[1:]]
+    return header + "\n".join(rows) + "\n"
+
+
+AIM_CSVS = [
+    ("a column twice", _aim_rows(header=_ENU.replace("up_m", "up_m,up_m"), first="BE36,0,0,60,-500"), "up_m"),
+    ("a number with an underscore", _aim_rows("BE36,1_0,0,60"), "row 2.east_m"),
+    ("full-width digits", _aim_rows("BE36,\uff11\uff10,0,60"), "row 2.east_m"),
+    ("more cells than the header", _aim_rows("BE36,0,0,60,99"), "row 2"),
+    ("ENU and WGS84 columns", "heliostat_id,east_m,north_m,up_m,lat_deg,lon_deg,alt_m\n", "both ENU and WGS84"),
+    ("a heliostat the results do not hold", _aim_rows() + "be36,1,1,60\n", "not in the results: 'be36'"),
+    ("an empty id", _aim_rows() + ",1,1,60\n", "row 7.heliostat_id"),
+    ("separated by semicolons", _aim_rows().replace(",", ";"), "separated by ';'"),
+    ("separated by tabs", _aim_rows().replace(",", "\t"), "separated by tabs"),
+    ("a header only", _ENU, "no aim points"),
+]
+
+
+@pytest.mark.parametrize(("text", "said"), [c[1:] for c in AIM_CSVS], ids=[c[0] for c in AIM_CSVS])
+def test_aim_points_csv_of_a_bad_kind_is_named(text, said, fitted_h5, tmp_path, capsys):
+    """Every aim-point CSV that would be read wrongly (a repeated column whose last copy
+    wins, numbers Python reads but a data file does not hold, ids that match no
+    heliostat) is refused in one line naming the file and field; nothing is written."""
+    path = tmp_path / "points.csv"
+    path.write_text(text, encoding="utf-8")
+    out = tmp_path / "o.csv"
+    argv = ["aim", str(fitted_h5), "--time", "2023-06-21T12:00", "--aim-csv", str(path), "--out", str(out)]
+    rc, _, err = _run(argv, capsys)
+    assert rc == 2 and said in err and "points.csv" in err and "Traceback" not in err, err
+    assert len(err.strip().splitlines()) <= 2, err
+    assert not out.exists()
+
+
+def test_aim_points_csv_with_a_byte_order_mark_reads(fitted_h5, tmp_path, capsys):
+    path = tmp_path / "points.csv"
+    path.write_text("\ufeff" + _aim_rows(), encoding="utf-8")
+    argv = [
+        "aim",
+        str(fitted_h5),
+        "--time",
+        "2023-06-21T12:00",
+        "--aim-csv",
+        str(path),
+        "--out",
+        str(tmp_path / "o.csv"),
+    ]
+    assert _run([*argv, "--quiet"], capsys)[0] == 0
+
+
+def test_aim_times_with_an_offset_are_written_in_utc(fitted_h5, tmp_path, capsys):
+    """14:00+02:00 is 12:00Z: the row says 12:00:00Z with the sun of 12:00Z (it used to
+    print the local clock time with a Z), the same row as --time 12:00Z."""
+    rows = {}
+    for name, when in (("offset", "2023-06-21T14:00+02:00"), ("utc", "2023-06-21T12:00Z")):
+        out = tmp_path / f"{name}.csv"
+        assert _run(["aim", str(fitted_h5), "--time", when, "--out", str(out), "--quiet"], capsys)[0] == 0
+        rows[name] = out.read_text().splitlines()[1]
+    assert rows["offset"] == rows["utc"] and "2023-06-21T12:00:00Z" in rows["offset"]
+
+
+@pytest.mark.parametrize(
+    ("argv", "said"),
+    [
+        (["aim", "{h5}", "--date", "2023-06-21T15:00+14:00"], "not a day"),
+        (["aim", "{h5}", "--sun-azimuth", "180", "--sun-elevation", "30"], "the sun never stands there"),
+        (["aim", "{h5}", "--time", "2023-06-21T12:00", "--target", "receiver", "--aim-csv", "p.csv"], "not allowed"),
+        (["plan", "{h5}", "--date", "2024-06-21", "--min-sun-elevation", "70"], "the sun never rises that high"),
+        (["plan", "{h5}", "--date", "2024-06-21", "--min-sun-elevation", "-90"], "--min-sun-elevation"),
+        (["plan", "{h5}", "--date", "2024-06-21T10:00"], "not a day"),
+    ],
+    ids=[
+        "aim day with a time",
+        "aim impossible sun",
+        "aim target and csv",
+        "plan empty envelope",
+        "plan sun below the horizon",
+        "plan day with a time",
+    ],
+)
+def test_aim_and_plan_refuse_instants_that_do_not_exist(argv, said, fitted_h5, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "p.csv").write_text(_aim_rows())
+    out = ["--out", str(tmp_path / "o.csv")] + (["--envelope-day-step", "60"] if argv[0] == "plan" else [])
+    rc, _, err = _run([a.replace("{h5}", str(fitted_h5)) for a in argv] + out, capsys)
+    assert rc == 2 and said in err and "Traceback" not in err, err
+    assert not (tmp_path / "o.csv").exists()
+
+
+def test_a_records_file_without_training_records_is_refused(tmp_path, capsys):
+    """Every record listed as test: nothing to calibrate, exit 2 naming the file (it
+    used to fit nothing and exit 0)."""
+    from heliojax.paint import default_data_dir, load_paint_directory
+
+    fleet = load_paint_directory(default_data_dir())
+    rows = [
+        f"{h},{int(r)},test"
+        for h, ids, mask in zip(fleet.ids, np.asarray(fleet.record_id), np.asarray(fleet.mask), strict=True)
+        for r in ids[mask]
+    ]
+    path = tmp_path / "records.csv"
+    path.write_text("heliostat_id,record_id,role\n" + "\n".join(rows) + "\n")
+    out = tmp_path / "r.h5"
+    rc, _, err = _run(["calibrate", "--records", str(path), "--out", str(out), "--cache-dir", "none"], capsys)
+    assert rc == 2 and "records.csv" in err and "no record has the role train" in err, err
+    assert not out.exists()

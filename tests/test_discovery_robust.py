@@ -19,6 +19,7 @@ from heliojax.discovery import (
     Variable,
     change_point_pvalues,
     discover,
+    plot_unexplained,
     unexplained_structure,
     write_figures,
 )
@@ -266,6 +267,12 @@ def test_effect_outside_the_library_is_unexplained_not_misnamed(shared_paint, tm
     assert rep["named_effects"] == []
     assert rep["unexplained"] and rep["unexplained"][0]["variable"] in ("spot_u", "spot_v")
     assert rep["unexplained"][0]["effect_size_mrad"] > 0.05
+    # both forms of the figure render (labels, legend, nothing cut off: the save checks them)
+    for form in ("fleet", "per_heliostat"):
+        as_form = dataclasses.replace(res, unexplained=(dict(res.unexplained[0], form=form),))
+        fig = plot_unexplained(as_form, 0)
+        fig.savefig(tmp_path / f"unexplained_{form}.png")
+        assert fig.axes[0].get_legend() is not None and fig.axes[0].get_xlabel()
 
 
 @pytest.fixture(scope="module")

@@ -13,6 +13,7 @@ import numpy as np
 
 from ._common import (
     add_cache_argument,
+    check_sun_possible,
     enable_compilation_cache,
     integer,
     is_iso_date_time,
@@ -63,7 +64,18 @@ def _utc(value: str) -> dt.datetime:
     t = t if t.tzinfo is not None else t.replace(tzinfo=dt.UTC)
     if not YEARS[0] <= t.astimezone(dt.UTC).year <= YEARS[1]:
         raise argparse.ArgumentTypeError(f"{value!r}: the year in UTC must lie in {YEARS[0]}-{YEARS[1]}")
-    return t
+    return t.astimezone(dt.UTC)  # written and computed in UTC from here on
+
+
+def utc_day(value: str) -> dt.datetime:
+    """``YYYY-MM-DD``: a whole UTC day (midnight UTC); a time or an offset is refused
+    (the day it names would not be the UTC day)."""
+    text = value.strip()
+    if len(text) != 10 or not is_iso_date_time(text):
+        raise argparse.ArgumentTypeError(
+            f"not a day: {shown_value(value)} (YYYY-MM-DD, a UTC day; give instants with --start/--end or --time)"
+        )
+    return _utc(text)
 
 
 def add_parser(subparsers) -> None:
@@ -82,17 +94,23 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("results", type=path_type, metavar="RESULTS_H5", help="results.h5 of `heliojax calibrate`")
     when = p.add_mutually_exclusive_group()
-    when.add_argument("--date", type=_utc, help="a whole day (UTC), with --step-minutes (default: today)")
+    when.add_argument(
+        "--date", type=utc_day, help="a whole day (UTC, YYYY-MM-DD), with --step-minutes (default: today)"
+    )
     when.add_argument("--start", type=_utc, help="first instant, ISO date-time (UTC), with --end")
     when.add_argument("--time", type=_utc, help="one instant, ISO date-time (UTC)")
     when.add_argument("--sun-azimuth", type=number(-360.0, 360.0), help="sun azimuth in degrees (0 = south, east +)")
     p.add_argument("--end", type=_utc, help="last instant with --start")
     p.add_argument("--sun-elevation", type=number(0.0, 90.0, above=True), help="sun elevation in degrees")
     p.add_argument("--step-minutes", type=number(0.0, 1440.0, above=True), default=30.0, help="instant spacing")
-    p.add_argument(
-        "--target", type=target_name, default="receiver", help="aim point: this target's centre in the tower file"
+    where = p.add_mutually_exclusive_group()
+    where.add_argument(
+        "--target",
+        type=target_name,
+        default=None,
+        help="aim point: this target's centre in the tower file (default: receiver)",
     )
-    p.add_argument(
+    where.add_argument(
         "--aim-csv",
         type=path_type,
         metavar="FILE",
@@ -153,6 +171,7 @@ def _instants(args, origin_lla):
     if args.sun_azimuth is not None or args.sun_elevation is not None:
         if args.sun_azimuth is None or args.sun_elevation is None:
             raise ConfigError("--sun-azimuth and --sun-elevation go together")
+        check_sun_possible(args.sun_azimuth, args.sun_elevation, float(origin_lla[0]))
         sun = sun_direction(jnp.deg2rad(jnp.array([args.sun_azimuth])), jnp.deg2rad(jnp.array([args.sun_elevation])))
         return None, sun
     times = [args.time] if args.time is not None else time_window(args)
@@ -165,34 +184,40 @@ def _aim_points_csv(path: Path, ids: tuple[str, ...], origin_lla) -> np.ndarray:
     """``(H, 3)`` ENU aim points (m) of the heliostats ``ids`` from a CSV (see ``--aim-csv``)."""
     from .._errors import DataError
     from .._geometry import MAX_FIELD_EXTENT_M, wgs84_to_enu
+    from .._io import is_decimal, read_csv_rows
 
     enu_cols, lla_cols = ("east_m", "north_m", "up_m"), ("lat_deg", "lon_deg", "alt_m")
-    try:
-        with open(path, newline="", encoding="utf-8") as f:
-            rows = list(csv.DictReader(f))
-    except OSError as e:
-        raise DataError(path, None, f"cannot read: {e.strerror or e}") from None
-    except (UnicodeDecodeError, csv.Error) as e:
-        raise DataError(path, None, f"not a CSV file: {e}") from None
-    header = set(rows[0]) if rows else set()
-    cols = enu_cols if set(enu_cols) <= header else lla_cols if set(lla_cols) <= header else None
-    if "heliostat_id" not in header or cols is None:
+    header, rows = read_csv_rows(path, "an aim-point CSV")
+    has_enu, has_lla = set(enu_cols) <= set(header), set(lla_cols) <= set(header)
+    if "heliostat_id" not in header or not (has_enu or has_lla):
         raise DataError(path, None, f"needs heliostat_id and {', '.join(enu_cols)} or {', '.join(lla_cols)}")
+    if has_enu and has_lla:
+        raise DataError(path, None, "has both ENU and WGS84 columns: give the aim points in one of them")
+    if not rows:
+        raise DataError(path, None, "no aim points (a header only)")
+    cols = enu_cols if has_enu else lla_cols
     points: dict[str, np.ndarray] = {}
     lines: dict[str, int] = {}
-    for line, row in enumerate(rows, start=2):
-        try:
-            xyz = np.array([float(row[c]) for c in cols])
-        except (TypeError, ValueError):
-            raise DataError(path, f"row {line}", "non-numeric coordinate") from None
+    for line, row in rows:
+        hid = str(row["heliostat_id"] or "").strip()
+        if not hid or not hid.isprintable():
+            raise DataError(path, f"row {line}.heliostat_id", f"{hid!r} is no heliostat id")
+        for c in cols:
+            if not is_decimal(str(row[c] or "")):
+                raise DataError(path, f"row {line}.{c}", f"not a decimal number: {row[c]!r}")
+        xyz = np.array([float(str(row[c])) for c in cols])
         if not np.all(np.isfinite(xyz)):
             raise DataError(path, f"row {line}", "non-finite coordinate")
         if cols == lla_cols and not (abs(xyz[0]) <= 90.0 and abs(xyz[1]) <= 180.0):
             raise DataError(path, f"row {line}", f"latitude {xyz[0]:g} / longitude {xyz[1]:g} out of range")
-        hid = str(row["heliostat_id"]).strip()
         if hid in points:
             raise DataError(path, f"row {line}", f"a second aim point for {hid} (the first in row {lines[hid]})")
         points[hid], lines[hid] = xyz, line
+    unknown = [h for h in points if h not in ids]
+    if unknown:
+        raise DataError(
+            path, f"row {lines[unknown[0]]}.heliostat_id", f"not in the results: {', '.join(map(repr, unknown[:5]))}"
+        )
     missing = [h for h in ids if h not in points]
     if missing:
         raise DataError(path, "heliostat_id", f"no aim point for {', '.join(missing)}")
@@ -243,6 +268,7 @@ def run(args) -> int:
     results = load_results(args.results)
     origin = np.asarray(results.attrs["origin_lla"], float)
     tower = read_tower(args.tower or default_data_dir() / "WRI1030197-tower-measurements.json")
+    args.target = args.target or "receiver"
     target = target_from_tower(tower, args.target)
     if args.aim_csv is not None:
         centre = jnp.asarray(_aim_points_csv(args.aim_csv, results.ids, origin))

@@ -179,9 +179,11 @@ def run(args) -> int:
             raise ConfigError("--records and --test-data both choose the held-out records; give one")
         roles = read_record_roles(args.records)
         try:
-            roles_to_masks(fleet, roles)
+            train, _ = roles_to_masks(fleet, roles)
         except ConfigError as e:
             raise DataError(args.records, None, str(e)) from None
+        if not train.any():
+            raise DataError(args.records, "role", "no record has the role train: there is nothing to calibrate")
     if roles is None and test_fleet is None:
         _check_split_sizes(args, fleet)
     kind = args.model.removesuffix("+nn")

@@ -100,30 +100,16 @@ def read_record_roles(path: Path) -> dict[str, dict[int, str]]:
         DataError: naming the file and row of a missing column, a non-integer record
             id, an unknown role or a record listed twice.
     """
-    import csv
-
     from .._errors import DataError
-    from .._io import is_decimal
+    from .._io import is_decimal, read_csv_rows
 
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as f:  # -sig: a spreadsheet's byte-order mark
-            reader = csv.DictReader(f)
-            if reader.fieldnames is not None:
-                reader.fieldnames = [name.strip() for name in reader.fieldnames]
-            rows = list(reader)
-            header = set(rows[0]) if rows else set()
-    except OSError as e:
-        raise DataError(path, None, f"cannot read: {e.strerror or e}") from None
-    except (UnicodeDecodeError, csv.Error) as e:
-        raise DataError(path, None, f"not a CSV file: {e}") from None
+    header, rows = read_csv_rows(path, "a records CSV")
+    if not set(RECORDS_HEADER) <= set(header):
+        raise DataError(path, None, f"needs the columns {', '.join(RECORDS_HEADER)} (and optionally role)")
     if not rows:
         raise DataError(path, None, "no records listed")
-    if not set(RECORDS_HEADER) <= header:
-        raise DataError(path, None, f"needs the columns {', '.join(RECORDS_HEADER)} (and optionally role)")
     roles: dict[str, dict[int, str]] = {}
-    for line, row in enumerate(rows, start=2):
-        if None in row:
-            raise DataError(path, f"row {line}", f"more cells than the header has columns: {row[None]!r}")
+    for line, row in rows:
         hid = str(row["heliostat_id"] or "").strip()
         try:
             if not is_decimal(str(row["record_id"])):
@@ -610,3 +596,26 @@ def number(minimum: float | None = None, maximum: float | None = None, *, above:
 
     parse.__name__ = "number"
     return parse
+
+
+MAX_DECLINATION_DEG = 23.45
+"""The sun's declination stays within +-23.45 degrees."""
+
+
+def check_sun_possible(azimuth_deg: float | None, elevation_deg: float | None, latitude_deg: float) -> None:
+    """ConfigError unless the sun can stand at ``azimuth_deg`` (0 = south, positive east) and
+    ``elevation_deg`` at ``latitude_deg``: its declination must lie within the tropics."""
+    import math
+
+    from .._errors import ConfigError
+
+    if azimuth_deg is None or elevation_deg is None:
+        return
+    az, el, lat = (math.radians(x) for x in (azimuth_deg, elevation_deg, latitude_deg))
+    north = -math.cos(el) * math.cos(az)
+    declination = math.degrees(math.asin(max(-1.0, min(1.0, math.sin(lat) * math.sin(el) + math.cos(lat) * north))))
+    if abs(declination) > MAX_DECLINATION_DEG:
+        raise ConfigError(
+            f"--sun-azimuth {azimuth_deg:g} --sun-elevation {elevation_deg:g}: the sun never stands there at "
+            f"latitude {latitude_deg:.2f} (declination {declination:.1f}, beyond +-{MAX_DECLINATION_DEG})"
+        )

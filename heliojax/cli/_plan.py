@@ -8,7 +8,7 @@ import datetime as dt
 import logging
 from pathlib import Path
 
-from ._aim import _utc, time_window
+from ._aim import _utc, time_window, utc_day
 from ._common import (
     RECORDS_HEADER,
     add_cache_argument,
@@ -63,7 +63,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("results", type=path_type, metavar="RESULTS_H5", help="results.h5 of `heliojax calibrate`")
     p.add_argument("--budget", type=integer(1, 1000), default=4, help="measurements per heliostat")
     when = p.add_mutually_exclusive_group()
-    when.add_argument("--date", type=_utc, help="candidate instants: a whole day (UTC), with --step-minutes")
+    when.add_argument(
+        "--date", type=utc_day, help="candidate instants: a whole day (UTC, YYYY-MM-DD), with --step-minutes"
+    )
     when.add_argument("--start", type=_utc, help="candidate instants: first one, ISO date-time (UTC), with --end")
     p.add_argument("--end", type=_utc, help="last candidate instant with --start")
     p.add_argument("--step-minutes", type=number(0.0, 1440.0, above=True), default=30.0, help="instant spacing")
@@ -107,9 +109,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--envelope-day-step", type=integer(1, 365), default=5, help="every N-th day of the envelope year")
     p.add_argument(
         "--min-sun-elevation",
-        type=number(-90.0, 90.0),
+        type=number(0.0, 90.0),
         default=10.0,
-        help="lowest sun (degrees) of the envelope and of candidate instants",
+        help="lowest sun (degrees, 0-90: a measurement needs the sun up) of the envelope and of candidate instants",
     )
     p.add_argument("--max-instants", type=integer(1, 20_000), default=2_000, help="refuse longer candidate windows")
     p.add_argument(
@@ -249,6 +251,11 @@ def run(args) -> int:
         sun_e, w_e = operating_envelope(
             origin, year=args.envelope_year, day_step=args.envelope_day_step, min_elevation_deg=args.min_sun_elevation
         )
+        if sun_e.shape[0] == 0:
+            raise ConfigError(
+                f"--min-sun-elevation {args.min_sun_elevation:g}: the sun never rises that high in "
+                f"{args.envelope_year} at latitude {float(origin[0]):.2f} (the operating envelope is empty)"
+            )
         plan, _ = plan_calibration(
             results,
             candidates,

@@ -10,7 +10,7 @@ import sys
 import time
 from pathlib import Path
 
-from ._common import heliostat_id, integer, number, path_type, target_name
+from ._common import check_sun_possible, heliostat_id, integer, number, path_type, target_name
 
 log = logging.getLogger(__name__)
 
@@ -25,8 +25,6 @@ EXAMPLES = """examples:
 
 SOLAR_CONSTANT_PERIHELION = 1413.0
 """W/m^2 above the atmosphere at the sun's closest: no DNI on the ground exceeds it."""
-MAX_DECLINATION_DEG = 23.45
-"""The sun's declination stays within +-23.45 degrees."""
 
 OUTPUT_FILES = ()
 OUTPUT_DIRS = ("out",)
@@ -146,25 +144,6 @@ def _tower_path(args) -> Path:
     raise FileNotFoundError(f"no *tower-measurements.json in {args.paint} or its parent; pass --tower")
 
 
-def _check_sun_possible(azimuth_deg: float | None, elevation_deg: float | None, latitude_deg: float) -> None:
-    """ConfigError unless the sun can stand at ``azimuth_deg`` (0 = south, positive east) and
-    ``elevation_deg`` at ``latitude_deg``: its declination must lie within the tropics."""
-    import math
-
-    from .._errors import ConfigError
-
-    if azimuth_deg is None or elevation_deg is None:
-        return
-    az, el, lat = (math.radians(x) for x in (azimuth_deg, elevation_deg, latitude_deg))
-    north = -math.cos(el) * math.cos(az)
-    declination = math.degrees(math.asin(max(-1.0, min(1.0, math.sin(lat) * math.sin(el) + math.cos(lat) * north))))
-    if abs(declination) > MAX_DECLINATION_DEG:
-        raise ConfigError(
-            f"--sun-azimuth {azimuth_deg:g} --sun-elevation {elevation_deg:g}: the sun never stands there at "
-            f"latitude {latitude_deg:.2f} (declination {declination:.1f}, beyond +-{MAX_DECLINATION_DEG})"
-        )
-
-
 MAX_RAYS_PER_FACET = 2**24
 """Largest --resolution squared x --rays-per-point: rays per facet traced at once (held in
 memory; the defaults trace 2**16)."""
@@ -204,7 +183,7 @@ def run(args: argparse.Namespace) -> int:
         tower_path = _tower_path(args)
         tower = read_tower(tower_path)
         if args.record is None:  # a record's sun is measured
-            _check_sun_possible(args.sun_azimuth, args.sun_elevation, tower.origin_lla[0])
+            check_sun_possible(args.sun_azimuth, args.sun_elevation, tower.origin_lla[0])
         hdir = args.paint / args.heliostat
         props_path = hdir / "Properties" / f"{args.heliostat}-heliostat-properties.json"
         props = read_heliostat_properties(props_path)
@@ -277,10 +256,17 @@ def run(args: argparse.Namespace) -> int:
         log.info(f"traced in {time.perf_counter() - t0:.1f} s")
         c = np.asarray(optics.centroid(jnp.asarray(image), grid))
         power = float(image.sum() * float(grid.pixel_area))
+        if not power > 0.0:
+            # every ray missed the image, or the irradiance underflowed: there is no spot
+            log.warning(
+                f"no flux on the target image ({power:g} W): the centroid is undefined (null in the summary); "
+                "check the aim, --dni and --reflectivity"
+            )
+            c = np.full(2, np.nan)
         summary = {
             "heliostat": args.heliostat,
             "target": target_name,
-            "centroid_uv_m": c.tolist(),
+            "centroid_uv_m": None if not np.all(np.isfinite(c)) else c.tolist(),
             "power_w": power,
             "rays": optics.ray_count(surface, args.rays_per_point, args.steps),
         }
