@@ -2267,6 +2267,7 @@ def test_aim_times_with_an_offset_are_written_in_utc(fitted_h5, tmp_path, capsys
         (["plan", "{h5}", "--date", "2024-06-21", "--min-sun-elevation", "70"], "the sun never rises that high"),
         (["plan", "{h5}", "--date", "2024-06-21", "--min-sun-elevation", "-90"], "--min-sun-elevation"),
         (["plan", "{h5}", "--date", "2024-06-21T10:00"], "not a day"),
+        (["plan", "{h5}", "--paint-dir", "{data}", "--before", "1990-01-01"], "no record of"),
     ],
     ids=[
         "aim day with a time",
@@ -2275,13 +2276,15 @@ def test_aim_times_with_an_offset_are_written_in_utc(fitted_h5, tmp_path, capsys
         "plan empty envelope",
         "plan sun below the horizon",
         "plan day with a time",
+        "plan before every record",
     ],
 )
 def test_aim_and_plan_refuse_instants_that_do_not_exist(argv, said, fitted_h5, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "p.csv").write_text(_aim_rows())
     out = ["--out", str(tmp_path / "o.csv")] + (["--envelope-day-step", "60"] if argv[0] == "plan" else [])
-    rc, _, err = _run([a.replace("{h5}", str(fitted_h5)) for a in argv] + out, capsys)
+    data = str(hj.default_data_dir())
+    rc, _, err = _run([a.replace("{h5}", str(fitted_h5)).replace("{data}", data) for a in argv] + out, capsys)
     assert rc == 2 and said in err and "Traceback" not in err, err
     assert not (tmp_path / "o.csv").exists()
 

@@ -204,6 +204,8 @@ def run(args) -> int:
         usable = np.asarray(fleet.mask) & np.isfinite(times)
         if args.before is not None:
             usable &= times < args.before.timestamp()
+            if not usable.any():
+                raise ConfigError(f"--before {args.before.isoformat()}: no record of {args.paint_dir} is before it")
         # Records the fit put before a change point describe a past state: not candidates.
         if "superseded" in results.records and "record_id" in results.records:
             old = {
