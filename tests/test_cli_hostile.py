@@ -196,6 +196,11 @@ CASES = [
     ("reconstruct heliostat without --paint", lambda t: ["reconstruct", "--heliostat", "AA39"], "--paint"),
     ("reconstruct no flux records", lambda t: ["reconstruct", "--paint", str(t), "--heliostat", "AA39"], "AA39"),
     ("zero pixels", lambda t: ["trace", str(t), "--heliostat", "AA39", "--pixels", "0"], "--pixels"),
+    (
+        "two pixels (the splat's edge loss)",
+        lambda t: ["trace", str(t), "--heliostat", "AA39", "--pixels", "2"],
+        "--pixels",
+    ),
     ("zero rays", lambda t: ["trace", str(t), "--heliostat", "AA39", "--rays-per-point", "0"], "--rays-per-point"),
     ("sun below the horizon", lambda t: ["trace", str(t), "--heliostat", "AA39", "--sun-elevation", "-30"], "--sun"),
     ("trace csr of 1", lambda t: ["trace", str(t), "--heliostat", "AA39", "--csr", "1"], "--csr"),

@@ -119,7 +119,13 @@ def add_parser(subparsers) -> None:
         "--steps", type=integer(1, 10_000), default=4, help="lax.scan chunks (rays per point = rays-per-point x steps)"
     )
     p.add_argument("--resolution", type=integer(2, 4096), default=32, help="surface points per facet edge")
-    p.add_argument("--pixels", type=integer(1, 4096), default=256, help="image pixels per side (>= 1)")
+    p.add_argument(
+        "--pixels",
+        type=integer(8, 4096),
+        default=256,
+        help="image pixels per side (8-4096; the bilinear splat loses the flux within half a pixel of the image's "
+        "edge, so coarse images undercount the power of a spot that reaches the edge)",
+    )
     p.add_argument(
         "--dni",
         type=number(0.0, SOLAR_CONSTANT_PERIHELION, above=True),
