@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import glob
 import math
@@ -16,7 +15,7 @@ import numpy as np
 
 from .._errors import ConfigError, DataError
 from .._geometry import MAX_FIELD_EXTENT_M, wgs84_to_enu
-from .._io import is_decimal
+from .._io import is_decimal, read_csv_rows
 from ..paint import TOWER_FILE_SUFFIX, read_heliostat_properties, read_tower
 from ..paint._common import _load_json
 from ._field import PARAMETERS, FieldData
@@ -54,36 +53,19 @@ def read_field_csv(path: str | os.PathLike) -> FieldData:
         DataError: missing columns, non-numeric or non-finite cells, duplicate IDs,
             values outside the parameter's support.
     """
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as f:
-            rows = list(csv.DictReader(f))
-            header = rows and list(rows[0].keys())
-    except OSError as e:
-        raise DataError(path, None, f"cannot read: {e}") from e
-    except UnicodeDecodeError as e:
-        raise DataError(path, None, f"not UTF-8 text (byte {e.start}): not a field CSV") from None
-    except csv.Error as e:
-        raise DataError(path, None, f"malformed CSV: {e}") from None
+    header, rows = read_csv_rows(path, "a field CSV")
     if not rows:
         raise DataError(path, None, "no rows")
     for col in ("heliostat_id", "east_m", "north_m"):
         if col not in header:
-            hint = ""
-            if len(header) == 1 and ";" in str(header[0]):
-                hint = " (the header is separated by ';': a field CSV is separated by ',')"
-            raise DataError(path, col, f"missing column{hint}")
-    with open(path, newline="", encoding="utf-8-sig") as f:
-        names = next(csv.reader(f))
-    twice = sorted({c for c in names if names.count(c) > 1})
-    if twice:
-        raise DataError(path, twice[0], "column listed twice (only its last cells would be read)")
+            raise DataError(path, col, "missing column")
     unknown = [c for c in header if c not in ("heliostat_id", "east_m", "north_m", "up_m", *PARAMETERS)]
     if unknown:
         raise DataError(path, str(unknown[0]), f"unknown column; known parameters: {sorted(PARAMETERS)}")
     params = [c for c in header if c in PARAMETERS]
     ids, pos = [], []
     vals = {p: [] for p in params}
-    for i, row in enumerate(rows, start=2):
+    for i, row in rows:
         hid = (row["heliostat_id"] or "").strip()
         if not hid:
             raise DataError(path, f"line {i}: heliostat_id", "empty")
