@@ -816,13 +816,20 @@ def _plot_unexplained_per_heliostat(fig, axes, entry, var, x, ok, ra, ids, label
             curves = [_binned(x[h][ok[h]], ra[h, :, j][ok[h]])[1] for j in range(2)]
             size.append((float(np.sqrt(np.mean(np.concatenate(curves) ** 2))), h))
     picked = [h for _, h in sorted(size, reverse=True)[:shown]]
+    categorical = var.kind == "categorical"
     for j in range(2):
         ax = axes[0, j]
         for n, h in enumerate(picked):
             colour = f"C{n}"
-            ax.scatter(x[h][ok[h]], ra[h, :, j][ok[h]], s=8, color=colour, alpha=0.45)
+            # categories: each heliostat beside the others, means as markers (no line between categories)
+            shift = 0.1 * (n - (len(picked) - 1) / 2) if categorical else 0.0
+            ax.scatter(x[h][ok[h]] + shift, ra[h, :, j][ok[h]], s=8, color=colour, alpha=0.45)
             xc, yc = _binned(x[h][ok[h]], ra[h, :, j][ok[h]])
-            ax.plot(xc, yc, "-o", color=colour, ms=3, lw=1.5, label=f"{ids[h]}: records and binned mean")
+            style = dict(marker="D", ms=6, ls="none") if categorical else dict(marker="o", ms=3, lw=1.5)
+            mean = "mean per category" if categorical else "binned mean"
+            ax.plot(xc + shift, yc, color=colour, label=f"{ids[h]}: records and {mean}", **style)
+        if categorical:
+            ax.set_xticks(np.unique(x[ok]))
         ax.axhline(0.0, color="k", lw=0.5)
         ax.set_xlabel(var.label)
         ax.set_ylabel(labels[j])
