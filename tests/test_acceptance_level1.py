@@ -71,3 +71,21 @@ def test_to_json_and_nan_handling():
     assert d["pass"] is True and d["weibull_shape"] is None and d["contract_std"] is None
     with pytest.raises(ValueError):
         level1_test(np.array([1.0]), 1.0)
+
+
+def test_a_large_radial_sample_gets_the_percentile_interval_in_bounded_memory():
+    """BCa's jackknife needs memory growing as n^2 (100,000 heliostats asked for 75 GiB):
+    beyond BCA_MAX_VALUES the percentile interval is used and named; it covers the true
+    mean of the Rayleigh sample like the normal-theory interval does."""
+    from heliojax.acceptance._level1 import BCA_MAX_VALUES
+
+    rng = np.random.default_rng(7)
+    x = rng.rayleigh(1.0, BCA_MAX_VALUES + 1)
+    r = level1_test(x, 1.3, 0.7, distribution="radial", n_resamples=200)
+    assert r.method == "bootstrap-percentile"
+    (lo, hi), (slo, shi) = confidence_intervals(x, 0.95, "bootstrap", n_resamples=200)
+    true_mean, true_std = math.sqrt(math.pi / 2), math.sqrt((4 - math.pi) / 2)
+    assert lo < true_mean < hi and slo < true_std < shi
+    (nlo, nhi), _ = confidence_intervals(x, 0.95, "normal")
+    assert abs((hi - lo) - (nhi - nlo)) < 0.2 * (nhi - nlo)
+    assert level1_test(x[:50], 1.3, 0.7, distribution="radial", n_resamples=200).method == "bootstrap-bca"

@@ -547,6 +547,22 @@ CASES = [
         "line 2: heliostat_id",
     ),
     (
+        "accept contract rel_error whose square underflows",
+        lambda t: _accept(t, _field(t), CONTRACT.replace("rel_error = 0.04", "rel_error = 1e-300")),
+        "too far apart",
+    ),
+    (
+        "accept contract std whose ratio overflows",
+        lambda t: _accept(t, _field(t), CONTRACT.replace("std = 0.2", "std = 1e-300")),
+        "too far apart",
+    ),
+    (
+        "accept contract mean of 1e-300",
+        lambda t: _accept(t, _field(t), CONTRACT.replace("mean = 2.0", "mean = 1e-300")),
+        "too far apart",
+    ),
+    ("discover an effect named twice", lambda t: ["discover", "--effects", "thermal,thermal"], "named twice"),
+    (
         "accept field CSV number with an underscore",
         lambda t: _accept(t, _file(t, "field.csv", "heliostat_id,east_m,north_m,tracking_mrad\nA1,1_0,50,1\n")),
         "line 2: east_m",

@@ -318,6 +318,16 @@ def load_contract(path: str | os.PathLike) -> Contract:
             if key == "rel_error" and x >= 1:
                 raise ConfigError(f"{path}: [{sec}] rel_error must be below 1 (a fraction of the mean), got {x!r}")
             vals[key] = float(x)
+        # the sample size uses (std / (rel_error x mean))^2, the gamma model (mean / std)^2
+        try:
+            ratios = ((vals["std"] / (vals["rel_error"] * vals["mean"])) ** 2, (vals["mean"] / vals["std"]) ** 2)
+        except (OverflowError, ZeroDivisionError):
+            ratios = (math.inf, math.inf)
+        if not all(math.isfinite(r) and r > 0 for r in ratios):
+            raise ConfigError(
+                f"{path}: [{sec}] mean {vals['mean']!r}, std {vals['std']!r} and rel_error {vals['rel_error']!r} are "
+                "too far apart: (std / (rel_error x mean))^2 and (mean / std)^2 must be finite numbers above 0"
+            )
         params[name] = ParameterSpec(**vals)
     if "tracking_mrad" not in params:
         raise ConfigError(f"{path}: [parameters.tracking_mrad] is required (level 2 needs it)")

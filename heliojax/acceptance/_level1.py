@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from typing import Literal
 
 import numpy as np
@@ -50,11 +51,12 @@ class Level1Result:
         contract_mean, contract_std: contract values (``contract_std`` may be None).
         pass_mean, pass_std, sufficient_sample: the three parts of the verdict.
         passed: all three.
-        method: ``"bootstrap-bca"`` or ``"normal"``.
+        method: ``"bootstrap-bca"``, ``"bootstrap-percentile"`` (more than
+            :data:`BCA_MAX_VALUES` values) or ``"normal"``.
         p95: 95th percentile of the sample.
         weibull_shape, weibull_scale: two-parameter Weibull fit (radial
             parameters only; NaN otherwise). Rayleigh is shape 2.
-        normality_p: Shapiro-Wilk p-value (NaN for n < 3).
+        normality_p: Shapiro-Wilk p-value (D'Agostino-Pearson beyond 5000 values; NaN for n < 3).
     """
 
     n: int
@@ -82,6 +84,11 @@ class Level1Result:
         d["mean_ci"] = list(self.mean_ci)
         d["std_ci"] = list(self.std_ci)
         return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()}
+
+
+BCA_MAX_VALUES = 5000
+"""Most values for a BCa bootstrap interval (its jackknife needs memory growing as n^2);
+larger samples get the percentile interval."""
 
 
 def confidence_intervals(
@@ -121,19 +128,25 @@ def confidence_intervals(
     for stat in (np.mean, lambda a, axis: np.std(a, axis=axis, ddof=1)):
 
         def interval(method: str, stat=stat) -> tuple[float, float]:
-            res = stats.bootstrap(
-                (x,),
-                stat,
-                confidence_level=confidence,
-                n_resamples=n_resamples,
-                method=method,  # pyright: ignore[reportArgumentType]
-                vectorized=True,
-                axis=-1,
-                random_state=rng,  # pyright: ignore[reportCallIssue]
-            )
+            with warnings.catch_warnings():
+                # a degenerate BCa (few or tied values) warns and gives NaN: handled below
+                warnings.simplefilter("ignore", RuntimeWarning)
+                warnings.simplefilter("ignore", getattr(stats, "DegenerateDataWarning", RuntimeWarning))
+                res = stats.bootstrap(
+                    (x,),
+                    stat,
+                    confidence_level=confidence,
+                    n_resamples=n_resamples,
+                    method=method,  # pyright: ignore[reportArgumentType]
+                    vectorized=True,
+                    axis=-1,
+                    random_state=rng,  # pyright: ignore[reportCallIssue]
+                )
             return float(res.confidence_interval.low), float(res.confidence_interval.high)
 
-        lo, hi = interval("BCa")
+        # BCa's jackknife holds n x (n - 1) values: beyond BCA_MAX_VALUES the percentile
+        # interval (BCa's corrections shrink as 1 / sqrt(n))
+        lo, hi = interval("BCa") if n <= BCA_MAX_VALUES else (math.nan, math.nan)
         if not (math.isfinite(lo) and math.isfinite(hi)):  # degenerate BCa: percentile
             lo, hi = interval("percentile")
         out.append((lo, hi))
@@ -190,7 +203,10 @@ def level1_test(
     shape = scale = float("nan")
     if distribution == "radial" and np.all(x > 0) and x.size >= 3 and np.ptp(x) > 0:
         shape, _, scale = (float(v) for v in stats.weibull_min.fit(x, floc=0.0))  # pyright: ignore[reportArgumentType]
-    normality_p = float(stats.shapiro(x).pvalue) if x.size >= 3 and np.ptp(x) > 0 else float("nan")
+    # Shapiro-Wilk's p-value is accurate up to 5000 values; D'Agostino-Pearson beyond
+    normality_p = float("nan")
+    if x.size >= 3 and np.ptp(x) > 0:
+        normality_p = float((stats.shapiro(x) if x.size <= 5000 else stats.normaltest(x)).pvalue)
     return Level1Result(
         n=int(x.size),
         n_required=int(n_required),
@@ -204,7 +220,11 @@ def level1_test(
         pass_std=bool(pass_std),
         sufficient_sample=bool(sufficient),
         passed=bool(pass_mean and pass_std and sufficient),
-        method="bootstrap-bca" if method == "bootstrap" else "normal",
+        method="normal"
+        if method != "bootstrap"
+        else "bootstrap-bca"
+        if x.size <= BCA_MAX_VALUES
+        else "bootstrap-percentile",
         p95=float(np.percentile(x, 95)),
         weibull_shape=shape,
         weibull_scale=scale,

@@ -108,7 +108,7 @@ def sample_size_absolute(
     if not (error > 0.0 and math.isfinite(error)):
         raise ValueError(f"error must be finite and > 0, got {error}")
     zz = z_value(confidence) if z is None else float(z)
-    n0 = zz**2 * std**2 / error**2
+    n0 = (zz * std / error) ** 2  # one ratio: std**2 and error**2 alone may underflow
     n = _ceil(_finite_population(n0, population, formula))
     n = max(n, 1)
     if population is not None:

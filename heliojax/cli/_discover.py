@@ -119,6 +119,9 @@ def run(args) -> int:
         unknown = sorted(set(effects) - set(EFFECT_NAMES))
         if unknown:
             raise ConfigError(f"--effects: unknown effects {unknown}; expected names from {', '.join(EFFECT_NAMES)}")
+        twice = sorted({e for e in effects if effects.count(e) > 1})
+        if twice:
+            raise ConfigError(f"--effects: {', '.join(twice)} named twice")
     try:
         config = DiscoveryConfig(
             base=args.base,
