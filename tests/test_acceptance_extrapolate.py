@@ -83,3 +83,24 @@ def test_cluster_labels_propagate_to_nearest():
     ex = extrapolate_field(xy, meas, vals, lab)
     assert ex.labels.tolist() == [0] * 10 + [1] * 10
     assert np.all(ex.values[10:] > 2.0) and np.all(ex.values[:10] < 2.0)
+
+
+def test_cv_bandwidth_is_the_direct_leave_one_out_search_and_bounded_beyond_its_cap():
+    """The row-chunked search equals the direct (grid, n, n) leave-one-out likelihood;
+    beyond MAX_CV_VALUES it uses a fixed subsample (100,000 values used to ask 75 GiB)."""
+    from heliojax.acceptance._extrapolate import MAX_CV_VALUES, cv_bandwidth_factor
+
+    rng = np.random.default_rng(3)
+    y = rng.gamma(3.0, 1.0, 300)
+    n, sd = y.size, y.std(ddof=1)
+    factors = n ** (-0.2) * np.logspace(np.log10(0.05), np.log10(2.0), 60)
+    d2 = (y[:, None] - y[None, :]) ** 2
+    np.fill_diagonal(d2, np.inf)
+    h = factors * sd
+    dens = np.exp(-0.5 * d2[None] / h[:, None, None] ** 2).sum(axis=2) / ((n - 1) * h[:, None] * np.sqrt(2 * np.pi))
+    with np.errstate(divide="ignore"):  # the smallest factors underflow (never the best)
+        loo = np.log(dens).sum(axis=1)
+    assert cv_bandwidth_factor(y) == factors[int(np.argmax(loo))]
+    big = rng.gamma(3.0, 1.0, 4 * MAX_CV_VALUES)
+    sub = np.random.default_rng(0).choice(big, MAX_CV_VALUES, replace=False)
+    assert cv_bandwidth_factor(big) == cv_bandwidth_factor(sub) * 4 ** (-0.2)
