@@ -605,8 +605,6 @@ MAX_DECLINATION_DEG = 23.45
 def check_sun_possible(azimuth_deg: float | None, elevation_deg: float | None, latitude_deg: float) -> None:
     """ConfigError unless the sun can stand at ``azimuth_deg`` (0 = south, positive east) and
     ``elevation_deg`` at ``latitude_deg``: its declination must lie within the tropics."""
-    import math
-
     from .._errors import ConfigError
 
     if azimuth_deg is None or elevation_deg is None:

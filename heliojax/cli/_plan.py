@@ -241,9 +241,7 @@ def run(args) -> int:
             sun,
             jnp.asarray(centres),
             unix_time=unix,
-            target_index=np.array(
-                [results.target_names.index(t) if t in results.target_names else -1 for t in targets]
-            ),
+            target_index=np.array([known.index(t) if t in known else -1 for t in targets]),
             min_elevation_deg=args.min_sun_elevation,
         )
         target_of = np.broadcast_to(np.tile(np.asarray(targets), len(instants)), (h, len(instants) * len(targets)))

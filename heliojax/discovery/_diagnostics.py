@@ -199,6 +199,18 @@ MIN_PER_CELL = 2
 FLEET, PER_HELIOSTAT = "fleet", "per_heliostat"
 
 
+def per_heliostat_cells(idx: np.ndarray) -> np.ndarray:
+    """``(H, M)`` the (heliostat, bin) cell of each record for the per-heliostat form
+    (-1 outside a bin or in a cell with fewer than :data:`MIN_PER_CELL` records)."""
+    h = idx.shape[0]
+    n_bins = int(idx.max()) + 1 if (idx >= 0).any() else 0
+    cell = np.where(idx >= 0, np.arange(h)[:, None] * max(n_bins, 1) + idx, -1)
+    if n_bins > 0:
+        sizes = np.bincount(cell[cell >= 0], minlength=h * n_bins)
+        cell = np.where((cell >= 0) & (sizes[np.clip(cell, 0, None)] >= MIN_PER_CELL), cell, -1)
+    return cell
+
+
 def anova_per_heliostat(z: np.ndarray, idx: np.ndarray) -> tuple[float, np.ndarray]:
     """p-value of binned structure in ``z`` ``(H, M, 2)`` whose shape may differ
     between heliostats (cells = (heliostat, bin) of ``idx`` with at least
@@ -206,11 +218,7 @@ def anova_per_heliostat(z: np.ndarray, idx: np.ndarray) -> tuple[float, np.ndarr
     docstring), and each record's cell mean minus its heliostat's mean ``(H, M, 2)``
     (0 outside the cells)."""
     h = idx.shape[0]
-    n_bins = int(idx.max()) + 1 if (idx >= 0).any() else 0
-    cell = np.where(idx >= 0, np.arange(h)[:, None] * max(n_bins, 1) + idx, -1)
-    if n_bins > 0:
-        sizes = np.bincount(cell[cell >= 0], minlength=h * n_bins)
-        cell = np.where((cell >= 0) & (sizes[np.clip(cell, 0, None)] >= MIN_PER_CELL), cell, -1)
+    cell = per_heliostat_cells(idx)
     ok = cell >= 0
     deviation = np.zeros(z.shape)
     if not ok.any():
@@ -303,7 +311,7 @@ def unexplained_structure(
         else:
             _, shift_z = anova_per_heliostat(z, idx)
             _, shift_r = anova_per_heliostat(raw, idx)
-            inside = np.any(shift_r != 0.0, axis=-1)
+            inside = per_heliostat_cells(idx) >= 0
             effect = float(np.sqrt(np.sum(shift_r**2) / max(int(inside.sum()), 1)))
         heliostats = []
         for h in range(r.shape[0]):
