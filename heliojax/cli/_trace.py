@@ -310,11 +310,14 @@ def run(args: argparse.Namespace) -> int:
                 power_w=power,
             )
         fig, ax = plt.subplots(figsize=(5, 4.4))
-        im = ax.imshow(image, extent=extent, origin="upper", cmap="inferno")  # pyright: ignore[reportArgumentType]
+        # flux is never negative: the scale starts at 0 (an image without flux is one colour, said in the title)
+        top = float(image.max()) if power > 0.0 else 1.0
+        im = ax.imshow(image, extent=extent, origin="upper", cmap="inferno", vmin=0.0, vmax=top)  # pyright: ignore[reportArgumentType]
         fig.colorbar(im, ax=ax, label="flux density [W/m$^2$]")
         ax.set_xlabel("u, along the target [m]")
         ax.set_ylabel("v, up the target [m]")
-        ax.set_title(f"{args.heliostat} {tag} on {target_name}", fontsize=9)
+        none = "" if power > 0.0 else "\nno flux reached the image"
+        ax.set_title(f"{args.heliostat} {tag} on {target_name}{none}", fontsize=9)
         with atomic_path(_output(args, "flux.png")) as tmp:
             fig.savefig(tmp, dpi=100, format="png", bbox_inches="tight")
         plt.close(fig)
