@@ -55,7 +55,9 @@ def is_decimal(text: str) -> bool:
 def read_csv_rows(path: str | os.PathLike, what: str) -> tuple[list[str], list[tuple[int, dict[str, str | None]]]]:
     """Header and ``(row number, {column: cell})`` rows of a comma-separated file
     (UTF-8; a spreadsheet's byte-order mark is allowed; blank lines are skipped; a
-    row with fewer cells than the header gives ``None`` for the missing ones).
+    row with fewer cells than the header gives ``None`` for the missing ones; every
+    cell and column name in Unicode normal form C, so that a letter written decomposed
+    is the same text as the letter).
 
     Args:
         path: the file.
@@ -68,6 +70,7 @@ def read_csv_rows(path: str | os.PathLike, what: str) -> tuple[list[str], list[t
             cells than the header has columns.
     """
     import csv
+    import unicodedata
 
     from ._errors import DataError
 
@@ -84,7 +87,9 @@ def read_csv_rows(path: str | os.PathLike, what: str) -> tuple[list[str], list[t
         raise DataError(path, None, f"malformed CSV: {e}") from None
     if not header:
         raise DataError(path, None, f"empty: {what} starts with a header row")
-    header = [name.strip() for name in header]
+    # one form per text: "\u00c1" and "A\u0301" (the same letter, decomposed, as macOS
+    # writes it) are one heliostat id, not two
+    header = [unicodedata.normalize("NFC", name.strip()) for name in header]
     if len(header) == 1:
         for sep, name in ((";", "';'"), ("\t", "tabs")):
             if sep in header[0]:
@@ -98,6 +103,7 @@ def read_csv_rows(path: str | os.PathLike, what: str) -> tuple[list[str], list[t
             continue
         if len(row) > len(header):
             raise DataError(path, f"row {line}", f"more cells than the header has columns: {row[len(header) :]!r}")
+        row = [unicodedata.normalize("NFC", cell) for cell in row]
         rows.append((line, dict(zip(header, [*row, *([None] * (len(header) - len(row)))], strict=True))))
     return header, rows
 

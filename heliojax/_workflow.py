@@ -286,11 +286,17 @@ def calibrate(
 
         with activity("pointing drift and error law", logger=log):
             predictive = temporal_drift(fit_state, padded, fit_mask)
-        log.info(
-            f"pointing drift {predictive['drift_mrad2_per_day']:.4f} mrad^2/day per component "
-            f"(from {predictive['validation_records']} later training records), error law: "
-            f"{PointingErrorLaw.from_dict(predictive['error_law']).describe()}"
-        )
+        if predictive["validation_records"] < DRIFT_MIN_VALIDATION:
+            log.info(
+                f"pointing drift not estimated: {predictive['validation_records']} later training records of "
+                f"converged heliostats, {DRIFT_MIN_VALIDATION} needed; error law: Gaussian"
+            )
+        else:
+            log.info(
+                f"pointing drift {predictive['drift_mrad2_per_day']:.4f} mrad^2/day per component "
+                f"(from {predictive['validation_records']} later training records), error law: "
+                f"{PointingErrorLaw.from_dict(predictive['error_law']).describe()}"
+            )
     else:
         predictive = _no_drift("not estimated")
 
@@ -345,6 +351,9 @@ DRIFT_MIN_RECORDS = 8
 :func:`temporal_drift`'s validation."""
 DRIFT_HOLDOUT_FRACTION = 0.3
 """Fraction of such a heliostat's training records (its latest) predicted, not fitted."""
+DRIFT_MIN_VALIDATION = 10
+"""Fewest predicted records (of converged heliostats) from which the drift and the error
+law are estimated; with fewer, no drift and the Gaussian law."""
 
 
 def residual_prediction(solution: FitSolution, fleet, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -440,7 +449,7 @@ def temporal_drift(
         "validation_heliostats", "validation_median_days", "median_d2_without",
         "method"}`` (``error_law``: :meth:`PointingErrorLaw.to_dict`; ``tail_dof`` the
         t's degrees of freedom, inf for the other laws); ``drift_mrad2_per_day`` is 0
-        and the law Gaussian with fewer than 10 validation records.
+        and the law Gaussian with fewer than :data:`DRIFT_MIN_VALIDATION` validation records.
     """
     fleet_mask = np.asarray(fleet.mask)
     unix_time = np.asarray(fleet.context.unix_time, float)
@@ -452,7 +461,7 @@ def temporal_drift(
         "on the earlier ones"
     )
     out = _no_drift(method)
-    if late.sum() < 10:
+    if late.sum() < DRIFT_MIN_VALIDATION:
         out.update(validation_records=int(late.sum()), validation_heliostats=0, median_d2_without=None)
         return out
     solution, noise = fit(early)
@@ -474,7 +483,7 @@ def temporal_drift(
         validation_median_days=float(np.median(days)) if use.any() else None,
         median_d2_without=median_d2(0.0) if use.any() else None,
     )
-    if use.sum() < 10:
+    if use.sum() < DRIFT_MIN_VALIDATION:
         return out
     q, law = fit_drift_and_law(r, s, days)
     out.update(drift_mrad2_per_day=q, tail_dof=law.tail_dof, error_law=law.to_dict())

@@ -229,6 +229,20 @@ def test_cli_bad_input(tmp_path, capsys):
     assert _cli(["accept", "--results", str(summ), "--contract", str(c), "--report", str(report)]) == 2
 
 
+def test_cli_one_heliostat_says_which_figures_it_leaves_out(tmp_path, capsys, caplog):
+    field = tmp_path / "field.csv"
+    field.write_text("heliostat_id,east_m,north_m,tracking_mrad\nA1,0,50,1.5\n")
+    c = tmp_path / "c.toml"
+    c.write_text(CONTRACT)
+    figs = tmp_path / "figs"
+    argv = ["accept", "--results", str(field), "--contract", str(c), "--report", str(tmp_path / "r.json")]
+    with caplog.at_level("WARNING"):
+        assert _cli([*argv, "--figures", str(figs)]) == 0
+    assert [p.name for p in figs.iterdir()] == ["monthly_efficiency.png"]
+    assert "field_map.png and cluster_distributions.png not drawn" in caplog.text
+    assert "verdict: inconclusive" in capsys.readouterr().out
+
+
 def test_cli_summary_with_paint_positions(shared_paint, tmp_path):
     ids, enu = positions_from_paint(shared_paint)
     assert len(ids) == 27 and "BE36" in ids

@@ -563,6 +563,36 @@ CASES = [
     ),
     ("discover an effect named twice", lambda t: ["discover", "--effects", "thermal,thermal"], "named twice"),
     (
+        "accept contract confidence 1e-300",
+        lambda t: _accept(t, _field(t), CONTRACT + "[sampling]\nconfidence = 1e-300\n"),
+        "confidence must lie in [0.5, 0.999999]",
+    ),
+    (
+        "accept contract reflectance mean above 1",
+        lambda t: _accept(
+            t, _field(t), CONTRACT + "[parameters.reflectance]\nmean = 2.0\nstd = 0.1\nrel_error = 0.1\n"
+        ),
+        "mean must be at most 1, got 2.0",  # a fraction: no unit "1" after the number
+    ),
+    (
+        "trace a record the heliostat does not have",
+        lambda t: ["trace", "--heliostat", "BE36", "--record", "0"],
+        "--record 0: BE36 has no such calibration record",
+    ),
+    (
+        "accept field CSV id written composed and decomposed",
+        lambda t: _accept(
+            t, _file(t, "field.csv", "heliostat_id,east_m,north_m,tracking_mrad\n\u00c1,0,50,1\nA\u0301,0,60,1\n")
+        ),
+        "duplicate ID",
+    ),
+    ("discover alpha 1", lambda t: ["discover", "--alpha", "1"], "argument --alpha: 1.0 is outside (0.0, 1.0)"),
+    (
+        "discover alpha 1 from a config",
+        lambda t: ["discover", "--config", _file(t, "config.toml", "[discover]\nalpha = 1\n")],
+        "[discover] alpha",
+    ),
+    (
         "accept field CSV number with an underscore",
         lambda t: _accept(t, _file(t, "field.csv", "heliostat_id,east_m,north_m,tracking_mrad\nA1,1_0,50,1\n")),
         "line 2: east_m",
@@ -888,6 +918,25 @@ def test_weather_gaps_and_conflicts_are_flagged(tmp_path):
     assert ("temperature", "no row has a temperature (column missing or empty)") in flags
     rid = f"{cells[0]}.{cells[2]}"
     assert (rid, "listed twice with different weather") in flags
+
+
+def test_a_weather_row_naming_another_heliostat_is_flagged(tmp_path):
+    """Weather joins records by (heliostat, record): a row whose heliostat is not its
+    record's joins nothing, which used to go unsaid."""
+    data = tmp_path / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    path = data / "calibration-with-weather.csv"
+    lines = path.read_text().splitlines()
+    cells = lines[1].split(",")
+    owner, rid = cells[0], int(cells[2])
+    cells[0] = "BF56" if owner != "BF56" else "BE36"
+    path.write_text("\n".join([lines[0], ",".join(cells), *lines[2:]]) + "\n")
+    fleet = hj.load_paint_directory(data)
+    flags = [(e.field, e.reason) for e in fleet.report.flags]
+    reason = f"weather row for heliostat {cells[0]!r}, but record {rid} is {owner!r}'s: its weather is not used"
+    assert (f"record {rid}", reason) in flags
+    row, col = list(fleet.ids).index(owner), list(np.asarray(fleet.record_id[list(fleet.ids).index(owner)])).index(rid)
+    assert np.isnan(np.asarray(fleet.context.temperature)[row, col])
 
 
 def test_temporaries_of_a_killed_run_are_removed_before_the_next(tmp_path, capsys):
@@ -1231,9 +1280,13 @@ def test_trace_refuses_an_unfitted_heliostat_of_results_and_an_aim_h5(tmp_path, 
 
     results = tmp_path / "results.h5"
     argv = ["calibrate", "--model", "stone8", "--max-steps", "3", "--out", str(results), "--cache-dir", "none"]
-    assert main([*argv, "--report", str(tmp_path / "summary.json"), "--quiet"]) == 0
-    status = json.loads((tmp_path / "summary.json").read_text())["heliostats"]["BL14"]["status"]
-    assert status == "too_few_records"
+    rc, _, err = _run([*argv, "--report", str(tmp_path / "summary.json")], capsys)
+    assert rc == 0, err
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["heliostats"]["BL14"]["status"] == "too_few_records"
+    # nothing converged in 3 steps: no drift line with a made-up rate of 0
+    assert summary["fleet"]["n_converged"] == 0, summary["fleet"]
+    assert "pointing drift not estimated: 0 later training records" in err and "mrad^2/day" not in err, err
     trace = [
         "trace",
         "--heliostat",
@@ -2289,6 +2342,8 @@ def test_aim_times_with_an_offset_are_written_in_utc(fitted_h5, tmp_path, capsys
         (["plan", "{h5}", "--date", "2024-06-21", "--min-sun-elevation", "-90"], "--min-sun-elevation"),
         (["plan", "{h5}", "--date", "2024-06-21T10:00"], "not a day"),
         (["plan", "{h5}", "--paint-dir", "{data}", "--before", "1990-01-01"], "no record of"),
+        (["plan", "{h5}", "--paint-dir", "{data}", "--step-minutes", "5"], "existing records: no --step-minutes"),
+        (["plan", "{h5}", "--paint-dir", "{data}", "--max-instants", "9"], "existing records: no --max-instants"),
     ],
     ids=[
         "aim day with a time",
@@ -2298,6 +2353,8 @@ def test_aim_times_with_an_offset_are_written_in_utc(fitted_h5, tmp_path, capsys
         "plan sun below the horizon",
         "plan day with a time",
         "plan before every record",
+        "plan records with a step",
+        "plan records with an instant cap",
     ],
 )
 def test_aim_and_plan_refuse_instants_that_do_not_exist(argv, said, fitted_h5, tmp_path, capsys, monkeypatch):

@@ -247,6 +247,12 @@ class Contract:
     tolerance: float = 0.0
 
 
+MIN_CONFIDENCE = 0.5
+MAX_CONFIDENCE = 0.999999
+"""The contract's two-sided confidence level lies in this range: below one half an
+interval holds the truth less often than not, above ``1 - 1e-6`` ``z`` (4.9) and the
+sample size stop meaning anything for a field of heliostats."""
+
 _CLUSTER_KEYS = {"eps", "min_samples", "value_factor", "length_factor", "z_threshold", "k_neighbours"}
 _SECTION_KEYS = {
     "sampling": {"formula", "confidence", "z"},
@@ -311,9 +317,9 @@ def load_contract(path: str | os.PathLike) -> Contract:
             if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) or x <= 0:
                 raise ConfigError(f"{path}: [{sec}] {key} must be a number > 0, got {x!r}")
             if key in ("mean", "std") and name in PARAMETERS and x > PARAMETERS[name].maximum:
+                unit = "" if PARAMETERS[name].unit == "1" else f" {PARAMETERS[name].unit}"  # "1": a fraction
                 raise ConfigError(
-                    f"{path}: [{sec}] {key} must be at most {PARAMETERS[name].maximum:g} {PARAMETERS[name].unit}, "
-                    f"got {x!r}"
+                    f"{path}: [{sec}] {key} must be at most {PARAMETERS[name].maximum:g}{unit}, got {x!r}"
                 )
             if key == "rel_error" and x >= 1:
                 raise ConfigError(f"{path}: [{sec}] rel_error must be below 1 (a fraction of the mean), got {x!r}")
@@ -336,8 +342,11 @@ def load_contract(path: str | os.PathLike) -> Contract:
     if formula not in ("eq4", "eq7", "eq8"):
         raise ConfigError(f"{path}: [sampling] formula must be eq4, eq7 or eq8, got {formula!r}")
     confidence = num("sampling", "confidence", 0.95)
-    if not 0 < confidence < 1:
-        raise ConfigError(f"{path}: [sampling] confidence must lie in (0, 1)")
+    if not MIN_CONFIDENCE <= confidence <= MAX_CONFIDENCE:
+        raise ConfigError(
+            f"{path}: [sampling] confidence must lie in [{MIN_CONFIDENCE:g}, {MAX_CONFIDENCE:g}] (a two-sided "
+            f"confidence level, e.g. 0.95), got {confidence!r}"
+        )
     clusters = dict(doc.get("clusters", {}))
     if set(clusters) - _CLUSTER_KEYS:
         raise ConfigError(f"{path}: [clusters] unknown key(s) {sorted(set(clusters) - _CLUSTER_KEYS)}")

@@ -5,10 +5,13 @@ level-2 efficiency contract vs measured)."""
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from pathlib import Path
 
 from ._common import path_type
+
+log = logging.getLogger(__name__)
 
 EXAMPLES = """examples:
   heliojax accept --results field.csv --contract configs/contract.toml --report out/acceptance.json \\
@@ -96,13 +99,23 @@ def run(args: argparse.Namespace) -> int:
         report["inputs"] = {"results": str(args.results), "contract": str(args.contract), "receiver": receiver_source}
         write_json(args.report, report)
         if args.figures is not None:
-            acc.plot_all(result, args.figures)
+            drawn = {p.name for p in acc.plot_all(result, args.figures)}
+            if "field_map.png" not in drawn:
+                log.warning(
+                    "field_map.png and cluster_distributions.png not drawn: they need tracking_mrad measured on at "
+                    "least 2 heliostats"
+                )
     except HeliojaxError as e:
         print(f"heliojax accept: error: {e}", file=sys.stderr)
         return 2
     l2 = report["level2"]
     for name, r in report["level1"].items():
-        status = "n/a" if r["pass"] is None else "pass" if r["pass"] else "FAIL"
+        if r["pass"] is None:
+            status = "n/a"
+        elif not (r["pass_mean"] and r["pass_std"]):
+            status = "FAIL"
+        else:  # mean and std consistent with the contract: passed unless the sample is too small
+            status = "pass" if r["pass"] else "too few heliostats"
         print(f"{name:14s} n={r.get('n')}/{report['sample_sizes'][name]}  {status}")
     print(
         f"annual efficiency: contract {l2['annual_efficiency_contract']:.4f}, "

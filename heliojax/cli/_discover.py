@@ -75,7 +75,10 @@ def add_parser(subparsers) -> None:
         help="comma-separated candidate effects (default: every library effect)",
     )
     p.add_argument(
-        "--alpha", type=number(0.0, 1.0, above=True), default=0.01, help="family-wise error rate per step (Holm), 0-1"
+        "--alpha",
+        type=number(0.0, 1.0, above=True, below=True),
+        default=0.01,
+        help="family-wise error rate per step (Holm), between 0 and 1",
     )
     p.add_argument("--folds", type=integer(2, MAX_FOLDS), default=5, help="blocked cross-validation folds (by UTC day)")
     p.add_argument("--max-named", type=integer(0), default=6, help="most effects to name")

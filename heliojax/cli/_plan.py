@@ -24,6 +24,8 @@ log = logging.getLogger(__name__)
 OUTPUT_FILES = ("out", "ranking", "records_out", "plot")
 OUTPUT_DIRS = ("cache_dir",)
 PARTNERS = {"start": ("end",)}
+DEFAULT_STEP_MINUTES = 30.0
+DEFAULT_MAX_INSTANTS = 2_000
 """Options that go with another (a config's ``end`` is dropped with its ``start``)."""
 
 
@@ -68,7 +70,12 @@ def add_parser(subparsers) -> None:
     )
     when.add_argument("--start", type=_utc, help="candidate instants: first one, ISO date-time (UTC), with --end")
     p.add_argument("--end", type=_utc, help="last candidate instant with --start")
-    p.add_argument("--step-minutes", type=number(0.0, 1440.0, above=True), default=30.0, help="instant spacing")
+    p.add_argument(
+        "--step-minutes",
+        type=number(0.0, 1440.0, above=True),
+        default=None,
+        help=f"instant spacing, minutes (default: {DEFAULT_STEP_MINUTES:g})",
+    )
     p.add_argument(
         "--targets",
         nargs="+",
@@ -113,7 +120,12 @@ def add_parser(subparsers) -> None:
         default=10.0,
         help="lowest sun (degrees, 0-90: a measurement needs the sun up) of the envelope and of candidate instants",
     )
-    p.add_argument("--max-instants", type=integer(1, 20_000), default=2_000, help="refuse longer candidate windows")
+    p.add_argument(
+        "--max-instants",
+        type=integer(1, 20_000),
+        default=None,
+        help=f"refuse longer candidate windows (default: {DEFAULT_MAX_INSTANTS})",
+    )
     p.add_argument(
         "--out", type=path_type, default=None, metavar="FILE", help="schedule CSV (default: plan.csv beside RESULTS_H5)"
     )
@@ -163,8 +175,22 @@ def run(args) -> int:
 
     if args.paint_dir is None and (args.before is not None or args.records_out is not None):
         raise ConfigError("--before and --records-out need --paint-dir")
-    if args.paint_dir is not None and (args.date or args.start or args.targets):
-        raise ConfigError("--paint-dir plans among existing records: no --date, --start or --targets")
+    if args.paint_dir is not None:
+        given = [
+            flag
+            for flag, value in (
+                ("--date", args.date),
+                ("--start", args.start),
+                ("--targets", args.targets),
+                ("--step-minutes", args.step_minutes),
+                ("--max-instants", args.max_instants),
+            )
+            if value is not None
+        ]
+        if given:
+            raise ConfigError(f"--paint-dir plans among existing records: no {', '.join(given)}")
+    args.step_minutes = DEFAULT_STEP_MINUTES if args.step_minutes is None else args.step_minutes
+    args.max_instants = DEFAULT_MAX_INSTANTS if args.max_instants is None else args.max_instants
     if args.end is not None and args.start is None:
         raise ConfigError("--end needs --start")
     enable_compilation_cache(args.cache_dir)

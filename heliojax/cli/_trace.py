@@ -223,6 +223,16 @@ def run(args: argparse.Namespace) -> int:
         sunshape = optics.EffectiveSun(base, args.slope_error_mrad * 1e-3) if args.slope_error_mrad > 0 else base
         if args.record is not None:
             rec_path = hdir / "Calibration" / f"{args.record}-calibration-properties.json"
+            if not rec_path.is_file():
+                have = sorted(
+                    (p.name.split("-")[0] for p in (hdir / "Calibration").glob("*-calibration-properties.json")),
+                    key=lambda r: (len(r), r),  # numeric order of the ids
+                )
+                shown = ", ".join(have[:5]) + (f", ... ({len(have)} in all)" if len(have) > 5 else "")
+                raise ConfigError(
+                    f"--record {args.record}: {args.heliostat} has no such calibration record ({rec_path} "
+                    f"not found); its records: {shown or 'none'}"
+                )
             record = read_calibration_record(rec_path, heliostat_id=args.heliostat)
             az, el, target_name = record.sun_azimuth_deg, record.sun_elevation_deg, record.target_name
             counts = jnp.asarray([record.axis_1_counts, record.axis_2_counts], jnp.float64)

@@ -742,6 +742,14 @@ def load_paint_directory(
                 )
             except DataError as e:
                 log.skip_record(e)
+    owner = {r.record_id: r.heliostat_id for r in records}
+    for hid, rid in weather:  # joined by (heliostat, record): a row naming the wrong heliostat joins nothing
+        if rid in owner and owner[rid] != hid:
+            log.flag(
+                str(csv_path),
+                f"record {rid}",
+                f"weather row for heliostat {hid!r}, but record {rid} is {owner[rid]!r}'s: its weather is not used",
+            )
     return _assemble(tower, properties, records, centroid=centroid, origin=origin, log=log, validate=False)
 
 
