@@ -241,6 +241,11 @@ def test_cli_one_heliostat_says_which_figures_it_leaves_out(tmp_path, capsys, ca
     assert [p.name for p in figs.iterdir()] == ["monthly_efficiency.png"]
     assert "field_map.png and cluster_distributions.png not drawn" in caplog.text
     assert "verdict: inconclusive" in capsys.readouterr().out
+    # 2 of 4 measured, 4 required: consistent with the contract, but no pass and no FAIL
+    field.write_text("heliostat_id,east_m,north_m,tracking_mrad\nA1,0,50,1.5\nA2,0,60,1.9\nA3,0,70,\nA4,0,80,\n")
+    assert _cli(argv) == 0
+    out = capsys.readouterr().out
+    assert "tracking_mrad  n=2/4  too few heliostats" in out and "verdict: inconclusive" in out
 
 
 def test_cli_summary_with_paint_positions(shared_paint, tmp_path):
