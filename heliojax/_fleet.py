@@ -76,7 +76,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int, Real
 
 from ._geometry import TargetPlane
 from ._heliostat import HeliostatGeometry, RecordContext
@@ -444,9 +444,9 @@ def fleet_subset(fleet: Fleet, indices: Sequence[int] | np.ndarray | int | str |
 
 def fleet_from_arrays(
     geometry: HeliostatGeometry,
-    counts: Float[ArrayLike, "H M 2"],
+    counts: Real[ArrayLike, "H M 2"],
     context: RecordContext,
-    focal_spot: Float[ArrayLike, "H M 3"],
+    focal_spot: Real[ArrayLike, "H M 3"],
     mask: Bool[ArrayLike, "H M"] | None = None,
     *,
     ids: Sequence[str] | None = None,
@@ -456,14 +456,23 @@ def fleet_from_arrays(
     batched geometry ``(H, ...)``, counts ``(H, M, 2)``, contexts ``(H, M)``,
     focal spots ``(H, M, 3)`` ENU m, and a mask (default: every finite record).
     Ids default to ``H000, H001, ...``; there are no calibration targets (every
-    context's ``target`` is set to -1, unknown)."""
-    counts = jnp.asarray(counts)
+    context's ``target`` is set to -1, unknown). Counts, focal spots and the origin
+    are converted to JAX's default float (float64 with ``jax_enable_x64``), whatever
+    their own type: integer counts must not round the focal spots to whole metres.
+
+    Raises:
+        ValueError: a mask that is not boolean (or 0/1 integers).
+    """
+    dtype = jnp.result_type(float)  # float64 under jax_enable_x64
+    counts = jnp.asarray(counts, dtype)
     h, m = counts.shape[:2]
     context = eqx.tree_at(lambda c: c.target, context, jnp.full((h, m), -1, jnp.int32))
-    focal_spot = jnp.asarray(focal_spot, counts.dtype)
+    focal_spot = jnp.asarray(focal_spot, dtype)
+    if mask is not None and (np.asarray(mask).dtype.kind not in "biu" or not np.isin(np.asarray(mask), (0, 1)).all()):
+        raise ValueError(f"mask: expected booleans (H, M), got {np.asarray(mask).dtype} values other than 0 and 1")
     if mask is None:
         mask = jnp.all(jnp.isfinite(counts), -1) & jnp.all(jnp.isfinite(focal_spot), -1)
-    targets = jax.tree.map(lambda x: jnp.zeros((0,) + jnp.shape(x), jnp.asarray(x).dtype), _unit_target(counts.dtype))
+    targets = jax.tree.map(lambda x: jnp.zeros((0,) + jnp.shape(x), jnp.asarray(x).dtype), _unit_target(dtype))
     return Fleet(
         geometry=geometry,
         counts=counts,
@@ -472,7 +481,7 @@ def fleet_from_arrays(
         record_id=jnp.asarray(np.arange(h * m).reshape(h, m), jnp.int64),
         mask=jnp.asarray(mask, bool),
         targets=targets,
-        origin_lla=jnp.asarray(origin_lla, counts.dtype),
+        origin_lla=jnp.asarray(origin_lla, dtype),
         ids=tuple(ids) if ids is not None else tuple(f"H{i:03d}" for i in range(h)),
         target_names=(),
         report=LoadReport(source="<arrays>", records_loaded=int(np.sum(np.asarray(mask))), heliostats_loaded=h),

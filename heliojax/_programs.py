@@ -13,7 +13,8 @@ static fields), the shapes and dtypes of its array arguments, the versions of
 heliojax, jax and jaxlib, a digest of heliojax's source files and the backend,
 so a changed option, shape, version or source never reuses a program.
 Arguments that cannot be pickled, and any failure to export or load, fall back
-to tracing (the result is the same either way).
+to tracing (the result is the same either way); a kept program records its key and
+is used only under that key and for arguments of its input shapes and dtypes.
 """
 
 from __future__ import annotations
@@ -115,13 +116,17 @@ def _compile(
     if directory is None or key is None:
         return fn.lower(*args).compile()  # pyright: ignore[reportAttributeAccessIssue]
     path = directory / f"{key}.bin"
-    loaded = _load(path)
+    loaded = _load(path, leaves)
     if loaded is None:
         loaded = _export(fn, stat, treedef, leaves, path)
     if loaded is None:
         return fn.lower(*args).compile()  # pyright: ignore[reportAttributeAccessIssue]
     exported, skeleton = loaded
-    program = jax.jit(exported.call).lower(*leaves).compile()
+    try:
+        program = jax.jit(exported.call).lower(*leaves).compile()
+    except Exception as e:  # noqa: BLE001 - a program that does not take these arguments: trace instead
+        log.debug("ignoring the cached program %s: %s", path, e)
+        return fn.lower(*args).compile()  # pyright: ignore[reportAttributeAccessIssue]
 
     def run(*call_args: typing.Any) -> typing.Any:
         flat = jax.tree.leaves(eqx.filter(call_args, eqx.is_array))
@@ -181,14 +186,23 @@ _COMPILED: dict[str, Callable] = {}
 """Programs compiled in this process by :class:`cached_jit`, by key (like jit's own cache)."""
 
 
-def _load(path: Path) -> tuple[typing.Any, typing.Any] | None:
+def _load(path: Path, leaves: list) -> tuple[typing.Any, typing.Any] | None:
+    """The exported program and output skeleton kept in ``path``, or None when there
+    is none, it is damaged, it was written under another key (a file renamed or
+    copied over another), or its inputs are not the shapes and dtypes of ``leaves``."""
     try:
         blob = path.read_bytes()
     except OSError:
         return None
     try:
-        skeleton_bytes, program_bytes = pickle.loads(blob)
-        return jax.export.deserialize(program_bytes), pickle.loads(skeleton_bytes)
+        key, skeleton_bytes, program_bytes = pickle.loads(blob)
+        if key != path.stem:
+            raise ValueError(f"written for the key {key!r}")
+        exported = jax.export.deserialize(program_bytes)
+        wanted = [(tuple(x.shape), str(x.dtype)) for x in leaves]
+        if [(tuple(a.shape), str(a.dtype)) for a in exported.in_avals] != wanted:
+            raise ValueError("its inputs are not these arguments' shapes and dtypes")
+        return exported, pickle.loads(skeleton_bytes)
     except Exception as e:  # noqa: BLE001 - a stale or damaged entry: trace again and overwrite it
         log.debug("ignoring the cached program %s: %s", path, e)
         return None
@@ -213,7 +227,7 @@ def _export(fn: Callable, stat: typing.Any, treedef: typing.Any, leaves: list, p
 
     try:
         exported = _export_allowing_version_bound_calls(flat, leaves)
-        blob = pickle.dumps((pickle.dumps(skeleton[0], protocol=5), exported.serialize()), protocol=5)
+        blob = pickle.dumps((path.stem, pickle.dumps(skeleton[0], protocol=5), exported.serialize()), protocol=5)
     except Exception as e:  # noqa: BLE001 - not exportable (e.g. an unsupported custom call): trace as usual
         log.debug("not keeping the traced program of %s: %s", fn, e)
         return None

@@ -60,7 +60,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
-from ._errors import DataError
+from ._errors import DataError, HeliojaxError
 from ._geometry import direction_to_azimuth_elevation
 from ._heliostat import HeliostatGeometry, LinearActuators
 from ._io import atomic_h5
@@ -439,6 +439,11 @@ class CalibrationResults:
         return jax.tree.map(take, self.model), jax.tree.map(take, self.geometry)
 
 
+_LATEST_UNIX_TIME = 7_258_118_400.0
+"""2200-01-01T00:00Z in unix seconds: a later record time is a unit mistake (ms, us)."""
+_RECORD_TRAILING = {"residual_mrad": (2,), "residual_uncalibrated_mrad": (2,)}
+"""Axes of a per-record dataset after its ``(heliostats, records)`` ones (east and north
+components of a residual); none for the others."""
 _RECORD_FIELDS = (
     "record_id",
     "unix_time",
@@ -504,17 +509,23 @@ def _check_covariance(cov: np.ndarray, source: str) -> None:
         raise DataError(source, "covariance", f"not positive semi-definite (heliostat {int(np.argmax(indefinite))})")
 
 
-def _numeric(value: typing.Any, source: str, field: str, shape: tuple[int, ...], kinds: str = "biuf") -> np.ndarray:
-    """``value`` as a numeric array (of a dtype kind in ``kinds``) whose shape begins
-    with ``shape``, else DataError."""
+def _numeric(
+    value: typing.Any, source: str, field: str, shape: tuple[int | None, ...], kinds: str = "biuf"
+) -> np.ndarray:
+    """``value`` as a numeric array (of a dtype kind in ``kinds``) of shape ``shape``
+    (``None``: any length on that axis), else DataError."""
     a = np.asarray(value)
     if a.dtype.kind not in kinds:
         what = "floating-point" if kinds == "f" else "numeric"
         raise DataError(source, field, f"not {what} (dtype {a.dtype})")
-    if a.shape[: len(shape)] != shape:
-        raise DataError(
-            source, field, f"shape {a.shape}, expected {shape + ('...',) if a.ndim > len(shape) else shape}"
+    if a.ndim != len(shape) or any(want is not None and got != want for got, want in zip(a.shape, shape, strict=True)):
+        expected = (
+            "("
+            + ", ".join("M" if want is None else str(want) for want in shape)
+            + ("," if len(shape) == 1 else "")
+            + ")"
         )
+        raise DataError(source, field, f"shape {a.shape}, expected {expected}")
     return a.astype(float) if a.dtype.kind == "f" else a
 
 
@@ -536,8 +547,19 @@ def load_results(path: str | Path) -> CalibrationResults:
     the fit used, statuses, covariance, per-record residuals and times).
 
     Raises:
-        DataError: naming the file and field when something is missing or malformed.
+        DataError: naming the file and field when something is missing or malformed,
+            or naming the file when HDF5 cannot read its structure (a damaged file).
     """
+    try:
+        return _load_results(path)
+    except HeliojaxError:
+        raise
+    except (OSError, RuntimeError, KeyError, ValueError, TypeError) as e:  # h5py's errors of a damaged file
+        raise DataError(str(path), None, f"damaged: HDF5 cannot read it ({type(e).__name__}: {e})"[:300]) from None
+
+
+def _load_results(path: str | Path) -> CalibrationResults:
+    """:func:`load_results`, whose errors of HDF5 itself it names."""
     import h5py  # only for results files: ~35 ms of import a calibration without --out never needs
 
     source = str(path)
@@ -589,8 +611,6 @@ def load_results(path: str | Path) -> CalibrationResults:
         changed = np.zeros(len(ids), bool)
         if CHECKSUM_DATASET in f:  # files of older heliojax versions have none
             stored = _numeric(need(CHECKSUM_DATASET), source, CHECKSUM_DATASET, (len(ids),), "u")
-            if stored.ndim != 1:
-                raise DataError(source, CHECKSUM_DATASET, f"shape {stored.shape}, expected ({len(ids)},)")
             try:
                 changed = stored != _row_checksums(f, len(ids))
             except (OSError, ValueError, TypeError) as e:  # an unreadable dataset: named by the checks below
@@ -600,7 +620,11 @@ def load_results(path: str | Path) -> CalibrationResults:
         geometry = _read_geometry(group, source, len(ids)) if isinstance(group, h5py.Group) else None
         if geometry is None:
             raise DataError(source, "geometry", "missing group (written by an older heliojax?)")
-        records = {k: _numeric(need(k), source, k, (len(ids),)) for k in _RECORD_FIELDS if k in f}
+        records = {
+            k: _numeric(need(k), source, k, (len(ids), None, *_RECORD_TRAILING.get(k, ())))
+            for k in _RECORD_FIELDS
+            if k in f
+        }
         shapes = {
             k: v.shape[:2] for k, v in records.items() if k not in ("beam_error_mrad", "beam_error_uncalibrated_mrad")
         }
@@ -617,6 +641,15 @@ def load_results(path: str | Path) -> CalibrationResults:
         if "split" in records and "unix_time" in records:
             if not np.isfinite(records["unix_time"][records["split"] != 0]).all():
                 raise DataError(source, "unix_time", "not finite for a record of the fit's split")
+        if "unix_time" in records:
+            timed = records["unix_time"][np.isfinite(records["unix_time"])]
+            if timed.size and not ((timed >= 0) & (timed <= _LATEST_UNIX_TIME)).all():
+                raise DataError(
+                    source,
+                    "unix_time",
+                    f"{timed[(timed < 0) | (timed > _LATEST_UNIX_TIME)][0]!r} s is not a time "
+                    "of 1970-2200 (seconds since 1970, UTC)",
+                )
         status = _strings(need("status_labels"), source, "status_labels", len(ids))
         unknown_status = sorted(set(status) - _STATUS_LABELS)
         if unknown_status:

@@ -362,3 +362,10 @@ def test_rows_only_residual_equals_the_rows_of_the_jacobian_path():
     np.testing.assert_allclose(jvp, jac @ tangent, rtol=1e-12, atol=1e-12)
     reference = jax.jacfwd(lambda p: hj.fitting.record_rows(row, p, (a, b), use))(y)
     np.testing.assert_allclose(jac, reference, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("steps", [-1, 0])
+def test_fit_refuses_a_step_budget_below_one(steps):
+    fleet = hj.load_paint_directory(hj.default_data_dir())
+    with pytest.raises(ValueError, match="max_steps: expected an integer >= 1"):
+        hj.fit(hj.ActuatorModel.nominal(), fleet, max_steps=steps)

@@ -2046,6 +2046,11 @@ EDITED_RESULTS = [
         _replace_h5("geometry/ideal_axes", lambda a: np.where(a, 1, 7).astype(np.int8)),
         "geometry/ideal_axes",
     ),
+    # an extra axis passed a check of the leading axes only, then failed deep inside (traceback)
+    ("covariance with an extra axis", _replace_h5("covariance", lambda a: np.stack([a, a], -1)), "covariance"),
+    ("noise with four columns", _replace_h5("noise_mrad", lambda a: np.stack([a] * 4, -1)), "noise_mrad"),
+    ("record times with an extra axis", _replace_h5("unix_time", lambda a: np.stack([a, a], -1)), "unix_time"),
+    ("record times in milliseconds", _replace_h5("unix_time", lambda a: a * 1000.0), "unix_time"),
 ]
 
 
@@ -2384,3 +2389,40 @@ def test_a_records_file_without_training_records_is_refused(tmp_path, capsys):
     rc, _, err = _run(["calibrate", "--records", str(path), "--out", str(out), "--cache-dir", "none"], capsys)
     assert rc == 2 and "records.csv" in err and "no record has the role train" in err, err
     assert not out.exists()
+
+
+def test_a_run_stopped_between_its_outputs_leaves_no_stale_partner(tmp_path, capsys, monkeypatch):
+    """Ctrl-C after summary.json was written and before results.h5: the previous run's
+    results.h5 used to stay beside the new summary.json (another model), and aim and
+    plan read it without a hint. The previous outputs are removed before the new ones."""
+    from heliojax import _results
+
+    out, report = tmp_path / "results.h5", tmp_path / "summary.json"
+    out.write_bytes(b"previous run")
+    report.write_text("{}")
+
+    def interrupted(*_args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(_results, "write_results_h5", interrupted)
+    argv = ["calibrate", "--max-steps", "3", "--out", str(out), "--report", str(report), "--cache-dir", "none"]
+    rc, _, err = _run([*argv, "--quiet"], capsys)
+    assert rc == 130 and "outputs not finished were not written" in err, err
+    assert json.loads(report.read_text())["model"] == "actuator"  # the new summary
+    assert not out.exists()  # and no results.h5 of another run beside it
+
+
+def test_a_damaged_results_h5_is_named_not_a_traceback(fitted_h5, tmp_path, capsys, monkeypatch):
+    """An object header HDF5 cannot read (bytes damaged on the disk): h5py's RuntimeError
+    (and KeyError) used to escape load_results as tracebacks (exit 1). The damage is
+    played by h5py itself raising what it raised on a helper's damaged file."""
+    import h5py
+
+    def damaged(*_args, **_kwargs):
+        raise RuntimeError("Object visitation failed (bad object header version number)")
+
+    monkeypatch.setattr(h5py.Group, "visititems", damaged)
+    with pytest.raises(hj.DataError, match="damaged: HDF5 cannot read it"):
+        hj.load_results(fitted_h5)
+    rc, _, err = _run(["aim", str(fitted_h5), "--date", "2024-06-01", "--out", str(tmp_path / "aim.csv")], capsys)
+    assert rc == 2 and "damaged: HDF5 cannot read it" in err and "Traceback" not in err, err

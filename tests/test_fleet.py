@@ -701,3 +701,23 @@ def test_unreadable_folders_are_named_not_silently_empty(tmp_path, monkeypatch):
     assert "permission denied" in named["BG23"].lower() and "Permission denied" in named["BF56/Calibration"]
     assert not np.asarray(fleet.mask)[list(fleet.ids).index("BF56")].any()
     assert np.asarray(fleet.mask)[list(fleet.ids).index("BE36")].sum() == 164
+
+
+def test_fleet_from_integer_counts_keeps_focal_spots_and_origin_in_float64(emb_fleet):
+    """Motor counts are integers: they used to set the dtype of the focal spots (rounded
+    to whole metres) and of the site origin ([50, 6, 87])."""
+    fl = emb_fleet
+    kw = {"ids": fl.ids, "origin_lla": tuple(np.asarray(fl.origin_lla))}
+    counts = np.asarray(fl.counts)
+    made = hj.fleet_from_arrays(fl.geometry, counts.astype(np.int64), fl.context, fl.focal_spot, fl.mask, **kw)
+    assert made.counts.dtype == made.focal_spot.dtype == made.origin_lla.dtype == jnp.float64
+    np.testing.assert_array_equal(np.asarray(made.focal_spot), np.asarray(fl.focal_spot))
+    np.testing.assert_array_equal(np.asarray(made.origin_lla), np.asarray(fl.origin_lla))
+    f32 = hj.fleet_from_arrays(fl.geometry, counts.astype(np.float32), fl.context, fl.focal_spot, fl.mask, **kw)
+    assert f32.origin_lla.dtype == jnp.float64
+
+
+def test_fleet_from_arrays_names_a_mask_that_is_not_boolean(emb_fleet, unchecked):
+    fl = emb_fleet
+    with pytest.raises(ValueError, match="mask: expected booleans"):
+        hj.fleet_from_arrays(fl.geometry, fl.counts, fl.context, fl.focal_spot, np.where(fl.mask, 1.0, np.nan))

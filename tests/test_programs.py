@@ -3,6 +3,8 @@ fresh trace, loaded instead of traced, keyed by every static option and shape.""
 
 from __future__ import annotations
 
+import pickle
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -95,6 +97,25 @@ def test_damaged_program_is_traced_again_and_replaced(program_dir):
     _programs._COMPILED.clear()
     np.testing.assert_array_equal(np.asarray(square(errors)), expected)
     assert path.read_bytes() != b"not a program"
+
+
+def test_a_program_kept_under_another_key_is_not_run(program_dir):
+    """Files of the program directory swapped round (each key holding another valid
+    program, e.g. copied between caches): each call traces its own program again, with
+    its own result, instead of running the other's (or failing on its arguments)."""
+    power = _programs.cached_jit(_power)
+    x, y = jnp.arange(4.0), jnp.arange(6.0).reshape(2, 3)
+    power(x, 2)
+    power(y, 3)
+    first, second = sorted(program_dir.glob("*.bin"))
+    blobs = first.read_bytes(), second.read_bytes()
+    first.write_bytes(blobs[1])
+    second.write_bytes(blobs[0])
+    _programs._COMPILED.clear()
+    np.testing.assert_array_equal(np.asarray(power(x, 2)), np.asarray(x) ** 2)
+    np.testing.assert_array_equal(np.asarray(power(y, 3)), np.asarray(y) ** 3)
+    for path in (first, second):  # each traced again and rewritten under its own key
+        assert pickle.loads(path.read_bytes())[0] == path.stem
 
 
 def test_lambdas_are_never_kept(program_dir):

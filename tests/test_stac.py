@@ -556,6 +556,29 @@ def test_unreadable_item_is_reported_and_the_rest_fetched(catalogue, tmp_path):
     assert rep.ok and [q.name for q in rep.downloaded] == ["118750-calibration-properties.json"]
 
 
+def test_what_the_catalogue_lacks_for_calibrate_is_said(catalogue, tmp_path):
+    """Every planned download succeeds, yet the folder cannot be calibrated: an item
+    without assets, a tower item without its file, a properties item without its file.
+    The fetch used to end with 0 failed and no word."""
+    root_json, _ = catalogue
+    root = root_json.parent
+    assert fetch_catalog(root_json, tmp_path / "complete", heliostats=["BE36"]).warnings == ()
+    for path in (
+        item_json(root, "BE36", "118750"),
+        next(root.rglob("WRI1030197-tower-measurements.json")),
+        next(root.rglob("BE36-heliostat-properties/BE36-heliostat-properties.json")),
+    ):
+        d = json.loads(path.read_text())
+        d["assets"] = {}
+        path.write_text(json.dumps(d))
+    rep = fetch_catalog(root_json, tmp_path / "out", heliostats=["BE36"])
+    assert rep.ok and not rep.failed
+    said = "\n".join(rep.warnings)
+    assert "no tower file (*-tower-measurements.json)" in said, said
+    assert "BE36: calibration records but no properties file" in said, said
+    assert "1 calibration record(s) with a time but no calibration-properties file (e.g. record 118750" in said, said
+
+
 @pytest.mark.parametrize(
     ("field", "value"),
     [("file:size", -1), ("file:size", "big"), ("file:checksum", "zz"), ("href", ""), ("href", 5)],

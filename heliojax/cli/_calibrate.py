@@ -3,7 +3,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 
 from ._common import (
     add_data_argument,
@@ -250,6 +252,12 @@ def run(args) -> int:
             f"{f['n_nn_fallback']} fall back to LM; LM alone: held-out median {fmt(f['lm_test_median_mrad'])} mrad; "
             f"pretrain {s['timing']['nn_pretrain_s']:.1f} s, fine-tune {s['timing']['nn_finetune_s']:.1f} s"
         )
+    # Each file is written atomically, but a run stopped between two of them would leave
+    # a new summary.json beside the previous run's results.h5: the previous files go first.
+    for previous in (args.report, args.out, args.plot):
+        if previous is not None:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(previous)
     if args.report is not None:
         write_summary(args.report, run_)
         log.info(f"wrote {args.report}")

@@ -479,6 +479,8 @@ def _fit_compiled(
 
 
 def _prepare(model0, fleet, mask, free, solver, loss, prior, batching, max_steps):
+    if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
+        raise ValueError(f"max_steps: expected an integer >= 1, got {max_steps!r}")
     h = int(np.shape(fleet.mask)[0])
     dtype = fleet.counts.dtype
     model0 = jax.tree.map(lambda x: jnp.asarray(x, dtype) if eqx.is_inexact_array(x) else x, model0)

@@ -94,7 +94,7 @@ import pystac
 
 from .._errors import DataError
 from .._sun import utc_datetime
-from ._common import TimestampEntry
+from ._common import TOWER_FILE_SUFFIX, TimestampEntry
 from ._stac_io import (
     _COLLECTION_SUFFIX,
     _FOLDER,
@@ -342,6 +342,7 @@ def fetch_catalog(
     if timestamps:
         _merge_timestamps(out / TIMESTAMPS_FILE, timestamps)
         say(f"{TIMESTAMPS_FILE}: {len(timestamps)} record time(s) from the items' datetimes")
+    warnings += _incomplete(out, sorted(catalogs), include_tower, collections, calibration_assets, timestamps)
     report = FetchReport(
         out_dir=out,
         heliostats=tuple(sorted(catalogs)),
@@ -552,6 +553,38 @@ def _plan_heliostat(
             raise DataError(t.where, None, f"two assets map onto {t.rel}: {seen[t.dest].src} and {t.src}")
         seen[t.dest] = t
     return list(seen.values())
+
+
+def _incomplete(
+    out: Path,
+    heliostats: Sequence[str],
+    include_tower: bool,
+    collections: Sequence[str],
+    calibration_assets: Sequence[str],
+    timestamps: dict[int, TimestampEntry],
+) -> list[str]:
+    """What the folder lacks for ``heliojax calibrate`` although every download that
+    was planned succeeded (the catalogue does not hold it): a tower file, a fetched
+    heliostat's properties file, the calibration file of a record whose time was
+    written."""
+    lacking = []
+    if include_tower and not any(out.glob(f"*{TOWER_FILE_SUFFIX}")):
+        lacking.append(f"no tower file (*{TOWER_FILE_SUFFIX}): the catalogue links none; calibrate needs one")
+    for hid in heliostats if "properties" in collections else ():
+        if (out / hid / "Calibration").is_dir() and not any((out / hid / "Properties").glob("*.json")):
+            lacking.append(f"{hid}: calibration records but no properties file (none in the catalogue): not loadable")
+    if "calibration_properties" in calibration_assets:
+        missing = sorted(
+            rid
+            for rid, entry in timestamps.items()
+            if not (out / entry.heliostat_id / "Calibration" / f"{rid}-calibration-properties.json").is_file()
+        )
+        if missing:
+            lacking.append(
+                f"{len(missing)} calibration record(s) with a time but no calibration-properties file (e.g. record "
+                f"{missing[0]} of {timestamps[missing[0]].heliostat_id}): the item has no such asset, or it failed"
+            )
+    return lacking
 
 
 TIMESTAMPS_FILE = "calibration-timestamps.json"
