@@ -30,6 +30,7 @@ import typing
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._beam import beam_pointing_error
@@ -226,14 +227,22 @@ def aim_results(
     (heliostats without a usable fit are flagged ``unreliable``), with the predicted
     pointing uncertainty from the file's covariance and, given the instants'
     ``unix_time`` (s), the fleet's drift since each heliostat's last fitted record
-    (without times, no drift is added), and the file's error law."""
-    drift = 0.0 if unix_time is None else jnp.asarray(results.drift_variance_mrad2(unix_time))
+    (without times, no drift is added), and the file's error law. A heliostat whose
+    drift at the instants is unknown (no fitted record with a time) is flagged
+    ``unreliable`` too: its uncertainty would be a NaN beside an unflagged command."""
+    fitted = np.asarray(results.fitted, bool)
+    drift = 0.0
+    if unix_time is not None:
+        variance = np.asarray(results.drift_variance_mrad2(unix_time), float)
+        known = np.isfinite(variance).reshape(len(fitted), -1).all(axis=1)
+        fitted = fitted & known
+        drift = jnp.asarray(np.where(np.isfinite(variance), variance, 0.0))
     return aim_fleet(
         results.model,
         results.geometry,
         sun,
         aim_points,
-        fitted=jnp.asarray(results.fitted),
+        fitted=jnp.asarray(fitted),
         covariance=results.covariance,
         view=results.view,
         drift_variance_mrad2=drift,

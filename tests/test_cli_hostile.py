@@ -12,6 +12,7 @@ import re
 import shutil
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -1452,7 +1453,7 @@ def test_aim_without_a_usable_fit_says_so_and_prints_no_nan(two_records, tmp_pat
     rc, out, err = _run(["aim", str(results), "--date", "2023-06-21", "--step-minutes", "240", "--quiet"], capsys)
     assert rc == 0, err
     assert "nan" not in out.lower(), out
-    assert "no heliostat has a usable fit (too_few_records: 5 of 5)" in out and "unreliable 30" in out, out
+    assert "no heliostat has a usable fit (status too_few_records: 5 of 5;" in out and "unreliable 30" in out, out
 
 
 def test_discover_on_too_few_records_says_nothing_was_tested(two_records, tmp_path, capsys):
@@ -2426,3 +2427,33 @@ def test_a_damaged_results_h5_is_named_not_a_traceback(fitted_h5, tmp_path, caps
         hj.load_results(fitted_h5)
     rc, _, err = _run(["aim", str(fitted_h5), "--date", "2024-06-01", "--out", str(tmp_path / "aim.csv")], capsys)
     assert rc == 2 and "damaged: HDF5 cannot read it" in err and "Traceback" not in err, err
+
+
+def test_aiming_a_heliostat_whose_drift_is_unknown_flags_it(fitted_h5):
+    """A drift since the fit that is NaN (no fitted record with a time: an edited file of
+    an older heliojax) gave rows with ok=1 and an empty uncertainty; such a heliostat is
+    flagged unreliable, and the others are aimed as before."""
+    import types
+
+    from heliojax._aim import aim_results
+
+    results = hj.load_results(fitted_h5)
+    h = len(results.ids)
+    edited = types.SimpleNamespace(
+        model=results.model,
+        geometry=results.geometry,
+        fitted=results.fitted,
+        covariance=results.covariance,
+        view=results.view,
+        error_law=results.error_law,
+        ids=results.ids,
+        drift_variance_mrad2=lambda t: np.where(np.arange(h)[:, None] == 1, np.nan, 0.01) * np.ones((1, np.size(t))),
+    )
+    sun = hj.sun_direction(jnp.deg2rad(jnp.array([0.0, 20.0])), jnp.deg2rad(jnp.array([40.0, 45.0])))
+    aim = jnp.array([0.0, 0.0, 60.0])
+    r = aim_results(edited, sun, aim, unix_time=np.array([1.7e9, 1.7e9 + 3600.0]))
+    assert results.fitted[1] and results.fitted.sum() >= 3
+    assert np.asarray(r.unreliable).tolist() == [k == 1 or not results.fitted[k] for k in range(h)]
+    assert not np.asarray(r.ok)[1].any()
+    others = results.fitted & (np.arange(h) != 1)
+    assert np.isfinite(np.asarray(r.pointing_std_mrad)[others]).all()

@@ -245,7 +245,10 @@ def summary_line(ok, std, radius95, flags: dict, ids, status) -> str:
         counts: dict[str, int] = {}
         for s in status:
             counts[str(s)] = counts.get(str(s), 0) + 1
-        why = f"no heliostat has a usable fit ({', '.join(f'{k}: {n} of {len(ids)}' for k, n in counts.items())})"
+        why = (
+            f"no heliostat has a usable fit (status {', '.join(f'{k}: {n} of {len(ids)}' for k, n in counts.items())}; "
+            "a converged fit is unusable when the file flags it or no fitted record has a time for the drift)"
+        )
     else:
         why = "every command carries a flag"
     return f"{head}: no pointing uncertainty to report, {why}; flags of the rows: {carried}"
