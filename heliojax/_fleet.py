@@ -461,13 +461,17 @@ def fleet_from_arrays(
     their own type: integer counts must not round the focal spots to whole metres.
 
     Raises:
-        ValueError: a mask that is not boolean (or 0/1 integers).
+        ValueError: a mask that is not boolean (or 0/1 integers); an origin that is
+            not a finite latitude, longitude, altitude.
     """
     dtype = jnp.result_type(float)  # float64 under jax_enable_x64
     counts = jnp.asarray(counts, dtype)
     h, m = counts.shape[:2]
     context = eqx.tree_at(lambda c: c.target, context, jnp.full((h, m), -1, jnp.int32))
     focal_spot = jnp.asarray(focal_spot, dtype)
+    origin = np.asarray(origin_lla, float)
+    if origin.shape != (3,) or not np.isfinite(origin).all() or abs(origin[0]) > 90 or abs(origin[1]) > 180:
+        raise ValueError(f"origin_lla: expected a WGS84 latitude, longitude (degrees) and altitude (m), got {origin}")
     if mask is not None and (np.asarray(mask).dtype.kind not in "biu" or not np.isin(np.asarray(mask), (0, 1)).all()):
         raise ValueError(f"mask: expected booleans (H, M), got {np.asarray(mask).dtype} values other than 0 and 1")
     if mask is None:

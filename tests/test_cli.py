@@ -776,3 +776,18 @@ def test_damaged_results_are_named_errors(results_h5, tmp_path, capsys, damage, 
     err = capsys.readouterr().err
     assert "results.h5" in err and field in err and "Traceback" not in err and len(err.strip().splitlines()) <= 2, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["results.h5"]
+
+
+def test_the_default_compilation_cache_follows_xdg_cache_home(tmp_path, monkeypatch):
+    import jax
+
+    from heliojax.cli._common import enable_compilation_cache
+
+    monkeypatch.delenv("HELIOJAX_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    enable_compilation_cache(None)
+    assert jax.config.jax_compilation_cache_dir == str(tmp_path / "xdg" / "heliojax" / "jax")
+    monkeypatch.setenv("XDG_CACHE_HOME", "relative/dir")  # not absolute: ignored, as the XDG rule says
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    enable_compilation_cache(None)
+    assert jax.config.jax_compilation_cache_dir == str(tmp_path / "home" / ".cache" / "heliojax" / "jax")

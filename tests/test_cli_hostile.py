@@ -2457,3 +2457,15 @@ def test_aiming_a_heliostat_whose_drift_is_unknown_flags_it(fitted_h5):
     assert not np.asarray(r.ok)[1].any()
     others = results.fitted & (np.arange(h) != 1)
     assert np.isfinite(np.asarray(r.pointing_std_mrad)[others]).all()
+
+
+def test_a_name_beyond_ascii_under_an_ascii_locale_blames_the_locale(tmp_path, capsys, monkeypatch):
+    """LC_ALL=C with PYTHONUTF8=0: 'aü.csv' reaches Python as surrogates; the message
+    said the name was not UTF-8, which it is."""
+    import sys
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "getfilesystemencoding", lambda: "ascii")
+    rc, _, err = _run(["inspect", "--plot", "a\udcc3\udcbc.png"], capsys)
+    assert rc == 2 and "which this process reads as ascii, not UTF-8 (the locale" in err, err
+    assert list(tmp_path.iterdir()) == []

@@ -721,3 +721,6 @@ def test_fleet_from_arrays_names_a_mask_that_is_not_boolean(emb_fleet, unchecked
     fl = emb_fleet
     with pytest.raises(ValueError, match="mask: expected booleans"):
         hj.fleet_from_arrays(fl.geometry, fl.counts, fl.context, fl.focal_spot, np.where(fl.mask, 1.0, np.nan))
+    for origin in ((np.nan, 6.4, 87.0), (95.0, 6.4, 87.0), (50.9, 6.4)):
+        with pytest.raises(ValueError, match="origin_lla: expected a WGS84"):
+            hj.fleet_from_arrays(fl.geometry, fl.counts, fl.context, fl.focal_spot, origin_lla=origin)

@@ -32,7 +32,7 @@ def add_cache_argument(p) -> None:
         type=path_type,
         default=None,
         help="persistent JAX compilation cache and heliojax's traced programs "
-        "(default $HELIOJAX_CACHE_DIR or ~/.cache/heliojax/jax; 'none' disables)",
+        "(default $HELIOJAX_CACHE_DIR or $XDG_CACHE_HOME/heliojax/jax, ~/.cache/heliojax/jax; 'none' disables)",
     )
 
 
@@ -147,7 +147,8 @@ def enable_compilation_cache(cache_dir: str | os.PathLike | None) -> None:
     """Persistent JAX compilation cache so a rerun does not recompile.
 
     ``cache_dir``: a directory, or None for ``$HELIOJAX_CACHE_DIR`` or
-    ``~/.cache/heliojax/jax``; the string ``"none"`` disables it.
+    ``$XDG_CACHE_HOME/heliojax/jax`` (``~/.cache/heliojax/jax`` when that is unset);
+    the string ``"none"`` disables it.
     """
     import jax
 
@@ -158,7 +159,9 @@ def enable_compilation_cache(cache_dir: str | os.PathLike | None) -> None:
     chosen = cache_dir or os.environ.get("HELIOJAX_CACHE_DIR", "").strip() or None  # blank: unset, not a folder "  "
     where = "--cache-dir" if cache_dir else "$HELIOJAX_CACHE_DIR"
     try:
-        path = Path(chosen or Path.home() / ".cache" / "heliojax" / "jax")
+        xdg = os.environ.get("XDG_CACHE_HOME", "").strip()  # the XDG rule: an absolute path, else ignored
+        cache_home = Path(xdg) if xdg and os.path.isabs(xdg) else Path.home() / ".cache"
+        path = Path(chosen or cache_home / "heliojax" / "jax")
         if not _is_utf8(str(path)):  # bytes of another encoding in the name: JAX took it with a TypeError
             raise OSError(0, "the name is not UTF-8 text, which JAX needs")
         path.mkdir(parents=True, exist_ok=True)
@@ -245,6 +248,12 @@ def output_path_problem(text: str) -> str | None:
     for c in text:
         if not _is_utf8(c):  # a byte that is not UTF-8, read as a lone surrogate: shown as '\ufffd'
             byte = f"0x{ord(c) - 0xDC00:02X}" if 0xDC80 <= ord(c) <= 0xDCFF else f"U+{ord(c):04X}"
+            encoding = sys.getfilesystemencoding()
+            if encoding.lower().replace("-", "") != "utf8":  # LC_ALL=C with PYTHONUTF8=0: ASCII names only
+                return (
+                    f"holds a byte beyond ASCII ({byte}), which this process reads as {encoding}, not UTF-8 "
+                    "(the locale, e.g. LC_ALL=C); set a UTF-8 locale or PYTHONUTF8=1, or give a plain name"
+                )
             return f"is not UTF-8 text (byte {byte}), which no listing shows as it is; give a plain name"
         if unicodedata.category(c) in _UNSEEN_CATEGORIES:
             name = unicodedata.name(c, "")
