@@ -713,7 +713,10 @@ def _load_results(path: str | Path) -> CalibrationResults:
     usable = np.array([s in (FitStatus.CONVERGED.label, FitStatus.MAX_STEPS.label) for s in status])
     if not np.isfinite(params[usable]).all():
         raise DataError(source, "params", "not finite for a heliostat whose fit converged")
-    _check_covariance(cov[usable], source)
+    # A fit whose records fix too few parameters (all at one pose) can converge without a
+    # finite covariance: that heliostat is flagged below, the others stay usable.
+    no_covariance = usable & ~(np.isfinite(cov).reshape(len(ids), -1).all(axis=1) & np.isfinite(std).all(axis=1))
+    _check_covariance(cov[usable & ~no_covariance], source)
     if has_noise and not ((noise[usable] >= 0) & (noise[usable] <= _MAX_NOISE_MRAD)).all():
         raise DataError(
             source,
@@ -750,10 +753,10 @@ def _load_results(path: str | Path) -> CalibrationResults:
     free = list(view.free_index) if attrs["free_params"] else list(range(len(names)))
     spreads = [
         ("params", "is implausibly far from nominal", np.abs(params[usable] - np.asarray(view.nominal)), scales),
-        ("param_std", "has an implausible standard error", std[usable], scales),
+        ("param_std", "has an implausible standard error", std[usable & ~no_covariance], scales),
     ]
     if len(free) == cov.shape[-1]:
-        diagonal = np.sqrt(np.abs(np.diagonal(cov[usable], axis1=-2, axis2=-1)))
+        diagonal = np.sqrt(np.abs(np.diagonal(cov[usable & ~no_covariance], axis1=-2, axis2=-1)))
         spreads.append(("covariance", "has an implausible variance", diagonal, scales[free]))
     for field, what, spread, scale in spreads:
         far = ~((spread >= 0) & (spread <= _MAX_SCALED_STEP * scale))  # NaN of a usable fit too
@@ -776,6 +779,12 @@ def _load_results(path: str | Path) -> CalibrationResults:
         ids[h]: f"geometry/position: heliostat {ids[h]!r} height {reason}"
         for h, reason in fleet_outliers(position[:, 2], MAX_HELIOSTAT_HEIGHT_M, "m")
     }
+    for h in np.flatnonzero(no_covariance):
+        flags.setdefault(
+            ids[h],
+            f"covariance: heliostat {ids[h]!r}: not finite although the fit converged (its records determine "
+            "too few parameters: all at one pose, or repeated?)",
+        )
     for reason in flags.values():
         log.warning(f"{source}: {reason}; its fit is not used")
     if changed.all() and len(ids) > 1:

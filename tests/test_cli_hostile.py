@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import contextlib
+import csv
 import datetime as dt
 import json
 import math
@@ -2469,3 +2470,29 @@ def test_a_name_beyond_ascii_under_an_ascii_locale_blames_the_locale(tmp_path, c
     rc, _, err = _run(["inspect", "--plot", "a\udcc3\udcbc.png"], capsys)
     assert rc == 2 and "which this process reads as ascii, not UTF-8 (the locale" in err, err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_converged_fit_without_a_finite_covariance_spoils_only_itself(fitted_h5, tmp_path, capsys):
+    """Records that fix too few parameters (all at one pose) can give a converged fit
+    with a NaN covariance; load_results refused the whole file for it, so no heliostat
+    of the fleet could be aimed. That heliostat is flagged; the others are aimed."""
+    import h5py
+
+    results = tmp_path / "results.h5"
+    shutil.copy(fitted_h5, results)
+    with h5py.File(results, "r+") as f:
+        ids = [x.decode() for x in f["heliostat_ids"][()]]
+        for name in ("covariance", "param_std"):
+            a = f[name][()]
+            a[1] = np.nan
+            f[name][...] = a
+        del f["row_checksum"]  # as heliojax writes such a fit (the checksum would flag the edit)
+    loaded = hj.load_results(results)
+    assert set(loaded.flags) == {ids[1]} and "covariance" in loaded.flags[ids[1]]
+    assert not loaded.fitted[1] and loaded.fitted[0]
+    out = tmp_path / "aim.csv"
+    rc, _, err = _run(["aim", str(results), "--date", "2024-06-01", "--out", str(out)], capsys)
+    assert rc == 0, err
+    rows = list(csv.DictReader(out.read_text().splitlines()))
+    assert all("unreliable" in r["flags"] for r in rows if r["heliostat_id"] == ids[1])
+    assert any(r["ok"] == "1" for r in rows if r["heliostat_id"] == ids[0])
