@@ -137,11 +137,18 @@ def calibration_times(
     noon = jnp.full((1, *shape), (12.0 - longitude_deg / 15.0) % 24.0)  # local solar noon (UTC h), within ~16 min
     hour = jnp.concatenate([hour, noon], axis=0)
     cand = jnp.round(midnight + day[None] * 86400.0 + hour * 3600.0)  # (rounds + 1, *shape), whole seconds
-    pos = solar_position(cand, latitude_deg, longitude_deg, JUELICH_LAT_LON_ALT[2])
-    good = pos.elevation[:rounds] > jnp.deg2rad(min_elevation_deg)
-    first = jnp.where(jnp.any(good, axis=0), jnp.argmax(good, axis=0), jnp.argmax(pos.elevation, axis=0))
+
+    def sun_at(times: Float[Array, "..."]) -> tuple[Float[Array, "..."], Float[Array, "... 3"]]:
+        pos = solar_position(times, latitude_deg, longitude_deg, JUELICH_LAT_LON_ALT[2])
+        return pos.elevation, pos.direction_enu()
+
+    # one round at a time: the solar position's intermediates (its periodic terms) for
+    # all rounds at once took 8.6 GB at 5,000 x 50 records
+    elevation, direction = jax.lax.map(sun_at, cand)
+    good = elevation[:rounds] > jnp.deg2rad(min_elevation_deg)
+    first = jnp.where(jnp.any(good, axis=0), jnp.argmax(good, axis=0), jnp.argmax(elevation, axis=0))
     t = jnp.take_along_axis(cand, first[None], axis=0)[0]
-    sun = jnp.take_along_axis(pos.direction_enu(), first[None, ..., None], axis=0)[0]
+    sun = jnp.take_along_axis(direction, first[None, ..., None], axis=0)[0]
     return t, sun
 
 
