@@ -256,7 +256,7 @@ def run(args) -> int:
     # a new summary.json beside the previous run's results.h5: the previous files go first.
     for previous in (args.report, args.out, args.plot):
         if previous is not None:
-            with contextlib.suppress(FileNotFoundError):
+            with contextlib.suppress(OSError):  # none there; or not removable: its atomic write says why
                 os.unlink(previous)
     if args.report is not None:
         write_summary(args.report, run_)
