@@ -715,7 +715,9 @@ def _load_results(path: str | Path) -> CalibrationResults:
         raise DataError(source, "params", "not finite for a heliostat whose fit converged")
     # A fit whose records fix too few parameters (all at one pose) can converge without a
     # finite covariance: that heliostat is flagged below, the others stay usable.
-    no_covariance = usable & ~(np.isfinite(cov).reshape(len(ids), -1).all(axis=1) & np.isfinite(std).all(axis=1))
+    # (the fit writes such a covariance NaN throughout; a NaN entry among finite ones, or
+    # an inf, is damage and named below)
+    no_covariance = usable & np.isnan(cov).reshape(len(ids), -1).all(axis=1) & np.isnan(std).all(axis=1)
     _check_covariance(cov[usable & ~no_covariance], source)
     if has_noise and not ((noise[usable] >= 0) & (noise[usable] <= _MAX_NOISE_MRAD)).all():
         raise DataError(
