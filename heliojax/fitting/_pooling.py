@@ -7,10 +7,17 @@ a Gaussian ``N(centre, spread^2)`` from the *well-determined* heliostats of a fi
 
 * ``centre``: the median of their fitted values;
 * ``spread^2``: the robust variance of their fitted values (1.4826 MAD)^2 minus
-  the mean squared standard error (method of moments: what remains is the
-  spread of the true values), floored at ``(SPREAD_FLOOR_SCALED * scale)^2`` so
-  that no parameter is pinned harder than 1/10 of its solver scale (0.1 mrad
-  for angles, 1e-3 for ratios) by a fleet that happens to agree.
+  the median squared standard error (method of moments, robust in both terms: what
+  remains is the spread of the true values), floored at
+  ``(SPREAD_FLOOR_SCALED * scale)^2`` so that no parameter is pinned harder than
+  1/10 of its solver scale (0.1 mrad for angles, 1e-3 for ratios) by a fleet that
+  happens to agree, plus the centre's own sampling variance
+  ``pi/2 (1.4826 MAD)^2 / n`` (the variance of a median of ``n`` values): a prior
+  learnt from a few heliostats, or from heliostats whose fitted values scatter
+  widely, is weak, not a tight prior at an uncertain centre. (With the mean squared
+  standard error and no centre term, a fleet whose half was broken, or whose
+  heliostats were mostly weakly determined, got a prior floored at 0.1 mrad around
+  a contaminated centre, and its good heliostats were pulled off their data.)
 
 Refitting every heliostat with this prior (:func:`heliojax.fitting.fit_robust`
 with ``pool=True``) calibrates heliostats with a handful of records; for a
@@ -81,10 +88,11 @@ def prior_moments(
         pg, sg = p[good], np.asarray(std, float)[good]
         med = np.median(pg, axis=0)
         mad_var = (1.4826 * np.median(np.abs(pg - med), axis=0)) ** 2
-        var = mad_var - np.mean(sg**2, axis=0)
+        var = mad_var - np.median(sg**2, axis=0)
         floor = (SPREAD_FLOOR_SCALED * scales) ** 2
+        centre_var = np.pi / 2 * mad_var / good.sum()  # the median centre's own sampling variance
         centre = np.where(free, med, centre)
-        spread = np.where(free, np.sqrt(np.maximum(var, floor)), np.inf)
+        spread = np.where(free, np.sqrt(np.maximum(var, floor) + centre_var), np.inf)
     return centre, spread
 
 

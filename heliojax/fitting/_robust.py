@@ -8,7 +8,8 @@ reflection) that dominate a least-squares fit. :func:`fit_robust`
 2. estimates each heliostat's noise ``sigma`` (mrad per residual component)
    robustly from those residuals: for a 2-D Gaussian the median residual norm is
    ``sigma * sqrt(2 ln 2)``; a heliostat with few records is shrunk toward the
-   fleet's median noise with the weight of :data:`NOISE_PRIOR_RECORDS` records;
+   fleet's median noise (the lower median: heliostats whose records are all gross
+   errors only raise it) with the weight of :data:`NOISE_PRIOR_RECORDS` records;
 3. refits from there with the Cauchy loss of scale
    ``c = 2.3849 sigma`` (95 % efficiency under Gaussian noise);
 4. re-estimates ``sigma`` from the robust residuals and flags a record as an
@@ -92,7 +93,7 @@ def robust_noise(
     own = med / RAYLEIGH_MEDIAN * np.sqrt(np.maximum(2 * n, 1) / dof)
     good = (2 * n >= 3 * n_free) & np.isfinite(own) & (own > 0)
     if good.any():
-        fleet = float(np.median(own[good]))
+        fleet = float(np.quantile(own[good], 0.5, method="lower"))  # broken heliostats only raise it
     else:
         some = np.isfinite(own) & (n > 0)
         fleet = float(np.median(own[some])) if some.any() else 1.0
@@ -122,7 +123,9 @@ def robust_component_noise(
             med = np.nanmedian(np.where(n[:, None] > 0, a, 0.0), axis=1) if a.size else np.zeros(0)
         own[:, j] = med / 0.6744897501960817 * np.sqrt(np.maximum(2 * n, 1) / dof)
     good = (2 * n >= 3 * n_free)[:, None] & np.isfinite(own) & (own > 0)
-    fleet = np.array([float(np.median(own[good[:, j], j])) if good[:, j].any() else 1.0 for j in range(2)])
+    fleet = np.array(
+        [float(np.quantile(own[good[:, j], j], 0.5, method="lower")) if good[:, j].any() else 1.0 for j in range(2)]
+    )
     fleet = np.where(np.isfinite(fleet) & (fleet > 0), fleet, 1.0)
     own = np.where(np.isfinite(own) & (n[:, None] > 0), own, fleet)
     return np.sqrt((n[:, None] * own**2 + NOISE_PRIOR_RECORDS * fleet**2) / (n[:, None] + NOISE_PRIOR_RECORDS))
