@@ -24,9 +24,11 @@ log = logging.getLogger(__name__)
 OUTPUT_FILES = ("out", "ranking", "records_out", "plot")
 OUTPUT_DIRS = ("cache_dir",)
 PARTNERS = {"start": ("end",)}
+"""Options that go with another (a config's ``end`` is dropped with its ``start``)."""
 DEFAULT_STEP_MINUTES = 30.0
 DEFAULT_MAX_INSTANTS = 2_000
-"""Options that go with another (a config's ``end`` is dropped with its ``start``)."""
+"""Defaults of ``--step-minutes`` and ``--max-instants``, applied after the check that
+``--paint-dir`` was not given them (their argparse default is None: "not given")."""
 
 
 def default_outputs(args) -> None:
