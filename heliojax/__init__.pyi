@@ -9,7 +9,13 @@ from . import (
     optics as optics,
     paint as paint,
 )
-from ._aim import AimResult as AimResult, aim_fleet as aim_fleet, aim_results as aim_results
+from ._aim import (
+    MAX_SKY_GAP_DEG as MAX_SKY_GAP_DEG,
+    AimResult as AimResult,
+    aim_fleet as aim_fleet,
+    aim_results as aim_results,
+    sky_gap_deg as sky_gap_deg,
+)
 from ._beam import (
     beam_error_components as beam_error_components,
     beam_pointing_error as beam_pointing_error,

@@ -11,7 +11,13 @@ blindly:
 * ``unreliable``: the heliostat has no usable fit (status not converged /
   max_steps) or its calibrated model is flagged unreliable;
 * ``unreachable``: no finite counts, or the forward model misses the aim point
-  by more than ``reach_tolerance_mrad``.
+  by more than ``reach_tolerance_mrad``;
+* ``beyond_calibrated_sky``: the sun is farther than ``max_sky_gap_deg`` from the
+  sun of every record the heliostat's model was fitted to (given those records):
+  the command extrapolates the model to a part of the sky its records never saw, so
+  neither the counts nor their predicted uncertainty (a linearisation about the fit)
+  can be trusted there. A heliostat whose records all share one sun position is
+  well fitted at that position and nowhere else.
 
 With the fitted parameters' covariance (``results.h5``), each command also gets
 its predicted pointing uncertainty: the 2x2 covariance (mrad^2) of the beam's
@@ -42,6 +48,12 @@ from ._predictive import PointingErrorLaw, region_radius
 REACH_TOLERANCE_MRAD = 1e-3
 """Largest forward-model miss (mrad) of commanded counts that still counts as reaching the aim point."""
 
+MAX_SKY_GAP_DEG = 20.0
+"""Largest angle (deg) between an instant's sun and the nearest fitted record's sun
+for which a command is not flagged ``beyond_calibrated_sky``. A stated choice, not a
+value fitted to any data: about the sun's hourly path (15 deg/h) plus a margin, so
+that a calibration taken over a day's hours covers that day's sky."""
+
 
 @typing.final
 class AimResult(eqx.Module):
@@ -57,6 +69,11 @@ class AimResult(eqx.Module):
         sun_low: ``(N,)``.
         unreliable: ``(H,)``.
         unreachable: ``(H, N)``.
+        beyond_calibrated_sky: ``(H, N)`` the sun is farther than the gap allowed
+            from every fitted record's sun (all False when the records are not given).
+        sky_gap_deg: ``(H, N)`` angle (deg) from the sun to the nearest fitted
+            record's sun (NaN when the records are not given, inf for a heliostat
+            without one).
         pointing_cov_mrad2: ``(H, N, 2, 2)`` predicted scale matrix of the beam
             direction's error (mrad^2) from the parameter covariance and the drift
             since the fit; NaN without a covariance. It is the covariance when
@@ -74,6 +91,8 @@ class AimResult(eqx.Module):
     sun_low: Bool[Array, " N"]
     unreliable: Bool[Array, " H"]
     unreachable: Bool[Array, "H N"]
+    beyond_calibrated_sky: Bool[Array, "H N"]
+    sky_gap_deg: Float[Array, "H N"]
     pointing_cov_mrad2: Float[Array, "H N 2 2"]
     error_law: PointingErrorLaw = eqx.field(static=True, default=PointingErrorLaw())
 
@@ -91,7 +110,8 @@ class AimResult(eqx.Module):
     @property
     def ok(self) -> Bool[Array, "H N"]:
         """Counts that may be sent: no flag raised."""
-        return ~(self.counts_out_of_range | self.sun_low[None, :] | self.unreliable[:, None] | self.unreachable)
+        raised = self.counts_out_of_range | self.sun_low[None, :] | self.unreliable[:, None] | self.unreachable
+        return ~(raised | self.beyond_calibrated_sky)
 
 
 @eqx.filter_jit
@@ -105,6 +125,24 @@ def _aim_program(models, geometry, aim_points, sun):
         return jax.vmap(instant)(points, sun)
 
     return jax.vmap(one)(models, geometry, aim_points)
+
+
+@jax.jit
+def sky_gap_deg(
+    sun: Float[Array, "N 3"], fitted_sun: Float[Array, "H M 3"], fitted_record: Bool[Array, "H M"]
+) -> Float[Array, "H N"]:
+    """``(H, N)`` angle (deg) from each instant's sun (``(N, 3)`` unit ENU) to the
+    nearest sun (``(H, M, 3)`` unit ENU) of each heliostat's fitted records
+    (``fitted_record``, ``(H, M)``); inf for a heliostat without a fitted record.
+    Heliostats are taken in batches (``lax.map``), so memory stays ``O(batch N M)``."""
+
+    def one(args):
+        directions, use = args
+        cosine = jnp.where(use[None, :], sun @ directions.T, -jnp.inf)  # (N, M)
+        best = jnp.max(cosine, axis=-1)
+        return jnp.where(jnp.isfinite(best), jnp.degrees(jnp.arccos(jnp.clip(best, -1.0, 1.0))), jnp.inf)
+
+    return jax.lax.map(one, (fitted_sun, fitted_record), batch_size=256)
 
 
 def direction_jacobian_mrad(
@@ -152,6 +190,9 @@ def aim_fleet(
     error_law: PointingErrorLaw = PointingErrorLaw(),  # noqa: B008 (frozen, static)
     min_sun_elevation_deg: float = 5.0,
     reach_tolerance_mrad: float = REACH_TOLERANCE_MRAD,
+    fitted_sun: Float[ArrayLike, "H M 3"] | None = None,
+    fitted_record: Bool[ArrayLike, "H M"] | None = None,
+    max_sky_gap_deg: float = MAX_SKY_GAP_DEG,
 ) -> AimResult:
     """Counts that put each heliostat's beam on its aim point at each instant.
 
@@ -174,6 +215,12 @@ def aim_fleet(
             (:func:`heliojax.temporal_drift`; default Gaussian), kept in the result.
         min_sun_elevation_deg: flag instants with the sun lower than this.
         reach_tolerance_mrad: largest forward-model miss still counted as reached.
+        fitted_sun: ``(H, M, 3)`` unit ENU sun vectors of the records each model was
+            fitted to, and ``fitted_record`` ``(H, M)`` which of them count: give both
+            to flag commands ``beyond_calibrated_sky`` (:func:`aim_results` takes them
+            from the file).
+        max_sky_gap_deg: the largest angle (deg) from the sun to the nearest fitted
+            record's sun that is not flagged.
 
     Returns:
         An :class:`AimResult`.
@@ -194,6 +241,15 @@ def aim_fleet(
     elevation = jnp.degrees(jnp.arcsin(jnp.clip(sun[:, 2], -1.0, 1.0)))
     unreachable = ~jnp.all(jnp.isfinite(counts), axis=-1) | ~(miss <= reach_tolerance_mrad)
     unreliable = jnp.zeros((h,), bool) if fitted is None else ~jnp.asarray(fitted, bool)
+    if (fitted_sun is None) != (fitted_record is None):
+        raise ValueError("give both fitted_sun and fitted_record, or neither")
+    if fitted_sun is not None and fitted_record is not None:
+        if not (0.0 <= max_sky_gap_deg <= 180.0):
+            raise ValueError(f"max_sky_gap_deg is {max_sky_gap_deg}; expected a value in [0, 180] deg")
+        gap = sky_gap_deg(sun, jnp.asarray(fitted_sun, sun.dtype), jnp.asarray(fitted_record, bool))
+        beyond = gap > max_sky_gap_deg
+    else:
+        gap, beyond = jnp.full((h, n), jnp.nan, sun.dtype), jnp.zeros((h, n), bool)
     if covariance is not None and view is not None:
         cov = jnp.asarray(covariance, sun.dtype)
         pointing = _pointing_covariance(view, models, geometry, counts, points, sun, cov)
@@ -210,6 +266,8 @@ def aim_fleet(
         sun_low=elevation < min_sun_elevation_deg,
         unreliable=unreliable,
         unreachable=unreachable,
+        beyond_calibrated_sky=beyond,
+        sky_gap_deg=gap,
         pointing_cov_mrad2=pointing,
         error_law=error_law,
     )
@@ -229,8 +287,12 @@ def aim_results(
     ``unix_time`` (s), the fleet's drift since each heliostat's last fitted record
     (without times, no drift is added), and the file's error law. A heliostat whose
     drift at the instants is unknown (no fitted record with a time) is flagged
-    ``unreliable`` too: its uncertainty would be a NaN beside an unflagged command."""
+    ``unreliable`` too: its uncertainty would be a NaN beside an unflagged command.
+    Commands whose sun is far from every fitted record's sun are flagged
+    ``beyond_calibrated_sky`` (``max_sky_gap_deg`` among ``options``)."""
     fitted = np.asarray(results.fitted, bool)
+    sky = results.fitted_sun()
+    fitted_sun, fitted_record = (None, None) if sky is None else sky
     drift = 0.0
     if unix_time is not None:
         variance = np.asarray(results.drift_variance_mrad2(unix_time), float)
@@ -247,8 +309,18 @@ def aim_results(
         view=results.view,
         drift_variance_mrad2=drift,
         error_law=results.error_law,
+        fitted_sun=fitted_sun,
+        fitted_record=fitted_record,
         **options,
     )
 
 
-__all__ = ["REACH_TOLERANCE_MRAD", "AimResult", "aim_fleet", "aim_results", "direction_jacobian_mrad"]
+__all__ = [
+    "MAX_SKY_GAP_DEG",
+    "REACH_TOLERANCE_MRAD",
+    "AimResult",
+    "aim_fleet",
+    "aim_results",
+    "direction_jacobian_mrad",
+    "sky_gap_deg",
+]

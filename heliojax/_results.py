@@ -58,7 +58,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import ArrayLike, Float
+from jaxtyping import ArrayLike, Bool, Float
 
 from ._errors import DataError, HeliojaxError
 from ._geometry import direction_to_azimuth_elevation
@@ -421,6 +421,24 @@ class CalibrationResults:
         fitted_records = (self.records["split"] == 1) & ~self.records["superseded"].astype(bool)
         days = days_since_fit(fitted_records, self.records["unix_time"], np.atleast_1d(np.asarray(unix_time, float)))
         return self.drift_mrad2_per_day * days
+
+    def fitted_sun(self) -> tuple[Float[np.ndarray, "H M 3"], Bool[np.ndarray, "H M"]] | None:
+        """``(sun, fitted_record)``: ``(H, M, 3)`` unit ENU vectors to the sun of every
+        record (0 where unknown) and ``(H, M)`` the records the model was fitted to:
+        training records, not outliers, not superseded by a change point, with a sun.
+        None when the file holds no per-record suns or split."""
+        if not {"sun_azimuth_deg", "sun_elevation_deg", "split"} <= self.records.keys():
+            return None
+        az = np.radians(np.asarray(self.records["sun_azimuth_deg"], float))
+        el = np.radians(np.asarray(self.records["sun_elevation_deg"], float))
+        known = np.isfinite(az) & np.isfinite(el)
+        az, el = np.where(known, az, 0.0), np.where(known, el, 0.0)
+        sun = np.stack([np.cos(el) * np.sin(az), -np.cos(el) * np.cos(az), np.sin(el)], axis=-1)  # sun_direction
+        fitted = (self.records["split"] == 1) & known
+        for name in ("superseded", "outlier"):
+            if name in self.records:
+                fitted &= ~self.records[name].astype(bool)
+        return np.where(known[..., None], sun, 0.0), fitted
 
     @property
     def fitted(self) -> np.ndarray:

@@ -83,3 +83,47 @@ def test_predicted_pointing_uncertainty_matches_the_true_miss():
     assert np.all(np.isfinite(np.asarray(r.pointing_std_mrad)[ok]))
     without = hj.aim_fleet(solution.model, fleet.geometry, sun, aim)
     assert np.isnan(np.asarray(without.pointing_std_mrad)).all()
+
+
+def test_sky_gap_is_the_angle_to_the_nearest_fitted_sun_and_flags_extrapolation():
+    """``sky_gap_deg`` equals a loop over heliostats and records (arccos of the largest
+    cosine; inf without a fitted record). A heliostat whose fitted records all share
+    one sun position is aimed without a flag at that position only: elsewhere its
+    commands are ``beyond_calibrated_sky`` and not ``ok``."""
+    rng = np.random.default_rng(0)
+    h, m, n = 3, 7, 5
+    sun = _sun([8.0, 10.0, 12.0, 14.0, 16.0])
+    fitted_sun = rng.normal(size=(h, m, 3))
+    fitted_sun[..., 2] = np.abs(fitted_sun[..., 2])
+    fitted_sun /= np.linalg.norm(fitted_sun, axis=-1, keepdims=True)
+    fitted_sun[1, :] = np.asarray(sun)[2]  # heliostat 1: every record at the noon sun
+    use = rng.random((h, m)) > 0.3
+    use[1] = True
+    use[2] = False  # heliostat 2: no fitted record
+    gap = np.asarray(hj.sky_gap_deg(sun, jnp.asarray(fitted_sun), jnp.asarray(use)))
+    want = np.full((h, n), np.inf)
+    for i in range(h):
+        for j in range(n):
+            for k in range(m):
+                if use[i, k]:
+                    cosine = np.clip(np.dot(np.asarray(sun)[j], fitted_sun[i, k]), -1.0, 1.0)
+                    want[i, j] = min(want[i, j], np.degrees(np.arccos(cosine)))
+    np.testing.assert_allclose(gap, want, rtol=0, atol=1e-6)  # arccos near 1: ~1e-8 rad of rounding
+    assert gap[1, 2] < 1e-6 and np.all(gap[1, [0, 1, 3, 4]] > 20.0)  # the sun moves ~15 deg/h
+    fleet, truth = simulate_fleet(3, h, 8, base="actuator", noise_mrad=0.0)
+    aim = jnp.array([0.0, 0.0, 60.0])
+    sky = {"fitted_sun": jnp.asarray(fitted_sun), "fitted_record": jnp.asarray(use)}
+    r = hj.aim_fleet(truth, fleet.geometry, sun, aim, **sky)
+    np.testing.assert_array_equal(np.asarray(r.beyond_calibrated_sky), gap > hj.MAX_SKY_GAP_DEG)
+    ok = np.asarray(r.ok)
+    assert ok[1, 2] and not ok[1, [0, 1, 3, 4]].any() and not ok[2].any()
+    plain = hj.aim_fleet(truth, fleet.geometry, sun, aim)  # no records given: no flag, no gap
+    assert not np.asarray(plain.beyond_calibrated_sky).any() and np.isnan(np.asarray(plain.sky_gap_deg)).all()
+    np.testing.assert_array_equal(np.asarray(plain.counts), np.asarray(r.counts))
+
+
+def test_cli_sky_gap_default_is_the_librarys():
+    from heliojax.cli._main import build_parser
+
+    args = build_parser()[0].parse_args(["aim", "results.h5"])
+    assert args.max_sky_gap == hj.MAX_SKY_GAP_DEG

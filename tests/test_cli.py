@@ -442,6 +442,20 @@ def test_aim_writes_commands_with_error_bars(results_h5, tmp_path, capsys):
         law = hj.load_results(results_h5).error_law
         assert f.attrs["tail_dof"] == law.tail_dof and f.attrs["outlier_fraction"] == law.outlier_fraction
     assert plot.stat().st_size > 10_000
+    # the angle to the nearest fitted record's sun, by hand from results.h5's records
+    results = hj.load_results(results_h5)
+    records_sun, fitted = results.fitted_sun()
+    with h5py.File(h5) as f:
+        gap, sun, beyond = f["sky_gap_deg"][()], f["sun_enu"][()], f["flags/beyond_calibrated_sky"][()]
+    cosine = np.where(fitted[:, None, :], np.einsum("nk,hmk->hnm", sun, records_sun), -np.inf).max(axis=-1)
+    np.testing.assert_allclose(gap, np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))), atol=1e-6)
+    np.testing.assert_array_equal(beyond, gap > hj.MAX_SKY_GAP_DEG)
+    # a gap of 0 deg allowed: every daytime command extrapolates, and says so
+    assert main([*argv, "--max-sky-gap", "0", "--cache-dir", "none", "--quiet"]) == 0
+    with open(out, newline="") as f:
+        rows = list(csv.DictReader(f))
+    day = [r for r in rows if "sun_low" not in r["flags"]]
+    assert day and all("beyond_calibrated_sky" in r["flags"].split(";") and r["ok"] == "0" for r in day)
 
 
 def test_trace_with_calibrated_kinematics_and_on_the_receiver(results_h5, tmp_path, capsys, monkeypatch):

@@ -121,6 +121,13 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--min-sun-elevation", type=number(-90.0, 90.0), default=5.0, help="flag instants with a lower sun (degrees)"
     )
+    p.add_argument(
+        "--max-sky-gap",
+        type=number(0.0, 180.0),
+        default=20.0,  # heliojax.MAX_SKY_GAP_DEG (this module imports no JAX); tests/test_aim.py checks
+        help="flag commands whose sun is farther than this from the sun of every record the heliostat was "
+        "fitted to (degrees): the model is extrapolated there",
+    )
     p.add_argument("--max-instants", type=integer(1, 100_000), default=10_000, help="refuse longer schedules")
     p.add_argument(
         "--out",
@@ -284,7 +291,14 @@ def run(args) -> int:
     log.info(f"aiming {len(results.ids)} heliostats at {args.target} for {sun.shape[0]} instant(s)")
     unix = None if times is None else np.array([t.timestamp() for t in times])
     with activity("aiming", logger=log):
-        r = aim_results(results, sun, centre, unix_time=unix, min_sun_elevation_deg=args.min_sun_elevation)
+        r = aim_results(
+            results,
+            sun,
+            centre,
+            unix_time=unix,
+            min_sun_elevation_deg=args.min_sun_elevation,
+            max_sky_gap_deg=args.max_sky_gap,
+        )
     counts = np.asarray(r.counts)
     std = np.asarray(r.pointing_std_mrad)
     radius95 = np.asarray(r.pointing_radius_mrad(0.95))
@@ -294,6 +308,7 @@ def run(args) -> int:
         "sun_low": np.broadcast_to(np.asarray(r.sun_low)[None, :], counts.shape[:2]),
         "unreliable": np.broadcast_to(np.asarray(r.unreliable)[:, None], counts.shape[:2]),
         "unreachable": np.asarray(r.unreachable),
+        "beyond_calibrated_sky": np.asarray(r.beyond_calibrated_sky),
     }
     ok = np.asarray(r.ok)
     with atomic_write(args.out, newline="") as f:
@@ -347,6 +362,7 @@ def run(args) -> int:
             f.create_dataset("counts", data=counts)
             f.create_dataset("pointing_cov_mrad2", data=np.asarray(r.pointing_cov_mrad2)).attrs["units"] = "mrad^2"
             f.create_dataset("ok", data=ok)
+            f.create_dataset("sky_gap_deg", data=np.asarray(r.sky_gap_deg)).attrs["units"] = "deg"
             for k, v in flags.items():
                 f.create_dataset(f"flags/{k}", data=v)
         log.info(f"wrote {args.h5}")

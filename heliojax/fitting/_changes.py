@@ -154,7 +154,10 @@ def jump_scan(
     n_after = suffix(use.astype(jnp.int32))[first]
     c = ee - jnp.einsum("mjf,fg,mkg->mjk", eb, gram_pinv, eb)
     det = c[:, 0, 0] * c[:, 1, 1] - c[:, 0, 1] * c[:, 1, 0]
-    size = jnp.maximum(c[:, 0, 0] + c[:, 1, 1], jnp.finfo(base.dtype).tiny)
+    # Degenerate where the projected jump Gram is tiny against the jump columns' own
+    # Gram: judged against ``C`` itself, rounding noise in a ``C`` that should be 0 (a
+    # jump inside the base's span) would pass as proper.
+    size = jnp.maximum(ee[:, 0, 0] + ee[:, 1, 1], jnp.finfo(base.dtype).tiny)
     proper = det > 1e-12 * size**2
     safe_det = jnp.where(proper, det, 1.0)
     inv = jnp.stack([jnp.stack([c[:, 1, 1], -c[:, 0, 1]], -1), jnp.stack([-c[:, 1, 0], c[:, 0, 0]], -1)], -2)
