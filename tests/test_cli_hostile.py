@@ -2449,6 +2449,7 @@ def test_aiming_a_heliostat_whose_drift_is_unknown_flags_it(fitted_h5):
         error_law=results.error_law,
         ids=results.ids,
         drift_variance_mrad2=lambda t: np.where(np.arange(h)[:, None] == 1, np.nan, 0.01) * np.ones((1, np.size(t))),
+        fitted_sun=lambda: None,  # no per-record suns: no sky-gap flag
     )
     sun = hj.sun_direction(jnp.deg2rad(jnp.array([0.0, 20.0])), jnp.deg2rad(jnp.array([40.0, 45.0])))
     aim = jnp.array([0.0, 0.0, 60.0])
