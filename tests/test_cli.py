@@ -451,7 +451,9 @@ def test_aim_writes_commands_with_error_bars(results_h5, tmp_path, capsys):
     np.testing.assert_allclose(gap, np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))), atol=1e-6)
     np.testing.assert_array_equal(beyond, gap > hj.MAX_SKY_GAP_DEG)
     # a gap of 0 deg allowed: every daytime command extrapolates, and says so
-    assert main([*argv, "--max-sky-gap", "0", "--cache-dir", "none", "--quiet"]) == 0
+    capsys.readouterr()
+    assert main([*argv, "--max-sky-gap", "0", "--cache-dir", "none"]) == 0
+    assert "flagged only beyond_calibrated_sky: the sun is over 0 deg" in capsys.readouterr().err
     with open(out, newline="") as f:
         rows = list(csv.DictReader(f))
     day = [r for r in rows if "sun_low" not in r["flags"]]

@@ -311,6 +311,14 @@ def run(args) -> int:
         "beyond_calibrated_sky": np.asarray(r.beyond_calibrated_sky),
     }
     ok = np.asarray(r.ok)
+    others = np.any([v for k, v in flags.items() if k != "beyond_calibrated_sky"], axis=0)
+    beyond_only = flags["beyond_calibrated_sky"] & ~others
+    if beyond_only.any():
+        log.warning(
+            f"{int(beyond_only.sum())} command(s) of {int(beyond_only.any(axis=1).sum())} heliostat(s) flagged only "
+            f"beyond_calibrated_sky: the sun is over {args.max_sky_gap:g} deg from every record they were fitted to "
+            "(measure there, see heliojax plan, or allow it with --max-sky-gap)"
+        )
     with atomic_write(args.out, newline="") as f:
         w = csv.writer(f)
         w.writerow(
