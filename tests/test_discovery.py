@@ -21,6 +21,7 @@ from heliojax.discovery import (
     day_folds,
     discover,
     holm,
+    markdown_summary,
     simulate_fleet,
 )
 from heliojax.discovery._screen import prepare_bases, screen_candidate
@@ -135,7 +136,7 @@ def _run(seed, effects=(), **kw):
 def test_null_fleet_names_nothing():
     res = _run(101)
     r = res.report
-    assert r["named_effects"] == []
+    assert r["named_effects"] == [] and r["warnings"] == [] and r["data"]["utc_days"] > 2
     assert r["steps"] == []
     assert "gravity_sag" in r["not_identifiable"]
     assert r["heldout_rms_final_mrad"] == r["heldout_rms_base_mrad"]
@@ -288,3 +289,16 @@ def test_per_target_survey_offsets_are_named_and_fitted_back():
     np.testing.assert_allclose(fitted, shifts, atol=0.05)
     assert all(0 < per[t]["std"][c] < 0.05 for t in per for c in "enu")
     assert r["heldout_rms_final_mrad"] <= HELDOUT_BOUND < r["heldout_rms_base_mrad"]
+
+
+def test_records_of_one_day_name_nothing_and_the_report_says_why():
+    """Cross-validation blocks by UTC day: records of a single day hold nothing out, so
+    nothing can be named. The CLI warned; report.json and the Markdown say it too."""
+    fleet, _ = simulate_fleet(103, 4, 20, effects=[make_effect("backlash", backlash_1=3e-4, backlash_2=3e-4)])
+    t = np.asarray(fleet.context.unix_time)
+    one_day = 1.6e9 + np.mod(t, 36000.0)  # every record on 2020-09-13 UTC, within 10 h
+    fleet = dataclasses.replace(fleet, context=eqx.tree_at(lambda c: c.unix_time, fleet.context, jnp.asarray(one_day)))
+    r = discover(fleet, DiscoveryConfig(base="stone8", effects=("backlash",))).report
+    assert r["data"]["utc_days"] == 1 and r["named_effects"] == []
+    assert len(r["warnings"]) == 1 and "span 1 UTC day(s)" in r["warnings"][0]
+    assert "**Warning**: the records span 1 UTC day(s)" in markdown_summary(r)

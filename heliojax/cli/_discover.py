@@ -105,6 +105,7 @@ def run(args) -> int:
         discover,
         fold_blocks,
         markdown_summary,
+        too_few_days_note,
         write_figures,
         write_markdown,
         write_report,
@@ -146,11 +147,9 @@ def run(args) -> int:
             f"--folds {args.folds}: the records span only {blocks} UTC days (a record without a time counts as "
             f"one), so some folds would hold no record; at most --folds {blocks}"
         )
-    if blocks < 2 and np.asarray(fleet.mask).any():
-        log.warning(
-            f"the records span {blocks} UTC day(s): cross-validation blocked by day holds no record out, so no "
-            "effect can pass its held-out test and none will be named"
-        )
+    note = too_few_days_note(blocks)
+    if note is not None and np.asarray(fleet.mask).any():
+        log.warning(note)
     result = discover(fleet, config)
     write_report(args.report, result.report)
     log.info(f"wrote {args.report}")

@@ -31,7 +31,7 @@ from ._identifiability import (
     CONDITION_INDEX_LIMIT as CONDITION_INDEX_LIMIT,
     absorbed_fractions as absorbed_fractions,
 )
-from ._lanes import day_folds as day_folds, fold_blocks as fold_blocks
+from ._lanes import day_folds as day_folds, fold_blocks as fold_blocks, too_few_days_note as too_few_days_note
 from ._report import (
     build_report as build_report,
     markdown_summary as markdown_summary,
@@ -73,6 +73,7 @@ __all__ = [
     "confirm_change_points",
     "day_folds",
     "fold_blocks",
+    "too_few_days_note",
     "discover",
     "holm",
     "markdown_summary",

@@ -412,6 +412,17 @@ def fold_blocks(unix_time: np.ndarray, valid: np.ndarray) -> int:
     return len(days) + int((valid & ~timed).sum())
 
 
+def too_few_days_note(blocks: int) -> str | None:
+    """Why no effect can be named when the records span fewer than 2 blocks of
+    :func:`fold_blocks` (cross-validation by UTC day holds no record out), else None."""
+    if blocks >= 2:
+        return None
+    return (
+        f"the records span {blocks} UTC day(s): cross-validation blocked by day holds no record out, so no "
+        "effect can pass its held-out test and none will be named"
+    )
+
+
 def day_folds(unix_time: np.ndarray, valid: np.ndarray, record_id: np.ndarray | None, n_folds: int) -> np.ndarray:
     """Blocked folds by UTC day: the fleet's distinct days, in chronological order,
     are dealt to folds ``1..K`` in turn (so every fold spans the season); all

@@ -40,6 +40,7 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
       "untestable": [names],                       # the data do not drive them (e.g. no weather)
       "screens_run": bool,                         # false: nothing was tested (see not_tested_reason)
       "not_tested_reason": str | null,             # why, e.g. too few records for the parameters
+      "warnings": [str],                           # e.g. records on one UTC day: nothing can be named
       "absorbed_fraction": {name: float | null},   # at the first screen
       "heldout_rms_base_mrad": float, "heldout_rms_final_mrad": float,
       "heldout_median_base_mrad": float, "heldout_median_final_mrad": float,
@@ -69,6 +70,7 @@ import numpy as np
 from .._io import atomic_write
 from .._plotting import pyplot, save_figure
 from ._diagnostics import record_variables
+from ._lanes import fold_blocks, too_few_days_note
 
 
 def _f(x):
@@ -236,6 +238,9 @@ def build_report(result, typical_start=None) -> dict:
     first = result.screens[0]["screens"] if result.screens else {}
     fleet = result.fleet
     mask = np.asarray(fleet.mask)
+    blocks = fold_blocks(np.asarray(fleet.context.unix_time), mask)
+    note = too_few_days_note(blocks) if mask.any() else None
+    warnings = [note] if note is not None else []
     typical = np.zeros(len(fleet.ids), bool) if typical_start is None else np.asarray(typical_start, bool)
     last = result.screens[-1]["screens"] if result.screens else {}
     last_holm = result.screens[-1]["p_holm"] if result.screens else {}
@@ -278,6 +283,7 @@ def build_report(result, typical_start=None) -> dict:
         "untestable": untestable,
         "screens_run": not_tested is None,
         "not_tested_reason": not_tested,
+        "warnings": warnings,
         "absorbed_fraction": {c: _f(sc.absorbed_fraction) for c, sc in first.items()},
         "heldout_rms_base_mrad": _f(cv_base),
         "heldout_rms_final_mrad": _f(cv_final),
@@ -314,6 +320,7 @@ def build_report(result, typical_start=None) -> dict:
             "start_typical_actuators": [i for i, t in zip(fleet.ids, typical) if i and t],
             "heliostat_ids": [i for i in fleet.ids if i],
             "max_records_per_heliostat": _max_records(fleet),
+            "utc_days": blocks,  # blocks of the day-blocked cross-validation (a record without a time: one)
             "n_base_parameters": len(result.layout.base_cols),
         },
         "timing": {k: _f(v) for k, v in result.timing.items()},
@@ -497,6 +504,8 @@ def markdown_summary(report: dict) -> str:
             "and a held-out improvement).",
             "",
         ]
+    for w in report.get("warnings", []):
+        lines += [f"**Warning**: {w}.", ""]
     for a in report.get("ambiguities", []):
         alts = ", ".join(f"`{x['effect']}` (delta BIC {fmt(x['delta_bic'], '.1f')})" for x in a["alternatives"])
         lines.append(
