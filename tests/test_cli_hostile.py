@@ -2294,6 +2294,7 @@ AIM_CSVS = [
     ("separated by semicolons", _aim_rows().replace(",", ";"), "separated by ';'"),
     ("separated by tabs", _aim_rows().replace(",", "\t"), "separated by tabs"),
     ("a header only", _ENU, "no aim points"),
+    ("an aim point underground (up with the wrong sign)", _aim_rows("BE36,0,0,-60"), "m below the lowest heliostat"),
 ]
 
 

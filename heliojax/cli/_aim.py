@@ -187,7 +187,12 @@ def _instants(args, origin_lla):
     return times, solar_position(jnp.asarray(unix), lat, lon, alt).direction_enu()
 
 
-def _aim_points_csv(path: Path, ids: tuple[str, ...], origin_lla) -> np.ndarray:
+MAX_AIM_DEPTH_M = 10.0
+"""Deepest an aim point may lie below the lowest heliostat's pivot (m): deeper, the
+beam would go into the ground (a sign or datum mistake in the CSV)."""
+
+
+def _aim_points_csv(path: Path, ids: tuple[str, ...], origin_lla, heliostat_up: np.ndarray) -> np.ndarray:
     """``(H, 3)`` ENU aim points (m) of the heliostats ``ids`` from a CSV (see ``--aim-csv``)."""
     from .._errors import DataError
     from .._geometry import MAX_FIELD_EXTENT_M, wgs84_to_enu
@@ -234,6 +239,16 @@ def _aim_points_csv(path: Path, ids: tuple[str, ...], origin_lla) -> np.ndarray:
     if far.any():
         h = ids[int(np.argmax(far))]
         raise DataError(path, f"row {lines[h]}", f"the aim point of {h} is over {MAX_FIELD_EXTENT_M / 1e3:g} km away")
+    lowest = float(np.min(heliostat_up))
+    deep = enu[:, 2] < lowest - MAX_AIM_DEPTH_M
+    if deep.any():
+        h = ids[int(np.argmax(deep))]
+        raise DataError(
+            path,
+            f"row {lines[h]}",
+            f"the aim point of {h} is {lowest - enu[int(np.argmax(deep)), 2]:.1f} m below the lowest heliostat: "
+            "underground (a sign or height datum mistake?)",
+        )
     return enu
 
 
@@ -281,7 +296,8 @@ def run(args) -> int:
     args.target = args.target or "receiver"
     target = target_from_tower(tower, args.target)
     if args.aim_csv is not None:
-        centre = jnp.asarray(_aim_points_csv(args.aim_csv, results.ids, origin))
+        up = np.asarray(results.geometry.position, float)[:, 2]
+        centre = jnp.asarray(_aim_points_csv(args.aim_csv, results.ids, origin, up))
         args.target = f"points of {args.aim_csv.name}"
     else:
         centre = wgs84_to_enu(enu_to_wgs84(target.centre, jnp.asarray(tower.origin_lla)), jnp.asarray(origin))
