@@ -188,7 +188,7 @@ def _instants(args, origin_lla):
 
 
 MAX_AIM_DEPTH_M = 10.0
-"""Deepest an aim point may lie below the lowest heliostat's pivot (m): deeper, the
+"""Deepest an aim point may lie below the lowest heliostat's position (m): deeper, the
 beam would go into the ground (a sign or datum mistake in the CSV)."""
 
 
