@@ -66,7 +66,6 @@ from ._discrepancy import (
     mirror_normals,
 )
 from ._errors import DataError
-from ._geometry import sun_direction
 from ._heliostat import HeliostatGeometry, RecordContext
 from ._kinematics import AbstractKinematicModel, inverse_aim
 from ._parameters import ParameterView
@@ -494,22 +493,13 @@ def discrepancy_from_results(results: typing.Any, target_centres: Float[ArrayLik
     for name in ("sun_azimuth_deg", "sun_elevation_deg", "target_index", "split", "residual_mrad"):
         if name not in rec:
             raise DataError(results.source, name, "missing dataset (needed to learn the model discrepancy)")
-    shape = np.shape(rec["split"])
-    az = np.radians(np.asarray(rec["sun_azimuth_deg"], float))
-    el = np.radians(np.asarray(rec["sun_elevation_deg"], float))
-    sun = np.asarray(sun_direction(az, el))
+    sun, fitted_record = results.fitted_sun()  # the training inliers of the fit
     index = np.asarray(rec["target_index"], int)
     centres = np.asarray(target_centres, float)
     known = (index >= 0) & (index < centres.shape[0])
     aim = np.where(known[..., None], centres[np.where(known, index, 0)], np.nan)
     normals = np.asarray(mirror_normals(np.asarray(results.geometry.position, float), sun, aim))
-    use = (
-        known
-        & (np.asarray(rec["split"]) == 1)
-        & ~np.asarray(rec.get("outlier", np.zeros(shape, bool)), bool)
-        & ~np.asarray(rec.get("superseded", np.zeros(shape, bool)), bool)
-        & np.asarray(results.fitted, bool)[:, None]
-    )
+    use = known & fitted_record & np.asarray(results.fitted, bool)[:, None]
     return estimate_discrepancy(rec["residual_mrad"], normals, use)
 
 

@@ -61,7 +61,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
 from ._errors import DataError, HeliojaxError
-from ._geometry import direction_to_azimuth_elevation
+from ._geometry import direction_to_azimuth_elevation, sun_direction
 from ._heliostat import HeliostatGeometry, LinearActuators
 from ._io import atomic_h5
 from ._kinematics import AbstractKinematicModel, nominal_model
@@ -432,8 +432,7 @@ class CalibrationResults:
         az = np.radians(np.asarray(self.records["sun_azimuth_deg"], float))
         el = np.radians(np.asarray(self.records["sun_elevation_deg"], float))
         known = np.isfinite(az) & np.isfinite(el)
-        az, el = np.where(known, az, 0.0), np.where(known, el, 0.0)
-        sun = np.stack([np.cos(el) * np.sin(az), -np.cos(el) * np.cos(az), np.sin(el)], axis=-1)  # sun_direction
+        sun = np.asarray(sun_direction(np.where(known, az, 0.0), np.where(known, el, 0.0)))
         fitted = (self.records["split"] == 1) & known
         for name in ("superseded", "outlier"):
             if name in self.records:
