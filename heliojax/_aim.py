@@ -18,6 +18,11 @@ blindly:
   neither the counts nor their predicted uncertainty (a linearisation about the fit)
   can be trusted there. A heliostat whose records all share one sun position is
   well fitted at that position and nowhere else.
+* ``uncertainty_above_nominal``: the command's predicted pointing uncertainty
+  (radial RMS, drift since the fit included) exceeds the RMS beam error of the
+  heliostat's *uncalibrated* model on the records it was fitted to (given that
+  error): the calibration no longer promises to aim better than no calibration,
+  e.g. for an instant years after the fit.
 
 With the fitted parameters' covariance (``results.h5``), each command also gets
 its predicted pointing uncertainty: the 2x2 covariance (mrad^2) of the beam's
@@ -74,6 +79,9 @@ class AimResult(eqx.Module):
         sky_gap_deg: ``(H, N)`` angle (deg) from the sun to the nearest fitted
             record's sun (NaN when the records are not given, inf for a heliostat
             without one).
+        uncertainty_above_nominal: ``(H, N)`` the predicted pointing uncertainty
+            (:attr:`pointing_std_mrad`) exceeds the uncalibrated model's RMS error
+            on the fitted records (all False when that error is not given).
         pointing_cov_mrad2: ``(H, N, 2, 2)`` predicted scale matrix of the beam
             direction's error (mrad^2) from the parameter covariance and the drift
             since the fit; NaN without a covariance. It is the covariance when
@@ -93,6 +101,7 @@ class AimResult(eqx.Module):
     unreachable: Bool[Array, "H N"]
     beyond_calibrated_sky: Bool[Array, "H N"]
     sky_gap_deg: Float[Array, "H N"]
+    uncertainty_above_nominal: Bool[Array, "H N"]
     pointing_cov_mrad2: Float[Array, "H N 2 2"]
     error_law: PointingErrorLaw = eqx.field(static=True, default=PointingErrorLaw())
 
@@ -111,7 +120,7 @@ class AimResult(eqx.Module):
     def ok(self) -> Bool[Array, "H N"]:
         """Counts that may be sent: no flag raised."""
         raised = self.counts_out_of_range | self.sun_low[None, :] | self.unreliable[:, None] | self.unreachable
-        return ~(raised | self.beyond_calibrated_sky)
+        return ~(raised | self.beyond_calibrated_sky | self.uncertainty_above_nominal)
 
 
 @eqx.filter_jit
@@ -193,6 +202,7 @@ def aim_fleet(
     fitted_sun: Float[ArrayLike, "H M 3"] | None = None,
     fitted_record: Bool[ArrayLike, "H M"] | None = None,
     max_sky_gap_deg: float = MAX_SKY_GAP_DEG,
+    nominal_rms_mrad: Float[ArrayLike, " H"] | None = None,
 ) -> AimResult:
     """Counts that put each heliostat's beam on its aim point at each instant.
 
@@ -221,6 +231,10 @@ def aim_fleet(
             from the file).
         max_sky_gap_deg: the largest angle (deg) from the sun to the nearest fitted
             record's sun that is not flagged.
+        nominal_rms_mrad: ``(H,)`` RMS beam error (mrad) of each heliostat's
+            uncalibrated model on the records its model was fitted to (NaN: unknown):
+            commands whose predicted uncertainty exceeds it are flagged
+            ``uncertainty_above_nominal`` (:func:`aim_results` takes it from the file).
 
     Returns:
         An :class:`AimResult`.
@@ -257,6 +271,12 @@ def aim_fleet(
         pointing = pointing + drift[:, :, None, None] * jnp.eye(2, dtype=sun.dtype)[None, None, :, :]
     else:
         pointing = jnp.full((h, n, 2, 2), jnp.nan, sun.dtype)
+    if nominal_rms_mrad is not None:
+        nominal = jnp.broadcast_to(jnp.asarray(nominal_rms_mrad, sun.dtype), (h,))
+        std = jnp.sqrt(jnp.trace(pointing, axis1=-2, axis2=-1))
+        above = jnp.isfinite(nominal)[:, None] & jnp.isfinite(std) & (std > nominal[:, None])
+    else:
+        above = jnp.zeros((h, n), bool)
     return AimResult(
         counts=counts,
         aim_point=points,
@@ -268,6 +288,7 @@ def aim_fleet(
         unreachable=unreachable,
         beyond_calibrated_sky=beyond,
         sky_gap_deg=gap,
+        uncertainty_above_nominal=above,
         pointing_cov_mrad2=pointing,
         error_law=error_law,
     )
@@ -289,10 +310,18 @@ def aim_results(
     drift at the instants is unknown (no fitted record with a time) is flagged
     ``unreliable`` too: its uncertainty would be a NaN beside an unflagged command.
     Commands whose sun is far from every fitted record's sun are flagged
-    ``beyond_calibrated_sky`` (``max_sky_gap_deg`` among ``options``)."""
+    ``beyond_calibrated_sky`` (``max_sky_gap_deg`` among ``options``), and commands
+    whose predicted uncertainty exceeds the uncalibrated model's RMS error on the
+    fitted records ``uncertainty_above_nominal``."""
     fitted = np.asarray(results.fitted, bool)
     sky = results.fitted_sun()
     fitted_sun, fitted_record = (None, None) if sky is None else sky
+    nominal_rms = None
+    if fitted_record is not None and "beam_error_uncalibrated_mrad" in results.records:
+        e = np.asarray(results.records["beam_error_uncalibrated_mrad"], float)
+        use = fitted_record & np.isfinite(e)
+        with np.errstate(invalid="ignore", divide="ignore"):  # no fitted record: NaN, no flag
+            nominal_rms = np.sqrt((np.where(use, e, 0.0) ** 2).sum(axis=1) / use.sum(axis=1))
     drift = 0.0
     if unix_time is not None:
         variance = np.asarray(results.drift_variance_mrad2(unix_time), float)
@@ -311,6 +340,7 @@ def aim_results(
         error_law=results.error_law,
         fitted_sun=fitted_sun,
         fitted_record=fitted_record,
+        nominal_rms_mrad=nominal_rms,
         **options,
     )
 

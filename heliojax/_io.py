@@ -18,7 +18,7 @@ import re
 import stat
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import IO
 
@@ -220,6 +220,35 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+@contextlib.contextmanager
+def staged_paths(paths: Sequence[str | os.PathLike | None]) -> Iterator[list[Path | None]]:
+    """Temporary paths beside each of ``paths`` (None stays None), to write a set of
+    outputs that belong together; when the block completes they are renamed onto their
+    destinations one right after the other (:func:`atomic_path` for the set), and
+    whatever was not renamed is removed. A run interrupted while writing (Ctrl-C while
+    the plot is drawn) leaves none of the set, not a summary without its results."""
+    dests = [None if p is None else _destination(p) for p in paths]
+    temps: list[Path | None] = []
+    try:
+        for d in dests:
+            if d is None:
+                temps.append(None)
+                continue
+            _make_folder(d)
+            fd, tmp = tempfile.mkstemp(dir=d.parent, prefix=f".{d.stem}.", suffix=TEMPORARY_MARK + d.suffix)
+            os.close(fd)
+            temps.append(Path(tmp))
+        yield temps
+        for t, d in zip(temps, dests, strict=True):
+            if t is not None and d is not None:
+                _publish(str(t), d)
+    finally:
+        for t in temps:
+            if t is not None:
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(t)
 
 
 @contextlib.contextmanager

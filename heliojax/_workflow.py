@@ -174,6 +174,8 @@ def calibrate(
             records, :func:`heliojax.plan_calibration`). Records not named are
             left out; if no record is named ``"test"``, every record not named
             ``"train"`` is held out. Heliostats not named get no training records.
+            A named heliostat that gets training but no held-out records while
+            others do is named in a warning (its other records are left out).
         drift: estimate the fleet's pointing drift (:func:`temporal_drift`: how fast
             records later than the fitted ones depart from the fit beyond what the
             parameter covariance and the noise explain); 0 when off.
@@ -524,6 +526,19 @@ def roles_to_masks(
             any_test |= role == "test"
     if not any_test:
         test = valid & ~train
+    else:  # the file names held-out records: a heliostat it names none for is evaluated on nothing
+        idle = valid & ~train & ~test
+        named = [
+            f"{hid} ({int(idle[i].sum())})"
+            for i, hid in enumerate(ids)
+            if hid in record_roles and train[i].any() and not test[i].any() and idle[i].any()
+        ]
+        if named:
+            log.warning(
+                f"record roles: {len(named)} heliostat(s) get no held-out record (test roles are given for "
+                f"others only), and their other records are left out: {', '.join(named[:10])}"
+                + (f" and {len(named) - 10} more" if len(named) > 10 else "")
+            )
     return train, test
 
 

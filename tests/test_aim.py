@@ -83,6 +83,24 @@ def test_predicted_pointing_uncertainty_matches_the_true_miss():
     assert np.all(np.isfinite(np.asarray(r.pointing_std_mrad)[ok]))
     without = hj.aim_fleet(solution.model, fleet.geometry, sun, aim)
     assert np.isnan(np.asarray(without.pointing_std_mrad)).all()
+    assert not np.asarray(r.uncertainty_above_nominal).any()  # no uncalibrated error given: no flag
+    # uncertainty_above_nominal: the predicted std against a per-heliostat bound (NaN: unknown, no flag)
+    std = np.asarray(r.pointing_std_mrad)
+    nominal = np.median(std, axis=1)
+    nominal[0] = np.nan
+    flagged = hj.aim_fleet(
+        solution.model,
+        fleet.geometry,
+        sun,
+        aim,
+        covariance=solution.covariance,
+        view=solution.view,
+        nominal_rms_mrad=jnp.asarray(nominal),
+    )
+    above = np.asarray(flagged.uncertainty_above_nominal)
+    np.testing.assert_array_equal(above[1:], std[1:] > nominal[1:, None])
+    assert not above[0].any() and above[1:].any()
+    np.testing.assert_array_equal(np.asarray(flagged.ok), ok & ~above)
 
 
 def test_sky_gap_is_the_angle_to_the_nearest_fitted_sun_and_flags_extrapolation():

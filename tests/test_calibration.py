@@ -316,6 +316,42 @@ def test_broken_heliostats_do_not_move_the_typical_start_geometry():
         np.testing.assert_array_equal(np.asarray(a)[3:], np.asarray(b)[3:])
 
 
+def test_noise_outliers_hand_example():
+    """Modified z-score of the log noise (Iglewicz-Hoaglin 3.5), upper side only: of
+    noises 0.5, 0.6, 0.7, 0.8 and 80 mrad the last is far (log MAD 0.15, z ~ 22); 0.05
+    (below) and non-candidates never are; fewer than three candidates exclude nothing."""
+    from heliojax.fitting import noise_outliers
+
+    own = np.array([0.5, 0.6, 0.7, 0.8, 80.0, 0.05, 500.0])
+    cand = np.array([True] * 6 + [False])
+    np.testing.assert_array_equal(noise_outliers(own, cand), [False] * 4 + [True, False, False])
+    log_own = np.log(own[:6])
+    z = 0.6745 * (log_own - np.median(log_own)) / np.median(np.abs(log_own - np.median(log_own)))
+    assert z[4] > hj.fitting.NOISE_OUTLIER_Z > z[3]
+    assert not noise_outliers(own, np.array([True, False, False, False, True, False, False])).any()
+
+
+@pytest.mark.parametrize("pool", [False, True])
+def test_a_heliostat_of_garbage_records_leaves_the_others_untouched(pool):
+    """A heliostat whose records are garbage (every count moved by up to 3,000, a
+    trial's 'loadable but wrong' heliostat) moved the fleet's median noise by a rank,
+    and with it every good heliostat's Cauchy scale, outlier flags and change points
+    (BG23's held-out median 0.61 -> 1.32 mrad on the embedded data). It is now left out
+    of the fleet's noise and prior statistics: the good heliostats' robust (and pooled)
+    fits equal those of the fleet without it, bit for bit (lanes are independent)."""
+    fleet = zoo("actuator").fleet
+    rng = np.random.default_rng(3)
+    moved = fleet.counts.at[0].add(jnp.asarray(rng.integers(-3000, 3001, fleet.counts.shape[1:]), fleet.counts.dtype))
+    garbage = eqx.tree_at(lambda f: f.counts, fleet, moved)
+    without = eqx.tree_at(lambda f: f.mask, fleet, fleet.mask.at[0].set(False))
+    model = hj.ActuatorModel.nominal()
+    a = hj.fitting.fit_robust(model, garbage, pool=pool)
+    b = hj.fitting.fit_robust(model, without, pool=pool)
+    assert float(a.noise_mrad[0]) > 20 * float(np.median(np.asarray(a.noise_mrad)[1:]))
+    np.testing.assert_array_equal(np.asarray(a.solution.parameters())[1:], np.asarray(b.solution.parameters())[1:])
+    np.testing.assert_array_equal(np.asarray(a.outlier)[1:], np.asarray(b.outlier)[1:])
+
+
 def test_component_noise_follows_anisotropic_scales():
     # residuals with 0.1 and 0.3 mrad per component: each scale recovered (MAD-based, 2 %
     # statistical error at 5000 records), and standardised per component the Rayleigh

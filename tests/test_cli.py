@@ -807,3 +807,21 @@ def test_the_default_compilation_cache_follows_xdg_cache_home(tmp_path, monkeypa
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
     enable_compilation_cache(None)
     assert jax.config.jax_compilation_cache_dir == str(tmp_path / "home" / ".cache" / "heliojax" / "jax")
+
+
+def test_aim_centuries_after_the_fit_is_flagged_above_nominal(results_h5, tmp_path):
+    """An instant in 2199 gave every command ok=1 with a 95 % radius of ~19 deg: now
+    each command whose predicted uncertainty exceeds its heliostat's uncalibrated RMS
+    error on the fitted records carries uncertainty_above_nominal and is not ok; an
+    instant near the fit carries none."""
+    rows = {}
+    for when in ("2023-06-21T12:00Z", "2199-06-21T12:00Z"):
+        out = tmp_path / f"{when[:4]}.csv"
+        assert main(["aim", str(results_h5), "--time", when, "--out", str(out), "--quiet"]) == 0
+        with out.open() as f:
+            rows[when[:4]] = list(csv.DictReader(f))
+    assert not any("uncertainty_above_nominal" in r["flags"] for r in rows["2023"])
+    late = [r for r in rows["2199"] if "uncertainty_above_nominal" in r["flags"]]
+    assert late and all(r["ok"] == "0" for r in late)
+    # BG23's uncalibrated model is ~59 mrad off: 2199's ~40 mrad still promises better than that
+    assert {r["heliostat_id"] for r in late} == {"BE36", "BF56", "BH20", "BL14"}

@@ -193,6 +193,18 @@ CASES = [
     ("negative seed", lambda t: ["calibrate", "--seed", "-1"], "--seed"),
     ("zero steps", lambda t: ["calibrate", "--max-steps", "0"], "--max-steps"),
     ("train fraction above 1", lambda t: ["calibrate", "--train-fraction", "1.5"], "--train-fraction"),
+    ("train fraction of 1 (nothing held out)", lambda t: ["calibrate", "--train-fraction", "1"], "--train-fraction"),
+    ("discover naming at most 0 effects", lambda t: ["discover", str(t), "--max-named", "0"], "--max-named"),
+    (
+        "trace sigma of a Gaussian sun with the Buie sun",
+        lambda t: ["trace", str(t), "--heliostat", "AA39", "--sigma-mrad", "50"],
+        "--sigma-mrad applies to --sunshape gaussian only",
+    ),
+    (
+        "trace circumsolar ratio with the pillbox sun",
+        lambda t: ["trace", str(t), "--heliostat", "AA39", "--sunshape", "pillbox", "--csr", "0.5"],
+        "--csr applies to --sunshape buie only",
+    ),
     ("nan learning rate", lambda t: ["reconstruct", "--learning-rate", "nan"], "--learning-rate"),
     ("zero reconstruction steps", lambda t: ["reconstruct", "--steps", "0"], "--steps"),
     ("reconstruct heliostat without --paint", lambda t: ["reconstruct", "--heliostat", "AA39"], "--paint"),
@@ -617,6 +629,24 @@ CASES = [
         "BE36': listed twice",
     ),
     (
+        "summary.json fitted heliostat without test_rms_mrad (was dropped without a word)",
+        lambda t: [
+            *_accept(t, _summary(t, '"BF56": {"status": "converged", "n_test": 40}')),
+            "--paint",
+            str(hj.default_data_dir()),
+        ],
+        "heliostats.BF56.test_rms_mrad': missing",
+    ),
+    (
+        "summary.json test_rms_mrad null though it had test records",
+        lambda t: [
+            *_accept(t, _summary(t, '"BF56": {"status": "converged", "n_test": 40, "test_rms_mrad": null}')),
+            "--paint",
+            str(hj.default_data_dir()),
+        ],
+        "heliostats.BF56.test_rms_mrad': no value",
+    ),
+    (
         "summary.json unknown status (was read as calibrated)",
         lambda t: [*_accept(t, _summary(t, '"BF56": {"status": "sideways"}')), "--paint", str(hj.default_data_dir())],
         "heliostats.BF56.status",
@@ -956,6 +986,24 @@ def test_temporaries_of_a_killed_run_are_removed_before_the_next(tmp_path, capsy
     rc, _, err = _run(["inspect", "--plot", str(tmp_path / "x.png"), "--cache-dir", "none"], capsys)
     assert rc == 0, err
     assert not stale.exists() and fresh.exists()
+
+
+def test_calibrate_interrupted_while_drawing_leaves_none_of_its_outputs(tmp_path, capsys, monkeypatch):
+    """Ctrl-C while the plot was drawn left summary.json and results.h5 without the
+    plot ("outputs not finished were not written", but two were): the three are now
+    written as a set, so an interrupt leaves none of them and no temporary."""
+    import heliojax._plotting as plotting
+
+    def interrupted(run):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(plotting, "plot_calibration", interrupted)
+    out = tmp_path / "out"
+    argv = ["calibrate", "--model", "stone8", "--max-steps", "3", "--cache-dir", "none"]
+    argv += ["--out", str(out / "results.h5"), "--report", str(out / "summary.json"), "--plot", str(out / "p.png")]
+    rc, _, err = _run(argv, capsys)
+    assert rc == 130 and "interrupted" in err, err
+    assert not out.exists() or not any(out.iterdir()), list(out.iterdir())
 
 
 def test_an_output_in_a_new_folder_inside_the_data_is_written_and_read_by_nothing(tmp_path, capsys):
@@ -1726,6 +1774,33 @@ DAMAGED_DATA = [
         "skipped",
         9,
     ),
+    (
+        "actuator offset_shift non-zero (was accepted and ignored)",
+        lambda d: (
+            _edit_properties(d, "BL14", _set(("kinematics_properties", "actuators", 0, "offset_shift"), 0.05)),
+            "kinematics_properties.actuators[0].offset_shift",
+        ),
+        "flagged",
+        0,
+    ),
+    (
+        "actuator radius_shift non-zero (was accepted and ignored)",
+        lambda d: (
+            _edit_properties(d, "BL14", _set(("kinematics_properties", "actuators", 1, "radius_shift"), -0.1)),
+            "kinematics_properties.actuators[1].radius_shift",
+        ),
+        "flagged",
+        0,
+    ),
+    (
+        "actuator movement angles swapped",
+        lambda d: (
+            _edit_properties(d, "BL14", _set(("kinematics_properties", "actuators", 1, "min_movement_angle"), 3.0)),
+            "kinematics_properties.actuators[1].min_movement_angle",
+        ),
+        "flagged",
+        0,
+    ),
 ]
 
 
@@ -2313,6 +2388,20 @@ def test_aim_points_csv_of_a_bad_kind_is_named(text, said, fitted_h5, tmp_path, 
     assert not out.exists()
 
 
+def test_an_aim_point_on_the_heliostats_own_mirror_is_refused(fitted_h5, tmp_path, capsys):
+    """An aim point 1.6 m from BE36's pivot (inside its 3.2 m x 2.6 m mirror) was aimed at
+    without a flag: it is a coordinate mistake, refused naming the row."""
+    position = np.asarray(hj.load_results(fitted_h5).geometry.position)[0]
+    near = position + np.array([0.0, 0.5, 1.5])
+    path = tmp_path / "points.csv"
+    path.write_text(_aim_rows("BE36," + ",".join(f"{x:.3f}" for x in near)), encoding="utf-8")
+    out = tmp_path / "o.csv"
+    argv = ["aim", str(fitted_h5), "--time", "2023-06-21T12:00", "--aim-csv", str(path), "--out", str(out)]
+    rc, _, err = _run(argv, capsys)
+    assert rc == 2 and "points.csv" in err and "row 2" in err and "nearer than 10 m" in err, err
+    assert len(err.strip().splitlines()) <= 2 and not out.exists()
+
+
 def test_aim_points_csv_with_a_byte_order_mark_reads(fitted_h5, tmp_path, capsys):
     path = tmp_path / "points.csv"
     path.write_text("\ufeff" + _aim_rows(), encoding="utf-8")
@@ -2397,7 +2486,8 @@ def test_a_records_file_without_training_records_is_refused(tmp_path, capsys):
 def test_a_run_stopped_between_its_outputs_leaves_no_stale_partner(tmp_path, capsys, monkeypatch):
     """Ctrl-C after summary.json was written and before results.h5: the previous run's
     results.h5 used to stay beside the new summary.json (another model), and aim and
-    plan read it without a hint. The previous outputs are removed before the new ones."""
+    plan read it without a hint. The previous outputs are removed before the new ones,
+    and the new ones are published as a set: after the interrupt neither is there."""
     from heliojax import _results
 
     out, report = tmp_path / "results.h5", tmp_path / "summary.json"
@@ -2411,8 +2501,8 @@ def test_a_run_stopped_between_its_outputs_leaves_no_stale_partner(tmp_path, cap
     argv = ["calibrate", "--max-steps", "3", "--out", str(out), "--report", str(report), "--cache-dir", "none"]
     rc, _, err = _run([*argv, "--quiet"], capsys)
     assert rc == 130 and "outputs not finished were not written" in err, err
-    assert json.loads(report.read_text())["model"] == "actuator"  # the new summary
-    assert not out.exists()  # and no results.h5 of another run beside it
+    assert not report.exists() and not out.exists()  # neither the previous run's nor half of this one's
+    assert not list(tmp_path.glob(".*heliojax-tmp*"))  # and no temporary
 
 
 def test_a_damaged_results_h5_is_named_not_a_traceback(fitted_h5, tmp_path, capsys, monkeypatch):

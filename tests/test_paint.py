@@ -545,3 +545,16 @@ def test_validate_record(unchecked):
         with pytest.raises(DataError) as e:
             validate_record(bad)
         assert e.value.field == field and e.value.file == "<memory>"
+
+
+def test_a_folder_holding_none_of_the_requested_heliostats_is_one_line():
+    """Another fleet's folder (``plan --paint-dir`` given the wrong download): one line
+    naming the requested heliostats and the folder's own, not a load report of every
+    requested heliostat (was 16 lines)."""
+    from heliojax.paint import load_paint_directory
+
+    with pytest.raises(DataError) as err:
+        load_paint_directory(EMB, heliostats=["ZZ01", "ZZ02"])
+    text = str(err.value)
+    assert "holds none of the requested heliostats (ZZ01, ZZ02)" in text
+    assert "its heliostats: BE36, BF56" in text and "\n" not in text

@@ -5,6 +5,8 @@ aim at the targets, slots that exclude each other, and record roles for
 
 from __future__ import annotations
 
+import logging
+
 import jax
 import jax.numpy as jnp
 import jaxtyping
@@ -173,7 +175,7 @@ def test_candidates_aim_at_the_targets_and_plans_reduce_uncertainty():
             assert np.all(np.asarray(plan_d.uncertainty_before_mrad) ** 2 <= before**2 + 0.5**2 * 2 * (1 + 1e-6))
 
 
-def test_record_roles_choose_the_training_and_held_out_records():
+def test_record_roles_choose_the_training_and_held_out_records(caplog):
     fleet = hj.load_paint_directory(hj.default_data_dir())
     rid = np.asarray(fleet.record_id)
     mask = np.asarray(fleet.mask)
@@ -184,6 +186,11 @@ def test_record_roles_choose_the_training_and_held_out_records():
     np.testing.assert_array_equal(test, mask & ~train)  # no test role: everything else is held out
     train, test = roles_to_masks(fleet, {hid: {chosen[0]: "train", chosen[1]: "test"}})
     assert train.sum() == 1 and test.sum() == 1
+    # another heliostat trained without a held-out record while this one has one: named
+    other = [int(r) for r in rid[1][mask[1]][:3]]
+    with caplog.at_level(logging.WARNING, logger="heliojax._workflow"):
+        train, test = roles_to_masks(fleet, {hid: {chosen[1]: "test"}, fleet.ids[1]: {other[0]: "train"}})
+    assert not test[1].any() and f"{fleet.ids[1]} ({int(mask[1].sum()) - 1})" in caplog.text
     with pytest.raises(hj.ConfigError, match="BX99"):
         roles_to_masks(fleet, {"BX99": {1: "train"}})
     with pytest.raises(hj.ConfigError, match="record 1 of"):

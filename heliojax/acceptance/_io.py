@@ -120,7 +120,8 @@ def read_summary(path: str | os.PathLike) -> dict[str, float]:
     pointing error on the held-out records). Heliostats whose ``status`` is
     failed / error / skipped / excluded (or a fit status of no calibration: diverged,
     non_finite_input, too_few_records, no_records, no_training_records), or whose ``test_rms_mrad`` is null or
-    not finite (no test records), count as not measured.
+    not finite with ``n_test`` 0 (no test records), count as not measured. A fitted heliostat without the
+    key, or with a null or non-finite value although ``n_test`` > 0, is an error.
 
     Returns:
         heliostat ID -> tracking error (mrad).
@@ -141,7 +142,17 @@ def read_summary(path: str | os.PathLike) -> dict[str, float]:
             continue
         if status not in _GOOD_STATUS:
             raise DataError(path, f"heliostats.{hid}.status", f"unknown status {rec.get('status')!r}"[:200])
+        if "test_rms_mrad" not in rec:  # calibrate writes it for every heliostat (null without test records)
+            raise DataError(path, f"heliostats.{hid}.test_rms_mrad", "missing")
         x = rec.get("test_rms_mrad")
+        n_test = rec.get("n_test")
+        measured = isinstance(n_test, int) and not isinstance(n_test, bool) and n_test > 0
+        if (x is None or (isinstance(x, float) and not math.isfinite(x))) and measured:
+            raise DataError(
+                path,
+                f"heliostats.{hid}.test_rms_mrad",
+                f"no value, though status {rec.get('status')!r} and n_test {n_test} say it was measured",
+            )
         if x is None:
             continue
         if isinstance(x, bool) or not isinstance(x, (int, float)):

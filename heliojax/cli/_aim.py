@@ -191,8 +191,14 @@ MAX_AIM_DEPTH_M = 10.0
 """Deepest an aim point may lie below the lowest heliostat's position (m): deeper, the
 beam would go into the ground (a sign or datum mistake in the CSV)."""
 
+MIN_AIM_DISTANCE_M = 10.0
+"""Nearest an aim point may lie to its heliostat's position (m): a few mirror sizes (a
+Juelich mirror is 3.2 m x 2.6 m). Nearer, the "aim point" is on or beside the mirror
+itself, a coordinate mistake in the CSV (every receiver or target is tens of metres
+away or more)."""
 
-def _aim_points_csv(path: Path, ids: tuple[str, ...], origin_lla, heliostat_up: np.ndarray) -> np.ndarray:
+
+def _aim_points_csv(path: Path, ids: tuple[str, ...], origin_lla, heliostat_position: np.ndarray) -> np.ndarray:
     """``(H, 3)`` ENU aim points (m) of the heliostats ``ids`` from a CSV (see ``--aim-csv``)."""
     from .._errors import DataError
     from .._geometry import MAX_FIELD_EXTENT_M, wgs84_to_enu
@@ -239,7 +245,16 @@ def _aim_points_csv(path: Path, ids: tuple[str, ...], origin_lla, heliostat_up: 
     if far.any():
         h = ids[int(np.argmax(far))]
         raise DataError(path, f"row {lines[h]}", f"the aim point of {h} is over {MAX_FIELD_EXTENT_M / 1e3:g} km away")
-    lowest = float(np.min(heliostat_up))
+    near = np.linalg.norm(enu - heliostat_position, axis=-1) < MIN_AIM_DISTANCE_M
+    if near.any():
+        i = int(np.argmax(near))
+        raise DataError(
+            path,
+            f"row {lines[ids[i]]}",
+            f"the aim point of {ids[i]} is {np.linalg.norm(enu[i] - heliostat_position[i]):.1f} m from the "
+            f"heliostat, nearer than {MIN_AIM_DISTANCE_M:g} m: on or beside its mirror (a coordinate mistake?)",
+        )
+    lowest = float(np.min(heliostat_position[:, 2]))
     deep = enu[:, 2] < lowest - MAX_AIM_DEPTH_M
     if deep.any():
         h = ids[int(np.argmax(deep))]
@@ -296,8 +311,8 @@ def run(args) -> int:
     args.target = args.target or "receiver"
     target = target_from_tower(tower, args.target)
     if args.aim_csv is not None:
-        up = np.asarray(results.geometry.position, float)[:, 2]
-        centre = jnp.asarray(_aim_points_csv(args.aim_csv, results.ids, origin, up))
+        position = np.asarray(results.geometry.position, float)
+        centre = jnp.asarray(_aim_points_csv(args.aim_csv, results.ids, origin, position))
         args.target = f"points of {args.aim_csv.name}"
     else:
         centre = wgs84_to_enu(enu_to_wgs84(target.centre, jnp.asarray(tower.origin_lla)), jnp.asarray(origin))
@@ -325,6 +340,7 @@ def run(args) -> int:
         "unreliable": np.broadcast_to(np.asarray(r.unreliable)[:, None], counts.shape[:2]),
         "unreachable": np.asarray(r.unreachable),
         "beyond_calibrated_sky": np.asarray(r.beyond_calibrated_sky),
+        "uncertainty_above_nominal": np.asarray(r.uncertainty_above_nominal),
     }
     ok = np.asarray(r.ok)
     others = np.any([v for k, v in flags.items() if k != "beyond_calibrated_sky"], axis=0)

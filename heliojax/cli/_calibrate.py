@@ -85,9 +85,9 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument(
         "--train-fraction",
-        type=number(0.0, 1.0, above=True),
+        type=number(0.0, 1.0, above=True, below=True),
         default=0.7,
-        help="time split: fraction of each heliostat's records that trains (0-1)",
+        help="time split: fraction of each heliostat's records that trains, in (0, 1)",
     )
     p.add_argument("--val", type=integer(0), default=0, metavar="N", help="validation records per heliostat")
     p.add_argument("--seed", type=integer(0, 2**32 - 1), default=42, help="seed of the random splits")
@@ -104,7 +104,7 @@ def add_parser(subparsers) -> None:
         default=None,
         metavar="FILE",
         help="instead of a split: CSV heliostat_id,record_id[,role] of the records that train (role train, "
-        "the default) and are held out (role test; if none is, every other record is), e.g. from "
+        "the default) and are held out (role test; if no row is, every other record is), e.g. from "
         "`heliojax plan --records-out`",
     )
     p.add_argument(
@@ -156,6 +156,7 @@ def add_parser(subparsers) -> None:
 
 def run(args) -> int:
     from .._errors import ConfigError, DataError
+    from .._io import staged_paths
     from .._kinematics import nominal_model
     from .._results import write_results_h5
     from .._workflow import calibrate, write_summary
@@ -258,19 +259,21 @@ def run(args) -> int:
         if previous is not None:
             with contextlib.suppress(OSError):  # none there; or not removable: its atomic write says why
                 os.unlink(previous)
-    if args.report is not None:
-        write_summary(args.report, run_)
-        log.info(f"wrote {args.report}")
-    if args.out is not None:
-        write_results_h5(args.out, run_)
-        log.info(f"wrote {args.out}")
-    if args.plot is not None:
-        from .._plotting import plot_calibration, save_figure
-        from .._progress import activity
+    # The three are written as a set: a run stopped while the plot is drawn leaves none.
+    with staged_paths((args.report, args.out, args.plot)) as (report, out, plot):
+        if report is not None:
+            write_summary(report, run_)
+        if out is not None:
+            write_results_h5(out, run_)
+        if plot is not None:
+            from .._plotting import plot_calibration, save_figure
+            from .._progress import activity
 
-        with activity("drawing the plot", logger=log):
-            save_figure(plot_calibration(run_), args.plot)
-        log.info(f"wrote {args.plot}")
+            with activity("drawing the plot", logger=log):
+                save_figure(plot_calibration(run_), plot)
+    for path in (args.report, args.out, args.plot):
+        if path is not None:
+            log.info(f"wrote {path}")
     return 0
 
 

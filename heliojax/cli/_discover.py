@@ -81,7 +81,7 @@ def add_parser(subparsers) -> None:
         help="family-wise error rate per step (Holm), between 0 and 1",
     )
     p.add_argument("--folds", type=integer(2, MAX_FOLDS), default=5, help="blocked cross-validation folds (by UTC day)")
-    p.add_argument("--max-named", type=integer(0), default=6, help="most effects to name")
+    p.add_argument("--max-named", type=integer(1), default=6, help="most effects to name (>= 1)")
     p.add_argument(
         "--no-robust", action="store_true", help="keep every record (no gross-error flags; default: robust pre-pass)"
     )

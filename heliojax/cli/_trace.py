@@ -18,6 +18,13 @@ MAX_MRAD = 100.0
 """Largest --sigma-mrad and --slope-error-mrad: 100 mrad (5.7 degrees) per axis is already
 no sun or mirror (the sun's disc has a half-angle of 4.65 mrad); beyond, every ray misses."""
 
+DEFAULT_CSR = 0.05
+"""Default Buie circumsolar ratio (a clear day)."""
+
+DEFAULT_SIGMA_MRAD = 2.51
+"""Default Gaussian sun sigma per axis, mrad (the value this command has always used; a uniform
+disc of the sun's 4.65 mrad radius has 2.33 per axis, the circumsolar aureole widens it)."""
+
 
 EXAMPLES = """examples:
   heliojax trace ../shared/data/paint/flux-samples --heliostat AA39 --record 270398 --out out/trace
@@ -98,13 +105,17 @@ def add_parser(subparsers) -> None:
         "--sunshape", choices=("buie", "gaussian", "pillbox"), default="buie", help="sun shape of the ray directions"
     )
     p.add_argument(
-        "--csr", type=number(0.0, 1.0, above=True, below=True), default=0.05, help="Buie circumsolar ratio in (0, 1)"
+        "--csr",
+        type=number(0.0, 1.0, above=True, below=True),
+        default=None,
+        help=f"Buie circumsolar ratio in (0, 1), --sunshape buie only (default {DEFAULT_CSR:g})",
     )
     p.add_argument(
         "--sigma-mrad",
         type=number(0.0, MAX_MRAD, above=True),
-        default=2.51,
-        help=f"Gaussian sun sigma per axis, mrad (the sun's disc is 4.65; at most {MAX_MRAD:g})",
+        default=None,
+        help=f"Gaussian sun sigma per axis, mrad, --sunshape gaussian only (default {DEFAULT_SIGMA_MRAD:g}; "
+        f"the sun's disc is 4.65; at most {MAX_MRAD:g})",
     )
     p.add_argument(
         "--slope-error-mrad",
@@ -172,8 +183,13 @@ def run(args: argparse.Namespace) -> int:
     from .._progress import progress_bar
     from ..paint import read_calibration_record, read_heliostat_properties, read_tower
 
+    for flag, value, shape in (("--csr", args.csr, "buie"), ("--sigma-mrad", args.sigma_mrad, "gaussian")):
+        if value is not None and args.sunshape != shape:  # a parameter of another sun shape would be ignored
+            raise ConfigError(f"{flag} applies to --sunshape {shape} only, not to --sunshape {args.sunshape}")
     if (args.record is None) == (args.sun_azimuth is None or args.sun_elevation is None):
         raise ConfigError("give either --record or both --sun-azimuth and --sun-elevation")
+    csr = DEFAULT_CSR if args.csr is None else args.csr
+    sigma_mrad = DEFAULT_SIGMA_MRAD if args.sigma_mrad is None else args.sigma_mrad
     per_chunk = args.resolution**2 * args.rays_per_point
     if per_chunk > MAX_RAYS_PER_FACET:  # before any work: the chunk would not fit in memory
         raise ConfigError(
@@ -216,8 +232,8 @@ def run(args: argparse.Namespace) -> int:
         else:
             surface = optics.ideal_surface(layout, (args.resolution, args.resolution))
         base = {
-            "buie": lambda: optics.BuieSun(args.csr),
-            "gaussian": lambda: optics.GaussianSun(args.sigma_mrad * 1e-3),
+            "buie": lambda: optics.BuieSun(csr),
+            "gaussian": lambda: optics.GaussianSun(sigma_mrad * 1e-3),
             "pillbox": lambda: optics.PillboxSun(),
         }[args.sunshape]()
         sunshape = optics.EffectiveSun(base, args.slope_error_mrad * 1e-3) if args.slope_error_mrad > 0 else base
@@ -285,6 +301,12 @@ def run(args: argparse.Namespace) -> int:
             "centroid_uv_m": None if not np.all(np.isfinite(c)) else c.tolist(),
             "power_w": power,
             "rays": optics.ray_count(surface, args.rays_per_point, args.steps),
+            "sunshape": {
+                "shape": args.sunshape,
+                **({"csr": csr} if args.sunshape == "buie" else {}),
+                **({"sigma_mrad": sigma_mrad} if args.sunshape == "gaussian" else {}),
+                "slope_error_mrad": args.slope_error_mrad,
+            },
         }
         comparison_fig = None
         flux_png = hdir / "Calibration" / f"{args.record}-flux.png"

@@ -69,9 +69,11 @@ from ._records import (
     sanitise as sanitise,
 )
 from ._robust import (
+    NOISE_OUTLIER_Z as NOISE_OUTLIER_Z,
     RobustFit as RobustFit,
     fit_robust as fit_robust,
     fitted_start_geometry as fitted_start_geometry,
+    noise_outliers as noise_outliers,
     robust_component_noise as robust_component_noise,
     robust_noise as robust_noise,
 )

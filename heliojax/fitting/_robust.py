@@ -39,7 +39,7 @@ from .._parameters import and_masks, broadcast_model, is_batched, on_host
 from ._evaluate import choose_start_geometry, fleet_residuals_mrad, select_geometry
 from ._fit import CompiledFit, FitSolution
 from ._loss import CAUCHY_EFFICIENCY_FACTOR, Cauchy
-from ._pooling import flat_prior, fleet_prior
+from ._pooling import flat_prior, fleet_prior, well_determined
 from ._status import FitStatus
 
 RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
@@ -50,6 +50,28 @@ OUTLIER_TAIL = 1e-3
 
 NOISE_PRIOR_RECORDS = 10.0
 """Weight (in records) of the fleet's median noise in a heliostat's noise estimate."""
+
+NOISE_OUTLIER_Z = 3.5
+"""Modified z-score (``0.6745 (x - median) / MAD``, Iglewicz & Hoaglin 1993's cut-off)
+of a heliostat's log noise above which it is left out of the fleet's noise and prior
+statistics: a heliostat whose records are garbage (a wrong properties file, counts
+of another heliostat) would otherwise move the fleet median by a rank."""
+
+
+def noise_outliers(own: Float[ArrayLike, " H"], candidates: Bool[ArrayLike, " H"]) -> np.ndarray:
+    """``(H,)`` heliostats among ``candidates`` whose noise ``own`` (mrad) lies far above
+    the candidates' typical noise: modified z-score of ``log(own)`` above
+    :data:`NOISE_OUTLIER_Z` (upper side only; the MAD floored at 1e-6 so that a fleet
+    of equal noise excludes only what differs). Fewer than three candidates: none."""
+    own = np.asarray(own, float)
+    cand = np.asarray(candidates, bool) & np.isfinite(own) & (own > 0)
+    out = np.zeros(own.shape, bool)
+    if cand.sum() < 3:
+        return out
+    log_own = np.log(np.where(cand, own, 1.0))
+    med = np.median(log_own[cand])
+    mad = max(float(np.median(np.abs(log_own[cand] - med))), 1e-6)
+    return cand & (0.6745 * (log_own - med) / mad > NOISE_OUTLIER_Z)
 
 
 @typing.final
@@ -92,6 +114,7 @@ def robust_noise(
     dof = np.maximum(2 * n - n_free, 1)
     own = med / RAYLEIGH_MEDIAN * np.sqrt(np.maximum(2 * n, 1) / dof)
     good = (2 * n >= 3 * n_free) & np.isfinite(own) & (own > 0)
+    good &= ~noise_outliers(own, good)  # a garbage heliostat must not move the fleet's median
     if good.any():
         fleet = float(np.quantile(own[good], 0.5, method="lower"))  # broken heliostats only raise it
     else:
@@ -123,6 +146,7 @@ def robust_component_noise(
             med = np.nanmedian(np.where(n[:, None] > 0, a, 0.0), axis=1) if a.size else np.zeros(0)
         own[:, j] = med / 0.6744897501960817 * np.sqrt(np.maximum(2 * n, 1) / dof)
     good = (2 * n >= 3 * n_free)[:, None] & np.isfinite(own) & (own > 0)
+    good &= ~np.stack([noise_outliers(own[:, j], good[:, j]) for j in range(2)], axis=1)
     fleet = np.array(
         [float(np.quantile(own[good[:, j], j], 0.5, method="lower")) if good[:, j].any() else 1.0 for j in range(2)]
     )
@@ -196,9 +220,14 @@ def fit_robust(
         # model, whose spread is no noise estimate: the prior rows of those are scaled by
         # the fitted heliostats' median noise instead (else the prior outweighs their records).
         fitted = _fitted(sol)
-        typical = float(np.median(sigma1[fitted])) if fitted.any() else float(np.median(sigma1))
+        # heliostats of garbage records (noise far above the fleet's) teach the prior nothing
+        garbage = noise_outliers(sigma1, fitted)
+        typical_from = fitted & ~garbage
+        typical = float(np.median(sigma1[typical_from])) if typical_from.any() else float(np.median(sigma1))
         prior_noise = np.where(fitted, sigma1, typical)
-        prior = fleet_prior(sol, jnp.asarray(prior_noise, fleet.counts.dtype))
+        prior = fleet_prior(
+            sol, jnp.asarray(prior_noise, fleet.counts.dtype), learn_from=jnp.asarray(well_determined(sol) & ~garbage)
+        )
         # heliostats without a usable fit start from the fleet's centre
         start = _select_models(fitted, sol.model, prior.centre)
         sol = run(start, loss=Cauchy(scale), prior=prior)
@@ -293,11 +322,13 @@ def _batched_like(model: AbstractKinematicModel, batched: AbstractKinematicModel
 
 
 __all__ = [
+    "NOISE_OUTLIER_Z",
     "NOISE_PRIOR_RECORDS",
     "OUTLIER_TAIL",
     "RAYLEIGH_MEDIAN",
     "RobustFit",
     "fit_robust",
     "fitted_start_geometry",
+    "noise_outliers",
     "robust_noise",
 ]

@@ -123,11 +123,41 @@ def _check_actuator_law(p: HeliostatProperties) -> None:
             raise DataError(p.source, f"kinematics_properties.actuators[{i}]", problem)
 
 
+def _flag_unmodelled_actuator_keys(props: list[HeliostatProperties], log: _Log) -> None:
+    """Flags the optional actuator keys that say something heliojax's kinematics do not
+    model, so that their values would be ignored without a word: a non-zero
+    ``offset_shift`` or ``radius_shift`` (the actuator triangle is taken as ``offset``
+    and ``pivot_radius``; a calibration absorbs a small shift in its stroke offsets), and
+    a movement-angle range whose minimum exceeds its maximum (no command is limited by
+    it)."""
+    for p in props:
+        for i, act in enumerate(p.actuators):
+            field = f"kinematics_properties.actuators[{i}]"
+            for key in ("offset_shift", "radius_shift"):
+                value = act.get(key)
+                if isinstance(value, (int, float)) and not isinstance(value, bool) and value != 0:
+                    log.flag(
+                        p.source,
+                        f"{field}.{key}",
+                        f"{float(value):.6g} m is not modelled: heliojax takes the actuator triangle "
+                        "from offset and pivot_radius and ignores the shift (nominal errors will show it)",
+                    )
+            lo, hi = act.get("min_movement_angle"), act.get("max_movement_angle")
+            numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (lo, hi))
+            if numbers and float(lo) > float(hi):  # pyright: ignore[reportArgumentType]
+                log.flag(
+                    p.source,
+                    f"{field}.min_movement_angle",
+                    f"{float(lo):.6g} rad exceeds max_movement_angle {float(hi):.6g} rad (swapped?)",  # pyright: ignore[reportArgumentType]
+                )
+
+
 def _flag_properties(props: list[HeliostatProperties], log: _Log) -> None:
     """Physics checks per heliostat and robust fleet-outlier flags (module docstring)."""
     n = len(props)
     if n == 0:
         return
+    _flag_unmodelled_actuator_keys(props, log)
     a = {
         k: np.array([[float(p.actuators[i][k]) for i in range(2)] for p in props])
         for k in (

@@ -597,6 +597,12 @@ def records_to_fleet(
 # ======================================================================================
 
 
+def _few_names(names: list[str], shown: int = 5) -> str:
+    """``names`` joined by commas, at most ``shown`` of them and a count of the rest."""
+    head = ", ".join(names[:shown])
+    return head + (f" and {len(names) - shown} more" if len(names) > shown else "")
+
+
 def _listing(folder: Path, suffix: str, log: _Log) -> list[Path]:
     """The files in ``folder`` whose names end in ``suffix`` (not hidden), sorted; none
     for a missing folder; an unreadable one is named in the load report."""
@@ -695,6 +701,13 @@ def load_paint_directory(
             dirs.append(d)
     if heliostats is not None:
         wanted = set(heliostats)
+        if wanted and not wanted & {d.name for d in dirs}:  # another fleet's folder: one line, not a report
+            raise DataError(
+                root,
+                None,
+                f"holds none of the requested heliostats ({_few_names(sorted(wanted))}); "
+                f"its heliostats: {_few_names([d.name for d in dirs]) or 'none'}",
+            )
         for hid in sorted(wanted - {d.name for d in dirs}):
             log.skip(DataError(root / hid, None, f"heliostat {hid!r} requested but not in the directory"), heliostats=1)
         dirs = [d for d in dirs if d.name in wanted]
