@@ -227,8 +227,10 @@ def staged_paths(paths: Sequence[str | os.PathLike | None]) -> Iterator[list[Pat
     """Temporary paths beside each of ``paths`` (None stays None), to write a set of
     outputs that belong together; when the block completes they are renamed onto their
     destinations one right after the other (:func:`atomic_path` for the set), and
-    whatever was not renamed is removed. A run interrupted while writing (Ctrl-C while
-    the plot is drawn) leaves none of the set, not a summary without its results."""
+    whatever was not renamed is removed. The block writes each temporary by replacing it
+    (heliojax's atomic writers do); one left as the empty placeholder is not published.
+    A run interrupted while writing (Ctrl-C while the plot is drawn) leaves none of the
+    set, not a summary without its results."""
     dests = [None if p is None else _destination(p) for p in paths]
     temps: list[Path | None] = []
     try:
@@ -240,9 +242,11 @@ def staged_paths(paths: Sequence[str | os.PathLike | None]) -> Iterator[list[Pat
             fd, tmp = tempfile.mkstemp(dir=d.parent, prefix=f".{d.stem}.", suffix=TEMPORARY_MARK + d.suffix)
             os.close(fd)
             temps.append(Path(tmp))
+        placeholders = {t: os.stat(t).st_ino for t in temps if t is not None}
         yield temps
         for t, d in zip(temps, dests, strict=True):
-            if t is not None and d is not None:
+            # an output the block did not write (still the empty placeholder) is not published
+            if t is not None and d is not None and os.stat(t).st_ino != placeholders[t]:
                 _publish(str(t), d)
     finally:
         for t in temps:

@@ -531,12 +531,12 @@ def roles_to_masks(
         named = [
             f"{hid} ({int(idle[i].sum())})"
             for i, hid in enumerate(ids)
-            if hid in record_roles and train[i].any() and not test[i].any() and idle[i].any()
+            if hid in record_roles and train[i].any() and not test[i].any()
         ]
         if named:
             log.warning(
-                f"record roles: {len(named)} heliostat(s) get no held-out record (test roles are given for "
-                f"others only), and their other records are left out: {', '.join(named[:10])}"
+                f"record roles: {len(named)} heliostat(s) train but get no held-out record (test roles are "
+                f"given for others only; the count of their records left out in brackets): {', '.join(named[:10])}"
                 + (f" and {len(named) - 10} more" if len(named) > 10 else "")
             )
     return train, test

@@ -294,3 +294,22 @@ def test_cli_summary_with_paint_positions(shared_paint, tmp_path):
     assert doc["population"] == 27 and doc["level1"]["tracking_mrad"]["n"] == 27
     assert doc["inputs"]["receiver"].endswith("WRI1030197-tower-measurements.json")
     assert 0.5 < doc["level2"]["annual_efficiency_measured"] < 1.0
+
+
+def test_heliostats_not_measured_are_named(tmp_path, caplog):
+    """A heliostat whose status says it has no calibration, or without held-out records,
+    counts as not measured: named in a warning (it was left out without a word)."""
+    from heliojax.acceptance import read_summary
+
+    path = tmp_path / "summary.json"
+    doc = {
+        "heliostats": {
+            "AA01": {"status": "converged", "test_rms_mrad": 1.2, "n_test": 5},
+            "AA02": {"status": "diverged", "test_rms_mrad": 2.3, "n_test": 5},
+            "AA03": {"status": "converged", "test_rms_mrad": None, "n_test": 0},
+        }
+    }
+    path.write_text(json.dumps(doc))
+    with caplog.at_level("WARNING"):
+        assert read_summary(path) == {"AA01": 1.2}
+    assert "2 heliostat(s) count as not measured: AA02 (diverged), AA03 (no held-out records)" in caplog.text

@@ -629,6 +629,11 @@ CASES = [
         "BE36': listed twice",
     ),
     (
+        "summary.json without heliostats (level 2 passed on unmeasured numbers)",
+        lambda t: [*_accept(t, _file(t, "summary.json", '{"heliostats": {}}')), "--paint", str(hj.default_data_dir())],
+        "heliostats': empty",
+    ),
+    (
         "summary.json fitted heliostat without test_rms_mrad (was dropped without a word)",
         lambda t: [
             *_accept(t, _summary(t, '"BF56": {"status": "converged", "n_test": 40}')),
@@ -2402,6 +2407,25 @@ def test_an_aim_point_on_the_heliostats_own_mirror_is_refused(fitted_h5, tmp_pat
     assert len(err.strip().splitlines()) <= 2 and not out.exists()
 
 
+def test_aim_interrupted_while_drawing_keeps_the_previous_set(fitted_h5, tmp_path, capsys, monkeypatch):
+    """Ctrl-C while aim drew its plot left a new aim.csv and aim.h5 beside the previous
+    run's aim.png (and said no output was written): the set is now published together."""
+    import heliojax._plotting as plotting
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(plotting, "plot_aim", interrupted)
+    files = [tmp_path / n for n in ("aim.csv", "aim.h5", "aim.png")]
+    for f in files:
+        f.write_text("old")
+    argv = ["aim", str(fitted_h5), "--time", "2023-06-21T12:00", "--out", str(files[0]), "--h5", str(files[1])]
+    rc, _, err = _run([*argv, "--plot", str(files[2])], capsys)
+    assert rc == 130 and "interrupted" in err, err
+    assert [f.read_text() for f in files] == ["old"] * 3
+    assert not list(tmp_path.glob(".*heliojax-tmp*"))
+
+
 def test_aim_points_csv_with_a_byte_order_mark_reads(fitted_h5, tmp_path, capsys):
     path = tmp_path / "points.csv"
     path.write_text("\ufeff" + _aim_rows(), encoding="utf-8")
@@ -2486,8 +2510,8 @@ def test_a_records_file_without_training_records_is_refused(tmp_path, capsys):
 def test_a_run_stopped_between_its_outputs_leaves_no_stale_partner(tmp_path, capsys, monkeypatch):
     """Ctrl-C after summary.json was written and before results.h5: the previous run's
     results.h5 used to stay beside the new summary.json (another model), and aim and
-    plan read it without a hint. The previous outputs are removed before the new ones,
-    and the new ones are published as a set: after the interrupt neither is there."""
+    plan read it without a hint. The new ones are published as a set: after the
+    interrupt the previous run's set is there as it was (it used to be deleted)."""
     from heliojax import _results
 
     out, report = tmp_path / "results.h5", tmp_path / "summary.json"
@@ -2501,7 +2525,7 @@ def test_a_run_stopped_between_its_outputs_leaves_no_stale_partner(tmp_path, cap
     argv = ["calibrate", "--max-steps", "3", "--out", str(out), "--report", str(report), "--cache-dir", "none"]
     rc, _, err = _run([*argv, "--quiet"], capsys)
     assert rc == 130 and "outputs not finished were not written" in err, err
-    assert not report.exists() and not out.exists()  # neither the previous run's nor half of this one's
+    assert out.read_bytes() == b"previous run" and report.read_text() == "{}"  # the previous set, whole
     assert not list(tmp_path.glob(".*heliojax-tmp*"))  # and no temporary
 
 

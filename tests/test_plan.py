@@ -191,6 +191,11 @@ def test_record_roles_choose_the_training_and_held_out_records(caplog):
     with caplog.at_level(logging.WARNING, logger="heliojax._workflow"):
         train, test = roles_to_masks(fleet, {hid: {chosen[1]: "test"}, fleet.ids[1]: {other[0]: "train"}})
     assert not test[1].any() and f"{fleet.ids[1]} ({int(mask[1].sum()) - 1})" in caplog.text
+    caplog.clear()
+    every = {int(r): "train" for r in rid[1][mask[1]]}  # all of its records train: none left out, none held out
+    with caplog.at_level(logging.WARNING, logger="heliojax._workflow"):
+        roles_to_masks(fleet, {hid: {chosen[1]: "test"}, fleet.ids[1]: every})
+    assert f"{fleet.ids[1]} (0)" in caplog.text
     with pytest.raises(hj.ConfigError, match="BX99"):
         roles_to_masks(fleet, {"BX99": {1: "train"}})
     with pytest.raises(hj.ConfigError, match="record 1 of"):

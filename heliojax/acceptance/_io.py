@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import glob
+import logging
 import math
 import os
 import tomllib
@@ -19,6 +20,8 @@ from .._io import is_decimal, read_csv_rows
 from ..paint import TOWER_FILE_SUFFIX, read_heliostat_properties, read_tower
 from ..paint._common import _load_json
 from ._field import PARAMETERS, FieldData
+
+log = logging.getLogger(__name__)
 
 _BAD_STATUS = {"failed", "error", "skipped", "excluded"} | {
     "diverged",
@@ -133,12 +136,16 @@ def read_summary(path: str | os.PathLike) -> dict[str, float]:
     table = doc.get("heliostats") if isinstance(doc, dict) else None
     if not isinstance(table, dict):
         raise DataError(path, "heliostats", "missing or not an object")
+    if not table:
+        raise DataError(path, "heliostats", "empty: no heliostat to judge")
     out = {}
+    not_measured: list[str] = []
     for hid, rec in table.items():
         if not isinstance(rec, dict):
             raise DataError(path, f"heliostats.{hid}", "not an object")
         status = str(rec.get("status", "")).lower()
         if status in _BAD_STATUS:
+            not_measured.append(f"{hid} ({status})")
             continue
         if status not in _GOOD_STATUS:
             raise DataError(path, f"heliostats.{hid}.status", f"unknown status {rec.get('status')!r}"[:200])
@@ -154,6 +161,7 @@ def read_summary(path: str | os.PathLike) -> dict[str, float]:
                 f"no value, though status {rec.get('status')!r} and n_test {n_test} say it was measured",
             )
         if x is None:
+            not_measured.append(f"{hid} (no held-out records)")
             continue
         if isinstance(x, bool) or not isinstance(x, (int, float)):
             raise DataError(path, f"heliostats.{hid}.test_rms_mrad", f"not a number: {x!r}")
@@ -165,6 +173,13 @@ def read_summary(path: str | os.PathLike) -> dict[str, float]:
                     f"must be in (0, {PARAMETERS['tracking_mrad'].maximum:g}] mrad, got {x}",
                 )
             out[hid] = float(x)
+        else:
+            not_measured.append(f"{hid} (no held-out records)")
+    if not_measured:
+        log.warning(
+            f"{path}: {len(not_measured)} heliostat(s) count as not measured: {', '.join(not_measured[:10])}"
+            + (f" and {len(not_measured) - 10} more" if len(not_measured) > 10 else "")
+        )
     return out
 
 

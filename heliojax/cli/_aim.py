@@ -20,6 +20,7 @@ from ._common import (
     number,
     path_type,
     shown_value,
+    staged_outputs,
     target_name,
 )
 
@@ -351,76 +352,75 @@ def run(args) -> int:
             f"beyond_calibrated_sky: the sun is over {args.max_sky_gap:g} deg from every record they were fitted to "
             "(measure there, see heliojax plan, or allow it with --max-sky-gap)"
         )
-    with atomic_write(args.out, newline="") as f:
-        w = csv.writer(f)
-        w.writerow(
-            [
-                "heliostat_id",
-                "time_utc",
-                "sun_azimuth_deg",
-                "sun_elevation_deg",
-                "axis_1_counts",
-                "axis_2_counts",
-                "pointing_std_mrad",
-                "pointing_r95_mrad",
-                "ok",
-                "flags",
-            ]
-        )
-        for i, hid in enumerate(results.ids):
-            for j in range(counts.shape[1]):
-                c = counts[i, j]
-                w.writerow(
-                    [
-                        hid,
-                        "" if times is None else times[j].strftime("%Y-%m-%dT%H:%M:%SZ"),
-                        f"{az[j]:.4f}",
-                        f"{el[j]:.4f}",
-                        int(round(c[0])) if np.isfinite(c[0]) else "",
-                        int(round(c[1])) if np.isfinite(c[1]) else "",
-                        f"{std[i, j]:.4f}" if np.isfinite(std[i, j]) else "",
-                        f"{radius95[i, j]:.4f}" if np.isfinite(radius95[i, j]) else "",
-                        int(ok[i, j]),
-                        ";".join(k for k, v in flags.items() if v[i, j]),
-                    ]
-                )
-    log.info(f"wrote {args.out}: {int(ok.sum())} of {ok.size} commands without a flag")
-    if args.h5 is not None:
-        import h5py
+    with staged_outputs(args, ("out", "h5", "plot")):  # a set: an interrupt leaves the previous one
+        with atomic_write(args.out, newline="") as f:
+            w = csv.writer(f)
+            w.writerow(
+                [
+                    "heliostat_id",
+                    "time_utc",
+                    "sun_azimuth_deg",
+                    "sun_elevation_deg",
+                    "axis_1_counts",
+                    "axis_2_counts",
+                    "pointing_std_mrad",
+                    "pointing_r95_mrad",
+                    "ok",
+                    "flags",
+                ]
+            )
+            for i, hid in enumerate(results.ids):
+                for j in range(counts.shape[1]):
+                    c = counts[i, j]
+                    w.writerow(
+                        [
+                            hid,
+                            "" if times is None else times[j].strftime("%Y-%m-%dT%H:%M:%SZ"),
+                            f"{az[j]:.4f}",
+                            f"{el[j]:.4f}",
+                            int(round(c[0])) if np.isfinite(c[0]) else "",
+                            int(round(c[1])) if np.isfinite(c[1]) else "",
+                            f"{std[i, j]:.4f}" if np.isfinite(std[i, j]) else "",
+                            f"{radius95[i, j]:.4f}" if np.isfinite(radius95[i, j]) else "",
+                            int(ok[i, j]),
+                            ";".join(k for k, v in flags.items() if v[i, j]),
+                        ]
+                    )
+        log.info(f"{int(ok.sum())} of {ok.size} commands without a flag")
+        if args.h5 is not None:
+            import h5py
 
-        with atomic_h5(args.h5) as f:
-            f.attrs["target"] = args.target
-            f.attrs["origin_lla"] = origin
-            f.attrs["tail_dof"] = r.error_law.tail_dof
-            f.attrs["outlier_fraction"] = r.error_law.outlier_fraction
-            f.attrs["outlier_scale"] = r.error_law.outlier_scale
-            f.create_dataset("heliostat_id", data=np.array(results.ids, dtype=object), dtype=h5py.string_dtype())
-            if times is not None:
-                f.create_dataset("unix_time", data=np.array([t.timestamp() for t in times])).attrs["units"] = "s"
-            f.create_dataset("sun_enu", data=np.asarray(sun))
-            f.create_dataset("aim_point_enu", data=np.asarray(centre)).attrs["units"] = "m"
-            f.create_dataset("counts", data=counts)
-            f.create_dataset("pointing_cov_mrad2", data=np.asarray(r.pointing_cov_mrad2)).attrs["units"] = "mrad^2"
-            f.create_dataset("ok", data=ok)
-            f.create_dataset("sky_gap_deg", data=np.asarray(r.sky_gap_deg)).attrs["units"] = "deg"
-            for k, v in flags.items():
-                f.create_dataset(f"flags/{k}", data=v)
-        log.info(f"wrote {args.h5}")
-    if args.plot is not None:
-        from .._plotting import plot_aim, save_figure
+            with atomic_h5(args.h5) as f:
+                f.attrs["target"] = args.target
+                f.attrs["origin_lla"] = origin
+                f.attrs["tail_dof"] = r.error_law.tail_dof
+                f.attrs["outlier_fraction"] = r.error_law.outlier_fraction
+                f.attrs["outlier_scale"] = r.error_law.outlier_scale
+                f.create_dataset("heliostat_id", data=np.array(results.ids, dtype=object), dtype=h5py.string_dtype())
+                if times is not None:
+                    f.create_dataset("unix_time", data=np.array([t.timestamp() for t in times])).attrs["units"] = "s"
+                f.create_dataset("sun_enu", data=np.asarray(sun))
+                f.create_dataset("aim_point_enu", data=np.asarray(centre)).attrs["units"] = "m"
+                f.create_dataset("counts", data=counts)
+                f.create_dataset("pointing_cov_mrad2", data=np.asarray(r.pointing_cov_mrad2)).attrs["units"] = "mrad^2"
+                f.create_dataset("ok", data=ok)
+                f.create_dataset("sky_gap_deg", data=np.asarray(r.sky_gap_deg)).attrs["units"] = "deg"
+                for k, v in flags.items():
+                    f.create_dataset(f"flags/{k}", data=v)
+        if args.plot is not None:
+            from .._plotting import plot_aim, save_figure
 
-        distance = np.linalg.norm(np.asarray(centre)[None, :] - np.asarray(results.geometry.position), axis=-1)
-        hours = None if times is None else np.array([(t - times[0]).total_seconds() / 3600.0 for t in times])
-        fig = plot_aim(
-            list(results.ids),
-            np.asarray(r.pointing_cov_mrad2),
-            ok,
-            distance,
-            hours,
-            times[0] if times else None,
-            error_law=r.error_law,
-        )
-        save_figure(fig, args.plot)
-        log.info(f"wrote {args.plot}")
+            distance = np.linalg.norm(np.asarray(centre)[None, :] - np.asarray(results.geometry.position), axis=-1)
+            hours = None if times is None else np.array([(t - times[0]).total_seconds() / 3600.0 for t in times])
+            fig = plot_aim(
+                list(results.ids),
+                np.asarray(r.pointing_cov_mrad2),
+                ok,
+                distance,
+                hours,
+                times[0] if times else None,
+                error_law=r.error_law,
+            )
+            save_figure(fig, args.plot)
     print(summary_line(ok, std, radius95, flags, results.ids, results.status))
     return 0

@@ -3,9 +3,7 @@
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import os
 
 from ._common import (
     add_data_argument,
@@ -253,13 +251,9 @@ def run(args) -> int:
             f"{f['n_nn_fallback']} fall back to LM; LM alone: held-out median {fmt(f['lm_test_median_mrad'])} mrad; "
             f"pretrain {s['timing']['nn_pretrain_s']:.1f} s, fine-tune {s['timing']['nn_finetune_s']:.1f} s"
         )
-    # Each file is written atomically, but a run stopped between two of them would leave
-    # a new summary.json beside the previous run's results.h5: the previous files go first.
-    for previous in (args.report, args.out, args.plot):
-        if previous is not None:
-            with contextlib.suppress(OSError):  # none there; or not removable: its atomic write says why
-                os.unlink(previous)
-    # The three are written as a set: a run stopped while the plot is drawn leaves none.
+    # The three are written as a set, replacing the previous run's together: a run stopped
+    # while they are written leaves the previous set as it was (never a new summary.json
+    # beside the previous run's results.h5).
     with staged_paths((args.report, args.out, args.plot)) as (report, out, plot):
         if report is not None:
             write_summary(report, run_)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import collections.abc
+import contextlib
 import logging
 import math
 import os
@@ -626,3 +627,25 @@ def check_sun_possible(azimuth_deg: float | None, elevation_deg: float | None, l
             f"--sun-azimuth {azimuth_deg:g} --sun-elevation {elevation_deg:g}: the sun never stands there at "
             f"latitude {latitude_deg:.2f} (declination {declination:.1f}, beyond +-{MAX_DECLINATION_DEG})"
         )
+
+
+@contextlib.contextmanager
+def staged_outputs(args: argparse.Namespace, names: tuple[str, ...]) -> collections.abc.Iterator[None]:
+    """Within the block, the output paths ``args.<name>`` are temporaries (see
+    :func:`heliojax._io.staged_paths`); when it completes, they are renamed onto the
+    outputs together and each written output is logged. A command stopped while
+    writing leaves the previous set of outputs as it was, never half a new set."""
+    from .._io import staged_paths
+
+    finals = [getattr(args, n) for n in names]
+    with staged_paths(finals) as temps:
+        for n, t in zip(names, temps, strict=True):
+            setattr(args, n, t)
+        try:
+            yield
+        finally:
+            for n, f in zip(names, finals, strict=True):
+                setattr(args, n, f)
+    for f in finals:
+        if f is not None:
+            log.info(f"wrote {f}")

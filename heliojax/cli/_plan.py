@@ -16,6 +16,7 @@ from ._common import (
     integer,
     number,
     path_type,
+    staged_outputs,
     target_name,
 )
 
@@ -299,91 +300,88 @@ def run(args) -> int:
     after = np.asarray(plan.uncertainty_after_mrad)
     unix_c = np.asarray(candidates.context.unix_time)
     az, el = (np.degrees(np.asarray(x)) for x in direction_to_azimuth_elevation(candidates.context.sun))
-    with atomic_write(args.out, newline="") as f:
-        w = csv.writer(f)
-        w.writerow(
-            [
-                "heliostat_id",
-                "order",
-                "time_utc",
-                "target",
-                "sun_azimuth_deg",
-                "sun_elevation_deg",
-                "record_id",
-                "uncertainty_after_mrad",
-            ]
-        )
-        for i, hid in enumerate(results.ids):
-            for k, c in enumerate(chosen[i]):
-                if c < 0:
-                    continue
-                w.writerow(
-                    [
-                        hid,
-                        k + 1,
-                        _iso(float(unix_c[i, c])),
-                        str(target_of[i, c]),
-                        f"{az[i, c]:.4f}",
-                        f"{el[i, c]:.4f}",
-                        "" if record_ids is None else int(record_ids[i, c]),
-                        f"{after[i, k]:.4f}",
-                    ]
-                )
-    log.info(f"wrote {args.out}")
-    changed = np.zeros(h, bool)
-    if "superseded" in results.records:
-        changed = np.any(np.asarray(results.records["superseded"], bool), axis=1)
-    planned = chosen >= 0  # the uncertainty after the last planned measurement (it only falls)
-    final = np.where(planned.any(axis=1), np.min(np.where(planned, after, np.inf), axis=1), before)
-    order = np.lexsort((-before, ~changed))  # change points first, then the largest predicted uncertainty
-    if args.ranking is not None:
-        with atomic_write(args.ranking, newline="") as f:
+    with staged_outputs(args, ("out", "ranking", "records_out", "plot")):  # a set, as calibrate
+        with atomic_write(args.out, newline="") as f:
             w = csv.writer(f)
             w.writerow(
                 [
-                    "rank",
                     "heliostat_id",
-                    "status",
-                    "change_point",
-                    "uncertainty_before_mrad",
+                    "order",
+                    "time_utc",
+                    "target",
+                    "sun_azimuth_deg",
+                    "sun_elevation_deg",
+                    "record_id",
                     "uncertainty_after_mrad",
-                    "n_planned",
                 ]
             )
-            for rank, i in enumerate(order, start=1):
+            for i, hid in enumerate(results.ids):
+                for k, c in enumerate(chosen[i]):
+                    if c < 0:
+                        continue
+                    w.writerow(
+                        [
+                            hid,
+                            k + 1,
+                            _iso(float(unix_c[i, c])),
+                            str(target_of[i, c]),
+                            f"{az[i, c]:.4f}",
+                            f"{el[i, c]:.4f}",
+                            "" if record_ids is None else int(record_ids[i, c]),
+                            f"{after[i, k]:.4f}",
+                        ]
+                    )
+        changed = np.zeros(h, bool)
+        if "superseded" in results.records:
+            changed = np.any(np.asarray(results.records["superseded"], bool), axis=1)
+        planned = chosen >= 0  # the uncertainty after the last planned measurement (it only falls)
+        final = np.where(planned.any(axis=1), np.min(np.where(planned, after, np.inf), axis=1), before)
+        order = np.lexsort((-before, ~changed))  # change points first, then the largest predicted uncertainty
+        if args.ranking is not None:
+            with atomic_write(args.ranking, newline="") as f:
+                w = csv.writer(f)
                 w.writerow(
                     [
-                        rank,
-                        results.ids[i],
-                        results.status[i],
-                        int(changed[i]),
-                        f"{before[i]:.4f}",
-                        f"{final[i]:.4f}",
-                        int((chosen[i] >= 0).sum()),
+                        "rank",
+                        "heliostat_id",
+                        "status",
+                        "change_point",
+                        "uncertainty_before_mrad",
+                        "uncertainty_after_mrad",
+                        "n_planned",
                     ]
                 )
-        log.info(f"wrote {args.ranking}")
-    if args.records_out is not None and fleet is not None and record_ids is not None:
-        later = np.zeros(np.asarray(fleet.mask).shape, bool)
-        if args.before is not None:
-            later = np.asarray(fleet.mask) & (np.asarray(fleet.context.unix_time) >= args.before.timestamp())
-        with atomic_write(args.records_out, newline="") as f:
-            w = csv.writer(f)
-            w.writerow([*RECORDS_HEADER, "role"])
-            for i, hid in enumerate(results.ids):
-                for c in chosen[i][chosen[i] >= 0]:
-                    w.writerow([hid, int(record_ids[i, c]), "train"])
-                if hid in fleet.ids:
-                    r = list(fleet.ids).index(hid)
-                    for rid in np.asarray(fleet.record_id)[r][later[r]]:
-                        w.writerow([hid, int(rid), "test"])
-        log.info(f"wrote {args.records_out}")
-    if args.plot is not None:
-        from .._plotting import plot_plan, save_figure
+                for rank, i in enumerate(order, start=1):
+                    w.writerow(
+                        [
+                            rank,
+                            results.ids[i],
+                            results.status[i],
+                            int(changed[i]),
+                            f"{before[i]:.4f}",
+                            f"{final[i]:.4f}",
+                            int((chosen[i] >= 0).sum()),
+                        ]
+                    )
+        if args.records_out is not None and fleet is not None and record_ids is not None:
+            later = np.zeros(np.asarray(fleet.mask).shape, bool)
+            if args.before is not None:
+                later = np.asarray(fleet.mask) & (np.asarray(fleet.context.unix_time) >= args.before.timestamp())
+            with atomic_write(args.records_out, newline="") as f:
+                w = csv.writer(f)
+                w.writerow([*RECORDS_HEADER, "role"])
+                for i, hid in enumerate(results.ids):
+                    for c in chosen[i][chosen[i] >= 0]:
+                        w.writerow([hid, int(record_ids[i, c]), "train"])
+                    if hid in fleet.ids:
+                        r = list(fleet.ids).index(hid)
+                        for rid in np.asarray(fleet.record_id)[r][later[r]]:
+                            w.writerow([hid, int(rid), "test"])
+        if args.plot is not None:
+            from .._plotting import plot_plan, save_figure
 
-        figure = plot_plan(list(results.ids), before, after, chosen, changed, discrepancy=discrepancy is not None)
-        save_figure(figure, args.plot)
-        log.info(f"wrote {args.plot}")
+            figure = plot_plan(list(results.ids), before, after, chosen, changed, discrepancy=discrepancy is not None)
+            save_figure(figure, args.plot)
     print(
         f"{'rank':>4} {'heliostat':<10} {'change':>6} {'before':>8} {'after':>8}   [mrad, predicted over the envelope]"
     )
