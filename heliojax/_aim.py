@@ -114,13 +114,18 @@ class AimResult(eqx.Module):
     @property
     def pointing_std_mrad(self) -> Float[Array, "H N"]:
         """Predicted radial RMS pointing uncertainty (mrad) of each command."""
-        return jnp.sqrt(jnp.trace(self.pointing_cov_mrad2, axis1=-2, axis2=-1))
+        return _radial_std(self.pointing_cov_mrad2)
 
     @property
     def ok(self) -> Bool[Array, "H N"]:
         """Counts that may be sent: no flag raised."""
         raised = self.counts_out_of_range | self.sun_low[None, :] | self.unreliable[:, None] | self.unreachable
         return ~(raised | self.beyond_calibrated_sky | self.uncertainty_above_nominal)
+
+
+def _radial_std(cov: Float[Array, "*hn 2 2"]) -> Float[Array, "*hn"]:
+    """Radial RMS (mrad) of tangent-plane errors of covariance ``cov`` (mrad^2)."""
+    return jnp.sqrt(jnp.trace(cov, axis1=-2, axis2=-1))
 
 
 @eqx.filter_jit
@@ -273,7 +278,7 @@ def aim_fleet(
         pointing = jnp.full((h, n, 2, 2), jnp.nan, sun.dtype)
     if nominal_rms_mrad is not None:
         nominal = jnp.broadcast_to(jnp.asarray(nominal_rms_mrad, sun.dtype), (h,))
-        std = jnp.sqrt(jnp.trace(pointing, axis1=-2, axis2=-1))
+        std = _radial_std(pointing)
         above = jnp.isfinite(nominal)[:, None] & jnp.isfinite(std) & (std > nominal[:, None])
     else:
         above = jnp.zeros((h, n), bool)

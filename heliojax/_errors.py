@@ -72,3 +72,10 @@ def one_line(text: str, limit: int = MAX_REASON_LINE_CHARS) -> str:
     """``text`` as one line of a message: control characters escaped, at most ``limit``
     characters (the middle left out)."""
     return _clip(_printable(text), limit)
+
+
+def few_names(names: list[str], shown: int = 5) -> str:
+    """``names`` joined by commas for a message: at most ``shown`` of them and a count
+    of the rest (``"A, B and 3 more"``)."""
+    head = ", ".join(names[:shown])
+    return head + (f" and {len(names) - shown} more" if len(names) > shown else "")

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._errors import ConfigError
+from ._errors import ConfigError, few_names
 from ._fleet import bucket_size, pad_fleet
 from ._geometry import direction_to_azimuth_elevation
 from ._io import atomic_write
@@ -536,8 +536,7 @@ def roles_to_masks(
         if named:
             log.warning(
                 f"record roles: {len(named)} heliostat(s) train but get no held-out record (test roles are "
-                f"given for others only; the count of their records left out in brackets): {', '.join(named[:10])}"
-                + (f" and {len(named) - 10} more" if len(named) > 10 else "")
+                f"given for others only; the count of their records left out in brackets): {few_names(named, 10)}"
             )
     return train, test
 

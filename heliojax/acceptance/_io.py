@@ -14,7 +14,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from .._errors import ConfigError, DataError
+from .._errors import ConfigError, DataError, few_names
 from .._geometry import MAX_FIELD_EXTENT_M, wgs84_to_enu
 from .._io import is_decimal, read_csv_rows
 from ..paint import TOWER_FILE_SUFFIX, read_heliostat_properties, read_tower
@@ -176,10 +176,7 @@ def read_summary(path: str | os.PathLike) -> dict[str, float]:
         else:
             not_measured.append(f"{hid} (no held-out records)")
     if not_measured:
-        log.warning(
-            f"{path}: {len(not_measured)} heliostat(s) count as not measured: {', '.join(not_measured[:10])}"
-            + (f" and {len(not_measured) - 10} more" if len(not_measured) > 10 else "")
-        )
+        log.warning(f"{path}: {len(not_measured)} heliostat(s) count as not measured: {few_names(not_measured, 10)}")
     return out
 
 

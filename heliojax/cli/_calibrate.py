@@ -14,6 +14,7 @@ from ._common import (
     number,
     path_type,
     read_record_roles,
+    staged_outputs,
 )
 
 MODELS = ("auto", "stone8", "actuator", "auto+nn", "stone8+nn", "actuator+nn")
@@ -154,7 +155,6 @@ def add_parser(subparsers) -> None:
 
 def run(args) -> int:
     from .._errors import ConfigError, DataError
-    from .._io import staged_paths
     from .._kinematics import nominal_model
     from .._results import write_results_h5
     from .._workflow import calibrate, write_summary
@@ -254,20 +254,17 @@ def run(args) -> int:
     # The three are written as a set, replacing the previous run's together: a run stopped
     # while they are written leaves the previous set as it was (never a new summary.json
     # beside the previous run's results.h5).
-    with staged_paths((args.report, args.out, args.plot)) as (report, out, plot):
-        if report is not None:
-            write_summary(report, run_)
-        if out is not None:
-            write_results_h5(out, run_)
-        if plot is not None:
+    with staged_outputs(args, ("report", "out", "plot")):
+        if args.report is not None:
+            write_summary(args.report, run_)
+        if args.out is not None:
+            write_results_h5(args.out, run_)
+        if args.plot is not None:
             from .._plotting import plot_calibration, save_figure
             from .._progress import activity
 
             with activity("drawing the plot", logger=log):
-                save_figure(plot_calibration(run_), plot)
-    for path in (args.report, args.out, args.plot):
-        if path is not None:
-            log.info(f"wrote {path}")
+                save_figure(plot_calibration(run_), args.plot)
     return 0
 
 

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .._errors import DataError
+from .._errors import DataError, few_names
 from .._fleet import CENTROIDS, Centroid, Fleet, ReportEntry, bucket_size
 from .._geometry import TargetPlane, sun_direction, wgs84_to_enu
 from .._heliostat import HeliostatGeometry, LinearActuators, RecordContext
@@ -597,12 +597,6 @@ def records_to_fleet(
 # ======================================================================================
 
 
-def _few_names(names: list[str], shown: int = 5) -> str:
-    """``names`` joined by commas, at most ``shown`` of them and a count of the rest."""
-    head = ", ".join(names[:shown])
-    return head + (f" and {len(names) - shown} more" if len(names) > shown else "")
-
-
 def _listing(folder: Path, suffix: str, log: _Log) -> list[Path]:
     """The files in ``folder`` whose names end in ``suffix`` (not hidden), sorted; none
     for a missing folder; an unreadable one is named in the load report."""
@@ -705,8 +699,8 @@ def load_paint_directory(
             raise DataError(
                 root,
                 None,
-                f"holds none of the requested heliostats ({_few_names(sorted(wanted))}); "
-                f"its heliostats: {_few_names([d.name for d in dirs]) or 'none'}",
+                f"holds none of the requested heliostats ({few_names(sorted(wanted))}); "
+                f"its heliostats: {few_names([d.name for d in dirs]) or 'none'}",
             )
         for hid in sorted(wanted - {d.name for d in dirs}):
             log.skip(DataError(root / hid, None, f"heliostat {hid!r} requested but not in the directory"), heliostats=1)
