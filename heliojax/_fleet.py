@@ -112,11 +112,13 @@ MIN_FLEET_FOR_OUTLIERS = 3
 
 
 class ReportEntry(NamedTuple):
-    """One skipped or flagged input: the file, the dotted field (or None) and why."""
+    """One skipped or flagged input: the file, the dotted field (or None), why, and
+    whether a whole heliostat was skipped with it."""
 
     file: str
     field: str | None
     reason: str
+    heliostat: bool = False
 
 
 @dataclasses.dataclass(frozen=True)

@@ -43,6 +43,7 @@ from .fitting import (
     flat_prior,
     fleet_beam_errors_mrad,
     fleet_residuals_mrad,
+    noise_outliers,
 )
 
 log = logging.getLogger(__name__)
@@ -76,6 +77,9 @@ class CalibrationRun:
             (:func:`heliojax.fitting.find_change_points`), None when not run.
         superseded: ``(H, M)`` training records before a reported change point:
             not fitted (the fit calibrates the state since the change).
+        noise_outlier: ``(H,)`` fitted heliostats whose noise lies far above the
+            fleet's (:func:`heliojax.fitting.noise_outliers`): garbage records or a
+            wrong properties file; left out of every fleet-wide statistic and warned of.
         predictive: the pointing drift (:func:`temporal_drift`):
             ``drift_mrad2_per_day`` and how it was estimated (``summary.json``'s ``predictive``).
     """
@@ -105,6 +109,7 @@ class CalibrationRun:
     change_points: ChangePoints | None = None
     superseded: np.ndarray | None = None
     predictive: dict = dataclasses.field(default_factory=lambda: {"drift_mrad2_per_day": 0.0})
+    noise_outlier: np.ndarray | None = None
 
 
 def _stats(x: np.ndarray) -> tuple[float, float]:
@@ -119,6 +124,8 @@ def _json_float(x: float) -> float | None:
 
 
 _NOT_FITTED = (FitStatus.TOO_FEW_RECORDS, FitStatus.NO_RECORDS)
+_ATTEMPTED = (FitStatus.CONVERGED, FitStatus.MAX_STEPS, FitStatus.DIVERGED, FitStatus.FAILED)
+"""Statuses of heliostats whose records were fitted (their noise compared with the fleet's)."""
 
 
 def calibrate(
@@ -229,65 +236,98 @@ def calibrate(
 
     nominal_geometry = padded.geometry  # the plant's own values: the uncalibrated baseline
     options = dict(fit_options or {})
-    if start == "auto":
-        with activity("choosing start geometries", logger=log):
-            # judged by the fit: pooled fits run with a flat prior first, so these
-            # robust fits share their compiled program
-            judge = dict(options)
-            if robust and pool and "prior" not in judge:
-                judge["prior"] = flat_prior(model0, h_pad)
-            mask_j = jax.device_put(train)
-            t_start = time.perf_counter()
-            geometry, replaced, sources = (
-                fitted_start_geometry(model0, padded, mask=mask_j, **judge)
-                if robust
-                else choose_start_geometry(padded, model0, mask_j)
-            )
-        if robust:
-            # the fit program compiles here when a heliostat is proposed: say so, since
-            # the fit's own compile time below is then that of a cached program
-            log.info(
-                f"start geometry chosen in {time.perf_counter() - t_start:.2f} s (robust fits judge the "
-                "heliostats proposed for the fleet-typical actuators; the fit program's first compile is "
-                f"counted here): {int(np.asarray(replaced)[:n_real].sum())} of {n_real} start from them"
-            )
-        padded = _with_geometry(padded, geometry)
-    else:
-        replaced = sources = np.zeros(h_pad, bool)
 
-    log.info(f"fitting {n_real} heliostats ({model0.label()}, padded to {h_pad} x {m_pad})")
-
-    def fit_on(mask: np.ndarray):
+    def fit_on(fleet_g, mask: np.ndarray):
         if robust:
-            rf = fit_robust(model0, padded, mask=jax.device_put(mask), pool=pool, **options)
+            rf = fit_robust(model0, fleet_g, mask=jax.device_put(mask), pool=pool, **options)
             return rf.solution, rf.compile_s, rf.run_s, np.asarray(rf.weights), np.asarray(rf.outlier), rf.noise_mrad
-        res, c_s, f_s = fit_timed(model0, padded, mask=jax.device_put(mask), **options)
-        w = np.where(mask & np.asarray(padded.mask), 1.0, 0.0)
+        res, c_s, f_s = fit_timed(model0, fleet_g, mask=jax.device_put(mask), **options)
+        w = np.where(mask & np.asarray(fleet_g.mask), 1.0, 0.0)
         return res, c_s, f_s, w, np.zeros_like(mask), res.noise_mrad
 
-    with activity(f"fitting {n_real} heliostats", logger=log):
-        result, compile_s, fit_s, weights, outlier, noise = fit_on(train)
-    log.info(f"fitted in {fit_s:.2f} s (compile {compile_s:.2f} s)")
-    change_points, superseded = None, np.zeros_like(train)
-    if changes:
-        with activity("change-point scan", logger=log):
-            change_points, superseded = _scan_changes(result, padded, train, weights)
-        if superseded.any():
-            n_changed = int(np.any(superseded, axis=1).sum())
-            log.info(f"change points in {n_changed} heliostats: fitting their current state")
-            with activity(f"fitting the current state of {n_changed} heliostats", logger=log):
-                result, c2, f2, weights, outlier, noise = fit_on(train & ~superseded)
-            compile_s, fit_s = compile_s + c2, fit_s + f2
-    noise = np.asarray(noise)
+    def fit_stages(train_s: np.ndarray) -> _Stages:
+        """Start geometry, robust (pooled) fit and change points on ``train_s``."""
+        fleet_g = padded
+        if start == "auto":
+            with activity("choosing start geometries", logger=log):
+                # judged by the fit: pooled fits run with a flat prior first, so these
+                # robust fits share their compiled program
+                judge = dict(options)
+                if robust and pool and "prior" not in judge:
+                    judge["prior"] = flat_prior(model0, h_pad)
+                mask_j = jax.device_put(train_s)
+                t_start = time.perf_counter()
+                geometry, replaced, sources = (
+                    fitted_start_geometry(model0, padded, mask=mask_j, **judge)
+                    if robust
+                    else choose_start_geometry(padded, model0, mask_j)
+                )
+            if robust:
+                # the fit program compiles here when a heliostat is proposed: say so, since
+                # the fit's own compile time below is then that of a cached program
+                log.info(
+                    f"start geometry chosen in {time.perf_counter() - t_start:.2f} s (robust fits judge the "
+                    "heliostats proposed for the fleet-typical actuators; the fit program's first compile is "
+                    f"counted here): {int(np.asarray(replaced)[:n_real].sum())} of {n_real} start from them"
+                )
+            fleet_g = _with_geometry(padded, geometry)
+        else:
+            replaced = sources = np.zeros(h_pad, bool)
+
+        log.info(f"fitting {n_real} heliostats ({model0.label()}, padded to {h_pad} x {m_pad})")
+        with activity(f"fitting {n_real} heliostats", logger=log):
+            result, compile_s, fit_s, weights, outlier, noise = fit_on(fleet_g, train_s)
+        log.info(f"fitted in {fit_s:.2f} s (compile {compile_s:.2f} s)")
+        change_points, superseded = None, np.zeros_like(train_s)
+        if changes:
+            with activity("change-point scan", logger=log):
+                change_points, superseded = _scan_changes(result, fleet_g, train_s, weights)
+            if superseded.any():
+                n_changed = int(np.any(superseded, axis=1).sum())
+                log.info(f"change points in {n_changed} heliostats: fitting their current state")
+                with activity(f"fitting the current state of {n_changed} heliostats", logger=log):
+                    result, c2, f2, weights, outlier, noise = fit_on(fleet_g, train_s & ~superseded)
+                compile_s, fit_s = compile_s + c2, fit_s + f2
+        return _Stages(
+            fleet_g.geometry,
+            np.asarray(replaced, bool),
+            np.asarray(sources, bool),
+            result,
+            compile_s,
+            fit_s,
+            np.asarray(weights),
+            np.asarray(outlier),
+            np.asarray(noise),
+            change_points,
+            superseded,
+        )
+
+    stages = fit_stages(train)
+    garbage = noise_outliers(stages.noise, np.isin(np.asarray(stages.result.status), _ATTEMPTED))
+    garbage[n_real:] = False
+    if garbage.any():
+        # Fleet statistics (noise median, prior, start geometry, change-point weights, drift)
+        # must not carry a heliostat of garbage records: the others are fitted again without
+        # it; its own result is the first fit's.
+        log.warning(
+            f"{few_names([ids[i] for i in np.flatnonzero(garbage)])}: noise far above the fleet's (garbage records "
+            "or a wrong properties file?): left out of the fleet's statistics, the others fitted again without"
+        )
+        stages = _merge_stages(garbage, stages, fit_stages(train & ~garbage[:, None]))
+    padded = _with_geometry(padded, stages.geometry)
+    result, weights, outlier, noise = stages.result, stages.weights, stages.outlier, stages.noise
+    change_points, superseded = stages.change_points, stages.superseded
+    replaced, sources = stages.replaced, stages.sources
+    compile_s, fit_s = stages.compile_s, stages.fit_s
     fit_mask = train & ~superseded
     if drift:
 
         def fit_state(mask: np.ndarray) -> tuple[FitSolution, typing.Any]:
-            solution, *_, noise_mrad = fit_on(mask)
+            solution, *_, noise_mrad = fit_on(padded, mask)
             return solution, noise_mrad
 
         with activity("pointing drift and error law", logger=log):
-            predictive = temporal_drift(fit_state, padded, fit_mask)
+            predictive = temporal_drift(fit_state, padded, fit_mask & ~garbage[:, None])
         if predictive["validation_records"] < DRIFT_MIN_VALIDATION:
             log.info(
                 f"pointing drift not estimated: {predictive['validation_records']} later training records of "
@@ -343,9 +383,47 @@ def calibrate(
         change_points=change_points,
         superseded=superseded,
         predictive=predictive,
+        noise_outlier=garbage,
     )
     summary = _summarise(run, n_real, compile_s=compile_s, fit_s=fit_s)
     return dataclasses.replace(run, summary=summary)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Stages:
+    """What :func:`calibrate`'s fit stages give, per heliostat ``(H, ...)``."""
+
+    geometry: typing.Any
+    replaced: np.ndarray
+    sources: np.ndarray
+    result: FitSolution
+    compile_s: float
+    fit_s: float
+    weights: np.ndarray
+    outlier: np.ndarray
+    noise: np.ndarray
+    change_points: ChangePoints | None
+    superseded: np.ndarray
+
+
+def _merge_stages(take: np.ndarray, a: _Stages, b: _Stages) -> _Stages:
+    """Per heliostat, ``a``'s stages where ``take`` ``(H,)`` else ``b``'s (timings added;
+    the fleet-typical actuators' sources are ``b``'s)."""
+    h = take.shape[0]
+
+    def pick(x, y):
+        if not (eqx.is_array_like(x) and np.ndim(x) >= 1 and np.shape(x)[0] == h):
+            return y
+        keep = np.reshape(take, (-1,) + (1,) * (np.ndim(x) - 1))
+        out = np.where(keep, np.asarray(x), np.asarray(y))
+        return out if isinstance(y, np.ndarray) else jax.device_put(out)
+
+    fields = {f.name: getattr(b, f.name) for f in dataclasses.fields(b)}
+    for name in ("geometry", "replaced", "result", "weights", "outlier", "noise", "change_points", "superseded"):
+        fields[name] = jax.tree.map(pick, getattr(a, name), getattr(b, name))
+    fields["sources"] = b.sources
+    fields["compile_s"], fields["fit_s"] = a.compile_s + b.compile_s, a.fit_s + b.fit_s
+    return _Stages(**fields)
 
 
 DRIFT_MIN_RECORDS = 8
@@ -675,6 +753,8 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
     train_err = np.where(fit_mask, run.errors_mrad, np.nan)  # the training records the fit used
     val_err = np.where(run.val_mask, run.errors_mrad, np.nan)
     loo_rms, unc_train_rms, worse = _worse_than_nominal(run, fit_mask)
+    garbage = np.zeros(len(status), bool) if run.noise_outlier is None else np.asarray(run.noise_outlier, bool)
+    typical = _typical_noise(run, garbage)
     heliostats = {}
     pooled, pooled_unc = [], []
     for i in range(n_real):
@@ -704,6 +784,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
             "worse_than_nominal": bool(worse[i]),
             **_change_entry(run, i),
             **_recent_outliers(run, fit_mask, i),
+            "noise_outlier": bool(garbage[i]),
             "lm_steps": int(np.asarray(res.n_steps)[i]),
             "noise_mrad": _json_float(float(run.noise_mrad[i])) if run.noise_mrad is not None else None,
             "n_outliers": int(np.sum(run.outlier[i])) if run.outlier is not None else 0,
@@ -716,6 +797,13 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
         }
         if ids[i] in run.too_few:
             entry["split_note"] = run.too_few[ids[i]]
+        if garbage[i]:
+            note = (
+                f"its noise {float(np.asarray(run.noise_mrad)[i]):.3g} mrad per component is far above the "
+                f"fleet's typical {typical:.3g} mrad (garbage records or a wrong properties file?): left out of "
+                "the fleet's statistics; check its records and properties before aiming with this calibration"
+            )
+            entry["warning"] = note if entry["warning"] is None else f"{entry['warning']}; {note}"
         heliostats[ids[i]] = entry
         if st == FitStatus.CONVERGED:
             t = test_err[i][np.isfinite(test_err[i])]
@@ -746,6 +834,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
             "uncalibrated_test_rms_mrad": _json_float(u_rms),
             "worse_than_nominal": [ids[i] for i in range(n_real) if worse[i]],
             "change_points": [h for h, e in heliostats.items() if e["change_point"] is not None],
+            "noise_outliers": [h for h, e in heliostats.items() if e["noise_outlier"]],
             "statuses": {
                 **{s.label: int(np.sum(status[:n_real] == s)) for s in FitStatus if s != FitStatus.NO_RECORDS},
                 "no_training_records": int(np.sum(status[:n_real] == FitStatus.NO_RECORDS)),
@@ -754,6 +843,16 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
         "predictive": {k: (_json_float(v) if isinstance(v, float) else v) for k, v in run.predictive.items()},
         "timing": {"compile_s": float(compile_s), "fit_s": float(fit_s)},
     }
+
+
+def _typical_noise(run: CalibrationRun, garbage: np.ndarray) -> float:
+    """The fleet's median noise (mrad per component) over the fitted heliostats that
+    are not noise outliers (NaN without such)."""
+    if run.noise_mrad is None:
+        return math.nan
+    st = np.asarray(run.result.status)
+    use = np.isin(st, _ATTEMPTED) & ~garbage & np.isfinite(run.noise_mrad)
+    return float(np.median(np.asarray(run.noise_mrad)[use])) if use.any() else math.nan
 
 
 def _worse_than_nominal(run: CalibrationRun, fit_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -790,6 +889,8 @@ def _status_reason(st: FitStatus, run: CalibrationRun, i: int, n_records: int, s
         FitStatus.FAILED: "the solver failed",
         FitStatus.NO_RECORDS: f"split {run.split_kind} leaves 0 of {n_records} records for training",
     }[st]
+    if st == FitStatus.NO_RECORDS and n_records == 0:
+        return "no_training_records", "no valid record loaded (the load report names why each was skipped)"
     if why is not None and note and st in (FitStatus.NO_RECORDS, FitStatus.TOO_FEW_RECORDS):
         why = f"{why} ({note})"
     return ("no_training_records" if st == FitStatus.NO_RECORDS else st.label), why

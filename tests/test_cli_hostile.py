@@ -30,6 +30,9 @@ def _run(argv: list[str], capsys) -> tuple[int, str, str]:
     return rc, captured.out, captured.err
 
 
+_CSR_WITH_GAUSSIAN = '[trace]\ncsr = 0.5\nsunshape = "gaussian"\n'
+
+
 def _config(tmp: Path, text: str | bytes) -> str:
     path = tmp / "config.toml"
     path.write_bytes(text if isinstance(text, bytes) else text.encode())
@@ -204,6 +207,11 @@ CASES = [
         "trace circumsolar ratio with the pillbox sun",
         lambda t: ["trace", str(t), "--heliostat", "AA39", "--sunshape", "pillbox", "--csr", "0.5"],
         "--csr applies to --sunshape buie only",
+    ),
+    (
+        "trace circumsolar ratio and Gaussian sun from a config file (named --csr)",
+        lambda t: ["trace", str(t), "--heliostat", "AA39", "--config", _config(t, _CSR_WITH_GAUSSIAN)],
+        "config.toml: [trace] csr applies to --sunshape buie only, not to ",
     ),
     ("nan learning rate", lambda t: ["reconstruct", "--learning-rate", "nan"], "--learning-rate"),
     ("zero reconstruction steps", lambda t: ["reconstruct", "--steps", "0"], "--steps"),
@@ -2612,3 +2620,61 @@ def test_a_converged_fit_without_a_finite_covariance_spoils_only_itself(fitted_h
     rows = list(csv.DictReader(out.read_text().splitlines()))
     assert all("unreliable" in r["flags"] for r in rows if r["heliostat_id"] == ids[1])
     assert any(r["ok"] == "1" for r in rows if r["heliostat_id"] == ids[0])
+
+
+def _copy_heliostat(data: Path, source: str, new: str, *, new_ids: bool, north_deg: float) -> None:
+    """Heliostat ``new``: ``source``'s folder copied (its properties ``north_deg`` north);
+    with ``new_ids`` its records get new ids, listed for ``new`` in the timestamps file."""
+    shutil.copytree(data / source, data / new)
+    props = data / new / "Properties" / f"{source}-heliostat-properties.json"
+    doc = json.loads(props.read_text())
+    doc["heliostat_position"][0] += north_deg
+    props.unlink()
+    (props.parent / f"{new}-heliostat-properties.json").write_text(json.dumps(doc))
+    if new_ids:
+        stamps = json.loads((data / "calibration-timestamps.json").read_text())
+        for f in sorted((data / new / "Calibration").glob("*.json")):
+            rid = f.name.split("-")[0]
+            stamps[str(int(rid) + 5_000_000)] = {**stamps[rid], "heliostat_id": new}
+            f.rename(f.with_name(f"{int(rid) + 5_000_000}-calibration-properties.json"))
+        (data / "calibration-timestamps.json").write_text(json.dumps(stamps))
+
+
+def test_a_copied_heliostat_folder_is_named_and_keeps_the_genuine_one(tmp_path, capsys):
+    """A trial copied BF56's folder to ZZ56 (same properties, same record files): both
+    were dropped for sharing a position, calibrate named only five of ZZ56's records
+    (BF56 nowhere), and plan said nothing. The copy's records belong to BF56 by the
+    timestamps file, so ZZ56 is the copy: it is skipped and named first, BF56 kept;
+    plan names what it skips of the fitted heliostats' records."""
+    data = tmp_path / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    _copy_heliostat(data, "BF56", "ZZ56", new_ids=False, north_deg=0.0)
+    fleet = hj.load_paint_directory(data)
+    assert fleet.ids == ("BE36", "BF56", "BG23", "BH20", "BL14") and fleet.report.records_loaded == 392
+    out_dir = tmp_path / "out"
+    rc, _, err = _run(["calibrate", str(data), "--out", str(out_dir / "results.h5"), "--quiet"], capsys)
+    assert rc == 0, err
+    skipped = [line for line in err.splitlines() if "ZZ56" in line or "BF56" in line]
+    assert "ZZ56-heliostat-properties.json: heliostat_position: the same position as heliostat 'BF56'" in skipped[0]
+    # plan reads the fitted heliostats' records: one of them damaged since is named too
+    damaged = sorted((data / "BF56" / "Calibration").glob("*.json"))[0]
+    damaged.write_text("{")
+    rc, _, err = _run(["plan", str(out_dir / "results.h5"), "--paint-dir", str(data), "--budget", "2",
+                       "--out", str(tmp_path / "plan.csv"), "--quiet"], capsys)  # fmt: skip
+    assert rc == 0 and "skipped 0 heliostat(s) and 1 record(s)" in err and damaged.name in err, err
+    assert "BF56" in (tmp_path / "plan.csv").read_text()
+
+
+def test_one_measurement_in_two_heliostats_is_skipped_in_both(tmp_path):
+    """A plausible copy (BF56's records under new ids, listed for ZZ56 in the timestamps
+    file, 33 m north) doubled BH20's held-out RMS through the pooled prior. A measurement
+    (time, counts, sun and spots) cannot be two heliostats': skipped in both, named."""
+    data = tmp_path / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    _copy_heliostat(data, "BF56", "ZZ56", new_ids=True, north_deg=3e-4)
+    report = hj.load_paint_directory(data).report
+    n_bf56 = len(list((data / "BF56" / "Calibration").glob("*.json")))
+    assert report.records_loaded == 392 - n_bf56 and report.records_skipped == 2 * n_bf56
+    reasons = [(Path(e.file).parts[-3], e.reason) for e in report.skipped]
+    assert sum(h == "BF56" and "a record of heliostat ZZ56" in r for h, r in reasons) == n_bf56
+    assert sum(h == "ZZ56" and "a record of heliostat BF56" in r for h, r in reasons) == n_bf56

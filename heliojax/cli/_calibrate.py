@@ -14,6 +14,7 @@ from ._common import (
     number,
     path_type,
     read_record_roles,
+    report_load,
     staged_outputs,
 )
 
@@ -168,6 +169,7 @@ def run(args) -> int:
     test_fleet = None
     if args.test_data is not None:
         test_fleet = load_paint_directory(args.test_data, centroid=args.centroid)
+        report_load(test_fleet.report, args.test_data)
         if not set(test_fleet.ids) & set(fleet.ids):
             raise DataError(
                 args.test_data, None, f"--test-data holds none of the heliostats fitted ({', '.join(fleet.ids)})"

@@ -63,19 +63,34 @@ def load_fleet(args):
     path = args.data_dir if args.data_dir is not None else default_data_dir()
     with activity(f"loading {path}", logger=log):
         fleet = load_paint_directory(path, centroid=args.centroid)
-    report = fleet.report
+    report_load(fleet.report, path)
+    return fleet
+
+
+def option_label(args, dest: str, flag: str) -> str:
+    """How a message names option ``dest``: ``flag``, or the config file and key its
+    value came from (``--config``; a command line that gives another value wins)."""
+    where, value = getattr(args, "config_origin", {}).get(dest, (flag, None))
+    return where if where != flag and getattr(args, dest, None) == value else flag
+
+
+def report_load(report, path) -> None:
+    """Say what a load (:class:`heliojax.LoadReport`) of ``path`` loaded, and name what
+    it skipped (warnings, shown even with ``--quiet``): every skipped heliostat first,
+    then records up to :data:`MAX_LISTED` lines in all."""
     log.info(f"loaded {report.heliostats_loaded} heliostats, {report.records_loaded} records from {path}")
     if report.skipped:
         log.warning(
             f"skipped {report.heliostats_skipped} heliostat(s) and {report.records_skipped} record(s) of {path}:"
         )
-        for entry in report.skipped[:MAX_LISTED]:
+        whole = [e for e in report.skipped if e.heliostat]
+        listed = whole + [e for e in report.skipped if not e.heliostat][: max(MAX_LISTED - len(whole), 0)]
+        for entry in listed:
             log.warning(f"  {_relative(entry.file, path)}: {entry.field or '-'}: {entry.reason}")
-        if len(report.skipped) > MAX_LISTED:
-            log.warning(f"  ... and {len(report.skipped) - MAX_LISTED} more: `heliojax inspect {path}` lists them")
+        if len(report.skipped) > len(listed):
+            log.warning(f"  ... and {len(report.skipped) - len(listed)} more: `heliojax inspect {path}` lists them")
     if report.flags:
         log.info(f"{len(report.flags)} suspicious input(s) loaded: `heliojax inspect {path}` lists them")
-    return fleet
 
 
 MAX_LISTED = 5

@@ -210,7 +210,10 @@ def _apply_config(
             if dest not in on_line:
                 for dropped in (dest, *(partners or {}).get(dest, ())):
                     defaults.pop(dropped, None)
-    subparser.set_defaults(**defaults)
+    # where each value the command line leaves to the config comes from (for its messages:
+    # heliojax.cli._common.option_label)
+    origin = {d: (f"{path}: [{command}] {keys[d]}", v) for d, v in defaults.items()}
+    subparser.set_defaults(**defaults, config_origin=origin)
 
 
 _FINER_THAN_MICROSECONDS = re.compile(r"(\d{4}-\d{2}-\d{2}[Tt ]\d{2}:\d{2}:\d{2})\.\d{7,}", re.ASCII)

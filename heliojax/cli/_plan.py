@@ -16,6 +16,7 @@ from ._common import (
     integer,
     number,
     path_type,
+    report_load,
     staged_outputs,
     target_name,
 )
@@ -228,7 +229,9 @@ def run(args) -> int:
     record_ids = target_of = None
     fleet = None
     if args.paint_dir is not None:
-        fleet = load_paint_directory(args.paint_dir, heliostats=results.ids, origin=origin)
+        with activity(f"loading {args.paint_dir}", logger=log):
+            fleet = load_paint_directory(args.paint_dir, heliostats=results.ids, origin=origin)
+        report_load(fleet.report, args.paint_dir)
         times = np.asarray(fleet.context.unix_time)
         usable = np.asarray(fleet.mask) & np.isfinite(times)
         if args.before is not None:

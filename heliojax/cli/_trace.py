@@ -10,7 +10,7 @@ import sys
 import time
 from pathlib import Path
 
-from ._common import check_sun_possible, heliostat_id, integer, number, path_type, target_name
+from ._common import check_sun_possible, heliostat_id, integer, number, option_label, path_type, target_name
 
 log = logging.getLogger(__name__)
 
@@ -183,9 +183,12 @@ def run(args: argparse.Namespace) -> int:
     from .._progress import progress_bar
     from ..paint import read_calibration_record, read_heliostat_properties, read_tower
 
-    for flag, value, shape in (("--csr", args.csr, "buie"), ("--sigma-mrad", args.sigma_mrad, "gaussian")):
-        if value is not None and args.sunshape != shape:  # a parameter of another sun shape would be ignored
-            raise ConfigError(f"{flag} applies to --sunshape {shape} only, not to --sunshape {args.sunshape}")
+    for dest, flag, shape in (("csr", "--csr", "buie"), ("sigma_mrad", "--sigma-mrad", "gaussian")):
+        if getattr(args, dest) is not None and args.sunshape != shape:  # another sun shape's: would be ignored
+            raise ConfigError(
+                f"{option_label(args, dest, flag)} applies to --sunshape {shape} only, not to "
+                f"{option_label(args, 'sunshape', '--sunshape')} {args.sunshape}"
+            )
     if (args.record is None) == (args.sun_azimuth is None or args.sun_elevation is None):
         raise ConfigError("give either --record or both --sun-azimuth and --sun-elevation")
     csr = DEFAULT_CSR if args.csr is None else args.csr

@@ -37,7 +37,7 @@ class _Log:
     def skip(self, err: DataError, records: int = 0, heliostats: int = 0) -> None:
         if self.strict:
             raise err
-        self.skipped.append(ReportEntry(str(err.file), err.field, err.reason))
+        self.skipped.append(ReportEntry(str(err.file), err.field, err.reason, heliostats > 0))
         self.records_skipped += records
         self.heliostats_skipped += heliostats
 

@@ -313,22 +313,6 @@ def _assemble(
             bad_props.add(p.heliostat_id)
             continue
         props_by_id[p.heliostat_id] = p
-    at: dict[tuple, list[str]] = collections.defaultdict(list)
-    for hid, p in props_by_id.items():
-        at[tuple(p.position_lla)].append(hid)
-    for same in (hids for hids in at.values() if len(hids) > 1):
-        for hid in same:  # a properties file copied in: which heliostat it describes is unknown
-            others = ", ".join(repr(o) for o in same if o != hid)
-            log.skip(
-                DataError(
-                    props_by_id.pop(hid).source,
-                    "heliostat_position",
-                    f"the same position as heliostat {others}: one properties file copied to the other's place",
-                ),
-                heliostats=1,
-            )
-            bad_props.add(hid)
-
     by_h: dict[str, list[CalibrationRecord]] = collections.defaultdict(list)
     for r in records:
         if not isinstance(r.heliostat_id, str) or not r.heliostat_id:
@@ -339,6 +323,27 @@ def _assemble(
             )
             continue
         by_h[r.heliostat_id].append(r)
+
+    at: dict[tuple, list[str]] = collections.defaultdict(list)
+    for hid, p in props_by_id.items():
+        at[tuple(p.position_lla)].append(hid)
+    for same in (hids for hids in at.values() if len(hids) > 1):
+        # A properties file copied in: which heliostat it describes is unknown, unless one
+        # alone has records (the others' were refused, e.g. claimed by the timestamps file
+        # for another heliostat: a copied folder) - then the others are the copies.
+        with_records = [hid for hid in same if by_h.get(hid)]
+        keep = with_records[0] if len(with_records) == 1 else None
+        for hid in same:
+            if hid == keep:
+                continue
+            others = ", ".join(repr(o) for o in same if o != hid)
+            why = (
+                f"the same position as heliostat {others}, which has the records: a copy of its folder"
+                if keep is not None
+                else f"the same position as heliostat {others}: one properties file copied to the other's place"
+            )
+            log.skip(DataError(props_by_id.pop(hid).source, "heliostat_position", why), heliostats=1)
+            bad_props.add(hid)
     for hid in sorted(set(by_h) - set(props_by_id), key=str):
         rs = by_h[hid]
         log.skip(
@@ -363,6 +368,13 @@ def _assemble(
     if not ids:
         rep = log.report()
         raise DataError(log.source, None, "no heliostat could be loaded\n" + rep.format())
+    owners: dict[tuple, set[str]] = collections.defaultdict(set)  # measurement -> heliostats holding it
+    for hid in ids:
+        for r in by_h.get(hid, []):
+            try:
+                owners[_measurement(r)].add(hid)
+            except TypeError:  # an unvalidated record with unhashable parts: checked later
+                continue
     goods: list[list[CalibrationRecord]] = []
     for hid in ids:
         props = props_by_id[hid]
@@ -382,6 +394,17 @@ def _assemble(
                     same = first.get(_measurement(r), r.record_id)
                 except TypeError:  # an unvalidated record with unhashable parts: not compared
                     same = r.record_id
+                try:
+                    copied_from = sorted(owners.get(_measurement(r), set()) - {hid})
+                except TypeError:
+                    copied_from = []
+                if copied_from:
+                    raise DataError(
+                        r.source,
+                        "record_id",
+                        f"the same measurement as a record of heliostat {few_names(copied_from)} (identical time, "
+                        "counts, sun and spots): which heliostat it belongs to is unknown, skipped in both",
+                    )
                 if same != r.record_id:
                     raise DataError(
                         r.source,
