@@ -1924,6 +1924,25 @@ def test_sigterm_is_a_line_and_exit_143(tmp_path):
     assert r.stderr.strip() == "heliojax inspect: terminated: outputs not finished were not written", r.stderr
 
 
+def test_ctrl_c_after_the_command_finished_changes_nothing(tmp_path):
+    """A Ctrl-C while the interpreter shut down after a finished command exited 130
+    without a word (its outputs complete): the program ignores it once the command has
+    said how it ended, and exits with the command's status."""
+    import subprocess
+    import sys
+
+    code = (
+        "import atexit, os, signal, sys\n"
+        "from heliojax.cli._main import main\n"
+        "atexit.register(lambda: os.kill(os.getpid(), signal.SIGINT))\n"
+        "sys.argv = ['heliojax', '--version']\n"
+        "raise SystemExit(main())\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env, cwd=tmp_path)
+    assert r.returncode == 0 and r.stderr == "" and r.stdout.strip() == hj.__version__, (r.returncode, r.stderr)
+
+
 def test_a_cache_folder_that_cannot_be_made_is_named_or_done_without(tmp_path, capsys, monkeypatch):
     """$HELIOJAX_CACHE_DIR naming a file is an error naming it (was a bare "File exists");
     the default cache under a $HOME that is a file is done without, with a warning."""

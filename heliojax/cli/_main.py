@@ -355,6 +355,7 @@ def main(argv: list[str] | None = None) -> int:
     """``heliojax COMMAND ...``; the exit status: 0, 1 (fetch: some files failed), 2
     (bad input, a usage error), 130 (Ctrl-C) or 143 (SIGTERM): interrupted, a line
     without a traceback, and no output half written."""
+    from_console = argv is None  # the `heliojax` program itself, not a caller in Python
     argv = sys.argv[1:] if argv is None else list(argv)
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _terminate) if in_main_thread else None
@@ -381,6 +382,10 @@ def main(argv: list[str] | None = None) -> int:
             sys.stderr = stderr
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+        if from_console and in_main_thread:
+            # the command has finished (its outputs written or not, and said so): a Ctrl-C
+            # while the interpreter shuts down would exit 130 without a word
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _silence_stdout() -> None:
