@@ -1647,6 +1647,15 @@ DAMAGED_DATA = [
         0,
     ),
     (
+        "weather row a day off its record's time (weather of another moment)",
+        lambda d: (
+            "calibration-with-weather.csv",
+            (_edit_weather(d, "timestamp", "2022-06-13T13:27:37Z"), "timestamp")[1],
+        ),
+        "flagged",
+        0,
+    ),
+    (
         "weather sample id of 1e308",
         lambda d: ("calibration-with-weather.csv", _edit_weather(d, "sample_id", "1e308")),
         "skipped",
@@ -2697,3 +2706,39 @@ def test_one_measurement_in_two_heliostats_is_skipped_in_both(tmp_path):
     reasons = [(Path(e.file).parts[-3], e.reason) for e in report.skipped]
     assert sum(h == "BF56" and "a record of heliostat ZZ56" in r for h, r in reasons) == n_bf56
     assert sum(h == "ZZ56" and "a record of heliostat BF56" in r for h, r in reasons) == n_bf56
+
+
+SETS_OF_OUTPUTS = [
+    (
+        "trace",
+        ["trace", "--heliostat", "BE36", "--sun-azimuth", "-20", "--sun-elevation", "40", "--pixels", "32",
+         "--rays-per-point", "4", "--steps", "1", "--resolution", "8"],
+        ("BE36-az-20_el40-flux.h5", "BE36-az-20_el40-flux.png", "BE36-az-20_el40-summary.json"),
+    ),
+    (
+        "reconstruct",
+        ["reconstruct", "--steps", "1", "--images", "2", "--rays-per-point", "4"],
+        ("control_points.h5", "reconstruction.png", "reconstruction.json"),
+    ),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("argv", "names"), [c[1:] for c in SETS_OF_OUTPUTS], ids=[c[0] for c in SETS_OF_OUTPUTS])
+def test_a_command_stopped_while_drawing_keeps_its_previous_outputs(argv, names, tmp_path, capsys, monkeypatch):
+    """Ctrl-C while trace or reconstruct drew its figure left the new HDF5 beside the
+    previous run's figure and summary. Their outputs are now published as a set."""
+    import matplotlib.figure
+
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in names:
+        (out / name).write_text("previous run")
+
+    def interrupted(*_args, **_kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", interrupted)
+    rc, _, err = _run([*argv, "--out", str(out), "--quiet"], capsys)
+    assert rc == 130 and "outputs not finished were not written" in err, err
+    assert sorted(p.name for p in out.iterdir()) == sorted(names)  # no temporary left
+    assert all((out / name).read_text() == "previous run" for name in names)

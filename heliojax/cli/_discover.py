@@ -14,6 +14,8 @@ from ._common import (
     load_fleet,
     number,
     path_type,
+    staged_folder,
+    staged_outputs,
 )
 
 BASES = ("auto", "actuator", "stone8")
@@ -151,15 +153,17 @@ def run(args) -> int:
     if note is not None and np.asarray(fleet.mask).any():
         log.warning(note)
     result = discover(fleet, config)
-    write_report(args.report, result.report)
-    log.info(f"wrote {args.report}")
-    if args.markdown is not None:
-        write_markdown(args.markdown, result.report)
-        log.info(f"wrote {args.markdown}")
+    # the report, its markdown and the figures are published together: a run stopped
+    # while drawing leaves the previous ones as they were
+    with staged_outputs(args, ("report", "markdown")):
+        write_report(args.report, result.report)
+        if args.markdown is not None:
+            write_markdown(args.markdown, result.report)
+        if args.figures is not None:
+            with activity("drawing the figures", logger=log):
+                paths = staged_folder(args.figures, lambda folder: write_figures(result, folder))
     if args.figures is not None:
-        with activity("drawing the figures", logger=log):
-            paths = write_figures(result, args.figures)
-        log.info(f"wrote {len(paths)} figures to {args.figures}")
+        log.info(f"wrote {len(paths)} figures to {args.figures}")  # pyright: ignore[reportPossiblyUnboundVariable]
     if result.report.get("not_tested_reason"):
         log.warning(f"nothing tested: {result.report['not_tested_reason']}")
     print(markdown_summary(result.report))

@@ -7,6 +7,7 @@ import argparse
 import json
 import math
 import sys
+import typing
 from pathlib import Path
 
 from ._common import heliostat_id, integer, number, path_type
@@ -264,7 +265,7 @@ def _write_outputs(out: Path, facets, fig, report: dict, *, extra=None, attrs=No
     import numpy as np
 
     from .._errors import ConfigError
-    from .._io import atomic_h5, atomic_path, atomic_write
+    from .._io import atomic_h5, atomic_path, atomic_write, staged_paths
 
     bad = _non_finite(report)
     if bad or not np.isfinite(np.asarray(facets.control_points)).all():
@@ -272,19 +273,22 @@ def _write_outputs(out: Path, facets, fig, report: dict, *, extra=None, attrs=No
             f"the reconstruction diverged ({', '.join(bad[:3]) or 'control points'} not finite): "
             "lower --learning-rate or --flux-weight; nothing written"
         )
-    with atomic_h5(out / "control_points.h5") as f:
-        f.create_dataset("control_points", data=np.asarray(facets.control_points))
-        f.create_dataset("translations", data=np.asarray(facets.translations))
-        for name, value in (extra or {}).items():
-            f.create_dataset(name, data=np.asarray(value))
-        f.attrs["degree"] = facets.degree
-        for name, value in (attrs or {}).items():
-            f.attrs[name] = value
-    with atomic_path(out / "reconstruction.png") as tmp:
-        fig.savefig(tmp, dpi=90, format="png", bbox_inches="tight")
-    plt.close(fig)
-    with atomic_write(out / "reconstruction.json") as f:
-        json.dump(report, f, indent=2)
+    # published together: a run stopped while writing leaves the previous set as it was
+    with staged_paths([out / "control_points.h5", out / "reconstruction.png", out / "reconstruction.json"]) as temps:
+        h5_path, png_path, json_path = typing.cast(list[Path], temps)
+        with atomic_h5(h5_path) as f:
+            f.create_dataset("control_points", data=np.asarray(facets.control_points))
+            f.create_dataset("translations", data=np.asarray(facets.translations))
+            for name, value in (extra or {}).items():
+                f.create_dataset(name, data=np.asarray(value))
+            f.attrs["degree"] = facets.degree
+            for name, value in (attrs or {}).items():
+                f.attrs[name] = value
+        with atomic_path(png_path) as tmp:
+            fig.savefig(tmp, dpi=90, format="png", bbox_inches="tight")
+        plt.close(fig)
+        with atomic_write(json_path) as f:
+            json.dump(report, f, indent=2)
     print(json.dumps(report, indent=2))
 
 

@@ -8,6 +8,7 @@ import json
 import logging
 import sys
 import time
+import typing
 from pathlib import Path
 
 from ._common import check_sun_possible, heliostat_id, integer, number, option_label, path_type, target_name
@@ -178,7 +179,7 @@ def run(args: argparse.Namespace) -> int:
     from .. import optics
     from .._errors import ConfigError, HeliojaxError
     from .._geometry import sun_direction
-    from .._io import atomic_h5, atomic_path, json_safe, write_json
+    from .._io import atomic_h5, atomic_path, json_safe, staged_paths, write_json
     from .._kinematics import ActuatorModel, forward, inverse_aim
     from .._progress import progress_bar
     from ..paint import read_calibration_record, read_heliostat_properties, read_tower
@@ -330,38 +331,43 @@ def run(args: argparse.Namespace) -> int:
         elif args.record is not None:
             log.warning(f"no measured flux image {flux_png}: no comparison")
         extent = [float(grid.u_min), float(grid.u_max), float(grid.v_min), float(grid.v_max)]
-        with atomic_h5(_output(args, "flux.h5")) as f:
-            d = f.create_dataset("flux", data=image.astype(np.float32))
-            d.attrs["units"] = "W/m^2"
-            d.attrs["extent_uv_m"] = extent
-            d.attrs["orientation"] = "row 0 = top (max v), column 0 = left (min u)"
-            f.attrs.update(
-                heliostat=args.heliostat,
-                target=target_name,
-                sun_azimuth_deg=az,
-                sun_elevation_deg=el,
-                counts=np.asarray(counts),
-                centroid_uv_m=c,
-                power_w=power,
-            )
-        fig, ax = plt.subplots(figsize=(5, 4.4))
-        # flux is never negative: the scale starts at 0 (an image without flux is one colour, said in the title)
-        top = float(image.max()) if power > 0.0 else 1.0
-        im = ax.imshow(image, extent=extent, origin="upper", cmap="inferno", vmin=0.0, vmax=top)  # pyright: ignore[reportArgumentType]
-        fig.colorbar(im, ax=ax, label="flux density [W/m$^2$]")
-        ax.set_xlabel("u, along the target [m]")
-        ax.set_ylabel("v, up the target [m]")
-        none = "" if power > 0.0 else "\nno flux reached the image"
-        ax.set_title(f"{args.heliostat} {tag} on {target_name}{none}", fontsize=9)
-        with atomic_path(_output(args, "flux.png")) as tmp:
-            fig.savefig(tmp, dpi=100, format="png", bbox_inches="tight")
-        plt.close(fig)
-        if comparison_fig is not None:
-            with atomic_path(_output(args, "comparison.png")) as tmp:
-                comparison_fig.savefig(tmp, dpi=90, format="png", bbox_inches="tight")
-            plt.close(comparison_fig)
-        summary = json_safe(summary)  # e.g. the correlation of a trace that missed the target: null
-        write_json(_output(args, "summary.json"), summary)
+        names = ("flux.h5", "flux.png", "comparison.png", "summary.json")
+        outputs = [_output(args, k) if k != "comparison.png" or comparison_fig is not None else None for k in names]
+        # published together: a run stopped while writing leaves the previous set as it was
+        with staged_paths(outputs) as temps:
+            h5_path, png_path, comparison_path, summary_path = temps
+            with atomic_h5(typing.cast(Path, h5_path)) as f:
+                d = f.create_dataset("flux", data=image.astype(np.float32))
+                d.attrs["units"] = "W/m^2"
+                d.attrs["extent_uv_m"] = extent
+                d.attrs["orientation"] = "row 0 = top (max v), column 0 = left (min u)"
+                f.attrs.update(
+                    heliostat=args.heliostat,
+                    target=target_name,
+                    sun_azimuth_deg=az,
+                    sun_elevation_deg=el,
+                    counts=np.asarray(counts),
+                    centroid_uv_m=c,
+                    power_w=power,
+                )
+            fig, ax = plt.subplots(figsize=(5, 4.4))
+            # flux is never negative: the scale starts at 0 (an image without flux is one colour, said in the title)
+            top = float(image.max()) if power > 0.0 else 1.0
+            im = ax.imshow(image, extent=extent, origin="upper", cmap="inferno", vmin=0.0, vmax=top)  # pyright: ignore[reportArgumentType]
+            fig.colorbar(im, ax=ax, label="flux density [W/m$^2$]")
+            ax.set_xlabel("u, along the target [m]")
+            ax.set_ylabel("v, up the target [m]")
+            none = "" if power > 0.0 else "\nno flux reached the image"
+            ax.set_title(f"{args.heliostat} {tag} on {target_name}{none}", fontsize=9)
+            with atomic_path(typing.cast(Path, png_path)) as tmp:
+                fig.savefig(tmp, dpi=100, format="png", bbox_inches="tight")
+            plt.close(fig)
+            if comparison_fig is not None:
+                with atomic_path(typing.cast(Path, comparison_path)) as tmp:
+                    comparison_fig.savefig(tmp, dpi=90, format="png", bbox_inches="tight")
+                plt.close(comparison_fig)
+            summary = json_safe(summary)  # e.g. the correlation of a trace that missed the target: null
+            write_json(typing.cast(Path, summary_path), summary)
         log.info(f"wrote {_output(args, 'flux')}.png, .h5 and the summary to {args.out}")
         print(json.dumps(summary, indent=2, allow_nan=False))
     except (HeliojaxError, FileNotFoundError) as e:

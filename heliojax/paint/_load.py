@@ -4,6 +4,7 @@ parse every file, skip and report bad ones, flag suspicious values, assemble pad
 from __future__ import annotations
 
 import collections
+import dataclasses
 import datetime as dt
 import importlib.resources
 import math
@@ -46,6 +47,7 @@ from ._common import (
     HeliostatProperties,
     TowerFile,
     _distance_m,
+    _nan_weather,
 )
 from ._flags import (
     EARLIEST_RECORD_TIME,
@@ -129,6 +131,29 @@ def _first_of_each_measurement(records: Iterable[CalibrationRecord]) -> dict[tup
         except TypeError:  # an unvalidated record with unhashable parts: checked later
             continue
     return first
+
+
+MAX_WEATHER_TIME_GAP_S = 1.0
+"""A weather row whose time is farther than this from its record's time (from
+``calibration-timestamps.json``; PAINT writes both from one source, equal to the second)
+describes another moment: its weather is not used."""
+
+
+def _weather_of_its_time(r: CalibrationRecord, row: CalibrationRecord | None, log: _Log) -> CalibrationRecord:
+    """``r``, without the weather of ``row`` (its weather CSV row) when the row's time
+    is not the record's (flagged)."""
+    if row is None or r.datetime is None or row.datetime is None:
+        return r
+    gap = abs(datetime_to_unix(row.datetime) - datetime_to_unix(r.datetime))
+    if not gap > MAX_WEATHER_TIME_GAP_S:
+        return r
+    log.flag(
+        str(row.source),
+        "timestamp",
+        f"{row.datetime} is {gap:.6g} s from record {r.record_id}'s time {r.datetime} "
+        f"({TIMESTAMPS_FILE}): weather of another moment, not used",
+    )
+    return dataclasses.replace(r, weather=_nan_weather())
 
 
 def _approach(counts: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -692,6 +717,7 @@ def load_paint_directory(
         log.notes.append(f"no {TIMESTAMPS_FILE}: every record's time is unknown")
 
     weather: dict[tuple[str, int], dict[str, float]] = {}
+    weather_rows: dict[tuple[str, int], CalibrationRecord] = {}
     csv_path = root / WEATHER_CSV_FILE
     if csv_path.is_file() or csv_path.is_symlink():
         log.files_seen += 1
@@ -701,6 +727,7 @@ def load_paint_directory(
             log.skip(e)
             rows = ()
         weather = {(r.heliostat_id, r.record_id): r.weather for r in rows}
+        weather_rows = {(r.heliostat_id, r.record_id): r for r in rows}
         _flag_repeated_weather(rows, str(csv_path), log)
         _flag_weather_gaps(rows, str(csv_path), log)
     elif csv_path.exists():
@@ -772,6 +799,7 @@ def load_paint_directory(
                 )
             except DataError as e:
                 log.skip_record(e)
+    records = [_weather_of_its_time(r, weather_rows.get((r.heliostat_id, r.record_id)), log) for r in records]
     owner = {r.record_id: r.heliostat_id for r in records}
     for hid, rid in weather:  # joined by (heliostat, record): a row naming the wrong heliostat joins nothing
         if rid in owner and owner[rid] != hid:
