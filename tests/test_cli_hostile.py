@@ -197,6 +197,11 @@ CASES = [
     ("zero steps", lambda t: ["calibrate", "--max-steps", "0"], "--max-steps"),
     ("train fraction above 1", lambda t: ["calibrate", "--train-fraction", "1.5"], "--train-fraction"),
     ("train fraction of 1 (nothing held out)", lambda t: ["calibrate", "--train-fraction", "1"], "--train-fraction"),
+    (
+        "train fraction so small that no heliostat trains (exit 0, nothing calibrated)",
+        lambda t: ["calibrate", "--train-fraction", "1e-300", "--out", str(t / "r.h5"), "--quiet"],
+        "--train-fraction 1e-300 leaves no heliostat a training record",
+    ),
     ("discover naming at most 0 effects", lambda t: ["discover", str(t), "--max-named", "0"], "--max-named"),
     (
         "trace sigma of a Gaussian sun with the Buie sun",

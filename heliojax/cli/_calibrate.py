@@ -253,6 +253,18 @@ def run(args) -> int:
             f"{f['n_nn_fallback']} fall back to LM; LM alone: held-out median {fmt(f['lm_test_median_mrad'])} mrad; "
             f"pretrain {s['timing']['nn_pretrain_s']:.1f} s, fine-tune {s['timing']['nn_finetune_s']:.1f} s"
         )
+    if f["n_heliostats"] and f["statuses"]["no_training_records"] == f["n_heliostats"]:
+        from .._errors import ConfigError
+
+        given = [
+            f"{flag} {value}"
+            for flag, value in (("--train", args.train), ("--train-fraction", args.train_fraction))
+            if value is not None and (flag == "--train" or args.train is None)
+        ]
+        raise ConfigError(
+            f"--split {args.split}{''.join(' ' + g for g in given)} leaves no heliostat a training record "
+            "(reasons above): nothing calibrated, nothing written"
+        )
     # The three are written as a set, replacing the previous run's together: a run stopped
     # while they are written leaves the previous set as it was (never a new summary.json
     # beside the previous run's results.h5).
