@@ -317,7 +317,8 @@ def test_broken_heliostats_do_not_move_the_typical_start_geometry():
 
 
 def test_noise_outliers_hand_example():
-    """Modified z-score of the log noise (Iglewicz-Hoaglin 3.5), upper side only: of
+    """Modified z-score of the log noise (Iglewicz-Hoaglin 3.5) and more than twice the
+    median, upper side only: of
     noises 0.5, 0.6, 0.7, 0.8 and 80 mrad the last is far (log MAD 0.15, z ~ 22); 0.05
     (below) and non-candidates never are; fewer than three candidates exclude nothing."""
     from heliojax.fitting import noise_outliers
@@ -329,6 +330,11 @@ def test_noise_outliers_hand_example():
     z = 0.6745 * (log_own - np.median(log_own)) / np.median(np.abs(log_own - np.median(log_own)))
     assert z[4] > hj.fitting.NOISE_OUTLIER_Z > z[3]
     assert not noise_outliers(own, np.array([True, False, False, False, True, False, False])).any()
+    # four that agree to 3 % and one at 1.4x their median (z ~ 40): within how genuine
+    # heliostats differ, not flagged; at 2.1x it is
+    agree = np.array([0.61, 0.62, 0.63, 0.64, 0.88])
+    assert not noise_outliers(agree, np.ones(5, bool)).any()
+    assert noise_outliers(np.append(agree[:4], 1.32), np.ones(5, bool)).tolist() == [False] * 4 + [True]
 
 
 @pytest.mark.parametrize("pool", [False, True])

@@ -69,6 +69,7 @@ from ._records import (
     sanitise as sanitise,
 )
 from ._robust import (
+    NOISE_OUTLIER_MIN_RATIO as NOISE_OUTLIER_MIN_RATIO,
     NOISE_OUTLIER_Z as NOISE_OUTLIER_Z,
     RobustFit as RobustFit,
     fit_robust as fit_robust,

@@ -57,12 +57,20 @@ of a heliostat's log noise above which it is left out of the fleet's noise and p
 statistics: a heliostat whose records are garbage (a wrong properties file, counts
 of another heliostat) would otherwise move the fleet median by a rank."""
 
+NOISE_OUTLIER_MIN_RATIO = 2.0
+"""A noise outlier's noise is also more than this many times the candidates' median:
+genuine heliostats of one field differ by that much (a spot measured to a few
+centimetres on the target is an angular noise inversely proportional to the
+heliostat's distance from it, and a field's near and far rows differ by more than a
+factor 2), and the MAD of a few heliostats' log noise can be arbitrarily small (of
+five heliostats, one at 1.4 times the median of four that agree was flagged)."""
+
 
 def noise_outliers(own: Float[ArrayLike, " H"], candidates: Bool[ArrayLike, " H"]) -> np.ndarray:
     """``(H,)`` heliostats among ``candidates`` whose noise ``own`` (mrad) lies far above
     the candidates' typical noise: modified z-score of ``log(own)`` above
-    :data:`NOISE_OUTLIER_Z` (upper side only; the MAD floored at 1e-6 so that a fleet
-    of equal noise excludes only what differs). Fewer than three candidates: none."""
+    :data:`NOISE_OUTLIER_Z` (upper side only) and more than
+    :data:`NOISE_OUTLIER_MIN_RATIO` times their median. Fewer than three candidates: none."""
     own = np.asarray(own, float)
     cand = np.asarray(candidates, bool) & np.isfinite(own) & (own > 0)
     out = np.zeros(own.shape, bool)
@@ -70,8 +78,8 @@ def noise_outliers(own: Float[ArrayLike, " H"], candidates: Bool[ArrayLike, " H"
         return out
     log_own = np.log(np.where(cand, own, 1.0))
     med = np.median(log_own[cand])
-    mad = max(float(np.median(np.abs(log_own[cand] - med))), 1e-6)
-    return cand & (0.6745 * (log_own - med) / mad > NOISE_OUTLIER_Z)
+    mad = max(float(np.median(np.abs(log_own[cand] - med))), 1e-300)
+    return cand & (0.6745 * (log_own - med) / mad > NOISE_OUTLIER_Z) & (log_own - med > np.log(NOISE_OUTLIER_MIN_RATIO))
 
 
 @typing.final
@@ -322,6 +330,7 @@ def _batched_like(model: AbstractKinematicModel, batched: AbstractKinematicModel
 
 
 __all__ = [
+    "NOISE_OUTLIER_MIN_RATIO",
     "NOISE_OUTLIER_Z",
     "NOISE_PRIOR_RECORDS",
     "OUTLIER_TAIL",
