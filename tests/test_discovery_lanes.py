@@ -16,24 +16,24 @@ M, NOISE = 40, 0.25
 def test_lane_groups_by_record_width_change_no_lane_result(monkeypatch):
     """Lanes grouped by their heliostat's record width (each group its own compiled
     programs, cut to its width) against all lanes in one group at the fleet's width:
-    the same fits and the same residuals and Jacobians, with heliostats of 12 to 70
-    records and a masked record in the middle of one."""
+    the same fits and the same residuals and Jacobians, with heliostats of 12 and 70
+    records and a masked record in the middle of one (two groups: each compile is
+    seconds)."""
     import equinox as eqx
     import jax.numpy as jnp
 
     import heliojax as hj
     from heliojax.discovery import _lanes
 
-    fleet, _ = simulate_fleet(3, 6, 70, effects=(make_effect("backlash"),), noise_mrad=NOISE)
+    fleet, _ = simulate_fleet(2, 6, 70, effects=(make_effect("backlash"),), noise_mrad=NOISE)
     mask = np.asarray(fleet.mask).copy()
     mask[0, 12:] = False
-    mask[1, 30:] = False
-    mask[2, 5] = False
+    mask[1, 5] = False
     fleet = eqx.tree_at(lambda f: f.mask, fleet, jnp.asarray(mask))
     layout, template = _lanes.make_layout(hj.nominal_model("stone8"), ("backlash", "thermal"), fleet)
     lanes = _lanes.make_lanes(fleet, 3)
     engine = _lanes.Engine.create(layout, template, lanes)
-    assert sorted(g.width for g in engine.groups) == [16, 32, 70]
+    assert sorted(g.width for g in engine.groups) == [16, 70]
     p0 = np.broadcast_to(np.asarray(layout.view.to_vector(template)), (lanes.fold.shape[0], layout.view.n_parameters))
     cols = [0, 1]
 
