@@ -1591,6 +1591,17 @@ def _edit_weather(data: Path, column: str, value: str) -> str:
     return "row 2." + column
 
 
+def _next_to(data: Path, heliostat: str):
+    """A properties edit that puts a heliostat 1.1 cm north of ``heliostat``."""
+    path = data / heliostat / "Properties" / f"{heliostat}-heliostat-properties.json"
+    lat, lon, alt = json.loads(path.read_text())["heliostat_position"]
+
+    def edit(p):
+        p["heliostat_position"] = [lat + 1e-7, lon, alt]
+
+    return edit
+
+
 def _edit_properties(data: Path, heliostat: str, edit) -> str:
     """Apply ``edit`` to the heliostat-properties JSON of ``heliostat``; its file name."""
     path = data / heliostat / "Properties" / f"{heliostat}-heliostat-properties.json"
@@ -1649,6 +1660,12 @@ DAMAGED_DATA = [
         "temperature of 1e308",
         lambda d: ("calibration-with-weather.csv", _edit_weather(d, "temperature", "1e308")),
         "skipped",
+        0,
+    ),
+    (
+        "heliostat placed 1 cm from another (mirrors would overlap)",
+        lambda d: (_edit_properties(d, "BL14", _next_to(d, "BE36")), "heliostat_position"),
+        "flagged",
         0,
     ),
     (

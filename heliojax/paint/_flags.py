@@ -152,12 +152,43 @@ def _flag_unmodelled_actuator_keys(props: list[HeliostatProperties], log: _Log) 
                 )
 
 
+def _flag_overlapping(props: list[HeliostatProperties], log: _Log) -> None:
+    """Flag pairs of heliostats whose mirrors would overlap in any pose: centres
+    closer than the sum of half their shorter sides (a properties file copied with its
+    position edited; exact duplicates of a position are skipped elsewhere)."""
+    if len(props) < 2:
+        return
+    from scipy.spatial import KDTree
+
+    lat0 = math.radians(float(props[0].position_lla[0]))
+    xy = np.array(
+        [
+            [
+                math.radians(float(p.position_lla[1])) * 6_371_000.0 * math.cos(lat0),
+                math.radians(float(p.position_lla[0])) * 6_371_000.0,
+            ]
+            for p in props
+        ]
+    )
+    half = np.array([min(float(p.width), float(p.height)) / 2.0 for p in props])
+    for i, j in sorted(KDTree(xy).query_pairs(float(2.0 * half.max()))):
+        gap = float(np.linalg.norm(xy[i] - xy[j]))
+        if gap < half[i] + half[j]:
+            log.flag(
+                props[j].source,
+                "heliostat_position",
+                f"{gap:.3g} m from heliostat {props[i].heliostat_id!r}: their mirrors would overlap (a "
+                "properties file copied with its position edited?)",
+            )
+
+
 def _flag_properties(props: list[HeliostatProperties], log: _Log) -> None:
     """Physics checks per heliostat and robust fleet-outlier flags (module docstring)."""
     n = len(props)
     if n == 0:
         return
     _flag_unmodelled_actuator_keys(props, log)
+    _flag_overlapping(props, log)
     a = {
         k: np.array([[float(p.actuators[i][k]) for i in range(2)] for p in props])
         for k in (
