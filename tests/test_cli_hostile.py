@@ -1591,6 +1591,16 @@ def _edit_weather(data: Path, column: str, value: str) -> str:
     return "row 2." + column
 
 
+def _spot_at_centre(data: Path):
+    """A record edit that puts both focal spots at the tower file's centre of its target."""
+    tower = json.loads((data / "WRI1030197-tower-measurements.json").read_text())
+
+    def edit(r):
+        r["focal_spot"]["HeliOS"] = r["focal_spot"]["UTIS"] = tower[r["target_name"]]["coordinates"]["center"]
+
+    return edit
+
+
 def _next_to(data: Path, heliostat: str):
     """A properties edit that puts a heliostat 1.1 cm north of ``heliostat``."""
     path = data / heliostat / "Properties" / f"{heliostat}-heliostat-properties.json"
@@ -1661,6 +1671,12 @@ DAMAGED_DATA = [
         lambda d: ("calibration-with-weather.csv", _edit_weather(d, "temperature", "1e308")),
         "skipped",
         0,
+    ),
+    (
+        "focal spot exactly at its target's centre (a failed centroid's placeholder)",
+        lambda d: (_edit_record(d, "BE36", _spot_at_centre(d)), "focal_spot.UTIS"),
+        "skipped",
+        1,
     ),
     (
         "heliostat placed 1 cm from another (mirrors would overlap)",

@@ -105,6 +105,12 @@ def _record_to_json(r: CalibrationRecord) -> dict:
     }
 
 
+PLACEHOLDER_SPOT_M = 1e-6
+"""A focal spot this close to its target's centre (the tower file's ``center`` or its
+corners' mean) is that point copied in, not a measurement (a camera's spot centroid
+has centimetres of noise): a failed centroid's placeholder."""
+
+
 def spot_off_target(record: CalibrationRecord, tower: TowerFile) -> tuple[str, str] | None:
     """``(field, reason)`` for a focal spot of ``record`` farther from its (planar) target's
     centre than the target's farthest corner: no spot on the target (a camera sees only
@@ -161,6 +167,14 @@ def check_record_context(
                     field,
                     f"{distance:.4g} m from the centre of target {record.target_name!r} "
                     f"(more than {MAX_SPOT_DISTANCE_M:g} m: not a spot on it)",
+                )
+            listed = [centre, *([t.points["center"]] if "center" in t.points else [])]
+            if spot is not None and min(_distance_m(spot, c) for c in listed) < PLACEHOLDER_SPOT_M:
+                raise DataError(
+                    file,
+                    field,
+                    f"exactly the centre of target {record.target_name!r} (within {PLACEHOLDER_SPOT_M:g} m): "
+                    "a placeholder of a centroid that failed, not a measured spot",
                 )
     if properties is None:
         return
