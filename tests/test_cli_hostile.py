@@ -202,6 +202,11 @@ CASES = [
         lambda t: ["calibrate", "--train-fraction", "1e-300", "--out", str(t / "r.h5"), "--quiet"],
         "--train-fraction 1e-300 leaves no heliostat a training record",
     ),
+    (
+        "accept report and figures folder on one path (was found only after the work)",
+        lambda t: [*_accept(t, _field(t)), "--report", str(t / "x"), "--figures", str(t / "x")],
+        "--report names the same path",
+    ),
     ("discover naming at most 0 effects", lambda t: ["discover", str(t), "--max-named", "0"], "--max-named"),
     (
         "trace sigma of a Gaussian sun with the Buie sun",
@@ -2780,3 +2785,19 @@ def test_a_command_stopped_while_drawing_keeps_its_previous_outputs(argv, names,
     assert rc == 130 and "outputs not finished were not written" in err, err
     assert sorted(p.name for p in out.iterdir()) == sorted(names)  # no temporary left
     assert all((out / name).read_text() == "previous run" for name in names)
+
+
+def test_accept_leaves_no_earlier_figure_beside_a_new_report(tmp_path, capsys):
+    """A rerun that cannot draw the field map (tracking measured on one heliostat) left
+    the previous run's field_map.png and cluster_distributions.png beside the new
+    report; they are now removed with a warning saying so, and no temporary is left."""
+    figures = tmp_path / "figs"
+    figures.mkdir()
+    for name in ("field_map.png", "cluster_distributions.png", "monthly_efficiency.png"):
+        (figures / name).write_text("previous run")
+    argv = [*_accept(tmp_path, _field(tmp_path)), "--report", str(tmp_path / "acc.json"), "--figures", str(figures)]
+    rc, _, err = _run(argv, capsys)
+    assert rc == 0 and "an earlier run's removed" in err, err
+    assert sorted(p.name for p in figures.iterdir()) == ["monthly_efficiency.png"]
+    assert (figures / "monthly_efficiency.png").read_bytes().startswith(b"\x89PNG")
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []

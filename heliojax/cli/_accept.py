@@ -9,7 +9,7 @@ import logging
 import sys
 from pathlib import Path
 
-from ._common import path_type
+from ._common import path_type, staged_folder, staged_outputs
 
 log = logging.getLogger(__name__)
 
@@ -21,6 +21,8 @@ EXAMPLES = """examples:
 
 OUTPUT_FILES = ("report",)
 OUTPUT_DIRS = ("figures",)
+FIGURES = ("field_map.png", "cluster_distributions.png", "monthly_efficiency.png")
+"""The figures ``--figures`` receives (the first two need tracking measured on two heliostats)."""
 """Output paths checked before any work (attribute names of the parsed arguments)."""
 
 
@@ -97,14 +99,20 @@ def run(args: argparse.Namespace) -> int:
         result = acc.run_acceptance(field, contract, aperture, plant)
         report = dict(result.report)
         report["inputs"] = {"results": str(args.results), "contract": str(args.contract), "receiver": receiver_source}
-        write_json(args.report, report)
-        if args.figures is not None:
-            drawn = {p.name for p in acc.plot_all(result, args.figures)}
-            if "field_map.png" not in drawn:
-                log.warning(
-                    "field_map.png and cluster_distributions.png not drawn: they need tracking_mrad measured on at "
-                    "least 2 heliostats"
-                )
+        # the report and its figures are published together (a run stopped while drawing
+        # leaves the previous set), and a figure this run does not draw is not left from
+        # an earlier run beside the new report
+        with staged_outputs(args, ("report",)):
+            write_json(args.report, report)
+            if args.figures is not None:
+                drawn = {p.name for p in staged_folder(args.figures, lambda d: acc.plot_all(result, d))}
+                for stale in sorted(set(FIGURES) - drawn):
+                    (args.figures / stale).unlink(missing_ok=True)
+                if "field_map.png" not in drawn:
+                    log.warning(
+                        "field_map.png and cluster_distributions.png not drawn (an earlier run's removed): they "
+                        "need tracking_mrad measured on at least 2 heliostats"
+                    )
     except HeliojaxError as e:
         print(f"heliojax accept: error: {e}", file=sys.stderr)
         return 2

@@ -413,7 +413,7 @@ def _check_output_path(flag: str, path: Path, name: str, is_dir: bool, seen: dic
     from .._io import remove_stale_temporaries
 
     _check_no_dangling_link(flag, path)
-    same = flag if is_dir else seen.setdefault(path.resolve(), flag)
+    same = seen.setdefault(path.resolve(), flag)  # a folder of figures named like a file output too
     if same != flag:
         raise ConfigError(f"{flag} {path}: {same} names the same path; give each output its own")
     if is_dir and path.exists() and not path.is_dir():

@@ -376,16 +376,17 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 143 if terminated else 130
     finally:
+        if from_console and in_main_thread:
+            # the command has ended (its outputs written or not, and said so): a Ctrl-C
+            # from here on, while the interpreter shuts down, would exit 130 without a word
+            # or print a traceback from an exit handler
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
         sys.stdout = stdout
         if stderr is None:
             sys.stderr.close()
             sys.stderr = stderr
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
-        if from_console and in_main_thread:
-            # the command has finished (its outputs written or not, and said so): a Ctrl-C
-            # while the interpreter shuts down would exit 130 without a word
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _silence_stdout() -> None:
