@@ -30,6 +30,7 @@ def _run(argv: list[str], capsys) -> tuple[int, str, str]:
     return rc, captured.out, captured.err
 
 
+_HIGH_SUN = "[yield]\nmin_elevation_deg = 89\n"
 _CSR_WITH_GAUSSIAN = '[trace]\ncsr = 0.5\nsunshape = "gaussian"\n'
 
 
@@ -201,6 +202,15 @@ CASES = [
         "train fraction so small that no heliostat trains (exit 0, nothing calibrated)",
         lambda t: ["calibrate", "--train-fraction", "1e-300", "--out", str(t / "r.h5"), "--quiet"],
         "--train-fraction 1e-300 leaves no heliostat a training record",
+    ),
+    (
+        "accept contract whose sun never rises high enough (the contract file named)",
+        lambda t: [
+            *_accept(t, _field(t), CONTRACT + "[yield]\nmin_elevation_deg = 89\n"),
+            "--report",
+            str(t / "a.json"),
+        ],
+        "contract.toml: [yield] min_elevation_deg = 89.0: the sun never rises",
     ),
     (
         "accept report and figures folder on one path (was found only after the work)",

@@ -253,6 +253,7 @@ class Contract:
             (None: not given).
         year, step_minutes, min_elevation_deg, sun_sigma_mrad: level-2 settings.
         tolerance: accepted relative shortfall of the measured annual efficiency.
+        source: the contract file it was read from (None: built in code), named in messages.
     """
 
     parameters: dict[str, ParameterSpec]
@@ -268,6 +269,7 @@ class Contract:
     min_elevation_deg: float = 5.0
     sun_sigma_mrad: float = 2.51
     tolerance: float = 0.0
+    source: Path | None = None
 
 
 MIN_CONFIDENCE = 0.5
@@ -398,6 +400,7 @@ def load_contract(path: str | os.PathLike) -> Contract:
         bandwidth=bandwidth,
         seed=int(num("extrapolation", "seed", 0, low=0, high=2**32 - 1, integer=True)),
         tower_file=None if tower is None else (path.parent / tower).resolve(),
+        source=Path(path),
         year=int(num("yield", "year", 2023, low=1900, high=2200, integer=True)),
         step_minutes=float(num("yield", "step_minutes", 30.0, low=1.0, high=1440.0)),
         min_elevation_deg=float(num("yield", "min_elevation_deg", 5.0, low=0.0, high=89.0)),
