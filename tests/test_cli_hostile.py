@@ -1967,21 +1967,26 @@ def test_an_input_that_is_a_pipe_or_device_is_refused_unread(argv, flag, text, t
     assert rc == 2 and f"{flag} {fifo}: not a regular file" in err and len(err.strip().splitlines()) == 1, err
 
 
-def test_sigterm_is_a_line_and_exit_143(tmp_path):
-    """SIGTERM ends a command like Ctrl-C (exit 130): one line, exit 143, no traceback,
-    cleanups run (before, the process died where it stood)."""
+def _python(cwd: Path, code: str):
+    """``code`` run by a new Python process in ``cwd`` with this checkout importable."""
     import subprocess
     import sys
 
-    code = (
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env, cwd=cwd)
+
+
+def test_sigterm_is_a_line_and_exit_143(tmp_path):
+    """SIGTERM ends a command like Ctrl-C (exit 130): one line, exit 143, no traceback,
+    cleanups run (before, the process died where it stood)."""
+    r = _python(
+        tmp_path,
         "import os, signal\n"
         "from heliojax.cli import _inspect\n"
         "from heliojax.cli._main import main\n"
         "_inspect.run = lambda args: os.kill(os.getpid(), signal.SIGTERM)\n"
-        "raise SystemExit(main(['inspect', '--cache-dir', 'none']))\n"
+        "raise SystemExit(main(['inspect', '--cache-dir', 'none']))\n",
     )
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env, cwd=tmp_path)
     assert r.returncode == 143, (r.returncode, r.stderr)
     assert r.stderr.strip() == "heliojax inspect: terminated: outputs not finished were not written", r.stderr
 
@@ -1990,18 +1995,14 @@ def test_ctrl_c_after_the_command_finished_changes_nothing(tmp_path):
     """A Ctrl-C while the interpreter shut down after a finished command exited 130
     without a word (its outputs complete): the program ignores it once the command has
     said how it ended, and exits with the command's status."""
-    import subprocess
-    import sys
-
-    code = (
+    r = _python(
+        tmp_path,
         "import atexit, os, signal, sys\n"
         "from heliojax.cli._main import main\n"
         "atexit.register(lambda: os.kill(os.getpid(), signal.SIGINT))\n"
         "sys.argv = ['heliojax', '--version']\n"
-        "raise SystemExit(main())\n"
+        "raise SystemExit(main())\n",
     )
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env, cwd=tmp_path)
     assert r.returncode == 0 and r.stderr == "" and r.stdout.strip() == hj.__version__, (r.returncode, r.stderr)
 
 
@@ -2805,7 +2806,14 @@ def test_accept_leaves_no_earlier_figure_beside_a_new_report(tmp_path, capsys):
     figures.mkdir()
     for name in ("field_map.png", "cluster_distributions.png", "monthly_efficiency.png"):
         (figures / name).write_text("previous run")
-    argv = [*_accept(tmp_path, _field(tmp_path)), "--report", str(tmp_path / "acc.json"), "--figures", str(figures)]
+    coarse = CONTRACT + "[yield]\nstep_minutes = 720\n"  # a coarse year: the figures are what is tested
+    argv = [
+        *_accept(tmp_path, _field(tmp_path), coarse),
+        "--report",
+        str(tmp_path / "acc.json"),
+        "--figures",
+        str(figures),
+    ]
     rc, _, err = _run(argv, capsys)
     assert rc == 0 and "an earlier run's removed" in err, err
     assert sorted(p.name for p in figures.iterdir()) == ["monthly_efficiency.png"]
