@@ -18,7 +18,7 @@ import re
 import stat
 import tempfile
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import IO
 
@@ -220,6 +220,24 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+def staged_folder(folder: Path, write: Callable[[Path], Sequence[Path]]) -> list[Path]:
+    """``write(tmp)`` fills a temporary folder beside ``folder`` with files (returning
+    their paths); once it has returned, they are moved into ``folder`` (made if need be),
+    so that a run stopped while writing leaves ``folder``'s previous files as they were.
+    Returns the moved files' paths."""
+    folder = Path(folder)
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=folder.parent, prefix=f".{folder.name}.") as tmp:
+        written = write(Path(tmp))
+        folder.mkdir(exist_ok=True)
+        moved = []
+        for p in written:
+            target = folder / Path(p).name
+            os.replace(p, target)
+            moved.append(target)
+    return moved
 
 
 @contextlib.contextmanager

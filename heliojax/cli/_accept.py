@@ -9,7 +9,7 @@ import logging
 import sys
 from pathlib import Path
 
-from ._common import path_type, staged_folder, staged_outputs
+from ._common import path_type, staged_outputs
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     jax.config.update("jax_enable_x64", True)
     from .. import acceptance as acc
     from .._errors import ConfigError, HeliojaxError
-    from .._io import write_json
+    from .._io import staged_folder, write_json
 
     try:
         contract = acc.load_contract(args.contract)

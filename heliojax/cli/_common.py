@@ -644,26 +644,6 @@ def check_sun_possible(azimuth_deg: float | None, elevation_deg: float | None, l
         )
 
 
-def staged_folder(folder: Path, write: collections.abc.Callable[[Path], list[Path]]) -> list[Path]:
-    """``write(tmp)`` fills a temporary folder beside ``folder`` with files (returning
-    their paths); once it has returned, they are moved into ``folder`` (made if need be),
-    so that a run stopped while writing leaves ``folder``'s previous files as they were.
-    Returns the moved files' paths."""
-    import tempfile
-
-    folder = Path(folder)
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=folder.parent, prefix=f".{folder.name}.") as tmp:
-        written = write(Path(tmp))
-        folder.mkdir(exist_ok=True)
-        moved = []
-        for p in written:
-            target = folder / Path(p).name
-            os.replace(p, target)
-            moved.append(target)
-    return moved
-
-
 @contextlib.contextmanager
 def staged_outputs(args: argparse.Namespace, names: tuple[str, ...]) -> collections.abc.Iterator[None]:
     """Within the block, the output paths ``args.<name>`` are temporaries (see

@@ -14,7 +14,6 @@ from ._common import (
     load_fleet,
     number,
     path_type,
-    staged_folder,
     staged_outputs,
 )
 
@@ -101,6 +100,7 @@ def run(args) -> int:
     import numpy as np
 
     from .._errors import ConfigError
+    from .._io import staged_folder
     from .._progress import activity
     from ..discovery import (
         DiscoveryConfig,

@@ -160,17 +160,9 @@ def _flag_overlapping(props: list[HeliostatProperties], log: _Log) -> None:
         return
     from scipy.spatial import KDTree
 
-    lat0 = math.radians(float(props[0].position_lla[0]))
-    xy = np.array(
-        [
-            [
-                math.radians(float(p.position_lla[1])) * 6_371_000.0 * math.cos(lat0),
-                math.radians(float(p.position_lla[0])) * 6_371_000.0,
-            ]
-            for p in props
-        ]
-    )
-    half = np.array([min(float(p.width), float(p.height)) / 2.0 for p in props])
+    lla = np.radians(np.array([p.position_lla[:2] for p in props], float))  # (H, 2) lat, lon
+    xy = 6_371_000.0 * np.stack([lla[:, 1] * math.cos(lla[0, 0]), lla[:, 0]], axis=1)  # east, north (m)
+    half = np.array([min(p.width, p.height) for p in props], float) / 2.0
     for i, j in sorted(KDTree(xy).query_pairs(float(2.0 * half.max()))):
         gap = float(np.linalg.norm(xy[i] - xy[j]))
         if gap < half[i] + half[j]:
