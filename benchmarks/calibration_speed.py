@@ -331,7 +331,8 @@ def batching_of(strategy: str, chunk_size: int):
 
 def time_heliojax(data, strategy, chunk_size, repeats, robust=False, linear_solver="auto"):
     """``(solution, first_call_s, best_later_s, later_calls)`` of :func:`heliojax.fit`
-    (with ``robust``: of :func:`heliojax.fitting.fit_robust`, all its passes)."""
+    (with ``robust``: the :class:`heliojax.fitting.RobustFit` of
+    :func:`heliojax.fitting.fit_robust`, all its passes timed)."""
     import jax
     import jax.numpy as jnp
 
@@ -345,12 +346,27 @@ def time_heliojax(data, strategy, chunk_size, repeats, robust=False, linear_solv
     for _ in range(1 + max(1, repeats)):
         t0 = time.perf_counter()
         if robust:
-            result = hj.fitting.fit_robust(model, data, batching=batching, solver=solver).solution
+            result = hj.fitting.fit_robust(model, data, batching=batching, solver=solver)
+            jax.block_until_ready(result.solution.cost)
         else:
             result = hj.fit(model, data, batching=batching, solver=solver)
-        jax.block_until_ready(result.cost)
+            jax.block_until_ready(result.cost)
         times.append(time.perf_counter() - t0)
     return result, times[0], min(times[1:]), times[1:]
+
+
+def plant_gross_errors(focal, position, fraction, seed):
+    """``(focal, planted)``: ``fraction`` of the records' focal spots ``(N, M, 3)``
+    displaced by a beam error of 10-100 mrad in a random direction (the robust fit's
+    acceptance case); ``planted`` ``(N, M)`` marks them."""
+    rng = np.random.default_rng(seed + 7919)
+    planted = rng.random(focal.shape[:2]) < fraction
+    d = focal - position[:, None, :]
+    dist = np.linalg.norm(d, axis=-1, keepdims=True)
+    e = np.cross(d / dist, rng.normal(size=d.shape))
+    e /= np.linalg.norm(e, axis=-1, keepdims=True)
+    shifted = focal + e * dist * rng.uniform(10e-3, 100e-3, size=focal.shape[:2] + (1,))
+    return np.where(planted[..., None], shifted, focal), planted
 
 
 def profile_call(data, strategy, chunk_size, linear_solver, log_dir, top=25):
@@ -461,6 +477,12 @@ def parse_args(argv=None):
     )
     p.add_argument("--sim-chunk", type=int, default=None, help="heliostats per simulation chunk")
     p.add_argument("--skip-robust", action="store_true", help="do not time the robust fit")
+    p.add_argument(
+        "--gross-fraction",
+        type=float,
+        default=0.0,
+        help="fraction of the training records displaced by 10-100 mrad (gross errors; default none)",
+    )
     p.add_argument("--simulate-to", default=None, help=argparse.SUPPRESS)
     return p.parse_args(argv)
 
@@ -516,6 +538,11 @@ def main(argv=None) -> int:
 
     train = [_take_records(x, train_idx) for x in (context, counts, focal)]
     test = [_take_records(x, test_idx) for x in (context, counts, focal)]
+    planted = np.zeros((n, n_train), bool)
+    if args.gross_fraction > 0:
+        train[2], planted = plant_gross_errors(
+            np.asarray(train[2]), np.asarray(geometry.position), args.gross_fraction, args.seed
+        )
     data = heliojax_data(geometry, *train, train_mask, pad=not args.no_pad)
 
     backend = jax.default_backend()
@@ -578,6 +605,8 @@ def main(argv=None) -> int:
         "train_records": n_train,
         "fit_shape": list(data.counts.shape[:2]),
         "noise_mrad": args.noise,
+        "gross_fraction": args.gross_fraction,
+        "planted_records": int(planted.sum()),
         "strategy": strategy,
         "linear_solver": linear_solver,
         "chunk_size": args.chunk_size if strategy == "chunked" else None,
@@ -596,8 +625,14 @@ def main(argv=None) -> int:
     if args.profile:
         out["profile"] = profile_call(data, strategy, args.chunk_size, linear_solver, args.profile)
     if not args.skip_robust:
-        rms_r, _ = heldout_rms(np.asarray(res_r.parameters())[:n], geometry, test[0], test[1], test[2], test_mask)
+        sol_r = res_r.solution
+        rms_r, _ = heldout_rms(np.asarray(sol_r.parameters())[:n], geometry, test[0], test[1], test[2], test_mask)
+        flagged = np.asarray(res_r.outlier)[:n, :n_train]
         out.update(
+            robust_cauchy_heliostats=int(np.isfinite(np.asarray(res_r.scale_mrad)[:n]).sum()),
+            robust_lm_steps_mean=float(np.mean(np.asarray(sol_r.n_steps)[:n])),
+            planted_flagged_fraction=float(flagged[planted].mean()) if planted.any() else None,
+            clean_flagged_fraction=float(flagged[~planted].mean()),
             robust_s=run_r,
             robust_first_call_s=first_r,
             robust_over_plain=run_r / out["heliojax_s"],

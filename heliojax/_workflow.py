@@ -167,7 +167,8 @@ def calibrate(
             better before the fit, :func:`heliojax.choose_start_geometry`) or
             ``"nominal"``.
         robust: robust fit (:func:`heliojax.fitting.fit_robust`: Cauchy loss with a
-            per-heliostat scale, record weights and outlier flags) instead of least squares.
+            per-heliostat scale for the heliostats whose least-squares residuals flag a
+            record, record weights and outlier flags) instead of least squares.
         pool: with ``robust``, finish under the fleet's empirical-Bayes prior
             (:func:`heliojax.fitting.fleet_prior`): heliostats with few records are
             calibrated too.

@@ -300,6 +300,48 @@ def test_robust_fit_ignores_planted_gross_errors():
     assert flags[np.asarray(sim.mask) & ~planted].mean() <= 0.01
     w = np.asarray(robust.weights)
     assert np.median(w[planted]) < 0.01 < np.median(w[np.asarray(sim.mask) & ~planted])
+    # every heliostat with a planted record was refitted with the Cauchy loss
+    assert np.all(np.isfinite(np.asarray(robust.scale_mrad))[planted.any(axis=1)])
+
+
+def test_a_robust_fit_keeps_least_squares_where_no_record_is_a_gross_error(fleet100):
+    """Gaussian noise only: the heliostats whose least-squares residuals flag no record
+    (most: 0.1 % of clean records are flagged) keep their least-squares fit bit for
+    bit, with weights 1 and no Cauchy scale; the others are refitted."""
+    *_, data, res = fleet100
+    sub = _take(data, 20)
+    robust = hj.fitting.fit_robust(STONE, sub)
+    kept = ~np.isfinite(np.asarray(robust.scale_mrad))
+    assert kept.mean() >= 0.7, kept
+    ls, rob = np.asarray(robust.least_squares.parameters()), np.asarray(robust.solution.parameters())
+    np.testing.assert_array_equal(rob[kept], ls[kept])
+    # hj.fit's least squares (another program: to the solver's tolerance)
+    np.testing.assert_allclose(rob[kept], np.asarray(res.parameters())[:20][kept], rtol=0, atol=PATH_ATOL)
+    assert np.all(np.asarray(robust.weights)[kept][np.asarray(sub.mask)[kept]] == 1.0)
+    assert not np.asarray(robust.outlier)[kept].any()
+    if (~kept).any():  # a refitted heliostat moved, within its standard errors
+        assert np.all(np.any(rob[~kept] != ls[~kept], axis=1))
+        std = np.asarray(robust.least_squares.std)[~kept]
+        assert np.all(np.abs(rob[~kept] - ls[~kept]) <= 2 * std)
+
+
+@pytest.mark.parametrize("batching", [hj.LaxMap(), hj.Vmap()], ids=["lax_map", "vmap"])
+def test_a_fit_of_some_heliostats_leaves_the_others_as_given(fleet100, batching):
+    """``CompiledFit(...)(model, only=, otherwise=)``: the chosen heliostats get the
+    fit of the whole program (bit for bit), the others every field of the given
+    solution."""
+    *_, data, _ = fleet100
+    sub = _take(data, 6)
+    run = hj.fitting.CompiledFit(STONE, sub, batching=batching)
+    everyone = run(STONE)
+    given = jax.tree.map(lambda x: x + 1 if eqx.is_inexact_array(x) else x, everyone)  # recognisable
+    only = np.array([True, False, True, False, False, True])
+    some = run(STONE, only=only, otherwise=given)
+    for a, b, c in zip(jax.tree.leaves(some), jax.tree.leaves(everyone), jax.tree.leaves(given), strict=True):
+        np.testing.assert_array_equal(np.asarray(a)[only], np.asarray(b)[only])
+        np.testing.assert_array_equal(np.asarray(a)[~only], np.asarray(c)[~only])
+    with pytest.raises(TypeError, match="together"):
+        run(STONE, only=only)
 
 
 def test_broken_heliostats_do_not_move_the_typical_start_geometry():

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._geometry import products_by_reduction
 from .._heliostat import HeliostatGeometry, RecordContext
@@ -455,6 +455,26 @@ def _fit_one(
     )
 
 
+def _not_fitted(view: ParameterView, model0: AbstractKinematicModel, n_records: int, dtype: typing.Any) -> dict:
+    """What :func:`_fit_one` returns, for a heliostat left out of a fit: its start model,
+    zeros elsewhere (the same structure and dtypes, without tracing the fit again)."""
+    p0 = view.to_vector(model0).astype(dtype)
+    zero = jnp.zeros((), dtype)
+    none = jnp.zeros((), jnp.int32)
+    return dict(
+        model=view.from_vector(model0, p0),
+        std=jnp.zeros_like(p0),
+        covariance=jnp.zeros((view.n_free, view.n_free), dtype),
+        status=none,
+        n_steps=none,
+        n_used=none,
+        rms_mrad=zero,
+        cost=zero,
+        noise_mrad=zero,
+        loo_mrad=jnp.zeros((n_records,), dtype),
+    )
+
+
 def _leave_one_out_mrad(jac: Float[Array, "M 2 F"], a_inv: Float[Array, "F F"], b: Float[Array, "M 2"]) -> Array:
     """``(M,)`` ``|(I - H_ii)^-1 b_i|`` with ``H_ii = J_i A^-1 J_i^T`` (2 x 2 per
     record; infinite where the record alone determines a direction, ``det(I - H_ii)``
@@ -470,15 +490,36 @@ def _leave_one_out_mrad(jac: Float[Array, "M 2 F"], a_inv: Float[Array, "F F"], 
 
 @eqx.filter_jit
 def _fit_compiled(
-    view, solver, loss, prior, max_steps, batching, model0, prior_h, loss_h, geometry, counts, context, focal, mask
+    view,
+    solver,
+    loss,
+    prior,
+    max_steps,
+    batching,
+    model0,
+    prior_h,
+    loss_h,
+    geometry,
+    counts,
+    context,
+    focal,
+    mask,
+    active,
 ):
-    def one(m, ph, lh, g, c, x, f, k):
-        return _fit_one(view, solver, loss, prior, max_steps, m, ph, lh, g, c, x, f, k)
+    def one(m, ph, lh, g, c, x, f, k, a):
+        def fitted():
+            return _fit_one(view, solver, loss, prior, max_steps, m, ph, lh, g, c, x, f, k)
 
-    return batching.map(one)(model0, prior_h, loss_h, geometry, counts, context, focal, mask)
+        def not_fitted():  # the start model; the caller takes the rest from an earlier fit
+            return _not_fitted(view, m, c.shape[0], c.dtype)
+
+        # a branch, not a select, under lax.map: a heliostat left out costs nothing
+        return jax.lax.cond(a, fitted, not_fitted)
+
+    return batching.map(one)(model0, prior_h, loss_h, geometry, counts, context, focal, mask, active)
 
 
-def _prepare(model0, fleet, mask, free, solver, loss, prior, batching, max_steps):
+def _prepare(model0, fleet, mask, free, solver, loss, prior, batching, max_steps, active=None):
     if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
         raise ValueError(f"max_steps: expected an integer >= 1, got {max_steps!r}")
     h = int(np.shape(fleet.mask)[0])
@@ -501,6 +542,7 @@ def _prepare(model0, fleet, mask, free, solver, loss, prior, batching, max_steps
         fleet.context,
         fleet.focal_spot,
         m,
+        jnp.ones((h,), bool) if active is None else jnp.asarray(active, bool),
     )
     static = (view, solver, loss, prior, max_steps, batching)
     return h, static, batching.prepare(args)
@@ -600,10 +642,24 @@ class CompiledFit:
         self.run_s = 0.0
 
     def __call__(
-        self, model0: AbstractKinematicModel, *, loss: AbstractLoss | None = None, prior: AbstractPrior | None = None
+        self,
+        model0: AbstractKinematicModel,
+        *,
+        loss: AbstractLoss | None = None,
+        prior: AbstractPrior | None = None,
+        only: Bool[ArrayLike, " H"] | None = None,
+        otherwise: FitSolution | None = None,
     ) -> FitSolution:
         """Run the compiled fit from ``model0`` (with ``loss`` / ``prior`` replacing
-        the compiled ones; same structure required)."""
+        the compiled ones; same structure required).
+
+        With ``only`` (``(H,)`` booleans), only those heliostats are fitted; the others'
+        results are taken from ``otherwise`` (a :class:`FitSolution` of the same fleet,
+        e.g. an earlier pass). Under :class:`heliojax.LaxMap` (the CPU default) a
+        heliostat left out costs nothing; batched by :class:`heliojax.Vmap` it is
+        computed and discarded."""
+        if (only is None) != (otherwise is None):
+            raise TypeError("CompiledFit: give `only` and `otherwise` together")
         opts = dict(self._options)
         if loss is not None:
             opts["loss"] = loss
@@ -619,12 +675,23 @@ class CompiledFit:
             opts.get("prior"),
             opts.get("batching"),
             opts.get("max_steps", DEFAULT_MAX_STEPS),
+            only,
         )
         t0 = time.perf_counter()
         out = self._compiled(*static, *args)
         jax.block_until_ready(out)
         self.run_s += time.perf_counter() - t0
-        return FitSolution(view=static[0], **static[-1].finish(out, h))
+        solution = FitSolution(view=static[0], **static[-1].finish(out, h))
+        if otherwise is None:
+            return solution
+        keep = jnp.asarray(only, bool)
+
+        def pick(new, old):
+            if not eqx.is_array(new):
+                return new
+            return jnp.where(keep.reshape(keep.shape + (1,) * (jnp.ndim(new) - 1)), new, old)
+
+        return jax.tree.map(pick, solution, otherwise)
 
 
 def fit_timed(

@@ -11,16 +11,22 @@ reflection) that dominate a least-squares fit. :func:`fit_robust`
    fleet's median noise (the lower median: heliostats whose records are all gross
    errors only raise it) with the weight of :data:`NOISE_PRIOR_RECORDS` records;
 3. refits from there with the Cauchy loss of scale
-   ``c = 2.3849 sigma`` (95 % efficiency under Gaussian noise);
+   ``c = 2.3849 sigma`` (95 % efficiency under Gaussian noise) the heliostats whose
+   least-squares residuals hold a gross error by the rule of step 4 (and those
+   without a usable least-squares fit); the others keep their least-squares fit
+   (scale ``c`` infinite): with no gross error the least-squares fit is the
+   efficient one, and the Cauchy passes cost a heliostat as much as its
+   least-squares fit (5-8 Levenberg-Marquardt steps each, warm start or not);
 4. re-estimates ``sigma`` from the robust residuals and flags a record as an
    outlier when its residual, standardised by each component's own robust
    scale (:func:`robust_component_noise`: the noise is rarely isotropic),
    exceeds the 99.9 % point of the Rayleigh distribution (``sqrt(-2 ln 0.001)
    = 3.717``): under Gaussian noise 0.1 % of clean records are flagged.
 
-Each record's weight is its Cauchy IRLS weight ``1 / (1 + |r|^2 / c^2)``. No
-constant is picked on any data set: the two numbers above are the Cauchy
-loss's textbook efficiency constant and a Gaussian tail probability.
+Each record's weight is its Cauchy IRLS weight ``1 / (1 + |r|^2 / c^2)`` (1 for a
+heliostat kept at least squares). No constant is picked on any data set: the two
+numbers above are the Cauchy loss's textbook efficiency constant and a Gaussian
+tail probability.
 """
 
 from __future__ import annotations
@@ -92,7 +98,8 @@ class RobustFit(eqx.Module):
         weights: ``(H, M)`` Cauchy weight of each record in ``[0, 1]`` (0 outside the mask).
         outlier: ``(H, M)`` records flagged as gross errors.
         noise_mrad: ``(H,)`` robust noise estimate per residual component, mrad.
-        scale_mrad: ``(H,)`` the Cauchy scale used, mrad.
+        scale_mrad: ``(H,)`` the Cauchy scale used, mrad (infinite for a heliostat
+            kept at least squares: no gross error in its least-squares residuals).
         compile_s: seconds compiling the (one) fit program.
         run_s: seconds running the fit passes.
     """
@@ -163,6 +170,19 @@ def robust_component_noise(
     return np.sqrt((n[:, None] * own**2 + NOISE_PRIOR_RECORDS * fleet**2) / (n[:, None] + NOISE_PRIOR_RECORDS))
 
 
+def _gross_errors(
+    residuals: Float[ArrayLike, "H M 2"], mask: Bool[ArrayLike, "H M"], n_free: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(use, outlier)``, both ``(H, M)``: the records with finite residuals in
+    ``mask``, and those whose residual, standardised per component by the heliostat's
+    own robust scales (:func:`robust_component_noise`), lies beyond the Rayleigh point
+    of :data:`OUTLIER_TAIL`."""
+    r = np.asarray(residuals, float)
+    use = np.asarray(mask, bool) & np.all(np.isfinite(r), axis=-1)
+    z = np.where(np.isfinite(r), r, 0.0) / robust_component_noise(r, mask, n_free)[:, None, :]
+    return use, use & (np.linalg.norm(z, axis=-1) > np.sqrt(-2.0 * np.log(OUTLIER_TAIL)))
+
+
 def _fitted(solution: FitSolution) -> np.ndarray:
     st = np.asarray(solution.status)
     return np.isin(st, (FitStatus.CONVERGED, FitStatus.MAX_STEPS))
@@ -210,19 +230,29 @@ def fit_robust(
     n_free = ls.view.n_free
     r0 = fleet_residuals_mrad(ls.model, fleet, m)
     sigma0, _ = robust_noise(r0, m, n_free)
-    scale = jnp.asarray(CAUCHY_EFFICIENCY_FACTOR * sigma0, fleet.counts.dtype)
-    # warm start from the least-squares fit where it succeeded
-    start = _select_models(_fitted(ls), ls.model, _batched_like(model0, ls.model))
-    sol = run(start, loss=Cauchy(scale))
-    r1 = fleet_residuals_mrad(sol.model, fleet, m)
-    sigma1, _ = robust_noise(r1, m, n_free)
-    for _ in range(passes - 1):
-        # the least-squares residuals overstate the noise: refit with the scale of
-        # the robust residuals (same program, warm start)
-        scale = jnp.asarray(CAUCHY_EFFICIENCY_FACTOR * sigma1, fleet.counts.dtype)
-        sol = run(sol.model, loss=Cauchy(scale))
+    # Only heliostats whose least-squares residuals hold a gross error (or that have no
+    # usable least-squares fit) are refitted with the Cauchy loss; the others keep
+    # their least-squares fit (Cauchy scale infinite).
+    cauchy = _gross_errors(r0, m, n_free)[1].any(axis=1) | ~_fitted(ls)
+
+    def scale_of(sigma):
+        return jnp.asarray(np.where(cauchy, CAUCHY_EFFICIENCY_FACTOR * sigma, np.inf), fleet.counts.dtype)
+
+    scale = scale_of(sigma0)
+    sol, r1, sigma1 = ls, r0, sigma0
+    if cauchy.any():
+        # warm start from the least-squares fit where it succeeded
+        start = _select_models(_fitted(ls), ls.model, _batched_like(model0, ls.model))
+        sol = run(start, loss=Cauchy(scale), only=cauchy, otherwise=ls)
         r1 = fleet_residuals_mrad(sol.model, fleet, m)
         sigma1, _ = robust_noise(r1, m, n_free)
+        for _ in range(passes - 1):
+            # the least-squares residuals overstate the noise: refit with the scale of
+            # the robust residuals (same program, warm start)
+            scale = scale_of(sigma1)
+            sol = run(sol.model, loss=Cauchy(scale), only=cauchy, otherwise=sol)
+            r1 = fleet_residuals_mrad(sol.model, fleet, m)
+            sigma1, _ = robust_noise(r1, m, n_free)
     if pool:
         # Heliostats without a usable fit (too few records) have residuals of an unfitted
         # model, whose spread is no noise estimate: the prior rows of those are scaled by
@@ -243,14 +273,9 @@ def fit_robust(
         pooled_sigma, _ = robust_noise(r1, m, n_free)
         sigma1 = np.where(np.isfinite(pooled_sigma), pooled_sigma, sigma1)
     norm = np.linalg.norm(np.where(np.isfinite(np.asarray(r1)), np.asarray(r1), 0.0), axis=-1)
-    use = np.asarray(m, bool) & np.all(np.isfinite(np.asarray(r1)), axis=-1)
-    c = CAUCHY_EFFICIENCY_FACTOR * sigma1
+    c = np.where(cauchy, CAUCHY_EFFICIENCY_FACTOR * sigma1, np.inf)
+    use, outlier = _gross_errors(r1, m, n_free)
     weights = np.where(use, 1.0 / (1.0 + (norm / c[:, None]) ** 2), 0.0)
-    # flags: the residual standardised per component (each heliostat's own scales) beyond
-    # the Rayleigh point of OUTLIER_TAIL
-    comp = robust_component_noise(r1, m, n_free)
-    z = np.where(np.isfinite(np.asarray(r1)), np.asarray(r1), 0.0) / comp[:, None, :]
-    outlier = use & (np.linalg.norm(z, axis=-1) > np.sqrt(-2.0 * np.log(OUTLIER_TAIL)))
     return RobustFit(
         compile_s=run.compile_s,
         run_s=run.run_s,
