@@ -216,9 +216,8 @@ def run_acceptance(
             )
         if len(sun.unix_time_s) == 0:
             raise ConfigError(
-                f"{contract.source or 'contract'}: [yield] min_elevation_deg = {contract.min_elevation_deg}: the sun "
-                "never rises that "
-                f"high at the plant (latitude {plant_lla[0]:.2f}) in {contract.year}"
+                f"{contract.source or 'contract'}: [yield] min_elevation_deg = {contract.min_elevation_deg}: "
+                f"the sun never rises that high at the plant (latitude {plant_lla[0]:.2f}) in {contract.year}"
             )
     contract_kw, measured_kw = {}, {}
     for i, name in enumerate(("tracking_mrad", "slope_mrad", "reflectance", "aperture_m2")):

@@ -21,9 +21,9 @@ EXAMPLES = """examples:
 
 OUTPUT_FILES = ("report",)
 OUTPUT_DIRS = ("figures",)
+"""Output paths checked before any work (attribute names of the parsed arguments)."""
 FIGURES = ("field_map.png", "cluster_distributions.png", "monthly_efficiency.png")
 """The figures ``--figures`` receives (the first two need tracking measured on two heliostats)."""
-"""Output paths checked before any work (attribute names of the parsed arguments)."""
 
 
 def add_parser(subparsers) -> None:
