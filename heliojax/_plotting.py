@@ -85,7 +85,11 @@ def _residual_panel(ax, pts, flagged, title, color, lim=None):
             s=28,
             marker="x",
             color="tab:red",
-            label=f"{len(flagged)} training records flagged as outliers (robust fit)",
+            label=(
+                f"{len(flagged)} training records flagged as outliers (robust fit)"
+                if len(flagged) != 1
+                else "1 training record flagged as an outlier (robust fit)"
+            ),
         )
     ax.set_xlim(-lim, lim)
     ax.set_ylim(-lim, lim)

@@ -805,6 +805,9 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
                 "the fleet's statistics; check its records and properties before aiming with this calibration"
             )
             entry["warning"] = note if entry["warning"] is None else f"{entry['warning']}; {note}"
+        if st == FitStatus.CONVERGED and 2 * entry["n_train_used"] < view.n_free:
+            note = _few_records_note(entry["n_train_used"], view.n_free)
+            entry["warning"] = note if entry["warning"] is None else f"{entry['warning']}; {note}"
         heliostats[ids[i]] = entry
         if st == FitStatus.CONVERGED:
             t = test_err[i][np.isfinite(test_err[i])]
@@ -844,6 +847,18 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
         "predictive": {k: (_json_float(v) if isinstance(v, float) else v) for k, v in run.predictive.items()},
         "timing": {"compile_s": float(compile_s), "fit_s": float(fit_s)},
     }
+
+
+def _few_records_note(n_used: int, n_free: int) -> str:
+    """The warning of a converged heliostat whose records alone cannot determine its
+    ``n_free`` parameters (fewer residuals than parameters): the fleet prior decides
+    the rest, and its leave-one-out check (``worse_than_nominal``) judges little."""
+    records = "1 training record" if n_used == 1 else f"{n_used} training records"
+    return (
+        f"calibrated from {records} ({2 * n_used} residuals) for {n_free} free parameters: the rest comes "
+        "from the fleet prior and its leave-one-out check says little; measure it again (heliojax plan) "
+        "before relying on this calibration"
+    )
 
 
 def _typical_noise(run: CalibrationRun, garbage: np.ndarray) -> float:

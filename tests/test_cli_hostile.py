@@ -312,6 +312,16 @@ CASES = [
         lambda t: ["accept", "--results", "r.csv", "--contract", "c.toml", "--report", str(_a_dir(t))],
         "--report",
     ),
+    (
+        "config quoted number for an int",
+        lambda t: ["calibrate", "--config", _config(t, '[calibrate]\nmax_steps = "10"\n')],
+        "max_steps: expected an integer, got the string '10'",
+    ),
+    (
+        "config quoted number for a number",
+        lambda t: ["discover", "--config", _config(t, '[discover]\nalpha = "0.05"\n')],
+        "alpha: expected a number, got the string '0.05'",
+    ),
     ("config inf for an int", lambda t: ["calibrate", "--config", _config(t, "[calibrate]\nseed = inf\n")], "seed"),
     (
         "config number in a list option",

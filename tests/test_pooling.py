@@ -108,3 +108,20 @@ def test_half_a_fleet_broken_leaves_the_other_half_calibrated():
             assert np.all(noise < 1.0), noise  # was ~85 mrad
     assert np.all(medians[False] < 1.0), medians[False]  # the good three alone: the noise level
     assert np.all(medians[True] < 2.0 * medians[False]), medians  # was 26-80 mrad
+
+
+def test_a_heliostat_with_fewer_residuals_than_parameters_is_calibrated_and_warned_about():
+    """A heliostat left with 3 records (2 to train on: 4 residuals for 8 parameters)
+    is calibrated under the fleet prior, and the summary and the table say that its
+    calibration rests on the prior (a hostile-input trial found it silent)."""
+    import equinox as eqx
+
+    fleet, _ = simulate_fleet(5, 8, 30, base="actuator", noise_mrad=0.2)
+    mask = np.asarray(fleet.mask).copy()
+    mask[0, 3:] = False
+    fleet = eqx.tree_at(lambda f: f.mask, fleet, jnp.asarray(mask))
+    summary = hj.calibrate(fleet, model="actuator", changes=False, drift=False).summary["heliostats"]
+    few = summary[fleet.ids[0]]
+    assert few["status"] == "converged" and few["n_train_used"] == 2, few
+    assert "calibrated from 2 training records (4 residuals) for 8 free parameters" in few["warning"]
+    assert all(summary[i]["warning"] is None for i in fleet.ids[1:])

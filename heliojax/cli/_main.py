@@ -303,6 +303,9 @@ def _config_value(action: argparse.Action, value: object, where: str) -> object:
             value = value.isoformat()  # a TOML date or date-time, read as its ISO text would be
         if isinstance(value, bool) or not isinstance(value, str | int | float):
             raise ConfigError(f"{where}: expected a string or a number, got {value!r}")
+        numeric = {"integer": "an integer", "number": "a number"}.get(getattr(kind, "__name__", ""))
+        if numeric is not None and isinstance(value, str):  # TOML has numbers (and inf, nan): "10" is a typo
+            raise ConfigError(f"{where}: expected {numeric}, got the string {value!r} (write it without quotes)")
         try:
             value = kind(value)  # pyright: ignore[reportCallIssue, reportArgumentType]
         except (ValueError, TypeError, AttributeError, argparse.ArgumentTypeError) as e:
