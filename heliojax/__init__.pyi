@@ -95,7 +95,6 @@ from ._plan import (
     plan_measurements as plan_measurements,
     predicted_uncertainty_mrad as predicted_uncertainty_mrad,
     prior_covariance as prior_covariance,
-    residual_jacobians as residual_jacobians,
 )
 from ._plotting import (
     plot_aim as plot_aim,
@@ -182,6 +181,7 @@ from .fitting import (
     gather_solutions as gather_solutions,
     gaussian_prior as gaussian_prior,
     process_slice as process_slice,
+    residual_jacobians as residual_jacobians,
 )
 from .paint import (
     CalibrationRecord as CalibrationRecord,

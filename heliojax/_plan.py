@@ -69,38 +69,11 @@ from ._errors import DataError
 from ._heliostat import HeliostatGeometry, RecordContext
 from ._kinematics import AbstractKinematicModel, inverse_aim
 from ._parameters import ParameterView
-from ._programs import cached_jit
 from ._sun import solar_position
-from .fitting import prior_moments, sanitise
+from .fitting import prior_moments, residual_jacobians
 
 SOLAR_CONSTANT_W_M2 = 1361.0
 """Total solar irradiance (W/m^2) of the clear-sky DNI weights."""
-
-
-@cached_jit  # traced once per machine when the CLI keeps programs (drift, planning)
-def _jacobian_program(view, models, geometry, counts, context, spots, mask):
-    def one(model, g, c, x, f, m):
-        c, x, f, use, _ = sanitise(g, c, x, f, m)
-        jac = jax.vmap(lambda ci, xi, fi: direction_jacobian_mrad(view, model, g, ci, xi, fi))(c, x, f)
-        return jnp.where(use[:, None, None], jac, 0.0)
-
-    return jax.vmap(one)(models, geometry, counts, context, spots, mask)
-
-
-def residual_jacobians(
-    models: AbstractKinematicModel,
-    view: ParameterView,
-    geometry: HeliostatGeometry,
-    counts: Float[Array, "H K 2"],
-    context: RecordContext,
-    spots: Float[Array, "H K 3"],
-    mask: Bool[Array, "H K"],
-) -> Float[Array, "H K 2 F"]:
-    """Jacobian of each record's two residual components (mrad) w.r.t. the free
-    parameters (physical units, :attr:`ParameterView.free_index` order); zero rows
-    outside ``mask``."""
-
-    return _jacobian_program(view, models, geometry, counts, context, spots, mask)
 
 
 def clear_sky_dni(elevation: Float[ArrayLike, "*n"]) -> Float[np.ndarray, "*n"]:
@@ -612,5 +585,4 @@ __all__ = [
     "envelope_matrix",
     "plan_measurements",
     "predicted_uncertainty_mrad",
-    "residual_jacobians",
 ]

@@ -44,6 +44,7 @@ from .fitting import (
     fleet_beam_errors_mrad,
     fleet_residuals_mrad,
     noise_outliers,
+    residual_jacobians,
 )
 
 log = logging.getLogger(__name__)
@@ -443,8 +444,6 @@ def residual_prediction(solution: FitSolution, fleet, mask: np.ndarray) -> tuple
     ``J C J^T`` (mrad^2, ``(H, M, 2, 2)``; ``J`` the record's Jacobian w.r.t. the free
     parameters, ``C`` the fit's covariance); zero Jacobian rows outside ``mask``. Add
     the noise (and the drift, :func:`temporal_drift`) for a record's full prediction."""
-    from ._plan import residual_jacobians
-
     use = jax.device_put(mask) if isinstance(mask, np.ndarray) else jnp.asarray(mask)  # no eager XLA op
     r = np.asarray(fleet_residuals_mrad(solution.model, fleet, use))
     jac = np.asarray(

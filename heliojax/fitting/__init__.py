@@ -23,6 +23,7 @@ from ._evaluate import (
     choose_start_geometry as choose_start_geometry,
     fleet_beam_errors_mrad as fleet_beam_errors_mrad,
     fleet_residuals_mrad as fleet_residuals_mrad,
+    residual_jacobians as residual_jacobians,
     residuals_mrad as residuals_mrad,
     typical_actuators as typical_actuators,
 )

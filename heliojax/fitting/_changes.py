@@ -45,8 +45,9 @@ from jaxtyping import Array, Bool, Float, Int
 from .._errors import ConfigError
 from .._parameters import ParameterView, and_masks
 from .._programs import cached_jit
+from ._evaluate import residual_jacobians, residuals_mrad
 from ._fit import FitSolution
-from ._records import sanitise
+from ._records import finite_records
 
 OFFSET_NAMES: tuple[tuple[str, str], ...] = (("angle_offset_1", "angle_offset_2"), ("theta_k", "tau_k"))
 """The axis-offset parameter pairs a jump is sought in (actuator model, Stone model)."""
@@ -190,24 +191,17 @@ def _project_out(
 
 
 @cached_jit  # traced once per machine when the CLI keeps programs
-def _scan(view, columns, min_segment, model, geometry, counts, context, focal, mask, weight):
-    def one(model, geometry, counts, context, focal, mask, weight):
-        counts, context, focal, use, _ = sanitise(geometry, counts, context, focal, mask)
-        p = view.to_vector(model)
-        idx = jnp.asarray(view.free_index, dtype=jnp.int32)
-
-        def rows(y):
-            m = view.from_vector(model, p.at[idx].set(y))
-            return jax.vmap(m.beam_components, (None, 0, 0, 0))(geometry, counts, context, focal) * 1e3
-
-        y0 = p[idx]
+def _scan(columns, min_segment, residual, jacobian, counts, context, focal, mask, weight):
+    def one(residual, jacobian, counts, context, focal, mask, weight):
+        use = mask & finite_records(counts, context, focal)
         sw = jnp.sqrt(jnp.where(use, jnp.clip(weight, 0.0, 1.0), 0.0))
-        r = rows(y0) * sw[:, None]  # (M, 2) mrad
-        jac = jax.jacfwd(rows)(y0) * sw[:, None, None]  # (M, 2, F) mrad / physical unit
+        r = jnp.where(use[:, None], residual, 0.0) * sw[:, None]  # (M, 2) mrad; a non-finite fit stays NaN
+        jac = jacobian * sw[:, None, None]  # (M, 2, F) mrad / physical unit
         scale = jnp.maximum(jnp.sqrt(jnp.sum(jac**2, axis=(0, 1))), 1e-30)  # column scaling for conditioning
         jac = jac / scale[None, None, :]
         jump_cols = jac[:, :, jnp.asarray(columns)]  # (M, 2, 2)
-        drift_cols = jump_cols * drift_coordinate(context.unix_time, use)[:, None, None]
+        time = jnp.where(use, context.unix_time, 0.0)
+        drift_cols = jump_cols * drift_coordinate(time, use)[:, None, None]
         with_drift = jnp.concatenate([jac, drift_cols], axis=-1)
         t = jnp.where(use, context.unix_time, jnp.inf)
         rss0, (coef, drop), n_after = jump_scan(jac, jump_cols, r, t, use)
@@ -238,7 +232,7 @@ def _scan(view, columns, min_segment, model, geometry, counts, context, focal, m
             is_step=found & (dchi2 - drift_dchi2 > threshold / 3.0),
         )
 
-    return jax.vmap(one)(model, geometry, counts, context, focal, mask, weight)
+    return jax.vmap(one)(residual, jacobian, counts, context, focal, mask, weight)
 
 
 def find_change_points(
@@ -263,16 +257,19 @@ def find_change_points(
         ConfigError: the model has no free pair of axis offsets.
     """
     names, columns = _offset_columns(solution.view)
+    use = and_masks(mask, fleet.mask)
+    # the residuals and their Jacobian come from the programs the drift and planning use too,
+    # so the scan itself compiles only the linear algebra below
+    args = (fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, use)
     out = _scan(
-        solution.view,
         tuple(columns),
         int(solution.view.n_free if min_segment is None else min_segment),
-        solution.model,
-        fleet.geometry,
+        residuals_mrad(solution.model, *args),
+        residual_jacobians(solution.model, solution.view, *args),
         fleet.counts,
         fleet.context,
         fleet.focal_spot,
-        and_masks(mask, fleet.mask),
+        use,
         jnp.asarray(weights, fleet.counts.dtype),
     )
     return ChangePoints(offsets=names, **out)

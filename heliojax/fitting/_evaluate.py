@@ -9,9 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from .._aim import direction_jacobian_mrad
 from .._heliostat import HeliostatGeometry, RecordContext
 from .._kinematics import AbstractKinematicModel
-from .._parameters import and_masks, broadcast_model, is_batched, on_host
+from .._parameters import ParameterView, and_masks, broadcast_model, is_batched, on_host
 from .._programs import cached_jit
 from ._records import sanitise
 
@@ -53,6 +54,33 @@ def residuals_mrad(
         return jnp.where(use[:, None], r, jnp.nan)
 
     return jax.vmap(per_heliostat)(models, geometry, counts, context, focal, mask)
+
+
+@cached_jit
+def _jacobian_program(view, models, geometry, counts, context, focal, mask):
+    def one(model, g, c, x, f, m):
+        c, x, f, use, _ = sanitise(g, c, x, f, m)
+        jac = jax.vmap(lambda ci, xi, fi: direction_jacobian_mrad(view, model, g, ci, xi, fi))(c, x, f)
+        return jnp.where(use[:, None, None], jac, 0.0)
+
+    return jax.vmap(one)(models, geometry, counts, context, focal, mask)
+
+
+def residual_jacobians(
+    models: AbstractKinematicModel,
+    view: ParameterView,
+    geometry: HeliostatGeometry,
+    counts: Float[Array, "H M 2"],
+    context: RecordContext,
+    focal: Float[Array, "H M 3"],
+    mask: Bool[Array, "H M"],
+) -> Float[Array, "H M 2 F"]:
+    """Jacobian of each record's two residual components (mrad, as
+    :func:`residuals_mrad`) w.r.t. the free parameters of ``view`` (physical units,
+    :attr:`ParameterView.free_index` order) of the batched ``models``; zero rows
+    outside ``mask`` and for records that are not finite. One program per shape:
+    the change-point scan, the pointing drift and calibration planning share it."""
+    return _jacobian_program(view, models, geometry, counts, context, focal, mask)
 
 
 def _batched_models(models: AbstractKinematicModel, n: int) -> AbstractKinematicModel:
@@ -168,6 +196,7 @@ __all__ = [
     "choose_start_geometry",
     "fleet_beam_errors_mrad",
     "fleet_residuals_mrad",
+    "residual_jacobians",
     "residuals_mrad",
     "typical_actuators",
 ]
