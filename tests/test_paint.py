@@ -558,3 +558,22 @@ def test_a_folder_holding_none_of_the_requested_heliostats_is_one_line():
     text = str(err.value)
     assert "holds none of the requested heliostats (ZZ01, ZZ02)" in text
     assert "its heliostats: BE36, BF56" in text and "\n" not in text
+
+
+def test_close_pairs_by_numpy_and_by_tree_agree(monkeypatch):
+    """The overlap check's neighbour search: all distances at once for a few hundred
+    heliostats, a k-d tree for large fields; the same sorted pairs, checked by hand
+    for one planted pair and for the reach being inclusive."""
+    import numpy as np
+
+    from heliojax.paint import _flags
+
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0.0, 300.0, (700, 2))
+    xy[5] = xy[4] + [0.5, 0.0]
+    xy[7] = xy[6] + [6.0, 0.0]  # exactly at the reach
+    by_numpy = _flags.close_pairs(xy, 6.0)
+    monkeypatch.setattr(_flags, "CLOSE_PAIRS_BY_TREE", 2)
+    assert _flags.close_pairs(xy, 6.0) == by_numpy
+    assert (4, 5) in by_numpy and (6, 7) in by_numpy and len(by_numpy) > 10
+    assert all(i < j and np.linalg.norm(xy[i] - xy[j]) <= 6.0 for i, j in by_numpy)

@@ -357,7 +357,13 @@ def _terminate(signum: int, frame: object) -> typing.NoReturn:
 def main(argv: list[str] | None = None) -> int:
     """``heliojax COMMAND ...``; the exit status: 0, 1 (fetch: some files failed), 2
     (bad input, a usage error), 130 (Ctrl-C) or 143 (SIGTERM): interrupted, a line
-    without a traceback, and no output half written."""
+    without a traceback, and no output half written.
+
+    Run as the ``heliojax`` program (``argv`` None, in the main thread), the process
+    ends here once standard output and error are flushed (:func:`os._exit`): every
+    output is written, closed and renamed by then, and the interpreter's teardown
+    (JAX's exit handlers freeing its compiled programs, ~0.4 s on 2 cores) would only
+    make the user wait, with a Ctrl-C in it answered by an exit handler's traceback."""
     from_console = argv is None  # the `heliojax` program itself, not a caller in Python
     argv = sys.argv[1:] if argv is None else list(argv)
     in_main_thread = threading.current_thread() is threading.main_thread()
@@ -367,29 +373,53 @@ def main(argv: list[str] | None = None) -> int:
         sys.stdout = _NamedStdout(stdout)
     if stderr is None:  # started with standard error closed (`2>&-`): progress bars wrote to None and failed
         sys.stderr = open(os.devnull, "w")  # noqa: SIM115 (closed in the finally below)
+    command = next((a for a in argv if a in SUBCOMMANDS), "")
     try:
-        return _main(argv)
+        code = _main(argv)
+        if from_console and in_main_thread:
+            # the command has ended (its outputs written or not, and said so): a Ctrl-C
+            # from here on would exit 130 without a word
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            if sys.stdout is not None:
+                sys.stdout.flush()  # `--version > /dev/full`: named below, not at exit
     except KeyboardInterrupt as e:
         terminated = isinstance(e, Terminated)
-        command = next((a for a in argv if a in SUBCOMMANDS), "")
         print(
             f"heliojax{' ' + command if command else ''}: {'terminated' if terminated else 'interrupted'}: "
             "outputs not finished were not written",
             file=sys.stderr,
         )
-        return 143 if terminated else 130
+        code = 143 if terminated else 130
+    except OSError as e:  # standard output full or closed, outside a command's own handler
+        code = _os_error(command, e)
     finally:
-        if from_console and in_main_thread:
-            # the command has ended (its outputs written or not, and said so): a Ctrl-C
-            # from here on, while the interpreter shuts down, would exit 130 without a word
-            # or print a traceback from an exit handler
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
         sys.stdout = stdout
         if stderr is None:
             sys.stderr.close()
             sys.stderr = stderr
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+    if from_console and in_main_thread:
+        for stream in (sys.stderr, sys.stdout):
+            try:
+                if stream is not None:
+                    stream.flush()
+            except (OSError, ValueError):  # said above where it could be said; nothing more to do
+                pass
+        os._exit(code)
+    return code
+
+
+def _os_error(command: str, e: OSError) -> int:
+    """The exit status and one line for ``e``, a file that vanished or turned unwritable
+    while running (standard output too: ``> /dev/full``; ``| head -1`` ends quietly)."""
+    if isinstance(e, BrokenPipeError) and e.filename == "standard output":
+        _silence_stdout()  # `heliojax inspect | head -1`: the reader had enough, as with any Unix tool
+        return 141  # 128 + SIGPIPE
+    where = f"{e.filename}: " if e.filename else ""
+    name = f"heliojax {command}" if command else "heliojax"
+    print(f"{name}: error: {one_line(f'{where}{e.strerror or e}')}", file=sys.stderr)
+    return 2
 
 
 def _silence_stdout() -> None:
@@ -462,12 +492,7 @@ def _main(argv: list[str]) -> int:
         print(f"heliojax {args.command}: error: {e}", file=sys.stderr)
         return 2
     except OSError as e:  # a file that vanished or turned unwritable while running
-        if isinstance(e, BrokenPipeError) and e.filename == "standard output":
-            _silence_stdout()  # `heliojax inspect | head -1`: the reader had enough, as with any Unix tool
-            return 141  # 128 + SIGPIPE
-        where = f"{e.filename}: " if e.filename else ""
-        print(f"heliojax {args.command}: error: {one_line(f'{where}{e.strerror or e}')}", file=sys.stderr)
-        return 2
+        return _os_error(args.command, e)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -39,7 +39,7 @@ from .._geometry import products_by_reduction
 from .._heliostat import HeliostatGeometry, RecordContext
 from .._kinematics import AbstractKinematicModel
 from .._parameters import ParameterView, and_masks, broadcast_model, is_batched, on_host
-from .._programs import compile_cached
+from .._programs import cached_jit, compile_cached
 from ._batching import AbstractBatching, Vmap, default_batching
 from ._loss import AbstractLoss, LeastSquares
 from ._prior import AbstractPrior, NoPrior
@@ -542,7 +542,7 @@ def _prepare(model0, fleet, mask, free, solver, loss, prior, batching, max_steps
         fleet.context,
         fleet.focal_spot,
         m,
-        jnp.ones((h,), bool) if active is None else jnp.asarray(active, bool),
+        jax.device_put(np.ones((h,), bool) if active is None else np.asarray(active, bool)),  # no eager XLA op
     )
     static = (view, solver, loss, prior, max_steps, batching)
     return h, static, batching.prepare(args)
@@ -684,14 +684,19 @@ class CompiledFit:
         solution = FitSolution(view=static[0], **static[-1].finish(out, h))
         if otherwise is None:
             return solution
-        keep = jnp.asarray(only, bool)
+        return _merge(jax.device_put(np.asarray(only, bool)), solution, otherwise)
 
-        def pick(new, old):
-            if not eqx.is_array(new):
-                return new
-            return jnp.where(keep.reshape(keep.shape + (1,) * (jnp.ndim(new) - 1)), new, old)
 
-        return jax.tree.map(pick, solution, otherwise)
+@cached_jit  # one program, not an eager XLA operation per field
+def _merge(keep: Bool[Array, " H"], new: FitSolution, old: FitSolution) -> FitSolution:
+    """``new``'s heliostats where ``keep``, ``old``'s elsewhere."""
+
+    def pick(a, b):
+        if not eqx.is_array(a):
+            return a
+        return jnp.where(keep.reshape(keep.shape + (1,) * (jnp.ndim(a) - 1)), a, b)
+
+    return jax.tree.map(pick, new, old)
 
 
 def fit_timed(

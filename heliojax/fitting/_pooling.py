@@ -52,7 +52,8 @@ def flat_prior(model: AbstractKinematicModel, n: int, noise_mrad: float = 1.0) -
     view = ParameterView.of(models)
     inf = jax.device_put(np.full((n, view.n_parameters), np.inf, jnp.asarray(view.to_vector(models)).dtype))
     sigma = _from_vectors(view, models, inf)
-    return GaussianPrior(centre=models, sigma=sigma, noise_mrad=jnp.full((n,), noise_mrad))
+    noise = jax.device_put(np.full((n,), noise_mrad, inf.dtype))  # no eager XLA op
+    return GaussianPrior(centre=models, sigma=sigma, noise_mrad=noise)
 
 
 def _from_vectors(view: ParameterView, models: AbstractKinematicModel, vectors: Float[Array, "H P"]):

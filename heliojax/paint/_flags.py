@@ -152,6 +152,25 @@ def _flag_unmodelled_actuator_keys(props: list[HeliostatProperties], log: _Log) 
                 )
 
 
+CLOSE_PAIRS_BY_TREE = 1024
+"""From this many points on, :func:`close_pairs` searches a k-d tree (scipy's, imported
+then: ~0.1 s of a command's start); below, all pairs at once in NumPy."""
+
+
+def close_pairs(xy: np.ndarray, reach: float) -> list[tuple[int, int]]:
+    """The pairs ``(i, j)``, ``i < j``, of the ``(N, 2)`` points ``xy`` at most ``reach``
+    apart (same units), sorted: by all ``N (N - 1) / 2`` distances at once below
+    :data:`CLOSE_PAIRS_BY_TREE` points, else by :class:`scipy.spatial.KDTree`."""
+    n = len(xy)
+    if n >= CLOSE_PAIRS_BY_TREE:
+        from scipy.spatial import KDTree
+
+        return sorted(KDTree(xy).query_pairs(reach))
+    i, j = np.triu_indices(n, k=1)
+    near = np.linalg.norm(xy[i] - xy[j], axis=1) <= reach
+    return [(int(a), int(b)) for a, b in zip(i[near], j[near], strict=True)]
+
+
 def _flag_overlapping(props: list[HeliostatProperties], log: _Log) -> None:
     """Flag pairs of heliostats whose mirrors would overlap in any pose: centres
     closer than the sum of half their shorter sides (a properties file copied with its
@@ -162,12 +181,10 @@ def _flag_overlapping(props: list[HeliostatProperties], log: _Log) -> None:
     x64, half a metre at ECEF magnitudes."""
     if len(props) < 2:
         return
-    from scipy.spatial import KDTree
-
     lla = np.radians(np.array([p.position_lla[:2] for p in props], float))  # (H, 2) lat, lon
     xy = 6_371_000.0 * np.stack([lla[:, 1] * math.cos(lla[0, 0]), lla[:, 0]], axis=1)  # east, north (m)
     half = np.array([min(p.width, p.height) for p in props], float) / 2.0
-    for i, j in sorted(KDTree(xy).query_pairs(float(2.0 * half.max()))):
+    for i, j in close_pairs(xy, float(2.0 * half.max())):
         gap = float(np.linalg.norm(xy[i] - xy[j]))
         if gap < half[i] + half[j]:
             log.flag(
