@@ -318,6 +318,11 @@ CASES = [
         "max_steps: expected an integer, got the string '10'",
     ),
     (
+        "config float with an integer's value for an int (--max-steps 1e3 is refused too)",
+        lambda t: ["calibrate", "--config", _config(t, "[calibrate]\nmax_steps = 1e3\n")],
+        "max_steps: expected an integer, got the float 1000.0",
+    ),
+    (
         "config quoted number for a number",
         lambda t: ["discover", "--config", _config(t, '[discover]\nalpha = "0.05"\n')],
         "alpha: expected a number, got the string '0.05'",
@@ -1999,6 +2004,34 @@ def test_sigterm_is_a_line_and_exit_143(tmp_path):
     )
     assert r.returncode == 143, (r.returncode, r.stderr)
     assert r.stderr.strip() == "heliojax inspect: terminated: outputs not finished were not written", r.stderr
+
+
+def test_a_ctrl_c_swallowed_by_a_garbage_collector_callback_still_stops_the_command(tmp_path):
+    """A Ctrl-C arriving while a garbage-collector callback runs (JAX has one) raised
+    its KeyboardInterrupt there; Python printed "Exception ignored" with a traceback,
+    and the command went on to write its outputs and exit 0 (hostile-input trial 8).
+    The interrupt is remembered and stops the command at its next check: one line,
+    exit 130, nothing on standard error from the callback."""
+    r = _python(
+        tmp_path,
+        "import gc, os, signal, time\n"
+        "from heliojax.cli import _inspect\n"
+        "from heliojax.cli._main import main\n"
+        "def callback(phase, info):\n"
+        "    if phase == 'start':\n"
+        "        gc.callbacks.remove(callback)\n"
+        "        os.kill(os.getpid(), signal.SIGINT)\n"
+        "        time.sleep(0.01)\n"
+        "def run(args):\n"
+        "    gc.callbacks.append(callback)\n"
+        "    gc.collect()\n"
+        "    print('finished')\n"
+        "    return 0\n"
+        "_inspect.run = run\n"
+        "raise SystemExit(main(['inspect', '--cache-dir', 'none']))\n",
+    )
+    assert r.returncode == 130, (r.returncode, r.stderr)
+    assert r.stderr.strip() == "heliojax inspect: interrupted: outputs not finished were not written", r.stderr
 
 
 def test_the_program_ends_when_its_command_has_ended(tmp_path):

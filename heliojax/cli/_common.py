@@ -644,6 +644,25 @@ def check_sun_possible(azimuth_deg: float | None, elevation_deg: float | None, l
         )
 
 
+_PENDING_INTERRUPT: list[KeyboardInterrupt] = []
+"""A Ctrl-C or SIGTERM the command has received (:func:`note_interrupt`): its
+KeyboardInterrupt may have been raised where Python swallows exceptions (a garbage
+collector callback, JAX's among them, prints "Exception ignored" and carries on)."""
+
+
+def note_interrupt(interrupt: KeyboardInterrupt | None) -> None:
+    """Remember ``interrupt`` (None: forget any) for :func:`raise_if_interrupted`."""
+    _PENDING_INTERRUPT[:] = [] if interrupt is None else [interrupt]
+
+
+def raise_if_interrupted() -> None:
+    """Raise the interrupt the command received, if any: called before outputs are
+    written and when the command returns, so that an interrupt swallowed where it was
+    raised still stops the command (exit 130 or 143, outputs not written)."""
+    if _PENDING_INTERRUPT:
+        raise _PENDING_INTERRUPT[0]
+
+
 @contextlib.contextmanager
 def staged_outputs(args: argparse.Namespace, names: tuple[str, ...]) -> collections.abc.Iterator[None]:
     """Within the block, the output paths ``args.<name>`` are temporaries (see
@@ -653,11 +672,13 @@ def staged_outputs(args: argparse.Namespace, names: tuple[str, ...]) -> collecti
     from .._io import staged_paths
 
     finals = [getattr(args, n) for n in names]
+    raise_if_interrupted()
     with staged_paths(finals) as temps:
         for n, t in zip(names, temps, strict=True):
             setattr(args, n, t)
         try:
             yield
+            raise_if_interrupted()  # before the temporaries are renamed onto the outputs
         finally:
             for n, f in zip(names, finals, strict=True):
                 setattr(args, n, f)

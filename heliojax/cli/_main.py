@@ -20,13 +20,20 @@ import signal
 import sys
 import threading
 import typing
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 from .._errors import ConfigError, HeliojaxError, one_line
 from .._version import __version__
 from .._xla_flags import with_fast_cpu_compilation
-from ._common import check_input_paths, check_output_paths, configure_logging, path_type
+from ._common import (
+    check_input_paths,
+    check_output_paths,
+    configure_logging,
+    note_interrupt,
+    path_type,
+    raise_if_interrupted,
+)
 
 # subcommand -> module (each has add_parser(subparsers) and run(args) -> int)
 SUBCOMMANDS = {
@@ -306,6 +313,8 @@ def _config_value(action: argparse.Action, value: object, where: str) -> object:
         numeric = {"integer": "an integer", "number": "a number"}.get(getattr(kind, "__name__", ""))
         if numeric is not None and isinstance(value, str):  # TOML has numbers (and inf, nan): "10" is a typo
             raise ConfigError(f"{where}: expected {numeric}, got the string {value!r} (write it without quotes)")
+        if numeric == "an integer" and isinstance(value, float):  # as --max-steps 1e3 is refused
+            raise ConfigError(f"{where}: expected an integer, got the float {value!r}")
         try:
             value = kind(value)  # pyright: ignore[reportCallIssue, reportArgumentType]
         except (ValueError, TypeError, AttributeError, argparse.ArgumentTypeError) as e:
@@ -350,8 +359,24 @@ class Terminated(KeyboardInterrupt):
     ``finally`` and cleanup runs (temporary files removed, partial outputs not renamed)."""
 
 
-def _terminate(signum: int, frame: object) -> typing.NoReturn:
-    raise Terminated()
+def _interrupt(signum: int, frame: object) -> typing.NoReturn:
+    """Ctrl-C (SIGINT) and SIGTERM: remembered (:func:`note_interrupt`), then raised."""
+    interrupt = Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+    note_interrupt(interrupt)
+    raise interrupt
+
+
+def _quiet_unraisable(previous: Callable[[typing.Any], object]) -> Callable[[typing.Any], object]:
+    """``sys.unraisablehook`` that keeps an interrupt raised where Python swallows
+    exceptions (a garbage-collector callback) off standard error: it was remembered and
+    stops the command at its next check (:func:`raise_if_interrupted`)."""
+
+    def hook(unraisable: typing.Any) -> object:
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            return None
+        return previous(unraisable)
+
+    return hook
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -367,7 +392,11 @@ def main(argv: list[str] | None = None) -> int:
     from_console = argv is None  # the `heliojax` program itself, not a caller in Python
     argv = sys.argv[1:] if argv is None else list(argv)
     in_main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _terminate) if in_main_thread else None
+    previous = signal.signal(signal.SIGTERM, _interrupt) if in_main_thread else None
+    previous_int = signal.signal(signal.SIGINT, _interrupt) if in_main_thread else None
+    previous_hook = sys.unraisablehook
+    sys.unraisablehook = _quiet_unraisable(previous_hook)
+    note_interrupt(None)
     stdout, stderr = sys.stdout, sys.stderr
     if stdout is not None:  # None: started with standard output closed (`>&-`); print() writes nothing
         sys.stdout = _NamedStdout(stdout)
@@ -376,10 +405,9 @@ def main(argv: list[str] | None = None) -> int:
     command = next((a for a in argv if a in SUBCOMMANDS), "")
     try:
         code = _main(argv)
+        raise_if_interrupted()  # received but swallowed where it was raised: the command stops here
         if from_console and in_main_thread:
-            # the command has ended (its outputs written or not, and said so): a Ctrl-C
-            # from here on would exit 130 without a word
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            signal.signal(signal.SIGINT, signal.SIG_IGN)  # the command has ended (see below)
             if sys.stdout is not None:
                 sys.stdout.flush()  # `--version > /dev/full`: named below, not at exit
     except KeyboardInterrupt as e:
@@ -399,6 +427,14 @@ def main(argv: list[str] | None = None) -> int:
             sys.stderr = stderr
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+        if from_console and in_main_thread:
+            # the command has ended (its outputs written or not, and said so): a Ctrl-C
+            # from here on would exit 130 without a word
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+        elif previous_int is not None:
+            signal.signal(signal.SIGINT, previous_int)
+        sys.unraisablehook = previous_hook
+        note_interrupt(None)
     if from_console and in_main_thread:
         for stream in (sys.stderr, sys.stdout):
             try:
