@@ -31,6 +31,7 @@ from ._predictive import PointingErrorLaw, fit_drift_and_law
 from ._progress import activity
 from ._splits import chronological_holdout, days_since_fit, split_fleet
 from .fitting import (
+    MIN_PRIOR_HELIOSTATS,
     ChangePoints,
     FitSolution,
     FitStatus,
@@ -352,6 +353,13 @@ def calibrate(
     residuals_uncal = np.asarray(fleet_residuals_mrad(model0, nominal_fleet, all_valid))
     # Heliostats without a fit (too few records, no records) have no calibrated errors.
     fitted = np.isin(np.asarray(result.status), _NOT_FITTED, invert=True)
+    unpooled = np.flatnonzero(np.asarray(result.status)[:n_real] == FitStatus.TOO_FEW_RECORDS)
+    if pool and robust and unpooled.size:  # a learnt prior constrains every parameter: the prior was not learnt
+        log.warning(
+            f"fleet prior not learnt: fewer than {MIN_PRIOR_HELIOSTATS} heliostats determine their parameters "
+            f"from their own records; {few_names([ids[i] for i in unpooled])} stay uncalibrated (fewer training "
+            "records than free parameters): add records or heliostats"
+        )
     errors = np.where(fitted[:, None], errors, np.nan)
     residuals = np.where(fitted[:, None, None], residuals, np.nan)
 
@@ -900,7 +908,13 @@ def _status_reason(st: FitStatus, run: CalibrationRun, i: int, n_records: int, s
         FitStatus.MAX_STEPS: f"no convergence within {steps} Levenberg-Marquardt steps",
         FitStatus.DIVERGED: "the fit diverged or its result is not finite",
         FitStatus.NON_FINITE_INPUT: "a training record holds NaN or inf",
-        FitStatus.TOO_FEW_RECORDS: f"{n_train} training records for {n_free} free parameters and no fleet prior",
+        FitStatus.TOO_FEW_RECORDS: f"{n_train} training record{'' if n_train == 1 else 's'} for {n_free} free "
+        "parameters and no fleet prior"
+        + (
+            f" (fewer than {MIN_PRIOR_HELIOSTATS} heliostats determine their parameters alone to learn it from)"
+            if run.pooled
+            else " (pooling off)"
+        ),
         FitStatus.FAILED: "the solver failed",
         FitStatus.NO_RECORDS: f"split {run.split_kind} leaves 0 of {n_records} records for training",
     }[st]

@@ -125,3 +125,27 @@ def test_a_heliostat_with_fewer_residuals_than_parameters_is_calibrated_and_warn
     assert few["status"] == "converged" and few["n_train_used"] == 2, few
     assert "calibrated from 2 training records (4 residuals) for 8 free parameters" in few["warning"]
     assert all(summary[i]["warning"] is None for i in fleet.ids[1:])
+
+
+def test_a_fleet_too_small_for_a_prior_says_so_and_names_the_heliostats_left_out(caplog):
+    """Two heliostats that determine their parameters and two with 3 records: no fleet
+    prior can be learnt (a median and a MAD need three), so the two stay uncalibrated,
+    and the run says why in a warning naming them and in their status reasons (a
+    hostile-input trial found a good heliostat silently left uncalibrated when a bad one
+    dropped out of a five-heliostat fleet)."""
+    import logging
+
+    import equinox as eqx
+
+    fleet, _ = simulate_fleet(6, 4, 30, base="actuator", noise_mrad=0.2)
+    mask = np.asarray(fleet.mask).copy()
+    mask[:2, 3:] = False
+    fleet = eqx.tree_at(lambda f: f.mask, fleet, jnp.asarray(mask))
+    with caplog.at_level(logging.WARNING, logger="heliojax"):
+        summary = hj.calibrate(fleet, model="actuator", changes=False, drift=False).summary["heliostats"]
+    few = [summary[i] for i in fleet.ids[:2]]
+    assert all(e["status"] == "too_few_records" for e in few), few
+    assert all("fewer than 3 heliostats determine their parameters alone" in e["status_reason"] for e in few)
+    assert all(summary[i]["status"] == "converged" for i in fleet.ids[2:])
+    warned = [r.getMessage() for r in caplog.records if "fleet prior not learnt" in r.getMessage()]
+    assert len(warned) == 1 and all(i in warned[0] for i in fleet.ids[:2]), warned

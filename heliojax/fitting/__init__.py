@@ -53,6 +53,8 @@ from ._loss import (
     LeastSquares as LeastSquares,
 )
 from ._pooling import (
+    MIN_PRIOR_HELIOSTATS as MIN_PRIOR_HELIOSTATS,
+    MIN_RESIDUALS_PER_PARAMETER as MIN_RESIDUALS_PER_PARAMETER,
     flat_prior as flat_prior,
     fleet_prior as fleet_prior,
     prior_moments as prior_moments,

@@ -41,6 +41,10 @@ from ._status import FitStatus
 SPREAD_FLOOR_SCALED = 0.1
 """Smallest prior spread, in units of each parameter's solver scale."""
 
+MIN_PRIOR_HELIOSTATS = 3
+"""Fewest well-determined heliostats a fleet prior is learnt from (a median and a MAD
+need three); with fewer the prior constrains nothing."""
+
 MIN_RESIDUALS_PER_PARAMETER = 3
 """A heliostat is well determined with at least this many residuals per free parameter."""
 
@@ -77,7 +81,7 @@ def prior_moments(
 ) -> tuple[Float[np.ndarray, " P"], Float[np.ndarray, " P"]]:
     """Centre and spread (physical units, vector order of ``view``) of the fleet
     prior learnt from the heliostats ``learn_from`` (see the module docstring).
-    With fewer than three of them the centre is ``fallback_centre`` and every
+    With fewer than :data:`MIN_PRIOR_HELIOSTATS` of them the centre is ``fallback_centre`` and every
     spread ``inf``; non-free parameters have spread ``inf``."""
     p = np.asarray(params, float)
     scales = np.asarray(view.scales)
@@ -85,7 +89,7 @@ def prior_moments(
     centre = np.asarray(fallback_centre, float).copy()
     spread = np.full(p.shape[1], np.inf)
     good = np.asarray(learn_from, bool)
-    if good.sum() >= 3:
+    if good.sum() >= MIN_PRIOR_HELIOSTATS:
         pg, sg = p[good], np.asarray(std, float)[good]
         med = np.median(pg, axis=0)
         mad_var = (1.4826 * np.median(np.abs(pg - med), axis=0)) ** 2
@@ -143,6 +147,7 @@ def fleet_prior(
 
 
 __all__ = [
+    "MIN_PRIOR_HELIOSTATS",
     "MIN_RESIDUALS_PER_PARAMETER",
     "SPREAD_FLOOR_SCALED",
     "fleet_prior",
