@@ -225,6 +225,13 @@ def calibrate(
                 "(PAINT's calibration-timestamps.json missing beside the data?); add it or choose another "
                 "split, e.g. azimuth"
             )
+        undated = records & ~np.isfinite(np.asarray(fleet.context.unix_time, float)) & ~(train | val | test)
+        if split in ("time", "solstice") and undated.any():
+            counts = [f"{ids[i]} ({int(undated[i].sum())})" for i in np.flatnonzero(undated.any(axis=1))]
+            log.warning(
+                f"{int(undated.sum())} record(s) without a usable time are left out of the {split} split "
+                f"(heliostat, records): {few_names(counts, 10)}"
+            )
 
     h_pad = bucket_size(fleet.counts.shape[0])
     m_pad = bucket_size(fleet.counts.shape[1])

@@ -479,3 +479,27 @@ def test_fit_refuses_a_step_budget_below_one(steps):
     fleet = hj.load_paint_directory(hj.default_data_dir())
     with pytest.raises(ValueError, match="max_steps: expected an integer >= 1"):
         hj.fit(hj.ActuatorModel.nominal(), fleet, max_steps=steps)
+
+
+def test_records_without_a_time_are_named_when_the_time_split_leaves_them_out(caplog):
+    """A record whose time is unknown (a timestamp missing from
+    calibration-timestamps.json) cannot be placed by the time split: it is neither
+    trained on nor held out, and the run says how many, of which heliostat (a
+    hostile-input trial found them counted nowhere)."""
+    import logging
+
+    import equinox as eqx
+
+    from heliojax.discovery import simulate_fleet
+
+    fleet, _ = simulate_fleet(8, 3, 20, base="actuator", noise_mrad=0.2)
+    t = np.asarray(fleet.context.unix_time).copy()
+    t[1, [3, 7]] = np.nan
+    fleet = eqx.tree_at(lambda f: f.context.unix_time, fleet, jnp.asarray(t))
+    with caplog.at_level(logging.WARNING, logger="heliojax"):
+        run = hj.calibrate(fleet, model="actuator", changes=False, drift=False)
+    warned = [r.getMessage() for r in caplog.records if "without a usable time" in r.getMessage()]
+    assert warned == [
+        f"2 record(s) without a usable time are left out of the time split (heliostat, records): {fleet.ids[1]} (2)"
+    ], warned
+    assert not (run.train_mask | run.test_mask)[1, [3, 7]].any()
