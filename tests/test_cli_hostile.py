@@ -323,6 +323,11 @@ CASES = [
         "max_steps: expected an integer, got the float 1000.0",
     ),
     (
+        "config value refused after loading: named by its key, not by the flag",
+        lambda t: ["calibrate", "--config", _config(t, "[calibrate]\nval = 1_000\n")],
+        "config.toml: [calibrate] val 1000: the time split needs",
+    ),
+    (
         "config quoted number for a number",
         lambda t: ["discover", "--config", _config(t, '[discover]\nalpha = "0.05"\n')],
         "alpha: expected a number, got the string '0.05'",

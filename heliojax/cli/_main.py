@@ -446,6 +446,21 @@ def main(argv: list[str] | None = None) -> int:
     return code
 
 
+def _config_keys_named(message: str, args: argparse.Namespace) -> str:
+    """``message`` whose subject, the flag it starts with, is named by the ``--config``
+    file and key its value came from (not the command line;
+    :func:`~heliojax.cli._common.option_label`): the user wrote ``val = 1_000``, not
+    ``--val 1000``. Flags named further on are references and stay as they are."""
+    from ._common import option_label
+
+    for dest in getattr(args, "config_origin", {}):
+        flag = "--" + dest.replace("_", "-")
+        label = option_label(args, dest, flag)
+        if label != flag and re.match(rf"{re.escape(flag)}(?![\w-])", message):
+            return label + message[len(flag) :]
+    return message
+
+
 def _os_error(command: str, e: OSError) -> int:
     """The exit status and one line for ``e``, a file that vanished or turned unwritable
     while running (standard output too: ``> /dev/full``; ``| head -1`` ends quietly)."""
@@ -525,7 +540,7 @@ def _main(argv: list[str]) -> int:
         with logging_redirect_tqdm(loggers=[logger]):  # messages and progress bars share stderr
             return int(module.run(args) or 0)
     except HeliojaxError as e:
-        print(f"heliojax {args.command}: error: {e}", file=sys.stderr)
+        print(f"heliojax {args.command}: error: {_config_keys_named(str(e), args)}", file=sys.stderr)
         return 2
     except OSError as e:  # a file that vanished or turned unwritable while running
         return _os_error(args.command, e)
