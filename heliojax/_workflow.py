@@ -818,10 +818,10 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
                 f"fleet's typical {typical:.3g} mrad (garbage records or a wrong properties file?): left out of "
                 "the fleet's statistics; check its records and properties before aiming with this calibration"
             )
-            entry["warning"] = note if entry["warning"] is None else f"{entry['warning']}; {note}"
+            _add_warning(entry, note)
         if st == FitStatus.CONVERGED and 2 * entry["n_train_used"] < view.n_free:
             note = _few_records_note(entry["n_train_used"], view.n_free)
-            entry["warning"] = note if entry["warning"] is None else f"{entry['warning']}; {note}"
+            _add_warning(entry, note)
         heliostats[ids[i]] = entry
         if st == FitStatus.CONVERGED:
             t = test_err[i][np.isfinite(test_err[i])]
@@ -861,6 +861,11 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
         "predictive": {k: (_json_float(v) if isinstance(v, float) else v) for k, v in run.predictive.items()},
         "timing": {"compile_s": float(compile_s), "fit_s": float(fit_s)},
     }
+
+
+def _add_warning(entry: dict[str, typing.Any], note: str) -> None:
+    """Append ``note`` to a heliostat's summary ``warning`` (joined by ``; ``)."""
+    entry["warning"] = note if entry["warning"] is None else f"{entry['warning']}; {note}"
 
 
 def _few_records_note(n_used: int, n_free: int) -> str:

@@ -406,10 +406,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         code = _main(argv)
         raise_if_interrupted()  # received but swallowed where it was raised: the command stops here
-        if from_console and in_main_thread:
-            signal.signal(signal.SIGINT, signal.SIG_IGN)  # the command has ended (see below)
-            if sys.stdout is not None:
-                sys.stdout.flush()  # `--version > /dev/full`: named below, not at exit
+        if from_console and in_main_thread and sys.stdout is not None:
+            sys.stdout.flush()  # `--version > /dev/full`: named below, not at exit
     except KeyboardInterrupt as e:
         terminated = isinstance(e, Terminated)
         print(

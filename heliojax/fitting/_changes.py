@@ -200,8 +200,7 @@ def _scan(columns, min_segment, residual, jacobian, counts, context, focal, mask
         scale = jnp.maximum(jnp.sqrt(jnp.sum(jac**2, axis=(0, 1))), 1e-30)  # column scaling for conditioning
         jac = jac / scale[None, None, :]
         jump_cols = jac[:, :, jnp.asarray(columns)]  # (M, 2, 2)
-        time = jnp.where(use, context.unix_time, 0.0)
-        drift_cols = jump_cols * drift_coordinate(time, use)[:, None, None]
+        drift_cols = jump_cols * drift_coordinate(context.unix_time, use)[:, None, None]
         with_drift = jnp.concatenate([jac, drift_cols], axis=-1)
         t = jnp.where(use, context.unix_time, jnp.inf)
         rss0, (coef, drop), n_after = jump_scan(jac, jump_cols, r, t, use)
