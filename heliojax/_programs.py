@@ -15,22 +15,30 @@ so a changed option, shape, version or source never reuses a program.
 Arguments that cannot be pickled, and any failure to export or load, fall back
 to tracing (the result is the same either way); a kept program records its key and
 is used only under that key and for arguments of its input shapes and dtypes.
+
+:func:`warm_up` runs work that compiles programs (e.g. a later stage of a workflow on
+placeholder arrays of the right shapes) in a background thread, so that XLA compiles
+them on another core while the caller goes on; a program being compiled there is
+waited for, not compiled twice, when the caller needs it.
 """
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import functools
 import hashlib
 import logging
 import pickle
 import re
+import threading
 import typing
 from collections.abc import Callable
 from pathlib import Path
 
 import equinox as eqx
 import jax
+from jax.core import Tracer
 from jaxlib import version as jaxlib_version
 
 from ._io import atomic_write
@@ -102,11 +110,33 @@ def compile_cached(fn: Callable, *args: typing.Any) -> Callable[..., typing.Any]
     dyn, stat = eqx.partition(args, eqx.is_array)
     leaves, treedef = jax.tree.flatten(dyn)
     key = _key(fn, stat, leaves)
-    if key is not None and key in _COMPILED:  # compiled in this process already
-        return _COMPILED[key]
-    program = _compile(fn, args, stat, treedef, leaves, key, directory)
-    if key is not None:
+    if key is None:
+        return _compile(fn, args, stat, treedef, leaves, key, directory)
+    mine: concurrent.futures.Future | None = None
+    with _LOCK:
+        program = _COMPILED.get(key)  # compiled in this process already
+        pending = _PENDING.get(key) if program is None else None  # being compiled by another thread
+        if program is None and pending is None:
+            mine = _PENDING[key] = concurrent.futures.Future()
+    if program is not None:
+        return program
+    if pending is not None:
+        try:
+            return pending.result()
+        except Exception:  # noqa: BLE001 - that thread failed: compile here, raising what fails here
+            return _compile(fn, args, stat, treedef, leaves, key, directory)
+    assert mine is not None
+    try:
+        program = _compile(fn, args, stat, treedef, leaves, key, directory)
+    except BaseException as e:
+        mine.set_exception(e)
+        raise
+    finally:
+        with _LOCK:
+            _PENDING.pop(key, None)
+    with _LOCK:
         _COMPILED[key] = program
+    mine.set_result(program)
     return program
 
 
@@ -173,17 +203,47 @@ class cached_jit(eqx.Module):
         if _program_dir() is None:
             return self.jitted(*args)
         dyn, stat = eqx.partition(args, eqx.is_array)
-        key = _key(self.fn, stat, jax.tree.leaves(dyn))
+        leaves = jax.tree.leaves(dyn)
+        if any(isinstance(x, Tracer) for x in leaves):  # inside another trace: a nested jit
+            return self.jitted(*args)
+        key = _key(self.fn, stat, leaves)
         if key is None:
             return self.jitted(*args)
         program = _COMPILED.get(key)
         if program is None:
-            program = _COMPILED[key] = compile_cached(self.jitted, *args)
+            program = compile_cached(self.jitted, *args)
         return program(*args)
 
 
 _COMPILED: dict[str, Callable] = {}
 """Programs compiled in this process by :class:`cached_jit`, by key (like jit's own cache)."""
+_PENDING: dict[str, concurrent.futures.Future] = {}
+"""Programs being compiled by a thread now, by key: another thread waits for them."""
+_LOCK = threading.Lock()
+_BACKGROUND: list[concurrent.futures.ThreadPoolExecutor] = []
+
+
+def warm_up(work: Callable[[], typing.Any]) -> concurrent.futures.Future:
+    """Run ``work()`` (e.g. a later stage of a workflow on placeholder arrays of the
+    shapes it will get) in a background thread, for the programs it compiles: a later
+    call that needs one of them waits for it instead of compiling it again, and XLA
+    compiles on another core meanwhile. Its result and failures are discarded (a
+    failure is logged at debug level; the caller then compiles as usual). The thread
+    sees the caller's ``jax_enable_x64``. Returns the future of ``work()``; wait on it
+    before returning to the caller's own caller, so that no work outlives the call."""
+    x64 = bool(jax.config.jax_enable_x64)  # pyright: ignore[reportAttributeAccessIssue]
+
+    def run() -> None:
+        try:
+            with jax.enable_x64(x64):
+                work()
+        except Exception as e:  # noqa: BLE001 - only a head start: the caller compiles what failed here
+            log.debug("warm-up of %s failed: %s", work, e)
+
+    with _LOCK:
+        if not _BACKGROUND:
+            _BACKGROUND.append(concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="heliojax-warm-up"))
+    return _BACKGROUND[0].submit(run)
 
 
 def _load(path: Path, leaves: list) -> tuple[typing.Any, typing.Any] | None:
@@ -240,4 +300,4 @@ def _export(fn: Callable, stat: typing.Any, treedef: typing.Any, leaves: list, p
     return exported, skeleton[0]
 
 
-__all__ = ["PROGRAM_DIR", "cached_jit", "compile_cached"]
+__all__ = ["PROGRAM_DIR", "cached_jit", "compile_cached", "warm_up"]

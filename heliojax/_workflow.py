@@ -10,6 +10,7 @@ from __future__ import annotations
 import collections.abc
 import dataclasses
 import datetime
+import functools
 import json
 import logging
 import math
@@ -28,6 +29,7 @@ from ._geometry import direction_to_azimuth_elevation
 from ._io import atomic_write
 from ._kinematics import AbstractKinematicModel, nominal_model
 from ._predictive import PointingErrorLaw, fit_drift_and_law
+from ._programs import warm_up
 from ._progress import activity
 from ._splits import chronological_holdout, days_since_fit, split_fleet
 from .fitting import (
@@ -246,6 +248,18 @@ def calibrate(
 
     nominal_geometry = padded.geometry  # the plant's own values: the uncalibrated baseline
     options = dict(fit_options or {})
+    # the later stages' programs compile in the background (on another core) while the fit does
+    warming = warm_up(
+        functools.partial(
+            _compile_later_stages,
+            model0,
+            padded,
+            train,
+            options.get("free"),
+            robust=robust,
+            changes=changes,
+        )
+    )
 
     def fit_on(fleet_g, mask: np.ndarray):
         if robust:
@@ -403,7 +417,23 @@ def calibrate(
         noise_outlier=garbage,
     )
     summary = _summarise(run, n_real, compile_s=compile_s, fit_s=fit_s)
+    warming.result()  # done by now; no work outlives the call
     return dataclasses.replace(run, summary=summary)
+
+
+def _compile_later_stages(
+    model0: AbstractKinematicModel, fleet, train: np.ndarray, free, *, robust: bool, changes: bool
+) -> None:
+    """Run, on a placeholder fit (:meth:`FitSolution.placeholder`), what every run of
+    :func:`calibrate`'s stages after the first fit runs: the robust passes' residuals
+    and the change-point scan (residuals, their Jacobians, the scan), for the programs
+    they compile; results discarded (see :func:`heliojax.fitting.warm_up`)."""
+    solution = FitSolution.placeholder(model0, fleet, free)
+    mask = jax.device_put(train)
+    if robust:
+        fleet_residuals_mrad(solution.model, fleet, mask)
+    if changes:
+        find_change_points(solution, fleet, mask, jax.device_put(np.ones(train.shape, np.dtype(fleet.counts.dtype))))
 
 
 @dataclasses.dataclass(frozen=True)

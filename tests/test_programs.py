@@ -4,6 +4,8 @@ fresh trace, loaded instead of traced, keyed by every static option and shape.""
 from __future__ import annotations
 
 import pickle
+import threading
+import time
 
 import jax
 import jax.numpy as jnp
@@ -13,7 +15,7 @@ from helpers import zoo
 
 import heliojax as hj
 from heliojax import _programs
-from heliojax.fitting import CompiledFit
+from heliojax.fitting import CompiledFit, FitSolution, fleet_residuals_mrad
 
 
 @pytest.fixture
@@ -129,6 +131,78 @@ def test_without_a_cache_directory_nothing_is_written(tmp_path, monkeypatch):
     monkeypatch.setattr(_programs, "_export", _no_export)
     square = _programs.cached_jit(_square)
     np.testing.assert_array_equal(np.asarray(square(jnp.arange(3.0))), [0.0, 1.0, 4.0])
+
+
+def test_a_program_compiled_by_another_thread_is_waited_for(program_dir, monkeypatch):
+    """Two threads asking for one key compile it once; the second waits for the first
+    and runs the same program (the warm-up thread and the caller)."""
+    compiled = []
+    started = threading.Event()
+    original = _programs._compile
+
+    def slow(*a):
+        compiled.append(1)
+        started.set()
+        time.sleep(0.3)  # the other thread asks meanwhile
+        return original(*a)
+
+    monkeypatch.setattr(_programs, "_compile", slow)
+    power = _programs.cached_jit(_power)
+    x = jnp.arange(5.0)
+    results = {}
+    worker = threading.Thread(target=lambda: results.setdefault("worker", power(x, 3)))
+    worker.start()
+    assert started.wait(60)
+    results["caller"] = power(x, 3)
+    worker.join(60)
+    assert compiled == [1]
+    for r in results.values():
+        np.testing.assert_array_equal(np.asarray(r), np.asarray(x) ** 3)
+    assert len(results) == 2
+
+
+def test_a_failed_compile_in_another_thread_is_compiled_again_by_the_caller(program_dir, monkeypatch):
+    original = _programs._compile
+    calls = []
+
+    def first_fails(*a):
+        calls.append(threading.current_thread().name)
+        if len(calls) == 1:
+            raise RuntimeError("compiler ran out of memory")
+        return original(*a)
+
+    monkeypatch.setattr(_programs, "_compile", first_fails)
+    square = _programs.cached_jit(_square)
+    done = _programs.warm_up(lambda: square(jnp.arange(3.0)))
+    done.result(60)  # the failure is swallowed (logged at debug level)
+    np.testing.assert_array_equal(np.asarray(square(jnp.arange(3.0))), [0.0, 1.0, 4.0])
+    assert len(calls) == 2 and calls[0].startswith("heliojax-warm-up") and calls[1] == threading.current_thread().name
+
+
+def test_warm_up_runs_with_the_callers_float64_setting():
+    assert _programs.warm_up(lambda: jnp.asarray(1.0).dtype).result(60) is None  # results are discarded
+    got = []
+    with jax.enable_x64(False):
+        _programs.warm_up(lambda: got.append(jnp.asarray(1.0).dtype)).result(60)
+    _programs.warm_up(lambda: got.append(jnp.asarray(1.0).dtype)).result(60)
+    assert got == [jnp.float32, jnp.float64]
+
+
+def test_a_placeholder_solution_has_the_key_of_a_fit(program_dir, monkeypatch):
+    """What the warm-up compiles on a placeholder fit is the program the real fit's
+    solution then runs: same static parts, shapes and dtypes (the same key)."""
+    fleet = zoo("actuator").fleet
+    model0 = hj.ActuatorModel.nominal()
+    placeholder = FitSolution.placeholder(model0, fleet)
+    fleet_residuals_mrad(placeholder.model, fleet)
+    assert len(list(program_dir.glob("*.bin"))) == 1
+    monkeypatch.setattr(_programs, "_compile", _no_export)  # the fit's solution must find it compiled
+    solution = hj.fit(model0, fleet, max_steps=16)
+    r = np.asarray(fleet_residuals_mrad(solution.model, fleet))
+    assert np.isfinite(r[np.asarray(fleet.mask)]).all()
+    assert np.asarray(placeholder.status).tolist() == [0] * fleet.counts.shape[0]
+    for a, b in zip(jax.tree.leaves(placeholder), jax.tree.leaves(solution), strict=True):
+        assert np.shape(a) == np.shape(b) and np.asarray(a).dtype == np.asarray(b).dtype
 
 
 def _square(x):

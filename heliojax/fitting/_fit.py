@@ -348,6 +348,34 @@ class FitSolution(eqx.Module):
     def status_labels(self) -> list[str]:
         return [FitStatus(int(s)).label for s in np.asarray(self.status)]
 
+    @classmethod
+    def placeholder(cls, model0: AbstractKinematicModel, fleet: typing.Any, free: typing.Any = None) -> FitSolution:
+        """A solution of the structure, shapes and dtypes that :func:`fit` gives for
+        ``fleet`` from ``model0`` with the free set ``free``, holding the start models
+        and zeros (status 0): for compiling what consumes a fit before the fit exists
+        (see :func:`heliojax.fitting.warm_up`). Not a fit: never report it."""
+        _, static, args = _prepare(model0, fleet, None, free, None, None, None, None, DEFAULT_MAX_STEPS)
+        view, models = static[0], args[0]
+        h, m = np.shape(fleet.mask)[:2]
+        dtype = np.dtype(fleet.counts.dtype)
+
+        def zeros(shape: tuple[int, ...], dt: typing.Any = dtype) -> Array:
+            return jax.device_put(np.zeros(shape, dt))  # no eager XLA operation
+
+        return cls(
+            model=models,
+            std=zeros((h, view.n_parameters)),
+            covariance=zeros((h, view.n_free, view.n_free)),
+            status=zeros((h,), np.int32),
+            n_steps=zeros((h,), np.int32),
+            n_used=zeros((h,), np.int32),
+            rms_mrad=zeros((h,)),
+            cost=zeros((h,)),
+            noise_mrad=zeros((h,)),
+            loo_mrad=zeros((h, m)),
+            view=view,
+        )
+
 
 def _fit_one(
     view: ParameterView,
@@ -684,12 +712,13 @@ class CompiledFit:
         solution = FitSolution(view=static[0], **static[-1].finish(out, h))
         if otherwise is None:
             return solution
-        return _merge(jax.device_put(np.asarray(only, bool)), solution, otherwise)
+        return merge_solutions(jax.device_put(np.asarray(only, bool)), solution, otherwise)
 
 
 @cached_jit  # one program, not an eager XLA operation per field
-def _merge(keep: Bool[Array, " H"], new: FitSolution, old: FitSolution) -> FitSolution:
-    """``new``'s heliostats where ``keep``, ``old``'s elsewhere."""
+def merge_solutions(keep: Bool[Array, " H"], new: FitSolution, old: FitSolution) -> FitSolution:
+    """``new``'s heliostats where ``keep`` (``(H,)`` booleans), ``old``'s elsewhere
+    (two solutions of the same fleet and structure)."""
 
     def pick(a, b):
         if not eqx.is_array(a):
@@ -718,6 +747,7 @@ __all__ = [
     "LeastSquaresOutcome",
     "default_solver",
     "fit",
+    "merge_solutions",
     "fit_timed",
     "psd_inverse",
     "record_rows",
