@@ -14,6 +14,8 @@ What is compared (float64, Stone model, 8 parameters, no prior, same data):
   padded to the library's shape buckets (``--no-pad`` fits the exact shape).
   ``compile_s`` is the first call minus the best later call (trace + lower + XLA
   compile); ``heliojax_s`` is the best of ``--repeats`` calls after the first.
+  ``--cli-xla-flags`` compiles as the ``heliojax`` command does (XLA's older CPU
+  fusion emitters; the JSON's ``xla_flags`` says which flags were in force).
 * **scipy**: what a user would write instead: ``scipy.optimize.least_squares(
   method="lm")`` (MINPACK, forward-difference Jacobian, default tolerances) in a
   Python loop over heliostats, with the residual written in numpy (vectorised over
@@ -483,12 +485,22 @@ def parse_args(argv=None):
         default=0.0,
         help="fraction of the training records displaced by 10-100 mrad (gross errors; default none)",
     )
+    p.add_argument(
+        "--cli-xla-flags",
+        action="store_true",
+        help="compile as the heliojax command and the test suite do (XLA's older CPU fusion emitters, "
+        "heliojax/_xla_flags.py); default: the library's (XLA's own defaults)",
+    )
     p.add_argument("--simulate-to", default=None, help=argparse.SUPPRESS)
     return p.parse_args(argv)
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    if args.cli_xla_flags:  # before JAX starts its backend
+        from heliojax._xla_flags import with_fast_cpu_compilation
+
+        os.environ["XLA_FLAGS"] = with_fast_cpu_compilation(os.environ.get("XLA_FLAGS", ""))
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -615,6 +627,7 @@ def main(argv=None) -> int:
         "devices": [str(d) for d in jax.devices()],
         "machine": _machine(),
         "jax_version": jax.__version__,
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "dtype": str(data.counts.dtype),
         "simulate_s": sim_s,
         "converged_fraction": float(np.mean(status == 0)),

@@ -18,6 +18,22 @@ from ._records import sanitise
 
 
 @cached_jit
+def _errors_program(models, geometry, counts, context, focal, mask):
+    """``(beam errors (H, M), residual components (H, M, 2))`` in mrad, NaN outside
+    ``mask``: one program for both, so that a run compiles and loads it once."""
+
+    def per_heliostat(model, g, c, x, f, m):
+        c2, x2, f2, use, _ = sanitise(g, c, x, f, m)
+
+        def one(ci, xi, fi):
+            return model.beam_error(g, ci, xi, fi), model.beam_components(g, ci, xi, fi)
+
+        e, r = jax.vmap(one)(c2, x2, f2)
+        return jnp.where(use, e * 1e3, jnp.nan), jnp.where(use[:, None], r * 1e3, jnp.nan)
+
+    return jax.vmap(per_heliostat)(models, geometry, counts, context, focal, mask)
+
+
 def beam_errors_mrad(
     models: AbstractKinematicModel,
     geometry: HeliostatGeometry,
@@ -28,16 +44,9 @@ def beam_errors_mrad(
 ) -> Float[Array, "H M"]:
     """Beam pointing error (mrad) of every record ``(H, M)`` under models batched
     along ``H``; NaN where ``mask`` is False or an input is not finite."""
-
-    def per_heliostat(model, g, c, x, f, m):
-        c2, x2, f2, use, _ = sanitise(g, c, x, f, m)
-        e = jax.vmap(lambda ci, xi, fi: model.beam_error(g, ci, xi, fi))(c2, x2, f2) * 1e3
-        return jnp.where(use, e, jnp.nan)
-
-    return jax.vmap(per_heliostat)(models, geometry, counts, context, focal, mask)
+    return _errors_program(models, geometry, counts, context, focal, mask)[0]
 
 
-@cached_jit
 def residuals_mrad(
     models: AbstractKinematicModel,
     geometry: HeliostatGeometry,
@@ -47,13 +56,7 @@ def residuals_mrad(
     mask: Bool[Array, "H M"],
 ) -> Float[Array, "H M 2"]:
     """Tangent-plane residual components (mrad) of every record; NaN outside ``mask``."""
-
-    def per_heliostat(model, g, c, x, f, m):
-        c2, x2, f2, use, _ = sanitise(g, c, x, f, m)
-        r = jax.vmap(lambda ci, xi, fi: model.beam_components(g, ci, xi, fi))(c2, x2, f2) * 1e3
-        return jnp.where(use[:, None], r, jnp.nan)
-
-    return jax.vmap(per_heliostat)(models, geometry, counts, context, focal, mask)
+    return _errors_program(models, geometry, counts, context, focal, mask)[1]
 
 
 @cached_jit
