@@ -129,13 +129,13 @@ def compile_cached(fn: Callable, *args: typing.Any) -> Callable[..., typing.Any]
     try:
         program = _compile(fn, args, stat, treedef, leaves, key, directory)
     except BaseException as e:
-        mine.set_exception(e)
-        raise
-    finally:
         with _LOCK:
             _PENDING.pop(key, None)
+        mine.set_exception(e)
+        raise
     with _LOCK:
         _COMPILED[key] = program
+        _PENDING.pop(key, None)
     mine.set_result(program)
     return program
 

@@ -427,7 +427,7 @@ def _compile_later_stages(
     """Run, on a placeholder fit (:meth:`FitSolution.placeholder`), what every run of
     :func:`calibrate`'s stages after the first fit runs: the robust passes' residuals
     and the change-point scan (residuals, their Jacobians, the scan), for the programs
-    they compile; results discarded (see :func:`heliojax.fitting.warm_up`)."""
+    they compile; results discarded (see :func:`heliojax._programs.warm_up`)."""
     solution = FitSolution.placeholder(model0, fleet, free)
     mask = jax.device_put(train)
     if robust:

@@ -15,7 +15,7 @@ from helpers import zoo
 
 import heliojax as hj
 from heliojax import _programs
-from heliojax.fitting import CompiledFit, FitSolution, fleet_residuals_mrad
+from heliojax.fitting import CompiledFit, FitSolution, find_change_points, fleet_residuals_mrad
 
 
 @pytest.fixture
@@ -193,13 +193,17 @@ def test_a_placeholder_solution_has_the_key_of_a_fit(program_dir, monkeypatch):
     solution then runs: same static parts, shapes and dtypes (the same key)."""
     fleet = zoo("actuator").fleet
     model0 = hj.ActuatorModel.nominal()
+    weights = jax.device_put(np.ones(fleet.mask.shape))
     placeholder = FitSolution.placeholder(model0, fleet)
     fleet_residuals_mrad(placeholder.model, fleet)
-    assert len(list(program_dir.glob("*.bin"))) == 1
-    monkeypatch.setattr(_programs, "_compile", _no_export)  # the fit's solution must find it compiled
+    find_change_points(placeholder, fleet, fleet.mask, weights)  # residuals, their Jacobians, the scan
+    assert len(list(program_dir.glob("*.bin"))) == 3
+    monkeypatch.setattr(_programs, "_compile", _no_export)  # the fit's solution must find them compiled
     solution = hj.fit(model0, fleet, max_steps=16)
     r = np.asarray(fleet_residuals_mrad(solution.model, fleet))
     assert np.isfinite(r[np.asarray(fleet.mask)]).all()
+    changes = find_change_points(solution, fleet, fleet.mask, weights)
+    assert np.isfinite(np.asarray(changes.delta_chi2)).any()
     assert np.asarray(placeholder.status).tolist() == [0] * fleet.counts.shape[0]
     for a, b in zip(jax.tree.leaves(placeholder), jax.tree.leaves(solution), strict=True):
         assert np.shape(a) == np.shape(b) and np.asarray(a).dtype == np.asarray(b).dtype

@@ -39,7 +39,6 @@ from ._fit import (
     default_solver as default_solver,
     fit as fit,
     fit_timed as fit_timed,
-    merge_solutions as merge_solutions,
     psd_inverse as psd_inverse,
     record_rows as record_rows,
     record_rows_and_jacobian as record_rows_and_jacobian,

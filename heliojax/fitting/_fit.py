@@ -353,7 +353,7 @@ class FitSolution(eqx.Module):
         """A solution of the structure, shapes and dtypes that :func:`fit` gives for
         ``fleet`` from ``model0`` with the free set ``free``, holding the start models
         and zeros (status 0): for compiling what consumes a fit before the fit exists
-        (see :func:`heliojax.fitting.warm_up`). Not a fit: never report it."""
+        (see :func:`heliojax._programs.warm_up`). Not a fit: never report it."""
         _, static, args = _prepare(model0, fleet, None, free, None, None, None, None, DEFAULT_MAX_STEPS)
         view, models = static[0], args[0]
         h, m = np.shape(fleet.mask)[:2]
@@ -712,13 +712,12 @@ class CompiledFit:
         solution = FitSolution(view=static[0], **static[-1].finish(out, h))
         if otherwise is None:
             return solution
-        return merge_solutions(jax.device_put(np.asarray(only, bool)), solution, otherwise)
+        return _merge(jax.device_put(np.asarray(only, bool)), solution, otherwise)
 
 
 @cached_jit  # one program, not an eager XLA operation per field
-def merge_solutions(keep: Bool[Array, " H"], new: FitSolution, old: FitSolution) -> FitSolution:
-    """``new``'s heliostats where ``keep`` (``(H,)`` booleans), ``old``'s elsewhere
-    (two solutions of the same fleet and structure)."""
+def _merge(keep: Bool[Array, " H"], new: FitSolution, old: FitSolution) -> FitSolution:
+    """``new``'s heliostats where ``keep``, ``old``'s elsewhere."""
 
     def pick(a, b):
         if not eqx.is_array(a):
@@ -747,7 +746,6 @@ __all__ = [
     "LeastSquaresOutcome",
     "default_solver",
     "fit",
-    "merge_solutions",
     "fit_timed",
     "psd_inverse",
     "record_rows",
