@@ -807,6 +807,8 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
         test_med, test_rms = _stats(test_err[i])
         unc_med, unc_rms = _stats(test_unc[i])
         train_med, train_rms = _stats(train_err[i])
+        inliers = train_err[i] if run.outlier is None else np.where(run.outlier[i], np.nan, train_err[i])
+        _, train_inlier_rms = _stats(inliers)
         _, val_rms = _stats(val_err[i])
         n_candidates = int(np.sum(np.asarray(run.fleet.mask)[i]))
         label, reason = _status_reason(st, run, i, n_candidates, int(np.asarray(res.n_steps)[i]))
@@ -819,6 +821,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
             "n_val": int(np.sum(run.val_mask[i] & np.isfinite(run.uncalibrated_mrad[i]))),
             "n_test": int(np.sum(np.isfinite(test_unc[i]))),
             "train_rms_mrad": _json_float(train_rms),
+            "train_inlier_rms_mrad": _json_float(train_inlier_rms),
             "val_rms_mrad": _json_float(val_rms),
             "test_median_mrad": _json_float(test_med),
             "test_rms_mrad": _json_float(test_rms),
