@@ -221,6 +221,7 @@ _PENDING: dict[str, concurrent.futures.Future] = {}
 """Programs being compiled by a thread now, by key: another thread waits for them."""
 _LOCK = threading.Lock()
 _BACKGROUND: list[concurrent.futures.ThreadPoolExecutor] = []
+_WARM_UP_THREAD = "heliojax-warm-up"
 
 
 def warm_up(work: Callable[[], typing.Any]) -> concurrent.futures.Future:
@@ -240,9 +241,14 @@ def warm_up(work: Callable[[], typing.Any]) -> concurrent.futures.Future:
         except Exception as e:  # noqa: BLE001 - only a head start: the caller compiles what failed here
             log.debug("warm-up of %s failed: %s", work, e)
 
+    if threading.current_thread().name.startswith(_WARM_UP_THREAD):  # from a warm-up: no thread waits for itself
+        done: concurrent.futures.Future = concurrent.futures.Future()
+        run()
+        done.set_result(None)
+        return done
     with _LOCK:
         if not _BACKGROUND:
-            _BACKGROUND.append(concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="heliojax-warm-up"))
+            _BACKGROUND.append(concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=_WARM_UP_THREAD))
     return _BACKGROUND[0].submit(run)
 
 

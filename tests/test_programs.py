@@ -188,6 +188,19 @@ def test_warm_up_runs_with_the_callers_float64_setting():
     assert got == [jnp.float32, jnp.float64]
 
 
+def test_a_warm_up_started_from_a_warm_up_runs_at_once():
+    """The warm-up thread is one: work that starts another warm-up and waits for it
+    (e.g. a workflow run as another's warm-up) must not wait for itself."""
+    order = []
+
+    def outer():
+        _programs.warm_up(lambda: order.append("inner")).result(60)
+        order.append("outer")
+
+    _programs.warm_up(outer).result(60)
+    assert order == ["inner", "outer"]
+
+
 def test_a_placeholder_solution_has_the_key_of_a_fit(program_dir, monkeypatch):
     """What the warm-up compiles on a placeholder fit is the program the real fit's
     solution then runs: same static parts, shapes and dtypes (the same key)."""
