@@ -37,6 +37,7 @@ from .fitting import (
     ChangePoints,
     FitSolution,
     FitStatus,
+    Sharded,
     beam_errors_mrad,
     choose_start_geometry,
     find_change_points,
@@ -248,18 +249,12 @@ def calibrate(
 
     nominal_geometry = padded.geometry  # the plant's own values: the uncalibrated baseline
     options = dict(fit_options or {})
-    # the later stages' programs compile in the background (on another core) while the fit does
-    warming = warm_up(
-        functools.partial(
-            _compile_later_stages,
-            model0,
-            padded,
-            train,
-            options.get("free"),
-            robust=robust,
-            changes=changes,
-        )
+    # the later stages' programs compile in the background (on another core) while the fit does;
+    # not for a fit sharded over devices, whose outputs' placement a placeholder does not have
+    work = functools.partial(
+        _compile_later_stages, model0, padded, train, options.get("free"), robust=robust, changes=changes
     )
+    warming = warm_up(work if not isinstance(options.get("batching"), Sharded) else lambda: None)
 
     def fit_on(fleet_g, mask: np.ndarray):
         if robust:
