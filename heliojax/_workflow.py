@@ -900,12 +900,16 @@ def _few_records_note(n_used: int, n_free: int) -> str:
     """The warning of a converged heliostat whose records alone cannot determine its
     ``n_free`` parameters (fewer residuals than parameters): the fleet prior decides
     the rest, and its leave-one-out check (``worse_than_nominal``) judges little."""
-    records = "1 training record" if n_used == 1 else f"{n_used} training records"
     return (
-        f"calibrated from {records} ({2 * n_used} residuals) for {n_free} free parameters: the rest comes "
-        "from the fleet prior and its leave-one-out check says little; measure it again (heliojax plan) "
+        f"calibrated from {_training_records(n_used)} ({2 * n_used} residuals) for {n_free} free parameters: "
+        "the rest comes from the fleet prior and its leave-one-out check says little; measure it again (heliojax plan) "
         "before relying on this calibration"
     )
+
+
+def _training_records(n: int) -> str:
+    """``"1 training record"`` or ``"{n} training records"``."""
+    return "1 training record" if n == 1 else f"{n} training records"
 
 
 def _typical_noise(run: CalibrationRun, garbage: np.ndarray) -> float:
@@ -948,8 +952,7 @@ def _status_reason(st: FitStatus, run: CalibrationRun, i: int, n_records: int, s
         FitStatus.MAX_STEPS: f"no convergence within {steps} Levenberg-Marquardt steps",
         FitStatus.DIVERGED: "the fit diverged or its result is not finite",
         FitStatus.NON_FINITE_INPUT: "a training record holds NaN or inf",
-        FitStatus.TOO_FEW_RECORDS: f"{n_train} training record{'' if n_train == 1 else 's'} for {n_free} free "
-        "parameters and no fleet prior"
+        FitStatus.TOO_FEW_RECORDS: f"{_training_records(n_train)} for {n_free} free parameters and no fleet prior"
         + (
             f" (fewer than {MIN_PRIOR_HELIOSTATS} heliostats determine their parameters alone to learn it from)"
             if run.pooled

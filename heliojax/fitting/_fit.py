@@ -356,25 +356,11 @@ class FitSolution(eqx.Module):
         (see :func:`heliojax._programs.warm_up`). Not a fit: never report it."""
         _, static, args = _prepare(model0, fleet, None, free, None, None, None, None, DEFAULT_MAX_STEPS)
         view, models = static[0], args[0]
-        h, m = np.shape(fleet.mask)[:2]
-        dtype = np.dtype(fleet.counts.dtype)
-
-        def zeros(shape: tuple[int, ...], dt: typing.Any = dtype) -> Array:
-            return jax.device_put(np.zeros(shape, dt))  # no eager XLA operation
-
-        return cls(
-            model=models,
-            std=zeros((h, view.n_parameters)),
-            covariance=zeros((h, view.n_free, view.n_free)),
-            status=zeros((h,), np.int32),
-            n_steps=zeros((h,), np.int32),
-            n_used=zeros((h,), np.int32),
-            rms_mrad=zeros((h,)),
-            cost=zeros((h,)),
-            noise_mrad=zeros((h,)),
-            loo_mrad=zeros((h, m)),
-            view=view,
-        )
+        n_records, dtype = int(np.shape(fleet.mask)[1]), fleet.counts.dtype
+        # the fields of a heliostat left out of a fit (one definition of them), batched
+        shapes = jax.eval_shape(jax.vmap(lambda m: _not_fitted(view, m, n_records, dtype)), models)
+        zeros = {k: jax.device_put(np.zeros(x.shape, x.dtype)) for k, x in shapes.items() if k != "model"}
+        return cls(model=models, view=view, **zeros)  # device_put: no eager XLA operation
 
 
 def _fit_one(
