@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import collections.abc
 import dataclasses
+import math
 import typing
 from collections.abc import Iterator, Sequence
 
@@ -127,7 +128,7 @@ class ParameterLeaf:
 
     @property
     def size(self) -> int:
-        return int(np.prod(self.info.shape, dtype=int))
+        return math.prod(self.info.shape)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -119,3 +119,78 @@ def test_effect_prior_is_the_fit_cores_gaussian_prior_and_spares_well_sampled_he
     df = wf.effective_parameters(state, fold0)
     n_active = len(wf.active_cols(state.effects))
     assert df[0] < n_active - 0.5 and np.all(df[1:] > n_active - 0.1) and np.all(df <= n_active + 1e-9)
+
+
+def test_expansions_residuals_and_refits_against_second_computations():
+    """The refits' cheaper paths against second computations on one small fleet
+    (2 heliostats x 40 records, 3 folds; thermal and backlash planted):
+
+    * the effect graph's derivative ``D`` (reverse mode) equals forward mode's;
+    * an expansion that keeps an earlier ``D`` evaluates ``c0`` at the new point as a
+      full expansion does, and carries the earlier ``D`` unchanged;
+    * the residual-only program gives the Jacobian program's residuals;
+    * ``fit_state`` (iterations with a kept ``D``, then a fresh one) ends where
+      iterating "expand afresh, fit" to convergence ends, to the solver's path
+      tolerance, for a per-heliostat thermal and backlash refit."""
+    import jax
+    import jax.numpy as jnp
+
+    import heliojax as hj
+    from heliojax.discovery import _lanes, _select
+
+    effects = (make_effect("thermal", thermal_1=4e-5, thermal_2=-3e-5), make_effect("backlash"))
+    fleet, _ = simulate_fleet(3, 2, M, effects=effects, noise_mrad=NOISE)
+    layout, template = _lanes.make_layout(hj.nominal_model("stone8"), ("thermal", "backlash"), fleet)
+    lanes = _lanes.make_lanes(fleet, 3)
+    engine = _lanes.Engine.create(layout, template, lanes)
+    n_lanes = lanes.fold.shape[0]
+    p0 = np.broadcast_to(np.asarray(layout.view.to_vector(template)), (n_lanes, layout.view.n_parameters)).copy()
+    rng = np.random.default_rng(5)
+    free = np.asarray(layout.free_index)
+    p1 = p0.copy()
+    p1[:, free] += 0.3 * rng.normal(size=(n_lanes, free.size)) * np.asarray(layout.scales)
+
+    # reverse-mode D against forward mode, lane 0
+    (group,) = engine.groups
+    geometry, counts, context, focal, mask = group.take(lanes.data)
+    lane0 = jax.tree.map(lambda x: x[0], (geometry, counts, context, focal, mask))
+    c0, d_rev = _lanes._corrections_lane(layout, template, jnp.asarray(p1[0]), *lane0)
+    counts0, context0, focal0, _, _ = _lanes.sanitise(*lane0)
+    eidx = jnp.asarray(layout.effect_index, dtype=jnp.int32)
+    p1_0 = jnp.asarray(p1[0])
+
+    def corr(q, c, x, f):
+        return _lanes._corrections(layout.model(template, p1_0.at[eidx].set(q)), lane0[0], c, x, f)
+
+    d_fwd = jax.vmap(lambda c, x, f: jax.jacfwd(corr)(p1_0[eidx], c, x, f))(counts0, context0, focal0)
+    np.testing.assert_allclose(np.asarray(d_rev), np.asarray(d_fwd), rtol=0, atol=1e-12 * float(np.abs(d_fwd).max()))
+    assert float(np.abs(d_fwd).max()) > 0
+
+    # an expansion that keeps D: c0 at the new point, D of the old one
+    ((c_old, d_old),) = engine.expand(p0)
+    ((c_new, d_new),) = engine.expand(p1)
+    ((c_kept, d_kept),) = engine.expand(p1, derivative_from=((c_old, d_old),))
+    np.testing.assert_allclose(np.asarray(c_kept), np.asarray(c_new), rtol=0, atol=1e-12)
+    assert d_kept is d_old and float(np.abs(np.asarray(d_new) - np.asarray(d_old)).max()) > 0
+
+    # the residual-only program
+    for evaluate in (False, True):
+        r_jac, _ = engine.jacobian(p1, evaluate=evaluate)
+        np.testing.assert_allclose(engine.residuals(p1, evaluate=evaluate), r_jac, rtol=0, atol=1e-10)
+
+    # a refit ends where "expand afresh, fit" iterated to convergence ends (measured: 4e-8
+    # of a solver scale; iterations that stopped at the cost test, without the fresh
+    # derivative's last fit, were 1.3e-4 away): within the solver's path tolerance
+    wf = _select._Workflow(engine, DiscoveryConfig(base="stone8"))
+    base = wf.fit_state((), p0)
+    wf.noise = _select._lane_noise(base, len(layout.base_cols))
+    n_base = len(layout.base_cols)
+    path_atol = 10 * hj.fitting.DEFAULT_ATOL
+    for effect in ("thermal", "backlash"):
+        state = wf.fit_state(((effect, "per_heliostat"),), base.params)
+        cols = [c - n_base for c in wf.active_cols(state.effects) if c >= n_base]
+        p = base.params
+        for _ in range(12):
+            p = engine.fit(p, cols, p, engine.expand(p), wf.noise)["params"]
+        assert state.ok.all() and np.all(state.rss < base.rss)
+        assert np.max(np.abs(state.params - p)[:, free] / np.asarray(layout.scales)) <= path_atol

@@ -117,7 +117,8 @@ class DiscoveryConfig:
         max_named: most effects to name.
         max_refits: finalists refitted per step (best linearised delta BIC first).
         max_iterations: expansion/fit iterations of one refit (effects enter a fit
-            to first order about the previous point; see :mod:`._lanes`).
+            to first order about the previous point; see :mod:`._lanes`); one more
+            when they end before the fresh derivative's fit (see ``fit_state``).
         solver: the optimistix least-squares solver (static: changing it recompiles).
         max_steps: its step limit.
         batching: strategy over lanes (default :func:`heliojax.default_batching`).
@@ -263,11 +264,21 @@ class _Workflow:
         cov = None
         r = jac = None
         n_iter = self.config.max_iterations
-        for it in range(n_iter):
-            expansion = self.engine.expand(p)
+        # Iterations "fit, expand" first keep the derivative D of the effect graph from
+        # the start and evaluate only the corrections c0 at each new point (D changes
+        # little between iterations and is most of an expansion's cost); at their fixed
+        # point D is evaluated afresh and the fit repeated ("polishing") until the
+        # fixed point of the exact expansion, the least-squares solution, is reached.
+        # The final residuals and Jacobian are those of a fresh expansion.
+        expansion = self.engine.expand(p)
+        polishing = not eff_cols  # without effects D is never used: one fit, one fresh expansion
+        it, limit = 0, n_iter  # iterations; at most max_iterations, or one polishing fit past them
+        while True:
             out = self.engine.fit(p, fit_effect_cols, p, expansion, self.noise)
             p = np.array(out["params"])
-            r, jac = self.engine.jacobian(p)
+            it += 1
+            expansion = self.engine.expand(p) if polishing else self.engine.expand(p, derivative_from=expansion)
+            r, jac = self.engine.jacobian(p, expansion=expansion)
             # a lane whose fit left non-finite values is not fitted (it never spoils the others)
             ok = (
                 np.asarray(out["ok"], bool)
@@ -284,21 +295,27 @@ class _Workflow:
             exact = float(np.sum(np.sum(r**2, axis=1)[ok]))
             linear = float(np.sum(2.0 * out["cost"][ok]))
             converged = abs(exact - linear) <= 1e-4 * max(exact, 1e-300)
+            last = it >= limit
             if sh_cols:
                 step, cov = self._shared_step(r, jac, ok, act_cols, sh_cols, p)
-                if it < n_iter - 1 and float(np.max(np.abs(step))) > 1e-3:
+                if not last and float(np.max(np.abs(step))) > 1e-3:
                     idx = self.free_index[sh_cols]
                     for f in range(lanes.n_folds + 1):
                         p[np.ix_(lanes.fold == f, idx)] += step[f] * self.scales[sh_cols]
+                    # about the stepped point
+                    expansion = self.engine.expand(p) if polishing else self.engine.expand(p, derivative_from=expansion)
                     converged = False
-            if converged:
-                break
+            if converged or last:
+                if polishing:
+                    break
+                polishing, limit = True, max(limit, it + 1)  # D afresh at this point, and fit again
+                expansion = self.engine.expand(p)
         used = lanes.train_mask
         n_res = 2 * used.sum(axis=1)
         assert r is not None and jac is not None
         rss = np.where(ok, np.sum(r**2, axis=1), np.nan)
         p = np.where(ok[:, None], p, np.asarray(p_start, dtype=np.float64))  # no NaN carried to the next fit
-        r_eval, _ = self.engine.jacobian(p, evaluate=True)
+        r_eval = self.engine.residuals(p, evaluate=True)
         m = used.shape[1]
         sq = r_eval.reshape(n_lanes, m, 2)
         sq = np.sum(sq**2, axis=-1)
