@@ -277,7 +277,7 @@ class _Workflow:
             out = self.engine.fit(p, fit_effect_cols, p, expansion, self.noise)
             p = np.array(out["params"])
             it += 1
-            expansion = self.engine.expand(p) if polishing else self.engine.expand(p, derivative_from=expansion)
+            expansion = self.engine.expand(p, derivative_from=None if polishing else expansion)
             r, jac = self.engine.jacobian(p, expansion=expansion)
             # a lane whose fit left non-finite values is not fitted (it never spoils the others)
             ok = (
@@ -303,7 +303,7 @@ class _Workflow:
                     for f in range(lanes.n_folds + 1):
                         p[np.ix_(lanes.fold == f, idx)] += step[f] * self.scales[sh_cols]
                     # about the stepped point
-                    expansion = self.engine.expand(p) if polishing else self.engine.expand(p, derivative_from=expansion)
+                    expansion = self.engine.expand(p, derivative_from=None if polishing else expansion)
                     converged = False
             if converged or last:
                 if polishing:
