@@ -1573,6 +1573,44 @@ def test_discover_on_too_few_records_says_nothing_was_tested(two_records, tmp_pa
     assert r["data"]["max_records_per_heliostat"] == 2 and r["data"]["n_base_parameters"] == 8
 
 
+@pytest.mark.parametrize("where", ["discovery", "drawing"])
+def test_discover_stopped_keeps_its_previous_outputs(where, two_records, tmp_path, capsys, monkeypatch):
+    """Ctrl-C in the middle of discover (its workflow, or the drawing of its figures,
+    the last thing it does): exit 130 with one line, and the previous run's report,
+    Markdown summary and figures as they were, no temporary left beside them."""
+    import matplotlib.figure
+
+    from heliojax.discovery import _select
+
+    out = tmp_path / "out"
+    figures = out / "figures"
+    figures.mkdir(parents=True)
+    previous = {out / "report.json": "{}", out / "report.md": "previous run", figures / "screen_step1.png": "png"}
+    for path, text in previous.items():
+        path.write_text(text)
+    argv = ["discover", str(two_records), "--effects", "thermal", "--folds", "2", "--no-changes", "--cache-dir", "none"]
+    argv += ["--report", str(out / "report.json"), "--markdown", str(out / "report.md"), "--figures", str(figures)]
+
+    def interrupted(*_args, **_kwargs):
+        raise KeyboardInterrupt
+
+    if where == "discovery":
+        monkeypatch.setattr(_select, "_discover_cleaned", interrupted)
+    else:
+        drawn = []
+        monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda *a, **k: drawn.append(1) or interrupted())
+    rc, _, err = _run([*argv, "--quiet"], capsys)
+    assert rc == 130, err
+    assert (
+        len([line for line in err.splitlines() if line.strip()]) == 1 and "outputs not finished were not written" in err
+    ), err
+    assert where == "discovery" or drawn  # the drawing was reached
+    assert sorted(p.relative_to(out) for p in out.rglob("*")) == sorted(
+        [Path("figures")] + [p.relative_to(out) for p in previous]
+    )
+    assert all(path.read_text() == text for path, text in previous.items())
+
+
 def test_an_output_that_is_a_symbolic_link_is_written_through(tmp_path):
     """Renaming the finished file onto a link replaced the link by a file of its own
     (the file it pointed at kept its old content); now the file it points at is replaced."""
