@@ -129,7 +129,7 @@ def test_per_heliostat_start_is_the_posterior_mode_and_stays_bounded_when_nearly
     heliostat's own noise), computed here by a second route (least squares on the
     data rows stacked with the prior's rows); with a candidate column absorbed by the
     base to 1 - 1e-9 it stays within a few typical sizes, where the bare estimate is
-    thousands (1,000 x 60: a survey offset started there ended at 46 mrad held out)."""
+    hundreds of them (1,000 x 60: a survey offset started there ended at 45 mrad held out)."""
     rng = np.random.default_rng(3)
     n, typical = 60, np.array([0.5, 2.0])
     a = rng.standard_normal((n, 6))

@@ -114,8 +114,9 @@ class CandidateScreen:
         theta_shared: ``(k,)`` one-step (Gauss-Newton) estimate of the shared
             parameters, scaled units.
         theta_per_heliostat: ``(H, k)`` per-heliostat one-step estimates under a
-            Gaussian prior of the parameters' typical sizes about no effect, the refits'
-            own (NaN where not tested), scaled units.
+            Gaussian prior of the parameters' typical sizes about no effect (the refits'
+            prior with ``effect_prior``; a refit's start either way), NaN where not
+            tested, scaled units.
         p_heliostats: ``(H,)`` per-heliostat p-values (NaN where not tested).
         approx_delta_bic: ``{"shared": .., "per_heliostat": ..}`` linearised delta BIC.
     """
@@ -209,7 +210,7 @@ def screen_candidate(
             # parameter's typical size, this heliostat's noise), not the bare one, which
             # divides by singular values down to 1e-6 and put a nearly absorbed
             # direction's start (a survey offset per heliostat) so far out that the
-            # refit ended in another minimum (held-out 0.37 -> 46 mrad, 1,000 x 60).
+            # refit ended in another minimum (held-out 0.37 -> 45 mrad, 1,000 x 60).
             ridge = bt.T @ bt + denom * np.diag(1.0 / np.maximum(typical, 1e-300) ** 2)  # denom: noise variance
             theta_h[hb.index] = -np.linalg.lstsq(ridge, bt.T @ hb.r_res, rcond=None)[0]  # no raise if singular
             dll_perhel += hb.n * np.log(max(rss_res, 1e-300) / max(rss_res - s_h, 1e-300))
