@@ -23,6 +23,33 @@ from pathlib import Path
 
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
 
+
+def _import_dependencies_first() -> None:
+    """Import the libraries heliojax's modules import at their top level (and
+    beartype's checker) before any heliojax module runs.
+
+    jaxtyping's import hook (``--jaxtyping-packages``) runs each heliojax module with
+    its own name for compiled bytecode (``*.opt-jaxtyping*.pyc``) for everything
+    imported meanwhile; where bytecode is not written (``PYTHONDONTWRITEBYTECODE``),
+    jax, scipy, beartype and the rest (~1,800 modules) were compiled from source in
+    every worker, ~4-5 s each."""
+    import ast
+    import importlib
+
+    names = {"beartype.door"}
+    for path in (Path(__file__).resolve().parents[1] / "heliojax").rglob("*.py"):
+        for node in ast.parse(path.read_bytes()).body:
+            if isinstance(node, ast.Import):
+                names.update(a.name for a in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names.add(node.module)
+    for name in sorted(names):
+        if name.partition(".")[0] not in ("heliojax", "__future__"):
+            importlib.import_module(name)
+
+
+_import_dependencies_first()
+
 from heliojax._xla_flags import with_fast_cpu_compilation  # noqa: E402  (imports no JAX)
 
 os.environ["XLA_FLAGS"] = with_fast_cpu_compilation(os.environ.get("XLA_FLAGS", ""))

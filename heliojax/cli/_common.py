@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import collections.abc
 import contextlib
+import dataclasses
 import logging
 import math
 import os
@@ -574,13 +575,23 @@ def target_name(value: object) -> str:
     return value
 
 
-def integer(minimum: int | None = None, maximum: int | None = None):
+def integer(minimum: int | None = None, maximum: int | None = None) -> _Integer:
     """An argparse ``type``: an integer in ``[minimum, maximum]`` (from a command
     line string or a config number), else a message naming the range; no ``maximum``
     is :data:`LARGEST_INTEGER` (a config's 1e308 is an integer, one no program takes)."""
-    top = LARGEST_INTEGER if maximum is None else maximum
+    return _Integer(minimum, LARGEST_INTEGER if maximum is None else maximum)
 
-    def parse(value: str | int | float) -> int:
+
+@dataclasses.dataclass(frozen=True)
+class _Integer:
+    """:func:`integer`'s parser (a class, not a closure: the parsers are made anew for
+    every command line, and a closure would be a new function each time)."""
+
+    minimum: int | None
+    top: int
+    __name__ = "integer"  # argparse and the config loader name the kind by it
+
+    def __call__(self, value: str | int | float) -> int:
         if isinstance(value, bool) or (isinstance(value, str) and not _is_ascii_number(value)):
             raise argparse.ArgumentTypeError(f"expected an integer, got {shown_value(value)}")
         try:
@@ -589,38 +600,46 @@ def integer(minimum: int | None = None, maximum: int | None = None):
             raise argparse.ArgumentTypeError(f"expected an integer, got {shown_value(value)}") from None
         if isinstance(value, float) and number != value:
             raise argparse.ArgumentTypeError(f"expected an integer, got {value!r}")
-        if (minimum is not None and number < minimum) or number > top:
+        if (self.minimum is not None and number < self.minimum) or number > self.top:
             shown = str(value if isinstance(value, float) else number)  # not 1e308's 309 digits
             shown = shown if len(shown) <= 40 else f"{shown[:20]}...({len(shown)} digits)"  # nor 4000 typed ones
-            raise argparse.ArgumentTypeError(f"{shown} is outside [{minimum}, {top}]".replace("None", "..."))
+            raise argparse.ArgumentTypeError(f"{shown} is outside [{self.minimum}, {self.top}]".replace("None", "..."))
         return number
 
-    parse.__name__ = "integer"
-    return parse
 
-
-def number(minimum: float | None = None, maximum: float | None = None, *, above: bool = False, below: bool = False):
+def number(
+    minimum: float | None = None, maximum: float | None = None, *, above: bool = False, below: bool = False
+) -> _Number:
     """An argparse ``type``: a finite number in ``[minimum, maximum]`` (open at the
     bottom with ``above``, at the top with ``below``), else a message naming the range."""
+    return _Number(minimum, maximum, above, below)
 
-    def parse(value: str | float) -> float:
+
+@dataclasses.dataclass(frozen=True)
+class _Number:
+    """:func:`number`'s parser (a class, as :class:`_Integer`)."""
+
+    minimum: float | None
+    maximum: float | None
+    above: bool
+    below: bool
+    __name__ = "number"  # argparse and the config loader name the kind by it
+
+    def __call__(self, value: str | float) -> float:
         if isinstance(value, bool) or (isinstance(value, str) and not _is_ascii_number(value, special=True)):
             raise argparse.ArgumentTypeError(f"expected a number, got {shown_value(value)}")
         try:
             x = float(value)
         except (TypeError, ValueError):
             raise argparse.ArgumentTypeError(f"expected a number, got {shown_value(value)}") from None
-        low_ok = minimum is None or (x > minimum if above else x >= minimum)
-        high_ok = maximum is None or (x < maximum if below else x <= maximum)
+        low_ok = self.minimum is None or (x > self.minimum if self.above else x >= self.minimum)
+        high_ok = self.maximum is None or (x < self.maximum if self.below else x <= self.maximum)
         if not math.isfinite(x) or not low_ok or not high_ok:
-            brackets = ("(" if above else "[", ")" if below else "]")
+            brackets = ("(" if self.above else "[", ")" if self.below else "]")
             raise argparse.ArgumentTypeError(
-                f"{x} is outside {brackets[0]}{minimum}, {maximum}{brackets[1]}".replace("None", "...")
+                f"{x} is outside {brackets[0]}{self.minimum}, {self.maximum}{brackets[1]}".replace("None", "...")
             )
         return x
-
-    parse.__name__ = "number"
-    return parse
 
 
 MAX_DECLINATION_DEG = 23.45

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime as dt
 import sys
 
@@ -34,18 +35,24 @@ def _csv(value: str) -> list[str]:
     return names
 
 
-def _csv_of(choices: tuple[str, ...], what: str, *extra: str):
-    """An argparse ``type``: comma-separated names, each one of ``choices`` (or ``extra``)."""
+@dataclasses.dataclass(frozen=True)
+class _CsvOf:
+    """An argparse ``type``: comma-separated names, each one of ``choices`` (or ``extra``).
+    (A class, not a closure: parsers are made anew for every command line.)"""
 
-    def parse(value: str) -> list[str]:
+    choices: tuple[str, ...]
+    what: str
+    extra: tuple[str, ...] = ()
+
+    def __call__(self, value: str) -> list[str]:
         names = _csv(value)
-        unknown = [n for n in names if n not in choices and n not in extra]
+        unknown = [n for n in names if n not in self.choices and n not in self.extra]
         if unknown:
             shown = ", ".join(repr(n[:60]) for n in unknown[:5])
-            raise argparse.ArgumentTypeError(f"unknown {what} {shown}; choose from {','.join(choices + extra)}")
+            raise argparse.ArgumentTypeError(
+                f"unknown {self.what} {shown}; choose from {','.join(self.choices + self.extra)}"
+            )
         return names
-
-    return parse
 
 
 def _source(value: str) -> str:
@@ -108,14 +115,14 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--collections",
         metavar="NAMES",
-        type=_csv_of(tuple(COLLECTIONS), "collection"),
+        type=_CsvOf(tuple(COLLECTIONS), "collection"),
         default=["properties", "calibration"],
         help=f"comma-separated, from {','.join(COLLECTIONS)} (default: properties,calibration)",
     )
     p.add_argument(
         "--assets",
         metavar="KEYS",
-        type=_csv_of(tuple(CALIBRATION_ASSETS), "calibration asset", "all"),
+        type=_CsvOf(tuple(CALIBRATION_ASSETS), "calibration asset", ("all",)),
         default=["calibration_properties"],
         help=f"calibration asset keys, from {','.join(CALIBRATION_ASSETS)} or 'all' (default: calibration_properties)",
     )

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import functools
 import importlib
 import os
 import re
@@ -366,17 +367,14 @@ def _interrupt(signum: int, frame: object) -> typing.NoReturn:
     raise interrupt
 
 
-def _quiet_unraisable(previous: Callable[[typing.Any], object]) -> Callable[[typing.Any], object]:
-    """``sys.unraisablehook`` that keeps an interrupt raised where Python swallows
-    exceptions (a garbage-collector callback) off standard error: it was remembered and
-    stops the command at its next check (:func:`raise_if_interrupted`)."""
-
-    def hook(unraisable: typing.Any) -> object:
-        if isinstance(unraisable.exc_value, KeyboardInterrupt):
-            return None
-        return previous(unraisable)
-
-    return hook
+def _quiet_unraisable(previous: Callable[[typing.Any], object], unraisable: typing.Any) -> object:
+    """``sys.unraisablehook`` (with ``previous`` bound by :func:`functools.partial`) that
+    keeps an interrupt raised where Python swallows exceptions (a garbage-collector
+    callback) off standard error: it was remembered and stops the command at its next
+    check (:func:`raise_if_interrupted`)."""
+    if isinstance(unraisable.exc_value, KeyboardInterrupt):
+        return None
+    return previous(unraisable)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -395,7 +393,7 @@ def main(argv: list[str] | None = None) -> int:
     previous = signal.signal(signal.SIGTERM, _interrupt) if in_main_thread else None
     previous_int = signal.signal(signal.SIGINT, _interrupt) if in_main_thread else None
     previous_hook = sys.unraisablehook
-    sys.unraisablehook = _quiet_unraisable(previous_hook)
+    sys.unraisablehook = functools.partial(_quiet_unraisable, previous_hook)
     note_interrupt(None)
     stdout, stderr = sys.stdout, sys.stderr
     if stdout is not None:  # None: started with standard output closed (`>&-`); print() writes nothing

@@ -71,12 +71,12 @@ class _Log:
 
 def _actuator_law(*args):
     inc, s0, a, b, ang0, sign, counts = args
+    return ang0 + sign * (_actuator_psi(counts / inc + s0, a, b) - _actuator_psi(s0, a, b))
 
-    def psi(s):
-        with np.errstate(all="ignore"):  # an absurd stroke saturates (flagged); no warning on stderr
-            return np.arccos(np.clip((a**2 + b**2 - s**2) / (2 * a * b), -1.0, 1.0))
 
-    return ang0 + sign * (psi(counts / inc + s0) - psi(s0))
+def _actuator_psi(s, a, b):
+    with np.errstate(all="ignore"):  # an absurd stroke saturates (flagged); no warning on stderr
+        return np.arccos(np.clip((a**2 + b**2 - s**2) / (2 * a * b), -1.0, 1.0))
 
 
 def _law_at_limits(a: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -132,6 +132,22 @@ def read_facets(path: str | os.PathLike) -> tuple[Facet, ...]:
     return facets
 
 
+def _offset_in_heliostat(file: str, kin: _Node, fmt: str) -> Vec3:
+    """The (east, north, up) offset of the fields ``fmt`` formatted with e, n, u, in
+    metres, each checked to lie within a heliostat."""
+    out = []
+    for c in "enu":
+        v = float(kin.number(fmt.format(c)))
+        _check(
+            abs(v) <= MAX_HELIOSTAT_SIZE_M,
+            file,
+            kin.field(fmt.format(c)),
+            f"{v!r} m is more than {MAX_HELIOSTAT_SIZE_M:g} m: not an offset within a heliostat",
+        )
+        out.append(v)
+    return tuple(out)  # type: ignore[return-value]
+
+
 def _properties_from_json(file: str, data: Any, heliostat_id: str) -> HeliostatProperties:
     root = _Node(file, data)
     pos = root.vec3("heliostat_position")
@@ -161,22 +177,9 @@ def _properties_from_json(file: str, data: Any, heliostat_id: str) -> HeliostatP
         _actuator_from_json(file, _Node(file, a, _join(kin.field("actuators"), i))) for i, a in enumerate(acts)
     )
 
-    def triple(fmt: str) -> Vec3:
-        out = []
-        for c in "enu":
-            v = float(kin.number(fmt.format(c)))
-            _check(
-                abs(v) <= MAX_HELIOSTAT_SIZE_M,
-                file,
-                kin.field(fmt.format(c)),
-                f"{v!r} m is more than {MAX_HELIOSTAT_SIZE_M:g} m: not an offset within a heliostat",
-            )
-            out.append(v)
-        return tuple(out)  # type: ignore[return-value]
-
-    jt1 = triple("joint_translation_{}_1")
-    jt2 = triple("joint_translation_{}_2")
-    conc = triple("concentrator_translation_{}")
+    jt1 = _offset_in_heliostat(file, kin, "joint_translation_{}_1")
+    jt2 = _offset_in_heliostat(file, kin, "joint_translation_{}_2")
+    conc = _offset_in_heliostat(file, kin, "concentrator_translation_{}")
     facets, canting_type = _facets_from_json(file, root)
     renovation = None
     if root.has("renovation") and root.get("renovation") is not None:

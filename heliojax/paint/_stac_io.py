@@ -381,23 +381,24 @@ def _bounded_body(response: requests.Response, timeout_s: float) -> Iterator[byt
 
 
 # --------------------------------------------------------------------------- checksums
+def _varint(raw: bytes, pos: int) -> tuple[int, int]:
+    """The unsigned varint of ``raw`` at ``pos`` and the position after it."""
+    value = shift = 0
+    while True:
+        if pos >= len(raw):
+            raise ValueError("truncated varint")
+        b = raw[pos]
+        value |= (b & 0x7F) << shift
+        pos += 1
+        if not b & 0x80:
+            return value, pos
+        shift += 7
+
+
 def _parse_multihash(hexstr: str) -> tuple[int, bytes]:
     raw = bytes.fromhex(hexstr)
-
-    def varint(pos: int) -> tuple[int, int]:
-        value = shift = 0
-        while True:
-            if pos >= len(raw):
-                raise ValueError("truncated varint")
-            b = raw[pos]
-            value |= (b & 0x7F) << shift
-            pos += 1
-            if not b & 0x80:
-                return value, pos
-            shift += 7
-
-    code, pos = varint(0)
-    length, pos = varint(pos)
+    code, pos = _varint(raw, 0)
+    length, pos = _varint(raw, pos)
     digest = raw[pos:]
     if len(digest) != length:
         raise ValueError(f"digest length {len(digest)} != {length}")
