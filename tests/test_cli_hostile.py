@@ -928,7 +928,8 @@ def test_a_bad_environment_is_one_line_or_done_without(env, argv, rc, said, tmp_
     import subprocess
     import sys
 
-    environ = {**os.environ, "PYTHONPATH": str(Path(hj.__file__).parents[1]), **env}
+    # a blank $HELIOJAX_CACHE_DIR means the default cache, which $XDG_CACHE_HOME keeps out of the home folder
+    environ = {**os.environ, "PYTHONPATH": str(Path(hj.__file__).parents[1]), "XDG_CACHE_HOME": str(tmp_path), **env}
     run = subprocess.run(
         [sys.executable, "-m", "heliojax.cli._main", "inspect", *argv],
         cwd=tmp_path,
@@ -943,6 +944,8 @@ def test_a_bad_environment_is_one_line_or_done_without(env, argv, rc, said, tmp_
     assert said in run.stdout + run.stderr and "Traceback" not in run.stderr, run.stderr[-2000:]
     assert rc == 0 or len(lines) == 1, lines
     assert not (tmp_path / "  ").exists()
+    if env.get("HELIOJAX_CACHE_DIR") == "  ":
+        assert any((tmp_path / "heliojax" / "jax").iterdir()), "the default cache was not used"
 
 
 def test_a_closed_standard_error_runs_quietly(capsys, monkeypatch):
