@@ -24,9 +24,16 @@ from pathlib import Path
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
 
 
+from heliojax._xla_flags import with_fast_cpu_compilation  # noqa: E402  (imports no JAX)
+
+os.environ["XLA_FLAGS"] = with_fast_cpu_compilation(os.environ.get("XLA_FLAGS", ""))
+
+
 def _import_dependencies_first() -> None:
     """Import the libraries heliojax's modules import at their top level (and
-    beartype's checker) before any heliojax module runs.
+    beartype's checker) before those modules run (``heliojax`` itself and
+    ``heliojax._xla_flags``, above, import none of them; ``XLA_FLAGS`` is set before
+    anything could start JAX's backend).
 
     jaxtyping's import hook (``--jaxtyping-packages``) runs each heliojax module with
     its own name for compiled bytecode (``*.opt-jaxtyping*.pyc``) for everything
@@ -50,9 +57,6 @@ def _import_dependencies_first() -> None:
 
 _import_dependencies_first()
 
-from heliojax._xla_flags import with_fast_cpu_compilation  # noqa: E402  (imports no JAX)
-
-os.environ["XLA_FLAGS"] = with_fast_cpu_compilation(os.environ.get("XLA_FLAGS", ""))
 
 import jax  # noqa: E402  (reads JAX_* variables at import)
 import jaxtyping  # noqa: E402
