@@ -2573,9 +2573,20 @@ AIM_CSVS = [
     ("separated by tabs", _aim_rows().replace(",", "\t"), "separated by tabs"),
     ("a header only", _ENU, "no aim points"),
     ("an aim point underground (up with the wrong sign)", _aim_rows("BE36,0,0,-60"), "m below the lowest heliostat"),
+    (
+        "a coordinate of 1e308 (its square overflows)",
+        _aim_rows("BE36,1e308,0,60"),
+        "row 2': the aim point of BE36 is over",
+    ),
+    (
+        "an altitude of -1e308",
+        _aim_rows("BE36,50.91,6.387,-1e308", header="heliostat_id,lat_deg,lon_deg,alt_m\n"),
+        "row 2': the aim point of BE36 is over",
+    ),
 ]
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # a numpy overflow warning reached the user's terminal
 @pytest.mark.parametrize(("text", "said"), [c[1:] for c in AIM_CSVS], ids=[c[0] for c in AIM_CSVS])
 def test_aim_points_csv_of_a_bad_kind_is_named(text, said, fitted_h5, tmp_path, capsys):
     """Every aim-point CSV that would be read wrongly (a repeated column whose last copy

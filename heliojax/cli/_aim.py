@@ -242,7 +242,8 @@ def _aim_points_csv(path: Path, ids: tuple[str, ...], origin_lla, heliostat_posi
         raise DataError(path, "heliostat_id", f"no aim point for {', '.join(missing)}")
     out = np.stack([points[h] for h in ids])
     enu = out if cols == enu_cols else np.asarray(wgs84_to_enu(out, np.asarray(origin_lla)))
-    far = np.linalg.norm(enu, axis=-1) > MAX_FIELD_EXTENT_M
+    # hypot, not a sum of squares: a coordinate of 1e308 overflows that (a RuntimeWarning to the user)
+    far = ~(np.hypot(np.hypot(enu[:, 0], enu[:, 1]), enu[:, 2]) <= MAX_FIELD_EXTENT_M)  # NaN too
     if far.any():
         h = ids[int(np.argmax(far))]
         raise DataError(path, f"row {lines[h]}", f"the aim point of {h} is over {MAX_FIELD_EXTENT_M / 1e3:g} km away")
