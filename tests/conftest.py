@@ -100,13 +100,9 @@ def _compilation_cache_of_the_session(tmp_path_factory):
     its compiled programs in a folder of this test session (``$HELIOJAX_CACHE_DIR``,
     one per xdist worker), not in the user's ``~/.cache/heliojax``: the tests leave
     nothing in the home folder, and a run starts as cold as on a fresh machine (CI)."""
-    before = os.environ.get("HELIOJAX_CACHE_DIR")
-    os.environ["HELIOJAX_CACHE_DIR"] = str(tmp_path_factory.getbasetemp() / "heliojax-cache")
-    yield
-    if before is None:
-        os.environ.pop("HELIOJAX_CACHE_DIR", None)
-    else:
-        os.environ["HELIOJAX_CACHE_DIR"] = before
+    with pytest.MonkeyPatch.context() as session:
+        session.setenv("HELIOJAX_CACHE_DIR", str(tmp_path_factory.getbasetemp() / "heliojax-cache"))
+        yield
 
 
 _optimised_now = [False]  # this process's last setting; programs compiled before a switch are reused
