@@ -437,6 +437,54 @@ def test_a_garbage_heliostat_changes_no_other_calibration():
         np.testing.assert_allclose(list(ea["params"].values()), list(eb["params"].values()), rtol=1e-9, atol=1e-12)
 
 
+def _noise_outliers_by_loop(own, candidates):
+    """The step-down test of :func:`heliojax.fitting.noise_outliers` written as its
+    docstring says, one remainder after another (``O(H^2)``)."""
+    own = np.asarray(own, float)
+    cand = np.asarray(candidates, bool) & np.isfinite(own) & (own > 0)
+    out = np.zeros(own.shape, bool)
+    n = int(cand.sum())
+    if n < 3:
+        return out
+    index = np.flatnonzero(cand)
+    x = np.log(own[index])
+    order = np.argsort(-x, kind="stable")
+    above = x - np.median(x) > np.log(hj.fitting.NOISE_OUTLIER_MIN_RATIO)
+    named = 0
+    for i in range((n - 1) // 2):
+        rest = x[order[i:]]
+        med = np.median(rest)
+        mad = max(float(np.median(np.abs(rest - med))), 1e-300)
+        if 0.6745 * (x[order[i]] - med) / mad > hj.fitting.NOISE_OUTLIER_Z and above[order[i]]:
+            named = i + 1
+    out[index[order[:named]]] = True
+    return out
+
+
+def test_noise_outliers_equal_the_step_down_loop():
+    """Every step at once (one sort, MADs by bisection) names exactly what the loop over
+    the remainders names: fleets of 1-40 heliostats, garbage among them, ties, NaN and
+    non-candidates."""
+    from heliojax.fitting import noise_outliers
+
+    rng = np.random.default_rng(1)
+    named = 0
+    for _ in range(600):
+        n = int(rng.integers(1, 40))
+        own = np.exp(rng.normal(0.0, rng.uniform(0.05, 1.0), n))
+        k = int(rng.integers(0, n // 2 + 1))
+        own[:k] = rng.uniform(3.0, 300.0, k)
+        if rng.random() < 0.3:
+            own = np.round(own, 1) + 0.01  # ties
+        if rng.random() < 0.1:
+            own[rng.integers(0, n)] = np.nan
+        cand = rng.random(n) < 0.9
+        got = noise_outliers(own, cand)
+        np.testing.assert_array_equal(got, _noise_outliers_by_loop(own, cand))
+        named += int(got.sum())
+    assert named > 300  # the cases name heliostats, not only none
+
+
 def test_two_garbage_heliostats_are_both_named():
     """Two garbage heliostats among five good ones (the embedded data, with copies of
     BF56 with its axes' counts swapped and of BG23 with every count moved by up to
