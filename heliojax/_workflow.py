@@ -373,7 +373,8 @@ def calibrate(
     if pool and robust and unpooled.size:  # a learnt prior constrains every parameter: the prior was not learnt
         log.warning(
             f"fleet prior not learnt: fewer than {MIN_PRIOR_HELIOSTATS} heliostats determine their parameters "
-            f"from their own records; {few_names([ids[i] for i in unpooled])} stay uncalibrated (fewer training "
+            f"from their own records; {few_names([ids[i] for i in unpooled])} "
+            f"{'stays' if unpooled.size == 1 else 'stay'} uncalibrated (fewer training "
             "records than free parameters): add records or heliostats"
         )
     errors = np.where(fitted[:, None], errors, np.nan)
