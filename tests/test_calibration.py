@@ -439,26 +439,29 @@ def test_a_garbage_heliostat_changes_no_other_calibration():
 
 def _noise_outliers_by_loop(own, candidates):
     """The step-down test of :func:`heliojax.fitting.noise_outliers` written as its
-    docstring says, one remainder after another (``O(H^2)``)."""
-    own = np.asarray(own, float)
-    cand = np.asarray(candidates, bool) & np.isfinite(own) & (own > 0)
-    out = np.zeros(own.shape, bool)
-    n = int(cand.sum())
-    if n < 3:
-        return out
-    index = np.flatnonzero(cand)
-    x = np.log(own[index])
-    order = np.argsort(-x, kind="stable")
-    above = x - np.median(x) > np.log(hj.fitting.NOISE_OUTLIER_MIN_RATIO)
-    named = 0
-    for i in range((n - 1) // 2):
-        rest = x[order[i:]]
-        med = np.median(rest)
-        mad = max(float(np.median(np.abs(rest - med))), 1e-300)
-        if 0.6745 * (x[order[i]] - med) / mad > hj.fitting.NOISE_OUTLIER_Z and above[order[i]]:
-            named = i + 1
-    out[index[order[:named]]] = True
-    return out
+    docstring says, in plain Python: one remainder after another (``O(H^2)``)."""
+    import math
+    import statistics
+
+    pairs = enumerate(zip(own, candidates, strict=True))
+    usable = [(math.log(v), i) for i, (v, c) in pairs if c and math.isfinite(v) and v > 0]
+    named = [False] * len(own)
+    if len(usable) < 3:
+        return np.array(named)
+    ranked = sorted(usable, key=lambda p: -p[0])  # stable: ties keep the heliostats' order
+    everyone = statistics.median(v for v, _ in usable)
+    last = 0
+    for step in range((len(usable) - 1) // 2):
+        left = [v for v, _ in ranked[step:]]
+        centre = statistics.median(left)
+        spread = max(statistics.median(abs(v - centre) for v in left), 1e-300)
+        top = ranked[step][0]
+        z = 0.6745 * (top - centre) / spread
+        if z > hj.fitting.NOISE_OUTLIER_Z and top - everyone > math.log(hj.fitting.NOISE_OUTLIER_MIN_RATIO):
+            last = step + 1
+    for _, i in ranked[:last]:
+        named[i] = True
+    return np.array(named)
 
 
 def test_noise_outliers_equal_the_step_down_loop():
