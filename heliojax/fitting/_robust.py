@@ -108,7 +108,9 @@ def noise_outliers(own: Float[ArrayLike, " H"], candidates: Bool[ArrayLike, " H"
         return out
     m = n - np.arange(n_steps)  # the remainders' sizes: ascending[:m]
     med = 0.5 * (ascending[(m - 1) // 2] + ascending[m // 2])
-    mad = 0.5 * (_prefix_deviation(ascending, m, med, (m - 1) // 2) + _prefix_deviation(ascending, m, med, m // 2))
+    # the MAD: the mean of the two middle deviations (one and the same for odd m), in one bisection
+    middle = _prefix_deviation(ascending, np.tile(m, 2), np.tile(med, 2), np.concatenate([(m - 1) // 2, m // 2]))
+    mad = 0.5 * (middle[:n_steps] + middle[n_steps:])
     passed = 0.6745 * (ascending[m - 1] - med) / np.maximum(mad, 1e-300) > NOISE_OUTLIER_Z
     n_out = int(np.flatnonzero(passed)[-1]) + 1 if passed.any() else 0
     out[index[order[:n_out]]] = True
@@ -122,15 +124,10 @@ def _prefix_deviation(ascending: np.ndarray, m: np.ndarray, centre: np.ndarray, 
     most the bound found (a value of the data, not a bisection point)."""
     lo = np.zeros_like(centre)
     hi = np.maximum(centre - ascending[0], ascending[m - 1] - centre)
-
-    def within(d):
-        return np.minimum(np.searchsorted(ascending, centre + d, "right"), m) - np.searchsorted(
-            ascending, centre - d, "left"
-        )
-
     for _ in range(80):  # halves the bracket each time: below float64 resolution long before
         mid = 0.5 * (lo + hi)
-        enough = within(mid) >= rank + 1
+        within = np.minimum(np.searchsorted(ascending, centre + mid, "right"), m)
+        enough = within - np.searchsorted(ascending, centre - mid, "left") >= rank + 1
         hi, lo = np.where(enough, mid, hi), np.where(enough, lo, mid)
     right = ascending[np.minimum(np.searchsorted(ascending, centre + hi, "right"), m) - 1] - centre
     left = centre - ascending[np.minimum(np.searchsorted(ascending, centre - hi, "left"), m - 1)]
