@@ -106,8 +106,8 @@ def _residual_panel(ax, pts, flagged, title, color, lim=None):
 
 def plot_calibration(run, *, axes=None):
     """Per-heliostat held-out RMS before and after calibration (unfitted heliostats
-    labelled with their status; change points and the worse-than-nominal flag
-    marked), and the held-out residuals on the target
+    labelled with their status; change points, noise outliers and the
+    worse-than-nominal flag marked), and the held-out residuals on the target
     (horizontal / vertical miss, mrad) before and after calibration, with the
     training records the robust fit flagged as outliers."""
     plt = pyplot()
@@ -134,14 +134,15 @@ def plot_calibration(run, *, axes=None):
     bottom = float(values.min()) if values.size else 0.1
     ax.set_yscale("log")
     ax.set_ylim(bottom * 0.5, top * 90)
-    marks = {
-        "change_point": ("v", "tab:purple", "change point: fitted since it"),
-        "worse_than_nominal": ("X", "tab:red", "worse than nominal (use the nominal model)"),
+    marks = {  # key: marker, colour, legend, height above the tallest bar
+        "change_point": ("v", "tab:purple", "change point: fitted since it", 1.4),
+        "noise_outlier": ("D", "black", "noise outlier: left out of the fleet's statistics", 2.0),
+        "worse_than_nominal": ("X", "tab:red", "worse than nominal (use the nominal model)", 2.9),
     }
-    for key, (marker, colour, label) in marks.items():
+    for key, (marker, colour, label, height) in marks.items():
         flagged = [i for i, h in enumerate(ids) if summary["heliostats"][h].get(key)]
         if flagged:  # above the bars, below the status texts
-            level = top * (1.5 if key == "change_point" else 2.6)
+            level = top * height
             ax.scatter(flagged, np.full(len(flagged), level), marker=marker, color=colour, s=40, label=label, zorder=3)
     for i, h in enumerate(ids):
         status = summary["heliostats"][h]["status"]

@@ -54,6 +54,15 @@ def test_change_points_and_worse_than_nominal_are_marked():
     assert sorted(float(o[0, 0]) for o in offsets) == [1.0, 2.0]
 
 
+def test_noise_outliers_are_marked():
+    """A heliostat named a noise outlier (garbage records: its fit is reported, the fleet's
+    statistics leave it out) was drawn like any calibrated one; it is marked now."""
+    fig = plot_calibration(_run({"A": {"noise_outlier": True}, "C": {"noise_outlier": True}}))
+    assert any(label.startswith("noise outlier") for label in _legend(fig))
+    offsets = [c.get_offsets() for c in fig.axes[0].collections if len(c.get_offsets())]
+    assert sorted(float(x) for o in offsets for x in o[:, 0]) == [0.0, 2.0]
+
+
 def test_nothing_flagged_nothing_marked():
     fig = plot_calibration(_run({}))
     assert not any(label.startswith(("change point", "worse than")) for label in _legend(fig))
