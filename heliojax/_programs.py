@@ -183,6 +183,7 @@ def _export_allowing_version_bound_calls(flat: Callable, leaves: list) -> typing
     raise ValueError(f"too many custom calls without compatibility guarantees: {sorted(allowed)}")
 
 
+@typing.final
 class cached_jit(eqx.Module):
     """:func:`equinox.filter_jit` whose traced programs are kept across processes
     when a compilation cache directory is configured (see the module docstring);

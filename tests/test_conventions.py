@@ -53,3 +53,27 @@ def test_fleet_metadata_does_not_key_compiled_programs():
         jax.monitoring.unregister_event_duration_listener(listener)
     assert compiles == []
     assert again.model is not None
+
+
+def test_every_module_class_is_abstract_or_final():
+    """equinox's rule: a Module is abstract (named ``Abstract...``, never instantiated)
+    or final (``typing.final``), so that no concrete class is overridden."""
+    import importlib
+    import inspect
+    import pkgutil
+
+    import equinox as eqx
+
+    classes = set()
+    for info in pkgutil.walk_packages(hj.__path__, "heliojax."):
+        module = importlib.import_module(info.name)
+        for _, cls in inspect.getmembers(module, inspect.isclass):
+            if issubclass(cls, eqx.Module) and cls.__module__.startswith("heliojax"):
+                classes.add(cls)
+    assert len(classes) > 40  # the walk found the package's modules
+    loose = sorted(
+        f"{c.__module__}.{c.__qualname__}"
+        for c in classes
+        if not (getattr(c, "__final__", False) or c.__name__.lstrip("_").startswith("Abstract"))
+    )
+    assert loose == []

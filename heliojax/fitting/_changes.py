@@ -53,6 +53,7 @@ OFFSET_NAMES: tuple[tuple[str, str], ...] = (("angle_offset_1", "angle_offset_2"
 """The axis-offset parameter pairs a jump is sought in (actuator model, Stone model)."""
 
 
+@typing.final
 class ChangePoints(eqx.Module):
     """Per heliostat ``(H,)``: the most likely change point and its evidence.
 

@@ -55,6 +55,7 @@ def _no_verbose(**kwargs: typing.Any) -> None:
     del kwargs
 
 
+@typing.final
 class ToleranceTrustRegion(optx.AbstractSearch):
     """optimistix's :class:`optimistix.ClassicalTrustRegion`, except that a step the
     solver's own termination test calls converged is accepted even when rounding
@@ -98,6 +99,7 @@ class ToleranceTrustRegion(optx.AbstractSearch):
         return step_size, accept | converged, result, new_state
 
 
+@typing.final
 class LevenbergMarquardt(optx.AbstractGaussNewton):
     """optimistix's Levenberg-Marquardt (damped Newton descent, classical trust
     region, Cauchy termination) with the trust region of :class:`ToleranceTrustRegion`:

@@ -211,6 +211,7 @@ def _huber(r, delta):
 # --------------------------------------------------------------------------------------
 
 
+@typing.final
 class SyntheticData(eqx.Module):
     """Physics-generated pretraining points of one heliostat (or batched ``(H, N)``).
 

@@ -175,6 +175,7 @@ def pose_from_normal(centre: Float[ArrayLike, "3"], normal: Float[ArrayLike, "3"
 # --------------------------------------------------------------------------------------
 
 
+@typing.final
 class _Prepared(eqx.Module):
     """Per-point precomputation of one heliostat (all in the tracer dtype)."""
 
