@@ -566,6 +566,8 @@ def markdown_summary(report: dict) -> str:
 
 
 def write_markdown(path, report: dict) -> None:
+    """Write :func:`markdown_summary` of ``report`` (the report.json content) to
+    ``path`` (a Markdown file), atomically."""
     with atomic_write(path) as f:
         f.write(markdown_summary(report))
 
