@@ -10,7 +10,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 from scipy import stats
 
 from heliojax.discovery import (
@@ -27,9 +26,6 @@ from heliojax.discovery import (
 from heliojax.discovery._screen import prepare_bases, screen_candidate
 from heliojax.discovery._select import refit_passes
 from heliojax.effects import make_effect
-
-# Many small refits per test: the programs run far longer than they compile.
-pytestmark = pytest.mark.optimised
 
 H, M, NOISE = 8, 40, 0.25
 NOISE_FLOOR = NOISE * np.sqrt(2.0)  # RMS of the beam error of pure noise (two components)

@@ -20,9 +20,6 @@ import heliojax as hj
 from heliojax.discovery import simulate_fleet
 from heliojax.effects import make_effect
 
-# Discovery's many small refits: the programs run far longer than they compile.
-pytestmark = pytest.mark.optimised
-
 PLANT = [50.913421122592574, 6.387824755874856, 87.0]
 TARGET = "solar_tower_juelich_lower"
 
