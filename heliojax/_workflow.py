@@ -87,6 +87,9 @@ class CalibrationRun:
             wrong properties file; left out of every fleet-wide statistic and warned of.
         predictive: the pointing drift (:func:`temporal_drift`):
             ``drift_mrad2_per_day`` and how it was estimated (``summary.json``'s ``predictive``).
+        small_fleet_prior: ``(H,)`` heliostats calibrated under the small-fleet prior
+            (:func:`heliojax.fitting.small_fleet_prior_moments`): the fleet was too small
+            to learn a prior and they do not determine their parameters alone.
     """
 
     fleet: typing.Any
@@ -115,6 +118,7 @@ class CalibrationRun:
     superseded: np.ndarray | None = None
     predictive: dict = dataclasses.field(default_factory=lambda: {"drift_mrad2_per_day": 0.0})
     noise_outlier: np.ndarray | None = None
+    small_fleet_prior: np.ndarray | None = None
 
 
 def _stats(x: np.ndarray) -> tuple[float, float]:
@@ -259,10 +263,11 @@ def calibrate(
     def fit_on(fleet_g, mask: np.ndarray):
         if robust:
             rf = fit_robust(model0, fleet_g, mask=jax.device_put(mask), pool=pool, **options)
-            return rf.solution, rf.compile_s, rf.run_s, np.asarray(rf.weights), np.asarray(rf.outlier), rf.noise_mrad
+            weights, outlier, small = np.asarray(rf.weights), np.asarray(rf.outlier), np.asarray(rf.small_fleet_prior)
+            return rf.solution, rf.compile_s, rf.run_s, weights, outlier, rf.noise_mrad, small
         res, c_s, f_s = fit_timed(model0, fleet_g, mask=jax.device_put(mask), **options)
         w = np.where(mask & np.asarray(fleet_g.mask), 1.0, 0.0)
-        return res, c_s, f_s, w, np.zeros_like(mask), res.noise_mrad
+        return res, c_s, f_s, w, np.zeros_like(mask), res.noise_mrad, np.zeros(mask.shape[0], bool)
 
     def fit_stages(train_s: np.ndarray) -> _Stages:
         """Start geometry, robust (pooled) fit and change points on ``train_s``."""
@@ -295,7 +300,7 @@ def calibrate(
 
         log.info(f"fitting {n_real} heliostats ({model0.label()}, padded to {h_pad} x {m_pad})")
         with activity(f"fitting {n_real} heliostats", logger=log):
-            result, compile_s, fit_s, weights, outlier, noise = fit_on(fleet_g, train_s)
+            result, compile_s, fit_s, weights, outlier, noise, small = fit_on(fleet_g, train_s)
         log.info(f"fitted in {fit_s:.2f} s (compile {compile_s:.2f} s)")
         change_points, superseded = None, np.zeros_like(train_s)
         if changes:
@@ -305,7 +310,7 @@ def calibrate(
                 n_changed = int(np.any(superseded, axis=1).sum())
                 log.info(f"change points in {n_changed} heliostats: fitting their current state")
                 with activity(f"fitting the current state of {n_changed} heliostats", logger=log):
-                    result, c2, f2, weights, outlier, noise = fit_on(fleet_g, train_s & ~superseded)
+                    result, c2, f2, weights, outlier, noise, small = fit_on(fleet_g, train_s & ~superseded)
                 compile_s, fit_s = compile_s + c2, fit_s + f2
         return _Stages(
             fleet_g.geometry,
@@ -319,6 +324,7 @@ def calibrate(
             np.asarray(noise),
             change_points,
             superseded,
+            small,
         )
 
     stages = fit_stages(train)
@@ -342,7 +348,7 @@ def calibrate(
     if drift:
 
         def fit_state(mask: np.ndarray) -> tuple[FitSolution, typing.Any]:
-            solution, *_, noise_mrad = fit_on(padded, mask)
+            solution, *_, noise_mrad, _ = fit_on(padded, mask)
             return solution, noise_mrad
 
         with activity("pointing drift and error law", logger=log):
@@ -376,6 +382,18 @@ def calibrate(
             f"from their own records; {few_names([ids[i] for i in unpooled])} "
             f"{'stays' if unpooled.size == 1 else 'stay'} uncalibrated (fewer training "
             "records than free parameters): add records or heliostats"
+        )
+    small_fleet = np.asarray(stages.small_fleet_prior, bool) & fitted & ~garbage
+    small_fleet[n_real:] = False
+    if small_fleet.any():
+        n_small = int(small_fleet.sum())
+        log.warning(
+            f"fleet prior not learnt: fewer than {MIN_PRIOR_HELIOSTATS} heliostats determine their parameters "
+            f"from their own records; {few_names([ids[i] for i in np.flatnonzero(small_fleet)])} "
+            f"{'is' if n_small == 1 else 'are'} calibrated under the small-fleet prior instead (centred on the "
+            "heliostats that determine theirs, each parameter's spread at least its declared typical size): measure "
+            f"{'it' if n_small == 1 else 'them'} again (heliojax plan) before relying on "
+            f"{'it' if n_small == 1 else 'them'}"
         )
     errors = np.where(fitted[:, None], errors, np.nan)
     residuals = np.where(fitted[:, None, None], residuals, np.nan)
@@ -411,6 +429,7 @@ def calibrate(
         superseded=superseded,
         predictive=predictive,
         noise_outlier=garbage,
+        small_fleet_prior=small_fleet,
     )
     summary = _summarise(run, n_real, compile_s=compile_s, fit_s=fit_s)
     warming.result()  # done by now; no work outlives the call
@@ -447,6 +466,7 @@ class _Stages:
     noise: np.ndarray
     change_points: ChangePoints | None
     superseded: np.ndarray
+    small_fleet_prior: np.ndarray
 
 
 def _merge_stages(take: np.ndarray, a: _Stages, b: _Stages) -> _Stages:
@@ -462,7 +482,8 @@ def _merge_stages(take: np.ndarray, a: _Stages, b: _Stages) -> _Stages:
         return out if isinstance(y, np.ndarray) else jax.device_put(out)
 
     fields = {f.name: getattr(b, f.name) for f in dataclasses.fields(b)}
-    for name in ("geometry", "replaced", "result", "weights", "outlier", "noise", "change_points", "superseded"):
+    names = ("geometry", "replaced", "result", "weights", "outlier", "noise", "change_points", "superseded")
+    for name in (*names, "small_fleet_prior"):
         fields[name] = jax.tree.map(pick, getattr(a, name), getattr(b, name))
     fields["sources"] = b.sources
     fields["compile_s"], fields["fit_s"] = a.compile_s + b.compile_s, a.fit_s + b.fit_s
@@ -795,6 +816,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
     val_err = np.where(run.val_mask, run.errors_mrad, np.nan)
     loo_rms, unc_train_rms, worse = _worse_than_nominal(run, fit_mask)
     garbage = np.zeros(len(status), bool) if run.noise_outlier is None else np.asarray(run.noise_outlier, bool)
+    small = np.zeros(len(status), bool) if run.small_fleet_prior is None else np.asarray(run.small_fleet_prior, bool)
     typical = _typical_noise(run, garbage)
     heliostats = {}
     pooled, pooled_unc = [], []
@@ -829,6 +851,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
             **_change_entry(run, i),
             **_recent_outliers(run, fit_mask, i),
             "noise_outlier": bool(garbage[i]),
+            "small_fleet_prior": bool(small[i]),
             "lm_steps": int(np.asarray(res.n_steps)[i]),
             "noise_mrad": _json_float(float(run.noise_mrad[i])) if run.noise_mrad is not None else None,
             "n_outliers": int(np.sum(run.outlier[i])) if run.outlier is not None else 0,
@@ -848,8 +871,14 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
                 "the fleet's statistics; check its records and properties before aiming with this calibration"
             )
             _add_warning(entry, note)
+        if small[i]:
+            _add_warning(
+                entry,
+                f"calibrated under the small-fleet prior (fewer than {MIN_PRIOR_HELIOSTATS} heliostats determine "
+                "their parameters alone, too few to learn a fleet prior from)",
+            )
         if st == FitStatus.CONVERGED and 2 * entry["n_train_used"] < view.n_free:
-            note = _few_records_note(entry["n_train_used"], view.n_free)
+            note = _few_records_note(entry["n_train_used"], view.n_free, "small-fleet" if small[i] else "fleet")
             _add_warning(entry, note)
         heliostats[ids[i]] = entry
         if st == FitStatus.CONVERGED:
@@ -882,6 +911,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
             "worse_than_nominal": [ids[i] for i in range(n_real) if worse[i]],
             "change_points": [h for h, e in heliostats.items() if e["change_point"] is not None],
             "noise_outliers": [h for h, e in heliostats.items() if e["noise_outlier"]],
+            "small_fleet_prior": [h for h, e in heliostats.items() if e["small_fleet_prior"]],
             "statuses": {
                 **{s.label: int(np.sum(status[:n_real] == s)) for s in FitStatus if s != FitStatus.NO_RECORDS},
                 "no_training_records": int(np.sum(status[:n_real] == FitStatus.NO_RECORDS)),
@@ -897,14 +927,15 @@ def _add_warning(entry: dict[str, typing.Any], note: str) -> None:
     entry["warning"] = note if entry["warning"] is None else f"{entry['warning']}; {note}"
 
 
-def _few_records_note(n_used: int, n_free: int) -> str:
+def _few_records_note(n_used: int, n_free: int, prior: str = "fleet") -> str:
     """The warning of a converged heliostat whose records alone cannot determine its
-    ``n_free`` parameters (fewer residuals than parameters): the fleet prior decides
-    the rest, and its leave-one-out check (``worse_than_nominal``) judges little."""
+    ``n_free`` parameters (fewer residuals than parameters): the ``prior`` (``"fleet"``
+    or ``"small-fleet"``) decides the rest, and its leave-one-out check
+    (``worse_than_nominal``) judges little."""
     return (
         f"calibrated from {_training_records(n_used)} ({2 * n_used} residuals) for {n_free} free parameters: "
-        "the rest comes from the fleet prior and its leave-one-out check says little; measure it again (heliojax plan) "
-        "before relying on this calibration"
+        f"the rest comes from the {prior} prior and its leave-one-out check says little; measure it again "
+        "(heliojax plan) before relying on this calibration"
     )
 
 

@@ -58,6 +58,8 @@ from ._pooling import (
     flat_prior as flat_prior,
     fleet_prior as fleet_prior,
     prior_moments as prior_moments,
+    small_fleet_prior_heliostats as small_fleet_prior_heliostats,
+    small_fleet_prior_moments as small_fleet_prior_moments,
     well_determined as well_determined,
 )
 from ._prior import (

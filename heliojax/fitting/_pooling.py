@@ -23,6 +23,20 @@ Refitting every heliostat with this prior (:func:`heliojax.fitting.fit_robust`
 with ``pool=True``) calibrates heliostats with a handful of records; for a
 heliostat with many records the prior rows are weak against its data (its
 standard errors are far below the fleet spread), so it is not pulled measurably.
+
+A fleet in which fewer than :data:`MIN_PRIOR_HELIOSTATS` heliostats determine their
+parameters alone cannot teach a median and a MAD. There the heliostats that do not
+determine theirs get a **small-fleet prior** instead (:func:`small_fleet_prior_moments`):
+centred on the mean of the one or two heliostats that do (the nominal values when
+none does), its spread the larger of their sample spread (two heliostats) and the
+typical size each parameter's model declares (:func:`heliojax.parameter`'s
+``typical``: 1 mrad for the tilts, 10 mrad for the joint offsets, 1 % for the gear
+ratios and increment scales, 1 mm for the stroke offsets; written with the models,
+not learnt from any records), widened by the centre's own variance (that of a mean
+of ``n``). Real plants share large systematic parameters (the Jülich heliostats'
+``beta`` and ``delta`` lie near -12 and +11 mrad in every heliostat), which the
+nominal values miss and even one well-determined heliostat shows. The heliostats
+that determine their parameters alone keep no prior (they are not pulled).
 """
 
 from __future__ import annotations
@@ -30,7 +44,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._kinematics import AbstractKinematicModel
 from .._parameters import ParameterView, broadcast_model, is_batched
@@ -101,12 +115,52 @@ def prior_moments(
     return centre, spread
 
 
+def small_fleet_prior_moments(
+    view: ParameterView,
+    params: Float[np.ndarray, "H P"],
+    std: Float[np.ndarray, "H P"],
+    learn_from: Bool[np.ndarray, " H"],
+) -> tuple[Float[np.ndarray, " P"], Float[np.ndarray, " P"]]:
+    """Centre and spread (physical units, vector order of ``view``) of the prior for a
+    fleet with fewer than :data:`MIN_PRIOR_HELIOSTATS` heliostats ``learn_from`` (see the
+    module docstring): centre the mean of their fitted values (the nominal values
+    without any); spread ``sqrt(v (1 + 1/n))`` over ``n`` of them (``v`` without any),
+    ``v`` the larger of the declared typical size squared and their sample variance
+    minus their median squared standard error (two heliostats); ``inf`` where no
+    typical size is declared and for parameters that are not free."""
+    free = np.asarray(view.free, bool)
+    typical = np.array([np.inf if t is None else t for t in view.typical], float)
+    good = np.asarray(learn_from, bool)
+    n = int(good.sum())
+    centre = np.asarray(view.nominal, float)
+    var = typical**2
+    if n:
+        p = np.asarray(params, float)[good]
+        centre = p.mean(axis=0)
+        if n >= 2:
+            se2 = np.median(np.asarray(std, float)[good] ** 2, axis=0)
+            var = np.maximum(var, p.var(axis=0, ddof=1) - np.where(np.isfinite(se2), se2, 0.0))
+    spread = np.sqrt(var * (1.0 + 1.0 / max(n, 1))) if n else np.sqrt(var)
+    return np.where(free, centre, np.asarray(view.nominal, float)), np.where(free, spread, np.inf)
+
+
+def small_fleet_prior_heliostats(solution: FitSolution, learn_from: Bool[ArrayLike, " H"] | None = None) -> np.ndarray:
+    """``(H,)`` the heliostats :func:`fleet_prior` (not leave-one-out, small-fleet
+    fallback on) gives the small-fleet prior: all that are not :func:`well_determined`
+    when fewer than :data:`MIN_PRIOR_HELIOSTATS` heliostats are there to learn from
+    (``learn_from``, default :func:`well_determined`), else none."""
+    alone = well_determined(solution)
+    good = alone if learn_from is None else np.asarray(learn_from, bool)
+    return ~alone if int(good.sum()) < MIN_PRIOR_HELIOSTATS else np.zeros_like(alone)
+
+
 def fleet_prior(
     solution: FitSolution,
     noise_mrad: Float[Array, " H"],
     learn_from: Bool[Array, " H"] | None = None,
     *,
     leave_one_out: bool = False,
+    small_fleet_fallback: bool = True,
 ) -> GaussianPrior:
     """The fleet's empirical-Bayes prior (see the module docstring) for every
     heliostat of ``solution``.
@@ -118,10 +172,16 @@ def fleet_prior(
         leave_one_out: each heliostat's prior learnt from the *other* heliostats
             (what the fleet knows before this heliostat has a record: retrospective
             studies; ``O(H^2)`` work, for studies rather than plant-size fleets).
+        small_fleet_fallback: where no prior can be learnt (fewer than
+            :data:`MIN_PRIOR_HELIOSTATS` heliostats to learn from), the heliostats that
+            are not :func:`well_determined` get the small-fleet prior
+            (:func:`small_fleet_prior_moments`; see the module docstring); ``False``:
+            none (e.g. when ``noise_mrad`` is no noise estimate: no heliostat converged).
 
     Returns:
         A :class:`GaussianPrior` batched over the heliostats (centre and spread the
-        same for all unless ``leave_one_out``, noise per heliostat).
+        same for all unless ``leave_one_out`` or the small-fleet fallback, noise per
+        heliostat).
     """
     view = solution.view
     p = np.asarray(solution.parameters())
@@ -137,6 +197,19 @@ def fleet_prior(
         centre, spread = prior_moments(view, p, std, good, fallback)
         centres = np.broadcast_to(centre, (h, centre.size))
         spreads = np.broadcast_to(spread, (h, spread.size))
+    if small_fleet_fallback:
+        free = np.asarray(view.free, bool)
+        unlearnt = ~np.isfinite(spreads[:, free]).any(axis=1)  # no fleet prior for these
+        small = unlearnt & ~well_determined(solution)
+        if small.any() and leave_one_out:  # each from the others (a study's O(H^2) anyway)
+            others = {int(i): good & (np.arange(h) != i) for i in np.flatnonzero(small)}
+            pairs = {i: small_fleet_prior_moments(view, p, std, learn) for i, learn in others.items()}
+            centres = np.stack([pairs[i][0] if i in pairs else centres[i] for i in range(h)])
+            spreads = np.stack([pairs[i][1] if i in pairs else spreads[i] for i in range(h)])
+        elif small.any():
+            small_centre, small_spread = small_fleet_prior_moments(view, p, std, good)
+            centres = np.where(small[:, None], small_centre, centres)
+            spreads = np.where(small[:, None], small_spread, spreads)
     models = solution.model
     dtype = jax.dtypes.canonicalize_dtype(p.dtype)
     return GaussianPrior(
@@ -150,6 +223,8 @@ __all__ = [
     "MIN_PRIOR_HELIOSTATS",
     "MIN_RESIDUALS_PER_PARAMETER",
     "SPREAD_FLOOR_SCALED",
+    "small_fleet_prior_heliostats",
+    "small_fleet_prior_moments",
     "fleet_prior",
     "flat_prior",
     "prior_moments",

@@ -45,7 +45,7 @@ from .._parameters import and_masks, broadcast_model, is_batched, on_host
 from ._evaluate import choose_start_geometry, fleet_residuals_mrad, select_geometry
 from ._fit import CompiledFit, FitSolution
 from ._loss import CAUCHY_EFFICIENCY_FACTOR, Cauchy
-from ._pooling import flat_prior, fleet_prior, well_determined
+from ._pooling import flat_prior, fleet_prior, small_fleet_prior_heliostats, well_determined
 from ._status import FitStatus
 
 RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
@@ -146,6 +146,9 @@ class RobustFit(eqx.Module):
         noise_mrad: ``(H,)`` robust noise estimate per residual component, mrad.
         scale_mrad: ``(H,)`` the Cauchy scale used, mrad (infinite for a heliostat
             kept at least squares: no gross error in its least-squares residuals).
+        small_fleet_prior: ``(H,)`` heliostats whose pooled pass ran under the
+            small-fleet prior instead of a fleet prior (:func:`heliojax.fitting.fleet_prior`:
+            the fleet too small to learn one; all False without ``pool``).
         compile_s: seconds compiling the (one) fit program.
         run_s: seconds running the fit passes.
     """
@@ -156,6 +159,7 @@ class RobustFit(eqx.Module):
     outlier: Bool[Array, "H M"]
     noise_mrad: Float[Array, " H"]
     scale_mrad: Float[Array, " H"]
+    small_fleet_prior: Bool[Array, " H"]
     compile_s: float = eqx.field(static=True)
     run_s: float = eqx.field(static=True)
 
@@ -254,7 +258,10 @@ def fit_robust(
         pool: finish with a pass under the fleet's empirical-Bayes prior
             (:func:`heliojax.fitting.fleet_prior`), so that heliostats with few
             records are calibrated too (one compiled program for all passes: the
-            earlier passes run with a prior that constrains nothing).
+            earlier passes run with a prior that constrains nothing); in a fleet too
+            small to learn one, under the small-fleet prior
+            (:func:`heliojax.fitting.small_fleet_prior_moments`) where a heliostat
+            converged to give a noise level.
         fit_options: further keyword arguments of :func:`heliojax.fit` (not ``loss``;
             not ``prior`` with ``pool``).
 
@@ -266,6 +273,7 @@ def fit_robust(
     m = fleet.mask if mask is None else and_masks(mask, fleet.mask)
     h = int(np.shape(fleet.mask)[0])
     least_squares = Cauchy(jax.device_put(np.full((h,), np.inf, fleet.counts.dtype)))
+    small_fleet = np.zeros(h, bool)
     if pool:
         if "prior" in fit_options:
             raise TypeError("fit_robust(pool=True) learns the prior itself")
@@ -309,9 +317,18 @@ def fit_robust(
         typical_from = fitted & ~garbage
         typical = float(np.median(sigma1[typical_from])) if typical_from.any() else float(np.median(sigma1))
         prior_noise = np.where(fitted, sigma1, typical)
+        learn_from = well_determined(sol) & ~garbage
+        # a small-fleet prior needs a noise level to weigh it by: that of a converged heliostat
+        converged = np.asarray(sol.status) == FitStatus.CONVERGED
+        small_fleet_fallback = bool((converged & ~garbage).any())
         prior = fleet_prior(
-            sol, jnp.asarray(prior_noise, fleet.counts.dtype), learn_from=jnp.asarray(well_determined(sol) & ~garbage)
+            sol,
+            jnp.asarray(prior_noise, fleet.counts.dtype),
+            learn_from=jnp.asarray(learn_from),
+            small_fleet_fallback=small_fleet_fallback,
         )
+        if small_fleet_fallback:
+            small_fleet = small_fleet_prior_heliostats(sol, learn_from)
         # heliostats without a usable fit start from the fleet's centre
         start = _select_models(fitted, sol.model, prior.centre)
         sol = run(start, loss=Cauchy(scale), prior=prior)
@@ -331,6 +348,7 @@ def fit_robust(
         outlier=jax.device_put(outlier),
         noise_mrad=jax.device_put(np.asarray(sigma1)),
         scale_mrad=scale,
+        small_fleet_prior=jax.device_put(small_fleet),
     )
 
 
