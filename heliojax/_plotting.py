@@ -106,8 +106,8 @@ def _residual_panel(ax, pts, flagged, title, color, lim=None):
 
 def plot_calibration(run, *, axes=None):
     """Per-heliostat held-out RMS before and after calibration (unfitted heliostats
-    labelled with their status; change points, noise outliers and the
-    worse-than-nominal flag marked), and the held-out residuals on the target
+    labelled with their status; change points, noise outliers, heliostats under
+    the small-fleet prior and the worse-than-nominal flag marked), and the held-out residuals on the target
     (horizontal / vertical miss, mrad) before and after calibration, with the
     training records the robust fit flagged as outliers."""
     plt = pyplot()
@@ -137,6 +137,8 @@ def plot_calibration(run, *, axes=None):
     marks = {  # key: marker, colour, legend, height above the tallest bar
         "change_point": ("v", "tab:purple", "change point: fitted since it", 1.4),
         "noise_outlier": ("D", "black", "noise outlier: left out of the fleet's statistics", 2.0),
+        # never a noise outlier too (those are left out of it): the same height
+        "small_fleet_prior": ("s", "tab:olive", "small-fleet prior: the fleet too small to learn one", 2.0),
         "worse_than_nominal": ("X", "tab:red", "worse than nominal (use the nominal model)", 2.9),
     }
     for key, (marker, colour, label, height) in marks.items():

@@ -63,9 +63,19 @@ def test_noise_outliers_are_marked():
     assert sorted(float(x) for o in offsets for x in o[:, 0]) == [0.0, 2.0]
 
 
+def test_heliostats_under_the_small_fleet_prior_are_marked():
+    """A few-record heliostat calibrated under the small-fleet prior (the fleet too small
+    to learn a prior) rests on the declared typical sizes and one or two heliostats: the
+    figure says so, not only the summary."""
+    fig = plot_calibration(_run({"B": {"small_fleet_prior": True}}))
+    assert any(label.startswith("small-fleet prior") for label in _legend(fig))
+    offsets = [c.get_offsets() for c in fig.axes[0].collections if len(c.get_offsets())]
+    assert sorted(float(x) for o in offsets for x in o[:, 0]) == [1.0]
+
+
 def test_nothing_flagged_nothing_marked():
     fig = plot_calibration(_run({}))
-    assert not any(label.startswith(("change point", "worse than")) for label in _legend(fig))
+    assert not any(label.startswith(("change point", "worse than", "small-fleet")) for label in _legend(fig))
 
 
 def test_plan_figure_keeps_a_readable_width_for_large_fleets(tmp_path):
