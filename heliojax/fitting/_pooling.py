@@ -140,7 +140,7 @@ def small_fleet_prior_moments(
         if n >= 2:
             se2 = np.median(np.asarray(std, float)[good] ** 2, axis=0)
             var = np.maximum(var, p.var(axis=0, ddof=1) - np.where(np.isfinite(se2), se2, 0.0))
-    spread = np.sqrt(var * (1.0 + 1.0 / max(n, 1))) if n else np.sqrt(var)
+    spread = np.sqrt(var * (1.0 + 1.0 / n)) if n else np.sqrt(var)
     return np.where(free, centre, np.asarray(view.nominal, float)), np.where(free, spread, np.inf)
 
 
@@ -197,16 +197,15 @@ def fleet_prior(
         centre, spread = prior_moments(view, p, std, good, fallback)
         centres = np.broadcast_to(centre, (h, centre.size))
         spreads = np.broadcast_to(spread, (h, spread.size))
-    if small_fleet_fallback:
+    if small_fleet_fallback and leave_one_out:
         free = np.asarray(view.free, bool)
-        unlearnt = ~np.isfinite(spreads[:, free]).any(axis=1)  # no fleet prior for these
-        small = unlearnt & ~well_determined(solution)
-        if small.any() and leave_one_out:  # each from the others (a study's O(H^2) anyway)
-            others = {int(i): good & (np.arange(h) != i) for i in np.flatnonzero(small)}
-            pairs = {i: small_fleet_prior_moments(view, p, std, learn) for i, learn in others.items()}
-            centres = np.stack([pairs[i][0] if i in pairs else centres[i] for i in range(h)])
-            spreads = np.stack([pairs[i][1] if i in pairs else spreads[i] for i in range(h)])
-        elif small.any():
+        small = ~np.isfinite(spreads[:, free]).any(axis=1) & ~well_determined(solution)  # no fleet prior learnt
+        centres, spreads = np.array(centres), np.array(spreads)
+        for i in np.flatnonzero(small):  # each from the others, as above (a study's O(H^2) anyway)
+            centres[i], spreads[i] = small_fleet_prior_moments(view, p, std, good & (np.arange(h) != i))
+    elif small_fleet_fallback:
+        small = small_fleet_prior_heliostats(solution, good)
+        if small.any():
             small_centre, small_spread = small_fleet_prior_moments(view, p, std, good)
             centres = np.where(small[:, None], small_centre, centres)
             spreads = np.where(small[:, None], small_spread, spreads)
