@@ -199,6 +199,13 @@ def test_the_small_fleet_prior_is_centred_on_the_determined_heliostats_and_floor
             np.testing.assert_allclose(spread[:2, k], want, rtol=1e-12)
             np.testing.assert_allclose(centre[:2, k], (a + b) / 2.0, rtol=1e-12)
         assert np.all(np.isinf(spread[:2, ~free]))
+    # leave-one-out (retrospective studies): the few-record heliostats learn from the same two
+    # as above; the two determined ones from one other heliostat: no fleet prior, none of their own
+    pooled = hj.fitting.fleet_prior(solution, noise)
+    loo = hj.fitting.fleet_prior(solution, noise, leave_one_out=True)
+    np.testing.assert_array_equal(view.to_vector(loo.sigma)[:2], view.to_vector(pooled.sigma)[:2])
+    np.testing.assert_array_equal(view.to_vector(loo.centre)[:2], view.to_vector(pooled.centre)[:2])
+    assert np.all(np.isinf(np.asarray(view.to_vector(loo.sigma))[2:]))
     # nothing to learn from: the nominal values and the declared typical sizes
     c0, s0 = hj.fitting.small_fleet_prior_moments(view, p, std, np.zeros(4, bool))
     np.testing.assert_array_equal(c0, np.asarray(view.nominal))
