@@ -27,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import typing
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -217,16 +218,40 @@ def _correction_values_lane(layout: Layout, template, p, geometry, counts, conte
     return jax.vmap(lambda c, x, f: _corrections(model, geometry, c, x, f))(counts, context, focal)
 
 
-@cached_jit
-def _correction_values_compiled(layout, batching: AbstractBatching, template, p, records: Records):
-    fn = lambda a, g, c, x, f, m: _correction_values_lane(layout, template, a, g, c, x, f, m)  # noqa: E731
-    return batching.map(fn)(p, *records)
+def _only_active(lane_fn: Callable, inactive_fn: Callable) -> Callable:
+    """A lane function ``(active, *args)``: ``lane_fn(*args)`` where ``active``, else
+    ``inactive_fn(*args)`` (zeros of the same structure). A branch, not a select, under
+    ``lax.map``: an inactive lane costs nothing (a vmapped batch computes both)."""
+
+    def lane(active, *args):
+        return jax.lax.cond(active, lambda: lane_fn(*args), lambda: inactive_fn(*args))
+
+    return lane
+
+
+def _zero_corrections(layout: Layout, counts, derivative: bool):
+    c0 = jnp.zeros((counts.shape[0], N_CORR), counts.dtype)
+    if not derivative:
+        return c0
+    return c0, jnp.zeros((counts.shape[0], N_CORR, len(layout.effect_index)), counts.dtype)
 
 
 @cached_jit
-def _corrections_compiled(layout, batching: AbstractBatching, template, p, records: Records):
-    fn = lambda a, g, c, x, f, m: _corrections_lane(layout, template, a, g, c, x, f, m)  # noqa: E731
-    return batching.map(fn)(p, *records)
+def _correction_values_compiled(layout, batching: AbstractBatching, template, active, p, records: Records):
+    fn = _only_active(
+        lambda a, g, c, x, f, m: _correction_values_lane(layout, template, a, g, c, x, f, m),
+        lambda a, g, c, x, f, m: _zero_corrections(layout, c, derivative=False),
+    )
+    return batching.map(fn)(active, p, *records)
+
+
+@cached_jit
+def _corrections_compiled(layout, batching: AbstractBatching, template, active, p, records: Records):
+    fn = _only_active(
+        lambda a, g, c, x, f, m: _corrections_lane(layout, template, a, g, c, x, f, m),
+        lambda a, g, c, x, f, m: _zero_corrections(layout, c, derivative=True),
+    )
+    return batching.map(fn)(active, p, *records)
 
 
 def _linear_record(base, tilts, geometry, counts, context, focal, corr):
@@ -315,13 +340,36 @@ def _fit_lane(
     return dict(params=p, ok=ok, cost=cost, n_used=n_used.astype(jnp.int32), n_steps=out.n_steps.astype(jnp.int32))
 
 
+def _not_fitted_lane(p0, counts) -> dict:
+    """What :func:`_fit_lane` returns, for an inactive lane: its start, not ``ok``."""
+    none = jnp.zeros((), jnp.int32)
+    return dict(params=p0, ok=jnp.zeros((), bool), cost=jnp.zeros((), counts.dtype), n_used=none, n_steps=none)
+
+
 @cached_jit
 def _fit_lanes_compiled(
-    layout, solver, max_steps, batching, cap, template, p0, sel, sel_valid, prior_weight, p_exp, c0, dmat, records
+    layout,
+    solver,
+    max_steps,
+    batching,
+    cap,
+    template,
+    active,
+    p0,
+    sel,
+    sel_valid,
+    prior_weight,
+    p_exp,
+    c0,
+    dmat,
+    records,
 ):
-    """All lanes' fits (:func:`_fit_lane`); ``records``: :data:`Records`."""
-    fn = lambda *a: _fit_lane(layout, solver, max_steps, cap, template, *a)  # noqa: E731
-    return batching.map(fn)(p0, sel, sel_valid, prior_weight, p_exp, c0, dmat, *records)
+    """The active lanes' fits (:func:`_fit_lane`); ``records``: :data:`Records`."""
+    fn = _only_active(
+        lambda *a: _fit_lane(layout, solver, max_steps, cap, template, *a),
+        lambda p0, *a: _not_fitted_lane(p0, a[7]),
+    )
+    return batching.map(fn)(active, p0, sel, sel_valid, prior_weight, p_exp, c0, dmat, *records)
 
 
 def _predicted_focal(layout: Layout, template, p, c0, geometry, counts, context, focal):
@@ -380,15 +428,24 @@ def _residual_lane(layout: Layout, template, p, geometry, counts, context, focal
 
 
 @cached_jit
-def _residual_lanes_compiled(layout, batching, template, p, records: Records):
-    fn = lambda *a: _residual_lane(layout, template, *a)  # noqa: E731
-    return batching.map(fn)(p, *records)
+def _residual_lanes_compiled(layout, batching, template, active, p, records: Records):
+    fn = _only_active(
+        lambda *a: _residual_lane(layout, template, *a),
+        lambda p, g, c, *a: jnp.zeros((2 * c.shape[0],), c.dtype),
+    )
+    return batching.map(fn)(active, p, *records)
 
 
 @cached_jit
-def _jac_lanes_compiled(layout, batching, template, p, c0, dmat, records: Records):
-    fn = lambda *a: _jac_lane(layout, template, *a)  # noqa: E731
-    return batching.map(fn)(p, c0, dmat, *records)
+def _jac_lanes_compiled(layout, batching, template, active, p, c0, dmat, records: Records):
+    fn = _only_active(
+        lambda *a: _jac_lane(layout, template, *a),
+        lambda p, c0, d, g, c, *a: (
+            jnp.zeros((2 * c.shape[0],), c.dtype),
+            jnp.zeros((2 * c.shape[0], layout.n_free), c.dtype),
+        ),
+    )
+    return batching.map(fn)(active, p, c0, dmat, *records)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -564,18 +621,29 @@ class Engine:
         """Group ``k``'s records: all valid ones with ``evaluate``, else the training ones."""
         return (self._eval_records if evaluate else self._fit_records)[k]
 
-    def expand(self, p, evaluate: bool = False, derivative_from=None):
+    def _active(self, g: LaneGroup, active: np.ndarray | None) -> jax.Array:
+        """Group ``g``'s lanes' flags: every lane, or those of ``active`` ``(L,)``."""
+        return jnp.asarray(np.ones(g.index.size, bool) if active is None else np.asarray(active, bool)[g.index])
+
+    def expand(self, p, evaluate: bool = False, derivative_from=None, active: np.ndarray | None = None):
         """First-order effect corrections ``(c0, D)`` at ``p`` (device arrays), one
         pair per lane group. With ``derivative_from`` (an earlier expansion of the same
         lanes and ``evaluate``), only ``c0`` is evaluated at ``p`` and ``D`` is taken
         from it: the derivative of the effect graph is most of the cost, and it
-        changes little between the iterations of a fit (see ``fit_state``)."""
+        changes little between the iterations of a fit (see ``fit_state``). With
+        ``active`` ``(L,)``, the other lanes are skipped (zeros), here and in
+        :meth:`fit`, :meth:`jacobian` and :meth:`residuals`."""
         p = np.asarray(p)
         if derivative_from is not None:
             return tuple(
                 (
                     _correction_values_compiled(
-                        self.layout, self.batching, self.template, jnp.asarray(p[g.index]), self._data(k, evaluate)
+                        self.layout,
+                        self.batching,
+                        self.template,
+                        self._active(g, active),
+                        jnp.asarray(p[g.index]),
+                        self._data(k, evaluate),
                     ),
                     old[1],
                 )
@@ -583,13 +651,24 @@ class Engine:
             )
         return tuple(
             _corrections_compiled(
-                self.layout, self.batching, self.template, jnp.asarray(p[g.index]), self._data(k, evaluate)
+                self.layout,
+                self.batching,
+                self.template,
+                self._active(g, active),
+                jnp.asarray(p[g.index]),
+                self._data(k, evaluate),
             )
             for k, g in enumerate(self.groups)
         )
 
     def fit(
-        self, p0: np.ndarray, effect_cols, p_exp: np.ndarray, expansion, noise_mrad: np.ndarray | None = None
+        self,
+        p0: np.ndarray,
+        effect_cols,
+        p_exp: np.ndarray,
+        expansion,
+        noise_mrad: np.ndarray | None = None,
+        active: np.ndarray | None = None,
     ) -> dict:
         """One Levenberg-Marquardt fit of every lane from ``p0``: the base's free
         parameters and the effect columns ``effect_cols`` (positions among the
@@ -621,6 +700,7 @@ class Engine:
                 self.batching,
                 cap,
                 self.template,
+                self._active(g, active),
                 jnp.asarray(p0[i]),
                 jnp.asarray(sel[i]),
                 jnp.asarray(valid[i]),
@@ -633,7 +713,9 @@ class Engine:
             parts.append(out)
         return {key: _scatter([np.asarray(o[key]) for o in parts], self.groups, p0.shape[0]) for key in parts[0]}
 
-    def jacobian(self, p: np.ndarray, evaluate: bool = False, expansion=None) -> tuple[np.ndarray, np.ndarray]:
+    def jacobian(
+        self, p: np.ndarray, evaluate: bool = False, expansion=None, active: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Exact residuals ``(L, 2M)`` (mrad) and the expected (noise-free) Jacobian
         ``(L, 2M, F)`` (mrad per scaled unit) at ``p``; rows of records outside the training mask (with
         ``evaluate``: outside the valid records) are zero. ``expansion``: :meth:`expand`
@@ -643,24 +725,30 @@ class Engine:
         for k, g in enumerate(self.groups):
             data = self._data(k, evaluate)
             pg = jnp.asarray(p[g.index])
+            flags = self._active(g, active)
             if expansion is None:
-                c0, dmat = _corrections_compiled(self.layout, self.batching, self.template, pg, data)
+                c0, dmat = _corrections_compiled(self.layout, self.batching, self.template, flags, pg, data)
             else:
                 c0, dmat = expansion[k]
-            r, j = _jac_lanes_compiled(self.layout, self.batching, self.template, pg, c0, dmat, data)
+            r, j = _jac_lanes_compiled(self.layout, self.batching, self.template, flags, pg, c0, dmat, data)
             rs.append(np.asarray(r))
             js.append(np.asarray(j))
         n_lanes, width = p.shape[0], 2 * self.lanes.valid.shape[1]
         return _scatter(rs, self.groups, n_lanes, width), _scatter(js, self.groups, n_lanes, width)
 
-    def residuals(self, p: np.ndarray, evaluate: bool = False) -> np.ndarray:
+    def residuals(self, p: np.ndarray, evaluate: bool = False, active: np.ndarray | None = None) -> np.ndarray:
         """The exact residuals of :meth:`jacobian` alone, ``(L, 2M)`` mrad (no Jacobian,
         no first-order expansion: a fraction of its work)."""
         p = np.asarray(p)
         rs = [
             np.asarray(
                 _residual_lanes_compiled(
-                    self.layout, self.batching, self.template, jnp.asarray(p[g.index]), self._data(k, evaluate)
+                    self.layout,
+                    self.batching,
+                    self.template,
+                    self._active(g, active),
+                    jnp.asarray(p[g.index]),
+                    self._data(k, evaluate),
                 )
             )
             for k, g in enumerate(self.groups)

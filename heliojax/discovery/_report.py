@@ -50,6 +50,8 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
                           "identifiable", "tested", "testable"}}],  # one per step
       "refits": [[{"effect", "mode", "delta_bic", "cv_heldout_rms_before_mrad",
                    "cv_heldout_rms_after_mrad", "cv_log_ratio", "passed"}]],
+                                                   # cv_* null where delta BIC failed
+                                                   # (its folds are then not fitted)
       "config": {...}, "data": {...}, "timing": {...}
     }
 

@@ -33,7 +33,9 @@ repeat, diagnose.
    cross-validation by UTC day (:func:`._report.cv_log_ratio` < 0: each
    heliostat with its own noise level, as in the BIC, so that one heliostat
    with poorly determined folds cannot decide); passing rivals within ``ambiguity_bic`` of it
-   are reported as an ambiguity. Add it to the model and repeat from 2.
+   are reported as an ambiguity. Add it to the model and repeat from 2. (The BIC
+   is that of fold 0, all training records, whose lanes are fitted first and alone:
+   a refit that fails it is rejected without fitting its cross-validation folds.)
 7. **Confirm the change points** under the final model (a step that only was
    the remainder of a named effect is withdrawn, and the workflow runs again with
    those records back in) and **test the residuals against every recorded
@@ -251,7 +253,10 @@ class _Workflow:
 
     # -- fitting ----------------------------------------------------------------------
 
-    def fit_state(self, effects, p_start: np.ndarray) -> ModelState:
+    def fit_state(self, effects, p_start: np.ndarray, active: np.ndarray | None = None) -> ModelState:
+        """Fit the model of ``effects`` on every lane from ``p_start`` ``(L, P)``; with
+        ``active`` ``(L,)``, on those lanes only (the others are left out: not ``ok``,
+        at ``p_start``, no residuals)."""
         t0 = time.perf_counter()
         lanes = self.lanes
         n_lanes = p_start.shape[0]
@@ -264,21 +269,22 @@ class _Workflow:
         cov = None
         r = jac = None
         n_iter = self.config.max_iterations
+        present = np.unique(lanes.fold if active is None else lanes.fold[np.asarray(active, bool)])
         # Iterations "fit, expand" first keep the derivative D of the effect graph from
         # the start and evaluate only the corrections c0 at each new point (D changes
         # little between iterations and is most of an expansion's cost); at their fixed
         # point D is evaluated afresh and the fit repeated ("polishing") until the
         # fixed point of the exact expansion, the least-squares solution, is reached.
         # The final residuals and Jacobian are those of a fresh expansion.
-        expansion = self.engine.expand(p)
+        expansion = self.engine.expand(p, active=active)
         polishing = not eff_cols  # without effects D is never used: one fit, one fresh expansion
         it, limit = 0, n_iter  # iterations; at most max_iterations, or one polishing fit past them
         while True:
-            out = self.engine.fit(p, fit_effect_cols, p, expansion, self.noise)
+            out = self.engine.fit(p, fit_effect_cols, p, expansion, self.noise, active=active)
             p = np.array(out["params"])
             it += 1
-            expansion = self.engine.expand(p, derivative_from=None if polishing else expansion)
-            r, jac = self.engine.jacobian(p, expansion=expansion)
+            expansion = self.engine.expand(p, derivative_from=None if polishing else expansion, active=active)
+            r, jac = self.engine.jacobian(p, expansion=expansion, active=active)
             # a lane whose fit left non-finite values is not fitted (it never spoils the others)
             ok = (
                 np.asarray(out["ok"], bool)
@@ -298,24 +304,25 @@ class _Workflow:
             last = it >= limit
             if sh_cols:
                 step, cov = self._shared_step(r, jac, ok, act_cols, sh_cols, p)
-                if not last and float(np.max(np.abs(step))) > 1e-3:
+                # (a fold without an active lane has nothing to step)
+                if not last and float(np.max(np.abs(step[present]))) > 1e-3:
                     idx = self.free_index[sh_cols]
                     for f in range(lanes.n_folds + 1):
                         p[np.ix_(lanes.fold == f, idx)] += step[f] * self.scales[sh_cols]
                     # about the stepped point
-                    expansion = self.engine.expand(p, derivative_from=None if polishing else expansion)
+                    expansion = self.engine.expand(p, derivative_from=None if polishing else expansion, active=active)
                     converged = False
             if converged or last:
                 if polishing:
                     break
                 polishing, limit = True, max(limit, it + 1)  # D afresh at this point, and fit again
-                expansion = self.engine.expand(p)
+                expansion = self.engine.expand(p, active=active)
         used = lanes.train_mask
         n_res = 2 * used.sum(axis=1)
         assert r is not None and jac is not None
         rss = np.where(ok, np.sum(r**2, axis=1), np.nan)
         p = np.where(ok[:, None], p, np.asarray(p_start, dtype=np.float64))  # no NaN carried to the next fit
-        r_eval = self.engine.residuals(p, evaluate=True)
+        r_eval = self.engine.residuals(p, evaluate=True, active=active)
         m = used.shape[1]
         sq = r_eval.reshape(n_lanes, m, 2)
         sq = np.sum(sq**2, axis=-1)
@@ -817,8 +824,25 @@ def refit_passes(delta_bic: float, cv_log_ratio: float, min_delta_bic: float = M
 
 def _refit(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen, mode: str) -> Candidate:
     """Refit the current model with ``effect`` added in form ``mode`` and judge it:
-    delta BIC > ``min_delta_bic`` and a better held-out likelihood."""
-    st = wf.fit_state(state.effects + ((effect, mode),), wf.start_params(state, effect, mode, scr))
+    delta BIC > ``min_delta_bic`` and a better held-out likelihood.
+
+    The BIC is that of the fold-0 lanes (all training records), whose fits do not
+    depend on the other folds' lanes: those are fitted first, alone. A refit whose
+    delta BIC does not pass is rejected there, and its cross-validation folds (five
+    sixths of the work) are never fitted (``cv_*`` NaN). A refit that passes is
+    fitted on every lane from the same start, as if the first stage had not run."""
+    effects = state.effects + ((effect, mode),)
+    start = wf.start_params(state, effect, mode, scr)
+    first = wf.fit_state(effects, start, active=wf.lanes.fold == 0)
+    b0, b1, _ = wf.bic_pair(state, first)
+    if not b0 - b1 > wf.config.min_delta_bic:
+        log.info(
+            f"refit {effect} ({mode}, {first.fit_s:.1f} s): delta BIC {b0 - b1:.1f} (rejected; its "
+            "cross-validation folds are not fitted)"
+        )
+        nan = float("nan")
+        return Candidate(effect, mode, first, b0 - b1, b0, b1, nan, nan, 0, nan, False)
+    st = wf.fit_state(effects, start)
     b0, b1, _ = wf.bic_pair(state, st)
     cv0, cv1, n_cv = wf.cv_pair(state, st)
     ratio = float(cv_log_ratio(state, st, wf.lanes.heliostat))
