@@ -224,6 +224,12 @@ def test_a_refit_on_the_fold_0_lanes_alone_is_the_full_refits_fold_0():
     np.testing.assert_allclose(r_some[fold0], r_all[fold0], rtol=0, atol=1e-12)
     np.testing.assert_allclose(jac_some[fold0], jac_all[fold0], rtol=0, atol=1e-12)
     assert np.all(r_some[~fold0] == 0) and np.all(jac_some[~fold0] == 0) and np.any(r_all[~fold0] != 0)
+    # vmapped lanes compute every lane and select: the same values, but nothing saved
+    vmapped = _lanes.Engine.create(layout, template, lanes, batching=hj.Vmap())
+    assert engine.skips_inactive_lanes and not vmapped.skips_inactive_lanes
+    r_vm, jac_vm = vmapped.jacobian(p0, active=fold0)
+    np.testing.assert_allclose(r_vm, r_some, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(jac_vm, jac_some, rtol=0, atol=1e-10)
 
     wf = _select._Workflow(engine, DiscoveryConfig(base="stone8"))
     base = wf.fit_state((), p0)

@@ -44,6 +44,7 @@ from .._programs import cached_jit
 from ..effects import EffectModel, with_data_references, with_effects
 from ..fitting import (
     AbstractBatching,
+    LaxMap,
     default_batching,
     default_solver,
     record_rows,
@@ -620,6 +621,13 @@ class Engine:
     def _data(self, k: int, evaluate: bool) -> Records:
         """Group ``k``'s records: all valid ones with ``evaluate``, else the training ones."""
         return (self._eval_records if evaluate else self._fit_records)[k]
+
+    @property
+    def skips_inactive_lanes(self) -> bool:
+        """Whether a lane left out by ``active`` costs nothing: under ``lax.map`` (the
+        CPU default) a lane's branch is not taken; a vmapped batch (``Vmap``,
+        ``Chunked``, ``Sharded``) computes every lane and selects."""
+        return isinstance(self.batching, LaxMap)
 
     def _active(self, g: LaneGroup, active: np.ndarray | None) -> jax.Array:
         """Group ``g``'s lanes' flags: every lane, or those of ``active`` ``(L,)``."""

@@ -830,18 +830,21 @@ def _refit(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen, 
     depend on the other folds' lanes: those are fitted first, alone. A refit whose
     delta BIC does not pass is rejected there, and its cross-validation folds (five
     sixths of the work) are never fitted (``cv_*`` NaN). A refit that passes is
-    fitted on every lane from the same start, as if the first stage had not run."""
+    fitted on every lane from the same start, as if the first stage had not run.
+    (Where the batching computes skipped lanes anyway, vmapped on accelerators, every
+    refit is fitted on every lane at once, as before.)"""
     effects = state.effects + ((effect, mode),)
     start = wf.start_params(state, effect, mode, scr)
-    first = wf.fit_state(effects, start, active=wf.lanes.fold == 0)
-    b0, b1, _ = wf.bic_pair(state, first)
-    if not b0 - b1 > wf.config.min_delta_bic:
-        log.info(
-            f"refit {effect} ({mode}, {first.fit_s:.1f} s): delta BIC {b0 - b1:.1f} (rejected; its "
-            "cross-validation folds are not fitted)"
-        )
-        nan = float("nan")
-        return Candidate(effect, mode, first, b0 - b1, b0, b1, nan, nan, 0, nan, False)
+    if wf.engine.skips_inactive_lanes:
+        first = wf.fit_state(effects, start, active=wf.lanes.fold == 0)
+        b0, b1, _ = wf.bic_pair(state, first)
+        if not b0 - b1 > wf.config.min_delta_bic:
+            log.info(
+                f"refit {effect} ({mode}, {first.fit_s:.1f} s): delta BIC {b0 - b1:.1f} (rejected; its "
+                "cross-validation folds are not fitted)"
+            )
+            nan = float("nan")
+            return Candidate(effect, mode, first, b0 - b1, b0, b1, nan, nan, 0, nan, False)
     st = wf.fit_state(effects, start)
     b0, b1, _ = wf.bic_pair(state, st)
     cv0, cv1, n_cv = wf.cv_pair(state, st)
