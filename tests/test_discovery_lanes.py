@@ -121,6 +121,23 @@ def test_effect_prior_is_the_fit_cores_gaussian_prior_and_spares_well_sampled_he
     assert df[0] < n_active - 0.5 and np.all(df[1:] > n_active - 0.1) and np.all(df <= n_active + 1e-9)
 
 
+def _thermal_backlash_engine():
+    """The small fleet of the two tests below (2 heliostats x 40 records, thermal and
+    backlash planted, 3 folds): layout, template, lanes, engine and the nominal start
+    ``(L, P)``."""
+    import heliojax as hj
+    from heliojax.discovery import _lanes
+
+    effects = (make_effect("thermal", thermal_1=4e-5, thermal_2=-3e-5), make_effect("backlash"))
+    fleet, _ = simulate_fleet(3, 2, M, effects=effects, noise_mrad=NOISE)
+    layout, template = _lanes.make_layout(hj.nominal_model("stone8"), ("thermal", "backlash"), fleet)
+    lanes = _lanes.make_lanes(fleet, 3)
+    engine = _lanes.Engine.create(layout, template, lanes)
+    n_lanes = lanes.fold.shape[0]
+    p0 = np.broadcast_to(np.asarray(layout.view.to_vector(template)), (n_lanes, layout.view.n_parameters)).copy()
+    return layout, template, lanes, engine, p0
+
+
 def test_expansions_residuals_and_refits_against_second_computations():
     """The refits' cheaper paths against second computations on one small fleet
     (2 heliostats x 40 records, 3 folds; thermal and backlash planted):
@@ -138,13 +155,8 @@ def test_expansions_residuals_and_refits_against_second_computations():
     import heliojax as hj
     from heliojax.discovery import _lanes, _select
 
-    effects = (make_effect("thermal", thermal_1=4e-5, thermal_2=-3e-5), make_effect("backlash"))
-    fleet, _ = simulate_fleet(3, 2, M, effects=effects, noise_mrad=NOISE)
-    layout, template = _lanes.make_layout(hj.nominal_model("stone8"), ("thermal", "backlash"), fleet)
-    lanes = _lanes.make_lanes(fleet, 3)
-    engine = _lanes.Engine.create(layout, template, lanes)
+    layout, template, lanes, engine, p0 = _thermal_backlash_engine()
     n_lanes = lanes.fold.shape[0]
-    p0 = np.broadcast_to(np.asarray(layout.view.to_vector(template)), (n_lanes, layout.view.n_parameters)).copy()
     rng = np.random.default_rng(5)
     free = np.asarray(layout.free_index)
     p1 = p0.copy()
@@ -209,13 +221,8 @@ def test_a_refit_on_the_fold_0_lanes_alone_is_the_full_refits_fold_0():
     import heliojax as hj
     from heliojax.discovery import _lanes, _select
 
-    effects = (make_effect("thermal", thermal_1=4e-5, thermal_2=-3e-5), make_effect("backlash"))
-    fleet, _ = simulate_fleet(3, 2, M, effects=effects, noise_mrad=NOISE)
-    layout, template = _lanes.make_layout(hj.nominal_model("stone8"), ("thermal", "backlash"), fleet)
-    lanes = _lanes.make_lanes(fleet, 3)
-    engine = _lanes.Engine.create(layout, template, lanes)
+    layout, template, lanes, engine, p0 = _thermal_backlash_engine()
     n_lanes = lanes.fold.shape[0]
-    p0 = np.broadcast_to(np.asarray(layout.view.to_vector(template)), (n_lanes, layout.view.n_parameters)).copy()
     fold0 = lanes.fold == 0
     assert 0 < fold0.sum() < n_lanes
 

@@ -348,29 +348,14 @@ def _not_fitted_lane(p0, counts) -> dict:
 
 
 @cached_jit
-def _fit_lanes_compiled(
-    layout,
-    solver,
-    max_steps,
-    batching,
-    cap,
-    template,
-    active,
-    p0,
-    sel,
-    sel_valid,
-    prior_weight,
-    p_exp,
-    c0,
-    dmat,
-    records,
-):
-    """The active lanes' fits (:func:`_fit_lane`); ``records``: :data:`Records`."""
+def _fit_lanes_compiled(layout, solver, max_steps, batching, cap, template, active, lane_inputs, records):
+    """The active lanes' fits (:func:`_fit_lane`); ``lane_inputs``: its arguments from
+    ``p0`` to ``dmat``, per lane; ``records``: :data:`Records`."""
     fn = _only_active(
         lambda *a: _fit_lane(layout, solver, max_steps, cap, template, *a),
         lambda p0, *a: _not_fitted_lane(p0, a[7]),
     )
-    return batching.map(fn)(active, p0, sel, sel_valid, prior_weight, p_exp, c0, dmat, *records)
+    return batching.map(fn)(active, *lane_inputs, *records)
 
 
 def _predicted_focal(layout: Layout, template, p, c0, geometry, counts, context, focal):
@@ -709,13 +694,7 @@ class Engine:
                 cap,
                 self.template,
                 self._active(g, active),
-                jnp.asarray(p0[i]),
-                jnp.asarray(sel[i]),
-                jnp.asarray(valid[i]),
-                jnp.asarray(weight[i]),
-                jnp.asarray(p_exp[i]),
-                c0,
-                dmat,
+                (*(jnp.asarray(x[i]) for x in (p0, sel, valid, weight, p_exp)), c0, dmat),
                 self._data(k_group, False),
             )
             parts.append(out)
