@@ -618,6 +618,12 @@ class Engine:
         """Group ``g``'s lanes' flags: every lane, or those of ``active`` ``(L,)``."""
         return jnp.asarray(np.ones(g.index.size, bool) if active is None else np.asarray(active, bool)[g.index])
 
+    def _group_args(self, k: int, p: np.ndarray, evaluate: bool, active: np.ndarray | None) -> tuple:
+        """The arguments of the per-group programs at ``p`` (group ``k``)."""
+        g = self.groups[k]
+        data = self._data(k, evaluate)
+        return self.layout, self.batching, self.template, self._active(g, active), jnp.asarray(p[g.index]), data
+
     def expand(self, p, evaluate: bool = False, derivative_from=None, active: np.ndarray | None = None):
         """First-order effect corrections ``(c0, D)`` at ``p`` (device arrays), one
         pair per lane group. With ``derivative_from`` (an earlier expansion of the same
@@ -629,30 +635,10 @@ class Engine:
         p = np.asarray(p)
         if derivative_from is not None:
             return tuple(
-                (
-                    _correction_values_compiled(
-                        self.layout,
-                        self.batching,
-                        self.template,
-                        self._active(g, active),
-                        jnp.asarray(p[g.index]),
-                        self._data(k, evaluate),
-                    ),
-                    old[1],
-                )
-                for (k, g), old in zip(enumerate(self.groups), derivative_from, strict=True)
+                (_correction_values_compiled(*self._group_args(k, p, evaluate, active)), old[1])
+                for k, old in zip(range(len(self.groups)), derivative_from, strict=True)
             )
-        return tuple(
-            _corrections_compiled(
-                self.layout,
-                self.batching,
-                self.template,
-                self._active(g, active),
-                jnp.asarray(p[g.index]),
-                self._data(k, evaluate),
-            )
-            for k, g in enumerate(self.groups)
-        )
+        return tuple(_corrections_compiled(*self._group_args(k, p, evaluate, active)) for k in range(len(self.groups)))
 
     def fit(
         self,
@@ -709,15 +695,10 @@ class Engine:
         at ``p`` with the same ``evaluate``, when the caller has it (else computed here)."""
         p = np.asarray(p)
         rs, js = [], []
-        for k, g in enumerate(self.groups):
-            data = self._data(k, evaluate)
-            pg = jnp.asarray(p[g.index])
-            flags = self._active(g, active)
-            if expansion is None:
-                c0, dmat = _corrections_compiled(self.layout, self.batching, self.template, flags, pg, data)
-            else:
-                c0, dmat = expansion[k]
-            r, j = _jac_lanes_compiled(self.layout, self.batching, self.template, flags, pg, c0, dmat, data)
+        for k in range(len(self.groups)):
+            args = self._group_args(k, p, evaluate, active)
+            c0, dmat = _corrections_compiled(*args) if expansion is None else expansion[k]
+            r, j = _jac_lanes_compiled(*args[:-1], c0, dmat, args[-1])
             rs.append(np.asarray(r))
             js.append(np.asarray(j))
         n_lanes, width = p.shape[0], 2 * self.lanes.valid.shape[1]
@@ -728,17 +709,8 @@ class Engine:
         no first-order expansion: a fraction of its work)."""
         p = np.asarray(p)
         rs = [
-            np.asarray(
-                _residual_lanes_compiled(
-                    self.layout,
-                    self.batching,
-                    self.template,
-                    self._active(g, active),
-                    jnp.asarray(p[g.index]),
-                    self._data(k, evaluate),
-                )
-            )
-            for k, g in enumerate(self.groups)
+            np.asarray(_residual_lanes_compiled(*self._group_args(k, p, evaluate, active)))
+            for k in range(len(self.groups))
         ]
         return _scatter(rs, self.groups, p.shape[0], 2 * self.lanes.valid.shape[1])
 
