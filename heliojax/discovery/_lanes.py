@@ -44,7 +44,6 @@ from .._programs import cached_jit
 from ..effects import EffectModel, with_data_references, with_effects
 from ..fitting import (
     AbstractBatching,
-    LaxMap,
     default_batching,
     default_solver,
     record_rows,
@@ -341,10 +340,10 @@ def _fit_lane(
     return dict(params=p, ok=ok, cost=cost, n_used=n_used.astype(jnp.int32), n_steps=out.n_steps.astype(jnp.int32))
 
 
-def _not_fitted_lane(p0, counts) -> dict:
+def _not_fitted_lane(p0) -> dict:
     """What :func:`_fit_lane` returns, for an inactive lane: its start, not ``ok``."""
     none = jnp.zeros((), jnp.int32)
-    return dict(params=p0, ok=jnp.zeros((), bool), cost=jnp.zeros((), counts.dtype), n_used=none, n_steps=none)
+    return dict(params=p0, ok=jnp.zeros((), bool), cost=jnp.zeros((), p0.dtype), n_used=none, n_steps=none)
 
 
 @cached_jit
@@ -353,7 +352,7 @@ def _fit_lanes_compiled(layout, solver, max_steps, batching, cap, template, acti
     ``p0`` to ``dmat``, per lane; ``records``: :data:`Records`."""
     fn = _only_active(
         lambda *a: _fit_lane(layout, solver, max_steps, cap, template, *a),
-        lambda p0, *a: _not_fitted_lane(p0, a[7]),
+        lambda p0, *a: _not_fitted_lane(p0),
     )
     return batching.map(fn)(active, *lane_inputs, *records)
 
@@ -609,10 +608,10 @@ class Engine:
 
     @property
     def skips_inactive_lanes(self) -> bool:
-        """Whether a lane left out by ``active`` costs nothing: under ``lax.map`` (the
-        CPU default) a lane's branch is not taken; a vmapped batch (``Vmap``,
-        ``Chunked``, ``Sharded``) computes every lane and selects."""
-        return isinstance(self.batching, LaxMap)
+        """Whether a lane left out by ``active`` costs nothing (the batching's
+        :attr:`~heliojax.fitting.AbstractBatching.skips_inactive`: ``lax.map``, the CPU
+        default, yes; a vmapped batch computes every lane and selects)."""
+        return self.batching.skips_inactive
 
     def _active(self, g: LaneGroup, active: np.ndarray | None) -> jax.Array:
         """Group ``g``'s lanes' flags: every lane, or those of ``active`` ``(L,)``."""

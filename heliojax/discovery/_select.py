@@ -322,7 +322,9 @@ class _Workflow:
         assert r is not None and jac is not None
         rss = np.where(ok, np.sum(r**2, axis=1), np.nan)
         p = np.where(ok[:, None], p, np.asarray(p_start, dtype=np.float64))  # no NaN carried to the next fit
-        r_eval = self.engine.residuals(p, evaluate=True, active=active)
+        # held-out records: only the cross-validation lanes hold any out (fold 0 none)
+        holding_out = (lanes.fold > 0) if active is None else (lanes.fold > 0) & np.asarray(active, bool)
+        r_eval = self.engine.residuals(p, evaluate=True, active=holding_out)
         m = used.shape[1]
         sq = r_eval.reshape(n_lanes, m, 2)
         sq = np.sum(sq**2, axis=-1)

@@ -46,6 +46,12 @@ class AbstractBatching(eqx.Module):
         del n
         return out
 
+    @property
+    def skips_inactive(self) -> bool:
+        """Whether a lane whose branch ``jax.lax.cond`` does not take costs nothing
+        (sequential lanes); in a vmapped batch both branches are computed and selected."""
+        return False
+
 
 @typing.final
 class Vmap(AbstractBatching):
@@ -79,6 +85,10 @@ class LaxMap(AbstractBatching):
 
     def map(self, fn):
         return lambda *xs: jax.lax.map(lambda a: fn(*a), xs)
+
+    @property
+    def skips_inactive(self) -> bool:
+        return True
 
 
 @typing.final
