@@ -1,11 +1,19 @@
 """Traced programs kept across processes (heliojax._programs): same results as a
-fresh trace, loaded instead of traced, keyed by every static option and shape."""
+fresh trace, loaded instead of traced, keyed by every static option and shape; their
+compiled executables kept too, keyed by the compiler's settings, and loaded in the
+background for a command's next run."""
 
 from __future__ import annotations
 
+import json
+import os
 import pickle
+import subprocess
+import sys
+import textwrap
 import threading
 import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -30,6 +38,13 @@ def _no_export(*_a, **_k):
     raise AssertionError("traced again although a kept program exists")
 
 
+def _drop_executables(program_dir):
+    """Remove the kept executables (as another compiler setting would find none): the
+    traced programs are loaded and compiled."""
+    for path in program_dir.glob("*.exe"):
+        path.unlink()
+
+
 def test_kept_fit_program_gives_the_traced_result(program_dir, monkeypatch):
     fleet = zoo("actuator").fleet
     model0 = hj.ActuatorModel.nominal()
@@ -37,12 +52,15 @@ def test_kept_fit_program_gives_the_traced_result(program_dir, monkeypatch):
     written = sorted(program_dir.glob("*.bin"))
     assert len(written) == 1
     monkeypatch.setattr(_programs, "_export", _no_export)  # from now on only loading is allowed
-    _programs._COMPILED.clear()  # as a new process: load from the directory
-    kept = CompiledFit(model0, fleet, max_steps=16)(model0)
-    for a, b in zip(jax.tree.leaves(reference.model), jax.tree.leaves(kept.model), strict=True):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    np.testing.assert_array_equal(np.asarray(reference.status), np.asarray(kept.status))
-    np.testing.assert_array_equal(np.asarray(reference.covariance), np.asarray(kept.covariance))
+    for drop in (False, True):  # the kept executable, then the kept traced program compiled again
+        if drop:
+            _drop_executables(program_dir)
+        _programs._COMPILED.clear()  # as a new process: load from the directory
+        kept = CompiledFit(model0, fleet, max_steps=16)(model0)
+        for a, b in zip(jax.tree.leaves(reference.model), jax.tree.leaves(kept.model), strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        np.testing.assert_array_equal(np.asarray(reference.status), np.asarray(kept.status))
+        np.testing.assert_array_equal(np.asarray(reference.covariance), np.asarray(kept.covariance))
     assert sorted(program_dir.glob("*.bin")) == written
 
 
@@ -96,6 +114,7 @@ def test_damaged_program_is_traced_again_and_replaced(program_dir):
     np.testing.assert_array_equal(np.asarray(square(errors)), expected)
     (path,) = program_dir.glob("*.bin")
     path.write_bytes(b"not a program")
+    _drop_executables(program_dir)
     _programs._COMPILED.clear()
     np.testing.assert_array_equal(np.asarray(square(errors)), expected)
     assert path.read_bytes() != b"not a program"
@@ -113,6 +132,7 @@ def test_a_program_kept_under_another_key_is_not_run(program_dir):
     blobs = first.read_bytes(), second.read_bytes()
     first.write_bytes(blobs[1])
     second.write_bytes(blobs[0])
+    _drop_executables(program_dir)
     _programs._COMPILED.clear()
     np.testing.assert_array_equal(np.asarray(power(x, 2)), np.asarray(x) ** 2)
     np.testing.assert_array_equal(np.asarray(power(y, 3)), np.asarray(y) ** 3)
@@ -220,6 +240,114 @@ def test_a_placeholder_solution_has_the_key_of_a_fit(program_dir, monkeypatch):
     assert np.asarray(placeholder.status).tolist() == [0] * fleet.counts.shape[0]
     for a, b in zip(jax.tree.leaves(placeholder), jax.tree.leaves(solution), strict=True):
         assert np.shape(a) == np.shape(b) and np.asarray(a).dtype == np.asarray(b).dtype
+
+
+def test_a_kept_executable_runs_without_lowering_or_compiling(program_dir, monkeypatch):
+    solve = _programs.cached_jit(_solve)
+    a, b = jnp.array([[4.0, 1.0], [1.0, 3.0]]), jnp.array([1.0, 2.0])
+    reference = np.asarray(solve(a, b))
+    assert len(list(program_dir.glob("*.exe"))) == 1 and len(list(program_dir.glob("*.bin"))) == 1
+    _programs._COMPILED.clear()
+    monkeypatch.setattr(_programs, "_compile_noting_cache_hits", _no_export)
+    monkeypatch.setattr(_programs, "_export", _no_export)
+    np.testing.assert_array_equal(np.asarray(solve(a, b)), reference)
+    np.testing.assert_allclose(reference, np.linalg.solve(np.asarray(a), np.asarray(b)), rtol=1e-14)
+
+
+def test_a_damaged_executable_is_compiled_again_and_replaced(program_dir):
+    square = _programs.cached_jit(_square)
+    x = jnp.arange(4.0)
+    square(x)
+    (path,) = program_dir.glob("*.exe")
+    blob = bytearray(path.read_bytes())
+    blob[-100] ^= 0xFF  # inside the executable's bytes: the digest no longer matches
+    path.write_bytes(bytes(blob))
+    _programs._COMPILED.clear()
+    np.testing.assert_array_equal(np.asarray(square(x)), np.asarray(x) ** 2)
+    assert path.read_bytes() != bytes(blob)
+    assert _programs._read_executable(path) is not None
+
+
+def test_compiler_settings_key_the_executable_not_the_traced_program(program_dir, monkeypatch):
+    """Another XLA flag or optimisation setting is another executable of the same
+    kept traced program."""
+    square = _programs.cached_jit(_square)
+    x = jnp.arange(3.0)
+    square(x)
+    monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", "") + " --xla_cpu_enable_fast_math=false")
+    _programs._COMPILED.clear()
+    square(x)
+    setting = jax.config.values["jax_disable_most_optimizations"]
+    try:
+        jax.config.update("jax_disable_most_optimizations", not setting)
+        _programs._COMPILED.clear()
+        np.testing.assert_array_equal(np.asarray(square(x)), np.asarray(x) ** 2)
+    finally:
+        jax.config.update("jax_disable_most_optimizations", setting)
+    assert len(list(program_dir.glob("*.exe"))) == 3 and len(list(program_dir.glob("*.bin"))) == 1
+
+
+_PROCESS = textwrap.dedent(
+    """
+    import json, sys
+    import jax, jax.numpy as jnp, numpy as np
+    jax.config.update("jax_enable_x64", True)
+    from heliojax.cli._common import enable_compilation_cache
+    from heliojax import _programs
+    from test_programs import _solve
+    enable_compilation_cache(sys.argv[1], "test")
+    if sys.argv[2] == "load":  # the second process: nothing may be lowered or compiled
+        def refuse(*a, **k):
+            raise AssertionError("compiled although an executable is kept")
+        _programs._compile_noting_cache_hits = refuse
+    a, b = jnp.array([[4.0, 1.0], [1.0, 3.0]]), jnp.array([1.0, 2.0])
+    x = _programs.cached_jit(_solve)(a, b, "first")
+    out = {"x": np.asarray(x).tolist(), "preloaded": sorted(p.name for p in _programs._PRELOADED)}
+    if sys.argv[2] == "compile":  # another key, the same program: a hit of JAX's cache
+        y = _programs.cached_jit(_solve)(a, b, "second")
+        out["same"] = np.asarray(y).tolist() == out["x"]
+    _programs.remember("test")
+    print(json.dumps(out))
+    """
+)
+
+
+def test_executables_reach_the_next_process_loaded_in_the_background(tmp_path):
+    """A second process loads the kept executable (with a LAPACK call: its kernels are
+    bound first, or the process would crash) in the background and compiles nothing.
+    An executable JAX loaded from its own cache is not kept (on XLA:CPU it would be
+    written without its kernels)."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")]))
+    runs = []
+    for mode in ("compile", "load"):
+        done = subprocess.run(
+            [sys.executable, "-c", _PROCESS, str(tmp_path), mode], capture_output=True, text=True, env=env, timeout=300
+        )
+        assert done.returncode == 0, done.stderr[-3000:]
+        runs.append(json.loads(done.stdout.splitlines()[-1]))
+    programs = tmp_path / _programs.PROGRAM_DIR
+    assert runs[0]["same"] and runs[1]["x"] == runs[0]["x"]
+    assert len(list(programs.glob("*.bin"))) == 2  # two keys, two traced programs
+    (kept,) = programs.glob("*.exe")  # one compiled afresh, the other a hit of JAX's cache
+    assert (programs / "test.recent").read_text().split() == [kept.name]
+    assert runs[0]["preloaded"] == [] and runs[1]["preloaded"] == []  # loaded in the background, then taken
+
+
+def test_remember_lists_only_what_this_command_ran(program_dir):
+    square = _programs.cached_jit(_square)
+    square(jnp.arange(2.0))
+    _programs.preload("first")  # nothing listed yet: starts nothing, forgets what ran before
+    _programs.remember("first")
+    assert not (program_dir / "first.recent").exists()
+    square(jnp.arange(3.0))
+    _programs.remember("first")
+    (kept,) = [p for p in program_dir.glob("*.exe") if _programs._read_executable(p)[0].in_avals[0][0].shape == (3,)]
+    assert (program_dir / "first.recent").read_text().split() == [kept.name]
+
+
+def _solve(a, b, note: str = ""):  # ``note``: a static argument that changes the key, not the program
+    del note
+    return jnp.linalg.solve(a, b)
 
 
 def _square(x):

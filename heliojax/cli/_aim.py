@@ -306,7 +306,7 @@ def run(args) -> int:
     from ..optics import target_from_tower
     from ..paint import default_data_dir, read_tower
 
-    enable_compilation_cache(args.cache_dir)
+    enable_compilation_cache(args.cache_dir, args.command)
     results = load_results(args.results)
     origin = np.asarray(results.attrs["origin_lla"], float)
     tower = read_tower(args.tower or default_data_dir() / "WRI1030197-tower-measurements.json")

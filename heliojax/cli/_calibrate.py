@@ -155,6 +155,7 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
+    enable_compilation_cache(args.cache_dir, args.command)  # first: kept programs load while the rest imports
     from .._errors import ConfigError, DataError
     from .._kinematics import nominal_model
     from .._results import write_results_h5
@@ -164,7 +165,6 @@ def run(args) -> int:
 
     if args.prior and args.robust and args.pool:  # fit_robust(pool=True) learns its own prior
         raise ConfigError("--prior: the robust fit's fleet prior takes its place; give --no-pool or --no-robust")
-    enable_compilation_cache(args.cache_dir)
     fleet = load_fleet(args)
     test_fleet = None
     if args.test_data is not None:

@@ -160,12 +160,14 @@ def configure_logging(quiet: bool) -> logging.Logger:
     return logger
 
 
-def enable_compilation_cache(cache_dir: str | os.PathLike | None) -> None:
+def enable_compilation_cache(cache_dir: str | os.PathLike | None, command: str | None = None) -> None:
     """Persistent JAX compilation cache so a rerun does not recompile.
 
     ``cache_dir``: a directory, or None for ``$HELIOJAX_CACHE_DIR`` or
     ``$XDG_CACHE_HOME/heliojax/jax`` (``~/.cache/heliojax/jax`` when that is unset);
-    the string ``"none"`` disables it.
+    the string ``"none"`` disables it. ``command``: the command starting, whose last
+    run's compiled programs are then loaded in the background
+    (:func:`heliojax._programs.preload`; :func:`remember_programs` lists them).
     """
     import jax
 
@@ -193,6 +195,18 @@ def enable_compilation_cache(cache_dir: str | os.PathLike | None) -> None:
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)  # keep small programs too
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    if command is not None:
+        from .._programs import preload
+
+        preload(command)
+
+
+def remember_programs(command: str) -> None:
+    """After a successful run of ``command``: list the compiled programs it ran for its
+    next run's :func:`enable_compilation_cache` (nothing when no program was kept)."""
+    programs = sys.modules.get("heliojax._programs")  # not imported: no program was compiled
+    if programs is not None:
+        programs.remember(command)
 
 
 def _is_utf8(text: str) -> bool:

@@ -114,7 +114,7 @@ def run(args) -> int:
     )
     from ..effects import EFFECT_NAMES
 
-    enable_compilation_cache(args.cache_dir)
+    enable_compilation_cache(args.cache_dir, args.command)
     effects = None
     if args.effects is not None:
         effects = tuple(e.strip() for e in args.effects.split(",") if e.strip())

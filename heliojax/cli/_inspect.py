@@ -53,7 +53,7 @@ def run(args) -> int:
     from .._kinematics import nominal_model
     from ..fitting import fleet_beam_errors_mrad
 
-    enable_compilation_cache(args.cache_dir)
+    enable_compilation_cache(args.cache_dir, args.command)
     fleet = load_fleet(args)
     n = len(fleet.ids)
     err = {}

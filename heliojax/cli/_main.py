@@ -34,6 +34,7 @@ from ._common import (
     note_interrupt,
     path_type,
     raise_if_interrupted,
+    remember_programs,
 )
 
 # subcommand -> module (each has add_parser(subparsers) and run(args) -> int)
@@ -530,11 +531,15 @@ def _main(argv: list[str]) -> int:
         check_output_paths(args, getattr(module, "OUTPUT_FILES", ()), getattr(module, "OUTPUT_DIRS", ()), inside)
         check_input_paths(getattr(subparsers[args.command], "options", {}), args, outputs)
         if getattr(args, "quiet", False):  # no bars (INFO is off): nothing to share stderr with
-            return int(module.run(args) or 0)
-        from tqdm.contrib.logging import logging_redirect_tqdm
+            code = int(module.run(args) or 0)
+        else:
+            from tqdm.contrib.logging import logging_redirect_tqdm
 
-        with logging_redirect_tqdm(loggers=[logger]):  # messages and progress bars share stderr
-            return int(module.run(args) or 0)
+            with logging_redirect_tqdm(loggers=[logger]):  # messages and progress bars share stderr
+                code = int(module.run(args) or 0)
+        if code == 0:
+            remember_programs(args.command)
+        return code
     except HeliojaxError as e:
         print(f"heliojax {args.command}: error: {_config_keys_named(str(e), args)}", file=sys.stderr)
         return 2

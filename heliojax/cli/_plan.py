@@ -197,7 +197,7 @@ def run(args) -> int:
     args.max_instants = DEFAULT_MAX_INSTANTS if args.max_instants is None else args.max_instants
     if args.end is not None and args.start is None:
         raise ConfigError("--end needs --start")
-    enable_compilation_cache(args.cache_dir)
+    enable_compilation_cache(args.cache_dir, args.command)
     results = load_results(args.results)
     origin = np.asarray(results.attrs["origin_lla"], float)
     tower = read_tower(args.tower or default_data_dir() / "WRI1030197-tower-measurements.json")
