@@ -46,6 +46,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from ._programs import cached_jit
+
 # WGS84 ellipsoid (NIMA TR8350.2).
 WGS84_A = 6378137.0
 """Semi-major axis in metres."""
@@ -183,7 +185,7 @@ def sun_direction(azimuth: Float[ArrayLike, "..."], elevation: Float[ArrayLike, 
     return jnp.stack([ce * jnp.sin(az), -ce * jnp.cos(az), jnp.sin(el)], axis=-1)
 
 
-@jax.jit  # one program, not one per operation, when called outside a jitted function
+@cached_jit  # one program, not one per operation, when called outside a jitted function; kept by the CLI
 def direction_to_azimuth_elevation(
     direction: Float[ArrayLike, "... 3"],
 ) -> tuple[Float[Array, "..."], Float[Array, "..."]]:
