@@ -501,10 +501,12 @@ def preload(name: str) -> None:
     its arrays, so that its calls find them loaded (~0.3 s of the warm
     ``heliojax calibrate``). An executable listed but not asked for costs only the
     background thread's time; one asked for before it is loaded is waited for. Does
-    nothing without a compilation cache directory."""
+    nothing without a compilation cache directory. What an earlier command's
+    :func:`preload` loaded and it never asked for is let go."""
     directory = _program_dir()
     with _LOCK:
         _USED.clear()
+        _PRELOADED.clear()  # an earlier command's executables that it never asked for
     if directory is None:
         return
     try:
