@@ -163,7 +163,7 @@ def _compile(
 ) -> Callable[..., typing.Any]:
     if directory is None or key is None:
         return fn.lower(*args).compile()  # pyright: ignore[reportAttributeAccessIssue]
-    executable_path = directory / f"{_executable_key(key)}{EXECUTABLE_SUFFIX}"
+    executable_path = directory / f"{_executable_key(key, leaves)}{EXECUTABLE_SUFFIX}"
     kept = _load_executable(executable_path, leaves)
     if kept is not None:
         program, skeleton = kept
@@ -364,14 +364,18 @@ _COMPILE_SETTINGS = (
 """JAX settings that change what XLA compiles from a given program."""
 
 
-def _executable_key(key: str) -> str:
-    """The key of the compiled executable of the program kept under ``key``: that key
-    and everything the compiler's output depends on besides the program (XLA's
-    flags, JAX's optimisation setting, the device, the platform's version and the
-    host processor)."""
+def _executable_key(key: str, leaves: list) -> str:
+    """The key of the compiled executable of the program kept under ``key`` for the
+    arrays ``leaves``: that key and everything the compiler's output depends on
+    besides the program (XLA's flags, JAX's optimisation setting, the devices the
+    arrays are on, the default device, the platform's version and the host
+    processor)."""
     device = jax.devices()[0]  # the backend compiling this program has started already
+    placed = sorted({d.id for x in leaves if isinstance(x, jax.Array) for d in x.devices()})
     material = (
         key,
+        placed,
+        str(jax.config.values.get("jax_default_device")),
         os.environ.get("XLA_FLAGS", ""),
         [(name, jax.config.values.get(name)) for name in _COMPILE_SETTINGS],
         device.platform,
@@ -408,14 +412,18 @@ def _compile_noting_cache_hits(lowered: typing.Any) -> tuple[typing.Any, bool]:
 
 def _keep_executable(path: Path, program: typing.Any, skeleton: typing.Any) -> bool:
     """Write ``program`` (a :class:`jax.stages.Compiled` of a flat list of arrays)
-    to ``path``, with its output skeleton and a digest of the executable's bytes;
-    whether it was written (an executable that cannot be serialised, e.g. on a
-    backend without support, is not kept)."""
+    to ``path``, with its output skeleton, the device it runs on and a digest of the
+    executable's bytes; whether it was written (a program over several devices and
+    an executable that cannot be serialised, e.g. on a backend without support, are
+    not kept)."""
     try:
+        shardings = jax.tree.leaves((program.input_shardings, program.output_shardings))
+        devices = {d.id for sharding in shardings for d in sharding.device_set}
+        if len(devices) != 1:  # loading needs the devices it runs on, in order: only one is unambiguous
+            raise ValueError(f"it runs on {len(devices)} devices")
         executable, in_tree, out_tree = serialize_executable.serialize(program)
-        blob = pickle.dumps(
-            (path.stem, hashlib.sha256(executable).hexdigest(), executable, in_tree, out_tree, skeleton), protocol=5
-        )
+        digest = hashlib.sha256(executable).hexdigest()
+        blob = pickle.dumps((path.stem, digest, executable, in_tree, out_tree, skeleton, devices.pop()), protocol=5)
         path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_write(path, "wb") as f:
             f.write(blob)
@@ -469,12 +477,14 @@ def _read_executable(path: Path) -> tuple[typing.Any, typing.Any] | None:
     if not _native_kernels_bound():
         return None
     try:
-        key, digest, executable, in_tree, out_tree, skeleton = pickle.loads(blob)
+        key, digest, executable, in_tree, out_tree, skeleton, device_id = pickle.loads(blob)
         if key != path.stem:
             raise ValueError(f"written for the key {key!r}")
         if hashlib.sha256(executable).hexdigest() != digest:
             raise ValueError("its bytes are not the ones written")
-        return serialize_executable.deserialize_and_load(executable, in_tree, out_tree), skeleton
+        (device,) = [d for d in jax.devices() if d.id == device_id]  # the device it was compiled for
+        program = serialize_executable.deserialize_and_load(executable, in_tree, out_tree, execution_devices=[device])
+        return program, skeleton
     except Exception as e:  # noqa: BLE001 - stale or damaged: lower and compile again, and overwrite it
         log.debug("ignoring the kept executable %s: %s", path, e)
         return None

@@ -296,13 +296,18 @@ _PROCESS = textwrap.dedent(
     from heliojax import _programs
     from test_programs import _solve
     enable_compilation_cache(sys.argv[1], "test")
-    if sys.argv[2] == "load":  # the second process: nothing may be lowered or compiled
+    if sys.argv[2] == "load":  # nothing may be lowered or compiled
         def refuse(*a, **k):
             raise AssertionError("compiled although an executable is kept")
         _programs._compile_noting_cache_hits = refuse
-    a, b = jnp.array([[4.0, 1.0], [1.0, 3.0]]), jnp.array([1.0, 2.0])
+    device = jax.devices()[int(sys.argv[3])]
+    a, b = jax.device_put(jnp.array([[4.0, 1.0], [1.0, 3.0]]), device), jax.device_put(jnp.array([1.0, 2.0]), device)
     x = _programs.cached_jit(_solve)(a, b, "first")
-    out = {"x": np.asarray(x).tolist(), "preloaded": sorted(p.name for p in _programs._PRELOADED)}
+    out = {
+        "x": np.asarray(x).tolist(),
+        "device": [d.id for d in x.devices()],
+        "preloaded": sorted(p.name for p in _programs._PRELOADED),
+    }
     if sys.argv[2] == "compile":  # another key, the same program: a hit of JAX's cache
         y = _programs.cached_jit(_solve)(a, b, "second")
         out["same"] = np.asarray(y).tolist() == out["x"]
@@ -316,21 +321,34 @@ def test_executables_reach_the_next_process_loaded_in_the_background(tmp_path):
     """A second process loads the kept executable (with a LAPACK call: its kernels are
     bound first, or the process would crash) in the background and compiles nothing.
     An executable JAX loaded from its own cache is not kept (on XLA:CPU it would be
-    written without its kernels)."""
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")]))
+    written without its kernels). Arrays on another device (two CPU devices here) get
+    an executable of their own (one loaded for the other device crashed the process)."""
+    env = dict(
+        os.environ,
+        JAX_NUM_CPU_DEVICES="2",
+        PYTHONPATH=os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")]),
+    )
     runs = []
-    for mode in ("compile", "load"):
+    for mode, device in (("compile", 0), ("load", 0), ("other device", 1), ("load", 1)):
         done = subprocess.run(
-            [sys.executable, "-c", _PROCESS, str(tmp_path), mode], capture_output=True, text=True, env=env, timeout=300
+            [sys.executable, "-c", _PROCESS, str(tmp_path), mode, str(device)],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=300,
         )
         assert done.returncode == 0, done.stderr[-3000:]
         runs.append(json.loads(done.stdout.splitlines()[-1]))
     programs = tmp_path / _programs.PROGRAM_DIR
-    assert runs[0]["same"] and runs[1]["x"] == runs[0]["x"]
+    assert runs[0]["same"] and all(r["x"] == runs[0]["x"] for r in runs)
+    assert [r["device"] for r in runs] == [[0], [0], [1], [1]]
     assert len(list(programs.glob("*.bin"))) == 2  # two keys, two traced programs
-    (kept,) = programs.glob("*.exe")  # one compiled afresh, the other a hit of JAX's cache
-    assert (programs / "test.recent").read_text().split() == [kept.name]
-    assert runs[0]["preloaded"] == [] and runs[1]["preloaded"] == []  # loaded in the background, then taken
+    # one executable per device: the second key's program was a hit of JAX's cache
+    assert len(list(programs.glob("*.exe"))) == 2
+    # each run lists what it ran; the next loads it in the background and takes it, except
+    # the run on the other device, which leaves the previous run's executable unused
+    assert len((programs / "test.recent").read_text().split()) == 1
+    assert [len(r["preloaded"]) for r in runs] == [0, 0, 1, 0]
 
 
 def test_remember_lists_only_what_this_command_ran(program_dir):
