@@ -67,6 +67,12 @@ PROGRAM_DIR = "heliojax-programs"
 EXECUTABLE_SUFFIX = ".exe"
 """File name ending of a kept compiled executable (beside the exported ``.bin``)."""
 
+EXECUTABLE_BACKENDS = ("cpu",)
+"""Backends whose compiled executables are kept: the CPU's, where the command line's
+wait is (and where loading them was tested: on XLA:CPU an executable needs its LAPACK
+kernels bound, the device it was compiled for, and must not come from JAX's cache).
+Elsewhere the kept traced programs are compiled (or found in JAX's cache) as before."""
+
 
 @dataclasses.dataclass(frozen=True)
 class _Leaf:
@@ -163,9 +169,11 @@ def _compile(
 ) -> Callable[..., typing.Any]:
     if directory is None or key is None:
         return fn.lower(*args).compile()  # pyright: ignore[reportAttributeAccessIssue]
-    executable_path = directory / f"{_executable_key(key, leaves)}{EXECUTABLE_SUFFIX}"
-    kept = _load_executable(executable_path, leaves)
-    if kept is not None:
+    executable_path = None
+    if jax.default_backend() in EXECUTABLE_BACKENDS:
+        executable_path = directory / f"{_executable_key(key, leaves)}{EXECUTABLE_SUFFIX}"
+    kept = None if executable_path is None else _load_executable(executable_path, leaves)
+    if kept is not None and executable_path is not None:
         program, skeleton = kept
         _note_used(executable_path)
     else:
@@ -181,7 +189,7 @@ def _compile(
         except Exception as e:  # noqa: BLE001 - a program that does not take these arguments: trace instead
             log.debug("ignoring the cached program %s: %s", path, e)
             return fn.lower(*args).compile()  # pyright: ignore[reportAttributeAccessIssue]
-        if fresh and _keep_executable(executable_path, program, skeleton):
+        if fresh and executable_path is not None and _keep_executable(executable_path, program, skeleton):
             _note_used(executable_path)
 
     def run(*call_args: typing.Any) -> typing.Any:
