@@ -324,7 +324,7 @@ def fit_robust(
         prior = fleet_prior(
             sol,
             jnp.asarray(prior_noise, fleet.counts.dtype),
-            learn_from=jnp.asarray(learn_from),
+            learn_from=jax.device_put(learn_from),  # not jnp.asarray: an eager program per process
             small_fleet_fallback=small_fleet_fallback,
         )
         if small_fleet_fallback:
