@@ -40,6 +40,7 @@ import concurrent.futures
 import dataclasses
 import functools
 import hashlib
+import io
 import logging
 import os
 import pickle
@@ -84,8 +85,14 @@ class _Leaf:
 def _key(fn: typing.Any, stat: typing.Any, leaves: list) -> str | None:
     if "<" in fn.__qualname__:  # lambdas and local functions: the name does not identify them
         return None
+    material = io.BytesIO()
+    pickler = pickle.Pickler(material, protocol=5)
+    # no memo: equal static parts give equal bytes whether or not they share objects (a
+    # program's outputs share the static parts of its inputs when traced here, not when
+    # loaded, which gave a second run of the CLI other keys than the first)
+    pickler.fast = True
     try:
-        material = pickle.dumps(
+        pickler.dump(
             (
                 fn.__module__,
                 fn.__qualname__,
@@ -96,12 +103,11 @@ def _key(fn: typing.Any, stat: typing.Any, leaves: list) -> str | None:
                 jax.__version__,
                 jaxlib_version.__version__,
                 jax.default_backend(),
-            ),
-            protocol=5,
+            )
         )
-    except Exception:  # noqa: BLE001 - unpicklable static parts (closures): no key, trace instead
+    except Exception:  # noqa: BLE001 - unpicklable static parts (closures), a cycle: no key, trace instead
         return None
-    return hashlib.sha256(material).hexdigest()
+    return hashlib.sha256(material.getvalue()).hexdigest()
 
 
 @functools.cache
@@ -185,7 +191,12 @@ def _compile(
             return fn.lower(*args).compile()  # pyright: ignore[reportAttributeAccessIssue]
         exported, skeleton = loaded
         try:
-            program, fresh = _compile_noting_cache_hits(jax.jit(exported.call).lower(*leaves))
+            lowered = jax.jit(exported.call).lower(*leaves)
+            program, fresh = _compile_noting_cache_hits(lowered)
+            if not fresh and executable_path is not None:
+                # JAX's cache held the same program (e.g. compiled under another key in this
+                # run): compile it afresh, under a key of JAX's cache of its own, to keep it
+                program, fresh = _compile_noting_cache_hits(lowered, _OWN_CACHE_KEY)
         except Exception as e:  # noqa: BLE001 - a program that does not take these arguments: trace instead
             log.debug("ignoring the cached program %s: %s", path, e)
             return fn.lower(*args).compile()  # pyright: ignore[reportAttributeAccessIssue]
@@ -399,9 +410,14 @@ _CACHE_HIT = "/jax/compilation_cache/cache_hits"
 """The :mod:`jax.monitoring` event of a program loaded from JAX's persistent cache."""
 
 
-def _compile_noting_cache_hits(lowered: typing.Any) -> tuple[typing.Any, bool]:
-    """``lowered.compile()`` and whether XLA compiled it here, not loaded from JAX's
-    persistent cache. On XLA:CPU an executable that JAX loaded from its cache
+_OWN_CACHE_KEY = {"xla_embed_ir_in_executable": False}
+"""A compiler option at its default value: the same executable, another key of JAX's
+persistent cache (see :func:`_compile`)."""
+
+
+def _compile_noting_cache_hits(lowered: typing.Any, options: dict | None = None) -> tuple[typing.Any, bool]:
+    """``lowered.compile(options)`` and whether XLA compiled it here, not loaded from
+    JAX's persistent cache. On XLA:CPU an executable that JAX loaded from its cache
     serialises without its kernels (run in another process: "Function ... not
     found"), so only freshly compiled ones are kept."""
     me = threading.get_ident()
@@ -413,7 +429,7 @@ def _compile_noting_cache_hits(lowered: typing.Any) -> tuple[typing.Any, bool]:
 
     jax.monitoring.register_event_listener(listen)
     try:
-        return lowered.compile(), not hits
+        return lowered.compile(compiler_options=options), not hits
     finally:
         jax.monitoring.unregister_event_listener(listen)
 

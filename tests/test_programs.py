@@ -5,6 +5,7 @@ background for a command's next run."""
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 import pickle
@@ -303,14 +304,13 @@ _PROCESS = textwrap.dedent(
     device = jax.devices()[int(sys.argv[3])]
     a, b = jax.device_put(jnp.array([[4.0, 1.0], [1.0, 3.0]]), device), jax.device_put(jnp.array([1.0, 2.0]), device)
     x = _programs.cached_jit(_solve)(a, b, "first")
+    y = _programs.cached_jit(_solve)(a, b, "second")  # another key, the same program
     out = {
         "x": np.asarray(x).tolist(),
+        "same": np.asarray(y).tolist() == np.asarray(x).tolist(),
         "device": [d.id for d in x.devices()],
         "preloaded": sorted(p.name for p in _programs._PRELOADED),
     }
-    if sys.argv[2] == "compile":  # another key, the same program: a hit of JAX's cache
-        y = _programs.cached_jit(_solve)(a, b, "second")
-        out["same"] = np.asarray(y).tolist() == out["x"]
     _programs.remember("test")
     print(json.dumps(out))
     """
@@ -318,11 +318,13 @@ _PROCESS = textwrap.dedent(
 
 
 def test_executables_reach_the_next_process_loaded_in_the_background(tmp_path):
-    """A second process loads the kept executable (with a LAPACK call: its kernels are
+    """A second process loads the kept executables (with a LAPACK call: its kernels are
     bound first, or the process would crash) in the background and compiles nothing.
-    An executable JAX loaded from its own cache is not kept (on XLA:CPU it would be
-    written without its kernels). Arrays on another device (two CPU devices here) get
-    an executable of their own (one loaded for the other device crashed the process)."""
+    The second key's program is the first's: JAX's cache has it, and an executable JAX
+    loaded from there would be written without its kernels on XLA:CPU, so it is
+    compiled afresh to be kept (and runs in the next process). Arrays on another
+    device (two CPU devices here) get executables of their own (one loaded for the
+    other device crashed the process)."""
     env = dict(
         os.environ,
         JAX_NUM_CPU_DEVICES="2",
@@ -340,15 +342,65 @@ def test_executables_reach_the_next_process_loaded_in_the_background(tmp_path):
         assert done.returncode == 0, done.stderr[-3000:]
         runs.append(json.loads(done.stdout.splitlines()[-1]))
     programs = tmp_path / _programs.PROGRAM_DIR
-    assert runs[0]["same"] and all(r["x"] == runs[0]["x"] for r in runs)
+    assert all(r["same"] and r["x"] == runs[0]["x"] for r in runs)
     assert [r["device"] for r in runs] == [[0], [0], [1], [1]]
     assert len(list(programs.glob("*.bin"))) == 2  # two keys, two traced programs
-    # one executable per device: the second key's program was a hit of JAX's cache
-    assert len(list(programs.glob("*.exe"))) == 2
+    assert len(list(programs.glob("*.exe"))) == 4  # two keys on two devices
     # each run lists what it ran; the next loads it in the background and takes it, except
-    # the run on the other device, which leaves the previous run's executable unused
-    assert len((programs / "test.recent").read_text().split()) == 1
-    assert [len(r["preloaded"]) for r in runs] == [0, 0, 1, 0]
+    # the run on the other device, which leaves the previous run's executables unused
+    assert len((programs / "test.recent").read_text().split()) == 2
+    assert [len(r["preloaded"]) for r in runs] == [0, 0, 2, 0]
+
+
+_CALIBRATE = textwrap.dedent(
+    """
+    import json, sys
+    import jax.monitoring
+    requests = []
+    COMPILE = "/jax/compilation_cache/compile_requests_use_cache"
+    jax.monitoring.register_event_listener(lambda event, **_: requests.append(event) if event == COMPILE else None)
+    from heliojax.cli._main import main
+    rc = main(["calibrate", "--quiet", "--report", sys.argv[1], "--cache-dir", sys.argv[2]])
+    print(json.dumps({"rc": rc, "compiled": len(requests)}))
+    """
+)
+
+
+def test_a_second_calibrate_compiles_nothing_and_reports_the_same(tmp_path):
+    """The command line's warm run (a new process, the cache of a first run): every
+    program is a kept executable, so nothing is lowered or compiled (not even an eager
+    operation: JAX's compile requests counted), and the summary is the first run's."""
+    runs, reports = [], []
+    for i in range(2):
+        report = tmp_path / f"summary{i}.json"
+        done = subprocess.run(
+            [sys.executable, "-c", _CALIBRATE, str(report), str(tmp_path / "cache")],
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert done.returncode == 0, done.stderr[-3000:]
+        runs.append(json.loads(done.stdout.splitlines()[-1]))
+        reports.append(json.loads(report.read_text()))
+    assert runs[0]["rc"] == runs[1]["rc"] == 0
+    assert runs[0]["compiled"] > 5 and runs[1]["compiled"] == 0
+    listed = (tmp_path / "cache" / _programs.PROGRAM_DIR / f"calibrate{_programs.RECENT_SUFFIX}").read_text().split()
+    assert len(listed) > 5 and all((tmp_path / "cache" / _programs.PROGRAM_DIR / name).exists() for name in listed)
+    for first, second in zip(reports[0]["heliostats"].values(), reports[1]["heliostats"].values(), strict=True):
+        assert first == second
+    assert {k: v for k, v in reports[0]["fleet"].items() if not k.endswith("_s")} == {
+        k: v for k, v in reports[1]["fleet"].items() if not k.endswith("_s")
+    }
+
+
+def test_the_key_does_not_depend_on_shared_objects():
+    """Static parts that are one object in one call and equal copies in another (a
+    traced program's outputs share its inputs' static parts, a loaded one's do not)
+    have one key; other values have another."""
+    view = hj.ActuatorModel.nominal()
+    same = _programs._key(_power, (view, view), [])
+    assert same is not None and same == _programs._key(_power, (view, copy.deepcopy(view)), [])
+    assert same != _programs._key(_power, (view, hj.StoneModel.nominal()), [])
 
 
 def test_remember_lists_only_what_this_command_ran(program_dir):
