@@ -191,12 +191,10 @@ def _compile(
             return fn.lower(*args).compile()  # pyright: ignore[reportAttributeAccessIssue]
         exported, skeleton = loaded
         try:
-            lowered = jax.jit(exported.call).lower(*leaves)
-            program, fresh = _compile_noting_cache_hits(lowered)
-            if not fresh and executable_path is not None:
-                # JAX's cache held the same program (e.g. compiled under another key in this
-                # run): compile it afresh, under a key of JAX's cache of its own, to keep it
-                program, fresh = _compile_noting_cache_hits(lowered, _OWN_CACHE_KEY)
+            # a program JAX's cache already holds (compiled under another key) is not kept:
+            # compiling it afresh to keep it cost a cold discovery on the shared records
+            # ~27 s and saved its warm run nothing
+            program, fresh = _compile_noting_cache_hits(jax.jit(exported.call).lower(*leaves))
         except Exception as e:  # noqa: BLE001 - a program that does not take these arguments: trace instead
             log.debug("ignoring the cached program %s: %s", path, e)
             return fn.lower(*args).compile()  # pyright: ignore[reportAttributeAccessIssue]
@@ -410,14 +408,9 @@ _CACHE_HIT = "/jax/compilation_cache/cache_hits"
 """The :mod:`jax.monitoring` event of a program loaded from JAX's persistent cache."""
 
 
-_OWN_CACHE_KEY = {"xla_embed_ir_in_executable": False}
-"""A compiler option at its default value: the same executable, another key of JAX's
-persistent cache (see :func:`_compile`)."""
-
-
-def _compile_noting_cache_hits(lowered: typing.Any, options: dict | None = None) -> tuple[typing.Any, bool]:
-    """``lowered.compile(options)`` and whether XLA compiled it here, not loaded from
-    JAX's persistent cache. On XLA:CPU an executable that JAX loaded from its cache
+def _compile_noting_cache_hits(lowered: typing.Any) -> tuple[typing.Any, bool]:
+    """``lowered.compile()`` and whether XLA compiled it here, not loaded from JAX's
+    persistent cache. On XLA:CPU an executable that JAX loaded from its cache
     serialises without its kernels (run in another process: "Function ... not
     found"), so only freshly compiled ones are kept."""
     me = threading.get_ident()
@@ -429,7 +422,7 @@ def _compile_noting_cache_hits(lowered: typing.Any, options: dict | None = None)
 
     jax.monitoring.register_event_listener(listen)
     try:
-        return lowered.compile(compiler_options=options), not hits
+        return lowered.compile(), not hits
     finally:
         jax.monitoring.unregister_event_listener(listen)
 
