@@ -48,7 +48,7 @@ import platform
 import re
 import threading
 import typing
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import equinox as eqx
@@ -82,6 +82,12 @@ class _Leaf:
     index: int
 
 
+def _signature(arrays: Iterable[typing.Any]) -> list[tuple[tuple[int, ...], str]]:
+    """The shapes and dtypes of ``arrays`` (arrays or abstract values): what a kept
+    program's inputs must match."""
+    return [(tuple(x.shape), str(x.dtype)) for x in arrays]
+
+
 def _key(fn: typing.Any, stat: typing.Any, leaves: list) -> str | None:
     if "<" in fn.__qualname__:  # lambdas and local functions: the name does not identify them
         return None
@@ -97,7 +103,7 @@ def _key(fn: typing.Any, stat: typing.Any, leaves: list) -> str | None:
                 fn.__module__,
                 fn.__qualname__,
                 stat,
-                [(tuple(x.shape), str(x.dtype)) for x in leaves],
+                _signature(leaves),
                 __version__,
                 source_digest(),
                 jax.__version__,
@@ -309,8 +315,7 @@ def _load(path: Path, leaves: list) -> tuple[typing.Any, typing.Any] | None:
         if key != path.stem:
             raise ValueError(f"written for the key {key!r}")
         exported = jax.export.deserialize(program_bytes)
-        wanted = [(tuple(x.shape), str(x.dtype)) for x in leaves]
-        if [(tuple(a.shape), str(a.dtype)) for a in exported.in_avals] != wanted:
+        if _signature(exported.in_avals) != _signature(leaves):
             raise ValueError("its inputs are not these arguments' shapes and dtypes")
         return exported, pickle.loads(skeleton_bytes)
     except Exception as e:  # noqa: BLE001 - a stale or damaged entry: trace again and overwrite it
@@ -476,8 +481,7 @@ def _load_executable(path: Path, leaves: list) -> tuple[typing.Any, typing.Any] 
     kept = preloaded.result() if preloaded is not None else _read_executable(path)
     if kept is None:
         return None
-    wanted = [(tuple(x.shape), str(x.dtype)) for x in leaves]
-    if [(tuple(a.shape), str(a.dtype)) for a in jax.tree.leaves(kept[0].in_avals)] != wanted:
+    if _signature(jax.tree.leaves(kept[0].in_avals)) != _signature(leaves):
         log.debug("ignoring the kept executable %s: its inputs are not these arguments' shapes and dtypes", path)
         return None
     return kept
