@@ -169,6 +169,7 @@ from .fitting import (
     LeastSquares as LeastSquares,
     NoPrior as NoPrior,
     Sharded as Sharded,
+    Threaded as Threaded,
     Vmap as Vmap,
     beam_errors_mrad as beam_errors_mrad,
     calibrate_distributed as calibrate_distributed,

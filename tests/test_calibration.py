@@ -135,7 +135,8 @@ def test_accelerator_step_by_cholesky_agrees_with_qr(six_under_prior):
     assert isinstance(hj.fitting.default_solver("gpu").descent.linear_solver, lx.Normal)
     assert isinstance(hj.fitting.default_solver("cpu").descent.linear_solver, lx.QR)
     assert hj.fitting.default_batching("gpu") == hj.Vmap(restart_after=hj.fitting.RESTART_AFTER)
-    assert hj.fitting.default_batching("cpu") == hj.LaxMap()
+    cores = hj.fitting.usable_cores()
+    assert hj.fitting.default_batching("cpu") == (hj.Threaded(hj.LaxMap(), workers=cores) if cores > 1 else hj.LaxMap())
     _, _, _, qr, chol = six_under_prior
     np.testing.assert_array_equal(chol.status, qr.status)
     assert np.all(np.asarray(qr.status) == FitStatus.CONVERGED), qr.status

@@ -32,7 +32,8 @@ def test_lane_groups_by_record_width_change_no_lane_result(monkeypatch):
     fleet = eqx.tree_at(lambda f: f.mask, fleet, jnp.asarray(mask))
     layout, template = _lanes.make_layout(hj.nominal_model("stone8"), ("backlash", "thermal"), fleet)
     lanes = _lanes.make_lanes(fleet, 3)
-    engine = _lanes.Engine.create(layout, template, lanes)
+    one_block = hj.LaxMap()  # width groups alone (Threaded cuts them into blocks: tests/test_threaded.py)
+    engine = _lanes.Engine.create(layout, template, lanes, batching=one_block)
     assert sorted(g.width for g in engine.groups) == [16, 70]
     p0 = np.broadcast_to(np.asarray(layout.view.to_vector(template)), (lanes.fold.shape[0], layout.view.n_parameters))
     cols = [0, 1]
@@ -47,7 +48,7 @@ def test_lane_groups_by_record_width_change_no_lane_result(monkeypatch):
     reference = grouped[0]["params"]  # Jacobians of both at the same point
     one = lambda ln: (_lanes.LaneGroup(np.arange(ln.fold.size), ln.fold.size, 70),)  # noqa: E731
     monkeypatch.setattr(_lanes, "lane_groups", one)
-    single = run(_lanes.Engine.create(layout, template, lanes))
+    single = run(_lanes.Engine.create(layout, template, lanes, batching=one_block))
     # fits: equal to the solver's path tolerance (10 x its step tolerance, per parameter scale)
     path_atol = 10 * hj.fitting.DEFAULT_ATOL * np.asarray(layout.view.scales)
     assert np.all(np.abs(grouped[0]["params"] - single[0]["params"]) <= path_atol)

@@ -31,7 +31,7 @@ log = logging.getLogger(__name__)
 SPLIT_CHOICES = ("time", "azimuth", "solstice", "balanced", "high_variance")
 """heliojax's split names (``heliojax._splits.SPLIT_NAMES``; kept here so that
 ``--help`` needs no JAX; a test checks they agree)."""
-BATCHING_CHOICES = ("auto", "vmap", "chunked", "map")
+BATCHING_CHOICES = ("auto", "vmap", "chunked", "map", "threaded")
 """``heliojax.fitting.BATCHING_NAMES`` (a test checks they agree)."""
 EXAMPLES = """examples:
   heliojax calibrate --out out/results.h5 --report out/summary.json --plot out/calibration.png
@@ -133,7 +133,8 @@ def add_parser(subparsers) -> None:
         "--strategy",
         choices=BATCHING_CHOICES,
         default="auto",
-        help="batching over heliostats: auto (by backend), vmap, chunked or map (lax.map)",
+        help="batching over heliostats: auto (by backend: threaded on a CPU of several cores), vmap, chunked, "
+        "map (lax.map) or threaded (lax.map in one block per core)",
     )
     add_fit_arguments(p)
     p.add_argument(

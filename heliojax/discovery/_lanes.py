@@ -587,8 +587,10 @@ class Engine:
 
     @functools.cached_property
     def groups(self) -> tuple[LaneGroup, ...]:
-        """The lanes grouped by record width (see :func:`lane_groups`)."""
-        return lane_groups(self.lanes)
+        """The lanes grouped by record width (see :func:`lane_groups`), each group cut
+        into the batching's blocks (:meth:`~heliojax.fitting.AbstractBatching.n_blocks`;
+        :func:`split_group`)."""
+        return tuple(b for g in lane_groups(self.lanes) for b in split_group(g, self.batching.n_blocks(g.n)))
 
     @functools.cached_property
     def _fit_records(self) -> tuple[Records, ...]:
@@ -618,10 +620,21 @@ class Engine:
         return jnp.asarray(np.ones(g.index.size, bool) if active is None else np.asarray(active, bool)[g.index])
 
     def _group_args(self, k: int, p: np.ndarray, evaluate: bool, active: np.ndarray | None) -> tuple:
-        """The arguments of the per-group programs at ``p`` (group ``k``)."""
+        """The lane arguments of the per-group programs at ``p`` (group ``k``): the
+        flags, the parameters and the records, each batched along the lanes."""
         g = self.groups[k]
-        data = self._data(k, evaluate)
-        return self.layout, self.batching, self.template, self._active(g, active), jnp.asarray(p[g.index]), data
+        return self._active(g, active), jnp.asarray(p[g.index]), self._data(k, evaluate)
+
+    def _head(self) -> tuple:
+        """The static arguments most per-group programs start with."""
+        return self.layout, self.batching, self.template
+
+    def _each_group(self, work) -> list:
+        """``[work(k) for k in groups]``, by the batching's
+        :meth:`~heliojax.fitting.AbstractBatching.each` (concurrently, one host thread
+        per core, under :class:`heliojax.Threaded`: each group's records stay on the
+        device, and its outputs are never joined to another's)."""
+        return self.batching.each(work, len(self.groups))
 
     def expand(self, p, evaluate: bool = False, derivative_from=None, active: np.ndarray | None = None):
         """First-order effect corrections ``(c0, D)`` at ``p`` (device arrays), one
@@ -633,11 +646,14 @@ class Engine:
         :meth:`fit`, :meth:`jacobian` and :meth:`residuals`."""
         p = np.asarray(p)
         if derivative_from is not None:
-            return tuple(
-                (_correction_values_compiled(*self._group_args(k, p, evaluate, active)), old[1])
-                for k, old in zip(range(len(self.groups)), derivative_from, strict=True)
+            assert len(derivative_from) == len(self.groups)
+            values = self._each_group(
+                lambda k: _correction_values_compiled(*self._head(), *self._group_args(k, p, evaluate, active))
             )
-        return tuple(_corrections_compiled(*self._group_args(k, p, evaluate, active)) for k in range(len(self.groups)))
+            return tuple((c0, old[1]) for c0, old in zip(values, derivative_from, strict=True))
+        return tuple(
+            self._each_group(lambda k: _corrections_compiled(*self._head(), *self._group_args(k, p, evaluate, active)))
+        )
 
     def fit(
         self,
@@ -668,10 +684,11 @@ class Engine:
         weight = np.zeros((p0.shape[0], cap))
         if self.effect_prior and k and noise_mrad is not None:
             weight[:, :k] = self.prior_weights(noise_mrad)[:, np.asarray(effect_cols, int)]
-        parts = []
-        for k_group, (g, (c0, dmat)) in enumerate(zip(self.groups, expansion, strict=True)):
-            i = g.index
-            out = _fit_lanes_compiled(
+        assert len(expansion) == len(self.groups)
+
+        def fit_group(k: int) -> dict:
+            g, (c0, dmat) = self.groups[k], expansion[k]
+            return _fit_lanes_compiled(
                 self.layout,
                 self.solver,
                 self.max_steps,
@@ -679,10 +696,11 @@ class Engine:
                 cap,
                 self.template,
                 self._active(g, active),
-                (*(jnp.asarray(x[i]) for x in (p0, sel, valid, weight, p_exp)), c0, dmat),
-                self._data(k_group, False),
+                (*(jnp.asarray(x[g.index]) for x in (p0, sel, valid, weight, p_exp)), c0, dmat),
+                self._data(k, False),
             )
-            parts.append(out)
+
+        parts = self._each_group(fit_group)
         return {key: _scatter([np.asarray(o[key]) for o in parts], self.groups, p0.shape[0]) for key in parts[0]}
 
     def jacobian(
@@ -693,13 +711,16 @@ class Engine:
         ``evaluate``: outside the valid records) are zero. ``expansion``: :meth:`expand`
         at ``p`` with the same ``evaluate``, when the caller has it (else computed here)."""
         p = np.asarray(p)
-        rs, js = [], []
-        for k in range(len(self.groups)):
-            args = self._group_args(k, p, evaluate, active)
-            c0, dmat = _corrections_compiled(*args) if expansion is None else expansion[k]
-            r, j = _jac_lanes_compiled(*args[:-1], c0, dmat, args[-1])
-            rs.append(np.asarray(r))
-            js.append(np.asarray(j))
+
+        def jacobian_group(k: int) -> tuple[np.ndarray, np.ndarray]:
+            flags, params, data = self._group_args(k, p, evaluate, active)
+            head = self._head()
+            c0, dmat = _corrections_compiled(*head, flags, params, data) if expansion is None else expansion[k]
+            r, j = _jac_lanes_compiled(*head, flags, params, c0, dmat, data)
+            return np.asarray(r), np.asarray(j)
+
+        rs, js = zip(*self._each_group(jacobian_group), strict=True)
+        rs, js = list(rs), list(js)
         n_lanes, width = p.shape[0], 2 * self.lanes.valid.shape[1]
         return _scatter(rs, self.groups, n_lanes, width), _scatter(js, self.groups, n_lanes, width)
 
@@ -707,10 +728,9 @@ class Engine:
         """The exact residuals of :meth:`jacobian` alone, ``(L, 2M)`` mrad (no Jacobian,
         no first-order expansion: a fraction of its work)."""
         p = np.asarray(p)
-        rs = [
-            np.asarray(_residual_lanes_compiled(*self._group_args(k, p, evaluate, active)))
-            for k in range(len(self.groups))
-        ]
+        rs = self._each_group(
+            lambda k: np.asarray(_residual_lanes_compiled(*self._head(), *self._group_args(k, p, evaluate, active)))
+        )
         return _scatter(rs, self.groups, p.shape[0], 2 * self.lanes.valid.shape[1])
 
 
@@ -766,6 +786,22 @@ def lane_groups(lanes: Lanes) -> tuple[LaneGroup, ...]:
         pad = -idx.size % LANE_MULTIPLE
         groups.append(LaneGroup(np.concatenate([idx, np.full(pad, idx[-1])]), idx.size, int(w)))
     return tuple(groups)
+
+
+def split_group(group: LaneGroup, n_blocks: int) -> tuple[LaneGroup, ...]:
+    """``group`` cut into ``n_blocks`` groups of one width: lane ``i`` of it into block
+    ``i mod n_blocks`` (so that a subset of active lanes, such as fold 0's, is shared
+    out evenly), each padded by repeating its last lane to the ``1 / n_blocks`` share
+    of the group's padded lane count (one program shape per block count)."""
+    if n_blocks <= 1:
+        return (group,)
+    real = group.index[: group.n]
+    size = -(-group.index.size // n_blocks)
+    blocks = []
+    for k in range(n_blocks):
+        idx = real[k::n_blocks]
+        blocks.append(LaneGroup(np.concatenate([idx, np.full(size - idx.size, idx[-1])]), idx.size, group.width))
+    return tuple(blocks)
 
 
 def _scatter(parts: list[np.ndarray], groups: tuple[LaneGroup, ...], n_lanes: int, width: int | None = None):

@@ -344,19 +344,23 @@ class _Workflow:
         used = np.repeat(lanes.train_mask, 2, axis=1)  # (L, 2M)
         k = len(sh_cols)
         n_folds = lanes.n_folds + 1
-        a = np.where(used[:, :, None], jac[:, :, act_cols], 0.0)
-        b = np.where(used[:, :, None], jac[:, :, sh_cols], 0.0)
+        # np.take, not jac[:, :, cols]: a gather along the last axis by index list is ~4x slower
+        a = np.where(used[:, :, None], np.take(jac, act_cols, axis=2), 0.0)
+        b = np.where(used[:, :, None], np.take(jac, sh_cols, axis=2), 0.0)
         rr = np.where(used, r, 0.0)
         u, rank = column_bases(a)
-        bt = b - u @ np.einsum("lra,lrk->lak", u, b)
-        rt = rr - np.einsum("lra,la->lr", u, np.einsum("lra,lr->la", u, rr))
+        # batched matrix products (BLAS), not einsum: ~5x faster at (192 lanes, 512 rows)
+        ut = u.swapaxes(1, 2)
+        bt = b - u @ (ut @ b)
+        rt = rr - (u @ (ut @ rr[..., None]))[..., 0]
+        btt = bt.swapaxes(1, 2)
         dof = used.sum(axis=1) - rank
         take = ok & (dof > 0)
         w = np.where(take, dof / np.maximum(np.sum(rr**2, axis=1), 1e-300), 0.0)
         g = np.zeros((n_folds, k))
         gm = np.zeros((n_folds, k, k))
-        np.add.at(g, lanes.fold, w[:, None] * np.einsum("lrk,lr->lk", bt, rt))
-        np.add.at(gm, lanes.fold, w[:, None, None] * np.einsum("lrk,lrj->lkj", bt, bt))
+        np.add.at(g, lanes.fold, w[:, None] * (btt @ rt[..., None])[..., 0])
+        np.add.at(gm, lanes.fold, w[:, None, None] * (btt @ bt))
         if self.config.effect_prior:
             # rows (q - q_none) / (scale * typical) of unit weight, in the units of w r^2
             n_base = len(self.layout.base_cols)
@@ -403,8 +407,8 @@ class _Workflow:
         eff = [c - n_base for c in act if c >= n_base]
         if not eff or self.noise is None or not self.config.effect_prior:
             return np.full(lanes.size, float(len(act)))
-        jac = state.jac[lanes][:, :, act]
-        a = np.einsum("lri,lrj->lij", jac, jac)
+        jac = np.take(state.jac[lanes], act, axis=2)
+        a = jac.swapaxes(1, 2) @ jac
         w = np.zeros((lanes.size, len(act)))
         w[:, len(act) - len(eff) :] = self.engine.prior_weights(self.noise[lanes])[:, eff]
         pa = a + np.einsum("li,ij->lij", w**2, np.eye(len(act)))

@@ -4,14 +4,17 @@ workflow, with its losses, priors, batching strategies and evaluation."""
 from ._batching import (
     AXIS as AXIS,
     BATCHING_NAMES as BATCHING_NAMES,
+    MIN_BLOCK as MIN_BLOCK,
     RESTART_AFTER as RESTART_AFTER,
     AbstractBatching as AbstractBatching,
     Chunked as Chunked,
     LaxMap as LaxMap,
     Sharded as Sharded,
+    Threaded as Threaded,
     Vmap as Vmap,
     batching_from_name as batching_from_name,
     default_batching as default_batching,
+    usable_cores as usable_cores,
 )
 from ._changes import (
     OFFSET_NAMES as OFFSET_NAMES,

@@ -9,6 +9,8 @@ arguments inside one compiled program:
 * :class:`Chunked` - ``lax.map`` over chunks of ``size`` lanes that are vmapped.
 * :class:`Sharded` - the heliostat axis split over devices (see
   :mod:`heliojax.fitting._sharding`), each device batching its block by ``inner``.
+* :class:`Threaded` - the heliostat axis split into blocks, one per CPU core, each
+  block's program (batched by ``inner``) run from a host thread of its own.
 
 :func:`default_batching` is the one place where a backend picks a strategy.
 """
@@ -16,9 +18,12 @@ arguments inside one compiled program:
 from __future__ import annotations
 
 import abc
+import concurrent.futures
 import math
+import os
+import threading
 import typing
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 
 import equinox as eqx
 import jax
@@ -51,6 +56,31 @@ class AbstractBatching(eqx.Module):
         """Whether a lane whose branch ``jax.lax.cond`` does not take costs nothing
         (sequential lanes); in a vmapped batch both branches are computed and selected."""
         return False
+
+    def block(self, lanes: tuple[typing.Any, ...]) -> tuple[typing.Any, ...]:
+        """Outside the compiled program: the arguments one call of the program gets
+        from ``lanes`` (every leaf batched along axis 0), e.g. to compile it ahead of
+        :meth:`run`. All of them, except under :class:`Threaded`."""
+        return lanes
+
+    def run(self, program: Callable[..., typing.Any], head: tuple[typing.Any, ...], lanes: tuple[typing.Any, ...]):
+        """Outside the compiled program: ``program(*head, *lanes)``, ``lanes`` batched
+        along axis 0 (every leaf) and ``head`` the rest. One call, except under
+        :class:`Threaded`."""
+        return program(*head, *lanes)
+
+    def n_blocks(self, n: int) -> int:
+        """Blocks a caller that keeps its own blocks of lanes (discovery's lane groups)
+        cuts ``n`` lanes into, to run them by :meth:`each`. One, except under
+        :class:`Threaded`."""
+        del n
+        return 1
+
+    def each(self, work: Callable[[int], typing.Any], n: int) -> list[typing.Any]:
+        """Outside the compiled programs: ``[work(k) for k in range(n)]``, ``work`` calling
+        compiled programs on independent blocks of lanes. In turn, except under
+        :class:`Threaded`."""
+        return [work(k) for k in range(n)]
 
 
 @typing.final
@@ -105,6 +135,129 @@ class Chunked(AbstractBatching):
         return lambda *xs: jax.lax.map(lambda a: fn(*a), xs, batch_size=self.size)
 
 
+def usable_cores() -> int:
+    """CPU cores this process may run on (its affinity mask where the OS has one)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+_BLOCK_THREAD = "heliojax-block"
+_POOLS: dict[int, concurrent.futures.ThreadPoolExecutor] = {}
+_POOLS_LOCK = threading.Lock()
+
+
+def _pool(workers: int) -> concurrent.futures.ThreadPoolExecutor:
+    """The process's pool of ``workers`` block threads (made on first use: starting
+    threads for every call cost ~5 % of a discovery run)."""
+    with _POOLS_LOCK:
+        if workers not in _POOLS:
+            _POOLS[workers] = concurrent.futures.ThreadPoolExecutor(workers, thread_name_prefix=_BLOCK_THREAD)
+        return _POOLS[workers]
+
+
+MIN_BLOCK = 8
+"""Fewest lanes a :class:`Threaded` block holds: handing a block to a thread and
+copying its arrays cost ~0.1 ms, one lane's Levenberg-Marquardt fit 0.1-1 ms, so
+a block of 8 lanes is at least ~8x its overhead."""
+
+
+@typing.final
+class Threaded(AbstractBatching):
+    """The lanes split into ``workers`` blocks, each batched by ``inner`` (one compiled
+    program of the block's shape) and run from a host thread of its own.
+
+    XLA's CPU client runs a program on the thread that calls it and releases the
+    GIL meanwhile, and a ``lax.map`` over lanes keeps one core busy: on a CPU of
+    ``n`` cores, ``n`` blocks of lanes run at once (two programs on two threads took
+    the time of one; two calls from one thread took twice that). Lane ``i`` goes to
+    block ``i mod B`` (``B`` blocks), so that a subset of active lanes, such as the
+    first fold of discovery's lanes, is shared out evenly; the last block is padded
+    with copies of lane 0, which are stripped again. Every lane computes what one
+    call of ``inner`` computes for it (bit for bit under :class:`LaxMap`, tested).
+    Fewer blocks are made when a block would hold fewer than ``min_block`` lanes
+    (one block: a plain call, no thread).
+
+    Multi-device sharding (:class:`Sharded`) keeps the devices' solver loops in step
+    (an all-reduce of "any lane still running" per step) and was slower on two CPU
+    devices than one; blocks of independent programs share nothing.
+
+    Attributes:
+        inner: the strategy within a block (default :class:`LaxMap`).
+        workers: blocks, and threads (default: the usable CPU cores).
+        min_block: fewest lanes per block (default :data:`MIN_BLOCK`).
+    """
+
+    inner: AbstractBatching = eqx.field(static=True, default_factory=lambda: LaxMap())
+    workers: int = eqx.field(static=True, default_factory=usable_cores)
+    min_block: int = eqx.field(static=True, default=MIN_BLOCK)
+
+    def __check_init__(self):
+        if self.workers < 1:
+            raise ValueError(f"Threaded: workers must be >= 1, got {self.workers}")
+        if self.min_block < 1:
+            raise ValueError(f"Threaded: min_block must be >= 1, got {self.min_block}")
+        if isinstance(self.inner, (Threaded, Sharded)):
+            raise ValueError(f"Threaded: inner must batch one block on one device, got {type(self.inner).__name__}")
+
+    def map(self, fn):
+        return self.inner.map(fn)
+
+    @property
+    def skips_inactive(self) -> bool:
+        return self.inner.skips_inactive
+
+    def n_blocks(self, n: int) -> int:
+        """Blocks for ``n`` lanes: ``workers``, fewer where a block would hold fewer
+        than ``min_block`` lanes."""
+        return max(1, min(self.workers, n // self.min_block))
+
+    def each(self, work, n):
+        if n <= 1 or self.workers == 1:
+            return [work(k) for k in range(n)]
+        return self._threads(work, range(n))
+
+    def _threads(self, work: Callable[[typing.Any], typing.Any], items: Iterable[typing.Any]) -> list:
+        """``[work(x) for x in items]`` on ``workers`` host threads, each result ready
+        (its programs run on the thread that called them)."""
+        x64 = bool(jax.config.jax_enable_x64)  # pyright: ignore[reportAttributeAccessIssue]
+
+        def one(item):
+            with jax.enable_x64(x64):  # the caller's setting (a context is per thread)
+                return jax.block_until_ready(work(item))
+
+        if threading.current_thread().name.startswith(_BLOCK_THREAD):  # within a block: no thread waits for its pool
+            return [one(x) for x in items]
+        return list(_pool(self.workers).map(one, items))
+
+    def _blocks(self, lanes: tuple[typing.Any, ...]) -> list[tuple[typing.Any, ...]]:
+        n = int(jax.tree.leaves(lanes)[0].shape[0])
+        b = self.n_blocks(n)
+        if b == 1:
+            return [lanes]
+        padded = _pad_heliostats(jax.tree.map(np.asarray, lanes), -n % b)  # numpy: no XLA program per slice
+        return [jax.tree.map(lambda x, k=k: np.ascontiguousarray(x[k::b]), padded) for k in range(b)]
+
+    def block(self, lanes):
+        return self._blocks(lanes)[0]
+
+    def run(self, program, head, lanes):
+        blocks = self._blocks(lanes)
+        if len(blocks) == 1:
+            return program(*head, *lanes)
+        n = int(jax.tree.leaves(lanes)[0].shape[0])
+        outs = self._threads(lambda block: program(*head, *block), blocks)
+
+        def interleave(*parts):
+            if not eqx.is_array(parts[0]):
+                return parts[0]
+            stacked = np.stack([np.asarray(p) for p in parts], axis=1)  # (size, B, ...): lane k*B + j
+            return jax.device_put(stacked.reshape((-1,) + stacked.shape[2:])[:n])
+
+        return jax.tree.map(interleave, *outs)
+
+
 RESTART_AFTER = 12
 """First-pass steps of the default :class:`Vmap`: about twice the median number of
 steps (5) of simulated fleets; at 100,000 x 100 records the 99th percentile was 16
@@ -112,19 +265,23 @@ steps and the slowest lane 35, so 1-2 % of the lanes go on to the second pass.""
 
 
 def default_batching(backend: str | None = None) -> AbstractBatching:
-    """:class:`LaxMap` on CPU (sequential lanes beat vmap's lock-step while loop
-    there), :class:`Vmap` on accelerators, restarting the lanes that have not
-    converged after :data:`RESTART_AFTER` steps."""
+    """On CPU, :class:`LaxMap` (sequential lanes beat vmap's lock-step while loop
+    there), in one :class:`Threaded` block per usable core where there are several;
+    :class:`Vmap` on accelerators, restarting the lanes that have not converged
+    after :data:`RESTART_AFTER` steps."""
     backend = backend or jax.default_backend()
-    return LaxMap() if backend == "cpu" else Vmap(restart_after=RESTART_AFTER)
+    if backend != "cpu":
+        return Vmap(restart_after=RESTART_AFTER)
+    cores = usable_cores()
+    return Threaded(LaxMap(), workers=cores) if cores > 1 else LaxMap()
 
 
-BATCHING_NAMES = ("auto", "vmap", "chunked", "map")
+BATCHING_NAMES = ("auto", "vmap", "chunked", "map", "threaded")
 
 
 def batching_from_name(name: str, chunk_size: int = 64) -> AbstractBatching:
-    """The strategy called ``name`` (``"auto" | "vmap" | "chunked" | "map"``), as the
-    CLI and configs name them."""
+    """The strategy called ``name`` (``"auto" | "vmap" | "chunked" | "map" |
+    "threaded"``), as the CLI and configs name them."""
     if name == "auto":
         return default_batching()
     if name == "vmap":
@@ -133,6 +290,8 @@ def batching_from_name(name: str, chunk_size: int = 64) -> AbstractBatching:
         return LaxMap()
     if name == "chunked":
         return Chunked(chunk_size)
+    if name == "threaded":
+        return Threaded(LaxMap())
     raise ValueError(f"batching must be one of {BATCHING_NAMES}, got {name!r}")
 
 
@@ -203,8 +362,11 @@ __all__: Sequence[str] = (
     "AbstractBatching",
     "Chunked",
     "LaxMap",
+    "MIN_BLOCK",
     "Sharded",
+    "Threaded",
     "Vmap",
     "batching_from_name",
     "default_batching",
+    "usable_cores",
 )

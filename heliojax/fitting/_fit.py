@@ -607,7 +607,7 @@ def _fit_in_passes(static: tuple, args: tuple) -> dict[str, typing.Any]:
     view, solver, loss, prior, max_steps, batching = static
     first = batching.restart_after if isinstance(batching, Vmap) else None
     if first is None or first >= max_steps:
-        return _fit_compiled(*static, *args)
+        return batching.run(_fit_compiled, static, args)
     out = _fit_compiled(view, solver, loss, prior, first, batching, *args)
     late = np.flatnonzero(np.asarray(out["status"]) == FitStatus.MAX_STEPS)
     if late.size == 0:
@@ -652,7 +652,7 @@ class CompiledFit:
         if unknown:
             raise TypeError(f"unknown fit options {sorted(unknown)}")
         t0 = time.perf_counter()
-        self._compiled = compile_cached(_fit_compiled, *static, *args)
+        self._compiled = compile_cached(_fit_compiled, *static, *static[-1].block(args))
         self.compile_s = time.perf_counter() - t0
         self._h = h
         self.run_s = 0.0
@@ -694,7 +694,7 @@ class CompiledFit:
             only,
         )
         t0 = time.perf_counter()
-        out = self._compiled(*static, *args)
+        out = static[-1].run(self._compiled, static, args)
         jax.block_until_ready(out)
         self.run_s += time.perf_counter() - t0
         solution = FitSolution(view=static[0], **static[-1].finish(out, h))
