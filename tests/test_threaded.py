@@ -102,3 +102,19 @@ def test_threaded_discovery_lanes_equal_lax_map_bit_for_bit():
     assert (n_ref, n_blocks) == (1, 3)  # one group of 12 lanes, cut into three blocks
     assert np.any(ref[0]["ok"]) and not np.all(ref[0]["ok"])  # the inactive lanes are left out
     _leaves_equal(threaded, ref)
+
+
+def test_threaded_robust_fit_and_residuals_equal_lax_map_bit_for_bit():
+    """The robust fit's passes and its residual evaluations between them in blocks:
+    weights, flags, noise and parameters as with one call."""
+    fleet = zoo("backlash").fleet
+    model0 = hj.ActuatorModel.nominal(fleet.counts.dtype)
+    ref = hj.fitting.fit_robust(model0, fleet, batching=hj.LaxMap())
+    got = hj.fitting.fit_robust(model0, fleet, batching=THREE_SMALL_BLOCKS)
+    for name in ("weights", "outlier", "noise_mrad", "scale_mrad"):
+        np.testing.assert_array_equal(np.asarray(getattr(got, name)), np.asarray(getattr(ref, name)))
+    _leaves_equal(got.solution, ref.solution)
+    r_ref = hj.fleet_residuals_mrad(ref.solution.model, fleet)
+    r_got = hj.fleet_residuals_mrad(ref.solution.model, fleet, batching=THREE_SMALL_BLOCKS)
+    assert r_got.shape == r_ref.shape == fleet.counts.shape
+    np.testing.assert_array_equal(np.asarray(r_got), np.asarray(r_ref))

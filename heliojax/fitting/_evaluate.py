@@ -14,6 +14,7 @@ from .._heliostat import HeliostatGeometry, RecordContext
 from .._kinematics import AbstractKinematicModel
 from .._parameters import ParameterView, and_masks, broadcast_model, is_batched, on_host
 from .._programs import cached_jit
+from ._batching import AbstractBatching
 from ._records import sanitise
 
 
@@ -101,12 +102,22 @@ def fleet_beam_errors_mrad(
 
 
 def fleet_residuals_mrad(
-    models: AbstractKinematicModel, fleet: typing.Any, mask: Bool[Array, "H M"] | None = None
+    models: AbstractKinematicModel,
+    fleet: typing.Any,
+    mask: Bool[Array, "H M"] | None = None,
+    *,
+    batching: AbstractBatching | None = None,
 ) -> Float[Array, "H M 2"]:
-    """Per-record residual components (mrad) of ``models`` on ``fleet``."""
+    """Per-record residual components (mrad) of ``models`` on ``fleet``; NaN outside
+    ``mask``. With ``batching`` (e.g. a fit's :class:`heliojax.Threaded`), the
+    program runs by its :meth:`~heliojax.fitting.AbstractBatching.run` (in blocks of
+    heliostats on the block threads); the values are the same."""
     m = fleet.mask if mask is None else and_masks(mask, fleet.mask)
     models = _batched_models(models, int(np.shape(fleet.mask)[0]))
-    return residuals_mrad(models, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, m)
+    lanes = (models, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, m)
+    if batching is None:
+        return _errors_program(*lanes)[1]
+    return batching.run(_errors_program, (), lanes)[1]
 
 
 def _row_median(e: typing.Any) -> np.ndarray:

@@ -42,6 +42,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from .._heliostat import HeliostatGeometry
 from .._kinematics import AbstractKinematicModel
 from .._parameters import and_masks, broadcast_model, is_batched, on_host
+from ._batching import default_batching
 from ._evaluate import choose_start_geometry, fleet_residuals_mrad, select_geometry
 from ._fit import CompiledFit, FitSolution
 from ._loss import CAUCHY_EFFICIENCY_FACTOR, Cauchy
@@ -280,9 +281,10 @@ def fit_robust(
         fit_options["prior"] = flat_prior(model0, h)
     # one compiled program for every pass (the loss scale is data, not structure)
     run = CompiledFit(model0, fleet, mask=m, loss=least_squares, **fit_options)
+    batching = fit_options.get("batching") or default_batching()  # the evaluations between passes too
     ls = run(model0)
     n_free = ls.view.n_free
-    r0 = fleet_residuals_mrad(ls.model, fleet, m)
+    r0 = fleet_residuals_mrad(ls.model, fleet, m, batching=batching)
     sigma0, _ = robust_noise(r0, m, n_free)
     # Only heliostats whose least-squares residuals hold a gross error (or that have no
     # usable least-squares fit) are refitted with the Cauchy loss; the others keep
@@ -298,14 +300,14 @@ def fit_robust(
         # warm start from the least-squares fit where it succeeded
         start = _select_models(_fitted(ls), ls.model, _batched_like(model0, ls.model))
         sol = run(start, loss=Cauchy(scale), only=cauchy, otherwise=ls)
-        r1 = fleet_residuals_mrad(sol.model, fleet, m)
+        r1 = fleet_residuals_mrad(sol.model, fleet, m, batching=batching)
         sigma1, _ = robust_noise(r1, m, n_free)
         for _ in range(passes - 1):
             # the least-squares residuals overstate the noise: refit with the scale of
             # the robust residuals (same program, warm start)
             scale = scale_of(sigma1)
             sol = run(sol.model, loss=Cauchy(scale), only=cauchy, otherwise=sol)
-            r1 = fleet_residuals_mrad(sol.model, fleet, m)
+            r1 = fleet_residuals_mrad(sol.model, fleet, m, batching=batching)
             sigma1, _ = robust_noise(r1, m, n_free)
     if pool:
         # Heliostats without a usable fit (too few records) have residuals of an unfitted
@@ -332,7 +334,7 @@ def fit_robust(
         # heliostats without a usable fit start from the fleet's centre
         start = _select_models(fitted, sol.model, prior.centre)
         sol = run(start, loss=Cauchy(scale), prior=prior)
-        r1 = fleet_residuals_mrad(sol.model, fleet, m)
+        r1 = fleet_residuals_mrad(sol.model, fleet, m, batching=batching)
         pooled_sigma, _ = robust_noise(r1, m, n_free)
         sigma1 = np.where(np.isfinite(pooled_sigma), pooled_sigma, sigma1)
     norm = np.linalg.norm(np.where(np.isfinite(np.asarray(r1)), np.asarray(r1), 0.0), axis=-1)
