@@ -44,6 +44,7 @@ from .._programs import cached_jit
 from ..effects import EffectModel, with_data_references, with_effects
 from ..fitting import (
     AbstractBatching,
+    block_lanes,
     default_batching,
     default_solver,
     record_rows,
@@ -719,8 +720,7 @@ class Engine:
             r, j = _jac_lanes_compiled(*head, flags, params, c0, dmat, data)
             return np.asarray(r), np.asarray(j)
 
-        rs, js = zip(*self._each_group(jacobian_group), strict=True)
-        rs, js = list(rs), list(js)
+        rs, js = map(list, zip(*self._each_group(jacobian_group), strict=True))
         n_lanes, width = p.shape[0], 2 * self.lanes.valid.shape[1]
         return _scatter(rs, self.groups, n_lanes, width), _scatter(js, self.groups, n_lanes, width)
 
@@ -789,19 +789,18 @@ def lane_groups(lanes: Lanes) -> tuple[LaneGroup, ...]:
 
 
 def split_group(group: LaneGroup, n_blocks: int) -> tuple[LaneGroup, ...]:
-    """``group`` cut into ``n_blocks`` groups of one width: lane ``i`` of it into block
-    ``i mod n_blocks`` (so that a subset of active lanes, such as fold 0's, is shared
-    out evenly), each padded by repeating its last lane to the ``1 / n_blocks`` share
-    of the group's padded lane count (one program shape per block count)."""
+    """``group`` cut into ``n_blocks`` groups of one width by the blocks' one rule
+    (:func:`heliojax.fitting.block_lanes`: lane ``i`` of it into block ``i mod
+    n_blocks``), each padded to the ``1 / n_blocks`` share of the group's padded lane
+    count (one program shape per block count)."""
     if n_blocks <= 1:
         return (group,)
     real = group.index[: group.n]
     size = -(-group.index.size // n_blocks)
-    blocks = []
-    for k in range(n_blocks):
-        idx = real[k::n_blocks]
-        blocks.append(LaneGroup(np.concatenate([idx, np.full(size - idx.size, idx[-1])]), idx.size, group.width))
-    return tuple(blocks)
+    return tuple(
+        LaneGroup(real[i], -(-(group.n - k) // n_blocks), group.width)  # its real lanes: k, k + B, ... < n
+        for k, i in enumerate(block_lanes(group.n, n_blocks, size))
+    )
 
 
 def _scatter(parts: list[np.ndarray], groups: tuple[LaneGroup, ...], n_lanes: int, width: int | None = None):

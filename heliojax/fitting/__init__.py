@@ -13,6 +13,7 @@ from ._batching import (
     Threaded as Threaded,
     Vmap as Vmap,
     batching_from_name as batching_from_name,
+    block_lanes as block_lanes,
     default_batching as default_batching,
     usable_cores as usable_cores,
 )

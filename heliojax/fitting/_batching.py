@@ -143,6 +143,17 @@ def usable_cores() -> int:
         return os.cpu_count() or 1
 
 
+def block_lanes(n: int, n_blocks: int, size: int | None = None) -> list[np.ndarray]:
+    """The lanes of each of ``n_blocks`` blocks of ``n`` lanes: lane ``i`` in block
+    ``i mod n_blocks`` (a subset of active lanes, such as discovery's first fold, is
+    shared out evenly), each padded to ``size`` lanes (default ``ceil(n / n_blocks)``)
+    with copies of lane 0, whose results the caller strips. The one rule of
+    :class:`Threaded` and of discovery's lane blocks."""
+    size = -(-n // n_blocks) if size is None else size
+    blocks = [np.arange(k, n, n_blocks) for k in range(n_blocks)]
+    return [np.concatenate([b, np.zeros(size - b.size, int)]) for b in blocks]
+
+
 _BLOCK_THREAD = "heliojax-block"
 _POOLS: dict[int, concurrent.futures.ThreadPoolExecutor] = {}
 _POOLS_LOCK = threading.Lock()
@@ -236,8 +247,8 @@ class Threaded(AbstractBatching):
         b = self.n_blocks(n)
         if b == 1:
             return [lanes]
-        padded = _pad_heliostats(jax.tree.map(np.asarray, lanes), -n % b)  # numpy: no XLA program per slice
-        return [jax.tree.map(lambda x, k=k: np.ascontiguousarray(x[k::b]), padded) for k in range(b)]
+        host = jax.tree.map(np.asarray, lanes)  # numpy: no XLA program per gather
+        return [jax.tree.map(lambda x, i=i: x[i], host) for i in block_lanes(n, b)]
 
     def block(self, lanes):
         return self._blocks(lanes)[0]
@@ -367,6 +378,7 @@ __all__: Sequence[str] = (
     "Threaded",
     "Vmap",
     "batching_from_name",
+    "block_lanes",
     "default_batching",
     "usable_cores",
 )

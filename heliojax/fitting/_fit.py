@@ -631,6 +631,8 @@ class CompiledFit:
 
     Attributes:
         compile_s: seconds spent tracing, lowering and compiling.
+        batching: the strategy over heliostats it was compiled for (the option, or
+            :func:`heliojax.default_batching`).
     """
 
     def __init__(self, model0: AbstractKinematicModel, fleet: typing.Any, **options: typing.Any):
@@ -652,7 +654,8 @@ class CompiledFit:
         if unknown:
             raise TypeError(f"unknown fit options {sorted(unknown)}")
         t0 = time.perf_counter()
-        self._compiled = compile_cached(_fit_compiled, *static, *static[-1].block(args))
+        self.batching: AbstractBatching = static[-1]
+        self._compiled = compile_cached(_fit_compiled, *static, *self.batching.block(args))
         self.compile_s = time.perf_counter() - t0
         self._h = h
         self.run_s = 0.0

@@ -42,7 +42,6 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from .._heliostat import HeliostatGeometry
 from .._kinematics import AbstractKinematicModel
 from .._parameters import and_masks, broadcast_model, is_batched, on_host
-from ._batching import default_batching
 from ._evaluate import choose_start_geometry, fleet_residuals_mrad, select_geometry
 from ._fit import CompiledFit, FitSolution
 from ._loss import CAUCHY_EFFICIENCY_FACTOR, Cauchy
@@ -281,7 +280,7 @@ def fit_robust(
         fit_options["prior"] = flat_prior(model0, h)
     # one compiled program for every pass (the loss scale is data, not structure)
     run = CompiledFit(model0, fleet, mask=m, loss=least_squares, **fit_options)
-    batching = fit_options.get("batching") or default_batching()  # the evaluations between passes too
+    batching = run.batching  # the evaluations between the passes are batched as the fit is
     ls = run(model0)
     n_free = ls.view.n_free
     r0 = fleet_residuals_mrad(ls.model, fleet, m, batching=batching)
