@@ -569,6 +569,18 @@ def test_fit_refuses_a_step_budget_below_one(steps):
         hj.fit(hj.ActuatorModel.nominal(), fleet, max_steps=steps)
 
 
+def test_a_float32_fleet_is_refused_with_the_flag_to_set():
+    """Without jax_enable_x64 a fleet is float32; fitting it used to end deep in
+    discovery with "SVD did not converge": it is refused up front, naming the flag."""
+    with jax.enable_x64(False):
+        fleet = hj.load_paint_directory(hj.default_data_dir())
+    assert fleet.counts.dtype == np.float32
+    with pytest.raises(hj.ConfigError, match=r'jax.config.update\("jax_enable_x64", True\)'):
+        hj.fit(hj.ActuatorModel.nominal(), fleet)
+    with pytest.raises(hj.ConfigError, match="float32"):
+        hj.discovery.discover(fleet, base="actuator")
+
+
 def test_records_without_a_time_are_named_when_the_time_split_leaves_them_out(caplog):
     """A record whose time is unknown (a timestamp missing from
     calibration-timestamps.json) cannot be placed by the time split: it is neither

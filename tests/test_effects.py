@@ -24,6 +24,7 @@ from heliojax.effects import (
     EncoderWobble,
     GravitySag,
     OffsetDrift,
+    OffsetStep,
     Refraction,
     SurveyHeliostat,
     SurveyTarget,
@@ -164,6 +165,37 @@ def test_offset_drift_hand_value_and_nan_time():
 
     g = jax.grad(loss)(jnp.array([1e-3, 1e-3]))
     assert np.all(np.isfinite(g)) and np.all(g == 0)
+
+
+def test_offset_step_is_the_base_with_the_earlier_zeros_before_its_date():
+    """Before the change time the model is the base with both joint zeros ``jump`` lower
+    (the base's own offsets being the current state), from it on the base itself; a
+    record without a time is the current state, as is a pose without any context.
+    The time is not fitted by default, and the jump's gradient is finite."""
+    base = eqx.tree_at(lambda m: m.angle_offset, ACTUATOR, jnp.array([2e-3, -1e-3]))
+    jump = jnp.array([1.5e-3, -0.7e-3])
+    t_c = 1.66e9
+    model = EffectModel(base, (OffsetStep(jump=jump, time=jnp.asarray(t_c)),))
+    earlier = eqx.tree_at(lambda m: m.angle_offset, base, base.angle_offset - jump)
+    for t, reference in ((t_c - 86400.0, earlier), (t_c, base), (t_c + 1e6, base), (jnp.nan, base)):
+        ctx = _context(unix_time=t)
+        np.testing.assert_allclose(
+            model.beam_components(GEOM, COUNTS, ctx, FOCAL),
+            reference.beam_components(GEOM, COUNTS, ctx, FOCAL),
+            atol=1e-15,
+        )
+    np.testing.assert_allclose(model.joint_angles(GEOM, COUNTS), base.joint_angles(GEOM, COUNTS), atol=0)
+    free = hj.ParameterView.of(model)
+    names = [n for n, f in zip(free.names, free.free, strict=True) if f]
+    assert "change_point_jump_1" in names and "change_point_time" not in names
+
+    def loss(j):
+        m = EffectModel(base, (OffsetStep(jump=j, time=jnp.asarray(t_c)),))
+        return jnp.sum(m.beam_components(GEOM, COUNTS, _context(unix_time=t_c - 1.0), FOCAL) ** 2)
+
+    g = jax.jit(jax.grad(loss))(jump)
+    assert np.all(np.isfinite(g)) and np.any(g != 0)
+    assert "change_point" not in EFFECT_NAMES  # added by discovery where a step is found, never screened
 
 
 def test_wind_head_on_and_cross():

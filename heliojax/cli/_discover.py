@@ -47,7 +47,7 @@ def add_parser(subparsers) -> None:
         help="find where the model and the measurements disagree and name the missing effects",
         description=(
             "Fit the base model robustly (gross errors left out and reported; change points - jumps of the "
-            "axis offsets - reported and each heliostat studied since its change), screen the candidate effects ("
+            "axis offsets - reported and fitted as jumps of the joint zeros), screen the candidate effects ("
             + ", ".join(EFFECT_CHOICES)
             + ") with score tests on the residuals (largely absorbed ones on their remainder), refit every "
             "significant one and name an effect only when it passes Holm's family-wise control, "

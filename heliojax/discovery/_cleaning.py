@@ -23,8 +23,13 @@ fit of the base model (:func:`heliojax.fitting.fit_robust`,
   fraction ``alpha`` of fleets. A change that a linear drift of the offsets
   explains as well (``ChangePoints.is_step`` false: a creeping heliostat, a clock
   running off) is no change point: its records stay. A reported change point is one of the named
-  effects; the records before it (the earlier state of the heliostat) are left
-  out of discovery, which then studies each heliostat's current state. After the
+  effects, and the first: :class:`heliojax.effects.OffsetStep`, a jump of both joint
+  zeros on the records before its date, its two jumps fitted with the rest of the
+  model. The records before the change stay in discovery: a step moves the zeros,
+  not the geometry, which all of a heliostat's records determine (left out, a
+  heliostat whose change came late kept too few records to predict its held-out
+  ones: 16 of 60 on the independent simulator gave a held-out RMS of 8 mrad at
+  0.25 mrad noise). After the
   library effects are named, each change point is tested again under the final
   model (:func:`confirm_change_points`): a step that was only the remainder of
   a named effect (backlash and thermal drifts are correlated in time) is
@@ -45,6 +50,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._errors import ConfigError
+from .._parameters import broadcast_model, is_batched
+from ..effects import EffectModel, OffsetStep, add_effects
 from ..fitting import find_change_points, fit_robust, robust_component_noise
 from ..fitting._changes import drift_coordinate
 from ..fitting._robust import OUTLIER_TAIL
@@ -60,7 +67,8 @@ class Cleaning:
     Attributes:
         valid: ``(H, M)`` the records before cleaning.
         outlier: ``(H, M)`` gross errors (left out).
-        superseded: ``(H, M)`` records before a reported change point (left out).
+        superseded: ``(H, M)`` records before a reported change point (fitted with its
+            jump, :class:`heliojax.effects.OffsetStep`).
         change_found: ``(H,)`` a change point is reported.
         change_time_s: ``(H,)`` unix time (s) of the first record at or after the
             change (NaN where none).
@@ -93,11 +101,6 @@ class Cleaning:
     withdrawn: np.ndarray | None = None
     restored: np.ndarray | None = None
     final_residuals: np.ndarray | None = None
-
-    @property
-    def excluded(self) -> np.ndarray:
-        """``(H, M)`` records left out of discovery."""
-        return self.outlier | self.superseded
 
     @classmethod
     def none(cls, valid: np.ndarray) -> Cleaning:
@@ -178,20 +181,19 @@ def clean(
     with np.errstate(invalid="ignore"):
         superseded = inliers & found[:, None] & (t < time_s[:, None])
     if found.any():
-        log.info(f"change points in {int(found.sum())} heliostats: discovery studies their current state")
-        # the first pass saw the steps as residuals: flag the gross errors again on each
-        # side of the change (one robust fit per segment; the same compiled program)
+        log.info(f"change points in {int(found.sum())} heliostats: their records before it are fitted with a jump")
+        # The first pass saw the steps as residuals: flag the gross errors again under the
+        # model with the steps (one robust fit of all records, the jumps fitted with the
+        # rest). Fitted apart, a segment of a few records with gross errors in it can
+        # leave one unflagged (a 28 mrad record among 19 before a change, 0.25 mrad noise).
         with np.errstate(invalid="ignore"):
             earlier = valid & found[:, None] & (t < time_s[:, None])
-        current = valid & ~earlier
-        now = fit_robust(base, fleet, mask=jnp.asarray(current))
-        if outliers:
-            before = fit_robust(base, fleet, mask=jnp.asarray(earlier))
-            outlier = (np.asarray(now.outlier, bool) & current) | (np.asarray(before.outlier, bool) & earlier)
-        else:
-            outlier = np.zeros_like(valid)
+        joint = fit_robust(
+            with_offset_steps(base, np.where(found, time_s, 0.0), fleet.counts.dtype), fleet, mask=jnp.asarray(valid)
+        )
+        outlier = np.asarray(joint.outlier, bool) & valid if outliers else np.zeros_like(valid)
         superseded = earlier & ~outlier
-        out = dataclasses.replace(out, outlier=outlier, noise_mrad=np.asarray(now.noise_mrad, float))
+        out = dataclasses.replace(out, outlier=outlier, noise_mrad=np.asarray(joint.noise_mrad, float))
     return dataclasses.replace(
         out,
         superseded=superseded,
@@ -203,6 +205,16 @@ def clean(
         change_p_holm=p_holm,
         offsets=tuple(cp.offsets),
     )
+
+
+def with_offset_steps(base: typing.Any, change_time_s: np.ndarray, dtype: typing.Any) -> EffectModel:
+    """``base`` batched over ``(H,)`` heliostats and wrapped by an
+    :class:`heliojax.effects.OffsetStep` per heliostat at ``change_time_s`` (unix s; 0:
+    no step), its jumps at zero (free), the times fixed."""
+    t = np.asarray(change_time_s, float)
+    batched = base if is_batched(base) else broadcast_model(base, t.shape[0])
+    step = OffsetStep(jump=jnp.zeros(t.shape + (2,), dtype), time=jnp.asarray(t, dtype))
+    return add_effects(batched, [step])
 
 
 def confirm_change_points(
@@ -320,7 +332,7 @@ def recheck_outliers(cleaning: Cleaning, r: np.ndarray, n_params: int) -> Cleani
     record flagged before and within it now is *restored* (the flags of records
     the final model still misses stay).
     """
-    use = cleaning.valid & ~cleaning.outlier & ~cleaning.superseded
+    use = cleaning.valid & ~cleaning.outlier  # the records before a change too: the model has its jump
     comp = robust_component_noise(r, use, n_params)
     z = np.where(np.isfinite(r), r, 0.0) / comp[:, None, :]
     still = np.linalg.norm(z, axis=-1) > np.sqrt(-2.0 * np.log(OUTLIER_TAIL))

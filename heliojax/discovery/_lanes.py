@@ -41,7 +41,7 @@ from .._heliostat import chain_pose
 from .._kinematics import AbstractKinematicModel
 from .._parameters import ParameterView
 from .._programs import cached_jit
-from ..effects import EffectModel, with_data_references, with_effects
+from ..effects import EffectModel, OffsetStep, add_effects, with_data_references, with_effects
 from ..fitting import (
     AbstractBatching,
     block_lanes,
@@ -128,14 +128,22 @@ class Layout:
 
 
 def make_layout(
-    base: AbstractKinematicModel, effects: tuple[str, ...], fleet: typing.Any
+    base: AbstractKinematicModel, effects: tuple[str, ...], fleet: typing.Any, *, change_points: bool = False
 ) -> tuple[Layout, EffectModel]:
     """The column layout and the universal model (``base`` wrapped by every
     candidate effect at no effect, references from ``fleet``'s valid records).
     Effect elements ``fleet``'s valid records cannot drive
     (:meth:`heliojax.effects.AbstractEffect.driven`, e.g. the offset of a target no
-    record uses) get no column: they stay at no effect and count nowhere."""
-    template = with_data_references(with_effects(base, effects), fleet)
+    record uses) get no column: they stay at no effect and count nowhere. With
+    ``change_points``, :class:`heliojax.effects.OffsetStep` (``"change_point"``) comes
+    first, before the candidates: its change time is a per-lane entry of the
+    parameter vectors (never fitted), set by the caller."""
+    candidates = with_effects(base, effects)
+    if change_points:
+        dtype = jnp.asarray(ParameterView.of(base).to_vector(base)).dtype
+        candidates = add_effects(base, [OffsetStep.nominal(base, dtype), *candidates.effects])
+        effects = (OffsetStep.NAME, *effects)
+    template = with_data_references(candidates, fleet)
     view = ParameterView.of(template)
     n_base = ParameterView.of(base).n_parameters
     free = view.free

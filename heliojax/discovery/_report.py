@@ -860,8 +860,8 @@ def _plot_unexplained_per_heliostat(fig, axes, entry, var, x, ok, ra, ids, label
 
 def plot_change_points(result, *, max_heliostats: int = 12):
     """Final-model residual components (mrad) against time for the heliostats with a
-    change point: records before the change (left out of the fit, hollow) sit off by
-    the jump, records since it (used, filled) around zero. Returns None when there is
+    change point, without its fitted jump: records before the change (hollow) sit off
+    by the jump, records since it (filled) around zero. Returns None when there is
     no change point or no final-model residuals."""
     cl = result.cleaning
     if cl is None or cl.final_residuals is None:
@@ -882,16 +882,16 @@ def plot_change_points(result, *, max_heliostats: int = 12):
         for j, (name, colour) in enumerate((("horizontal", "C0"), ("vertical", "C3"))):
             since = cl.valid[h] & ~cl.outlier[h] & (days >= 0)
             before = cl.valid[h] & ~cl.outlier[h] & (days < 0)
-            ax.plot(days[since], r[since, j], "o", color=colour, ms=3.5, label=f"{name}, since (fitted)")
-            ax.plot(
-                days[before], r[before, j], "o", mfc="none", color=colour, ms=3.5, label=f"{name}, before (left out)"
-            )
+            ax.plot(days[since], r[since, j], "o", color=colour, ms=3.5, label=f"{name}, since")
+            label = f"{name}, before (fitted with the jump)"
+            ax.plot(days[before], r[before, j], "o", mfc="none", color=colour, ms=3.5, label=label)
         ax.axvline(0.0, color="k", ls="--", lw=1)
         ax.axhline(0.0, color="k", lw=0.5)
         jump = ", ".join(f"{v:+.2f}" for v in cl.change_jump_mrad[h])
         when = (_utc(float(cl.change_time_s[h])) or "")[:10]
         ax.set_title(
-            f"{result.fleet.ids[h]}: change {when}\njump of offsets ({jump}) mrad, p (Holm) {cl.change_p_holm[h]:.1g}",
+            f"{result.fleet.ids[h]}: change {when}\n"
+            f"fitted jump of offsets ({jump}) mrad, p (Holm) {cl.change_p_holm[h]:.1g}",
             fontsize=9,
         )
         ax.set_xlabel("days since the change point")
@@ -902,7 +902,7 @@ def plot_change_points(result, *, max_heliostats: int = 12):
     fig.legend(handles, labels, loc="lower center", ncol=4, fontsize=8, bbox_to_anchor=(0.5, 0.0))
     more = len(np.nonzero(_confirmed_changes(cl))[0]) - len(found)
     extra = f" ({more} more not shown)" if more > 0 else ""
-    fig.suptitle(f"change points{extra}: final-model residuals, both components, against time")
+    fig.suptitle(f"change points{extra}: final-model residuals without the jump, both components, against time")
     fig.tight_layout(rect=(0, 0.07, 1, 1))
     return fig
 

@@ -5,7 +5,9 @@ repeat, diagnose.
    starts from the nominal or the fleet-typical actuators, whichever the base
    model fits better; a robust fit of the base model flags gross errors (left
    out, reported) and a scan finds change points (jumps of the axis offsets;
-   Holm over heliostats at ``alpha``); the records before a change are left out.
+   Holm over heliostats at ``alpha``); a change point is the first named effect
+   (:class:`heliojax.effects.OffsetStep`: the records before it keep their place, with
+   a jump of both joint zeros fitted).
 1. **Fit the base model** on every lane (all records, and each blocked
    cross-validation fold held out in turn; :mod:`._lanes`).
 2. **Diagnose and screen** every candidate effect on the current model's
@@ -68,7 +70,7 @@ import optimistix as optx
 from .._fleet import bucket_size, pad_fleet
 from .._kinematics import MODEL_KINDS, nominal_model
 from .._progress import activity, progress_bar
-from ..effects import EFFECT_NAMES
+from ..effects import EFFECT_NAMES, OffsetStep
 from ..fitting import OFFSET_NAMES, AbstractBatching, default_solver, fitted_start_geometry
 from ._cleaning import Cleaning, clean, confirm_change_points, recheck_outliers
 from ._diagnostics import record_variables, unexplained_structure
@@ -130,8 +132,9 @@ class DiscoveryConfig:
             :func:`heliojax.fitting.fitted_start_geometry`) or ``"nominal"``.
         robust: leave out the gross errors a robust fit of the base model flags
             (:mod:`._cleaning`).
-        changes: report change points (Holm over heliostats at ``alpha``) and study
-            each heliostat's state since its change.
+        changes: report change points (Holm over heliostats at ``alpha``) and fit the
+            records before each with its jump of both joint zeros
+            (:class:`heliojax.effects.OffsetStep`).
         min_delta_bic: delta BIC a refit must exceed to pass (default
             :data:`MIN_DELTA_BIC` = 2, Kass & Raftery's "positive" evidence).
         ambiguity_bic: two passing candidates whose delta BIC differ by less than
@@ -632,7 +635,39 @@ def discover(
     return dataclasses.replace(result, typical_start=typical_start, report=build_report(result, typical_start))
 
 
-def _lane_noise(state: ModelState, n_free: int) -> np.ndarray:
+CHANGE_POINT = OffsetStep.NAME
+"""The name of a change point among the named effects (:class:`heliojax.effects.OffsetStep`)."""
+
+
+def _step_index(layout: Layout) -> tuple[np.ndarray, int]:
+    """Positions in the parameter vector of the step's two jumps and its time."""
+    names = list(layout.view.names)
+    jumps = np.array([names.index(f"{CHANGE_POINT}_jump_{k}") for k in (1, 2)])
+    return jumps, names.index(f"{CHANGE_POINT}_time")
+
+
+def _with_change_points(layout: Layout, p: np.ndarray, heliostat: np.ndarray, cleaning: Cleaning) -> np.ndarray:
+    """``p`` ``(L, P)`` with each lane's step set from ``cleaning``: the change time of
+    its heliostat's reported change point (0, before any record: none) and the scan's
+    jump as the start."""
+    jumps, when = _step_index(layout)
+    found = np.asarray(cleaning.change_found, bool)
+    t = np.where(found, np.nan_to_num(np.asarray(cleaning.change_time_s, float)), 0.0)
+    jump = np.where(found[:, None], np.nan_to_num(np.asarray(cleaning.change_jump_mrad, float)) * 1e-3, 0.0)
+    p[:, when] = t[heliostat]
+    p[:, jumps] = jump[heliostat]
+    return p
+
+
+def _stepped_lanes(cleaning: Cleaning, lanes: Lanes, steps_found: bool) -> np.ndarray:
+    """``(L,)`` 1 for the lanes of a heliostat with a change point (its two jumps are
+    parameters of its own), else 0."""
+    if not steps_found:
+        return np.zeros(lanes.fold.shape[0], int)
+    return np.asarray(cleaning.change_found, bool)[lanes.heliostat].astype(int)
+
+
+def _lane_noise(state: ModelState, n_free: int | np.ndarray) -> np.ndarray:
     """``(L,)`` each lane's noise per residual component (mrad) under ``state``
     (``n_free`` parameters per lane); the median of the others where a lane has no
     degrees of freedom left or was not fitted."""
@@ -645,22 +680,35 @@ def _lane_noise(state: ModelState, n_free: int) -> np.ndarray:
 def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig, n_real: int, t_start: float):
     """The workflow on ``padded`` with the records ``cleaning`` excludes left out."""
     valid = eqx.tree_at(lambda f: f.mask, padded, jnp.asarray(cleaning.valid))
-    padded = eqx.tree_at(lambda f: f.mask, padded, jnp.asarray(cleaning.valid & ~cleaning.excluded))
-    layout, template = make_layout(base, config.candidates, padded)
+    padded = eqx.tree_at(lambda f: f.mask, padded, jnp.asarray(cleaning.valid & ~cleaning.outlier))
+    # A change point is a named effect from the start (OffsetStep: a jump of both joint
+    # zeros before its date): the records before it stay and determine the geometry.
+    steps_found = bool(cleaning.change_found.any())
+    layout, template = make_layout(base, config.candidates, padded, change_points=steps_found)
     lanes = make_lanes(padded, config.n_folds)
     engine = Engine.create(
         layout, template, lanes, config.solver, config.max_steps, config.batching, config.effect_prior
     )
     wf = _Workflow(engine, config)
+    if steps_found:
+        # the step's prior (about no jump) needs a noise level before the base fit gives one
+        noise = np.asarray(cleaning.noise_mrad, float)
+        typical = float(np.nanmedian(noise)) if np.isfinite(noise).any() else 1.0
+        noise = np.where(np.isfinite(noise) & (noise > 0), noise, typical)
+        wf.noise = noise[lanes.heliostat]
     p0 = np.broadcast_to(np.asarray(layout.view.to_vector(template)), (lanes.fold.shape[0], layout.view.n_parameters))
+    first_effects: tuple[tuple[str, str], ...] = ()
+    if steps_found:
+        p0 = _with_change_points(layout, p0.copy(), lanes.heliostat, cleaning)
+        first_effects = ((CHANGE_POINT, "per_heliostat"),)
     log.info(
         f"{n_real} heliostats, {int(np.asarray(padded.mask).sum())} records; base {config.base}; "
         f"{len(config.candidates)} candidates; {config.n_folds} folds by day ({lanes.fold.shape[0]} lanes)"
     )
     with activity(f"fitting the base model ({lanes.fold.shape[0]} lanes)", logger=log):
-        state = wf.fit_state((), p0)
+        state = wf.fit_state(first_effects, p0)
     base_state = state
-    wf.noise = _lane_noise(state, len(layout.base_cols))
+    wf.noise = _lane_noise(state, len(layout.base_cols) + 2 * _stepped_lanes(cleaning, lanes, steps_found))
     h = lanes.n_heliostats
     train_rms = np.sqrt(np.nansum(state.rss[:h]) / np.sum(state.n_res[:h]) * 2)
     log.info(f"base fitted ({state.fit_s:.1f} s): train RMS {train_rms:.3f} mrad")
@@ -791,16 +839,30 @@ def _confirm_cleaning(wf: _Workflow, state: ModelState, valid, cleaning: Cleanin
     the change points tested again (:func:`confirm_change_points`)."""
     h = wf.lanes.n_heliostats
     lanes = make_lanes(valid, config.n_folds)
-    r, jac = dataclasses.replace(wf.engine, lanes=lanes).jacobian(state.params, evaluate=True)
+    engine = dataclasses.replace(wf.engine, lanes=lanes)
+    stepped = CHANGE_POINT in state.names
+    params = state.params
+    if stepped:
+        # the jumps the final model fitted are the change points' (later minus earlier)
+        jumps, _ = _step_index(wf.layout)
+        fitted = np.where(cleaning.change_found[:, None], state.params[:h][:, jumps] * 1e3, np.nan)
+        cleaning = dataclasses.replace(cleaning, change_jump_mrad=fitted)
+        params = state.params.copy()
+        params[:, jumps] = 0.0  # the tests below judge the records before a change without its jump
+    r_model = engine.residuals(state.params, evaluate=True) if stepped else None
+    r, jac = engine.jacobian(params, evaluate=True)
     m = r.shape[1] // 2
+    # the figure shows the records before a change off by its jump, so residuals without it
     cleaning = dataclasses.replace(cleaning, final_residuals=np.asarray(r[:h]).reshape(h, m, 2))
-    if state.effects:  # under the base model the pre-pass already judged them
-        cleaning = recheck_outliers(cleaning, r[:h].reshape(h, m, 2), len(wf.active_cols(state.effects)))
+    own = [e for e in state.effects if e[0] != CHANGE_POINT]
+    if own:  # under the base model the pre-pass already judged them
+        flagged_by = r if r_model is None else r_model
+        cleaning = recheck_outliers(cleaning, flagged_by[:h].reshape(h, m, 2), len(wf.active_cols(state.effects)))
     names = [wf.layout.view.names[i] for i in wf.free_index]
     offsets = next((pair for pair in OFFSET_NAMES if all(n in names for n in pair)), None)
     if offsets is None or not cleaning.change_found.any():
         return cleaning, []
-    model_cols = wf.active_cols(state.effects) + wf.shared_cols(state.effects)
+    model_cols = wf.active_cols(own) + wf.shared_cols(own)
     offset_cols = [names.index(n) for n in offsets]
     t = np.asarray(valid.context.unix_time, float)
     targets = np.asarray(valid.target_index)

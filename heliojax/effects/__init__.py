@@ -28,6 +28,10 @@ name                 parameters (units)                    driving inputs       
 ``offset_drift``     ``offset_drift_1,2`` (rad/year)        time                  offset growing with time
 ==================== ===================================== ===================== ==========================
 
+Besides these, :class:`OffsetStep` (``change_point``: a jump of both joint zeros at
+a date the change-point scan found) is added by discovery where a step is found;
+it is not screened as a candidate.
+
 Each class's docstring gives the physical meaning and the exact correction.
 """
 
@@ -41,6 +45,7 @@ from ._environment import (
     YEAR_S as YEAR_S,
     Clock as Clock,
     OffsetDrift as OffsetDrift,
+    OffsetStep as OffsetStep,
     Refraction as Refraction,
     Thermal as Thermal,
     Wind as Wind,

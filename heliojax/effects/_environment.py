@@ -1,5 +1,5 @@
 """Environmental, time and sun effects: thermal expansion, wind load, clock error,
-drift of the joint zeros, atmospheric refraction."""
+drift and steps of the joint zeros, atmospheric refraction."""
 
 from __future__ import annotations
 
@@ -211,6 +211,55 @@ class OffsetDrift(AbstractEffect):
             return None
         t = known(context.unix_time, self.reference)
         return self.rate * ((t - self.reference) / YEAR_S)
+
+
+@typing.final
+class OffsetStep(AbstractEffect):
+    """A step of the joint zeros at a known date: maintenance (an axis re-zeroed,
+    a drive exchanged), the change point of :func:`heliojax.fitting.find_change_points`.
+
+    Physical meaning: before the change time ``t_c`` the joint zeros were
+    ``jump`` below what they are now, so the model's own axis offsets describe the
+    heliostat's *current* state and the records before the change are corrected::
+
+        angle_i -= jump_i       for t < t_c
+
+    ``jump`` is "later minus earlier", the convention of the change-point scan.
+    Records without a time, and every pose a controller inverts (no record
+    context), get no correction: they are the current state. The model aims as
+    the heliostat is now; the records from before the step still determine its
+    geometry (only the zeros moved). ``t_c = 0`` (before any timed record) means
+    no step.
+
+    Parameters: ``change_point_jump_1``, ``_2`` (rad; typical: the axis offsets'
+    own 1e-2, a re-zeroing error being an offset error); ``change_point_time``
+    (unix s; the date the scan found, not fitted: its likelihood is a step function
+    of ``t_c``, which no gradient method can fit).
+    Driving input: ``unix_time``.
+    Residual signature: a constant offset of both axes on every record before one
+    date, whatever the pose. Not one of :data:`heliojax.effects.EFFECT_NAMES`: discovery
+    adds it where its change-point scan reports a step, it does not screen it.
+    """
+
+    jump: Float[Array, "*h 2"] = parameter(unit="rad", scale=1e-3, typical=1e-2, name="change_point_jump", shape=(2,))
+    time: Float[Array, "*h"] = parameter(unit="s", scale=86400.0, name="change_point_time")
+
+    NAME: typing.ClassVar[str] = "change_point"
+    DRIVERS: typing.ClassVar[tuple[str, ...]] = ("unix_time",)
+
+    @classmethod
+    def nominal(cls, inner, dtype=None):
+        return cls(jump=zeros(dtype, 2), time=jnp.zeros((), dtype))
+
+    def fixed_parameter_fields(self) -> tuple[str, ...]:
+        """The change time is found by a scan over the record dates, never fitted."""
+        return ("time",)
+
+    def angle_correction(self, geometry, counts, angles, context, normal):
+        if context is None:
+            return None
+        before = known(context.unix_time, jnp.inf) < self.time  # no time: the current state
+        return jnp.where(before, -self.jump, jnp.zeros_like(self.jump))
 
 
 def standard_refraction(elevation: Float[Array, "..."]) -> Float[Array, "..."]:

@@ -35,6 +35,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._errors import ConfigError
 from .._geometry import products_by_reduction
 from .._heliostat import HeliostatGeometry, RecordContext
 from .._kinematics import AbstractKinematicModel
@@ -540,6 +541,14 @@ def _prepare(model0, fleet, mask, free, solver, loss, prior, batching, max_steps
         raise ValueError(f"max_steps: expected an integer >= 1, got {max_steps!r}")
     h = int(np.shape(fleet.mask)[0])
     dtype = fleet.counts.dtype
+    if dtype != np.float64:
+        # float32 LM stalls at its tolerances and the covariances break down (an SVD that
+        # does not converge, deep inside discovery): say so where the user can act
+        raise ConfigError(
+            f"the fleet's records are {np.dtype(dtype).name}; calibration needs float64: call "
+            'jax.config.update("jax_enable_x64", True) before loading or building the fleet (the heliojax '
+            "command does)"
+        )
     model0 = jax.tree.map(lambda x: jnp.asarray(x, dtype) if eqx.is_inexact_array(x) else x, model0)
     if not is_batched(model0):
         model0 = broadcast_model(model0, h)
