@@ -678,7 +678,8 @@ def _lane_noise(state: ModelState, n_free: int | np.ndarray) -> np.ndarray:
 
 
 def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig, n_real: int, t_start: float):
-    """The workflow on ``padded`` with the records ``cleaning`` excludes left out."""
+    """The workflow on ``padded`` with the gross errors ``cleaning`` flags left out (the
+    records before a change point stay, fitted with its jump)."""
     valid = eqx.tree_at(lambda f: f.mask, padded, jnp.asarray(cleaning.valid))
     padded = eqx.tree_at(lambda f: f.mask, padded, jnp.asarray(cleaning.valid & ~cleaning.outlier))
     # A change point is a named effect from the start (OffsetStep: a jump of both joint
