@@ -29,7 +29,7 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
       "outliers": [{"heliostat", "record_id"}],    # gross errors of the robust pre-pass (left out)
       "change_points": [{"heliostat", "time": UTC ISO 8601 (first record since the change),
                          "previous_record_time", "jump": {param: rad}, "jump_unit": "rad",
-                         "p", "p_holm", "n_records_before"}],   # records before it are left out
+                         "p", "p_holm", "n_records_before"}],   # records before it: fitted with the jump
       "change_points_withdrawn": [{"heliostat", "time", "p"}],  # pre-pass steps the final model explains
       "unexplained": [{"variable", "form", "p", "p_holm", "effect_size_mrad", "heliostats"}],
                                                    # form "fleet" (shared shape) or "per_heliostat"
@@ -517,7 +517,7 @@ def markdown_summary(report: dict) -> str:
     if report.get("change_points"):
         lines += [
             "",
-            f"Change points ({len(report['change_points'])} heliostats; the records before each are left out):",
+            f"Change points ({len(report['change_points'])} heliostats; records before each fitted with its jump):",
             "",
             "| heliostat | first record since | last record before | jumps (mrad) | p (Holm) |",
             "|---|---|---|---|---|",
