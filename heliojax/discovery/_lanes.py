@@ -140,8 +140,7 @@ def make_layout(
     parameter vectors (never fitted), set by the caller."""
     candidates = with_effects(base, effects)
     if change_points:
-        dtype = jnp.asarray(ParameterView.of(base).to_vector(base)).dtype
-        candidates = add_effects(base, [OffsetStep.nominal(base, dtype), *candidates.effects])
+        candidates = add_effects(base, [OffsetStep.nominal(base, fleet.counts.dtype), *candidates.effects])
         effects = (OffsetStep.NAME, *effects)
     template = with_data_references(candidates, fleet)
     view = ParameterView.of(template)

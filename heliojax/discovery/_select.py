@@ -691,17 +691,15 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
         layout, template, lanes, config.solver, config.max_steps, config.batching, config.effect_prior
     )
     wf = _Workflow(engine, config)
-    if steps_found:
-        # the step's prior (about no jump) needs a noise level before the base fit gives one
-        noise = np.asarray(cleaning.noise_mrad, float)
-        typical = float(np.nanmedian(noise)) if np.isfinite(noise).any() else 1.0
-        noise = np.where(np.isfinite(noise) & (noise > 0), noise, typical)
-        wf.noise = noise[lanes.heliostat]
     p0 = np.broadcast_to(np.asarray(layout.view.to_vector(template)), (lanes.fold.shape[0], layout.view.n_parameters))
     first_effects: tuple[tuple[str, str], ...] = ()
     if steps_found:
         p0 = _with_change_points(layout, p0.copy(), lanes.heliostat, cleaning)
         first_effects = ((CHANGE_POINT, "per_heliostat"),)
+        # the step's prior (about no jump) needs a noise level before the base fit gives one
+        noise = np.asarray(cleaning.noise_mrad, float)
+        typical = float(np.nanmedian(noise)) if np.isfinite(noise).any() else 1.0
+        wf.noise = np.where(np.isfinite(noise) & (noise > 0), noise, typical)[lanes.heliostat]
     log.info(
         f"{n_real} heliostats, {int(np.asarray(padded.mask).sum())} records; base {config.base}; "
         f"{len(config.candidates)} candidates; {config.n_folds} folds by day ({lanes.fold.shape[0]} lanes)"

@@ -116,7 +116,7 @@ def fleet_residuals_mrad(
     models = _batched_models(models, int(np.shape(fleet.mask)[0]))
     lanes = (models, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, m)
     if batching is None:
-        return _errors_program(*lanes)[1]
+        return residuals_mrad(*lanes)
     return batching.run(_errors_program, (), lanes)[1]
 
 
