@@ -7,7 +7,9 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
       "base_model": "auto" | "actuator" | "stone8",
       "steps": [                                   # one per named effect, in order
         {"effect": name, "mode": "shared" | "per_heliostat",
-         "delta_bic": float,                       # BIC(before) - BIC(after) > 0
+         "delta_bic": float,                       # criterion(before) - criterion(after) > 0: 2 log of
+                                                   # the Bayes factor (Laplace, under the effect prior;
+                                                   # the BIC without it; see config.criterion)
          "cv_heldout_rms_before_mrad": float, "cv_heldout_rms_after_mrad": float,
          "cv_log_ratio": float,                    # held-out criterion (< 0), see cv_log_ratio
          "amplitude": {param: value},              # physical units (see "units")
@@ -309,6 +311,8 @@ def build_report(result, typical_start=None) -> dict:
             "min_delta_bic": cfg.min_delta_bic,
             "ambiguity_bic": cfg.ambiguity_bic,
             "effect_prior": cfg.effect_prior,
+            # the refits' criterion (the field "delta_bic" holds its difference)
+            "criterion": "laplace_evidence" if cfg.effect_prior else "bic",
         },
         "data": {
             "source": getattr(getattr(fleet, "report", None), "source", None),
@@ -502,7 +506,8 @@ def markdown_summary(report: dict) -> str:
         ]
     else:
         lines += [
-            f"No effect passed (Holm-controlled score test, delta BIC > {report['config'].get('min_delta_bic', 2):g} "
+            f"No effect passed (Holm-controlled score test, 2 log Bayes factor "
+            f"({report['config'].get('criterion', 'bic')}) > {report['config'].get('min_delta_bic', 2):g} "
             "and a held-out improvement).",
             "",
         ]

@@ -30,12 +30,13 @@ repeat, diagnose.
    shared form's once for the fleet). A step ends
    with the first batch in which a candidate passes; only when none of the
    eligible candidates passes does the workflow stop.
-6. **Name** the passing candidate with the largest delta BIC among those with
-   ``delta BIC > min_delta_bic`` (2) *and* a better held-out likelihood in the blocked
+6. **Name** the passing candidate with the largest decrease of the criterion below
+   (``delta_bic``, 2 log of a Bayes factor) among those with
+   ``delta_bic > min_delta_bic`` (2) *and* a better held-out likelihood in the blocked
    cross-validation by UTC day (:func:`._report.cv_log_ratio` < 0: each
    heliostat with its own noise level, as in the BIC, so that one heliostat
    with poorly determined folds cannot decide); passing rivals within ``ambiguity_bic`` of it
-   are reported as an ambiguity. Add it to the model and repeat from 2. (The BIC
+   are reported as an ambiguity. Add it to the model and repeat from 2. (The criterion
    is that of fold 0, all training records, whose lanes are fitted first and alone:
    a refit that fails it is rejected without fitting its cross-validation folds.)
 7. **Confirm the change points** under the final model (a step that only was
@@ -50,10 +51,21 @@ the first step, so the probability of naming anything is at most ``alpha``
 setting; its default 0.01 is a design choice (the false-positive rate it
 bounds), not tuned on data.
 
-BIC: ``sum_h n_h log(RSS_h / n_h) + k log N`` over the heliostats fitted in
-both models, ``n_h`` residual components of heliostat ``h`` (its own noise
-level), ``N = sum n_h``, ``k`` the number of fitted parameters (per-heliostat
-parameters count once per heliostat, shared ones once).
+The criterion (``delta_bic`` in the report, :meth:`_Workflow.bic_pair`): ``-2 log``
+of each model's evidence, ``sum_h n_h log(RSS_h / n_h)`` over the heliostats fitted
+in both models (``n_h`` residual components of heliostat ``h``, its own noise level
+profiled out) plus each parameter's Occam term. With the effect prior (the default)
+the effect parameters' terms are the Laplace approximation of the marginal
+likelihood under that prior (Kass & Raftery 1995, sec. 4.1): ``log det(I + T F)
++ q^T T^-1 q`` for parameters ``q`` of prior variance ``T`` and information ``F``
+left after the base's parameters (per heliostat; the shared form's once for the
+fleet), so a parameter costs what the records determine of it, not ``log N``
+(until 2026-12-05 the BIC with the effective number of parameters, which asks a
+per-heliostat effect for more evidence than its prior warrants: on the independent
+simulator a 0.3 mrad axis-2 wobble at ``p_holm = 5e-4`` was rejected at ``-133``
+and is named at ``+28`` now). Without the prior it is the BIC, ``k log N``, ``k``
+the number of fitted parameters (per-heliostat parameters count once per heliostat,
+shared ones once).
 """
 
 from __future__ import annotations
@@ -135,9 +147,10 @@ class DiscoveryConfig:
         changes: report change points (Holm over heliostats at ``alpha``) and fit the
             records before each with its jump of both joint zeros
             (:class:`heliojax.effects.OffsetStep`).
-        min_delta_bic: delta BIC a refit must exceed to pass (default
+        min_delta_bic: decrease of the criterion (``2 log`` Bayes factor, see the
+            module docstring) a refit must exceed to pass (default
             :data:`MIN_DELTA_BIC` = 2, Kass & Raftery's "positive" evidence).
-        ambiguity_bic: two passing candidates whose delta BIC differ by less than
+        ambiguity_bic: two passing candidates whose criterion differ by less than
             this are reported as an ambiguity (default 10: Kass & Raftery's "very
             strong" evidence, a published scale, not tuned).
         effect_prior: in the refits, every per-heliostat effect parameter gets a
@@ -386,17 +399,88 @@ class _Workflow:
     # -- criteria ---------------------------------------------------------------------
 
     def bic_pair(self, before: ModelState, after: ModelState) -> tuple[float, float, int]:
-        """BIC of both models over the fold-0 heliostats fitted in both, and that count."""
+        """The selection criterion of both models over the fold-0 heliostats fitted in
+        both, and that count: ``-2 log`` of each model's evidence, smaller is better.
+
+        ``sum_h n_h log(RSS_h / n_h)`` (each heliostat's own noise level profiled out)
+        plus each parameter's Occam term. Without the effect prior this is the BIC
+        (``k log N``, :meth:`effective_parameters` aside). With it (the default), the
+        effect parameters are fitted under a Gaussian prior of their typical size and
+        the BIC's ``log N`` per parameter, the large-sample limit of a unit-information
+        prior, is replaced by the Laplace approximation of the marginal likelihood under
+        that same prior (Kass & Raftery 1995, sec. 4.1; :meth:`occam_terms`): a
+        parameter the records determine well costs ``log(1 + its prior variance over
+        its posterior variance)`` plus its squared size in prior standard deviations,
+        one they barely determine costs ~0. The base parameters keep ``log N`` each
+        (no prior; the same in both models). The difference of two such values is
+        ``2 log`` of their Bayes factor, on the scale of Kass & Raftery's table that
+        :data:`MIN_DELTA_BIC` and :data:`AMBIGUITY_BIC` quote."""
         lanes = np.nonzero((self.lanes.fold == 0) & before.ok & after.ok & (before.n_res > 0))[0]
         n = before.n_res[lanes].astype(float)
         big_n = max(n.sum(), 2.0)
 
-        def bic(state):
-            k = float(np.sum(self.effective_parameters(state, lanes))) + len(self.shared_cols(state.effects))
+        def criterion(state):
             rss = np.maximum(state.rss[lanes], 1e-300)
-            return float(np.sum(n * np.log(rss / n)) + k * np.log(big_n))
+            fit = float(np.sum(n * np.log(rss / n)))
+            if self.config.effect_prior and self.noise is not None:
+                return fit + len(self.layout.base_cols) * lanes.size * np.log(big_n) + self.occam_terms(state, lanes)
+            k = float(np.sum(self.effective_parameters(state, lanes))) + len(self.shared_cols(state.effects))
+            return fit + k * np.log(big_n)
 
-        return bic(before), bic(after), int(lanes.size)
+        return criterion(before), criterion(after), int(lanes.size)
+
+    def occam_terms(self, state: ModelState, lanes: np.ndarray) -> float:
+        """``-2 log`` Occam factor of ``state``'s effect parameters on ``lanes`` (Laplace).
+
+        Per lane, its per-heliostat effect parameters ``q`` (scaled units, prior
+        ``N(0, T)``, ``T`` their typical sizes squared) with the base's parameters
+        profiled out: ``log det(I + T S / sigma^2) + q^T T^-1 q``, ``S`` the Schur
+        complement of ``J^T J`` on the effect columns (training rows; the information
+        the base does not absorb) and ``sigma`` the lane's noise that weighs the prior
+        in the fit. The shared parameters once for the fleet: ``log det(I + T G) + q^T
+        T^-1 q``, ``G`` their information summed over the heliostats
+        (:meth:`_shared_step`, fold 0). A column without a documented typical size has
+        no prior and costs ``log N`` as in the BIC."""
+        if self.noise is None:
+            raise ValueError("occam_terms needs the lanes' noise (set from the base fit)")
+        noise = self.noise
+        n_base = len(self.layout.base_cols)
+        inv_typ = self.layout.inverse_typical
+        none = np.asarray(self.layout.view.nominal)
+        big_n = max(float(np.sum(state.n_res[lanes])), 2.0)
+        total = 0.0
+        act = self.active_cols(state.effects)
+        own = [c for c in act if c >= n_base and inv_typ[c - n_base] > 0]
+        if own and lanes.size:
+            rest = [c for c in act if c not in own]
+            used = np.repeat(self.lanes.train_mask[lanes], 2, axis=1)[:, :, None]
+            ju = np.where(used, np.take(state.jac[lanes], own, axis=2), 0.0)
+            jb = np.where(used, np.take(state.jac[lanes], rest, axis=2), 0.0)
+            a_uu = ju.swapaxes(1, 2) @ ju
+            a_ub = ju.swapaxes(1, 2) @ jb
+            a_bb = jb.swapaxes(1, 2) @ jb
+            # the base's normal matrix is positive definite for a fitted lane; a tiny
+            # relative ridge keeps a rank-deficient one (a heliostat with few records) finite
+            ridge = 1e-12 * np.trace(a_bb, axis1=1, axis2=2)[:, None, None] * np.eye(len(rest))
+            schur = a_uu - a_ub @ np.linalg.solve(a_bb + ridge, a_ub.swapaxes(1, 2))
+            typ = 1.0 / inv_typ[np.asarray(own) - n_base]
+            sigma2 = np.maximum(noise[lanes], 1e-300) ** 2
+            m = np.eye(len(own)) + typ[:, None] * schur * typ[None, :] / sigma2[:, None, None]
+            sign, logdet = np.linalg.slogdet(m)
+            q = (state.params[lanes][:, self.free_index[own]] - none[self.free_index[own]]) / self.scales[own]
+            total += float(np.sum(np.where(sign > 0, logdet, 0.0)) + np.sum((q / typ) ** 2))
+        total += (len(act) - n_base - len(own)) * lanes.size * np.log(big_n)
+        sh = self.shared_cols(state.effects)
+        if sh and lanes.size:
+            inv_sh = inv_typ[np.asarray(sh) - n_base]
+            cov = None if state.shared_cov is None else state.shared_cov[0]
+            if cov is None or not np.all(inv_sh > 0) or not np.all(np.isfinite(cov)):
+                return total + len(sh) * np.log(big_n)
+            # cov = (G + T^-1)^-1, so log det(I + T G) = -log det(cov) - log det(T^-1)
+            sign, logdet_cov = np.linalg.slogdet(cov)
+            q = (state.params[lanes[0], self.free_index[sh]] - none[self.free_index[sh]]) / self.scales[sh]
+            total += float(-logdet_cov - np.sum(np.log(inv_sh**2)) + np.sum((q * inv_sh) ** 2))
+        return total
 
     def effective_parameters(self, state: ModelState, lanes: np.ndarray) -> np.ndarray:
         """Per lane, the number of its own parameters the fit spends: the number of
