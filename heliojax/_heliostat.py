@@ -92,10 +92,16 @@ class LinearActuators(eqx.Module):
         if len(shapes) != 1 or next(iter(shapes))[-1:] != (2,):
             raise ValueError(f"LinearActuators fields must share a shape (..., 2), got {shapes}")
 
-    def counts_to_angles(self, counts: Float[ArrayLike, "*b 2"]) -> Float[Array, "*b 2"]:
-        """Joint angles (rad) of motor counts by the law of cosines."""
+    def counts_to_angles(
+        self, counts: Float[ArrayLike, "*b 2"], stroke_scale: Float[ArrayLike, "*b 2"] | float = 1.0
+    ) -> Float[Array, "*b 2"]:
+        """Joint angles (rad) of motor counts by the law of cosines; with
+        ``stroke_scale``, of an actuator whose whole stroke (its extended length,
+        ``counts / increment + initial_stroke_length``) is that factor longer, e.g. a
+        spindle expanded by heat (the angle at count 0 stays ``initial_angle`` only
+        for a factor of 1)."""
         counts = jnp.asarray(counts)
-        stroke = counts / self.increment + self.initial_stroke_length
+        stroke = (counts / self.increment + self.initial_stroke_length) * stroke_scale
         psi = _actuator_psi(stroke, self.offset, self.pivot_radius)
         psi0 = _actuator_psi(self.initial_stroke_length, self.offset, self.pivot_radius)
         return self.initial_angle + self.sign * (psi - psi0)

@@ -149,6 +149,32 @@ def test_thermal_hand_value_and_nan_temperature():
     assert np.all(np.isfinite(g)) and np.all(g == 0)
 
 
+def test_thermal_spindle_expansion_under_the_actuator_law():
+    """With a base that follows the law of cosines, the spindle's expansion lengthens the
+    whole stroke: against the triangle computed by hand (NumPy), and the gear-ratio
+    form for an axis the plant declares ideal."""
+    dt, s = 15.0, np.array([1.2e-5, 5e-5])
+    eff = make_effect("thermal", ACTUATOR, thermal_scale_1=s[0], thermal_scale_2=s[1], thermal_reference_c=10.0)
+    assert eff.law == "actuator"
+    act = jax.tree.map(np.asarray, GEOM.actuators)
+
+    def angle(stroke):  # the triangle's angle at the pivot, law of cosines
+        return np.arccos((act.offset**2 + act.pivot_radius**2 - stroke**2) / (2 * act.offset * act.pivot_radius))
+
+    stroke = np.asarray(COUNTS) / act.increment + act.initial_stroke_length
+    want = act.sign * (angle(stroke * (1 + s * dt)) - angle(stroke))
+    got = _angle_shift(eff, _context(temperature=25.0), base=ACTUATOR)
+    np.testing.assert_allclose(got, want, rtol=1e-9)
+    # not the gear-ratio form: through the triangle the shift is not proportional to the angle
+    gear = s * dt * np.asarray(ACTUATOR.joint_angles(GEOM, COUNTS))
+    assert np.all(np.abs(got - gear) > 0.05 * np.abs(want))
+    ideal = eqx.tree_at(lambda g: g.ideal_axes, GEOM, jnp.array([False, True]))
+    shifted = EffectModel(ACTUATOR, (eff,)).record_angles(ideal, COUNTS, _context(temperature=25.0))
+    got_ideal = shifted - ACTUATOR.joint_angles(ideal, COUNTS)
+    np.testing.assert_allclose(got_ideal[0], want[0], rtol=1e-9)
+    np.testing.assert_allclose(got_ideal[1], s[1] * dt * ACTUATOR.joint_angles(ideal, COUNTS)[1], rtol=1e-9)
+
+
 def test_offset_drift_hand_value_and_nan_time():
     """Half a Julian year after the reference: half the yearly rate on each joint;
     an unknown time gets no correction, and no NaN in the gradient."""

@@ -15,7 +15,8 @@ name                 parameters (units)                    driving inputs       
                      ``pivot_scale_1,2`` (1; actuator base)
 ``backlash``         ``backlash_1,2`` (rad, dead-band width) approach directions   step between approach signs
 ``thermal``          ``thermal_1,2`` (rad/K),               temperature           proportional to T - T_ref
-                     ``thermal_scale_1,2`` (1/K)                                  (and to the angle)
+                     ``thermal_scale_1,2`` (1/K)                                  (and to the angle; to the
+                                                                                  stroke on an actuator base)
 ``wind``             ``wind_1,2`` (rad/(m/s)^2)             wind speed, direction v^2, by direction to mirror
 ``clock``            ``clock_offset`` (s), ``clock_drift``  time, sun             sun turned about the pole,
                      (s/day)                                                      growing with time

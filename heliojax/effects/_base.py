@@ -118,6 +118,14 @@ def known(x, fill):
     return jnp.where(jnp.isfinite(x), x, fill)
 
 
+def joint_law(inner: AbstractKinematicModel | None) -> str:
+    """The joint law of the base model under ``inner`` (its wrappers looked through):
+    ``"linear"`` (counts to angles by a line, the Stone model; also for ``None``) or
+    ``"actuator"`` (the linear actuator's law of cosines)."""
+    base = inner.base if isinstance(inner, AbstractModelWrapper) else inner
+    return getattr(base, "JOINT_LAW", "linear")
+
+
 def zeros(dtype: typing.Any, *shape: int) -> Float[Array, "..."]:
     """A zero parameter of ``shape`` (no-effect value)."""
     return jnp.zeros(shape, dtype)

@@ -6,11 +6,12 @@ from __future__ import annotations
 import math
 import typing
 
+import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._parameters import parameter, reference as data_reference
-from ._base import AbstractEffect, known, zeros
+from ._base import AbstractEffect, joint_law, known, zeros
 
 SOLAR_RATE_RAD_S = 2.0 * math.pi / 86400.0
 """Rate of the sun's hour angle (rad/s): one turn per mean solar day."""
@@ -27,21 +28,33 @@ class Thermal(AbstractEffect):
     ambient temperature ``T``. A change of a fixed length (a lever, a mount)
     turns each joint by a constant angle per kelvin (steel: ~12e-6/K on ~0.3 m
     gives ~0.01 mrad/K); the spindle of a linear actuator expands in proportion
-    to its extended length, which acts like a change of the gear ratio: the
-    angle moves in proportion to ``T - T_ref`` *and* to the angle itself.
-    Correction (first order in both)::
+    to its extended length. Correction::
 
-        angle_i += (k_i + s_i angle_i) (T - T_ref)
+        angle_i += k_i (T - T_ref) + e_i
 
-    with ``angle_i`` the base model's joint angle (rad).
+    with the spindle's part ``e_i`` depending on the base's joint law (``law``,
+    static, as :class:`~heliojax.effects.ActuatorGeometry`'s):
+
+    * a base that maps counts to angles linearly (the Stone model, or an axis the
+      plant declares ideal): the expansion acts like a change of the gear ratio,
+      ``e_i = s_i angle_i (T - T_ref)`` (first order), with ``angle_i`` the base
+      model's joint angle (rad);
+    * a base that follows the linear actuator's law of cosines (the actuator
+      model): the whole stroke grows by the factor ``1 + s_i (T - T_ref)``, and
+      ``e_i = law_i(counts; stroke x (1 + s_i (T - T_ref))) - law_i(counts)`` with
+      the nominal actuators (as :class:`~heliojax.effects.ActuatorGeometry`'s pivot
+      scale: the base's small increment / stroke corrections change it by a
+      second-order amount). Through the triangle, a longer stroke turns the joint
+      by an amount that is neither constant nor proportional to the angle, which
+      the gear-ratio form leaves as a curved remainder in the counts.
 
     Parameters: ``thermal_1``, ``thermal_2`` (rad/K), ``thermal_scale_1``,
     ``thermal_scale_2`` (1/K; typical: steel's 12e-6/K). Reference:
     ``thermal_reference_c`` (deg C; the data's mean temperature, so the
     coefficients do not trade off against the base model's offsets).
     Driving input: ``temperature`` (records without one get no correction).
-    Residual signature: proportional to ``T - T_ref`` on each axis, growing
-    linearly with the joint angle for the gear-ratio part.
+    Residual signature: proportional to ``T - T_ref`` on each axis, growing with
+    the stroke for the spindle's part.
     """
 
     coefficient: Float[Array, "*h 2"] = parameter(unit="rad/K", scale=1e-4, typical=1.5e-5, name="thermal", shape=(2,))
@@ -49,19 +62,30 @@ class Thermal(AbstractEffect):
         unit="1/K", scale=1e-4, typical=1.2e-5, name="thermal_scale", shape=(2,)
     )
     reference: Float[Array, ""] = data_reference(unit="deg C", default=20.0, name="thermal_reference_c")
+    law: str = eqx.field(static=True, default="linear")
 
     NAME: typing.ClassVar[str] = "thermal"
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("temperature",)
 
     @classmethod
     def nominal(cls, inner, dtype=None):
-        return cls(coefficient=zeros(dtype, 2), expansion=zeros(dtype, 2), reference=jnp.asarray(20.0, dtype))
+        return cls(
+            coefficient=zeros(dtype, 2),
+            expansion=zeros(dtype, 2),
+            reference=jnp.asarray(20.0, dtype),
+            law=joint_law(inner),
+        )
 
     def angle_correction(self, geometry, counts, angles, context, normal):
         if context is None:
             return None
         dt = known(context.temperature, self.reference) - self.reference
-        return (self.coefficient + self.expansion * angles) * dt
+        gear = self.expansion * angles * dt
+        if self.law == "linear":
+            return self.coefficient * dt + gear
+        act = geometry.actuators
+        spindle = act.counts_to_angles(counts, 1.0 + self.expansion * dt) - act.counts_to_angles(counts)
+        return self.coefficient * dt + jnp.where(geometry.ideal_axes, gear, spindle)
 
 
 @typing.final

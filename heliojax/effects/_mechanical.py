@@ -13,9 +13,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._kinematics import AbstractModelWrapper
 from .._parameters import parameter
-from ._base import AbstractEffect, zeros
+from ._base import AbstractEffect, joint_law, zeros
 
 
 @typing.final
@@ -60,9 +59,7 @@ class ActuatorGeometry(AbstractEffect):
 
     @classmethod
     def nominal(cls, inner, dtype=None):
-        base = inner.base if isinstance(inner, AbstractModelWrapper) else inner
-        law = getattr(base, "JOINT_LAW", "linear")
-        return cls(curvature=zeros(dtype, 2), pivot_scale=zeros(dtype, 2), law=law)
+        return cls(curvature=zeros(dtype, 2), pivot_scale=zeros(dtype, 2), law=joint_law(inner))
 
     def fixed_parameter_fields(self) -> tuple[str, ...]:
         """A linear base fits the curvature, a base following the law the pivot scale."""
