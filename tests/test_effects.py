@@ -122,12 +122,13 @@ def _angle_shift(effect, ctx, base=STONE):
 def test_backlash_is_half_the_dead_band_behind_the_motion():
     w = jnp.array([3e-4, 5e-4])
     ctx = _context(approach=jnp.array([1.0, -1.0]))
-    d = _angle_shift(Backlash(width=w), ctx)
+    joint = Backlash(width=w, stroke_width=jnp.zeros(2))
+    d = _angle_shift(joint, ctx)
     slope_sign = np.sign(np.asarray(GEOM.linear_slope))
     # axis 1 approached from below (+1): behind = -w/2 in the direction the angle grows.
     np.testing.assert_allclose(d, [-1.5e-4 * slope_sign[0] * 1, -2.5e-4 * slope_sign[1] * -1], rtol=1e-12)
     # unknown approach: no correction
-    np.testing.assert_allclose(_angle_shift(Backlash(width=w), _context(approach=jnp.zeros(2))), 0.0, atol=0)
+    np.testing.assert_allclose(_angle_shift(joint, _context(approach=jnp.zeros(2))), 0.0, atol=0)
 
 
 def test_thermal_hand_value_and_nan_temperature():
@@ -173,6 +174,30 @@ def test_thermal_spindle_expansion_under_the_actuator_law():
     got_ideal = shifted - ACTUATOR.joint_angles(ideal, COUNTS)
     np.testing.assert_allclose(got_ideal[0], want[0], rtol=1e-9)
     np.testing.assert_allclose(got_ideal[1], s[1] * dt * ACTUATOR.joint_angles(ideal, COUNTS)[1], rtol=1e-9)
+
+
+def test_backlash_of_the_spindle_under_the_actuator_law():
+    """With a base that follows the law of cosines, backlash is a dead band of the
+    stroke: against the triangle by hand (NumPy); the joint's width is fixed there and
+    the stroke's is fitted (the other way round for a linear base)."""
+    b = np.array([2e-4, 1e-4])  # m of stroke
+    eff = make_effect("backlash", ACTUATOR, backlash_stroke_1=b[0], backlash_stroke_2=b[1])
+    assert eff.law == "actuator" and eff.fixed_parameter_fields() == ("width",)
+    assert make_effect("backlash").fixed_parameter_fields() == ("stroke_width",)
+    act = jax.tree.map(np.asarray, GEOM.actuators)
+
+    def angle(stroke):
+        return np.arccos((act.offset**2 + act.pivot_radius**2 - stroke**2) / (2 * act.offset * act.pivot_radius))
+
+    stroke = np.asarray(COUNTS) / act.increment + act.initial_stroke_length
+    approach = np.array([1.0, -1.0])
+    want = act.sign * (angle(stroke - 0.5 * approach * b) - angle(stroke))
+    got = _angle_shift(eff, _context(approach=jnp.asarray(approach)), base=ACTUATOR)
+    np.testing.assert_allclose(got, want, rtol=1e-9)
+    # a lag: behind the motion in the joint angle too
+    slope = np.asarray(GEOM.linear_slope)
+    assert np.all(np.sign(got) == -np.sign(slope) * approach)
+    np.testing.assert_allclose(_angle_shift(eff, _context(approach=jnp.zeros(2)), base=ACTUATOR), 0.0, atol=0)
 
 
 def test_offset_drift_hand_value_and_nan_time():

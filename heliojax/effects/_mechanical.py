@@ -79,36 +79,63 @@ class ActuatorGeometry(AbstractEffect):
 class Backlash(AbstractEffect):
     """Backlash (lost motion) of each axis's drive.
 
-    Physical meaning: a drive with a dead band of width ``w_i`` (rad) stops
-    ``w_i / 2`` short of the commanded angle, behind the direction of its last
-    motion. Correction: ``-(w_i / 2) * s_i * approach_i`` with ``approach_i``
-    the sign (+1, -1; 0 unknown) of the last count change of axis ``i`` before
-    the record (:class:`~heliojax.RecordContext` ``.approach``, from the
-    chronological order of the records) and ``s_i = sign(linear_slope_i)`` the
-    direction in which the joint angle grows with the counts. ``w > 0`` is a
-    lag.
+    Physical meaning: a drive with a dead band stops half of it short of the
+    commanded position, behind the direction of its last motion. Where the dead
+    band sits depends on the base's joint law (``law``, static, as
+    :class:`~heliojax.effects.ActuatorGeometry`'s):
 
-    Parameters: ``backlash_1``, ``backlash_2`` (rad, the full dead-band width).
-    Driving inputs: the approach directions. Residual signature: a step of
-    ``w`` between records approached from below and from above, independent of
-    the pose (needs both directions in the data).
+    * a base that maps counts to angles linearly (the Stone model, or an axis the
+      plant declares ideal): a dead band of width ``w_i`` (rad) in the joint,
+      correction ``-(w_i / 2) * s_i * approach_i`` with ``s_i =
+      sign(linear_slope_i)`` the direction in which the joint angle grows with the
+      counts;
+    * a base that follows the linear actuator's law of cosines (the actuator
+      model): the play of the spindle's nut, a dead band of width ``b_i`` (m) in the
+      stroke, correction ``law_i(counts - approach_i * b_i / 2 * increment_i) -
+      law_i(counts)`` with the nominal actuators: through the triangle the same
+      lost stroke turns the joint by an angle that changes with the pose.
+
+    ``approach_i`` is the sign (+1, -1; 0 unknown) of the last count change of axis
+    ``i`` before the record (:class:`~heliojax.RecordContext` ``.approach``, from the
+    chronological order of the records). A positive width is a lag.
+
+    Parameters: ``backlash_1``, ``backlash_2`` (rad, the full dead-band width of the
+    joint; linear law) or ``backlash_stroke_1``, ``backlash_stroke_2`` (m, of the
+    stroke; actuator law); the other pair stays 0.
+    Driving inputs: the approach directions. Residual signature: a step between
+    records approached from below and from above (constant in the joint angle, or
+    scaled by the triangle's lever), needs both directions in the data.
     """
 
     width: Float[Array, "*h 2"] = parameter(unit="rad", scale=1e-3, typical=3e-4, name="backlash", shape=(2,))
+    stroke_width: Float[Array, "*h 2"] = parameter(
+        unit="m", scale=3e-4, typical=1e-4, name="backlash_stroke", shape=(2,)
+    )
+    law: str = eqx.field(static=True, default="linear")
 
     NAME: typing.ClassVar[str] = "backlash"
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("approach",)
 
     @classmethod
     def nominal(cls, inner, dtype=None):
-        return cls(width=zeros(dtype, 2))
+        return cls(width=zeros(dtype, 2), stroke_width=zeros(dtype, 2), law=joint_law(inner))
+
+    def fixed_parameter_fields(self) -> tuple[str, ...]:
+        """A linear base fits the joint's dead band, a base following the law the stroke's."""
+        return ("stroke_width",) if self.law == "linear" else ("width",)
 
     def angle_correction(self, geometry, counts, angles, context, normal):
         if context is None:
             return None
         a = jnp.where(jnp.isfinite(context.approach), context.approach, 0.0)
-        s = jnp.sign(geometry.linear_slope)
-        return -0.5 * self.width * s * a
+        joint = -0.5 * self.width * jnp.sign(geometry.linear_slope) * a
+        if self.law == "linear":
+            return joint
+        act = geometry.actuators
+        lost = 0.5 * a * self.stroke_width * act.increment
+        stroke = act.counts_to_angles(jnp.asarray(counts) - lost) - act.counts_to_angles(counts)
+        ideal = -0.5 * self.stroke_width * act.increment * geometry.linear_slope * a
+        return joint + jnp.where(geometry.ideal_axes, ideal, stroke)
 
 
 @typing.final
