@@ -478,6 +478,8 @@ class _Workflow:
                 return total + len(sh) * np.log(big_n)
             # cov = (G + T^-1)^-1, so log det(I + T G) = -log det(cov) - log det(T^-1)
             sign, logdet_cov = np.linalg.slogdet(cov)
+            if sign <= 0:  # no posterior covariance to speak of: the BIC's count
+                return total + len(sh) * np.log(big_n)
             q = (state.params[lanes[0], self.free_index[sh]] - none[self.free_index[sh]]) / self.scales[sh]
             total += float(-logdet_cov - np.sum(np.log(inv_sh**2)) + np.sum((q * inv_sh) ** 2))
         return total

@@ -14,6 +14,8 @@ name                 parameters (units)                    driving inputs       
 ``actuator_geometry`` ``curvature_1,2`` (1; stone8 base) or counts               curved in each axis's counts
                      ``pivot_scale_1,2`` (1; actuator base)
 ``backlash``         ``backlash_1,2`` (rad, dead-band width) approach directions   step between approach signs
+                     or ``backlash_stroke_1,2`` (m; actuator
+                     base: play in the stroke)
 ``thermal``          ``thermal_1,2`` (rad/K),               temperature           proportional to T - T_ref
                      ``thermal_scale_1,2`` (1/K)                                  (and to the angle; to the
                                                                                   stroke on an actuator base)
