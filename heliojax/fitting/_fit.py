@@ -319,6 +319,10 @@ class FitSolution(eqx.Module):
             rows included; exact for a linear model). An out-of-sample error from a
             single fit: a heliostat whose median is not below its uncalibrated error
             does not predict better than nominal.
+        residual_mrad: ``(H, M, 2)`` residual components of every record at the fitted
+            model (mrad, the tangent-plane beam error of
+            :func:`heliojax.fleet_residuals_mrad`; NaN for records not used; at the
+            start model for a heliostat with too few records).
         view: the :class:`heliojax.ParameterView` (names, units, free set); static.
     """
 
@@ -332,6 +336,7 @@ class FitSolution(eqx.Module):
     cost: Float[Array, " H"]
     noise_mrad: Float[Array, " H"]
     loo_mrad: Float[Array, "H M"]
+    residual_mrad: Float[Array, "H M 2"]
     view: ParameterView = eqx.field(static=True)
 
     @property
@@ -442,20 +447,17 @@ def _fit_one(
         jnp.sum(jnp.where(use[:, None], data_r.reshape(-1, 2) ** 2, 0.0)) / jnp.maximum(n_used, 1).astype(data_r.dtype)
     )
 
-    loo = _leave_one_out_mrad(
-        out.jacobian[: 2 * n_records].reshape(n_records, 2, -1),
-        a_inv,
-        jax.vmap(view.from_vector(model0, params).beam_components, (None, 0, 0, 0))(geometry, counts, context, focal)
-        * 1e3,
-    )
+    # An unconstrained fit is never reported: keep the start values where too few records.
+    params = jnp.where(too_few, p0, params)
+    b = jax.vmap(view.from_vector(model0, params).beam_components, (None, 0, 0, 0))(geometry, counts, context, focal)
+    b = b * 1e3
+    loo = _leave_one_out_mrad(out.jacobian[: 2 * n_records].reshape(n_records, 2, -1), a_inv, b)
 
     status = status_code(out.result)
     status = jnp.where(jnp.all(jnp.isfinite(params)) & jnp.isfinite(out.cost), status, FitStatus.DIVERGED)
     status = jnp.where(bad_input, FitStatus.NON_FINITE_INPUT, status)
     status = jnp.where(too_few, FitStatus.TOO_FEW_RECORDS, status)
     status = jnp.where(jnp.any(mask), status, FitStatus.NO_RECORDS)
-    # An unconstrained fit is never reported: keep the start values where too few records.
-    params = jnp.where(too_few, p0, params)
     std = jnp.where(too_few, jnp.nan, std)
     cov = jnp.where(too_few, jnp.nan, cov)
     return dict(
@@ -469,6 +471,7 @@ def _fit_one(
         cost=out.cost,
         noise_mrad=jnp.where(too_few, jnp.nan, jnp.sqrt(sigma2)),
         loo_mrad=jnp.where(use & ~too_few, loo, jnp.nan),
+        residual_mrad=jnp.where(use[:, None], b, jnp.nan),
     )
 
 
@@ -489,6 +492,7 @@ def _not_fitted(view: ParameterView, model0: AbstractKinematicModel, n_records: 
         cost=zero,
         noise_mrad=zero,
         loo_mrad=jnp.zeros((n_records,), dtype),
+        residual_mrad=jnp.zeros((n_records, 2), dtype),
     )
 
 
