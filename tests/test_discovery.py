@@ -184,6 +184,12 @@ def test_hidden_backlash_is_named_with_its_size():
     assert step["cv_heldout_rms_after_mrad"] < step["cv_heldout_rms_before_mrad"]
     assert r["heldout_rms_final_mrad"] <= HELDOUT_BOUND
     assert set(step["heliostats"]) == {f"S{i:03d}" for i in range(H)}
+    # the generic competitors were scored at the step and lost to the library effect
+    comp = r["generic_competitors"][0]
+    assert comp["step"] == 1 and comp["library_best"]["effect"] == "backlash"
+    assert {c["variable"] for c in comp["competitors"]} >= {"time_of_day"}
+    assert all(c["delta_bic"] < comp["library_best"]["delta_bic"] for c in comp["competitors"])
+    assert r["unexplained"] == [] and r["config"]["generic_competitors"]
 
 
 def test_largely_absorbed_gravity_sag_is_named_on_its_remainder_or_reported_absorbed():

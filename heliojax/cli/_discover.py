@@ -92,6 +92,12 @@ def add_parser(subparsers) -> None:
         action="store_true",
         help="refit per-heliostat effect parameters without the prior of their typical size (default: with it)",
     )
+    p.add_argument(
+        "--no-generic-competitors",
+        action="store_true",
+        help="name library effects without letting generic functions of the time of day and the wind vector "
+        "compete (default: they compete; one that wins is reported unexplained)",
+    )
     add_fit_arguments(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar or messages on stderr")
 
@@ -139,6 +145,7 @@ def run(args) -> int:
             robust=not args.no_robust,
             changes=not args.no_changes,
             effect_prior=not args.no_effect_prior,
+            generic_competitors=not args.no_generic_competitors,
         )
     except ValueError as e:
         raise ConfigError(str(e)) from e

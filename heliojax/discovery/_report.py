@@ -33,8 +33,13 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
                          "previous_record_time", "jump": {param: rad}, "jump_unit": "rad",
                          "p", "p_holm", "n_records_before"}],   # records before it: fitted with the jump
       "change_points_withdrawn": [{"heliostat", "time", "p"}],  # pre-pass steps the final model explains
-      "unexplained": [{"variable", "form", "p", "p_holm", "effect_size_mrad", "heliostats"}],
-                                                   # form "fleet" (shared shape) or "per_heliostat"
+      "unexplained": [{"variable", "form", "p", "p_holm", "effect_size_mrad", "heliostats",
+                       "source"}],                 # form "fleet" (shared shape) or "per_heliostat";
+                                                   # source "residual scan" (final residuals) or
+                                                   # "generic competitor" (beat a library name, which
+                                                   # "instead_of" gives, by "delta_bic"; first)
+      "generic_competitors": [{"step", "library_best": {"effect", "mode", "delta_bic"},
+                               "competitors": [{"variable", "form", "delta_bic", "p"}]}],
       "variable_p_values": {variable: p},          # every recorded variable at the final model
                                                    # (per-heliostat form: "<variable> (per heliostat)")
       "partly_absorbed": [{"effect", "absorbed_fraction", "remainder_p_holm"}],  # last screen
@@ -278,8 +283,18 @@ def build_report(result, typical_start=None) -> dict:
                 "p_holm": _f(u["p_holm"]),
                 "effect_size_mrad": _f(u["effect_size_mrad"]),
                 "heliostats": list(u["heliostats"]),
+                "source": u.get("source", "residual scan"),
+                **({"instead_of": u["instead_of"], "delta_bic": _f(u["delta_bic"])} if "instead_of" in u else {}),
             }
             for u in result.unexplained
+        ],
+        "generic_competitors": [
+            {
+                **c,
+                "library_best": {**c["library_best"], "delta_bic": _f(c["library_best"]["delta_bic"])},
+                "competitors": [{**x, "delta_bic": _f(x["delta_bic"]), "p": _f(x["p"])} for x in c["competitors"]],
+            }
+            for c in result.competitors
         ],
         "variable_p_values": {k: _f(v) for k, v in result.variable_p.items()},
         "partly_absorbed": absorbed,
@@ -313,6 +328,7 @@ def build_report(result, typical_start=None) -> dict:
             "effect_prior": cfg.effect_prior,
             # the refits' criterion (the field "delta_bic" holds its difference)
             "criterion": "laplace_evidence" if cfg.effect_prior else "bic",
+            "generic_competitors": cfg.generic_competitors and cfg.effect_prior,
         },
         "data": {
             "source": getattr(getattr(fleet, "report", None), "source", None),
@@ -543,6 +559,8 @@ def markdown_summary(report: dict) -> str:
         ]
         for u in report["unexplained"]:
             form = "per heliostat" if u.get("form") == "per_heliostat" else "fleet"
+            if "instead_of" in u:  # a generic competitor that beat a library name
+                form += f"; explains it as well as {u['instead_of']['effect']}, which was not named"
             lines.append(
                 f"| {u['variable']} | {form} | {fmt(u['p_holm'], '.2g')} | {fmt(u['effect_size_mrad'])} | "
                 f"{', '.join(u['heliostats']) or '-'} |"
@@ -817,11 +835,19 @@ def plot_unexplained(result, index: int, *, axes=None):
     same = "; no effect named: base = final" if not result.steps else ""
     fig.suptitle(
         f"unexplained structure against {entry['variable']}: p (Holm) = {entry['p_holm']:.2g}, "
-        f"binned-mean RMS {entry['effect_size_mrad']:.3f} mrad\n(no library effect explains it{same}; "
+        f"binned-mean RMS {entry['effect_size_mrad']:.3f} mrad\n({_why_unexplained(entry)}{same}; "
         "records of all heliostats, training residuals)"
     )
     fig.tight_layout()
     return fig
+
+
+def _why_unexplained(entry: dict) -> str:
+    """Why a figure's structure is unexplained: the residual scan, or a generic competitor
+    that beat a library effect (:mod:`._competitors`)."""
+    if "instead_of" in entry:
+        return f"a smooth function of it fits as well as {entry['instead_of']['effect']}, which was not named"
+    return "no library effect explains it"
 
 
 def _plot_unexplained_per_heliostat(fig, axes, entry, var, x, ok, ra, ids, labels, shown: int = 4):
@@ -856,7 +882,7 @@ def _plot_unexplained_per_heliostat(fig, axes, entry, var, x, ok, ra, ids, label
     fig.suptitle(
         f"unexplained structure against {entry['variable']}, its shape differing per heliostat: "
         f"p (Holm) = {entry['p_holm']:.2g}, RMS {entry['effect_size_mrad']:.3f} mrad\n"
-        f"(no library effect explains it; final-model training residuals of the {len(picked)} heliostats "
+        f"({_why_unexplained(entry)}; final-model training residuals of the {len(picked)} heliostats "
         "with the largest binned structure)"
     )
     fig.tight_layout()

@@ -85,6 +85,7 @@ from .._progress import activity, progress_bar
 from ..effects import EFFECT_NAMES, OffsetStep
 from ..fitting import OFFSET_NAMES, AbstractBatching, default_solver, fitted_start_geometry
 from ._cleaning import Cleaning, clean, confirm_change_points, recheck_outliers
+from ._competitors import CompetitorScore, score_competitors, unexplained_entry
 from ._diagnostics import record_variables, unexplained_structure
 from ._identifiability import ABSORBED_LIMIT, column_bases
 from ._lanes import Engine, Lanes, Layout, make_lanes, make_layout
@@ -163,6 +164,11 @@ class DiscoveryConfig:
             the records hardly determine (e.g. a shift common to every target, which
             each heliostat's tilts absorb) stays near none instead of wandering to
             metres to fit what the library does not hold.
+        generic_competitors: before a library effect is named, smooth functions of the
+            recorded variables no library effect is driven by (time of day, the wind
+            vector) compete with it on the same criterion; if one is at least as good,
+            nothing more is named and its variable is reported unexplained
+            (:mod:`._competitors`). Needs ``effect_prior`` (the criterion's priors).
     """
 
     base: str = "auto"
@@ -182,6 +188,7 @@ class DiscoveryConfig:
     min_delta_bic: float = MIN_DELTA_BIC
     ambiguity_bic: float = AMBIGUITY_BIC
     effect_prior: bool = True
+    generic_competitors: bool = True
 
     @property
     def candidates(self) -> tuple[str, ...]:
@@ -508,13 +515,25 @@ class _Workflow:
 
     # -- screening --------------------------------------------------------------------
 
-    def screen(self, state: ModelState, candidates) -> dict[str, CandidateScreen]:
-        lanes = self.lanes
-        h = lanes.n_heliostats
-        fold0 = np.arange(h)  # lanes of fold 0 are the first H
-        used = np.repeat(lanes.train_mask[fold0], 2, axis=1) & state.ok[fold0, None]
+    def bases(self, state: ModelState) -> list:
+        """The current model's projected residuals per heliostat (fold-0 lanes, the first
+        ``H``: all training records)."""
+        h = self.lanes.n_heliostats
+        fold0 = np.arange(h)
+        used = np.repeat(self.lanes.train_mask[fold0], 2, axis=1) & state.ok[fold0, None]
         a_cols = self.active_cols(state.effects) + self.shared_cols(state.effects)
-        bases = prepare_bases(state.r[fold0], state.jac[fold0], used, a_cols, range(h))
+        return prepare_bases(state.r[fold0], state.jac[fold0], used, a_cols, range(h))
+
+    def competitors(self, state: ModelState, fleet) -> list[CompetitorScore]:
+        """The generic competitors' scores on ``state``'s residuals (:mod:`._competitors`)."""
+        if self.noise is None:
+            raise ValueError("competitors need the lanes' noise (set from the base fit)")
+        return score_competitors(fleet, self.bases(state), self.noise, self.lanes.n_heliostats)
+
+    def screen(self, state: ModelState, candidates) -> dict[str, CandidateScreen]:
+        h = self.lanes.n_heliostats
+        fold0 = np.arange(h)  # lanes of fold 0 are the first H
+        bases = self.bases(state)
         return {
             c: screen_candidate(
                 c,
@@ -598,8 +617,11 @@ class DiscoveryResult:
         cleaning: the robust pre-pass (outliers, change points; :mod:`._cleaning`).
         typical_start: ``(H,)`` heliostats started from the fleet-typical actuators
             (``start="auto"``, :func:`heliojax.fitting.fitted_start_geometry`).
-        unexplained: residual structure no named effect explains (:mod:`._diagnostics`).
+        unexplained: residual structure no named effect explains (:mod:`._diagnostics`;
+            first a generic competitor that beat a library name, :mod:`._competitors`).
         variable_p: every recorded variable's p-value at the final model.
+        competitors: per step that had a library name to give, the generic
+            competitors' scores beside the best library candidate's.
     """
 
     config: DiscoveryConfig
@@ -617,6 +639,7 @@ class DiscoveryResult:
     typical_start: np.ndarray | None = None
     unexplained: tuple = ()
     variable_p: dict = dataclasses.field(default_factory=dict)
+    competitors: tuple = ()
 
 
 def _amplitude(wf: _Workflow, state: ModelState, effect: str, mode: str):
@@ -799,6 +822,8 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
     log.info(f"base fitted ({state.fit_s:.1f} s): train RMS {train_rms:.3f} mrad")
     steps: list[Step] = []
     screens_log, candidates_log = [], []
+    competitors_log: list[dict] = []
+    generic: list[dict] = []
     while len(steps) < config.max_named:
         remaining = [c for c in config.candidates if c not in state.names]
         if not remaining:
@@ -832,10 +857,38 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
             if any(c.passed for c in cands):
                 break
         candidates_log.append(cands)
-        passing = [c for c in cands if c.passed]
+        passing: list[Candidate] = [c for c in cands if c.passed]
         if not passing:
             break
         best = max(passing, key=lambda c: c.delta_bic)
+        if config.generic_competitors and config.effect_prior:
+            comps = wf.competitors(state, padded)
+            if comps and comps[0].delta_bic >= best.delta_bic:
+                # a competitor takes the better of its two forms: so does a library effect
+                # before it loses (its other form is refitted where its own test is significant)
+                more = _other_forms(wf, state, passing, cands, screens, config.alpha)
+                cands.extend(more)
+                passing = [c for c in cands if c.passed]
+                best = max(passing, key=lambda c: c.delta_bic)
+            competitors_log.append(
+                {
+                    "step": len(steps) + 1,
+                    "library_best": {"effect": best.effect, "mode": best.mode, "delta_bic": best.delta_bic},
+                    "competitors": [
+                        {"variable": c.variable, "form": c.form, "delta_bic": c.delta_bic, "p": c.p} for c in comps
+                    ],
+                }
+            )
+            top = comps[0] if comps else None
+            if top is not None and top.delta_bic >= best.delta_bic and len(comps) * top.p <= config.alpha:
+                instead = {"effect": best.effect, "mode": best.mode, "delta_bic": best.delta_bic}
+                generic.append(unexplained_entry(top, len(comps), config.alpha, list(padded.ids), instead))
+                log.info(
+                    f"not named: {best.effect} ({best.mode}, delta BIC {best.delta_bic:.1f}); a generic function "
+                    f"of {top.variable} ({top.form}) explains the residuals as well (delta BIC {top.delta_bic:.1f}, "
+                    f"p={top.p:.2g}): reported unexplained"
+                )
+                break
         rivals = tuple(
             {"effect": c.effect, "mode": c.mode, "delta_bic": c.delta_bic, "cv_after": c.cv_after}
             for c in passing
@@ -894,6 +947,8 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
             config.alpha,
             ids,
         )
+    # a competitor that beat a library name comes first; the scan adds what else remains
+    unexplained = generic + [u for u in unexplained if u["variable"] not in {g["variable"] for g in generic}]
     for u in unexplained:
         form = " (its shape differing per heliostat)" if u["form"] == "per_heliostat" else ""
         size = f"{u['effect_size_mrad']:.3f} mrad"
@@ -914,6 +969,7 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
         cleaning=cleaning,
         unexplained=tuple(unexplained),
         variable_p=variable_p,
+        competitors=tuple(competitors_log),
     )
     return dataclasses.replace(result, report=build_report(result))
 
@@ -965,6 +1021,21 @@ def _refits(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen,
     p_other = scr.p_shared if other == "shared" else scr.p_per_heliostat
     if not out[0].passed and p_other < alpha:
         out.append(_refit(wf, state, effect, scr, other))
+    return out
+
+
+def _other_forms(
+    wf: _Workflow, state: ModelState, passing: list[Candidate], cands: list[Candidate], screens: dict, alpha: float
+) -> list[Candidate]:
+    """The passing effects refitted in the form not yet tried, where its own score test
+    is significant at ``alpha``."""
+    out = []
+    for c in passing:
+        other = next(m for m in MODES if m != c.mode)
+        scr = screens[c.effect]
+        p_other = scr.p_shared if other == "shared" else scr.p_per_heliostat
+        if p_other < alpha and not any(x.effect == c.effect and x.mode == other for x in cands + out):
+            out.append(_refit(wf, state, c.effect, scr, other))
     return out
 
 

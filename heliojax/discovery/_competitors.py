@@ -1,0 +1,219 @@
+"""Generic competitors: smooth functions of recorded variables that no library effect
+is driven by, competing with the library's names.
+
+A library effect that passes its refit may still be the wrong name: an outside effect
+driven by a variable the library does not use (a daily tilt of each pylon, a wind
+load from one direction) leaves residual structure that a library effect of a
+correlated variable (the axis-2 angle follows the time of day; a drag grows with the
+wind speed from any direction) partly fits. Issue 13 asks for such structure to be
+reported as unexplained, never forced onto a library name.
+
+So, before an effect is named, each generic competitor is scored on the same
+residuals with the same criterion (:meth:`~heliojax.discovery._select._Workflow.bic_pair`:
+``-2 log`` of the Laplace evidence under a Gaussian prior of typical size, each
+heliostat's noise profiled out). A competitor is linear in its coefficients: per
+heliostat (or once for the fleet) the two residual components (mrad) each get
+``c_1 f_1(x) + c_2 f_2(x)``, with the current model's parameters profiled out
+(projected off its Jacobian's columns, as the screens do). If the best competitor's
+evidence is at least the library candidate's (and its own test is significant at the
+family-wise level), the candidate is not named, the workflow names nothing more, and
+the competitor's variable is reported under ``"unexplained"`` (``"source":
+"generic competitor"``). Every step's competitor scores are in the report
+(``"generic_competitors"``).
+
+The competitors (:data:`COMPETITORS`), each a first harmonic of a circular variable:
+
+* ``time_of_day``: ``sin``, ``cos`` of ``2 pi t / 1 day`` (UTC);
+* ``wind_direction``: the wind vector, ``(v / 10 m/s) sin``, ``cos`` of the direction
+  it blows from (a load linear in the wind vector; the library's ``wind`` is a drag
+  that grows with ``v^2`` whatever the direction).
+
+Prior: every coefficient ``N(0, (0.6 mrad)^2)`` (:data:`GENERIC_TYPICAL_MRAD`): the
+beam error of the 0.3 mrad joint angle the library gives its periodic effects as
+their typical size (encoder wobble, backlash), fixed a priori.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy import stats
+
+from ._screen import HeliostatBasis
+
+GENERIC_TYPICAL_MRAD = 0.6
+"""Prior standard deviation of a generic competitor's coefficient (mrad of beam error)."""
+
+COMPETITORS = ("time_of_day", "wind_direction")
+"""Recorded variables (names of :func:`heliojax.discovery.record_variables`) with a
+generic competitor."""
+
+LABELS = {
+    "time_of_day": "UTC time of day [h]",
+    "wind_direction": "wind direction [deg from north]",
+}
+
+
+def competitor_features(fleet, name: str) -> np.ndarray:
+    """``(H, M, 2)`` the competitor's two functions at each record (NaN where the
+    variable is not recorded)."""
+    ctx = fleet.context
+    if name == "time_of_day":
+        phase = 2.0 * np.pi * np.mod(np.asarray(ctx.unix_time, float), 86400.0) / 86400.0
+        return np.stack([np.sin(phase), np.cos(phase)], axis=-1)
+    if name == "wind_direction":
+        v = np.asarray(ctx.wind_speed, float) / 10.0
+        wind_from = np.asarray(ctx.wind_direction, float)  # rad from north
+        return np.stack([v * np.sin(wind_from), v * np.cos(wind_from)], axis=-1)
+    raise ValueError(f"no generic competitor for {name!r}; expected one of {COMPETITORS}")
+
+
+def competitor_design(features: np.ndarray) -> np.ndarray:
+    """``(H, 2M, 4)`` Jacobian of the residual rows (record ``j``'s components at rows
+    ``2j``, ``2j + 1``) in the coefficients ``(c_11, c_12, c_21, c_22)`` (component,
+    function); rows of records without the variable are zero."""
+    f = np.where(np.isfinite(features), features, 0.0)
+    h, m, k = f.shape
+    design = np.zeros((h, m, 2, 2 * k))
+    for c in range(2):
+        design[:, :, c, c * k : (c + 1) * k] = f
+    return design.reshape(h, 2 * m, 2 * k)
+
+
+@dataclasses.dataclass(frozen=True)
+class CompetitorScore:
+    """One generic competitor's score at one step.
+
+    Attributes:
+        variable: the recorded variable.
+        form: ``"per_heliostat"`` or ``"fleet"`` (the form with the larger evidence).
+        delta_bic: decrease of the criterion (``2 log`` Bayes factor against the
+            current model), comparable with a refit's.
+        p: score-test p-value of the form (Gaussian noise).
+        effect_size_mrad: RMS over the records of the fitted function (both components).
+        p_heliostats: ``(H,)`` per-heliostat p-values (NaN where not tested).
+    """
+
+    variable: str
+    form: str
+    delta_bic: float
+    p: float
+    effect_size_mrad: float
+    p_heliostats: np.ndarray
+
+
+def _per_heliostat(bases: list[HeliostatBasis], design: np.ndarray, noise: np.ndarray, n_h: int):
+    typ2 = GENERIC_TYPICAL_MRAD**2
+    delta, q_sum, k_sum, sq, n_sq = 0.0, 0.0, 0, 0.0, 0
+    p_h = np.full(n_h, np.nan)
+    for hb in bases:
+        x = design[hb.index][hb.rows]
+        if not np.any(x):
+            continue
+        xt = x - hb.u @ (hb.u.T @ x)
+        k = xt.shape[1]
+        sigma2 = max(float(noise[hb.index]) ** 2, 1e-300)
+        info = xt.T @ xt / sigma2
+        beta = np.linalg.solve(info + np.eye(k) / typ2, xt.T @ hb.r_res / sigma2)
+        new = hb.r_res - xt @ beta
+        r2 = float(hb.r_res @ hb.r_res)
+        rss_new = max(hb.rss - (r2 - float(new @ new)), 1e-300)
+        _, logdet = np.linalg.slogdet(np.eye(k) + typ2 * info)
+        delta += hb.n * np.log(max(hb.rss, 1e-300) / rss_new) - logdet - float(beta @ beta) / typ2
+        fitted = x @ beta
+        sq += float(fitted @ fitted)
+        n_sq += hb.n // 2
+        # the F test of the screens (exact for Gaussian noise), on the directions present
+        u, s, _ = np.linalg.svd(xt, full_matrices=False)
+        keep = s > 1e-9 * max(float(s.max()), 1e-300)
+        kh = int(keep.sum())
+        if kh and hb.dof - kh > 0:
+            proj = u[:, keep].T @ hb.r_res
+            s_h = float(proj @ proj)
+            f_h = (s_h / kh) / (max(r2 - s_h, 1e-300) / (hb.dof - kh))
+            p_h[hb.index] = float(stats.f.sf(f_h, kh, hb.dof - kh))
+            q_sum += float(stats.chi2.isf(p_h[hb.index], kh)) if p_h[hb.index] > 0 else np.inf
+            k_sum += kh
+    p = float(stats.chi2.sf(q_sum, k_sum)) if k_sum else 1.0
+    return delta, p, float(np.sqrt(sq / max(n_sq, 1))), p_h
+
+
+def _fleet(bases: list[HeliostatBasis], design: np.ndarray, noise: np.ndarray):
+    typ2 = GENERIC_TYPICAL_MRAD**2
+    k = design.shape[-1]
+    g, gmat = np.zeros(k), np.zeros((k, k))
+    parts = []
+    for hb in bases:
+        x = design[hb.index][hb.rows]
+        xt = x - hb.u @ (hb.u.T @ x)
+        sigma2 = max(float(noise[hb.index]) ** 2, 1e-300)
+        g += xt.T @ hb.r_res / sigma2
+        gmat += xt.T @ xt / sigma2
+        parts.append((hb, x, xt))
+    if not np.any(gmat):
+        return 0.0, 1.0, 0.0
+    beta = np.linalg.solve(gmat + np.eye(k) / typ2, g)
+    delta, sq, n_sq = 0.0, 0.0, 0
+    for hb, x, xt in parts:
+        new = hb.r_res - xt @ beta
+        r2 = float(hb.r_res @ hb.r_res)
+        rss_new = max(hb.rss - (r2 - float(new @ new)), 1e-300)
+        delta += hb.n * np.log(max(hb.rss, 1e-300) / rss_new)
+        fitted = x @ beta
+        sq += float(fitted @ fitted)
+        n_sq += hb.n // 2
+    _, logdet = np.linalg.slogdet(np.eye(k) + typ2 * gmat)
+    delta -= logdet + float(beta @ beta) / typ2
+    ev, vec = np.linalg.eigh(gmat)
+    keep = ev > ev.max() * 1e-12
+    z = vec[:, keep].T @ g
+    p = float(stats.chi2.sf(float(np.sum(z**2 / ev[keep])), int(keep.sum())))
+    return delta, p, float(np.sqrt(sq / max(n_sq, 1)))
+
+
+def score_competitors(
+    fleet, bases: list[HeliostatBasis], noise: np.ndarray, n_heliostats: int
+) -> list[CompetitorScore]:
+    """Every generic competitor with recorded data, best evidence first.
+
+    Args:
+        fleet: the padded fleet (its records' variables).
+        bases: the current model's projected residuals per heliostat
+            (:func:`heliojax.discovery._screen.prepare_bases`, fold-0 lanes).
+        noise: ``(L,)`` the lanes' noise (mrad) that weighs the priors in the refits.
+        n_heliostats: ``H``.
+    """
+    out = []
+    for name in COMPETITORS:
+        features = competitor_features(fleet, name)
+        if not np.isfinite(features).any():
+            continue
+        design = competitor_design(features)
+        d_h, p_h, size_h, p_each = _per_heliostat(bases, design, noise, n_heliostats)
+        d_f, p_f, size_f = _fleet(bases, design, noise)
+        if d_f > d_h:
+            out.append(CompetitorScore(name, "fleet", d_f, p_f, size_f, p_each))
+        else:
+            out.append(CompetitorScore(name, "per_heliostat", d_h, p_h, size_h, p_each))
+    return sorted(out, key=lambda c: -c.delta_bic)
+
+
+def unexplained_entry(
+    score: CompetitorScore, n_competitors: int, alpha: float, ids: list[str], instead_of: dict
+) -> dict:
+    """The ``"unexplained"`` entry of a competitor that beat a library candidate."""
+    p_h = score.p_heliostats
+    heliostats = [ids[h] for h in range(len(p_h)) if ids[h] and np.isfinite(p_h[h]) and p_h[h] < alpha]
+    return {
+        "variable": score.variable,
+        "form": score.form,
+        "label": LABELS[score.variable],
+        "p": score.p,
+        "p_holm": min(1.0, n_competitors * score.p),
+        "effect_size_mrad": score.effect_size_mrad,
+        "heliostats": heliostats,
+        "source": "generic competitor",
+        "delta_bic": score.delta_bic,
+        "instead_of": instead_of,
+    }

@@ -1,0 +1,123 @@
+"""Generic competitors (heliojax.discovery._competitors): the design, the evidence
+against second formulas, and what they find in residuals of known structure."""
+
+from __future__ import annotations
+
+import types
+
+import numpy as np
+import pytest
+
+from heliojax.discovery._competitors import (
+    GENERIC_TYPICAL_MRAD,
+    _fleet,
+    _per_heliostat,
+    competitor_design,
+    competitor_features,
+    score_competitors,
+    unexplained_entry,
+)
+from heliojax.discovery._screen import prepare_bases
+
+DAY = 86400.0
+
+
+def _fake_fleet(h, m, rng):
+    t = 1.7e9 + np.sort(rng.uniform(0, 200 * DAY, size=(h, m)), axis=1)
+    ctx = types.SimpleNamespace(
+        unix_time=t,
+        wind_speed=rng.uniform(0, 12, size=(h, m)),
+        wind_direction=rng.uniform(0, 2 * np.pi, size=(h, m)),
+    )
+    return types.SimpleNamespace(context=ctx)
+
+
+def _residuals(h, m, p, rng, structure=None, sigma=0.25):
+    """Residuals of a linear model's least-squares fit: noise (plus ``structure``,
+    (H, 2M)) with ``p`` random columns per heliostat projected out."""
+    jac = rng.normal(size=(h, 2 * m, p))
+    y = sigma * rng.normal(size=(h, 2 * m)) + (0.0 if structure is None else structure)
+    r = np.stack([y[i] - jac[i] @ np.linalg.lstsq(jac[i], y[i], rcond=None)[0] for i in range(h)])
+    return r, jac
+
+
+def test_the_design_puts_each_function_on_its_component():
+    f = np.arange(2 * 3 * 2, dtype=float).reshape(2, 3, 2)
+    f[1, 2, 0] = np.nan
+    d = competitor_design(f)
+    assert d.shape == (2, 6, 4)
+    # record j, component c at row 2j + c; coefficients (c, function) at column 2c + k
+    np.testing.assert_array_equal(d[0, 2], [f[0, 1, 0], f[0, 1, 1], 0, 0])
+    np.testing.assert_array_equal(d[0, 3], [0, 0, f[0, 1, 0], f[0, 1, 1]])
+    assert d[1, 4, 0] == 0.0  # a record without the variable carries nothing
+
+
+def test_the_features_are_the_day_phase_and_the_wind_vector():
+    rng = np.random.default_rng(0)
+    fleet = _fake_fleet(2, 5, rng)
+    tod = competitor_features(fleet, "time_of_day")
+    phase = 2 * np.pi * (fleet.context.unix_time % DAY) / DAY
+    np.testing.assert_allclose(tod[..., 0], np.sin(phase))
+    wind = competitor_features(fleet, "wind_direction")
+    # from the north at 10 m/s: (0, 1); from the east: (1, 0)
+    v, d = fleet.context.wind_speed / 10, fleet.context.wind_direction
+    np.testing.assert_allclose(wind, np.stack([v * np.sin(d), v * np.cos(d)], -1))
+    with pytest.raises(ValueError, match="no generic competitor"):
+        competitor_features(fleet, "temperature")
+
+
+def test_the_per_heliostat_evidence_against_second_formulas():
+    """Delta = sum_h n_h log(RSS_h / RSS'_h) - log det(I + T F_h) - beta^T T^-1 beta, with
+    the MAP from the augmented least-squares system and the log det by the matrix
+    determinant lemma (``log det(s^2 I + X T X^T) - n log s^2``)."""
+    rng = np.random.default_rng(3)
+    h, m, p = 4, 30, 5
+    fleet = _fake_fleet(h, m, rng)
+    design = competitor_design(competitor_features(fleet, "time_of_day"))
+    structure = np.einsum("hrk,hk->hr", design, rng.normal(scale=0.4, size=(h, 4)))
+    r, jac = _residuals(h, m, p, rng, structure)
+    used = np.ones((h, 2 * m), bool)
+    bases = prepare_bases(r, jac, used, range(p), range(h))
+    noise = np.full(h, 0.3)
+    delta, pval, size, p_h = _per_heliostat(bases, design, noise, h)
+    t2 = GENERIC_TYPICAL_MRAD**2
+    expected = 0.0
+    for i in range(h):
+        q, _ = np.linalg.qr(jac[i])
+        xt = design[i] - q @ (q.T @ design[i])
+        s2 = noise[i] ** 2
+        aug = np.vstack([xt / noise[i], np.eye(4) / np.sqrt(t2)])
+        beta = np.linalg.lstsq(aug, np.concatenate([r[i] / noise[i], np.zeros(4)]), rcond=None)[0]
+        rss, rss_new = r[i] @ r[i], np.sum((r[i] - xt @ beta) ** 2)
+        logdet = np.linalg.slogdet(s2 * np.eye(2 * m) + t2 * xt @ xt.T)[1] - 2 * m * np.log(s2)
+        expected += 2 * m * np.log(rss / rss_new) - logdet - beta @ beta / t2
+    np.testing.assert_allclose(delta, expected, rtol=1e-8)
+    assert delta > 10 and pval < 1e-6 and np.all(p_h < 0.05)
+    assert 0.2 < size < 1.0  # RMS of the planted function, ~0.4 mrad per coefficient
+
+
+def test_competitors_on_noise_lose_and_on_their_structure_win():
+    """Pure noise: every competitor's evidence is negative and its test not
+    significant. A fleet-wide wind load linear in the wind vector: the wind
+    competitor wins in its fleet form, and its entry names it."""
+    rng = np.random.default_rng(11)
+    h, m, p = 12, 40, 6
+    fleet = _fake_fleet(h, m, rng)
+    r, jac = _residuals(h, m, p, rng)
+    bases = prepare_bases(r, jac, np.ones((h, 2 * m), bool), range(p), range(h))
+    scores = score_competitors(fleet, bases, np.full(h, 0.25), h)
+    assert [s.variable for s in scores] and all(s.delta_bic < 0 and s.p > 0.01 for s in scores)
+
+    wind = competitor_design(competitor_features(fleet, "wind_direction"))
+    load = np.einsum("hrk,k->hr", wind, np.array([0.3, -0.2, 0.1, 0.4]))
+    r, jac = _residuals(h, m, p, rng, load)
+    bases = prepare_bases(r, jac, np.ones((h, 2 * m), bool), range(p), range(h))
+    scores = score_competitors(fleet, bases, np.full(h, 0.25), h)
+    top = scores[0]
+    assert top.variable == "wind_direction" and top.form == "fleet" and top.delta_bic > 50
+    d_f, p_f, _ = _fleet(bases, wind, np.full(h, 0.25))
+    assert d_f == top.delta_bic and p_f < 1e-10
+    ids = [f"H{i}" for i in range(h)]
+    entry = unexplained_entry(top, len(scores), 0.01, ids, {"effect": "wind", "mode": "shared", "delta_bic": 1.0})
+    assert entry["variable"] == "wind_direction" and entry["source"] == "generic competitor"
+    assert entry["p_holm"] == min(1.0, 2 * top.p) and set(entry["heliostats"]) <= set(ids)
