@@ -833,5 +833,14 @@ def test_aim_centuries_after_the_fit_is_flagged_above_nominal(results_h5, tmp_pa
     assert not any("uncertainty_above_nominal" in r["flags"] for r in rows["2023"])
     late = [r for r in rows["2199"] if "uncertainty_above_nominal" in r["flags"]]
     assert late and all(r["ok"] == "0" for r in late)
-    # BG23's uncalibrated model is ~59 mrad off: 2199's ~40 mrad still promises better than that
-    assert {r["heliostat_id"] for r in late} == {"BE36", "BF56", "BH20", "BL14"}
+    # flagged exactly where the predicted radial uncertainty exceeds the uncalibrated model's
+    # RMS on the fitted records (summary.json; the CSV's 4 decimals: a 0.01 mrad margin)
+    nominal = {
+        h: v["uncalibrated_train_rms_mrad"]
+        for h, v in json.loads(results_h5.with_name("summary.json").read_text())["heliostats"].items()
+    }
+    std = {r["heliostat_id"]: float(r["pointing_std_mrad"]) for r in rows["2199"]}
+    flagged = {r["heliostat_id"] for r in late}
+    assert {h for h in std if std[h] > nominal[h] + 0.01} <= flagged <= {h for h in std if std[h] > nominal[h] - 0.01}
+    # BG23's uncalibrated model is ~65 mrad off: 2199's drift (tens of mrad) still promises better
+    assert nominal["BG23"] > 50 and "BG23" not in flagged

@@ -496,8 +496,11 @@ def markdown_summary(report: dict) -> str:
         "",
     ]
     if report["steps"]:
+        # the report's field is "delta_bic" either way; its meaning follows the criterion
+        laplace = report["config"].get("criterion") == "laplace_evidence"
+        criterion = "2 log Bayes factor (Laplace)" if laplace else "delta BIC"
         lines += [
-            "| step | effect | form | delta BIC | held-out before | held-out after | p (Holm) | amplitude |",
+            f"| step | effect | form | {criterion} | held-out before | held-out after | p (Holm) | amplitude |",
             "|---|---|---|---|---|---|---|---|",
         ]
         for i, s in enumerate(report["steps"], 1):
@@ -736,7 +739,9 @@ def plot_heldout_per_step(report: dict, *, ax=None):
     ax.set_xticklabels(labels, rotation=20, ha="right")
     ax.set_ylabel("held-out RMS beam error [mrad]")
     ax.set_xlabel("model after each discovery step")
-    ax.set_title("held-out error per discovery step")
+    # each step's pair is over the held-out records both of its models predict (cv_pair), so a
+    # step's "before" need not equal the step before's "after", nor the report's base figure
+    ax.set_title("held-out error per discovery step (each step: the records both its models predict)", fontsize=9)
     finite = [v for v in vals if np.isfinite(v)]
     ax.set_ylim(0, 1.2 * max(finite) if finite else 1.0)  # room for the value labels
     fig.tight_layout()
