@@ -12,11 +12,13 @@ reflection) that dominate a least-squares fit. :func:`fit_robust`
    errors only raise it) with the weight of :data:`NOISE_PRIOR_RECORDS` records;
 3. refits from there with the Cauchy loss of scale
    ``c = 2.3849 sigma`` (95 % efficiency under Gaussian noise) the heliostats whose
-   least-squares residuals hold a gross error (and those without a usable
-   least-squares fit): whose largest residual, standardised as in step 4, lies
-   beyond the point that the largest of its ``n`` clean records exceeds with
-   probability 0.1 % (the per-record tail of step 4, Sidak-corrected for ``n``
-   records); the others keep their least-squares fit (scale ``c`` infinite): with
+   least-squares residuals hold a gross error or heavy tails (and those without a
+   usable least-squares fit), by two tests at 0.1 % each for a clean heliostat of
+   ``n`` records (:func:`_holds_gross_error`): the largest residual, standardised as
+   in step 4, beyond the point the largest of ``n`` clean records exceeds with
+   probability 0.1 % (Sidak), or more records flagged by step 4's rule than
+   ``Binomial(n, 0.001)`` reaches with probability 0.1 %; the others keep their
+   least-squares fit (scale ``c`` infinite): with
    no gross error the least-squares fit is the efficient one, and the Cauchy passes
    cost a heliostat as much as its least-squares fit (5-8 Levenberg-Marquardt
    steps each, warm start or not);
@@ -285,8 +287,10 @@ def _holds_gross_error(residuals: Float[ArrayLike, "H M 2"], mask: Bool[ArrayLik
     per_record = -np.expm1(np.log1p(-OUTLIER_TAIL) / np.maximum(n, 1))
     single = z.max(axis=1, initial=0.0) > _rayleigh_point(per_record)
     beyond = (z > _rayleigh_point(OUTLIER_TAIL)).sum(axis=1)
-    points = {int(k): _binomial_point(int(k), OUTLIER_TAIL, OUTLIER_TAIL) for k in np.unique(n)}
-    heavy = beyond >= np.array([points[int(k)] for k in n], dtype=int).reshape(n.shape)
+    # one binomial point per distinct record count, not per heliostat
+    counts, which = np.unique(n, return_inverse=True)
+    points = np.array([_binomial_point(int(k), OUTLIER_TAIL, OUTLIER_TAIL) for k in counts], dtype=int)
+    heavy = beyond >= points[which.reshape(n.shape)]
     return (n > 0) & (single | heavy)
 
 
