@@ -33,13 +33,13 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from planning_coverage import true_components  # noqa: E402
-from planning_study import BUDGETS, study  # noqa: E402
+from planning_study import BUDGETS, PLANNERS, study  # noqa: E402
 
 import heliojax as hj  # noqa: E402
 import independent_sim  # noqa: E402
 from heliojax.optics import target_from_tower  # noqa: E402
 
-METHODS = ("planner", "planner_discrepancy", "first_in_time", "random")
+METHODS = (*PLANNERS, "first_in_time", "random")
 
 
 def operation_errors(suite: Path, lanes: dict, seed: int, instants: int = 40) -> dict:
@@ -73,7 +73,7 @@ def operation_errors(suite: Path, lanes: dict, seed: int, instants: int = 40) ->
     out = {}
     for k in BUDGETS:
         row = {}
-        for method in ("planner", "planner_discrepancy", "first", "random"):
+        for method in (*PLANNERS, "first", "random"):
             per = {}
             for lane, key in enumerate(keys):
                 if key[1] == k and key[2] == method:
@@ -103,7 +103,15 @@ def main() -> None:
                 )
                 out = study(suite, min_records=int(0.5 * args.records), seed=seed, keep_lanes=effect == "none")
                 table = {k: {m: round(out["table"][str(k)][f"{m}_mrad"], 3) for m in METHODS} for k in BUDGETS}
-                runs.append({"effect": effect, "seed": seed, "discrepancy": out["discrepancy"], "table": table})
+                runs.append(
+                    {
+                        "effect": effect,
+                        "seed": seed,
+                        "discrepancy": out["discrepancy"],
+                        "drift_mrad2_per_day": out["drift_mrad2_per_day"],
+                        "table": table,
+                    }
+                )
                 if effect == "none":
                     runs[-1]["operation"] = operation_errors(suite, out.pop("_lanes"), seed)
                 print(f"{effect} seed {seed}: {json.dumps(runs[-1])}", file=sys.stderr)

@@ -52,6 +52,10 @@ from heliojax.fitting import GaussianPrior, fleet_beam_errors_mrad, prior_moment
 from heliojax.optics import target_from_tower  # noqa: E402
 
 BUDGETS = (4, 6, 8, 12, 16)
+PLANNERS = ("planner", "planner_discrepancy", "planner_drift", "planner_discrepancy_drift")
+"""The planners compared: exact model or with a model discrepancy, each with every
+candidate at the fit's noise or with the noise grown by its age under the fleet's
+pointing drift (:func:`heliojax.aged_noise_mrad`; added 2026-12-05)."""
 
 
 def lane_fleet(padded, rows: np.ndarray, mask: np.ndarray):
@@ -160,8 +164,14 @@ def study(
         centre_models, view, sub.geometry, sub.counts, sub.context, sub.focal_spot, jnp.asarray(pool_p[rows])
     )
     m_env = hj.envelope_matrices(centre_models, view, sub.geometry, sun_e, w_e, jnp.asarray(receiver))
+    # Drift: the pointing random walk the pool's fit learnt (time-blocked validation on
+    # the pool records); each candidate's noise grows with its age at the cut.
+    drift_q = float(run.predictive.get("drift_mrad2_per_day", 0.0))
+    aged = hj.aged_noise_mrad(noise, drift_q, np.asarray(sub.context.unix_time), pool_p[rows])
     plan = hj.plan_measurements(jnp.asarray(cov0), jac, jnp.asarray(pool_p[rows]), m_env, noise, max(BUDGETS))
     chosen = np.asarray(plan.chosen)
+    plan_a = hj.plan_measurements(jnp.asarray(cov0), jac, jnp.asarray(pool_p[rows]), m_env, aged, max(BUDGETS))
+    chosen_a = np.asarray(plan_a.chosen)
 
     # The same plan for a model that is not exact: the discrepancy process learnt from the
     # pool fit's residuals (training inliers of well-determined heliostats; no test record).
@@ -191,6 +201,10 @@ def study(
         design.covariance, design.candidate_jacobians, cands.valid, m_env_d, noise, max(BUDGETS)
     )
     chosen_d = np.asarray(plan_d.chosen)
+    plan_da = hj.plan_measurements(
+        design.covariance, design.candidate_jacobians, cands.valid, m_env_d, aged, max(BUDGETS)
+    )
+    chosen_da = np.asarray(plan_da.chosen)
 
     # Selections -> lanes.
     rng = np.random.default_rng(args.seed)
@@ -202,6 +216,8 @@ def study(
             picks = {
                 "planner": [chosen[si][:k][chosen[si][:k] >= 0]],
                 "planner_discrepancy": [chosen_d[si][:k][chosen_d[si][:k] >= 0]],
+                "planner_drift": [chosen_a[si][:k][chosen_a[si][:k] >= 0]],
+                "planner_discrepancy_drift": [chosen_da[si][:k][chosen_da[si][:k] >= 0]],
                 "first": [by_time[:k]],
             }
             picks["random"] = [rng.choice(cand, size=min(k, cand.size), replace=False) for _ in range(args.draws)]
@@ -235,8 +251,8 @@ def study(
     table: dict[str, dict] = {}
     per_heliostat: dict[str, dict] = {}
     for k in BUDGETS:
-        rowk = {"planner": [], "planner_discrepancy": [], "first": [], "random": []}
-        share = {"planner": [], "planner_discrepancy": []}
+        rowk: dict[str, list[float]] = {m: [] for m in (*PLANNERS, "first", "random")}
+        share: dict[str, list[float]] = {m: [] for m in PLANNERS}
         for i in study:
             got = {m: [v for v, key in zip(lane_median, lanes_key, strict=True) if key[:3] == (ids[i], k, m)]
                    for m in rowk}  # fmt: skip
@@ -251,15 +267,11 @@ def study(
             }
         arr = {m: np.asarray(v) for m, v in rowk.items()}
         table[str(k)] = {
-            "planner_mrad": float(np.median(arr["planner"])),
-            "planner_discrepancy_mrad": float(np.median(arr["planner_discrepancy"])),
+            **{f"{m}_mrad": float(np.median(arr[m])) for m in PLANNERS},
             "first_in_time_mrad": float(np.median(arr["first"])),
             "random_mrad": float(np.median(arr["random"])),
-            "planner_not_worse_than_random": f"{int(np.sum(arr['planner'] <= arr['random']))}/{s}",
+            **{f"{m}_not_worse_than_random": f"{int(np.sum(arr[m] <= arr['random']))}/{s}" for m in PLANNERS},
             "planner_not_worse_than_first": f"{int(np.sum(arr['planner'] <= arr['first']))}/{s}",
-            "planner_discrepancy_not_worse_than_random": (
-                f"{int(np.sum(arr['planner_discrepancy'] <= arr['random']))}/{s}"
-            ),
             # per heliostat, the share of the random draws that beat the selection:
             # 0.5 is as good as random, above 0.75 clearly worse
             **{
@@ -274,7 +286,7 @@ def study(
     goal = {}
     for k in BUDGETS:
         if str(2 * k) in table:
-            for name in ("planner", "planner_discrepancy"):
+            for name in PLANNERS:
                 goal[f"{name}_{k}_vs_first_{2 * k}"] = {
                     f"{name}_mrad": table[str(k)][f"{name}_mrad"],
                     "first_in_time_mrad": table[str(2 * k)]["first_in_time_mrad"],
@@ -288,6 +300,7 @@ def study(
         "pool_records_median": int(np.median(pool[study].sum(axis=1))),
         "test_records_median": int(np.median(test[study].sum(axis=1))),
         "noise_mrad": noise,
+        "drift_mrad2_per_day": drift_q,
         "discrepancy": {
             "amplitude_mrad": float(discrepancy.amplitude_mrad),
             "length": float(discrepancy.length),
@@ -314,9 +327,11 @@ def plot(out: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     ks = np.asarray(BUDGETS)
-    fig, ax = plt.subplots(figsize=(7.5, 4.8))
+    fig, ax = plt.subplots(figsize=(10.0, 4.8))
     styles = {"planner_mrad": ("planner (I-optimal, exact model)", "o-", "tab:blue"),
               "planner_discrepancy_mrad": ("planner with model discrepancy", "D-", "tab:purple"),
+              "planner_drift_mrad": ("planner, noise aged by the drift", "o-.", "tab:cyan"),
+              "planner_discrepancy_drift_mrad": ("planner with discrepancy, noise aged", "D-.", "tab:pink"),
               "first_in_time_mrad": ("first K in time", "s--", "tab:orange"),
               "random_mrad": ("K at random (median of draws)", "^:", "tab:green")}  # fmt: skip
     for key, (label, style, colour) in styles.items():
@@ -327,10 +342,10 @@ def plot(out: dict, path: Path) -> None:
     ax.set_xticks(ks)
     ax.set_title(f"Retrospective planning study, {len(out['heliostats'])} real heliostats (PAINT)", fontsize=10)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
 
 
 if __name__ == "__main__":

@@ -83,6 +83,7 @@ from ._plan import (
     Candidates as Candidates,
     DiscrepancyDesign as DiscrepancyDesign,
     MeasurementPlan as MeasurementPlan,
+    aged_noise_mrad as aged_noise_mrad,
     candidates_at_targets as candidates_at_targets,
     candidates_from_records as candidates_from_records,
     clear_sky_dni as clear_sky_dni,

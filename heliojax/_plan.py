@@ -210,7 +210,7 @@ def _greedy(cov, cand_jac, cand_valid, cand_slot, m_env, noise, budget: int):
 
         def gains(c):
             a = jnp.einsum("kif,fg->kig", jac, c)  # J C
-            s = (sigma**2 * eye)[None] + jnp.einsum("kif,kjf->kij", a, jac)
+            s = sigma[:, None, None] ** 2 * eye[None] + jnp.einsum("kif,kjf->kij", a, jac)
             g = jnp.einsum("kif,fg,kjg->kij", a, m, a)
             return jnp.trace(jnp.linalg.solve(s, g), axis1=1, axis2=2), a, s
 
@@ -239,7 +239,7 @@ def plan_measurements(
     candidate_jacobians: Float[Array, "H K 2 F"],
     candidate_valid: Bool[Array, "H K"],
     envelope: Float[Array, "H F F"],
-    noise_mrad: Float[ArrayLike, "*h"],
+    noise_mrad: Float[ArrayLike, "*hk"],
     budget: int,
     slot: Int[Array, "H K"] | None = None,
 ) -> MeasurementPlan:
@@ -251,19 +251,61 @@ def plan_measurements(
         candidate_jacobians: from :func:`residual_jacobians` at each candidate.
         candidate_valid: which candidates may be chosen.
         envelope: ``M`` of :func:`envelope_matrix`.
-        noise_mrad: measurement noise per residual component, scalar or ``(H,)``.
+        noise_mrad: measurement noise per residual component (mrad): a scalar,
+            ``(H,)``, or ``(H, K)`` per candidate (e.g. :func:`aged_noise_mrad`).
         budget: measurements per heliostat (static).
         slot: ``(H, K)`` candidates of one slot exclude each other (one heliostat
             measures one target at a time); default: every candidate its own slot.
     """
-    h = covariance.shape[0]
-    noise = jnp.broadcast_to(jnp.asarray(noise_mrad, covariance.dtype), (h,))
-    k = candidate_valid.shape[1]
+    h, k = candidate_valid.shape
+    noise = jnp.asarray(noise_mrad, covariance.dtype)
+    noise = jnp.broadcast_to(noise[:, None] if noise.ndim == 1 else noise, (h, k))
     slots = jnp.broadcast_to(jnp.arange(k, dtype=jnp.int32), (h, k)) if slot is None else jnp.asarray(slot, jnp.int32)
     chosen, u0, u, c_end = _greedy(
         covariance, candidate_jacobians, jnp.asarray(candidate_valid, bool), slots, envelope, noise, int(budget)
     )
     return MeasurementPlan(chosen=chosen, uncertainty_before_mrad=u0, uncertainty_after_mrad=u, covariance_after=c_end)
+
+
+def aged_noise_mrad(
+    noise_mrad: Float[ArrayLike, "*h"],
+    drift_mrad2_per_day: float,
+    candidate_unix_time: Float[ArrayLike, "H K"],
+    candidate_valid: Bool[ArrayLike, "H K"],
+    use_unix_time: Float[ArrayLike, "*h"] | None = None,
+) -> Float[np.ndarray, "H K"]:
+    """Each candidate's noise (mrad per component) as seen from the time the
+    calibration is used, under the fleet's pointing drift (a random walk of rate
+    ``q = drift_mrad2_per_day``, :func:`heliojax.temporal_drift`)::
+
+        sigma_k^2 = sigma^2 + q * max(t_use - t_k, 0) / 86400 s
+
+    A record taken long before the calibration is used tells less about the state
+    then. The walk's increments are shared by records of similar age, so treating
+    them as independent (as here) credits several old records with more than they
+    hold: the rule ranks recent records higher but still over-values old ones.
+
+    Args:
+        noise_mrad: measurement noise per component (mrad), scalar or ``(H,)``.
+        drift_mrad2_per_day: ``q``; 0 gives ``noise_mrad`` for every candidate.
+        candidate_unix_time: ``(H, K)`` s; NaN (unknown) counts as age 0.
+        candidate_valid: ``(H, K)`` candidates that may be chosen.
+        use_unix_time: s, scalar or ``(H,)``, when the calibration is used; default
+            each heliostat's latest valid candidate (the end of the candidate window,
+            or the cut date of records chosen before it).
+    """
+    times = np.asarray(candidate_unix_time, float)
+    valid = np.asarray(candidate_valid, bool) & np.isfinite(times)
+    h, k = times.shape
+    if not np.isfinite(drift_mrad2_per_day) or drift_mrad2_per_day < 0.0:
+        raise ValueError(f"drift_mrad2_per_day must be finite and >= 0, not {drift_mrad2_per_day}")
+    if use_unix_time is None:
+        use = np.max(np.where(valid, times, -np.inf), axis=1)
+    else:
+        use = np.broadcast_to(np.asarray(use_unix_time, float), (h,))
+    age_days = np.where(valid & np.isfinite(use)[:, None], np.maximum(use[:, None] - times, 0.0), 0.0) / 86400.0
+    sigma = np.broadcast_to(np.asarray(noise_mrad, float), (h,))[:, None]
+    return np.sqrt(sigma**2 + drift_mrad2_per_day * age_days)
 
 
 @typing.final
@@ -490,6 +532,8 @@ def plan_calibration(
     budget: int,
     start: str = "posterior",
     discrepancy: ModelDiscrepancy | None = None,
+    drift: bool = False,
+    use_unix_time: Float[ArrayLike, "*h"] | None = None,
 ) -> tuple[MeasurementPlan, Float[Array, "H G G"]]:
     """Plan ``budget`` measurements for every heliostat of a calibration read with
     :func:`heliojax.load_results`.
@@ -508,6 +552,15 @@ def plan_calibration(
             spread learnt from the fitted heliostats), as if it had no record.
         discrepancy: plan for a model that is not exact (:func:`discrepancy_design`;
             e.g. :func:`discrepancy_from_results`); ``None``: the model is exact.
+        drift: with the fleet's pointing drift (``results.drift_mrad2_per_day`` > 0),
+            each candidate's noise grows with its age at ``use_unix_time``
+            (:func:`aged_noise_mrad`), so that recent records count more; ``False``
+            (the default): every candidate has the fit's noise. On the independent
+            simulator's drift suites and the shared records the aged noise changed
+            the held-out error by no more than the spread between runs (README,
+            "Planning"), so it is not the default.
+        use_unix_time: s, when the calibration is used (default: each heliostat's
+            latest valid candidate).
 
     Returns:
         ``(plan, envelope)``: the :class:`MeasurementPlan` and the ``(H, G, G)``
@@ -535,6 +588,10 @@ def plan_calibration(
     noise = np.asarray(results.noise_mrad, float)
     fallback = float(np.nanmedian(noise)) if np.isfinite(noise).any() else 1.0
     noise = np.where(np.isfinite(noise) & (noise > 0), noise, fallback)
+    if drift and results.drift_mrad2_per_day > 0.0:
+        noise = aged_noise_mrad(
+            noise, results.drift_mrad2_per_day, candidates.context.unix_time, candidates.valid, use_unix_time
+        )
     jac = residual_jacobians(
         models, view, results.geometry, candidates.counts, candidates.context, candidates.spots, candidates.valid
     )
@@ -573,6 +630,7 @@ __all__ = [
     "Candidates",
     "DiscrepancyDesign",
     "MeasurementPlan",
+    "aged_noise_mrad",
     "candidates_at_targets",
     "candidates_from_records",
     "clear_sky_dni",

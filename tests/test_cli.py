@@ -641,6 +641,35 @@ def test_retrospective_plan_feeds_calibrate_records(results_h5, tmp_path, capsys
         assert h["n_test"] == sum(1 for k in test if k[0] == hid)
 
 
+def test_plan_with_aged_noise_prefers_recent_records(results_h5):
+    results = hj.load_results(results_h5)
+    assert results.drift_mrad2_per_day > 0.0  # the embedded fleet's drift
+    origin = np.asarray(results.attrs["origin_lla"], float)
+    fleet = hj.load_paint_directory(hj.default_data_dir(), heliostats=results.ids, origin=origin)
+    cut = 1685577600.0  # 2023-06-01
+    usable = np.asarray(fleet.mask) & (np.asarray(fleet.context.unix_time) < cut)
+    candidates, _ = hj.candidates_from_records(fleet, results.ids, usable)
+    sun, weight = hj.operating_envelope(origin, day_step=60)
+    kw = dict(envelope_sun=sun, envelope_weight=weight, aim_point=np.asarray([0.0, 0.0, 50.0]), budget=4)
+    plain, _ = hj.plan_calibration(results, candidates, **kw)
+    aged, _ = hj.plan_calibration(results, candidates, **kw, drift=True, use_unix_time=cut)
+    first_plain = np.asarray(plain.uncertainty_after_mrad)[:, 0]
+    first_aged = np.asarray(aged.uncertainty_after_mrad)[:, 0]
+    # an older record holds less about the state at the cut: no first choice gains more than without the drift
+    assert np.all(first_aged >= first_plain - 1e-12) and np.any(first_aged > first_plain + 1e-6)
+    times = np.asarray(candidates.context.unix_time)
+
+    def mean_age_days(plan):
+        chosen = np.asarray(plan.chosen)
+        picked = np.where(chosen >= 0, np.take_along_axis(times, np.maximum(chosen, 0), axis=1), np.nan)
+        return (cut - picked) / 86400.0
+
+    some = np.any(np.asarray(plain.chosen) >= 0, axis=1)
+    assert some.sum() >= 2
+    younger = np.nanmean(mean_age_days(aged)[some], axis=1) <= np.nanmean(mean_age_days(plain)[some], axis=1) + 1e-9
+    assert younger.all() and not np.array_equal(np.asarray(aged.chosen), np.asarray(plain.chosen))
+
+
 def test_calibrate_records_file_errors_name_the_file_and_row(tmp_path, capsys):
     bad = tmp_path / "records.csv"
     bad.write_text("heliostat_id,record_id,role\nBE36,abc,train\n")

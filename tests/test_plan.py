@@ -23,7 +23,8 @@ def _integrated_variance(cov, m):
     return float(np.trace(cov @ m))
 
 
-def test_greedy_choice_matches_brute_force_in_information_form():
+@pytest.mark.parametrize("per_candidate", [False, True], ids=["one_noise", "noise_per_candidate"])
+def test_greedy_choice_matches_brute_force_in_information_form(per_candidate):
     rng = np.random.default_rng(3)
     f, k = 5, 12
     a = rng.normal(size=(f, f))
@@ -31,19 +32,24 @@ def test_greedy_choice_matches_brute_force_in_information_form():
     jac = rng.normal(size=(1, k, 2, f))
     b = rng.normal(size=(3 * f, f))
     m = b.T @ b / (3 * f)
-    sigma = 0.7
+    sigma = rng.uniform(0.3, 2.0, k) if per_candidate else np.full(k, 0.7)
     plan = hj.plan_measurements(
-        jnp.asarray(cov[None]), jnp.asarray(jac), jnp.ones((1, k), bool), jnp.asarray(m[None]), sigma, 3
+        jnp.asarray(cov[None]),
+        jnp.asarray(jac),
+        jnp.ones((1, k), bool),
+        jnp.asarray(m[None]),
+        jnp.asarray(sigma[None]) if per_candidate else 0.7,
+        3,
     )
     chosen = np.asarray(plan.chosen)[0]
     info = np.linalg.inv(cov)
     expected_u = []
     for _ in range(3):  # brute force: every remaining candidate's posterior, information form
         left = [c for c in range(k) if c not in chosen[: len(expected_u)]]
-        u = {c: _integrated_variance(np.linalg.inv(info + jac[0, c].T @ jac[0, c] / sigma**2), m) for c in left}
+        u = {c: _integrated_variance(np.linalg.inv(info + jac[0, c].T @ jac[0, c] / sigma[c] ** 2), m) for c in left}
         best = min(u, key=lambda c: u[c])
         assert best == chosen[len(expected_u)]
-        info = info + jac[0, best].T @ jac[0, best] / sigma**2
+        info = info + jac[0, best].T @ jac[0, best] / sigma[best] ** 2
         expected_u.append(np.sqrt(u[best]))
     np.testing.assert_allclose(np.asarray(plan.uncertainty_after_mrad)[0], expected_u, rtol=1e-9)
     np.testing.assert_allclose(float(plan.uncertainty_before_mrad[0]), np.sqrt(np.trace(cov @ m)), rtol=1e-12)
@@ -68,6 +74,22 @@ def test_slots_exclude_each_other_and_invalid_candidates_are_never_chosen():
     assert (chosen[1] >= 0).sum() == 5 and (chosen[1][5:] == -1).all()
     u = np.asarray(plan.uncertainty_after_mrad)
     assert np.all(np.diff(u, axis=1) <= 1e-12)
+
+
+def test_aged_noise_grows_with_the_age_at_the_use_time():
+    day = 86400.0
+    times = np.array([[0.0, 10 * day, 20 * day, np.nan], [5 * day, 0.0, 30 * day, 1 * day]])
+    valid = np.array([[True, True, True, True], [True, True, False, True]])
+    got = hj.aged_noise_mrad(np.array([0.5, 0.2]), 0.01, times, valid)
+    # the use time defaults to each heliostat's latest valid candidate: day 20 and day 5
+    # (the invalid candidate at day 30 neither sets it nor is aged)
+    expected = np.sqrt(np.array([[0.25 + 0.2, 0.25 + 0.1, 0.25, 0.25], [0.04, 0.04 + 0.05, 0.04, 0.04 + 0.04]]))
+    np.testing.assert_allclose(got, expected, rtol=1e-12)
+    np.testing.assert_allclose(hj.aged_noise_mrad(0.3, 0.0, times, valid), 0.3, rtol=0)
+    later = hj.aged_noise_mrad(0.5, 0.01, times[:1], valid[:1], use_unix_time=30 * day)
+    np.testing.assert_allclose(later[0, :3] ** 2, 0.25 + 0.01 * np.array([30.0, 20.0, 10.0]), rtol=1e-12)
+    with pytest.raises(ValueError, match="drift_mrad2_per_day"):
+        hj.aged_noise_mrad(0.5, -1.0, times, valid)
 
 
 def test_clear_sky_dni_hand_values():

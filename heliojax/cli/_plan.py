@@ -110,6 +110,13 @@ def add_parser(subparsers) -> None:
         "learnt from the fit's residuals (heliojax.discrepancy_from_results); none: trust the model exactly",
     )
     p.add_argument(
+        "--age-by-drift",
+        action="store_true",
+        help="grow each candidate's noise with its age at the use time (--before, or the last candidate "
+        "instant) under the fit's pointing drift (results.h5's drift_mrad2_per_day), so that recent "
+        "records count more (heliojax.aged_noise_mrad); default: every candidate at the fit's noise",
+    )
+    p.add_argument(
         "--target",
         type=target_name,
         default="receiver",
@@ -297,6 +304,8 @@ def run(args) -> int:
             budget=args.budget,
             start=args.start_from,
             discrepancy=discrepancy,
+            drift=args.age_by_drift,
+            use_unix_time=None if args.before is None else args.before.timestamp(),
         )
     chosen = np.asarray(plan.chosen)
     before = np.asarray(plan.uncertainty_before_mrad)
