@@ -40,7 +40,7 @@ import dataclasses
 import numpy as np
 from scipy import stats
 
-from ._screen import HeliostatBasis
+from ._screen import HeliostatBasis, chi2_equivalent, directions_f_test
 
 GENERIC_TYPICAL_MRAD = 0.6
 """Prior standard deviation of a generic competitor's coefficient (mrad of beam error)."""
@@ -129,11 +129,8 @@ def _per_heliostat(bases: list[HeliostatBasis], design: np.ndarray, noise: np.nd
         keep = s > 1e-9 * max(float(s.max()), 1e-300)
         kh = int(keep.sum())
         if kh and hb.dof - kh > 0:
-            proj = u[:, keep].T @ hb.r_res
-            s_h = float(proj @ proj)
-            f_h = (s_h / kh) / (max(r2 - s_h, 1e-300) / (hb.dof - kh))
-            p_h[hb.index] = float(stats.f.sf(f_h, kh, hb.dof - kh))
-            q_sum += float(stats.chi2.isf(p_h[hb.index], kh)) if p_h[hb.index] > 0 else np.inf
+            p_h[hb.index] = directions_f_test(u[:, keep], hb.r_res, hb.dof)[0]
+            q_sum += chi2_equivalent(p_h[hb.index], kh)
             k_sum += kh
     p = float(stats.chi2.sf(q_sum, k_sum)) if k_sum else 1.0
     return delta, p, float(np.sqrt(sq / max(n_sq, 1))), p_h

@@ -144,11 +144,27 @@ class CandidateScreen:
         return float(self.fractions.min()) if self.fractions.size else None
 
 
-def _chi2_equivalent(p: float, k: int) -> float:
+def chi2_equivalent(p: float, k: int) -> float:
     """Chi-square(k) quantile of upper-tail probability ``p`` (``inf`` for p = 0)."""
     if p <= 0.0:
         return np.inf
     return float(stats.chi2.isf(p, k))
+
+
+def directions_f_test(directions: np.ndarray, r_res: np.ndarray, dof: int) -> tuple[float, float, float]:
+    """The F test of one heliostat's residual ``r_res`` (``(n,)``, the base's
+    residual, its own parameters profiled out: ``dof`` degrees of freedom) along
+    ``k`` orthonormal ``directions`` ``(n, k)`` (exact for Gaussian noise).
+
+    Returns:
+        ``(p, explained, noise_variance)``: the upper-tail probability of
+        ``F(k, dof - k)``, the residual's squared norm along the directions and the
+        variance of what is left per degree of freedom."""
+    k = directions.shape[1]
+    proj = directions.T @ r_res
+    explained = float(proj @ proj)
+    noise_variance = max(float(r_res @ r_res) - explained, 1e-300) / (dof - k)
+    return float(stats.f.sf((explained / k) / noise_variance, k, dof - k)), explained, noise_variance
 
 
 def screen_candidate(
@@ -197,14 +213,10 @@ def screen_candidate(
         keep = s > 1e-6
         kh = int(keep.sum())
         if kh and hb.dof - kh > 0:
-            proj = u[:, keep].T @ hb.r_res
-            s_h = float(proj @ proj)
+            p_val, s_h, denom = directions_f_test(u[:, keep], hb.r_res, hb.dof)
             rss_res = float(hb.r_res @ hb.r_res)
-            denom = max(rss_res - s_h, 1e-300) / (hb.dof - kh)
-            f_h = (s_h / kh) / denom
-            p_val = float(stats.f.sf(f_h, kh, hb.dof - kh))
             p_h[hb.index] = p_val
-            q_sum += _chi2_equivalent(p_val, kh)
+            q_sum += chi2_equivalent(p_val, kh)
             k_sum += kh
             # The refit's start: the one-step estimate under the refit's own prior (each
             # parameter's typical size, this heliostat's noise), not the bare one, which
