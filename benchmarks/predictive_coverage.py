@@ -7,8 +7,8 @@ covariance propagated through the residual's Jacobian, as ``heliojax aim`` does)
 plus the fit's noise per component, plus the fleet's drift since each heliostat's
 last fitted record, its rate estimated from the training records alone
 (:func:`heliojax.temporal_drift`), the scale of the error law
-(:class:`heliojax.PointingErrorLaw`, a Student t or a Gaussian with an outlier
-component) fitted on the same training records. Prints JSON: the fractions of
+(:class:`heliojax.PointingErrorLaw`, a Student t or a Gaussian, with or without an
+outlier component) fitted on the same training records. Prints JSON: the fractions of
 records inside the nominal 68 % and 95 % regions, for the Gaussian (Mahalanobis
 d^2 < 2.279, 5.991) and for the fitted law (:func:`heliojax.prediction_region_d2`), and
 the median d^2 (1.386 for a correct Gaussian model).

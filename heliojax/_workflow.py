@@ -571,8 +571,8 @@ def temporal_drift(
     fitted state, the process noise of a Kalman filter, with heavy tails; a record
     ``dt`` days after the heliostat's last fitted record is predicted with scale
     matrix ``S + q * dt * I`` under a :class:`heliojax.PointingErrorLaw` (a bivariate
-    Student t with ``tail_dof`` degrees of freedom, ``inf``: the Gaussian, or a
-    Gaussian with a broad outlier component), where ``S = J C J^T + noise^2 I`` (``J``
+    Student t with ``tail_dof`` degrees of freedom, ``inf``: the Gaussian, either
+    with a broad outlier component or without), where ``S = J C J^T + noise^2 I`` (``J``
     its Jacobian w.r.t. the free parameters, ``C`` the fit's covariance, ``noise`` the
     fit's noise per component). Its prediction regions:
     :func:`heliojax.prediction_region_d2`.
@@ -597,8 +597,8 @@ def temporal_drift(
     unix_time = np.asarray(fleet.context.unix_time, float)
     early, late = chronological_holdout(np.asarray(fit_mask) & fleet_mask, unix_time, min_records, fraction)
     method = (
-        "random walk from the fitted state, bivariate Student t or Gaussian with an outlier component (maximum "
-        "likelihood, the family by BIC); rate and tails from the "
+        "random walk from the fitted state, bivariate Student t or Gaussian, with or without an outlier component "
+        "(maximum likelihood, the family by BIC); rate and tails from the "
         f"latest {fraction:.0%} of the training records of heliostats with >= {min_records}, predicted from a fit "
         "on the earlier ones"
     )

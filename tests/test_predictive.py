@@ -106,12 +106,11 @@ def test_error_law_rejects_bad_values_and_round_trips():
         hj.PointingErrorLaw(outlier_fraction=1.0)
     with pytest.raises(ValueError, match="outlier_scale"):
         hj.PointingErrorLaw(outlier_fraction=0.1, outlier_scale=0.5)
-    with pytest.raises(ValueError, match="not both"):
-        hj.PointingErrorLaw(tail_dof=2.0, outlier_fraction=0.1, outlier_scale=10.0)
     for law in (
         hj.PointingErrorLaw(),
         hj.PointingErrorLaw(tail_dof=1.3),
         hj.PointingErrorLaw(0.0 + math.inf, 0.2, 9.0),
+        hj.PointingErrorLaw(tail_dof=4.0, outlier_fraction=0.1, outlier_scale=10.0),
     ):
         assert hj.PointingErrorLaw.from_dict(law.to_dict()) == law
     assert hj.PointingErrorLaw.from_dict(None) == hj.PointingErrorLaw()
@@ -136,3 +135,37 @@ def test_bic_chooses_the_family_that_generated_the_residuals():
     r, s, days = _validation(rng, 1000, 0.01, math.inf)
     q, law = hj.fit_drift_and_law(r, s, days)
     assert law.kind != "gaussian_mixture" and law.tail_dof >= 50.0 and q == pytest.approx(0.01, rel=0.25)
+
+
+def test_t_mixture_region_against_its_components_and_by_sampling():
+    law = hj.PointingErrorLaw(tail_dof=4.0, outlier_fraction=0.12, outlier_scale=15.0)
+    assert law.kind == "student_t_mixture" and "Student t, 4" in law.describe() and "12 %" in law.describe()
+    t = hj.PointingErrorLaw(tail_dof=4.0)
+    x = np.geomspace(0.01, 1e4, 50)
+    # P(d^2 <= x) = (1 - e) T(x) + e T(x / k^2), T the t's law
+    np.testing.assert_allclose(law.cdf(x), 0.88 * t.cdf(x) + 0.12 * t.cdf(x / 225.0), rtol=1e-12)
+    # the Gaussian mixture and the t are its limits
+    wide = hj.PointingErrorLaw(tail_dof=1e12, outlier_fraction=0.12, outlier_scale=15.0)
+    gaussian_mix = hj.PointingErrorLaw(outlier_fraction=0.12, outlier_scale=15.0)
+    np.testing.assert_allclose(wide.cdf(x), gaussian_mix.cdf(x), atol=1e-9)
+    rng = np.random.default_rng(5)
+    n = 40_000
+    scale = np.broadcast_to(np.eye(2), (n, 2, 2))
+    r = _t_residuals(rng, scale, 4.0, n) * np.where(rng.uniform(size=n) < 0.12, 15.0, 1.0)[:, None]
+    d2 = np.sum(r**2, axis=1)
+    for p in (0.5, 0.68, 0.95):
+        assert float(law.cdf(np.asarray(law.region_d2(p)))) == pytest.approx(p, abs=1e-12)
+        assert np.mean(d2 <= law.region_d2(p)) == pytest.approx(p, abs=0.01)  # binomial SE <= 0.0025
+
+
+def test_bic_chooses_the_t_mixture_for_three_scales():
+    rng = np.random.default_rng(13)
+    # a t core (nu = 5) with 10 % gross errors at 20x: neither the t nor the Gaussian mixture
+    a = rng.uniform(0.3, 1.0, size=(1500, 2, 2)) * np.array([[1.0, 0.3], [0.0, 1.0]])
+    s = np.einsum("nij,nkj->nik", a, a) + 0.05 * np.eye(2)
+    days = rng.uniform(1.0, 200.0, size=1500)
+    r = _t_residuals(rng, s, 5.0, 1500) * np.where(rng.uniform(size=1500) < 0.1, 20.0, 1.0)[:, None]
+    q, law = hj.fit_drift_and_law(r, s, days)
+    assert law.kind == "student_t_mixture" and q * 200.0 < 0.1
+    assert law.tail_dof == pytest.approx(5.0, rel=0.6) and law.outlier_fraction == pytest.approx(0.1, rel=0.3)
+    assert law.outlier_scale == pytest.approx(20.0, rel=0.3)
