@@ -168,13 +168,19 @@ def region_radius(largest_scale_eigenvalue, probability: float, law: PointingErr
     return (prediction_region_d2(probability, law) * largest_scale_eigenvalue) ** 0.5
 
 
+def _kernel(d2: Float[np.ndarray, "*n"], dof: float) -> Float[np.ndarray, "*n"]:
+    """Log-density of a bivariate t with ``dof`` degrees of freedom (``inf``: Gaussian)
+    at squared Mahalanobis radius ``d2``, less ``log 2 pi`` and half the scale's log
+    determinant (the t's normalising constant in 2-D does not depend on ``dof``)."""
+    return -0.5 * d2 if math.isinf(dof) else -(dof / 2.0 + 1.0) * np.log1p(d2 / dof)
+
+
 def _log_likelihood(
     d2: Float[np.ndarray, "Q N"], logdet: Float[np.ndarray, "Q N"], dof: float
 ) -> Float[np.ndarray, " Q"]:
     """Summed log-likelihood (less ``N log 2 pi``) of bivariate t residuals with
     ``dof`` degrees of freedom (``inf``: Gaussian) for each drift (rows)."""
-    kernel = -0.5 * d2 if math.isinf(dof) else -(dof / 2.0 + 1.0) * np.log1p(d2 / dof)
-    return np.sum(kernel - 0.5 * logdet, axis=-1)
+    return np.sum(_kernel(d2, dof) - 0.5 * logdet, axis=-1)
 
 
 def _grid(
@@ -258,10 +264,7 @@ def _t_mixture_log_likelihood(
 ) -> Float[np.ndarray, "*q"]:
     """Summed log-likelihood (less ``N log 2 pi``) of ``(1 - e) t_nu(S) + e t_nu(k^2 S)``."""
 
-    def kernel(x):
-        return -(dof / 2.0 + 1.0) * np.log1p(x / dof)
-
-    both = np.logaddexp(math.log1p(-e) + kernel(d2), math.log(e) - 2.0 * math.log(k) + kernel(d2 / (k * k)))
+    both = np.logaddexp(math.log1p(-e) + _kernel(d2, dof), math.log(e) - 2.0 * math.log(k) + _kernel(d2 / (k * k), dof))
     return np.sum(both - 0.5 * logdet, axis=-1)
 
 
@@ -276,8 +279,8 @@ def _best_t_mixture(
     for iq in drifts:
         x, ld = d2[iq][None, :], logdet[iq][None, :]
         for dof in _DOF_GRID[:-1][::3]:
-            core = -(dof / 2.0 + 1.0) * np.log1p(x / dof)
-            broad = -(dof / 2.0 + 1.0) * np.log1p(x / (k * k * dof)) - 2.0 * np.log(k)
+            core = _kernel(x, float(dof))
+            broad = _kernel(x / (k * k), float(dof)) - 2.0 * np.log(k)
             for e in _FRACTION_GRID:
                 ll = np.sum(np.logaddexp(math.log1p(-e) + core, math.log(e) + broad) - 0.5 * ld, axis=-1)  # (K,)
                 ik = int(np.argmax(ll))
