@@ -397,30 +397,34 @@ def _fit_one(
     def physical(y):
         return p0.at[idx].add(y * free_scales)
 
+    # An unconstrained fit is never reported (TOO_FEW_RECORDS below), so its parameters
+    # are held at the start: its rows do not depend on them, and the solve stops at once
+    # instead of spending up to max_steps on a problem with more unknowns than equations.
+    # Its rows are still those of its records (at the start model), so that the
+    # residuals reported come from the solver's last rows for every heliostat.
+    n_prior = prior.n_constrained(view, prior_h)
+    too_few = (n_used < 1) | (n_used + n_prior.astype(n_used.dtype) < view.n_free)
+
+    def held(y):
+        return jnp.where(too_few, jnp.zeros_like(y), y)
+
     def record_row(y, c, x, f):
         return loss.row(view.from_vector(model0, physical(y)).beam_components(geometry, c, x, f) * 1e3, loss_h)
 
     def prior_rows(y):
         return prior.rows(view, physical(y), prior_h)
 
-    # An unconstrained fit is never reported (TOO_FEW_RECORDS below), so its records are
-    # not iterated on: without them the solve stops at once instead of spending up to
-    # max_steps on a problem with more unknowns than equations.
-    n_prior = prior.n_constrained(view, prior_h)
-    too_few = (n_used < 1) | (n_used + n_prior.astype(n_used.dtype) < view.n_free)
-    solved = use & ~too_few
-
     def rows(y):
-        r, pr = record_rows(record_row, y, (counts, context, focal), solved), prior_rows(y)
+        r, pr = record_rows(record_row, held(y), (counts, context, focal), use), prior_rows(held(y))
         return jnp.concatenate([r, pr]) if pr.shape[0] else r
 
     def residual_and_jacobian(y):
-        r, jac = record_rows_and_jacobian(record_row, y, (counts, context, focal), solved)
-        pr = prior_rows(y)
+        r, jac = record_rows_and_jacobian(record_row, held(y), (counts, context, focal), use)
+        pr = prior_rows(held(y))
         if pr.shape[0]:
             r = jnp.concatenate([r, pr])
-            jac = jnp.concatenate([jac, jax.jacfwd(prior_rows)(y)])
-        return r, jac
+            jac = jnp.concatenate([jac, jax.jacfwd(prior_rows)(held(y))])
+        return r, jnp.where(too_few, 0.0, jac)
 
     residual = residual_with_jacobian(rows, residual_and_jacobian)
     out = solve_least_squares(residual, jnp.zeros(view.n_free, dtype), solver, max_steps)
@@ -449,8 +453,8 @@ def _fit_one(
 
     # An unconstrained fit is never reported: keep the start values where too few records.
     params = jnp.where(too_few, p0, params)
-    b = jax.vmap(view.from_vector(model0, params).beam_components, (None, 0, 0, 0))(geometry, counts, context, focal)
-    b = b * 1e3
+    # the residuals at the solution, read off the solver's last rows (no second model evaluation)
+    b = jax.vmap(loss.residual_of_row, (0, None))(data_r.reshape(n_records, 2), loss_h)
     loo = _leave_one_out_mrad(out.jacobian[: 2 * n_records].reshape(n_records, 2, -1), a_inv, b)
 
     status = status_code(out.result)
@@ -465,10 +469,11 @@ def _fit_one(
         std=std,
         covariance=cov,
         status=status.astype(jnp.int32),
-        n_steps=out.n_steps.astype(jnp.int32),
+        n_steps=jnp.where(too_few, 1, out.n_steps).astype(jnp.int32),  # its records are not fitted
         n_used=n_used.astype(jnp.int32),
         rms_mrad=jnp.where(too_few, jnp.nan, rms),
-        cost=out.cost,
+        # a heliostat with too few records is not fitted: its cost is its prior rows' alone
+        cost=jnp.where(too_few, 0.5 * jnp.sum(out.residual[2 * n_records :] ** 2), out.cost),
         noise_mrad=jnp.where(too_few, jnp.nan, jnp.sqrt(sigma2)),
         loo_mrad=jnp.where(use & ~too_few, loo, jnp.nan),
         residual_mrad=jnp.where(use[:, None], b, jnp.nan),

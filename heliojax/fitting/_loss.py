@@ -45,6 +45,12 @@ class AbstractLoss(eqx.Module):
     def weight(self, residual: Float[Array, " 2"], heliostat: typing.Any) -> Float[Array, ""]:
         """The record's effective (IRLS) weight in ``[0, 1]`` at ``residual``."""
 
+    @abc.abstractmethod
+    def residual_of_row(self, row: Float[Array, " 2"], heliostat: typing.Any) -> Float[Array, " 2"]:
+        """The residual pair (mrad) whose rows are ``row``: the inverse of :meth:`row`,
+        so that a fit reads its residuals off the solver's last rows instead of
+        evaluating the model a second time."""
+
 
 @typing.final
 class LeastSquares(AbstractLoss):
@@ -57,6 +63,10 @@ class LeastSquares(AbstractLoss):
     def weight(self, residual, heliostat):
         del heliostat
         return jnp.ones((), residual.dtype)
+
+    def residual_of_row(self, row, heliostat):
+        del heliostat
+        return row
 
 
 def _log1p_ratio(z: Float[Array, ""]) -> Float[Array, ""]:
@@ -90,6 +100,11 @@ class Cauchy(AbstractLoss):
     def weight(self, residual, heliostat):
         z = jnp.sum(residual**2) / heliostat**2
         return 1.0 / (1.0 + z)
+
+    def residual_of_row(self, row, heliostat):
+        # |row|^2 = c^2 log1p(z), so z = expm1(|row|^2 / c^2) and r = row / sqrt(log1p(z) / z)
+        z = jnp.expm1(jnp.sum(row**2) / heliostat**2)
+        return row / jnp.sqrt(_log1p_ratio(z))
 
 
 __all__ = ["CAUCHY_EFFICIENCY_FACTOR", "AbstractLoss", "Cauchy", "LeastSquares"]
