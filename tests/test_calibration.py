@@ -609,6 +609,57 @@ def test_rows_only_residual_equals_the_rows_of_the_jacobian_path():
     np.testing.assert_allclose(jac, reference, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("scale", [None, 0.7, np.inf], ids=["least_squares", "cauchy", "cauchy_inf"])
+def test_a_loss_recovers_the_residual_from_its_rows(scale):
+    """``residual_of_row`` inverts ``row`` (compiled, as the fit uses it) from residuals
+    far inside the Cauchy scale to gross errors 1e4 times it; the Cauchy rows' half
+    square is the Cauchy cost ``0.5 c^2 log(1 + |r|^2 / c^2)``."""
+    loss = hj.fitting.LeastSquares() if scale is None else hj.fitting.Cauchy(jnp.asarray(scale))
+    rng = np.random.default_rng(5)
+    norms = np.geomspace(1e-7, 7e3, 60)
+    direction = rng.normal(size=(60, 2))
+    r = jnp.asarray(direction / np.linalg.norm(direction, axis=1, keepdims=True) * norms[:, None])
+    h = loss.per_heliostat(1)[0] if loss.per_heliostat(1) is not None else None
+    rows = jax.vmap(loss.row, (0, None))(r, h)
+    back = jax.jit(jax.vmap(loss.residual_of_row, (0, None)))(rows, h)
+    np.testing.assert_allclose(back, r, rtol=1e-12, atol=1e-300)
+    np.testing.assert_array_equal(jax.vmap(loss.residual_of_row, (0, None))(jnp.zeros((1, 2)), h), 0.0)
+    if scale is not None and np.isfinite(scale):
+        cost = 0.5 * scale**2 * np.log1p(norms**2 / scale**2)
+        np.testing.assert_allclose(0.5 * np.sum(np.asarray(rows) ** 2, axis=1), cost, rtol=1e-12)
+
+
+def test_a_fit_reports_the_residuals_of_its_model_and_leaves_a_heliostat_of_too_few_records_at_its_start():
+    """The residuals a fit returns (read off the solver's last rows) equal the model's
+    residuals evaluated afresh, under least squares and under the Cauchy loss with gross
+    errors; a heliostat with fewer records than parameters keeps its start model, with
+    the residuals of that model, one step, and no cost (no prior)."""
+    h, m = 6, 30
+    g, true, ctx, sim = _fleet(h, m, seed=33)
+    mask = np.asarray(sim.mask).copy()
+    few = int(np.flatnonzero(mask.sum(axis=1) > 4)[0])
+    keep = np.flatnonzero(mask[few])[:3]
+    mask[few] = False
+    mask[few, keep] = True
+    spot = np.array(sim.focal_spot)
+    spot[1, np.flatnonzero(mask[1])[:2]] += np.array([0.4, -0.3, 0.2])  # two gross errors
+    data = eqx.tree_at(lambda f: (f.focal_spot, f.mask), sim, (jnp.asarray(spot), jnp.asarray(mask)))
+    start = random_stone_models(jax.random.PRNGKey(4), h, angle_sigma=1e-3)
+    scales = jnp.asarray(np.r_[np.full(h - 1, 0.8), np.inf])
+    for loss in (None, hj.fitting.Cauchy(scales)):
+        res = hj.fit(start, data, loss=loss)
+        status = np.asarray(res.status)
+        assert status[few] == FitStatus.TOO_FEW_RECORDS
+        assert np.all(np.isin(np.delete(status, few), (FitStatus.CONVERGED, FitStatus.MAX_STEPS)))
+        np.testing.assert_allclose(
+            np.asarray(res.residual_mrad), np.asarray(hj.fleet_residuals_mrad(res.model, data)), rtol=0, atol=1e-9
+        )
+        for leaf_fit, leaf_start in zip(jax.tree.leaves(res.model), jax.tree.leaves(start)):
+            np.testing.assert_array_equal(np.asarray(leaf_fit)[few], np.asarray(leaf_start)[few])
+        assert int(res.n_steps[few]) == 1 and float(res.cost[few]) == 0.0
+        assert np.isfinite(np.asarray(res.residual_mrad)[few][mask[few]]).all()
+
+
 @pytest.mark.parametrize("steps", [-1, 0])
 def test_fit_refuses_a_step_budget_below_one(steps):
     fleet = hj.load_paint_directory(hj.default_data_dir())
