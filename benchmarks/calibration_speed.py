@@ -493,7 +493,8 @@ def parse_args(argv=None):
         "--cli-xla-flags",
         action="store_true",
         help="compile as the heliojax command and the test suite do (XLA's older CPU fusion emitters, "
-        "heliojax/_xla_flags.py); default: the library's (XLA's own defaults)",
+        "heliojax/_xla_flags.py, for every program); default: the library's (the same option for the fit's "
+        "and its evaluation programs alone, XLA's defaults for the rest)",
     )
     p.add_argument("--simulate-to", default=None, help=argparse.SUPPRESS)
     return p.parse_args(argv)

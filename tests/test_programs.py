@@ -427,3 +427,39 @@ def _square(x):
 
 def _power(x, n: int):
     return x**n
+
+
+def test_own_cpu_programs_compile_with_the_older_emitters_unless_told_otherwise(monkeypatch):
+    """``program_jit`` hands its CPU compilation the options of
+    ``_xla_flags.cpu_compiler_options`` (XLA's older fusion emitters) and no flag of
+    the process changes; ``XLA_FLAGS`` naming the option (the user's choice; the suite's
+    conftest sets it, cleared here) or a jaxlib before the newer emitters give none.
+    The options reach XLA (an unknown one is refused at compile time), and the results
+    equal XLA's defaults'."""
+    from heliojax import _xla_flags
+
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_enable_fast_math=false")
+    monkeypatch.setattr(_xla_flags, "_jaxlib_version", lambda: (0, 10, 2))
+    assert _xla_flags.cpu_compiler_options() == {_xla_flags.PROGRAM_OPTION: False}
+    monkeypatch.setattr(_xla_flags, "_jaxlib_version", lambda: (0, 9, 0))
+    assert _xla_flags.cpu_compiler_options() == {}
+    monkeypatch.setattr(_xla_flags, "_jaxlib_version", lambda: (0, 9, 1))
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
+    assert _xla_flags.cpu_compiler_options() == {}
+
+    def program(x):
+        return jnp.sin(x) @ jnp.cos(x).T + jnp.exp(x).sum(axis=0, keepdims=True)
+
+    x = jnp.asarray(np.random.default_rng(0).normal(size=(16, 16)))
+    flags = os.environ["XLA_FLAGS"]
+    monkeypatch.setenv("XLA_FLAGS", "")
+    fast = _programs.program_jit(program)
+    np.testing.assert_allclose(fast(x), jax.jit(program)(x), rtol=1e-12, atol=1e-12)
+    assert fast._jitted() is not fast._default  # compiled with the option
+    assert os.environ["XLA_FLAGS"] == ""  # no flag of the process changed
+    monkeypatch.setenv("XLA_FLAGS", flags)
+    plain = _programs.program_jit(program)
+    assert plain._jitted() is plain._default  # the user's XLA_FLAGS names the option
+    monkeypatch.setattr(_programs, "cpu_compiler_options", lambda: {"xla_no_such_option": False})
+    with pytest.raises(Exception, match="xla_no_such_option"):
+        _programs.program_jit(program)(x)

@@ -40,7 +40,7 @@ from .._geometry import products_by_reduction
 from .._heliostat import HeliostatGeometry, RecordContext
 from .._kinematics import AbstractKinematicModel
 from .._parameters import ParameterView, and_masks, broadcast_model, is_batched, on_host
-from .._programs import cached_jit, compile_cached
+from .._programs import cached_jit, compile_cached, program_jit
 from ._batching import AbstractBatching, Vmap, default_batching
 from ._loss import AbstractLoss, LeastSquares
 from ._prior import AbstractPrior, NoPrior
@@ -514,7 +514,7 @@ def _leave_one_out_mrad(jac: Float[Array, "M 2 F"], a_inv: Float[Array, "F F"], 
     return jnp.where(safe, jnp.linalg.norm(e, axis=-1), jnp.inf)
 
 
-@eqx.filter_jit
+@program_jit  # the CPU compiles it with XLA's older fusion emitters (heliojax._xla_flags)
 def _fit_compiled(
     view,
     solver,
