@@ -268,6 +268,7 @@ class program_jit:
         return self._jitted().lower(*args)
 
 
+@typing.final
 class cached_jit(eqx.Module):
     """:class:`program_jit` whose traced programs are kept across processes when a
     compilation cache directory is configured (see the module docstring); without
