@@ -244,11 +244,10 @@ def fit_drift_and_law(
     iq_t, dof, ll_t = _best_t(d2, logdet)
     candidates = [(-2.0 * ll_t + (1 if math.isinf(dof) else 2) * penalty, iq_t, PointingErrorLaw(tail_dof=dof))]
     k = _SCALE_GRID[:, None, None]
+    core, broad = _kernel(d2, math.inf), _kernel(d2 / (k * k), math.inf)
     best = (math.inf, 0, 0.0, 1.0)
     for e in _FRACTION_GRID:  # every scale and drift at once, (K, Q)
-        core = math.log1p(-e) - 0.5 * d2
-        broad = math.log(e) - 2.0 * np.log(k) - 0.5 * d2 / k**2
-        ll = np.sum(np.logaddexp(core, broad) - 0.5 * logdet, axis=-1)
+        ll = np.sum(_mixture_log_density(core, broad, e, k) - 0.5 * logdet, axis=-1)
         ik, iq = np.unravel_index(np.argmax(ll), ll.shape)
         bic = -2.0 * float(ll[ik, iq]) + 3 * penalty
         if bic < best[0]:
@@ -259,12 +258,21 @@ def fit_drift_and_law(
     return float(_DRIFT_GRID[iq]), law
 
 
+def _mixture_log_density(
+    core: Float[np.ndarray, "..."], broad: Float[np.ndarray, "..."], e: float, k: Float[np.ndarray, "..."] | float
+) -> Float[np.ndarray, "..."]:
+    """Per-record log-density of ``(1 - e) t_nu(S) + e t_nu(k^2 S)`` (``nu = inf``: two
+    Gaussians), less ``log 2 pi`` and half the scale's log determinant, from its two
+    components' kernels (:func:`_kernel` at ``d2`` and at ``d2 / k^2``; shapes
+    broadcast, e.g. ``broad`` and ``k`` with a leading axis of scales)."""
+    return np.logaddexp(math.log1p(-e) + core, math.log(e) - 2.0 * np.log(k) + broad)
+
+
 def _t_mixture_log_likelihood(
     d2: Float[np.ndarray, "*q N"], logdet: Float[np.ndarray, "*q N"], dof: float, e: float, k: float
 ) -> Float[np.ndarray, "*q"]:
     """Summed log-likelihood (less ``N log 2 pi``) of ``(1 - e) t_nu(S) + e t_nu(k^2 S)``."""
-
-    both = np.logaddexp(math.log1p(-e) + _kernel(d2, dof), math.log(e) - 2.0 * math.log(k) + _kernel(d2 / (k * k), dof))
+    both = _mixture_log_density(_kernel(d2, dof), _kernel(d2 / (k * k), dof), e, k)
     return np.sum(both - 0.5 * logdet, axis=-1)
 
 
@@ -279,10 +287,9 @@ def _best_t_mixture(
     for iq in drifts:
         x, ld = d2[iq][None, :], logdet[iq][None, :]
         for dof in _DOF_GRID[:-1][::3]:
-            core = _kernel(x, float(dof))
-            broad = _kernel(x / (k * k), float(dof)) - 2.0 * np.log(k)
+            core, broad = _kernel(x, float(dof)), _kernel(x / (k * k), float(dof))
             for e in _FRACTION_GRID:
-                ll = np.sum(np.logaddexp(math.log1p(-e) + core, math.log(e) + broad) - 0.5 * ld, axis=-1)  # (K,)
+                ll = np.sum(_mixture_log_density(core, broad, float(e), k) - 0.5 * ld, axis=-1)  # (K,)
                 ik = int(np.argmax(ll))
                 if ll[ik] > found[0]:
                     found = (float(ll[ik]), iq, float(dof), float(e), float(_SCALE_GRID[ik]))

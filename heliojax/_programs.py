@@ -256,7 +256,7 @@ class program_jit:
         if self._cpu is None:
             with self._lock:
                 if self._cpu is None:
-                    options = cpu_compiler_options()
+                    options = _compiler_options()  # the one rule, shared with the kept programs
                     jit_options: dict[str, typing.Any] = {"compiler_options": options}  # to jax.jit
                     self._cpu = eqx.filter_jit(self._fn, **jit_options) if options else self._default
         return self._cpu
