@@ -85,6 +85,7 @@ from ._robust import (
     fitted_start_geometry as fitted_start_geometry,
     noise_outliers as noise_outliers,
     robust_component_noise as robust_component_noise,
+    robust_fit_program as robust_fit_program,
     robust_noise as robust_noise,
 )
 from ._sharding import (

@@ -299,6 +299,30 @@ def _fitted(solution: FitSolution) -> np.ndarray:
     return np.isin(st, (FitStatus.CONVERGED, FitStatus.MAX_STEPS))
 
 
+def robust_fit_program(
+    model0: AbstractKinematicModel,
+    fleet: typing.Any,
+    *,
+    mask: Bool[Array, "H M"] | None = None,
+    pool: bool = False,
+    **fit_options: typing.Any,
+) -> CompiledFit:
+    """The one compiled program that every pass of :func:`fit_robust` with these
+    arguments runs (started as least squares: the Cauchy loss of infinite scale;
+    with ``pool``, under a prior that constrains nothing), compiled now (its
+    ``compile_s``). A later :func:`fit_robust` of the same arguments, or of records
+    of the same shapes, finds it compiled. Arguments as :func:`fit_robust`'s."""
+    if "loss" in fit_options:
+        raise TypeError("fit_robust chooses the loss itself")
+    h = int(np.shape(fleet.mask)[0])
+    if pool:
+        if "prior" in fit_options:
+            raise TypeError("fit_robust(pool=True) learns the prior itself")
+        fit_options["prior"] = flat_prior(model0, h)
+    least_squares = Cauchy(jax.device_put(np.full((h,), np.inf, fleet.counts.dtype)))
+    return CompiledFit(model0, fleet, mask=mask, loss=least_squares, **fit_options)
+
+
 def fit_robust(
     model0: AbstractKinematicModel,
     fleet: typing.Any,
@@ -329,18 +353,11 @@ def fit_robust(
     Returns:
         A :class:`RobustFit`.
     """
-    if "loss" in fit_options:
-        raise TypeError("fit_robust chooses the loss itself")
     m = fleet.mask if mask is None else and_masks(mask, fleet.mask)
     h = int(np.shape(fleet.mask)[0])
-    least_squares = Cauchy(jax.device_put(np.full((h,), np.inf, fleet.counts.dtype)))
     small_fleet = np.zeros(h, bool)
-    if pool:
-        if "prior" in fit_options:
-            raise TypeError("fit_robust(pool=True) learns the prior itself")
-        fit_options["prior"] = flat_prior(model0, h)
     # one compiled program for every pass (the loss scale is data, not structure)
-    run = CompiledFit(model0, fleet, mask=m, loss=least_squares, **fit_options)
+    run = robust_fit_program(model0, fleet, mask=m, pool=pool, **fit_options)
     ls = run(model0)
     n_free = ls.view.n_free
     r0 = ls.residual_mrad
