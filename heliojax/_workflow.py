@@ -171,8 +171,8 @@ def calibrate(
             ``loss``, ``prior``, ``batching``, ``max_steps``).
         test_fleet: evaluate on this fleet's records (same heliostat ids) instead of
             the split's test records; then all of ``fleet``'s records may train.
-        start: ``"auto"`` (per heliostat the nominal or the fleet-typical
-            actuators, whichever the robust fit is better with,
+        start: ``"auto"`` (per heliostat the nominal actuators, or the fleet-typical
+            ones where the robust fit shows its own broken,
             :func:`heliojax.fitting.fitted_start_geometry`; without ``robust``, the
             better before the fit, :func:`heliojax.choose_start_geometry`) or
             ``"nominal"``.

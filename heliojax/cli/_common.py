@@ -22,7 +22,8 @@ def add_fit_arguments(p) -> None:
         "--start",
         choices=("auto", "nominal"),
         default="auto",
-        help="start geometry: per heliostat its own (nominal) or the fleet-typical actuators, whichever it fits better",
+        help="start geometry: per heliostat its own (nominal) actuators, or the fleet-typical ones where its own are "
+        "broken (its fit with them twice as noisy or unusable)",
     )
     add_cache_argument(p)
 

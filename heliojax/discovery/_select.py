@@ -2,8 +2,8 @@
 repeat, diagnose.
 
 0. **Robust pre-pass** (:mod:`._cleaning`): with ``start="auto"`` each heliostat
-   starts from the nominal or the fleet-typical actuators, whichever the base
-   model fits better; a robust fit of the base model flags gross errors (left
+   starts from its nominal actuators, or the fleet-typical ones where its own are
+   broken (:func:`heliojax.fitting.fitted_start_geometry`); a robust fit of the base model flags gross errors (left
    out, reported) and a scan finds change points (jumps of the axis offsets;
    Holm over heliostats at ``alpha``); a change point is the first named effect
    (:class:`heliojax.effects.OffsetStep`: the records before it keep their place, with
@@ -140,8 +140,8 @@ class DiscoveryConfig:
         max_steps: its step limit.
         batching: strategy over lanes (default :func:`heliojax.default_batching`).
         absorbed_limit: identifiability limit on the absorbed fraction.
-        start: ``"auto"`` (per heliostat the nominal or the fleet-typical actuators,
-            whichever the base model fits better,
+        start: ``"auto"`` (per heliostat the nominal actuators, or the fleet-typical
+            ones where its own are broken,
             :func:`heliojax.fitting.fitted_start_geometry`) or ``"nominal"``.
         robust: leave out the gross errors a robust fit of the base model flags
             (:mod:`._cleaning`).
