@@ -701,3 +701,34 @@ def test_records_without_a_time_are_named_when_the_time_split_leaves_them_out(ca
         f"2 record(s) without a usable time are left out of the time split (heliostat, records): {fleet.ids[1]} (2)"
     ], warned
     assert not (run.train_mask | run.test_mask)[1, [3, 7]].any()
+
+
+def test_the_training_rms_without_gross_errors_leaves_out_the_flagged_records():
+    """``train_inlier_rms_mrad`` is the training RMS over the records the robust fit did
+    not flag: two planted gross errors (30 and 60 mrad) are flagged, that heliostat's
+    two RMS differ by them, and every other heliostat's are equal (nothing flagged)."""
+    from heliojax.discovery import simulate_fleet
+
+    fleet, _ = simulate_fleet(21, 4, 30, base="actuator", noise_mrad=0.2)
+    run = hj.calibrate(fleet, model="actuator", split="azimuth", changes=False, drift=False)
+    train = np.flatnonzero(run.train_mask[2])[:2]
+    spot = np.array(fleet.focal_spot)
+    d = spot[2, train] - np.asarray(fleet.geometry.position)[2]
+    sideways = np.cross(d, [0.0, 0.0, 1.0])
+    sideways /= np.linalg.norm(sideways, axis=-1, keepdims=True)
+    spot[2, train] += sideways * np.linalg.norm(d, axis=-1, keepdims=True) * np.array([[30e-3], [60e-3]])
+    dirty = eqx.tree_at(lambda f: f.focal_spot, fleet, jnp.asarray(spot))
+    run = hj.calibrate(dirty, model="actuator", split="azimuth", changes=False, drift=False)
+    flagged = np.asarray(run.outlier)[:4] & run.train_mask[:4]
+    assert flagged[2, train].all() and flagged.sum() == 2
+    for i, hid in enumerate(run.summary["heliostats"]):
+        e = run.summary["heliostats"][hid]
+        used = run.train_mask[i] & np.isfinite(run.errors_mrad[i])
+        inliers = used & ~flagged[i]
+        assert e["train_rms_mrad"] == pytest.approx(np.sqrt(np.mean(run.errors_mrad[i][used] ** 2)), rel=1e-12)
+        inlier_rms = np.sqrt(np.mean(run.errors_mrad[i][inliers] ** 2))
+        assert e["train_inlier_rms_mrad"] == pytest.approx(inlier_rms, rel=1e-12)
+        if i == 2:
+            assert e["train_inlier_rms_mrad"] < 1.0 < 10.0 < e["train_rms_mrad"]
+        else:
+            assert e["train_inlier_rms_mrad"] == e["train_rms_mrad"]

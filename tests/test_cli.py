@@ -125,15 +125,15 @@ def test_calibrate_embedded_writes_schema(tmp_path, capsys):
             if e.get("n_train_used") is not None:
                 assert int(superseded[k].sum()) == e["n_train"] - e["n_train_used"], hid
         # the training RMS without gross errors, by hand from the per-record table
-        err, flagged, n_flagged = h["beam_error_mrad"][()], h["outlier"][()], 0
+        err, flagged = h["beam_error_mrad"][()], h["outlier"][()]
         for k, hid in enumerate(ids):
             used = (split[k] == 1) & ~superseded[k] & np.isfinite(err[k])
             inliers = used & ~flagged[k]
-            n_flagged += int((used & flagged[k]).sum())
             e = s["heliostats"][hid]
             assert e["train_rms_mrad"] == pytest.approx(np.sqrt(np.mean(err[k][used] ** 2)), rel=1e-12), hid
             assert e["train_inlier_rms_mrad"] == pytest.approx(np.sqrt(np.mean(err[k][inliers] ** 2)), rel=1e-12)
-        assert n_flagged > 0  # the embedded data has gross errors: the two RMS differ somewhere
+        # (whether a training record is flagged depends on the data: a planted gross error's
+        # RMS without it is checked in tests/test_calibration.py)
     assert plot.stat().st_size > 1000
     # the fit reloads as a fitted fleet that reproduces the written beam errors
     res = hj.load_results(out)
