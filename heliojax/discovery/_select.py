@@ -3,7 +3,8 @@ repeat, diagnose.
 
 0. **Robust pre-pass** (:mod:`._cleaning`): with ``start="auto"`` each heliostat
    starts from its nominal actuators, or the fleet-typical ones where its own are
-   broken (:func:`heliojax.fitting.fitted_start_geometry`); a robust fit of the base model flags gross errors (left
+   broken (:func:`heliojax.fitting.fitted_start_geometry`); a robust fit of the
+   base model flags gross errors (left
    out, reported) and a scan finds change points (jumps of the axis offsets;
    Holm over heliostats at ``alpha``); a change point is the first named effect
    (:class:`heliojax.effects.OffsetStep`: the records before it keep their place, with
