@@ -251,12 +251,10 @@ class program_jit:
         self._lock = threading.Lock()
 
     def _jitted(self) -> typing.Any:
-        if jax.default_backend() != "cpu":
-            return self._default
         if self._cpu is None:
             with self._lock:
                 if self._cpu is None:
-                    options = _compiler_options()  # the one rule, shared with the kept programs
+                    options = _compiler_options()  # the one rule (backend, XLA_FLAGS), shared with the kept programs
                     jit_options: dict[str, typing.Any] = {"compiler_options": options}  # to jax.jit
                     self._cpu = eqx.filter_jit(self._fn, **jit_options) if options else self._default
         return self._cpu
