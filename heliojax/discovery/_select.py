@@ -108,6 +108,13 @@ AMBIGUITY_BIC = 10.0
 """Delta BIC below which two explanations are not told apart (Kass & Raftery 1995:
 a BIC difference above 10 is "very strong" evidence)."""
 
+SHARED_STEP_TOLERANCE = 0.01
+"""A refit's shared parameters are converged when their next Gauss-Newton step
+would lower ``-2 log`` posterior by at most this (chi-square units, the step's
+``step' G step``): 200 times below :data:`MIN_DELTA_BIC`, the finest difference
+any decision compares. (A step of 1e-3 scaled units, the rule before, is no
+statistical scale: it took one to two more expansion iterations per refit.)"""
+
 
 DEFAULT_CANDIDATES: tuple[str, ...] = EFFECT_NAMES
 """The candidate effects of :class:`DiscoveryConfig` by default: every library effect.
@@ -258,6 +265,7 @@ class _Workflow:
         self.n_free = f
         self.free_index = np.asarray(self.layout.free_index)
         self.noise: np.ndarray | None = None  # (L,) mrad per component, from the base fit
+        self._derivative: tuple[ModelState, tuple] | None = None  # (state, its expansion): see derivative_at
 
     # -- columns ----------------------------------------------------------------------
 
@@ -277,10 +285,24 @@ class _Workflow:
 
     # -- fitting ----------------------------------------------------------------------
 
-    def fit_state(self, effects, p_start: np.ndarray, active: np.ndarray | None = None) -> ModelState:
+    def derivative_at(self, state: ModelState) -> tuple:
+        """The expansion of the effects (:meth:`Engine.expand`, every lane) at
+        ``state``'s parameters, kept for the last state asked for: the refits of one
+        step all start near it and take its derivative for their first iterations
+        (one expansion of the effect graph per step instead of one per refit)."""
+        if self._derivative is None or self._derivative[0] is not state:
+            self._derivative = (state, self.engine.expand(state.params))
+        return self._derivative[1]
+
+    def fit_state(
+        self, effects, p_start: np.ndarray, active: np.ndarray | None = None, derivative_from: tuple | None = None
+    ) -> ModelState:
         """Fit the model of ``effects`` on every lane from ``p_start`` ``(L, P)``; with
         ``active`` ``(L,)``, on those lanes only (the others are left out: not ``ok``,
-        at ``p_start``, no residuals)."""
+        at ``p_start``, no residuals). ``derivative_from``: an expansion of every lane
+        near ``p_start`` (:meth:`derivative_at`), whose derivative the first
+        iterations take (else it is evaluated at ``p_start``); either way the fit
+        ends with the exact expansion at its solution."""
         t0 = time.perf_counter()
         lanes = self.lanes
         n_lanes = p_start.shape[0]
@@ -300,7 +322,7 @@ class _Workflow:
         # point D is evaluated afresh and the fit repeated ("polishing") until the
         # fixed point of the exact expansion, the least-squares solution, is reached.
         # The final residuals and Jacobian are those of a fresh expansion.
-        expansion = self.engine.expand(p, active=active)
+        expansion = self.engine.expand(p, derivative_from=derivative_from, active=active)
         polishing = not eff_cols  # without effects D is never used: one fit, one fresh expansion
         it, limit = 0, n_iter  # iterations; at most max_iterations, or one polishing fit past them
         while True:
@@ -327,9 +349,9 @@ class _Workflow:
             converged = abs(exact - linear) <= 1e-4 * max(exact, 1e-300)
             last = it >= limit
             if sh_cols:
-                step, cov = self._shared_step(r, jac, ok, act_cols, sh_cols, p)
+                step, cov, gain = self._shared_step(r, jac, ok, act_cols, sh_cols, p)
                 # (a fold without an active lane has nothing to step)
-                if not last and float(np.max(np.abs(step[present]))) > 1e-3:
+                if not last and float(np.max(gain[present])) > SHARED_STEP_TOLERANCE:
                     idx = self.free_index[sh_cols]
                     for f in range(lanes.n_folds + 1):
                         p[np.ix_(lanes.fold == f, idx)] += step[f] * self.scales[sh_cols]
@@ -363,15 +385,21 @@ class _Workflow:
         parameters' column space (training rows only), weighted by its noise. With
         ``effect_prior``, each shared parameter's Gaussian prior about no effect (its
         typical size as standard deviation, once per fold) adds to the normal
-        equations: the step and covariance are the posterior's."""
+        equations: the step and covariance are the posterior's.
+
+        Returns:
+            ``(steps, covs, gains)``: per fold (``K + 1``) the step ``(k,)`` (scaled
+            units), the covariance ``(k, k)`` and the step's predicted decrease of
+            ``-2 log`` posterior, ``step' G step`` (chi-square units)."""
         lanes = self.lanes
-        used = np.repeat(lanes.train_mask, 2, axis=1)  # (L, 2M)
+        fitted = np.flatnonzero(ok)  # the others add nothing (under a fold-0 refit, 5 lanes in 6)
+        used = np.repeat(lanes.train_mask[fitted], 2, axis=1)  # (L_ok, 2M)
         k = len(sh_cols)
         n_folds = lanes.n_folds + 1
         # np.take, not jac[:, :, cols]: a gather along the last axis by index list is ~4x slower
-        a = np.where(used[:, :, None], np.take(jac, act_cols, axis=2), 0.0)
-        b = np.where(used[:, :, None], np.take(jac, sh_cols, axis=2), 0.0)
-        rr = np.where(used, r, 0.0)
+        a = np.where(used[:, :, None], np.take(jac[fitted], act_cols, axis=2), 0.0)
+        b = np.where(used[:, :, None], np.take(jac[fitted], sh_cols, axis=2), 0.0)
+        rr = np.where(used, r[fitted], 0.0)
         u, rank = column_bases(a)
         # batched matrix products (BLAS), not einsum: ~5x faster at (192 lanes, 512 rows)
         ut = u.swapaxes(1, 2)
@@ -379,12 +407,11 @@ class _Workflow:
         rt = rr - (u @ (ut @ rr[..., None]))[..., 0]
         btt = bt.swapaxes(1, 2)
         dof = used.sum(axis=1) - rank
-        take = ok & (dof > 0)
-        w = np.where(take, dof / np.maximum(np.sum(rr**2, axis=1), 1e-300), 0.0)
+        w = np.where(dof > 0, dof / np.maximum(np.sum(rr**2, axis=1), 1e-300), 0.0)
         g = np.zeros((n_folds, k))
         gm = np.zeros((n_folds, k, k))
-        np.add.at(g, lanes.fold, w[:, None] * (btt @ rt[..., None])[..., 0])
-        np.add.at(gm, lanes.fold, w[:, None, None] * (btt @ bt))
+        np.add.at(g, lanes.fold[fitted], w[:, None] * (btt @ rt[..., None])[..., 0])
+        np.add.at(gm, lanes.fold[fitted], w[:, None, None] * (btt @ bt))
         if self.config.effect_prior:
             # rows (q - q_none) / (scale * typical) of unit weight, in the units of w r^2
             n_base = len(self.layout.base_cols)
@@ -397,12 +424,14 @@ class _Workflow:
             gm += np.diag(inv_typ**2)
         steps = np.zeros((n_folds, k))
         covs = np.full((n_folds, k, k), np.nan)
+        gains = np.zeros(n_folds)
         for f in range(n_folds):  # folds, not lanes: K + 1 pseudo-inverses of k x k
             if np.any(gm[f]):
                 pinv = np.linalg.pinv(gm[f], rcond=1e-10, hermitian=True)
                 steps[f] = -pinv @ g[f]
                 covs[f] = pinv
-        return steps, covs
+                gains[f] = float(steps[f] @ gm[f] @ steps[f])
+        return steps, covs, gains
 
     # -- criteria ---------------------------------------------------------------------
 
@@ -553,7 +582,8 @@ class _Workflow:
         cols = list(self.layout.cols(effect))
         idx = self.free_index[cols]
         if mode == "shared":
-            p[:, idx] = scr.theta_shared * self.scales[cols]
+            assert scr.start_shared is not None  # tested candidates carry it
+            p[:, idx] = scr.start_shared * self.scales[cols]
         else:
             assert scr.theta_per_heliostat is not None  # identifiable candidates carry estimates
             th = np.nan_to_num(scr.theta_per_heliostat[self.lanes.heliostat], nan=0.0)
@@ -1061,7 +1091,7 @@ def _refit(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen, 
     effects = state.effects + ((effect, mode),)
     start = wf.start_params(state, effect, mode, scr)
     if wf.engine.skips_inactive_lanes:
-        first = wf.fit_state(effects, start, active=wf.lanes.fold == 0)
+        first = wf.fit_state(effects, start, active=wf.lanes.fold == 0, derivative_from=wf.derivative_at(state))
         b0, b1, _ = wf.bic_pair(state, first)
         if not b0 - b1 > wf.config.min_delta_bic:
             log.info(
@@ -1070,7 +1100,7 @@ def _refit(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen, 
             )
             nan = float("nan")
             return Candidate(effect, mode, first, b0 - b1, b0, b1, nan, nan, 0, nan, False)
-    st = wf.fit_state(effects, start)
+    st = wf.fit_state(effects, start, derivative_from=wf.derivative_at(state))
     b0, b1, _ = wf.bic_pair(state, st)
     cv0, cv1, n_cv = wf.cv_pair(state, st)
     ratio = float(cv_log_ratio(state, st, wf.lanes.heliostat))
