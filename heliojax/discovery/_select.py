@@ -320,16 +320,21 @@ class _Workflow:
         # the start and evaluate only the corrections c0 at each new point (D changes
         # little between iterations and is most of an expansion's cost); at their fixed
         # point D is evaluated afresh and the fit repeated ("polishing") until the
-        # fixed point of the exact expansion, the least-squares solution, is reached.
-        # The final residuals and Jacobian are those of a fresh expansion.
+        # fixed point of that expansion is reached: the least-squares solution, up to
+        # the change of D over the polishing step, second order in a step that is
+        # itself within the tolerance. The final residuals are exact (c0 at the
+        # solution); the final Jacobian takes D from where polishing began (one
+        # evaluation of D fewer per fit, a change of D below the solver's tolerance).
         expansion = self.engine.expand(p, derivative_from=derivative_from, active=active)
         polishing = not eff_cols  # without effects D is never used: one fit, one fresh expansion
+        d_here = False  # D evaluated where polishing began (else only at the start, maybe far away)
         it, limit = 0, n_iter  # iterations; at most max_iterations, or one polishing fit past them
         while True:
             out = self.engine.fit(p, fit_effect_cols, p, expansion, self.noise, active=active)
             p = np.array(out["params"])
             it += 1
-            expansion = self.engine.expand(p, derivative_from=None if polishing else expansion, active=active)
+            keep_d = d_here or not polishing
+            expansion = self.engine.expand(p, derivative_from=expansion if keep_d else None, active=active)
             r, jac = self.engine.jacobian(p, expansion=expansion, active=active)
             # a lane whose fit left non-finite values is not fitted (it never spoils the others)
             ok = (
@@ -356,13 +361,14 @@ class _Workflow:
                     for f in range(lanes.n_folds + 1):
                         p[np.ix_(lanes.fold == f, idx)] += step[f] * self.scales[sh_cols]
                     # about the stepped point
-                    expansion = self.engine.expand(p, derivative_from=None if polishing else expansion, active=active)
+                    expansion = self.engine.expand(p, derivative_from=expansion if keep_d else None, active=active)
                     converged = False
             if converged or last:
                 if polishing:
                     break
                 polishing, limit = True, max(limit, it + 1)  # D afresh at this point, and fit again
                 expansion = self.engine.expand(p, active=active)
+                d_here = True
         used = lanes.train_mask
         n_res = 2 * used.sum(axis=1)
         assert r is not None and jac is not None
@@ -1077,6 +1083,28 @@ def refit_passes(delta_bic: float, cv_log_ratio: float, min_delta_bic: float = M
     return bool(delta_bic > min_delta_bic and np.isfinite(cv_log_ratio) and cv_log_ratio < 0)
 
 
+def _joined(first: ModelState, rest: ModelState, take_first: np.ndarray) -> ModelState:
+    """One state of the lanes ``take_first`` ``(L,)`` from ``first`` and the others from
+    ``rest`` (the same model fitted on complementary lanes)."""
+    pick = lambda a, b: np.where(take_first.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
+    cov = None
+    if first.shared_cov is not None and rest.shared_cov is not None:
+        cov = rest.shared_cov.copy()
+        cov[0] = first.shared_cov[0]  # fold 0's lanes are the first state's
+    return dataclasses.replace(
+        rest,
+        params=pick(first.params, rest.params),
+        ok=pick(first.ok, rest.ok),
+        r=pick(first.r, rest.r),
+        jac=pick(first.jac, rest.jac),
+        rss=pick(first.rss, rest.rss),
+        n_res=pick(first.n_res, rest.n_res),
+        heldout_sq=pick(first.heldout_sq, rest.heldout_sq),
+        shared_cov=cov,
+        fit_s=first.fit_s + rest.fit_s,
+    )
+
+
 def _refit(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen, mode: str) -> Candidate:
     """Refit the current model with ``effect`` added in form ``mode`` and judge it:
     delta BIC > ``min_delta_bic`` and a better held-out likelihood.
@@ -1084,14 +1112,21 @@ def _refit(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen, 
     The BIC is that of the fold-0 lanes (all training records), whose fits do not
     depend on the other folds' lanes: those are fitted first, alone. A refit whose
     delta BIC does not pass is rejected there, and its cross-validation folds (five
-    sixths of the work) are never fitted (``cv_*`` NaN). A refit that passes is
-    fitted on every lane from the same start, as if the first stage had not run.
-    (Where the batching computes skipped lanes anyway, vmapped on accelerators, every
-    refit is fitted on every lane at once, as before.)"""
+    sixths of the work) are never fitted (``cv_*`` NaN). A refit that passes keeps
+    its fold-0 lanes, and the cross-validation lanes are fitted, each from its
+    heliostat's fold-0 solution (a start from all of the heliostat's training
+    records, as the screen's estimate, the start of the fold-0 lanes, already is;
+    the folds' fits then take fewer steps). (Where the batching computes skipped
+    lanes anyway, vmapped on accelerators, every refit is fitted on every lane at
+    once from the screen's start.)"""
     effects = state.effects + ((effect, mode),)
     start = wf.start_params(state, effect, mode, scr)
-    if wf.engine.skips_inactive_lanes:
-        first = wf.fit_state(effects, start, active=wf.lanes.fold == 0, derivative_from=wf.derivative_at(state))
+    derivative = wf.derivative_at(state)
+    if not wf.engine.skips_inactive_lanes:
+        st = wf.fit_state(effects, start, derivative_from=derivative)
+    else:
+        fold0 = wf.lanes.fold == 0
+        first = wf.fit_state(effects, start, active=fold0, derivative_from=derivative)
         b0, b1, _ = wf.bic_pair(state, first)
         if not b0 - b1 > wf.config.min_delta_bic:
             log.info(
@@ -1100,7 +1135,8 @@ def _refit(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen, 
             )
             nan = float("nan")
             return Candidate(effect, mode, first, b0 - b1, b0, b1, nan, nan, 0, nan, False)
-    st = wf.fit_state(effects, start, derivative_from=wf.derivative_at(state))
+        warm = np.where(fold0[:, None], start, first.params[wf.lanes.heliostat])  # fold-0 lane h is lane h
+        st = _joined(first, wf.fit_state(effects, warm, active=~fold0, derivative_from=derivative), fold0)
     b0, b1, _ = wf.bic_pair(state, st)
     cv0, cv1, n_cv = wf.cv_pair(state, st)
     ratio = float(cv_log_ratio(state, st, wf.lanes.heliostat))
