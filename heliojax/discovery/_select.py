@@ -1086,23 +1086,16 @@ def refit_passes(delta_bic: float, cv_log_ratio: float, min_delta_bic: float = M
 def _joined(first: ModelState, rest: ModelState, take_first: np.ndarray) -> ModelState:
     """One state of the lanes ``take_first`` ``(L,)`` from ``first`` and the others from
     ``rest`` (the same model fitted on complementary lanes)."""
-    pick = lambda a, b: np.where(take_first.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
+    per_lane = {
+        name: np.where(take_first.reshape((-1,) + (1,) * (a.ndim - 1)), a, getattr(rest, name))
+        for name in ("params", "ok", "r", "jac", "rss", "n_res", "heldout_sq")
+        for a in (getattr(first, name),)
+    }
     cov = None
     if first.shared_cov is not None and rest.shared_cov is not None:
         cov = rest.shared_cov.copy()
         cov[0] = first.shared_cov[0]  # fold 0's lanes are the first state's
-    return dataclasses.replace(
-        rest,
-        params=pick(first.params, rest.params),
-        ok=pick(first.ok, rest.ok),
-        r=pick(first.r, rest.r),
-        jac=pick(first.jac, rest.jac),
-        rss=pick(first.rss, rest.rss),
-        n_res=pick(first.n_res, rest.n_res),
-        heldout_sq=pick(first.heldout_sq, rest.heldout_sq),
-        shared_cov=cov,
-        fit_s=first.fit_s + rest.fit_s,
-    )
+    return dataclasses.replace(rest, **per_lane, shared_cov=cov, fit_s=first.fit_s + rest.fit_s)
 
 
 def _refit(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen, mode: str) -> Candidate:
