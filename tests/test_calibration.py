@@ -166,6 +166,45 @@ def test_a_fit_started_at_its_minimum_stops_at_once_and_agrees_with_optimistix(f
     assert np.asarray(res.n_steps).max() <= 8, np.bincount(np.asarray(res.n_steps))
 
 
+def test_levenberg_marquardt_steps_as_gauss_newton_first_and_damps_only_after_a_failed_step():
+    """The first step is Gauss-Newton's (damping ``DEFAULT_INITIAL_DAMPING``), not one
+    damped by optimistix's ``lambda = 1``: a linear least-squares problem whose weak
+    direction has curvature 1e-2 (a singular value 0.1, in scaled units) takes four
+    solver steps (the evaluation, Gauss-Newton's step, its 1e-4 correction in the weak
+    direction, the step that confirms it; optimistix's LM: 11), and Rosenbrock's valley
+    from far out, where Gauss-Newton's first steps fail and the damping rises, 9
+    (optimistix's: 61). The answers are the normal equations' (numpy's ``lstsq``) and
+    Rosenbrock's minimum.
+    """
+    import optimistix as optx
+
+    rng = np.random.default_rng(3)
+    q, _ = np.linalg.qr(rng.normal(size=(12, 3)))
+    v, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    a = q @ np.diag([300.0, 20.0, 0.1]) @ v.T
+    b = rng.normal(size=12)
+    exact = np.linalg.lstsq(a, b, rcond=None)[0]
+    a_j, b_j = jnp.asarray(a), jnp.asarray(b)
+    ours = hj.fitting.solve_least_squares(lambda y: a_j @ y - b_j, jnp.zeros(3), hj.fitting.default_solver("cpu"), 64)
+    classical = optx.LevenbergMarquardt(rtol=hj.fitting.DEFAULT_RTOL, atol=hj.fitting.DEFAULT_ATOL)
+    theirs = hj.fitting.solve_least_squares(lambda y: a_j @ y - b_j, jnp.zeros(3), classical, 64)
+    np.testing.assert_allclose(ours.value, exact, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(theirs.value, exact, rtol=0, atol=1e-4)
+    assert int(ours.n_steps) <= 4, int(ours.n_steps)
+    assert int(theirs.n_steps) >= int(ours.n_steps) + 3, (int(theirs.n_steps), int(ours.n_steps))
+
+    # Rosenbrock's valley as residuals: Gauss-Newton's first step from far out fails, the damping rises
+    def rosenbrock(y):
+        return jnp.stack([10.0 * (y[1] - y[0] ** 2), 1.0 - y[0]])
+
+    far = hj.fitting.solve_least_squares(rosenbrock, jnp.asarray([-30.0, 40.0]), hj.fitting.default_solver("cpu"), 64)
+    assert far.result == optx.RESULTS.successful
+    assert int(far.n_steps) <= 16, int(far.n_steps)
+    np.testing.assert_allclose(far.value, [1.0, 1.0], rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match="initial_step_size"):
+        hj.fitting.ToleranceTrustRegion(rtol=1e-8, atol=1e-5, initial_step_size=0.0)
+
+
 def test_products_by_reduction_give_the_same_poses_and_fit(six_under_prior, monkeypatch):
     """On accelerators the hot path's small products are multiply-and-reduce, not
     ``dot`` (``heliojax._geometry.products_by_reduction``). Both forms run here on the

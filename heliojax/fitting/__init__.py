@@ -33,6 +33,7 @@ from ._evaluate import (
 )
 from ._fit import (
     DEFAULT_ATOL as DEFAULT_ATOL,
+    DEFAULT_INITIAL_DAMPING as DEFAULT_INITIAL_DAMPING,
     DEFAULT_MAX_STEPS as DEFAULT_MAX_STEPS,
     DEFAULT_RTOL as DEFAULT_RTOL,
     CompiledFit as CompiledFit,

@@ -50,6 +50,21 @@ from ._status import FitStatus
 DEFAULT_RTOL = 1e-8
 DEFAULT_ATOL = 1e-5
 DEFAULT_MAX_STEPS = 64
+DEFAULT_INITIAL_DAMPING = 1e-6
+"""Levenberg-Marquardt's first damping ``lambda_0`` (added to ``J'J`` in scaled
+parameter units): Gauss-Newton's step first, damped only once a step fails.
+
+The solver's parameters are scaled (:func:`heliojax.parameter`'s ``scale``: one scaled
+unit is 10 mrad on an angle), so a record moves a beam by ~10-20 mrad per scaled unit
+and every direction its records determine has a curvature ``J'J`` of ~10^2 per record
+or more; ``lambda_0 = 1e-6`` leaves those steps undamped and gives the directions no
+record determines (a lane's absorbed effect columns) no step. optimistix's default,
+``lambda_0 = 1``, damped weakly determined directions (curvature ~1) by half at every
+step until the trust region had grown: discovery's lane fits took 7-8 steps from a
+start near their solution, some lanes all 64, and 3.3-3.6 with this value, none over 11
+(the shared PAINT records, 2026-12-05). A step that fails raises ``lambda`` fourfold
+(the classical trust region), so a start far from the solution costs a few rejected
+steps at most."""
 
 
 def _no_verbose(**kwargs: typing.Any) -> None:
@@ -72,19 +87,31 @@ class ToleranceTrustRegion(optx.AbstractSearch):
     costs nothing and ends the solve at once. Every other step is judged exactly as
     by the classical trust region.
 
+    The first trust region is ``initial_step_size`` (the damped Newton descent's
+    ``1 / lambda``), not optimistix's 1: see :data:`DEFAULT_INITIAL_DAMPING`.
+
     Attributes:
         rtol, atol: the solver's termination tolerances.
         norm: the solver's norm.
+        initial_step_size: the first step's trust region, ``1 / lambda_0``.
         classical: the trust region that judges every other step.
     """
 
     rtol: float
     atol: float
     norm: Callable[[typing.Any], Array] = optx.max_norm
+    initial_step_size: float = 1.0 / DEFAULT_INITIAL_DAMPING
     classical: optx.ClassicalTrustRegion = optx.ClassicalTrustRegion()
 
+    def __check_init__(self):
+        if not self.initial_step_size > 0:
+            raise ValueError(f"initial_step_size must be positive, got {self.initial_step_size!r}")
+
     def init(self, y, f_info_struct):
-        return self.classical.init(y, f_info_struct)
+        state = self.classical.init(y, f_info_struct)
+        return eqx.tree_at(
+            lambda s: s.step_size, state, jnp.asarray(self.initial_step_size, jnp.result_type(state.step_size))
+        )
 
     def step(self, first_step, y, y_eval, f_info, f_eval_info, state):
         step_size, accept, result, new_state = self.classical.step(first_step, y, y_eval, f_info, f_eval_info, state)
@@ -105,7 +132,9 @@ class LevenbergMarquardt(optx.AbstractGaussNewton):
     """optimistix's Levenberg-Marquardt (damped Newton descent, classical trust
     region, Cauchy termination) with the trust region of :class:`ToleranceTrustRegion`:
     a step already within the termination tolerances is accepted, so that a fit at its
-    minimum stops instead of shrinking its trust region through rounding noise.
+    minimum stops instead of shrinking its trust region through rounding noise; and the
+    first step is Gauss-Newton's (damping ``initial_damping``, default
+    :data:`DEFAULT_INITIAL_DAMPING`), not one damped by optimistix's ``lambda = 1``.
 
     Attributes:
         rtol, atol: termination tolerances (parameter and residual change).
@@ -128,12 +157,13 @@ class LevenbergMarquardt(optx.AbstractGaussNewton):
         atol: float,
         linear_solver: lx.AbstractLinearSolver | None = None,
         norm: Callable[[typing.Any], Array] = optx.max_norm,
+        initial_damping: float = DEFAULT_INITIAL_DAMPING,
     ):
         self.rtol = rtol
         self.atol = atol
         self.norm = norm
         self.descent = optx.DampedNewtonDescent(linear_solver=lx.QR() if linear_solver is None else linear_solver)
-        self.search = ToleranceTrustRegion(rtol=rtol, atol=atol, norm=norm)
+        self.search = ToleranceTrustRegion(rtol=rtol, atol=atol, norm=norm, initial_step_size=1.0 / initial_damping)
         self.verbose = _no_verbose
 
 
@@ -749,6 +779,7 @@ def fit_timed(
 __all__ = [
     "CompiledFit",
     "DEFAULT_ATOL",
+    "DEFAULT_INITIAL_DAMPING",
     "DEFAULT_MAX_STEPS",
     "DEFAULT_RTOL",
     "FitSolution",
