@@ -24,7 +24,7 @@ from heliojax.discovery import (
     simulate_fleet,
 )
 from heliojax.discovery._screen import prepare_bases, screen_candidate
-from heliojax.discovery._select import refit_passes
+from heliojax.discovery._select import SHARED_STEP_TOLERANCE, refit_passes
 from heliojax.effects import make_effect
 
 H, M, NOISE = 8, 40, 0.25
@@ -186,6 +186,60 @@ def test_shared_start_is_the_posterior_mode_of_the_refits_shared_step():
     assert abs(s.start_shared[0] - 0.3) < 0.1  # the determined direction is recovered
     assert np.all(np.abs(s.start_shared) < 3 * typical)
     assert abs(s.theta_shared[1]) > 10 * typical[1]  # where the bare estimate would start
+
+
+def test_folds_shared_start_is_the_shared_step_evaluated_at_the_folds_start():
+    """A refit's cross-validation folds start their shared parameters one Gauss-Newton
+    step from fold 0's solution, the step taken from the fold-0 lanes' rows
+    (``_Workflow.folds_shared_start``: nothing evaluated); a second route evaluates
+    the folds' lanes at that start (residuals and Jacobian with a fresh expansion)
+    and takes the same step. The step is not negligible, and the folds' fits from it
+    reach the same optimum as from fold 0's values."""
+    from heliojax import pad_fleet
+    from heliojax._fleet import bucket_size
+    from heliojax.discovery import _lanes, _select
+
+    true = make_effect("gravity_sag", gravity_sag=2e-3)
+    fleet, _ = simulate_fleet(131, H, M, effects=[true], noise_mrad=NOISE)
+    config = DiscoveryConfig(base="stone8")
+    base = _select.nominal_model(config.base, fleet.counts.dtype)
+    padded = pad_fleet(fleet, bucket_size(fleet.n_heliostats), bucket_size(fleet.n_records))
+    layout, template = _lanes.make_layout(base, config.candidates, padded, change_points=False)
+    lanes = _lanes.make_lanes(padded, config.n_folds)
+    engine = _lanes.Engine.create(
+        layout, template, lanes, config.solver, config.max_steps, config.batching, config.effect_prior
+    )
+    wf = _select._Workflow(engine, config)
+    p0 = np.broadcast_to(np.asarray(layout.view.to_vector(template)), (lanes.fold.shape[0], layout.view.n_parameters))
+    state = wf.fit_state((), np.array(p0))
+    wf.noise = _select._lane_noise(state, len(layout.base_cols))
+    effects = (("gravity_sag", "shared"),)
+    fold0 = lanes.fold == 0
+    first = wf.fit_state(effects, state.params, active=fold0)
+    warm = np.where(fold0[:, None], state.params, first.params[lanes.heliostat])
+    got = wf.folds_shared_start(first, warm, effects, ~fold0)
+    r, jac = engine.jacobian(warm, active=~fold0)
+    ok = first.ok[lanes.heliostat] & ~fold0
+    sh_cols, act_cols = wf.shared_cols(effects), wf.active_cols(effects)
+    steps, _, _ = wf._shared_step(r, jac, ok, act_cols, sh_cols, warm)
+    idx = wf.free_index[sh_cols]
+    for f in range(1, lanes.n_folds + 1):
+        lane = np.flatnonzero(lanes.fold == f)[0]
+        moved = (got[lane, idx] - warm[lane, idx]) / wf.scales[sh_cols]
+        # (fold 0's Jacobian takes D from where its polishing began, a step within the
+        # solver's tolerance from its solution: 1e-5 relative here)
+        np.testing.assert_allclose(moved, steps[f], rtol=1e-4, atol=1e-12)
+    assert np.max(np.abs(got[~fold0][:, idx] - warm[~fold0][:, idx])) > 1e-3 * abs(first.params[0, idx[0]])
+    # the folds' fits from either start agree to the shared step's tolerance: each stops
+    # within SHARED_STEP_TOLERANCE (0.01) in chi-square of its optimum, 0.1 standard
+    # deviations of the shared parameter, so the two within 0.2
+    from_warm = wf.fit_state(effects, warm, active=~fold0)
+    from_step = wf.fit_state(effects, got, active=~fold0)
+    assert from_warm.shared_cov is not None
+    for f in range(1, lanes.n_folds + 1):
+        lane = np.flatnonzero(lanes.fold == f)[0]
+        apart = (from_step.params[lane, idx] - from_warm.params[lane, idx]) / wf.scales[sh_cols]
+        assert abs(apart[0]) <= 2 * np.sqrt(SHARED_STEP_TOLERANCE * from_warm.shared_cov[f][0, 0]), (f, apart)
 
 
 # --------------------------------------------------------------------------------------
