@@ -115,6 +115,17 @@ would lower ``-2 log`` posterior by at most this (chi-square units, the step's
 any decision compares. (A step of 1e-3 scaled units, the rule before, is no
 statistical scale: it took one to two more expansion iterations per refit.)"""
 
+POLISH_AFTER_SHARED_GAIN = 1.0
+"""A shared step predicted to lower ``-2 log`` posterior by at most this (chi-square)
+is followed at once by the fresh expansion and the polishing fit, not first by a fit
+with the old derivative: the shared step is Gauss-Newton's on the profiled posterior,
+whose gain falls quadratically (steps worth 0.06-0.34 left 1e-4 to 3.5e-3, steps worth
+0.02-0.13 left at most 1.7e-3, on the shared PAINT records), so after such a step
+the next one is expected below :data:`SHARED_STEP_TOLERANCE` and the fit at the
+stepped point is the last. Only the order of the iterations depends on it: the fit
+still ends when the shared step's gain is at most the tolerance and the linearised
+cost equals the exact one."""
+
 
 DEFAULT_CANDIDATES: tuple[str, ...] = EFFECT_NAMES
 """The candidate effects of :class:`DiscoveryConfig` by default: every library effect.
@@ -356,10 +367,16 @@ class _Workflow:
             if sh_cols:
                 step, cov, gain = self._shared_step(r, jac, ok, act_cols, sh_cols, p)
                 # (a fold without an active lane has nothing to step)
-                if not last and float(np.max(gain[present])) > SHARED_STEP_TOLERANCE:
+                worth = float(np.max(gain[present]))
+                if not last and worth > SHARED_STEP_TOLERANCE:
                     idx = self.free_index[sh_cols]
                     for f in range(lanes.n_folds + 1):
                         p[np.ix_(lanes.fold == f, idx)] += step[f] * self.scales[sh_cols]
+                    if converged and not polishing and worth <= POLISH_AFTER_SHARED_GAIN:
+                        # the step expected to be the last: D afresh at the stepped point, polish there
+                        polishing, limit, d_here = True, max(limit, it + 1), True
+                        expansion = self.engine.expand(p, active=active)
+                        continue
                     # about the stepped point
                     expansion = self.engine.expand(p, derivative_from=expansion if keep_d else None, active=active)
                     converged = False
