@@ -137,8 +137,11 @@ def execute_notebook(path: Path, tmp_path: Path, monkeypatch, overrides: dict | 
     assert not setup.get("outputs"), f"the render check's setup cell showed {setup.outputs}"
     nb.cells = nb.cells[1:-1]
     problems = _figure_problems(nb, setup, report)
-    outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
-    text = "\n".join(o.get("text", "") for o in outputs)
+    code = [c for c in nb.cells if c.cell_type == "code"]
+    outputs = [o for c in code for o in c.get("outputs", [])]
+    # a cell's stream output arrives in as many chunks as the kernel flushed (more under
+    # load: one print's words in two): joined as written, the cells by a newline
+    text = "\n".join("".join(o.get("text", "") for o in c.get("outputs", [])) for c in code)
     n_images = sum(1 for o in outputs if "image/png" in o.get("data", {}))
     return nb, text, n_images, problems
 
