@@ -61,8 +61,9 @@ or more; ``lambda_0 = 1e-6`` leaves those steps undamped and gives the direction
 record determines (a lane's absorbed effect columns) no step. optimistix's default,
 ``lambda_0 = 1``, damped weakly determined directions (curvature ~1) by half at every
 step until the trust region had grown: discovery's lane fits took 7-8 steps from a
-start near their solution, some lanes all 64, and 3.3-3.6 with this value, none over 11
-(the shared PAINT records, 2026-12-05). A step that fails raises ``lambda`` fourfold
+start near their solution, and 3.3-3.6 with this value (the shared PAINT records,
+2026-12-05; the folds of heliostats with a few records, nearly as many rows as unknowns,
+run to the step limit under either value). A step that fails raises ``lambda`` fourfold
 (the classical trust region), so a start far from the solution costs a few rejected
 steps at most."""
 
