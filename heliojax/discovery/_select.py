@@ -369,9 +369,7 @@ class _Workflow:
                 # (a fold without an active lane has nothing to step)
                 worth = float(np.max(gain[present]))
                 if not last and worth > SHARED_STEP_TOLERANCE:
-                    idx = self.free_index[sh_cols]
-                    for f in range(lanes.n_folds + 1):
-                        p[np.ix_(lanes.fold == f, idx)] += step[f] * self.scales[sh_cols]
+                    p = self._shared_stepped(p, step, sh_cols, np.ones(n_lanes, bool))
                     if converged and not polishing and worth <= POLISH_AFTER_SHARED_GAIN:
                         # the step expected to be the last: D afresh at the stepped point, polish there
                         polishing, limit, d_here = True, max(limit, it + 1), True
@@ -418,11 +416,16 @@ class _Workflow:
         source = lanes.heliostat  # fold-0 lane h is lane h
         ok = fold0.ok[source] & np.asarray(active, bool)
         steps, _, _ = self._shared_step(fold0.r[source], fold0.jac[source], ok, self.active_cols(effects), sh_cols, p)
+        return self._shared_stepped(p, steps, sh_cols, (lanes.fold > 0) & np.asarray(active, bool))
+
+    def _shared_stepped(self, p: np.ndarray, steps: np.ndarray, sh_cols, lanes: np.ndarray) -> np.ndarray:
+        """``p`` ``(L, P)`` with each of the lanes ``lanes`` ``(L,)`` stepped by its fold's
+        shared step (``steps`` ``(K + 1, k)``, scaled units, as :meth:`_shared_step`
+        gives them) in the shared columns ``sh_cols``."""
         out = np.array(p, dtype=np.float64)
+        rows = np.flatnonzero(lanes)
         idx = self.free_index[sh_cols]
-        for f in range(1, lanes.n_folds + 1):
-            rows = np.flatnonzero((lanes.fold == f) & np.asarray(active, bool))
-            out[np.ix_(rows, idx)] += steps[f] * self.scales[sh_cols]
+        out[np.ix_(rows, idx)] += steps[self.lanes.fold[rows]] * self.scales[sh_cols]
         return out
 
     def _shared_step(self, r, jac, ok, act_cols, sh_cols, p):
@@ -1127,11 +1130,12 @@ def refit_passes(delta_bic: float, cv_log_ratio: float, min_delta_bic: float = M
 def _joined(first: ModelState, rest: ModelState, take_first: np.ndarray) -> ModelState:
     """One state of the lanes ``take_first`` ``(L,)`` from ``first`` and the others from
     ``rest`` (the same model fitted on complementary lanes)."""
-    per_lane = {
-        name: np.where(take_first.reshape((-1,) + (1,) * (a.ndim - 1)), a, getattr(rest, name))
-        for name in ("params", "ok", "r", "jac", "rss", "n_res", "heldout_sq")
-        for a in (getattr(first, name),)
-    }
+
+    def pick(name: str) -> np.ndarray:
+        a = getattr(first, name)
+        return np.where(take_first.reshape((-1,) + (1,) * (a.ndim - 1)), a, getattr(rest, name))
+
+    per_lane = {name: pick(name) for name in ("params", "ok", "r", "jac", "rss", "n_res", "heldout_sq")}
     cov = None
     if first.shared_cov is not None and rest.shared_cov is not None:
         cov = rest.shared_cov.copy()
@@ -1151,9 +1155,9 @@ def _refit(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen, 
     heliostat's fold-0 solution (a start from all of the heliostat's training
     records, as the screen's estimate, the start of the fold-0 lanes, already is;
     the folds' fits then take fewer steps), each fold's shared parameters one
-    Gauss-Newton step from fold 0's (:meth:`_Workflow.folds_shared_start`). (Where the batching computes skipped
-    lanes anyway, vmapped on accelerators, every refit is fitted on every lane at
-    once from the screen's start.)"""
+    Gauss-Newton step from fold 0's (:meth:`_Workflow.folds_shared_start`). (Where
+    the batching computes skipped lanes anyway, vmapped on accelerators, every refit
+    is fitted on every lane at once from the screen's start.)"""
     effects = state.effects + ((effect, mode),)
     start = wf.start_params(state, effect, mode, scr)
     derivative = wf.derivative_at(state)
