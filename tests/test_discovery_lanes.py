@@ -291,3 +291,50 @@ def test_a_refit_on_the_fold_0_lanes_alone_is_the_full_refits_fold_0():
         # the BIC is stationary at the optimum, so the parameters' tolerance moves it by
         # its square only (measured: 4e-3 for the shared form, 0 for the per-heliostat one)
         assert b0 == c0 and abs((b0 - b1) - (c0 - c1)) <= 0.02, (b0 - b1, c0 - c1)
+
+
+def test_a_cross_validation_lane_with_fewer_training_records_than_free_parameters_is_not_fitted():
+    """``make_lanes(..., min_training_records=n)`` (discovery: ``n`` = the base model's
+    free parameters): a cross-validation lane that would train on fewer than ``n``
+    records trains on nothing and holds nothing out; every other lane (the heliostat's
+    fold-0 lane among them) is the lane without the rule, and its fit of the base
+    model (``_Workflow.fit_state``) is the same; the lanes left out are not fitted
+    (not ``ok``, no held-out error)."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    from heliojax.discovery import _lanes, _select
+
+    fleet, _ = simulate_fleet(61, 4, M, noise_mrad=NOISE)
+    mask = np.asarray(fleet.mask).copy()
+    mask[0, np.flatnonzero(mask[0])[9:]] = False  # heliostat 0 keeps 9 records
+    fleet = eqx.tree_at(lambda f: f.mask, fleet, jnp.asarray(mask))
+    config = DiscoveryConfig(base="stone8")
+    base = _select.nominal_model(config.base, fleet.counts.dtype)
+    layout, template = _lanes.make_layout(base, config.candidates, fleet, change_points=False)
+    n_base = len(layout.base_cols)
+    plain = _lanes.make_lanes(fleet, config.n_folds)
+    ruled = _lanes.make_lanes(fleet, config.n_folds, min_training_records=n_base)
+    short = (plain.fold > 0) & (plain.train_mask.sum(axis=1) < n_base)
+    assert short.any() and np.all(plain.heliostat[short] == 0)
+    np.testing.assert_array_equal(ruled.cross_validated, ~short)
+    np.testing.assert_array_equal(ruled.train_mask[~short], plain.train_mask[~short])
+    assert not ruled.train_mask[short].any() and not ruled.heldout_mask()[short].any()
+    np.testing.assert_array_equal(ruled.heldout_mask()[~short], plain.heldout_mask()[~short])
+    assert plain.heldout_mask()[short].any()  # the rule is what removes them
+    states = []
+    for lanes in (plain, ruled):
+        engine = _lanes.Engine.create(
+            layout, template, lanes, config.solver, config.max_steps, config.batching, config.effect_prior
+        )
+        wf = _select._Workflow(engine, config)
+        p0 = np.broadcast_to(np.asarray(layout.view.to_vector(template)), (lanes.fold.size, layout.view.n_parameters))
+        states.append(wf.fit_state((), np.array(p0)))
+    before, after = states
+    assert before.ok[short].all() and not after.ok[short].any()
+    assert np.isnan(after.heldout_sq[short]).all()
+    keep = ~short
+    np.testing.assert_array_equal(after.ok[keep], before.ok[keep])
+    # lanes are fitted independently: the same arithmetic, lane by lane
+    np.testing.assert_allclose(after.params[keep], before.params[keep], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(after.heldout_sq[keep], before.heldout_sq[keep], rtol=1e-12, atol=1e-14)

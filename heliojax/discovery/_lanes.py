@@ -454,6 +454,8 @@ class Lanes:
         record_fold: ``(H, M)`` fold (1..K) of each record, 0 for invalid ones.
         valid: ``(H, M)`` valid records.
         n_folds: ``K``.
+        cross_validated: ``(L,)`` lanes that train (fold 0, and the cross-validation
+            lanes with enough training records: :func:`make_lanes`).
     """
 
     data: Records
@@ -463,6 +465,7 @@ class Lanes:
     record_fold: np.ndarray
     valid: np.ndarray
     n_folds: int
+    cross_validated: np.ndarray
 
     @property
     def n_heliostats(self) -> int:
@@ -477,9 +480,11 @@ class Lanes:
         return fold * self.n_heliostats + heliostat
 
     def heldout_mask(self) -> np.ndarray:
-        """``(L, M)``: the records each lane holds out (none for fold 0)."""
+        """``(L, M)``: the records each lane holds out (none for fold 0 and for the lanes
+        that do not train, :attr:`cross_validated`)."""
         rf = self.record_fold[self.heliostat]
-        return (rf == self.fold[:, None]) & (self.fold[:, None] > 0) & self.valid[self.heliostat]
+        held = (rf == self.fold[:, None]) & (self.fold[:, None] > 0) & self.valid[self.heliostat]
+        return held & self.cross_validated[:, None]
 
 
 def _utc_days(unix_time: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -526,20 +531,39 @@ def day_folds(unix_time: np.ndarray, valid: np.ndarray, record_id: np.ndarray | 
     return out
 
 
-def make_lanes(fleet: typing.Any, n_folds: int) -> Lanes:
-    """Lanes of ``fleet`` (padded): one per (fold, heliostat), folds by UTC day."""
+def make_lanes(fleet: typing.Any, n_folds: int, min_training_records: int = 0) -> Lanes:
+    """Lanes of ``fleet`` (padded): one per (fold, heliostat), folds by UTC day.
+
+    A cross-validation lane (fold > 0) keeps its training records only where they are
+    at least ``min_training_records`` (discovery: the base model's free parameters, so
+    that they determine it twice over, as each segment of the change-point scan must,
+    :func:`heliojax.fitting.find_change_points`); a lane with fewer trains on nothing,
+    is not fitted and holds nothing out (:attr:`Lanes.cross_validated`). Such a lane's
+    fit is not determined by its records: the solver crawled along the directions they
+    leave open, to its step limit (on the shared PAINT records, the folds of heliostats
+    with 8-12 records: 6-7 training records against 8 free parameters), and its
+    held-out predictions were wherever it stopped."""
     valid = np.asarray(fleet.mask, bool)
     rf = day_folds(np.asarray(fleet.context.unix_time), valid, np.asarray(fleet.record_id), n_folds)
     h = valid.shape[0]
     fold = np.repeat(np.arange(n_folds + 1), h)
     heli = np.tile(np.arange(h), n_folds + 1)
     train = valid[heli] & ((rf[heli] != fold[:, None]) | (fold[:, None] == 0))
+    cross_validated = (fold == 0) | (train.sum(axis=1) >= min_training_records)
+    train &= cross_validated[:, None]
     tile = lambda x: jnp.concatenate([x] * (n_folds + 1), axis=0)  # noqa: E731
     geometry, counts, context, focal, _ = jax.tree.map(tile, fleet_records(fleet))
     data = (geometry, counts, context, focal, jnp.asarray(train))
     eval_data = (geometry, counts, context, focal, jnp.asarray(valid[heli]))
     return Lanes(
-        data=data, eval_data=eval_data, fold=fold, heliostat=heli, record_fold=rf, valid=valid, n_folds=n_folds
+        data=data,
+        eval_data=eval_data,
+        fold=fold,
+        heliostat=heli,
+        record_fold=rf,
+        valid=valid,
+        n_folds=n_folds,
+        cross_validated=cross_validated,
     )
 
 

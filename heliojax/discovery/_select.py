@@ -10,7 +10,9 @@ repeat, diagnose.
    (:class:`heliojax.effects.OffsetStep`: the records before it keep their place, with
    a jump of both joint zeros fitted).
 1. **Fit the base model** on every lane (all records, and each blocked
-   cross-validation fold held out in turn; :mod:`._lanes`).
+   cross-validation fold held out in turn; :mod:`._lanes`; a fold trains only where at
+   least as many of its heliostat's records are left as the base has free parameters,
+   :func:`._lanes.make_lanes`).
 2. **Diagnose and screen** every candidate effect on the current model's
    residuals: score tests orthogonalised against the current model's Jacobian
    (:mod:`._screen`), shared and per-heliostat forms.
@@ -316,6 +318,8 @@ class _Workflow:
         ends with the exact expansion at its solution."""
         t0 = time.perf_counter()
         lanes = self.lanes
+        if not lanes.cross_validated.all():  # lanes without training records are never fitted
+            active = lanes.cross_validated if active is None else np.asarray(active, bool) & lanes.cross_validated
         n_lanes = p_start.shape[0]
         act_cols = self.active_cols(effects)
         sh_cols = self.shared_cols(effects)
@@ -876,7 +880,7 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
     # zeros before its date): the records before it stay and determine the geometry.
     steps_found = bool(cleaning.change_found.any())
     layout, template = make_layout(base, config.candidates, padded, change_points=steps_found)
-    lanes = make_lanes(padded, config.n_folds)
+    lanes = make_lanes(padded, config.n_folds, min_training_records=len(layout.base_cols))
     engine = Engine.create(
         layout, template, lanes, config.solver, config.max_steps, config.batching, config.effect_prior
     )
@@ -1060,7 +1064,7 @@ def _confirm_cleaning(wf: _Workflow, state: ModelState, valid, cleaning: Cleanin
     every valid record: gross errors flagged again (:func:`recheck_outliers`), then
     the change points tested again (:func:`confirm_change_points`)."""
     h = wf.lanes.n_heliostats
-    lanes = make_lanes(valid, config.n_folds)
+    lanes = make_lanes(valid, config.n_folds, min_training_records=len(wf.layout.base_cols))
     engine = dataclasses.replace(wf.engine, lanes=lanes)
     stepped = CHANGE_POINT in state.names
     params = state.params
