@@ -10,9 +10,12 @@ fraction where the expected outcome came first (a library effect: its name first
 reported interval; an effect outside the library: the first ``unexplained`` variable is its
 driver; the null suite: nothing named and nothing unexplained), the fraction misnamed (a library
 name given to an effect outside the library, or anything named in a null suite), the held-out RMS
-over the noise floor, and the seconds per suite. Amplitudes are not compared here: the two
-simulators' parameterisations differ for most effects (backlash as a stroke dead band vs a joint
-angle, thermal as spindle expansion vs an angle per kelvin).
+over the noise floor, and the seconds per suite. Per run, ``ambiguous`` lists the named effects
+the report calls ambiguous (a rival within ``ambiguity_bic``, a generic competitor among them);
+``misnamed_flagged_rate`` counts the misnamed suites whose name the report flagged so.
+Amplitudes are not compared here: the two simulators' parameterisations differ for most effects
+(backlash as a stroke dead band vs a joint angle, thermal as spindle expansion vs an angle per
+kelvin).
 
 Each suite: 20 real heliostats x 60 records, noise 0.25 mrad, one hidden effect (tag `<effect>_out`: with
 5 % gross outliers). Prints a Markdown table: truth vs what discovery names.
@@ -95,7 +98,9 @@ def judge(truth: dict, rep: dict) -> dict:
     first = named[0] if named else None
     unexplained = [u["variable"] for u in rep.get("unexplained", [])]
     library_names = [n for n in named if n != "change_point"]
-    out = {"named": named, "unexplained": unexplained}
+    # the named effects the report itself calls ambiguous (a rival within ambiguity_bic)
+    ambiguous = [a["named"] for a in rep.get("ambiguities", [])]
+    out = {"named": named, "unexplained": unexplained, "ambiguous": ambiguous}
     if effect == "none":
         out["hit"] = not named and not unexplained
         out["misnamed"] = bool(named)
@@ -158,6 +163,11 @@ def hit_rates(
             "suites": len(runs),
             "hit_rate": sum(r["hit"] for r in ok) / max(len(runs), 1),
             "misnamed_rate": sum(r["misnamed"] for r in ok) / max(len(runs), 1),
+            # misnamed, but the first library name is reported as ambiguous: the report says it is not certain
+            "misnamed_flagged_rate": sum(
+                r["misnamed"] and any(n in r["ambiguous"] for n in r["named"] if n != "change_point") for r in ok
+            )
+            / max(len(runs), 1),
             "heldout_over_floor_median": sorted(ratio)[len(ratio) // 2] if ratio else None,
             "base_heldout_over_floor_median": sorted(base)[len(base) // 2] if base else None,
             "seconds_median": sorted(r["seconds"] for r in ok)[len(ok) // 2] if ok else None,

@@ -10,6 +10,7 @@ import pytest
 
 from heliojax.discovery._competitors import (
     GENERIC_TYPICAL_MRAD,
+    CompetitorScore,
     _fleet,
     _per_heliostat,
     competitor_design,
@@ -121,3 +122,64 @@ def test_competitors_on_noise_lose_and_on_their_structure_win():
     entry = unexplained_entry(top, len(scores), 0.01, ids, {"effect": "wind", "mode": "shared", "delta_bic": 1.0})
     assert entry["variable"] == "wind_direction" and entry["source"] == "generic competitor"
     assert entry["p_holm"] == min(1.0, 2 * top.p) and set(entry["heliostats"]) <= set(ids)
+
+
+def test_a_significant_competitor_close_below_the_named_effect_makes_the_name_ambiguous():
+    """``generic_rivals``: a generic competitor within ``ambiguity_bic`` below the named
+    effect's criterion and significant over the competitors (``n p <= alpha``, as for
+    one that wins) is reported with the name as an ambiguity; one further below, or
+    not significant, is not. The Markdown says which alternative is no library effect."""
+    from heliojax.discovery._select import generic_rivals
+
+    def score(variable, delta, p):
+        return CompetitorScore(variable, "per_heliostat", delta, p, 0.3, np.array([p]))
+
+    comps = [score("time_of_day", 52.0, 2e-11), score("wind_direction", 50.0, 0.2), score("x", 40.0, 1e-9)]
+    rivals = generic_rivals(55.0, comps, alpha=0.01, ambiguity_bic=10.0)
+    assert [r["variable"] for r in rivals] == ["time_of_day"]
+    (r,) = rivals
+    assert r["effect"] is None and r["source"] == "generic competitor" and r["delta_bic"] == 52.0
+    assert generic_rivals(62.5, comps, alpha=0.01, ambiguity_bic=10.0) == ()
+    assert generic_rivals(55.0, comps[:2], alpha=0.01, ambiguity_bic=10.0)[0]["p"] == 2e-11
+    # two competitors: 2 x 2e-11 still significant; at p = 0.01 / 3 < p it would not be
+    assert generic_rivals(55.0, [score("time_of_day", 52.0, 0.004)] * 3, alpha=0.01, ambiguity_bic=10.0) == ()
+
+    from heliojax.discovery import markdown_summary
+
+    report = {  # what the Markdown reads of a report without steps
+        "data": {"n_heliostats": 2, "n_records": 40},
+        "base_model": "actuator",
+        "config": {"n_folds": 5, "ambiguity_bic": 10.0, "absorbed_limit": 0.999},
+        "steps": [],
+        "named_effects": [],
+        "screens": [],
+        "absorbed_fraction": {},
+        "change_points": [],
+        "outliers": [],
+        "unexplained": [],
+        "not_identifiable": [],
+        "untestable": [],
+        "not_tested_reason": None,
+        **{f"{k}_mrad": 1.0 for k in ("heldout_rms_base", "heldout_rms_final", "heldout_median_base")},
+        **{f"{k}_mrad": 1.0 for k in ("heldout_median_final", "train_rms_base", "train_rms_final")},
+        "noise_estimate_mrad": 0.3,
+    }
+    report["ambiguities"] = [
+        {
+            "step": 1,
+            "named": "encoder_wobble",
+            "alternatives": [
+                {"effect": "backlash", "mode": "shared", "delta_bic": 50.0, "source": "library"},
+                {
+                    "effect": None,
+                    "mode": "per_heliostat",
+                    "delta_bic": 52.0,
+                    "source": "generic competitor",
+                    "variable": "time_of_day",
+                    "p": 2e-11,
+                },
+            ],
+        }
+    ]
+    text = markdown_summary(report)
+    assert "`encoder_wobble` and `backlash` (delta BIC 50.0), a smooth function of `time_of_day` (generic" in text

@@ -24,8 +24,10 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
          "per_target": {target: {"e", "n", "u", "norm", "std": {..}, "relative": {..}}},
                                                    # survey_target only: offsets (m) by target name;
                                                    # relative = less the targets' mean (see _per_target)
-         "ambiguous_with": [{"effect", "mode", "delta_bic", "cv_heldout_rms_after_mrad"}]}
-      ],                                           # (passing rivals within ambiguity_bic of delta BIC)
+         "ambiguous_with": [{"effect", "mode", "delta_bic", "cv_heldout_rms_after_mrad",
+                             "source"}]}           # source "library" (effect), or "generic
+      ],                                           # competitor" (effect null; "variable", "p"):
+                                                   # rivals within ambiguity_bic of delta BIC
       "named_effects": [names],                    # "change_point" first when any was found
       "ambiguities": [{"step", "named", "alternatives": [...]}],
       "outliers": [{"heliostat", "record_id"}],    # gross errors of the robust pre-pass (left out)
@@ -37,7 +39,8 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
                        "source"}],                 # form "fleet" (shared shape) or "per_heliostat";
                                                    # source "residual scan" (final residuals) or
                                                    # "generic competitor" (beat a library name, which
-                                                   # "instead_of" gives, by "delta_bic"; first)
+                                                   # "instead_of" gives, by "delta_bic"; first;
+                                                   # "instead_of"."ambiguous": within ambiguity_bic)
       "generic_competitors": [{"step", "library_best": {"effect", "mode", "delta_bic"},
                                "competitors": [{"variable", "form", "delta_bic", "p"}]}],
       "variable_p_values": {variable: p},          # every recorded variable at the final model
@@ -186,6 +189,8 @@ def build_report(result, typical_start=None) -> dict:
                         "mode": a["mode"],
                         "delta_bic": _f(a["delta_bic"]),
                         "cv_heldout_rms_after_mrad": _f(a["cv_after"]),
+                        "source": a.get("source", "library"),
+                        **({"variable": a["variable"], "p": _f(a["p"])} if "variable" in a else {}),
                     }
                     for a in s.ambiguous_with
                 ],
@@ -533,7 +538,15 @@ def markdown_summary(report: dict) -> str:
     for w in report.get("warnings", []):
         lines += [f"**Warning**: {w}.", ""]
     for a in report.get("ambiguities", []):
-        alts = ", ".join(f"`{x['effect']}` (delta BIC {fmt(x['delta_bic'], '.1f')})" for x in a["alternatives"])
+        alts = ", ".join(
+            (
+                f"a smooth function of `{x['variable']}` (generic competitor, not a library effect; "
+                if x.get("source") == "generic competitor"
+                else f"`{x['effect']}` ("
+            )
+            + f"delta BIC {fmt(x['delta_bic'], '.1f')})"
+            for x in a["alternatives"]
+        )
         lines.append(
             f"**Ambiguous** at step {a['step']}: `{a['named']}` and {alts} explain the same residual "
             f"(delta BIC within {report['config'].get('ambiguity_bic', 10):g}); the name is not certain."

@@ -946,6 +946,7 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
         if not passing:
             break
         best = max(passing, key=lambda c: c.delta_bic)
+        comps: list[CompetitorScore] = []
         if config.generic_competitors and config.effect_prior:
             comps = wf.competitors(state, padded)
             if comps and comps[0].delta_bic >= best.delta_bic:
@@ -966,7 +967,12 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
             )
             top = comps[0] if comps else None
             if top is not None and top.delta_bic >= best.delta_bic and len(comps) * top.p <= config.alpha:
-                instead = {"effect": best.effect, "mode": best.mode, "delta_bic": best.delta_bic}
+                instead = {
+                    "effect": best.effect,
+                    "mode": best.mode,
+                    "delta_bic": best.delta_bic,
+                    "ambiguous": top.delta_bic - best.delta_bic < config.ambiguity_bic,
+                }
                 generic.append(unexplained_entry(top, len(comps), config.alpha, list(padded.ids), instead))
                 log.info(
                     f"not named: {best.effect} ({best.mode}, delta BIC {best.delta_bic:.1f}); a generic function "
@@ -975,10 +981,11 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
                 )
                 break
         rivals = tuple(
-            {"effect": c.effect, "mode": c.mode, "delta_bic": c.delta_bic, "cv_after": c.cv_after}
+            {"effect": c.effect, "mode": c.mode, "delta_bic": c.delta_bic, "cv_after": c.cv_after, "source": "library"}
             for c in passing
             if c is not best and best.delta_bic - c.delta_bic < config.ambiguity_bic
         )
+        rivals += generic_rivals(best.delta_bic, comps, config.alpha, config.ambiguity_bic)
         amp, std = _amplitude(wf, best.state, best.effect, best.mode)
         h = lanes.n_heliostats
         ids = list(padded.ids)
@@ -1010,7 +1017,11 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
         log.info(
             f"named {best.effect} ({best.mode}): "
             + ", ".join(f"{k}={v:.4g}" for k, v in amp.items())
-            + (f"; ambiguous with {', '.join(r['effect'] for r in rivals)}" if rivals else "")
+            + (
+                f"; ambiguous with {', '.join(r['effect'] or 'f(' + r['variable'] + ')' for r in rivals)}"
+                if rivals
+                else ""
+            )
         )
         state = best.state
     if cleaning.change_found.any() or (cleaning.outlier.any() and state.effects):
@@ -1122,6 +1133,33 @@ def _other_forms(
         if p_other < alpha and not any(x.effect == c.effect and x.mode == other for x in cands + out):
             out.append(_refit(wf, state, c.effect, scr, other))
     return out
+
+
+def generic_rivals(
+    best_delta_bic: float, comps: list[CompetitorScore], alpha: float, ambiguity_bic: float
+) -> tuple[dict, ...]:
+    """The generic competitors (:mod:`._competitors`) that a named effect beat by less than
+    ``ambiguity_bic`` and whose own test is significant (``len(comps) * p <= alpha``, as
+    for one that wins): a function of another recorded variable explains the same
+    residual almost as well, so the name is reported as ambiguous with it (issue 13:
+    report the ambiguity instead of a confident name). On the independent simulator a
+    daily tilt of each pylon and an encoder wobble of the elevation axis, whose angle
+    follows the time of day, are told apart by 3-21 in this criterion
+    (``benchmarks/independent_discovery.py``, seeds 11001-11102)."""
+    n = len(comps)
+    return tuple(
+        {
+            "effect": None,
+            "variable": c.variable,
+            "mode": c.form,
+            "delta_bic": c.delta_bic,
+            "cv_after": None,
+            "p": c.p,
+            "source": "generic competitor",
+        }
+        for c in comps
+        if best_delta_bic - c.delta_bic < ambiguity_bic and n * c.p <= alpha
+    )
 
 
 def refit_passes(delta_bic: float, cv_log_ratio: float, min_delta_bic: float = MIN_DELTA_BIC) -> bool:
