@@ -473,3 +473,18 @@ def test_records_of_one_day_name_nothing_and_the_report_says_why():
     assert r["data"]["utc_days"] == 1 and r["named_effects"] == []
     assert len(r["warnings"]) == 1 and "span 1 UTC day(s)" in r["warnings"][0]
     assert "**Warning**: the records span 1 UTC day(s)" in markdown_summary(r)
+
+
+def test_heliostats_too_few_records_for_a_fold_name_nothing_and_the_report_says_why():
+    """Every heliostat with 8 records over many days (5 folds by day): each fold keeps at
+    most 7 training records, fewer than the base model's 8 free parameters, so no fold is
+    fitted (``make_lanes(min_training_records=)``) and nothing can pass its held-out test.
+    The report counts the folds left out, names the heliostats and says why."""
+    fleet, _ = simulate_fleet(109, 3, 8, effects=[make_effect("backlash", backlash_1=3e-4, backlash_2=3e-4)])
+    r = discover(fleet, DiscoveryConfig(base="stone8", effects=("backlash",))).report
+    d = r["data"]
+    assert d["n_base_parameters"] == 8 and d["utc_days"] >= 5
+    assert d["folds_left_out"] == 3 * 5 and sorted(d["heliostats_not_cross_validated"]) == sorted(d["heliostat_ids"])
+    assert r["named_effects"] == [] and r["heldout_rms_base_mrad"] is None
+    assert len(r["warnings"]) == 1 and "no heliostat keeps 8 training records" in r["warnings"][0]
+    assert "**Warning**: no heliostat keeps 8 training records" in markdown_summary(r)

@@ -63,7 +63,10 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
                                                    # cv_* null where delta BIC failed
                                                    # (its folds are then not fitted)
       "config": {...}, "data": {...}, "timing": {...}
-    }
+    }                                              # data: also "folds_left_out" and
+                                                   # "heliostats_not_cross_validated" (folds with
+                                                   # fewer training records than the base's
+                                                   # free parameters, not fitted)
 
 Effect names come from :data:`heliojax.effects.EFFECT_NAMES` (and ``"change_point"``).
 The variables of ``"unexplained"`` are those of
@@ -255,6 +258,13 @@ def build_report(result, typical_start=None) -> dict:
     blocks = fold_blocks(np.asarray(fleet.context.unix_time), mask)
     note = too_few_days_note(blocks) if mask.any() else None
     warnings = [note] if note is not None else []
+    left_out, not_cross_validated = _folds_left_out(result.lanes, list(fleet.ids))
+    n_base = len(result.layout.base_cols)
+    if note is None and mask.any() and len(not_cross_validated) == sum(1 for i in fleet.ids if i):
+        warnings.append(
+            f"no heliostat keeps {n_base} training records (the base model's free parameters) in a "
+            "cross-validation fold: no fold is fitted, so no effect can pass its held-out test and none will be named"
+        )
     typical = np.zeros(len(fleet.ids), bool) if typical_start is None else np.asarray(typical_start, bool)
     last = result.screens[-1]["screens"] if result.screens else {}
     last_holm = result.screens[-1]["p_holm"] if result.screens else {}
@@ -348,10 +358,32 @@ def build_report(result, typical_start=None) -> dict:
             "heliostat_ids": [i for i in fleet.ids if i],
             "max_records_per_heliostat": _max_records(fleet),
             "utc_days": blocks,  # blocks of the day-blocked cross-validation (a record without a time: one)
-            "n_base_parameters": len(result.layout.base_cols),
+            "n_base_parameters": n_base,
+            # (heliostat, fold) pairs holding records out but keeping fewer than n_base_parameters
+            # training records: not fitted, not in the cross-validation (heliojax.discovery._lanes.make_lanes)
+            "folds_left_out": left_out,
+            "heliostats_not_cross_validated": not_cross_validated,
         },
         "timing": {k: _f(v) for k, v in result.timing.items()},
     }
+
+
+def _folds_left_out(lanes, ids: list[str]) -> tuple[int, list[str]]:
+    """``(n, names)``: the (heliostat, fold) pairs of the real heliostats that hold records
+    out but were left out of the cross-validation for too few training records, and the
+    heliostats with records whose every such fold was left out."""
+    rf = lanes.record_fold[lanes.heliostat]
+    holds = ((rf == lanes.fold[:, None]) & lanes.valid[lanes.heliostat]).any(axis=1) & (lanes.fold > 0)
+    real = np.array([bool(ids[h]) for h in lanes.heliostat])
+    out = holds & real & ~lanes.cross_validated
+    names = [
+        ids[h]
+        for h in range(lanes.n_heliostats)
+        if ids[h]
+        and holds[lanes.heliostat == h].any()
+        and out[lanes.heliostat == h].sum() == holds[lanes.heliostat == h].sum()
+    ]
+    return int(out.sum()), names
 
 
 def _per_target(amplitude: dict, std: dict, target_names: tuple[str, ...]) -> dict:

@@ -371,7 +371,7 @@ class _Workflow:
             if sh_cols:
                 step, cov, gain = self._shared_step(r, jac, ok, act_cols, sh_cols, p)
                 # (a fold without an active lane has nothing to step)
-                worth = float(np.max(gain[present]))
+                worth = float(np.max(gain[present], initial=0.0))  # no fold: nothing to step
                 if not last and worth > SHARED_STEP_TOLERANCE:
                     p = self._shared_stepped(p, step, sh_cols, np.ones(n_lanes, bool))
                     if converged and not polishing and worth <= POLISH_AFTER_SHARED_GAIN:
