@@ -22,6 +22,7 @@ from heliojax.discovery import (
     plot_unexplained,
     unexplained_structure,
     write_figures,
+    write_report,
 )
 from heliojax.discovery._cleaning import confirm_change_points, recheck_outliers
 from heliojax.discovery._diagnostics import anova, bin_index, predicted_spot
@@ -320,3 +321,20 @@ def test_recheck_restores_records_the_final_model_fits():
     out = recheck_outliers(dataclasses.replace(cl, outlier=flagged), r, 6)
     assert out.outlier[0].nonzero()[0].tolist() == [5]
     assert out.restored is not None and out.restored[0].nonzero()[0].tolist() == [9]
+
+
+def test_a_generic_competitor_that_beats_the_library_is_reported_and_the_report_writes(shared_paint, tmp_path):
+    """A wind load from one direction (outside the library; its ``wind`` drag grows with
+    the speed from any direction): the time-of-day and wind-direction competitors are
+    scored, the wind-direction one beats ``wind`` and is reported unexplained instead of
+    it, with whether it won by less than the ambiguity margin; the whole report is JSON
+    (a numpy boolean in that entry once stopped ``heliojax discover`` writing it)."""
+    generate("wind_direction", tmp_path / "w", seed=14, source=shared_paint, amplitude=1.5, **SUITE)
+    fleet = load_paint_directory(tmp_path / "w")
+    rep = discover(fleet, base="actuator", effects=("wind", "thermal")).report
+    first = rep["unexplained"][0]
+    assert first["source"] == "generic competitor" and first["variable"] == "wind_direction"
+    assert first["instead_of"]["effect"] == "wind" and isinstance(first["instead_of"]["ambiguous"], bool)
+    assert "wind" not in rep["named_effects"]
+    write_report(tmp_path / "report.json", rep)
+    assert json.loads((tmp_path / "report.json").read_text())["unexplained"][0]["instead_of"] == first["instead_of"]

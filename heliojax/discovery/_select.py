@@ -971,7 +971,7 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
                     "effect": best.effect,
                     "mode": best.mode,
                     "delta_bic": best.delta_bic,
-                    "ambiguous": top.delta_bic - best.delta_bic < config.ambiguity_bic,
+                    "ambiguous": bool(top.delta_bic - best.delta_bic < config.ambiguity_bic),
                 }
                 generic.append(unexplained_entry(top, len(comps), config.alpha, list(padded.ids), instead))
                 log.info(
