@@ -129,7 +129,7 @@ def test_a_significant_competitor_close_below_the_named_effect_makes_the_name_am
     effect's criterion and significant over the competitors (``n p <= alpha``, as for
     one that wins) is reported with the name as an ambiguity; one further below, or
     not significant, is not. The Markdown says which alternative is no library effect."""
-    from heliojax.discovery._select import generic_rivals
+    from heliojax.discovery._competitors import generic_rivals
 
     def score(variable, delta, p):
         return CompetitorScore(variable, "per_heliostat", delta, p, 0.3, np.array([p]))

@@ -196,6 +196,39 @@ def score_competitors(
     return sorted(out, key=lambda c: -c.delta_bic)
 
 
+def significant(score: CompetitorScore, n_competitors: int, alpha: float) -> bool:
+    """A competitor's own test is significant at the family-wise level ``alpha`` over the
+    ``n_competitors`` scored (Bonferroni): the condition for it to beat or rival a name."""
+    return n_competitors * score.p <= alpha
+
+
+def generic_rivals(
+    best_delta_bic: float, comps: list[CompetitorScore], alpha: float, ambiguity_bic: float
+) -> tuple[dict, ...]:
+    """The generic competitors that a named effect beat by less than
+    ``ambiguity_bic`` and whose own test is significant (:func:`significant`, as for one
+    that wins): a function of another recorded variable explains the same
+    residual almost as well, so the name is reported as ambiguous with it (issue 13:
+    report the ambiguity instead of a confident name). On the independent simulator a
+    daily tilt of each pylon and an encoder wobble of the elevation axis, whose angle
+    follows the time of day, are told apart by 3-21 in this criterion
+    (``benchmarks/independent_discovery.py``, seeds 11001-11102)."""
+    n = len(comps)
+    return tuple(
+        {
+            "effect": None,
+            "variable": c.variable,
+            "mode": c.form,
+            "delta_bic": c.delta_bic,
+            "cv_after": None,
+            "p": c.p,
+            "source": "generic competitor",
+        }
+        for c in comps
+        if best_delta_bic - c.delta_bic < ambiguity_bic and significant(c, n, alpha)
+    )
+
+
 def unexplained_entry(
     score: CompetitorScore, n_competitors: int, alpha: float, ids: list[str], instead_of: dict
 ) -> dict:

@@ -479,12 +479,16 @@ class Lanes:
     def lane(self, fold: int, heliostat: int) -> int:
         return fold * self.n_heliostats + heliostat
 
+    def fold_records(self) -> np.ndarray:
+        """``(L, M)``: the valid records of each lane's fold (none for fold 0), whether or
+        not the lane is cross-validated."""
+        rf = self.record_fold[self.heliostat]
+        return (rf == self.fold[:, None]) & (self.fold[:, None] > 0) & self.valid[self.heliostat]
+
     def heldout_mask(self) -> np.ndarray:
         """``(L, M)``: the records each lane holds out (none for fold 0 and for the lanes
         that do not train, :attr:`cross_validated`)."""
-        rf = self.record_fold[self.heliostat]
-        held = (rf == self.fold[:, None]) & (self.fold[:, None] > 0) & self.valid[self.heliostat]
-        return held & self.cross_validated[:, None]
+        return self.fold_records() & self.cross_validated[:, None]
 
 
 def _utc_days(unix_time: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

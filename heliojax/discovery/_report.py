@@ -372,17 +372,12 @@ def _folds_left_out(lanes, ids: list[str]) -> tuple[int, list[str]]:
     """``(n, names)``: the (heliostat, fold) pairs of the real heliostats that hold records
     out but were left out of the cross-validation for too few training records, and the
     heliostats with records whose every such fold was left out."""
-    rf = lanes.record_fold[lanes.heliostat]
-    holds = ((rf == lanes.fold[:, None]) & lanes.valid[lanes.heliostat]).any(axis=1) & (lanes.fold > 0)
-    real = np.array([bool(ids[h]) for h in lanes.heliostat])
+    holds = lanes.fold_records().any(axis=1)
+    real = np.array([bool(i) for i in ids])[lanes.heliostat]
     out = holds & real & ~lanes.cross_validated
-    names = [
-        ids[h]
-        for h in range(lanes.n_heliostats)
-        if ids[h]
-        and holds[lanes.heliostat == h].any()
-        and out[lanes.heliostat == h].sum() == holds[lanes.heliostat == h].sum()
-    ]
+    n_holding = np.bincount(lanes.heliostat, weights=holds, minlength=lanes.n_heliostats)
+    n_out = np.bincount(lanes.heliostat, weights=out, minlength=lanes.n_heliostats)
+    names = [ids[h] for h in np.flatnonzero((n_holding > 0) & (n_out == n_holding)) if ids[h]]
     return int(out.sum()), names
 
 

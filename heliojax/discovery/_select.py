@@ -88,7 +88,7 @@ from .._progress import activity, progress_bar
 from ..effects import EFFECT_NAMES, OffsetStep
 from ..fitting import OFFSET_NAMES, AbstractBatching, default_solver, fitted_start_geometry
 from ._cleaning import Cleaning, clean, confirm_change_points, recheck_outliers
-from ._competitors import CompetitorScore, score_competitors, unexplained_entry
+from ._competitors import CompetitorScore, generic_rivals, score_competitors, significant, unexplained_entry
 from ._diagnostics import record_variables, unexplained_structure
 from ._identifiability import ABSORBED_LIMIT, column_bases
 from ._lanes import Engine, Lanes, Layout, make_lanes, make_layout
@@ -966,7 +966,7 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
                 }
             )
             top = comps[0] if comps else None
-            if top is not None and top.delta_bic >= best.delta_bic and len(comps) * top.p <= config.alpha:
+            if top is not None and top.delta_bic >= best.delta_bic and significant(top, len(comps), config.alpha):
                 instead = {
                     "effect": best.effect,
                     "mode": best.mode,
@@ -1133,33 +1133,6 @@ def _other_forms(
         if p_other < alpha and not any(x.effect == c.effect and x.mode == other for x in cands + out):
             out.append(_refit(wf, state, c.effect, scr, other))
     return out
-
-
-def generic_rivals(
-    best_delta_bic: float, comps: list[CompetitorScore], alpha: float, ambiguity_bic: float
-) -> tuple[dict, ...]:
-    """The generic competitors (:mod:`._competitors`) that a named effect beat by less than
-    ``ambiguity_bic`` and whose own test is significant (``len(comps) * p <= alpha``, as
-    for one that wins): a function of another recorded variable explains the same
-    residual almost as well, so the name is reported as ambiguous with it (issue 13:
-    report the ambiguity instead of a confident name). On the independent simulator a
-    daily tilt of each pylon and an encoder wobble of the elevation axis, whose angle
-    follows the time of day, are told apart by 3-21 in this criterion
-    (``benchmarks/independent_discovery.py``, seeds 11001-11102)."""
-    n = len(comps)
-    return tuple(
-        {
-            "effect": None,
-            "variable": c.variable,
-            "mode": c.form,
-            "delta_bic": c.delta_bic,
-            "cv_after": None,
-            "p": c.p,
-            "source": "generic competitor",
-        }
-        for c in comps
-        if best_delta_bic - c.delta_bic < ambiguity_bic and n * c.p <= alpha
-    )
 
 
 def refit_passes(delta_bic: float, cv_log_ratio: float, min_delta_bic: float = MIN_DELTA_BIC) -> bool:
