@@ -344,6 +344,21 @@ CASES = [
         "names the same path",
     ),
     (
+        "out file on the way to the plot (the plot's folder was made, then the out file failed after the fit)",
+        lambda t: ["calibrate", "--out", str(t / "o"), "--plot", str(t / "o" / "c.png")],
+        "--out",
+    ),
+    (
+        "report file on the way to the markdown",
+        lambda t: ["discover", "--report", str(t / "r"), "--markdown", str(t / "r" / "r.md")],
+        "--markdown writes inside it",
+    ),
+    (
+        "accept report file on the way to the figures folder",
+        lambda t: [*_accept(t, _field(t)), "--report", str(t / "x"), "--figures", str(t / "x" / "f")],
+        "--figures writes inside it",
+    ),
+    (
         "markdown and report the same file",
         lambda t: ["discover", "--report", str(t / "r.json"), "--markdown", str(t / "r.json")],
         "--markdown",

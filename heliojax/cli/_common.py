@@ -233,6 +233,7 @@ def check_output_paths(
     from .._errors import ConfigError
 
     seen: dict[Path, str] = {}
+    files_made: list[tuple[str, Path, Path]] = []  # (flag, path, resolved) of the file outputs
     checks = [(name, getattr(args, name, None), False, True) for name in files]
     checks += [(name, getattr(args, name, None), True, True) for name in directories]
     checks += [(name, path, False, False) for name, path in inside if getattr(args, name, None) is not None]
@@ -251,8 +252,19 @@ def check_output_paths(
             raise ConfigError(f"{flag} {shown}: ends with '/', '.' or '..', naming a folder; give a file name")
         try:
             _check_output_path(flag, path, name, is_dir, seen)
+            if not is_dir:
+                files_made.append((flag, path, path.resolve()))
         except OSError as e:  # a name too long, a loop of links: the flag, not a bare OSError
             raise ConfigError(f"{flag} {_shown(path)}: {e.strerror or e}") from None
+    # a file output on the way to another output (`--out out --plot out/fig.png`): the
+    # other's folder would be made first and the file could not be written after the work
+    for flag, path, resolved in files_made:
+        for other, other_flag in seen.items():
+            if resolved in other.parents:
+                raise ConfigError(
+                    f"{flag} {_shown(path)}: {other_flag} writes inside it ({_shown(other)}); "
+                    "give the file another name"
+                )
 
 
 _UNSEEN_CATEGORIES = frozenset({"Cc", "Cf", "Zl", "Zp"})
