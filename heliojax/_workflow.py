@@ -219,7 +219,7 @@ def calibrate(
             typing.cast(typing.Any, split),
             np.asarray(az),
             np.asarray(el),
-            np.asarray(fleet.context.unix_time),
+            _split_times(fleet, split),
             ids,
             valid=np.asarray(fleet.mask),
             **kw,
@@ -227,11 +227,11 @@ def calibrate(
         train, val, test = np.asarray(fs.train_mask), np.asarray(fs.val_mask), np.asarray(fs.test_mask)
         too_few = dict(fs.too_few)
         records = np.asarray(fleet.mask)
-        if split in ("time", "solstice") and records.any() and not np.isfinite(fleet.context.unix_time)[records].any():
+        if split == "solstice" and records.any() and not np.isfinite(fleet.context.unix_time)[records].any():
             raise ConfigError(
                 f"the {split} split needs record times and none of the {int(records.sum())} records has one "
-                "(PAINT's calibration-timestamps.json missing beside the data?); add it or choose another "
-                "split, e.g. azimuth"
+                "(PAINT's calibration-timestamps.json or metadata/calibration_metadata_*.csv missing beside "
+                "the data?); add one or choose another split, e.g. azimuth or time"
             )
         undated = records & ~np.isfinite(np.asarray(fleet.context.unix_time, float)) & ~(train | val | test)
         if split in ("time", "solstice") and undated.any():
@@ -639,6 +639,24 @@ def temporal_drift(
 
 RECORD_ROLES = ("train", "test")
 """Roles of a record in :func:`calibrate`'s ``record_roles``."""
+
+
+def _split_times(fleet, split: str) -> np.ndarray:
+    """``(H, M)`` the times the split orders records by (s): the records' UTC times, or,
+    for the time split of a fleet none of whose records has a time (a download without
+    PAINT's timestamps), their PAINT record ids, which PAINT numbers in the order the
+    records were measured (the 1,706 timestamped ids of the shared download are in
+    strictly chronological order: :mod:`heliojax.paint`). Only the order is used."""
+    times = np.asarray(fleet.context.unix_time, float)
+    records = np.asarray(fleet.mask)
+    if split != "time" or not records.any() or np.isfinite(times)[records].any():
+        return times
+    log.warning(
+        "no record has a time (PAINT's calibration-timestamps.json or metadata CSV missing beside the data?): "
+        "the time split orders each heliostat's records by PAINT record id, which PAINT numbers in "
+        "measurement order; without times there is no pointing drift and no dated change point"
+    )
+    return np.where(records, np.asarray(fleet.record_id, float), np.nan)
 
 
 def roles_to_masks(

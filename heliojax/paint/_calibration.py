@@ -63,13 +63,24 @@ def _record_from_json(
     _check(-360.0 <= az <= 360.0, file, "sun_azimuth", f"{az!r} outside [-360, 360] deg")
     fs = root.node("focal_spot")
     spots: dict[str, Vec3 | None] = {}
+    notes: list[tuple[str, str]] = []
+    not_finite = False
     for key in ("HeliOS", "UTIS"):
-        if fs.has(key) and fs.get(key) is not None:
-            spots[key] = fs.vec3(key)
-            _latlon_ok(file, fs.field(key), spots[key])  # type: ignore[arg-type]
-        else:
-            spots[key] = None
+        spots[key] = None
+        if not fs.has(key) or fs.get(key) is None:
+            continue
+        value = fs.get(key)
+        if isinstance(value, list) and any(isinstance(x, float) and math.isnan(x) for x in value):
+            # PAINT writes a centroid it could not compute as NaN (json.dump of a NaN
+            # value): the same as a missing one, the other centroid is used
+            notes.append((fs.field(key), "not finite (NaN): read as missing, the other centroid is used"))
+            not_finite = True
+            continue
+        spots[key] = fs.vec3(key)
+        _latlon_ok(file, fs.field(key), spots[key])  # type: ignore[arg-type]
     if spots["HeliOS"] is None and spots["UTIS"] is None:
+        if not_finite:
+            raise DataError(file, "focal_spot", "no usable centroid (HeliOS and UTIS missing or not finite)")
         raise DataError(file, "focal_spot", "neither a HeliOS nor a UTIS centroid")
     w = _nan_weather()
     if weather is not None:
@@ -87,6 +98,7 @@ def _record_from_json(
         datetime=datetime,
         weather=w,
         source=file,
+        notes=tuple(notes),
     )
 
 

@@ -248,6 +248,8 @@ class HeliostatProperties:
         canting_type: ``facet_properties.canting_type`` or None.
         renovation: ``renovation`` (a date or date range string) or None.
         source: the file it came from.
+        notes: ``(field, reason)`` of what the reader read other than as written (an
+            older PAINT version's key or label); the loader flags them. Not compared.
     """
 
     heliostat_id: str
@@ -263,6 +265,7 @@ class HeliostatProperties:
     canting_type: str | None = None
     renovation: str | None = None
     source: str = _MEMORY
+    notes: tuple[tuple[str, str], ...] = dataclasses.field(default=(), compare=False)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -282,6 +285,9 @@ class CalibrationRecord:
             ``timestamp``) or None when unknown.
         weather: the keys of :data:`WEATHER_KEYS` in file units; NaN = unknown.
         source: the file it came from (CSV: ``path:line``).
+        notes: ``(field, reason)`` of what the reader read other than as written (a
+            centroid that is not finite, read as missing); the loader flags them. Not
+            compared.
     """
 
     record_id: int
@@ -296,6 +302,7 @@ class CalibrationRecord:
     datetime: str | None = None
     weather: dict[str, float] = dataclasses.field(default_factory=_nan_weather)
     source: str = _MEMORY
+    notes: tuple[tuple[str, str], ...] = dataclasses.field(default=(), compare=False)
 
 
 @dataclasses.dataclass(frozen=True)

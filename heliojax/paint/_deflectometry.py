@@ -44,7 +44,11 @@ def read_deflectometry_facets(path: str | os.PathLike) -> list[tuple[np.ndarray,
                     raise DataError(path, f"{name}", f"expected matching [N, 3] arrays, got {p.shape} and {q.shape}")
                 if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
                     raise DataError(path, f"{name}", "non-finite values")
-                facets.append((p, q / np.linalg.norm(q, axis=1, keepdims=True)))
+                length = np.linalg.norm(q, axis=1, keepdims=True)
+                if not np.all(length > 0):
+                    row = int(np.flatnonzero(~(length[:, 0] > 0))[0])
+                    raise DataError(path, f"{name}/surface_normals", f"row {row} is a zero vector: no direction")
+                facets.append((p, q / length))
     except OSError as e:
         raise DataError(path, None, f"cannot read HDF5: {e}") from e
     return facets

@@ -45,6 +45,7 @@ from ._common import (
     WEATHER_CSV_FILE,
     CalibrationRecord,
     HeliostatProperties,
+    TimestampEntry,
     TowerFile,
     _distance_m,
     _nan_weather,
@@ -58,7 +59,7 @@ from ._flags import (
     _Log,
 )
 from ._properties import read_heliostat_properties, validate_properties
-from ._timestamps import read_timestamps
+from ._timestamps import METADATA_GLOB, read_metadata_times, read_timestamps
 from ._tower import check_target_corners, read_tower
 from ._weather import read_weather_csv
 
@@ -714,7 +715,9 @@ def load_paint_directory(
     else:
         if ts_path.exists():
             log.skip(DataError(ts_path, None, "not a file"))
-        log.notes.append(f"no {TIMESTAMPS_FILE}: every record's time is unknown")
+    timestamps = _with_metadata_times(root, timestamps, log)
+    if not timestamps:
+        log.notes.append(f"no {TIMESTAMPS_FILE} and no {METADATA_GLOB}: every record's time is unknown")
 
     weather: dict[tuple[str, int], dict[str, float]] = {}
     weather_rows: dict[tuple[str, int], CalibrationRecord] = {}
@@ -743,6 +746,15 @@ def load_paint_directory(
             log.skip(DataError(d, None, "folder name holds unprintable characters: not a heliostat id"), heliostats=1)
         elif (d / "Properties").is_dir() or (d / "Calibration").is_dir():
             dirs.append(d)
+    if not dirs and (any(root.glob("*" + CALIBRATION_SUFFIX)) or any(root.glob("*" + PROPERTIES_SUFFIX))):
+        raise DataError(
+            root,
+            None,
+            "holds PAINT files in one folder (the layout of PAINT's download for a dataset, which "
+            "cannot tell a record's heliostat); heliojax reads the per-heliostat layout that PAINT's "
+            f"STAC client writes by default: <H>/Properties/<H>{PROPERTIES_SUFFIX}, "
+            f"<H>/Calibration/<ID>{CALIBRATION_SUFFIX}",
+        )
     if heliostats is not None:
         wanted = set(heliostats)
         if wanted and not wanted & {d.name for d in dirs}:  # another fleet's folder: one line, not a report
@@ -778,6 +790,8 @@ def load_paint_directory(
                     d / "Properties", None, f"expected exactly {expected.name}, found {[p.name for p in prop_files]}"
                 )
             props = read_heliostat_properties(prop_files[0], heliostat_id=hid)
+            for field, reason in props.notes:
+                log.flag(props.source, field, reason)
         except DataError as e:
             log.skip(e, records=len(cal_files), heliostats=1)
             if prop_files and cal_files:
@@ -799,6 +813,10 @@ def load_paint_directory(
                 )
             except DataError as e:
                 log.skip_record(e)
+    for r in records:
+        for field, reason in r.notes:
+            log.flag(r.source, field, reason)
+    _flag_records_before_renovation(properties, records, log)
     records = [_weather_of_its_time(r, weather_rows.get((r.heliostat_id, r.record_id)), log) for r in records]
     owner = {r.record_id: r.heliostat_id for r in records}
     for hid, rid in weather:  # joined by (heliostat, record): a row naming the wrong heliostat joins nothing
@@ -809,6 +827,72 @@ def load_paint_directory(
                 f"weather row for heliostat {hid!r}, but record {rid} is {owner[rid]!r}'s: its weather is not used",
             )
     return _assemble(tower, properties, records, centroid=centroid, origin=origin, log=log, validate=False)
+
+
+def _with_metadata_times(
+    root: Path, timestamps: Mapping[int, TimestampEntry], log: _Log
+) -> Mapping[int, TimestampEntry]:
+    """``timestamps`` completed from PAINT's calibration metadata CSV(s) (:data:`METADATA_GLOB`,
+    written by PAINT's own STAC client, which writes no ``calibration-timestamps.json``):
+    a record without an entry takes the CSV's; where both name a record and disagree
+    (heliostat, or time by more than a second), the timestamps file's entry is kept and
+    the disagreement flagged."""
+    files = sorted(root.glob(METADATA_GLOB))
+    if not files:
+        return timestamps
+    merged = dict(timestamps)
+    added = 0
+    for path in files:
+        log.files_seen += 1
+        try:
+            entries = read_metadata_times(path, on_error=log.skip_entry)
+        except DataError as e:
+            log.skip(e)
+            continue
+        for rid, entry in entries.items():
+            kept = merged.get(rid)
+            if kept is None:
+                merged[rid] = entry
+                added += 1
+            elif (
+                kept.heliostat_id != entry.heliostat_id
+                or abs(datetime_to_unix(kept.datetime) - datetime_to_unix(entry.datetime)) > 1.0
+            ):
+                log.flag(
+                    str(path),
+                    f"record {rid}",
+                    f"{entry.heliostat_id} at {entry.datetime}, but {TIMESTAMPS_FILE} says "
+                    f"{kept.heliostat_id} at {kept.datetime}: the latter is used",
+                )
+    if added:
+        log.notes.append(f"{added} record time(s) from {', '.join(str(f.relative_to(root)) for f in files)}")
+    return merged
+
+
+def _flag_records_before_renovation(
+    properties: Sequence[HeliostatProperties], records: Sequence[CalibrationRecord], log: _Log
+) -> None:
+    """Flags a heliostat whose records begin before its ``renovation`` (PAINT: the date or
+    date range of the mechanical retrofit): the kinematics may have changed in between,
+    which one fitted model does not describe (the change-point scan looks for the jump).
+    Every shared download's heliostat has its records after its renovation."""
+    for p in properties:
+        if p.renovation is None:
+            continue
+        try:
+            end = datetime_to_unix(p.renovation.split("/")[-1].strip()) + 86400.0  # the end day included
+        except (ValueError, TypeError, OverflowError):
+            log.flag(p.source, "renovation", f"{p.renovation[:60]!r} is not a date or date range: not checked")
+            continue
+        times = [datetime_to_unix(r.datetime) for r in records if r.heliostat_id == p.heliostat_id and r.datetime]
+        before = sum(t < end for t in times)
+        if before:
+            log.flag(
+                p.source,
+                "renovation",
+                f"{before} of {len(times)} timed record(s) were measured before the retrofit of {p.renovation}: "
+                "the kinematics may differ across it (a change point; heliojax calibrate looks for one)",
+            )
 
 
 def load_weather_csv_fleet(

@@ -10,6 +10,7 @@ from typing import Any
 from .._errors import DataError
 from ._common import (
     ACTUATOR_KEYS,
+    ACTUATOR_OPTIONAL,
     ACTUATOR_REQUIRED,
     ACTUATOR_TYPES,
     MAX_HELIOSTAT_SIZE_M,
@@ -33,13 +34,20 @@ from ._common import (
 # ======================================================================================
 
 
-def _actuator_from_json(file: str, node: _Node) -> dict[str, Any]:
+def _actuator_from_json(file: str, node: _Node, notes: list[tuple[str, str]]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for key in ACTUATOR_KEYS:
         if key not in ACTUATOR_REQUIRED and not node.has(key):
             continue
+        value = node.get(key)
+        if key in ACTUATOR_OPTIONAL and isinstance(value, float) and math.isnan(value):
+            # PAINT writes a value its source table lacks as NaN (json.dump): an optional
+            # key heliojax does not need is left out, not the heliostat
+            notes.append((node.field(key), "not finite (NaN): optional, left out"))
+            continue
         if key == "type_axis":
-            out[key] = node.string(key)
+            # PAINT wrote the raw "LINEAR" until it lower-cased its strings (PAINT commit 2a7068d)
+            out[key] = node.string(key).lower()
             _check(
                 out[key] in ACTUATOR_TYPES,
                 file,
@@ -148,6 +156,26 @@ def _offset_in_heliostat(file: str, kin: _Node, fmt: str) -> Vec3:
     return tuple(out)  # type: ignore[return-value]
 
 
+SOUTH: Vec3 = (0.0, -1.0, 0.0)
+"""The reference pose's ``initial_orientation`` (the mirror normal at zero joint angles
+faces south), the one heliojax's kinematics assume."""
+UP: Vec3 = (0.0, 0.0, 1.0)
+"""PAINT's label of that same reference pose from 2024-12-06 (PAINT commit f1fc4bf) to
+2025-11-28 (commit 6cad13e relabelled it; ARTIST's tutorial copies of one heliostat's
+properties file before and after differ in nothing else)."""
+OLDER_UP_LABEL = (
+    "[0, 0, 1]: PAINT's label of the same reference pose from 2024-12 to 2025-11 "
+    "(PAINT commit 6cad13e relabelled it [0, -1, 0]), read as south [0, -1, 0]"
+)
+KINEMATICS_KEY = "kinematics_properties"
+OLDER_KINEMATICS_KEY = "kinematic_properties"
+"""PAINT's key for the kinematics before version 3.0 (PAINT commit e644ef5, 2026-03)."""
+
+
+def _is(unit: tuple[float, ...], direction: Vec3) -> bool:
+    return all(abs(a - b) < 1e-9 for a, b in zip(unit, direction, strict=True))
+
+
 def _properties_from_json(file: str, data: Any, heliostat_id: str) -> HeliostatProperties:
     root = _Node(file, data)
     pos = root.vec3("heliostat_position")
@@ -158,27 +186,46 @@ def _properties_from_json(file: str, data: Any, heliostat_id: str) -> HeliostatP
     _check(height > 0, file, "height", f"must be positive, got {height!r}")
     for key, v in (("width", width), ("height", height)):
         _check(v <= MAX_HELIOSTAT_SIZE_M, file, key, f"{v!r} m is more than {MAX_HELIOSTAT_SIZE_M:g} m: no heliostat")
+    notes: list[tuple[str, str]] = []
     orient = root.vec3("initial_orientation")
     norm = math.sqrt(sum(x * x for x in orient))
     _check(norm > 0, file, "initial_orientation", "zero vector")
-    south = (orient[0] / norm, orient[1] / norm, orient[2] / norm)
+    unit = tuple(x / norm for x in orient)
+    if _is(unit, UP):
+        notes.append(("initial_orientation", OLDER_UP_LABEL))
+        orient = SOUTH
     _check(
-        abs(south[0]) < 1e-9 and abs(south[1] + 1.0) < 1e-9 and abs(south[2]) < 1e-9,
+        _is(unit, SOUTH) or _is(unit, UP),
         file,
         "initial_orientation",
         f"{list(orient)} is not south [0, -1, 0], the reference pose heliojax's kinematics assume",
     )
-    kin = root.node("kinematics_properties")
+    kin_key = KINEMATICS_KEY
+    if not root.has(KINEMATICS_KEY) and root.has(OLDER_KINEMATICS_KEY):
+        kin_key = OLDER_KINEMATICS_KEY
+        notes.append((kin_key, f"PAINT's key before version 3.0 (PAINT commit e644ef5), read as {KINEMATICS_KEY}"))
+    kin = root.node(kin_key)
     acts = kin.get("actuators")
     if not isinstance(acts, list) or len(acts) != 2:
         what = f"an array of {len(acts)}" if isinstance(acts, list) else _type_name(acts)
         raise DataError(file, kin.field("actuators"), f"expected an array of 2 actuators, got {what}")
     actuators = tuple(
-        _actuator_from_json(file, _Node(file, a, _join(kin.field("actuators"), i))) for i, a in enumerate(acts)
+        _actuator_from_json(file, _Node(file, a, _join(kin.field("actuators"), i)), notes) for i, a in enumerate(acts)
     )
 
-    jt1 = _offset_in_heliostat(file, kin, "joint_translation_{}_1")
-    jt2 = _offset_in_heliostat(file, kin, "joint_translation_{}_2")
+    joint_keys = ("joint_translation_{}_1", "joint_translation_{}_2")
+    if not kin.has("joint_translation_e_1") and kin.has("first_joint_translation_e"):
+        joint_keys = ("first_joint_translation_{}", "second_joint_translation_{}")
+        notes.append(
+            (
+                kin.field("first_joint_translation_e"),
+                "PAINT's joint translation keys before 2024-12-05 (PAINT commit 3bd4c37), read as "
+                "joint_translation_<e|n|u>_<1|2>; PAINT wrote those files with concentrator_translation_n "
+                "and _u swapped, which the calibration's tilts absorb only in part",
+            )
+        )
+    jt1 = _offset_in_heliostat(file, kin, joint_keys[0])
+    jt2 = _offset_in_heliostat(file, kin, joint_keys[1])
     conc = _offset_in_heliostat(file, kin, "concentrator_translation_{}")
     facets, canting_type = _facets_from_json(file, root)
     renovation = None
@@ -198,6 +245,7 @@ def _properties_from_json(file: str, data: Any, heliostat_id: str) -> HeliostatP
         canting_type=canting_type,
         renovation=renovation,
         source=file,
+        notes=tuple(notes),
     )
 
 

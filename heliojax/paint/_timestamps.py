@@ -1,12 +1,37 @@
-"""``calibration-timestamps.json``: record id -> heliostat id and UTC time."""
+"""Record times: ``calibration-timestamps.json`` (record id -> heliostat id and UTC
+time) and, where a download has none, the calibration metadata CSV that PAINT's own
+STAC client writes (``metadata/calibration_metadata_<description>.csv``)."""
 
 from __future__ import annotations
 
+import csv
 import os
+import re
 from collections.abc import Callable, Iterable, Mapping
 
 from .._errors import DataError
-from ._common import _ID_RE, CalibrationRecord, TimestampEntry, _check, _check_datetime, _load_json, _Node, _write_json
+from .._sun import utc_datetime
+from ._common import (
+    _ID_RE,
+    CalibrationRecord,
+    TimestampEntry,
+    _check,
+    _check_datetime,
+    _load_json,
+    _Node,
+    _read_regular_file,
+    _write_json,
+)
+
+METADATA_GLOB = "metadata/calibration_metadata_*.csv"
+"""Where PAINT's STAC client (``StacClient.get_heliostat_metadata``) writes the
+calibration items' metadata, relative to its download folder: one row per record,
+columns ``Id`` (the record id), ``HeliostatId``, ``DateTime`` (the item's UTC
+datetime, as pandas writes it: ``2023-08-01 10:00:00+00:00``) and the sun and target
+columns, which the record files hold too."""
+
+METADATA_COLUMNS = ("Id", "HeliostatId", "DateTime")
+"""The columns of the metadata CSV that :func:`read_metadata_times` reads."""
 
 # ======================================================================================
 # Timestamps
@@ -67,3 +92,65 @@ def write_timestamps(
         items = {r.record_id: TimestampEntry(r.heliostat_id, r.datetime) for r in entries if r.datetime is not None}
     data = {str(k): {"heliostat_id": items[k].heliostat_id, "datetime": items[k].datetime} for k in sorted(items)}
     _write_json(path, data, indent=1)
+
+
+def read_metadata_times(
+    path: str | os.PathLike, *, on_error: Callable[[DataError], None] | None = None
+) -> dict[int, TimestampEntry]:
+    """Read the record times of PAINT's calibration metadata CSV (:data:`METADATA_GLOB`):
+    record id -> (heliostat id, UTC datetime as ISO-8601 ``...Z``).
+
+    Args:
+        path: the CSV file.
+        on_error: None raises the first bad row's :class:`DataError` (field
+            ``"row <line>.<column>"``); a callable receives it and the row is skipped.
+
+    Raises:
+        DataError: an unreadable file or missing columns (always); bad rows (see ``on_error``).
+    """
+    file = str(path)
+    try:
+        text = _read_regular_file(path).decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise DataError(file, None, f"not UTF-8 text (byte {e.start})") from None
+    lines = [line for line in re.split(r"\r\n|\r|\n", text) if line.strip()]
+    try:
+        header = [h.strip() for h in next(csv.reader(lines[:1]), [])]
+    except csv.Error as e:
+        raise DataError(file, "row 1", f"malformed CSV header: {e}") from None
+    missing = [c for c in METADATA_COLUMNS if c not in header]
+    if missing:
+        raise DataError(file, missing[0], f"missing column(s): {', '.join(missing)}")
+    twice = sorted({c for c in METADATA_COLUMNS if header.count(c) > 1})
+    if twice:
+        raise DataError(file, twice[0], f"column(s) {', '.join(twice)} given twice (which one holds is ambiguous)")
+    col = {name: header.index(name) for name in METADATA_COLUMNS}
+    out: dict[int, TimestampEntry] = {}
+    ambiguous: set[int] = set()
+    for line, text_line in enumerate(lines[1:], start=2):  # the header is line 1
+        where = f"row {line}"
+        try:
+            try:
+                cells = next(csv.reader([text_line], strict=True), [])
+            except csv.Error as e:
+                raise DataError(file, where, f"malformed CSV row: {e}") from None
+            if len(cells) != len(header):
+                raise DataError(file, where, f"{len(cells)} cells, the header has {len(header)}")
+            rid_text, hid, when = (cells[col[c]].strip() for c in METADATA_COLUMNS)
+            if not _ID_RE.match(rid_text):
+                raise DataError(file, f"{where}.Id", f"record id is not numeric: {rid_text[:40]!r}")
+            _check(bool(hid), file, f"{where}.HeliostatId", "empty")
+            _check_datetime(file, f"{where}.DateTime", when)
+            iso = utc_datetime(when).strftime("%Y-%m-%dT%H:%M:%S.%fZ").replace(".000000Z", "Z")
+            rid = int(rid_text)
+            entry = TimestampEntry(hid, iso)
+            if rid in ambiguous or out.get(rid, entry) != entry:
+                ambiguous.add(rid)
+                out.pop(rid, None)
+                raise DataError(file, where, f"record {rid} is listed twice with different entries: neither is used")
+            out[rid] = entry
+        except DataError as e:
+            if on_error is None:
+                raise
+            on_error(e)
+    return out
