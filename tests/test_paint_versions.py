@@ -223,3 +223,25 @@ def test_a_deflectometry_normal_of_zero_length_is_named(tmp_path):
         g.create_dataset("surface_normals", data=np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0]]))
     with pytest.raises(DataError, match="row 1 is a zero vector"):
         read_deflectometry_facets(path)
+
+
+def test_times_of_paint_before_3_are_named_whole_hours_early(tmp_path):
+    """PAINT before 3.0 converted its times as if they were Europe/Berlin local time, so
+    they are 1 h (winter) or 2 h (summer) early. The suns then disagree with most times;
+    the records are kept and the flag names the whole-hour shift."""
+    import datetime as dt
+    from zoneinfo import ZoneInfo
+
+    data = _copy(tmp_path)
+    path = data / "calibration-timestamps.json"
+    stamps = json.loads(path.read_text())
+    berlin = ZoneInfo("Europe/Berlin")
+    for entry in stamps.values():
+        utc = dt.datetime.fromisoformat(entry["datetime"].replace("Z", "+00:00"))
+        early = utc - utc.astimezone(berlin).utcoffset()
+        entry["datetime"] = early.strftime("%Y-%m-%dT%H:%M:%SZ")
+    path.write_text(json.dumps(stamps))
+    fleet = hj.load_paint_directory(data)
+    assert fleet.report.records_loaded == 392
+    (flag,) = [e for e in fleet.report.flags if "whole hours" in e.reason]
+    assert "+1 h" in flag.reason or "+2 h" in flag.reason

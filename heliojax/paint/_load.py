@@ -221,6 +221,30 @@ _sun_gap_kernel = cached_jit(_sun_gap)
 _SUN_CHUNK = 256
 
 
+def _whole_hours_off(gap: np.ndarray, gaps) -> str:
+    """Why most stored suns disagree with their times: if times shifted by whole hours
+    (``gaps(shift_s)``, the gaps at the shifted times) fit nearly all, the shift of each
+    record (PAINT before 3.0 converted times it took for Europe/Berlin local time to
+    UTC, so they are 1 h (winter) or 2 h (summer) early; PAINT's changelog of 3.0.0), else
+    the general question."""
+    best = gap.copy()
+    hours = np.zeros(gap.shape)
+    for h in (-2.0, -1.0, 1.0, 2.0):
+        g = gaps(3600.0 * h)[0]
+        better = g < best
+        best, hours = np.where(better, g, best), np.where(better, h, hours)
+    fit = best <= MAX_SUN_GAP_DEG
+    if fit.mean() < 0.95 or not (hours[fit] != 0).any():
+        return "times in another zone, or suns from another model?"
+    counts = ", ".join(
+        f"{int(np.sum(hours[fit] == h))} by {h:+g} h" for h in (-2.0, -1.0, 1.0, 2.0) if np.any(hours[fit] == h)
+    )
+    return (
+        f"the suns fit their times shifted by whole hours ({counts} of {gap.size}): times of another "
+        "zone, e.g. PAINT before 3.0, whose times are 1-2 h early (Europe/Berlin local time converted as if UTC)."
+    )
+
+
 def _drop_sun_mismatches(
     goods: list[list[CalibrationRecord]], positions: Sequence, log: _Log
 ) -> list[list[CalibrationRecord]]:
@@ -239,12 +263,16 @@ def _drop_sun_mismatches(
     el = np.array([r.sun_elevation_deg for r in rs], dtype=np.float64)
     n = len(rs)
     size = -(-n // _SUN_CHUNK) * _SUN_CHUNK  # one compiled shape for every fleet (SPA compiles slowly)
-    cols = [np.concatenate([x, np.repeat(x[:1], size - n, axis=0)]) for x in (t, lla, az, el)]
-    parts = []
-    with jax.enable_x64(True):
-        for a in range(0, size, _SUN_CHUNK):
-            parts.append([np.asarray(x) for x in _sun_gap_kernel(*(c[a : a + _SUN_CHUNK] for c in cols))])
-    gap, az_c, el_c = (np.concatenate(x)[:n] for x in zip(*parts))
+
+    def gaps(shift_s: float) -> tuple[np.ndarray, ...]:
+        cols = [np.concatenate([x, np.repeat(x[:1], size - n, axis=0)]) for x in (t + shift_s, lla, az, el)]
+        parts = []
+        with jax.enable_x64(True):
+            for a in range(0, size, _SUN_CHUNK):
+                parts.append([np.asarray(x) for x in _sun_gap_kernel(*(c[a : a + _SUN_CHUNK] for c in cols))])
+        return tuple(np.concatenate(x)[:n] for x in zip(*parts))
+
+    gap, az_c, el_c = gaps(0.0)
     far = ~(gap <= MAX_SUN_GAP_DEG)
     if 2 * int(far.sum()) > n:
         # Most suns disagree with their times: a convention of the whole data set (times in
@@ -254,7 +282,7 @@ def _drop_sun_mismatches(
             rs[j].source,
             "sun_azimuth",
             f"{int(far.sum())} of {n} timed records have a stored sun more than {MAX_SUN_GAP_DEG:g} deg from the "
-            f"sun at their time (e.g. {gap[j]:.3g} deg here): times in another zone, or suns from another model? "
+            f"sun at their time (e.g. {gap[j]:.3g} deg here): {_whole_hours_off(gap, gaps)} "
             "All kept; check the data's time convention",
         )
         return goods
