@@ -656,8 +656,15 @@ def _load_results(path: str | Path) -> CalibrationResults:
         if "split" in records and not np.isin(records["split"], list(SPLIT_CODES.values())).all():
             raise DataError(source, "split", f"a code not among {sorted(SPLIT_CODES.values())} ({SPLIT_CODES})")
         if "split" in records and "unix_time" in records:
-            if not np.isfinite(records["unix_time"][records["split"] != 0]).all():
+            # NaN: unknown (a download without record times, split by record id); the drift
+            # since the fit needs every time of the split, and a fit without times has none
+            split_times = records["unix_time"][records["split"] != 0]
+            if np.isinf(split_times).any():
                 raise DataError(source, "unix_time", "not finite for a record of the fit's split")
+            if np.isnan(split_times).any() and float(f.attrs.get("drift_mrad2_per_day", 0.0)) != 0.0:
+                raise DataError(
+                    source, "unix_time", "unknown (NaN) for a record of the fit's split, with a drift since the fit"
+                )
         if "unix_time" in records:
             timed = records["unix_time"][np.isfinite(records["unix_time"])]
             if timed.size and not ((timed >= 0) & (timed <= _LATEST_UNIX_TIME)).all():

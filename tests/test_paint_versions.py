@@ -245,3 +245,23 @@ def test_times_of_paint_before_3_are_named_whole_hours_early(tmp_path):
     assert fleet.report.records_loaded == 392
     (flag,) = [e for e in fleet.report.flags if "whole hours" in e.reason]
     assert "+1 h" in flag.reason or "+2 h" in flag.reason
+
+
+def test_a_download_without_times_is_calibrated_and_aimed(tmp_path, capsys):
+    """The whole path of a download without record times: calibrate (time split by
+    record id, no drift), then aim and plan with its results.h5, which refused it
+    before ("unix_time: not finite for a record of the fit's split")."""
+    from heliojax.cli._main import main
+
+    data = _copy(tmp_path)
+    (data / "calibration-timestamps.json").unlink()
+    results = tmp_path / "out" / "results.h5"
+    assert main(["calibrate", str(data), "--out", str(results), "--quiet"]) == 0
+    assert "5/5 converged" in capsys.readouterr().out
+    loaded = hj.load_results(results)
+    assert loaded.drift_mrad2_per_day == 0.0
+    aim_csv = tmp_path / "out" / "aim.csv"
+    assert main(["aim", str(results), "--time", "2024-06-01T10:00:00Z", "--out", str(aim_csv), "--quiet"]) == 0
+    with aim_csv.open() as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 5 and all(np.isfinite(float(r["pointing_std_mrad"])) for r in rows)
