@@ -632,6 +632,11 @@ def _load_results(path: str | Path) -> CalibrationResults:
                 changed = stored != _row_checksums(f, len(ids))
             except (OSError, ValueError, TypeError) as e:  # an unreadable dataset: named by the checks below
                 log.debug(f"{source}: row checksums not computed ({e})")
+        else:
+            log.warning(
+                f"{source}: no {CHECKSUM_DATASET} (a file of a heliojax before 2026-11-27, or one whose checksums "
+                "were removed): values edited after it was written cannot be found"
+            )
         params = _numeric(need("params"), source, "params", (len(ids), len(names)), "f")
         group = f.get("geometry")
         geometry = _read_geometry(group, source, len(ids)) if isinstance(group, h5py.Group) else None

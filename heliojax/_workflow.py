@@ -203,6 +203,7 @@ def calibrate(
     ids = list(fleet.ids)
     az, el = direction_to_azimuth_elevation(fleet.context.sun)
     if test_fleet is not None:
+        test_fleet = _without_training_records(test_fleet, fleet)
         train = np.asarray(fleet.mask).copy()
         val = np.zeros_like(train)
         test = np.zeros_like(train)
@@ -792,6 +793,38 @@ def _change_entry(run: CalibrationRun, i: int) -> dict[str, typing.Any]:
 
 def _with_geometry(fleet, geometry):
     return eqx.tree_at(lambda f: f.geometry, fleet, geometry)
+
+
+def _without_training_records(test_fleet, fleet):
+    """``test_fleet`` without its records that ``fleet`` trains on (the same heliostat and
+    PAINT record id: the training folder, or a copy of it, given as test data), named in
+    a warning; a ConfigError when no test record is left. Held-out errors of training
+    records are training errors: 1.27 against 21.3 mrad on a trial's three heliostats."""
+    rows = {h: i for i, h in enumerate(fleet.ids)}
+    train_keys = np.where(np.asarray(fleet.mask), np.asarray(fleet.record_id, np.int64), -1)
+    row_of = np.array([rows.get(h, -1) for h in test_fleet.ids])
+    mask = np.asarray(test_fleet.mask)
+    rid = np.asarray(test_fleet.record_id, np.int64)
+
+    def key(row: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        # (heliostat row, record id) as one integer (record ids are below 2**31)
+        return (row[:, None].astype(np.int64) << 32) + ids
+
+    trained = np.isin(key(row_of, rid), key(np.arange(len(fleet.ids)), train_keys)[train_keys >= 0])
+    shared = mask & trained & (row_of[:, None] >= 0)
+    if not shared.any():
+        return test_fleet
+    if not (mask & ~shared & (row_of[:, None] >= 0)).any():
+        raise ConfigError(
+            f"every test record of the heliostats fitted ({int(shared.sum())}) is also a training record "
+            "(the same heliostat and record id): the test data is the training data"
+        )
+    names = [f"{test_fleet.ids[i]} ({int(shared[i].sum())})" for i in np.flatnonzero(shared.any(axis=1))]
+    log.warning(
+        f"{int(shared.sum())} test record(s) are training records too (the same heliostat and record id) "
+        f"and are not held out (heliostat, records): {few_names(names, 10)}"
+    )
+    return eqx.tree_at(lambda f: f.mask, test_fleet, jnp.asarray(mask & ~shared))
 
 
 def _evaluate_other(test_fleet, ids, result, padded, model0, nominal_geometry):

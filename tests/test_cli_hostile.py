@@ -213,6 +213,11 @@ CASES = [
         "contract.toml: [yield] min_elevation_deg = 89.0: the sun never rises",
     ),
     (
+        "accept field 5 km up (millimetres or another datum: was accepted at 0.2 % efficiency)",
+        lambda t: _accept(t, _file(t, "field.csv", "heliostat_id,east_m,north_m,up_m,tracking_mrad\nA1,0,60,5000,1\n")),
+        "line 2: up_m",
+    ),
+    (
         "accept report and figures folder on one path (was found only after the work)",
         lambda t: [*_accept(t, _field(t)), "--report", str(t / "x"), "--figures", str(t / "x")],
         "--report names the same path",
@@ -1944,6 +1949,16 @@ DAMAGED_DATA = [
         0,
     ),
     (
+        "heliostat behind its targets (100 m south of the tower, whose targets face north: was fitted at 3 rad)",
+        lambda d: (
+            _edit_properties(d, "BL14", _set(("heliostat_position",), [50.9125, 6.3878, 88.0]))
+            and sorted((d / "BL14" / "Calibration").iterdir())[0].name,
+            "target_name",
+        ),
+        "skipped",
+        9,
+    ),
+    (
         "actuator movement angles swapped",
         lambda d: (
             _edit_properties(d, "BL14", _set(("kinematics_properties", "actuators", 1, "min_movement_angle"), 3.0)),
@@ -2689,6 +2704,10 @@ def test_aim_times_with_an_offset_are_written_in_utc(fitted_h5, tmp_path, capsys
         (["plan", "{h5}", "--paint-dir", "{data}", "--before", "1990-01-01"], "no record of"),
         (["plan", "{h5}", "--paint-dir", "{data}", "--step-minutes", "5"], "existing records: no --step-minutes"),
         (["plan", "{h5}", "--paint-dir", "{data}", "--max-instants", "9"], "existing records: no --max-instants"),
+        (["aim", "{h5}", "--time", "2023-06-21"], "a date without a time of day"),
+        (["plan", "{h5}", "--date", "2024-06-21", "--targets", "receiver"], "not a planar calibration target"),
+        (["aim", "{h5}", "--time", "2023-06-21T12:00Z", "--tower", "far.json"], "the tower file of another plant"),
+        (["plan", "{h5}", "--date", "2024-06-21", "--tower", "far.json"], "the tower file of another plant"),
     ],
     ids=[
         "aim day with a time",
@@ -2700,16 +2719,51 @@ def test_aim_times_with_an_offset_are_written_in_utc(fitted_h5, tmp_path, capsys
         "plan before every record",
         "plan records with a step",
         "plan records with an instant cap",
+        "aim a bare date as an instant (was midnight UTC, every sun below the horizon)",
+        "plan on the receiver (no calibration record can be taken there)",
+        "aim with the tower file of a plant 22 km away (was aimed at its receiver)",
+        "plan with the tower file of a plant 22 km away",
     ],
 )
 def test_aim_and_plan_refuse_instants_that_do_not_exist(argv, said, fitted_h5, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "p.csv").write_text(_aim_rows())
+    tower = json.loads(next(hj.default_data_dir().glob("*-tower-measurements.json")).read_text())
+    tower["power_plant_properties"]["coordinates"][0] += 0.2  # another plant, 22 km north
+    (tmp_path / "far.json").write_text(json.dumps(tower))
     out = ["--out", str(tmp_path / "o.csv")] + (["--envelope-day-step", "60"] if argv[0] == "plan" else [])
     data = str(hj.default_data_dir())
     rc, _, err = _run([a.replace("{h5}", str(fitted_h5)).replace("{data}", data) for a in argv] + out, capsys)
     assert rc == 2 and said in err and "Traceback" not in err, err
     assert not (tmp_path / "o.csv").exists()
+
+
+def test_plan_among_existing_records_offers_none_the_fit_used(fitted_h5, tmp_path, capsys):
+    """Its training records were offered as new measurements: 9 of 12 planned in a
+    trial, their information counted twice in the predicted gain."""
+    import h5py
+
+    out = tmp_path / "plan.csv"
+    argv = ["plan", str(fitted_h5), "--paint-dir", str(hj.default_data_dir()), "--out", str(out), "--quiet"]
+    assert _run(argv, capsys)[0] == 0
+    with h5py.File(fitted_h5) as f:
+        ids = [x.decode() if isinstance(x, bytes) else str(x) for x in f["heliostat_ids"][()]]
+        rid, split = f["record_id"][()], f["split"][()]
+    trained = {(ids[h], int(r)) for h in range(len(ids)) for r in rid[h][split[h] == 1]}
+    with out.open() as f:
+        planned = [(row["heliostat_id"], int(row["record_id"])) for row in csv.DictReader(f)]
+    assert planned and not set(planned) & trained
+
+
+def test_test_data_that_is_the_training_data_is_refused_or_left_out(tmp_path, capsys):
+    """--test-data naming the training folder reported training errors as held-out
+    (1.27 against 21.3 mrad in a trial)."""
+    data = str(hj.default_data_dir())
+    rc, _, err = _run(["calibrate", data, "--test-data", data, "--max-steps", "2", "--quiet"], capsys)
+    assert rc == 2 and "is also a training record" in err, err
+    fleet = hj.load_paint_directory(data)
+    with pytest.raises(hj.ConfigError, match="the test data is the training data"):
+        hj.calibrate(fleet, test_fleet=fleet, fit_options={"max_steps": 2})
 
 
 def test_a_records_file_without_training_records_is_refused(tmp_path, capsys):

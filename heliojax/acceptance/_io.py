@@ -18,7 +18,7 @@ from .._errors import ConfigError, DataError, few_names
 from .._geometry import MAX_FIELD_EXTENT_M, wgs84_to_enu
 from .._io import is_decimal, read_csv_rows
 from ..paint import TOWER_FILE_SUFFIX, read_heliostat_properties, read_tower
-from ..paint._common import _load_json
+from ..paint._common import MAX_HELIOSTAT_HEIGHT_M, _load_json
 from ._field import PARAMETERS, FieldData
 
 log = logging.getLogger(__name__)
@@ -101,6 +101,13 @@ def read_field_csv(path: str | os.PathLike) -> FieldData:
         if max(abs(e), abs(n), abs(u)) > MAX_FIELD_EXTENT_M:
             raise DataError(
                 path, f"line {i}: east_m/north_m/up_m", f"more than {MAX_FIELD_EXTENT_M:g} m from the tower"
+            )
+        if abs(u) > MAX_HELIOSTAT_HEIGHT_M:  # the PAINT reader's bound on a heliostat's height
+            raise DataError(
+                path,
+                f"line {i}: up_m",
+                f"{u:g} m: more than {MAX_HELIOSTAT_HEIGHT_M:g} m above or below the plant's reference point, "
+                "not on its ground (millimetres, or another height datum?)",
             )
     seen: dict[tuple[float, float], int] = {}
     for i, (e, n, _) in enumerate(pos, start=2):

@@ -7,6 +7,7 @@ import argparse
 import csv
 import datetime as dt
 import logging
+import re
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ from ._common import (
     is_iso_date_time,
     number,
     path_type,
+    read_plant_tower,
     shown_value,
     staged_outputs,
     target_name,
@@ -68,6 +70,17 @@ def _utc(value: str) -> dt.datetime:
     return t.astimezone(dt.UTC)  # written and computed in UTC from here on
 
 
+def _utc_instant(value: str) -> dt.datetime:
+    """:func:`_utc` of a date-time with its time of day: ``--time 2023-06-21`` named midnight
+    UTC, a sun below the horizon, and aimed every heliostat at night."""
+    if re.fullmatch(r"\s*\d{4}-\d{2}-\d{2}\s*", value):
+        raise argparse.ArgumentTypeError(
+            f"{value.strip()}: a date without a time of day; give one (e.g. {value.strip()}T12:00Z), "
+            f"or --date {value.strip()} for the whole day"
+        )
+    return _utc(value)
+
+
 def utc_day(value: str) -> dt.datetime:
     """``YYYY-MM-DD``: a whole UTC day (midnight UTC); a time or an offset is refused
     (the day it names would not be the UTC day)."""
@@ -99,7 +112,7 @@ def add_parser(subparsers) -> None:
         "--date", type=utc_day, help="a whole day (UTC, YYYY-MM-DD), with --step-minutes (default: today)"
     )
     when.add_argument("--start", type=_utc, help="first instant, ISO date-time (UTC), with --end")
-    when.add_argument("--time", type=_utc, help="one instant, ISO date-time (UTC)")
+    when.add_argument("--time", type=_utc_instant, help="one instant, ISO date-time (UTC)")
     when.add_argument("--sun-azimuth", type=number(-360.0, 360.0), help="sun azimuth in degrees (0 = south, east +)")
     p.add_argument("--end", type=_utc, help="last instant with --start")
     p.add_argument("--sun-elevation", type=number(0.0, 90.0, above=True), help="sun elevation in degrees")
@@ -304,12 +317,11 @@ def run(args) -> int:
     from .._progress import activity
     from .._results import load_results
     from ..optics import target_from_tower
-    from ..paint import default_data_dir, read_tower
 
     enable_compilation_cache(args.cache_dir, args.command)
     results = load_results(args.results)
     origin = np.asarray(results.attrs["origin_lla"], float)
-    tower = read_tower(args.tower or default_data_dir() / "WRI1030197-tower-measurements.json")
+    tower = read_plant_tower(args.tower, origin)
     args.target = args.target or "receiver"
     target = target_from_tower(tower, args.target)
     if args.aim_csv is not None:

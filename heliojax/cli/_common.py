@@ -11,6 +11,7 @@ import math
 import os
 import re
 import sys
+import typing
 from pathlib import Path
 
 log = logging.getLogger(__name__)
@@ -731,3 +732,33 @@ def staged_outputs(args: argparse.Namespace, names: tuple[str, ...]) -> collecti
     for f in finals:
         if f is not None:
             log.info(f"wrote {f}")
+
+
+MAX_PLANT_OFFSET_M = 1_000.0
+"""Largest distance (m) between the plant reference point of the tower file that ``aim`` or
+``plan`` uses and the ENU origin of the fit they aim (``results.h5``'s ``origin_lla``, the
+reference point of the tower file of the calibration): one plant's files place it within
+metres of itself, two plants are kilometres apart."""
+
+
+def read_plant_tower(path, origin_lla) -> typing.Any:
+    """The tower file ``path`` (default: the embedded Jülich tower file) of the plant
+    whose fit has the ENU origin ``origin_lla`` (WGS84 deg, deg, m). Raises ConfigError
+    naming ``--tower`` when its plant reference point is more than
+    :data:`MAX_PLANT_OFFSET_M` from that origin: aim points of another plant (the
+    embedded tower for a fit of another plant put every aim point kilometres away)."""
+    from .._errors import ConfigError
+    from ..paint import default_data_dir, read_tower
+    from ..paint._common import _distance_m
+
+    tower = read_tower(path or default_data_dir() / "WRI1030197-tower-measurements.json")
+    origin = tuple(float(x) for x in origin_lla)
+    gap = _distance_m(tuple(float(x) for x in tower.origin_lla), origin)  # pyright: ignore[reportArgumentType]
+    if not gap <= MAX_PLANT_OFFSET_M:
+        which = f"--tower {path}" if path else "the embedded Jülich tower file (no --tower)"
+        raise ConfigError(
+            f"{which}: its plant reference point is {gap / 1000:.3g} km from the fit's origin "
+            f"{[round(x, 6) for x in origin]} (results.h5 origin_lla): the tower file of another plant; "
+            "give the plant's with --tower"
+        )
+    return tower

@@ -16,6 +16,7 @@ from ._common import (
     integer,
     number,
     path_type,
+    read_plant_tower,
     report_load,
     staged_outputs,
     target_name,
@@ -179,10 +180,10 @@ def run(args) -> int:
         plan_calibration,
     )
     from .._progress import activity
-    from .._results import load_results
+    from .._results import SPLIT_CODES, load_results
     from .._sun import solar_position
     from ..optics import target_from_tower
-    from ..paint import default_data_dir, load_paint_directory, read_tower
+    from ..paint import load_paint_directory
 
     if args.paint_dir is None and (args.before is not None or args.records_out is not None):
         raise ConfigError("--before and --records-out need --paint-dir")
@@ -207,7 +208,7 @@ def run(args) -> int:
     enable_compilation_cache(args.cache_dir, args.command)
     results = load_results(args.results)
     origin = np.asarray(results.attrs["origin_lla"], float)
-    tower = read_tower(args.tower or default_data_dir() / "WRI1030197-tower-measurements.json")
+    tower = read_plant_tower(args.tower, origin)
 
     def centre(name: str) -> np.ndarray:
         plane = target_from_tower(tower, name)
@@ -245,20 +246,34 @@ def run(args) -> int:
             usable &= times < args.before.timestamp()
             if not usable.any():
                 raise ConfigError(f"--before {args.before.isoformat()}: no record of {args.paint_dir} is before it")
-        # Records the fit put before a change point describe a past state: not candidates.
-        if "superseded" in results.records and "record_id" in results.records:
+        # Not candidates: records the fit put before a change point (a past state) and
+        # records it was fitted to (measured already: planning them again counted their
+        # information twice, and the plan's predicted gain with it).
+        if "record_id" in results.records:
+            fitted = np.zeros(np.shape(results.records["record_id"]), bool)
+            if "split" in results.records:
+                fitted |= np.asarray(results.records["split"]) == SPLIT_CODES["train"]
+            if "superseded" in results.records:
+                fitted |= np.asarray(results.records["superseded"], bool)
             old = {
                 (hid, int(rid))
-                for hid, rids, sup in zip(
-                    results.ids, results.records["record_id"], results.records["superseded"], strict=True
-                )
-                for rid in np.asarray(rids)[np.asarray(sup, bool)]
+                for hid, rids, drop in zip(results.ids, results.records["record_id"], fitted, strict=True)
+                for rid in np.asarray(rids)[drop]
             }
-            if old:
-                rid_f = np.asarray(fleet.record_id)
-                usable &= ~np.array(
-                    [[(hid, int(r)) in old for r in rid_f[k]] for k, hid in enumerate(fleet.ids)], bool
-                ).reshape(usable.shape)
+            rid_f = np.asarray(fleet.record_id)
+            known = np.array(
+                [[(hid, int(r)) in old for r in rid_f[k]] for k, hid in enumerate(fleet.ids)], bool
+            ).reshape(usable.shape)
+            if (usable & known).any():
+                log.info(
+                    f"{int((usable & known).sum())} record(s) of {args.paint_dir} are the fit's own training "
+                    "records or lie before its change points: not candidates"
+                )
+            usable &= ~known
+            if not usable.any():
+                raise ConfigError(
+                    f"--paint-dir {args.paint_dir}: every record is one the fit used or superseded; nothing new to plan"
+                )
         candidates, record_ids = candidates_from_records(fleet, results.ids, usable)
         rows = [list(fleet.ids).index(i) if i in fleet.ids else -1 for i in results.ids]
         names = np.asarray(fleet.target_names + ("",))
@@ -269,6 +284,12 @@ def run(args) -> int:
     else:
         instants = time_window(args)
         targets = tuple(args.targets or tower.planar_target_names)
+        not_planar = [t for t in targets if t not in tower.planar_target_names]
+        if not_planar:
+            raise ConfigError(
+                f"--targets {', '.join(not_planar)}: not a planar calibration target of {Path(tower.source).name} "
+                f"(a measurement needs one: {', '.join(tower.planar_target_names)})"
+            )
         unix = np.array([t.timestamp() for t in instants])
         lat, lon, alt = (float(x) for x in origin)
         sun = solar_position(jnp.asarray(unix), lat, lon, alt).direction_enu()

@@ -211,6 +211,31 @@ def check_record_context(
                 f"motor_position.axis_{axis}_motor_position",
                 f"count {count} outside [min_increment, max_increment] = [{lo}, {hi}] of {Path(props.source).name}",
             )
+    target = None if tower is None else tower.targets.get(record.target_name)
+    if target is not None and target.normal is not None and any(target.normal):
+        middle = tuple(sum(target.points[c][k] for c in CORNERS) / len(CORNERS) for k in range(3))
+        front = _front_distance_m(props.position_lla, middle, target.normal)  # pyright: ignore[reportArgumentType]
+        if not front > 0.0:
+            raise DataError(
+                file,
+                "target_name",
+                f"heliostat {record.heliostat_id!r} ({Path(props.source).name}: heliostat_position) stands "
+                f"{-front:.3g} m behind the plane of target {record.target_name!r}, whose front faces "
+                f"{list(target.normal)}: no reflection reaches that face (a wrong position or target?)",
+            )
+
+
+def _front_distance_m(point: Vec3, centre: Vec3, normal: Vec3) -> float:
+    """Signed distance (m) of the WGS84 ``point`` from the plane through the WGS84
+    ``centre`` with the ENU ``normal`` (positive on the side it faces), local flat-Earth
+    approximation (a plant's extent)."""
+    north = math.radians(point[0] - centre[0]) * 6_371_000.0
+    east = (
+        math.radians((point[1] - centre[1] + 180.0) % 360.0 - 180.0) * 6_371_000.0 * math.cos(math.radians(centre[0]))
+    )
+    up = point[2] - centre[2]
+    size = math.sqrt(sum(x * x for x in normal))
+    return (east * normal[0] + north * normal[1] + up * normal[2]) / size
 
 
 def validate_record(record: CalibrationRecord) -> CalibrationRecord:
