@@ -246,12 +246,14 @@ def run(args) -> int:
             usable &= times < args.before.timestamp()
             if not usable.any():
                 raise ConfigError(f"--before {args.before.isoformat()}: no record of {args.paint_dir} is before it")
-        # Not candidates: records the fit put before a change point (a past state) and
-        # records it was fitted to (measured already: planning them again counted their
-        # information twice, and the plan's predicted gain with it).
+        # Not candidates: records the fit put before a change point (a past state) and,
+        # where the plan starts from the fit's posterior, records it was fitted to
+        # (measured already: planning them again counted their information twice, and
+        # the plan's predicted gain with it). From the fleet prior (--start-from prior, a
+        # retrospective study of which records to have taken) they are candidates.
         if "record_id" in results.records:
             fitted = np.zeros(np.shape(results.records["record_id"]), bool)
-            if "split" in results.records:
+            if "split" in results.records and args.start_from == "posterior":
                 fitted |= np.asarray(results.records["split"]) == SPLIT_CODES["train"]
             if "superseded" in results.records:
                 fitted |= np.asarray(results.records["superseded"], bool)
@@ -266,8 +268,9 @@ def run(args) -> int:
             ).reshape(usable.shape)
             if (usable & known).any():
                 log.info(
-                    f"{int((usable & known).sum())} record(s) of {args.paint_dir} are the fit's own training "
-                    "records or lie before its change points: not candidates"
+                    f"{int((usable & known).sum())} record(s) of {args.paint_dir} lie before the fit's change "
+                    f"points{' or are its own training records' if args.start_from == 'posterior' else ''}: "
+                    "not candidates"
                 )
             usable &= ~known
             if not usable.any():
