@@ -137,16 +137,17 @@ def test_per_heliostat_start_is_the_posterior_mode_and_stays_bounded_when_nearly
     s = screen_candidate("x", bases, j, (6, 7), 1, ABSORBED_LIMIT, typical=typical)
     assert s.fractions.max() > 1 - 1e-8  # the second column is nearly absorbed
     # second route: profile A out, then stacked least squares [B~ / (sigma / typical)] theta = [-r~ / 0]
-    (hb,) = bases
-    bt = b - hb.u @ (hb.u.T @ b)
+    assert len(bases) == 1
+    u, r_res = bases.u[0], bases.r_res[0]
+    bt = b - u @ (u.T @ b)
     full = np.linalg.lstsq(np.hstack([a, b]), y, rcond=None)[0]
     sigma2 = np.sum((np.hstack([a, b]) @ full - y) ** 2) / (n - 8)
     stacked = np.vstack([bt, np.diag(np.sqrt(sigma2) / typical)])
-    expected = np.linalg.lstsq(stacked, np.concatenate([-hb.r_res, np.zeros(2)]), rcond=None)[0]
+    expected = np.linalg.lstsq(stacked, np.concatenate([-r_res, np.zeros(2)]), rcond=None)[0]
     np.testing.assert_allclose(s.theta_per_heliostat[0], expected, rtol=1e-6, atol=1e-9)
     assert abs(s.theta_per_heliostat[0, 0] - 0.3) < 0.15  # the determined direction is recovered
     assert np.all(np.abs(s.theta_per_heliostat[0]) < 3 * typical)
-    bare = np.linalg.lstsq(bt, -hb.r_res, rcond=None)[0]
+    bare = np.linalg.lstsq(bt, -r_res, rcond=None)[0]
     assert np.abs(bare[1]) > 100 * typical[1]  # what the bare estimate would start from
 
 
@@ -173,12 +174,13 @@ def test_shared_start_is_the_posterior_mode_of_the_refits_shared_step():
     s = screen_candidate("x", bases, j, (6, 7), n_h, ABSORBED_LIMIT, typical=typical)
     assert s.start_shared is not None and s.theta_shared is not None
     rows, rhs = [], []
-    for hb in bases:
-        b = j[hb.index][:, 6:]
-        bt = b - hb.u @ (hb.u.T @ b)
-        w = hb.dof / hb.rss
+    for i, h in enumerate(bases.index):
+        b = j[h][:, 6:]
+        u = bases.u[i]
+        bt = b - u @ (u.T @ b)
+        w = bases.dof[i] / bases.rss[i]
         rows.append(np.sqrt(w) * bt)
-        rhs.append(-np.sqrt(w) * hb.r_res)
+        rhs.append(-np.sqrt(w) * bases.r_res[i])
     rows.append(np.diag(1.0 / typical))
     rhs.append(np.zeros(2))
     expected = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0]

@@ -40,7 +40,7 @@ import dataclasses
 import numpy as np
 from scipy import stats
 
-from ._screen import HeliostatBasis, chi2_equivalent, directions_f_test
+from ._screen import HeliostatBases, chi2_equivalent, directions_f_tests
 
 GENERIC_TYPICAL_MRAD = 0.6
 """Prior standard deviation of a generic competitor's coefficient (mrad of beam error)."""
@@ -103,63 +103,60 @@ class CompetitorScore:
     p_heliostats: np.ndarray
 
 
-def _per_heliostat(bases: list[HeliostatBasis], design: np.ndarray, noise: np.ndarray, n_h: int):
+def _per_heliostat(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray, n_h: int):
+    """The per-heliostat form, all heliostats at once (those whose records lack the
+    variable add nothing): ``(delta_bic, p, effect_size_mrad, p_heliostats)``."""
     typ2 = GENERIC_TYPICAL_MRAD**2
-    delta, q_sum, k_sum, sq, n_sq = 0.0, 0.0, 0, 0.0, 0
     p_h = np.full(n_h, np.nan)
-    for hb in bases:
-        x = design[hb.index][hb.rows]
-        if not np.any(x):
-            continue
-        xt = x - hb.u @ (hb.u.T @ x)
-        k = xt.shape[1]
-        sigma2 = max(float(noise[hb.index]) ** 2, 1e-300)
-        info = xt.T @ xt / sigma2
-        beta = np.linalg.solve(info + np.eye(k) / typ2, xt.T @ hb.r_res / sigma2)
-        new = hb.r_res - xt @ beta
-        r2 = float(hb.r_res @ hb.r_res)
-        rss_new = max(hb.rss - (r2 - float(new @ new)), 1e-300)
-        _, logdet = np.linalg.slogdet(np.eye(k) + typ2 * info)
-        delta += hb.n * np.log(max(hb.rss, 1e-300) / rss_new) - logdet - float(beta @ beta) / typ2
-        fitted = x @ beta
-        sq += float(fitted @ fitted)
-        n_sq += hb.n // 2
-        # the F test of the screens (exact for Gaussian noise), on the directions present
-        u, s, _ = np.linalg.svd(xt, full_matrices=False)
-        keep = s > 1e-9 * max(float(s.max()), 1e-300)
-        kh = int(keep.sum())
-        if kh and hb.dof - kh > 0:
-            p_h[hb.index] = directions_f_test(u[:, keep], hb.r_res, hb.dof)[0]
-            q_sum += chi2_equivalent(p_h[hb.index], kh)
-            k_sum += kh
+    x = bases.rows(design)  # (S, R, k)
+    driven = np.any(x, axis=(1, 2))
+    xt = bases.project(x)[driven]
+    x = x[driven]
+    r_res, rss, n, dof = bases.r_res[driven], bases.rss[driven], bases.n[driven], bases.dof[driven]
+    k = xt.shape[-1]
+    xtt = xt.swapaxes(1, 2)
+    sigma2 = np.maximum(noise[bases.index[driven]] ** 2, 1e-300)[:, None, None]
+    info = xtt @ xt / sigma2
+    beta = np.linalg.solve(info + np.eye(k) / typ2, xtt @ r_res[..., None] / sigma2)[..., 0]
+    new = r_res - (xt @ beta[..., None])[..., 0]
+    r2 = np.sum(r_res * r_res, axis=1)
+    rss_new = np.maximum(rss - (r2 - np.sum(new * new, axis=1)), 1e-300)
+    _, logdet = np.linalg.slogdet(np.eye(k) + typ2 * info)
+    delta = float(np.sum(n * np.log(np.maximum(rss, 1e-300) / rss_new) - logdet - np.sum(beta * beta, axis=1) / typ2))
+    fitted = (x @ beta[..., None])[..., 0]
+    sq = float(np.sum(fitted * fitted))
+    n_sq = int(np.sum(n // 2))
+    # the F test of the screens (exact for Gaussian noise), on the directions present
+    u, s, _ = np.linalg.svd(xt, full_matrices=False)
+    keep = s > 1e-9 * np.maximum(s.max(axis=1, initial=0.0), 1e-300)[:, None]
+    tested, p_tested, _, _ = directions_f_tests(u, keep, r_res, dof)
+    kh = keep.sum(axis=1)[tested]
+    p_h[bases.index[driven][tested]] = p_tested[tested]
+    q_sum = float(np.sum(chi2_equivalent(p_tested[tested], kh)))
+    k_sum = int(kh.sum())
     p = float(stats.chi2.sf(q_sum, k_sum)) if k_sum else 1.0
     return delta, p, float(np.sqrt(sq / max(n_sq, 1))), p_h
 
 
-def _fleet(bases: list[HeliostatBasis], design: np.ndarray, noise: np.ndarray):
+def _fleet(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray):
+    """The fleet form: ``(delta_bic, p, effect_size_mrad)``."""
     typ2 = GENERIC_TYPICAL_MRAD**2
     k = design.shape[-1]
-    g, gmat = np.zeros(k), np.zeros((k, k))
-    parts = []
-    for hb in bases:
-        x = design[hb.index][hb.rows]
-        xt = x - hb.u @ (hb.u.T @ x)
-        sigma2 = max(float(noise[hb.index]) ** 2, 1e-300)
-        g += xt.T @ hb.r_res / sigma2
-        gmat += xt.T @ xt / sigma2
-        parts.append((hb, x, xt))
+    x = bases.rows(design)  # (S, R, k)
+    xt = bases.project(x)
+    weighted = xt / np.maximum(noise[bases.index] ** 2, 1e-300)[:, None, None]  # x~_h / sigma_h^2
+    g = np.tensordot(weighted, bases.r_res, axes=([0, 1], [0, 1]))
+    gmat = np.tensordot(weighted, xt, axes=([0, 1], [0, 1]))
     if not np.any(gmat):
         return 0.0, 1.0, 0.0
     beta = np.linalg.solve(gmat + np.eye(k) / typ2, g)
-    delta, sq, n_sq = 0.0, 0.0, 0
-    for hb, x, xt in parts:
-        new = hb.r_res - xt @ beta
-        r2 = float(hb.r_res @ hb.r_res)
-        rss_new = max(hb.rss - (r2 - float(new @ new)), 1e-300)
-        delta += hb.n * np.log(max(hb.rss, 1e-300) / rss_new)
-        fitted = x @ beta
-        sq += float(fitted @ fitted)
-        n_sq += hb.n // 2
+    new = bases.r_res - xt @ beta
+    r2 = np.sum(bases.r_res * bases.r_res, axis=1)
+    rss_new = np.maximum(bases.rss - (r2 - np.sum(new * new, axis=1)), 1e-300)
+    delta = float(np.sum(bases.n * np.log(np.maximum(bases.rss, 1e-300) / rss_new)))
+    fitted = x @ beta
+    sq = float(np.sum(fitted * fitted))
+    n_sq = int(np.sum(bases.n // 2))
     _, logdet = np.linalg.slogdet(np.eye(k) + typ2 * gmat)
     delta -= logdet + float(beta @ beta) / typ2
     ev, vec = np.linalg.eigh(gmat)
@@ -169,15 +166,13 @@ def _fleet(bases: list[HeliostatBasis], design: np.ndarray, noise: np.ndarray):
     return delta, p, float(np.sqrt(sq / max(n_sq, 1)))
 
 
-def score_competitors(
-    fleet, bases: list[HeliostatBasis], noise: np.ndarray, n_heliostats: int
-) -> list[CompetitorScore]:
+def score_competitors(fleet, bases: HeliostatBases, noise: np.ndarray, n_heliostats: int) -> list[CompetitorScore]:
     """Every generic competitor with recorded data, best evidence first.
 
     Args:
         fleet: the padded fleet (its records' variables).
-        bases: the current model's projected residuals per heliostat
-            (:func:`heliojax.discovery._screen.prepare_bases`, fold-0 lanes).
+        bases: the current model's projected residuals of every heliostat, one padded
+            stack (:func:`heliojax.discovery._screen.prepare_bases`, fold-0 lanes).
         noise: ``(L,)`` the lanes' noise (mrad) that weighs the priors in the refits.
         n_heliostats: ``H``.
     """

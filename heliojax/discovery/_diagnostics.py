@@ -240,6 +240,38 @@ def anova_per_heliostat(z: np.ndarray, idx: np.ndarray) -> tuple[float, np.ndarr
     return float(stats.f.sf(f, d1, d2)), deviation
 
 
+def anova_each_heliostat(z: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """``(H,)`` per heliostat, the p-value of :func:`anova` of its own records alone
+    (``z`` ``(H, M, 2)``, bins ``idx`` ``(H, M)``; the bins it has records in, each
+    with at least one), all heliostats at once; NaN where the heliostat has fewer
+    than ``2 MIN_PER_BIN`` records in bins or the test does not exist (fewer than two
+    bins, no within-bin degrees of freedom or scatter)."""
+    h = idx.shape[0]
+    p = np.full(h, np.nan)
+    ok = idx >= 0
+    n_bins = int(idx.max()) + 1 if ok.any() else 0
+    if n_bins < 2:
+        return p
+    heliostat = np.broadcast_to(np.arange(h)[:, None], idx.shape)[ok]
+    cell = heliostat * n_bins + idx[ok]  # (heliostat, bin)
+    zz = z[ok]
+    count = np.bincount(cell, minlength=h * n_bins).reshape(h, n_bins)
+    sums = np.stack([np.bincount(cell, weights=zz[:, j], minlength=h * n_bins) for j in range(2)], axis=-1)
+    sums = sums.reshape(h, n_bins, 2)
+    n = count.sum(axis=1)
+    bins = (count > 0).sum(axis=1)
+    means = sums / np.maximum(count, 1)[..., None]  # (H, B, 2)
+    grand = sums.sum(axis=1) / np.maximum(n, 1)[:, None]
+    ss_between = np.sum(count[..., None] * (means - grand[:, None, :]) ** 2, axis=(1, 2))
+    within = np.sum((zz - means.reshape(-1, 2)[cell]) ** 2, axis=1)
+    ss_within = np.bincount(heliostat, weights=within, minlength=h)
+    d1, d2 = 2 * (bins - 1), 2 * (n - bins)
+    valid = (n >= 2 * MIN_PER_BIN) & (bins >= 2) & (d2 > 0) & (ss_within > 0)
+    f = (ss_between[valid] / d1[valid]) / (ss_within[valid] / d2[valid])
+    p[valid] = stats.f.sf(f, d1[valid], d2[valid])
+    return p
+
+
 def heliostat_noise(r: np.ndarray, use: np.ndarray, n_params: int) -> np.ndarray:
     """``(H,)`` noise per residual component, ``sqrt(RSS_h / (2 n_h - p))`` (NaN where
     the heliostat has no residual degrees of freedom)."""
@@ -313,14 +345,8 @@ def unexplained_structure(
             _, shift_r = anova_per_heliostat(raw, idx)
             inside = per_heliostat_cells(idx) >= 0
             effect = float(np.sqrt(np.sum(shift_r**2) / max(int(inside.sum()), 1)))
-        heliostats = []
-        for h in range(r.shape[0]):
-            row = np.full(idx.shape, -1)
-            row[h] = idx[h]
-            if (row >= 0).sum() >= 2 * MIN_PER_BIN:
-                p_h, _ = anova(z, _renumber(row))
-                if np.isfinite(p_h) and p_h < alpha and ids[h]:
-                    heliostats.append(ids[h])
+        p_each = anova_each_heliostat(z, idx)
+        heliostats = [ids[h] for h in np.flatnonzero(np.isfinite(p_each) & (p_each < alpha)) if ids[h]]
         entries.append(
             {
                 "variable": name,
@@ -336,12 +362,3 @@ def unexplained_structure(
         z = z - shift_z
         remaining = [c for c in remaining if c != best]
     return entries, {k: float(v) for k, v in first.items()}
-
-
-def _renumber(idx: np.ndarray) -> np.ndarray:
-    kept = np.unique(idx[idx >= 0])
-    if kept.size == 0:
-        return idx
-    remap = np.full(int(kept.max()) + 1, -1)
-    remap[kept] = np.arange(kept.size)
-    return np.where(idx >= 0, remap[np.clip(idx, 0, None)], -1)

@@ -81,24 +81,32 @@ def column_bases(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return u * keep[:, None, :], keep.sum(axis=1)
 
 
-def absorbed_fractions(b_list, b_res_list) -> np.ndarray:
+def _gram(blocks) -> np.ndarray:
+    """``sum_h X_h^T X_h`` of per-heliostat blocks: a list of ``(n_h, k)`` arrays or a
+    zero-padded stack ``(S, R, k)`` (``(0, 0)`` for an empty list)."""
+    if not isinstance(blocks, np.ndarray):
+        if not len(blocks):
+            return np.zeros((0, 0))
+        blocks = np.concatenate([np.asarray(b, float) for b in blocks])
+    rows = blocks.reshape(-1, blocks.shape[-1])
+    return rows.T @ rows
+
+
+def absorbed_fractions(b, b_res) -> np.ndarray:
     """Absorbed fractions of the candidate's directions, ascending (best first).
 
     Args:
-        b_list: per heliostat, the candidate's columns ``B_h`` ``(n_h, k)``.
-        b_res_list: per heliostat, ``(I - P_h) B_h``.
+        b: per heliostat, the candidate's columns ``B_h`` ``(n_h, k)``: a list, or a
+            stack ``(S, R, k)`` whose rows beyond each heliostat's are zero.
+        b_res: per heliostat, ``(I - P_h) B_h``, in the same form.
 
     Returns:
         ``(r,)`` fractions in [0, 1] over the ``r`` directions the data drive
         at all (empty when the candidate's columns are all zero: no driving data).
     """
-    k = b_list[0].shape[1] if b_list else 0
-    full = np.zeros((k, k))
-    res = np.zeros((k, k))
-    for b, bt in zip(b_list, b_res_list):
-        full += b.T @ b
-        res += bt.T @ bt
-    if k == 0:
+    full = _gram(b)
+    res = _gram(b_res)
+    if full.shape[0] == 0:
         return np.zeros(0)
     ev, vec = np.linalg.eigh(full)
     if ev.max() <= 0:

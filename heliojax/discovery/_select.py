@@ -93,7 +93,7 @@ from ._diagnostics import record_variables, unexplained_structure
 from ._identifiability import ABSORBED_LIMIT, column_bases
 from ._lanes import Engine, Lanes, Layout, make_lanes, make_layout
 from ._report import build_report, cv_log_ratio, cv_pair
-from ._screen import CandidateScreen, holm, prepare_bases, screen_candidate
+from ._screen import CandidateScreen, HeliostatBases, holm, prepare_bases, screen_candidate
 
 log = logging.getLogger(__name__)
 
@@ -599,9 +599,9 @@ class _Workflow:
 
     # -- screening --------------------------------------------------------------------
 
-    def bases(self, state: ModelState) -> list:
-        """The current model's projected residuals per heliostat (fold-0 lanes, the first
-        ``H``: all training records)."""
+    def bases(self, state: ModelState) -> HeliostatBases:
+        """The current model's projected residuals of every heliostat, one padded stack
+        (fold-0 lanes, the first ``H``: all training records)."""
         h = self.lanes.n_heliostats
         fold0 = np.arange(h)
         used = np.repeat(self.lanes.train_mask[fold0], 2, axis=1) & state.ok[fold0, None]

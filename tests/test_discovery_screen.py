@@ -1,0 +1,191 @@
+"""The batched screens (one padded stack of heliostats) against a straightforward
+per-heliostat computation, on a small random problem with unequal record counts:
+a heliostat without used rows, one without residual degrees of freedom and one
+without degrees of freedom left for its F test. The rows a heliostat does not use
+hold large values in the residuals and the Jacobian, so a padded row that leaked
+into a projection or a sum would change the results."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+
+from heliojax.discovery import ABSORBED_LIMIT
+from heliojax.discovery._competitors import GENERIC_TYPICAL_MRAD, _fleet, _per_heliostat
+from heliojax.discovery._identifiability import RANK_RTOL, column_basis
+from heliojax.discovery._screen import prepare_bases, screen_candidate
+
+N_ROWS = 40  # residual rows of the padded fleet
+N_BASE = 5  # current model's columns
+CAND = (5, 6)  # the candidate's columns
+# used rows per heliostat: none, fewer than the base's columns (dof <= 0), dof 3 with a
+# second candidate column absorbed (one direction tested, dof - k = 2), dof 2 with two
+# candidate columns (dof - k = 0: in the shared sums, not tested per heliostat), full ...
+USED = (0, 4, 8, 7, 40, 23, 31, 12)
+ABSORBED_HELIOSTAT = 2
+
+
+def _problem(seed: int = 7):
+    rng = np.random.default_rng(seed)
+    h = len(USED)
+    jac = rng.normal(size=(h, N_ROWS, N_BASE + 2))
+    jac[ABSORBED_HELIOSTAT, :, 6] = jac[ABSORBED_HELIOSTAT, :, :N_BASE] @ rng.normal(size=N_BASE)
+    noise = rng.normal(scale=rng.uniform(0.5, 2.0, (h, 1)), size=(h, N_ROWS))
+    r = jac[:, :, 5] * rng.normal(scale=0.3, size=(h, 1)) + noise
+    used = np.zeros((h, N_ROWS), bool)
+    for i, n in enumerate(USED):
+        used[i, rng.permutation(N_ROWS)[:n]] = True
+    # what a leaked padded row would bring in
+    r = np.where(used, r, 1e3)
+    jac = np.where(used[..., None], jac, -1e3)
+    return r, jac, used
+
+
+def _reference(r, jac, used, typical):
+    """The screens one heliostat at a time, on its used rows only."""
+    h, k = r.shape[0], len(CAND)
+    out = dict(p_h=np.full(h, np.nan), theta_h=np.full((h, k), np.nan), q=0.0, k_sum=0, dll_ph=0.0, n_total=0)
+    full, res, info, g, gmat, dof_total, per = np.zeros((k, k)), np.zeros((k, k)), np.zeros((k, k)), 0, 0, 0, []
+    for i in range(h):
+        rows = np.flatnonzero(used[i])
+        if rows.size == 0:
+            continue
+        u = column_basis(jac[i][rows][:, :N_BASE])
+        rr = r[i][rows]
+        dof = rows.size - u.shape[1]
+        if dof <= 0:
+            continue
+        b = jac[i][rows][:, list(CAND)]
+        bt = b - u @ (u.T @ b)
+        rt = rr - u @ (u.T @ rr)
+        w = dof / (rr @ rr)
+        full, res = full + b.T @ b, res + bt.T @ bt
+        info = info + w * (bt * typical).T @ (bt * typical)
+        g, gmat, dof_total = g + w * bt.T @ rt, gmat + w * bt.T @ bt, dof_total + dof
+        out["n_total"] += rows.size
+        per.append((rows.size, bt, rt))
+        v, s, _ = np.linalg.svd(bt / np.sqrt(np.sum(b * b, axis=0)), full_matrices=False)
+        v = v[:, s > 1e-6]
+        kh = v.shape[1]
+        if kh == 0 or dof - kh <= 0:
+            continue
+        explained = np.sum((v.T @ rt) ** 2)
+        sigma2 = (rt @ rt - explained) / (dof - kh)
+        out["p_h"][i] = stats.f.sf(explained / kh / sigma2, kh, dof - kh)
+        out["q"] += stats.chi2.isf(out["p_h"][i], kh)
+        out["k_sum"] += kh
+        ridge = bt.T @ bt + sigma2 * np.diag(1.0 / typical**2)
+        out["theta_h"][i] = -np.linalg.lstsq(ridge, bt.T @ rt, rcond=None)[0]
+        out["dll_ph"] += rows.size * np.log(rt @ rt / (rt @ rt - explained))
+    ev, vec = np.linalg.eigh(full)
+    wf = vec / np.sqrt(ev)
+    out["fractions"] = np.sort(1.0 - np.linalg.eigvalsh(wf.T @ res @ wf))
+    out["information"] = np.linalg.eigvalsh(info).max()
+    out["theta_shared"] = -np.linalg.solve(gmat, g)
+    out["stat_shared"] = g @ np.linalg.solve(gmat, g)
+    out["p_shared"] = stats.f.sf(out["stat_shared"] / k, k, dof_total - k)
+    out["start_shared"] = -np.linalg.solve(gmat + np.diag(1.0 / typical**2), g)
+    out["dll_sh"] = sum(n * np.log(rt @ rt / np.sum((rt + bt @ out["theta_shared"]) ** 2)) for n, bt, rt in per)
+    return out
+
+
+def test_batched_screen_equals_the_per_heliostat_computation():
+    r, jac, used = _problem()
+    typical = np.array([0.4, 1.5])
+    bases = prepare_bases(r, jac, used, range(N_BASE), range(len(USED)))
+    assert bases.index.tolist() == [2, 3, 4, 5, 6, 7]  # no rows, dof <= 0: left out
+    assert np.all(bases.r_res[~bases.used] == 0) and np.all(bases.u[~bases.used] == 0)
+    s = screen_candidate("x", bases, jac, CAND, len(USED), ABSORBED_LIMIT, typical=typical)
+    ref = _reference(r, jac, used, typical)
+    # not tested per heliostat: no rows, dof <= 0, dof - k <= 0
+    assert np.flatnonzero(np.isnan(s.p_heliostats)).tolist() == [0, 1, 3]
+    assert np.all(np.isnan(s.theta_per_heliostat[[0, 1, 3]]))
+    assert s.k_per_heliostat == ref["k_sum"] == 1 + 2 * 4  # the absorbed heliostat tests one direction
+    assert s.k_shared == 2
+    close = dict(rtol=1e-9, atol=0)
+    np.testing.assert_allclose(s.p_heliostats, ref["p_h"], **close)
+    # the absorbed column's estimate is 0 to rounding
+    np.testing.assert_allclose(s.theta_per_heliostat, ref["theta_h"], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(s.stat_per_heliostat, ref["q"], **close)
+    np.testing.assert_allclose(s.p_per_heliostat, stats.chi2.sf(ref["q"], ref["k_sum"]), **close)
+    np.testing.assert_allclose(s.fractions, ref["fractions"], rtol=1e-9, atol=1e-12)
+    for name in ("information", "theta_shared", "stat_shared", "p_shared", "start_shared"):
+        np.testing.assert_allclose(getattr(s, name), ref[name], err_msg=name, **close)
+    log_n = np.log(ref["n_total"])
+    assert s.approx_delta_bic is not None
+    np.testing.assert_allclose(s.approx_delta_bic["per_heliostat"], ref["dll_ph"] - ref["k_sum"] * log_n, **close)
+    np.testing.assert_allclose(s.approx_delta_bic["shared"], ref["dll_sh"] - 2 * log_n, **close)
+    assert RANK_RTOL < 1e-6  # the absorbed column is cut by the per-heliostat test, not the basis
+
+
+def test_batched_competitor_forms_equal_the_per_heliostat_computation():
+    r, jac, used = _problem(11)
+    rng = np.random.default_rng(3)
+    design = rng.normal(size=(len(USED), N_ROWS, 4))
+    design[5] = 0.0  # a heliostat whose records lack the variable
+    noise = rng.uniform(0.5, 2.0, len(USED))
+    bases = prepare_bases(r, jac, used, range(N_BASE), range(len(USED)))
+    delta, p, size, p_h = _per_heliostat(bases, design, noise, len(USED))
+    d_fleet, _, size_fleet = _fleet(bases, design, noise)
+    t2 = GENERIC_TYPICAL_MRAD**2
+    ref_delta, ref_p, sq, n_sq = 0.0, np.full(len(USED), np.nan), 0.0, 0
+    g, gmat, parts = np.zeros(4), np.zeros((4, 4)), []
+    for i in bases.index:
+        rows = np.flatnonzero(used[i])
+        u = column_basis(jac[i][rows][:, :N_BASE])
+        x = design[i][rows]
+        xt, rt, rr = x - u @ (u.T @ x), r[i][rows] - u @ (u.T @ r[i][rows]), r[i][rows]
+        s2 = noise[i] ** 2
+        g, gmat = g + xt.T @ rt / s2, gmat + xt.T @ xt / s2
+        parts.append((rows.size, x, xt, rt, rr))
+        if not np.any(x):
+            continue
+        beta = np.linalg.solve(xt.T @ xt / s2 + np.eye(4) / t2, xt.T @ rt / s2)
+        rss_new = rr @ rr - (rt @ rt - np.sum((rt - xt @ beta) ** 2))
+        logdet = np.linalg.slogdet(np.eye(4) + t2 * xt.T @ xt / s2)[1]
+        ref_delta += rows.size * np.log(rr @ rr / rss_new) - logdet - beta @ beta / t2
+        sq, n_sq = sq + np.sum((x @ beta) ** 2), n_sq + rows.size // 2
+        dof = rows.size - u.shape[1]
+        if dof - 4 > 0:
+            v = np.linalg.svd(xt, full_matrices=False)[0]
+            explained = np.sum((v.T @ rt) ** 2)
+            ref_p[i] = stats.f.sf(explained / 4 / ((rt @ rt - explained) / (dof - 4)), 4, dof - 4)
+    np.testing.assert_allclose(delta, ref_delta, rtol=1e-9)
+    np.testing.assert_allclose(size, np.sqrt(sq / n_sq), rtol=1e-9)
+    np.testing.assert_allclose(p_h, ref_p, rtol=1e-9)
+    assert np.isnan(p_h[5]) and np.isnan(p_h[3])  # no variable; dof - k <= 0
+    assert 0.0 <= p <= 1.0
+    beta = np.linalg.solve(gmat + np.eye(4) / t2, g)
+    ref_fleet = sum(
+        n * np.log(rr @ rr / (rr @ rr - (rt @ rt - np.sum((rt - xt @ beta) ** 2)))) for n, _, xt, rt, rr in parts
+    )
+    ref_fleet -= np.linalg.slogdet(np.eye(4) + t2 * gmat)[1] + beta @ beta / t2
+    np.testing.assert_allclose(d_fleet, ref_fleet, rtol=1e-9)
+    ref_size = np.sqrt(sum(np.sum((x @ beta) ** 2) for _, x, _, _, _ in parts) / sum(n // 2 for n, *_ in parts))
+    np.testing.assert_allclose(size_fleet, ref_size, rtol=1e-9)
+
+
+def test_each_heliostats_anova_equals_the_anova_of_its_own_records():
+    """:func:`anova_each_heliostat` against :func:`anova` of one heliostat's records at a
+    time (its bins renumbered), with heliostats below ``2 MIN_PER_BIN`` records in bins,
+    with one bin only, and without records."""
+    from heliojax.discovery._diagnostics import MIN_PER_BIN, anova, anova_each_heliostat
+
+    rng = np.random.default_rng(5)
+    h, m = 7, 30
+    idx = rng.integers(0, 6, (h, m))
+    idx[rng.random((h, m)) < 0.2] = -1
+    idx[1, 2 * MIN_PER_BIN - 1 :] = -1  # too few records
+    idx[2] = np.where(idx[2] >= 0, 3, -1)  # one bin
+    idx[3] = -1  # none
+    idx[4] = np.where(idx[4] >= 0, idx[4] % 2 + 4, -1)  # bins 4 and 5 only
+    z = rng.normal(size=(h, m, 2)) + 0.5 * (idx == 1)[..., None]
+    p = anova_each_heliostat(z, idx)
+    for i in range(h):
+        ok = idx[i] >= 0
+        expected = np.nan
+        if ok.sum() >= 2 * MIN_PER_BIN:
+            _, own = np.unique(idx[i][ok], return_inverse=True)
+            expected = anova(z[i][ok][None], own[None])[0]
+        np.testing.assert_allclose(p[i], expected, rtol=1e-12, err_msg=str(i))
+    assert np.flatnonzero(np.isnan(p)).tolist() == [1, 2, 3]
