@@ -60,9 +60,9 @@ from ._identifiability import (
 class HeliostatBases:
     """The projected residuals at the current model of the heliostats screened, one
     padded stack: ``S`` heliostats (those with used residual rows and residual degrees
-    of freedom), each on the fleet's ``R`` residual rows. Every array is zero on a
-    heliostat's unused rows, so they add nothing to an inner product or a sum over
-    rows.
+    of freedom), each on the fleet's first ``R`` residual rows (up to the last one any
+    heliostat uses). Every array is zero on a heliostat's unused rows, so they add
+    nothing to an inner product or a sum over rows.
 
     Attributes:
         index: ``(S,)`` heliostat index in the fleet.
@@ -86,11 +86,12 @@ class HeliostatBases:
     def __len__(self) -> int:
         return int(self.index.size)
 
-    def rows(self, x: Float[np.ndarray, "H R k"]) -> Float[np.ndarray, "S R k"]:
-        """The screened heliostats' used rows of a fleet array ``x`` (zero elsewhere)."""
+    def rows(self, x: Float[np.ndarray, "H _ k"]) -> Float[np.ndarray, "S R k"]:
+        """The screened heliostats' used rows of a fleet array ``x`` ``(H, R', k)``,
+        ``R' >= R`` (zero elsewhere)."""
         return np.where(self.used[..., None], np.asarray(x)[self.index, : self.used.shape[1]], 0.0)
 
-    def columns(self, jac: Float[np.ndarray, "H R P"], cols) -> Float[np.ndarray, "S R k"]:
+    def columns(self, jac: Float[np.ndarray, "H _ P"], cols) -> Float[np.ndarray, "S R k"]:
         """The columns ``cols`` of the fleet's Jacobian ``jac`` on the used rows."""
         # np.take before indexing the heliostats: only the k columns are gathered
         return self.rows(np.take(jac, list(cols), axis=2))
@@ -114,13 +115,16 @@ def prepare_bases(r: np.ndarray, jac: np.ndarray, used_rows: np.ndarray, a_cols,
     """
     index = np.asarray(list(heliostats), np.int64)
     used = np.asarray(used_rows, bool)[index]
+    # rows up to the last one used: a padded fleet's trailing rows would only cost time
+    width = int(np.flatnonzero(used.any(axis=0)).max()) + 1 if used.any() else 0
+    used = used[:, :width]
     n = used.sum(axis=1)
-    a = np.where(used[..., None], np.take(jac, list(a_cols), axis=2)[index], 0.0)
+    a = np.where(used[..., None], np.take(np.asarray(jac)[:, :width], list(a_cols), axis=2)[index], 0.0)
     u, rank = column_bases(a)
     u = u * used[..., None]  # exactly zero on the unused rows
     keep = (n > 0) & (n - rank > 0)
     used, u, n, rank, index = used[keep], u[keep], n[keep], rank[keep], index[keep]
-    rr = np.where(used, np.asarray(r)[index], 0.0)
+    rr = np.where(used, np.asarray(r)[index, :width], 0.0)
     r_res = rr - (u @ (u.swapaxes(1, 2) @ rr[..., None]))[..., 0]
     return HeliostatBases(index, used, u, r_res, np.sum(rr * rr, axis=1), n, n - rank)
 
