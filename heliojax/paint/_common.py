@@ -3,12 +3,14 @@ dataclasses of file values), validation helpers and the JSON writer."""
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import functools
 import json
 import math
 import os
 import re
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, no_type_check
 
@@ -354,6 +356,63 @@ def _read_regular_file(path: str | os.PathLike) -> bytes:
         return Path(path).read_bytes()
     except OSError as e:
         raise DataError(path, None, f"cannot read file: {e.strerror or e}") from None
+
+
+_LINE_END = re.compile(r"\r\n|\r|\n")
+"""The line ends the csv module knows."""
+
+
+def _csv_table(
+    path: str | os.PathLike, required: Sequence[str], unique: Sequence[str]
+) -> tuple[str, list[str], list[tuple[int, str]]]:
+    """A CSV file's header and its rows, one a line (PAINT's CSVs have no multi-line
+    cells), for :func:`_csv_cells` to parse each alone: a row the csv module refuses (a
+    cell over its field limit, a quote left open) is that row's error, not the file's.
+
+    Returns:
+        ``(file, header, rows)``: ``rows`` are ``(n, line)``, ``n`` the line number
+        that names it (``"row <n>"``; the header is row 1).
+
+    Raises:
+        DataError: an unreadable file, not UTF-8, a malformed header, a ``required``
+            column missing or a column of ``unique`` given twice.
+    """
+    file = str(path)
+    try:
+        text = _read_regular_file(path).decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise DataError(file, None, f"not UTF-8 text (byte {e.start})") from None
+    lines = _LINE_END.split(text)
+    try:
+        header = [h.strip() for h in next(csv.reader(lines[:1]), [])]
+    except csv.Error as e:
+        raise DataError(file, "row 1", f"malformed CSV header: {e}") from None
+    missing = [c for c in required if c not in header]
+    if missing:
+        raise DataError(file, missing[0], f"missing column(s): {', '.join(missing)}")
+    twice = sorted({c for c in header if c in unique and header.count(c) > 1})
+    if twice:
+        raise DataError(file, twice[0], f"column(s) {', '.join(twice)} given twice (which one holds is ambiguous)")
+    return file, header, list(enumerate(lines[1:], start=2))
+
+
+def _csv_cells(file: str, where: str, line: str, n_columns: int) -> list[str] | None:
+    """The cells of one row of :func:`_csv_table` (None for a blank line).
+
+    Raises:
+        DataError: a malformed row, or one of another number of cells than ``n_columns``.
+    """
+    try:
+        # strict: a quote left open is a cell going on past its line (its rest, the next
+        # line, was named alone while this part was read as the row), a stray one an error
+        cells = next(csv.reader([line], strict=True), [])
+    except csv.Error as e:
+        raise DataError(file, where, f"malformed CSV row: {e}") from None
+    if not cells:
+        return None
+    if len(cells) != n_columns:
+        raise DataError(file, where, f"{len(cells)} cells, the header has {n_columns}")
+    return cells
 
 
 def _load_json(path: str | os.PathLike, *, mark_ambiguous: bool = False) -> Any:

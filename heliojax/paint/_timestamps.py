@@ -4,9 +4,7 @@ STAC client writes (``metadata/calibration_metadata_<description>.csv``)."""
 
 from __future__ import annotations
 
-import csv
 import os
-import re
 from collections.abc import Callable, Iterable, Mapping
 
 from .._errors import DataError
@@ -17,9 +15,10 @@ from ._common import (
     TimestampEntry,
     _check,
     _check_datetime,
+    _csv_cells,
+    _csv_table,
     _load_json,
     _Node,
-    _read_regular_file,
     _write_json,
 )
 
@@ -108,34 +107,16 @@ def read_metadata_times(
     Raises:
         DataError: an unreadable file or missing columns (always); bad rows (see ``on_error``).
     """
-    file = str(path)
-    try:
-        text = _read_regular_file(path).decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise DataError(file, None, f"not UTF-8 text (byte {e.start})") from None
-    lines = [line for line in re.split(r"\r\n|\r|\n", text) if line.strip()]
-    try:
-        header = [h.strip() for h in next(csv.reader(lines[:1]), [])]
-    except csv.Error as e:
-        raise DataError(file, "row 1", f"malformed CSV header: {e}") from None
-    missing = [c for c in METADATA_COLUMNS if c not in header]
-    if missing:
-        raise DataError(file, missing[0], f"missing column(s): {', '.join(missing)}")
-    twice = sorted({c for c in METADATA_COLUMNS if header.count(c) > 1})
-    if twice:
-        raise DataError(file, twice[0], f"column(s) {', '.join(twice)} given twice (which one holds is ambiguous)")
+    file, header, rows = _csv_table(path, METADATA_COLUMNS, METADATA_COLUMNS)
     col = {name: header.index(name) for name in METADATA_COLUMNS}
     out: dict[int, TimestampEntry] = {}
     ambiguous: set[int] = set()
-    for line, text_line in enumerate(lines[1:], start=2):  # the header is line 1
+    for line, text_line in rows:
         where = f"row {line}"
         try:
-            try:
-                cells = next(csv.reader([text_line], strict=True), [])
-            except csv.Error as e:
-                raise DataError(file, where, f"malformed CSV row: {e}") from None
-            if len(cells) != len(header):
-                raise DataError(file, where, f"{len(cells)} cells, the header has {len(header)}")
+            cells = _csv_cells(file, where, text_line, len(header))
+            if cells is None:
+                continue
             rid_text, hid, when = (cells[col[c]].strip() for c in METADATA_COLUMNS)
             if not _ID_RE.match(rid_text):
                 raise DataError(file, f"{where}.Id", f"record id is not numeric: {rid_text[:40]!r}")

@@ -5,7 +5,6 @@ from __future__ import annotations
 import csv
 import math
 import os
-import re
 from collections.abc import Callable, Iterable, Mapping
 from typing import no_type_check
 
@@ -22,17 +21,15 @@ from ._common import (
     _check,
     _check_datetime,
     _check_weather_value,
+    _csv_cells,
+    _csv_table,
     _latlon_ok,
     _nan_weather,
-    _read_regular_file,
 )
 
 # ======================================================================================
 # The CSV form
 # ======================================================================================
-
-_LINE_END = re.compile(r"\r\n|\r|\n")
-"""The line ends the csv module knows."""
 
 
 @no_type_check
@@ -88,43 +85,17 @@ def read_weather_csv(
     Raises:
         DataError: unreadable file or missing columns (always); bad rows (see ``on_error``).
     """
-    file = str(path)
-    try:
-        text = _read_regular_file(path).decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise DataError(file, None, f"not UTF-8 text (byte {e.start})") from None
-    # one row a line (no multi-line cells here), each parsed alone: a row the csv module
-    # refuses (a cell over its field limit) is that row's error, not the whole file's
-    lines = _LINE_END.split(text)
-    if lines and lines[-1] == "":
-        lines.pop()
-    try:
-        header = [h.strip() for h in next(csv.reader(lines[:1]), [])]
-    except csv.Error as e:
-        raise DataError(file, "row 1", f"malformed CSV header: {e}") from None
-    missing = [c for c in _CSV_REQUIRED if c not in header]
-    if missing:
-        raise DataError(file, missing[0], f"missing column(s): {', '.join(missing)}")
-    twice = sorted({c for c in header if c in CSV_COLUMNS and header.count(c) > 1})
-    if twice:
-        raise DataError(file, twice[0], f"column(s) {', '.join(twice)} given twice (which one holds is ambiguous)")
+    file, header, rows = _csv_table(path, _CSV_REQUIRED, CSV_COLUMNS)
     col = {name: header.index(name) for name in set(header)}
     ncols = len(header)
     wcols = [(k, col[k]) for k in WEATHER_KEYS if k in col]
     out = []
-    for line, text_line in enumerate(lines[1:], start=2):  # header is line 1
+    for line, text_line in rows:
         where = f"row {line}"
         try:
-            try:
-                # strict: a quote left open is a cell going on past its line (its rest, the next
-                # line, was named alone while this part was read as the row), a stray one an error
-                cells = next(csv.reader([text_line], strict=True), [])
-            except csv.Error as e:
-                raise DataError(file, where, f"malformed CSV row: {e}") from None
-            if not cells:
+            cells = _csv_cells(file, where, text_line, ncols)
+            if cells is None:
                 continue
-            if len(cells) != ncols:
-                raise DataError(file, where, f"{len(cells)} cells, the header has {ncols}")
 
             @no_type_check
             def num(name, allow_empty=False):
