@@ -1209,6 +1209,27 @@ def test_flux_images_blank_tiny_or_16_bit(tmp_path):
     assert np.allclose(read_flux_png(tmp_path / "deep.png"), read_flux_png(tmp_path / "plain.png"))
 
 
+def test_a_cropped_flux_image_is_named(tmp_path, caplog):
+    """A flux PNG cropped to 64 x 10 pixels was read as covering the whole target, and the
+    comparison's positions moved by metres without a word (a hostile-input trial)."""
+    import numpy as np
+    from PIL import Image
+
+    from heliojax.optics._compare import measured_images
+
+    spot = np.zeros((64, 64), np.uint8)
+    spot[20:40, 25:45] = 200
+    Image.fromarray(spot).save(tmp_path / "1-flux-centered.png")
+    Image.fromarray(spot).save(tmp_path / "1-flux.png")
+    with caplog.at_level("WARNING"):
+        measured_images(tmp_path / "1-calibration-properties.json")
+    assert "not square" not in caplog.text
+    Image.fromarray(spot[25:35]).save(tmp_path / "1-flux.png")
+    with caplog.at_level("WARNING"):
+        measured_images(tmp_path / "1-calibration-properties.json")
+    assert "1-flux.png: 64 x 10 pixels, not square" in caplog.text
+
+
 TRACE_AT_A_SUN = ["trace", "--heliostat", "BE36", "--sun-azimuth", "10", "--sun-elevation", "30"]
 
 

@@ -133,6 +133,15 @@ def measured_images(record_path: str | os.PathLike) -> tuple[np.ndarray, np.ndar
         image = load_flux_png(path)
         if min(image.shape) < MIN_FLUX_PIXELS:
             raise DataError(path, None, f"image of {image.shape[1]} x {image.shape[0]} pixels: too small for a spot")
+        if image.shape[0] != image.shape[1]:
+            # PAINT's are square; a cropped one is still mapped onto the whole target (or a
+            # 6 m window), so every position read from it is off (2 m for 256 x 10 pixels)
+            log.warning(
+                f"{path}: {image.shape[1]} x {image.shape[0]} pixels, not square like PAINT's flux images "
+                "(256 or 512 a side): cropped? It is read as covering the whole "
+                f"{'target' if kind == 'flux' else 'centred window'}, so the comparison's positions are not "
+                "to be trusted"
+            )
         image = remove_background(image)
         if not image.any():
             raise DataError(path, None, "no flux spot: the image is uniform after removing its border's level")
