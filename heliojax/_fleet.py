@@ -92,6 +92,7 @@ __all__ = [
     "fleet_from_arrays",
     "fleet_subset",
     "pad_fleet",
+    "records_among",
 ]
 
 Centroid = Literal["utis", "helios"]
@@ -442,6 +443,27 @@ def fleet_subset(fleet: Fleet, indices: Sequence[int] | np.ndarray | int | str |
         **{k: jax.tree.map(take, getattr(fleet, k)) for k in _PER_HELIOSTAT},
         ids=tuple(fleet.ids[i] for i in idx),
     )
+
+
+def records_among(
+    ids: Sequence[str],
+    record_id: Int[ArrayLike, "H M"],
+    other_ids: Sequence[str],
+    other_record_id: Int[ArrayLike, "G N"],
+    other_picked: Bool[ArrayLike, "G N"],
+) -> Bool[np.ndarray, "H M"]:
+    """``(H, M)`` whether each record (heliostat ``ids[h]``, PAINT record id
+    ``record_id[h, m]``) is one of the other fleet's picked records (the same heliostat id
+    and record id; record ids below 2**31), all at once."""
+    index = {h: i for i, h in enumerate(dict.fromkeys([*ids, *other_ids]))}
+
+    def keys(names: Sequence[str], rid: ArrayLike) -> np.ndarray:
+        # (heliostat, record id) as one integer
+        rows = np.array([index[h] for h in names], np.int64).reshape(-1, 1)
+        return (rows << 32) + np.asarray(rid, np.int64)
+
+    picked = keys(other_ids, other_record_id)[np.asarray(other_picked, bool)]
+    return np.isin(keys(ids, record_id), picked)
 
 
 def fleet_from_arrays(

@@ -170,6 +170,7 @@ def run(args) -> int:
     import numpy as np
 
     from .._errors import ConfigError, DataError
+    from .._fleet import records_among
     from .._geometry import direction_to_azimuth_elevation, enu_to_wgs84, wgs84_to_enu
     from .._io import atomic_write
     from .._plan import (
@@ -257,15 +258,7 @@ def run(args) -> int:
                 fitted |= np.asarray(results.records["split"]) == SPLIT_CODES["train"]
             if "superseded" in results.records:
                 fitted |= np.asarray(results.records["superseded"], bool)
-            old = {
-                (hid, int(rid))
-                for hid, rids, drop in zip(results.ids, results.records["record_id"], fitted, strict=True)
-                for rid in np.asarray(rids)[drop]
-            }
-            rid_f = np.asarray(fleet.record_id)
-            known = np.array(
-                [[(hid, int(r)) in old for r in rid_f[k]] for k, hid in enumerate(fleet.ids)], bool
-            ).reshape(usable.shape)
+            known = records_among(fleet.ids, fleet.record_id, results.ids, results.records["record_id"], fitted)
             if (usable & known).any():
                 log.info(
                     f"{int((usable & known).sum())} record(s) of {args.paint_dir} lie before the fit's change "

@@ -30,6 +30,7 @@ from ._common import (
     _join,
     _latlon_ok,
     _load_json,
+    _local_offset_m,
     _nan_weather,
     _Node,
     _record_id_from_name,
@@ -227,15 +228,10 @@ def check_record_context(
 
 def _front_distance_m(point: Vec3, centre: Vec3, normal: Vec3) -> float:
     """Signed distance (m) of the WGS84 ``point`` from the plane through the WGS84
-    ``centre`` with the ENU ``normal`` (positive on the side it faces), local flat-Earth
-    approximation (a plant's extent)."""
-    north = math.radians(point[0] - centre[0]) * 6_371_000.0
-    east = (
-        math.radians((point[1] - centre[1] + 180.0) % 360.0 - 180.0) * 6_371_000.0 * math.cos(math.radians(centre[0]))
-    )
-    up = point[2] - centre[2]
-    size = math.sqrt(sum(x * x for x in normal))
-    return (east * normal[0] + north * normal[1] + up * normal[2]) / size
+    ``centre`` with the ENU ``normal`` (positive on the side it faces;
+    :func:`_local_offset_m`)."""
+    offset = _local_offset_m(point, centre)
+    return sum(x * n for x, n in zip(offset, normal, strict=True)) / math.hypot(*normal)
 
 
 def validate_record(record: CalibrationRecord) -> CalibrationRecord:

@@ -636,12 +636,18 @@ def _latlon_ok(file: str, field: str, lla: Vec3) -> None:
     _check(abs(lla[2]) <= 1e5, file, field, f"altitude {lla[2]!r} m is not near the Earth's surface")
 
 
-def _distance_m(a: Vec3, b: Vec3) -> float:
-    """Distance (m) of two WGS84 points [lat_deg, lon_deg, alt_m], local flat-Earth
-    approximation (good to a fraction of a percent over a plant; used for sanity bounds)."""
+def _local_offset_m(a: Vec3, b: Vec3) -> Vec3:
+    """(east, north, up) offset (m) of the WGS84 point ``a`` [lat_deg, lon_deg, alt_m] from
+    ``b``, local flat-Earth approximation (good to a fraction of a percent over a plant;
+    used for sanity bounds)."""
     north = math.radians(a[0] - b[0]) * 6_371_000.0
     east = math.radians((a[1] - b[1] + 180.0) % 360.0 - 180.0) * 6_371_000.0 * math.cos(math.radians(b[0]))
-    return math.sqrt(north**2 + east**2 + (a[2] - b[2]) ** 2)
+    return east, north, a[2] - b[2]
+
+
+def _distance_m(a: Vec3, b: Vec3) -> float:
+    """Distance (m) of two WGS84 points [lat_deg, lon_deg, alt_m] (:func:`_local_offset_m`)."""
+    return math.hypot(*_local_offset_m(a, b))
 
 
 MAX_SPOT_DISTANCE_M = 1_000.0

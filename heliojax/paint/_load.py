@@ -904,6 +904,10 @@ def _flag_records_before_renovation(
     date range of the mechanical retrofit): the kinematics may have changed in between,
     which one fitted model does not describe (the change-point scan looks for the jump).
     Every shared download's heliostat has its records after its renovation."""
+    times: dict[str, list[float]] = collections.defaultdict(list)
+    for r in records:
+        if r.datetime:
+            times[r.heliostat_id].append(datetime_to_unix(r.datetime))
     for p in properties:
         if p.renovation is None:
             continue
@@ -912,13 +916,13 @@ def _flag_records_before_renovation(
         except (ValueError, TypeError, OverflowError):
             log.flag(p.source, "renovation", f"{p.renovation[:60]!r} is not a date or date range: not checked")
             continue
-        times = [datetime_to_unix(r.datetime) for r in records if r.heliostat_id == p.heliostat_id and r.datetime]
-        before = sum(t < end for t in times)
+        before = sum(t < end for t in times[p.heliostat_id])
         if before:
             log.flag(
                 p.source,
                 "renovation",
-                f"{before} of {len(times)} timed record(s) were measured before the retrofit of {p.renovation}: "
+                f"{before} of {len(times[p.heliostat_id])} timed record(s) were measured before the retrofit of "
+                f"{p.renovation}: "
                 "the kinematics may differ across it (a change point; heliojax calibrate looks for one)",
             )
 
