@@ -253,6 +253,9 @@ CASES = [
     ("trace csr of 1", lambda t: ["trace", str(t), "--heliostat", "AA39", "--csr", "1"], "--csr"),
     ("trace dni above the sun's", lambda t: ["trace", str(t), "--heliostat", "AA39", "--dni", "1500"], "--dni"),
     ("trace heliostat id a path", lambda t: ["trace", str(t), "--heliostat", "../AA39"], "--heliostat"),
+    ("trace heliostat id a parent folder", lambda t: ["trace", str(t), "--heliostat", ".."], "--heliostat"),
+    ("trace heliostat id a Windows path", lambda t: ["trace", str(t), "--heliostat", "x\\AA39"], "--heliostat"),
+    ("trace heliostat id with a line break", lambda t: ["trace", str(t), "--heliostat", "AA\n39"], "--heliostat"),
     (
         "trace sun where it never stands",
         lambda t: [
@@ -3028,3 +3031,21 @@ def test_accept_leaves_no_earlier_figure_beside_a_new_report(tmp_path, capsys):
     assert sorted(p.name for p in figures.iterdir()) == ["monthly_efficiency.png"]
     assert (figures / "monthly_efficiency.png").read_bytes().startswith(b"\x89PNG")
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
+
+
+def test_trace_takes_a_heliostat_whose_folder_name_holds_a_space(tmp_path, capsys):
+    """The loader reads a heliostat folder named "BE 36" (any printable name); `trace
+    --heliostat` refused it as "not a heliostat id" (letters, digits and _ only)."""
+    data = tmp_path / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    (data / "BE36").rename(data / "BE 36")
+    for f in (data / "BE 36").rglob("BE36*"):
+        f.rename(f.with_name(f.name.replace("BE36", "BE 36")))
+    record = sorted((data / "BE 36" / "Calibration").glob("*-calibration-properties.json"))[0]
+    rid = record.name.split("-")[0]
+    out = tmp_path / "o"
+    argv = ["trace", str(data), "--heliostat", "BE 36", "--record", rid, "--out", str(out)]
+    rc, _, err = _run([*argv, "--pixels", "8", "--rays-per-point", "1", "--steps", "1", "--quiet"], capsys)
+    assert rc == 0, err
+    summary = json.loads((out / f"BE 36-{rid}-summary.json").read_text())
+    assert summary["heliostat"] == "BE 36" and summary["power_w"] > 0

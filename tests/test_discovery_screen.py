@@ -189,3 +189,29 @@ def test_each_heliostats_anova_equals_the_anova_of_its_own_records():
             expected = anova(z[i][ok][None], own[None])[0]
         np.testing.assert_allclose(p[i], expected, rtol=1e-12, err_msg=str(i))
     assert np.flatnonzero(np.isnan(p)).tolist() == [1, 2, 3]
+
+
+def test_a_direction_the_base_absorbs_is_tested_in_neither_form():
+    """A candidate column inside every heliostat's base span holds rounding only after
+    the projection: with both columns absorbed nothing is tested (no p from rounding),
+    with one absorbed the shared form tests the other alone, as the one-column
+    candidate's screen does."""
+    rng = np.random.default_rng(4)
+    h = 6
+    jac = rng.normal(size=(h, N_ROWS, N_BASE + 2))
+    for i in range(h):
+        jac[i, :, 6] = jac[i, :, :N_BASE] @ rng.normal(size=N_BASE)
+    r = jac[:, :, 5] * 0.6 + rng.normal(size=(h, N_ROWS))
+    bases = prepare_bases(r, jac, np.ones((h, N_ROWS), bool), range(N_BASE), range(h))
+    both = screen_candidate("x", bases, jac, (6,), h, ABSORBED_LIMIT)
+    assert not both.tested and both.k_shared == 0 and both.k_per_heliostat == 0 and both.p == 1.0
+    np.testing.assert_allclose(both.fractions, [1.0], atol=1e-9)
+    pair = screen_candidate("x", bases, jac, (5, 6), h, ABSORBED_LIMIT)
+    alone = screen_candidate("x", bases, jac, (5,), h, ABSORBED_LIMIT)
+    assert pair.k_shared == 1 and pair.k_per_heliostat == h
+    np.testing.assert_allclose(pair.stat_shared, alone.stat_shared, rtol=1e-8)
+    np.testing.assert_allclose(pair.p_shared, alone.p_shared, rtol=1e-8)
+    assert pair.theta_shared is not None and alone.theta_shared is not None
+    # the absorbed column gets no share of the estimate
+    np.testing.assert_allclose(pair.theta_shared, [alone.theta_shared[0], 0.0], rtol=1e-6, atol=1e-9)
+    assert pair.p_shared < 1e-6  # the free column's 0.6 is found

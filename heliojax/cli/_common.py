@@ -509,16 +509,21 @@ def _check_no_dangling_link(flag: str, path: Path, link: Path | None = None) -> 
         )
 
 
-HELIOSTAT_ID_RE = r"^[A-Za-z0-9_]{1,64}\Z"
-"""A heliostat id as a folder name (PAINT's are like ``AA39``): no path separators."""
-
-
 def heliostat_id(value: str) -> str:
-    """An argparse ``type``: a heliostat id (:data:`HELIOSTAT_ID_RE`), never a path."""
-    import re
-
-    if not re.match(HELIOSTAT_ID_RE, value):
-        raise argparse.ArgumentTypeError(f"{shown_value(value)} is not a heliostat id (letters, digits, _)")
+    """An argparse ``type``: a heliostat id as the loader reads it, a heliostat folder's
+    name (PAINT's are like ``AA39``; any printable name, spaces included), never a path:
+    no separator, not ``.`` or ``..``."""
+    if (
+        not value
+        or len(value) > 255
+        or not value.isprintable()
+        or "/" in value
+        or "\\" in value
+        or value in (".", "..")
+    ):
+        raise argparse.ArgumentTypeError(
+            f"{shown_value(value)} is not a heliostat id (a heliostat folder's name: printable, no / or \\)"
+        )
     return value
 
 

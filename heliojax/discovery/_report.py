@@ -45,7 +45,9 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
                                "competitors": [{"variable", "form", "delta_bic", "p"}]}],
       "variable_p_values": {variable: p},          # every recorded variable at the final model
                                                    # (per-heliostat form: "<variable> (per heliostat)")
-      "partly_absorbed": [{"effect", "absorbed_fraction", "remainder_p_holm"}],  # last screen
+      "partly_absorbed": [{"effect", "absorbed_fraction", "remainder_p_holm"}],  # last screen;
+                                                   # remainder_p_holm null: absorbed to 1 - 1e-12,
+                                                   # no remainder to test
       "not_identifiable": [names],                 # largely absorbed at some step (tested on the remainder), not named
       "untestable": [names],                       # the data do not drive them (e.g. no weather)
       "screens_run": bool,                         # false: nothing was tested (see not_tested_reason)

@@ -55,6 +55,10 @@ from ._identifiability import (
     is_identifiable,
 )
 
+ROUNDING_ONLY = 1e-12
+"""Share of a candidate direction's (unit-norm) size left after the base's projection
+below which it holds rounding only (absorbed to ``1 - 1e-12``): neither form tests it."""
+
 
 @dataclasses.dataclass(frozen=True)
 class HeliostatBases:
@@ -271,7 +275,7 @@ def screen_candidate(
     scale = np.sqrt(np.maximum(np.sum(b * b, axis=1), 1e-300))  # (S, k)
     u, s, _ = np.linalg.svd(bt / scale[:, None, :], full_matrices=False)
     # Directions absorbed to 1 - 1e-12 (or without driving data) carry no information.
-    keep = s > 1e-6
+    keep = s**2 > ROUNDING_ONLY
     tested, p_val, explained, denom = directions_f_tests(u, keep, bases.r_res, bases.dof)
     kh = keep.sum(axis=1)[tested]
     p_val, explained, denom = p_val[tested], explained[tested], denom[tested]
@@ -298,14 +302,20 @@ def screen_candidate(
     dof_total = int(bases.dof.sum())
 
     p_perhel = float(stats.chi2.sf(q_sum, k_sum)) if k_sum else 1.0
-    # Shared: restrict to the directions G determines.
-    ev, vec = np.linalg.eigh(gmat)
-    keep = ev > (ev.max() * RANK_RTOL if ev.size and ev.max() > 0 else np.inf)
+    # Shared: restrict to the directions G determines, judged with each column scaled
+    # to unit weighted norm before the projection. A direction the base absorbs to
+    # 1 - 1e-12 holds rounding only (the per-heliostat tests' cut, s > 1e-6): a cut
+    # relative to G's largest eigenvalue alone kept a fully absorbed candidate's
+    # directions and "tested" rounding as if it were its remainder.
+    unprojected = np.einsum("s,srk,srk->k", w, b, b)
+    d = np.sqrt(np.where(unprojected > 0, unprojected, 1.0))
+    ev, vec = np.linalg.eigh(gmat / np.outer(d, d))
+    keep = ev > (max(ev.max() * RANK_RTOL, ROUNDING_ONLY) if ev.size and ev.max() > 0 else np.inf)
     ks = int(keep.sum())
     if ks:
-        z = vec[:, keep].T @ g
+        z = vec[:, keep].T @ (g / d)
         stat_shared = float(np.sum(z**2 / ev[keep]))
-        theta_shared = -(vec[:, keep] @ (z / ev[keep]))
+        theta_shared = -(vec[:, keep] @ (z / ev[keep])) / d
         p_shared = float(stats.f.sf(stat_shared / ks, ks, max(dof_total - ks, 1)))
     else:
         stat_shared, theta_shared, p_shared = 0.0, np.zeros(k), 1.0
