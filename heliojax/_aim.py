@@ -45,6 +45,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._beam import beam_pointing_error
+from ._geometry import check_unit_vectors
 from ._heliostat import HeliostatGeometry, RecordContext
 from ._kinematics import AbstractKinematicModel, forward, inverse_aim
 from ._parameters import ParameterView
@@ -245,8 +246,13 @@ def aim_fleet(
         An :class:`AimResult`.
     """
     sun = jnp.asarray(sun)
+    if sun.ndim != 2 or sun.shape[1] != 3:
+        raise ValueError(f"sun has shape {sun.shape}; expected (N, 3) unit ENU vectors (one instant: sun[None])")
+    check_unit_vectors(sun, None, "sun")
     n = sun.shape[0]
     h = int(jnp.shape(geometry.position)[0])
+    if jnp.shape(aim_points) not in ((3,), (h, 3), (h, n, 3)):
+        raise ValueError(f"aim_points has shape {jnp.shape(aim_points)}; expected (3,), ({h}, 3) or ({h}, {n}, 3)")
     points = jnp.asarray(aim_points, sun.dtype)
     if points.ndim == 1:
         points = jnp.broadcast_to(points, (h, n, 3))
@@ -299,6 +305,28 @@ def aim_fleet(
     )
 
 
+_LATEST_UNIX_S = 7_258_118_400.0
+"""2200-01-01T00:00Z (s): a later instant is a time in other units (ms, ns)."""
+
+
+def _instant_seconds(unix_time: typing.Any, shape: tuple[int, ...]) -> np.ndarray:
+    """``unix_time`` as float seconds since 1970 of ``shape`` (numbers, or numpy
+    ``datetime64`` of any unit); ValueError for another shape or type, or an instant
+    outside 1970-2200 (milliseconds or nanoseconds given as seconds had put every
+    command's drift, and so its error bar, at 500-500,000 mrad, all flagged)."""
+    t = np.asarray(unix_time)
+    if t.dtype.kind == "M":
+        t = t.astype("datetime64[us]").astype(np.int64) / 1e6
+    elif t.dtype.kind not in "iuf":
+        raise ValueError(f"unix_time must be seconds since 1970 (numbers) or numpy datetime64, not {t.dtype}")
+    t = t.astype(float)
+    if t.shape != shape:
+        raise ValueError(f"unix_time has shape {t.shape}; expected {shape}, one per sun vector")
+    if not np.all(np.isfinite(t) & (t >= 0.0) & (t < _LATEST_UNIX_S)):
+        raise ValueError("unix_time must be seconds since 1970-01-01 UTC between 1970 and 2200 (not ms or ns)")
+    return t
+
+
 def aim_results(
     results: typing.Any,
     sun: Float[Array, "N 3"],
@@ -329,6 +357,7 @@ def aim_results(
             nominal_rms = np.sqrt((np.where(use, e, 0.0) ** 2).sum(axis=1) / use.sum(axis=1))
     drift = 0.0
     if unix_time is not None:
+        unix_time = _instant_seconds(unix_time, np.shape(sun)[:1])
         variance = np.asarray(results.drift_variance_mrad2(unix_time), float)
         known = np.isfinite(variance).reshape(len(fitted), -1).all(axis=1)
         fitted = fitted & known

@@ -78,7 +78,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, Real
 
-from ._geometry import TargetPlane
+from ._geometry import TargetPlane, check_unit_vectors
 from ._heliostat import HeliostatGeometry, RecordContext
 
 __all__ = [
@@ -486,7 +486,8 @@ def fleet_from_arrays(
 
     Raises:
         ValueError: a mask that is not boolean (or 0/1 integers); an origin that is
-            not a finite latitude, longitude, altitude.
+            not a finite latitude, longitude, altitude; a used record's sun that is not
+            a unit vector.
     """
     dtype = jnp.result_type(float)  # float64 under jax_enable_x64
     counts = jnp.asarray(counts, dtype)
@@ -500,6 +501,7 @@ def fleet_from_arrays(
         raise ValueError(f"mask: expected booleans (H, M), got {np.asarray(mask).dtype} values other than 0 and 1")
     if mask is None:
         mask = jnp.all(jnp.isfinite(counts), -1) & jnp.all(jnp.isfinite(focal_spot), -1)
+    check_unit_vectors(context.sun, mask, "context.sun")
     targets = jax.tree.map(lambda x: jnp.zeros((0,) + jnp.shape(x), jnp.asarray(x).dtype), _unit_target(dtype))
     return Fleet(
         geometry=geometry,

@@ -44,6 +44,8 @@ import typing
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
+from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._programs import cached_jit
@@ -396,14 +398,42 @@ def rotation_z(angle: Float[ArrayLike, ""]) -> Float[Array, "3 3"]:
     return jnp.stack([jnp.stack([c, -s, zero]), jnp.stack([s, c, zero]), jnp.stack([zero, zero, one])])
 
 
+UNIT_TOLERANCE = 1e-6
+"""Largest ``| |v| - 1 |`` of a direction given as a unit vector (sun vectors)."""
+
+
+def check_unit_vectors(vectors: ArrayLike, used: ArrayLike | None, name: str) -> None:
+    """ValueError naming ``name`` where a used vector (``used``: a mask of ``vectors``'
+    leading shape; ``None``: all) is not a finite unit vector within
+    :data:`UNIT_TOLERANCE`. Skipped under a JAX transformation (traced values).
+    A sun vector of length 2 had calibrated to other parameters, "converged"."""
+    if isinstance(vectors, Tracer) or isinstance(used, Tracer):
+        return
+    v = np.asarray(vectors, float)
+    if v.ndim == 0 or v.shape[-1] != 3:
+        raise ValueError(f"{name} has shape {v.shape}; expected (..., 3) unit ENU vectors")
+    length = np.linalg.norm(v, axis=-1)
+    bad = ~(np.abs(length - 1.0) <= UNIT_TOLERANCE)
+    if used is not None:
+        bad &= np.broadcast_to(np.asarray(used, bool), bad.shape)
+    if bad.any():
+        first = length[bad].flat[0]
+        raise ValueError(
+            f"{name}: {int(bad.sum())} vector(s) are not finite unit vectors (e.g. length {first:.6g}); "
+            "sun vectors are unit ENU directions towards the sun (heliojax.sun_direction)"
+        )
+
+
 __all__ = [
     "MAX_FIELD_EXTENT_M",
+    "UNIT_TOLERANCE",
     "PlaneHit",
     "TargetPlane",
     "WGS84_A",
     "WGS84_F",
     "angle_between",
     "bisector_normal",
+    "check_unit_vectors",
     "direction_to_azimuth_elevation",
     "ecef_to_wgs84",
     "enu_to_wgs84",

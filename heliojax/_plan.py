@@ -522,6 +522,30 @@ PLAN_STARTS = ("posterior", "prior")
 """Starting points of :func:`plan_calibration`."""
 
 
+def _check_plan_inputs(n_heliostats: int, envelope_sun, envelope_weight, aim_point, budget) -> None:
+    """ValueError naming the argument where a plan's inputs would give a made-up number:
+    a non-integer or negative budget, an envelope that is not unit sun vectors with finite,
+    non-negative weights of positive sum, an aim point that is not finite ENU metres
+    (``(3,)`` or one per heliostat). A NaN aim point had given every heliostat 0.0 mrad."""
+    if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or budget < 0:
+        raise ValueError(f"budget must be a non-negative whole number of measurements, not {budget!r}")
+    sun = np.asarray(envelope_sun, float)
+    weight = np.asarray(envelope_weight, float)
+    if sun.ndim != 2 or sun.shape[1] != 3 or sun.shape[0] == 0:
+        raise ValueError(f"envelope_sun must be (E, 3) unit sun vectors, not of shape {sun.shape}")
+    if not np.all(np.isfinite(sun)) or np.any(np.abs(np.linalg.norm(sun, axis=1) - 1.0) > 1e-6):
+        raise ValueError("envelope_sun must hold finite unit vectors (ENU, towards the sun)")
+    if weight.shape != (sun.shape[0],):
+        raise ValueError(f"envelope_weight must be ({sun.shape[0]},), one per envelope sun, not {weight.shape}")
+    if not np.all(np.isfinite(weight)) or np.any(weight < 0) or not weight.sum() > 0:
+        raise ValueError("envelope_weight must be finite and non-negative with a positive sum")
+    aim = np.asarray(aim_point, float)
+    if aim.shape not in ((3,), (n_heliostats, 3)):
+        raise ValueError(f"aim_point must be (3,) or ({n_heliostats}, 3) ENU m, not of shape {aim.shape}")
+    if not np.all(np.isfinite(aim)):
+        raise ValueError("aim_point must be finite (ENU m)")
+
+
 def plan_calibration(
     results: typing.Any,
     candidates: Candidates,
@@ -569,6 +593,7 @@ def plan_calibration(
     """
     if start not in PLAN_STARTS:
         raise ValueError(f"start must be one of {PLAN_STARTS}, not {start!r}")
+    _check_plan_inputs(len(results.ids), envelope_sun, envelope_weight, aim_point, budget)
     view = results.view
     fitted = np.asarray(results.fitted, bool)
     params = np.asarray(results.params, float)

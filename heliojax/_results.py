@@ -3,7 +3,8 @@
 Schema (``H`` heliostats, ``M`` padded records; NaN / -1 where no record):
 
 * attrs: ``model`` (the model's label, e.g. ``"actuator"``,
-  ``"stone8+backlash"``), ``split``, ``heliojax_version``, ``param_names`` and
+  ``"stone8+backlash"``; ``"stone8+nn"``: a neural correction, whose network the file
+  does not hold, so :func:`load_results` refuses it), ``split``, ``heliojax_version``, ``param_names`` and
   ``param_units`` (JSON lists, vector order of :class:`heliojax.ParameterView`),
   ``free_params`` (JSON list), ``robust`` (bool), ``origin_lla`` (WGS84 lat deg,
   lon deg, alt m of the ENU origin), ``drift_mrad2_per_day`` (the fleet's
@@ -207,7 +208,11 @@ def model_from_label(label: str, dtype: typing.Any = jnp.float64) -> AbstractKin
     base, *effects = label.split("+")
     if "nn" in effects:
         raise DataError(
-            None, "model", f"a model with a neural correction ({label!r}) cannot be rebuilt from results.h5"
+            None,
+            "model",
+            f"a model with a neural correction ({label!r}) cannot be rebuilt from results.h5 (the network is "
+            "not stored, and its residuals are not those of the kinematic parameters): aim, plan and trace need "
+            f"the results of `heliojax calibrate --model {base}`",
         )
     try:
         model = nominal_model(base, dtype)
@@ -297,7 +302,9 @@ def write_results_h5(path: str | Path, run: typing.Any) -> None:
     mask = np.asarray(run.fleet.mask)
     str_dt = h5py.string_dtype()
     with atomic_h5(path) as f:
-        f.attrs["model"] = run.model0.label()
+        # a +nn run's residuals and errors are the network's: its label says so, so that
+        # no reader takes the file's kinematic parameters for the model behind them
+        f.attrs["model"] = str(run.summary.get("model") or run.model0.label())
         f.attrs["split"] = run.split_kind
         f.attrs["heliojax_version"] = __version__
         f.attrs["param_names"] = json.dumps(list(view.names))

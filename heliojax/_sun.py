@@ -46,6 +46,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float
 
 __all__ = ["SolarPosition", "datetime_to_unix", "julian_day", "solar_position", "utc_datetime"]
@@ -597,7 +598,14 @@ def solar_position(
 
     Returns:
         :class:`SolarPosition` with angles in radians; azimuth 0 = south, east positive.
+
+    Raises:
+        ValueError: a (concrete) latitude outside [-90, 90] deg or a longitude outside
+            [-360, 360] deg (radians or a swapped pair; under jit not checked).
     """
+    for name, value, bound in (("latitude_deg", latitude_deg, 90.0), ("longitude_deg", longitude_deg, 360.0)):
+        if not isinstance(value, Tracer) and np.any(np.abs(np.asarray(value, float)) > bound):  # NaN: NaN out
+            raise ValueError(f"{name} must be degrees in [-{bound:g}, {bound:g}], not {value!r}")
     s = _spa(
         unix_time_s,
         latitude_deg,

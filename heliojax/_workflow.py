@@ -198,6 +198,13 @@ def calibrate(
             records later than the fitted ones depart from the fit beyond what the
             parameter covariance and the noise explain); 0 when off.
     """
+    if start not in CALIBRATION_STARTS:
+        raise ConfigError(f"start must be one of {', '.join(CALIBRATION_STARTS)}, not {start!r}")
+    if record_roles is not None and not isinstance(record_roles, collections.abc.Mapping):
+        raise ConfigError(
+            "record_roles must map heliostat id -> {PAINT record id: 'train' or 'test'}, "
+            f"not a {type(record_roles).__name__}"
+        )
     model0 = nominal_model(model, fleet.counts.dtype) if isinstance(model, str) else model
     n_real = len(fleet.ids)
     ids = list(fleet.ids)
@@ -639,6 +646,9 @@ def temporal_drift(
 
 
 RECORD_ROLES = ("train", "test")
+
+CALIBRATION_STARTS = ("auto", "nominal")
+"""The start geometries :func:`calibrate` knows (its ``start``)."""
 """Roles of a record in :func:`calibrate`'s ``record_roles``."""
 
 
@@ -681,13 +691,21 @@ def roles_to_masks(
             raise ConfigError(f"record roles name heliostat {hid!r}, which the data do not hold")
         i = ids.index(hid)
         where = {int(r): j for j, r in enumerate(record_id[i]) if valid[i, j]}
+        if not isinstance(roles, collections.abc.Mapping):
+            raise ConfigError(
+                f"record roles of {hid}: expected {{PAINT record id: 'train' or 'test'}}, not a {type(roles).__name__}"
+            )
         for rid, role in roles.items():
+            if isinstance(rid, bool) or not isinstance(rid, (int, np.integer)):
+                raise ConfigError(f"record roles of {hid}: record id {rid!r} is not a whole number")
             if role not in RECORD_ROLES:
                 raise ConfigError(f"record {rid} of {hid}: role {role!r} is not one of {RECORD_ROLES}")
             if int(rid) not in where:
                 raise ConfigError(f"record roles name record {rid} of {hid}, which the data do not hold")
             (train if role == "train" else test)[i, where[int(rid)]] = True
             any_test |= role == "test"
+    if not train.any():
+        raise ConfigError("no record has the role train: there is nothing to calibrate")
     if not any_test:
         test = valid & ~train
     else:  # the file names held-out records: a heliostat it names none for is evaluated on nothing

@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 import heliojax as hj
+from heliojax._results import SPLIT_CODES
 from heliojax.cli._main import build_parser, main
 
 
@@ -865,3 +866,71 @@ def test_aim_centuries_after_the_fit_is_flagged_above_nominal(results_h5, tmp_pa
     assert {h for h in std if std[h] > nominal[h] + 0.01} <= flagged <= {h for h in std if std[h] > nominal[h] - 0.01}
     # BG23's uncalibrated model is ~65 mrad off: 2199's drift (tens of mrad) still promises better
     assert nominal["BG23"] > 50 and "BG23" not in flagged
+
+
+def test_a_posterior_plans_records_keep_the_fits_own_training_records(results_h5, tmp_path, capsys):
+    """From the fit's posterior (the default) a plan adds to what the fit knew, so its
+    `--records-out` lists the fit's training records as train beside the chosen ones; it
+    listed the chosen ones alone, and `calibrate --records` then fitted nothing ("0/5
+    converged"). Records with the sun below `--min-sun-elevation` are no candidates (the
+    option had restricted the envelope only)."""
+    data = hj.default_data_dir()
+    chosen = tmp_path / "chosen.csv"
+    argv = ["plan", str(results_h5), "--paint-dir", str(data), "--before", "2023-06-01", "--budget", "2"]
+    argv += ["--envelope-day-step", "30", "--records-out", str(chosen), "--min-sun-elevation", "40"]
+    assert main([*argv, "--out", str(tmp_path / "plan.csv"), "--cache-dir", "none"]) == 0
+    err = capsys.readouterr().err
+    assert "with the sun below --min-sun-elevation 40 deg: not candidates" in err, err
+    with open(chosen, newline="") as f:
+        rows = list(csv.DictReader(f))
+    results = hj.load_results(results_h5)
+    fitted_train = {
+        (hid, int(r))
+        for i, hid in enumerate(results.ids)
+        for r, s in zip(results.records["record_id"][i], results.records["split"][i], strict=True)
+        if s == SPLIT_CODES["train"] and results.fitted[i]
+    }
+    train = {(r["heliostat_id"], int(r["record_id"])) for r in rows if r["role"] == "train"}
+    test = {(r["heliostat_id"], int(r["record_id"])) for r in rows if r["role"] == "test"}
+    assert fitted_train and fitted_train <= train and not (train & test)
+    with open(tmp_path / "plan.csv", newline="") as f:
+        planned = list(csv.DictReader(f))
+    assert planned and all(float(p["sun_elevation_deg"]) >= 40.0 for p in planned)
+    report = tmp_path / "summary.json"
+    argv = ["calibrate", str(data), "--records", str(chosen), "--report", str(report), "--cache-dir", "none"]
+    assert main([*argv, "--quiet"]) == 0
+    summary = json.loads(report.read_text())
+    converged = [h for h, e in summary["heliostats"].items() if e["status"] == "converged"]
+    assert len(converged) >= 4, summary["heliostats"]
+
+
+def test_aim_and_trace_refuse_options_they_would_ignore(results_h5, tmp_path, capsys):
+    """`aim --time T --step-minutes 15` and `trace --record R --target X` ran and ignored
+    the option; a sun position without a time leaves the drift out of the error bar, now
+    said; an instant with a fraction of a second is written with it (it was written as
+    the whole second before it while the sun of the fraction was aimed for)."""
+    import h5py
+
+    base = ["aim", str(results_h5), "--out", str(tmp_path / "a.csv"), "--cache-dir", "none"]
+    for extra in (
+        ["--time", "2023-06-21T12:00", "--step-minutes", "15"],
+        ["--sun-azimuth", "-10", "--sun-elevation", "50", "--step-minutes", "15"],
+    ):
+        try:
+            rc = main([*base, *extra])
+        except SystemExit as e:
+            rc = int(e.code or 0)
+        assert rc == 2 and "--step-minutes" in capsys.readouterr().err
+    drifting = tmp_path / "drifting.h5"
+    shutil.copy(results_h5, drifting)
+    with h5py.File(drifting, "r+") as f:
+        f.attrs["drift_mrad2_per_day"] = 0.01
+    argv = ["aim", str(drifting), "--sun-azimuth", "-10", "--sun-elevation", "50", "--out", str(tmp_path / "b.csv")]
+    assert main([*argv, "--cache-dir", "none"]) == 0
+    assert "leaves out the fleet's drift since the fit" in capsys.readouterr().err
+    assert main([*base, "--time", "2023-06-21T12:00:00.5"]) == 0
+    with open(tmp_path / "a.csv", newline="") as f:
+        assert {r["time_utc"] for r in csv.DictReader(f)} == {"2023-06-21T12:00:00.500000Z"}
+    argv = ["trace", "--heliostat", "BE36", "--record", "233921", "--target", "receiver", "--out", str(tmp_path / "t")]
+    assert main(argv) == 2
+    assert "was measured on" in capsys.readouterr().err

@@ -13,6 +13,7 @@ import re
 import shutil
 from pathlib import Path
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -3049,3 +3050,76 @@ def test_trace_takes_a_heliostat_whose_folder_name_holds_a_space(tmp_path, capsy
     assert rc == 0, err
     summary = json.loads((out / f"BE 36-{rid}-summary.json").read_text())
     assert summary["heliostat"] == "BE 36" and summary["power_w"] > 0
+
+
+def test_library_inputs_that_gave_made_up_numbers_are_refused(fitted_h5, unchecked):
+    """A hostile-input round (seventh session) through the Python API, checks off as a
+    user runs: a NaN aim point planned 0.0 mrad for every heliostat, zero or negative
+    envelope weights 0.0 or NaN, a budget of 2.7 was read as 2; a sun vector of length 2
+    calibrated ("converged") to other parameters; aim_results with a (3,) sun, (3, 3) aim
+    points or times of the wrong length raised deep in JAX, and times in nanoseconds
+    (datetime64[ns]) were read as seconds (every error bar 500,000 mrad)."""
+    r = hj.load_results(fitted_h5)
+    sun, weight = hj.operating_envelope(np.asarray(r.attrs["origin_lla"]), day_step=60)
+    aim = np.array([0.0, 0.0, 60.0])
+    cases = [
+        (dict(aim_point=aim * np.nan), "aim_point must be finite"),
+        (dict(aim_point=np.zeros((3, 3))), "aim_point must be"),
+        (dict(envelope_weight=0.0 * np.asarray(weight)), "positive sum"),
+        (dict(envelope_weight=-np.asarray(weight)), "non-negative"),
+        (dict(envelope_weight=np.asarray(weight)[:-1]), "one per envelope sun"),
+        (dict(envelope_sun=2.0 * np.asarray(sun)), "unit vectors"),
+        (dict(budget=2.7), "whole number"),
+        (dict(budget=-1), "whole number"),
+    ]
+    for change, message in cases:
+        kw = dict(envelope_sun=sun, envelope_weight=weight, aim_point=aim, budget=2) | change
+        with pytest.raises(ValueError, match=message):
+            hj.plan_calibration(r, None, **kw)  # candidates are not reached
+
+    fleet = hj.load_paint_directory(hj.default_data_dir())
+    doubled = eqx.tree_at(lambda f: f.context.sun, fleet, 2.0 * fleet.context.sun)
+    with pytest.raises(ValueError, match="fleet.context.sun: .* not finite unit vectors"):
+        hj.fit(hj.nominal_model("stone8"), doubled)
+    with pytest.raises(ValueError, match="context.sun: .* not finite unit vectors"):
+        hj.fleet_from_arrays(doubled.geometry, doubled.counts, doubled.context, doubled.focal_spot, doubled.mask)
+
+    t = np.array([1687348800.0, 1687352400.0])  # 2023-06-21 12:00 and 13:00 UTC
+    s = hj.solar_position(t, *np.asarray(r.attrs["origin_lla"])).direction_enu()
+    seconds = hj.aim_results(r, s, aim, unix_time=t)
+    as_datetime = hj.aim_results(r, s, aim, unix_time=(t * 1e9).astype("datetime64[ns]"))
+    np.testing.assert_array_equal(np.asarray(as_datetime.pointing_cov_mrad2), np.asarray(seconds.pointing_cov_mrad2))
+    for args, kw, message in [
+        ((s[0], aim), {}, r"sun has shape \(3,\)"),
+        ((s, np.zeros((3, 3))), {}, r"aim_points has shape \(3, 3\)"),
+        ((s, aim), dict(unix_time=t[:1]), "one per sun vector"),
+        ((s, aim), dict(unix_time=t * 1e3), "not ms or ns"),
+        ((2.0 * s, aim), {}, "not finite unit vectors"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            hj.aim_results(r, *args, **kw)
+
+
+def test_results_of_a_neural_correction_are_not_taken_for_the_kinematic_model(tmp_path, capsys):
+    """`calibrate --model stone8+nn --out` wrote the label "stone8" beside the network's
+    residuals and errors, so `aim`, `plan` and `trace --results` used the file's
+    kinematic parameters as if they were the model behind those errors (a plan predicted
+    a third of the plain fit's uncertainty for the same parameters). The label now says
+    "+nn", and every reader refuses it, naming what to run instead."""
+    out = tmp_path / "nn" / "results.h5"
+    argv = ["calibrate", "--model", "stone8+nn", "--out", str(out), "--cache-dir", "none", "--quiet"]
+    rc, _, err = _run(argv, capsys)
+    assert rc == 0, err
+    import h5py
+
+    with h5py.File(out) as f:
+        assert f.attrs["model"] == "stone8+nn"
+    with pytest.raises(hj.DataError, match=r"neural correction .*calibrate --model stone8"):
+        hj.load_results(out)
+    for command in (
+        ["aim", str(out), "--time", "2023-06-21T12:00"],
+        ["plan", str(out), "--date", "2024-06-21"],
+        ["trace", "--heliostat", "BE36", "--sun-azimuth", "-20", "--sun-elevation", "40", "--results", str(out)],
+    ):
+        rc, _, err = _run([*command, "--out", str(tmp_path / command[0])], capsys)
+        assert rc == 2 and "neural correction" in err and "results.h5" in err, (command, err)

@@ -6,6 +6,7 @@ aim at the targets, slots that exclude each other, and record roles for
 from __future__ import annotations
 
 import logging
+import typing
 
 import jax
 import jax.numpy as jnp
@@ -224,3 +225,23 @@ def test_record_roles_choose_the_training_and_held_out_records(caplog):
         roles_to_masks(fleet, {hid: {1: "train"}})
     with pytest.raises(hj.ConfigError, match="role 'fit'"):
         roles_to_masks(fleet, {hid: {chosen[0]: "fit"}})
+    with pytest.raises(hj.ConfigError, match="no record has the role train"):
+        roles_to_masks(fleet, {})
+    with pytest.raises(hj.ConfigError, match="start must be one of auto, nominal, not 'fleet_typical'"):
+        hj.calibrate(fleet, start="fleet_typical")  # was taken for "nominal"
+
+
+def test_ill_typed_record_roles_are_named_not_truncated(unchecked):
+    """Without run-time type checks (as a user runs): a list for a heliostat's roles, a
+    record id that is not whole (118671.9 was truncated to 118671), a list for all roles."""
+    fleet = hj.load_paint_directory(hj.default_data_dir())
+    hid = fleet.ids[0]
+    chosen = [int(r) for r in np.asarray(fleet.record_id)[0][np.asarray(fleet.mask)[0]][:2]]
+    roles: typing.Any = {hid: chosen}
+    with pytest.raises(hj.ConfigError, match="not a list"):
+        roles_to_masks(fleet, roles)
+    roles = {hid: {chosen[0] + 0.9: "train"}}
+    with pytest.raises(hj.ConfigError, match="not a whole number"):
+        roles_to_masks(fleet, roles)
+    with pytest.raises(hj.ConfigError, match="record_roles must map"):
+        hj.calibrate(fleet, record_roles=typing.cast(typing.Any, [hid]))

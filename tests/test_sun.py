@@ -358,3 +358,14 @@ def test_against_paint_calibration_records(shared_paint):
     # The stored elevations include refraction: without it the match is an order worse.
     assert np.median(d_el_norefr) > 5 * np.median(d_el)
     assert d_el_norefr.max() > 0.1
+
+
+def test_latitude_and_longitude_outside_degrees_are_refused():
+    """A latitude of 500 (a swapped or mistyped pair) returned a sun vector without a
+    word; radians pass (they are inside the bounds), so this catches gross mistakes only."""
+    import pytest
+
+    for args, name in (((1.6e9, 500.0, 6.0), "latitude_deg"), ((1.6e9, 50.0, -400.0), "longitude_deg")):
+        with pytest.raises(ValueError, match=name):
+            solar_position(*args)
+    assert np.isnan(float(solar_position(1.6e9, float("nan"), 6.0).elevation))  # NaN in, NaN out

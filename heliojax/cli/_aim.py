@@ -116,7 +116,12 @@ def add_parser(subparsers) -> None:
     when.add_argument("--sun-azimuth", type=number(-360.0, 360.0), help="sun azimuth in degrees (0 = south, east +)")
     p.add_argument("--end", type=_utc, help="last instant with --start")
     p.add_argument("--sun-elevation", type=number(0.0, 90.0, above=True), help="sun elevation in degrees")
-    p.add_argument("--step-minutes", type=number(0.0, 1440.0, above=True), default=30.0, help="instant spacing")
+    p.add_argument(
+        "--step-minutes",
+        type=number(0.0, 1440.0, above=True),
+        default=None,
+        help=f"instant spacing of --date or --start/--end (default {DEFAULT_STEP_MINUTES:g})",
+    )
     where = p.add_mutually_exclusive_group()
     where.add_argument(
         "--target",
@@ -156,14 +161,26 @@ def add_parser(subparsers) -> None:
     p.add_argument("--quiet", action="store_true", help="no messages on stderr")
 
 
+DEFAULT_STEP_MINUTES = 30.0
+"""``--step-minutes`` when not given (instants of ``--date`` or ``--start``/``--end``)."""
+
+
+def _utc_text(t: dt.datetime) -> str:
+    """ISO 8601 UTC with a ``Z``, to the microsecond where the instant has a fraction of
+    a second (written as whole seconds, the CSV named another instant than the one aimed
+    for)."""
+    return t.strftime("%Y-%m-%dT%H:%M:%S" + (".%f" if t.microsecond else "") + "Z")
+
+
 def time_window(args) -> list[dt.datetime]:
     """The instants of ``--start``/``--end`` or of the whole day ``--date`` (default:
     today, UTC), ``--step-minutes`` apart, at most ``--max-instants``."""
     from .._errors import ConfigError
 
-    step = dt.timedelta(minutes=args.step_minutes)
+    minutes = DEFAULT_STEP_MINUTES if args.step_minutes is None else args.step_minutes
+    step = dt.timedelta(minutes=minutes)
     if step < dt.timedelta(seconds=1):
-        raise ConfigError(f"--step-minutes {args.step_minutes:g}: instants must be at least a second apart")
+        raise ConfigError(f"--step-minutes {minutes:g}: instants must be at least a second apart")
     if args.start is not None:
         if args.end is None or args.end < args.start:
             raise ConfigError("--start needs an --end at or after it")
@@ -189,6 +206,9 @@ def _instants(args, origin_lla):
     from .._geometry import sun_direction
     from .._sun import solar_position
 
+    one = "--time" if args.time is not None else "--sun-azimuth/--sun-elevation"
+    if args.step_minutes is not None and (args.time is not None or args.sun_azimuth is not None):
+        raise ConfigError(f"--step-minutes spaces the instants of --date or --start/--end; {one} gives one instant")
     if args.sun_azimuth is not None or args.sun_elevation is not None:
         if args.sun_azimuth is None or args.sun_elevation is None:
             raise ConfigError("--sun-azimuth and --sun-elevation go together")
@@ -335,6 +355,11 @@ def run(args) -> int:
     times, sun = _instants(args, origin)
     log.info(f"aiming {len(results.ids)} heliostats at {args.target} for {sun.shape[0]} instant(s)")
     unix = None if times is None else np.array([t.timestamp() for t in times])
+    if times is None and results.drift_mrad2_per_day > 0.0:
+        log.warning(
+            "a sun position without a time: the predicted uncertainty leaves out the fleet's drift since the fit "
+            f"({results.drift_mrad2_per_day:.2g} mrad^2 per day), which --time, --date or --start include"
+        )
     with activity("aiming", logger=log):
         r = aim_results(
             results,
@@ -388,7 +413,7 @@ def run(args) -> int:
                     w.writerow(
                         [
                             hid,
-                            "" if times is None else times[j].strftime("%Y-%m-%dT%H:%M:%SZ"),
+                            "" if times is None else _utc_text(times[j]),
                             f"{az[j]:.4f}",
                             f"{el[j]:.4f}",
                             int(round(c[0])) if np.isfinite(c[0]) else "",

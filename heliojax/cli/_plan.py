@@ -130,7 +130,8 @@ def add_parser(subparsers) -> None:
         "--min-sun-elevation",
         type=number(0.0, 90.0),
         default=10.0,
-        help="lowest sun (degrees, 0-90: a measurement needs the sun up) of the envelope and of candidate instants",
+        help="lowest sun (degrees, 0-90: a measurement needs the sun up) of the envelope and of candidate instants "
+        "or records",
     )
     p.add_argument(
         "--max-instants",
@@ -150,7 +151,7 @@ def add_parser(subparsers) -> None:
         default=None,
         metavar="FILE",
         help="with --paint-dir: records CSV for `heliojax calibrate --records` "
-        "(chosen: train; at/after --before: test)",
+        "(chosen, and from the posterior the fit's own training records: train; at/after --before: test)",
     )
     p.add_argument(
         "--plot", type=path_type, default=None, metavar="FILE", help="figure of the predicted uncertainty (PNG)"
@@ -208,6 +209,12 @@ def run(args) -> int:
         raise ConfigError("--end needs --start")
     enable_compilation_cache(args.cache_dir, args.command)
     results = load_results(args.results)
+    if not np.asarray(results.fitted, bool).any():
+        statuses = ", ".join(sorted(set(results.status)))
+        raise ConfigError(
+            f"{args.results}: no heliostat has a usable fit ({statuses}): neither a posterior nor a fleet prior "
+            "to plan from (a plan from it predicted 500 mrad from a 'learnt' discrepancy of 0)"
+        )
     origin = np.asarray(results.attrs["origin_lla"], float)
     tower = read_plant_tower(args.tower, origin)
 
@@ -269,6 +276,18 @@ def run(args) -> int:
             if not usable.any():
                 raise ConfigError(
                     f"--paint-dir {args.paint_dir}: every record is one the fit used or superseded; nothing new to plan"
+                )
+        _, sun_el = direction_to_azimuth_elevation(fleet.context.sun)
+        low = usable & (np.degrees(np.asarray(sun_el)) < args.min_sun_elevation)
+        if low.any():
+            log.info(
+                f"{int(low.sum())} record(s) of {args.paint_dir} with the sun below --min-sun-elevation "
+                f"{args.min_sun_elevation:g} deg: not candidates"
+            )
+            usable &= ~low
+            if not usable.any():
+                raise ConfigError(
+                    f"--min-sun-elevation {args.min_sun_elevation:g}: no record of {args.paint_dir} left as a candidate"
                 )
         candidates, record_ids = candidates_from_records(fleet, results.ids, usable)
         rows = [list(fleet.ids).index(i) if i in fleet.ids else -1 for i in results.ids]
@@ -396,16 +415,28 @@ def run(args) -> int:
             later = np.zeros(np.asarray(fleet.mask).shape, bool)
             if args.before is not None:
                 later = np.asarray(fleet.mask) & (np.asarray(fleet.context.unix_time) >= args.before.timestamp())
+            # From the fit's posterior the plan adds to what the fit knew: its training
+            # records train too (without them `calibrate --records` fitted the chosen
+            # records alone, and every heliostat the plan gave none to not at all).
+            known_train = [np.zeros(0, np.int64) for _ in results.ids]
+            if args.start_from == "posterior" and "split" in results.records:
+                train_split = np.asarray(results.records["split"]) == SPLIT_CODES["train"]
+                rids = np.asarray(results.records["record_id"], np.int64)
+                known_train = [rids[i][train_split[i] & np.asarray(results.fitted)[i]] for i in range(len(results.ids))]
             with atomic_write(args.records_out, newline="") as f:
                 w = csv.writer(f)
                 w.writerow([*RECORDS_HEADER, "role"])
                 for i, hid in enumerate(results.ids):
-                    for c in chosen[i][chosen[i] >= 0]:
-                        w.writerow([hid, int(record_ids[i, c]), "train"])
-                    if hid in fleet.ids:
-                        r = list(fleet.ids).index(hid)
+                    r = list(fleet.ids).index(hid) if hid in fleet.ids else -1
+                    held = set(np.asarray(fleet.record_id)[r][np.asarray(fleet.mask)[r]].tolist()) if r >= 0 else set()
+                    planned_ids = [int(record_ids[i, c]) for c in chosen[i][chosen[i] >= 0]]
+                    train_ids = [int(x) for x in known_train[i] if int(x) in held and int(x) not in planned_ids]
+                    for rid in [*train_ids, *planned_ids]:
+                        w.writerow([hid, rid, "train"])
+                    if r >= 0:
                         for rid in np.asarray(fleet.record_id)[r][later[r]]:
-                            w.writerow([hid, int(rid), "test"])
+                            if int(rid) not in train_ids and int(rid) not in planned_ids:
+                                w.writerow([hid, int(rid), "test"])
         if args.plot is not None:
             from .._plotting import plot_plan, save_figure
 

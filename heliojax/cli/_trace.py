@@ -39,6 +39,10 @@ OUTPUT_DIRS = ("out",)
 """Output paths checked before any work (attribute names of the parsed arguments)."""
 
 
+DEFAULT_TRACE_TARGET = "solar_tower_juelich_lower"
+"""``--target`` of a trace at a sun position when not given."""
+
+
 def _tag(args) -> str:
     """The part of the output file names naming the record or the sun."""
     return str(args.record) if args.record is not None else f"az{args.sun_azimuth:g}_el{args.sun_elevation:g}"
@@ -90,8 +94,9 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--target",
         type=target_name,
-        default="solar_tower_juelich_lower",
-        help="target name with --sun-* (aimed at its centre)",
+        default=None,
+        help=f"target name with --sun-* (aimed at its centre; default {DEFAULT_TRACE_TARGET}); with --record "
+        "the record's target",
     )
     p.add_argument("--tower", type=path_type, help="tower file (default: PAINT_DIR's or its parent's)")
     p.add_argument("--deflectometry", type=path_type, help="PAINT deflectometry HDF5: fit NURBS facets to it")
@@ -255,9 +260,14 @@ def run(args: argparse.Namespace) -> int:
                 )
             record = read_calibration_record(rec_path, heliostat_id=args.heliostat)
             az, el, target_name = record.sun_azimuth_deg, record.sun_elevation_deg, record.target_name
+            if args.target is not None and args.target != target_name:
+                raise ConfigError(
+                    f"--target {args.target}: record {args.record} was measured on {target_name}, the target "
+                    "its trace is compared with; leave --target out, or trace a sun position (--sun-*) instead"
+                )
             counts = jnp.asarray([record.axis_1_counts, record.axis_2_counts], jnp.float64)
         else:
-            az, el, target_name = args.sun_azimuth, args.sun_elevation, args.target
+            az, el, target_name = args.sun_azimuth, args.sun_elevation, args.target or DEFAULT_TRACE_TARGET
         target = optics.target_from_tower(tower, target_name)
         sun = sun_direction(jnp.deg2rad(az), jnp.deg2rad(el))  # pyright: ignore[reportArgumentType]
         if args.record is None:

@@ -36,7 +36,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._errors import ConfigError
-from .._geometry import products_by_reduction
+from .._geometry import check_unit_vectors, products_by_reduction
 from .._heliostat import HeliostatGeometry, RecordContext
 from .._kinematics import AbstractKinematicModel
 from .._parameters import ParameterView, and_masks, broadcast_model, is_batched, on_host
@@ -598,6 +598,7 @@ def _prepare(model0, fleet, mask, free, solver, loss, prior, batching, max_steps
     prior = NoPrior() if prior is None else prior
     batching = default_batching() if batching is None else batching
     m = fleet.mask if mask is None else and_masks(mask, fleet.mask)
+    check_unit_vectors(fleet.context.sun, m, "fleet.context.sun")
     args = (
         model0,
         prior.per_heliostat(h),
