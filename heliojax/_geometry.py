@@ -412,12 +412,12 @@ def check_unit_vectors(vectors: ArrayLike, used: ArrayLike | None, name: str) ->
     v = np.asarray(vectors, float)
     if v.ndim == 0 or v.shape[-1] != 3:
         raise ValueError(f"{name} has shape {v.shape}; expected (..., 3) unit ENU vectors")
-    length = np.linalg.norm(v, axis=-1)
-    bad = ~(np.abs(length - 1.0) <= UNIT_TOLERANCE)
+    squared = np.einsum("...i,...i->...", v, v)  # no square root: |v|^2 - 1 ~ 2 (|v| - 1)
+    bad = ~(np.abs(squared - 1.0) <= 2.0 * UNIT_TOLERANCE)
     if used is not None:
         bad &= np.broadcast_to(np.asarray(used, bool), bad.shape)
     if bad.any():
-        first = length[bad].flat[0]
+        first = np.sqrt(squared[bad].flat[0])
         raise ValueError(
             f"{name}: {int(bad.sum())} vector(s) are not finite unit vectors (e.g. length {first:.6g}); "
             "sun vectors are unit ENU directions towards the sun (heliojax.sun_direction)"
