@@ -592,6 +592,14 @@ def markdown_summary(report: dict) -> str:
             jumps = ", ".join(f"{k} {1e3 * v:+.2f}" for k, v in c["jump"].items() if v is not None)
             when = f"{c['time']} | {c['previous_record_time']}"
             lines.append(f"| {c['heliostat']} | {when} | {jumps} | {fmt(c['p_holm'], '.2g')} |")
+    if report.get("change_points_withdrawn"):
+        withdrawn = ", ".join(
+            f"{c['heliostat']} ({c['time']}, p {fmt(c['p'], '.2g')})" for c in report["change_points_withdrawn"]
+        )
+        lines.append(
+            "\nChange points the robust pre-pass found and the final model explains "
+            f"(withdrawn, not named): {withdrawn}."
+        )
     if report.get("outliers") is not None:
         lines.append(f"\nGross errors left out: {len(report['outliers'])} records.")
     if report.get("unexplained"):
