@@ -258,8 +258,6 @@ def aim_fleet(
         points = jnp.broadcast_to(points, (h, n, 3))
     elif points.ndim == 2:
         points = jnp.broadcast_to(points[:, None, :], (h, n, 3))
-    if points.shape != (h, n, 3):
-        raise ValueError(f"aim_points has shape {jnp.shape(aim_points)}; expected (3,), ({h}, 3) or ({h}, {n}, 3)")
     counts, miss = _aim_program(models, geometry, points, sun)
     act = geometry.actuators
     out_of_range = jnp.any((counts < act.min_counts[:, None, :]) | (counts > act.max_counts[:, None, :]), axis=-1)

@@ -66,6 +66,7 @@ from ._discrepancy import (
     mirror_normals,
 )
 from ._errors import DataError
+from ._geometry import check_unit_vectors
 from ._heliostat import HeliostatGeometry, RecordContext
 from ._kinematics import AbstractKinematicModel, inverse_aim
 from ._parameters import ParameterView
@@ -533,8 +534,7 @@ def _check_plan_inputs(n_heliostats: int, envelope_sun, envelope_weight, aim_poi
     weight = np.asarray(envelope_weight, float)
     if sun.ndim != 2 or sun.shape[1] != 3 or sun.shape[0] == 0:
         raise ValueError(f"envelope_sun must be (E, 3) unit sun vectors, not of shape {sun.shape}")
-    if not np.all(np.isfinite(sun)) or np.any(np.abs(np.linalg.norm(sun, axis=1) - 1.0) > 1e-6):
-        raise ValueError("envelope_sun must hold finite unit vectors (ENU, towards the sun)")
+    check_unit_vectors(sun, None, "envelope_sun")
     if weight.shape != (sun.shape[0],):
         raise ValueError(f"envelope_weight must be ({sun.shape[0]},), one per envelope sun, not {weight.shape}")
     if not np.all(np.isfinite(weight)) or np.any(weight < 0) or not weight.sum() > 0:

@@ -646,10 +646,10 @@ def temporal_drift(
 
 
 RECORD_ROLES = ("train", "test")
+"""Roles of a record in :func:`calibrate`'s ``record_roles``."""
 
 CALIBRATION_STARTS = ("auto", "nominal")
 """The start geometries :func:`calibrate` knows (its ``start``)."""
-"""Roles of a record in :func:`calibrate`'s ``record_roles``."""
 
 
 def _split_times(fleet, split: str) -> np.ndarray:

@@ -40,7 +40,7 @@ import dataclasses
 import numpy as np
 from scipy import stats
 
-from ._screen import HeliostatBases, chi2_equivalent, directions_f_tests
+from ._screen import HeliostatBases, chi2_equivalent, directions_f_tests, weighted_gram
 
 GENERIC_TYPICAL_MRAD = 0.6
 """Prior standard deviation of a generic competitor's coefficient (mrad of beam error)."""
@@ -144,9 +144,9 @@ def _fleet(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray):
     k = design.shape[-1]
     x = bases.rows(design)  # (S, R, k)
     xt = bases.project(x)
-    weighted = xt / np.maximum(noise[bases.index] ** 2, 1e-300)[:, None, None]  # x~_h / sigma_h^2
-    g = np.tensordot(weighted, bases.r_res, axes=([0, 1], [0, 1]))
-    gmat = np.tensordot(weighted, xt, axes=([0, 1], [0, 1]))
+    w = 1.0 / np.maximum(noise[bases.index] ** 2, 1e-300)  # 1 / sigma_h^2
+    g = weighted_gram(w, xt, bases.r_res)
+    gmat = weighted_gram(w, xt, xt)
     if not np.any(gmat):
         return 0.0, 1.0, 0.0
     beta = np.linalg.solve(gmat + np.eye(k) / typ2, g)

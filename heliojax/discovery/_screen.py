@@ -237,7 +237,7 @@ def minimum_norm_solve(a: Float[np.ndarray, "S k k"], b: Float[np.ndarray, "S k"
     return (vt.swapaxes(1, 2) @ z[..., None])[..., 0]
 
 
-def _weighted_gram(w: Float[np.ndarray, " S"], x: Float[np.ndarray, "S R k"], y: np.ndarray) -> np.ndarray:
+def weighted_gram(w: Float[np.ndarray, " S"], x: Float[np.ndarray, "S R k"], y: np.ndarray) -> np.ndarray:
     """``sum_s w_s x_s^T y_s`` (``y`` ``(S, R, j)`` or ``(S, R)``)."""
     return np.tensordot(w[:, None, None] * x, y, axes=([0, 1], [0, 1]))
 
@@ -261,7 +261,7 @@ def screen_candidate(
     bt = bases.project(b)
     w = bases.dof / np.maximum(bases.rss, 1e-300)  # inverse noise variance
     bt_typ = bt * typical
-    info = _weighted_gram(w, bt_typ, bt_typ)
+    info = weighted_gram(w, bt_typ, bt_typ)
     fractions = absorbed_fractions(b, bt)
     information = float(np.linalg.eigvalsh(info).max()) if k else 0.0
     testable = fractions.size > 0
@@ -297,8 +297,8 @@ def screen_candidate(
     dll_perhel = float(
         np.sum(bases.n[tested] * np.log(np.maximum(rss_res, 1e-300) / np.maximum(rss_res - explained, 1e-300)))
     )
-    g = _weighted_gram(w, bt, bases.r_res)
-    gmat = _weighted_gram(w, bt, bt)
+    g = weighted_gram(w, bt, bases.r_res)
+    gmat = weighted_gram(w, bt, bt)
     dof_total = int(bases.dof.sum())
 
     p_perhel = float(stats.chi2.sf(q_sum, k_sum)) if k_sum else 1.0
