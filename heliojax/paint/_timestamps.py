@@ -63,12 +63,7 @@ def read_timestamps(
             hid = entry.string("heliostat_id")
             _check(bool(hid), file, entry.field("heliostat_id"), "empty")
             dt = _check_datetime(file, entry.field("datetime"), entry.get("datetime"))
-            rid = int(key)
-            if rid in ambiguous or out.get(rid, TimestampEntry(hid, dt)) != TimestampEntry(hid, dt):
-                ambiguous.add(rid)
-                out.pop(rid, None)
-                raise DataError(file, key, f"record {rid} is listed twice with different entries: neither is used")
-            out[rid] = TimestampEntry(hid, dt)
+            _add_entry(out, ambiguous, int(key), TimestampEntry(hid, dt), file, key)
         except DataError as e:
             if on_error is None:
                 raise
@@ -91,6 +86,19 @@ def write_timestamps(
         items = {r.record_id: TimestampEntry(r.heliostat_id, r.datetime) for r in entries if r.datetime is not None}
     data = {str(k): {"heliostat_id": items[k].heliostat_id, "datetime": items[k].datetime} for k in sorted(items)}
     _write_json(path, data, indent=1)
+
+
+def _add_entry(
+    out: dict[int, TimestampEntry], ambiguous: set[int], rid: int, entry: TimestampEntry, file: str, where: str
+) -> None:
+    """Add ``entry`` for record ``rid`` to ``out``; a record listed twice with different
+    entries (e.g. ids "7" and "07") is removed and kept in ``ambiguous``, and a DataError
+    names it: neither entry is used."""
+    if rid in ambiguous or out.get(rid, entry) != entry:
+        ambiguous.add(rid)
+        out.pop(rid, None)
+        raise DataError(file, where, f"record {rid} is listed twice with different entries: neither is used")
+    out[rid] = entry
 
 
 def read_metadata_times(
@@ -123,13 +131,7 @@ def read_metadata_times(
             _check(bool(hid), file, f"{where}.HeliostatId", "empty")
             _check_datetime(file, f"{where}.DateTime", when)
             iso = utc_datetime(when).strftime("%Y-%m-%dT%H:%M:%S.%fZ").replace(".000000Z", "Z")
-            rid = int(rid_text)
-            entry = TimestampEntry(hid, iso)
-            if rid in ambiguous or out.get(rid, entry) != entry:
-                ambiguous.add(rid)
-                out.pop(rid, None)
-                raise DataError(file, where, f"record {rid} is listed twice with different entries: neither is used")
-            out[rid] = entry
+            _add_entry(out, ambiguous, int(rid_text), TimestampEntry(hid, iso), file, where)
         except DataError as e:
             if on_error is None:
                 raise
