@@ -15,7 +15,7 @@ Protocol, per seed:
    model (target: at least 50 % below; also "as aimed", where fits flagged
    ``worse_than_nominal`` give way to the nominal model, as ``heliojax aim`` does);
    coverage of the predicted distribution (:mod:`heliojax._predictive`: scale
-   ``J C J^T + (noise^2 + q a) I``, the fitted error law) on their held-out records and on
+   ``J C J^T + (noise^2 + q a + g gap) I``, the fitted error law) on their held-out records and on
    the well-sampled heliostats' (targets 60-76 % and 90-98 % inside the 68 % and
    95 % regions).
 
@@ -104,6 +104,7 @@ def one_seed(seed: int, workdir: Path, args) -> dict:
         "few_record_heliostats": int(is_few.sum()),
         "few_record_statuses": sorted({statuses[i] for i in np.flatnonzero(is_few)}),
         "drift_mrad2_per_day": q,
+        "sky_gap_mrad2_per_deg": float(run.predictive.get("sky_gap_mrad2_per_deg", 0.0)),
         "error_law": law.to_dict(),
         "few_heldout_median_mrad": float(np.median(err[few_test])),
         "few_nominal_median_mrad": float(np.median(unc[few_test])),

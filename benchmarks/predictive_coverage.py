@@ -6,9 +6,12 @@ tangent components) with the predicted covariance ``J C J^T`` (the parameter
 covariance propagated through the residual's Jacobian, as ``heliojax aim`` does)
 plus the fit's noise per component, plus the fleet's drift since each heliostat's
 last fitted record, its rate estimated from the training records alone
-(:func:`heliojax.temporal_drift`), the scale of the error law
-(:class:`heliojax.PointingErrorLaw`, a Student t or a Gaussian, with or without an
-outlier component) fitted on the same training records. Prints JSON: the fractions of
+(:func:`heliojax.temporal_drift`), plus the sky-gap term (the growth per degree from
+the record's sun to the nearest fitted record's sun, where the same training
+records ask for it), the scale of the error law (:class:`heliojax.PointingErrorLaw`,
+a Student t or a Gaussian, with or without an outlier component) fitted on the same
+training records. The last row is :func:`heliojax.prediction_d2`, what ``calibrate``
+and ``aim`` predict. Prints JSON: the fractions of
 records inside the nominal 68 % and 95 % regions, for the Gaussian (Mahalanobis
 d^2 < 2.279, 5.991) and for the fitted law (:func:`heliojax.prediction_region_d2`), and
 the median d^2 (1.386 for a correct Gaussian model).
@@ -54,12 +57,16 @@ def main() -> None:
         "heliostats": h,
         "predictive": run.summary["predictive"],
     }
-    for name, total in (
-        ("parameters_only", s),
-        ("parameters_and_noise", s + noise[:, None, None, None] ** 2 * np.eye(2)),
-        ("parameters_noise_and_drift", s + (noise[:, None] ** 2 + drift)[..., None, None] * np.eye(2)),
-    ):
-        d2 = np.einsum("hmi,hmij,hmj->hm", r, np.linalg.inv(total + 1e-12 * np.eye(2)), r)
+    rows = {
+        name: np.einsum("hmi,hmij,hmj->hm", r, np.linalg.inv(total + 1e-12 * np.eye(2)), r)
+        for name, total in (
+            ("parameters_only", s),
+            ("parameters_and_noise", s + noise[:, None, None, None] ** 2 * np.eye(2)),
+            ("parameters_noise_and_drift", s + (noise[:, None] ** 2 + drift)[..., None, None] * np.eye(2)),
+        )
+    }
+    rows["parameters_noise_drift_and_sky_gap"] = np.asarray(hj.prediction_d2(run))[:h]
+    for name, d2 in rows.items():
         use = held_out & np.isfinite(d2)
         out[name] = {"held_out_records": int(use.sum()), "median_d2": float(np.median(d2[use]))}
         for name_law, fitted in (("gaussian", hj.PointingErrorLaw()), ("fitted_law", law)):

@@ -108,6 +108,7 @@ from ._predictive import (
     PointingErrorLaw as PointingErrorLaw,
     fit_drift_and_law as fit_drift_and_law,
     fit_drift_and_tails as fit_drift_and_tails,
+    fit_drift_gap_and_law as fit_drift_gap_and_law,
     prediction_region_d2 as prediction_region_d2,
 )
 from ._results import (
@@ -130,6 +131,7 @@ from ._splits import (
     SplitResult as SplitResult,
     chronological_holdout as chronological_holdout,
     days_since_fit as days_since_fit,
+    record_sky_gap_deg as record_sky_gap_deg,
     split_fleet as split_fleet,
     split_records as split_records,
 )

@@ -31,11 +31,13 @@ the parameter covariance (``J C J^T`` with ``J`` the Jacobian of the beam
 direction with respect to the free parameters), plus the drift since the fit
 ``q * dt * I`` (:func:`heliojax.temporal_drift`: a random walk at the rate ``q``
 that later training records showed; ``dt`` days since the heliostat's last fitted
-record).
+record) and the sky-gap term ``g * gap * I`` (``gap`` deg from the sun to the nearest
+fitted record's sun; ``g`` 0 unless the later training records asked for it).
 """
 
 from __future__ import annotations
 
+import math
 import typing
 
 import equinox as eqx
@@ -202,6 +204,7 @@ def aim_fleet(
     covariance: Float[ArrayLike, "H F F"] | None = None,
     view: ParameterView | None = None,
     drift_variance_mrad2: Float[ArrayLike, "*drift"] | float = 0.0,
+    sky_gap_mrad2_per_deg: float = 0.0,
     error_law: PointingErrorLaw = PointingErrorLaw(),  # noqa: B008 (frozen, static)
     min_sun_elevation_deg: float = 5.0,
     reach_tolerance_mrad: float = REACH_TOLERANCE_MRAD,
@@ -227,6 +230,9 @@ def aim_fleet(
             since the fit, broadcast to ``(H, N)`` (:func:`heliojax.temporal_drift`;
             :func:`aim_results` computes it from the instants' times), added to that
             uncertainty as ``drift_variance_mrad2 * I``.
+        sky_gap_mrad2_per_deg: ``g``, variance (mrad^2 per tangent component) added
+            per degree of sky gap, ``g * sky_gap_deg * I`` (:func:`heliojax.temporal_drift`;
+            :func:`aim_results` takes it from the file); needs ``fitted_sun``.
         error_law: the predicted error's :class:`heliojax.PointingErrorLaw`
             (:func:`heliojax.temporal_drift`; default Gaussian), kept in the result.
         min_sun_elevation_deg: flag instants with the sun lower than this.
@@ -266,6 +272,10 @@ def aim_fleet(
     unreliable = jnp.zeros((h,), bool) if fitted is None else ~jnp.asarray(fitted, bool)
     if (fitted_sun is None) != (fitted_record is None):
         raise ValueError("give both fitted_sun and fitted_record, or neither")
+    if not (math.isfinite(sky_gap_mrad2_per_deg) and sky_gap_mrad2_per_deg >= 0.0):
+        raise ValueError(f"sky_gap_mrad2_per_deg is {sky_gap_mrad2_per_deg}; expected a finite value >= 0")
+    if sky_gap_mrad2_per_deg > 0.0 and fitted_sun is None:
+        raise ValueError("sky_gap_mrad2_per_deg > 0 needs fitted_sun and fitted_record (the sky gap)")
     if fitted_sun is not None and fitted_record is not None:
         if not (0.0 <= max_sky_gap_deg <= 180.0):
             raise ValueError(f"max_sky_gap_deg is {max_sky_gap_deg}; expected a value in [0, 180] deg")
@@ -277,6 +287,8 @@ def aim_fleet(
         cov = jnp.asarray(covariance, sun.dtype)
         pointing = _pointing_covariance(view, models, geometry, counts, points, sun, cov)
         drift = jnp.broadcast_to(jnp.asarray(drift_variance_mrad2, sun.dtype), (h, n))
+        if sky_gap_mrad2_per_deg > 0.0:  # a heliostat without a fitted record (gap inf) is unreliable
+            drift = drift + sky_gap_mrad2_per_deg * jnp.where(jnp.isfinite(gap), gap, 0.0)
         pointing = pointing + drift[:, :, None, None] * jnp.eye(2, dtype=sun.dtype)[None, None, :, :]
     else:
         pointing = jnp.full((h, n, 2, 2), jnp.nan, sun.dtype)
@@ -369,6 +381,7 @@ def aim_results(
         covariance=results.covariance,
         view=results.view,
         drift_variance_mrad2=drift,
+        sky_gap_mrad2_per_deg=getattr(results, "sky_gap_mrad2_per_deg", 0.0),  # duck-typed results: none
         error_law=results.error_law,
         fitted_sun=fitted_sun,
         fitted_record=fitted_record,

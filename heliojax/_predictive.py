@@ -28,6 +28,14 @@ T(x) + e T(x / k^2)`` with ``T`` the t's law above (the Gaussian mixture as ``nu
 inf``, the t as ``e -> 0``). :func:`fit_drift_and_law` fits all three by maximum
 likelihood and keeps the one with the lowest Bayesian information criterion. The law
 is one :class:`PointingErrorLaw`.
+
+A model that is not exact also errs more where the heliostat points in poses unlike
+the fitted ones: the scale may grow with the *sky gap* ``gap``, the angle (deg) from
+the sun of the record (or command) to the nearest sun of the heliostat's fitted
+records (:func:`heliojax.sky_gap_deg`), as ``S + (q dt + g gap) I``: a random walk in
+time and one across the sky, both with a linear variogram. ``g`` (mrad^2 per degree
+per component) is fitted beside ``q`` and the law and kept only where the BIC asks
+for it (:func:`fit_drift_gap_and_law`); ``g = 0`` is the law above.
 """
 
 from __future__ import annotations
@@ -44,6 +52,7 @@ _DRIFT_GRID = np.concatenate([[0.0], np.geomspace(1e-6, 1e3, 91)])  # mrad^2 / d
 _DOF_GRID = np.concatenate([np.geomspace(0.5, 1e3, 67), [np.inf]])
 _FRACTION_GRID = np.geomspace(0.003, 0.5, 24)
 _SCALE_GRID = np.geomspace(1.5, 1e3, 29)
+_GAP_GRID = np.concatenate([[0.0], np.geomspace(1e-5, 1e2, 71)])  # mrad^2 / deg
 
 
 @typing.final
@@ -184,13 +193,23 @@ def _log_likelihood(
 
 
 def _grid(
-    residual_mrad: Float[np.ndarray, "N 2"], scale_mrad2: Float[np.ndarray, "N 2 2"], days: Float[np.ndarray, " N"]
+    residual_mrad: Float[np.ndarray, "N 2"],
+    scale_mrad2: Float[np.ndarray, "N 2 2"],
+    days: Float[np.ndarray, " N"],
+    extra_mrad2: Float[np.ndarray, " N"] | None = None,
 ) -> tuple[Float[np.ndarray, "Q N"], Float[np.ndarray, "Q N"]]:
-    """``d^2`` and ``ln det`` of every residual under its scale plus each drift of the grid."""
+    """``d^2`` and ``ln det`` of every residual under its scale plus each drift of the
+    grid (plus ``extra_mrad2``, per component), in closed form for 2 x 2 matrices."""
     r = np.asarray(residual_mrad, float)
-    t = np.asarray(days, float)
-    total = np.asarray(scale_mrad2, float)[None] + (_DRIFT_GRID[:, None] * t[None, :])[..., None, None] * np.eye(2)
-    return np.einsum("ni,qnij,nj->qn", r, np.linalg.inv(total), r), np.linalg.slogdet(total)[1]
+    s = np.asarray(scale_mrad2, float)
+    c = _DRIFT_GRID[:, None] * np.asarray(days, float)[None, :]
+    if extra_mrad2 is not None:
+        c = c + np.asarray(extra_mrad2, float)[None, :]
+    a, d = s[:, 0, 0] + c, s[:, 1, 1] + c
+    b = 0.5 * (s[:, 0, 1] + s[:, 1, 0])
+    det = a * d - b * b
+    d2 = (d * r[:, 0] ** 2 - 2.0 * b * r[:, 0] * r[:, 1] + a * r[:, 1] ** 2) / det
+    return d2, np.log(det)
 
 
 def _best_t(d2: Float[np.ndarray, "Q N"], logdet: Float[np.ndarray, "Q N"]) -> tuple[int, float, float]:
@@ -239,7 +258,69 @@ def fit_drift_and_law(
     Returns:
         ``(q, law)``.
     """
-    d2, logdet = _grid(residual_mrad, scale_mrad2, days)
+    _, iq, law = _fit_law(*_grid(residual_mrad, scale_mrad2, days))
+    return float(_DRIFT_GRID[iq]), law
+
+
+def fit_drift_gap_and_law(
+    residual_mrad: Float[np.ndarray, "N 2"],
+    scale_mrad2: Float[np.ndarray, "N 2 2"],
+    days: Float[np.ndarray, " N"],
+    sky_gap_deg: Float[np.ndarray, " N"],
+) -> tuple[float, float, PointingErrorLaw]:
+    """:func:`fit_drift_and_law` with the sky-gap term (module docstring): maximum
+    likelihood drift ``q`` (mrad^2/day per component), sky-gap rate ``g`` (mrad^2 per
+    degree of sky gap per component) and error law of validation residuals predicted
+    with scale ``S + (q dt + g gap) I``.
+
+    ``g`` (in 0 and 1e-5-100, ratio 1.26) is chosen by the profile likelihood of the
+    Student t family (the Gaussian included; the t keeps gross errors from inflating
+    ``g``), the law and ``q`` are fitted at that ``g``, then ``q`` and ``g`` again on
+    their grid with that law fixed, and the law once more where ``g`` moved. ``g > 0``
+    is kept only when its BIC (one parameter more) is lower than that of
+    :func:`fit_drift_and_law`'s result; ties go to the smaller ``g``.
+
+    Args:
+        residual_mrad: ``(N, 2)`` validation residuals, mrad.
+        scale_mrad2: ``(N, 2, 2)`` their fitted scale ``S``, mrad^2.
+        days: ``(N,)`` days since the fit.
+        sky_gap_deg: ``(N,)`` angle (deg) from each record's sun to the nearest sun of
+            the records the fit used, finite and >= 0.
+
+    Returns:
+        ``(q, g, law)``.
+
+    Raises:
+        ValueError: a sky gap that is not finite or negative, or of another length.
+    """
+    r = np.asarray(residual_mrad, float)
+    s = np.asarray(scale_mrad2, float)
+    gap = np.asarray(sky_gap_deg, float)
+    if gap.shape != r.shape[:1] or not np.all(np.isfinite(gap) & (gap >= 0.0)):
+        raise ValueError(f"sky_gap_deg must hold {r.shape[0]} finite angles >= 0 (deg), one per residual")
+    bic, iq, law = _fit_law(*_grid(r, s, days))
+    best = (bic, float(_DRIFT_GRID[iq]), 0.0, law)
+    profile = [_best_t(*_grid(r, s, days, g * gap))[2] for g in _GAP_GRID]
+    g = float(_GAP_GRID[int(np.argmax(profile))])  # the first maximum: the smallest g
+    if g == 0.0:
+        return best[1], best[2], best[3]
+    penalty = math.log(max(r.shape[0], 1))
+    tried = set()
+    while g not in tried:  # at most twice: at the t's g, then where the fitted law moves it
+        tried.add(g)
+        bic, iq, law = _fit_law(*_grid(r, s, days, g * gap))
+        if bic + penalty < best[0]:
+            best = (bic + penalty, float(_DRIFT_GRID[iq]), g, law)
+        if len(tried) == 2:
+            break
+        ll = np.stack([_law_log_likelihood(*_grid(r, s, days, x * gap), law) for x in _GAP_GRID])  # (G, Q)
+        g = float(_GAP_GRID[int(np.unravel_index(np.argmax(ll), ll.shape)[0])])
+    return best[1], best[2], best[3]
+
+
+def _fit_law(d2: Float[np.ndarray, "Q N"], logdet: Float[np.ndarray, "Q N"]) -> tuple[float, int, PointingErrorLaw]:
+    """``(bic, drift index, law)`` of the family with the lowest BIC
+    (:func:`fit_drift_and_law`) from ``d^2`` and ``ln det`` on the drift grid."""
     penalty = math.log(max(d2.shape[1], 1))
     iq_t, dof, ll_t = _best_t(d2, logdet)
     candidates = [(-2.0 * ll_t + (1 if math.isinf(dof) else 2) * penalty, iq_t, PointingErrorLaw(tail_dof=dof))]
@@ -254,8 +335,16 @@ def fit_drift_and_law(
             best = (bic, int(iq), float(e), float(_SCALE_GRID[ik]))
     candidates.append((best[0], best[1], PointingErrorLaw(outlier_fraction=best[2], outlier_scale=best[3])))
     candidates.append(_best_t_mixture(d2, logdet, sorted({iq_t, best[1]}), penalty))
-    _, iq, law = min(candidates, key=lambda c: c[0])
-    return float(_DRIFT_GRID[iq]), law
+    return min(candidates, key=lambda c: c[0])
+
+
+def _law_log_likelihood(
+    d2: Float[np.ndarray, "*q N"], logdet: Float[np.ndarray, "*q N"], law: PointingErrorLaw
+) -> Float[np.ndarray, "*q"]:
+    """Summed log-likelihood (less ``N log 2 pi``) of residuals under ``law``."""
+    if law.outlier_fraction == 0.0:
+        return _log_likelihood(d2, logdet, law.tail_dof)
+    return _t_mixture_log_likelihood(d2, logdet, law.tail_dof, law.outlier_fraction, law.outlier_scale)
 
 
 def _mixture_log_density(
@@ -304,6 +393,7 @@ __all__ = [
     "PointingErrorLaw",
     "fit_drift_and_law",
     "fit_drift_and_tails",
+    "fit_drift_gap_and_law",
     "prediction_region_d2",
     "region_radius",
 ]

@@ -9,7 +9,9 @@ Schema (``H`` heliostats, ``M`` padded records; NaN / -1 where no record):
   ``free_params`` (JSON list), ``robust`` (bool), ``origin_lla`` (WGS84 lat deg,
   lon deg, alt m of the ENU origin), ``drift_mrad2_per_day`` (the fleet's
   pointing drift per tangent component, :func:`heliojax.temporal_drift`; 0 when not
-  estimated), the predicted pointing-error law (:class:`heliojax.PointingErrorLaw`):
+  estimated), ``sky_gap_mrad2_per_deg`` (the predicted variance's growth per degree
+  of sky gap, :func:`heliojax.temporal_drift`; 0 when absent), the predicted
+  pointing-error law (:class:`heliojax.PointingErrorLaw`):
   ``tail_dof`` (degrees of freedom of a Student t; inf: a Gaussian core, also in files
   written without it), ``outlier_fraction`` and ``outlier_scale`` (the broad
   component of a two-component mixture; 0 and 1: none, also when absent)
@@ -313,6 +315,7 @@ def write_results_h5(path: str | Path, run: typing.Any) -> None:
         f.attrs["robust"] = bool(run.summary.get("robust", False))
         f.attrs["origin_lla"] = np.asarray(run.fleet.origin_lla, float)
         f.attrs["drift_mrad2_per_day"] = float(run.predictive.get("drift_mrad2_per_day", 0.0))
+        f.attrs["sky_gap_mrad2_per_deg"] = float(run.predictive.get("sky_gap_mrad2_per_deg", 0.0))
         law = PointingErrorLaw.from_dict(run.predictive.get("error_law"))
         f.attrs["tail_dof"] = law.tail_dof
         f.attrs["outlier_fraction"] = law.outlier_fraction
@@ -414,6 +417,12 @@ class CalibrationResults:
         return float(self.attrs.get("drift_mrad2_per_day", 0.0))
 
     @property
+    def sky_gap_mrad2_per_deg(self) -> float:
+        """The predicted variance's growth (mrad^2 per component) per degree of sky gap
+        (0 in files written without it), :func:`heliojax.temporal_drift`."""
+        return float(self.attrs.get("sky_gap_mrad2_per_deg", 0.0))
+
+    @property
     def error_law(self) -> PointingErrorLaw:
         """The predicted pointing-error law (:func:`heliojax.temporal_drift`; the
         Gaussian in files written without one)."""
@@ -488,6 +497,7 @@ _RECORD_FIELDS = (
 
 _LAW_ATTRS = (
     ("drift_mrad2_per_day", 0.0, 1e6),  # a beam spread by a radian a day is no calibration
+    ("sky_gap_mrad2_per_deg", 0.0, 1e6),  # nor by a radian per degree of sky
     ("tail_dof", 0.0, math.inf),
     ("outlier_fraction", 0.0, 1.0),
     ("outlier_scale", 0.0, math.inf),
@@ -770,6 +780,10 @@ def _load_results(path: str | Path) -> CalibrationResults:
         for key in ("split", "unix_time"):
             if key not in records:
                 raise DataError(source, key, "missing dataset (needed for the drift since the fit)")
+    if float(attrs.get("sky_gap_mrad2_per_deg", 0.0)) != 0.0:
+        for key in ("split", "sun_azimuth_deg", "sun_elevation_deg"):
+            if key not in records:
+                raise DataError(source, key, "missing dataset (needed for the sky gap of the predicted uncertainty)")
     records.setdefault("superseded", np.zeros(next(iter(shapes.values()), (len(ids), 0)), bool))
     try:
         template = model_from_label(str(attrs["model"]))

@@ -77,6 +77,7 @@ __all__ = [
     "chronological_holdout",
     "days_since_fit",
     "FleetSplit",
+    "record_sky_gap_deg",
     "SplitResult",
     "knn_mean_distance",
     "minimum_records",
@@ -520,3 +521,30 @@ def days_since_fit(fit_mask: np.ndarray, record_time: np.ndarray, when: np.ndarr
     when = np.asarray(when, float) / 86400.0
     when = np.broadcast_to(when, (last.shape[0], when.shape[-1]))
     return np.maximum(0.0, when - last[:, None]) + c[:, None]
+
+
+_GAP_BLOCK = 256
+"""Heliostats per block of :func:`record_sky_gap_deg` (memory ``O(block M^2)``)."""
+
+
+def record_sky_gap_deg(fit_mask: np.ndarray, record_sun: np.ndarray) -> np.ndarray:
+    """``(H, M)`` angle (deg) from each record's sun to the nearest sun of its
+    heliostat's fitted records (``fit_mask`` ``(H, M)``; ``record_sun`` ``(H, M, 3)``
+    unit ENU vectors to the sun): 0 for a fitted record, inf for every record of a
+    heliostat without one, NaN for a record whose sun is not finite. The per-record
+    counterpart of :func:`heliojax.sky_gap_deg` (instants shared by all heliostats),
+    the sky gap of the predictive law (:mod:`heliojax._predictive`). Heliostats are
+    taken in blocks, so memory stays ``O(block M^2)``."""
+    fit_mask = np.asarray(fit_mask, bool)
+    sun = np.asarray(record_sun, float)
+    known = np.all(np.isfinite(sun), axis=-1)
+    use = fit_mask & known
+    sun = np.where(known[..., None], sun, 0.0)
+    out = np.empty(fit_mask.shape)
+    for start in range(0, fit_mask.shape[0], _GAP_BLOCK):  # blocks of heliostats, not one each
+        block = slice(start, start + _GAP_BLOCK)
+        cosine = np.einsum("hmi,hni->hmn", sun[block], sun[block])
+        best = np.max(np.where(use[block][:, None, :], cosine, -np.inf), axis=-1, initial=-np.inf)
+        with np.errstate(invalid="ignore"):
+            out[block] = np.where(np.isfinite(best), np.degrees(np.arccos(np.clip(best, -1.0, 1.0))), np.inf)
+    return np.where(known, out, np.nan)

@@ -28,10 +28,10 @@ from ._fleet import bucket_size, pad_fleet, records_among
 from ._geometry import direction_to_azimuth_elevation
 from ._io import atomic_write
 from ._kinematics import AbstractKinematicModel, nominal_model
-from ._predictive import PointingErrorLaw, fit_drift_and_law
+from ._predictive import PointingErrorLaw, fit_drift_gap_and_law
 from ._programs import warm_up
 from ._progress import activity
-from ._splits import chronological_holdout, days_since_fit, split_fleet
+from ._splits import chronological_holdout, days_since_fit, record_sky_gap_deg, split_fleet
 from .fitting import (
     MIN_PRIOR_HELIOSTATS,
     ChangePoints,
@@ -360,9 +360,9 @@ def calibrate(
     fit_mask = train & ~superseded
     if drift:
 
-        def fit_state(mask: np.ndarray) -> tuple[FitSolution, typing.Any]:
-            solution, *_, noise_mrad, _ = fit_on(padded, mask)
-            return solution, noise_mrad
+        def fit_state(mask: np.ndarray) -> tuple[FitSolution, typing.Any, np.ndarray]:
+            solution, _, _, _, outlier_, noise_mrad, _ = fit_on(padded, mask)
+            return solution, noise_mrad, outlier_
 
         with activity("pointing drift and error law", logger=log):
             predictive = temporal_drift(fit_state, padded, fit_mask & ~garbage[:, None])
@@ -373,7 +373,8 @@ def calibrate(
             )
         else:
             log.info(
-                f"pointing drift {predictive['drift_mrad2_per_day']:.4f} mrad^2/day per component "
+                f"pointing drift {predictive['drift_mrad2_per_day']:.4f} mrad^2/day per component, sky-gap term "
+                f"{predictive['sky_gap_mrad2_per_deg']:.4f} mrad^2/deg "
                 f"(from {predictive['validation_records']} later training records), error law: "
                 f"{PointingErrorLaw.from_dict(predictive['error_law']).describe()}"
             )
@@ -531,10 +532,12 @@ def residual_prediction(solution: FitSolution, fleet, mask: np.ndarray) -> tuple
 
 def prediction_d2(run: CalibrationRun, mask: np.ndarray | None = None) -> np.ndarray:
     """``(H, M)`` squared Mahalanobis distance ``d^2 = r^T P^-1 r`` of each record's
-    residual ``r`` under its full predicted scale ``P = J C J^T + (noise^2 + q a) I``
-    (:func:`residual_prediction`, the fit's noise per component, the drift rate ``q``
-    of :func:`temporal_drift` and the fitted state's age ``a`` in days,
-    :func:`heliojax.days_since_fit`); NaN outside ``mask`` (default: every record of
+    residual ``r`` under its full predicted scale ``P = J C J^T + (noise^2 + q a + g
+    gap) I`` (:func:`residual_prediction`, the fit's noise per component, the drift
+    rate ``q`` and sky-gap rate ``g`` of :func:`temporal_drift`, the fitted state's age
+    ``a`` in days, :func:`heliojax.days_since_fit`, and the record's sky gap in deg to
+    the fitted records that are not outliers, :func:`heliojax.record_sky_gap_deg`);
+    NaN outside ``mask`` (default: every record of
     ``run.fleet``). A record lies in the ``p`` prediction region when
     ``d^2 <= heliojax.prediction_region_d2(p, law)``, ``law`` the run's
     :class:`heliojax.PointingErrorLaw` (``run.predictive["error_law"]``)."""
@@ -550,7 +553,12 @@ def prediction_d2(run: CalibrationRun, mask: np.ndarray | None = None) -> np.nda
     noise = np.full(h, np.nan) if run.noise_mrad is None else np.asarray(run.noise_mrad, float)
     noise = np.pad(noise, (0, max(h - noise.size, 0)), constant_values=np.nan)[:h]
     q = float(run.predictive.get("drift_mrad2_per_day", 0.0))
-    total = s + (noise[:, None] ** 2 + q * np.nan_to_num(days))[..., None, None] * np.eye(2)
+    g = float(run.predictive.get("sky_gap_mrad2_per_deg", 0.0))
+    extra = q * np.nan_to_num(days)
+    if g > 0.0:
+        inliers = fitted if run.outlier is None else fitted & ~np.asarray(run.outlier, bool)
+        extra = extra + g * record_sky_gap_deg(inliers, np.asarray(padded.context.sun, float))
+    total = s + (noise[:, None] ** 2 + extra)[..., None, None] * np.eye(2)
     ok = use & np.all(np.isfinite(r), axis=-1) & np.all(np.isfinite(total), axis=(-2, -1))
     safe = np.where(ok[..., None, None], total, np.eye(2))
     r = np.where(ok[..., None], r, 0.0)
@@ -562,6 +570,7 @@ def _no_drift(method: str) -> dict[str, typing.Any]:
     """The predictive entry without a drift and with the Gaussian law."""
     return {
         "drift_mrad2_per_day": 0.0,
+        "sky_gap_mrad2_per_deg": 0.0,
         "tail_dof": math.inf,
         "error_law": PointingErrorLaw().to_dict(),
         "method": method,
@@ -569,7 +578,7 @@ def _no_drift(method: str) -> dict[str, typing.Any]:
 
 
 def temporal_drift(
-    fit: collections.abc.Callable[[np.ndarray], tuple[FitSolution, typing.Any]],
+    fit: collections.abc.Callable[[np.ndarray], tuple[FitSolution, typing.Any, typing.Any]],
     fleet,
     fit_mask: np.ndarray,
     *,
@@ -582,8 +591,10 @@ def temporal_drift(
 
     Model (:mod:`heliojax._predictive`): a random walk of the beam direction from the
     fitted state, the process noise of a Kalman filter, with heavy tails; a record
-    ``dt`` days after the heliostat's last fitted record is predicted with scale
-    matrix ``S + q * dt * I`` under a :class:`heliojax.PointingErrorLaw` (a bivariate
+    ``dt`` days after the heliostat's last fitted record, its sun ``gap`` deg from the
+    nearest sun of the fitted records that are not outliers
+    (:func:`heliojax.record_sky_gap_deg`), is predicted with scale matrix ``S + (q *
+    dt + g * gap) * I`` under a :class:`heliojax.PointingErrorLaw` (a bivariate
     Student t with ``tail_dof`` degrees of freedom, ``inf``: the Gaussian, either
     with a broad outlier component or without), where ``S = J C J^T + noise^2 I`` (``J``
     its Jacobian w.r.t. the free parameters, ``C`` the fit's covariance, ``noise`` the
@@ -593,25 +604,27 @@ def temporal_drift(
     ``q`` and the law are estimated by time-blocked validation on the training
     records only (the test records are never looked at): every heliostat with at
     least ``min_records`` records in ``fit_mask`` holds out its latest ``fraction`` of
-    them; ``fit`` (the calibration's own fit, ``mask -> (solution, noise_mrad (H,))``)
-    is run on the rest; ``q`` and the law maximise the likelihood of the held-out
-    residuals, the family chosen by BIC (:func:`heliojax.fit_drift_and_law`). Gross
-    errors and maintenance episodes among the held-out records go into the law's
-    tails instead of inflating ``q``.
+    them; ``fit`` (the calibration's own fit, ``mask -> (solution, noise_mrad (H,),
+    outlier (H, M))``) is run on the rest; ``q``, ``g`` and the law maximise the
+    likelihood of the held-out residuals, the family chosen by BIC and ``g > 0`` only
+    where the BIC asks for it (:func:`heliojax.fit_drift_gap_and_law`). Gross errors and
+    maintenance episodes among the held-out records go into the law's tails instead of
+    inflating ``q``; a model that errs more in poses unlike the fitted ones gets ``g``.
 
     Returns:
-        ``{"drift_mrad2_per_day", "tail_dof", "error_law", "validation_records",
-        "validation_heliostats", "validation_median_days", "median_d2_without",
+        ``{"drift_mrad2_per_day", "sky_gap_mrad2_per_deg", "tail_dof", "error_law", "validation_records",
+        "validation_heliostats", "validation_median_days", "validation_median_sky_gap_deg", "median_d2_without",
         "method"}`` (``error_law``: :meth:`PointingErrorLaw.to_dict`; ``tail_dof`` the
-        t's degrees of freedom, inf for the other laws); ``drift_mrad2_per_day`` is 0
-        and the law Gaussian with fewer than :data:`DRIFT_MIN_VALIDATION` validation records.
+        t's degrees of freedom, inf for the other laws); both rates are 0 and the law
+        Gaussian with fewer than :data:`DRIFT_MIN_VALIDATION` validation records.
     """
     fleet_mask = np.asarray(fleet.mask)
     unix_time = np.asarray(fleet.context.unix_time, float)
     early, late = chronological_holdout(np.asarray(fit_mask) & fleet_mask, unix_time, min_records, fraction)
     method = (
-        "random walk from the fitted state, bivariate Student t or Gaussian, with or without an outlier component "
-        "(maximum likelihood, the family by BIC); rate and tails from the "
+        "random walk from the fitted state in time and across the sky, bivariate Student t or Gaussian, with or "
+        "without an outlier component (maximum likelihood, the family and the sky term by BIC); rates and tails "
+        "from the "
         f"latest {fraction:.0%} of the training records of heliostats with >= {min_records}, predicted from a fit "
         "on the earlier ones"
     )
@@ -619,14 +632,16 @@ def temporal_drift(
     if late.sum() < DRIFT_MIN_VALIDATION:
         out.update(validation_records=int(late.sum()), validation_heliostats=0, median_d2_without=None)
         return out
-    solution, noise = fit(early)
+    solution, noise, outlier = fit(early)
     converged = np.asarray(solution.status) == FitStatus.CONVERGED
     late = late & converged[:, None]
     r, s = residual_prediction(solution, fleet, late)
     s = s + (np.asarray(noise, float) ** 2)[:, None, None, None] * np.eye(2)
     days = days_since_fit(early, unix_time, unix_time)
+    gap = record_sky_gap_deg(early & ~np.asarray(outlier, bool), np.asarray(fleet.context.sun, float))
     use = late & np.all(np.isfinite(r), axis=-1) & np.all(np.isfinite(s), axis=(-2, -1)) & np.isfinite(days)
-    r, s, days = r[use], s[use], days[use]
+    use &= np.isfinite(gap)
+    r, s, days, gap = r[use], s[use], days[use], gap[use]
 
     def median_d2(q: float) -> float:
         total = s + (q * days)[:, None, None] * np.eye(2)
@@ -636,12 +651,13 @@ def temporal_drift(
         validation_records=int(use.sum()),
         validation_heliostats=int(np.any(use, axis=1).sum()),
         validation_median_days=float(np.median(days)) if use.any() else None,
+        validation_median_sky_gap_deg=float(np.median(gap)) if use.any() else None,
         median_d2_without=median_d2(0.0) if use.any() else None,
     )
     if use.sum() < DRIFT_MIN_VALIDATION:
         return out
-    q, law = fit_drift_and_law(r, s, days)
-    out.update(drift_mrad2_per_day=q, tail_dof=law.tail_dof, error_law=law.to_dict())
+    q, g, law = fit_drift_gap_and_law(r, s, days, gap)
+    out.update(drift_mrad2_per_day=q, sky_gap_mrad2_per_deg=g, tail_dof=law.tail_dof, error_law=law.to_dict())
     return out
 
 

@@ -801,6 +801,7 @@ DAMAGED_RESULTS = [  # (case, damage of an h5py.File, field named)
     ("origin missing", _del_attr("origin_lla"), "origin_lla"),
     ("origin nan", _attr("origin_lla", np.array([np.nan, 0.0, 0.0])), "origin_lla"),
     ("drift 1e300", _attr("drift_mrad2_per_day", 1e300), "drift_mrad2_per_day"),
+    ("sky-gap rate negative", _attr("sky_gap_mrad2_per_deg", -0.1), "sky_gap_mrad2_per_deg"),
     ("residuals nan", _edit("residual_mrad", _set(..., np.nan)), "residual_mrad"),
     ("covariance rounded to integers", _replace("covariance", np.zeros((5, 8, 8), np.int32)), "covariance"),
 ]

@@ -5,6 +5,7 @@ ellipses towards their nominal coverage."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import equinox as eqx
@@ -32,14 +33,14 @@ def test_chronological_holdout_by_hand():
 def _fit(fleet):
     def fit(mask):
         solution = hj.fit(STONE, fleet, mask=jnp.asarray(mask))
-        return solution, solution.noise_mrad
+        return solution, solution.noise_mrad, np.zeros(np.shape(mask), bool)  # least squares: no outlier
 
     return fit
 
 
 def _coverage_95(fleet, train, test, rate: float) -> float:
     """Fraction of the test records inside the 95 % ellipse of the fit on ``train``."""
-    solution, noise = _fit(fleet)(train)
+    solution, noise, _ = _fit(fleet)(train)
     r, s = hj.residual_prediction(solution, fleet, test)
     days = hj.days_since_fit(train, np.asarray(fleet.context.unix_time), np.asarray(fleet.context.unix_time))
     s = s + (np.asarray(noise)[:, None] ** 2 + rate * days)[..., None, None] * np.eye(2)
@@ -158,3 +159,73 @@ def test_calibrate_reports_the_drift_and_aiming_adds_it(tmp_path):
     cov = np.asarray(with_drift.pointing_cov_mrad2)[fitted][:, 0]
     radius = np.sqrt(hj.prediction_region_d2(0.95, results.error_law) * np.linalg.eigvalsh(cov)[:, -1])
     np.testing.assert_allclose(np.asarray(with_drift.pointing_radius_mrad(0.95))[fitted][:, 0], radius, rtol=1e-12)
+
+
+def test_record_sky_gap_against_a_loop():
+    """``record_sky_gap_deg``: the angle from each record's sun to the nearest sun of its
+    heliostat's fitted records, as a loop over records computes it; 0 for a fitted
+    record, inf without a fitted record, NaN for a record without a sun."""
+    rng = np.random.default_rng(3)
+    h, m = 4, 9
+    sun = rng.normal(size=(h, m, 3))
+    sun[..., 2] = np.abs(sun[..., 2])
+    sun /= np.linalg.norm(sun, axis=-1, keepdims=True)
+    fitted = rng.random((h, m)) > 0.5
+    fitted[0, :3] = True
+    fitted[3] = False  # no fitted record
+    sun[1, 4] = np.nan  # a record without a sun
+    fitted[1, 4] = False
+    gap = hj.record_sky_gap_deg(fitted, sun)
+    want = np.full((h, m), np.inf)
+    for i in range(h):
+        for j in range(m):
+            for k in range(m):
+                if fitted[i, k]:
+                    cosine = np.clip(np.dot(sun[i, j], sun[i, k]), -1.0, 1.0)
+                    want[i, j] = min(want[i, j], np.degrees(np.arccos(cosine)))
+    want[1, 4] = np.nan
+    np.testing.assert_allclose(gap, want, rtol=0, atol=1e-6)  # arccos near 1: ~1e-8 rad of rounding
+    assert np.all(gap[fitted] < 1e-5) and np.all(np.isinf(gap[3]))  # sqrt(2 eps) rad: 1.2e-6 deg
+
+
+def test_the_sky_gap_term_enters_prediction_and_aiming(tmp_path):
+    """A run whose law has a sky-gap rate ``g``: ``prediction_d2`` scales each record by
+    ``g`` times its gap to the fitted inliers' suns; results.h5 keeps ``g``; aiming adds
+    ``g`` times the command's sky gap to its covariance."""
+    fleet = hj.load_paint_directory(hj.default_data_dir())
+    run = hj.calibrate(fleet, robust=False, changes=False)
+    g = 0.04
+    gapped = dataclasses.replace(run, predictive={**run.predictive, "sky_gap_mrad2_per_deg": g})
+    test = np.asarray(run.test_mask)
+    d2 = hj.prediction_d2(gapped, test)
+    padded = run.fleet
+    r, cov = hj.residual_prediction(run.result, padded, test)
+    unix = np.asarray(padded.context.unix_time)
+    age = hj.days_since_fit(np.asarray(run.train_mask), unix, unix)
+    gap = hj.record_sky_gap_deg(np.asarray(run.train_mask), np.asarray(padded.context.sun))
+    q = run.predictive["drift_mrad2_per_day"]
+    checked = 0
+    for h, j in np.argwhere(np.isfinite(d2))[:5]:
+        assert gap[h, j] > 0.0
+        scale = cov[h, j] + (run.noise_mrad[h] ** 2 + q * age[h, j] + g * gap[h, j]) * np.eye(2)
+        assert d2[h, j] == pytest.approx(r[h, j] @ np.linalg.solve(scale, r[h, j]), rel=1e-10)
+        checked += 1
+    assert checked == 5
+    assert np.all(d2[np.isfinite(d2)] <= hj.prediction_d2(run, test)[np.isfinite(d2)])
+    hj.write_results_h5(tmp_path / "results.h5", gapped)
+    results = hj.load_results(tmp_path / "results.h5")
+    assert results.sky_gap_mrad2_per_deg == g
+    unix_now = np.array([hj.datetime_to_unix("2024-06-21T09:00:00Z")])
+    sun = hj.solar_position(jnp.asarray(unix_now), *np.asarray(results.attrs["origin_lla"])).direction_enu()
+    aim = jnp.asarray([0.0, 0.0, 60.0])
+    with_gap = hj.aim_results(results, sun, aim, unix_time=unix_now)
+    hj.write_results_h5(tmp_path / "plain.h5", run)
+    plain = hj.aim_results(hj.load_results(tmp_path / "plain.h5"), sun, aim, unix_time=unix_now)
+    difference = np.asarray(with_gap.pointing_cov_mrad2) - np.asarray(plain.pointing_cov_mrad2)
+    fitted = np.isfinite(difference).all(axis=(1, 2, 3))
+    assert fitted.sum() >= 3
+    sky_gap = np.asarray(with_gap.sky_gap_deg)[fitted][:, 0]
+    assert np.all(sky_gap > 0.0)
+    np.testing.assert_allclose(difference[fitted][:, 0], g * sky_gap[:, None, None] * np.eye(2), rtol=1e-9, atol=1e-12)
+    with pytest.raises(ValueError, match="sky_gap_mrad2_per_deg"):
+        hj.aim_fleet(results.model, results.geometry, sun, aim, sky_gap_mrad2_per_deg=0.1)

@@ -169,3 +169,32 @@ def test_bic_chooses_the_t_mixture_for_three_scales():
     assert law.kind == "student_t_mixture" and q * 200.0 < 0.1
     assert law.tail_dof == pytest.approx(5.0, rel=0.6) and law.outlier_fraction == pytest.approx(0.1, rel=0.3)
     assert law.outlier_scale == pytest.approx(20.0, rel=0.3)
+
+
+def _validation_with_gap(rng, n, q, g, dof):
+    """:func:`_validation` plus a sky gap of 0-40 deg per record, whose variance grows
+    by ``g`` mrad^2 per degree."""
+    a = rng.uniform(0.3, 1.0, size=(n, 2, 2)) * np.array([[1.0, 0.3], [0.0, 1.0]])
+    scale = np.einsum("nij,nkj->nik", a, a) + 0.05 * np.eye(2)
+    days = rng.uniform(1.0, 200.0, size=n)
+    gap = rng.uniform(0.0, 40.0, size=n)
+    total = scale + (q * days + g * gap)[:, None, None] * np.eye(2)
+    return _t_residuals(rng, total, dof, n), scale, days, gap
+
+
+def test_sky_gap_rate_recovered_and_kept_only_where_the_bic_asks():
+    rng = np.random.default_rng(21)
+    # 0.05 mrad^2 per degree (2 mrad^2 at 40 deg) beside a drift of 0.005 mrad^2/day: both recovered
+    r, s, days, gap = _validation_with_gap(rng, 3000, 0.005, 0.05, math.inf)
+    q, g, law = hj.fit_drift_gap_and_law(r, s, days, gap)
+    assert g == pytest.approx(0.05, rel=0.3) and q == pytest.approx(0.005, rel=0.5) and law.tail_dof >= 50.0
+    # the same with heavy tails (nu = 3): g still recovered, the tails too
+    r, s, days, gap = _validation_with_gap(rng, 3000, 0.0, 0.05, 3.0)
+    q, g, law = hj.fit_drift_gap_and_law(r, s, days, gap)
+    assert g == pytest.approx(0.05, rel=0.35) and law.tail_dof == pytest.approx(3.0, rel=0.35)
+    # no sky term: g = 0 and the result is fit_drift_and_law's
+    r, s, days, gap = _validation_with_gap(rng, 1000, 0.01, 0.0, math.inf)
+    q, g, law = hj.fit_drift_gap_and_law(r, s, days, gap)
+    assert g == 0.0 and (q, law) == hj.fit_drift_and_law(r, s, days)
+    with pytest.raises(ValueError, match="sky_gap_deg"):
+        hj.fit_drift_gap_and_law(r, s, days, np.full(len(r), np.inf))
