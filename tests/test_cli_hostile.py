@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import datetime as dt
+import io
 import json
 import math
 import os
@@ -308,6 +309,21 @@ CASES = [
         "calibrat",
     ),
     ("config unknown key", lambda t: ["calibrate", "--config", _config(t, "[calibrate]\nsteps = 3\n")], "steps"),
+    (
+        "config no_robust (a flag's negation: robust = false is meant)",
+        lambda t: ["calibrate", "--config", _config(t, "[calibrate]\nno_robust = true\n")],
+        "unknown option 'no_robust'; use `robust = false`",
+    ),
+    (
+        "config misspelt key (the closest is named)",
+        lambda t: ["calibrate", "--config", _config(t, "[calibrate]\nmax_step = 3\n")],
+        "unknown option 'max_step'; did you mean `max_steps`?",
+    ),
+    (
+        "config misspelt table (the closest command is named)",
+        lambda t: ["inspect", "--config", _config(t, "[inspcet]\nplot = 'x.png'\n")],
+        "did you mean `inspect`?",
+    ),
     ("config not TOML", lambda t: ["calibrate", "--config", _config(t, b"\xff\xfe\x00garbage")], "config.toml"),
     ("config missing", lambda t: ["calibrate", "--config", str(t / "nope.toml")], "nope.toml"),
     ("report is a directory", lambda t: ["calibrate", "--report", str(_a_dir(t))], "--report"),
@@ -3100,16 +3116,34 @@ def test_library_inputs_that_gave_made_up_numbers_are_refused(fitted_h5, uncheck
             hj.aim_results(r, *args, **kw)
 
 
-def test_results_of_a_neural_correction_are_not_taken_for_the_kinematic_model(tmp_path, capsys):
+@pytest.fixture(scope="module")
+def neural_run(tmp_path_factory) -> tuple[Path, str]:
+    """`calibrate --model stone8+nn` of the embedded data, run once: its output folder
+    (results.h5, summary.json) and what it printed."""
+    out = tmp_path_factory.mktemp("nn")
+    argv = [
+        "calibrate",
+        "--model",
+        "stone8+nn",
+        "--out",
+        str(out / "results.h5"),
+        "--report",
+        str(out / "summary.json"),
+    ]
+    printed, said = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(said):
+        rc = main([*argv, "--cache-dir", "none", "--quiet"])
+    assert rc == 0, said.getvalue()
+    return out, printed.getvalue()
+
+
+def test_results_of_a_neural_correction_are_not_taken_for_the_kinematic_model(neural_run, tmp_path, capsys):
     """`calibrate --model stone8+nn --out` wrote the label "stone8" beside the network's
     residuals and errors, so `aim`, `plan` and `trace --results` used the file's
     kinematic parameters as if they were the model behind those errors (a plan predicted
     a third of the plain fit's uncertainty for the same parameters). The label now says
     "+nn", and every reader refuses it, naming what to run instead."""
-    out = tmp_path / "nn" / "results.h5"
-    argv = ["calibrate", "--model", "stone8+nn", "--out", str(out), "--cache-dir", "none", "--quiet"]
-    rc, _, err = _run(argv, capsys)
-    assert rc == 0, err
+    out = neural_run[0] / "results.h5"
     import h5py
 
     with h5py.File(out) as f:
@@ -3123,3 +3157,146 @@ def test_results_of_a_neural_correction_are_not_taken_for_the_kinematic_model(tm
     ):
         rc, _, err = _run([*command, "--out", str(tmp_path / command[0])], capsys)
         assert rc == 2 and "neural correction" in err and "results.h5" in err, (command, err)
+
+
+def test_a_network_that_corrects_nothing_is_not_reported_as_used(neural_run):
+    """In a `+nn` run BG23 was reported as using the network ("network used by 5
+    heliostats") although its errors were the LM model's to the last digit: no
+    fine-tuning step lowered its validation loss, so the best-on-validation checkpoint
+    kept the network's zero initial output, which *is* the LM model. Such a heliostat is
+    now a fallback, with that reason, in summary.json and on the screen; every
+    heliostat still reported as using its network has errors of its own."""
+    out, printed = neural_run
+    summary = json.loads((out / "summary.json").read_text())
+    heliostats = summary["heliostats"]
+    for hid, h in heliostats.items():
+        if not h["nn_fallback"]:
+            assert h["nn_val_median_mrad"] != h["lm_val_median_mrad"], hid
+            assert h["nn_test_median_mrad"] != h["lm_test_median_mrad"], hid
+    bg23 = heliostats["BG23"]
+    assert bg23["nn_fallback"] and "zero initial output" in bg23["nn_fallback_reason"], bg23
+    assert bg23["test_median_mrad"] == bg23["lm_test_median_mrad"]
+    used = sum(not h["nn_fallback"] for h in heliostats.values())
+    assert summary["fleet"]["n_nn_used"] == used < len(heliostats)
+    assert re.search(r"^BG23 .*\(fallback to LM\)$", printed, re.M), printed
+    assert "BG23: network not used, LM model instead: no fine-tuning step" in printed, printed
+    assert f"network used by {used} heliostats, {len(heliostats) - used} fall back to LM" in printed, printed
+
+
+def test_trace_says_when_most_of_the_spot_is_off_the_image(tmp_path, capsys):
+    """`trace` with the nominal kinematics put most of BE36's spot off its flux image
+    without a word (only the summary's power, 504 W of ~7 kW, said it). More than half
+    of the power reflected onto the target's plane off the image (the spot's centre off
+    it: the image's centroid and power are then not the spot's) is now a warning naming
+    the fraction, and the summary holds the fraction and the power on the plane; a spot
+    aimed at the target's centre is not warned about."""
+    small = ["--pixels", "32", "--rays-per-point", "4", "--steps", "1", "--resolution", "8", "--quiet"]
+    off = ["trace", "--heliostat", "BE36", "--record", "233921", "--out", str(tmp_path / "off"), *small]
+    rc, _, err = _run(off, capsys)
+    assert rc == 0, err
+    summary = json.loads((tmp_path / "off" / "BE36-233921-summary.json").read_text())
+    assert summary["off_image_fraction"] > 0.5 and summary["power_on_plane_w"] > 10 * summary["power_w"] > 0, summary
+    fraction = (
+        f"{summary['off_image_fraction']:.1%} of the {summary['power_on_plane_w']:.4g} W reflected onto the plane"
+    )
+    assert fraction in err and "lands outside the image" in err and "--results" in err, err
+    rc, _, err = _run([*TRACE_AT_A_SUN, "--out", str(tmp_path / "on"), *small], capsys)
+    assert rc == 0, err
+    summary = json.loads(next((tmp_path / "on").glob("*summary.json")).read_text())
+    assert summary["off_image_fraction"] < 0.1 and "outside the image" not in err, (summary, err)
+
+
+@pytest.mark.parametrize(
+    ("extra", "why"),
+    [
+        ([], "the time split is not random"),
+        (["--split", "azimuth", "--train", "5"], "the azimuth split is not random"),
+        (["--records", "records.csv", "--split", "balanced", "--val", "2"], "--records chooses the records"),
+        (["--test-data", "."], "--test-data holds the held-out records"),
+    ],
+)
+def test_a_seed_that_nothing_draws_with_is_refused(extra, why, tmp_path, capsys, monkeypatch):
+    """`calibrate --seed N` with the time split was accepted and changed nothing: the seed
+    draws the balanced split's records and a +nn model's networks only. Where neither is
+    drawn, a seed given (on the command line or in a config) is refused before any work;
+    a run that does not give one hears nothing of it."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "records.csv").write_text("heliostat_id,record_id\nBE36,1\n")
+    rc, _, err = _run(["calibrate", *extra, "--seed", "7"], capsys)
+    assert (
+        rc == 2 and err.startswith("heliojax calibrate: error: --seed 7: nothing in this run is drawn") and why in err
+    )
+    assert len(err.strip().splitlines()) == 1, err
+    config = _config(tmp_path, "[calibrate]\nseed = 7\n")
+    rc, _, err = _run(["calibrate", *extra, "--config", config], capsys)
+    assert rc == 2 and f"{config}: [calibrate] seed 7: nothing in this run is drawn" in err, err
+
+
+def test_a_seed_is_taken_where_something_is_drawn_and_unsaid_by_default(caplog):
+    """The balanced split and the +nn models take --seed (what it draws: tests/test_splits.py,
+    tests/test_neural.py); a run that gives none hears nothing of it."""
+    from heliojax.cli._calibrate import _check_seed_is_used
+
+    with caplog.at_level("DEBUG"):
+        for argv in (
+            ["--split", "balanced", "--train", "5", "--val", "2", "--seed", "7"],
+            ["--model", "stone8+nn", "--seed", "7"],
+            ["--model", "auto+nn", "--records", "r.csv", "--seed", "7"],
+            [],
+            ["--split", "azimuth", "--train", "5"],
+            ["--test-data", "."],
+        ):
+            _check_seed_is_used(_calibrate_args(argv))  # no error
+    assert not caplog.records
+
+
+def _calibrate_args(argv: list[str]):
+    from heliojax.cli._main import build_parser
+
+    return build_parser()[0].parse_args(["calibrate", *argv])
+
+
+# the options each command needs on the command line before its config is read
+_REQUIRED = {
+    "aim": ["r.h5"],
+    "plan": ["r.h5"],
+    "fetch": ["--out", "o"],
+    "accept": ["--results", "r.h5", "--contract", "c.toml"],
+    "trace": ["--heliostat", "BE36"],
+}
+
+
+def test_an_unknown_config_key_names_the_key_meant_in_every_command(tmp_path, capsys):
+    """A config key `no_robust` was refused without pointing to `robust = false`. Every
+    command's config now names what was meant: `X = false` for `no_X` where X is an
+    on/off option (`true` for `no_X = false`), `no_X = true` for X where the option is
+    `no_X` (discover's), else the closest key, if one is close."""
+    from heliojax.cli._main import build_parser
+
+    _, _, subparsers = build_parser()
+    for command, parser in subparsers.items():
+        options = {d: a for d, a in parser.options.items() if d not in ("help", "config") and not a.required}
+        longest = max((d for d in options if d[:-1] not in options), key=len)
+        cases = [(f"{longest[:-1]} = 1", f"did you mean `{longest}`?"), ("xyzzy_plugh = 1", None)]
+        for dest in (d for d, a in options.items() if a.nargs == 0):
+            if dest.startswith("no_"):
+                cases += [
+                    (f"{dest[3:]} = false", f"use `{dest} = true`"),
+                    (f"{dest[3:]} = true", f"use `{dest} = false`"),
+                ]
+            else:
+                cases += [
+                    (f"no_{dest} = true", f"use `{dest} = false`"),
+                    (f"no-{dest} = false", f"use `{dest} = true`"),
+                ]
+        for text, said in cases:
+            config = _config(tmp_path, f"[{command}]\n{text}\n")
+            rc, _, err = _run([command, *_REQUIRED.get(command, []), "--config", config], capsys)
+            key = text.split(" = ")[0]
+            assert rc == 2 and f"{config}: [{command}] unknown option {key!r}" in err, (command, text, err)
+            assert len(err.strip().splitlines()) == 1, err
+            if said is None:
+                assert "did you mean" not in err and "use `" not in err, err
+            else:
+                assert err.rstrip().endswith(said), (command, text, err)
+    assert "discover" in subparsers and "no_robust" in subparsers["discover"].options  # the `no_X` option case ran

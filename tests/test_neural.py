@@ -29,6 +29,7 @@ from heliojax.neural import (
     init_residual_networks,
     paper_beam_error,
     validation_tail,
+    zero_correction,
 )
 from heliojax.neural._train import (
     _finetune_paper_program,
@@ -365,6 +366,23 @@ def test_fallback_rule_ten_percent():
     )
     assert fb.tolist() == [False, False, True, False, True, True]
     assert why[0] is None and "no validation" in why[5] and "not finite" in why[4]
+
+
+def test_a_network_that_corrects_nothing_falls_back_with_its_reason():
+    """A residual network still at its zero initial output (no fine-tuning step beat
+    the physics model on validation) is the physics model: a fallback, even though its
+    validation median equals the LM model's (within the tolerance)."""
+    nets = init_residual_networks(jax.random.key(0), 3)
+    models = NeuralCorrection(jax.vmap(lambda _: StoneModel.nominal(jnp.float64))(jnp.arange(3)), nets, jnp.ones(3))
+    assert zero_correction(models).tolist() == [True, True, True]
+    bias = nets.biases[-1].at[1, 0].set(1e-30)  # any output weight or bias off zero: a correction
+    weights = nets.weights[-1].at[2, 1, 0].set(-1e-30)
+    moved = eqx.tree_at(lambda m: (m.network.biases[-1], m.network.weights[-1]), models, (bias, weights))
+    assert zero_correction(moved).tolist() == [True, False, False]
+    fb, why = fallback_rule(np.ones(3), np.ones(3), 0.1, unchanged=zero_correction(moved))
+    assert fb.tolist() == [True, False, False] and "zero initial output" in why[0] and why[1:] == [None, None]
+    fb, why = fallback_rule(np.ones(2), np.array([1.0, np.nan]), 0.1, unchanged=[True, True])
+    assert "no validation" in why[1]  # without validation records the final network is taken, not the initial
 
 
 def test_neural_config_checks():

@@ -22,6 +22,7 @@ from heliojax.optics import (
     flux_image,
     flux_images,
     ideal_surface,
+    plane_power,
     stack_surfaces,
     total_power,
 )
@@ -108,6 +109,38 @@ def test_energy_on_oversized_target_within_monte_carlo_error():
     assert abs(power - expected) < tol, (power, expected, sd)
     # and the naive formula of the issue (area x cos of the central ray) agrees to MC precision
     assert power == pytest.approx(dni * rho * float(surf.total_area()) * float(sun @ pose.normal), rel=2e-3)
+    # the plane catches everything: plane_power is the expectation at the sun's centre
+    on_plane = float(plane_power(surf, pose, sun, target, dni=dni, reflectivity=rho))
+    assert on_plane == pytest.approx(expected / ecos, rel=1e-9)
+    assert abs(power - on_plane) < tol + expected * (1 - ecos)
+
+
+def test_plane_power_counts_the_points_whose_beam_reaches_the_front_of_the_plane():
+    """``plane_power`` (W): DNI x reflectivity x area x cos for the mirror points in
+    front of the plane whose reflected central ray travels toward it; none from behind
+    it or for a sun behind the mirror."""
+    mirror = square_mirror(2.0, 8)  # 4 m^2 facing up at the origin, points x, y in (-1, 1)
+    overhead = jnp.asarray([0.0, 0.0, 1.0])
+    tilted = jnp.asarray([np.sin(0.5), 0.0, np.cos(0.5)])
+    assert float(plane_power(mirror, UP, overhead, ceiling(5.0, 1.0), dni=900.0, reflectivity=0.9)) == pytest.approx(
+        900.0 * 0.9 * 4.0, rel=1e-12
+    )
+    assert float(plane_power(mirror, UP, tilted, ceiling(5.0, 1.0))) == pytest.approx(1000.0 * 4.0 * np.cos(0.5))
+    assert float(plane_power(mirror, UP, overhead, ceiling(-5.0, 1.0))) == 0.0  # the mirror is behind it
+    assert float(plane_power(mirror, UP, -overhead, ceiling(5.0, 1.0))) == 0.0  # the sun below the mirror
+    # a wall through the mirror, facing +x: only the half at x > 0 is in front of it; the
+    # beams (sun tilted toward +x: reflected toward -x) travel to its front
+    wall = TargetPlane(
+        centre=jnp.zeros(3),
+        normal=jnp.asarray([1.0, 0.0, 0.0]),
+        u_axis=jnp.asarray([0.0, -1.0, 0.0]),
+        v_axis=jnp.asarray([0.0, 0.0, 1.0]),
+        half_width=jnp.asarray(1.0),
+        half_height=jnp.asarray(1.0),
+    )
+    assert float(plane_power(mirror, UP, tilted, wall)) == pytest.approx(1000.0 * 2.0 * np.cos(0.5))
+    away = jnp.asarray([-np.sin(0.5), 0.0, np.cos(0.5)])  # reflected toward +x: away from the wall's front
+    assert float(plane_power(mirror, UP, away, wall)) == 0.0
 
 
 def _overhead_sun_image(surf, target, pixels, sunshape, rays_per_point, seed):

@@ -27,6 +27,9 @@ elevation ranges."""
 
 log = logging.getLogger(__name__)
 
+DEFAULT_SEED = 42
+"""``--seed`` when not given (PAINT's for its balanced split)."""
+
 
 SPLIT_CHOICES = ("time", "azimuth", "solstice", "balanced", "high_variance")
 """heliojax's split names (``heliojax._splits.SPLIT_NAMES``; kept here so that
@@ -90,7 +93,13 @@ def add_parser(subparsers) -> None:
         help="time split: fraction of each heliostat's records that trains, in (0, 1)",
     )
     p.add_argument("--val", type=integer(0), default=0, metavar="N", help="validation records per heliostat")
-    p.add_argument("--seed", type=integer(0, 2**32 - 1), default=42, help="seed of the random splits")
+    p.add_argument(
+        "--seed",
+        type=integer(0, 2**32 - 1),
+        default=None,
+        help="seed of what is drawn at random: the balanced split's records and a +nn model's networks "
+        f"(default {DEFAULT_SEED}); refused where nothing is",
+    )
     p.add_argument(
         "--test-data",
         type=path_type,
@@ -166,6 +175,8 @@ def run(args) -> int:
 
     if args.prior and args.robust and args.pool:  # fit_robust(pool=True) learns its own prior
         raise ConfigError("--prior: the robust fit's fleet prior takes its place; give --no-pool or --no-robust")
+    _check_seed_is_used(args)
+    seed = DEFAULT_SEED if args.seed is None else args.seed
     fleet = load_fleet(args)
     test_fleet = None
     if args.test_data is not None:
@@ -207,7 +218,7 @@ def run(args) -> int:
         n_train=args.train,
         n_val=args.val,
         train_fraction=args.train_fraction,
-        seed=args.seed,
+        seed=seed,
         fit_options=fit_options,
         test_fleet=test_fleet,
         start=args.start,
@@ -219,7 +230,7 @@ def run(args) -> int:
     if neural:
         from ..neural import calibrate_neural
 
-        run_ = calibrate_neural(fleet, variant=args.nn_variant, seed=args.seed, lm_run=run_).run
+        run_ = calibrate_neural(fleet, variant=args.nn_variant, seed=seed, lm_run=run_).run
     s = run_.summary
     print(
         f"{'heliostat':<10} {'status':<20} {'train':>5} {'test':>5} {'train rms':>9} {'test med':>9} "
@@ -242,6 +253,8 @@ def run(args) -> int:
             print(f"  {hid}: {h['status']}: {h['status_reason']}")
         if h.get("warning"):
             print(f"  {hid}: warning: {h['warning']}")
+        if neural and h["nn_fallback"]:
+            print(f"  {hid}: network not used, LM model instead: {h['nn_fallback_reason']}")
     f = s["fleet"]
     print(
         f"fleet: {f['n_converged']}/{f['n_heliostats']} converged; held-out median {fmt(f['test_median_mrad'])} "
@@ -281,6 +294,29 @@ def run(args) -> int:
             with activity("drawing the plot", logger=log):
                 save_figure(plot_calibration(run_), args.plot)
     return 0
+
+
+def _check_seed_is_used(args) -> None:
+    """Before any work: a ``--seed`` (command line or config) that nothing of the run
+    draws with, so that it would change nothing. It seeds the balanced split (KMeans
+    and its draws; the other splits are deterministic orders) and a +nn model's
+    networks (initialisation and training draws), nothing else."""
+    from .._errors import ConfigError
+
+    if args.seed is None or args.model.endswith("+nn"):
+        return
+    if args.records is not None:
+        why = "--records chooses the records, no split is drawn"
+    elif args.test_data is not None:
+        why = "--test-data holds the held-out records, no split is drawn"
+    elif args.split == "balanced":
+        return
+    else:
+        why = f"the {args.split} split is not random"
+    raise ConfigError(
+        f"--seed {args.seed}: nothing in this run is drawn at random ({why}, and --model {args.model} has no "
+        "network), so it would change nothing; it seeds --split balanced and the +nn models: leave it out"
+    )
 
 
 def _check_split_sizes(args, fleet) -> None:

@@ -185,8 +185,9 @@ def _apply_config(
         raise ConfigError(f"{path}: malformed TOML: nested too deep") from None
     unknown_tables = sorted(set(doc) - set(commands))
     if unknown_tables:
+        hint = _unknown_name_hint(unknown_tables[0], commands) if len(unknown_tables) == 1 else ""
         raise ConfigError(
-            f"{path}: unknown table(s) {unknown_tables}; tables are named after commands: {sorted(commands)}"
+            f"{path}: unknown table(s) {unknown_tables}; tables are named after commands: {sorted(commands)}{hint}"
         )
     table = doc.get(command, {})
     if not isinstance(table, dict):
@@ -197,7 +198,10 @@ def _apply_config(
     for key, value in table.items():
         dest = key.replace("-", "_")
         if dest not in known or dest in ("help", "config"):
-            raise ConfigError(f"{path}: [{command}] unknown option {key!r}")
+            keys_allowed = [d for d, a in known.items() if d not in ("help", "config") and not a.required]
+            flags = [d for d in keys_allowed if known[d].nargs == 0]
+            hint = _unknown_name_hint(dest, keys_allowed, flags, value)
+            raise ConfigError(f"{path}: [{command}] unknown option {key!r}{hint}")
         if dest in keys:  # max_steps and "max-steps": one would silently win
             raise ConfigError(f"{path}: [{command}] {keys[dest]!r} and {key!r} are the same option: give it once")
         if known[dest].required:  # argparse asks the command line for it before the config is read
@@ -223,6 +227,26 @@ def _apply_config(
     # heliojax.cli._common.option_label)
     origin = {d: (f"{path}: [{command}] {keys[d]}", v) for d, v in defaults.items()}
     subparser.set_defaults(**defaults, config_origin=origin)
+
+
+def _unknown_name_hint(name: str, known: Iterable[str], flags: Iterable[str] = (), value: object = None) -> str:
+    """What to write instead of an unknown config key or table ``name`` (``-`` read as
+    ``_``; ``value``: the key's), to follow its error message: for ``no_X`` where ``X``
+    is one of ``flags`` (on/off options, read from ``true`` / ``false``), ``use `X =
+    false``` (``true`` for ``no_X = false``), and for ``X`` where the flag is ``no_X``
+    (``discover``'s ``no_robust``), ``use `no_X = true``` (``false`` for ``X = true``);
+    otherwise the closest of ``known`` (:func:`difflib.get_close_matches`), if one is
+    close; else ``""``. One rule for every command's ``--config``."""
+    import difflib
+
+    dest = name.replace("-", "_")
+    flags = set(flags)
+    if dest.startswith("no_") and dest[3:] in flags:
+        return f"; use `{dest[3:]} = {'true' if value is False else 'false'}`"
+    if f"no_{dest}" in flags:
+        return f"; use `no_{dest} = {'false' if value is True else 'true'}`"
+    close = difflib.get_close_matches(dest, sorted(known), n=1)
+    return f"; did you mean `{close[0]}`?" if close else ""
 
 
 _FINER_THAN_MICROSECONDS = re.compile(r"(\d{4}-\d{2}-\d{2}[Tt ]\d{2}:\d{2}:\d{2})\.\d{7,}", re.ASCII)

@@ -42,6 +42,13 @@ OUTPUT_DIRS = ("out",)
 DEFAULT_TRACE_TARGET = "solar_tower_juelich_lower"
 """``--target`` of a trace at a sun position when not given."""
 
+OFF_IMAGE_WARNING = 0.5
+"""Fraction of the power reflected onto the target's plane that, landing outside the
+image (the target's rectangle), is warned about: more than half. A spot is symmetric
+about its centre to first order (sun shape and slope errors are), so more than half of
+it off the image puts its centre off the image: the image's centroid is then that of a
+cut-off tail, at the edge, and its power is not the heliostat's."""
+
 
 def _tag(args) -> str:
     """The part of the output file names naming the record or the sun."""
@@ -309,11 +316,29 @@ def run(args: argparse.Namespace) -> int:
                 "check the aim, --dni and --reflectivity"
             )
             c = np.full(2, np.nan)
+        on_plane = float(optics.plane_power(surface, pose, sun, target, dni=args.dni, reflectivity=args.reflectivity))
+        # the Monte Carlo image may hold a little more than the plane's expectation: clipped
+        off_image = min(max(1.0 - power / on_plane, 0.0), 1.0) if on_plane > 0.0 else None
+        if power > 0.0 and off_image is not None and off_image > OFF_IMAGE_WARNING:
+            size = f"{2 * float(target.half_width):.3g} x {2 * float(target.half_height):.3g} m"
+            hint = (
+                " (nominal kinematics, which can miss by metres: --results of `heliojax calibrate` aims with the "
+                "calibrated model)"
+                if args.results is None
+                else ""
+            )
+            log.warning(
+                f"{off_image:.1%} of the {on_plane:.4g} W reflected onto the plane of {target_name} lands outside "
+                f"the image ({size}, {power:.4g} W on it): the spot is mostly off the image, and the image's "
+                f"centroid and power are not the spot's{hint}"
+            )
         summary = {
             "heliostat": args.heliostat,
             "target": target_name,
             "centroid_uv_m": None if not np.all(np.isfinite(c)) else c.tolist(),
             "power_w": power,
+            "power_on_plane_w": on_plane,
+            "off_image_fraction": off_image,
             "rays": optics.ray_count(surface, args.rays_per_point, args.steps),
             "sunshape": {
                 "shape": args.sunshape,

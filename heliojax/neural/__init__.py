@@ -15,7 +15,9 @@ compiled program (vmap over stacked networks, padded and masked):
 
 A network is used for a heliostat only when it is not worse than the physics
 model by more than 10 % on validation records; otherwise the heliostat falls back
-to the physics model (:func:`calibrate_neural`, ``nn_fallback`` in the summary).
+to the physics model (:func:`calibrate_neural`, ``nn_fallback`` in the summary),
+as it does when its residual network kept its zero initial output (no fine-tuning
+step improved on validation: no correction).
 """
 
 from __future__ import annotations
@@ -44,4 +46,5 @@ from ._workflow import (
     paper_errors_mrad as paper_errors_mrad,
     train_neural as train_neural,
     validation_tail as validation_tail,
+    zero_correction as zero_correction,
 )

@@ -10,7 +10,10 @@ Records (per heliostat, chronological within the fleet):
   with the lowest validation loss, and is used only if its median beam error on
   the validation records is at most ``1 + fallback_tolerance`` times the LM model's
   (which has seen those records: the rule errs toward LM). Otherwise, or when a
-  heliostat has no validation record, it falls back to LM (``nn_fallback``).
+  heliostat has no validation record, it falls back to LM (``nn_fallback``). A
+  residual network that no fine-tuning step improved on validation keeps its
+  zero-initialised output: it *is* the LM model (same errors to the last digit),
+  and is reported as a fallback too, with that reason.
 * *test*: never used for training, selection or the fallback decision.
 """
 
@@ -218,14 +221,27 @@ def train_neural(
     return preds, fit_mask, val_mask, timing
 
 
-def fallback_rule(nn_val_median, lm_val_median, tolerance: float):
+UNCHANGED_REASON = (
+    "no fine-tuning step lowered the validation loss below the LM model's, so the network kept its "
+    "zero initial output: no correction (its errors are the LM model's)"
+)
+"""``nn_fallback_reason`` of a heliostat whose residual network is still zero."""
+
+
+def fallback_rule(nn_val_median, lm_val_median, tolerance: float, unchanged=None):
     """``(fallback, reason)`` per heliostat: fall back to LM unless the network's
-    validation median is finite and ``<= (1 + tolerance) *`` the LM model's."""
+    validation median (mrad) is finite and ``<= (1 + tolerance) *`` the LM model's,
+    and the network corrects anything (``unchanged``: optional ``(H,)`` bool, the
+    network's correction is zero everywhere, :func:`zero_correction`)."""
+    unchanged = np.zeros(len(lm_val_median), bool) if unchanged is None else np.asarray(unchanged, bool)
     fb, why = [], []
-    for a, b in zip(nn_val_median, lm_val_median):
+    for a, b, same in zip(nn_val_median, lm_val_median, unchanged):
         if not np.isfinite(b):
             fb.append(True)
             why.append("no validation records")
+        elif same:
+            fb.append(True)
+            why.append(UNCHANGED_REASON)
         elif not np.isfinite(a):
             fb.append(True)
             why.append("network prediction not finite")
@@ -236,6 +252,16 @@ def fallback_rule(nn_val_median, lm_val_median, tolerance: float):
             fb.append(False)
             why.append(None)
     return np.array(fb, bool), why
+
+
+def zero_correction(models) -> np.ndarray:
+    """``(H,)`` bool: the batched residual model's network (:class:`NeuralCorrection`)
+    has an output layer of exact zeros, its initialisation, so its correction (rad) is
+    0 at every motor count and the model is the physics model bit for bit. The
+    best-on-validation checkpoint keeps it when no fine-tuning step lowered the
+    validation loss."""
+    w, b = models.network.weights[-1], models.network.biases[-1]  # (H, out, in), (H, out)
+    return np.asarray(jnp.all(w == 0, axis=(-2, -1)) & jnp.all(b == 0, axis=-1))
 
 
 def calibrate_neural(
@@ -297,7 +323,8 @@ def calibrate_neural(
     n_real = len(lm.summary["heliostats"])
     lm_val = np.array([_median(np.where(val_mask[i], lm.errors_mrad[i], np.nan)) for i in range(n_real)])
     nn_val = np.array([_median(np.where(val_mask[i], nn_err[i], np.nan)) for i in range(n_real)])
-    fallback, reason = fallback_rule(nn_val, lm_val, nn.fallback_tolerance)
+    unchanged = zero_correction(models)[:n_real] if variant == "residual" else None
+    fallback, reason = fallback_rule(nn_val, lm_val, nn.fallback_tolerance, unchanged)
     fb_full = np.zeros(pf.mask.shape[0], bool)
     fb_full[:n_real] = fallback
     fb_full[n_real:] = True
@@ -479,4 +506,5 @@ __all__ = [
     "paper_errors_mrad",
     "train_neural",
     "validation_tail",
+    "zero_correction",
 ]

@@ -30,6 +30,7 @@ from ._flux import (
     centroid as centroid,
     flux_image as flux_image,
     flux_images as flux_images,
+    plane_power as plane_power,
     pose_from_normal as pose_from_normal,
     ray_count as ray_count,
     total_power as total_power,
