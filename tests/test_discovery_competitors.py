@@ -186,3 +186,67 @@ def test_a_significant_competitor_close_below_the_named_effect_makes_the_name_am
     # the withdrawn change points of report.json are in the Markdown too (they were not)
     report["change_points_withdrawn"] = [{"heliostat": "BF56", "time": "2023-03-01T10:00:00Z", "p": 1.4e-52}]
     assert "withdrawn, not named): BF56 (2023-03-01T10:00:00Z, p 1.4e-52)" in markdown_summary(report)
+
+
+def _absorbing_fit(design, n_free, rng, y):
+    """The least-squares residuals of ``y`` ``(H, R)`` under a base of ``n_free`` random
+    columns and random mixtures of ``design``'s columns (``(H, R, j)``: inside every
+    heliostat's span of the base), with the bases of that base."""
+    h, rows, j = design.shape
+    mix = design @ rng.normal(size=(h, j, j))
+    jac = np.concatenate([rng.normal(size=(h, rows, n_free)), mix], axis=2)
+    r = np.stack([y[i] - jac[i] @ np.linalg.lstsq(jac[i], y[i], rcond=None)[0] for i in range(h)])
+    return prepare_bases(r, jac, np.ones((h, rows), bool), range(n_free + j), range(h))
+
+
+def test_a_competitor_the_base_absorbs_is_untested_and_a_free_one_tested_as_before():
+    """A competitor whose functions lie inside every heliostat's span of the base's
+    columns holds rounding only after the projection: neither form tests it (``p``
+    ``None``, no per-heliostat p; the screens' rule, :func:`._screen.heliostat_directions`
+    and :func:`._screen.shared_score`), so it is never significant, never a rival, and
+    it is out of the Bonferroni family. A relative cut alone gave it a p from rounding.
+    A free competitor is tested as before (the fleet's ``g^T G^-1 g`` on its four
+    directions, chi-square); half absorbed, both forms test the free half alone."""
+    from scipy import stats
+
+    from heliojax.discovery._competitors import generic_rivals, n_tested, significant
+
+    rng = np.random.default_rng(21)
+    h, m, p = 8, 40, 5
+    fleet = _fake_fleet(h, m, rng)
+    tod = competitor_design(competitor_features(fleet, "time_of_day"))
+    wind = competitor_design(competitor_features(fleet, "wind_direction"))
+    noise = np.full(h, 0.25)
+    load = np.einsum("hrk,k->hr", wind, np.array([0.03, -0.02, 0.01, 0.04]))
+    y = 0.25 * rng.normal(size=(h, 2 * m)) + load + np.einsum("hrk,k->hr", tod, np.array([0.5, 0.3, -0.4, 0.2]))
+    bases = _absorbing_fit(tod, p, rng, y)
+
+    d_h, p_h, _, p_each = _per_heliostat(bases, tod, noise, h)
+    d_f, p_f, _ = _fleet(bases, tod, noise)
+    assert p_h is None and p_f is None and np.all(np.isnan(p_each))
+    assert abs(d_h) < 1e-6 and abs(d_f) < 1e-6  # the evidence of rounding: none
+    scores = score_competitors(fleet, bases, noise, h)
+    by = {s.variable: s for s in scores}
+    assert by["time_of_day"].p is None and n_tested(scores) == 1
+    assert not significant(by["time_of_day"], n_tested(scores), 0.01)
+    assert all(r["variable"] != "time_of_day" for r in generic_rivals(d_f + 1.0, scores, 0.01, 10.0))
+
+    # the free competitor: the fleet's chi-square statistic on its four directions
+    w = 1.0 / noise[bases.index] ** 2
+    xt = bases.project(bases.rows(wind))
+    g = np.einsum("s,srk,sr->k", w, xt, bases.r_res)
+    gmat = np.einsum("s,srk,srj->kj", w, xt, xt)
+    expected = stats.chi2.sf(g @ np.linalg.solve(gmat, g), 4)
+    assert 1e-12 < expected < 1e-2  # the planted load is found, not to rounding
+    np.testing.assert_allclose(_fleet(bases, wind, noise)[1], expected, rtol=1e-8)
+    assert by["wind_direction"].p is not None and np.all(np.isfinite(by["wind_direction"].p_heliostats))
+
+    # half absorbed (the first component's functions): the second component's alone
+    bases = _absorbing_fit(tod[..., :2], p, rng, y)
+    free = tod * np.array([0.0, 0.0, 1.0, 1.0])
+    for form in (_fleet, lambda *a: _per_heliostat(*a, h)):
+        half, alone = form(bases, tod, noise), form(bases, free, noise)
+        assert half[1] is not None and alone[1] is not None and half[1] < 1e-6
+        np.testing.assert_allclose(half[1], alone[1], rtol=1e-8)
+        np.testing.assert_allclose(half[0], alone[0], rtol=1e-6)
+    np.testing.assert_allclose(_per_heliostat(bases, tod, noise, h)[3], _per_heliostat(bases, free, noise, h)[3])

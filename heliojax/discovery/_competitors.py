@@ -21,6 +21,13 @@ the competitor's variable is reported under ``"unexplained"`` (``"source":
 "generic competitor"``). Every step's competitor scores are in the report
 (``"generic_competitors"``).
 
+The tests use the directions of the screens' tests (:func:`._screen.heliostat_directions`,
+:func:`._screen.shared_score`): a direction the current model absorbs to ``1 - 1e-12``
+holds rounding only and is not tested. A competitor with no other direction (inside
+every heliostat's span of the model's columns) is untested: its ``p`` is ``None``
+(``null`` in the report), it is never significant and the family of the Bonferroni
+correction is the competitors tested.
+
 The competitors (:data:`COMPETITORS`), each a first harmonic of a circular variable:
 
 * ``time_of_day``: ``sin``, ``cos`` of ``2 pi t / 1 day`` (UTC);
@@ -40,7 +47,14 @@ import dataclasses
 import numpy as np
 from scipy import stats
 
-from ._screen import HeliostatBases, chi2_equivalent, directions_f_tests, weighted_gram
+from ._screen import (
+    HeliostatBases,
+    chi2_equivalent,
+    directions_f_tests,
+    heliostat_directions,
+    shared_score,
+    weighted_gram,
+)
 
 GENERIC_TYPICAL_MRAD = 0.6
 """Prior standard deviation of a generic competitor's coefficient (mrad of beam error)."""
@@ -87,10 +101,12 @@ class CompetitorScore:
 
     Attributes:
         variable: the recorded variable.
-        form: ``"per_heliostat"`` or ``"fleet"`` (the form with the larger evidence).
+        form: ``"per_heliostat"`` or ``"fleet"`` (the form with the larger evidence
+            of those tested; of both where neither is).
         delta_bic: decrease of the criterion (``2 log`` Bayes factor against the
             current model), comparable with a refit's.
-        p: score-test p-value of the form (Gaussian noise).
+        p: score-test p-value of the form (Gaussian noise); ``None``: not tested
+            (every direction absorbed by the current model to ``1 - 1e-12``).
         effect_size_mrad: RMS over the records of the fitted function (both components).
         p_heliostats: ``(H,)`` per-heliostat p-values (NaN where not tested).
     """
@@ -98,14 +114,23 @@ class CompetitorScore:
     variable: str
     form: str
     delta_bic: float
-    p: float
+    p: float | None
     effect_size_mrad: float
     p_heliostats: np.ndarray
 
 
 def _per_heliostat(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray, n_h: int):
     """The per-heliostat form, all heliostats at once (those whose records lack the
-    variable add nothing): ``(delta_bic, p, effect_size_mrad, p_heliostats)``."""
+    variable add nothing): ``(delta_bic, p, effect_size_mrad, p_heliostats)``, ``p``
+    ``None`` where no heliostat has a direction left to test
+    (:func:`._screen.heliostat_directions`) and ``p_heliostats`` ``(H,)`` NaN where
+    the heliostat is not tested.
+
+    Args:
+        bases: the current model's projected residuals (``S`` heliostats, ``R`` rows).
+        design: ``(H, >= R, k)`` the competitor's Jacobian (:func:`competitor_design`).
+        noise: ``(L,)`` the lanes' noise (mrad).
+        n_h: ``H``."""
     typ2 = GENERIC_TYPICAL_MRAD**2
     p_h = np.full(n_h, np.nan)
     x = bases.rows(design)  # (S, R, k)
@@ -126,20 +151,21 @@ def _per_heliostat(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray,
     fitted = (x @ beta[..., None])[..., 0]
     sq = float(np.sum(fitted * fitted))
     n_sq = int(np.sum(n // 2))
-    # the F test of the screens (exact for Gaussian noise), on the directions present
-    u, s, _ = np.linalg.svd(xt, full_matrices=False)
-    keep = s > 1e-9 * np.maximum(s.max(axis=1, initial=0.0), 1e-300)[:, None]
+    # the F test of the screens (exact for Gaussian noise), on their directions
+    u, keep = heliostat_directions(x, xt)
     tested, p_tested, _, _ = directions_f_tests(u, keep, r_res, dof)
     kh = keep.sum(axis=1)[tested]
     p_h[bases.index[driven][tested]] = p_tested[tested]
     q_sum = float(np.sum(chi2_equivalent(p_tested[tested], kh)))
     k_sum = int(kh.sum())
-    p = float(stats.chi2.sf(q_sum, k_sum)) if k_sum else 1.0
+    p = float(stats.chi2.sf(q_sum, k_sum)) if k_sum else None
     return delta, p, float(np.sqrt(sq / max(n_sq, 1))), p_h
 
 
 def _fleet(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray):
-    """The fleet form: ``(delta_bic, p, effect_size_mrad)``."""
+    """The fleet form: ``(delta_bic, p, effect_size_mrad)``; ``p`` (chi-square test of
+    the score, the noise known) ``None`` where no direction is left to test
+    (:func:`._screen.shared_score`). Arguments as :func:`_per_heliostat`'s."""
     typ2 = GENERIC_TYPICAL_MRAD**2
     k = design.shape[-1]
     x = bases.rows(design)  # (S, R, k)
@@ -148,7 +174,7 @@ def _fleet(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray):
     g = weighted_gram(w, xt, bases.r_res)
     gmat = weighted_gram(w, xt, xt)
     if not np.any(gmat):
-        return 0.0, 1.0, 0.0
+        return 0.0, None, 0.0
     beta = np.linalg.solve(gmat + np.eye(k) / typ2, g)
     new = bases.r_res - xt @ beta
     r2 = np.sum(bases.r_res * bases.r_res, axis=1)
@@ -159,10 +185,8 @@ def _fleet(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray):
     n_sq = int(np.sum(bases.n // 2))
     _, logdet = np.linalg.slogdet(np.eye(k) + typ2 * gmat)
     delta -= logdet + float(beta @ beta) / typ2
-    ev, vec = np.linalg.eigh(gmat)
-    keep = ev > ev.max() * 1e-12
-    z = vec[:, keep].T @ g
-    p = float(stats.chi2.sf(float(np.sum(z**2 / ev[keep])), int(keep.sum())))
+    stat, k_kept, _ = shared_score(w, x, g, gmat)
+    p = float(stats.chi2.sf(stat, k_kept)) if k_kept else None
     return delta, p, float(np.sqrt(sq / max(n_sq, 1)))
 
 
@@ -184,17 +208,25 @@ def score_competitors(fleet, bases: HeliostatBases, noise: np.ndarray, n_heliost
         design = competitor_design(features)
         d_h, p_h, size_h, p_each = _per_heliostat(bases, design, noise, n_heliostats)
         d_f, p_f, size_f = _fleet(bases, design, noise)
-        if d_f > d_h:
+        # an untested form (its delta ~ 0: rounding only) does not hide a tested one
+        if d_f > d_h if (p_f is None) == (p_h is None) else p_f is not None:
             out.append(CompetitorScore(name, "fleet", d_f, p_f, size_f, p_each))
         else:
             out.append(CompetitorScore(name, "per_heliostat", d_h, p_h, size_h, p_each))
     return sorted(out, key=lambda c: -c.delta_bic)
 
 
+def n_tested(comps: list[CompetitorScore]) -> int:
+    """The family of the competitors' Bonferroni correction: those tested (``p`` not
+    ``None``), as the screens' Holm family is the candidates tested."""
+    return sum(c.p is not None for c in comps)
+
+
 def significant(score: CompetitorScore, n_competitors: int, alpha: float) -> bool:
     """A competitor's own test is significant at the family-wise level ``alpha`` over the
-    ``n_competitors`` scored (Bonferroni): the condition for it to beat or rival a name."""
-    return n_competitors * score.p <= alpha
+    ``n_competitors`` tested (Bonferroni, :func:`n_tested`): the condition for it to
+    beat or rival a name. An untested one (``p`` ``None``) never is."""
+    return score.p is not None and n_competitors * score.p <= alpha
 
 
 def generic_rivals(
@@ -208,7 +240,7 @@ def generic_rivals(
     daily tilt of each pylon and an encoder wobble of the elevation axis, whose angle
     follows the time of day, are told apart by 3-21 in this criterion
     (``benchmarks/independent_discovery.py``, seeds 11001-11102)."""
-    n = len(comps)
+    n = n_tested(comps)
     return tuple(
         {
             "effect": None,
@@ -227,7 +259,10 @@ def generic_rivals(
 def unexplained_entry(
     score: CompetitorScore, n_competitors: int, alpha: float, ids: list[str], instead_of: dict
 ) -> dict:
-    """The ``"unexplained"`` entry of a competitor that beat a library candidate."""
+    """The ``"unexplained"`` entry of a competitor that beat a library candidate (its
+    test significant over the ``n_competitors`` tested, :func:`significant`)."""
+    if score.p is None:
+        raise ValueError(f"the competitor of {score.variable} was not tested: it cannot be reported unexplained")
     p_h = score.p_heliostats
     heliostats = [ids[h] for h in range(len(p_h)) if ids[h] and np.isfinite(p_h[h]) and p_h[h] < alpha]
     return {

@@ -43,6 +43,8 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
                                                    # "instead_of"."ambiguous": within ambiguity_bic)
       "generic_competitors": [{"step", "library_best": {"effect", "mode", "delta_bic"},
                                "competitors": [{"variable", "form", "delta_bic", "p"}]}],
+                                                   # p null: not tested (absorbed by the model
+                                                   # to 1 - 1e-12)
       "variable_p_values": {variable: p},          # every recorded variable at the final model
                                                    # (per-heliostat form: "<variable> (per heliostat)")
       "partly_absorbed": [{"effect", "absorbed_fraction", "remainder_p_holm"}],  # last screen;

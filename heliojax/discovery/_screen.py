@@ -57,7 +57,8 @@ from ._identifiability import (
 
 ROUNDING_ONLY = 1e-12
 """Share of a candidate direction's (unit-norm) size left after the base's projection
-below which it holds rounding only (absorbed to ``1 - 1e-12``): neither form tests it."""
+below which it holds rounding only (absorbed to ``1 - 1e-12``): neither form tests it
+(:func:`heliostat_directions`, :func:`shared_score`; the generic competitors' tests too)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -242,6 +243,68 @@ def weighted_gram(w: Float[np.ndarray, " S"], x: Float[np.ndarray, "S R k"], y: 
     return np.tensordot(w[:, None, None] * x, y, axes=([0, 1], [0, 1]))
 
 
+def heliostat_directions(
+    b: Float[np.ndarray, "S R k"], bt: Float[np.ndarray, "S R k"]
+) -> tuple[Float[np.ndarray, "S R k"], Bool[np.ndarray, "S k"]]:
+    """The directions the per-heliostat tests use: an orthonormal basis of each
+    heliostat's projected columns ``bt = (I - P_h) b`` (any units: every column of
+    ``b`` is first scaled to unit norm on the heliostat's rows, so that its singular
+    values are shares of an unprojected size) and the directions that hold more than
+    rounding, ``s^2 > ROUNDING_ONLY`` (:data:`ROUNDING_ONLY`).
+
+    A direction the base absorbs to ``1 - 1e-12``, or one no record drives (a zero
+    column), carries no information: a cut relative to the largest singular value
+    alone kept a fully absorbed candidate's directions and tested rounding as if it
+    were its remainder.
+
+    Returns:
+        ``(u, keep)``: ``(S, R, k)`` the left singular vectors (unit norm, zero on
+        unused rows) and ``(S, k)`` those kept (the input of
+        :func:`directions_f_tests`).
+    """
+    scale = np.sqrt(np.maximum(np.sum(b * b, axis=1), 1e-300))  # (S, k)
+    u, s, _ = np.linalg.svd(bt / scale[:, None, :], full_matrices=False)
+    return u, s**2 > ROUNDING_ONLY
+
+
+def shared_score(
+    w: Float[np.ndarray, " S"],
+    b: Float[np.ndarray, "S R k"],
+    g: Float[np.ndarray, " k"],
+    gmat: Float[np.ndarray, "k k"],
+) -> tuple[float, int, Float[np.ndarray, " k"]]:
+    """The shared form's score statistic ``g^T G^+ g`` restricted to the directions
+    that hold more than rounding, and its one-step estimate ``-G^+ g``.
+
+    ``G = sum_s w_s B~_s^T B~_s`` and ``g = sum_s w_s B~_s^T r~_s``
+    (:func:`weighted_gram`; ``w``: ``(S,)`` inverse noise variance, 1 / mrad^2, ``r~``
+    in mrad) of the projected columns of ``b`` (``(S, R, k)``, mrad per parameter
+    unit). The directions are judged with each column scaled to unit weighted norm
+    *before* the projection, ``d_j^2 = sum_s w_s |b_sj|^2``: an eigenvalue of
+    ``D^-1 G D^-1`` is the share of an unprojected size that the base leaves. Kept:
+    those above ``max(RANK_RTOL * largest, ROUNDING_ONLY)`` (:data:`RANK_RTOL`: rank
+    against the largest; :data:`ROUNDING_ONLY`: a direction absorbed to ``1 - 1e-12``
+    holds rounding only, whatever the others hold: the per-heliostat tests' cut). A cut
+    relative to the largest eigenvalue alone kept a fully absorbed candidate's
+    directions and tested rounding as if it were its remainder.
+
+    Returns:
+        ``(stat, k_kept, theta)``: the statistic (chi-square(``k_kept``) units for a
+        known noise), the number of directions kept (0: nothing tested, ``stat`` 0)
+        and ``(k,)`` the estimate on the kept directions (the parameters' units, zero
+        along the others).
+    """
+    unprojected = np.einsum("s,srk,srk->k", w, b, b)
+    d = np.sqrt(np.where(unprojected > 0, unprojected, 1.0))
+    ev, vec = np.linalg.eigh(gmat / np.outer(d, d))
+    keep = ev > (max(ev.max() * RANK_RTOL, ROUNDING_ONLY) if ev.size and ev.max() > 0 else np.inf)
+    k_kept = int(keep.sum())
+    if not k_kept:
+        return 0.0, 0, np.zeros(len(g))
+    z = vec[:, keep].T @ (g / d)
+    return float(np.sum(z**2 / ev[keep])), k_kept, -(vec[:, keep] @ (z / ev[keep])) / d
+
+
 def screen_candidate(
     effect: str,
     bases: HeliostatBases,
@@ -272,10 +335,7 @@ def screen_candidate(
     n_total = int(bases.n.sum())
     theta_h = np.full((n_heliostats, k), np.nan)
     p_h = np.full(n_heliostats, np.nan)
-    scale = np.sqrt(np.maximum(np.sum(b * b, axis=1), 1e-300))  # (S, k)
-    u, s, _ = np.linalg.svd(bt / scale[:, None, :], full_matrices=False)
-    # Directions absorbed to 1 - 1e-12 (or without driving data) carry no information.
-    keep = s**2 > ROUNDING_ONLY
+    u, keep = heliostat_directions(b, bt)
     tested, p_val, explained, denom = directions_f_tests(u, keep, bases.r_res, bases.dof)
     kh = keep.sum(axis=1)[tested]
     p_val, explained, denom = p_val[tested], explained[tested], denom[tested]
@@ -302,23 +362,9 @@ def screen_candidate(
     dof_total = int(bases.dof.sum())
 
     p_perhel = float(stats.chi2.sf(q_sum, k_sum)) if k_sum else 1.0
-    # Shared: restrict to the directions G determines, judged with each column scaled
-    # to unit weighted norm before the projection. A direction the base absorbs to
-    # 1 - 1e-12 holds rounding only (the per-heliostat tests' cut, s > 1e-6): a cut
-    # relative to G's largest eigenvalue alone kept a fully absorbed candidate's
-    # directions and "tested" rounding as if it were its remainder.
-    unprojected = np.einsum("s,srk,srk->k", w, b, b)
-    d = np.sqrt(np.where(unprojected > 0, unprojected, 1.0))
-    ev, vec = np.linalg.eigh(gmat / np.outer(d, d))
-    keep = ev > (max(ev.max() * RANK_RTOL, ROUNDING_ONLY) if ev.size and ev.max() > 0 else np.inf)
-    ks = int(keep.sum())
-    if ks:
-        z = vec[:, keep].T @ (g / d)
-        stat_shared = float(np.sum(z**2 / ev[keep]))
-        theta_shared = -(vec[:, keep] @ (z / ev[keep])) / d
-        p_shared = float(stats.f.sf(stat_shared / ks, ks, max(dof_total - ks, 1)))
-    else:
-        stat_shared, theta_shared, p_shared = 0.0, np.zeros(k), 1.0
+    # Shared: on the directions G determines beyond rounding (:func:`shared_score`).
+    stat_shared, ks, theta_shared = shared_score(w, b, g, gmat)
+    p_shared = float(stats.f.sf(stat_shared / ks, ks, max(dof_total - ks, 1))) if ks else 1.0
     # The refit's start: the same step under its prior (precision 1 / typical^2 in the
     # units of w r^2, none where no typical size is documented). The bare estimate
     # goes far out along weakly determined directions, which the prior pulls back:

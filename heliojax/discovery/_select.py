@@ -88,7 +88,14 @@ from .._progress import activity, progress_bar
 from ..effects import EFFECT_NAMES, OffsetStep
 from ..fitting import OFFSET_NAMES, AbstractBatching, default_solver, fitted_start_geometry
 from ._cleaning import Cleaning, clean, confirm_change_points, recheck_outliers
-from ._competitors import CompetitorScore, generic_rivals, score_competitors, significant, unexplained_entry
+from ._competitors import (
+    CompetitorScore,
+    generic_rivals,
+    n_tested,
+    score_competitors,
+    significant,
+    unexplained_entry,
+)
 from ._diagnostics import record_variables, unexplained_structure
 from ._identifiability import ABSORBED_LIMIT, column_bases
 from ._lanes import Engine, Lanes, Layout, make_lanes, make_layout
@@ -966,14 +973,15 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
                 }
             )
             top = comps[0] if comps else None
-            if top is not None and top.delta_bic >= best.delta_bic and significant(top, len(comps), config.alpha):
+            n_comps = n_tested(comps)  # the family: the competitors tested
+            if top is not None and top.delta_bic >= best.delta_bic and significant(top, n_comps, config.alpha):
                 instead = {
                     "effect": best.effect,
                     "mode": best.mode,
                     "delta_bic": best.delta_bic,
                     "ambiguous": bool(top.delta_bic - best.delta_bic < config.ambiguity_bic),
                 }
-                generic.append(unexplained_entry(top, len(comps), config.alpha, list(padded.ids), instead))
+                generic.append(unexplained_entry(top, n_comps, config.alpha, list(padded.ids), instead))
                 log.info(
                     f"not named: {best.effect} ({best.mode}, delta BIC {best.delta_bic:.1f}); a generic function "
                     f"of {top.variable} ({top.form}) explains the residuals as well (delta BIC {top.delta_bic:.1f}, "
