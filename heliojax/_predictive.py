@@ -212,12 +212,19 @@ def _grid(
     return d2, np.log(det)
 
 
-def _best_t(d2: Float[np.ndarray, "Q N"], logdet: Float[np.ndarray, "Q N"]) -> tuple[int, float, float]:
-    """``(drift index, tail_dof, log-likelihood)`` of the most likely t (Gaussian included)."""
-    ll = np.stack([_log_likelihood(d2, logdet, float(v)) for v in _DOF_GRID], axis=1)  # (Q, V)
+def _best_t(
+    d2: Float[np.ndarray, "Q N"], logdet: Float[np.ndarray, "Q N"], dofs: Float[np.ndarray, " V"] = _DOF_GRID
+) -> tuple[int, float, float]:
+    """``(drift index, tail_dof, log-likelihood)`` of the most likely t (Gaussian
+    included) among the degrees of freedom ``dofs`` (ascending, ``inf`` last)."""
+    ll = np.stack([_log_likelihood(d2, logdet, float(v)) for v in dofs], axis=1)  # (Q, V)
     # the last index of the maximum: among equally likely values, the Gaussian and the smallest drift
     iq, iv = np.unravel_index(np.argmax(ll[:, ::-1]), ll.shape)
-    return int(iq), float(_DOF_GRID[::-1][iv]), float(ll[iq, ll.shape[1] - 1 - iv])
+    return int(iq), float(dofs[::-1][iv]), float(ll[iq, ll.shape[1] - 1 - iv])
+
+
+_PROFILE_DOFS = np.append(_DOF_GRID[:-1][::3], np.inf)
+"""Every third degrees of freedom of the t's grid and the Gaussian: the sky-gap profile's."""
 
 
 def fit_drift_and_tails(
@@ -273,11 +280,12 @@ def fit_drift_gap_and_law(
     degree of sky gap per component) and error law of validation residuals predicted
     with scale ``S + (q dt + g gap) I``.
 
-    ``g`` (in 0 and 1e-5-100, ratio 1.26) is chosen by the profile likelihood of the
-    Student t family (the Gaussian included; the t keeps gross errors from inflating
-    ``g``), the law and ``q`` are fitted at that ``g``, then ``q`` and ``g`` again on
-    their grid with that law fixed, and the law once more where ``g`` moved. ``g > 0``
-    is kept only when its BIC (one parameter more) is lower than that of
+    ``g`` is chosen by the profile likelihood of the Student t family (every third
+    ``nu`` of its grid and the Gaussian; the t keeps gross errors from inflating ``g``)
+    on a grid of 0 and
+    1e-5-100 (ratio 2); the law and ``q`` are fitted at that ``g``, then ``q`` and ``g``
+    refined on their fine grids (``g`` ratio 1.26) with that law fixed. ``g > 0`` is
+    kept only when its BIC (one parameter more) is lower than that of
     :func:`fit_drift_and_law`'s result; ties go to the smaller ``g``.
 
     Args:
@@ -298,24 +306,23 @@ def fit_drift_gap_and_law(
     gap = np.asarray(sky_gap_deg, float)
     if gap.shape != r.shape[:1] or not np.all(np.isfinite(gap) & (gap >= 0.0)):
         raise ValueError(f"sky_gap_deg must hold {r.shape[0]} finite angles >= 0 (deg), one per residual")
-    bic, iq, law = _fit_law(*_grid(r, s, days))
-    best = (bic, float(_DRIFT_GRID[iq]), 0.0, law)
-    profile = [_best_t(*_grid(r, s, days, g * gap))[2] for g in _GAP_GRID]
-    g = float(_GAP_GRID[int(np.argmax(profile))])  # the first maximum: the smallest g
+    bic0, iq0, law0 = _fit_law(*_grid(r, s, days))
+    coarse = _GAP_GRID[::3]
+    profile = [_best_t(*_grid(r, s, days, x * gap), _PROFILE_DOFS)[2] for x in coarse]
+    g = float(coarse[int(np.argmax(profile))])  # the first maximum: the smallest g
     if g == 0.0:
-        return best[1], best[2], best[3]
-    penalty = math.log(max(r.shape[0], 1))
-    tried = set()
-    while g not in tried:  # at most twice: at the t's g, then where the fitted law moves it
-        tried.add(g)
-        bic, iq, law = _fit_law(*_grid(r, s, days, g * gap))
-        if bic + penalty < best[0]:
-            best = (bic + penalty, float(_DRIFT_GRID[iq]), g, law)
-        if len(tried) == 2:
-            break
-        ll = np.stack([_law_log_likelihood(*_grid(r, s, days, x * gap), law) for x in _GAP_GRID])  # (G, Q)
-        g = float(_GAP_GRID[int(np.unravel_index(np.argmax(ll), ll.shape)[0])])
-    return best[1], best[2], best[3]
+        return float(_DRIFT_GRID[iq0]), 0.0, law0
+    _, _, law = _fit_law(*_grid(r, s, days, g * gap))
+    ll = np.stack([_law_log_likelihood(*_grid(r, s, days, x * gap), law) for x in _GAP_GRID])  # (G, Q)
+    ig, iq = np.unravel_index(int(np.argmax(ll)), ll.shape)  # the first maximum: the smallest g, then q
+    bic = -2.0 * float(ll[ig, iq]) + (_LAW_PARAMETERS[law.kind] + 1) * math.log(max(r.shape[0], 1))
+    if ig == 0 or not bic < bic0:
+        return float(_DRIFT_GRID[iq0]), 0.0, law0
+    return float(_DRIFT_GRID[iq]), float(_GAP_GRID[ig]), law
+
+
+_LAW_PARAMETERS = {"gaussian": 1, "student_t": 2, "gaussian_mixture": 3, "student_t_mixture": 4}
+"""Parameters of each law's family in the BIC, the drift ``q`` included (:func:`_fit_law`)."""
 
 
 def _fit_law(d2: Float[np.ndarray, "Q N"], logdet: Float[np.ndarray, "Q N"]) -> tuple[float, int, PointingErrorLaw]:
@@ -348,13 +355,17 @@ def _law_log_likelihood(
 
 
 def _mixture_log_density(
-    core: Float[np.ndarray, "..."], broad: Float[np.ndarray, "..."], e: float, k: Float[np.ndarray, "..."] | float
+    core: Float[np.ndarray, "..."],
+    broad: Float[np.ndarray, "..."],
+    e: Float[np.ndarray, "..."] | float,
+    k: Float[np.ndarray, "..."] | float,
 ) -> Float[np.ndarray, "..."]:
     """Per-record log-density of ``(1 - e) t_nu(S) + e t_nu(k^2 S)`` (``nu = inf``: two
     Gaussians), less ``log 2 pi`` and half the scale's log determinant, from its two
     components' kernels (:func:`_kernel` at ``d2`` and at ``d2 / k^2``; shapes
-    broadcast, e.g. ``broad`` and ``k`` with a leading axis of scales)."""
-    return np.logaddexp(math.log1p(-e) + core, math.log(e) - 2.0 * np.log(k) + broad)
+    broadcast, e.g. ``broad`` and ``k`` with a leading axis of scales, ``e`` one of
+    fractions before it)."""
+    return np.logaddexp(np.log1p(-e) + core, np.log(e) - 2.0 * np.log(k) + broad)
 
 
 def _t_mixture_log_likelihood(
@@ -372,16 +383,16 @@ def _best_t_mixture(
     and ``k`` on their grids at the drifts ``drifts`` (indices), then the drift on its
     whole grid with those three fixed."""
     k = _SCALE_GRID[:, None]
+    e = _FRACTION_GRID[:, None, None]
     found = (-math.inf, 0, 1.0, 0.0, 1.0)  # (log-likelihood, drift index, nu, e, k)
     for iq in drifts:
         x, ld = d2[iq][None, :], logdet[iq][None, :]
         for dof in _DOF_GRID[:-1][::3]:
             core, broad = _kernel(x, float(dof)), _kernel(x / (k * k), float(dof))
-            for e in _FRACTION_GRID:
-                ll = np.sum(_mixture_log_density(core, broad, float(e), k) - 0.5 * ld, axis=-1)  # (K,)
-                ik = int(np.argmax(ll))
-                if ll[ik] > found[0]:
-                    found = (float(ll[ik]), iq, float(dof), float(e), float(_SCALE_GRID[ik]))
+            ll = np.sum(_mixture_log_density(core, broad, e, k) - 0.5 * ld, axis=-1)  # (E, K), every e at once
+            ie, ik = np.unravel_index(int(np.argmax(ll)), ll.shape)  # the first maximum: the smallest e, then k
+            if ll[ie, ik] > found[0]:
+                found = (float(ll[ie, ik]), iq, float(dof), float(_FRACTION_GRID[ie]), float(_SCALE_GRID[ik]))
     _, _, dof, e, scale = found
     ll_q = _t_mixture_log_likelihood(d2, logdet, dof, e, scale)
     iq = int(ll_q.shape[0] - 1 - np.argmax(ll_q[::-1]))  # among equally likely drifts, the smallest

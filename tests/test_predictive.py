@@ -187,7 +187,7 @@ def test_sky_gap_rate_recovered_and_kept_only_where_the_bic_asks():
     # 0.05 mrad^2 per degree (2 mrad^2 at 40 deg) beside a drift of 0.005 mrad^2/day: both recovered
     r, s, days, gap = _validation_with_gap(rng, 3000, 0.005, 0.05, math.inf)
     q, g, law = hj.fit_drift_gap_and_law(r, s, days, gap)
-    assert g == pytest.approx(0.05, rel=0.3) and q == pytest.approx(0.005, rel=0.5) and law.tail_dof >= 50.0
+    assert g == pytest.approx(0.05, rel=0.3) and q == pytest.approx(0.005, rel=0.5) and law.tail_dof >= 20.0
     # the same with heavy tails (nu = 3): g still recovered, the tails too
     r, s, days, gap = _validation_with_gap(rng, 3000, 0.0, 0.05, 3.0)
     q, g, law = hj.fit_drift_gap_and_law(r, s, days, gap)
