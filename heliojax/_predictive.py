@@ -282,11 +282,10 @@ def fit_drift_gap_and_law(
 
     ``g`` is chosen by the profile likelihood of the Student t family (every third
     ``nu`` of its grid and the Gaussian; the t keeps gross errors from inflating ``g``)
-    on a grid of 0 and
-    1e-5-100 (ratio 2); the law and ``q`` are fitted at that ``g``, then ``q`` and ``g``
-    refined on their fine grids (``g`` ratio 1.26) with that law fixed. ``g > 0`` is
-    kept only when its BIC (one parameter more) is lower than that of
-    :func:`fit_drift_and_law`'s result; ties go to the smaller ``g``.
+    on a grid of 0 and 1e-5-100 (ratio 2); the law and ``q`` are fitted at that ``g``,
+    then ``q`` and ``g`` refined on their fine grids (``g`` ratio 1.26) with that law
+    fixed. ``g > 0`` is kept only when its BIC (one parameter more) is lower than that
+    of :func:`fit_drift_and_law`'s result; ties go to the smaller ``g``.
 
     Args:
         residual_mrad: ``(N, 2)`` validation residuals, mrad.
