@@ -69,6 +69,7 @@ from collections.abc import Mapping, Sequence
 from typing import Literal
 
 import numpy as np
+from jaxtyping import Bool, Float
 
 from ._errors import ConfigError
 
@@ -527,7 +528,9 @@ _GAP_BLOCK = 256
 """Heliostats per block of :func:`record_sky_gap_deg` (memory ``O(block M^2)``)."""
 
 
-def record_sky_gap_deg(fit_mask: np.ndarray, record_sun: np.ndarray) -> np.ndarray:
+def record_sky_gap_deg(
+    fit_mask: Bool[np.ndarray, "H M"], record_sun: Float[np.ndarray, "H M 3"]
+) -> Float[np.ndarray, "H M"]:
     """``(H, M)`` angle (deg) from each record's sun to the nearest sun of its
     heliostat's fitted records (``fit_mask`` ``(H, M)``; ``record_sun`` ``(H, M, 3)``
     unit ENU vectors to the sun): 0 for a fitted record, inf for every record of a
