@@ -232,7 +232,9 @@ def aim_fleet(
             uncertainty as ``drift_variance_mrad2 * I``.
         sky_gap_mrad2_per_deg: ``g``, variance (mrad^2 per tangent component) added
             per degree of sky gap, ``g * sky_gap_deg * I`` (:func:`heliojax.temporal_drift`;
-            :func:`aim_results` takes it from the file); needs ``fitted_sun``.
+            :func:`aim_results` takes it from the file); needs ``fitted_sun``. Where it
+            is > 0, a heliostat without a fitted record (no sky gap) is flagged
+            ``unreliable``: its predicted uncertainty is unknown.
         error_law: the predicted error's :class:`heliojax.PointingErrorLaw`
             (:func:`heliojax.temporal_drift`; default Gaussian), kept in the result.
         min_sun_elevation_deg: flag instants with the sun lower than this.
@@ -272,6 +274,10 @@ def aim_fleet(
     unreliable = jnp.zeros((h,), bool) if fitted is None else ~jnp.asarray(fitted, bool)
     if (fitted_sun is None) != (fitted_record is None):
         raise ValueError("give both fitted_sun and fitted_record, or neither")
+    try:
+        sky_gap_mrad2_per_deg = float(sky_gap_mrad2_per_deg)
+    except (TypeError, ValueError):
+        raise ValueError(f"sky_gap_mrad2_per_deg is {sky_gap_mrad2_per_deg!r}; expected a number") from None
     if not (math.isfinite(sky_gap_mrad2_per_deg) and sky_gap_mrad2_per_deg >= 0.0):
         raise ValueError(f"sky_gap_mrad2_per_deg is {sky_gap_mrad2_per_deg}; expected a finite value >= 0")
     if sky_gap_mrad2_per_deg > 0.0 and fitted_sun is None:
@@ -279,15 +285,27 @@ def aim_fleet(
     if fitted_sun is not None and fitted_record is not None:
         if not (0.0 <= max_sky_gap_deg <= 180.0):
             raise ValueError(f"max_sky_gap_deg is {max_sky_gap_deg}; expected a value in [0, 180] deg")
-        gap = sky_gap_deg(sun, jnp.asarray(fitted_sun, sun.dtype), jnp.asarray(fitted_record, bool))
+        fitted_record = np.asarray(fitted_record, bool)
+        if fitted_record.ndim != 2 or fitted_record.shape[0] != h or np.shape(fitted_sun) != (*fitted_record.shape, 3):
+            raise ValueError(
+                f"fitted_sun has shape {np.shape(fitted_sun)} and fitted_record {fitted_record.shape}; expected "
+                f"({h}, M, 3) and ({h}, M), one row per heliostat"
+            )
+        # a sun of length 2 had put every gap at 0 deg: no flag, no sky-gap variance
+        check_unit_vectors(fitted_sun, fitted_record, "fitted_sun")
+        gap = sky_gap_deg(sun, jnp.asarray(fitted_sun, sun.dtype), jnp.asarray(fitted_record))
         beyond = gap > max_sky_gap_deg
+        if sky_gap_mrad2_per_deg > 0.0:
+            # no fitted record, so no sky gap (inf): its variance is unknown, so is the
+            # heliostat's predicted uncertainty (the drift's rule in aim_results)
+            unreliable = unreliable | ~jnp.any(jnp.isfinite(gap), axis=1)
     else:
         gap, beyond = jnp.full((h, n), jnp.nan, sun.dtype), jnp.zeros((h, n), bool)
     if covariance is not None and view is not None:
         cov = jnp.asarray(covariance, sun.dtype)
         pointing = _pointing_covariance(view, models, geometry, counts, points, sun, cov)
         drift = jnp.broadcast_to(jnp.asarray(drift_variance_mrad2, sun.dtype), (h, n))
-        if sky_gap_mrad2_per_deg > 0.0:  # a heliostat without a fitted record (gap inf) is unreliable
+        if sky_gap_mrad2_per_deg > 0.0:  # a heliostat without a fitted record (gap inf) is flagged unreliable
             drift = drift + sky_gap_mrad2_per_deg * jnp.where(jnp.isfinite(gap), gap, 0.0)
         pointing = pointing + drift[:, :, None, None] * jnp.eye(2, dtype=sun.dtype)[None, None, :, :]
     else:

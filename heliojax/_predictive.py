@@ -243,7 +243,7 @@ def fit_drift_and_tails(
     Returns:
         ``(q, tail_dof)``.
     """
-    iq, dof, _ = _best_t(*_grid(residual_mrad, scale_mrad2, days))
+    iq, dof, _ = _best_t(*_grid(*_validation_arrays(residual_mrad, scale_mrad2, days)))
     return float(_DRIFT_GRID[iq]), dof
 
 
@@ -264,9 +264,39 @@ def fit_drift_and_law(
 
     Returns:
         ``(q, law)``.
+
+    Raises:
+        ValueError: inputs of other shapes, not finite, or days < 0
+            (:func:`_validation_arrays`).
     """
-    _, iq, law = _fit_law(*_grid(residual_mrad, scale_mrad2, days))
+    _, iq, law = _fit_law(*_grid(*_validation_arrays(residual_mrad, scale_mrad2, days)))
     return float(_DRIFT_GRID[iq]), law
+
+
+def _validation_arrays(
+    residual_mrad: typing.Any, scale_mrad2: typing.Any, days: typing.Any
+) -> tuple[Float[np.ndarray, "N 2"], Float[np.ndarray, "N 2 2"], Float[np.ndarray, " N"]]:
+    """The validation records of the drift and law fits as float arrays, checked:
+    ValueError naming the argument for a shape other than ``(N, 2)``, ``(N, 2, 2)``,
+    ``(N,)``, a value that is not finite, or days < 0. One NaN residual had made every
+    likelihood NaN and the fit return ``q = 0`` and a Gaussian, without a word; the
+    caller (:func:`heliojax.temporal_drift`) leaves out the records it cannot use."""
+    r = np.asarray(residual_mrad, float)
+    s = np.asarray(scale_mrad2, float)
+    t = np.asarray(days, float)
+    if r.ndim != 2 or r.shape[1] != 2:
+        raise ValueError(f"residual_mrad has shape {r.shape}; expected (N, 2) (east, north) mrad")
+    n = r.shape[0]
+    if s.shape != (n, 2, 2):
+        raise ValueError(f"scale_mrad2 has shape {s.shape}; expected ({n}, 2, 2), one per residual")
+    if t.shape != (n,):
+        raise ValueError(f"days has shape {t.shape}; expected ({n},), one per residual")
+    for name, x in (("residual_mrad", r), ("scale_mrad2", s)):
+        if not np.all(np.isfinite(x)):
+            raise ValueError(f"{name}: {int(np.sum(~np.isfinite(x)))} value(s) not finite; leave those records out")
+    if not np.all(np.isfinite(t) & (t >= 0.0)):
+        raise ValueError("days must be finite and >= 0 (days since the fit), one per residual")
+    return r, s, t
 
 
 def fit_drift_gap_and_law(
@@ -298,10 +328,10 @@ def fit_drift_gap_and_law(
         ``(q, g, law)``.
 
     Raises:
-        ValueError: a sky gap that is not finite or negative, or of another length.
+        ValueError: a sky gap that is not finite or negative, or of another length, and
+            the other inputs as in :func:`fit_drift_and_law`.
     """
-    r = np.asarray(residual_mrad, float)
-    s = np.asarray(scale_mrad2, float)
+    r, s, days = _validation_arrays(residual_mrad, scale_mrad2, days)
     gap = np.asarray(sky_gap_deg, float)
     if gap.shape != r.shape[:1] or not np.all(np.isfinite(gap) & (gap >= 0.0)):
         raise ValueError(f"sky_gap_deg must hold {r.shape[0]} finite angles >= 0 (deg), one per residual")

@@ -72,6 +72,7 @@ import numpy as np
 from jaxtyping import Bool, Float
 
 from ._errors import ConfigError
+from ._geometry import check_unit_vectors
 
 __all__ = [
     "SPLIT_NAMES",
@@ -537,10 +538,21 @@ def record_sky_gap_deg(
     heliostat without one, NaN for a record whose sun is not finite. The per-record
     counterpart of :func:`heliojax.sky_gap_deg` (instants shared by all heliostats),
     the sky gap of the predictive law (:mod:`heliojax._predictive`). Heliostats are
-    taken in blocks, so memory stays ``O(block M^2)``."""
+    taken in blocks, so memory stays ``O(block M^2)``.
+
+    Raises:
+        ValueError: shapes other than ``(H, M)`` and ``(H, M, 3)``, or a finite sun
+            vector that is not a unit vector (one of length 2 had put every gap at 0
+            deg, one of length 0.5 at ~75 deg).
+    """
     fit_mask = np.asarray(fit_mask, bool)
     sun = np.asarray(record_sun, float)
+    if fit_mask.ndim != 2 or sun.shape != (*fit_mask.shape, 3):
+        raise ValueError(
+            f"fit_mask has shape {fit_mask.shape} and record_sun {sun.shape}; expected (H, M) and (H, M, 3)"
+        )
     known = np.all(np.isfinite(sun), axis=-1)
+    check_unit_vectors(sun, known, "record_sun")
     use = fit_mask & known
     sun = np.where(known[..., None], sun, 0.0)
     out = np.empty(fit_mask.shape)

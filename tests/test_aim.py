@@ -6,6 +6,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import heliojax as hj
 from heliojax.discovery import simulate_fleet
@@ -145,3 +146,33 @@ def test_cli_sky_gap_default_is_the_librarys():
 
     args = build_parser()[0].parse_args(["aim", "results.h5"])
     assert args.max_sky_gap == hj.MAX_SKY_GAP_DEG
+
+
+def test_sky_gap_variance_refuses_suns_it_would_misread_and_flags_a_heliostat_without_one(unchecked):
+    """With ``sky_gap_mrad2_per_deg`` > 0, a heliostat without a fitted record (sky gap
+    inf) had its sky-gap variance dropped (the radial scale of one with a gap of 0)
+    and was not flagged ``unreliable``, though the code said it was: now it is. Fitted
+    suns of length 2 had put every gap at 0 deg (no flag, no sky-gap variance), and
+    ``fitted_sun`` of another heliostat count failed deep in JAX: both are refused,
+    naming the argument; so is a rate that is not a number."""
+    h, m = 3, 4
+    sun = _sun([10.0, 12.0])
+    fleet, truth = simulate_fleet(3, h, 8, base="actuator", noise_mrad=0.0)
+    fitted_sun = np.broadcast_to(np.asarray(_sun([9.0, 11.0, 13.0, 15.0])), (h, m, 3)).copy()
+    use = np.ones((h, m), bool)
+    use[2] = False  # heliostat 2: no fitted record
+    aim = jnp.array([0.0, 0.0, 60.0])
+    fs, fr = jnp.asarray(fitted_sun), jnp.asarray(use)
+    r = hj.aim_fleet(truth, fleet.geometry, sun, aim, sky_gap_mrad2_per_deg=0.02, fitted_sun=fs, fitted_record=fr)
+    np.testing.assert_array_equal(np.asarray(r.unreliable), [False, False, True])
+    assert np.isinf(np.asarray(r.sky_gap_deg)[2]).all() and not np.asarray(r.ok)[2].any()
+    plain = hj.aim_fleet(truth, fleet.geometry, sun, aim, fitted_sun=fs, fitted_record=fr)  # no sky-gap term
+    assert not np.asarray(plain.unreliable).any()
+    with pytest.raises(ValueError, match="fitted_sun: .* not finite unit vectors"):
+        hj.aim_fleet(truth, fleet.geometry, sun, aim, sky_gap_mrad2_per_deg=0.02, fitted_sun=2 * fs, fitted_record=fr)
+    with pytest.raises(
+        ValueError, match=r"fitted_sun has shape \(2, 4, 3\) and fitted_record \(2, 4\); expected \(3, M, 3\)"
+    ):
+        hj.aim_fleet(truth, fleet.geometry, sun, aim, fitted_sun=fitted_sun[:2], fitted_record=use[:2])
+    with pytest.raises(ValueError, match="sky_gap_mrad2_per_deg is \\[0.02\\]; expected a number"):
+        hj.aim_fleet(truth, fleet.geometry, sun, aim, sky_gap_mrad2_per_deg=[0.02], fitted_sun=fs, fitted_record=fr)  # type: ignore[arg-type]

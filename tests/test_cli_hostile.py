@@ -3300,3 +3300,48 @@ def test_an_unknown_config_key_names_the_key_meant_in_every_command(tmp_path, ca
             else:
                 assert err.rstrip().endswith(said), (command, text, err)
     assert "discover" in subparsers and "no_robust" in subparsers["discover"].options  # the `no_X` option case ran
+
+
+def _shrink_targets(doc: dict) -> None:
+    """The two camera targets of the Jülich tower shrunk to 2 % of their size about
+    their centres (a 17 cm image)."""
+    for name in ("solar_tower_juelich_upper", "solar_tower_juelich_lower"):
+        corners = doc[name]["coordinates"]
+        c = corners["center"]
+        for k, v in corners.items():
+            corners[k] = [c[i] + 0.02 * (v[i] - c[i]) for i in range(3)]
+
+
+def _move_lower_target_north(doc: dict) -> None:
+    """The lower camera target moved 1.1 km north, beyond the field: every heliostat is
+    behind its plane (it faces north)."""
+    for v in doc["solar_tower_juelich_lower"]["coordinates"].values():
+        v[0] += 0.01
+
+
+@pytest.mark.parametrize(
+    ("edit", "argv", "why"),
+    [
+        (_shrink_targets, ["--record", "233921"], r"all of the 7\d{3} W reflected onto the plane .* outside the image"),
+        (_move_lower_target_north, TRACE_AT_A_SUN[3:], "no reflected ray reaches the front of the plane"),
+    ],
+    ids=["spot-off-the-image", "heliostat-behind-the-target"],
+)
+def test_trace_without_flux_on_the_image_says_why(edit, argv, why, tmp_path, capsys):
+    """A spot wholly off the image (7.3 kW on the target's plane, 0 W on the image) and a
+    heliostat behind the target's plane were both answered "no flux on the target image
+    (0 W) ... check the aim, --dni and --reflectivity", though --dni and --reflectivity
+    are > 0 and never the cause: the message now says which it is, from the power on
+    the plane, which the summary holds."""
+    tower = Path(_tower_edited(tmp_path, edit)) / "WRI1030197-tower-measurements.json"
+    small = ["--pixels", "16", "--rays-per-point", "4", "--steps", "1", "--resolution", "8", "--quiet"]
+    out = tmp_path / "out"
+    rc, _, err = _run(["trace", "--heliostat", "BE36", *argv, "--tower", str(tower), "--out", str(out), *small], capsys)
+    assert rc == 0, err
+    assert "no flux on the target image (0 W)" in err and re.search(why, err) and "--dni" not in err, err
+    summary = json.loads(next(out.glob("*summary.json")).read_text())
+    assert summary["power_w"] == 0.0 and summary["centroid_uv_m"] is None
+    if edit is _shrink_targets:
+        assert summary["power_on_plane_w"] > 7000.0 and summary["off_image_fraction"] == 1.0, summary
+    else:
+        assert summary["power_on_plane_w"] == 0.0 and summary["off_image_fraction"] is None, summary

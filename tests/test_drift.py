@@ -229,3 +229,26 @@ def test_the_sky_gap_term_enters_prediction_and_aiming(tmp_path):
     np.testing.assert_allclose(difference[fitted][:, 0], g * sky_gap[:, None, None] * np.eye(2), rtol=1e-9, atol=1e-12)
     with pytest.raises(ValueError, match="sky_gap_mrad2_per_deg"):
         hj.aim_fleet(results.model, results.geometry, sun, aim, sky_gap_mrad2_per_deg=0.1)
+
+
+def test_record_sky_gap_refuses_sun_vectors_that_are_not_unit_and_other_shapes(unchecked):
+    """Sun vectors of length 2 had put every record's gap at 0 deg and ones of length
+    0.5 at ~75 deg, without a word (the arccos of a clipped dot product); a mask of
+    another shape failed in numpy's broadcasting. Both are refused naming the
+    argument; a record without a sun (NaN) is still a NaN gap."""
+    rng = np.random.default_rng(5)
+    sun = rng.normal(size=(2, 5, 3))
+    sun[..., 2] = np.abs(sun[..., 2])
+    sun /= np.linalg.norm(sun, axis=-1, keepdims=True)
+    fitted = np.zeros((2, 5), bool)
+    fitted[:, 0] = True
+    for scale in (2.0, 0.5):
+        with pytest.raises(ValueError, match="record_sun: .* not finite unit vectors"):
+            hj.record_sky_gap_deg(fitted, scale * sun)
+    with pytest.raises(ValueError, match=r"fit_mask has shape \(2, 4\) and record_sun \(2, 5, 3\)"):
+        hj.record_sky_gap_deg(fitted[:, :4], sun)
+    sun[1, 3] = np.nan
+    gap = hj.record_sky_gap_deg(fitted, sun)
+    assert (
+        np.isnan(gap[1, 3]) and np.isfinite(np.delete(gap.ravel(), 8)).all() and np.all(gap[:, 0] < 1e-5)
+    )  # arccos near 1: rounding

@@ -198,3 +198,35 @@ def test_sky_gap_rate_recovered_and_kept_only_where_the_bic_asks():
     assert g == 0.0 and (q, law) == hj.fit_drift_and_law(r, s, days)
     with pytest.raises(ValueError, match="sky_gap_deg"):
         hj.fit_drift_gap_and_law(r, s, days, np.full(len(r), np.inf))
+
+
+@pytest.mark.parametrize("fit", ["law", "gap_and_law"])
+def test_drift_and_law_fits_refuse_records_they_cannot_use(fit, unchecked):
+    """One NaN residual made every likelihood NaN, and ``fit_drift_and_law`` and
+    ``fit_drift_gap_and_law`` returned ``q = 0``, ``g = 0`` and a Gaussian without a
+    word; negative days were fitted as if they were days since the fit, and days or
+    scales of another length failed in numpy's broadcasting. Each is refused, naming
+    the argument."""
+    rng = np.random.default_rng(4)
+    r, s, days, gap = _validation_with_gap(rng, 60, 0.01, 0.0, math.inf)
+
+    def call(r, s, days):
+        if fit == "law":
+            return hj.fit_drift_and_law(r, s, days)
+        return hj.fit_drift_gap_and_law(r, s, days, gap)
+
+    call(r, s, days)  # the clean records are fitted
+    bad = r.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(ValueError, match="residual_mrad: 1 value"):
+        call(bad, s, days)
+    with pytest.raises(ValueError, match="scale_mrad2: 4 value"):
+        call(r, np.where(np.arange(60)[:, None, None] == 7, np.inf, s), days)
+    with pytest.raises(ValueError, match="days must be finite and >= 0"):
+        call(r, s, -days)
+    with pytest.raises(ValueError, match=r"days has shape \(59,\); expected \(60,\)"):
+        call(r, s, days[:-1])
+    with pytest.raises(ValueError, match=r"scale_mrad2 has shape \(59, 2, 2\); expected \(60, 2, 2\)"):
+        call(r, s[:-1], days)
+    with pytest.raises(ValueError, match=r"residual_mrad has shape \(60,\); expected \(N, 2\)"):
+        call(r[:, 0], s, days)

@@ -100,7 +100,8 @@ def add_parser(subparsers) -> None:
             "Read a fitted fleet (results.h5 of `heliojax calibrate`), compute for every heliostat and "
             "instant the motor counts that put its beam on the aim point (the receiver by default) with "
             "the calibrated inverse kinematics, the predicted pointing uncertainty (mrad: radial scale and 95 % "
-            "radius, from the fit's parameter covariance, the drift since the fit and the fitted tails) and "
+            "radius, from the fit's parameter covariance, the drift since the fit, the sky gap to the fitted "
+            "records' suns where the fit asked for it, and the fitted tails) and "
             "flags (counts outside the actuator range, sun low, no usable fit, "
             "aim point not reached). Writes a CSV (one row per heliostat and instant), optionally HDF5 "
             "and a plot."
@@ -319,7 +320,8 @@ def summary_line(ok, std, radius95, flags: dict, ids, status) -> str:
             counts[str(s)] = counts.get(str(s), 0) + 1
         why = (
             f"no heliostat has a usable fit (status {', '.join(f'{k}: {n} of {len(ids)}' for k, n in counts.items())}; "
-            "a converged fit is unusable when the file flags it or no fitted record has a time for the drift)"
+            "a converged fit is unusable when the file flags it, no fitted record has a time for the drift, or, "
+            "with a sky-gap term, none has a sun)"
         )
     else:
         why = "every command carries a flag"

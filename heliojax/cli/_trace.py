@@ -309,24 +309,31 @@ def run(args: argparse.Namespace) -> int:
         log.info(f"traced in {time.perf_counter() - t0:.1f} s")
         c = np.asarray(optics.centroid(jnp.asarray(image), grid))
         power = float(image.sum() * float(grid.pixel_area))
-        if not power > 0.0:
-            # every ray missed the image, or the irradiance underflowed: there is no spot
-            log.warning(
-                f"no flux on the target image ({power:g} W): the centroid is undefined (null in the summary); "
-                "check the aim, --dni and --reflectivity"
-            )
-            c = np.full(2, np.nan)
         on_plane = float(optics.plane_power(surface, pose, sun, target, dni=args.dni, reflectivity=args.reflectivity))
         # the Monte Carlo image may hold a little more than the plane's expectation: clipped
         off_image = min(max(1.0 - power / on_plane, 0.0), 1.0) if on_plane > 0.0 else None
-        if power > 0.0 and off_image is not None and off_image > OFF_IMAGE_WARNING:
-            size = f"{2 * float(target.half_width):.3g} x {2 * float(target.half_height):.3g} m"
-            hint = (
-                " (nominal kinematics, which can miss by metres: --results of `heliojax calibrate` aims with the "
-                "calibrated model)"
-                if args.results is None
-                else ""
+        size = f"{2 * float(target.half_width):.3g} x {2 * float(target.half_height):.3g} m"
+        hint = (
+            " (nominal kinematics, which can miss by metres: --results of `heliojax calibrate` aims with the "
+            "calibrated model)"
+            if args.results is None
+            else ""
+        )
+        if not power > 0.0:
+            # every ray missed the image: why, from the power reflected onto the plane
+            # (--dni and --reflectivity are > 0, so they are never the cause)
+            why = (
+                f"all of the {on_plane:.4g} W reflected onto the plane of {target_name} lands outside the image "
+                f"({size}): the spot is off the image{hint}"
+                if on_plane > 0.0
+                else f"no reflected ray reaches the front of the plane of {target_name} (the heliostat is behind "
+                "it, or its mirror faces away from the sun or the target)"
             )
+            log.warning(
+                f"no flux on the target image ({power:g} W): the centroid is undefined (null in the summary); {why}"
+            )
+            c = np.full(2, np.nan)
+        elif off_image is not None and off_image > OFF_IMAGE_WARNING:
             log.warning(
                 f"{off_image:.1%} of the {on_plane:.4g} W reflected onto the plane of {target_name} lands outside "
                 f"the image ({size}, {power:.4g} W on it): the spot is mostly off the image, and the image's "
