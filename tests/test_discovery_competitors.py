@@ -182,7 +182,18 @@ def test_a_significant_competitor_close_below_the_named_effect_makes_the_name_am
         }
     ]
     text = markdown_summary(report)
-    assert "`encoder_wobble` and `backlash` (delta BIC 50.0), a smooth function of `time_of_day` (generic" in text
+    assert "`encoder_wobble` (mode unknown) and `backlash` (shared, delta BIC 50.0), a smooth function of " in text
+    assert "a smooth function of `time_of_day` (generic" in text
+    # the same effect in its two forms is told apart by its mode (it read "`thermal` and `thermal`")
+    report["ambiguities"] = [
+        {
+            "step": 1,
+            "named": "thermal",
+            "named_mode": "shared",
+            "alternatives": [{"effect": "thermal", "mode": "per_heliostat", "delta_bic": 41.0, "source": "library"}],
+        }
+    ]
+    assert "`thermal` (shared) and `thermal` (per heliostat, delta BIC 41.0) explain" in markdown_summary(report)
     # the withdrawn change points of report.json are in the Markdown too (they were not)
     report["change_points_withdrawn"] = [{"heliostat": "BF56", "time": "2023-03-01T10:00:00Z", "p": 1.4e-52}]
     assert "withdrawn, not named): BF56 (2023-03-01T10:00:00Z, p 1.4e-52)" in markdown_summary(report)

@@ -29,7 +29,7 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
       ],                                           # competitor" (effect null; "variable", "p"):
                                                    # rivals within ambiguity_bic of delta BIC
       "named_effects": [names],                    # "change_point" first when any was found
-      "ambiguities": [{"step", "named", "alternatives": [...]}],
+      "ambiguities": [{"step", "named", "named_mode", "alternatives": [...]}],
       "outliers": [{"heliostat", "record_id"}],    # gross errors of the robust pre-pass (left out)
       "change_points": [{"heliostat", "time": UTC ISO 8601 (first record since the change),
                          "previous_record_time", "jump": {param: rad}, "jump_unit": "rad",
@@ -158,6 +158,11 @@ IMPLAUSIBLE_TYPICAL = 10.0
 listed in the step's ``"implausible"``: the effect may stand in for something else."""
 
 
+def _mode_words(mode: str | None) -> str:
+    """An effect's mode as the Markdown says it (``"per_heliostat"`` -> "per heliostat")."""
+    return "mode unknown" if not mode else str(mode).replace("_", " ")
+
+
 def build_report(result, typical_start=None) -> dict:
     """The report.json dictionary of a :class:`DiscoveryResult` (``typical_start``:
     ``(H,)`` heliostats started from the fleet-typical actuators)."""
@@ -282,7 +287,7 @@ def build_report(result, typical_start=None) -> dict:
         if sc.testable and not sc.identifiable
     ]
     ambiguities = [
-        {"step": i + 1, "named": s["effect"], "alternatives": s["ambiguous_with"]}
+        {"step": i + 1, "named": s["effect"], "named_mode": s["mode"], "alternatives": s["ambiguous_with"]}
         for i, s in enumerate(steps)
         if s["ambiguous_with"]
     ]
@@ -573,13 +578,14 @@ def markdown_summary(report: dict) -> str:
             (
                 f"a smooth function of `{x['variable']}` (generic competitor, not a library effect; "
                 if x.get("source") == "generic competitor"
-                else f"`{x['effect']}` ("
+                else f"`{x['effect']}` ({_mode_words(x.get('mode'))}, "
             )
             + f"delta BIC {fmt(x['delta_bic'], '.1f')})"
             for x in a["alternatives"]
         )
         lines.append(
-            f"**Ambiguous** at step {a['step']}: `{a['named']}` and {alts} explain the same residual "
+            f"**Ambiguous** at step {a['step']}: `{a['named']}` ({_mode_words(a.get('named_mode'))}) and {alts} "
+            "explain the same residual "
             f"(delta BIC within {report['config'].get('ambiguity_bic', 10):g}); the name is not certain."
         )
     if report.get("change_points"):
