@@ -953,6 +953,18 @@ def test_a_value_of_a_page_or_with_a_line_break_is_named_in_one_short_line(argv,
     assert all(len(line) <= 1100 for line in lines), [len(line) for line in lines]
 
 
+@pytest.mark.parametrize("where", ["key", "table"])
+def test_an_unknown_config_key_or_table_of_a_page_is_quoted_short(where, tmp_path, capsys):
+    """A config key (or table) of 5,000 characters was quoted whole: one line of 5,000."""
+    name = "k" * 5000
+    text = f"[calibrate]\n{name} = 1\n" if where == "key" else f"[{name}]\nquiet = true\n"
+    rc, _, err = _run(["calibrate", "--config", _config(tmp_path, text)], capsys)
+    lines = err.strip().splitlines()
+    assert rc == 2 and len(lines) == 1 and "Traceback" not in err, err[:500]
+    assert f"unknown {'option ' if where == 'key' else 'table(s) ['}'kkkk" in lines[0] and "...'" in lines[0]
+    assert len(lines[0]) < 400, len(lines[0])
+
+
 @pytest.mark.parametrize(
     ("env", "argv", "rc", "said"),
     [

@@ -187,7 +187,8 @@ def _apply_config(
     if unknown_tables:
         hint = _unknown_name_hint(unknown_tables[0], commands) if len(unknown_tables) == 1 else ""
         raise ConfigError(
-            f"{path}: unknown table(s) {unknown_tables}; tables are named after commands: {sorted(commands)}{hint}"
+            f"{path}: unknown table(s) [{', '.join(_quoted(t) for t in unknown_tables)}]; tables are named after "
+            f"commands: {sorted(commands)}{hint}"
         )
     table = doc.get(command, {})
     if not isinstance(table, dict):
@@ -201,7 +202,7 @@ def _apply_config(
             keys_allowed = [d for d, a in known.items() if d not in ("help", "config") and not a.required]
             flags = [d for d in keys_allowed if known[d].nargs == 0]
             hint = _unknown_name_hint(dest, keys_allowed, flags, value)
-            raise ConfigError(f"{path}: [{command}] unknown option {key!r}{hint}")
+            raise ConfigError(f"{path}: [{command}] unknown option {_quoted(key)}{hint}")
         if dest in keys:  # max_steps and "max-steps": one would silently win
             raise ConfigError(f"{path}: [{command}] {keys[dest]!r} and {key!r} are the same option: give it once")
         if known[dest].required:  # argparse asks the command line for it before the config is read
@@ -227,6 +228,14 @@ def _apply_config(
     # heliojax.cli._common.option_label)
     origin = {d: (f"{path}: [{command}] {keys[d]}", v) for d, v in defaults.items()}
     subparser.set_defaults(**defaults, config_origin=origin)
+
+
+def _quoted(name: str, limit: int = 60) -> str:
+    """``name`` (a config file's key or table, any string) as an error message quotes it:
+    its ``repr``, cut to ``limit`` characters with ``...`` (a 5,000-character key had
+    made a 5,000-character message)."""
+    text = repr(name)
+    return text if len(text) <= limit else text[: limit - 4] + "...'"
 
 
 def _unknown_name_hint(name: str, known: Iterable[str], flags: Iterable[str] = (), value: object = None) -> str:
