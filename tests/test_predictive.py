@@ -183,17 +183,19 @@ def _validation_with_gap(rng, n, q, g, dof):
 
 
 def test_sky_gap_rate_recovered_and_kept_only_where_the_bic_asks():
+    # g sits on a grid of ratio 1.26: recovered within one step (8 seeds of 1,200 records:
+    # every g and q within one step, the t's nu within 32 %)
     rng = np.random.default_rng(21)
     # 0.05 mrad^2 per degree (2 mrad^2 at 40 deg) beside a drift of 0.005 mrad^2/day: both recovered
-    r, s, days, gap = _validation_with_gap(rng, 3000, 0.005, 0.05, math.inf)
+    r, s, days, gap = _validation_with_gap(rng, 1200, 0.005, 0.05, math.inf)
     q, g, law = hj.fit_drift_gap_and_law(r, s, days, gap)
-    assert g == pytest.approx(0.05, rel=0.3) and q == pytest.approx(0.005, rel=0.5) and law.tail_dof >= 20.0
+    assert g == pytest.approx(0.05, rel=0.3) and q == pytest.approx(0.005, rel=0.3) and law.tail_dof >= 20.0
     # the same with heavy tails (nu = 3): g still recovered, the tails too
-    r, s, days, gap = _validation_with_gap(rng, 3000, 0.0, 0.05, 3.0)
+    r, s, days, gap = _validation_with_gap(rng, 1200, 0.0, 0.05, 3.0)
     q, g, law = hj.fit_drift_gap_and_law(r, s, days, gap)
-    assert g == pytest.approx(0.05, rel=0.35) and law.tail_dof == pytest.approx(3.0, rel=0.35)
+    assert g == pytest.approx(0.05, rel=0.3) and law.tail_dof == pytest.approx(3.0, rel=0.5)
     # no sky term: g = 0 and the result is fit_drift_and_law's
-    r, s, days, gap = _validation_with_gap(rng, 1000, 0.01, 0.0, math.inf)
+    r, s, days, gap = _validation_with_gap(rng, 600, 0.01, 0.0, math.inf)
     q, g, law = hj.fit_drift_gap_and_law(r, s, days, gap)
     assert g == 0.0 and (q, law) == hj.fit_drift_and_law(r, s, days)
     with pytest.raises(ValueError, match="sky_gap_deg"):
