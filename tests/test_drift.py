@@ -111,11 +111,16 @@ def test_a_growing_drift_is_under_covered():
     assert rate > 0.0 and without < with_rate < 0.5
 
 
-def test_calibrate_reports_the_drift_and_aiming_adds_it(tmp_path):
+@pytest.fixture(scope="module")
+def embedded_run():
+    """The embedded data calibrated by least squares without change points (read only)."""
+    return hj.calibrate(hj.load_paint_directory(hj.default_data_dir()), robust=False, changes=False)
+
+
+def test_calibrate_reports_the_drift_and_aiming_adds_it(tmp_path, embedded_run):
     """summary.json and results.h5 carry the drift rate; aim_results adds rate x days
     since each heliostat's last fitted record to every command's covariance."""
-    fleet = hj.load_paint_directory(hj.default_data_dir())
-    run = hj.calibrate(fleet, robust=False, changes=False)
+    run = embedded_run
     predictive = run.summary["predictive"]
     assert predictive["validation_records"] > 0 and predictive["drift_mrad2_per_day"] > 0.0
     # each record's d^2 under its full predicted scale: parameters + noise + drift x age
@@ -188,12 +193,11 @@ def test_record_sky_gap_against_a_loop():
     assert np.all(gap[fitted] < 1e-5) and np.all(np.isinf(gap[3]))  # sqrt(2 eps) rad: 1.2e-6 deg
 
 
-def test_the_sky_gap_term_enters_prediction_and_aiming(tmp_path):
+def test_the_sky_gap_term_enters_prediction_and_aiming(tmp_path, embedded_run):
     """A run whose law has a sky-gap rate ``g``: ``prediction_d2`` scales each record by
     ``g`` times its gap to the fitted inliers' suns; results.h5 keeps ``g``; aiming adds
     ``g`` times the command's sky gap to its covariance."""
-    fleet = hj.load_paint_directory(hj.default_data_dir())
-    run = hj.calibrate(fleet, robust=False, changes=False)
+    run = embedded_run
     g = 0.04
     gapped = dataclasses.replace(run, predictive={**run.predictive, "sky_gap_mrad2_per_deg": g})
     test = np.asarray(run.test_mask)
