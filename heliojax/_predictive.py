@@ -359,14 +359,15 @@ def _fit_law(d2: Float[np.ndarray, "Q N"], logdet: Float[np.ndarray, "Q N"]) -> 
     (:func:`fit_drift_and_law`) from ``d^2`` and ``ln det`` on the drift grid."""
     penalty = math.log(max(d2.shape[1], 1))
     iq_t, dof, ll_t = _best_t(d2, logdet)
-    candidates = [(-2.0 * ll_t + (1 if math.isinf(dof) else 2) * penalty, iq_t, PointingErrorLaw(tail_dof=dof))]
+    t_law = PointingErrorLaw(tail_dof=dof)
+    candidates = [(-2.0 * ll_t + _LAW_PARAMETERS[t_law.kind] * penalty, iq_t, t_law)]
     k = _SCALE_GRID[:, None, None]
     core, broad = _kernel(d2, math.inf), _kernel(d2 / (k * k), math.inf)
     best = (math.inf, 0, 0.0, 1.0)
     for e in _FRACTION_GRID:  # every scale and drift at once, (K, Q)
         ll = np.sum(_mixture_log_density(core, broad, e, k) - 0.5 * logdet, axis=-1)
         ik, iq = np.unravel_index(np.argmax(ll), ll.shape)
-        bic = -2.0 * float(ll[ik, iq]) + 3 * penalty
+        bic = -2.0 * float(ll[ik, iq]) + _LAW_PARAMETERS["gaussian_mixture"] * penalty
         if bic < best[0]:
             best = (bic, int(iq), float(e), float(_SCALE_GRID[ik]))
     candidates.append((best[0], best[1], PointingErrorLaw(outlier_fraction=best[2], outlier_scale=best[3])))
@@ -426,7 +427,7 @@ def _best_t_mixture(
     ll_q = _t_mixture_log_likelihood(d2, logdet, dof, e, scale)
     iq = int(ll_q.shape[0] - 1 - np.argmax(ll_q[::-1]))  # among equally likely drifts, the smallest
     law = PointingErrorLaw(tail_dof=dof, outlier_fraction=e, outlier_scale=scale)
-    return -2.0 * float(ll_q[iq]) + 4 * penalty, iq, law
+    return -2.0 * float(ll_q[iq]) + _LAW_PARAMETERS[law.kind] * penalty, iq, law
 
 
 __all__ = [
