@@ -39,6 +39,7 @@ so the WGS84 conversions require float64.
 
 from __future__ import annotations
 
+import functools
 import typing
 
 import equinox as eqx
@@ -187,7 +188,7 @@ def sun_direction(azimuth: Float[ArrayLike, "..."], elevation: Float[ArrayLike, 
     return jnp.stack([ce * jnp.sin(az), -ce * jnp.cos(az), jnp.sin(el)], axis=-1)
 
 
-@cached_jit  # one program, not one per operation, when called outside a jitted function; kept by the CLI
+@functools.partial(cached_jit, quick=True)  # one program, not one per operation, outside a jitted function
 def direction_to_azimuth_elevation(
     direction: Float[ArrayLike, "... 3"],
 ) -> tuple[Float[Array, "..."], Float[Array, "..."]]:

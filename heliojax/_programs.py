@@ -182,9 +182,10 @@ def _compile(
 ) -> Callable[..., typing.Any]:
     if directory is None or key is None:
         return fn.lower(*args).compile()  # pyright: ignore[reportAttributeAccessIssue]
+    options = fn.compiler_options(leaves) if isinstance(fn, program_jit) else _compiler_options()
     executable_path = None
     if jax.default_backend() in EXECUTABLE_BACKENDS:
-        executable_path = directory / f"{_executable_key(key, leaves)}{EXECUTABLE_SUFFIX}"
+        executable_path = directory / f"{_executable_key(key, leaves, options)}{EXECUTABLE_SUFFIX}"
     kept = None if executable_path is None else _load_executable(executable_path, leaves)
     if kept is not None and executable_path is not None:
         program, skeleton = kept
@@ -201,7 +202,7 @@ def _compile(
             # a program JAX's cache already holds (compiled under another key) is not kept:
             # compiling it afresh to keep it cost a cold discovery on the shared records
             # ~27 s and saved its warm run nothing
-            call = jax.jit(exported.call, compiler_options=_compiler_options())
+            call = jax.jit(exported.call, compiler_options=options)
             program, fresh = _compile_noting_cache_hits(call.lower(*leaves))
         except Exception as e:  # noqa: BLE001 - a program that does not take these arguments: trace instead
             log.debug("ignoring the cached program %s: %s", path, e)
@@ -234,50 +235,82 @@ def _export_allowing_version_bound_calls(flat: Callable, leaves: list) -> typing
     raise ValueError(f"too many custom calls without compatibility guarantees: {sorted(allowed)}")
 
 
+QUICK_MAX_ELEMENTS = 2**18
+"""A quick program (``cached_jit(fn, quick=True)``) is compiled at XLA's optimisation
+level 0 when its array arguments hold at most this many elements together: there its
+run takes at most a few tens of milliseconds more (the residual Jacobians of 8 x 192
+records 6.5 -> 13.9 ms, of 1,000 x 192 records 0.77 -> 1.20 s, i.e. ~0.4 s more per
+3 million elements; 2-core CPU), while its compile takes 0.2-0.7 s less
+(:mod:`heliojax._xla_flags`)."""
+
+
+def _array_elements(args: typing.Any) -> int:
+    return sum(int(x.size) for x in jax.tree.leaves(args) if eqx.is_array(x))
+
+
 @typing.final
 class program_jit:
     """:func:`equinox.filter_jit` of ``fn`` whose compilation for the CPU gets the
     XLA options of :func:`heliojax._xla_flags.cpu_compiler_options` (XLA's older
     fusion emitters: the fit compiles in ~1.45 s instead of ~2.3 s, and runs ~5 %
     slower), given to this program's compilation alone: no flag of the process
-    changes, and other backends compile it with XLA's defaults. Use as a decorator;
-    called, or lowered (``.lower(*args)``), like the jitted function."""
+    changes, and other backends compile it with XLA's defaults. With ``quick`` (a
+    program run once or a few times per command, not an inner loop), a call whose
+    array arguments hold at most :data:`QUICK_MAX_ELEMENTS` elements is compiled at
+    XLA's optimisation level 0 too. Use as a decorator; called, or lowered
+    (``.lower(*args)``), like the jitted function."""
 
-    def __init__(self, fn: Callable):
+    def __init__(self, fn: Callable, *, quick: bool = False):
         functools.update_wrapper(self, fn)
         self._fn = fn
+        self.quick = quick
         self._default = eqx.filter_jit(fn)
-        self._cpu: Callable | None = None
+        self._cpu: dict[bool, Callable] = {}
         self._lock = threading.Lock()
 
-    def _jitted(self) -> typing.Any:
-        if self._cpu is None:
+    def _is_quick(self, args: typing.Any) -> bool:
+        return self.quick and _array_elements(args) <= QUICK_MAX_ELEMENTS
+
+    def compiler_options(self, args: typing.Any) -> dict[str, bool | int] | None:
+        """The XLA options this program is compiled with for ``args`` (None: XLA's defaults)."""
+        return _compiler_options(quick=self._is_quick(args))
+
+    def _jitted(self, quick: bool = False) -> typing.Any:
+        jitted = self._cpu.get(quick)
+        if jitted is None:
             with self._lock:
-                if self._cpu is None:
-                    options = _compiler_options()  # the one rule (backend, XLA_FLAGS), shared with the kept programs
+                jitted = self._cpu.get(quick)
+                if jitted is None:
+                    options = _compiler_options(quick=quick)  # the rule shared with the kept programs
                     jit_options: dict[str, typing.Any] = {"compiler_options": options}  # to jax.jit
-                    self._cpu = eqx.filter_jit(self._fn, **jit_options) if options else self._default
-        return self._cpu
+                    jitted = self._cpu[quick] = eqx.filter_jit(self._fn, **jit_options) if options else self._default
+        return jitted
 
     def __call__(self, *args: typing.Any) -> typing.Any:
-        return self._jitted()(*args)
+        if any(isinstance(x, Tracer) for x in jax.tree.leaves(args)):
+            # inside another trace (a caller's jit, or an export): JAX takes compiler
+            # options at the top level only, where the caller's program gets its own
+            return self._default(*args)
+        return self._jitted(self._is_quick(args))(*args)
 
     def lower(self, *args: typing.Any) -> typing.Any:
-        return self._jitted().lower(*args)
+        return self._jitted(self._is_quick(args)).lower(*args)
 
 
 @typing.final
 class cached_jit(eqx.Module):
     """:class:`program_jit` whose traced programs are kept across processes when a
     compilation cache directory is configured (see the module docstring); without
-    one it is exactly ``program_jit(fn)``. Use as a decorator."""
+    one it is exactly ``program_jit(fn, quick=quick)``. Use as a decorator
+    (``@functools.partial(cached_jit, quick=True)`` for a program run once or a few
+    times per command, see :class:`program_jit`)."""
 
     fn: Callable = eqx.field(static=True)
     jitted: Callable = eqx.field(static=True)
 
-    def __init__(self, fn: Callable):
+    def __init__(self, fn: Callable, *, quick: bool = False):
         self.fn = fn
-        self.jitted = program_jit(fn)
+        self.jitted = program_jit(fn, quick=quick)
 
     @property
     def __wrapped__(self) -> Callable:
@@ -420,10 +453,10 @@ _COMPILE_SETTINGS = (
 """JAX settings that change what XLA compiles from a given program."""
 
 
-def _executable_key(key: str, leaves: list) -> str:
+def _executable_key(key: str, leaves: list, options: dict[str, bool | int] | None) -> str:
     """The key of the compiled executable of the program kept under ``key`` for the
     arrays ``leaves``: that key and everything the compiler's output depends on
-    besides the program (XLA's flags, JAX's optimisation setting, the devices the
+    besides the program (XLA's flags and the program's ``options``, JAX's optimisation setting, the devices the
     arrays are on, the default device, the platform's version and the host
     processor)."""
     device = jax.devices()[0]  # the backend compiling this program has started already
@@ -433,7 +466,7 @@ def _executable_key(key: str, leaves: list) -> str:
         placed,
         str(jax.config.values.get("jax_default_device")),
         os.environ.get("XLA_FLAGS", ""),
-        _compiler_options(),
+        options,
         [(name, jax.config.values.get(name)) for name in _COMPILE_SETTINGS],
         device.platform,
         device.device_kind,
@@ -444,10 +477,10 @@ def _executable_key(key: str, leaves: list) -> str:
     return hashlib.sha256(repr(material).encode()).hexdigest()
 
 
-def _compiler_options() -> dict[str, bool] | None:
+def _compiler_options(*, quick: bool = False) -> dict[str, bool | int] | None:
     """The XLA options :class:`program_jit` gives a program compiled now (None: XLA's
-    defaults)."""
-    return (cpu_compiler_options() or None) if jax.default_backend() == "cpu" else None
+    defaults); ``quick``: a quick program's call on small inputs."""
+    return (cpu_compiler_options(quick=quick) or None) if jax.default_backend() == "cpu" else None
 
 
 _CACHE_HIT = "/jax/compilation_cache/cache_hits"

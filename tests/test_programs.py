@@ -460,6 +460,67 @@ def test_own_cpu_programs_compile_with_the_older_emitters_unless_told_otherwise(
     monkeypatch.setenv("XLA_FLAGS", flags)
     plain = _programs.program_jit(program)
     assert plain._jitted() is plain._default  # the user's XLA_FLAGS names the option
-    monkeypatch.setattr(_programs, "cpu_compiler_options", lambda: {"xla_no_such_option": False})
+    monkeypatch.setattr(_programs, "cpu_compiler_options", lambda quick=False: {"xla_no_such_option": False})
     with pytest.raises(Exception, match="xla_no_such_option"):
         _programs.program_jit(program)(x)
+
+
+def test_own_programs_run_inside_a_callers_jit_without_xla_flags(monkeypatch):
+    """A library user without ``XLA_FLAGS`` (the suite's conftest sets them) calling
+    heliojax's own programs inside a ``jax.jit`` of their own: JAX takes compiler
+    options at the top level only, so the nested call must not pass them (it raised
+    "`compiler_options` can only be passed to top-level `jax.jit`")."""
+    monkeypatch.setenv("XLA_FLAGS", "")
+    d = jnp.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    for quick in (False, True):
+        angles = _programs.program_jit(hj.direction_to_azimuth_elevation.__wrapped__, quick=quick)
+        assert angles.compiler_options((d,))  # options at the top level
+        np.testing.assert_allclose(jax.jit(angles)(d), angles(d), rtol=0, atol=1e-15)
+        np.testing.assert_allclose(np.asarray(jax.jit(angles)(d))[:, 1], [np.pi / 2, 0.0], atol=1e-15)
+
+
+def test_quick_programs_compile_at_level_0_on_small_inputs_only(monkeypatch):
+    """``quick``: optimisation level 0 while the array arguments hold at most
+    ``QUICK_MAX_ELEMENTS`` elements, XLA's default above; a user's ``XLA_FLAGS``
+    naming the level wins; the results are those of the default level; a program
+    that is not quick never gets the level."""
+    from heliojax import _xla_flags
+
+    monkeypatch.setenv("XLA_FLAGS", "")
+    monkeypatch.setattr(_programs, "QUICK_MAX_ELEMENTS", 100)
+
+    def program(x):
+        return jnp.sin(x) @ jnp.cos(x).T + jnp.exp(x).sum(axis=0, keepdims=True)
+
+    quick, plain = _programs.program_jit(program, quick=True), _programs.program_jit(program)
+    small = jnp.asarray(np.random.default_rng(0).normal(size=(10, 10)))
+    large = jnp.asarray(np.random.default_rng(1).normal(size=(11, 11)))
+    level = _xla_flags.QUICK_OPTION
+    assert quick.compiler_options((small,))[level] == 0
+    assert level not in (quick.compiler_options((large,)) or {})
+    assert level not in (plain.compiler_options((small,)) or {})
+    for x in (small, large):
+        np.testing.assert_allclose(quick(x), jax.jit(program)(x), rtol=1e-13, atol=1e-13)
+    monkeypatch.setenv("XLA_FLAGS", f"--{level}=2")
+    assert level not in (quick.compiler_options((small,)) or {})
+    # the quick options reach XLA for small inputs only (an unknown one is refused)
+    monkeypatch.setattr(_programs, "cpu_compiler_options", lambda quick: {"xla_no_such_option": 0} if quick else {})
+    probe = _programs.program_jit(program, quick=True)
+    np.testing.assert_allclose(probe(large), jax.jit(program)(large), rtol=1e-13, atol=1e-13)
+    with pytest.raises(Exception, match="xla_no_such_option"):
+        probe(small)
+
+
+def test_a_quick_programs_executable_is_kept_under_its_options(program_dir, monkeypatch):
+    """A quick program is kept (traced program and executable) like any other, and its
+    level-0 executable and the default one of larger inputs are separate files."""
+    monkeypatch.setenv("XLA_FLAGS", "")
+    monkeypatch.setattr(_programs, "QUICK_MAX_ELEMENTS", 4)
+    square = _programs.cached_jit(_square, quick=True)
+    np.testing.assert_array_equal(np.asarray(square(jnp.arange(3.0))), [0.0, 1.0, 4.0])
+    np.testing.assert_array_equal(np.asarray(square(jnp.arange(5.0))), np.arange(5.0) ** 2)
+    assert len(list(program_dir.glob("*.bin"))) == 2 and len(list(program_dir.glob("*.exe"))) == 2
+    _programs._COMPILED.clear()
+    monkeypatch.setattr(_programs, "_export", _no_export)
+    monkeypatch.setattr(_programs, "_compile_noting_cache_hits", _no_export)
+    np.testing.assert_array_equal(np.asarray(square(jnp.arange(3.0))), [0.0, 1.0, 4.0])

@@ -35,6 +35,7 @@ on the shared records.
 
 from __future__ import annotations
 
+import functools
 import typing
 
 import equinox as eqx
@@ -191,7 +192,7 @@ def _project_out(
     return gram_pinv, r - jnp.einsum("mif,f->mi", b, gram_pinv @ jnp.einsum("mif,mi->f", b, r))
 
 
-@cached_jit  # traced once per machine when the CLI keeps programs
+@functools.partial(cached_jit, quick=True)  # traced once per machine when the CLI keeps programs
 def _scan(columns, min_segment, residual, jacobian, counts, context, focal, mask, weight):
     def one(residual, jacobian, counts, context, focal, mask, weight):
         use = mask & finite_records(counts, context, focal)

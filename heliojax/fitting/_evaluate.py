@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import typing
 
 import jax
@@ -18,7 +19,7 @@ from ._batching import AbstractBatching
 from ._records import sanitise
 
 
-@cached_jit
+@functools.partial(cached_jit, quick=True)
 def _errors_program(models, geometry, counts, context, focal, mask):
     """``(beam errors (H, M), residual components (H, M, 2))`` in mrad, NaN outside
     ``mask``: one program for both, so that a run compiles and loads it once."""
@@ -60,7 +61,7 @@ def residuals_mrad(
     return _errors_program(models, geometry, counts, context, focal, mask)[1]
 
 
-@cached_jit
+@functools.partial(cached_jit, quick=True)
 def _jacobian_program(view, models, geometry, counts, context, focal, mask):
     def one(model, g, c, x, f, m):
         c, x, f, use, _ = sanitise(g, c, x, f, m)
@@ -188,7 +189,7 @@ def select_geometry(take: np.ndarray, a: HeliostatGeometry, b: HeliostatGeometry
     return _select_geometry(jax.device_put(np.asarray(take, bool)), a, b)
 
 
-@cached_jit
+@functools.partial(cached_jit, quick=True)
 def _with_actuators(geometry: HeliostatGeometry, typical: typing.Any) -> HeliostatGeometry:
     """``geometry`` (batched ``H``) with every heliostat's actuators set to ``typical``."""
     actuators = jax.tree.map(lambda t, x: jnp.broadcast_to(t, x.shape), typical, geometry.actuators)
@@ -201,7 +202,7 @@ def _with_actuators(geometry: HeliostatGeometry, typical: typing.Any) -> Heliost
     )
 
 
-@cached_jit
+@functools.partial(cached_jit, quick=True)
 def _select_geometry(take: Bool[Array, " H"], a: HeliostatGeometry, b: HeliostatGeometry) -> HeliostatGeometry:
     """Per heliostat, ``a`` where ``take`` else ``b``."""
     return jax.tree.map(lambda x, y: jnp.where(take.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), a, b)

@@ -23,6 +23,7 @@ Float64 is required: ``jax.config.update("jax_enable_x64", True)``.
 
 from __future__ import annotations
 
+import functools
 import time
 import typing
 from collections.abc import Callable
@@ -756,7 +757,7 @@ class CompiledFit:
         return _merge(jax.device_put(np.asarray(only, bool)), solution, otherwise)
 
 
-@cached_jit  # one program, not an eager XLA operation per field
+@functools.partial(cached_jit, quick=True)  # one program, not an eager XLA operation per field
 def _merge(keep: Bool[Array, " H"], new: FitSolution, old: FitSolution) -> FitSolution:
     """``new``'s heliostats where ``keep``, ``old``'s elsewhere."""
 

@@ -215,9 +215,10 @@ def _geometry_and_targets(position, actuators, joint_1, joint_2, concentrator, i
     return HeliostatGeometry.build(position, actuators, joint_1, joint_2, concentrator, ideal), _target_planes(*corners)
 
 
-_enu_sun_kernel = cached_jit(_enu_and_suns)
-_geometry_targets_kernel = cached_jit(_geometry_and_targets)
-_sun_gap_kernel = cached_jit(_sun_gap)
+# run once per load: compiled quickly (heliojax._xla_flags)
+_enu_sun_kernel = cached_jit(_enu_and_suns, quick=True)
+_geometry_targets_kernel = cached_jit(_geometry_and_targets, quick=True)
+_sun_gap_kernel = cached_jit(_sun_gap, quick=True)
 _SUN_CHUNK = 256
 
 
