@@ -53,6 +53,7 @@ from pathlib import Path
 
 import equinox as eqx
 import jax
+from jax._src import core as jax_core
 from jax.core import Tracer
 from jax.experimental import serialize_executable
 from jaxlib import version as jaxlib_version
@@ -244,6 +245,19 @@ records 6.5 -> 13.9 ms, of 1,000 x 192 records 0.77 -> 1.20 s, i.e. ~0.4 s more 
 (:mod:`heliojax._xla_flags`)."""
 
 
+def _inside_a_trace(args: typing.Any) -> bool:
+    """Whether a call with ``args`` is being traced into another program (a caller's
+    ``jax.jit``, ``vmap`` or ``grad``, a ``lax.scan`` body, an export): an argument is a
+    tracer, or JAX is tracing now, as inside a caller's ``jax.jit`` whose arrays reach
+    the call as constants (closed over, or ``static_argnums``), not as arguments."""
+    if any(isinstance(x, Tracer) for x in jax.tree.leaves(args)):
+        return True
+    context = getattr(jax_core, "trace_ctx", None)  # jax >= 0.4.36
+    if context is not None:
+        return not context.is_top_level()
+    return not jax_core.trace_state_clean()  # pyright: ignore[reportAttributeAccessIssue]
+
+
 def _array_elements(args: typing.Any) -> int:
     return sum(int(x.size) for x in jax.tree.leaves(args) if eqx.is_array(x))
 
@@ -287,7 +301,7 @@ class program_jit:
         return jitted
 
     def __call__(self, *args: typing.Any) -> typing.Any:
-        if any(isinstance(x, Tracer) for x in jax.tree.leaves(args)):
+        if _inside_a_trace(args):
             # inside another trace (a caller's jit, or an export): JAX takes compiler
             # options at the top level only, where the caller's program gets its own
             return self._default(*args)
@@ -321,7 +335,7 @@ class cached_jit(eqx.Module):
             return self.jitted(*args)
         dyn, stat = eqx.partition(args, eqx.is_array)
         leaves = jax.tree.leaves(dyn)
-        if any(isinstance(x, Tracer) for x in leaves):  # inside another trace: a nested jit
+        if _inside_a_trace(leaves):  # a nested jit: part of the caller's program, not kept apart
             return self.jitted(*args)
         key = _key(self.fn, stat, leaves)
         if key is None:

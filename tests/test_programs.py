@@ -479,6 +479,23 @@ def test_own_programs_run_inside_a_callers_jit_without_xla_flags(monkeypatch):
         np.testing.assert_allclose(np.asarray(jax.jit(angles)(d))[:, 1], [np.pi / 2, 0.0], atol=1e-15)
 
 
+def test_own_programs_take_a_callers_constants_inside_its_jit_without_xla_flags(monkeypatch):
+    """The same with arrays that reach heliojax's program as constants of the caller's
+    trace (closed over), not as tracers: JAX is tracing all the same, so
+    the nested call must not pass compiler options either (it raised "`compiler_options`
+    can only be passed to top-level `jax.jit`")."""
+    monkeypatch.setenv("XLA_FLAGS", "")
+    d = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    expected = np.array([np.pi / 2, 0.0])
+    for quick in (False, True):
+        angles = _programs.program_jit(hj.direction_to_azimuth_elevation.__wrapped__, quick=quick)
+        np.testing.assert_allclose(jax.jit(lambda s: s * angles(d)[1])(2.0), 2.0 * expected, atol=1e-15)
+    # the public function (a cached_jit), closed over
+    np.testing.assert_allclose(
+        jax.jit(lambda s: s * hj.direction_to_azimuth_elevation(d)[1])(2.0), 2.0 * expected, atol=1e-15
+    )
+
+
 def test_quick_programs_compile_at_level_0_on_small_inputs_only(monkeypatch):
     """``quick``: optimisation level 0 while the array arguments hold at most
     ``QUICK_MAX_ELEMENTS`` elements, XLA's default above; a user's ``XLA_FLAGS``
