@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import functools
 import typing
+import warnings
 
 import equinox as eqx
 import jax
@@ -66,8 +67,23 @@ WGS84_E2 = WGS84_F * (2.0 - WGS84_F)
 _WGS84_EP2 = WGS84_E2 / (1.0 - WGS84_E2)
 
 
+def _warn_if_single_precision(x: Array, function: str) -> None:
+    """Warn (per call; at trace time under ``jit``) when geodesy runs in less than
+    float64: Earth-centred coordinates (~6.4e6 m) resolve only ~0.5 m in float32, so
+    positions come out decimetres off without an error (``hj.wgs84_to_enu`` of a point
+    10 m from the origin: ~0.1 m per axis)."""
+    if jnp.issubdtype(x.dtype, jnp.floating) and jnp.finfo(x.dtype).bits < 64:
+        warnings.warn(
+            f"{function}: geodesy in {x.dtype} resolves Earth-centred coordinates only to "
+            f"~{float(np.spacing(np.asarray(WGS84_A, x.dtype))):.1g} m; enable float64 "
+            '(jax.config.update("jax_enable_x64", True)) for positions to the millimetre',
+            stacklevel=3,
+        )
+
+
 def wgs84_to_ecef(lla: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
     """WGS84 geodetic ``[lat_deg, lon_deg, alt_m]`` -> Earth-centred Earth-fixed metres.
+    Warns below float64 (see :func:`_warn_if_single_precision`).
 
     Args:
         lla: ``(..., 3)`` latitude (deg), longitude (deg), ellipsoidal height (m).
@@ -76,6 +92,11 @@ def wgs84_to_ecef(lla: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
         ``(..., 3)`` ECEF coordinates in metres.
     """
     lla = jnp.asarray(lla)
+    _warn_if_single_precision(lla, "wgs84_to_ecef")
+    return _wgs84_to_ecef(lla)
+
+
+def _wgs84_to_ecef(lla: Array) -> Array:
     lat = jnp.deg2rad(lla[..., 0])
     lon = jnp.deg2rad(lla[..., 1])
     h = lla[..., 2]
@@ -92,7 +113,7 @@ def ecef_to_wgs84(xyz: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
 
     Bowring's parametric-latitude start followed by three Newton-type
     refinements; exact to well below a micrometre for points within a few
-    hundred kilometres of the ellipsoid surface.
+    hundred kilometres of the ellipsoid surface (in float64; warns below it).
 
     Args:
         xyz: ``(..., 3)`` ECEF coordinates in metres.
@@ -101,6 +122,11 @@ def ecef_to_wgs84(xyz: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
         ``(..., 3)`` latitude (deg), longitude (deg), ellipsoidal height (m).
     """
     xyz = jnp.asarray(xyz)
+    _warn_if_single_precision(xyz, "ecef_to_wgs84")
+    return _ecef_to_wgs84(xyz)
+
+
+def _ecef_to_wgs84(xyz: Array) -> Array:
     x, y, z = xyz[..., 0], xyz[..., 1], xyz[..., 2]
     lon = jnp.arctan2(y, x)
     p = jnp.hypot(x, y)
@@ -147,23 +173,29 @@ def wgs84_to_enu(lla: Float[ArrayLike, "... 3"], origin_lla: Float[ArrayLike, "3
         origin_lla: ``(3,)`` the frame origin (PAINT: ``power_plant_properties.coordinates``).
 
     Returns:
-        ``(..., 3)`` east, north, up in metres.
+        ``(..., 3)`` east, north, up in metres (warns below float64, see
+        :func:`wgs84_to_ecef`).
     """
+    lla, origin_lla = jnp.asarray(lla), jnp.asarray(origin_lla)
     rot = _ecef_to_enu_matrix(origin_lla)
-    ecef = wgs84_to_ecef(lla)
-    d = ecef - jnp.broadcast_to(wgs84_to_ecef(origin_lla), ecef.shape)
+    ecef = _wgs84_to_ecef(lla)
+    _warn_if_single_precision(ecef, "wgs84_to_enu")
+    d = ecef - jnp.broadcast_to(_wgs84_to_ecef(origin_lla), ecef.shape)
     return d @ rot.T
 
 
 def enu_to_wgs84(enu: Float[ArrayLike, "... 3"], origin_lla: Float[ArrayLike, "3"]) -> Float[Array, "... 3"]:
     """Local ENU metres about ``origin_lla`` -> WGS84 ``[lat_deg, lon_deg, alt_m]``.
 
-    Inverse of :func:`wgs84_to_enu` (round trip better than 1e-6 m in float64).
+    Inverse of :func:`wgs84_to_enu` (round trip better than 1e-6 m in float64; warns
+    below it).
     """
+    enu, origin_lla = jnp.asarray(enu), jnp.asarray(origin_lla)
     rot = _ecef_to_enu_matrix(origin_lla)
-    ecef = jnp.asarray(enu) @ rot
-    ecef = ecef + jnp.broadcast_to(wgs84_to_ecef(origin_lla), ecef.shape)
-    return ecef_to_wgs84(ecef)
+    ecef = enu @ rot
+    ecef = ecef + jnp.broadcast_to(_wgs84_to_ecef(origin_lla), ecef.shape)
+    _warn_if_single_precision(ecef, "enu_to_wgs84")
+    return _ecef_to_wgs84(ecef)
 
 
 def normalize(v: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
