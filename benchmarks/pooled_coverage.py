@@ -101,6 +101,7 @@ def one_seed(seed: int, workdir: Path, args) -> dict:
         "seed": seed,
         "effect": args.effect,
         "outliers": args.outliers,
+        "sky_gap_term": not args.no_sky_gap,
         "few_record_heliostats": int(is_few.sum()),
         "few_record_statuses": sorted({statuses[i] for i in np.flatnonzero(is_few)}),
         "drift_mrad2_per_day": q,
@@ -127,7 +128,20 @@ def main() -> None:
     ap.add_argument("--few", type=int, default=6, help="heliostats left with 2-7 training records")
     ap.add_argument("--outliers", type=float, default=0.0, help="fraction of records displaced by 10-100 mrad")
     ap.add_argument("--work", type=Path, default=None, help="suite directory (default: a temporary one)")
+    ap.add_argument(
+        "--no-sky-gap",
+        action="store_true",
+        help="ablation: the predictive law fitted without the sky-gap term (g = 0), as before 2026-12-06",
+    )
     args = ap.parse_args()
+    if args.no_sky_gap:
+        from heliojax import _workflow
+
+        def without_sky_gap(residual, scale, days, gap):
+            q, law = hj.fit_drift_and_law(residual, scale, days)
+            return q, 0.0, law
+
+        _workflow.fit_drift_gap_and_law = without_sky_gap  # the workflow's one call of the law's fit
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
         runs = []
@@ -153,6 +167,8 @@ def main() -> None:
                 "seeds": args.seeds,
                 "effect": args.effect,
                 "outliers": args.outliers,
+                "sky_gap_term": not args.no_sky_gap,
+                "sky_gap_mrad2_per_deg_per_seed": [o["sky_gap_mrad2_per_deg"] for o in runs],
                 "few_below_nominal_per_seed": [o["few_below_nominal"] for o in runs],
                 "few_below_nominal_as_aimed_per_seed": [o["few_below_nominal_as_aimed"] for o in runs],
                 "few_flagged_per_seed": [o["few_flagged_worse_than_nominal"] for o in runs],
