@@ -301,11 +301,12 @@ class program_jit:
         return jitted
 
     def __call__(self, *args: typing.Any) -> typing.Any:
-        if _inside_a_trace(args):
+        leaves = jax.tree.leaves(args)  # flattened once for both checks
+        if _inside_a_trace(leaves):
             # inside another trace (a caller's jit, or an export): JAX takes compiler
             # options at the top level only, where the caller's program gets its own
             return self._default(*args)
-        return self._jitted(self._is_quick(args))(*args)
+        return self._jitted(self._is_quick(leaves))(*args)
 
     def lower(self, *args: typing.Any) -> typing.Any:
         return self._jitted(self._is_quick(args)).lower(*args)
