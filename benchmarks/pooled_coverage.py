@@ -78,7 +78,9 @@ def _coverage(d2: np.ndarray, law: hj.PointingErrorLaw) -> dict:
 
 def one_seed(seed: int, workdir: Path, args) -> dict:
     suite = workdir / f"{args.effect}-{seed}"
-    independent_sim.generate(args.effect, suite, seed=seed, n_heliostats=args.heliostats, outliers=args.outliers)
+    independent_sim.generate(
+        args.effect, suite, seed=seed, n_heliostats=args.heliostats, outliers=args.outliers, amplitude=args.amplitude
+    )
     fleet = hj.load_paint_directory(suite)
     rng = np.random.default_rng(seed)
     roles, is_few, k_of = _roles(fleet, rng, args.few)
@@ -101,11 +103,12 @@ def one_seed(seed: int, workdir: Path, args) -> dict:
         "seed": seed,
         "effect": args.effect,
         "outliers": args.outliers,
-        "sky_gap_term": not args.no_sky_gap,
+        "drift_terms": args.drift_terms,
         "few_record_heliostats": int(is_few.sum()),
         "few_record_statuses": sorted({statuses[i] for i in np.flatnonzero(is_few)}),
         "drift_mrad2_per_day": q,
         "sky_gap_mrad2_per_deg": float(run.predictive.get("sky_gap_mrad2_per_deg", 0.0)),
+        "creep_mrad2_per_day2": float(run.predictive.get("creep_mrad2_per_day2", 0.0)),
         "error_law": law.to_dict(),
         "few_heldout_median_mrad": float(np.median(err[few_test])),
         "few_nominal_median_mrad": float(np.median(unc[few_test])),
@@ -128,20 +131,25 @@ def main() -> None:
     ap.add_argument("--few", type=int, default=6, help="heliostats left with 2-7 training records")
     ap.add_argument("--outliers", type=float, default=0.0, help="fraction of records displaced by 10-100 mrad")
     ap.add_argument("--work", type=Path, default=None, help="suite directory (default: a temporary one)")
+    ap.add_argument("--amplitude", type=float, default=None, help="of the effect (default: independent_sim's)")
     ap.add_argument(
-        "--no-sky-gap",
-        action="store_true",
-        help="ablation: the predictive law fitted without the sky-gap term (g = 0), as before 2026-12-06",
+        "--drift-terms",
+        nargs="*",
+        default=None,
+        metavar="TERM",
+        help="ablation: the predictive law's variance terms that may be tried (default: all of "
+        "heliojax.DRIFT_TERMS; none: the random walk alone, as before 2026-12-06)",
     )
     args = ap.parse_args()
-    if args.no_sky_gap:
+    if args.drift_terms is not None:
         from heliojax import _workflow
 
-        def without_sky_gap(residual, scale, days, gap):
-            q, law = hj.fit_drift_and_law(residual, scale, days)
-            return q, 0.0, law
+        def with_terms(residual, scale, days, **covariates):
+            kept = {k: v for k, v in covariates.items() if k in args.drift_terms}
+            q, rates, law = hj.fit_drift_terms_and_law(residual, scale, days, **kept)
+            return q, {k: rates.get(k, 0.0) for k in covariates}, law
 
-        _workflow.fit_drift_gap_and_law = without_sky_gap  # the workflow's one call of the law's fit
+        _workflow.fit_drift_terms_and_law = with_terms  # the workflow's one call of the law's fit
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
         runs = []
@@ -167,8 +175,11 @@ def main() -> None:
                 "seeds": args.seeds,
                 "effect": args.effect,
                 "outliers": args.outliers,
-                "sky_gap_term": not args.no_sky_gap,
+                "amplitude": args.amplitude,
+                "drift_terms": args.drift_terms,
+                "drift_mrad2_per_day_per_seed": [o["drift_mrad2_per_day"] for o in runs],
                 "sky_gap_mrad2_per_deg_per_seed": [o["sky_gap_mrad2_per_deg"] for o in runs],
+                "creep_mrad2_per_day2_per_seed": [o["creep_mrad2_per_day2"] for o in runs],
                 "few_below_nominal_per_seed": [o["few_below_nominal"] for o in runs],
                 "few_below_nominal_as_aimed_per_seed": [o["few_below_nominal_as_aimed"] for o in runs],
                 "few_flagged_per_seed": [o["few_flagged_worse_than_nominal"] for o in runs],

@@ -105,10 +105,12 @@ from ._plotting import (
     save_figure as save_figure,
 )
 from ._predictive import (
+    DRIFT_TERMS as DRIFT_TERMS,
     PointingErrorLaw as PointingErrorLaw,
     fit_drift_and_law as fit_drift_and_law,
     fit_drift_and_tails as fit_drift_and_tails,
     fit_drift_gap_and_law as fit_drift_gap_and_law,
+    fit_drift_terms_and_law as fit_drift_terms_and_law,
     prediction_region_d2 as prediction_region_d2,
 )
 from ._results import (
@@ -130,6 +132,7 @@ from ._splits import (
     FleetSplit as FleetSplit,
     SplitResult as SplitResult,
     chronological_holdout as chronological_holdout,
+    days_from_fitted_mean as days_from_fitted_mean,
     days_since_fit as days_since_fit,
     record_sky_gap_deg as record_sky_gap_deg,
     split_fleet as split_fleet,

@@ -36,6 +36,15 @@ records (:func:`heliojax.sky_gap_deg`), as ``S + (q dt + g gap) I``: a random wa
 time and one across the sky, both with a linear variogram. ``g`` (mrad^2 per degree
 per component) is fitted beside ``q`` and the law and kept only where the BIC asks
 for it (:func:`fit_drift_gap_and_law`); ``g = 0`` is the law above.
+
+A beam that *creeps* (settling, a joint zero that drifts at a steady rate) errs as
+``rho b``, ``b`` the days from the mean time of the fitted records
+(:func:`heliojax.days_from_fitted_mean`: a least-squares fit pins the state at that
+time), so its variance grows as ``b^2``, faster than a random walk's ``dt``: the
+scale ``S + (q dt + g gap + c b^2) I``, ``c`` (mrad^2 per day^2 per component, the
+square of a creep rate) fitted beside the walk or instead of it (the validation
+records, a few months after the fit, hardly tell the two apart, and they extrapolate
+differently: :func:`fit_drift_terms_and_law`).
 """
 
 from __future__ import annotations
@@ -53,6 +62,7 @@ _DOF_GRID = np.concatenate([np.geomspace(0.5, 1e3, 67), [np.inf]])
 _FRACTION_GRID = np.geomspace(0.003, 0.5, 24)
 _SCALE_GRID = np.geomspace(1.5, 1e3, 29)
 _GAP_GRID = np.concatenate([[0.0], np.geomspace(1e-5, 1e2, 71)])  # mrad^2 / deg
+_CREEP_GRID = np.concatenate([[0.0], np.geomspace(1e-10, 1e1, 111)])  # mrad^2 / day^2
 
 
 @typing.final
@@ -331,23 +341,87 @@ def fit_drift_gap_and_law(
         ValueError: a sky gap that is not finite or negative, or of another length, and
             the other inputs as in :func:`fit_drift_and_law`.
     """
+    q, rates, law = fit_drift_terms_and_law(residual_mrad, scale_mrad2, days, sky_gap_deg=sky_gap_deg)
+    return q, rates["sky_gap_deg"], law
+
+
+DRIFT_TERMS = {"sky_gap_deg": _GAP_GRID, "creep_days2": _CREEP_GRID}
+"""The variance terms :func:`fit_drift_terms_and_law` may add to the drift, in the
+order it tries them, with their rate grids: ``sky_gap_deg`` (rate ``g``, mrad^2 per
+degree of sky gap) and ``creep_days2`` (rate ``c``, mrad^2 per day^2, the square of
+the days from the fitted records' mean time, :func:`heliojax.days_from_fitted_mean`)."""
+
+
+def fit_drift_terms_and_law(
+    residual_mrad: Float[np.ndarray, "N 2"],
+    scale_mrad2: Float[np.ndarray, "N 2 2"],
+    days: Float[np.ndarray, " N"],
+    **covariates: Float[np.ndarray, " N"],
+) -> tuple[float, dict[str, float], PointingErrorLaw]:
+    """:func:`fit_drift_and_law` with variance terms (module docstring): maximum
+    likelihood drift ``q`` (mrad^2/day per component), a rate per term and the error
+    law of validation residuals predicted with scale ``S + (q dt + sum_k rate_k x_k)
+    I``, ``x_k`` the term's covariate (:data:`DRIFT_TERMS`: ``sky_gap_deg``, the sky
+    gap in deg; ``creep_days2``, the squared days from the fitted records' mean time).
+
+    Forward selection, in :data:`DRIFT_TERMS`' order: a term's rate is chosen by the
+    profile likelihood of the Student t family (every third ``nu`` of its grid and
+    the Gaussian; the t keeps gross errors from inflating it) on every third value of
+    its grid with the terms kept so far fixed; the law and ``q`` are fitted at that
+    rate, then ``q`` and the rate refined on their whole grids with that law fixed.
+    The term is kept only when its BIC (one parameter more) is lower than that of the
+    terms kept before it; ties go to the smaller rate.
+
+    Args:
+        residual_mrad: ``(N, 2)`` validation residuals, mrad.
+        scale_mrad2: ``(N, 2, 2)`` their fitted scale ``S``, mrad^2.
+        days: ``(N,)`` days since the fit (:func:`heliojax.days_since_fit`).
+        **covariates: ``(N,)`` finite values >= 0 of the terms to try, by name.
+
+    Returns:
+        ``(q, rates, law)``, ``rates`` one per covariate given (0: not kept).
+
+    Raises:
+        ValueError: an unknown term, a covariate that is not finite, negative or of
+            another length, and the other inputs as in :func:`fit_drift_and_law`.
+    """
     r, s, days = _validation_arrays(residual_mrad, scale_mrad2, days)
-    gap = np.asarray(sky_gap_deg, float)
-    if gap.shape != r.shape[:1] or not np.all(np.isfinite(gap) & (gap >= 0.0)):
-        raise ValueError(f"sky_gap_deg must hold {r.shape[0]} finite angles >= 0 (deg), one per residual")
-    bic0, iq0, law0 = _fit_law(*_grid(r, s, days))
-    coarse = _GAP_GRID[::3]
-    profile = [_best_t(*_grid(r, s, days, x * gap), _PROFILE_DOFS)[2] for x in coarse]
-    g = float(coarse[int(np.argmax(profile))])  # the first maximum: the smallest g
-    if g == 0.0:
-        return float(_DRIFT_GRID[iq0]), 0.0, law0
-    _, _, law = _fit_law(*_grid(r, s, days, g * gap))
-    ll = np.stack([_law_log_likelihood(*_grid(r, s, days, x * gap), law) for x in _GAP_GRID])  # (G, Q)
-    ig, iq = np.unravel_index(int(np.argmax(ll)), ll.shape)  # the first maximum: the smallest g, then q
-    bic = -2.0 * float(ll[ig, iq]) + (_LAW_PARAMETERS[law.kind] + 1) * math.log(max(r.shape[0], 1))
-    if ig == 0 or not bic < bic0:
-        return float(_DRIFT_GRID[iq0]), 0.0, law0
-    return float(_DRIFT_GRID[iq]), float(_GAP_GRID[ig]), law
+    terms = {}
+    for name, x in covariates.items():
+        if name not in DRIFT_TERMS:
+            raise ValueError(f"unknown drift term {name!r}; expected one of {sorted(DRIFT_TERMS)}")
+        x = np.asarray(x, float)
+        if x.shape != r.shape[:1] or not np.all(np.isfinite(x) & (x >= 0.0)):
+            raise ValueError(f"{name} must hold {r.shape[0]} finite values >= 0, one per residual")
+        terms[name] = x
+    penalty = math.log(max(r.shape[0], 1))
+    bic, iq, law = _fit_law(*_grid(r, s, days))
+    rates = dict.fromkeys(covariates, 0.0)
+    extra = np.zeros(r.shape[0])
+    walk = days  # the random walk's days; zero once the creep has replaced it
+    for name in (n for n in DRIFT_TERMS if n in terms):
+        x, grid = terms[name], DRIFT_TERMS[name]
+        kept = sum(v > 0.0 for v in rates.values())
+        # the creep is tried beside the random walk (one parameter more) and instead of
+        # it (as many): two laws of the same drift that the validation span can hardly
+        # tell apart, and which extrapolate differently (dt against dt^2)
+        variants = [(walk, kept + 1)] + ([(np.zeros_like(days), kept)] if name == "creep_days2" else [])
+        for walk_k, extra_parameters in variants:
+            coarse = grid[::3]
+            profile = [_best_t(*_grid(r, s, walk_k, extra + v * x), _PROFILE_DOFS)[2] for v in coarse]
+            rate = float(coarse[int(np.argmax(profile))])  # the first maximum: the smallest rate
+            if rate == 0.0:
+                continue
+            _, _, law_k = _fit_law(*_grid(r, s, walk_k, extra + rate * x))
+            ll = np.stack([_law_log_likelihood(*_grid(r, s, walk_k, extra + v * x), law_k) for v in grid])  # (G, Q)
+            ig, iq_k = np.unravel_index(int(np.argmax(ll)), ll.shape)  # the first maximum: the smallest rate, then q
+            bic_k = -2.0 * float(ll[ig, iq_k]) + (_LAW_PARAMETERS[law_k.kind] + extra_parameters) * penalty
+            if ig == 0 or not bic_k < bic:
+                continue
+            rates[name] = float(grid[ig])
+            bic, iq, law, walk = bic_k, int(iq_k), law_k, walk_k
+        extra = extra + rates[name] * x
+    return float(_DRIFT_GRID[iq]) if walk is days else 0.0, rates, law
 
 
 _LAW_PARAMETERS = {"gaussian": 1, "student_t": 2, "gaussian_mixture": 3, "student_t_mixture": 4}
@@ -435,6 +509,8 @@ __all__ = [
     "fit_drift_and_law",
     "fit_drift_and_tails",
     "fit_drift_gap_and_law",
+    "fit_drift_terms_and_law",
+    "DRIFT_TERMS",
     "prediction_region_d2",
     "region_radius",
 ]

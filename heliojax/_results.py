@@ -10,7 +10,9 @@ Schema (``H`` heliostats, ``M`` padded records; NaN / -1 where no record):
   lon deg, alt m of the ENU origin), ``drift_mrad2_per_day`` (the fleet's
   pointing drift per tangent component, :func:`heliojax.temporal_drift`; 0 when not
   estimated), ``sky_gap_mrad2_per_deg`` (the predicted variance's growth per degree
-  of sky gap, :func:`heliojax.temporal_drift`; 0 when absent), the predicted
+  of sky gap, :func:`heliojax.temporal_drift`; 0 when absent), ``creep_mrad2_per_day2``
+  (its growth per squared day from the fitted records' mean time,
+  :func:`heliojax.days_from_fitted_mean`; 0 when absent), the predicted
   pointing-error law (:class:`heliojax.PointingErrorLaw`):
   ``tail_dof`` (degrees of freedom of a Student t; inf: a Gaussian core, also in files
   written without it), ``outlier_fraction`` and ``outlier_scale`` (the broad
@@ -70,7 +72,7 @@ from ._io import atomic_h5
 from ._kinematics import AbstractKinematicModel, nominal_model
 from ._parameters import ParameterView, broadcast_model
 from ._predictive import PointingErrorLaw
-from ._splits import days_since_fit
+from ._splits import days_from_fitted_mean, days_since_fit
 from ._version import __version__
 from .effects import with_effects
 from .fitting import FitStatus
@@ -316,6 +318,7 @@ def write_results_h5(path: str | Path, run: typing.Any) -> None:
         f.attrs["origin_lla"] = np.asarray(run.fleet.origin_lla, float)
         f.attrs["drift_mrad2_per_day"] = float(run.predictive.get("drift_mrad2_per_day", 0.0))
         f.attrs["sky_gap_mrad2_per_deg"] = float(run.predictive.get("sky_gap_mrad2_per_deg", 0.0))
+        f.attrs["creep_mrad2_per_day2"] = float(run.predictive.get("creep_mrad2_per_day2", 0.0))
         law = PointingErrorLaw.from_dict(run.predictive.get("error_law"))
         f.attrs["tail_dof"] = law.tail_dof
         f.attrs["outlier_fraction"] = law.outlier_fraction
@@ -423,6 +426,13 @@ class CalibrationResults:
         return float(self.attrs.get("sky_gap_mrad2_per_deg", 0.0))
 
     @property
+    def creep_mrad2_per_day2(self) -> float:
+        """The predicted variance's growth (mrad^2 per component) per squared day from
+        the fitted records' mean time (0 in files written without it),
+        :func:`heliojax.temporal_drift`."""
+        return float(self.attrs.get("creep_mrad2_per_day2", 0.0))
+
+    @property
     def error_law(self) -> PointingErrorLaw:
         """The predicted pointing-error law (:func:`heliojax.temporal_drift`; the
         Gaussian in files written without one)."""
@@ -430,13 +440,25 @@ class CalibrationResults:
 
     def drift_variance_mrad2(self, unix_time: Float[ArrayLike, " N"]) -> Float[np.ndarray, "H N"]:
         """``(H, N)`` drift variance (mrad^2 per component) at ``unix_time`` (s): the
-        drift rate times the days since each heliostat's last fitted record (0 before
-        it; NaN for a heliostat without one)."""
-        if self.drift_mrad2_per_day == 0.0:
-            return np.zeros((len(self.ids), np.size(unix_time)))
+        drift rate times the fitted state's age in days (:func:`heliojax.days_since_fit`),
+        plus the creep rate times the squared days from the mean time of the fitted
+        records that are not outliers (:func:`heliojax.days_from_fitted_mean`); NaN
+        for a heliostat without a fitted record."""
+        when = np.atleast_1d(np.asarray(unix_time, float))
+        variance = np.zeros((len(self.ids), when.size))
+        if self.drift_mrad2_per_day == 0.0 and self.creep_mrad2_per_day2 == 0.0:
+            return variance
         fitted_records = (self.records["split"] == 1) & ~self.records["superseded"].astype(bool)
-        days = days_since_fit(fitted_records, self.records["unix_time"], np.atleast_1d(np.asarray(unix_time, float)))
-        return self.drift_mrad2_per_day * days
+        if self.drift_mrad2_per_day != 0.0:
+            variance = variance + self.drift_mrad2_per_day * days_since_fit(
+                fitted_records, self.records["unix_time"], when
+            )
+        if self.creep_mrad2_per_day2 != 0.0:
+            if "outlier" in self.records:
+                fitted_records = fitted_records & ~self.records["outlier"].astype(bool)
+            days = days_from_fitted_mean(fitted_records, self.records["unix_time"], when)
+            variance = variance + self.creep_mrad2_per_day2 * days**2
+        return variance
 
     def fitted_sun(self) -> tuple[Float[np.ndarray, "H M 3"], Bool[np.ndarray, "H M"]] | None:
         """``(sun, fitted_record)``: ``(H, M, 3)`` unit ENU vectors to the sun of every
@@ -498,6 +520,7 @@ _RECORD_FIELDS = (
 _LAW_ATTRS = (
     ("drift_mrad2_per_day", 0.0, 1e6),  # a beam spread by a radian a day is no calibration
     ("sky_gap_mrad2_per_deg", 0.0, 1e6),  # nor by a radian per degree of sky
+    ("creep_mrad2_per_day2", 0.0, 1e6),  # nor by a radian a day from the fitted state
     ("tail_dof", 0.0, math.inf),
     ("outlier_fraction", 0.0, 1.0),
     ("outlier_scale", 0.0, math.inf),
@@ -683,7 +706,8 @@ def _load_results(path: str | Path) -> CalibrationResults:
             split_times = records["unix_time"][records["split"] != 0]
             if np.isinf(split_times).any():
                 raise DataError(source, "unix_time", "not finite for a record of the fit's split")
-            if np.isnan(split_times).any() and float(f.attrs.get("drift_mrad2_per_day", 0.0)) != 0.0:
+            timed = ("drift_mrad2_per_day", "creep_mrad2_per_day2")
+            if np.isnan(split_times).any() and any(float(f.attrs.get(k, 0.0)) != 0.0 for k in timed):
                 raise DataError(
                     source, "unix_time", "unknown (NaN) for a record of the fit's split, with a drift since the fit"
                 )
@@ -776,7 +800,7 @@ def _load_results(path: str | Path) -> CalibrationResults:
         for key in ("residual_mrad", "residual_uncalibrated_mrad"):
             if key in records and not np.isfinite(records[key][fitted_records]).all():
                 raise DataError(source, key, "not finite for a record of a heliostat whose fit converged")
-    if float(attrs.get("drift_mrad2_per_day", 0.0)) != 0.0:
+    if float(attrs.get("drift_mrad2_per_day", 0.0)) != 0.0 or float(attrs.get("creep_mrad2_per_day2", 0.0)) != 0.0:
         for key in ("split", "unix_time"):
             if key not in records:
                 raise DataError(source, key, "missing dataset (needed for the drift since the fit)")

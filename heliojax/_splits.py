@@ -78,6 +78,7 @@ __all__ = [
     "SPLIT_NAMES",
     "chronological_holdout",
     "days_since_fit",
+    "days_from_fitted_mean",
     "FleetSplit",
     "record_sky_gap_deg",
     "SplitResult",
@@ -523,6 +524,26 @@ def days_since_fit(fit_mask: np.ndarray, record_time: np.ndarray, when: np.ndarr
     when = np.asarray(when, float) / 86400.0
     when = np.broadcast_to(when, (last.shape[0], when.shape[-1]))
     return np.maximum(0.0, when - last[:, None]) + c[:, None]
+
+
+def days_from_fitted_mean(fit_mask: np.ndarray, record_time: np.ndarray, when: np.ndarray) -> np.ndarray:
+    """``(H, N)`` days from the mean time of each heliostat's fitted records
+    (``fit_mask`` ``(H, M)``, times ``record_time`` unix s) to ``when`` (unix s,
+    ``(H, N)`` or ``(N,)``), signed (negative before it): the age of the fitted state
+    for a beam that *creeps* linearly in time. A least-squares fit of a zero to
+    records at times ``t_i`` pins the zero at their mean time ``t_mean``, so a creep at
+    rate ``rho`` (mrad per day) leaves ``rho (t - t_mean)`` at ``t``, the creep term of
+    the predictive law (:mod:`heliojax._predictive`). NaN for a heliostat without a
+    timed fitted record."""
+    fit_mask = np.asarray(fit_mask, bool)
+    t = np.asarray(record_time, float) / 86400.0
+    use = fit_mask & np.isfinite(t)
+    n = use.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(n > 0, np.sum(np.where(use, t, 0.0), axis=1) / n, np.nan)
+    when = np.asarray(when, float) / 86400.0
+    when = np.broadcast_to(when, (mean.shape[0], when.shape[-1]))
+    return when - mean[:, None]
 
 
 _GAP_BLOCK = 256

@@ -28,10 +28,10 @@ from ._fleet import bucket_size, pad_fleet, records_among
 from ._geometry import direction_to_azimuth_elevation
 from ._io import atomic_write
 from ._kinematics import AbstractKinematicModel, nominal_model
-from ._predictive import PointingErrorLaw, fit_drift_gap_and_law
+from ._predictive import PointingErrorLaw, fit_drift_terms_and_law
 from ._programs import warm_up
 from ._progress import activity
-from ._splits import chronological_holdout, days_since_fit, record_sky_gap_deg, split_fleet
+from ._splits import chronological_holdout, days_from_fitted_mean, days_since_fit, record_sky_gap_deg, split_fleet
 from .fitting import (
     MIN_PRIOR_HELIOSTATS,
     ChangePoints,
@@ -374,7 +374,8 @@ def calibrate(
         else:
             log.info(
                 f"pointing drift {predictive['drift_mrad2_per_day']:.4f} mrad^2/day per component, sky-gap term "
-                f"{predictive['sky_gap_mrad2_per_deg']:.4f} mrad^2/deg "
+                f"{predictive['sky_gap_mrad2_per_deg']:.4f} mrad^2/deg, creep term "
+                f"{predictive['creep_mrad2_per_day2']:.3g} mrad^2/day^2 "
                 f"(from {predictive['validation_records']} later training records), error law: "
                 f"{PointingErrorLaw.from_dict(predictive['error_law']).describe()}"
             )
@@ -533,10 +534,12 @@ def residual_prediction(solution: FitSolution, fleet, mask: np.ndarray) -> tuple
 def prediction_d2(run: CalibrationRun, mask: np.ndarray | None = None) -> np.ndarray:
     """``(H, M)`` squared Mahalanobis distance ``d^2 = r^T P^-1 r`` of each record's
     residual ``r`` under its full predicted scale ``P = J C J^T + (noise^2 + q a + g
-    gap) I`` (:func:`residual_prediction`, the fit's noise per component, the drift
-    rate ``q`` and sky-gap rate ``g`` of :func:`temporal_drift`, the fitted state's age
-    ``a`` in days, :func:`heliojax.days_since_fit`, and the record's sky gap in deg to
-    the fitted records that are not outliers, :func:`heliojax.record_sky_gap_deg`);
+    gap + c b^2) I`` (:func:`residual_prediction`, the fit's noise per component, the
+    drift rate ``q``, sky-gap rate ``g`` and creep rate ``c`` of :func:`temporal_drift`,
+    the fitted state's age ``a`` in days, :func:`heliojax.days_since_fit`, the record's
+    sky gap in deg to the fitted records that are not outliers,
+    :func:`heliojax.record_sky_gap_deg`, and its days ``b`` from their mean time,
+    :func:`heliojax.days_from_fitted_mean`);
     NaN outside ``mask`` (default: every record of
     ``run.fleet``). A record lies in the ``p`` prediction region when
     ``d^2 <= heliojax.prediction_region_d2(p, law)``, ``law`` the run's
@@ -554,10 +557,13 @@ def prediction_d2(run: CalibrationRun, mask: np.ndarray | None = None) -> np.nda
     noise = np.pad(noise, (0, max(h - noise.size, 0)), constant_values=np.nan)[:h]
     q = float(run.predictive.get("drift_mrad2_per_day", 0.0))
     g = float(run.predictive.get("sky_gap_mrad2_per_deg", 0.0))
+    c = float(run.predictive.get("creep_mrad2_per_day2", 0.0))
     extra = q * np.nan_to_num(days)
+    inliers = fitted if run.outlier is None else fitted & ~np.asarray(run.outlier, bool)
     if g > 0.0:
-        inliers = fitted if run.outlier is None else fitted & ~np.asarray(run.outlier, bool)
         extra = extra + g * record_sky_gap_deg(inliers, np.asarray(padded.context.sun, float))
+    if c > 0.0:
+        extra = extra + c * np.nan_to_num(days_from_fitted_mean(inliers, unix, unix)) ** 2
     total = s + (noise[:, None] ** 2 + extra)[..., None, None] * np.eye(2)
     ok = use & np.all(np.isfinite(r), axis=-1) & np.all(np.isfinite(total), axis=(-2, -1))
     safe = np.where(ok[..., None, None], total, np.eye(2))
@@ -571,6 +577,7 @@ def _no_drift(method: str) -> dict[str, typing.Any]:
     return {
         "drift_mrad2_per_day": 0.0,
         "sky_gap_mrad2_per_deg": 0.0,
+        "creep_mrad2_per_day2": 0.0,
         "tail_dof": math.inf,
         "error_law": PointingErrorLaw().to_dict(),
         "method": method,
@@ -593,8 +600,9 @@ def temporal_drift(
     fitted state, the process noise of a Kalman filter, with heavy tails; a record
     ``dt`` days after the heliostat's last fitted record, its sun ``gap`` deg from the
     nearest sun of the fitted records that are not outliers
-    (:func:`heliojax.record_sky_gap_deg`), is predicted with scale matrix ``S + (q *
-    dt + g * gap) * I`` under a :class:`heliojax.PointingErrorLaw` (a bivariate
+    (:func:`heliojax.record_sky_gap_deg`), ``b`` days from the mean time of those
+    records (:func:`heliojax.days_from_fitted_mean`), is predicted with scale matrix
+    ``S + (q * dt + g * gap + c * b^2) * I`` under a :class:`heliojax.PointingErrorLaw` (a bivariate
     Student t with ``tail_dof`` degrees of freedom, ``inf``: the Gaussian, either
     with a broad outlier component or without), where ``S = J C J^T + noise^2 I`` (``J``
     its Jacobian w.r.t. the free parameters, ``C`` the fit's covariance, ``noise`` the
@@ -605,25 +613,29 @@ def temporal_drift(
     records only (the test records are never looked at): every heliostat with at
     least ``min_records`` records in ``fit_mask`` holds out its latest ``fraction`` of
     them; ``fit`` (the calibration's own fit, ``mask -> (solution, noise_mrad (H,),
-    outlier (H, M))``) is run on the rest; ``q``, ``g`` and the law maximise the
-    likelihood of the held-out residuals, the family chosen by BIC and ``g > 0`` only
-    where the BIC asks for it (:func:`heliojax.fit_drift_gap_and_law`). Gross errors and
-    maintenance episodes among the held-out records go into the law's tails instead of
-    inflating ``q``; a model that errs more in poses unlike the fitted ones gets ``g``.
+    outlier (H, M))``) is run on the rest; ``q``, ``g``, ``c`` and the law maximise the
+    likelihood of the held-out residuals, the family chosen by BIC and ``g > 0`` and
+    ``c > 0`` only where the BIC asks for them, ``c`` beside ``q`` or instead of it
+    (:func:`heliojax.fit_drift_terms_and_law`). Gross errors and maintenance episodes
+    among the held-out records go into the law's tails instead of inflating ``q``; a
+    model that errs more in poses unlike the fitted ones gets ``g``; a beam that creeps
+    steadily (a linear drift, whose error grows as ``b``, not as ``sqrt(dt)``) gets ``c``.
 
     Returns:
-        ``{"drift_mrad2_per_day", "sky_gap_mrad2_per_deg", "tail_dof", "error_law", "validation_records",
+        ``{"drift_mrad2_per_day", "sky_gap_mrad2_per_deg", "creep_mrad2_per_day2", "tail_dof", "error_law",
+        "validation_records",
         "validation_heliostats", "validation_median_days", "validation_median_sky_gap_deg", "median_d2_without",
         "method"}`` (``error_law``: :meth:`PointingErrorLaw.to_dict`; ``tail_dof`` the
-        t's degrees of freedom, inf for the other laws); both rates are 0 and the law
+        t's degrees of freedom, inf for the other laws); the rates are 0 and the law
         Gaussian with fewer than :data:`DRIFT_MIN_VALIDATION` validation records.
     """
     fleet_mask = np.asarray(fleet.mask)
     unix_time = np.asarray(fleet.context.unix_time, float)
     early, late = chronological_holdout(np.asarray(fit_mask) & fleet_mask, unix_time, min_records, fraction)
     method = (
-        "random walk from the fitted state in time and across the sky, bivariate Student t or Gaussian, with or "
-        "without an outlier component (maximum likelihood, the family and the sky term by BIC); rates and tails "
+        "random walk from the fitted state in time and across the sky, or a linear creep in time, bivariate "
+        "Student t or Gaussian, with or without an outlier component (maximum likelihood, the family, the sky "
+        "term and the creep by BIC); rates and tails "
         "from the "
         f"latest {fraction:.0%} of the training records of heliostats with >= {min_records}, predicted from a fit "
         "on the earlier ones"
@@ -638,10 +650,12 @@ def temporal_drift(
     r, s = residual_prediction(solution, fleet, late)
     s = s + (np.asarray(noise, float) ** 2)[:, None, None, None] * np.eye(2)
     days = days_since_fit(early, unix_time, unix_time)
-    gap = record_sky_gap_deg(early & ~np.asarray(outlier, bool), np.asarray(fleet.context.sun, float))
+    inliers = early & ~np.asarray(outlier, bool)
+    gap = record_sky_gap_deg(inliers, np.asarray(fleet.context.sun, float))
+    creep = days_from_fitted_mean(inliers, unix_time, unix_time) ** 2
     use = late & np.all(np.isfinite(r), axis=-1) & np.all(np.isfinite(s), axis=(-2, -1)) & np.isfinite(days)
-    use &= np.isfinite(gap)
-    r, s, days, gap = r[use], s[use], days[use], gap[use]
+    use &= np.isfinite(gap) & np.isfinite(creep)
+    r, s, days, gap, creep = r[use], s[use], days[use], gap[use], creep[use]
 
     def median_d2(q: float) -> float:
         total = s + (q * days)[:, None, None] * np.eye(2)
@@ -656,8 +670,14 @@ def temporal_drift(
     )
     if use.sum() < DRIFT_MIN_VALIDATION:
         return out
-    q, g, law = fit_drift_gap_and_law(r, s, days, gap)
-    out.update(drift_mrad2_per_day=q, sky_gap_mrad2_per_deg=g, tail_dof=law.tail_dof, error_law=law.to_dict())
+    q, rates, law = fit_drift_terms_and_law(r, s, days, sky_gap_deg=gap, creep_days2=creep)
+    out.update(
+        drift_mrad2_per_day=q,
+        sky_gap_mrad2_per_deg=rates["sky_gap_deg"],
+        creep_mrad2_per_day2=rates["creep_days2"],
+        tail_dof=law.tail_dof,
+        error_law=law.to_dict(),
+    )
     return out
 
 

@@ -202,6 +202,57 @@ def test_sky_gap_rate_recovered_and_kept_only_where_the_bic_asks():
         hj.fit_drift_gap_and_law(r, s, days, np.full(len(r), np.inf))
 
 
+def _validation_with_creep(rng, n, q, c, dof):
+    """Validation records 1-200 days after the last fitted record (mean time 100 days
+    before it), whose variance grows by ``q`` per day and ``c`` per squared day from
+    the fitted mean time: ``(r, s, days, creep_days2)``."""
+    a = rng.uniform(0.3, 1.0, size=(n, 2, 2)) * np.array([[1.0, 0.3], [0.0, 1.0]])
+    scale = np.einsum("nij,nkj->nik", a, a) + 0.05 * np.eye(2)
+    days = rng.uniform(1.0, 200.0, size=n)
+    b2 = (days + 100.0) ** 2
+    total = scale + (q * days + c * b2)[:, None, None] * np.eye(2)
+    return _t_residuals(rng, total, dof, n), scale, days, b2
+
+
+def test_creep_rate_recovered_beside_or_instead_of_the_walk_and_only_where_the_bic_asks():
+    """The creep term (variance ``c b^2``): recovered within two grid steps (ratio 1.26)
+    when the records creep, kept instead of the random walk (``q = 0``) when no walk
+    is left to explain, beside it when both are there, and absent (the result of
+    :func:`heliojax.fit_drift_and_law`) for a pure random walk."""
+    rng = np.random.default_rng(22)
+    # a pure creep of 1e-5 mrad^2/day^2 (0.9 mrad^2 at 300 days): the walk gives way
+    r, s, days, b2 = _validation_with_creep(rng, 1200, 0.0, 1e-5, math.inf)
+    q, rates, law = hj.fit_drift_terms_and_law(r, s, days, creep_days2=b2)
+    assert rates["creep_days2"] == pytest.approx(1e-5, rel=0.6) and q == 0.0 and law.kind == "gaussian"
+    # the walk alone (0.005 mrad^2/day): no creep, the random-walk fit unchanged
+    r, s, days, b2 = _validation_with_creep(rng, 1200, 0.005, 0.0, math.inf)
+    q, rates, law = hj.fit_drift_terms_and_law(r, s, days, creep_days2=b2)
+    assert rates == {"creep_days2": 0.0} and (q, law) == hj.fit_drift_and_law(r, s, days)
+    # no drift at all: neither term
+    r, s, days, b2 = _validation_with_creep(rng, 1200, 0.0, 0.0, math.inf)
+    q, rates, law = hj.fit_drift_terms_and_law(r, s, days, creep_days2=b2)
+    assert rates == {"creep_days2": 0.0} and q * 200.0 < 0.02
+    # both the sky gap and the creep may be tried; fit_drift_gap_and_law tries the gap only
+    gap = rng.uniform(0.0, 40.0, size=len(r))
+    q2, rates, law2 = hj.fit_drift_terms_and_law(r, s, days, sky_gap_deg=gap, creep_days2=b2)
+    assert set(rates) == {"sky_gap_deg", "creep_days2"}
+    assert (q2, rates["sky_gap_deg"], law2) == hj.fit_drift_gap_and_law(r, s, days, gap)
+    with pytest.raises(ValueError, match="unknown drift term 'wind'"):
+        hj.fit_drift_terms_and_law(r, s, days, wind=b2)
+    with pytest.raises(ValueError, match="creep_days2 must hold"):
+        hj.fit_drift_terms_and_law(r, s, days, creep_days2=-b2)
+
+
+def test_days_from_fitted_mean_by_hand():
+    fit_mask = np.array([[1, 1, 0, 1], [0, 0, 0, 0], [1, 0, 0, 0]], bool)
+    t = np.array([[0.0, 2.0, 50.0, 4.0], [1.0, 2.0, 3.0, 4.0], [np.nan, 1.0, 2.0, 3.0]]) * 86400.0
+    when = np.array([10.0, 1.0]) * 86400.0
+    b = hj.days_from_fitted_mean(fit_mask, t, when)
+    # row 0: mean of days 0, 2, 4 = 2; row 1: no fitted record; row 2: its one fitted record has no time
+    np.testing.assert_allclose(b[0], [8.0, -1.0], rtol=0, atol=1e-12)
+    assert np.all(np.isnan(b[1:]))
+
+
 @pytest.mark.parametrize("fit", ["law", "gap_and_law"])
 def test_drift_and_law_fits_refuse_records_they_cannot_use(fit, unchecked):
     """One NaN residual made every likelihood NaN, and ``fit_drift_and_law`` and

@@ -357,10 +357,11 @@ def run(args) -> int:
     times, sun = _instants(args, origin)
     log.info(f"aiming {len(results.ids)} heliostats at {args.target} for {sun.shape[0]} instant(s)")
     unix = None if times is None else np.array([t.timestamp() for t in times])
-    if times is None and results.drift_mrad2_per_day > 0.0:
+    if times is None and (results.drift_mrad2_per_day > 0.0 or results.creep_mrad2_per_day2 > 0.0):
         log.warning(
             "a sun position without a time: the predicted uncertainty leaves out the fleet's drift since the fit "
-            f"({results.drift_mrad2_per_day:.2g} mrad^2 per day), which --time, --date or --start include"
+            f"({results.drift_mrad2_per_day:.2g} mrad^2 per day, creep {results.creep_mrad2_per_day2:.2g} mrad^2 "
+            "per day^2), which --time, --date or --start include"
         )
     with activity("aiming", logger=log):
         r = aim_results(
