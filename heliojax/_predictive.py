@@ -205,14 +205,18 @@ def _log_likelihood(
 def _grid(
     residual_mrad: Float[np.ndarray, "N 2"],
     scale_mrad2: Float[np.ndarray, "N 2 2"],
-    days: Float[np.ndarray, " N"],
+    days: Float[np.ndarray, " N"] | None,
     extra_mrad2: Float[np.ndarray, " N"] | None = None,
 ) -> tuple[Float[np.ndarray, "Q N"], Float[np.ndarray, "Q N"]]:
     """``d^2`` and ``ln det`` of every residual under its scale plus each drift of the
-    grid (plus ``extra_mrad2``, per component), in closed form for 2 x 2 matrices."""
+    grid (plus ``extra_mrad2``, per component), in closed form for 2 x 2 matrices;
+    ``days`` None: no drift, one row (``Q = 1``, the drift 0)."""
     r = np.asarray(residual_mrad, float)
     s = np.asarray(scale_mrad2, float)
-    c = _DRIFT_GRID[:, None] * np.asarray(days, float)[None, :]
+    if days is None:
+        c = np.zeros((1, r.shape[0]))
+    else:
+        c = _DRIFT_GRID[:, None] * np.asarray(days, float)[None, :]
     if extra_mrad2 is not None:
         c = c + np.asarray(extra_mrad2, float)[None, :]
     a, d = s[:, 0, 0] + c, s[:, 1, 1] + c
@@ -323,9 +327,10 @@ def fit_drift_gap_and_law(
     ``g`` is chosen by the profile likelihood of the Student t family (every third
     ``nu`` of its grid and the Gaussian; the t keeps gross errors from inflating ``g``)
     on a grid of 0 and 1e-5-100 (ratio 2); the law and ``q`` are fitted at that ``g``,
-    then ``q`` and ``g`` refined on their fine grids (``g`` ratio 1.26) with that law
-    fixed. ``g > 0`` is kept only when its BIC (one parameter more) is lower than that
-    of :func:`fit_drift_and_law`'s result; ties go to the smaller ``g``.
+    then ``q`` on its grid and ``g`` on the fine grid's (ratio 1.26) values within a
+    coarse step of it refined, with that law fixed. ``g > 0`` is kept only when its
+    BIC (one parameter more) is lower than that of :func:`fit_drift_and_law`'s result;
+    ties go to the smaller ``g``.
 
     Args:
         residual_mrad: ``(N, 2)`` validation residuals, mrad.
@@ -368,9 +373,11 @@ def fit_drift_terms_and_law(
     profile likelihood of the Student t family (every third ``nu`` of its grid and
     the Gaussian; the t keeps gross errors from inflating it) on every third value of
     its grid with the terms kept so far fixed; the law and ``q`` are fitted at that
-    rate, then ``q`` and the rate refined on their whole grids with that law fixed.
-    The term is kept only when its BIC (one parameter more) is lower than that of the
-    terms kept before it; ties go to the smaller rate.
+    rate, then ``q`` on its grid and the rate on its grid's values within a coarse
+    step of it refined, with that law fixed. The term is kept only when its BIC (one
+    parameter more) is lower than that of the terms kept before it; ties go to the
+    smaller rate. The creep is tried twice, beside the random walk and instead of it
+    (``q = 0``, as many parameters as before it).
 
     Args:
         residual_mrad: ``(N, 2)`` validation residuals, mrad.
@@ -398,30 +405,31 @@ def fit_drift_terms_and_law(
     bic, iq, law = _fit_law(*_grid(r, s, days))
     rates = dict.fromkeys(covariates, 0.0)
     extra = np.zeros(r.shape[0])
-    walk = days  # the random walk's days; zero once the creep has replaced it
+    walk: np.ndarray | None = days  # the random walk's days; None once the creep has replaced it
     for name in (n for n in DRIFT_TERMS if n in terms):
         x, grid = terms[name], DRIFT_TERMS[name]
         kept = sum(v > 0.0 for v in rates.values())
         # the creep is tried beside the random walk (one parameter more) and instead of
         # it (as many): two laws of the same drift that the validation span can hardly
         # tell apart, and which extrapolate differently (dt against dt^2)
-        variants = [(walk, kept + 1)] + ([(np.zeros_like(days), kept)] if name == "creep_days2" else [])
+        variants = [(walk, kept + 1)] + ([(None, kept)] if name == "creep_days2" and walk is not None else [])
         for walk_k, extra_parameters in variants:
             coarse = grid[::3]
             profile = [_best_t(*_grid(r, s, walk_k, extra + v * x), _PROFILE_DOFS)[2] for v in coarse]
-            rate = float(coarse[int(np.argmax(profile))])  # the first maximum: the smallest rate
-            if rate == 0.0:
+            ic = int(np.argmax(profile))  # the first maximum: the smallest rate
+            if ic == 0:
                 continue
-            _, _, law_k = _fit_law(*_grid(r, s, walk_k, extra + rate * x))
-            ll = np.stack([_law_log_likelihood(*_grid(r, s, walk_k, extra + v * x), law_k) for v in grid])  # (G, Q)
+            _, _, law_k = _fit_law(*_grid(r, s, walk_k, extra + coarse[ic] * x))
+            fine = np.arange(max(3 * ic - 2, 1), min(3 * ic + 3, grid.size))  # the coarse step's neighbours
+            ll = np.stack([_law_log_likelihood(*_grid(r, s, walk_k, extra + grid[i] * x), law_k) for i in fine])
             ig, iq_k = np.unravel_index(int(np.argmax(ll)), ll.shape)  # the first maximum: the smallest rate, then q
             bic_k = -2.0 * float(ll[ig, iq_k]) + (_LAW_PARAMETERS[law_k.kind] + extra_parameters) * penalty
-            if ig == 0 or not bic_k < bic:
+            if not bic_k < bic:
                 continue
-            rates[name] = float(grid[ig])
+            rates[name] = float(grid[fine[ig]])
             bic, iq, law, walk = bic_k, int(iq_k), law_k, walk_k
         extra = extra + rates[name] * x
-    return float(_DRIFT_GRID[iq]) if walk is days else 0.0, rates, law
+    return float(_DRIFT_GRID[iq]) if walk is not None else 0.0, rates, law
 
 
 _LAW_PARAMETERS = {"gaussian": 1, "student_t": 2, "gaussian_mixture": 3, "student_t_mixture": 4}

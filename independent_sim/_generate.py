@@ -131,7 +131,12 @@ def _feasible(recs, raw: dict, controller: Mount, targets, margin: int = 600) ->
 
 
 def _simulate(effect, amp, hp, plant: Mount, controller: Mount, site, ctx, aim, targets_file, targets_true):
-    """Counts and noise-free measured spots (ENU) of one heliostat's records under `effect`."""
+    """Counts, noise-free measured spots (ENU), mirror centres, approach directions and
+    what the plant records (its clock's unix time, the sun's compass azimuth and
+    elevation in deg as the controller computes them) of one heliostat's records
+    under `effect`. A plant stamps its records with the controller's clock and stores
+    the sun the controller aimed with: a clock or refraction error of the controller
+    reaches the records, not only the counts it chose."""
     t = ctx["time"]
     az, el = sun_compass(t, site[0], site[1])
     light = sun_vector_enu(az, el + refraction_deg(el))
@@ -176,7 +181,8 @@ def _simulate(effect, amp, hp, plant: Mount, controller: Mount, site, ctx, aim, 
         a1, a2 = _plane_axes(n_t)
         off = fx.camera_distortion(effect, amp, np.array([[(hit - c_true) @ a1, (hit - c_true) @ a2]]))[0]
         spots[i] = c_file + off[0] * a1 + off[1] * a2
-    return counts.astype(np.int64), spots, centre, direction
+    recorded = {"time": t_ctrl, "azimuth": az_c, "elevation": el_c + (1.0 - ignored) * refraction_deg(el_c)}
+    return counts.astype(np.int64), spots, centre, direction, recorded
 
 
 def generate(
@@ -299,17 +305,16 @@ def generate(
         ctrl = plant if controller == "calibrated" else nominal
         site = raw["heliostat_position"]
         hp = params["per_heliostat"][h]
-        counts, spots, centre, direction = _simulate(
+        counts, spots, centre, direction, recorded = _simulate(
             effect, amp, hp, plant, ctrl, site, ctx, aim, targets, targets_true
         )
-        _c0, spots0, _ce, _d = _simulate("none", 0.0, hp, plant, ctrl, site, ctx, aim, targets, targets_nominal)
+        spots0 = _simulate("none", 0.0, hp, plant, ctrl, site, ctx, aim, targets, targets_nominal)[1]
         dist = np.linalg.norm(spots - centre, axis=-1)
         all_dev.append(np.linalg.norm(spots - spots0, axis=-1) / dist * 1e3)
         (out / h / "Properties").mkdir(parents=True)
         (out / h / "Calibration").mkdir(parents=True)
         shutil.copyfile(properties_path(root, h), properties_path(out, h))
-        az, el = sun_compass(times[h], site[0], site[1])
-        el_app = el + refraction_deg(el)
+        az, el_app, stamp = recorded["azimuth"], recorded["elevation"], recorded["time"]
         for i, r in enumerate(recs):
             a1, a2 = _plane_axes(targets[r[2]][1])
             spot = spots[i] + noise_mrad * 1e-3 * dist[i] * (noise[i, 0] * a1 + noise[i, 1] * a2)
@@ -327,11 +332,11 @@ def generate(
                 float(to_paint_azimuth(az[i])),
                 lla,
             )
-            stamps_out[r[0]] = {"heliostat_id": h, "datetime": format_utc(r[1])}
+            stamps_out[r[0]] = {"heliostat_id": h, "datetime": format_utc(float(stamp[i]))}
             centre_lla = tower[r[2]]["coordinates"]["center"]
             row = {
                 "heliostat_id": h,
-                "timestamp": format_utc(r[1]),
+                "timestamp": format_utc(float(stamp[i])),
                 "sample_id": r[0],
                 "sun_elevation": float(el_app[i]),
                 "sun_azimuth": float(to_paint_azimuth(az[i])),

@@ -147,3 +147,23 @@ def test_plant_mount_reflects_every_noise_free_record_onto_its_spot(clean_suite)
             misses.append(np.arccos(np.clip(r @ d / np.linalg.norm(r), -1.0, 1.0)) * 1e3)
     assert len(misses) == 6 * 24
     assert max(misses) < 0.05  # mrad; refraction rounding of the written sun elevation aside
+
+
+def test_clock_and_refraction_of_the_controller_reach_the_records(shared_paint, tmp_path):
+    """A plant stamps its records with the controller's clock and stores the sun the
+    controller aimed with. Until 2026-12-06 the simulator wrote the true time and sun,
+    so a clock or refraction error only changed the counts the controller chose,
+    which no calibration from (counts, sun) to spot can see: noise-free, the base
+    model fitted those suites as exactly as the null suite (< 1e-3 mrad). Now they
+    leave a misfit, and the written sun is the sun at the written time (no record
+    skipped by the loader's check of the sun against the time)."""
+    medians = {}
+    for effect in ("clock", "refraction"):
+        out = tmp_path / effect
+        generate(effect, out, seed=3, noise_mrad=0.0, source=shared_paint, **SMALL)
+        fleet = hj.load_paint_directory(out)
+        assert fleet.report.skipped == () and fleet.report.records_loaded == 6 * 24
+        run = hj.calibrate(fleet, model="actuator", split="time", start="nominal")
+        medians[effect] = float(np.median([v["train_rms_mrad"] for v in run.summary["heliostats"].values()]))
+    # measured: clock 0.58, refraction 0.07 mrad (the null suite: 3e-5)
+    assert medians["clock"] > 0.2 and medians["refraction"] > 0.02, medians
