@@ -231,10 +231,37 @@ def _best_t(
 ) -> tuple[int, float, float]:
     """``(drift index, tail_dof, log-likelihood)`` of the most likely t (Gaussian
     included) among the degrees of freedom ``dofs`` (ascending, ``inf`` last)."""
-    ll = np.stack([_log_likelihood(d2, logdet, float(v)) for v in dofs], axis=1)  # (Q, V)
+    ll = _t_log_likelihoods(d2, logdet, dofs)  # (Q, V)
     # the last index of the maximum: among equally likely values, the Gaussian and the smallest drift
     iq, iv = np.unravel_index(np.argmax(ll[:, ::-1]), ll.shape)
     return int(iq), float(dofs[::-1][iv]), float(ll[iq, ll.shape[1] - 1 - iv])
+
+
+_BLOCK_ELEMENTS = 1 << 21
+"""Largest ``(V, Q, N)`` block of t log-densities :func:`_t_log_likelihoods` evaluates
+at once (16 MiB of float64)."""
+
+
+def _t_log_likelihoods(
+    d2: Float[np.ndarray, "Q N"], logdet: Float[np.ndarray, "Q N"], dofs: Float[np.ndarray, " V"]
+) -> Float[np.ndarray, "Q V"]:
+    """:func:`_log_likelihood` for every drift (rows) and degrees of freedom ``dofs``
+    (columns; ``inf``: Gaussian), the finite ones in blocks of at most
+    :data:`_BLOCK_ELEMENTS` log-densities (one numpy call per block, not per ``nu``;
+    the same values, summed in the same order)."""
+    dofs = np.asarray(dofs, float)
+    out = np.empty((d2.shape[0], dofs.size))
+    half_logdet = 0.5 * logdet
+    finite = np.flatnonzero(np.isfinite(dofs))
+    step = max(1, _BLOCK_ELEMENTS // max(d2.size, 1))
+    for start in range(0, finite.size, step):
+        columns = finite[start : start + step]
+        v = dofs[columns][:, None, None]
+        kernel = -(v / 2.0 + 1.0) * np.log1p(d2[None] / v)
+        out[:, columns] = np.sum(kernel - half_logdet[None], axis=-1).T
+    for column in np.flatnonzero(~np.isfinite(dofs)):
+        out[:, column] = np.sum(-0.5 * d2 - half_logdet, axis=-1)
+    return out
 
 
 _PROFILE_DOFS = np.append(_DOF_GRID[:-1][::3], np.inf)
