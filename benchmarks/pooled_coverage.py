@@ -140,7 +140,20 @@ def main() -> None:
         help="ablation: the predictive law's variance terms that may be tried (default: all of "
         "heliojax.DRIFT_TERMS; none: the random walk alone, as before 2026-12-06)",
     )
+    ap.add_argument(
+        "--holdout-fractions",
+        type=float,
+        nargs="+",
+        default=None,
+        metavar="F",
+        help="ablation: the predictive law's validation origins (default: heliojax's "
+        "DRIFT_HOLDOUT_FRACTIONS; 0.3 alone as before 2026-12-06, tenth session)",
+    )
     args = ap.parse_args()
+    if args.holdout_fractions is not None:
+        from heliojax import _workflow
+
+        _workflow.DRIFT_HOLDOUT_FRACTIONS = tuple(args.holdout_fractions)  # read by temporal_drift at each call
     if args.drift_terms is not None:
         from heliojax import _workflow
 
@@ -177,6 +190,7 @@ def main() -> None:
                 "outliers": args.outliers,
                 "amplitude": args.amplitude,
                 "drift_terms": args.drift_terms,
+                "holdout_fractions": args.holdout_fractions,
                 "drift_mrad2_per_day_per_seed": [o["drift_mrad2_per_day"] for o in runs],
                 "sky_gap_mrad2_per_deg_per_seed": [o["sky_gap_mrad2_per_deg"] for o in runs],
                 "creep_mrad2_per_day2_per_seed": [o["creep_mrad2_per_day2"] for o in runs],

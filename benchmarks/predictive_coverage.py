@@ -36,7 +36,20 @@ import heliojax as hj  # noqa: E402
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("data_dir", nargs="?", default=None, help="PAINT directory (default: the embedded subset)")
+    ap.add_argument(
+        "--holdout-fractions",
+        type=float,
+        nargs="+",
+        default=None,
+        metavar="F",
+        help="ablation: the predictive law's validation origins (default: heliojax's DRIFT_HOLDOUT_FRACTIONS; "
+        "0.3 alone as before 2026-12-06, tenth session)",
+    )
     args = ap.parse_args()
+    if args.holdout_fractions is not None:
+        from heliojax import _workflow
+
+        _workflow.DRIFT_HOLDOUT_FRACTIONS = tuple(args.holdout_fractions)  # read by temporal_drift at each call
     fleet = hj.load_paint_directory(args.data_dir or hj.default_data_dir())
     run = hj.calibrate(fleet)
     padded = run.fleet

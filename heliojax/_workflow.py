@@ -508,8 +508,14 @@ def _merge_stages(take: np.ndarray, a: _Stages, b: _Stages) -> _Stages:
 DRIFT_MIN_RECORDS = 8
 """Heliostats with at least this many training records lend their latest ones to
 :func:`temporal_drift`'s validation."""
-DRIFT_HOLDOUT_FRACTION = 0.3
-"""Fraction of such a heliostat's training records (its latest) predicted, not fitted."""
+DRIFT_HOLDOUT_FRACTIONS = (0.3, 0.5)
+"""Fractions of such a heliostat's training records (its latest) predicted, not fitted,
+one validation origin each: the latest 30 % from a fit on the earliest 70 %, the latest
+50 % from one on the earliest 50 %, so that the validation horizons reach half the
+records' span (a plant aims for months with a calibration; with the 30 % origin alone the
+law saw horizons of a few weeks to months only and, on the independent simulator, under
+drifts that grow in time predicted regions far too narrow for later records: README,
+"Two validation origins")."""
 DRIFT_MIN_VALIDATION = 10
 """Fewest predicted records (of converged heliostats) from which the drift and the error
 law are estimated; with fewer, no drift and the Gaussian law."""
@@ -590,7 +596,7 @@ def temporal_drift(
     fit_mask: np.ndarray,
     *,
     min_records: int = DRIFT_MIN_RECORDS,
-    fraction: float = DRIFT_HOLDOUT_FRACTION,
+    fractions: collections.abc.Sequence[float] | None = None,
 ) -> dict:
     """The fleet's pointing drift: how fast (mrad^2 per day, per tangent component)
     records *later* than the fitted ones spread beyond what the parameter covariance
@@ -610,11 +616,15 @@ def temporal_drift(
     :func:`heliojax.prediction_region_d2`.
 
     ``q`` and the law are estimated by time-blocked validation on the training
-    records only (the test records are never looked at): every heliostat with at
-    least ``min_records`` records in ``fit_mask`` holds out its latest ``fraction`` of
-    them; ``fit`` (the calibration's own fit, ``mask -> (solution, noise_mrad (H,),
-    outlier (H, M))``) is run on the rest; ``q``, ``g``, ``c`` and the law maximise the
-    likelihood of the held-out residuals, the family chosen by BIC and ``g > 0`` and
+    records only (the test records are never looked at), from each of several origins:
+    for each ``fraction`` of ``fractions`` (default :data:`DRIFT_HOLDOUT_FRACTIONS`),
+    every heliostat with at least
+    ``min_records`` records in ``fit_mask`` holds out its latest ``fraction`` of them;
+    ``fit`` (the calibration's own fit, ``mask -> (solution, noise_mrad (H,), outlier
+    (H, M))``) is run on the rest, and the held-out records are predicted from it. A
+    record held out at two origins counts once at each, with the fit, age and gaps of
+    each. ``q``, ``g``, ``c`` and the law maximise the likelihood of all these
+    residuals, the family chosen by BIC and ``g > 0`` and
     ``c > 0`` only where the BIC asks for them, ``c`` beside ``q`` or instead of it
     (:func:`heliojax.fit_drift_terms_and_law`). Gross errors and maintenance episodes
     among the held-out records go into the law's tails instead of inflating ``q``; a
@@ -626,49 +636,58 @@ def temporal_drift(
         "validation_records",
         "validation_heliostats", "validation_median_days", "validation_median_sky_gap_deg", "median_d2_without",
         "method"}`` (``error_law``: :meth:`PointingErrorLaw.to_dict`; ``tail_dof`` the
-        t's degrees of freedom, inf for the other laws); the rates are 0 and the law
-        Gaussian with fewer than :data:`DRIFT_MIN_VALIDATION` validation records.
+        t's degrees of freedom, inf for the other laws; ``validation_records`` counts a
+        record once per origin that predicts it); the rates are 0 and the law Gaussian
+        with fewer than :data:`DRIFT_MIN_VALIDATION` validation records.
     """
     fleet_mask = np.asarray(fleet.mask)
     unix_time = np.asarray(fleet.context.unix_time, float)
-    early, late = chronological_holdout(np.asarray(fit_mask) & fleet_mask, unix_time, min_records, fraction)
+    fractions = DRIFT_HOLDOUT_FRACTIONS if fractions is None else tuple(fractions)
+    shares = ", ".join(f"{f:.0%}" for f in fractions)
     method = (
         "random walk from the fitted state in time and across the sky, or a linear creep in time, bivariate "
         "Student t or Gaussian, with or without an outlier component (maximum likelihood, the family, the sky "
-        "term and the creep by BIC); rates and tails "
-        "from the "
-        f"latest {fraction:.0%} of the training records of heliostats with >= {min_records}, predicted from a fit "
-        "on the earlier ones"
+        f"term and the creep by BIC); rates and tails from the latest {shares} of the training records of "
+        f"heliostats with >= {min_records}, each predicted from a fit on the earlier ones"
     )
     out = _no_drift(method)
-    if late.sum() < DRIFT_MIN_VALIDATION:
-        out.update(validation_records=int(late.sum()), validation_heliostats=0, median_d2_without=None)
+    parts, heliostats, largest = [], np.zeros(fleet_mask.shape[0], bool), 0
+    for fraction in fractions:
+        early, late = chronological_holdout(np.asarray(fit_mask) & fleet_mask, unix_time, min_records, fraction)
+        largest = max(largest, int(late.sum()))
+        if late.sum() < DRIFT_MIN_VALIDATION:
+            continue
+        solution, noise, outlier = fit(early)
+        converged = np.asarray(solution.status) == FitStatus.CONVERGED
+        late = late & converged[:, None]
+        r, s = residual_prediction(solution, fleet, late)
+        s = s + (np.asarray(noise, float) ** 2)[:, None, None, None] * np.eye(2)
+        days = days_since_fit(early, unix_time, unix_time)
+        inliers = early & ~np.asarray(outlier, bool)
+        gap = record_sky_gap_deg(inliers, np.asarray(fleet.context.sun, float))
+        creep = days_from_fitted_mean(inliers, unix_time, unix_time) ** 2
+        use = late & np.all(np.isfinite(r), axis=-1) & np.all(np.isfinite(s), axis=(-2, -1)) & np.isfinite(days)
+        use &= np.isfinite(gap) & np.isfinite(creep)
+        heliostats |= np.any(use, axis=1)
+        parts.append((r[use], s[use], days[use], gap[use], creep[use]))
+    if not parts:  # the most records an origin would have held out
+        out.update(validation_records=largest, validation_heliostats=0, median_d2_without=None)
         return out
-    solution, noise, outlier = fit(early)
-    converged = np.asarray(solution.status) == FitStatus.CONVERGED
-    late = late & converged[:, None]
-    r, s = residual_prediction(solution, fleet, late)
-    s = s + (np.asarray(noise, float) ** 2)[:, None, None, None] * np.eye(2)
-    days = days_since_fit(early, unix_time, unix_time)
-    inliers = early & ~np.asarray(outlier, bool)
-    gap = record_sky_gap_deg(inliers, np.asarray(fleet.context.sun, float))
-    creep = days_from_fitted_mean(inliers, unix_time, unix_time) ** 2
-    use = late & np.all(np.isfinite(r), axis=-1) & np.all(np.isfinite(s), axis=(-2, -1)) & np.isfinite(days)
-    use &= np.isfinite(gap) & np.isfinite(creep)
-    r, s, days, gap, creep = r[use], s[use], days[use], gap[use], creep[use]
+    r, s, days, gap, creep = (np.concatenate(x) for x in zip(*parts, strict=True))
 
     def median_d2(q: float) -> float:
         total = s + (q * days)[:, None, None] * np.eye(2)
         return float(np.median(np.einsum("ni,nij,nj->n", r, np.linalg.inv(total), r)))
 
+    n = r.shape[0]
     out.update(
-        validation_records=int(use.sum()),
-        validation_heliostats=int(np.any(use, axis=1).sum()),
-        validation_median_days=float(np.median(days)) if use.any() else None,
-        validation_median_sky_gap_deg=float(np.median(gap)) if use.any() else None,
-        median_d2_without=median_d2(0.0) if use.any() else None,
+        validation_records=n,
+        validation_heliostats=int(heliostats.sum()),
+        validation_median_days=float(np.median(days)) if n else None,
+        validation_median_sky_gap_deg=float(np.median(gap)) if n else None,
+        median_d2_without=median_d2(0.0) if n else None,
     )
-    if use.sum() < DRIFT_MIN_VALIDATION:
+    if n < DRIFT_MIN_VALIDATION:
         return out
     q, rates, law = fit_drift_terms_and_law(r, s, days, sky_gap_deg=gap, creep_days2=creep)
     out.update(

@@ -73,13 +73,13 @@ def test_drift_is_zero_for_a_correct_model_and_covers_a_random_walk(drift):
     """Training = each heliostat's first 70 % of records, test = the rest; the drift
     is estimated from the training records alone. With the beams on a random walk
     (0.05 mrad^2/day, i.e. ~2 mrad after 100 days) the drift widens the later
-    records' 95 % ellipses from 31 % to 74 % coverage (measured; with the true rate:
-    86 %). The validation records cannot tell this walk from a linear creep: the walk
-    within the training span inflates the fit's noise estimate (0.5-1 mrad against
-    0.25), which then explains the validation records' spread near the fit, so that
-    the spread seems to grow faster than linearly in time. The law takes the creep
-    term instead of the walk (``q = 0``; with the walk alone, ``q`` = 0.020 and 69 %;
-    README, "Predictive uncertainty")."""
+    records' 95 % ellipses from 31 % to 78 % coverage (measured, two validation
+    origins; 74 % from the latest 30 % alone; with the true rate: 86 %). The validation
+    records cannot tell this walk from a linear creep: the walk within the training
+    span inflates the fit's noise estimate (0.5-1 mrad against 0.25), which then
+    explains the validation records' spread near the fit, so that the spread seems to
+    grow faster than linearly in time. The law takes the creep term instead of the
+    walk (``q = 0``; README, "A creep term")."""
     fleet, _ = simulate_fleet(3, 12, 60, base="stone8", noise_mrad=0.25)
     if drift:
         fleet = _with_random_walk(fleet, 0.05, seed=1)
@@ -90,8 +90,9 @@ def test_drift_is_zero_for_a_correct_model_and_covers_a_random_walk(drift):
     assert out["validation_heliostats"] == 12 and out["validation_records"] >= 12 * 8
     rate, creep = out["drift_mrad2_per_day"], out["creep_mrad2_per_day2"]
     if not drift:
-        # the median of 120+ chi-square(2) values is within ~15 % of 2 ln 2: the rate stays ~0
-        assert rate * out["validation_median_days"] < 0.01  # mrad^2: far below the noise variance 0.0625
+        # 240+ validation residuals (two origins): the rate stays ~0 (measured 0.016 mrad^2 at
+        # the median horizon of 103 days, with the latest 30 % alone 0.006 at 50 days)
+        assert rate * out["validation_median_days"] < 0.025  # mrad^2: far below the noise variance 0.0625
         assert creep == 0.0
         assert 0.9 <= _coverage_95(fleet, train, test, rate) <= 1.0
     else:
@@ -120,15 +121,20 @@ def test_a_growing_drift_is_under_covered():
 
 @pytest.fixture(scope="module")
 def embedded_run():
-    """The embedded data calibrated by least squares without change points (read only)."""
-    return hj.calibrate(hj.load_paint_directory(hj.default_data_dir()), robust=False, changes=False)
+    """The embedded data calibrated by least squares without change points, its
+    predictive law kept to the random walk (the sky-gap and creep rates set to 0; each
+    term's own test sets its rate) (read only)."""
+    run = hj.calibrate(hj.load_paint_directory(hj.default_data_dir()), robust=False, changes=False)
+    walk_only = {**run.predictive, "sky_gap_mrad2_per_deg": 0.0, "creep_mrad2_per_day2": 0.0}
+    return dataclasses.replace(run, predictive=walk_only)
 
 
 def test_calibrate_reports_the_drift_and_aiming_adds_it(tmp_path, embedded_run):
     """summary.json and results.h5 carry the drift rate; aim_results adds rate x days
     since each heliostat's last fitted record to every command's covariance."""
     run = embedded_run
-    predictive = run.summary["predictive"]
+    predictive = run.predictive
+    assert run.summary["predictive"]["drift_mrad2_per_day"] == predictive["drift_mrad2_per_day"]
     assert predictive["validation_records"] > 0 and predictive["drift_mrad2_per_day"] > 0.0
     # each record's d^2 under its full predicted scale: parameters + noise + drift x age
     d2 = hj.prediction_d2(run, np.asarray(run.test_mask))
