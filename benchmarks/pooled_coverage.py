@@ -37,6 +37,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
+from _ablation import add_holdout_fractions, apply_holdout_fractions  # noqa: E402 (benchmarks/)
 
 import heliojax as hj  # noqa: E402
 
@@ -140,20 +141,9 @@ def main() -> None:
         help="ablation: the predictive law's variance terms that may be tried (default: all of "
         "heliojax.DRIFT_TERMS; none: the random walk alone, as before 2026-12-06)",
     )
-    ap.add_argument(
-        "--holdout-fractions",
-        type=float,
-        nargs="+",
-        default=None,
-        metavar="F",
-        help="ablation: the predictive law's validation origins (default: heliojax's "
-        "DRIFT_HOLDOUT_FRACTIONS; 0.3 alone as before 2026-12-06, tenth session)",
-    )
+    add_holdout_fractions(ap)
     args = ap.parse_args()
-    if args.holdout_fractions is not None:
-        from heliojax import _workflow
-
-        _workflow.DRIFT_HOLDOUT_FRACTIONS = tuple(args.holdout_fractions)  # read by temporal_drift at each call
+    apply_holdout_fractions(args)
     if args.drift_terms is not None:
         from heliojax import _workflow
 

@@ -206,6 +206,24 @@ def test_record_sky_gap_against_a_loop():
     assert np.all(gap[fitted] < 1e-5) and np.all(np.isinf(gap[3]))  # sqrt(2 eps) rad: 1.2e-6 deg
 
 
+def _aim_with_and_without(tmp_path, changed, run):
+    """Both runs written to results.h5 and loaded, then aimed at a point 60 m above the
+    origin at 2024-06-21 09:00 UTC: ``(changed results, AimResult of the changed run,
+    the covariance difference (H, 1, 2, 2), the heliostats aimed (H,), sun, aim point)``."""
+    hj.write_results_h5(tmp_path / "results.h5", changed)
+    results = hj.load_results(tmp_path / "results.h5")
+    unix_now = np.array([hj.datetime_to_unix("2024-06-21T09:00:00Z")])
+    sun = hj.solar_position(jnp.asarray(unix_now), *np.asarray(results.attrs["origin_lla"])).direction_enu()
+    aim = jnp.asarray([0.0, 0.0, 60.0])
+    aimed = hj.aim_results(results, sun, aim, unix_time=unix_now)
+    hj.write_results_h5(tmp_path / "plain.h5", run)
+    plain = hj.aim_results(hj.load_results(tmp_path / "plain.h5"), sun, aim, unix_time=unix_now)
+    difference = np.asarray(aimed.pointing_cov_mrad2) - np.asarray(plain.pointing_cov_mrad2)
+    fitted = np.isfinite(difference).all(axis=(1, 2, 3))
+    assert fitted.sum() >= 3
+    return results, aimed, difference, fitted, sun, aim
+
+
 def test_the_sky_gap_term_enters_prediction_and_aiming(tmp_path, embedded_run):
     """A run whose law has a sky-gap rate ``g``: ``prediction_d2`` scales each record by
     ``g`` times its gap to the fitted inliers' suns; results.h5 keeps ``g``; aiming adds
@@ -229,18 +247,8 @@ def test_the_sky_gap_term_enters_prediction_and_aiming(tmp_path, embedded_run):
         checked += 1
     assert checked == 5
     assert np.all(d2[np.isfinite(d2)] <= hj.prediction_d2(run, test)[np.isfinite(d2)])
-    hj.write_results_h5(tmp_path / "results.h5", gapped)
-    results = hj.load_results(tmp_path / "results.h5")
+    results, with_gap, difference, fitted, sun, aim = _aim_with_and_without(tmp_path, gapped, run)
     assert results.sky_gap_mrad2_per_deg == g
-    unix_now = np.array([hj.datetime_to_unix("2024-06-21T09:00:00Z")])
-    sun = hj.solar_position(jnp.asarray(unix_now), *np.asarray(results.attrs["origin_lla"])).direction_enu()
-    aim = jnp.asarray([0.0, 0.0, 60.0])
-    with_gap = hj.aim_results(results, sun, aim, unix_time=unix_now)
-    hj.write_results_h5(tmp_path / "plain.h5", run)
-    plain = hj.aim_results(hj.load_results(tmp_path / "plain.h5"), sun, aim, unix_time=unix_now)
-    difference = np.asarray(with_gap.pointing_cov_mrad2) - np.asarray(plain.pointing_cov_mrad2)
-    fitted = np.isfinite(difference).all(axis=(1, 2, 3))
-    assert fitted.sum() >= 3
     sky_gap = np.asarray(with_gap.sky_gap_deg)[fitted][:, 0]
     assert np.all(sky_gap > 0.0)
     np.testing.assert_allclose(difference[fitted][:, 0], g * sky_gap[:, None, None] * np.eye(2), rtol=1e-9, atol=1e-12)
@@ -271,21 +279,12 @@ def test_the_creep_term_enters_prediction_and_aiming(tmp_path, embedded_run):
         assert d2[h, j] == pytest.approx(r[h, j] @ np.linalg.solve(scale, r[h, j]), rel=1e-10)
         checked += 1
     assert checked == 5
-    hj.write_results_h5(tmp_path / "results.h5", creeping)
-    results = hj.load_results(tmp_path / "results.h5")
+    results, _, difference, fitted, _, _ = _aim_with_and_without(tmp_path, creeping, run)
     assert results.creep_mrad2_per_day2 == c
-    unix_now = np.array([hj.datetime_to_unix("2024-06-21T09:00:00Z")])
-    sun = hj.solar_position(jnp.asarray(unix_now), *np.asarray(results.attrs["origin_lla"])).direction_enu()
-    aim = jnp.asarray([0.0, 0.0, 60.0])
-    with_creep = hj.aim_results(results, sun, aim, unix_time=unix_now)
-    hj.write_results_h5(tmp_path / "plain.h5", run)
-    plain = hj.aim_results(hj.load_results(tmp_path / "plain.h5"), sun, aim, unix_time=unix_now)
-    difference = np.asarray(with_creep.pointing_cov_mrad2) - np.asarray(plain.pointing_cov_mrad2)
-    fitted = np.isfinite(difference).all(axis=(1, 2, 3))
-    assert fitted.sum() >= 3
+    unix_now = hj.datetime_to_unix("2024-06-21T09:00:00Z")
     split, times = results.records["split"], results.records["unix_time"] / 86400.0
     inlier = (split == 1) & ~results.records["outlier"].astype(bool)
-    b = np.array([unix_now[0] / 86400.0 - times[i][inlier[i]].mean() for i in np.flatnonzero(fitted)])
+    b = np.array([unix_now / 86400.0 - times[i][inlier[i]].mean() for i in np.flatnonzero(fitted)])
     assert np.all(b > 100.0)  # the instant is months after the records
     np.testing.assert_allclose(difference[fitted][:, 0], c * b[:, None, None] ** 2 * np.eye(2), rtol=1e-9, atol=1e-12)
 
