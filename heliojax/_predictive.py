@@ -187,18 +187,22 @@ def region_radius(largest_scale_eigenvalue, probability: float, law: PointingErr
     return (prediction_region_d2(probability, law) * largest_scale_eigenvalue) ** 0.5
 
 
-def _kernel(d2: Float[np.ndarray, "*n"], dof: float) -> Float[np.ndarray, "*n"]:
-    """Log-density of a bivariate t with ``dof`` degrees of freedom (``inf``: Gaussian)
-    at squared Mahalanobis radius ``d2``, less ``log 2 pi`` and half the scale's log
-    determinant (the t's normalising constant in 2-D does not depend on ``dof``)."""
-    return -0.5 * d2 if math.isinf(dof) else -(dof / 2.0 + 1.0) * np.log1p(d2 / dof)
+def _kernel(d2: Float[np.ndarray, "*#n"], dof: float | Float[np.ndarray, "*#n"]) -> Float[np.ndarray, "..."]:
+    """Log-density of a bivariate t with ``dof`` degrees of freedom (``inf``: Gaussian;
+    or an array of finite ones, broadcast against ``d2``) at squared Mahalanobis radius
+    ``d2``, less ``log 2 pi`` and half the scale's log determinant (the t's normalising
+    constant in 2-D does not depend on ``dof``)."""
+    if np.ndim(dof) == 0 and math.isinf(dof):
+        return -0.5 * d2
+    return -(dof / 2.0 + 1.0) * np.log1p(d2 / dof)
 
 
 def _log_likelihood(
-    d2: Float[np.ndarray, "Q N"], logdet: Float[np.ndarray, "Q N"], dof: float
-) -> Float[np.ndarray, " Q"]:
+    d2: Float[np.ndarray, "*#v Q N"], logdet: Float[np.ndarray, "*#v Q N"], dof: float | Float[np.ndarray, "*#v 1 1"]
+) -> Float[np.ndarray, "..."]:
     """Summed log-likelihood (less ``N log 2 pi``) of bivariate t residuals with
-    ``dof`` degrees of freedom (``inf``: Gaussian) for each drift (rows)."""
+    ``dof`` degrees of freedom (``inf``: Gaussian; or finite ones along leading axes)
+    for each drift (rows)."""
     return np.sum(_kernel(d2, dof) - 0.5 * logdet, axis=-1)
 
 
@@ -251,16 +255,13 @@ def _t_log_likelihoods(
     the same values, summed in the same order)."""
     dofs = np.asarray(dofs, float)
     out = np.empty((d2.shape[0], dofs.size))
-    half_logdet = 0.5 * logdet
     finite = np.flatnonzero(np.isfinite(dofs))
     step = max(1, _BLOCK_ELEMENTS // max(d2.size, 1))
     for start in range(0, finite.size, step):
         columns = finite[start : start + step]
-        v = dofs[columns][:, None, None]
-        kernel = -(v / 2.0 + 1.0) * np.log1p(d2[None] / v)
-        out[:, columns] = np.sum(kernel - half_logdet[None], axis=-1).T
+        out[:, columns] = _log_likelihood(d2[None], logdet[None], dofs[columns][:, None, None]).T
     for column in np.flatnonzero(~np.isfinite(dofs)):
-        out[:, column] = np.sum(-0.5 * d2 - half_logdet, axis=-1)
+        out[:, column] = _log_likelihood(d2, logdet, math.inf)
     return out
 
 
@@ -383,6 +384,15 @@ order it tries them, with their rate grids: ``sky_gap_deg`` (rate ``g``, mrad^2 
 degree of sky gap) and ``creep_days2`` (rate ``c``, mrad^2 per day^2, the square of
 the days from the fitted records' mean time, :func:`heliojax.days_from_fitted_mean`)."""
 
+DRIFT_RATE_KEYS = {"sky_gap_deg": "sky_gap_mrad2_per_deg", "creep_days2": "creep_mrad2_per_day2"}
+"""The key of each drift term's rate in the predictive entry
+(:func:`heliojax.temporal_drift`, ``summary.json``) and in ``results.h5``'s attributes."""
+
+_WALK_ALTERNATIVES = frozenset({"creep_days2"})
+"""The terms of :data:`DRIFT_TERMS` also tried *instead of* the random walk: laws of
+the same drift in time that the validation span can hardly tell from the walk, and
+that extrapolate differently (``dt^2`` against ``dt``)."""
+
 
 def fit_drift_terms_and_law(
     residual_mrad: Float[np.ndarray, "N 2"],
@@ -436,10 +446,9 @@ def fit_drift_terms_and_law(
     for name in (n for n in DRIFT_TERMS if n in terms):
         x, grid = terms[name], DRIFT_TERMS[name]
         kept = sum(v > 0.0 for v in rates.values())
-        # the creep is tried beside the random walk (one parameter more) and instead of
-        # it (as many): two laws of the same drift that the validation span can hardly
-        # tell apart, and which extrapolate differently (dt against dt^2)
-        variants = [(walk, kept + 1)] + ([(None, kept)] if name == "creep_days2" and walk is not None else [])
+        # beside the random walk (one parameter more); an alternative to the walk also
+        # instead of it (as many parameters)
+        variants = [(walk, kept + 1)] + ([(None, kept)] if name in _WALK_ALTERNATIVES and walk is not None else [])
         for walk_k, extra_parameters in variants:
             coarse = grid[::3]
             profile = [_best_t(*_grid(r, s, walk_k, extra + v * x), _PROFILE_DOFS)[2] for v in coarse]

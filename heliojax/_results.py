@@ -71,7 +71,7 @@ from ._heliostat import HeliostatGeometry, LinearActuators
 from ._io import atomic_h5
 from ._kinematics import AbstractKinematicModel, nominal_model
 from ._parameters import ParameterView, broadcast_model
-from ._predictive import PointingErrorLaw
+from ._predictive import DRIFT_RATE_KEYS, PointingErrorLaw
 from ._splits import days_from_fitted_mean, days_since_fit
 from ._version import __version__
 from .effects import with_effects
@@ -316,9 +316,8 @@ def write_results_h5(path: str | Path, run: typing.Any) -> None:
         f.attrs["free_params"] = json.dumps(list(view.free_names))
         f.attrs["robust"] = bool(run.summary.get("robust", False))
         f.attrs["origin_lla"] = np.asarray(run.fleet.origin_lla, float)
-        f.attrs["drift_mrad2_per_day"] = float(run.predictive.get("drift_mrad2_per_day", 0.0))
-        f.attrs["sky_gap_mrad2_per_deg"] = float(run.predictive.get("sky_gap_mrad2_per_deg", 0.0))
-        f.attrs["creep_mrad2_per_day2"] = float(run.predictive.get("creep_mrad2_per_day2", 0.0))
+        for key in _RATE_ATTRS:
+            f.attrs[key] = float(run.predictive.get(key, 0.0))
         law = PointingErrorLaw.from_dict(run.predictive.get("error_law"))
         f.attrs["tail_dof"] = law.tail_dof
         f.attrs["outlier_fraction"] = law.outlier_fraction
@@ -448,17 +447,22 @@ class CalibrationResults:
         variance = np.zeros((len(self.ids), when.size))
         if self.drift_mrad2_per_day == 0.0 and self.creep_mrad2_per_day2 == 0.0:
             return variance
-        fitted_records = (self.records["split"] == 1) & ~self.records["superseded"].astype(bool)
         if self.drift_mrad2_per_day != 0.0:
-            variance = variance + self.drift_mrad2_per_day * days_since_fit(
-                fitted_records, self.records["unix_time"], when
-            )
+            age = days_since_fit(self._fitted_records(inliers=False), self.records["unix_time"], when)
+            variance = variance + self.drift_mrad2_per_day * age
         if self.creep_mrad2_per_day2 != 0.0:
-            if "outlier" in self.records:
-                fitted_records = fitted_records & ~self.records["outlier"].astype(bool)
-            days = days_from_fitted_mean(fitted_records, self.records["unix_time"], when)
+            days = days_from_fitted_mean(self._fitted_records(inliers=True), self.records["unix_time"], when)
             variance = variance + self.creep_mrad2_per_day2 * days**2
         return variance
+
+    def _fitted_records(self, *, inliers: bool) -> Bool[np.ndarray, "H M"]:
+        """``(H, M)`` the training records the model was fitted to (not superseded by a
+        change point), with ``inliers`` the outliers among them left out too."""
+        fitted = self.records["split"] == 1
+        for name in ("superseded", "outlier") if inliers else ("superseded",):
+            if name in self.records:
+                fitted = fitted & ~self.records[name].astype(bool)
+        return fitted
 
     def fitted_sun(self) -> tuple[Float[np.ndarray, "H M 3"], Bool[np.ndarray, "H M"]] | None:
         """``(sun, fitted_record)``: ``(H, M, 3)`` unit ENU vectors to the sun of every
@@ -471,11 +475,7 @@ class CalibrationResults:
         el = np.radians(np.asarray(self.records["sun_elevation_deg"], float))
         known = np.isfinite(az) & np.isfinite(el)
         sun = np.asarray(sun_direction(np.where(known, az, 0.0), np.where(known, el, 0.0)))
-        fitted = (self.records["split"] == 1) & known
-        for name in ("superseded", "outlier"):
-            if name in self.records:
-                fitted &= ~self.records[name].astype(bool)
-        return np.where(known[..., None], sun, 0.0), fitted
+        return np.where(known[..., None], sun, 0.0), self._fitted_records(inliers=True) & known
 
     @property
     def fitted(self) -> np.ndarray:
@@ -517,6 +517,12 @@ _RECORD_FIELDS = (
 )
 
 
+_TIMED_RATES = ("drift_mrad2_per_day", "creep_mrad2_per_day2")
+"""The rates of the predictive law that grow with the time since the fit: with either,
+the records of the fit's split need their times."""
+_RATE_ATTRS = ("drift_mrad2_per_day", *DRIFT_RATE_KEYS.values())
+"""The predictive law's rates, kept as attributes of ``results.h5`` under their keys in
+``summary.json``'s ``predictive`` (:func:`heliojax.temporal_drift`)."""
 _LAW_ATTRS = (
     ("drift_mrad2_per_day", 0.0, 1e6),  # a beam spread by a radian a day is no calibration
     ("sky_gap_mrad2_per_deg", 0.0, 1e6),  # nor by a radian per degree of sky
@@ -706,8 +712,7 @@ def _load_results(path: str | Path) -> CalibrationResults:
             split_times = records["unix_time"][records["split"] != 0]
             if np.isinf(split_times).any():
                 raise DataError(source, "unix_time", "not finite for a record of the fit's split")
-            timed = ("drift_mrad2_per_day", "creep_mrad2_per_day2")
-            if np.isnan(split_times).any() and any(float(f.attrs.get(k, 0.0)) != 0.0 for k in timed):
+            if np.isnan(split_times).any() and any(float(f.attrs.get(k, 0.0)) != 0.0 for k in _TIMED_RATES):
                 raise DataError(
                     source, "unix_time", "unknown (NaN) for a record of the fit's split, with a drift since the fit"
                 )
@@ -800,7 +805,7 @@ def _load_results(path: str | Path) -> CalibrationResults:
         for key in ("residual_mrad", "residual_uncalibrated_mrad"):
             if key in records and not np.isfinite(records[key][fitted_records]).all():
                 raise DataError(source, key, "not finite for a record of a heliostat whose fit converged")
-    if float(attrs.get("drift_mrad2_per_day", 0.0)) != 0.0 or float(attrs.get("creep_mrad2_per_day2", 0.0)) != 0.0:
+    if any(float(attrs.get(k, 0.0)) != 0.0 for k in _TIMED_RATES):
         for key in ("split", "unix_time"):
             if key not in records:
                 raise DataError(source, key, "missing dataset (needed for the drift since the fit)")

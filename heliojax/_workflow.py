@@ -28,7 +28,7 @@ from ._fleet import bucket_size, pad_fleet, records_among
 from ._geometry import direction_to_azimuth_elevation
 from ._io import atomic_write
 from ._kinematics import AbstractKinematicModel, nominal_model
-from ._predictive import PointingErrorLaw, fit_drift_terms_and_law
+from ._predictive import DRIFT_RATE_KEYS, PointingErrorLaw, fit_drift_terms_and_law
 from ._programs import warm_up
 from ._progress import activity
 from ._splits import chronological_holdout, days_from_fitted_mean, days_since_fit, record_sky_gap_deg, split_fleet
@@ -562,14 +562,11 @@ def prediction_d2(run: CalibrationRun, mask: np.ndarray | None = None) -> np.nda
     noise = np.full(h, np.nan) if run.noise_mrad is None else np.asarray(run.noise_mrad, float)
     noise = np.pad(noise, (0, max(h - noise.size, 0)), constant_values=np.nan)[:h]
     q = float(run.predictive.get("drift_mrad2_per_day", 0.0))
-    g = float(run.predictive.get("sky_gap_mrad2_per_deg", 0.0))
-    c = float(run.predictive.get("creep_mrad2_per_day2", 0.0))
     extra = q * np.nan_to_num(days)
     inliers = fitted if run.outlier is None else fitted & ~np.asarray(run.outlier, bool)
-    if g > 0.0:
-        extra = extra + g * record_sky_gap_deg(inliers, np.asarray(padded.context.sun, float))
-    if c > 0.0:
-        extra = extra + c * np.nan_to_num(days_from_fitted_mean(inliers, unix, unix)) ** 2
+    rates = {term: float(run.predictive.get(key, 0.0)) for term, key in DRIFT_RATE_KEYS.items()}
+    for term, x in _term_covariates(inliers, padded, [t for t, rate in rates.items() if rate > 0.0]).items():
+        extra = extra + rates[term] * x
     total = s + (noise[:, None] ** 2 + extra)[..., None, None] * np.eye(2)
     ok = use & np.all(np.isfinite(r), axis=-1) & np.all(np.isfinite(total), axis=(-2, -1))
     safe = np.where(ok[..., None, None], total, np.eye(2))
@@ -578,12 +575,31 @@ def prediction_d2(run: CalibrationRun, mask: np.ndarray | None = None) -> np.nda
     return np.where(ok, d2, np.nan)
 
 
+def _term_covariates(inliers: np.ndarray, fleet, terms: collections.abc.Iterable[str]) -> dict[str, np.ndarray]:
+    """``(H, M)`` covariate of each of the drift ``terms`` (:data:`heliojax.DRIFT_TERMS`)
+    for every record of ``fleet``, from the fitted records that are not outliers
+    (``inliers`` ``(H, M)``): ``sky_gap_deg``, the angle (deg) from the record's sun to
+    theirs (:func:`heliojax.record_sky_gap_deg`; inf for a heliostat without one) and
+    ``creep_days2``, the squared days from their mean time
+    (:func:`heliojax.days_from_fitted_mean`; 0 for a heliostat without one, whose sky
+    gap is inf)."""
+    out = {}
+    for term in terms:
+        if term == "sky_gap_deg":
+            out[term] = record_sky_gap_deg(inliers, np.asarray(fleet.context.sun, float))
+        elif term == "creep_days2":
+            unix = np.asarray(fleet.context.unix_time, float)
+            out[term] = np.nan_to_num(days_from_fitted_mean(inliers, unix, unix)) ** 2
+        else:
+            raise ValueError(f"unknown drift term {term!r}; expected one of {sorted(DRIFT_RATE_KEYS)}")
+    return out
+
+
 def _no_drift(method: str) -> dict[str, typing.Any]:
     """The predictive entry without a drift and with the Gaussian law."""
     return {
         "drift_mrad2_per_day": 0.0,
-        "sky_gap_mrad2_per_deg": 0.0,
-        "creep_mrad2_per_day2": 0.0,
+        **dict.fromkeys(DRIFT_RATE_KEYS.values(), 0.0),
         "tail_dof": math.inf,
         "error_law": PointingErrorLaw().to_dict(),
         "method": method,
@@ -663,17 +679,17 @@ def temporal_drift(
         r, s = residual_prediction(solution, fleet, late)
         s = s + (np.asarray(noise, float) ** 2)[:, None, None, None] * np.eye(2)
         days = days_since_fit(early, unix_time, unix_time)
-        inliers = early & ~np.asarray(outlier, bool)
-        gap = record_sky_gap_deg(inliers, np.asarray(fleet.context.sun, float))
-        creep = days_from_fitted_mean(inliers, unix_time, unix_time) ** 2
+        covariates = _term_covariates(early & ~np.asarray(outlier, bool), fleet, DRIFT_RATE_KEYS)
         use = late & np.all(np.isfinite(r), axis=-1) & np.all(np.isfinite(s), axis=(-2, -1)) & np.isfinite(days)
-        use &= np.isfinite(gap) & np.isfinite(creep)
+        for x in covariates.values():
+            use &= np.isfinite(x)
         heliostats |= np.any(use, axis=1)
-        parts.append((r[use], s[use], days[use], gap[use], creep[use]))
+        parts.append((r[use], s[use], days[use], {term: x[use] for term, x in covariates.items()}))
     if not parts:  # the most records an origin would have held out
         out.update(validation_records=largest, validation_heliostats=0, median_d2_without=None)
         return out
-    r, s, days, gap, creep = (np.concatenate(x) for x in zip(*parts, strict=True))
+    r, s, days = (np.concatenate([p[i] for p in parts]) for i in range(3))
+    covariates = {term: np.concatenate([p[3][term] for p in parts]) for term in DRIFT_RATE_KEYS}
 
     def median_d2(q: float) -> float:
         total = s + (q * days)[:, None, None] * np.eye(2)
@@ -684,19 +700,14 @@ def temporal_drift(
         validation_records=n,
         validation_heliostats=int(heliostats.sum()),
         validation_median_days=float(np.median(days)) if n else None,
-        validation_median_sky_gap_deg=float(np.median(gap)) if n else None,
+        validation_median_sky_gap_deg=float(np.median(covariates["sky_gap_deg"])) if n else None,
         median_d2_without=median_d2(0.0) if n else None,
     )
     if n < DRIFT_MIN_VALIDATION:
         return out
-    q, rates, law = fit_drift_terms_and_law(r, s, days, sky_gap_deg=gap, creep_days2=creep)
-    out.update(
-        drift_mrad2_per_day=q,
-        sky_gap_mrad2_per_deg=rates["sky_gap_deg"],
-        creep_mrad2_per_day2=rates["creep_days2"],
-        tail_dof=law.tail_dof,
-        error_law=law.to_dict(),
-    )
+    q, rates, law = fit_drift_terms_and_law(r, s, days, **covariates)
+    out.update(drift_mrad2_per_day=q, tail_dof=law.tail_dof, error_law=law.to_dict())
+    out.update({key: rates[term] for term, key in DRIFT_RATE_KEYS.items()})
     return out
 
 

@@ -224,6 +224,26 @@ def _aim_with_and_without(tmp_path, changed, run):
     return results, aimed, difference, fitted, sun, aim
 
 
+def _check_five_d2_by_hand(run, changed, term_variance):
+    """``prediction_d2`` of ``changed`` (``run`` with a rate changed) on the test records
+    against a hand calculation for five of them: scale ``J C J^T + (noise^2 + q a +
+    term_variance(h, j)) I``. Returns that ``d2`` ``(H, M)``."""
+    test = np.asarray(run.test_mask)
+    d2 = hj.prediction_d2(changed, test)
+    padded = run.fleet
+    r, cov = hj.residual_prediction(run.result, padded, test)
+    unix = np.asarray(padded.context.unix_time)
+    age = hj.days_since_fit(np.asarray(run.train_mask), unix, unix)
+    q = run.predictive["drift_mrad2_per_day"]
+    checked = 0
+    for h, j in np.argwhere(np.isfinite(d2))[:5]:
+        scale = cov[h, j] + (run.noise_mrad[h] ** 2 + q * age[h, j] + term_variance(h, j)) * np.eye(2)
+        assert d2[h, j] == pytest.approx(r[h, j] @ np.linalg.solve(scale, r[h, j]), rel=1e-10)
+        checked += 1
+    assert checked == 5
+    return d2
+
+
 def test_the_sky_gap_term_enters_prediction_and_aiming(tmp_path, embedded_run):
     """A run whose law has a sky-gap rate ``g``: ``prediction_d2`` scales each record by
     ``g`` times its gap to the fitted inliers' suns; results.h5 keeps ``g``; aiming adds
@@ -231,21 +251,14 @@ def test_the_sky_gap_term_enters_prediction_and_aiming(tmp_path, embedded_run):
     run = embedded_run
     g = 0.04
     gapped = dataclasses.replace(run, predictive={**run.predictive, "sky_gap_mrad2_per_deg": g})
-    test = np.asarray(run.test_mask)
-    d2 = hj.prediction_d2(gapped, test)
-    padded = run.fleet
-    r, cov = hj.residual_prediction(run.result, padded, test)
-    unix = np.asarray(padded.context.unix_time)
-    age = hj.days_since_fit(np.asarray(run.train_mask), unix, unix)
-    gap = hj.record_sky_gap_deg(np.asarray(run.train_mask), np.asarray(padded.context.sun))
-    q = run.predictive["drift_mrad2_per_day"]
-    checked = 0
-    for h, j in np.argwhere(np.isfinite(d2))[:5]:
+    gap = hj.record_sky_gap_deg(np.asarray(run.train_mask), np.asarray(run.fleet.context.sun))
+
+    def gap_variance(h, j):
         assert gap[h, j] > 0.0
-        scale = cov[h, j] + (run.noise_mrad[h] ** 2 + q * age[h, j] + g * gap[h, j]) * np.eye(2)
-        assert d2[h, j] == pytest.approx(r[h, j] @ np.linalg.solve(scale, r[h, j]), rel=1e-10)
-        checked += 1
-    assert checked == 5
+        return g * gap[h, j]
+
+    d2 = _check_five_d2_by_hand(run, gapped, gap_variance)
+    test = np.asarray(run.test_mask)
     assert np.all(d2[np.isfinite(d2)] <= hj.prediction_d2(run, test)[np.isfinite(d2)])
     results, with_gap, difference, fitted, sun, aim = _aim_with_and_without(tmp_path, gapped, run)
     assert results.sky_gap_mrad2_per_deg == g
@@ -263,22 +276,14 @@ def test_the_creep_term_enters_prediction_and_aiming(tmp_path, embedded_run):
     run = embedded_run
     c = 2e-5
     creeping = dataclasses.replace(run, predictive={**run.predictive, "creep_mrad2_per_day2": c})
-    test = np.asarray(run.test_mask)
-    d2 = hj.prediction_d2(creeping, test)
-    padded = run.fleet
-    r, cov = hj.residual_prediction(run.result, padded, test)
-    unix = np.asarray(padded.context.unix_time)
+    unix = np.asarray(run.fleet.context.unix_time)
     train = np.asarray(run.train_mask)
-    age = hj.days_since_fit(train, unix, unix)
-    q = run.predictive["drift_mrad2_per_day"]
-    checked = 0
-    for h, j in np.argwhere(np.isfinite(d2))[:5]:
-        fitted_times = unix[h][train[h]] / 86400.0
-        b = unix[h, j] / 86400.0 - fitted_times.mean()  # by hand
-        scale = cov[h, j] + (run.noise_mrad[h] ** 2 + q * age[h, j] + c * b**2) * np.eye(2)
-        assert d2[h, j] == pytest.approx(r[h, j] @ np.linalg.solve(scale, r[h, j]), rel=1e-10)
-        checked += 1
-    assert checked == 5
+
+    def creep_variance(h, j):
+        b = unix[h, j] / 86400.0 - (unix[h][train[h]] / 86400.0).mean()  # by hand
+        return c * b**2
+
+    _check_five_d2_by_hand(run, creeping, creep_variance)
     results, _, difference, fitted, _, _ = _aim_with_and_without(tmp_path, creeping, run)
     assert results.creep_mrad2_per_day2 == c
     unix_now = hj.datetime_to_unix("2024-06-21T09:00:00Z")
