@@ -161,3 +161,43 @@ def test_a_run_of_gross_errors_at_the_end_is_warned_about():
     since = datetime.datetime.fromtimestamp(t[0, latest[-1]], tz=datetime.UTC)
     assert first["recent_outliers_since"] == since.strftime("%Y-%m-%dT%H:%M:%S") + "Z"
     assert all(s[i]["warning"] is None and s[i]["recent_outliers"] <= 1 for i in fleet.ids[1:])
+
+
+def test_a_change_between_two_campaigns_is_undecided_and_rivals_a_per_heliostat_name():
+    """Each heliostat's records in two campaigns ten years apart, half the fleet's planted
+    jump in the gap: a step and a linear drift of the offsets fit such records alike,
+    so discovery's pre-pass keeps the change as a change point where the step's fit is
+    better by the BIC and marks it undecided where neither fits better by the BIC's
+    margin (the noise decides: the two fits' evidence differed by -4 to +6 here);
+    clean heliostats get neither, and offsets that drift through continuous records
+    are not undecided. A per-heliostat effect significant only in
+    undecided heliostats has the change point as its rival (``change_point_rival``)."""
+    from heliojax.discovery._cleaning import change_point_rival, clean
+    from heliojax.discovery._report import _alternative_words
+
+    fleet, stepped, change, _ = _stepped_fleet(1)
+    t = np.asarray(fleet.context.unix_time)
+    campaigns = eqx.tree_at(
+        lambda f: f.context.unix_time, fleet, jnp.asarray(np.where(t >= change[:, None], t + 3650 * DAY, t))
+    )
+    out = clean(hj.ActuatorModel.nominal(), campaigns, 0.01)
+    assert out.undecided is not None
+    changed = out.change_found | out.undecided
+    assert np.mean(changed[stepped]) >= 0.9, np.mean(changed[stepped])
+    assert np.mean(changed[~stepped]) <= 0.05, np.mean(changed[~stepped])
+    assert not np.any(out.change_found & out.undecided)
+    drifting_fleet, drifting, _, _ = _stepped_fleet(3, drift=True)
+    drifting_out = clean(hj.ActuatorModel.nominal(), drifting_fleet, 0.01)
+    assert drifting_out.undecided is not None and np.mean(drifting_out.undecided[drifting]) <= 0.1
+
+    ids = list(campaigns.ids)
+    undecided = [ids[i] for i in np.flatnonzero(out.undecided)]
+    assert undecided, "no undecided change to test the rival with"
+    rival = change_point_rival(out, undecided[:1], ids)
+    assert rival is not None and rival["effect"] == "change_point" and rival["heliostats"] == undecided[:1]
+    assert rival["p"] == out.change_p_holm[ids.index(undecided[0])]
+    decided = [ids[i] for i in np.flatnonzero(~out.undecided)]
+    assert change_point_rival(out, undecided[:1] + decided[:1], ids) is None  # one significant elsewhere
+    assert change_point_rival(out, [], ids) is None
+    words = _alternative_words(rival)  # the Markdown report's wording of the rival
+    assert f"a change of state of {undecided[0]}" in words and "a step and a drift" in words

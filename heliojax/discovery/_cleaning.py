@@ -85,6 +85,14 @@ class Cleaning:
             model fits (:func:`recheck_outliers`; None before that test).
         final_residuals: ``(H, M, 2)`` residuals (mrad) of the final model on every
             valid record, the left-out ones included (None before that test).
+        undecided: ``(H,)`` heliostats with a significant change of state (Holm) that
+            is no change point because a linear drift of the offsets explains it as
+            well by the Bayesian information criterion, while the drift fits no better
+            than the step by that criterion's margin either (``drift_delta_chi2 -
+            delta_chi2 < ln n_rows``; e.g. records in two campaigns: a step in the gap
+            between them and a drift fit alike, and the noise decides which fits
+            better). A library effect whose evidence rests on these heliostats alone is
+            reported ambiguous with a change point (:func:`change_point_rival`).
     """
 
     valid: np.ndarray
@@ -101,6 +109,7 @@ class Cleaning:
     withdrawn: np.ndarray | None = None
     restored: np.ndarray | None = None
     final_residuals: np.ndarray | None = None
+    undecided: np.ndarray | None = None
 
     @classmethod
     def none(cls, valid: np.ndarray) -> Cleaning:
@@ -176,6 +185,10 @@ def clean(
     found = changed & np.asarray(cp.is_step, bool)  # a drift is no change point: its records stay
     if (changed & ~found).any():
         log.info(f"{int((changed & ~found).sum())} heliostats drift rather than jump: no change point")
+    # a drift by parsimony only: the drift fits no better than the step by the BIC's margin either
+    # (two campaigns in time: a step in the gap and a drift fit alike, and noise decides)
+    margin = np.asarray(cp.threshold) / 3.0  # ln(n_rows), the BIC's price of one parameter
+    undecided = changed & ~found & (np.asarray(cp.drift_delta_chi2) - np.asarray(cp.delta_chi2) < margin)
     t = np.asarray(fleet.context.unix_time, float)
     time_s = np.where(found, np.asarray(cp.time_s, float), np.nan)
     with np.errstate(invalid="ignore"):
@@ -204,7 +217,35 @@ def clean(
         change_p=p,
         change_p_holm=p_holm,
         offsets=tuple(cp.offsets),
+        undecided=undecided,
     )
+
+
+def change_point_rival(cleaning: Cleaning, significant: list[str], ids: list[str]) -> dict | None:
+    """The rival of a named effect that a change point in its heliostats would be.
+
+    Where every heliostat in which the effect is individually significant
+    (``significant``, ids) holds an undecided change of state (:attr:`Cleaning.undecided`:
+    a drift by parsimony only, a step fitting about as well), the records cannot
+    tell the effect from a change of those heliostats' state (a maintenance step
+    between two campaigns leaves what a per-heliostat clock or offset drift would):
+    returns that rival as an ``ambiguous_with`` entry (source ``"change-point scan"``,
+    the heliostats and the largest of their Holm-adjusted p-values); else None.
+    """
+    if cleaning.undecided is None or not significant:
+        return None
+    where = [ids.index(h) for h in significant if h in ids]
+    if len(where) != len(significant) or not all(bool(cleaning.undecided[i]) for i in where):
+        return None
+    return {
+        "effect": "change_point",
+        "mode": "per_heliostat",
+        "delta_bic": None,
+        "cv_after": None,
+        "source": "change-point scan",
+        "heliostats": sorted(significant),
+        "p": float(np.nanmax(np.asarray(cleaning.change_p_holm, float)[where])),
+    }
 
 
 def with_offset_steps(base: typing.Any, change_time_s: np.ndarray, dtype: typing.Any) -> EffectModel:

@@ -27,7 +27,11 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
          "ambiguous_with": [{"effect", "mode", "delta_bic", "cv_heldout_rms_after_mrad",
                              "source"}]}           # source "library" (effect), or "generic
       ],                                           # competitor" (effect null; "variable", "p"):
-                                                   # rivals within ambiguity_bic of delta BIC
+                                                   # rivals within ambiguity_bic of delta BIC; or
+                                                   # "change-point scan" (effect "change_point",
+                                                   # "heliostats", "p"): a per-heliostat effect
+                                                   # significant only where a change of state is
+                                                   # a step or a drift alike (Cleaning.undecided)
       "named_effects": [names],                    # "change_point" first when any was found
       "ambiguities": [{"step", "named", "named_mode", "alternatives": [...]}],
       "outliers": [{"heliostat", "record_id"}],    # gross errors of the robust pre-pass (left out)
@@ -90,6 +94,25 @@ from .._io import atomic_write
 from .._plotting import pyplot, save_figure
 from ._diagnostics import record_variables
 from ._lanes import fold_blocks, too_few_days_note
+
+
+def fmt(x: float | None, spec: str = ".3f") -> str:
+    """A report number in the Markdown summary: ``-`` for a missing one (null)."""
+    return "-" if x is None else format(x, spec)
+
+
+def _alternative_words(x: dict) -> str:
+    """One rival of an ambiguous name (``ambiguous_with`` entry) in the Markdown report."""
+    if x.get("source") == "change-point scan":
+        return (
+            f"a change of state of {', '.join(x.get('heliostats', []))} (change-point scan, p_holm "
+            f"{fmt(x.get('p'), '.2g')}; a step and a drift of its offsets fit alike)"
+        )
+    if x.get("source") == "generic competitor":
+        what = f"a smooth function of `{x['variable']}` (generic competitor, not a library effect; "
+    else:
+        what = f"`{x['effect']}` ({_mode_words(x.get('mode'))}, "
+    return what + f"delta BIC {fmt(x['delta_bic'], '.1f')})"
 
 
 def _f(x):
@@ -203,6 +226,7 @@ def build_report(result, typical_start=None) -> dict:
                         "cv_heldout_rms_after_mrad": _f(a["cv_after"]),
                         "source": a.get("source", "library"),
                         **({"variable": a["variable"], "p": _f(a["p"])} if "variable" in a else {}),
+                        **({"heliostats": list(a["heliostats"]), "p": _f(a["p"])} if "heliostats" in a else {}),
                     }
                     for a in s.ambiguous_with
                 ],
@@ -516,10 +540,6 @@ def write_report(path, report: dict) -> None:
 
 def markdown_summary(report: dict) -> str:
     """A Markdown summary of a report."""
-
-    def fmt(x, spec=".3f"):
-        return "-" if x is None else format(x, spec)
-
     d = report["data"]
     lines = [
         "# Discovery report",
@@ -574,19 +594,11 @@ def markdown_summary(report: dict) -> str:
     for w in report.get("warnings", []):
         lines += [f"**Warning**: {w}.", ""]
     for a in report.get("ambiguities", []):
-        alts = ", ".join(
-            (
-                f"a smooth function of `{x['variable']}` (generic competitor, not a library effect; "
-                if x.get("source") == "generic competitor"
-                else f"`{x['effect']}` ({_mode_words(x.get('mode'))}, "
-            )
-            + f"delta BIC {fmt(x['delta_bic'], '.1f')})"
-            for x in a["alternatives"]
-        )
+        alts = ", ".join(_alternative_words(x) for x in a["alternatives"])
         lines.append(
             f"**Ambiguous** at step {a['step']}: `{a['named']}` ({_mode_words(a.get('named_mode'))}) and {alts} "
-            "explain the same residual "
-            f"(delta BIC within {report['config'].get('ambiguity_bic', 10):g}); the name is not certain."
+            "explain the same residual; the name is not certain "
+            f"(rivals: delta BIC within {report['config'].get('ambiguity_bic', 10):g})."
         )
     if report.get("change_points"):
         lines += [

@@ -87,7 +87,7 @@ from .._kinematics import MODEL_KINDS, nominal_model
 from .._progress import activity, progress_bar
 from ..effects import EFFECT_NAMES, OffsetStep
 from ..fitting import OFFSET_NAMES, AbstractBatching, default_solver, fitted_start_geometry
-from ._cleaning import Cleaning, clean, confirm_change_points, recheck_outliers
+from ._cleaning import Cleaning, change_point_rival, clean, confirm_change_points, recheck_outliers
 from ._competitors import (
     CompetitorScore,
     generic_rivals,
@@ -1002,6 +1002,8 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
         assert p_h is not None
         tested = {ids[i]: float(p_h[i]) for i in range(h) if ids[i] and np.isfinite(p_h[i])}
         _, sig = holm(tested, config.alpha) if tested else ({}, set())
+        if best.mode == "per_heliostat" and (step_rival := change_point_rival(cleaning, sorted(sig), ids)):
+            rivals += (step_rival,)
         steps.append(
             Step(
                 effect=best.effect,
