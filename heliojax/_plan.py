@@ -274,39 +274,47 @@ def aged_noise_mrad(
     candidate_unix_time: Float[ArrayLike, "H K"],
     candidate_valid: Bool[ArrayLike, "H K"],
     use_unix_time: Float[ArrayLike, "*h"] | None = None,
+    creep_mrad2_per_day2: float = 0.0,
 ) -> Float[np.ndarray, "H K"]:
     """Each candidate's noise (mrad per component) as seen from the time the
     calibration is used, under the fleet's pointing drift (a random walk of rate
-    ``q = drift_mrad2_per_day``, :func:`heliojax.temporal_drift`)::
+    ``q = drift_mrad2_per_day`` and a creep of rate ``c = creep_mrad2_per_day2``,
+    :func:`heliojax.temporal_drift`)::
 
-        sigma_k^2 = sigma^2 + q * max(t_use - t_k, 0) / 86400 s
+        sigma_k^2 = sigma^2 + q * a_k + c * a_k^2,   a_k = max(t_use - t_k, 0) / 86400 s
 
     A record taken long before the calibration is used tells less about the state
-    then. The walk's increments are shared by records of similar age, so treating
-    them as independent (as here) credits several old records with more than they
-    hold: the rule ranks recent records higher but still over-values old ones.
+    then. The creep is the predictive law's drift that grows as the square of the
+    days (a drift of the pointing at a steady, unknown rate of mean square ``c``): the
+    state at ``t_use`` differs from that at ``t_k`` by the rate times ``a_k``. The
+    walk's increments and the creep's rate are shared by records of similar age, so
+    treating them as independent (as here) credits several old records with more
+    than they hold: the rule ranks recent records higher but still over-values old
+    ones.
 
     Args:
         noise_mrad: measurement noise per component (mrad), scalar or ``(H,)``.
-        drift_mrad2_per_day: ``q``; 0 gives ``noise_mrad`` for every candidate.
+        drift_mrad2_per_day: ``q``; 0 with ``c`` 0 gives ``noise_mrad`` for every candidate.
         candidate_unix_time: ``(H, K)`` s; NaN (unknown) counts as age 0.
         candidate_valid: ``(H, K)`` candidates that may be chosen.
         use_unix_time: s, scalar or ``(H,)``, when the calibration is used; default
             each heliostat's latest valid candidate (the end of the candidate window,
             or the cut date of records chosen before it).
+        creep_mrad2_per_day2: ``c`` (mrad^2/day^2), finite and >= 0.
     """
     times = np.asarray(candidate_unix_time, float)
     valid = np.asarray(candidate_valid, bool) & np.isfinite(times)
     h, k = times.shape
-    if not np.isfinite(drift_mrad2_per_day) or drift_mrad2_per_day < 0.0:
-        raise ValueError(f"drift_mrad2_per_day must be finite and >= 0, not {drift_mrad2_per_day}")
+    for name, rate in (("drift_mrad2_per_day", drift_mrad2_per_day), ("creep_mrad2_per_day2", creep_mrad2_per_day2)):
+        if not np.isfinite(rate) or rate < 0.0:
+            raise ValueError(f"{name} must be finite and >= 0, not {rate}")
     if use_unix_time is None:
         use = np.max(np.where(valid, times, -np.inf), axis=1)
     else:
         use = np.broadcast_to(np.asarray(use_unix_time, float), (h,))
     age_days = np.where(valid & np.isfinite(use)[:, None], np.maximum(use[:, None] - times, 0.0), 0.0) / 86400.0
     sigma = np.broadcast_to(np.asarray(noise_mrad, float), (h,))[:, None]
-    return np.sqrt(sigma**2 + drift_mrad2_per_day * age_days)
+    return np.sqrt(sigma**2 + drift_mrad2_per_day * age_days + creep_mrad2_per_day2 * age_days**2)
 
 
 @typing.final
@@ -576,9 +584,10 @@ def plan_calibration(
             spread learnt from the fitted heliostats), as if it had no record.
         discrepancy: plan for a model that is not exact (:func:`discrepancy_design`;
             e.g. :func:`discrepancy_from_results`); ``None``: the model is exact.
-        drift: with the fleet's pointing drift (``results.drift_mrad2_per_day`` > 0),
-            each candidate's noise grows with its age at ``use_unix_time``
-            (:func:`aged_noise_mrad`), so that recent records count more; ``False``
+        drift: with the fleet's pointing drift (``results.drift_mrad2_per_day`` or
+            ``results.creep_mrad2_per_day2`` > 0), each candidate's noise grows with
+            its age at ``use_unix_time`` (:func:`aged_noise_mrad`), so that recent
+            records count more; ``False``
             (the default): every candidate has the fit's noise. On the independent
             simulator's drift suites and the shared records the aged noise changed
             the held-out error by no more than the spread between runs (README,
@@ -613,9 +622,14 @@ def plan_calibration(
     noise = np.asarray(results.noise_mrad, float)
     fallback = float(np.nanmedian(noise)) if np.isfinite(noise).any() else 1.0
     noise = np.where(np.isfinite(noise) & (noise > 0), noise, fallback)
-    if drift and results.drift_mrad2_per_day > 0.0:
+    if drift and (results.drift_mrad2_per_day > 0.0 or results.creep_mrad2_per_day2 > 0.0):
         noise = aged_noise_mrad(
-            noise, results.drift_mrad2_per_day, candidates.context.unix_time, candidates.valid, use_unix_time
+            noise,
+            results.drift_mrad2_per_day,
+            candidates.context.unix_time,
+            candidates.valid,
+            use_unix_time,
+            creep_mrad2_per_day2=results.creep_mrad2_per_day2,
         )
     jac = residual_jacobians(
         models, view, results.geometry, candidates.counts, candidates.context, candidates.spots, candidates.valid

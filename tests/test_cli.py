@@ -661,6 +661,13 @@ def test_plan_with_aged_noise_prefers_recent_records(results_h5):
     assert some.sum() >= 2
     younger = np.nanmean(mean_age_days(aged)[some], axis=1) <= np.nanmean(mean_age_days(plain)[some], axis=1) + 1e-9
     assert younger.all() and not np.array_equal(np.asarray(aged.chosen), np.asarray(plain.chosen))
+    # a fit whose drift is a creep alone (no walk) ages its candidates too, by c a^2
+    creep_only = dataclasses.replace(
+        results, attrs={**results.attrs, "drift_mrad2_per_day": 0.0, "creep_mrad2_per_day2": 1e-5}
+    )
+    crept, _ = hj.plan_calibration(creep_only, candidates, **kw, drift=True, use_unix_time=cut)
+    first_crept = np.asarray(crept.uncertainty_after_mrad)[:, 0]
+    assert np.all(first_crept >= first_plain - 1e-12) and np.any(first_crept > first_plain + 1e-6)
 
 
 def test_calibrate_records_file_errors_name_the_file_and_row(tmp_path, capsys):

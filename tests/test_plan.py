@@ -91,6 +91,13 @@ def test_aged_noise_grows_with_the_age_at_the_use_time():
     np.testing.assert_allclose(later[0, :3] ** 2, 0.25 + 0.01 * np.array([30.0, 20.0, 10.0]), rtol=1e-12)
     with pytest.raises(ValueError, match="drift_mrad2_per_day"):
         hj.aged_noise_mrad(0.5, -1.0, times, valid)
+    # the creep (variance c a^2 at age a days) beside the walk
+    crept = hj.aged_noise_mrad(0.5, 0.01, times[:1], valid[:1], use_unix_time=30 * day, creep_mrad2_per_day2=1e-3)
+    age = np.array([30.0, 20.0, 10.0])
+    np.testing.assert_allclose(crept[0, :3] ** 2, 0.25 + 0.01 * age + 1e-3 * age**2, rtol=1e-12)
+    np.testing.assert_allclose(crept[0, 3], 0.5, rtol=0)  # unknown time: age 0
+    with pytest.raises(ValueError, match="creep_mrad2_per_day2"):
+        hj.aged_noise_mrad(0.5, 0.0, times, valid, creep_mrad2_per_day2=float("nan"))
 
 
 def test_clear_sky_dni_hand_values():

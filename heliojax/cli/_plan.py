@@ -114,8 +114,8 @@ def add_parser(subparsers) -> None:
         "--age-by-drift",
         action="store_true",
         help="grow each candidate's noise with its age at the use time (--before, or the last candidate "
-        "instant) under the fit's pointing drift (results.h5's drift_mrad2_per_day), so that recent "
-        "records count more (heliojax.aged_noise_mrad); default: every candidate at the fit's noise",
+        "instant) under the fit's pointing drift (results.h5's drift_mrad2_per_day and creep_mrad2_per_day2), "
+        "so that recent records count more (heliojax.aged_noise_mrad); default: every candidate at the fit's noise",
     )
     p.add_argument(
         "--target",
