@@ -261,3 +261,54 @@ def test_a_competitor_the_base_absorbs_is_untested_and_a_free_one_tested_as_befo
         np.testing.assert_allclose(half[1], alone[1], rtol=1e-8)
         np.testing.assert_allclose(half[0], alone[0], rtol=1e-6)
     np.testing.assert_allclose(_per_heliostat(bases, tod, noise, h)[3], _per_heliostat(bases, free, noise, h)[3])
+
+
+def _fleet_with_spots(h, m, rng):
+    """A fake fleet whose spots lie up to 0.8 m around one target's centre (a vertical
+    target facing north, 60-200 m from the heliostats)."""
+    fleet = _fake_fleet(h, m, rng)
+    centre = np.array([0.0, 0.0, 50.0])
+    targets = types.SimpleNamespace(
+        centre=centre[None],
+        normal=np.array([[0.0, -1.0, 0.0]]),
+        u_axis=np.array([[1.0, 0.0, 0.0]]),
+        v_axis=np.array([[0.0, 0.0, 1.0]]),
+    )
+    position = np.stack([rng.uniform(-50, 50, h), -rng.uniform(60, 200, h), np.zeros(h)], axis=1)
+    offset = rng.uniform(-0.8, 0.8, size=(h, m, 2))
+    spot = centre + offset[..., :1] * targets.u_axis[0] + offset[..., 1:] * targets.v_axis[0]
+    geometry = types.SimpleNamespace(position=position)
+    return types.SimpleNamespace(
+        context=fleet.context, focal_spot=spot, geometry=geometry, target_index=np.zeros((h, m), int), targets=targets
+    )
+
+
+def test_the_spot_competitor_is_the_model_spot_as_an_angle_and_finds_a_camera_error():
+    """Features: the model spot's offset from the target centre along the target's axes,
+    over the heliostat's distance to it, in units of SPOT_UNIT_MRAD (by hand, with zero
+    residuals the model spot is the measured one); it needs the residuals. Pure noise:
+    it loses; a camera scale error of 5 % (residual = 0.05 x the spot's angular offset):
+    it wins in its fleet form."""
+    from heliojax.discovery._competitors import SPOT_UNIT_MRAD
+
+    rng = np.random.default_rng(5)
+    h, m, p = 10, 40, 6
+    fleet = _fleet_with_spots(h, m, rng)
+    zero = np.zeros((h, m, 2))
+    f = competitor_features(fleet, "spot_position", zero)
+    d = np.linalg.norm(fleet.targets.centre[0] - fleet.geometry.position[3])
+    off = fleet.focal_spot[3, 7] - fleet.targets.centre[0]
+    np.testing.assert_allclose(f[3, 7], [off[0] / d * 1e3 / SPOT_UNIT_MRAD, off[2] / d * 1e3 / SPOT_UNIT_MRAD])
+    with pytest.raises(ValueError, match="residuals"):
+        competitor_features(fleet, "spot_position")
+
+    r, jac = _residuals(h, m, p, rng)
+    bases = prepare_bases(r, jac, np.ones((h, 2 * m), bool), range(p), range(h))
+    scores = {s.variable: s for s in score_competitors(fleet, bases, np.full(h, 0.25), h, zero)}
+    assert scores["spot_position"].delta_bic < 0 and scores["spot_position"].p > 0.01
+
+    camera = (0.05 * f * SPOT_UNIT_MRAD).reshape(h, 2 * m)  # mrad: 5 % of the spot's angular offset
+    r, jac = _residuals(h, m, p, rng, camera)
+    bases = prepare_bases(r, jac, np.ones((h, 2 * m), bool), range(p), range(h))
+    top = score_competitors(fleet, bases, np.full(h, 0.25), h, zero)[0]
+    assert top.variable == "spot_position" and top.form == "fleet" and top.delta_bic > 50 and top.p < 1e-10
