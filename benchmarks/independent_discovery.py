@@ -57,7 +57,7 @@ DEFAULT = [
 
 
 EXPECTED_VARIABLES = {
-    "lens_distortion": {"spot_u", "spot_v", "spot_position"},  # spot_position: the generic competitor of both
+    "lens_distortion": {"spot_u", "spot_v"},
     "daily_periodic": {"time_of_day"},
     "wind_direction": {"wind_direction"},
 }

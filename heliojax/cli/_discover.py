@@ -95,8 +95,8 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--no-generic-competitors",
         action="store_true",
-        help="name library effects without letting generic functions of the time of day, the wind vector and the "
-        "spot position on the target compete (default: they compete; one that wins is reported unexplained)",
+        help="name library effects without letting generic functions of the time of day and the wind vector "
+        "compete (default: they compete; one that wins is reported unexplained)",
     )
     add_fit_arguments(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar or messages on stderr")

@@ -33,17 +33,7 @@ The competitors (:data:`COMPETITORS`), each a first harmonic of a circular varia
 * ``time_of_day``: ``sin``, ``cos`` of ``2 pi t / 1 day`` (UTC);
 * ``wind_direction``: the wind vector, ``(v / 10 m/s) sin``, ``cos`` of the direction
   it blows from (a load linear in the wind vector; the library's ``wind`` is a drag
-  that grows with ``v^2`` whatever the direction);
-* ``spot_position`` (since 2026-12-06, eleventh session): where the *model* puts the
-  spot on its target (:func:`._diagnostics.predicted_spot`; the measured spot holds
-  the residual's own noise), its horizontal and vertical offsets from the target centre
-  as angles seen from the heliostat, in units of :data:`SPOT_UNIT_MRAD` (a camera's
-  errors are metres on the target, a function of where the spot is; the residuals are
-  beam angles, so a metre on the target weighs ``1 / distance``). A linear map of these
-  two is a camera's scale, rotation and shear error and most of a lens distortion
-  (within +-0.8 m the linear part of ``r |r|^2`` holds 84 % of its variance). No
-  library effect is driven by the spot position. Only scored where the current
-  model's residuals are given.
+  that grows with ``v^2`` whatever the direction).
 
 Prior: every coefficient ``N(0, (0.6 mrad)^2)`` (:data:`GENERIC_TYPICAL_MRAD`): the
 beam error of the 0.3 mrad joint angle the library gives its periodic effects as
@@ -57,7 +47,6 @@ import dataclasses
 import numpy as np
 from scipy import stats
 
-from ._diagnostics import predicted_spot
 from ._screen import (
     HeliostatBases,
     chi2_equivalent,
@@ -70,39 +59,20 @@ from ._screen import (
 GENERIC_TYPICAL_MRAD = 0.6
 """Prior standard deviation of a generic competitor's coefficient (mrad of beam error)."""
 
-COMPETITORS = ("time_of_day", "wind_direction", "spot_position")
-"""Recorded variables with a generic competitor (names of
-:func:`heliojax.discovery.record_variables`, and ``spot_position`` for ``spot_u`` and
-``spot_v`` together)."""
+COMPETITORS = ("time_of_day", "wind_direction")
+"""Recorded variables (names of :func:`heliojax.discovery.record_variables`) with a
+generic competitor."""
 
 LABELS = {
     "time_of_day": "UTC time of day [h]",
     "wind_direction": "wind direction [deg from north]",
-    "spot_position": "model spot position on the target (spot_u, spot_v)",
 }
 
-SPOT_UNIT_MRAD = 10.0
-"""The unit of the spot-position competitor's features: a spot 10 mrad off the target
-centre as seen from the heliostat (0.8 m at 80 m); under the prior of
-:data:`GENERIC_TYPICAL_MRAD` a camera error of 6 % of the offset is typical."""
 
-
-def competitor_features(fleet, name: str, residuals_mrad: np.ndarray | None = None) -> np.ndarray:
+def competitor_features(fleet, name: str) -> np.ndarray:
     """``(H, M, 2)`` the competitor's two functions at each record (NaN where the
-    variable is not recorded). ``residuals_mrad`` ``(H, M, 2)``: the current model's
-    residuals, which ``spot_position`` needs (its model spot)."""
+    variable is not recorded)."""
     ctx = fleet.context
-    if name == "spot_position":
-        if residuals_mrad is None:
-            raise ValueError("the spot-position competitor needs the current model's residuals")
-        spot = predicted_spot(fleet, residuals_mrad)
-        ti = np.clip(np.asarray(fleet.target_index), 0, None)
-        centre = np.asarray(fleet.targets.centre, float)[ti]
-        offset = spot - centre
-        distance = np.linalg.norm(centre - np.asarray(fleet.geometry.position, float)[:, None, :], axis=-1)
-        axes = (np.asarray(fleet.targets.u_axis, float)[ti], np.asarray(fleet.targets.v_axis, float)[ti])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return np.stack([np.sum(offset * a, axis=-1) / distance for a in axes], axis=-1) * (1e3 / SPOT_UNIT_MRAD)
     if name == "time_of_day":
         phase = 2.0 * np.pi * np.mod(np.asarray(ctx.unix_time, float), 86400.0) / 86400.0
         return np.stack([np.sin(phase), np.cos(phase)], axis=-1)
@@ -220,9 +190,7 @@ def _fleet(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray):
     return delta, p, float(np.sqrt(sq / max(n_sq, 1)))
 
 
-def score_competitors(
-    fleet, bases: HeliostatBases, noise: np.ndarray, n_heliostats: int, residuals_mrad: np.ndarray | None = None
-) -> list[CompetitorScore]:
+def score_competitors(fleet, bases: HeliostatBases, noise: np.ndarray, n_heliostats: int) -> list[CompetitorScore]:
     """Every generic competitor with recorded data, best evidence first.
 
     Args:
@@ -231,14 +199,10 @@ def score_competitors(
             stack (:func:`heliojax.discovery._screen.prepare_bases`, fold-0 lanes).
         noise: ``(L,)`` the lanes' noise (mrad) that weighs the priors in the refits.
         n_heliostats: ``H``.
-        residuals_mrad: ``(H, M, 2)`` the current model's residuals (the spot-position
-            competitor's model spot); None: that competitor is not scored.
     """
     out = []
     for name in COMPETITORS:
-        if name == "spot_position" and residuals_mrad is None:
-            continue
-        features = competitor_features(fleet, name, residuals_mrad)
+        features = competitor_features(fleet, name)
         if not np.isfinite(features).any():
             continue
         design = competitor_design(features)

@@ -874,25 +874,21 @@ def plot_unexplained(result, index: int, *, axes=None):
     used = result.lanes.train_mask[:h]
     rb = _residuals(result.base, h, m)
     ra = _residuals(result.final, h, m)
-    variables = {v.name: v for v in record_variables(fleet, ra)}
-    # the spot-position competitor is a function of two variables: each component against one
-    names = ("spot_u", "spot_v") if entry["variable"] == "spot_position" else (entry["variable"],) * 2
-    panels = [variables[n] for n in names]
+    var = {v.name: v for v in record_variables(fleet, ra)}[entry["variable"]]
     if axes is None:
         fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), squeeze=False)
     else:
         axes = np.atleast_2d(axes)
         fig = axes.flat[0].figure
     labels = ("horizontal component [mrad]", "vertical component [mrad]")
+    x = np.where(used, var.values, np.nan)
+    ok = used & np.isfinite(x)
     if entry.get("form") == "per_heliostat":
-        return _plot_unexplained_per_heliostat(fig, axes, entry, panels, used, ra, list(fleet.ids), labels)
+        return _plot_unexplained_per_heliostat(fig, axes, entry, var, x, ok, ra, list(fleet.ids), labels)
+    jitter = 0.0
+    if var.kind == "categorical":
+        jitter = 0.08 * np.random.default_rng(0).standard_normal(int(ok.sum()))
     for j in range(2):
-        var = panels[j]
-        x = np.where(used, var.values, np.nan)
-        ok = used & np.isfinite(x)
-        jitter = 0.0
-        if var.kind == "categorical":
-            jitter = 0.08 * np.random.default_rng(0).standard_normal(int(ok.sum()))
         ax = axes[0, j]
         ax.scatter(x[ok] + jitter, rb[..., j][ok], s=6, color="0.6", alpha=0.5, label="records, base model")
         ax.scatter(x[ok] + jitter, ra[..., j][ok], s=6, color="C0", alpha=0.6, label="records, final model")
@@ -929,22 +925,18 @@ def _why_unexplained(entry: dict) -> str:
     return "no library effect explains it"
 
 
-def _plot_unexplained_per_heliostat(fig, axes, entry, panels, used, ra, ids, labels, shown: int = 4):
+def _plot_unexplained_per_heliostat(fig, axes, entry, var, x, ok, ra, ids, labels, shown: int = 4):
     """The per-heliostat form of :func:`plot_unexplained`: final-model residuals of
     the ``shown`` heliostats with the largest binned structure, each in its colour with
-    its own binned means (their shapes differ, so fleet means would hide them);
-    ``panels`` the variable of each component's panel."""
-    xs = [np.where(used, v.values, np.nan) for v in panels]
-    oks = [used & np.isfinite(x) for x in xs]
+    its own binned means (their shapes differ, so fleet means would hide them)."""
     size = []
     for h in range(ra.shape[0]):
-        if min(ok[h].sum() for ok in oks) >= 4 and ids[h]:
-            curves = [_binned(xs[j][h][oks[j][h]], ra[h, :, j][oks[j][h]])[1] for j in range(2)]
+        if ok[h].sum() >= 4 and ids[h]:
+            curves = [_binned(x[h][ok[h]], ra[h, :, j][ok[h]])[1] for j in range(2)]
             size.append((float(np.sqrt(np.mean(np.concatenate(curves) ** 2))), h))
     picked = [h for _, h in sorted(size, reverse=True)[:shown]]
+    categorical = var.kind == "categorical"
     for j in range(2):
-        var, x, ok = panels[j], xs[j], oks[j]
-        categorical = var.kind == "categorical"
         ax = axes[0, j]
         for n, h in enumerate(picked):
             colour = f"C{n}"

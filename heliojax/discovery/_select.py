@@ -194,7 +194,7 @@ class DiscoveryConfig:
             metres to fit what the library does not hold.
         generic_competitors: before a library effect is named, smooth functions of the
             recorded variables no library effect is driven by (time of day, the wind
-            vector, the model spot's position on the target) compete with it on the same criterion; if one is at least as good,
+            vector) compete with it on the same criterion; if one is at least as good,
             nothing more is named and its variable is reported unexplained
             (:mod:`._competitors`). Needs ``effect_prior`` (the criterion's priors).
     """
@@ -619,9 +619,7 @@ class _Workflow:
         """The generic competitors' scores on ``state``'s residuals (:mod:`._competitors`)."""
         if self.noise is None:
             raise ValueError("competitors need the lanes' noise (set from the base fit)")
-        h, m = np.asarray(fleet.mask).shape
-        residuals = state.r[:h].reshape(h, m, 2)  # fold 0: every record's training residual
-        return score_competitors(fleet, self.bases(state), self.noise, self.lanes.n_heliostats, residuals)
+        return score_competitors(fleet, self.bases(state), self.noise, self.lanes.n_heliostats)
 
     def screen(self, state: ModelState, candidates) -> dict[str, CandidateScreen]:
         h = self.lanes.n_heliostats
