@@ -187,7 +187,7 @@ def clean(
         log.info(f"{int((changed & ~found).sum())} heliostats drift rather than jump: no change point")
     # a drift by parsimony only: the drift fits no better than the step by the BIC's margin either
     # (two campaigns in time: a step in the gap and a drift fit alike, and noise decides)
-    margin = np.asarray(cp.threshold) / 3.0  # ln(n_rows), the BIC's price of one parameter
+    margin = np.asarray(cp.step_margin)
     undecided = changed & ~found & (np.asarray(cp.drift_delta_chi2) - np.asarray(cp.delta_chi2) < margin)
     t = np.asarray(fleet.context.unix_time, float)
     time_s = np.where(found, np.asarray(cp.time_s, float), np.nan)
@@ -232,10 +232,11 @@ def change_point_rival(cleaning: Cleaning, significant: list[str], ids: list[str
     returns that rival as an ``ambiguous_with`` entry (source ``"change-point scan"``,
     the heliostats and the largest of their Holm-adjusted p-values); else None.
     """
-    if cleaning.undecided is None or not significant:
+    index = {h: i for i, h in enumerate(ids)}
+    if cleaning.undecided is None or not significant or any(h not in index for h in significant):
         return None
-    where = [ids.index(h) for h in significant if h in ids]
-    if len(where) != len(significant) or not all(bool(cleaning.undecided[i]) for i in where):
+    where = [index[h] for h in significant]
+    if not np.all(cleaning.undecided[where]):
         return None
     return {
         "effect": "change_point",

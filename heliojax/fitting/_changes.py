@@ -74,7 +74,7 @@ class ChangePoints(eqx.Module):
         is_step: change points that are jumps rather than drifts: those whose step
             the Bayesian information criterion prefers to a linear drift of the two
             offsets (``delta_chi2 - 3 ln n > drift_delta_chi2 - 2 ln n``, i.e.
-            ``delta_chi2 - drift_delta_chi2 > threshold / 3``).
+            ``delta_chi2 - drift_delta_chi2 > threshold / 3``, :attr:`step_margin`).
         offsets: the names of the two offset parameters; static.
     """
 
@@ -89,6 +89,13 @@ class ChangePoints(eqx.Module):
     drift_delta_chi2: Float[Array, " H"]
     is_step: Bool[Array, " H"]
     offsets: tuple[str, str] = eqx.field(static=True)
+
+    @property
+    def step_margin(self) -> Float[Array, " H"]:
+        """``ln n_rows`` (``threshold / 3``): the Bayesian information criterion's price
+        of the step's one parameter more than the drift's, by which the step's evidence
+        must exceed the drift's for :attr:`is_step`."""
+        return self.threshold / 3.0
 
 
 def _offset_columns(view: ParameterView) -> tuple[tuple[str, str], list[int]]:
