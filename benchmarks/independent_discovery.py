@@ -18,7 +18,8 @@ Amplitudes are not compared here: the two simulators' parameterisations differ f
 kelvin).
 
 Each suite: 20 real heliostats x 60 records, noise 0.25 mrad, one hidden effect (tag `<effect>_out`: with
-5 % gross outliers). Prints a Markdown table: truth vs what discovery names.
+5 % gross outliers); ``--heliostats``, ``--records``, ``--noise`` and ``--controller`` change the design
+(a check on a design discovery was never run on). Prints a Markdown table: truth vs what discovery names.
 """
 
 from __future__ import annotations
@@ -64,9 +65,21 @@ EXPECTED_VARIABLES = {
 DAY_S = 86400.0
 
 
-def run_suite(work: Path, tag: str, seed: int, amplitude_scale: float = 1.0) -> float:
+def run_suite(work: Path, tag: str, seed: int, amplitude_scale: float = 1.0, design: dict | None = None) -> float:
+    """Generate suite `tag` at `seed` and run ``heliojax discover`` on it; returns the discovery's seconds.
+
+    design: keyword arguments of `independent_sim.generate` that change the suite's design (``n_heliostats``,
+    ``n_records``, ``noise_mrad``, ``controller``); the simulator's defaults where absent.
+    """
     effect, outliers = (tag[:-4], 0.05) if tag.endswith("_out") else (tag, 0.0)
-    generate(effect, work / tag, seed=seed, outliers=outliers, amplitude=EFFECTS[effect].default * amplitude_scale)
+    generate(
+        effect,
+        work / tag,
+        seed=seed,
+        outliers=outliers,
+        amplitude=EFFECTS[effect].default * amplitude_scale,
+        **(design or {}),
+    )
     t0 = time.perf_counter()
     subprocess.run(
         [
@@ -139,13 +152,18 @@ def judge(truth: dict, rep: dict) -> dict:
 
 
 def hit_rates(
-    work: Path, tags: list[str], seeds: list[int], judge_only: bool = False, amplitude_scale: float = 1.0
+    work: Path,
+    tags: list[str],
+    seeds: list[int],
+    judge_only: bool = False,
+    amplitude_scale: float = 1.0,
+    design: dict | None = None,
 ) -> dict:
     per: dict[str, list] = {}
     for seed in seeds:
         for tag in tags:
             d = work / f"s{seed}"
-            secs = float("nan") if judge_only else run_suite(d, tag, seed, amplitude_scale)
+            secs = float("nan") if judge_only else run_suite(d, tag, seed, amplitude_scale, design)
             rep_path, truth_path = d / f"{tag}.report.json", d / tag / "truth.json"
             if not rep_path.exists():
                 per.setdefault(tag, []).append({"seed": seed, "error": "no report"})
@@ -176,7 +194,13 @@ def hit_rates(
             "outliers_false": sum(r["outliers_false"] for r in ok),
             "runs": runs,
         }
-    return {"simulator": "independent_sim", "seeds": seeds, "amplitude_scale": amplitude_scale, "effects": summary}
+    return {
+        "simulator": "independent_sim",
+        "seeds": seeds,
+        "amplitude_scale": amplitude_scale,
+        "design": design or {},
+        "effects": summary,
+    }
 
 
 def table(work: Path) -> str:
@@ -228,14 +252,29 @@ def main() -> None:
         default=1.0,
         help="each hidden effect at this multiple of the simulator's default amplitude (a detection-limit sweep)",
     )
+    p.add_argument("--heliostats", type=int, help="heliostats per suite (simulator default 20)")
+    p.add_argument("--records", type=int, help="records per heliostat (simulator default 60)")
+    p.add_argument("--noise", type=float, help="camera noise, mrad per component (simulator default 0.25)")
+    p.add_argument("--controller", choices=["calibrated", "nominal"], help="simulator default: calibrated")
     a = p.parse_args()
+    design = {
+        k: v
+        for k, v in {
+            "n_heliostats": a.heliostats,
+            "n_records": a.records,
+            "noise_mrad": a.noise,
+            "controller": a.controller,
+        }.items()
+        if v is not None
+    }
     if a.hit_rates:
         seeds = [int(x) for x in a.seeds.split(",")]
-        print(json.dumps(hit_rates(a.work, a.effects.split(","), seeds, a.judge_only, a.amplitude_scale), indent=1))
+        rates = hit_rates(a.work, a.effects.split(","), seeds, a.judge_only, a.amplitude_scale, design)
+        print(json.dumps(rates, indent=1))
         return
     if not a.table_only:
         for tag in a.effects.split(","):
-            run_suite(a.work, tag, a.seed, a.amplitude_scale)
+            run_suite(a.work, tag, a.seed, a.amplitude_scale, design)
     print(table(a.work))
 
 

@@ -250,7 +250,7 @@ def test_offset_step_is_the_base_with_the_earlier_zeros_before_its_date():
 
 
 def test_wind_head_on_and_cross():
-    eff = Wind(coefficient=jnp.array([5e-6, 7e-6]))
+    eff = Wind(coefficient=jnp.array([5e-6, 7e-6]), droop=jnp.asarray(0.0))
     normal = STONE.pose(GEOM, COUNTS).normal
     facing = float(np.arctan2(normal[0], normal[1]))
     d_head = _angle_shift(eff, _context(wind_speed=10.0, wind_direction=facing))
@@ -258,6 +258,23 @@ def test_wind_head_on_and_cross():
     d_cross = _angle_shift(eff, _context(wind_speed=10.0, wind_direction=facing + math.pi / 2))
     np.testing.assert_allclose(d_cross, [0.0, 7e-4], atol=1e-15)
     np.testing.assert_allclose(_angle_shift(eff, _context(wind_speed=jnp.nan)), 0.0, atol=0)
+
+
+def test_wind_droop_tips_the_normal_toward_the_horizon_by_c0_v_squared_from_any_direction():
+    # the direction-independent part of the wind load: at v = 10 m/s and c_0 = 1e-6
+    # rad/(m/s)^2 the normal's elevation drops by 1e-4 rad, its azimuth stays, whatever
+    # the direction the wind comes from; no speed (NaN) switches it off
+    c0, v = 1e-6, 10.0
+    eff = Wind(coefficient=jnp.zeros(2), droop=jnp.asarray(c0))
+    for base in (STONE, ACTUATOR):
+        n0 = np.asarray(base.pose(GEOM, COUNTS).normal)
+        model = EffectModel(base, (eff,))
+        for direction in (0.0, 1.0, 4.0):
+            n1 = np.asarray(model.pose(GEOM, COUNTS, _context(wind_speed=v, wind_direction=direction)).normal)
+            e0, e1 = np.arcsin(n0[2]), np.arcsin(n1[2])
+            np.testing.assert_allclose(e1 - e0, -c0 * v * v, rtol=1e-3)
+            np.testing.assert_allclose(np.arctan2(n1[0], n1[1]), np.arctan2(n0[0], n0[1]), atol=1e-3 * c0 * v * v)
+        np.testing.assert_allclose(_angle_shift(eff, _context(wind_speed=jnp.nan), base=base), 0.0, atol=0)
 
 
 def test_gravity_sag_tips_the_normal_toward_the_horizon_by_g_cos_elevation():

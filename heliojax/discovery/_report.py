@@ -703,6 +703,7 @@ def _drivers(fleet, effect: str) -> list[tuple[str, np.ndarray]]:
         return [
             ("v^2 cos(wind - facing) [m^2/s^2]", v2 * np.cos(rel)),
             ("v^2 sin(wind - facing) [m^2/s^2]", v2 * np.sin(rel)),
+            ("v^2, any direction [m^2/s^2]", v2),
         ]
     if effect in ("clock", "offset_drift"):
         t = np.asarray(ctx.unix_time)

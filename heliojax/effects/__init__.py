@@ -19,7 +19,8 @@ name                 parameters (units)                    driving inputs       
 ``thermal``          ``thermal_1,2`` (rad/K),               temperature           proportional to T - T_ref
                      ``thermal_scale_1,2`` (1/K)                                  (and to the angle; to the
                                                                                   stroke on an actuator base)
-``wind``             ``wind_1,2`` (rad/(m/s)^2)             wind speed, direction v^2, by direction to mirror
+``wind``             ``wind_1,2``, ``wind_droop``           wind speed, direction v^2, by direction to mirror,
+                     (rad/(m/s)^2)                                                and a tip toward the horizon
 ``clock``            ``clock_offset`` (s), ``clock_drift``  time, sun             sun turned about the pole,
                      (s/day)                                                      growing with time
 ``gravity_sag``      ``gravity_sag`` (rad)                  normal elevation      normal droops by ~cos(elevation)

@@ -118,6 +118,16 @@ def known(x, fill):
     return jnp.where(jnp.isfinite(x), x, fill)
 
 
+def rising_direction(normal: Float[Array, "3"]) -> tuple[Float[Array, "3"], Float[Array, ""]]:
+    """``(up, cos_e)``: the unit vector tangent to the sphere at the unit ``normal``
+    along which its elevation grows (``(z - (z . n) n) / cos e``, in the vertical plane
+    through the normal) and ``cos e``, ``e`` the normal's elevation (kept from 0 for a
+    vertical normal)."""
+    horizontal_sq = normal[0] ** 2 + normal[1] ** 2
+    cos_e = jnp.sqrt(jnp.clip(horizontal_sq, 1e-30, 1.0))
+    return jnp.stack([-normal[2] * normal[0], -normal[2] * normal[1], horizontal_sq]) / cos_e, cos_e
+
+
 def joint_law(inner: AbstractKinematicModel | None) -> str:
     """The joint law of the base model under ``inner`` (its wrappers looked through):
     ``"linear"`` (counts to angles by a line, the Stone model; also for ``None``) or

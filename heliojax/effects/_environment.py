@@ -11,7 +11,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._parameters import parameter, reference as data_reference
-from ._base import AbstractEffect, joint_law, known, zeros
+from ._base import AbstractEffect, joint_law, known, rising_direction, zeros
 
 SOLAR_RATE_RAD_S = 2.0 * math.pi / 86400.0
 """Rate of the sun's hour angle (rad/s): one turn per mean solar day."""
@@ -94,30 +94,48 @@ class Wind(AbstractEffect):
 
     Physical meaning: the dynamic pressure ``rho v^2 / 2`` on the mirror bends
     the structure and the drives. A wind blowing onto the mirror's face pushes
-    it over its elevation axis; a cross wind turns it about the vertical axis.
-    Correction::
+    it over its elevation axis; a cross wind turns it about the vertical axis;
+    and a load that does not depend on where the wind comes from (the drag's
+    mean over directions, buffeting, a structure that yields downward under any
+    load) tips the normal toward the horizon. The load as a function of the
+    wind's direction relative to the mirror, to its first harmonic::
 
         theta += c_1 v^2 cos(phi - a_n)        tau += c_2 v^2 sin(phi - a_n)
+        the normal tips toward the horizon by c_0 v^2
 
     with ``v`` the wind speed (m/s), ``phi`` the direction the wind comes from
     (clockwise from north) and ``a_n`` the azimuth (clockwise from north) the
-    mirror normal faces.
+    mirror normal faces. The tip ``c_0 v^2`` turns the normal in the vertical
+    plane through it (as :class:`~heliojax.effects.GravitySag` does, whatever
+    the chain); a yaw that does not depend on the direction has no cause and is
+    left out.
 
-    Parameters: ``wind_1``, ``wind_2`` (rad per (m/s)^2).
-    Driving inputs: ``wind_speed``, ``wind_direction`` and the pose.
+    Parameters: ``wind_1``, ``wind_2``, ``wind_droop`` (rad per (m/s)^2).
+    Driving inputs: ``wind_speed``, ``wind_direction`` and the pose (the tip:
+    ``wind_speed`` and the pose).
     Residual signature: grows with ``v^2``, sign and axis set by the wind's
-    direction relative to the mirror.
+    direction relative to the mirror, plus a tip toward the horizon.
     """
 
     coefficient: Float[Array, "*h 2"] = parameter(unit="rad/(m/s)^2", scale=1e-5, typical=5e-6, name="wind", shape=(2,))
+    droop: Float[Array, "*h"] = parameter(unit="rad/(m/s)^2", scale=1e-5, typical=5e-6, name="wind_droop")
 
     NAME: typing.ClassVar[str] = "wind"
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ("wind_speed", "wind_direction")
     NEEDS_NORMAL: typing.ClassVar[bool] = True
+    TILTS_NORMAL: typing.ClassVar[bool] = True
 
     @classmethod
     def nominal(cls, inner, dtype=None):
-        return cls(coefficient=zeros(dtype, 2))
+        return cls(coefficient=zeros(dtype, 2), droop=zeros(dtype))
+
+    def normal_tilt(self, geometry, normal, context):
+        del geometry
+        if context is None:
+            return None
+        v = known(context.wind_speed, 0.0)
+        up, _ = rising_direction(normal)
+        return -self.droop * v * v * up
 
     def angle_correction(self, geometry, counts, angles, context, normal):
         if context is None:

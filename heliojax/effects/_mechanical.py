@@ -14,7 +14,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._parameters import parameter
-from ._base import AbstractEffect, joint_law, zeros
+from ._base import AbstractEffect, joint_law, rising_direction, zeros
 
 
 @typing.final
@@ -170,10 +170,7 @@ class GravitySag(AbstractEffect):
 
     def normal_tilt(self, geometry, normal, context):
         del geometry, context
-        horizontal_sq = normal[0] ** 2 + normal[1] ** 2
-        cos_e = jnp.sqrt(jnp.clip(horizontal_sq, 1e-30, 1.0))
-        # unit vector of increasing elevation at the normal: (z - (z . n) n) / cos(e)
-        up = jnp.stack([-normal[2] * normal[0], -normal[2] * normal[1], horizontal_sq]) / cos_e
+        up, cos_e = rising_direction(normal)
         return -self.sag * cos_e * up
 
 
