@@ -328,13 +328,22 @@ def test_a_generic_competitor_that_beats_the_library_is_reported_and_the_report_
     the speed from any direction): the time-of-day and wind-direction competitors are
     scored, the wind-direction one beats ``wind`` and is reported unexplained instead of
     it, with whether it won by less than the ambiguity margin; the whole report is JSON
-    (a numpy boolean in that entry once stopped ``heliojax discover`` writing it)."""
+    (a numpy boolean in that entry once stopped ``heliojax discover`` writing it).
+
+    Refits in batches of one (``max_refits=1``): the first batch (``wind``) passes, the
+    competitor beats it, and before the competitor is reported every other eligible
+    candidate (Holm-significant in the step's screen) is refitted too: a batch that
+    passed once ended the step, and the true effect of a suite, ranked behind by the
+    linearisation, was never tried (independent simulator, encoder wobble 11706)."""
     generate("wind_direction", tmp_path / "w", seed=14, source=shared_paint, amplitude=1.5, **SUITE)
     fleet = load_paint_directory(tmp_path / "w")
-    rep = discover(fleet, base="actuator", effects=("wind", "thermal")).report
+    rep = discover(fleet, base="actuator", effects=("wind", "thermal"), max_refits=1).report
     first = rep["unexplained"][0]
     assert first["source"] == "generic competitor" and first["variable"] == "wind_direction"
     assert first["instead_of"]["effect"] == "wind" and isinstance(first["instead_of"]["ambiguous"], bool)
     assert "wind" not in rep["named_effects"]
+    eligible = {c for c, s in rep["screens"][0].items() if s["tested"] and s["p_holm"] < 0.01}
+    assert len(eligible) == 2  # wind and thermal: a second batch to refit
+    assert eligible <= {x["effect"] for x in rep["refits"][0]}
     write_report(tmp_path / "report.json", rep)
     assert json.loads((tmp_path / "report.json").read_text())["unexplained"][0]["instead_of"] == first["instead_of"]

@@ -15,8 +15,10 @@ heliostat's noise profiled out). A competitor is linear in its coefficients: per
 heliostat (or once for the fleet) the two residual components (mrad) each get
 ``c_1 f_1(x) + c_2 f_2(x)``, with the current model's parameters profiled out
 (projected off its Jacobian's columns, as the screens do). If the best competitor's
-evidence is at least the library candidate's (and its own test is significant at the
-family-wise level), the candidate is not named, the workflow names nothing more, and
+evidence is at least the best library candidate's (and its own test is significant at
+the family-wise level) - the best of every eligible candidate, each refitted for this
+comparison even where the step's refits would have stopped at an earlier batch -, the
+candidate is not named, the workflow names nothing more, and
 the competitor's variable is reported under ``"unexplained"`` (``"source":
 "generic competitor"``). Every step's competitor scores are in the report
 (``"generic_competitors"``).

@@ -31,8 +31,10 @@ repeat, diagnose.
    by Gauss-Newton steps on the profiled problem between LM fits; effect parameters
    under a prior of their typical size, ``effect_prior``: per heliostat, and the
    shared form's once for the fleet). A step ends
-   with the first batch in which a candidate passes; only when none of the
-   eligible candidates passes does the workflow stop.
+   with the first batch in which a candidate passes (unless a generic competitor
+   beats the best of them: then every eligible candidate is refitted first, see
+   :mod:`._competitors`); only when none of the eligible candidates passes does
+   the workflow stop.
 6. **Name** the passing candidate with the largest decrease of the criterion below
    (``delta_bic``, 2 log of a Bayes factor) among those with
    ``delta_bic > min_delta_bic`` (2) *and* a better held-out likelihood in the blocked
@@ -957,8 +959,16 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
         if config.generic_competitors and config.effect_prior:
             comps = wf.competitors(state, padded)
             if comps and comps[0].delta_bic >= best.delta_bic:
-                # a competitor takes the better of its two forms: so does a library effect
-                # before it loses (its other form is refitted where its own test is significant)
+                # before a competitor takes the residuals, the library gets its best: every
+                # eligible candidate not yet refitted is refitted (the batches stop at the first
+                # that passes, and the linearisation may rank the true effect behind the ones
+                # the competitor beats), and a competitor takes the better of its two forms:
+                # so does a library effect (its other form is refitted where its own test is
+                # significant)
+                tried = {c.effect for c in cands}
+                for c in (c for c in finalists if c not in tried):
+                    cands.extend(_refits(wf, state, c, screens[c], config.alpha))
+                passing = [c for c in cands if c.passed]
                 more = _other_forms(wf, state, passing, cands, screens, config.alpha)
                 cands.extend(more)
                 passing = [c for c in cands if c.passed]
