@@ -480,10 +480,11 @@ def _fit_law(d2: Float[np.ndarray, "Q N"], logdet: Float[np.ndarray, "Q N"]) -> 
     t_law = PointingErrorLaw(tail_dof=dof)
     candidates = [(-2.0 * ll_t + _LAW_PARAMETERS[t_law.kind] * penalty, iq_t, t_law)]
     k = _SCALE_GRID[:, None, None]
-    core, broad = _kernel(d2, math.inf), _kernel(d2 / (k * k), math.inf)
+    shift, core, broad = _mixture_parts(_kernel(d2, math.inf), _kernel(d2 / (k * k), math.inf), k)
+    base = np.sum(shift - 0.5 * logdet, axis=-1)  # (K, Q)
     best = (math.inf, 0, 0.0, 1.0)
     for e in _FRACTION_GRID:  # every scale and drift at once, (K, Q)
-        ll = np.sum(_mixture_log_density(core, broad, e, k) - 0.5 * logdet, axis=-1)
+        ll = base + np.sum(np.log((1.0 - e) * core + e * broad), axis=-1)
         ik, iq = np.unravel_index(np.argmax(ll), ll.shape)
         bic = -2.0 * float(ll[ik, iq]) + _LAW_PARAMETERS["gaussian_mixture"] * penalty
         if bic < best[0]:
@@ -500,6 +501,19 @@ def _law_log_likelihood(
     if law.outlier_fraction == 0.0:
         return _log_likelihood(d2, logdet, law.tail_dof)
     return _t_mixture_log_likelihood(d2, logdet, law.tail_dof, law.outlier_fraction, law.outlier_scale)
+
+
+def _mixture_parts(
+    core: Float[np.ndarray, "..."], broad: Float[np.ndarray, "..."], k: Float[np.ndarray, "..."] | float
+) -> tuple[Float[np.ndarray, "..."], Float[np.ndarray, "..."], Float[np.ndarray, "..."]]:
+    """``(shift, a, b)`` with :func:`_mixture_log_density` ``= shift + log((1 - e) a +
+    e b)`` for every fraction ``e`` (shapes broadcast as there): the two components'
+    densities scaled by the larger of them, so that one of ``a``, ``b`` is 1 and the
+    logarithm stays finite however far out a record lies. A grid over ``e`` then costs
+    one logarithm per record and ``e`` instead of a ``logaddexp``."""
+    scaled_broad = broad - 2.0 * np.log(k)
+    shift = np.maximum(core, scaled_broad)
+    return shift, np.exp(core - shift), np.exp(scaled_broad - shift)
 
 
 def _mixture_log_density(
@@ -536,8 +550,9 @@ def _best_t_mixture(
     for iq in drifts:
         x, ld = d2[iq][None, :], logdet[iq][None, :]
         for dof in _DOF_GRID[:-1][::3]:
-            core, broad = _kernel(x, float(dof)), _kernel(x / (k * k), float(dof))
-            ll = np.sum(_mixture_log_density(core, broad, e, k) - 0.5 * ld, axis=-1)  # (E, K), every e at once
+            shift, core, broad = _mixture_parts(_kernel(x, float(dof)), _kernel(x / (k * k), float(dof)), k)
+            # (E, K), every e at once
+            ll = np.sum(shift - 0.5 * ld, axis=-1) + np.sum(np.log((1.0 - e) * core + e * broad), axis=-1)
             ie, ik = np.unravel_index(int(np.argmax(ll)), ll.shape)  # the first maximum: the smallest e, then k
             if ll[ie, ik] > found[0]:
                 found = (float(ll[ie, ik]), iq, float(dof), float(_FRACTION_GRID[ie]), float(_SCALE_GRID[ik]))

@@ -286,3 +286,21 @@ def test_drift_and_law_fits_refuse_records_they_cannot_use(fit, unchecked):
         call(r, s[:-1], days)
     with pytest.raises(ValueError, match=r"residual_mrad has shape \(60,\); expected \(N, 2\)"):
         call(r[:, 0], s, days)
+
+
+def test_mixture_parts_give_the_mixture_density_for_every_fraction_far_out_too():
+    # the law fit's grid over the outlier fraction e uses shift + log((1 - e) a + e b)
+    # instead of a logaddexp per e: the same density, finite for records far out in
+    # the tails (d2 = 1e4, 1e6: exp(-d2 / 2) underflows to 0)
+    from heliojax._predictive import _SCALE_GRID, _kernel, _mixture_log_density, _mixture_parts
+
+    d2 = np.array([0.0, 0.3, 4.0, 60.0, 1e4, 1e6])
+    k = _SCALE_GRID[:, None]
+    for dof in (math.inf, 3.0):
+        core, broad = _kernel(d2, dof), _kernel(d2 / (k * k), dof)
+        shift, a, b = _mixture_parts(core, broad, k)
+        for e in (0.003, 0.05, 0.5):
+            want = _mixture_log_density(core, broad, e, k)
+            got = shift + np.log((1.0 - e) * a + e * b)
+            assert np.all(np.isfinite(got))
+            np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13)
