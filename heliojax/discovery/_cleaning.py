@@ -268,6 +268,7 @@ def confirm_change_points(
     unix_time: np.ndarray,
     alpha: float,
     target_index: np.ndarray | None = None,
+    extra_columns: np.ndarray | None = None,
 ) -> tuple[Cleaning, list[int]]:
     """Test the pre-pass change points again under the final model.
 
@@ -283,7 +284,11 @@ def confirm_change_points(
     the pre-pass. With ``target_index`` ``(H, M)``, both hypotheses also get a
     constant offset per target and residual component (a target's survey error
     moves its spots by a fixed angle): a heliostat that only switched targets at
-    the "change" keeps no change point. Change points that no longer pass are
+    the "change" keeps no change point. With ``extra_columns`` ``(H, 2M, K)``, both
+    hypotheses also fit those columns (rows as ``r``'s; the generic functions of a
+    recorded variable that discovery reports as unexplained structure: a wind load
+    from one direction, which the base model lacks, looked like a step of one
+    heliostat on the independent simulator). Change points that no longer pass are
     withdrawn (the report lists them).
 
     Returns:
@@ -308,6 +313,8 @@ def confirm_change_points(
         a = jac[h][rows][:, model_cols]
         if target_index is not None:
             a = np.concatenate([a, _target_columns(target_index[h], use[h] & finite)], axis=1)
+        if extra_columns is not None:
+            a = np.concatenate([a, np.nan_to_num(extra_columns[h][rows])], axis=1)
         if rr.size <= a.shape[1] + 2 * len(offset_cols):  # too few evaluable rows to test a jump: no evidence
             p[h] = 1.0
             continue

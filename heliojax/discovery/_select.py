@@ -75,6 +75,7 @@ shared ones once).
 
 from __future__ import annotations
 
+import collections.abc
 import dataclasses
 import logging
 import time
@@ -92,6 +93,8 @@ from ..fitting import OFFSET_NAMES, AbstractBatching, default_solver, fitted_sta
 from ._cleaning import Cleaning, change_point_rival, clean, confirm_change_points, recheck_outliers
 from ._competitors import (
     CompetitorScore,
+    competitor_design,
+    competitor_features,
     generic_rivals,
     n_tested,
     score_competitors,
@@ -1046,7 +1049,8 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
         state = best.state
     if cleaning.change_found.any() or (cleaning.outlier.any() and state.effects):
         with activity("checking change points and gross errors under the final model", logger=log):
-            cleaning, withdrawn = _confirm_cleaning(wf, state, valid, cleaning, config)
+            generic_variables = [g["variable"] for g in generic]
+            cleaning, withdrawn = _confirm_cleaning(wf, state, valid, cleaning, config, generic_variables)
         for i in withdrawn:
             log.info(f"change point of {padded.ids[i]} withdrawn: the final model explains it")
         if cleaning.restored is not None and cleaning.restored.any():
@@ -1090,10 +1094,20 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
     return dataclasses.replace(result, report=build_report(result))
 
 
-def _confirm_cleaning(wf: _Workflow, state: ModelState, valid, cleaning: Cleaning, config: DiscoveryConfig):
+def _confirm_cleaning(
+    wf: _Workflow,
+    state: ModelState,
+    valid,
+    cleaning: Cleaning,
+    config: DiscoveryConfig,
+    unexplained_variables: collections.abc.Sequence[str] = (),
+):
     """The pre-pass judged under the final model, with its residuals and Jacobian on
     every valid record: gross errors flagged again (:func:`recheck_outliers`), then
-    the change points tested again (:func:`confirm_change_points`)."""
+    the change points tested again (:func:`confirm_change_points`), the generic
+    functions of ``unexplained_variables`` (competitors that beat a library name,
+    :mod:`._competitors`) fitted beside the model: structure reported as unexplained is
+    no step either."""
     h = wf.lanes.n_heliostats
     lanes = make_lanes(valid, config.n_folds, min_training_records=len(wf.layout.base_cols))
     engine = dataclasses.replace(wf.engine, lanes=lanes)
@@ -1123,7 +1137,11 @@ def _confirm_cleaning(wf: _Workflow, state: ModelState, valid, cleaning: Cleanin
     offset_cols = [names.index(n) for n in offsets]
     t = np.asarray(valid.context.unix_time, float)
     targets = np.asarray(valid.target_index)
-    return confirm_change_points(cleaning, r[:h], jac[:h], model_cols, offset_cols, t, config.alpha, targets)
+    extra = None
+    if unexplained_variables:
+        designs = [competitor_design(competitor_features(valid, v)) for v in unexplained_variables]
+        extra = np.concatenate(designs, axis=-1)[:h]
+    return confirm_change_points(cleaning, r[:h], jac[:h], model_cols, offset_cols, t, config.alpha, targets, extra)
 
 
 def _refits(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen, alpha: float) -> list[Candidate]:
