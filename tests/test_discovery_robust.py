@@ -61,15 +61,22 @@ def _cleaning_with_change(h, m, t_change):
     )
 
 
-def test_confirm_keeps_a_real_step_and_withdraws_a_spurious_one():
-    # A linear model per heliostat: 2 offset columns (one per component) and a slope.
-    rng = np.random.default_rng(0)
-    h, m = 2, 40
+def _linear_model(h, m):
+    """Record times ``(H, M)`` (0, 1, ...) and the Jacobian ``(H, 2M, 3)`` of a linear
+    model per heliostat: 2 offset columns (one per component) and a slope in time."""
     t = np.tile(np.arange(m, dtype=float), (h, 1))
     jac = np.zeros((h, 2 * m, 3))
     jac[:, 0::2, 0] = 1.0
     jac[:, 1::2, 1] = 1.0
     jac[:, :, 2] = np.repeat(np.linspace(-1, 1, m), 2)[None]
+    return t, jac
+
+
+def test_confirm_keeps_a_real_step_and_withdraws_a_spurious_one():
+    # A linear model per heliostat: 2 offset columns (one per component) and a slope.
+    rng = np.random.default_rng(0)
+    h, m = 2, 40
+    t, jac = _linear_model(h, m)
     noise = 0.25 * rng.standard_normal((h, 2 * m))
     step = np.where(np.repeat(t[0] < 20, 2), 1.0, 0.0)  # 1 mrad before the change in both components
     r = noise.copy()
@@ -114,11 +121,7 @@ def test_structure_reported_unexplained_is_no_step_when_change_points_are_confir
     the wind-vector load was reported unexplained.)"""
     rng = np.random.default_rng(3)
     h, m = 2, 40
-    t = np.tile(np.arange(m, dtype=float), (h, 1))
-    jac = np.zeros((h, 2 * m, 3))
-    jac[:, 0::2, 0] = 1.0
-    jac[:, 1::2, 1] = 1.0
-    jac[:, :, 2] = np.repeat(np.linspace(-1, 1, m), 2)[None]
+    t, jac = _linear_model(h, m)
     before = (t < 20).astype(float)
     x = before + 0.5 * rng.standard_normal((h, m))  # the variable: higher before the date
     extra = np.zeros((h, 2 * m, 2))
