@@ -23,7 +23,14 @@ from heliojax.discovery import (
     markdown_summary,
     simulate_fleet,
 )
-from heliojax.discovery._screen import prepare_bases, screen_candidate
+from heliojax.discovery._screen import (
+    PRIOR_SCALES,
+    best_prior_scale,
+    hyperprior_penalty,
+    prepare_bases,
+    scale_profile,
+    screen_candidate,
+)
 from heliojax.discovery._select import SHARED_STEP_TOLERANCE, refit_passes
 from heliojax.effects import make_effect
 
@@ -50,6 +57,53 @@ def test_holm_hand_example():
     assert rej == {"a"}
     _, rej = holm({"a": 0.02, "b": 0.5}, 0.03)  # 2 * 0.02 > 0.03
     assert rej == set()
+
+
+def _gaussian_bayes_factors(b, y, sigma, typical, scales):
+    """-2 log Bayes factor of y = B q + e, q ~ N(0, (s typical)^2), e ~ N(0, sigma^2), against
+    y = e, for each scale s: the two Gaussian densities of y evaluated directly (n x n)."""
+    n = len(y)
+    null = stats.multivariate_normal(np.zeros(n), sigma**2 * np.eye(n)).logpdf(y)
+    return np.array(
+        [
+            -2.0
+            * (
+                stats.multivariate_normal(np.zeros(n), sigma**2 * np.eye(n) + (b * (s * typical) ** 2) @ b.T).logpdf(y)
+                - null
+            )
+            for s in scales
+        ]
+    )
+
+
+def test_scale_profile_and_the_hyperprior_against_gaussian_densities():
+    """The evidence of an effect at each prior scale and its average over the hyperprior,
+    from information and score alone (summed over two independent blocks), equal the
+    Gaussian marginal likelihoods computed directly; the best scale of a large effect is
+    near its size in typical units."""
+    rng = np.random.default_rng(11)
+    sigma, typical = 0.3, np.array([0.5, 2.0])
+    blocks = []
+    for _ in range(2):
+        b = rng.standard_normal((40, 2))
+        y = b @ (4.0 * typical * rng.choice([-1.0, 1.0], 2)) + sigma * rng.standard_normal(40)
+        blocks.append((b, y))
+    info = np.stack([typical[:, None] * (b.T @ b) * typical[None, :] / sigma**2 for b, _ in blocks])
+    score = np.stack([typical * (b.T @ y) / sigma**2 for b, y in blocks])
+    direct = sum(_gaussian_bayes_factors(b, y, sigma, typical, PRIOR_SCALES) for b, y in blocks)
+    np.testing.assert_allclose(scale_profile(info, score, PRIOR_SCALES), direct, rtol=1e-9, atol=1e-7)
+    assert best_prior_scale(info, score) == 4.0
+    # the average over the hyperprior, from the posterior mode at scale 2 (the fit's view)
+    at = 2.0
+    info_at = at**2 * info
+    u = np.linalg.solve(np.eye(2) + info_at, at * score[..., None])[..., 0]  # the mode, prior units
+    score_at = u + (info_at @ u[..., None])[..., 0]  # (I + F) u: the score at no effect
+    np.testing.assert_allclose(score_at, at * score, rtol=1e-12)
+    mean_bf = np.mean(np.exp(-0.5 * (direct - direct[PRIOR_SCALES.tolist().index(at)])))
+    np.testing.assert_allclose(hyperprior_penalty(info_at, score_at, at), -2.0 * np.log(mean_bf), rtol=1e-8)
+    # flat evidence (no information): no scale is better than 1, and nothing to pay
+    assert best_prior_scale(np.zeros((1, 2, 2)), np.zeros((1, 2))) == 1.0
+    assert hyperprior_penalty(np.zeros((1, 2, 2)), np.zeros((1, 2)), 1.0) == 0.0
 
 
 def test_absorbed_fractions_hand_values():
@@ -119,6 +173,27 @@ def test_score_tests_are_calibrated_under_the_null_and_have_power():
     np.testing.assert_allclose(s.theta_shared, [0.1, -0.05], atol=0.03)
 
 
+def test_the_screen_scales_a_per_heliostat_prior_to_the_effects_size_and_keeps_the_shared_one():
+    """Twelve heliostats whose effect is four times its typical size in every parameter:
+    the per-heliostat prior takes scale 4 (its scale is learnt across the heliostats),
+    the shared form's stays 1 (one draw of the shared parameters says nothing about
+    their prior's scale); an effect of typical size keeps scale 1 (or 2: the seven
+    points are a factor 2 apart)."""
+    rng = np.random.default_rng(8)
+    h, n, typical, sigma = 12, 60, np.array([0.5, 2.0]), 0.3
+    a = rng.standard_normal((h, n, 4))
+    b = rng.standard_normal((h, n, 2))
+    for size, expected in ((4.0, {4.0}), (1.0, {1.0, 2.0})):
+        q = size * typical * rng.choice([-1.0, 1.0], (h, 2))
+        y = (b @ q[..., None])[..., 0] + sigma * rng.standard_normal((h, n))
+        coef = np.linalg.solve(a.swapaxes(1, 2) @ a, (a.swapaxes(1, 2) @ y[..., None]))[..., 0]
+        r = (a @ coef[..., None])[..., 0] - y
+        j = np.concatenate([a, b], axis=-1)
+        bases = prepare_bases(r, j, np.ones(r.shape, bool), range(4), list(range(h)))
+        s = screen_candidate("x", bases, j, (4, 5), h, ABSORBED_LIMIT, typical=typical)
+        assert s.prior_scale["per_heliostat"] in expected and s.prior_scale["shared"] == 1.0
+
+
 def test_per_heliostat_start_is_the_posterior_mode_and_stays_bounded_when_nearly_absorbed():
     """The per-heliostat one-step estimate (a refit's start) is the mode of the
     linearised posterior under the refit's prior (typical size ``typical``, the
@@ -142,11 +217,12 @@ def test_per_heliostat_start_is_the_posterior_mode_and_stays_bounded_when_nearly
     bt = b - u @ (u.T @ b)
     full = np.linalg.lstsq(np.hstack([a, b]), y, rcond=None)[0]
     sigma2 = np.sum((np.hstack([a, b]) @ full - y) ** 2) / (n - 8)
-    stacked = np.vstack([bt, np.diag(np.sqrt(sigma2) / typical)])
+    prior_sd = s.prior_scale["per_heliostat"] * typical  # the refit's prior, at the scale the screen chose
+    stacked = np.vstack([bt, np.diag(np.sqrt(sigma2) / prior_sd)])
     expected = np.linalg.lstsq(stacked, np.concatenate([-r_res, np.zeros(2)]), rcond=None)[0]
     np.testing.assert_allclose(s.theta_per_heliostat[0], expected, rtol=1e-6, atol=1e-9)
     assert abs(s.theta_per_heliostat[0, 0] - 0.3) < 0.15  # the determined direction is recovered
-    assert np.all(np.abs(s.theta_per_heliostat[0]) < 3 * typical)
+    assert np.all(np.abs(s.theta_per_heliostat[0]) < 3 * prior_sd)
     bare = np.linalg.lstsq(bt, -r_res, rcond=None)[0]
     assert np.abs(bare[1]) > 100 * typical[1]  # what the bare estimate would start from
 
@@ -231,7 +307,7 @@ def test_folds_shared_start_is_the_shared_step_evaluated_at_the_folds_start():
     r, jac = engine.jacobian(warm, active=~fold0)
     ok = first.ok[lanes.heliostat] & ~fold0
     sh_cols, act_cols = wf.shared_cols(effects), wf.active_cols(effects)
-    steps, _, _ = wf._shared_step(r, jac, ok, act_cols, sh_cols, warm)
+    steps, _, _ = wf._shared_step(r, jac, ok, act_cols, sh_cols, warm, wf.inverse_typical(effects))
     idx = wf.free_index[sh_cols]
     for f in range(1, lanes.n_folds + 1):
         lane = np.flatnonzero(lanes.fold == f)[0]

@@ -7,6 +7,7 @@ import types
 
 import numpy as np
 import pytest
+from _evidence import scale_and_penalty
 
 from heliojax.discovery._competitors import (
     GENERIC_TYPICAL_MRAD,
@@ -70,7 +71,9 @@ def test_the_features_are_the_day_phase_and_the_wind_vector():
 def test_the_per_heliostat_evidence_against_second_formulas():
     """Delta = sum_h n_h log(RSS_h / RSS'_h) - log det(I + T F_h) - beta^T T^-1 beta, with
     the MAP from the augmented least-squares system and the log det by the matrix
-    determinant lemma (``log det(s^2 I + X T X^T) - n log s^2``)."""
+    determinant lemma (``log det(s^2 I + X T X^T) - n log s^2``), ``T`` at the
+    hyperprior's scale and less its ``-2 log`` average over the scales (both from the
+    marginal likelihood of the rows, ``tests/_evidence.py``)."""
     rng = np.random.default_rng(3)
     h, m, p = 4, 30, 5
     fleet = _fake_fleet(h, m, rng)
@@ -81,8 +84,20 @@ def test_the_per_heliostat_evidence_against_second_formulas():
     bases = prepare_bases(r, jac, used, range(p), range(h))
     noise = np.full(h, 0.3)
     delta, pval, size, p_h = _per_heliostat(bases, design, noise, h)
-    t2 = GENERIC_TYPICAL_MRAD**2
-    expected = 0.0
+    blocks = []
+    for i in range(h):
+        q, _ = np.linalg.qr(jac[i])
+        blocks.append(
+            (
+                design[i] - q @ (q.T @ design[i]),
+                r[i] - q @ (q.T @ r[i]),
+                noise[i] ** 2,
+                np.full(4, GENERIC_TYPICAL_MRAD),
+            )
+        )
+    scale, penalty = scale_and_penalty(blocks)
+    t2 = (scale * GENERIC_TYPICAL_MRAD) ** 2
+    expected = -penalty
     for i in range(h):
         q, _ = np.linalg.qr(jac[i])
         xt = design[i] - q @ (q.T @ design[i])

@@ -8,6 +8,7 @@ into a projection or a sum would change the results."""
 from __future__ import annotations
 
 import numpy as np
+from _evidence import scale_and_penalty
 from scipy import stats
 
 from heliojax.discovery import ABSORBED_LIMIT
@@ -46,6 +47,7 @@ def _reference(r, jac, used, typical):
     h, k = r.shape[0], len(CAND)
     out = dict(p_h=np.full(h, np.nan), theta_h=np.full((h, k), np.nan), q=0.0, k_sum=0, dll_ph=0.0, n_total=0)
     full, res, info, g, gmat, dof_total, per = np.zeros((k, k)), np.zeros((k, k)), np.zeros((k, k)), 0, 0, 0, []
+    tested = []
     for i in range(h):
         rows = np.flatnonzero(used[i])
         if rows.size == 0:
@@ -74,9 +76,13 @@ def _reference(r, jac, used, typical):
         out["p_h"][i] = stats.f.sf(explained / kh / sigma2, kh, dof - kh)
         out["q"] += stats.chi2.isf(out["p_h"][i], kh)
         out["k_sum"] += kh
-        ridge = bt.T @ bt + sigma2 * np.diag(1.0 / typical**2)
-        out["theta_h"][i] = -np.linalg.lstsq(ridge, bt.T @ rt, rcond=None)[0]
+        tested.append((i, bt, rt, sigma2))
         out["dll_ph"] += rows.size * np.log(rt @ rt / (rt @ rt - explained))
+    # the starts under the prior at the hyperprior's scale, chosen on the tested heliostats
+    out["scale"], _ = scale_and_penalty([(bt, rt, sigma2, typical) for _, bt, rt, sigma2 in tested])
+    for i, bt, rt, sigma2 in tested:
+        ridge = bt.T @ bt + sigma2 * np.diag(1.0 / (out["scale"] * typical) ** 2)
+        out["theta_h"][i] = -np.linalg.lstsq(ridge, bt.T @ rt, rcond=None)[0]
     ev, vec = np.linalg.eigh(full)
     wf = vec / np.sqrt(ev)
     out["fractions"] = np.sort(1.0 - np.linalg.eigvalsh(wf.T @ res @ wf))
@@ -105,6 +111,7 @@ def test_batched_screen_equals_the_per_heliostat_computation():
     close = dict(rtol=1e-9, atol=0)
     np.testing.assert_allclose(s.p_heliostats, ref["p_h"], **close)
     # the absorbed column's estimate is 0 to rounding
+    assert s.prior_scale == {"shared": 1.0, "per_heliostat": ref["scale"]}
     np.testing.assert_allclose(s.theta_per_heliostat, ref["theta_h"], rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(s.stat_per_heliostat, ref["q"], **close)
     np.testing.assert_allclose(s.p_per_heliostat, stats.chi2.sf(ref["q"], ref["k_sum"]), **close)
@@ -130,6 +137,18 @@ def test_batched_competitor_forms_equal_the_per_heliostat_computation():
     t2 = GENERIC_TYPICAL_MRAD**2
     ref_delta, ref_p, sq, n_sq = 0.0, np.full(len(USED), np.nan), 0.0, 0
     g, gmat, parts = np.zeros(4), np.zeros((4, 4)), []
+    # the per-heliostat form's prior at the hyperprior's scale, its choice paid for
+    blocks = []
+    for i in bases.index:
+        rows = np.flatnonzero(used[i])
+        u = column_basis(jac[i][rows][:, :N_BASE])
+        x = design[i][rows]
+        if np.any(x):
+            rt = r[i][rows] - u @ (u.T @ r[i][rows])
+            blocks.append((x - u @ (u.T @ x), rt, noise[i] ** 2, np.full(4, GENERIC_TYPICAL_MRAD)))
+    scale, penalty = scale_and_penalty(blocks)
+    t2_scaled = (scale * GENERIC_TYPICAL_MRAD) ** 2
+    ref_delta -= penalty
     for i in bases.index:
         rows = np.flatnonzero(used[i])
         u = column_basis(jac[i][rows][:, :N_BASE])
@@ -140,10 +159,10 @@ def test_batched_competitor_forms_equal_the_per_heliostat_computation():
         parts.append((rows.size, x, xt, rt, rr))
         if not np.any(x):
             continue
-        beta = np.linalg.solve(xt.T @ xt / s2 + np.eye(4) / t2, xt.T @ rt / s2)
+        beta = np.linalg.solve(xt.T @ xt / s2 + np.eye(4) / t2_scaled, xt.T @ rt / s2)
         rss_new = rr @ rr - (rt @ rt - np.sum((rt - xt @ beta) ** 2))
-        logdet = np.linalg.slogdet(np.eye(4) + t2 * xt.T @ xt / s2)[1]
-        ref_delta += rows.size * np.log(rr @ rr / rss_new) - logdet - beta @ beta / t2
+        logdet = np.linalg.slogdet(np.eye(4) + t2_scaled * xt.T @ xt / s2)[1]
+        ref_delta += rows.size * np.log(rr @ rr / rss_new) - logdet - beta @ beta / t2_scaled
         sq, n_sq = sq + np.sum((x @ beta) ** 2), n_sq + rows.size // 2
         dof = rows.size - u.shape[1]
         if dof - 4 > 0:

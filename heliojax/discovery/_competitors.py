@@ -37,9 +37,12 @@ The competitors (:data:`COMPETITORS`), each a first harmonic of a circular varia
   it blows from (a load linear in the wind vector; the library's ``wind`` is a drag
   that grows with ``v^2`` whatever the direction).
 
-Prior: every coefficient ``N(0, (0.6 mrad)^2)`` (:data:`GENERIC_TYPICAL_MRAD`): the
+Prior: every coefficient ``N(0, (s 0.6 mrad)^2)`` (:data:`GENERIC_TYPICAL_MRAD`): the
 beam error of the 0.3 mrad joint angle the library gives its periodic effects as
-their typical size (encoder wobble, backlash), fixed a priori.
+their typical size (encoder wobble, backlash), fixed a priori; in the per-heliostat
+form the scale ``s`` has the library's per-heliostat hyperprior
+(:data:`._screen.PRIOR_SCALES`: the scale of largest evidence, its choice paid for),
+in the fleet form ``s = 1``, as for the library's shared forms.
 """
 
 from __future__ import annotations
@@ -51,9 +54,11 @@ from scipy import stats
 
 from ._screen import (
     HeliostatBases,
+    best_prior_scale,
     chi2_equivalent,
     directions_f_tests,
     heliostat_directions,
+    hyperprior_penalty,
     shared_score,
     weighted_gram,
 )
@@ -121,6 +126,17 @@ class CompetitorScore:
     p_heliostats: np.ndarray
 
 
+def _prior_scale(info: np.ndarray, score: np.ndarray) -> tuple[float, float]:
+    """The coefficients' prior variance (mrad^2) at the scale of largest evidence
+    (:func:`._screen.best_prior_scale`; ``info`` ``(B, k, k)`` and ``score`` ``(B, k)``
+    in mrad units) and the hyperprior's ``-2 log`` penalty for that choice
+    (:func:`._screen.hyperprior_penalty`): the library effects' treatment."""
+    typ = GENERIC_TYPICAL_MRAD
+    scale = best_prior_scale(typ**2 * info, typ * score)
+    at = scale * typ
+    return at**2, hyperprior_penalty(at**2 * info, at * score, scale)
+
+
 def _per_heliostat(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray, n_h: int):
     """The per-heliostat form, all heliostats at once (those whose records lack the
     variable add nothing): ``(delta_bic, p, effect_size_mrad, p_heliostats)``, ``p``
@@ -133,7 +149,6 @@ def _per_heliostat(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray,
         design: ``(H, >= R, k)`` the competitor's Jacobian (:func:`competitor_design`).
         noise: ``(L,)`` the lanes' noise (mrad).
         n_h: ``H``."""
-    typ2 = GENERIC_TYPICAL_MRAD**2
     p_h = np.full(n_h, np.nan)
     x = bases.rows(design)  # (S, R, k)
     driven = np.any(x, axis=(1, 2))
@@ -144,12 +159,15 @@ def _per_heliostat(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray,
     xtt = xt.swapaxes(1, 2)
     sigma2 = np.maximum(noise[bases.index[driven]] ** 2, 1e-300)[:, None, None]
     info = xtt @ xt / sigma2
-    beta = np.linalg.solve(info + np.eye(k) / typ2, xtt @ r_res[..., None] / sigma2)[..., 0]
+    score = (xtt @ r_res[..., None] / sigma2)[..., 0]
+    typ2, penalty = _prior_scale(info, score)
+    beta = np.linalg.solve(info + np.eye(k) / typ2, score[..., None])[..., 0]
     new = r_res - (xt @ beta[..., None])[..., 0]
     r2 = np.sum(r_res * r_res, axis=1)
     rss_new = np.maximum(rss - (r2 - np.sum(new * new, axis=1)), 1e-300)
     _, logdet = np.linalg.slogdet(np.eye(k) + typ2 * info)
     delta = float(np.sum(n * np.log(np.maximum(rss, 1e-300) / rss_new) - logdet - np.sum(beta * beta, axis=1) / typ2))
+    delta -= penalty
     fitted = (x @ beta[..., None])[..., 0]
     sq = float(np.sum(fitted * fitted))
     n_sq = int(np.sum(n // 2))
@@ -168,7 +186,6 @@ def _fleet(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray):
     """The fleet form: ``(delta_bic, p, effect_size_mrad)``; ``p`` (chi-square test of
     the score, the noise known) ``None`` where no direction is left to test
     (:func:`._screen.shared_score`). Arguments as :func:`_per_heliostat`'s."""
-    typ2 = GENERIC_TYPICAL_MRAD**2
     k = design.shape[-1]
     x = bases.rows(design)  # (S, R, k)
     xt = bases.project(x)
@@ -177,6 +194,7 @@ def _fleet(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray):
     gmat = weighted_gram(w, xt, xt)
     if not np.any(gmat):
         return 0.0, None, 0.0
+    typ2, penalty = GENERIC_TYPICAL_MRAD**2, 0.0
     beta = np.linalg.solve(gmat + np.eye(k) / typ2, g)
     new = bases.r_res - xt @ beta
     r2 = np.sum(bases.r_res * bases.r_res, axis=1)
@@ -186,7 +204,7 @@ def _fleet(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray):
     sq = float(np.sum(fitted * fitted))
     n_sq = int(np.sum(bases.n // 2))
     _, logdet = np.linalg.slogdet(np.eye(k) + typ2 * gmat)
-    delta -= logdet + float(beta @ beta) / typ2
+    delta -= logdet + float(beta @ beta) / typ2 + penalty
     stat, k_kept, _ = shared_score(w, x, g, gmat)
     p = float(stats.chi2.sf(stat, k_kept)) if k_kept else None
     return delta, p, float(np.sqrt(sq / max(n_sq, 1)))

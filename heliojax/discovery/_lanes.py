@@ -615,11 +615,14 @@ class Engine:
             effect_prior,
         )
 
-    def prior_weights(self, noise_mrad: np.ndarray) -> np.ndarray:
+    def prior_weights(self, noise_mrad: np.ndarray, inverse_typical: np.ndarray | None = None) -> np.ndarray:
         """``(L, E)`` weights of the effect prior's rows per lane and effect column
-        (scaled units; see :meth:`fit`): noise over typical size; 0 without a prior."""
+        (scaled units; see :meth:`fit`): noise over the prior's standard deviation
+        (``inverse_typical`` ``(E,)``, default the layout's typical sizes); 0 without a
+        prior."""
         noise = np.where(np.isfinite(noise_mrad) & (noise_mrad > 0), noise_mrad, 0.0)
-        return noise[:, None] * self.layout.inverse_typical[None, :] * float(self.effect_prior)
+        inv = self.layout.inverse_typical if inverse_typical is None else np.asarray(inverse_typical)
+        return noise[:, None] * inv[None, :] * float(self.effect_prior)
 
     @functools.cached_property
     def groups(self) -> tuple[LaneGroup, ...]:
@@ -699,6 +702,7 @@ class Engine:
         expansion,
         noise_mrad: np.ndarray | None = None,
         active: np.ndarray | None = None,
+        inverse_typical: np.ndarray | None = None,
     ) -> dict:
         """One Levenberg-Marquardt fit of every lane from ``p0``: the base's free
         parameters and the effect columns ``effect_cols`` (positions among the
@@ -709,7 +713,9 @@ class Engine:
         rows, with ``effect_prior``, left out). With ``effect_prior``, ``noise_mrad``
         ``(L,)`` is each lane's noise per residual component: the prior rows are
         ``noise * (q - q_none) / typical``, so that the fit is the posterior mode of
-        Gaussian records and a Gaussian prior (no prior where it is None)."""
+        Gaussian records and a Gaussian prior (no prior where it is None);
+        ``inverse_typical`` ``(E,)``: one over the prior's standard deviation per
+        effect column (:meth:`prior_weights`)."""
         k = len(effect_cols)
         cap = next(c for c in CAPS if c >= k) if k <= CAPS[-1] else k
         p0, p_exp = np.asarray(p0), np.asarray(p_exp)
@@ -719,7 +725,7 @@ class Engine:
         valid[:, :k] = True
         weight = np.zeros((p0.shape[0], cap))
         if self.effect_prior and k and noise_mrad is not None:
-            weight[:, :k] = self.prior_weights(noise_mrad)[:, np.asarray(effect_cols, int)]
+            weight[:, :k] = self.prior_weights(noise_mrad, inverse_typical)[:, np.asarray(effect_cols, int)]
         assert len(expansion) == len(self.groups)
 
         def fit_group(k: int) -> dict:

@@ -67,9 +67,11 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
       "screens": [{name: {"p", "p_shared", "p_per_heliostat", "p_holm", "absorbed_fraction",
                           "identifiable", "tested", "testable"}}],  # one per step
       "refits": [[{"effect", "mode", "delta_bic", "cv_heldout_rms_before_mrad",
-                   "cv_heldout_rms_after_mrad", "cv_log_ratio", "passed"}]],
+                   "cv_heldout_rms_after_mrad", "cv_log_ratio", "prior_scale", "passed"}]],
                                                    # cv_* null where delta BIC failed
-                                                   # (its folds are then not fitted)
+                                                   # (its folds are then not fitted);
+                                                   # prior_scale: factor on the typical
+                                                   # sizes of the refit's prior
       "config": {...}, "data": {...}, "timing": {...}
     }                                              # data: also "folds_left_out" and
                                                    # "heliostats_not_cross_validated" (folds with
@@ -275,6 +277,7 @@ def build_report(result, typical_start=None) -> dict:
                 "cv_heldout_rms_before_mrad": _f(c.cv_before),
                 "cv_heldout_rms_after_mrad": _f(c.cv_after),
                 "cv_log_ratio": _f(c.cv_log_ratio),
+                "prior_scale": _f(c.prior_scale),
                 "passed": bool(c.passed),
             }
             for c in cands

@@ -68,7 +68,13 @@ fleet), so a parameter costs what the records determine of it, not ``log N``
 (until 2026-12-05 the BIC with the effective number of parameters, which asks a
 per-heliostat effect for more evidence than its prior warrants: on the independent
 simulator a 0.3 mrad axis-2 wobble at ``p_holm = 5e-4`` was rejected at ``-133``
-and is named at ``+28`` now). Without the prior it is the BIC, ``k log N``, ``k``
+and is named at ``+28`` now). A per-heliostat effect's prior has an uncertain scale
+(a log-uniform hyperprior on 1/8 to 8 times its typical sizes,
+:data:`._screen.PRIOR_SCALES`): the refit takes the scale its screen finds most
+probable and the criterion adds ``-2 log`` of the evidence averaged over the
+hyperprior relative to that scale's (at most ``2 log 7``; 0 where the scale does not
+matter), so an effect far from its documented size is not held back by the guess.
+Without the prior it is the BIC, ``k log N``, ``k``
 the number of fitted parameters (per-heliostat parameters count once per heliostat,
 shared ones once).
 """
@@ -105,7 +111,14 @@ from ._diagnostics import record_variables, unexplained_structure
 from ._identifiability import ABSORBED_LIMIT, column_bases
 from ._lanes import Engine, Lanes, Layout, make_lanes, make_layout
 from ._report import build_report, cv_log_ratio, cv_pair
-from ._screen import CandidateScreen, HeliostatBases, holm, prepare_bases, screen_candidate
+from ._screen import (
+    CandidateScreen,
+    HeliostatBases,
+    holm,
+    hyperprior_penalty,
+    prepare_bases,
+    screen_candidate,
+)
 
 log = logging.getLogger(__name__)
 
@@ -291,6 +304,9 @@ class _Workflow:
         self.free_index = np.asarray(self.layout.free_index)
         self.noise: np.ndarray | None = None  # (L,) mrad per component, from the base fit
         self._derivative: tuple[ModelState, tuple] | None = None  # (state, its expansion): see derivative_at
+        # (effect, mode) -> the factor on its typical sizes its prior was fitted with
+        # (:data:`._screen.PRIOR_SCALES`; set by each refit from its screen)
+        self.prior_scale: dict[tuple[str, str], float] = {}
 
     # -- columns ----------------------------------------------------------------------
 
@@ -307,6 +323,16 @@ class _Workflow:
             if mode == "shared":
                 cols += list(self.layout.cols(e))
         return cols
+
+    def inverse_typical(self, effects) -> np.ndarray:
+        """``(E,)`` one over the prior's standard deviation per effect column (scaled
+        units; 0 where no typical size is documented): the layout's typical sizes, each
+        effect of ``effects`` times the scale its refit chose (:attr:`prior_scale`)."""
+        inv = np.array(self.layout.inverse_typical, dtype=np.float64)
+        n_base = len(self.layout.base_cols)
+        for e, mode in effects:
+            inv[np.asarray(self.layout.cols(e), int) - n_base] /= self.prior_scale.get((e, mode), 1.0)
+        return inv
 
     # -- fitting ----------------------------------------------------------------------
 
@@ -357,7 +383,15 @@ class _Workflow:
         d_here = False  # D evaluated where polishing began (else only at the start, maybe far away)
         it, limit = 0, n_iter  # iterations; at most max_iterations, or one polishing fit past them
         while True:
-            out = self.engine.fit(p, fit_effect_cols, p, expansion, self.noise, active=active)
+            out = self.engine.fit(
+                p,
+                fit_effect_cols,
+                p,
+                expansion,
+                self.noise,
+                active=active,
+                inverse_typical=self.inverse_typical(effects),
+            )
             p = np.array(out["params"])
             it += 1
             keep_d = d_here or not polishing
@@ -381,7 +415,7 @@ class _Workflow:
             converged = abs(exact - linear) <= 1e-4 * max(exact, 1e-300)
             last = it >= limit
             if sh_cols:
-                step, cov, gain = self._shared_step(r, jac, ok, act_cols, sh_cols, p)
+                step, cov, gain = self._shared_step(r, jac, ok, act_cols, sh_cols, p, self.inverse_typical(effects))
                 # (a fold without an active lane has nothing to step)
                 worth = float(np.max(gain[present], initial=0.0))  # no fold: nothing to step
                 if not last and worth > SHARED_STEP_TOLERANCE:
@@ -431,7 +465,9 @@ class _Workflow:
         lanes = self.lanes
         source = lanes.heliostat  # fold-0 lane h is lane h
         ok = fold0.ok[source] & np.asarray(active, bool)
-        steps, _, _ = self._shared_step(fold0.r[source], fold0.jac[source], ok, self.active_cols(effects), sh_cols, p)
+        steps, _, _ = self._shared_step(
+            fold0.r[source], fold0.jac[source], ok, self.active_cols(effects), sh_cols, p, self.inverse_typical(effects)
+        )
         return self._shared_stepped(p, steps, sh_cols, (lanes.fold > 0) & np.asarray(active, bool))
 
     def _shared_stepped(self, p: np.ndarray, steps: np.ndarray, sh_cols, lanes: np.ndarray) -> np.ndarray:
@@ -444,14 +480,15 @@ class _Workflow:
         out[np.ix_(rows, idx)] += steps[self.lanes.fold[rows]] * self.scales[sh_cols]
         return out
 
-    def _shared_step(self, r, jac, ok, act_cols, sh_cols, p):
+    def _shared_step(self, r, jac, ok, act_cols, sh_cols, p, inverse_typical):
         """Gauss-Newton step of the shared parameters per fold, the current model's
         per-heliostat parameters profiled out; and the shared covariance. All lanes
         at once: each lane's residual and shared columns are projected off its own
         parameters' column space (training rows only), weighted by its noise. With
         ``effect_prior``, each shared parameter's Gaussian prior about no effect (its
-        typical size as standard deviation, once per fold) adds to the normal
-        equations: the step and covariance are the posterior's.
+        typical size times its scale as standard deviation, ``inverse_typical``
+        ``(E,)`` per effect column, once per fold) adds to the normal equations: the
+        step and covariance are the posterior's.
 
         Returns:
             ``(steps, covs, gains)``: per fold (``K + 1``) the step ``(k,)`` (scaled
@@ -481,7 +518,7 @@ class _Workflow:
         if self.config.effect_prior:
             # rows (q - q_none) / (scale * typical) of unit weight, in the units of w r^2
             n_base = len(self.layout.base_cols)
-            inv_typ = self.layout.inverse_typical[np.asarray(sh_cols) - n_base]
+            inv_typ = inverse_typical[np.asarray(sh_cols) - n_base]
             idx = self.free_index[sh_cols]
             none = np.asarray(self.layout.view.nominal)[idx]
             first = np.array([np.argmax(lanes.fold == f) for f in range(n_folds)])  # shared: equal in a fold
@@ -540,15 +577,17 @@ class _Workflow:
         profiled out: ``log det(I + T S / sigma^2) + q^T T^-1 q``, ``S`` the Schur
         complement of ``J^T J`` on the effect columns (training rows; the information
         the base does not absorb) and ``sigma`` the lane's noise that weighs the prior
-        in the fit. The shared parameters once for the fleet: ``log det(I + T G) + q^T
-        T^-1 q``, ``G`` their information summed over the heliostats
+        in the fit; ``T`` at the scale the effect's refit took, plus, per effect, the
+        hyperprior's term (:meth:`_hyperprior_penalties`). The shared parameters once
+        for the fleet: ``log det(I + T G) + q^T T^-1 q``, ``G`` their information
+        summed over the heliostats
         (:meth:`_shared_step`, fold 0). A column without a documented typical size has
         no prior and costs ``log N`` as in the BIC."""
         if self.noise is None:
             raise ValueError("occam_terms needs the lanes' noise (set from the base fit)")
         noise = self.noise
         n_base = len(self.layout.base_cols)
-        inv_typ = self.layout.inverse_typical
+        inv_typ = self.inverse_typical(state.effects)
         none = np.asarray(self.layout.view.nominal)
         big_n = max(float(np.sum(state.n_res[lanes])), 2.0)
         total = 0.0
@@ -572,6 +611,7 @@ class _Workflow:
             sign, logdet = np.linalg.slogdet(m)
             q = (state.params[lanes][:, self.free_index[own]] - none[self.free_index[own]]) / self.scales[own]
             total += float(np.sum(np.where(sign > 0, logdet, 0.0)) + np.sum((q / typ) ** 2))
+            total += self._hyperprior_penalties(state.effects, own, m - np.eye(len(own)), q / typ)
         total += (len(act) - n_base - len(own)) * lanes.size * np.log(big_n)
         sh = self.shared_cols(state.effects)
         if sh and lanes.size:
@@ -585,6 +625,24 @@ class _Workflow:
                 return total + len(sh) * np.log(big_n)
             q = (state.params[lanes[0], self.free_index[sh]] - none[self.free_index[sh]]) / self.scales[sh]
             total += float(-logdet_cov - np.sum(np.log(inv_sh**2)) + np.sum((q * inv_sh) ** 2))
+        return total
+
+    def _hyperprior_penalties(self, effects, cols, info: np.ndarray, u: np.ndarray) -> float:
+        """Sum over the per-heliostat effects in ``effects`` of the hyperprior's
+        ``-2 log`` average over the prior's scale (:func:`._screen.hyperprior_penalty`),
+        each effect's block of ``info`` ``(B, c, c)`` (the information on the columns
+        ``cols``, the base profiled out, in units of the prior's standard deviations)
+        about the fitted ``u`` ``(B, c)`` (same units; the others held at their
+        values). At the posterior mode the score at no effect is ``(I + F) u``."""
+        total = 0.0
+        position = {c: i for i, c in enumerate(cols)}
+        for e, m in effects:
+            at = [position[c] for c in self.layout.cols(e) if c in position]
+            if m != "per_heliostat" or not at:
+                continue
+            block = info[:, at][:, :, at]
+            score = u[:, at] + (block @ u[:, at, None])[..., 0]
+            total += hyperprior_penalty(block, score, self.prior_scale.get((e, m), 1.0))
         return total
 
     def effective_parameters(self, state: ModelState, lanes: np.ndarray) -> np.ndarray:
@@ -602,7 +660,8 @@ class _Workflow:
         jac = np.take(state.jac[lanes], act, axis=2)
         a = jac.swapaxes(1, 2) @ jac
         w = np.zeros((lanes.size, len(act)))
-        w[:, len(act) - len(eff) :] = self.engine.prior_weights(self.noise[lanes])[:, eff]
+        inv = self.inverse_typical(state.effects)
+        w[:, len(act) - len(eff) :] = self.engine.prior_weights(self.noise[lanes], inv)[:, eff]
         pa = a + np.einsum("li,ij->lij", w**2, np.eye(len(act)))
         df = np.trace(np.linalg.solve(pa + 1e-12 * np.eye(len(act)), a), axis1=1, axis2=2)
         return np.where(np.isfinite(df), df, float(len(act)))
@@ -672,6 +731,7 @@ class Candidate:
     n_heldout: int
     cv_log_ratio: float
     passed: bool
+    prior_scale: float = 1.0  # the factor on the typical sizes its prior was fitted with
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1212,6 +1272,7 @@ def _refit(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen, 
     the batching computes skipped lanes anyway, vmapped on accelerators, every refit
     is fitted on every lane at once from the screen's start.)"""
     effects = state.effects + ((effect, mode),)
+    wf.prior_scale[(effect, mode)] = scr.prior_scale[mode]  # the starts' scale (the screen's choice)
     start = wf.start_params(state, effect, mode, scr)
     derivative = wf.derivative_at(state)
     if not wf.engine.skips_inactive_lanes:
@@ -1226,7 +1287,7 @@ def _refit(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen, 
                 "cross-validation folds are not fitted)"
             )
             nan = float("nan")
-            return Candidate(effect, mode, first, b0 - b1, b0, b1, nan, nan, 0, nan, False)
+            return Candidate(effect, mode, first, b0 - b1, b0, b1, nan, nan, 0, nan, False, scr.prior_scale[mode])
         warm = np.where(fold0[:, None], start, first.params[wf.lanes.heliostat])  # fold-0 lane h is lane h
         warm = wf.folds_shared_start(first, warm, effects, ~fold0)
         st = _joined(first, wf.fit_state(effects, warm, active=~fold0, derivative_from=derivative), fold0)
@@ -1238,4 +1299,4 @@ def _refit(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen, 
         f"refit {effect} ({mode}, {st.fit_s:.1f} s): delta BIC {b0 - b1:.1f}, held-out RMS "
         f"{cv0:.3f} -> {cv1:.3f} mrad, held-out log ratio {ratio:+.4f}{'' if passed else ' (rejected)'}"
     )
-    return Candidate(effect, mode, st, b0 - b1, b0, b1, cv0, cv1, n_cv, ratio, passed)
+    return Candidate(effect, mode, st, b0 - b1, b0, b1, cv0, cv1, n_cv, ratio, passed, scr.prior_scale[mode])
