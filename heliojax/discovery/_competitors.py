@@ -194,7 +194,7 @@ def _fleet(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray):
     gmat = weighted_gram(w, xt, xt)
     if not np.any(gmat):
         return 0.0, None, 0.0
-    typ2, penalty = GENERIC_TYPICAL_MRAD**2, 0.0
+    typ2 = GENERIC_TYPICAL_MRAD**2  # the fleet form's one draw says nothing about the scale
     beta = np.linalg.solve(gmat + np.eye(k) / typ2, g)
     new = bases.r_res - xt @ beta
     r2 = np.sum(bases.r_res * bases.r_res, axis=1)
@@ -204,7 +204,7 @@ def _fleet(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray):
     sq = float(np.sum(fitted * fitted))
     n_sq = int(np.sum(bases.n // 2))
     _, logdet = np.linalg.slogdet(np.eye(k) + typ2 * gmat)
-    delta -= logdet + float(beta @ beta) / typ2 + penalty
+    delta -= logdet + float(beta @ beta) / typ2
     stat, k_kept, _ = shared_score(w, x, g, gmat)
     p = float(stats.chi2.sf(stat, k_kept)) if k_kept else None
     return delta, p, float(np.sqrt(sq / max(n_sq, 1)))

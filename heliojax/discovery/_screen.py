@@ -417,7 +417,7 @@ def screen_candidate(
     # divides by singular values down to 1e-6 and put a nearly absorbed
     # direction's start (a survey offset per heliostat) so far out that the
     # refit ended in another minimum (held-out 0.37 -> 45 mrad, 1,000 x 60).
-    # Both starts are under the prior at the scale of largest evidence
+    # The start under the prior at the scale of largest evidence across the heliostats
     # (:data:`PRIOR_SCALES`), the scale the refit is fitted with.
     scale_h = 1.0
     if k_sum:
@@ -443,8 +443,9 @@ def screen_candidate(
     # goes far out along weakly determined directions, which the prior pulls back:
     # its first shared step was worth up to 35,000 in chi-square on the shared
     # records, and every refit of a shared form took two more expansion iterations.
-    scale_s = 1.0  # one draw of the shared parameters says nothing about their prior's scale
-    precision = np.where(typical > 0, 1.0 / np.where(typical > 0, scale_s * typical, 1.0) ** 2, 0.0)
+    # (at the typical sizes: one draw of the shared parameters says nothing about their
+    # prior's scale, :data:`PRIOR_SCALES`)
+    precision = np.where(typical > 0, 1.0 / np.where(typical > 0, typical, 1.0) ** 2, 0.0)
     start_shared = -np.linalg.pinv(gmat + np.diag(precision), rcond=1e-10, hermitian=True) @ g
     p = min(1.0, 2.0 * min(p_shared, p_perhel))
     log_n = np.log(max(n_total, 2))
@@ -477,7 +478,7 @@ def screen_candidate(
         theta_per_heliostat=theta_h,
         p_heliostats=p_h,
         approx_delta_bic=approx,
-        prior_scale={"shared": scale_s, "per_heliostat": scale_h},
+        prior_scale={"shared": 1.0, "per_heliostat": scale_h},
     )
 
 
