@@ -45,7 +45,7 @@ import dataclasses
 
 import numpy as np
 from jaxtyping import Bool, Float, Int
-from scipy import stats
+from scipy import special, stats
 
 from ._identifiability import (
     PRECISION_INFORMATION,
@@ -119,9 +119,7 @@ def hyperprior_penalty(info: Float[np.ndarray, "B k k"], score: Float[np.ndarray
     if not info.shape[0]:
         return 0.0
     e = scale_profile(info, score, np.append(PRIOR_SCALES / at, 1.0))
-    d = -0.5 * (e[:-1] - e[-1])
-    top = float(np.max(d))
-    return float(-2.0 * (top + np.log(np.mean(np.exp(d - top)))))
+    return float(-2.0 * (special.logsumexp(-0.5 * (e[:-1] - e[-1])) - np.log(PRIOR_SCALES.size)))
 
 
 @dataclasses.dataclass(frozen=True)

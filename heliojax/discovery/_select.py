@@ -378,6 +378,7 @@ class _Workflow:
         # itself within the tolerance. The final residuals are exact (c0 at the
         # solution); the final Jacobian takes D from where polishing began (one
         # evaluation of D fewer per fit, a change of D below the solver's tolerance).
+        inverse_typical = self.inverse_typical(effects)  # the effects' priors, fixed over the fit
         expansion = self.engine.expand(p, derivative_from=derivative_from, active=active)
         polishing = not eff_cols  # without effects D is never used: one fit, one fresh expansion
         d_here = False  # D evaluated where polishing began (else only at the start, maybe far away)
@@ -390,7 +391,7 @@ class _Workflow:
                 expansion,
                 self.noise,
                 active=active,
-                inverse_typical=self.inverse_typical(effects),
+                inverse_typical=inverse_typical,
             )
             p = np.array(out["params"])
             it += 1
@@ -415,7 +416,7 @@ class _Workflow:
             converged = abs(exact - linear) <= 1e-4 * max(exact, 1e-300)
             last = it >= limit
             if sh_cols:
-                step, cov, gain = self._shared_step(r, jac, ok, act_cols, sh_cols, p, self.inverse_typical(effects))
+                step, cov, gain = self._shared_step(r, jac, ok, act_cols, sh_cols, p, inverse_typical)
                 # (a fold without an active lane has nothing to step)
                 worth = float(np.max(gain[present], initial=0.0))  # no fold: nothing to step
                 if not last and worth > SHARED_STEP_TOLERANCE:
