@@ -303,7 +303,7 @@ def test_folds_shared_start_is_the_shared_step_evaluated_at_the_folds_start():
     fold0 = lanes.fold == 0
     first = wf.fit_state(effects, state.params, active=fold0)
     warm = np.where(fold0[:, None], state.params, first.params[lanes.heliostat])
-    got = wf.folds_shared_start(first, warm, effects, ~fold0)
+    got = wf.folds_shared_start(first, warm, ~fold0)
     r, jac = engine.jacobian(warm, active=~fold0)
     ok = first.ok[lanes.heliostat] & ~fold0
     sh_cols, act_cols = wf.shared_cols(effects), wf.active_cols(effects)

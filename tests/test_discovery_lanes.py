@@ -5,7 +5,10 @@ shapes, so the programs compile unoptimised (see tests/conftest.py)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
+import pytest
 
 from heliojax.discovery import DiscoveryConfig, simulate_fleet
 from heliojax.discovery._screen import PRIOR_SCALES
@@ -124,34 +127,36 @@ def test_effect_prior_is_the_fit_cores_gaussian_prior_and_spares_well_sampled_he
 
     # The Laplace Occam term of the refits' criterion against a second formula: per
     # lane, log det of the whole posterior precision (base and effect columns, no Schur
-    # complement) over the base's and the prior's, plus the prior's exponent.
+    # complement) over the base's and the prior's, plus the prior's exponent; at the
+    # prior's scale the state was fitted with (1 here; then 4, as a screen may choose).
     act = wf.active_cols(state.effects)
     n_base = len(layout.base_cols)
-    inv_typ = layout.inverse_typical[np.asarray(act[n_base:]) - n_base]
-    assert np.all(inv_typ > 0)
+    typical_inv = layout.inverse_typical[np.asarray(act[n_base:]) - n_base]
+    assert np.all(typical_inv > 0)
     used = np.repeat(lanes.train_mask, 2, axis=1)
     nominal = np.asarray(layout.view.nominal)
-    per_lane = []
-    for lane in fold0:
-        j = jac[lane][used[lane]][:, act]
+
+    def reference(st, lane):
+        inv_typ = typical_inv / st.prior_scales[0]
+        j = st.jac[lane][used[lane]][:, act]
         a = j.T @ j / noise[lane] ** 2
         precision = a + np.diag(np.r_[np.zeros(n_base), inv_typ**2])
         idx = np.asarray(layout.free_index)[act[n_base:]]
-        q = (with_prior[lane, idx] - nominal[idx]) / layout.scales[act[n_base:]]
+        q = (st.params[lane, idx] - nominal[idx]) / layout.scales[act[n_base:]]
         ref = (
             np.linalg.slogdet(precision)[1]
             - np.linalg.slogdet(a[:n_base, :n_base])[1]
             - np.sum(np.log(inv_typ**2))
             + np.sum((q * inv_typ) ** 2)
         )
-        # The hyperprior on the prior's scale (the refit took scale 1 here): the evidence
-        # of the linearised lane at each scale s, by stacked least squares (the effect's
-        # prior rows at 1 / (s typical)) and whole log-determinants, against no effect.
-        jw, rw = j / noise[lane], r[lane][used[lane]] / noise[lane]
+        # The hyperprior on the prior's scale: the evidence of the linearised lane at
+        # each scale s, by stacked least squares (the effect's prior rows at 1 / (s
+        # typical)) and whole log-determinants, against no effect.
+        jw, rw = j / noise[lane], st.r[lane][used[lane]] / noise[lane]
         n_eff = len(inv_typ)
 
         def minus_two_log_bayes_factor(s):
-            prior = inv_typ / s
+            prior = typical_inv / s
             rows = np.vstack([jw, np.hstack([np.zeros((n_eff, n_base)), np.diag(prior)])])
             rhs = -np.concatenate([rw, prior * q])
             step = np.linalg.lstsq(rows, rhs, rcond=None)[0]
@@ -166,20 +171,29 @@ def test_effect_prior_is_the_fit_cores_gaussian_prior_and_spares_well_sampled_he
             return logdets + with_effect - without
 
         e = np.array([minus_two_log_bayes_factor(s) for s in PRIOR_SCALES])
-        e1 = minus_two_log_bayes_factor(1.0)
-        ref += -2.0 * np.log(np.mean(np.exp(-0.5 * (e - e1))))
-        got = wf.occam_terms(state, np.array([lane]))
-        # occam_terms' ridge (1e-12 of the trace of the base's normal matrix) moves the
-        # log-determinant by ~1e-12 times that matrix's condition number (~1e5 here); the
-        # hyperprior term takes the score at no effect from the posterior mode, which the
-        # fit reaches to its path tolerance (measured: 2.4e-6 of 0.89 on the held lane)
-        np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-5)
-        per_lane.append(got)
+        e_own = minus_two_log_bayes_factor(st.prior_scales[0])
+        return ref - 2.0 * np.log(np.mean(np.exp(-0.5 * (e - e_own))))
+
+    # occam_terms' ridge (1e-12 of the trace of the base's normal matrix) moves the
+    # log-determinant by ~1e-12 times that matrix's condition number (~1e5 here); the
+    # hyperprior term takes the score at no effect from the posterior mode, which the
+    # fit reaches to its path tolerance (measured: 2.4e-6 of 0.89 on the held lane)
+    per_lane = [wf.occam_terms(state, np.array([lane])) for lane in fold0]
+    np.testing.assert_allclose(per_lane, [reference(state, lane) for lane in fold0], rtol=1e-6, atol=1e-5)
     # the held heliostat's two rates, which its records barely determine, cost less
     # than one unit together (measured 0.89, 0.28 of it the hyperprior's term); the
     # well-sampled ones' cost their information and their size (planted at several
     # typical sizes; measured 14.7-16.0)
     assert per_lane[0] < 1.0 and min(per_lane[1:]) > 10.0
+    # A state fitted at four times the typical sizes carries that scale into its
+    # criterion (the held heliostat's rates, held less, move: a different term)
+    wide = wf.fit_state(state.effects, with_prior, prior_scales=(4.0,))
+    assert wide.prior_scales == (4.0,) and np.all(wide.ok[fold0])
+    wide_terms = [wf.occam_terms(wide, np.array([lane])) for lane in fold0]
+    np.testing.assert_allclose(wide_terms, [reference(wide, lane) for lane in fold0], rtol=1e-6, atol=1e-5)
+    assert abs(wide_terms[0] - per_lane[0]) > 0.1
+    with pytest.raises(ValueError, match="2 prior scales for 1 effects"):
+        dataclasses.replace(state, prior_scales=(1.0, 4.0))
 
 
 def _thermal_backlash_engine():

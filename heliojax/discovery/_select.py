@@ -274,6 +274,9 @@ class ModelState:
         shared_cov: ``(K + 1, S, S)`` covariance of the shared parameters per fold
             (scaled units), or None.
         fit_s: seconds spent fitting.
+        prior_scales: per effect of ``effects``, the factor on its typical sizes its
+            prior was fitted with (:data:`._screen.PRIOR_SCALES`; each refit takes its
+            screen's choice); empty means 1 for every effect.
     """
 
     effects: tuple[tuple[str, str], ...]
@@ -286,6 +289,13 @@ class ModelState:
     heldout_sq: np.ndarray
     shared_cov: np.ndarray | None
     fit_s: float
+    prior_scales: tuple[float, ...] = ()
+
+    def __post_init__(self):
+        if not self.prior_scales:
+            object.__setattr__(self, "prior_scales", (1.0,) * len(self.effects))
+        if len(self.prior_scales) != len(self.effects):
+            raise ValueError(f"{len(self.prior_scales)} prior scales for {len(self.effects)} effects")
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -304,9 +314,6 @@ class _Workflow:
         self.free_index = np.asarray(self.layout.free_index)
         self.noise: np.ndarray | None = None  # (L,) mrad per component, from the base fit
         self._derivative: tuple[ModelState, tuple] | None = None  # (state, its expansion): see derivative_at
-        # (effect, mode) -> the factor on its typical sizes its prior was fitted with
-        # (:data:`._screen.PRIOR_SCALES`; set by each refit from its screen)
-        self.prior_scale: dict[tuple[str, str], float] = {}
 
     # -- columns ----------------------------------------------------------------------
 
@@ -324,14 +331,18 @@ class _Workflow:
                 cols += list(self.layout.cols(e))
         return cols
 
-    def inverse_typical(self, effects) -> np.ndarray:
+    def inverse_typical(self, effects, prior_scales=()) -> np.ndarray:
         """``(E,)`` one over the prior's standard deviation per effect column (scaled
         units; 0 where no typical size is documented): the layout's typical sizes, each
-        effect of ``effects`` times the scale its refit chose (:attr:`prior_scale`)."""
+        effect of ``effects`` times its factor in ``prior_scales`` (aligned with
+        ``effects``; empty: 1 for every effect, as :attr:`ModelState.prior_scales`)."""
         inv = np.array(self.layout.inverse_typical, dtype=np.float64)
         n_base = len(self.layout.base_cols)
-        for e, mode in effects:
-            inv[np.asarray(self.layout.cols(e), int) - n_base] /= self.prior_scale.get((e, mode), 1.0)
+        scales = tuple(prior_scales) or (1.0,) * len(effects)
+        if len(scales) != len(effects):
+            raise ValueError(f"{len(scales)} prior scales for {len(effects)} effects")
+        for (e, _), s in zip(effects, scales):
+            inv[np.asarray(self.layout.cols(e), int) - n_base] /= s
         return inv
 
     # -- fitting ----------------------------------------------------------------------
@@ -346,9 +357,15 @@ class _Workflow:
         return self._derivative[1]
 
     def fit_state(
-        self, effects, p_start: np.ndarray, active: np.ndarray | None = None, derivative_from: tuple | None = None
+        self,
+        effects,
+        p_start: np.ndarray,
+        active: np.ndarray | None = None,
+        derivative_from: tuple | None = None,
+        prior_scales: tuple[float, ...] = (),
     ) -> ModelState:
-        """Fit the model of ``effects`` on every lane from ``p_start`` ``(L, P)``; with
+        """Fit the model of ``effects`` on every lane from ``p_start`` ``(L, P)``, each
+        effect's prior at its factor of ``prior_scales`` (:meth:`inverse_typical`); with
         ``active`` ``(L,)``, on those lanes only (the others are left out: not ``ok``,
         at ``p_start``, no residuals). ``derivative_from``: an expansion of every lane
         near ``p_start`` (:meth:`derivative_at`), whose derivative the first
@@ -378,7 +395,8 @@ class _Workflow:
         # itself within the tolerance. The final residuals are exact (c0 at the
         # solution); the final Jacobian takes D from where polishing began (one
         # evaluation of D fewer per fit, a change of D below the solver's tolerance).
-        inverse_typical = self.inverse_typical(effects)  # the effects' priors, fixed over the fit
+        prior_scales = tuple(float(s) for s in prior_scales) or (1.0,) * len(effects)
+        inverse_typical = self.inverse_typical(effects, prior_scales)  # the effects' priors, fixed over the fit
         expansion = self.engine.expand(p, derivative_from=derivative_from, active=active)
         polishing = not eff_cols  # without effects D is never used: one fit, one fresh expansion
         d_here = False  # D evaluated where polishing began (else only at the start, maybe far away)
@@ -448,9 +466,10 @@ class _Workflow:
         sq = np.sum(sq**2, axis=-1)
         held = lanes.heldout_mask() & ok[:, None]
         heldout_sq = np.where(held, sq, np.nan)
-        return ModelState(tuple(effects), p, ok, r, jac, rss, n_res, heldout_sq, cov, time.perf_counter() - t0)
+        fit_s = time.perf_counter() - t0
+        return ModelState(tuple(effects), p, ok, r, jac, rss, n_res, heldout_sq, cov, fit_s, prior_scales)
 
-    def folds_shared_start(self, fold0: ModelState, p: np.ndarray, effects, active: np.ndarray) -> np.ndarray:
+    def folds_shared_start(self, fold0: ModelState, p: np.ndarray, active: np.ndarray) -> np.ndarray:
         """``p`` ``(L, P)`` with the shared parameters of each cross-validation fold
         stepped from fold 0's solution (:meth:`_shared_step`) on the ``active`` lanes,
         whose other parameters start at their heliostat's fold-0 solution. A fold's
@@ -460,14 +479,16 @@ class _Workflow:
         Gauss-Newton step of the fold's own optimum instead of at fold 0's (the first
         shared step of a fold's fit moved the posterior by 2-9 in chi-square on the
         shared PAINT records, and cost a fit of every lane)."""
+        effects = fold0.effects
         sh_cols = self.shared_cols(effects)
         if not sh_cols:
             return p
         lanes = self.lanes
         source = lanes.heliostat  # fold-0 lane h is lane h
         ok = fold0.ok[source] & np.asarray(active, bool)
+        inverse_typical = self.inverse_typical(effects, fold0.prior_scales)
         steps, _, _ = self._shared_step(
-            fold0.r[source], fold0.jac[source], ok, self.active_cols(effects), sh_cols, p, self.inverse_typical(effects)
+            fold0.r[source], fold0.jac[source], ok, self.active_cols(effects), sh_cols, p, inverse_typical
         )
         return self._shared_stepped(p, steps, sh_cols, (lanes.fold > 0) & np.asarray(active, bool))
 
@@ -588,7 +609,7 @@ class _Workflow:
             raise ValueError("occam_terms needs the lanes' noise (set from the base fit)")
         noise = self.noise
         n_base = len(self.layout.base_cols)
-        inv_typ = self.inverse_typical(state.effects)
+        inv_typ = self.inverse_typical(state.effects, state.prior_scales)
         none = np.asarray(self.layout.view.nominal)
         big_n = max(float(np.sum(state.n_res[lanes])), 2.0)
         total = 0.0
@@ -612,7 +633,7 @@ class _Workflow:
             sign, logdet = np.linalg.slogdet(m)
             q = (state.params[lanes][:, self.free_index[own]] - none[self.free_index[own]]) / self.scales[own]
             total += float(np.sum(np.where(sign > 0, logdet, 0.0)) + np.sum((q / typ) ** 2))
-            total += self._hyperprior_penalties(state.effects, own, m - np.eye(len(own)), q / typ)
+            total += self._hyperprior_penalties(state, own, m - np.eye(len(own)), q / typ)
         total += (len(act) - n_base - len(own)) * lanes.size * np.log(big_n)
         sh = self.shared_cols(state.effects)
         if sh and lanes.size:
@@ -628,8 +649,8 @@ class _Workflow:
             total += float(-logdet_cov - np.sum(np.log(inv_sh**2)) + np.sum((q * inv_sh) ** 2))
         return total
 
-    def _hyperprior_penalties(self, effects, cols, info: np.ndarray, u: np.ndarray) -> float:
-        """Sum over the per-heliostat effects in ``effects`` of the hyperprior's
+    def _hyperprior_penalties(self, state: ModelState, cols, info: np.ndarray, u: np.ndarray) -> float:
+        """Sum over the per-heliostat effects of ``state`` of the hyperprior's
         ``-2 log`` average over the prior's scale (:func:`._screen.hyperprior_penalty`),
         each effect's block of ``info`` ``(B, c, c)`` (the information on the columns
         ``cols``, the base profiled out, in units of the prior's standard deviations)
@@ -637,13 +658,13 @@ class _Workflow:
         values). At the posterior mode the score at no effect is ``(I + F) u``."""
         total = 0.0
         position = {c: i for i, c in enumerate(cols)}
-        for e, m in effects:
+        for (e, m), scale in zip(state.effects, state.prior_scales):
             at = [position[c] for c in self.layout.cols(e) if c in position]
             if m != "per_heliostat" or not at:
                 continue
             block = info[:, at][:, :, at]
             score = u[:, at] + (block @ u[:, at, None])[..., 0]
-            total += hyperprior_penalty(block, score, self.prior_scale.get((e, m), 1.0))
+            total += hyperprior_penalty(block, score, scale)
         return total
 
     def effective_parameters(self, state: ModelState, lanes: np.ndarray) -> np.ndarray:
@@ -661,7 +682,7 @@ class _Workflow:
         jac = np.take(state.jac[lanes], act, axis=2)
         a = jac.swapaxes(1, 2) @ jac
         w = np.zeros((lanes.size, len(act)))
-        inv = self.inverse_typical(state.effects)
+        inv = self.inverse_typical(state.effects, state.prior_scales)
         w[:, len(act) - len(eff) :] = self.engine.prior_weights(self.noise[lanes], inv)[:, eff]
         pa = a + np.einsum("li,ij->lij", w**2, np.eye(len(act)))
         df = np.trace(np.linalg.solve(pa + 1e-12 * np.eye(len(act)), a), axis1=1, axis2=2)
@@ -732,7 +753,11 @@ class Candidate:
     n_heldout: int
     cv_log_ratio: float
     passed: bool
-    prior_scale: float = 1.0  # the factor on the typical sizes its prior was fitted with
+
+    @property
+    def prior_scale(self) -> float:
+        """The factor on the effect's typical sizes its prior was fitted with."""
+        return self.state.prior_scales[-1]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1273,14 +1298,14 @@ def _refit(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen, 
     the batching computes skipped lanes anyway, vmapped on accelerators, every refit
     is fitted on every lane at once from the screen's start.)"""
     effects = state.effects + ((effect, mode),)
-    wf.prior_scale[(effect, mode)] = scr.prior_scale[mode]  # the starts' scale (the screen's choice)
+    scales = state.prior_scales + (scr.prior_scale[mode],)  # the starts' scale (the screen's choice)
     start = wf.start_params(state, effect, mode, scr)
     derivative = wf.derivative_at(state)
     if not wf.engine.skips_inactive_lanes:
-        st = wf.fit_state(effects, start, derivative_from=derivative)
+        st = wf.fit_state(effects, start, derivative_from=derivative, prior_scales=scales)
     else:
         fold0 = wf.lanes.fold == 0
-        first = wf.fit_state(effects, start, active=fold0, derivative_from=derivative)
+        first = wf.fit_state(effects, start, active=fold0, derivative_from=derivative, prior_scales=scales)
         b0, b1, _ = wf.bic_pair(state, first)
         if not b0 - b1 > wf.config.min_delta_bic:
             log.info(
@@ -1288,10 +1313,11 @@ def _refit(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen, 
                 "cross-validation folds are not fitted)"
             )
             nan = float("nan")
-            return Candidate(effect, mode, first, b0 - b1, b0, b1, nan, nan, 0, nan, False, scr.prior_scale[mode])
+            return Candidate(effect, mode, first, b0 - b1, b0, b1, nan, nan, 0, nan, False)
         warm = np.where(fold0[:, None], start, first.params[wf.lanes.heliostat])  # fold-0 lane h is lane h
-        warm = wf.folds_shared_start(first, warm, effects, ~fold0)
-        st = _joined(first, wf.fit_state(effects, warm, active=~fold0, derivative_from=derivative), fold0)
+        warm = wf.folds_shared_start(first, warm, ~fold0)
+        rest = wf.fit_state(effects, warm, active=~fold0, derivative_from=derivative, prior_scales=scales)
+        st = _joined(first, rest, fold0)
     b0, b1, _ = wf.bic_pair(state, st)
     cv0, cv1, n_cv = wf.cv_pair(state, st)
     ratio = float(cv_log_ratio(state, st, wf.lanes.heliostat))
@@ -1300,4 +1326,4 @@ def _refit(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen, 
         f"refit {effect} ({mode}, {st.fit_s:.1f} s): delta BIC {b0 - b1:.1f}, held-out RMS "
         f"{cv0:.3f} -> {cv1:.3f} mrad, held-out log ratio {ratio:+.4f}{'' if passed else ' (rejected)'}"
     )
-    return Candidate(effect, mode, st, b0 - b1, b0, b1, cv0, cv1, n_cv, ratio, passed, scr.prior_scale[mode])
+    return Candidate(effect, mode, st, b0 - b1, b0, b1, cv0, cv1, n_cv, ratio, passed)
