@@ -67,9 +67,13 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
       "screens": [{name: {"p", "p_shared", "p_per_heliostat", "p_holm", "absorbed_fraction",
                           "identifiable", "tested", "testable"}}],  # one per step
       "refits": [[{"effect", "mode", "delta_bic", "cv_heldout_rms_before_mrad",
-                   "cv_heldout_rms_after_mrad", "cv_log_ratio", "prior_scale", "passed"}]],
-                                                   # cv_* null where delta BIC failed
-                                                   # (its folds are then not fitted);
+                   "cv_heldout_rms_after_mrad", "cv_log_ratio", "prior_scale",
+                   "cross_validated", "passed"}]],
+                                                   # cross_validated false (cv_* null)
+                                                   # where delta BIC failed, or passed
+                                                   # more than ambiguity_bic below the
+                                                   # named refit's (deferred: neither
+                                                   # named nor a rival either way);
                                                    # prior_scale: factor on the typical
                                                    # sizes of the refit's prior
       "config": {...}, "data": {...}, "timing": {...}
@@ -278,6 +282,7 @@ def build_report(result, typical_start=None) -> dict:
                 "cv_heldout_rms_after_mrad": _f(c.cv_after),
                 "cv_log_ratio": _f(c.cv_log_ratio),
                 "prior_scale": _f(c.prior_scale),
+                "cross_validated": bool(c.cross_validated),
                 "passed": bool(c.passed),
             }
             for c in cands

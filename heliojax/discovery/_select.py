@@ -43,7 +43,9 @@ repeat, diagnose.
    with poorly determined folds cannot decide); passing rivals within ``ambiguity_bic`` of it
    are reported as an ambiguity. Add it to the model and repeat from 2. (The criterion
    is that of fold 0, all training records, whose lanes are fitted first and alone:
-   a refit that fails it is rejected without fitting its cross-validation folds.)
+   a refit that fails it is rejected without fitting its cross-validation folds, and
+   the folds of one that passes are fitted only where its verdict can matter: not
+   for one more than ``ambiguity_bic`` below the best that passed, see :func:`_judged`.)
 7. **Confirm the change points** under the final model (a step that only was
    the remainder of a named effect is withdrawn, and the workflow runs again with
    those records back in) and **test the residuals against every recorded
@@ -753,6 +755,7 @@ class Candidate:
     n_heldout: int
     cv_log_ratio: float
     passed: bool
+    cross_validated: bool = True  # False: the folds not fitted (delta BIC failed, or deferred: see _judged)
 
     @property
     def prior_scale(self) -> float:
@@ -1037,6 +1040,7 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
         for batch in batches:
             for c in progress_bar(batch, logger=log, desc=f"step {len(steps) + 1}: refits", unit="refit"):
                 cands.extend(_refits(wf, state, c, screens[c], config.alpha))
+            cands[:] = _judged(wf, state, cands, screens, config.alpha)
             if any(c.passed for c in cands):
                 break
         candidates_log.append(cands)
@@ -1057,9 +1061,11 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
                 tried = {c.effect for c in cands}
                 for c in (c for c in finalists if c not in tried):
                     cands.extend(_refits(wf, state, c, screens[c], config.alpha))
-                passing = [c for c in cands if c.passed]
-                more = _other_forms(wf, state, passing, cands, screens, config.alpha)
-                cands.extend(more)
+                cands[:] = _judged(wf, state, cands, screens, config.alpha)  # in place: candidates_log holds this list
+                # every refit that passed its delta BIC, cross-validated or deferred
+                judged = [c for c in cands if c.delta_bic > config.min_delta_bic]
+                cands += _other_forms(wf, state, judged, cands, screens, config.alpha)
+                cands[:] = _judged(wf, state, cands, screens, config.alpha)  # in place: candidates_log holds this list
                 passing = [c for c in cands if c.passed]
                 best = max(passing, key=lambda c: c.delta_bic)
             competitors_log.append(
@@ -1235,27 +1241,23 @@ def _refits(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen,
     larger linearised delta BIC; where that fails, also in the other form if its own
     score test is significant at ``alpha`` (the linearisation ranks the forms, it does
     not rule one out: a per-heliostat effect the prior holds may pass where the
-    shared form fails)."""
-    first, other = sorted(MODES, key=lambda m: -_delta_bic(scr)[m])
+    shared form fails). A failure is a delta BIC that does not pass here; a failed
+    cross-validation is found, and the other form tried, by :func:`_judged`."""
+    first, _ = sorted(MODES, key=lambda m: -_delta_bic(scr)[m])
     out = [_refit(wf, state, effect, scr, first)]
-    p_other = scr.p_shared if other == "shared" else scr.p_per_heliostat
-    if not out[0].passed and p_other < alpha:
-        out.append(_refit(wf, state, effect, scr, other))
+    if out[0].delta_bic <= wf.config.min_delta_bic or (out[0].cross_validated and not out[0].passed):
+        out.extend(_other_form(wf, state, out[0], out, scr, alpha))
     return out
 
 
 def _other_forms(
     wf: _Workflow, state: ModelState, passing: list[Candidate], cands: list[Candidate], screens: dict, alpha: float
 ) -> list[Candidate]:
-    """The passing effects refitted in the form not yet tried, where its own score test
-    is significant at ``alpha``."""
-    out = []
+    """The effects of ``passing`` refitted in the form not yet tried, where its own
+    score test is significant at ``alpha`` (:func:`_refit`: to be judged)."""
+    out: list[Candidate] = []
     for c in passing:
-        other = next(m for m in MODES if m != c.mode)
-        scr = screens[c.effect]
-        p_other = scr.p_shared if other == "shared" else scr.p_per_heliostat
-        if p_other < alpha and not any(x.effect == c.effect and x.mode == other for x in cands + out):
-            out.append(_refit(wf, state, c.effect, scr, other))
+        out.extend(_other_form(wf, state, c, cands + out, screens[c.effect], alpha))
     return out
 
 
@@ -1283,41 +1285,62 @@ def _joined(first: ModelState, rest: ModelState, take_first: np.ndarray) -> Mode
 
 
 def _refit(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen, mode: str) -> Candidate:
-    """Refit the current model with ``effect`` added in form ``mode`` and judge it:
-    delta BIC > ``min_delta_bic`` and a better held-out likelihood.
+    """Refit the current model with ``effect`` added in form ``mode``: its fold-0
+    lanes, and its criterion (delta BIC).
 
     The BIC is that of the fold-0 lanes (all training records), whose fits do not
     depend on the other folds' lanes: those are fitted first, alone. A refit whose
     delta BIC does not pass is rejected there, and its cross-validation folds (five
-    sixths of the work) are never fitted (``cv_*`` NaN). A refit that passes keeps
-    its fold-0 lanes, and the cross-validation lanes are fitted, each from its
-    heliostat's fold-0 solution (a start from all of the heliostat's training
-    records, as the screen's estimate, the start of the fold-0 lanes, already is;
-    the folds' fits then take fewer steps), each fold's shared parameters one
-    Gauss-Newton step from fold 0's (:meth:`_Workflow.folds_shared_start`). (Where
-    the batching computes skipped lanes anyway, vmapped on accelerators, every refit
-    is fitted on every lane at once from the screen's start.)"""
+    sixths of the work) are never fitted (``cv_*`` NaN). One that passes is returned
+    not yet cross-validated (``cross_validated`` False); :func:`_judged` fits its
+    folds where its verdict can matter (:func:`_cross_validated`). (Where the
+    batching computes skipped lanes anyway, vmapped on accelerators, every refit is
+    fitted on every lane at once from the screen's start, and judged.)"""
     effects = state.effects + ((effect, mode),)
     scales = state.prior_scales + (scr.prior_scale[mode],)  # the starts' scale (the screen's choice)
     start = wf.start_params(state, effect, mode, scr)
     derivative = wf.derivative_at(state)
     if not wf.engine.skips_inactive_lanes:
-        st = wf.fit_state(effects, start, derivative_from=derivative, prior_scales=scales)
-    else:
-        fold0 = wf.lanes.fold == 0
-        first = wf.fit_state(effects, start, active=fold0, derivative_from=derivative, prior_scales=scales)
-        b0, b1, _ = wf.bic_pair(state, first)
-        if not b0 - b1 > wf.config.min_delta_bic:
-            log.info(
-                f"refit {effect} ({mode}, {first.fit_s:.1f} s): delta BIC {b0 - b1:.1f} (rejected; its "
-                "cross-validation folds are not fitted)"
-            )
-            nan = float("nan")
-            return Candidate(effect, mode, first, b0 - b1, b0, b1, nan, nan, 0, nan, False)
-        warm = np.where(fold0[:, None], start, first.params[wf.lanes.heliostat])  # fold-0 lane h is lane h
-        warm = wf.folds_shared_start(first, warm, ~fold0)
-        rest = wf.fit_state(effects, warm, active=~fold0, derivative_from=derivative, prior_scales=scales)
-        st = _joined(first, rest, fold0)
+        return _verdict(
+            wf, state, effect, mode, wf.fit_state(effects, start, derivative_from=derivative, prior_scales=scales)
+        )
+    fold0 = wf.lanes.fold == 0
+    first = wf.fit_state(effects, start, active=fold0, derivative_from=derivative, prior_scales=scales)
+    b0, b1, _ = wf.bic_pair(state, first)
+    passes = b0 - b1 > wf.config.min_delta_bic
+    log.info(
+        f"refit {effect} ({mode}, {first.fit_s:.1f} s): delta BIC {b0 - b1:.1f}"
+        + (
+            " (cross-validated where it can matter)"
+            if passes
+            else " (rejected; its cross-validation folds are not fitted)"
+        )
+    )
+    nan = float("nan")
+    return Candidate(effect, mode, first, b0 - b1, b0, b1, nan, nan, 0, nan, False, cross_validated=False)
+
+
+def _cross_validated(wf: _Workflow, state: ModelState, cand: Candidate, scr: CandidateScreen) -> Candidate:
+    """``cand`` (fold-0 lanes fitted, :func:`_refit`) with its cross-validation lanes
+    fitted and judged: delta BIC > ``min_delta_bic`` and a better held-out
+    likelihood. Each lane starts from its heliostat's fold-0 solution (a start from
+    all of the heliostat's training records, as the screen's estimate, the start of
+    the fold-0 lanes, already is; the folds' fits then take fewer steps), each fold's
+    shared parameters one Gauss-Newton step from fold 0's
+    (:meth:`_Workflow.folds_shared_start`)."""
+    first = cand.state
+    fold0 = wf.lanes.fold == 0
+    start = wf.start_params(state, cand.effect, cand.mode, scr)
+    warm = np.where(fold0[:, None], start, first.params[wf.lanes.heliostat])  # fold-0 lane h is lane h
+    warm = wf.folds_shared_start(first, warm, ~fold0)
+    rest = wf.fit_state(
+        first.effects, warm, active=~fold0, derivative_from=wf.derivative_at(state), prior_scales=first.prior_scales
+    )
+    return _verdict(wf, state, cand.effect, cand.mode, _joined(first, rest, fold0))
+
+
+def _verdict(wf: _Workflow, state: ModelState, effect: str, mode: str, st: ModelState) -> Candidate:
+    """The refit ``st`` (every lane fitted) judged against ``state``."""
     b0, b1, _ = wf.bic_pair(state, st)
     cv0, cv1, n_cv = wf.cv_pair(state, st)
     ratio = float(cv_log_ratio(state, st, wf.lanes.heliostat))
@@ -1327,3 +1350,50 @@ def _refit(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen, 
         f"{cv0:.3f} -> {cv1:.3f} mrad, held-out log ratio {ratio:+.4f}{'' if passed else ' (rejected)'}"
     )
     return Candidate(effect, mode, st, b0 - b1, b0, b1, cv0, cv1, n_cv, ratio, passed)
+
+
+def _judged(wf: _Workflow, state: ModelState, cands: list[Candidate], screens: dict, alpha: float) -> list[Candidate]:
+    """``cands`` with every refit whose verdict can change the step cross-validated.
+
+    The step names the passing refit of largest delta BIC and reports the passing
+    ones within ``ambiguity_bic`` of it as rivals. So the refits that passed their
+    delta BIC (not yet cross-validated) are cross-validated largest delta BIC first,
+    until the largest left is more than ``ambiguity_bic`` below the best that passed:
+    those left can be neither named nor a rival, and keep ``cross_validated`` False
+    (deferred; their folds, five sixths of a refit, are not fitted). A refit that
+    fails its cross-validation is refitted in its other form where that form's own
+    score test is significant at ``alpha`` (as one that fails its delta BIC, in
+    :func:`_refits`), and that refit joins the others. The step's name and rivals
+    are those of cross-validating every refit (the other form of a deferred refit,
+    which could only matter had that refit failed its cross-validation, is not
+    tried)."""
+    out = list(cands)
+    while True:
+        best = max((c.delta_bic for c in out if c.passed), default=-np.inf)
+        waiting = [
+            i
+            for i, c in enumerate(out)
+            if not c.cross_validated
+            and c.delta_bic > wf.config.min_delta_bic
+            and c.delta_bic >= best - wf.config.ambiguity_bic
+        ]
+        if not waiting:
+            return out
+        i = max(waiting, key=lambda i: out[i].delta_bic)
+        c = out[i]
+        with activity(f"cross-validating the refit of {c.effect} ({c.mode})", logger=log):
+            out[i] = _cross_validated(wf, state, c, screens[c.effect])
+        if not out[i].passed:
+            out.extend(_other_form(wf, state, c, out, screens[c.effect], alpha))
+
+
+def _other_form(
+    wf: _Workflow, state: ModelState, cand: Candidate, cands: list[Candidate], scr: CandidateScreen, alpha: float
+) -> list[Candidate]:
+    """``cand``'s effect refitted in the form not yet tried (:func:`_refit`), where
+    that form's own score test is significant at ``alpha``; else nothing."""
+    other = next(m for m in MODES if m != cand.mode)
+    p_other = scr.p_shared if other == "shared" else scr.p_per_heliostat
+    if p_other < alpha and not any(x.effect == cand.effect and x.mode == other for x in cands):
+        return [_refit(wf, state, cand.effect, scr, other)]
+    return []
