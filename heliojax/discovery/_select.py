@@ -1378,6 +1378,12 @@ def _judged(wf: _Workflow, state: ModelState, cands: list[Candidate], screens: d
             and c.delta_bic >= best - wf.config.ambiguity_bic
         ]
         if not waiting:
+            for c in out:
+                if not c.cross_validated and c.delta_bic > wf.config.min_delta_bic:
+                    log.info(
+                        f"refit {c.effect} ({c.mode}) not cross-validated: its delta BIC {c.delta_bic:.1f} is more "
+                        f"than {wf.config.ambiguity_bic:g} below the best that passed ({best:.1f})"
+                    )
             return out
         i = max(waiting, key=lambda i: out[i].delta_bic)
         c = out[i]
