@@ -10,6 +10,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from scipy import stats
 
 from heliojax.discovery import (
@@ -493,6 +494,9 @@ def test_refits_whose_verdict_cannot_matter_are_not_cross_validated():
                 deferred += 1
                 assert x["delta_bic"] < named - config.ambiguity_bic and x["cv_log_ratio"] is None
     assert deferred >= 1  # measured: thermal at step 1 (delta BIC 21.3 against backlash 364.4)
+    for bad in ({"ambiguity_bic": float("nan")}, {"ambiguity_bic": -1.0}, {"min_delta_bic": float("nan")}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            dataclasses.replace(config, **bad)
 
 
 def test_a_refit_needs_positive_evidence_and_a_held_out_gain():

@@ -257,6 +257,10 @@ class DiscoveryConfig:
             raise ValueError(f"base must be one of {MODEL_KINDS}, got {self.base!r}")
         if self.start not in ("auto", "nominal"):
             raise ValueError(f"start must be 'auto' or 'nominal', got {self.start!r}")
+        if not self.ambiguity_bic >= 0.0:  # NaN too: it decides which refits are cross-validated
+            raise ValueError(f"ambiguity_bic must be >= 0 (inf: cross-validate every refit), got {self.ambiguity_bic}")
+        if not np.isfinite(self.min_delta_bic):
+            raise ValueError(f"min_delta_bic must be finite, got {self.min_delta_bic}")
 
 
 @dataclasses.dataclass(frozen=True)
