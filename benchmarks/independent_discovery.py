@@ -11,7 +11,8 @@ reported interval; an effect outside the library: the first ``unexplained`` vari
 driver; the null suite: nothing named and nothing unexplained), the fraction misnamed (a library
 name given to an effect outside the library, or anything named in a null suite), the held-out RMS
 over the noise floor, and the seconds per suite. Per run, ``ambiguous`` lists the named effects
-the report calls ambiguous (a rival within ``ambiguity_bic``, a generic competitor among them);
+the report calls uncertain (a rival within ``ambiguity_bic``, a generic competitor among them;
+or a name on weak evidence, ``"weak_evidence"``);
 ``misnamed_flagged_rate`` counts the misnamed suites whose name the report flagged so.
 Amplitudes are not compared here: the two simulators' parameterisations differ for most effects
 (backlash as a stroke dead band vs a joint angle, thermal as spindle expansion vs an angle per
@@ -111,8 +112,9 @@ def judge(truth: dict, rep: dict) -> dict:
     first = named[0] if named else None
     unexplained = [u["variable"] for u in rep.get("unexplained", [])]
     library_names = [n for n in named if n != "change_point"]
-    # the named effects the report itself calls ambiguous (a rival within ambiguity_bic)
-    ambiguous = [a["named"] for a in rep.get("ambiguities", [])]
+    # the named effects the report itself calls uncertain: a rival within ambiguity_bic, or
+    # a name on weak evidence (delta BIC below "strong", "weak_evidence")
+    ambiguous = [a["named"] for a in rep.get("ambiguities", []) + rep.get("weak_evidence", [])]
     out = {"named": named, "unexplained": unexplained, "ambiguous": ambiguous}
     if effect == "none":
         out["hit"] = not named and not unexplained

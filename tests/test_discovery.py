@@ -20,6 +20,7 @@ from heliojax.discovery import (
     absorbed_fractions,
     day_folds,
     discover,
+    evidence_grade,
     holm,
     markdown_summary,
     simulate_fleet,
@@ -407,6 +408,27 @@ def test_hidden_backlash_is_named_with_its_size():
     assert {c["variable"] for c in comp["competitors"]} >= {"time_of_day"}
     assert all(c["delta_bic"] < comp["library_best"]["delta_bic"] for c in comp["competitors"])
     assert r["unexplained"] == [] and r["config"]["generic_competitors"]
+    # strong evidence: no weak-evidence flag; a name on a delta BIC of 4 would carry one
+    assert step["evidence"] == "very strong" and r["weak_evidence"] == []
+    weak = {**r, "weak_evidence": [{"step": 1, "named": "backlash", "named_mode": "shared", "delta_bic": 4.0}]}
+    assert "**Weak evidence** at step 1: `backlash`" in markdown_summary(weak)
+    assert "**Weak evidence**" not in markdown_summary(r)
+
+
+def test_evidence_grades_are_kass_and_rafterys():
+    """Kass & Raftery (1995), 2 log Bayes factor: 0-2 not worth more than a bare
+    mention, 2-6 positive, 6-10 strong, > 10 very strong."""
+    grades = [evidence_grade(x) for x in (1.9, 2.0, 2.1, 5.9, 6.0, 10.0, 10.1, float("nan"))]
+    assert grades == [
+        "not worth more than a bare mention",
+        "not worth more than a bare mention",
+        "positive",
+        "positive",
+        "strong",
+        "strong",
+        "very strong",
+        "not worth more than a bare mention",
+    ]
 
 
 def test_largely_absorbed_gravity_sag_is_named_on_its_remainder_or_reported_absorbed():

@@ -33,7 +33,9 @@ from ._identifiability import (
 )
 from ._lanes import day_folds as day_folds, fold_blocks as fold_blocks, too_few_days_note as too_few_days_note
 from ._report import (
+    STRONG_EVIDENCE_BIC as STRONG_EVIDENCE_BIC,
     build_report as build_report,
+    evidence_grade as evidence_grade,
     markdown_summary as markdown_summary,
     plot_change_points as plot_change_points,
     plot_effect_residuals as plot_effect_residuals,
@@ -62,6 +64,7 @@ __all__ = [
     "CandidateScreen",
     "DEFAULT_CANDIDATES",
     "MIN_DELTA_BIC",
+    "STRONG_EVIDENCE_BIC",
     "Cleaning",
     "DiscoveryConfig",
     "DiscoveryResult",
@@ -72,6 +75,7 @@ __all__ = [
     "clean",
     "confirm_change_points",
     "day_folds",
+    "evidence_grade",
     "fold_blocks",
     "too_few_days_note",
     "discover",

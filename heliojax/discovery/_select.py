@@ -112,7 +112,7 @@ from ._competitors import (
 from ._diagnostics import record_variables, unexplained_structure
 from ._identifiability import ABSORBED_LIMIT, column_bases
 from ._lanes import Engine, Lanes, Layout, make_lanes, make_layout
-from ._report import build_report, cv_log_ratio, cv_pair
+from ._report import STRONG_EVIDENCE_BIC, build_report, cv_log_ratio, cv_pair, evidence_grade
 from ._screen import (
     CandidateScreen,
     HeliostatBases,
@@ -1139,6 +1139,11 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
             + (
                 f"; ambiguous with {', '.join(r['effect'] or 'f(' + r['variable'] + ')' for r in rivals)}"
                 if rivals
+                else ""
+            )
+            + (
+                f"; weak evidence (delta BIC {best.delta_bic:.1f}: {evidence_grade(best.delta_bic)})"
+                if best.delta_bic < STRONG_EVIDENCE_BIC
                 else ""
             )
         )
