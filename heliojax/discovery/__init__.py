@@ -33,6 +33,8 @@ from ._identifiability import (
 )
 from ._lanes import day_folds as day_folds, fold_blocks as fold_blocks, too_few_days_note as too_few_days_note
 from ._report import (
+    AMBIGUITY_BIC as AMBIGUITY_BIC,
+    MIN_DELTA_BIC as MIN_DELTA_BIC,
     STRONG_EVIDENCE_BIC as STRONG_EVIDENCE_BIC,
     build_report as build_report,
     evidence_grade as evidence_grade,
@@ -48,9 +50,7 @@ from ._report import (
 )
 from ._screen import CandidateScreen as CandidateScreen, holm as holm
 from ._select import (
-    AMBIGUITY_BIC as AMBIGUITY_BIC,
     DEFAULT_CANDIDATES as DEFAULT_CANDIDATES,
-    MIN_DELTA_BIC as MIN_DELTA_BIC,
     DiscoveryConfig as DiscoveryConfig,
     DiscoveryResult as DiscoveryResult,
     discover as discover,

@@ -104,23 +104,37 @@ from .._plotting import pyplot, save_figure
 from ._diagnostics import record_variables
 from ._lanes import fold_blocks, too_few_days_note
 
+# Kass & Raftery's (1995) scale of 2 log Bayes factor (a delta BIC): 0-2 "not worth
+# more than a bare mention", 2-6 "positive", 6-10 "strong", above 10 "very strong".
+# Published, not tuned.
+
+MIN_DELTA_BIC = 2.0
+"""Delta BIC a refit must exceed to name its effect (Kass & Raftery 1995: a BIC
+difference of 0-2 is "not worth more than a bare mention", 2-6 "positive"
+evidence). A published scale, not tuned: an effect named on less than positive
+evidence is as likely the remainder of another (an undetected step, an effect
+outside the library) as itself."""
+
 STRONG_EVIDENCE_BIC = 6.0
-"""Delta BIC from which a name rests on "strong" evidence (Kass & Raftery 1995, on
-2 log Bayes factor: 0-2 "not worth more than a bare mention", 2-6 "positive", 6-10
-"strong", above 10 "very strong"). A name below it is reported as resting on weak
-evidence (``"weak_evidence"``). A published scale, not tuned (in this project's
-independent-simulator runs up to 2026-12-06, 2 of the 3 names below 6 were wrong)."""
+"""Delta BIC from which a name rests on "strong" evidence (Kass & Raftery 1995). A name
+below it is reported as resting on weak evidence (``"weak_evidence"``) (in this
+project's independent-simulator runs up to 2026-12-06, 2 of the 3 names below 6 were
+wrong)."""
+
+AMBIGUITY_BIC = 10.0
+"""Delta BIC below which two explanations are not told apart (Kass & Raftery 1995:
+a BIC difference above 10 is "very strong" evidence)."""
 
 
 def evidence_grade(delta_bic: float) -> str:
     """Kass & Raftery's (1995) words for a delta BIC (2 log Bayes factor):
     ``"not worth more than a bare mention"`` (<= 2), ``"positive"`` (2-6),
     ``"strong"`` (6-10) or ``"very strong"`` (> 10)."""
-    if not delta_bic > 2.0:
+    if not delta_bic > MIN_DELTA_BIC:
         return "not worth more than a bare mention"
     if delta_bic < STRONG_EVIDENCE_BIC:
         return "positive"
-    return "strong" if delta_bic <= 10.0 else "very strong"
+    return "strong" if delta_bic <= AMBIGUITY_BIC else "very strong"
 
 
 def fmt(x: float | None, spec: str = ".3f") -> str:

@@ -112,7 +112,15 @@ from ._competitors import (
 from ._diagnostics import record_variables, unexplained_structure
 from ._identifiability import ABSORBED_LIMIT, column_bases
 from ._lanes import Engine, Lanes, Layout, make_lanes, make_layout
-from ._report import STRONG_EVIDENCE_BIC, build_report, cv_log_ratio, cv_pair, evidence_grade
+from ._report import (
+    AMBIGUITY_BIC,
+    MIN_DELTA_BIC,
+    STRONG_EVIDENCE_BIC,
+    build_report,
+    cv_log_ratio,
+    cv_pair,
+    evidence_grade,
+)
 from ._screen import (
     CandidateScreen,
     HeliostatBases,
@@ -125,17 +133,6 @@ from ._screen import (
 log = logging.getLogger(__name__)
 
 MODES = ("shared", "per_heliostat")
-
-MIN_DELTA_BIC = 2.0
-"""Delta BIC a refit must exceed to name its effect (Kass & Raftery 1995: a BIC
-difference of 0-2 is "not worth more than a bare mention", 2-6 "positive"
-evidence). A published scale, not tuned: an effect named on less than positive
-evidence is as likely the remainder of another (an undetected step, an effect
-outside the library) as itself."""
-
-AMBIGUITY_BIC = 10.0
-"""Delta BIC below which two explanations are not told apart (Kass & Raftery 1995:
-a BIC difference above 10 is "very strong" evidence)."""
 
 SHARED_STEP_TOLERANCE = 0.01
 """A refit's shared parameters are converged when their next Gauss-Newton step
@@ -1329,7 +1326,7 @@ def _refit(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen, 
     return Candidate(effect, mode, first, b0 - b1, b0, b1, nan, nan, 0, nan, False, cross_validated=False)
 
 
-def _cross_validated(wf: _Workflow, state: ModelState, cand: Candidate, scr: CandidateScreen) -> Candidate:
+def _cross_validated(wf: _Workflow, state: ModelState, cand: Candidate) -> Candidate:
     """``cand`` (fold-0 lanes fitted, :func:`_refit`) with its cross-validation lanes
     fitted and judged: delta BIC > ``min_delta_bic`` and a better held-out
     likelihood. Each lane starts from its heliostat's fold-0 solution (a start from
@@ -1339,9 +1336,8 @@ def _cross_validated(wf: _Workflow, state: ModelState, cand: Candidate, scr: Can
     (:meth:`_Workflow.folds_shared_start`)."""
     first = cand.state
     fold0 = wf.lanes.fold == 0
-    start = wf.start_params(state, cand.effect, cand.mode, scr)
-    warm = np.where(fold0[:, None], start, first.params[wf.lanes.heliostat])  # fold-0 lane h is lane h
-    warm = wf.folds_shared_start(first, warm, ~fold0)
+    # fold-0 lane h is lane h; the fold-0 lanes are left out of this fit, _joined takes them from `first`
+    warm = wf.folds_shared_start(first, first.params[wf.lanes.heliostat], ~fold0)
     rest = wf.fit_state(
         first.effects, warm, active=~fold0, derivative_from=wf.derivative_at(state), prior_scales=first.prior_scales
     )
@@ -1397,7 +1393,7 @@ def _judged(wf: _Workflow, state: ModelState, cands: list[Candidate], screens: d
         i = max(waiting, key=lambda i: out[i].delta_bic)
         c = out[i]
         with activity(f"cross-validating the refit of {c.effect} ({c.mode})", logger=log):
-            out[i] = _cross_validated(wf, state, c, screens[c.effect])
+            out[i] = _cross_validated(wf, state, c)
         if not out[i].passed:
             out.extend(_other_form(wf, state, c, out, screens[c.effect], alpha))
 
