@@ -35,7 +35,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from independent_sim import EFFECTS, generate  # noqa: E402 (after the sys.path line)
+from independent_sim import EFFECTS, NOISE_KINDS, generate  # noqa: E402 (after the sys.path line)
 
 DEFAULT = [
     "none",
@@ -258,6 +258,7 @@ def main() -> None:
     p.add_argument("--records", type=int, help="records per heliostat (simulator default 60)")
     p.add_argument("--noise", type=float, help="camera noise, mrad per component (simulator default 0.25)")
     p.add_argument("--controller", choices=["calibrated", "nominal"], help="simulator default: calibrated")
+    p.add_argument("--noise-kind", choices=NOISE_KINDS, help="the camera noise's law (simulator default: gaussian)")
     a = p.parse_args()
     design = {
         k: v
@@ -266,6 +267,7 @@ def main() -> None:
             "n_records": a.records,
             "noise_mrad": a.noise,
             "controller": a.controller,
+            "noise_kind": a.noise_kind,
         }.items()
         if v is not None
     }

@@ -6,7 +6,7 @@ import argparse
 import json
 
 from ._effects import EFFECTS
-from ._generate import DEFAULT_SOURCE, generate
+from ._generate import DEFAULT_SOURCE, NOISE_KINDS, generate
 
 
 def main(argv=None) -> None:
@@ -17,6 +17,7 @@ def main(argv=None) -> None:
     p.add_argument("--out", required=True)
     p.add_argument("--outliers", type=float, default=0.0)
     p.add_argument("--noise", type=float, default=0.25, help="camera noise, mrad per component")
+    p.add_argument("--noise-kind", choices=NOISE_KINDS, default="gaussian", help="the camera noise's law")
     p.add_argument("--heliostats", type=int, default=20)
     p.add_argument("--records", type=int, default=60)
     p.add_argument("--controller", choices=["calibrated", "nominal"], default="calibrated")
@@ -33,6 +34,7 @@ def main(argv=None) -> None:
         outliers=a.outliers,
         controller=a.controller,
         source=a.source,
+        noise_kind=a.noise_kind,
     )
     print(json.dumps({k: truth[k] for k in ("effect", "beam_rms_mrad", "seed")}))
 

@@ -185,6 +185,27 @@ def _simulate(effect, amp, hp, plant: Mount, controller: Mount, site, ctx, aim, 
     return counts.astype(np.int64), spots, centre, direction, recorded
 
 
+NOISE_KINDS = ("gaussian", "student_t", "heteroscedastic", "daily")
+HETEROSCEDASTIC_RANGE = 2.0  # a heliostat's noise scale within 1/2 to 2 times the suite's
+
+
+def _noise_of_kind(kind: str, normal: np.ndarray, unix_time: np.ndarray, rng) -> np.ndarray:
+    """Unit noise of one heliostat's records, shape (n, 2), of the law `kind` (see `generate`)."""
+    n = normal.shape[0]
+    if kind == "student_t":
+        dof = 3.0
+        return rng.standard_t(dof, (n, 2)) / np.sqrt(dof / (dof - 2.0))
+    if kind == "heteroscedastic":
+        lo, hi = -np.log(HETEROSCEDASTIC_RANGE), np.log(HETEROSCEDASTIC_RANGE)
+        scale = np.exp(rng.uniform(lo, hi))
+        mean_variance = (HETEROSCEDASTIC_RANGE**2 - HETEROSCEDASTIC_RANGE**-2) / (4 * np.log(HETEROSCEDASTIC_RANGE))
+        return normal * scale / np.sqrt(mean_variance)
+    day = np.floor(np.asarray(unix_time) / 86400.0).astype(np.int64)
+    _, index = np.unique(day, return_inverse=True)
+    shared = rng.normal(0, 1, (int(index.max()) + 1, 2))
+    return np.sqrt(0.5) * normal + np.sqrt(0.5) * shared[index]
+
+
 def generate(
     effect: str,
     out_dir,
@@ -198,6 +219,7 @@ def generate(
     aim_spread_m: float = 0.8,
     plant_errors: float = 1.0,
     source=DEFAULT_SOURCE,
+    noise_kind: str = "gaussian",
 ) -> dict:
     """Write a PAINT-layout suite to `out_dir` and return the truth (also written as truth.json).
 
@@ -206,11 +228,19 @@ def generate(
     records displaced by 10-100 mrad; controller: 'calibrated' (knows the plant without the hidden effect)
     or 'nominal' (aims with the properties files); aim_spread_m: half-width of the controller's aim points
     around each target centre (m); plant_errors: scale of the drawn plant state (0 = the nominal plant).
+    noise_kind: the camera noise's law, each with standard deviation `noise_mrad` per component on average:
+    'gaussian' (independent normal), 'student_t' (independent Student t with 3 degrees of freedom: heavy
+    tails short of gross errors), 'heteroscedastic' (normal, each heliostat's own scale drawn log-uniformly
+    within 1/2 to 2 times, normalised to a mean variance of `noise_mrad`^2) or 'daily' (normal, half of the
+    variance shared by the records of one heliostat on one day: the target's or the camera's state of
+    that day).
     """
     if effect not in fx.EFFECTS:
         raise ValueError(f"unknown effect {effect!r}; choose from {sorted(fx.EFFECTS)}")
     if controller not in ("calibrated", "nominal"):
         raise ValueError("controller must be 'calibrated' or 'nominal'")
+    if noise_kind not in NOISE_KINDS:
+        raise ValueError(f"unknown noise_kind {noise_kind!r}; choose from {NOISE_KINDS}")
     amp = float(fx.EFFECTS[effect].default if amplitude is None else amplitude)
     root, out = Path(source), Path(out_dir)
     rng = np.random.default_rng(seed)
@@ -271,6 +301,7 @@ def generate(
         "parameters": params,
         "seed": seed,
         "noise_mrad": noise_mrad,
+        "noise_kind": noise_kind,
         "outlier_fraction": outliers,
         "controller": controller,
         "source": str(root),
@@ -287,6 +318,8 @@ def generate(
         aim_off = rng.uniform(-aim_spread_m, aim_spread_m, (n, 2))
         first_dir = rng.choice([-1.0, 1.0], 2)
         noise = rng.normal(0, 1, (n, 2))
+        if noise_kind != "gaussian":  # drawn after the default draws, so 'gaussian' suites stay as they were
+            noise = _noise_of_kind(noise_kind, noise, times[h], rng)
         is_out = rng.random(n) < outliers
         out_ang, out_dir_ang = rng.uniform(10e-3, 100e-3, n), rng.uniform(0, 2 * np.pi, n)
         aim = np.empty((n, 3))
