@@ -577,35 +577,3 @@ def test_close_pairs_by_numpy_and_by_tree_agree(monkeypatch):
     assert _flags.close_pairs(xy, 6.0) == by_numpy
     assert (4, 5) in by_numpy and (6, 7) in by_numpy and len(by_numpy) > 10
     assert all(i < j and np.linalg.norm(xy[i] - xy[j]) <= 6.0 for i, j in by_numpy)
-
-
-def test_a_spot_on_no_target_is_skipped_and_one_on_another_target_is_kept(tmp_path):
-    """A camera sees only the targets: a focal spot beyond every planar target's corners
-    is no measurement and its record is skipped, named; a spot on another target than
-    the record's ``target_name`` is kept with a flag (its target may be misnamed)."""
-    import shutil
-
-    from heliojax.paint import load_paint_directory
-
-    data = tmp_path / "paint"
-    shutil.copytree(EMB, data)
-    tower = json.loads((data / "WRI1030197-tower-measurements.json").read_text())
-    records = sorted((data / "BE36" / "Calibration").glob("*-calibration-properties.json"))
-    up, other = records[0], records[1]
-    d = json.loads(up.read_text())
-    assert d["target_name"] == "solar_tower_juelich_lower"
-    for k in ("UTIS", "HeliOS"):
-        d["focal_spot"][k][2] += 30.0  # 30 m up: above the lower target, between the others, on none
-    up.write_text(json.dumps(d))
-    d = json.loads(other.read_text())
-    assert d["target_name"] == "solar_tower_juelich_lower"
-    for k in ("UTIS", "HeliOS"):
-        d["focal_spot"][k] = list(tower["multi_focus_tower"]["coordinates"]["center"])
-    other.write_text(json.dumps(d))
-    before = load_paint_directory(EMB, heliostats=["BE36"])
-    fleet = load_paint_directory(data, heliostats=["BE36"])
-    skipped = [e for e in fleet.report.skipped if Path(e.file).name == up.name]
-    assert len(skipped) == 1 and skipped[0].field == "focal_spot.UTIS" and "on no target" in skipped[0].reason
-    flagged = [e for e in fleet.report.flags if Path(e.file).name == other.name]
-    assert len(flagged) == 1 and "solar_tower_juelich_lower" in flagged[0].reason
-    assert int(fleet.mask.sum()) == int(before.mask.sum()) - 1

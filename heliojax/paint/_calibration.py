@@ -143,31 +143,6 @@ def spot_off_target(record: CalibrationRecord, tower: TowerFile) -> tuple[str, s
     return None
 
 
-def spot_on_no_target(record: CalibrationRecord, tower: TowerFile) -> tuple[str, str] | None:
-    """``(field, reason)`` for a focal spot of ``record`` that lies on no planar target
-    of ``tower`` (farther from every target's centre than that target's farthest
-    corner), or None. The camera sees only the targets: such a spot is no measurement
-    of where the beam went, and the record is left out (unlike a spot on another
-    target than its ``target_name``, which :func:`spot_off_target` flags and keeps)."""
-    planar = [t for t in tower.targets.values() if t.is_planar_target]
-    if not planar:
-        return None
-    for field, spot in (("focal_spot.UTIS", record.focal_spot_utis), ("focal_spot.HeliOS", record.focal_spot_helios)):
-        if spot is None:
-            continue
-        misses = []
-        for t in planar:
-            centre: Vec3 = tuple(sum(t.points[c][k] for c in CORNERS) / len(CORNERS) for k in range(3))  # pyright: ignore[reportAssignmentType]
-            reach = max(_distance_m(t.points[c], centre) for c in CORNERS)
-            misses.append(_distance_m(spot, centre) - reach)
-        if min(misses) > 0:
-            return field, (
-                f"{min(misses):.4g} m beyond the corners of the nearest target: on no target of the tower file, "
-                "so no camera-target measurement; record skipped"
-            )
-    return None
-
-
 def check_record_context(
     record: CalibrationRecord,
     tower: TowerFile | None = None,

@@ -30,7 +30,6 @@ from ._calibration import (
     heliostat_properties_path,
     read_calibration_record,
     spot_off_target,
-    spot_on_no_target,
     validate_record,
 )
 from ._common import (
@@ -468,9 +467,6 @@ def _assemble(
                         f"the same measurement as record {same} of {hid!r} (identical time, counts, sun and "
                         "spots): a copy, counted once",
                     )
-                nowhere = spot_on_no_target(r, tower) if spot_off_target(r, tower) is not None else None
-                if nowhere is not None:
-                    raise DataError(r.source, *nowhere)
             except DataError as e:
                 log.skip_record(e)
                 continue
