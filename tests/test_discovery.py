@@ -413,6 +413,11 @@ def test_hidden_backlash_is_named_with_its_size():
     weak = {**r, "weak_evidence": [{"step": 1, "named": "backlash", "named_mode": "shared", "delta_bic": 4.0}]}
     assert "**Weak evidence** at step 1: `backlash`" in markdown_summary(weak)
     assert "**Weak evidence**" not in markdown_summary(r)
+    # independent noise: no design effect; a clustered one is reported in the Markdown
+    assert r["day_clustering"]["intra_day_correlation"] == 0.0 and r["day_clustering"]["p"] > 0.01
+    assert "share an error" not in markdown_summary(r)
+    clustered = {**r, "day_clustering": {**r["day_clustering"], "intra_day_correlation": 0.4, "p": 1e-9}}
+    assert "Records of one heliostat and day share an error: intra-day correlation 0.40" in markdown_summary(clustered)
 
 
 def test_evidence_grades_are_kass_and_rafterys():

@@ -234,3 +234,60 @@ def test_a_direction_the_base_absorbs_is_tested_in_neither_form():
     # the absorbed column gets no share of the estimate
     np.testing.assert_allclose(pair.theta_shared, [alone.theta_shared[0], 0.0], rtol=1e-6, atol=1e-9)
     assert pair.p_shared < 1e-6  # the free column's 0.6 is found
+
+
+def _clustered_residuals(rng, h, days, per_day, rho, sigma):
+    """``(H, M, 2)`` residuals of ``h`` heliostats with ``per_day`` records on each of
+    ``days`` UTC days, a share ``rho`` of the variance common to one heliostat's day."""
+    m = days * per_day
+    day = np.repeat(np.arange(days), per_day)
+    t = (100 + day)[None, :] * 86400.0 + rng.uniform(6, 18, (h, m)) * 3600.0
+    shared = rng.normal(size=(h, days, 2))[:, day]
+    r = sigma[:, None, None] * (np.sqrt(1 - rho) * rng.normal(size=(h, m, 2)) + np.sqrt(rho) * shared)
+    return r, t
+
+
+def test_day_clustering_is_the_one_way_anova_estimate_and_stays_off_for_independent_records():
+    """:func:`day_clustering` against the balanced one-way random-effects estimate written
+    out with loops (each heliostat's components standardised by its noise, cluster
+    means about the heliostat's mean), its recovery of a planted intra-day correlation,
+    and no design effect for independent records (the F test's gate)."""
+    from heliojax.discovery._diagnostics import CLUSTERING_ALPHA, day_clustering
+
+    rng = np.random.default_rng(3)
+    h, days, per_day, n_params = 6, 12, 3, 4
+    sigma = rng.uniform(0.2, 0.6, h)
+    r, t = _clustered_residuals(rng, h, days, per_day, 0.4, sigma)
+    use = np.ones(t.shape, bool)
+    use[0, :per_day] = False  # one heliostat's first day unused
+    got = day_clustering(r, use, t, n_params)
+    ssb = ssw = 0.0
+    n_total = k = 0
+    for i in range(h):
+        keep = use[i]
+        s = np.sqrt(np.sum(r[i][keep] ** 2) / (2 * keep.sum() - n_params))
+        z = r[i][keep] / s
+        d = np.floor(t[i][keep] / 86400.0)
+        for c in range(2):
+            mean_h = z[:, c].mean()
+            for u in np.unique(d):
+                g = z[d == u, c]
+                ssb += g.size * (g.mean() - mean_h) ** 2
+                ssw += np.sum((g - g.mean()) ** 2)
+                k += 1
+            n_total += z.shape[0]
+    msb, msw = ssb / (k - 2 * h), ssw / (n_total - k)
+    # every cluster has per_day records: n0 = per_day, the balanced estimate
+    expected = (msb - msw) / (msb + (per_day - 1) * msw)
+    assert got.p < CLUSTERING_ALPHA
+    np.testing.assert_allclose(got.correlation, expected, rtol=1e-10)
+    np.testing.assert_allclose(got.records_per_day, per_day)
+    np.testing.assert_allclose(got.design_effect, 1 + (per_day - 1) * expected)
+    # many clusters: the planted correlation, to its sampling error
+    big = _clustered_residuals(rng, 40, 30, 3, 0.5, np.full(40, 0.3))
+    assert abs(day_clustering(*big[:1], np.ones(big[1].shape, bool), big[1], n_params).correlation - 0.5) < 0.06
+    # independent records: no design effect (this draw's F test is far from the gate)
+    iid = _clustered_residuals(rng, 40, 30, 3, 0.0, np.full(40, 0.3))
+    off = day_clustering(iid[0], np.ones(iid[1].shape, bool), iid[1], n_params)
+    assert off.p > 0.05 and off.correlation == 0.0
+    np.testing.assert_array_equal(off.design_effect, np.ones(40))

@@ -172,9 +172,10 @@ def bin_index(values: np.ndarray, use: np.ndarray, kind: str) -> np.ndarray:
     return np.where(idx >= 0, remap[np.clip(idx, 0, None)], -1)
 
 
-def anova(z: np.ndarray, idx: np.ndarray) -> tuple[float, np.ndarray]:
+def anova(z: np.ndarray, idx: np.ndarray, design_effect: float = 1.0) -> tuple[float, np.ndarray]:
     """p-value of binned structure in ``z`` ``(H, M, 2)`` (bins ``idx``), and the bin
-    means ``(B, 2)`` (see the module docstring)."""
+    means ``(B, 2)`` (see the module docstring); ``F`` divided by ``design_effect``
+    (:func:`day_clustering`)."""
     ok = idx >= 0
     n_bins = int(idx.max()) + 1 if ok.any() else 0
     if n_bins < 2:
@@ -189,7 +190,7 @@ def anova(z: np.ndarray, idx: np.ndarray) -> tuple[float, np.ndarray]:
     d1, d2 = 2 * (n_bins - 1), 2 * (zz.shape[0] - n_bins)
     if d2 <= 0 or ss_within <= 0:
         return float("nan"), means
-    f = (ss_between / d1) / (ss_within / d2)
+    f = (ss_between / d1) / (ss_within / d2) / design_effect
     return float(stats.f.sf(f, d1, d2)), means
 
 
@@ -211,12 +212,12 @@ def per_heliostat_cells(idx: np.ndarray) -> np.ndarray:
     return cell
 
 
-def anova_per_heliostat(z: np.ndarray, idx: np.ndarray) -> tuple[float, np.ndarray]:
+def anova_per_heliostat(z: np.ndarray, idx: np.ndarray, design_effect: float = 1.0) -> tuple[float, np.ndarray]:
     """p-value of binned structure in ``z`` ``(H, M, 2)`` whose shape may differ
     between heliostats (cells = (heliostat, bin) of ``idx`` with at least
     :data:`MIN_PER_CELL` records, each heliostat's mean taken out; see the module
     docstring), and each record's cell mean minus its heliostat's mean ``(H, M, 2)``
-    (0 outside the cells)."""
+    (0 outside the cells); ``F`` divided by ``design_effect`` (:func:`day_clustering`)."""
     h = idx.shape[0]
     cell = per_heliostat_cells(idx)
     ok = cell >= 0
@@ -236,7 +237,7 @@ def anova_per_heliostat(z: np.ndarray, idx: np.ndarray) -> tuple[float, np.ndarr
     d1, d2 = 2 * (n_c.size - n_k.size), 2 * (zz.shape[0] - n_c.size)
     if d1 <= 0 or d2 <= 0 or ss_within <= 0:
         return float("nan"), deviation
-    f = (ss_between / d1) / (ss_within / d2)
+    f = (ss_between / d1) / (ss_within / d2) / design_effect
     return float(stats.f.sf(f, d1, d2)), deviation
 
 
@@ -289,6 +290,7 @@ def unexplained_structure(
     n_params: int,
     alpha: float,
     ids: list[str],
+    design_effect: float = 1.0,
 ) -> tuple[list[dict], dict[str, float]]:
     """Forward selection of the variables residual structure depends on.
 
@@ -299,6 +301,8 @@ def unexplained_structure(
         n_params: fitted parameters per heliostat.
         alpha: family-wise level (Holm over the variables).
         ids: heliostat ids.
+        design_effect: the records' day-clustering design effect (:func:`day_clustering`;
+            1: independent records), by which every ``F`` is divided.
 
     Returns:
         ``(entries, first_p)``: the reported variables in the order selected, each
@@ -315,7 +319,9 @@ def unexplained_structure(
 
     def test(z_now: np.ndarray, name: str, form: str) -> float:
         idx = bins[name]
-        return anova(z_now, idx)[0] if form == FLEET else anova_per_heliostat(z_now, idx)[0]
+        if form == FLEET:
+            return anova(z_now, idx, design_effect)[0]
+        return anova_per_heliostat(z_now, idx, design_effect)[0]
 
     def key(name: str, form: str) -> str:
         return name if form == FLEET else f"{name} (per heliostat)"
@@ -362,3 +368,106 @@ def unexplained_structure(
         z = z - shift_z
         remaining = [c for c in remaining if c != best]
     return entries, {k: float(v) for k, v in first.items()}
+
+
+DAY_S = 86400.0
+CLUSTERING_ALPHA = 0.01
+"""Level of the F test that the records of one heliostat on one UTC day share an error
+(:func:`day_clustering`): below it the design effect is used, otherwise it is 1 (the
+records are taken as independent, as every test assumes)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class DayClustering:
+    """How much the records of one heliostat on one UTC day share their error.
+
+    Attributes:
+        correlation: the intra-day correlation of the residual components (one-way
+            random-effects analysis of variance, clusters (heliostat, UTC day,
+            component); 0 where the F test does not reject independence).
+        p: the F test's p-value (NaN where it cannot be made).
+        design_effect: ``(H,)`` ``1 + (m_h - 1) correlation`` per heliostat, ``m_h``
+            its size-weighted mean records per day (``sum n_c^2 / sum n_c``): the
+            factor by which records clustered by day overstate a test statistic
+            (Kish's design effect); 1 where the heliostat has no record.
+        records_per_day: ``(H,)`` ``m_h``.
+    """
+
+    correlation: float
+    p: float
+    design_effect: np.ndarray
+    records_per_day: np.ndarray
+
+    def as_dict(self) -> dict:
+        """The report's entry (JSON types)."""
+        return {
+            "intra_day_correlation": round(float(self.correlation), 4),
+            "p": None if not np.isfinite(self.p) else float(self.p),
+            "design_effect_median": round(float(np.median(self.design_effect)), 4),
+            "records_per_day_median": round(float(np.median(self.records_per_day)), 3),
+        }
+
+
+def day_clustering(r: np.ndarray, use: np.ndarray, unix_time: np.ndarray, n_params: int) -> DayClustering:
+    """Whether residuals of one heliostat's records on one UTC day share an error, and
+    the design effect that follows (:class:`DayClustering`).
+
+    Every test of discovery takes the records as independent given the model. Records
+    of one day can share an error the model does not have (the target's or camera's
+    state that day, a daily homing of the drives, a drift slower than a day): then a
+    statistic made of ``n`` records carries the information of about ``n / deff``, and
+    taking them as independent names effects that are only such shared errors.
+
+    Estimate: each heliostat's components are standardised by its own noise level
+    (:func:`heliostat_noise`); clusters are (heliostat, UTC day, component). The one-way
+    analysis of variance gives ``MSB`` over ``K - 2 H'`` degrees of freedom (cluster
+    means about their heliostat's component mean, ``H'`` heliostats with records) and
+    ``MSW`` over ``N - K``; the between-cluster variance is ``(MSB - MSW) / n0`` with
+    ``n0 = (N - sum n_c^2 / N) / (K - 1)``, and the intra-day correlation its share of
+    the total. It is used only where ``MSB / MSW`` rejects independence at
+    :data:`CLUSTERING_ALPHA` (so records without a shared error leave every test as it
+    was, up to that level's false alarms); records alone on their day take no part
+    in the test.
+
+    Args:
+        r: ``(H, M, 2)`` residual components (mrad).
+        use: ``(H, M)`` the records fitted.
+        unix_time: ``(H, M)`` seconds (UTC); non-finite times take no part.
+        n_params: fitted parameters per heliostat (for the noise level).
+    """
+    h = r.shape[0]
+    use = np.asarray(use, bool) & np.isfinite(unix_time) & np.all(np.isfinite(r), axis=-1)
+    ones = np.ones(h)
+    sigma = heliostat_noise(r, use, n_params)
+    use &= (np.isfinite(sigma) & (sigma > 0))[:, None]
+    hi, mi = np.nonzero(use)
+    if hi.size == 0:
+        return DayClustering(0.0, float("nan"), ones, ones)
+    day = np.floor(unix_time[hi, mi] / DAY_S).astype(np.int64)
+    _, cluster = np.unique(np.stack([hi, day]), axis=1, return_inverse=True)
+    cluster = cluster.reshape(-1)
+    n_c = np.bincount(cluster).astype(float)
+    helio_of = np.zeros(n_c.size, np.int64)
+    helio_of[cluster] = hi
+    per_helio_n = np.bincount(hi, minlength=h).astype(float)
+    m_h = np.bincount(helio_of, weights=n_c * n_c, minlength=h) / np.maximum(per_helio_n, 1.0)
+    z = r[hi, mi] / sigma[hi, None]  # (N, 2)
+    n_total = 2.0 * z.shape[0]
+    k_clusters = 2.0 * n_c.size
+    n_helio = float(np.count_nonzero(per_helio_n))
+    ss_within = ss_between = 0.0
+    for c in range(2):  # the two components: a fixed 2, not heliostats
+        s_c = np.bincount(cluster, weights=z[:, c])
+        s_h = np.bincount(hi, weights=z[:, c], minlength=h)
+        ss_within += float(np.sum(z[:, c] ** 2) - np.sum(s_c * s_c / n_c))
+        ss_between += float(np.sum(s_c * s_c / n_c) - np.sum(s_h[per_helio_n > 0] ** 2 / per_helio_n[per_helio_n > 0]))
+    d1, d2 = k_clusters - 2.0 * n_helio, n_total - k_clusters
+    if d1 <= 0 or d2 <= 0:
+        return DayClustering(0.0, float("nan"), ones, np.where(per_helio_n > 0, m_h, 1.0))
+    msb, msw = ss_between / d1, ss_within / d2
+    p = float(stats.f.sf(msb / max(msw, 1e-300), d1, d2))
+    n0 = (n_total - 2.0 * np.sum(n_c * n_c) / n_total) / (k_clusters - 1.0)
+    between = max((msb - msw) / max(n0, 1e-300), 0.0)
+    rho = between / (between + msw) if p < CLUSTERING_ALPHA and between > 0 else 0.0
+    m_h = np.where(per_helio_n > 0, m_h, 1.0)
+    return DayClustering(float(rho), p, 1.0 + (m_h - 1.0) * rho, m_h)

@@ -67,6 +67,11 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
       "heldout_median_base_mrad": float, "heldout_median_final_mrad": float,
       "train_rms_base_mrad": float, "train_rms_final_mrad": float,
       "noise_estimate_mrad": float,                # per tangent component, final model
+      "day_clustering": {"intra_day_correlation", "p", "design_effect_median",
+                         "records_per_day_median"},  # records of one heliostat and UTC day
+                                                   # sharing an error (final model); correlation
+                                                   # 0 unless its F test has p < 0.01; each
+                                                   # refit's evidence counts effective records
       "screens": [{name: {"p", "p_shared", "p_per_heliostat", "p_holm", "absorbed_fraction",
                           "identifiable", "tested", "testable"}}],  # one per step
       "refits": [[{"effect", "mode", "delta_bic", "cv_heldout_rms_before_mrad",
@@ -410,6 +415,7 @@ def build_report(result, typical_start=None) -> dict:
         "train_rms_base_mrad": _train_rms(result.base, h),
         "train_rms_final_mrad": _train_rms(result.final, h),
         "noise_estimate_mrad": _noise(result.final, result.layout, h),
+        "day_clustering": None if result.day_clustering is None else result.day_clustering.as_dict(),
         "screens": screens,
         "refits": refits,
         "config": {
@@ -606,6 +612,16 @@ def markdown_summary(report: dict) -> str:
         f"noise estimate {fmt(report['noise_estimate_mrad'])} mrad per component).",
         "",
     ]
+    clustering = report.get("day_clustering") or {}
+    if clustering.get("intra_day_correlation", 0) > 0:
+        lines += [
+            f"Records of one heliostat and day share an error: intra-day correlation "
+            f"{clustering['intra_day_correlation']:.2f} (p = {clustering['p']:.2g}), design effect "
+            f"{clustering['design_effect_median']:.2f} (median over heliostats, "
+            f"{clustering['records_per_day_median']:.1f} records per day) under the final model: the "
+            "evidence of each refit and the residual scan count effective records.",
+            "",
+        ]
     if report["steps"]:
         # the report's field is "delta_bic" either way; its meaning follows the criterion
         laplace = report["config"].get("criterion") == "laplace_evidence"

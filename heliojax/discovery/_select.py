@@ -109,7 +109,7 @@ from ._competitors import (
     significant,
     unexplained_entry,
 )
-from ._diagnostics import record_variables, unexplained_structure
+from ._diagnostics import DayClustering, day_clustering, record_variables, unexplained_structure
 from ._identifiability import ABSORBED_LIMIT, column_bases
 from ._lanes import Engine, Lanes, Layout, make_lanes, make_layout
 from ._report import (
@@ -316,6 +316,7 @@ class _Workflow:
         self.n_free = f
         self.free_index = np.asarray(self.layout.free_index)
         self.noise: np.ndarray | None = None  # (L,) mrad per component, from the base fit
+        self.unix_time: np.ndarray | None = None  # (H, M) the records' times (s), for day_clustering
         self._derivative: tuple[ModelState, tuple] | None = None  # (state, its expansion): see derivative_at
 
     # -- columns ----------------------------------------------------------------------
@@ -568,10 +569,15 @@ class _Workflow:
         both, and that count: ``-2 log`` of each model's evidence, smaller is better.
 
         ``sum_h n_h log(RSS_h / n_h)`` (each heliostat's own noise level profiled out)
-        plus each parameter's Occam term. Without the effect prior this is the BIC
-        (``k log N``, :meth:`effective_parameters` aside). With it (the default), the
-        effect parameters are fitted under a Gaussian prior of their typical size and
-        the BIC's ``log N`` per parameter, the large-sample limit of a unit-information
+        plus each parameter's Occam term. Where the records of one day share an error
+        under ``after`` (:meth:`day_clustering` of its residuals: an effect that ``before``
+        lacks makes records of one day alike as well, and must not weaken its own
+        evidence), ``n_h`` and ``N`` count effective records, ``n_h / deff_h`` (Kish's
+        design effect): ``n_h`` records of which groups share an error carry the evidence
+        of fewer independent ones. Without the effect prior this is the BIC (``k log N``,
+        :meth:`effective_parameters` aside). With it (the default), the effect parameters
+        are fitted under a Gaussian prior of their typical size and the BIC's ``log N``
+        per parameter, the large-sample limit of a unit-information
         prior, is replaced by the Laplace approximation of the marginal likelihood under
         that same prior (Kass & Raftery 1995, sec. 4.1; :meth:`occam_terms`): a
         parameter the records determine well costs ``log(1 + its prior variance over
@@ -582,17 +588,35 @@ class _Workflow:
         :data:`MIN_DELTA_BIC` and :data:`AMBIGUITY_BIC` quote."""
         lanes = np.nonzero((self.lanes.fold == 0) & before.ok & after.ok & (before.n_res > 0))[0]
         n = before.n_res[lanes].astype(float)
-        big_n = max(n.sum(), 2.0)
+        # records that share an error by day carry the information of n / deff independent ones
+        deff = self.day_clustering(after).design_effect[self.lanes.heliostat[lanes]]
+        n_effective = n / deff
+        big_n = max(n_effective.sum(), 2.0)
 
         def criterion(state):
             rss = np.maximum(state.rss[lanes], 1e-300)
-            fit = float(np.sum(n * np.log(rss / n)))
+            fit = float(np.sum(n_effective * np.log(rss / n)))
             if self.config.effect_prior and self.noise is not None:
                 return fit + len(self.layout.base_cols) * lanes.size * np.log(big_n) + self.occam_terms(state, lanes)
             k = float(np.sum(self.effective_parameters(state, lanes))) + len(self.shared_cols(state.effects))
             return fit + k * np.log(big_n)
 
         return criterion(before), criterion(after), int(lanes.size)
+
+    def day_clustering(self, state: ModelState) -> DayClustering:
+        """How much ``state``'s training residuals (fold-0 lanes) of one heliostat and
+        UTC day share an error (:func:`heliojax.discovery._diagnostics.day_clustering`);
+        none (design effect 1) before the records' times are known."""
+        h = self.lanes.n_heliostats
+        if self.unix_time is None:
+            return DayClustering(0.0, float("nan"), np.ones(h), np.ones(h))
+        m = self.lanes.train_mask.shape[1]
+        return day_clustering(
+            state.r[:h].reshape(h, m, 2),
+            self.lanes.train_mask[:h] & state.ok[:h, None],
+            self.unix_time,
+            len(self.active_cols(state.effects)),
+        )
 
     def occam_terms(self, state: ModelState, lanes: np.ndarray) -> float:
         """``-2 log`` Occam factor of ``state``'s effect parameters on ``lanes`` (Laplace).
@@ -809,6 +833,10 @@ class DiscoveryResult:
         variable_p: every recorded variable's p-value at the final model.
         competitors: per step that had a library name to give, the generic
             competitors' scores beside the best library candidate's.
+        day_clustering: how much the final model's residuals of one heliostat and
+            UTC day share an error (:class:`heliojax.discovery._diagnostics.DayClustering`;
+            the residual scan's tests are divided by its design effect, as each refit's
+            evidence is by its own model's, :meth:`_Workflow.bic_pair`).
     """
 
     config: DiscoveryConfig
@@ -827,6 +855,7 @@ class DiscoveryResult:
     unexplained: tuple = ()
     variable_p: dict = dataclasses.field(default_factory=dict)
     competitors: tuple = ()
+    day_clustering: DayClustering | None = None
 
 
 def _amplitude(wf: _Workflow, state: ModelState, effect: str, mode: str):
@@ -1005,6 +1034,7 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
     base_state = state
     wf.noise = _lane_noise(state, len(layout.base_cols) + 2 * _stepped_lanes(cleaning, lanes, steps_found))
     h = lanes.n_heliostats
+    wf.unix_time = np.asarray(padded.context.unix_time, float)
     train_rms = np.sqrt(np.nansum(state.rss[:h]) / np.sum(state.n_res[:h]) * 2)
     log.info(f"base fitted ({state.fit_s:.1f} s): train RMS {train_rms:.3f} mrad")
     steps: list[Step] = []
@@ -1156,6 +1186,13 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
     n_params = len(wf.active_cols(state.effects))
     ids = list(padded.ids)
     m = lanes.train_mask.shape[1]
+    clustering = wf.day_clustering(state)
+    if clustering.correlation > 0:
+        log.info(
+            f"records of one heliostat and day share an error under the final model: intra-day correlation "
+            f"{clustering.correlation:.2f} (p={clustering.p:.2g}), design effect "
+            f"{np.median(clustering.design_effect):.2f} (median over heliostats)"
+        )
     with activity("searching the residuals for unexplained structure", logger=log):
         unexplained, variable_p = unexplained_structure(
             record_variables(padded, state.r[:h].reshape(h, m, 2)),
@@ -1164,6 +1201,7 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
             n_params,
             config.alpha,
             ids,
+            float(np.median(clustering.design_effect)),
         )
     # a competitor that beat a library name comes first; the scan adds what else remains
     unexplained = generic + [u for u in unexplained if u["variable"] not in {g["variable"] for g in generic}]
@@ -1188,6 +1226,7 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
         unexplained=tuple(unexplained),
         variable_p=variable_p,
         competitors=tuple(competitors_log),
+        day_clustering=clustering,
     )
     return dataclasses.replace(result, report=build_report(result))
 
