@@ -170,11 +170,44 @@ def _publish(tmp: str, path: Path) -> None:
     os.replace(tmp, path)
 
 
+_STAGED: dict[str, Path] = {}
+"""The temporaries of the :func:`staged_paths` blocks now open (absolute path -> the
+output it becomes): :func:`atomic_write` and :func:`atomic_path` write such a path in
+place, not through a temporary of their own (a temporary of a temporary,
+``..c.X.heliojax-tmp.Y.heliojax-tmp.png``, was left beside the first by a kill)."""
+_WRITTEN: set[str] = set()
+"""The temporaries of :data:`_STAGED` an atomic writer has written whole."""
+
+
+@contextlib.contextmanager
+def _write_staged(path: Path) -> Iterator[Path]:
+    """Yield ``path``, a temporary of :func:`staged_paths`, to write in place; marked
+    written once the block completes (a failed write leaves it unpublished, and
+    :func:`staged_paths` removes it). An OSError naming no file or the temporary names
+    its output instead (a full disk's ENOSPC names no file)."""
+    key = os.path.abspath(path)
+    _WRITTEN.discard(key)
+    try:
+        yield path
+    except OSError as e:
+        if e.filename is None or os.path.abspath(e.filename) == key:
+            raise OSError(e.errno, e.strerror or str(e), str(_STAGED[key])) from e
+        raise
+    _WRITTEN.add(key)
+
+
+def _staged(path: Path) -> bool:
+    """Whether ``path`` is a temporary of a :func:`staged_paths` block now open."""
+    return os.path.abspath(path) in _STAGED
+
+
 @contextlib.contextmanager
 def atomic_write(path: str | os.PathLike, mode: str = "w", **kwargs) -> Iterator[IO]:
     """Open a temporary file beside ``path``; on success rename it onto ``path``.
 
     A crash or exception leaves any previous ``path`` untouched and no partial file.
+    A ``path`` that is itself a temporary of :func:`staged_paths` is written in place
+    (it is renamed when its set is).
 
     Args:
         path: destination file.
@@ -182,12 +215,18 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **kwargs) -> Iterator
         **kwargs: passed to :func:`open` (e.g. ``encoding``).
     """
     path = _destination(path)
+    if "b" not in mode:
+        kwargs.setdefault("encoding", "utf-8")
+    if _staged(path):
+        with _write_staged(path), open(path, mode, **kwargs) as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        return
     _make_folder(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=TEMPORARY_MARK)
     os.close(fd)
     try:
-        if "b" not in mode:
-            kwargs.setdefault("encoding", "utf-8")
         with open(tmp, mode, **kwargs) as f:
             yield f
             f.flush()
@@ -208,8 +247,13 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **kwargs) -> Iterator
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path`` (for writers that want a file name,
-    such as h5py or matplotlib); on success rename it onto ``path``."""
+    such as h5py or matplotlib); on success rename it onto ``path``. A ``path`` that is
+    itself a temporary of :func:`staged_paths` is yielded as it is."""
     path = _destination(path)
+    if _staged(path):
+        with _write_staged(path):
+            yield path
+        return
     _make_folder(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=TEMPORARY_MARK + path.suffix)
     os.close(fd)
@@ -246,7 +290,8 @@ def staged_paths(paths: Sequence[str | os.PathLike | None]) -> Iterator[list[Pat
     outputs that belong together; when the block completes they are renamed onto their
     destinations one right after the other (:func:`atomic_path` for the set), and
     whatever was not renamed is removed. The block writes each temporary by replacing it
-    (heliojax's atomic writers do); one left as the empty placeholder is not published.
+    (heliojax's atomic writers write it in place, as the one temporary of that output;
+    another writer replaces it); one left as the empty placeholder is not published.
     A run interrupted while writing (Ctrl-C while the plot is drawn) leaves none of the
     set, not a summary without its results."""
     dests = [None if p is None else _destination(p) for p in paths]
@@ -260,15 +305,20 @@ def staged_paths(paths: Sequence[str | os.PathLike | None]) -> Iterator[list[Pat
             fd, tmp = tempfile.mkstemp(dir=d.parent, prefix=f".{d.stem}.", suffix=TEMPORARY_MARK + d.suffix)
             os.close(fd)
             temps.append(Path(tmp))
+            _STAGED[os.path.abspath(tmp)] = d
         placeholders = {t: os.stat(t).st_ino for t in temps if t is not None}
         yield temps
         for t, d in zip(temps, dests, strict=True):
             # an output the block did not write (still the empty placeholder) is not published
-            if t is not None and d is not None and os.stat(t).st_ino != placeholders[t]:
+            if t is None or d is None:
+                continue
+            if os.path.abspath(t) in _WRITTEN or os.stat(t).st_ino != placeholders[t]:
                 _publish(str(t), d)
     finally:
         for t in temps:
             if t is not None:
+                _STAGED.pop(os.path.abspath(t), None)
+                _WRITTEN.discard(os.path.abspath(t))
                 with contextlib.suppress(FileNotFoundError):
                     os.unlink(t)
 

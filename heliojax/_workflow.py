@@ -74,7 +74,7 @@ class CalibrationRun:
         start_sources: ``(H,)`` heliostats the fleet-typical actuators are the median of
             (those with a finite uncalibrated error on their training records).
         too_few: heliostat id -> reason, from the split.
-        summary: the ``summary.json`` content.
+        summary: the ``summary.json`` content (its ``load_flags``: :func:`_load_flags`).
         test_fleet: the fleet evaluated for test errors when ``--test-data`` was given.
         weights: ``(H, M)`` robust weight of each training record (1 without ``robust``).
         outlier: ``(H, M)`` training records flagged as gross errors.
@@ -1048,9 +1048,34 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
                 "no_training_records": int(np.sum(status[:n_real] == FitStatus.NO_RECORDS)),
             },
         },
+        "load_flags": _load_flags(run.fleet.report),
         "predictive": {k: (_json_float(v) if isinstance(v, float) else v) for k, v in run.predictive.items()},
         "timing": {"compile_s": float(compile_s), "fit_s": float(fit_s)},
     }
+
+
+def _load_flags(report) -> list[dict[str, str | None]]:
+    """``summary.json``'s ``load_flags``: the suspicious inputs the load of the fitted
+    data kept (:attr:`heliojax.LoadReport.flags`: a focal spot far off its target, a
+    record time of another zone, ...), so that a ``--quiet`` or scheduled run keeps
+    them beside the fit they may have spoilt. One entry per flag:
+
+    - ``heliostat``: the heliostat folder that holds the file (null for a file of the
+      whole download, such as the weather CSV or the timestamps);
+    - ``file``: the file, relative to the data folder (a CSV's ``:line`` kept);
+    - ``field``: the dotted field (null: the whole file);
+    - ``reason``: why it is suspicious (as ``heliojax inspect`` lists it).
+    """
+    out: list[dict[str, str | None]] = []
+    for entry in report.flags:
+        try:
+            rel = Path(entry.file).relative_to(report.source)
+        except ValueError:  # a file outside the data folder (or a load of records, not a folder)
+            rel = None
+        heliostat = rel.parts[0] if rel is not None and len(rel.parts) > 1 else None
+        shown = str(rel) if rel is not None else str(entry.file)
+        out.append({"heliostat": heliostat, "file": shown, "field": entry.field, "reason": entry.reason})
+    return out
 
 
 def _add_warning(entry: dict[str, typing.Any], note: str) -> None:

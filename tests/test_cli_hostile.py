@@ -745,6 +745,17 @@ CASES = [
         "heliostats.BF56.status",
     ),
     (
+        "summary.json heliostat --positions lacks, --paint given too (was: 'give --positions or --paint')",
+        lambda t: [
+            *_accept(t, _summary(t, '"BF56": {"status": "converged", "test_rms_mrad": 3.0}')),
+            "--positions",
+            _file(t, "field.csv", "heliostat_id,east_m,north_m\nBF56,1,2\n"),
+            "--paint",
+            str(hj.default_data_dir()),
+        ],
+        "field.csv, which takes precedence over --paint, has none",
+    ),
+    (
         "tower target without normal_vector, left and right swapped (mirrored unseen)",
         lambda t: [
             "inspect",
@@ -1043,6 +1054,43 @@ def test_damaged_data_is_named_and_the_good_heliostats_are_fitted(tmp_path, caps
     del out
 
 
+def test_suspicious_inputs_are_a_warning_with_quiet_and_listed_in_the_summary(tmp_path, capsys):
+    """``calibrate --quiet`` dropped the "N suspicious input(s) loaded" line (logged as
+    information) and summary.json held no load flag: a scheduled run on focal spots
+    30 m off their target, or on times of another zone, read as a clean fit
+    (hostile-input trial 4, #2). The line is a warning now, and summary.json's
+    ``load_flags`` lists each flag by heliostat, file, field and reason."""
+    data = tmp_path / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    name = _edit_record(data, "BH20", _round_sun)
+    report = tmp_path / "summary.json"
+    argv = ["calibrate", str(data), "--model", "stone8", "--max-steps", "3", "--report", str(report)]
+    rc, _, err = _run([*argv, "--cache-dir", "none", "--quiet"], capsys)
+    assert rc == 0, err
+    assert f"[heliojax] 1 suspicious input(s) loaded: `heliojax inspect {data}` lists them" in err, err
+    (flag,) = json.loads(report.read_text())["load_flags"]
+    assert flag["heliostat"] == "BH20" and flag["file"] == f"BH20/Calibration/{name}", flag
+    assert flag["field"] == "sun_azimuth" and "record kept, check its sun and time" in flag["reason"], flag
+
+
+def test_a_weather_row_with_a_byte_not_utf8_is_skipped_alone(tmp_path, capsys):
+    """One row with a Latin-1 byte in calibration-with-weather.csv dropped the whole
+    file ("not UTF-8 text (byte 10918)"): every record lost its weather (hostile-input
+    trial 4, #8). The file is decoded row by row: that row is skipped and named, the
+    others are read."""
+    data = tmp_path / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    before = hj.load_paint_directory(data).report.records_with_weather
+    path = data / "calibration-with-weather.csv"
+    lines = path.read_bytes().splitlines(keepends=True)
+    lines[1] = lines[1].rstrip(b"\r\n") + b"\xe9\n"  # the first record's row: its last cell "12.5\xe9"
+    path.write_bytes(b"".join(lines))
+    rc, out, err = _run(["inspect", str(data), "--cache-dir", "none"], capsys)
+    assert rc == 0, err
+    assert re.search(rf"records with weather +{before - 1}\n", out), out
+    assert f"calibration-with-weather.csv: row 2: not UTF-8 text (byte {len(lines[1]) - 2} of the row)" in err, err
+
+
 def test_weather_gaps_and_conflicts_are_flagged(tmp_path):
     data = tmp_path / "paint"
     shutil.copytree(hj.default_data_dir(), data)
@@ -1112,6 +1160,49 @@ def test_calibrate_interrupted_while_drawing_leaves_none_of_its_outputs(tmp_path
     rc, _, err = _run(argv, capsys)
     assert rc == 130 and "interrupted" in err, err
     assert not out.exists() or not any(out.iterdir()), list(out.iterdir())
+
+
+def test_each_output_of_a_set_is_written_through_one_temporary(tmp_path, capsys, monkeypatch):
+    """calibrate's outputs, staged as a set, were each written by an atomic writer into
+    a temporary of their own beside the set's: a kill while the figure was drawn left
+    ``..c.X.heliojax-tmp.Y.heliojax-tmp.png``, a temporary of a temporary (hostile-input
+    trial 4, #4). One temporary per output now, renamed onto it."""
+    import tempfile
+
+    from heliojax._io import TEMPORARY_MARK
+
+    made: list[str] = []
+    mkstemp = tempfile.mkstemp
+
+    def spy(*args, **kwargs):
+        fd, name = mkstemp(*args, **kwargs)
+        made.append(Path(name).name)
+        return fd, name
+
+    monkeypatch.setattr(tempfile, "mkstemp", spy)
+    out = tmp_path / "out"
+    argv = ["calibrate", "--model", "stone8", "--max-steps", "3", "--cache-dir", "none", "--quiet"]
+    argv += ["--out", str(out / "results.h5"), "--report", str(out / "summary.json"), "--plot", str(out / "c.png")]
+    rc, _, err = _run(argv, capsys)
+    assert rc == 0, err
+    assert all(name.count(TEMPORARY_MARK) <= 1 for name in made), made
+    ours = sorted(name.split(".")[1] for name in made if not name.startswith(".probe."))  # the folder's write probes
+    assert ours == ["c", "results", "summary"], made
+    assert sorted(p.name for p in out.iterdir()) == ["c.png", "results.h5", "summary.json"]
+    assert (out / "c.png").read_bytes().startswith(b"\x89PNG") and json.loads((out / "summary.json").read_text())
+
+
+def test_fetch_with_a_failed_download_exits_2(tmp_path, capsys):
+    """A fetch whose downloads failed (here a heliostat catalogue that is not there)
+    exited 1; every other data error exits 2 (hostile-input trial 4, #7)."""
+    root = tmp_path / "stac" / "catalog.json"
+    root.parent.mkdir()
+    link = {"rel": "child", "href": "./AA31-heliostat-catalog/catalog.json"}
+    doc = {"type": "Catalog", "id": "WRI1030197-catalog", "stac_version": "1.0.0", "description": "x", "links": [link]}
+    root.write_text(json.dumps(doc))
+    rc, _, err = _run(["fetch", str(root), "--out", str(tmp_path / "o"), "--quiet"], capsys)
+    assert rc == 2, err
+    assert "heliojax fetch: failed " in err and "AA31-heliostat-catalog/catalog.json" in err and "Traceback" not in err
 
 
 def test_an_output_in_a_new_folder_inside_the_data_is_written_and_read_by_nothing(tmp_path, capsys):
@@ -2135,6 +2226,44 @@ def test_sigterm_is_a_line_and_exit_143(tmp_path):
     assert r.stderr.strip() == "heliojax inspect: terminated: outputs not finished were not written", r.stderr
 
 
+@pytest.mark.parametrize(
+    ("ignored", "sig", "rc", "said"),
+    [
+        ("", "SIGTERM", 143, "terminated"),
+        ("", "SIGHUP", 129, "hung up"),
+        ("signal.signal(signal.SIGHUP, signal.SIG_IGN)\n", "SIGHUP", 0, ""),  # nohup: the command carries on
+    ],
+    ids=["SIGTERM", "SIGHUP", "SIGHUP under nohup"],
+)
+def test_a_signal_while_an_output_is_written_leaves_no_temporary(ignored, sig, rc, said, tmp_path):
+    """SIGHUP (a closed terminal or ssh session) while calibrate wrote its outputs left
+    their hidden temporaries, up to a whole results.h5, which the next run kept for an
+    hour (hostile-input trial 4, #3): it is handled as SIGTERM now, one line, exit 129
+    (128 + 1), nothing left. Where it is ignored (``nohup``) the command carries on."""
+    r = _python(
+        tmp_path,
+        "import os, signal\n"
+        f"{ignored}"
+        "import matplotlib.figure\n"
+        "from heliojax import _plotting\n"
+        "from heliojax.cli import _inspect\n"
+        "from heliojax.cli._main import main\n"
+        "def savefig(self, path, **kwargs):\n"
+        "    with open(path, 'wb') as f:\n"
+        "        f.write(b'half a figure')\n"
+        f"    os.kill(os.getpid(), signal.{sig})\n"
+        "matplotlib.figure.Figure.savefig = savefig\n"
+        "_inspect.run = lambda args: _plotting.save_figure(matplotlib.figure.Figure(), 'out/p.png') or 0\n"
+        "raise SystemExit(main(['inspect', '--cache-dir', 'none']))\n",
+    )
+    assert r.returncode == rc, (r.returncode, r.stderr)
+    if rc:
+        assert r.stderr.strip() == f"heliojax inspect: {said}: outputs not finished were not written", r.stderr
+        assert list((tmp_path / "out").iterdir()) == []
+    else:
+        assert r.stderr == "" and (tmp_path / "out" / "p.png").read_bytes() == b"half a figure", r.stderr
+
+
 def test_a_ctrl_c_swallowed_by_a_garbage_collector_callback_still_stops_the_command(tmp_path):
     """A Ctrl-C arriving while a garbage-collector callback runs (JAX has one) raised
     its KeyboardInterrupt there; Python printed "Exception ignored" with a traceback,
@@ -2806,6 +2935,23 @@ def test_plan_among_existing_records_offers_none_the_fit_used(fitted_h5, tmp_pat
     with out.open() as f:
         planned = [(row["heliostat_id"], int(row["record_id"])) for row in csv.DictReader(f)]
     assert planned and not set(planned) & trained
+
+
+def test_plan_over_a_window_without_a_usable_instant_warns(fitted_h5, tmp_path, capsys):
+    """A night-only window wrote a schedule of its header alone (exit 0), and stderr
+    said only "planning 4 measurement(s) ... among 17 instants": that nothing could be
+    planned was on standard output alone (hostile-input trial 4, #12). A warning says
+    why now, with --quiet too."""
+    out = tmp_path / "p.csv"
+    argv = ["plan", str(fitted_h5), "--start", "2024-12-21T20:00", "--end", "2024-12-22T04:00", "--out", str(out)]
+    rc, _, err = _run([*argv, "--envelope-day-step", "60", "--cache-dir", "none", "--quiet"], capsys)
+    assert rc == 0, err
+    said = (
+        "[heliojax] no instant of the window 2024-12-21T20:00:00Z .. 2024-12-22T04:00:00Z (17 instant(s)) has the "
+        "sun above --min-sun-elevation 10 deg (highest "
+    )
+    assert said in err and "nothing planned" in err and len(err.strip().splitlines()) == 1, err
+    assert len(out.read_text().splitlines()) == 1  # the header
 
 
 def test_test_data_that_is_the_training_data_is_refused_or_left_out(tmp_path, capsys):

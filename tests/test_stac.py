@@ -686,7 +686,7 @@ def test_cli(catalogue, tmp_path, capsys):
     assert "[1/2] AA31" in err and "done:" in err
     assert files_under(out) == expected
     assert (out / JOURNAL_NAME).exists()
-    assert _cli(["fetch", str(root_json), "--out", str(out), "--heliostats", "BE36,XX01", "--quiet"]) == 1
+    assert _cli(["fetch", str(root_json), "--out", str(out), "--heliostats", "BE36,XX01", "--quiet"]) == 2
     assert "XX01" in capsys.readouterr().err
     edit_asset(root_json.parent, "BE36", "118671", "calibration_properties", href="../../evil.json")
     assert _cli(["fetch", str(root_json), "--out", str(out), "--no-resume", "--quiet"]) == 2

@@ -221,16 +221,23 @@ def field_from_summary(
     summary_path: str | os.PathLike,
     ids: tuple[str, ...],
     positions: np.ndarray,
+    *,
+    positions_from: str | None = None,
 ) -> FieldData:
     """Field of the heliostats ``ids`` (positions ENU m) with the tracking errors of
-    ``summary.json``; heliostats of the summary without a position are an error."""
+    ``summary.json``; heliostats of the summary without a position are an error, which
+    names ``positions_from`` (where ``ids`` and ``positions`` were read, e.g.
+    ``"--positions pos.csv"``) when given."""
     track = read_summary(summary_path)
     missing = sorted(set(track) - set(ids))
     if missing:
+        more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
         raise DataError(
             summary_path,
             f"heliostats.{missing[0]}",
-            "no position known for this heliostat (give --positions or --paint)",
+            f"no position known for this heliostat{more}: {positions_from} has none"
+            if positions_from is not None
+            else "no position known for this heliostat (give --positions or --paint)",
         )
     values = np.array([track.get(h, math.nan) for h in ids])
     return FieldData(ids=tuple(ids), positions=np.asarray(positions, dtype=float), values={"tracking_mrad": values})

@@ -72,12 +72,17 @@ def run(args: argparse.Namespace) -> int:
         contract = acc.load_contract(args.contract)
         if args.results.suffix.lower() == ".json":
             if args.positions is not None:
+                # the positions are all --positions' (its frame may not be --paint's: the two are not mixed)
                 ids, pos = acc.read_positions_csv(args.positions)
+                source = f"--positions {args.positions}"
+                if args.paint is not None:
+                    source += ", which takes precedence over --paint,"
             elif args.paint is not None:
                 ids, pos = acc.positions_from_paint(args.paint)
+                source = f"--paint {args.paint}"
             else:
                 raise ConfigError("a summary.json needs the heliostat positions: give --positions or --paint")
-            field = acc.field_from_summary(args.results, ids, pos)
+            field = acc.field_from_summary(args.results, ids, pos, positions_from=source)
         else:
             if args.positions is not None:
                 raise ConfigError(

@@ -80,7 +80,8 @@ def option_label(args, dest: str, flag: str) -> str:
 def report_load(report, path) -> None:
     """Say what a load (:class:`heliojax.LoadReport`) of ``path`` loaded, and name what
     it skipped (warnings, shown even with ``--quiet``): every skipped heliostat first,
-    then records up to :data:`MAX_LISTED` lines in all."""
+    then records up to :data:`MAX_LISTED` lines in all; count the suspicious inputs it
+    kept (a warning too: a ``--quiet`` run must not hide them)."""
     log.info(f"loaded {report.heliostats_loaded} heliostats, {report.records_loaded} records from {path}")
     if report.skipped:
         log.warning(
@@ -92,8 +93,8 @@ def report_load(report, path) -> None:
             log.warning(f"  {_relative(entry.file, path)}: {entry.field or '-'}: {entry.reason}")
         if len(report.skipped) > len(listed):
             log.warning(f"  ... and {len(report.skipped) - len(listed)} more: `heliojax inspect {path}` lists them")
-    if report.flags:
-        log.info(f"{len(report.flags)} suspicious input(s) loaded: `heliojax inspect {path}` lists them")
+    if report.flags:  # kept but suspicious (spots off their target, times of another zone): a warning too
+        log.warning(f"{len(report.flags)} suspicious input(s) loaded: `heliojax inspect {path}` lists them")
 
 
 MAX_LISTED = 5
@@ -697,7 +698,7 @@ def check_sun_possible(azimuth_deg: float | None, elevation_deg: float | None, l
 
 
 _PENDING_INTERRUPT: list[KeyboardInterrupt] = []
-"""A Ctrl-C or SIGTERM the command has received (:func:`note_interrupt`): its
+"""A Ctrl-C, SIGTERM or SIGHUP the command has received (:func:`note_interrupt`): its
 KeyboardInterrupt may have been raised where Python swallows exceptions (a garbage
 collector callback, JAX's among them, prints "Exception ignored" and carries on)."""
 
@@ -710,7 +711,7 @@ def note_interrupt(interrupt: KeyboardInterrupt | None) -> None:
 def raise_if_interrupted() -> None:
     """Raise the interrupt the command received, if any: called before outputs are
     written and when the command returns, so that an interrupt swallowed where it was
-    raised still stops the command (exit 130 or 143, outputs not written)."""
+    raised still stops the command (exit 130, 143 or 129, outputs not written)."""
     if _PENDING_INTERRUPT:
         raise _PENDING_INTERRUPT[0]
 

@@ -99,7 +99,9 @@ def add_parser(subparsers) -> None:
             "calibration, deflectometry collections -> items -> assets) and download the chosen "
             "assets into OUT as <H>/Properties, <H>/Calibration, <H>/Deflectometry plus the tower "
             "file. Interrupted runs resume; every file is verified (size/checksum when the "
-            "catalogue gives them, JSON parses) and written atomically. Unsafe hrefs are refused."
+            "catalogue gives them, JSON parses) and written atomically. Unsafe hrefs are refused. "
+            "Exit 2 when a file fails or a heliostat asked for is not in the catalogue (the files "
+            "that did come are kept: the same command again retries the rest)."
         ),
     )
     p.add_argument(
@@ -193,7 +195,7 @@ def run(args) -> int:
             "(a file whose catalogue entry is broken fails again until the catalogue is mended)",
             file=sys.stderr,
         )
-    return 0 if report.ok else 1
+    return 0 if report.ok else 2  # a data error, as every command's (the files that did come are kept)
 
 
 def main(argv=None) -> int:  # pragma: no cover - convenience for `python -m heliojax.cli._fetch`

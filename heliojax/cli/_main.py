@@ -390,15 +390,39 @@ class _NamedStdout:
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised in the main thread like Ctrl-C's KeyboardInterrupt so that every
-    ``finally`` and cleanup runs (temporary files removed, partial outputs not renamed)."""
+    """SIGTERM or SIGHUP (``signum``), raised in the main thread like Ctrl-C's
+    KeyboardInterrupt so that every ``finally`` and cleanup runs (temporary files
+    removed, partial outputs not renamed)."""
+
+    def __init__(self, signum: int = signal.SIGTERM):
+        super().__init__(signum)
+        self.signum = int(signum)
+
+    @property
+    def word(self) -> str:
+        """How the command's last line says it ended: ``terminated`` or ``hung up``."""
+        return "hung up" if self.signum == _SIGHUP else "terminated"
+
+
+_SIGHUP = getattr(signal, "SIGHUP", None)
+"""The hangup signal (a closed terminal or ssh session; None where there is none)."""
 
 
 def _interrupt(signum: int, frame: object) -> typing.NoReturn:
-    """Ctrl-C (SIGINT) and SIGTERM: remembered (:func:`note_interrupt`), then raised."""
-    interrupt = Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+    """Ctrl-C (SIGINT), SIGTERM and SIGHUP: remembered (:func:`note_interrupt`), then raised."""
+    interrupt = Terminated(signum) if signum in (signal.SIGTERM, _SIGHUP) else KeyboardInterrupt()
     note_interrupt(interrupt)
     raise interrupt
+
+
+def _catch_hangup() -> typing.Any:
+    """Handle SIGHUP as SIGTERM (:func:`_interrupt`): a closed terminal or ssh session
+    killed the command where it stood, leaving the temporaries of the outputs it was
+    writing. Not where it is ignored (``nohup``: the command is meant to carry on) or
+    does not exist. Returns the previous handler to restore, or None."""
+    if _SIGHUP is None or signal.getsignal(_SIGHUP) == signal.SIG_IGN:
+        return None
+    return signal.signal(_SIGHUP, _interrupt)
 
 
 def _quiet_unraisable(previous: Callable[[typing.Any], object], unraisable: typing.Any) -> object:
@@ -412,9 +436,10 @@ def _quiet_unraisable(previous: Callable[[typing.Any], object], unraisable: typi
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``heliojax COMMAND ...``; the exit status: 0, 1 (fetch: some files failed), 2
-    (bad input, a usage error), 130 (Ctrl-C) or 143 (SIGTERM): interrupted, a line
-    without a traceback, and no output half written.
+    """``heliojax COMMAND ...``; the exit status: 0, 2 (bad input, a usage error; fetch:
+    some files failed or a heliostat asked for is not in the catalogue), 130 (Ctrl-C),
+    143 (SIGTERM) or 129 (SIGHUP): interrupted, a line without a traceback, and no
+    output half written.
 
     Run as the ``heliojax`` program (``argv`` None, in the main thread), the process
     ends here once standard output and error are flushed (:func:`os._exit`): every
@@ -425,6 +450,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _interrupt) if in_main_thread else None
+    previous_hup = _catch_hangup() if in_main_thread else None
     previous_int = signal.signal(signal.SIGINT, _interrupt) if in_main_thread else None
     previous_hook = sys.unraisablehook
     sys.unraisablehook = functools.partial(_quiet_unraisable, previous_hook)
@@ -441,13 +467,12 @@ def main(argv: list[str] | None = None) -> int:
         if from_console and in_main_thread and sys.stdout is not None:
             sys.stdout.flush()  # `--version > /dev/full`: named below, not at exit
     except KeyboardInterrupt as e:
-        terminated = isinstance(e, Terminated)
         print(
-            f"heliojax{' ' + command if command else ''}: {'terminated' if terminated else 'interrupted'}: "
+            f"heliojax{' ' + command if command else ''}: {e.word if isinstance(e, Terminated) else 'interrupted'}: "
             "outputs not finished were not written",
             file=sys.stderr,
         )
-        code = 143 if terminated else 130
+        code = 128 + (e.signum if isinstance(e, Terminated) else signal.SIGINT)  # 143 SIGTERM, 129 SIGHUP, 130
     except OSError as e:  # standard output full or closed, outside a command's own handler
         code = _os_error(command, e)
     finally:
@@ -457,6 +482,8 @@ def main(argv: list[str] | None = None) -> int:
             sys.stderr = stderr
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+        if previous_hup is not None and _SIGHUP is not None:
+            signal.signal(_SIGHUP, previous_hup)
         if from_console and in_main_thread:
             # the command has ended (its outputs written or not, and said so): a Ctrl-C
             # from here on would exit 130 without a word

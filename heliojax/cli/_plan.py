@@ -15,6 +15,7 @@ from ._common import (
     enable_compilation_cache,
     integer,
     number,
+    option_label,
     path_type,
     read_plant_tower,
     report_load,
@@ -158,6 +159,32 @@ def add_parser(subparsers) -> None:
     )
     add_cache_argument(p)
     p.add_argument("--quiet", action="store_true", help="no messages on stderr")
+
+
+def _nothing_to_plan(sun_elevation_deg, unix, min_elevation_deg: float, label: str, targets: tuple[str, ...]) -> str:
+    """The warning for a window in which no candidate is usable: why nothing can be
+    planned (the schedule is its header alone, exit 0; the summary line on standard
+    output alone said so before).
+
+    Args:
+        sun_elevation_deg: ``(N,)`` the sun's elevation (deg) at the window's instants.
+        unix: ``(N,)`` the instants (Unix s, UTC).
+        min_elevation_deg: the lowest sun allowed (deg); ``label`` names its option.
+        targets: the targets the candidates aim at.
+    """
+    import numpy as np
+
+    elevation = np.asarray(sun_elevation_deg, float)
+    window = f"the window {_iso(float(unix[0]))} .. {_iso(float(unix[-1]))} ({len(unix)} instant(s))"
+    if not (elevation >= min_elevation_deg).any():
+        return (
+            f"no instant of {window} has the sun above {label} {min_elevation_deg:g} deg (highest "
+            f"{float(np.max(elevation)):.1f} deg): nothing planned; choose a window in daylight"
+        )
+    return (
+        f"no heliostat can aim at {', '.join(targets)} at any instant of {window} with the sun above {label} "
+        f"{min_elevation_deg:g} deg (the commands fall outside the actuators' range): nothing planned"
+    )
 
 
 def _iso(unix: float) -> str:
@@ -319,6 +346,10 @@ def run(args) -> int:
             target_index=np.array([known.index(t) if t in known else -1 for t in targets]),
             min_elevation_deg=args.min_sun_elevation,
         )
+        if not np.asarray(candidates.valid).any():
+            elevation = np.degrees(np.arcsin(np.clip(np.asarray(sun)[:, 2], -1.0, 1.0)))  # ENU: up
+            label = option_label(args, "min_sun_elevation", "--min-sun-elevation")
+            log.warning(_nothing_to_plan(elevation, unix, args.min_sun_elevation, label, targets))
         target_of = np.broadcast_to(np.tile(np.asarray(targets), len(instants)), (h, len(instants) * len(targets)))
         source = f"{len(instants)} instants x {len(targets)} targets"
     log.info(f"planning {args.budget} measurement(s) for {h} heliostats among {source} ({args.start_from})")

@@ -367,22 +367,25 @@ def _csv_table(
 ) -> tuple[str, list[str], list[tuple[int, str]]]:
     """A CSV file's header and its rows, one a line (PAINT's CSVs have no multi-line
     cells), for :func:`_csv_cells` to parse each alone: a row the csv module refuses (a
-    cell over its field limit, a quote left open) is that row's error, not the file's.
+    cell over its field limit, a quote left open) or with a byte that is not UTF-8 is
+    that row's error, not the file's.
 
     Returns:
         ``(file, header, rows)``: ``rows`` are ``(n, line)``, ``n`` the line number
-        that names it (``"row <n>"``; the header is row 1).
+        that names it (``"row <n>"``; the header is row 1). A byte that is not UTF-8
+        stays in its line as a lone surrogate (``surrogateescape``), which
+        :func:`_csv_cells` refuses.
 
     Raises:
-        DataError: an unreadable file, not UTF-8, a malformed header, a ``required``
-            column missing or a column of ``unique`` given twice.
+        DataError: an unreadable file, a header that is not UTF-8 or malformed, a
+            ``required`` column missing or a column of ``unique`` given twice.
     """
     file = str(path)
-    try:
-        text = _read_regular_file(path).decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise DataError(file, None, f"not UTF-8 text (byte {e.start})") from None
+    text = _read_regular_file(path).decode("utf-8-sig", errors="surrogateescape")
     lines = _LINE_END.split(text)
+    bad = _not_utf8_at(lines[0])
+    if bad is not None:
+        raise DataError(file, "row 1", f"the header is not UTF-8 text (byte {bad})")
     try:
         header = [h.strip() for h in next(csv.reader(lines[:1]), [])]
     except csv.Error as e:
@@ -396,12 +399,26 @@ def _csv_table(
     return file, header, list(enumerate(lines[1:], start=2))
 
 
+_ESCAPED_BYTE = re.compile("[\udc80-\udcff]")
+
+
+def _not_utf8_at(line: str) -> int | None:
+    """The offset (bytes from the line's start) of the first byte of ``line`` that is
+    not UTF-8 (decoded with ``surrogateescape``: a lone surrogate U+DC80-U+DCFF), or None."""
+    m = _ESCAPED_BYTE.search(line)
+    return None if m is None else len(line[: m.start()].encode("utf-8", "surrogateescape"))
+
+
 def _csv_cells(file: str, where: str, line: str, n_columns: int) -> list[str] | None:
     """The cells of one row of :func:`_csv_table` (None for a blank line).
 
     Raises:
-        DataError: a malformed row, or one of another number of cells than ``n_columns``.
+        DataError: a row with a byte that is not UTF-8, a malformed row, or one of
+            another number of cells than ``n_columns``.
     """
+    bad = _not_utf8_at(line)
+    if bad is not None:
+        raise DataError(file, where, f"not UTF-8 text (byte {bad} of the row)")
     try:
         # strict: a quote left open is a cell going on past its line (its rest, the next
         # line, was named alone while this part was read as the row), a stray one an error
