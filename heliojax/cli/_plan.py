@@ -334,7 +334,8 @@ def run(args) -> int:
             )
         unix = np.array([t.timestamp() for t in instants])
         lat, lon, alt = (float(x) for x in origin)
-        sun = solar_position(jnp.asarray(unix), lat, lon, alt).direction_enu()
+        position = solar_position(jnp.asarray(unix), lat, lon, alt)
+        sun = position.direction_enu()
         centres = np.stack([centre(t) for t in targets])
         known = tuple(results.target_names)
         candidates = candidates_at_targets(
@@ -347,7 +348,7 @@ def run(args) -> int:
             min_elevation_deg=args.min_sun_elevation,
         )
         if not np.asarray(candidates.valid).any():
-            elevation = np.degrees(np.arcsin(np.clip(np.asarray(sun)[:, 2], -1.0, 1.0)))  # ENU: up
+            elevation = np.degrees(np.asarray(position.elevation))
             label = option_label(args, "min_sun_elevation", "--min-sun-elevation")
             log.warning(_nothing_to_plan(elevation, unix, args.min_sun_elevation, label, targets))
         target_of = np.broadcast_to(np.tile(np.asarray(targets), len(instants)), (h, len(instants) * len(targets)))
