@@ -39,6 +39,7 @@ from ._fleet import (
     fleet_from_arrays as fleet_from_arrays,
     fleet_subset as fleet_subset,
     pad_fleet as pad_fleet,
+    spots_off_target as spots_off_target,
 )
 from ._geometry import (
     PlaneHit as PlaneHit,

@@ -445,6 +445,25 @@ def fleet_subset(fleet: Fleet, indices: Sequence[int] | np.ndarray | int | str |
     )
 
 
+def spots_off_target(fleet: Fleet) -> Bool[np.ndarray, "H M"]:
+    """``(H, M)`` valid records whose focal spot lies farther from the centre of its
+    record's target than the target's corners (half its diagonal): no spot on the
+    target, as the loader flags it (the same rule, in ENU metres); False for padding
+    and for records of an unknown target.
+
+    A camera sees only its target, so such a spot is a wrong spot, target or survey,
+    not a pointing error: :func:`heliojax.calibrate` leaves these records out of the
+    fleet's statistics and does not aim with a heliostat that has mostly them.
+    """
+    index = np.asarray(fleet.target_index)
+    known = np.asarray(fleet.mask, bool) & (index >= 0)
+    at = np.where(known, index, 0)
+    centre = np.asarray(fleet.targets.centre)[at]
+    reach = np.hypot(np.asarray(fleet.targets.half_width), np.asarray(fleet.targets.half_height))[at]
+    distance = np.linalg.norm(np.asarray(fleet.focal_spot) - centre, axis=-1)
+    return known & ~(distance <= reach)  # a NaN spot is off too
+
+
 def records_among(
     ids: Sequence[str],
     record_id: Int[ArrayLike, "H M"],

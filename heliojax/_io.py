@@ -15,6 +15,7 @@ import json
 import math
 import os
 import re
+import socket
 import stat
 import tempfile
 import time
@@ -113,15 +114,49 @@ TEMPORARY_MARK = ".heliojax-tmp"
 a killed run, can be recognised and removed: :func:`remove_stale_temporaries`)."""
 
 
+_OWNER = re.compile(r"\.(?P<host>[A-Za-z0-9_-]+)-(?P<pid>[0-9]+)\.[A-Za-z0-9_]+" + re.escape(TEMPORARY_MARK))
+"""The writer's host and process in a temporary's name (:func:`_temporary_prefix`)."""
+
+
+def _host() -> str:
+    """This machine's name as it goes into a temporary's name: its first label, with any
+    character but letters, digits, ``-`` and ``_`` replaced by ``_``."""
+    return re.sub(r"[^A-Za-z0-9_-]", "_", socket.gethostname().split(".")[0]) or "host"
+
+
+def _temporary_prefix(name: str) -> str:
+    """The start of the name of a temporary beside the output ``name``: hidden, the
+    output's name, then the writing host and process (``.summary.json.plant-1234.``),
+    so that :func:`remove_stale_temporaries` knows a killed writer's file at once."""
+    return f".{name}.{_host()}-{os.getpid()}."
+
+
+def _process_gone(pid: int) -> bool:
+    """Whether no process ``pid`` runs on this machine (one of another user runs)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except (PermissionError, OverflowError, OSError):
+        return False
+    return False
+
+
 def remove_stale_temporaries(directory: str | os.PathLike, older_than_s: float = 3600.0) -> list[Path]:
     """Remove heliojax's temporary files in ``directory`` that a killed run left
-    behind (older than ``older_than_s``, so a concurrent writer's file is kept).
+    behind: at once where the name says that this machine wrote it and that process
+    has ended (``kill -9``, a power cut), and otherwise once it is older than
+    ``older_than_s`` (a file of another machine sharing the folder, or of a process
+    whose number was given to another since: a concurrent writer's file is kept).
     Returns the removed paths."""
     removed = []
     now = time.time()
+    host = _host()
     for tmp in Path(directory).glob(f".*{TEMPORARY_MARK}*"):
+        owner = _OWNER.search(tmp.name)
+        dead = owner is not None and owner["host"] == host and _process_gone(int(owner["pid"]))
         with contextlib.suppress(OSError):
-            if tmp.is_file() and now - tmp.stat().st_mtime > older_than_s:
+            if tmp.is_file() and (dead or now - tmp.stat().st_mtime > older_than_s):
                 tmp.unlink()
                 removed.append(tmp)
     return removed
@@ -224,7 +259,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **kwargs) -> Iterator
             os.fsync(f.fileno())
         return
     _make_folder(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=TEMPORARY_MARK)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=_temporary_prefix(path.name), suffix=TEMPORARY_MARK)
     os.close(fd)
     try:
         with open(tmp, mode, **kwargs) as f:
@@ -255,7 +290,9 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             yield path
         return
     _make_folder(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=TEMPORARY_MARK + path.suffix)
+    fd, tmp = tempfile.mkstemp(
+        dir=path.parent, prefix=_temporary_prefix(path.stem), suffix=TEMPORARY_MARK + path.suffix
+    )
     os.close(fd)
     try:
         yield Path(tmp)
@@ -302,7 +339,7 @@ def staged_paths(paths: Sequence[str | os.PathLike | None]) -> Iterator[list[Pat
                 temps.append(None)
                 continue
             _make_folder(d)
-            fd, tmp = tempfile.mkstemp(dir=d.parent, prefix=f".{d.stem}.", suffix=TEMPORARY_MARK + d.suffix)
+            fd, tmp = tempfile.mkstemp(dir=d.parent, prefix=_temporary_prefix(d.stem), suffix=TEMPORARY_MARK + d.suffix)
             os.close(fd)
             temps.append(Path(tmp))
             _STAGED[os.path.abspath(tmp)] = d

@@ -140,6 +140,7 @@ def plot_calibration(run, *, axes=None):
         # never a noise outlier too (those are left out of it): the same height
         "small_fleet_prior": ("s", "tab:olive", "small-fleet prior: the fleet too small to learn one", 2.0),
         "worse_than_nominal": ("X", "tab:red", "worse than nominal (use the nominal model)", 2.9),
+        "spots_off_target": ("P", "tab:brown", "spots mostly off target: not aimed with", 4.2),
     }
     for key, (marker, colour, label, height) in marks.items():
         flagged = [i for i, h in enumerate(ids) if summary["heliostats"][h].get(key)]

@@ -35,7 +35,9 @@ Schema (``H`` heliostats, ``M`` padded records; NaN / -1 where no record):
   ``split`` int8 (0 unused/padding, 1 train, 2 validation, 3 test), ``weight``
   (robust weight of a training record, 0 otherwise), ``outlier`` bool,
   ``superseded`` bool (a training record before the heliostat's change point,
-  left out of the refit),
+  left out of the refit), ``off_target`` bool (its focal spot lies off its target,
+  :func:`heliojax.spots_off_target`; :func:`load_results` flags a heliostat with most
+  of its training records so),
   ``residual_mrad`` ``(H, M, 2)`` and ``residual_uncalibrated_mrad``,
   ``beam_error_mrad`` and ``beam_error_uncalibrated_mrad``, ``loo_mrad``
   (leave-one-out beam error of the records the fit used, NaN otherwise)
@@ -354,6 +356,8 @@ def write_results_h5(path: str | Path, run: typing.Any) -> None:
         f.create_dataset("outlier", data=np.asarray(run.outlier, bool)[:n])
         superseded = run.superseded if run.superseded is not None else np.zeros(np.shape(run.outlier), bool)
         f.create_dataset("superseded", data=np.asarray(superseded, bool)[:n])
+        off_target = run.off_target if run.off_target is not None else np.zeros(np.shape(run.outlier), bool)
+        f.create_dataset("off_target", data=np.asarray(off_target, bool)[:n])
         f.create_dataset("residual_mrad", data=run.residuals_mrad[:n])
         f.create_dataset("residual_uncalibrated_mrad", data=run.uncalibrated_residuals_mrad[:n])
         f.create_dataset("beam_error_mrad", data=run.errors_mrad[:n])
@@ -392,7 +396,9 @@ class CalibrationResults:
         target_names: the names ``records["target_index"]`` points into.
         flags: heliostat id -> why its fit is suspect: a position far from the
             fleet's (the properties reader's outlier rule), or rows of the file
-            changed after heliojax wrote them (``row_checksum``); such a heliostat
+            changed after heliojax wrote them (``row_checksum``), or most of its
+            training records with their focal spot off their target (``off_target``,
+            :func:`heliojax.calibrate`'s ``spots_off_target``); such a heliostat
             is not :attr:`fitted` (aim flags its commands ``unreliable``).
     """
 
@@ -514,6 +520,7 @@ _RECORD_FIELDS = (
     "beam_error_uncalibrated_mrad",
     "loo_mrad",
     "superseded",
+    "off_target",
 )
 
 
@@ -866,6 +873,15 @@ def _load_results(path: str | Path) -> CalibrationResults:
             f"covariance: heliostat {ids[h]!r}: not finite although the fit converged (its records determine "
             "too few parameters: all at one pose, or repeated?)",
         )
+    if {"off_target", "split"} <= records.keys():
+        training = np.asarray(records["split"]) == SPLIT_CODES["train"]
+        off = np.asarray(records["off_target"]).astype(bool) & training
+        for h in np.flatnonzero(2 * off.sum(axis=1) > training.sum(axis=1)):
+            flags.setdefault(
+                ids[h],
+                f"off_target: heliostat {ids[h]!r}: {int(off[h].sum())} of its {int(training[h].sum())} training "
+                "records have their focal spot off their target, so its fit follows wrong spots",
+            )
     for reason in flags.values():
         log.warning(f"{source}: {reason}; its fit is not used")
     if changed.all() and len(ids) > 1:

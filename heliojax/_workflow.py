@@ -22,9 +22,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import ArrayLike, Bool
 
 from ._errors import ConfigError, few_names
-from ._fleet import bucket_size, pad_fleet, records_among
+from ._fleet import bucket_size, pad_fleet, records_among, spots_off_target
 from ._geometry import direction_to_azimuth_elevation
 from ._io import atomic_write
 from ._kinematics import AbstractKinematicModel, nominal_model
@@ -91,6 +92,11 @@ class CalibrationRun:
         small_fleet_prior: ``(H,)`` heliostats calibrated under the small-fleet prior
             (:func:`heliojax.fitting.small_fleet_prior_moments`): the fleet was too small
             to learn a prior and they do not determine their parameters alone.
+        off_target: ``(H, M)`` records whose focal spot lies off its target
+            (:func:`heliojax.spots_off_target`): left out of the pointing drift; a
+            heliostat with mostly these among its training records
+            (:func:`mostly_off_target`) is left out of every fleet-wide statistic, as a
+            noise outlier is, and not aimed with (``results.h5``'s ``off_target``).
     """
 
     fleet: typing.Any
@@ -120,6 +126,18 @@ class CalibrationRun:
     predictive: dict = dataclasses.field(default_factory=lambda: {"drift_mrad2_per_day": 0.0})
     noise_outlier: np.ndarray | None = None
     small_fleet_prior: np.ndarray | None = None
+    off_target: np.ndarray | None = None
+
+
+def mostly_off_target(off_target: Bool[ArrayLike, "H M"], fitted: Bool[ArrayLike, "H M"]) -> Bool[np.ndarray, " H"]:
+    """``(H,)`` heliostats with more than half of their ``fitted`` records off their
+    target (``off_target``, :func:`heliojax.spots_off_target`). A robust fit rejects
+    gross errors only while they are fewer than its good records (its breakdown
+    point is one half), so such a heliostat's fit follows the wrong spots: it is
+    neither a calibration nor evidence about the fleet."""
+    fitted = np.asarray(fitted, bool)
+    off = np.asarray(off_target, bool) & fitted
+    return 2 * off.sum(axis=-1) > fitted.sum(axis=-1)
 
 
 def _stats(x: np.ndarray) -> tuple[float, float]:
@@ -341,16 +359,27 @@ def calibrate(
         )
 
     stages = fit_stages(train)
-    garbage = noise_outliers(stages.noise, np.isin(np.asarray(stages.result.status), _ATTEMPTED))
-    garbage[n_real:] = False
+    attempted = np.isin(np.asarray(stages.result.status), _ATTEMPTED)
+    noisy = noise_outliers(stages.noise, attempted)
+    off_target = spots_off_target(padded)
+    astray = mostly_off_target(off_target, train) & attempted
+    noisy[n_real:] = astray[n_real:] = False
+    if noisy.any():
+        log.warning(
+            f"{few_names([ids[i] for i in np.flatnonzero(noisy)])}: noise far above the fleet's (garbage records "
+            "or a wrong properties file?): left out of the fleet's statistics, the others fitted again without"
+        )
+    if astray.any():
+        log.warning(
+            f"{few_names([ids[i] for i in np.flatnonzero(astray)])}: most training records have their focal spot "
+            "off their target (wrong spots, targets or survey?): its fit follows them; left out of the fleet's "
+            "statistics, the others fitted again without, and not to be aimed with"
+        )
+    garbage = noisy | astray
     if garbage.any():
         # Fleet statistics (noise median, prior, start geometry, change-point weights, drift)
         # must not carry a heliostat of garbage records: the others are fitted again without
         # it; its own result is the first fit's.
-        log.warning(
-            f"{few_names([ids[i] for i in np.flatnonzero(garbage)])}: noise far above the fleet's (garbage records "
-            "or a wrong properties file?): left out of the fleet's statistics, the others fitted again without"
-        )
         stages = _merge_stages(garbage, stages, fit_stages(train & ~garbage[:, None]))
     padded = _with_geometry(padded, stages.geometry)
     result, weights, outlier, noise = stages.result, stages.weights, stages.outlier, stages.noise
@@ -365,7 +394,8 @@ def calibrate(
             return solution, noise_mrad, outlier_
 
         with activity("pointing drift and error law", logger=log):
-            predictive = temporal_drift(fit_state, padded, fit_mask & ~garbage[:, None])
+            # a spot off its target is not a pointing error of its time
+            predictive = temporal_drift(fit_state, padded, fit_mask & ~garbage[:, None] & ~off_target)
         if predictive["validation_records"] < DRIFT_MIN_VALIDATION:
             log.info(
                 f"pointing drift not estimated: {predictive['validation_records']} later training records of "
@@ -443,8 +473,9 @@ def calibrate(
         change_points=change_points,
         superseded=superseded,
         predictive=predictive,
-        noise_outlier=garbage,
+        noise_outlier=noisy,
         small_fleet_prior=small_fleet,
+        off_target=off_target,
     )
     summary = _summarise(run, n_real, compile_s=compile_s, fit_s=fit_s)
     warming.result()  # done by now; no work outlives the call
@@ -948,7 +979,9 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
     loo_rms, unc_train_rms, worse = _worse_than_nominal(run, fit_mask)
     garbage = np.zeros(len(status), bool) if run.noise_outlier is None else np.asarray(run.noise_outlier, bool)
     small = np.zeros(len(status), bool) if run.small_fleet_prior is None else np.asarray(run.small_fleet_prior, bool)
-    typical = _typical_noise(run, garbage)
+    off_target = np.zeros(run.train_mask.shape, bool) if run.off_target is None else np.asarray(run.off_target, bool)
+    astray = mostly_off_target(off_target, run.train_mask) & np.isin(status, _ATTEMPTED)
+    typical = _typical_noise(run, garbage | astray)
     heliostats = {}
     pooled, pooled_unc = [], []
     for i in range(n_real):
@@ -982,6 +1015,8 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
             **_change_entry(run, i),
             **_recent_outliers(run, fit_mask, i),
             "noise_outlier": bool(garbage[i]),
+            "n_off_target": int(np.sum(off_target[i])),
+            "spots_off_target": bool(astray[i]),
             "small_fleet_prior": bool(small[i]),
             "lm_steps": int(np.asarray(res.n_steps)[i]),
             "noise_mrad": _json_float(float(run.noise_mrad[i])) if run.noise_mrad is not None else None,
@@ -1002,6 +1037,13 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
                 "the fleet's statistics; check its records and properties before aiming with this calibration"
             )
             _add_warning(entry, note)
+        if astray[i]:
+            _add_warning(
+                entry,
+                f"{int(np.sum(off_target[i] & run.train_mask[i]))} of its {entry['n_train']} training records have "
+                "their focal spot off their target (wrong spots, targets or survey?): its fit follows them; left out "
+                "of the fleet's statistics and not to be aimed with (heliojax aim flags it unreliable)",
+            )
         if small[i]:
             _add_warning(
                 entry,
@@ -1042,6 +1084,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
             "worse_than_nominal": [ids[i] for i in range(n_real) if worse[i]],
             "change_points": [h for h, e in heliostats.items() if e["change_point"] is not None],
             "noise_outliers": [h for h, e in heliostats.items() if e["noise_outlier"]],
+            "spots_off_target": [h for h, e in heliostats.items() if e["spots_off_target"]],
             "small_fleet_prior": [h for h, e in heliostats.items() if e["small_fleet_prior"]],
             "statuses": {
                 **{s.label: int(np.sum(status[:n_real] == s)) for s in FitStatus if s != FitStatus.NO_RECORDS},

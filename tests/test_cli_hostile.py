@@ -1054,6 +1054,44 @@ def test_damaged_data_is_named_and_the_good_heliostats_are_fitted(tmp_path, caps
     del out
 
 
+def test_a_heliostat_whose_spots_are_off_its_target_is_not_aimed_with(tmp_path, capsys):
+    """A heliostat whose every focal spot lay 30 m above its target was fitted like
+    any other, its records entered the fleet's drift and creep terms, and ``aim``
+    used its fit (hostile-input trial 4). Now summary.json names it
+    (``spots_off_target``, a warning), its records are left out of the fleet's
+    statistics, results.h5 marks each record ``off_target``, and ``load_results``
+    flags the heliostat, so that it is not :attr:`fitted` and aim flags it."""
+    data = tmp_path / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    files = sorted((data / "BH20" / "Calibration").iterdir())
+    for path in files:
+        r = json.loads(path.read_text())
+        for centroid in ("HeliOS", "UTIS"):
+            if r["focal_spot"].get(centroid) is not None:
+                r["focal_spot"][centroid][2] += 30.0
+        path.write_text(json.dumps(r))
+    fleet = hj.load_paint_directory(data)
+    off = hj.spots_off_target(fleet)
+    flagged = {Path(e.file).name for e in fleet.report.flags if "beyond its corners" in e.reason}
+    assert flagged == {p.name for p in files}  # the loader's rule, the same records
+    assert off[fleet.index("BH20")].sum() == len(files) and off.sum() == len(files)
+    report, results = tmp_path / "summary.json", tmp_path / "results.h5"
+    argv = ["calibrate", str(data), "--report", str(report), "--out", str(results), "--plot", str(tmp_path / "c.png")]
+    rc, _, err = _run([*argv, "--cache-dir", "none", "--quiet"], capsys)
+    assert rc == 0, err
+    assert "BH20: most training records have their focal spot off their target" in err, err
+    s = json.loads(report.read_text())
+    assert s["fleet"]["spots_off_target"] == ["BH20"]
+    entry = s["heliostats"]["BH20"]
+    assert entry["spots_off_target"] and entry["n_off_target"] == len(files)
+    assert "not to be aimed with" in entry["warning"]
+    assert not any(e["spots_off_target"] or e["n_off_target"] for h, e in s["heliostats"].items() if h != "BH20")
+    loaded = hj.load_results(results)
+    assert "BH20" in loaded.flags and "off_target" in loaded.flags["BH20"]
+    assert not loaded.fitted[loaded.ids.index("BH20")]
+    assert loaded.records["off_target"][loaded.ids.index("BH20")].sum() == len(files)
+
+
 def test_suspicious_inputs_are_a_warning_with_quiet_and_listed_in_the_summary(tmp_path, capsys):
     """``calibrate --quiet`` dropped the "N suspicious input(s) loaded" line (logged as
     information) and summary.json held no load flag: a scheduled run on focal spots
@@ -1142,6 +1180,32 @@ def test_temporaries_of_a_killed_run_are_removed_before_the_next(tmp_path, capsy
     rc, _, err = _run(["inspect", "--plot", str(tmp_path / "x.png"), "--cache-dir", "none"], capsys)
     assert rc == 0, err
     assert not stale.exists() and fresh.exists()
+
+
+def test_a_temporary_of_a_killed_process_is_removed_at_once(tmp_path, capsys):
+    """After ``kill -9`` the next run kept the fresh temporary for an hour (hostile-input
+    trial 4): it could not tell a killed writer's file from a concurrent one's. A
+    temporary's name now carries its writer's host and process: one of an ended
+    process of this machine is removed at once; one of a running process, or of
+    another machine, is kept until it is an hour old."""
+    import os
+    import subprocess
+    import sys
+
+    from heliojax._io import TEMPORARY_MARK, _temporary_prefix
+
+    ended = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead_pid = int(ended.stdout)
+    mine = _temporary_prefix("summary.json")
+    assert mine.startswith(".summary.json.") and mine.endswith(f"-{os.getpid()}.")
+    killed = tmp_path / (mine.replace(f"-{os.getpid()}.", f"-{dead_pid}.") + "k1Lled_x" + TEMPORARY_MARK)
+    running = tmp_path / (mine + "rUnning_" + TEMPORARY_MARK)
+    elsewhere = tmp_path / f".summary.json.other-host-{dead_pid}.eLsewh_r{TEMPORARY_MARK}"
+    for f in (killed, running, elsewhere):
+        f.write_text("{")
+    rc, _, err = _run(["inspect", "--plot", str(tmp_path / "x.png"), "--cache-dir", "none"], capsys)
+    assert rc == 0, err
+    assert not killed.exists() and running.exists() and elsewhere.exists()
 
 
 def test_calibrate_interrupted_while_drawing_leaves_none_of_its_outputs(tmp_path, capsys, monkeypatch):

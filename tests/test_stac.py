@@ -605,8 +605,9 @@ def test_invalid_json_asset_is_not_kept(catalogue, tmp_path):
 @pytest.mark.parametrize(
     "href, message",
     [
-        ("../../evil.json", "'..' segment"),
-        ("%2e%2e/%2e%2e/evil.json", "'..' segment"),
+        ("../../../../outside/evil.json", "outside the catalogue folder"),
+        ("%2e%2e/%2e%2e/%2e%2e/%2e%2e/outside/evil.json", "outside the catalogue folder"),
+        ("https://example.org/data/../../evil.json", "'..' segment"),
         ("sub%2Fevil.json", "unsafe or empty file name"),
         (".hidden.json", "unsafe or empty file name"),
         ("ftp://example.org/evil.json", "not supported"),
@@ -627,8 +628,34 @@ def test_unsafe_hrefs_are_refused(catalogue, tmp_path, href, message):
         fetch_catalog(root_json, out, heliostats=["AA31"])
     assert ei.value.field == "assets.calibration_properties.href"
     assert ei.value.file.endswith("126372.json")
-    assert not (out / "AA31").exists()  # refused before anything of the heliostat was written
+    assert not out.exists()  # refused before anything was written, the tower file neither
     assert sorted(p.name for p in tmp_path.rglob("evil.json")) == ["evil.json"]
+
+
+def test_an_unsafe_href_of_a_later_heliostat_leaves_nothing_written(catalogue, tmp_path):
+    """The tower file and the heliostats planned before an unsafe href were written
+    before it was refused (hostile-input trial 4): every file is planned first now."""
+    root_json, _ = catalogue
+    edit_asset(root_json.parent, "BE36", "118750", "calibration_properties", href="../../../../outside/x.json")
+    out = tmp_path / "out"
+    with pytest.raises(DataError, match="outside the catalogue folder"):
+        fetch_catalog(root_json, out)
+    assert not out.exists()
+
+
+def test_a_relative_href_that_climbs_within_the_catalogue_is_fetched(catalogue, tmp_path):
+    """``..`` in a relative asset href was refused even where it stays inside the
+    catalogue's folder (a static catalogue that keeps assets beside its collections)."""
+    root_json, expected = catalogue
+    item = item_json(root_json.parent, "AA31", "126372")
+    name = "126372-calibration-properties.json"
+    shared = item.parent.parent / "assets"
+    shared.mkdir()
+    (item.parent / "data" / name).rename(shared / name)
+    edit_asset(root_json.parent, "AA31", "126372", "calibration_properties", href=f"../assets/{name}")
+    rep = fetch_catalog(root_json, tmp_path / "out", heliostats=["AA31"])
+    assert not rep.failed, rep.failed
+    assert (tmp_path / "out" / "AA31" / "Calibration" / name).read_bytes() == expected[f"AA31/Calibration/{name}"]
 
 
 def test_symlinked_source_leaving_catalogue_is_refused(catalogue, tmp_path):
@@ -688,7 +715,7 @@ def test_cli(catalogue, tmp_path, capsys):
     assert (out / JOURNAL_NAME).exists()
     assert _cli(["fetch", str(root_json), "--out", str(out), "--heliostats", "BE36,XX01", "--quiet"]) == 2
     assert "XX01" in capsys.readouterr().err
-    edit_asset(root_json.parent, "BE36", "118671", "calibration_properties", href="../../evil.json")
+    edit_asset(root_json.parent, "BE36", "118671", "calibration_properties", href="../../../../evil.json")
     assert _cli(["fetch", str(root_json), "--out", str(out), "--no-resume", "--quiet"]) == 2
     assert "path traversal" in capsys.readouterr().err
     with pytest.raises(SystemExit):

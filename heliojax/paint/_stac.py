@@ -26,16 +26,18 @@ The file name is the last path segment of the asset's href (PAINT's rule), the
 heliostat folder the part of the heliostat catalogue id before the first ``-``.
 
 Safety. A catalogue is untrusted input; :class:`~heliojax._errors.DataError` is
-raised, before anything of that heliostat is written, for
+raised, before anything is written (every file is planned before the first is
+fetched), for
 
 - a destination file name that is empty, hidden, or carries a path separator
   (also percent-encoded) or other odd characters, and a heliostat id that is not
   a plain name;
 - a destination path whose folders (below the output folder) or file are
   symbolic links;
-- an asset href with a ``..`` path segment (also percent-encoded), e.g.
-  ``../../evil.json``, and a catalogue link (child/item) whose relative href
-  climbs out of the root catalogue's folder;
+- an asset href or a catalogue link (child/item) whose relative href climbs out
+  of the root catalogue's folder (``..`` segments, also percent-encoded, e.g.
+  ``../../../../evil.json``; one that stays inside, ``../shared/x.json``, is
+  fetched), and an absolute URL with a ``..`` path segment;
 - a local file (absolute path or ``file://``) outside the root catalogue's
   folder (symbolic links resolved) or, for a remote catalogue, any local file;
 - an href with a scheme other than ``http``, ``https`` or ``file``.
@@ -315,8 +317,11 @@ def fetch_catalog(
                     counts[1] += 1
             return counts[0], counts[1], counts[2]
 
-        # The tower file.
-        for href in dict.fromkeys(tower_hrefs):
+        # Every file is planned before the first is written: an unsafe href anywhere in
+        # the catalogue is refused with nothing of it written (not the tower file and the
+        # heliostats before the one that has it).
+        plans: list[tuple[str, list[_Task]]] = []
+        for href in dict.fromkeys(tower_hrefs):  # the tower file
             item = reader.stac_or_error(href)
             if not isinstance(item, DataError | pystac.Item | pystac.Collection):  # a catalogue has no assets
                 item = DataError(href, "type", f"expected a STAC item with the tower file, got {type(item).__name__}")
@@ -325,8 +330,7 @@ def fetch_catalog(
                 say(f"  FAILED {href}: {item.reason}")
                 continue
             tasks = _plan_assets(scope, out, (), item, lambda _: True, href, warnings, all_tasks_done["failed"])
-            d, s, f = run(tasks)
-            say(f"tower {item.id}: {d} downloaded, {s} already complete, {f} failed")
+            plans.append((f"tower {item.id}", tasks))
 
         plan_heliostat = functools.partial(
             _plan_heliostat, scope=scope, reader=reader, pool=pool, out=out, collections=collections,
@@ -336,8 +340,11 @@ def fetch_catalog(
         for k, hid in enumerate(sorted(catalogs), 1):
             cat, cat_href = catalogs[hid]
             tasks = plan_heliostat(hid, cat, cat_href)
+            say(f"[{k}/{len(catalogs)}] {hid}: {len(tasks)} file(s) planned")
+            plans.append((f"[{k}/{len(catalogs)}] {hid}: {len(tasks)} file(s)", tasks))
+        for label, tasks in plans:
             d, s, f = run(tasks)
-            say(f"[{k}/{len(catalogs)}] {hid}: {len(tasks)} file(s): {d} downloaded, {s} already complete, {f} failed")
+            say(f"{label}: {d} downloaded, {s} already complete, {f} failed")
 
     if timestamps:
         _merge_timestamps(out / TIMESTAMPS_FILE, timestamps)
@@ -450,9 +457,9 @@ def _plan_asset(
         raw_path = urllib.parse.urlsplit(raw).path if _is_url(raw) else raw
     except ValueError as e:  # "http://[::1": broken, not hostile
         raise _MalformedAsset(owner, field, f"href {_short(raw)} is not a URL: {e}") from None
-    if ".." in urllib.parse.unquote(raw_path).replace("\\", "/").split("/"):
+    if _is_url(raw) and ".." in urllib.parse.unquote(raw_path).replace("\\", "/").split("/"):
         raise DataError(owner, field, f"asset href {_short(raw)} contains a '..' segment (path traversal)")
-    src = scope.resolve(raw, owner, owner, field)
+    src = scope.resolve(raw, owner, owner, field)  # a relative href may climb, within the catalogue's folder
     name = _dest_name(src if _scheme(src) in ("http", "https") else raw, owner, field)  # no ?query, #fragment
     for part in folder:
         if not _NAME_RE.match(part):
