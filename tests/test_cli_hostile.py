@@ -3001,6 +3001,21 @@ def test_plan_among_existing_records_offers_none_the_fit_used(fitted_h5, tmp_pat
     assert planned and not set(planned) & trained
 
 
+def test_plan_names_a_heliostat_of_paint_dir_far_from_the_fits_position(fitted_h5, tmp_path, capsys):
+    """A --paint-dir whose heliostat stood 22 m from the position the fit used was
+    planned among without a word (hostile-input trial 4): it is named now."""
+    data = tmp_path / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    path = data / "BL14" / "Properties" / "BL14-heliostat-properties.json"
+    lat, lon, alt = json.loads(path.read_text())["heliostat_position"]
+    _edit_properties(data, "BL14", _set(("heliostat_position",), [lat + 2e-4, lon, alt]))  # 22 m north
+    argv = ["plan", str(fitted_h5), "--paint-dir", str(data), "--out", str(tmp_path / "p.csv"), "--quiet"]
+    rc, _, err = _run(argv, capsys)
+    assert rc == 0, err
+    assert "BL14 (22.2 m) lies farther than 0.1 m from the position the fit used" in err, err
+    assert "BE36" not in err
+
+
 def test_plan_over_a_window_without_a_usable_instant_warns(fitted_h5, tmp_path, capsys):
     """A night-only window wrote a schedule of its header alone (exit 0), and stderr
     said only "planning 4 measurement(s) ... among 17 instants": that nothing could be
