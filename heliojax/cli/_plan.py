@@ -54,6 +54,7 @@ def _warn_moved(fleet, results, source) -> None:
             "the plan uses the fit's positions"
         )
 
+
 OUTPUT_FILES = ("out", "ranking", "records_out", "plot")
 OUTPUT_DIRS = ("cache_dir",)
 PARTNERS = {"start": ("end",)}
