@@ -456,7 +456,10 @@ def spots_off_target(fleet: Fleet) -> Bool[np.ndarray, "H M"]:
     fleet's statistics and does not aim with a heliostat that has mostly them.
     """
     index = np.asarray(fleet.target_index)
-    known = np.asarray(fleet.mask, bool) & (index >= 0)
+    n_targets = np.shape(fleet.targets.centre)[0]
+    known = np.asarray(fleet.mask, bool) & (index >= 0) & (index < n_targets)
+    if not known.any():  # no targets (a fleet of arrays): nothing to judge
+        return known
     at = np.where(known, index, 0)
     centre = np.asarray(fleet.targets.centre)[at]
     reach = np.hypot(np.asarray(fleet.targets.half_width), np.asarray(fleet.targets.half_height))[at]

@@ -100,5 +100,16 @@ def simulate_fleet(
     all_effects = tuple(_broadcast(e, h) for e in effects) + tuple(per_heliostat_effects)
     truth = EffectModel(base_models, all_effects) if all_effects else base_models
     fleet = simulate_records(k_noise, truth, geometry, context, target, noise_mrad=noise_mrad)
-    fleet = eqx.tree_at(lambda f: f.mask, fleet, jnp.ones((h, m), bool))
+    # every record is kept, also a spot beside the 6 x 7 m target: the target is the
+    # plane extended to hold every spot (no spot is off it, :func:`heliojax.spots_off_target`)
+    uv = jnp.abs(target.to_plane(fleet.focal_spot))
+    wide = eqx.tree_at(
+        lambda t: (t.half_width, t.half_height),
+        fleet.targets,
+        (
+            jnp.maximum(fleet.targets.half_width, jnp.nanmax(uv[..., 0])),
+            jnp.maximum(fleet.targets.half_height, jnp.nanmax(uv[..., 1])),
+        ),
+    )
+    fleet = eqx.tree_at(lambda f: (f.mask, f.targets), fleet, (jnp.ones((h, m), bool), wide))
     return fleet, truth
