@@ -110,6 +110,48 @@ def test_confirm_keeps_a_real_step_and_withdraws_a_spurious_one():
     assert none_withdrawn == [0, 1] and none_out.change_p[0] == 1.0
 
 
+def test_errors_shared_by_day_make_no_step_when_the_design_effect_is_given():
+    """Records of one day sharing an error (a day's own offset) move runs of records
+    together, as a step does: confirmed as independent records, a clean heliostat
+    kept a change point at the date where its day errors happen to divide best
+    (independent simulator, day-clustered noise, null suite seed 11720). With each
+    heliostat's design effect its evidence is that of ``n / deff`` records: the
+    likelihood ratio is divided by it (checked against the p-value written by hand),
+    the clean heliostat's step is withdrawn, and a real 2 mrad jump (five days before it,
+    five after, 0.4 mrad day errors) stays."""
+    rng = np.random.default_rng(5)
+    h, m, per_day = 2, 80, 8
+    t, jac = _linear_model(h, m)
+    day = np.repeat(np.arange(m // per_day), per_day)
+    shared = 0.4 * rng.standard_normal((h, m // per_day, 2))[:, day].reshape(h, 2 * m)
+    r = 0.15 * rng.standard_normal((h, 2 * m)) + shared
+    r[0] += 2.0 * np.repeat((t[0] < 40).astype(float), 2)  # heliostat 0 jumped by 2 mrad; heliostat 1 is clean
+
+    def confirmed(change_1, **kw):
+        cleaning = dataclasses.replace(_cleaning_with_change(h, m, 40.0), change_time_s=np.array([40.0, change_1]))
+        return confirm_change_points(cleaning, r, jac, [0, 1, 2], [0, 1], t, 0.01, **kw)
+
+    # the clean heliostat's "change": the day boundary where its day errors divide best, as a scan finds it
+    change_1 = min(range(per_day, m, per_day), key=lambda c: confirmed(float(c))[0].change_p[1])
+    plain, withdrawn_plain = confirmed(float(change_1))
+    assert withdrawn_plain == []  # taken as independent records, both are steps
+    deff = np.full(h, 1 + (per_day - 1) * 0.4**2 / (0.4**2 + 0.15**2))  # Kish's, 8 records a day
+    out, withdrawn = confirmed(float(change_1), design_effect=deff)
+    assert withdrawn == [1] and out.change_found.tolist() == [True, False]
+    # the evidence of heliostat 0 by hand: 2m rows, RSS with and without the jump columns
+    a = jac[0][:, [0, 1, 2]]
+    step = np.where(np.repeat(t[0] < 40, 2)[:, None], jac[0][:, [0, 1]], 0.0)
+
+    def rss(x):
+        return float(np.sum((r[0] - x @ np.linalg.lstsq(x, r[0], rcond=None)[0]) ** 2))
+
+    d = (2 * m / deff[0]) * np.log(rss(a) / rss(np.concatenate([a, step], axis=1)))
+    np.testing.assert_allclose(out.change_p[0], min(1.0, m * np.exp(-d / 2)), rtol=1e-9)
+    # a design effect of 1 (no clustering found) changes nothing
+    same, _ = confirmed(float(change_1), design_effect=np.ones(h))
+    np.testing.assert_array_equal(same.change_p, plain.change_p)
+
+
 def test_structure_reported_unexplained_is_no_step_when_change_points_are_confirmed():
     """A recorded variable that runs higher before a date than after it (the wind of a
     season) drives residual structure the model lacks: the pre-pass's scan dates it as

@@ -269,6 +269,7 @@ def confirm_change_points(
     alpha: float,
     target_index: np.ndarray | None = None,
     extra_columns: np.ndarray | None = None,
+    design_effect: np.ndarray | None = None,
 ) -> tuple[Cleaning, list[int]]:
     """Test the pre-pass change points again under the final model.
 
@@ -288,8 +289,13 @@ def confirm_change_points(
     hypotheses also fit those columns (rows as ``r``'s; the generic functions of a
     recorded variable that discovery reports as unexplained structure: a wind load
     from one direction, which the base model lacks, looked like a step of one
-    heliostat on the independent simulator). Change points that no longer pass are
-    withdrawn (the report lists them).
+    heliostat on the independent simulator). With ``design_effect`` ``(H,)`` (Kish's,
+    of the final model's residuals: records of one day that share an error,
+    :func:`heliojax.discovery._diagnostics.day_clustering`), each heliostat's
+    likelihood ratios and record count are divided by its own: a day's shared error
+    moves a run of records together as a step would, and counted as independent
+    records it made a step of a clean heliostat (a null suite with day-clustered
+    noise). Change points that no longer pass are withdrawn (the report lists them).
 
     Returns:
         ``(cleaning, withdrawn)``: the updated cleaning and the withdrawn heliostats.
@@ -323,10 +329,12 @@ def confirm_change_points(
         step = np.where(before[:, None], jac[h][rows][:, offset_cols], 0.0)
         rss0 = _lstsq_rss(a, rr)
         rss1 = _lstsq_rss(np.concatenate([a, step], axis=1), rr)
-        d = rr.size * np.log(max(rss0, 1e-300) / max(rss1, 1e-300))
-        d_drift = rr.size * np.log(max(rss0, 1e-300) / max(_lstsq_rss(np.concatenate([a, drift], axis=1), rr), 1e-300))
+        deff = 1.0 if design_effect is None else max(float(design_effect[h]), 1.0)
+        n_rows = rr.size / deff  # the rows' effective number
+        d = n_rows * np.log(max(rss0, 1e-300) / max(rss1, 1e-300))
+        d_drift = n_rows * np.log(max(rss0, 1e-300) / max(_lstsq_rss(np.concatenate([a, drift], axis=1), rr), 1e-300))
         p[h] = float(change_point_pvalues(np.array([d]), np.array([(use[h] & finite).sum()]))[0])
-        if d - d_drift <= np.log(rr.size):  # a drift explains it as well (BIC): no jump
+        if d - d_drift <= np.log(n_rows):  # a drift explains it as well (BIC): no jump
             p[h] = 1.0
     tested = {str(i): float(p[i]) for i in range(p.size) if np.isfinite(p[i])}
     adjusted, rejected = holm(tested, alpha) if tested else ({}, set())

@@ -953,6 +953,9 @@ def discover(
         later_restored = result.cleaning.restored
         final = dataclasses.replace(
             result.cleaning,
+            # a step withdrawn by the first run keeps that run's verdict (the second, without it, had none)
+            change_p=np.where(withdrawn, first.change_p, result.cleaning.change_p),
+            change_p_holm=np.where(withdrawn, first.change_p_holm, result.cleaning.change_p_holm),
             withdrawn=withdrawn if later is None else withdrawn | later,
             restored=restored if later_restored is None else restored | later_restored,
         )
@@ -1278,7 +1281,10 @@ def _confirm_cleaning(
     if unexplained_variables:
         designs = [competitor_design(competitor_features(valid, v)) for v in unexplained_variables]
         extra = np.concatenate(designs, axis=-1)[:h]
-    return confirm_change_points(cleaning, r[:h], jac[:h], model_cols, offset_cols, t, config.alpha, targets, extra)
+    deff = wf.day_clustering(state).design_effect  # of the final model, its steps fitted
+    return confirm_change_points(
+        cleaning, r[:h], jac[:h], model_cols, offset_cols, t, config.alpha, targets, extra, deff
+    )
 
 
 def _refits(wf: _Workflow, state: ModelState, effect: str, scr: CandidateScreen, alpha: float) -> list[Candidate]:
