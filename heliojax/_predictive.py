@@ -58,7 +58,11 @@ import numpy as np
 from jaxtyping import Float
 
 _DRIFT_GRID = np.concatenate([[0.0], np.geomspace(1e-6, 1e3, 91)])  # mrad^2 / day
-_DOF_GRID = np.concatenate([np.geomspace(0.5, 1e3, 67), [np.inf]])
+MIN_TAIL_DOF = 0.5
+"""The smallest Student t degrees of freedom of a pointing-error law: the fit's grid
+starts there (below it a region's radius overflows a float: a 95 % radius of
+``nu (0.05^(-2/nu) - 1)`` is 1e260 at ``nu = 1e-3``)."""
+_DOF_GRID = np.concatenate([np.geomspace(MIN_TAIL_DOF, 1e3, 67), [np.inf]])
 _FRACTION_GRID = np.geomspace(0.003, 0.5, 24)
 _SCALE_GRID = np.geomspace(1.5, 1e3, 29)
 _GAP_GRID = np.concatenate([[0.0], np.geomspace(1e-5, 1e2, 71)])  # mrad^2 / deg
@@ -83,8 +87,8 @@ class PointingErrorLaw(eqx.Module):
     outlier_scale: float = eqx.field(static=True, default=1.0, converter=float)
 
     def __check_init__(self):
-        if not self.tail_dof > 0.0:
-            raise ValueError(f"tail_dof must be positive (inf: Gaussian); got {self.tail_dof}")
+        if not self.tail_dof >= MIN_TAIL_DOF:
+            raise ValueError(f"tail_dof must be at least {MIN_TAIL_DOF} (inf: Gaussian); got {self.tail_dof}")
         if not 0.0 <= self.outlier_fraction < 1.0:
             raise ValueError(f"outlier_fraction must be in [0, 1); got {self.outlier_fraction}")
         if not (math.isfinite(self.outlier_scale) and self.outlier_scale >= 1.0):

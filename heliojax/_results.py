@@ -73,7 +73,7 @@ from ._heliostat import HeliostatGeometry, LinearActuators
 from ._io import atomic_h5
 from ._kinematics import AbstractKinematicModel, nominal_model
 from ._parameters import ParameterView, broadcast_model
-from ._predictive import DRIFT_RATE_KEYS, PointingErrorLaw
+from ._predictive import DRIFT_RATE_KEYS, MIN_TAIL_DOF, PointingErrorLaw
 from ._splits import days_from_fitted_mean, days_since_fit
 from ._version import __version__
 from .effects import with_effects
@@ -534,7 +534,7 @@ _LAW_ATTRS = (
     ("drift_mrad2_per_day", 0.0, 1e6),  # a beam spread by a radian a day is no calibration
     ("sky_gap_mrad2_per_deg", 0.0, 1e6),  # nor by a radian per degree of sky
     ("creep_mrad2_per_day2", 0.0, 1e6),  # nor by a radian a day from the fitted state
-    ("tail_dof", 0.0, math.inf),
+    ("tail_dof", MIN_TAIL_DOF, math.inf),
     ("outlier_fraction", 0.0, 1.0),
     ("outlier_scale", 0.0, math.inf),
 )

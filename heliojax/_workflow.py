@@ -367,13 +367,15 @@ def calibrate(
     if noisy.any():
         log.warning(
             f"{few_names([ids[i] for i in np.flatnonzero(noisy)])}: noise far above the fleet's (garbage records "
-            "or a wrong properties file?): left out of the fleet's statistics, the others fitted again without"
+            "or a wrong properties file?): left out of the statistics the fleet's fit learns (prior, noise, start "
+            "geometry, drift), the others fitted again without; its own errors still count in the fleet's figures"
         )
     if astray.any():
         log.warning(
             f"{few_names([ids[i] for i in np.flatnonzero(astray)])}: most training records have their focal spot "
-            "off their target (wrong spots, targets or survey?): its fit follows them; left out of the fleet's "
-            "statistics, the others fitted again without, and not to be aimed with"
+            "off their target (wrong spots, targets or survey?): its fit follows them; left out of the statistics "
+            "the fleet's fit learns, the others fitted again without, and not to be aimed with; its own errors "
+            "still count in the fleet's figures"
         )
     garbage = noisy | astray
     if garbage.any():

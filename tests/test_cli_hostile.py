@@ -2540,6 +2540,7 @@ def _set_attr(key: str, value):
 # (case, edit of an open results.h5, field the error names): each was read without a word
 EDITED_RESULTS = [
     ("tail_dof 0 (a traceback)", _set_attr("tail_dof", 0.0), "tail_dof"),
+    ("tail_dof 1e-3 (aim: an overflow traceback, hostile round 5)", _set_attr("tail_dof", 1e-3), "tail_dof"),
     ("outlier_scale below 1 (a traceback)", _set_attr("outlier_scale", 0.5), "outlier_scale"),
     ("status code out of range", _edit_h5("status", 1, 99), "status"),
     ("covariance 1e300 (pointing std 1e152 mrad)", _edit_h5("covariance", (0, 0, 0), 1e300), "covariance"),
@@ -3014,6 +3015,51 @@ def test_plan_names_a_heliostat_of_paint_dir_far_from_the_fits_position(fitted_h
     assert rc == 0, err
     assert "BL14 (22.2 m) lies farther than 0.1 m from the position the fit used" in err, err
     assert "BE36" not in err
+
+
+def test_a_config_train_gives_way_to_train_fraction_on_the_command_line(tmp_path, capsys):
+    """A config's ``train = 10`` beat ``--train-fraction 0.5`` given on the command line,
+    and ``--train`` with ``--train-fraction`` dropped the fraction without a word
+    (hostile-input trial 5): the two exclude each other now, and the command line's wins
+    over the config's other one."""
+    config = tmp_path / "c.toml"
+    config.write_text("[calibrate]\ntrain = 10\n")
+    report = tmp_path / "summary.json"
+    argv = ["calibrate", "--model", "stone8", "--max-steps", "2", "--cache-dir", "none", "--quiet"]
+    rc, _, err = _run([*argv, "--config", str(config), "--train-fraction", "0.5", "--report", str(report)], capsys)
+    assert rc == 0, err
+    assert json.loads(report.read_text())["heliostats"]["BE36"]["n_train"] == 82  # half of 164, not 10
+    rc, _, err = _run([*argv, "--train", "10", "--train-fraction", "0.5"], capsys)
+    assert rc == 2 and "not allowed with argument --train" in err, err
+
+
+def test_a_diverged_reconstruction_is_a_warning_and_marked_in_its_report(tmp_path, capsys):
+    """``reconstruct --learning-rate 1`` ended with a loss 40,000 times its first and a
+    surface 1000 times worse than the flat start, reported as a plain result (hostile-input
+    trial 5): a warning says so now (with --quiet) and the report has ``diverged``."""
+    out = tmp_path / "r"
+    argv = ["reconstruct", "--learning-rate", "1.0", "--steps", "2", "--images", "1", "--rays-per-point", "1"]
+    rc, _, err = _run([*argv, "--out", str(out), "--quiet"], capsys)
+    assert rc == 0, err
+    report = json.loads((out / "reconstruction.json").read_text())
+    assert report["diverged"] is True and report["loss_last"] > report["loss_first"]
+    assert f"the loss rose from {report['loss_first']:.4g}" in err and "lower --learning-rate" in err, err
+
+
+def test_trace_names_a_heliostat_of_paint_far_from_the_fits_position(fitted_h5, tmp_path, capsys):
+    """``trace --results`` with a PAINT folder whose heliostat stood 55 m from the position
+    the fit used (and had another actuator) traced without a word (hostile-input trial 5;
+    ``plan --paint-dir`` already named it): it is named now."""
+    data = tmp_path / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    path = data / "BE36" / "Properties" / "BE36-heliostat-properties.json"
+    lat, lon, alt = json.loads(path.read_text())["heliostat_position"]
+    _edit_properties(data, "BE36", _set(("heliostat_position",), [lat + 5e-4, lon, alt]))  # 55.6 m north
+    argv = ["trace", str(data), "--heliostat", "BE36", "--sun-azimuth", "-20", "--sun-elevation", "35"]
+    argv += ["--results", str(fitted_h5), "--pixels", "16", "--resolution", "4", "--rays-per-point", "1"]
+    rc, _, err = _run([*argv, "--steps", "1", "--out", str(tmp_path / "t"), "--quiet"], capsys)
+    assert rc == 0, err
+    assert "BE36 (55.6 m) lies farther than 0.1 m from the position the fit used" in err, err
 
 
 def test_plan_over_a_window_without_a_usable_instant_warns(fitted_h5, tmp_path, capsys):

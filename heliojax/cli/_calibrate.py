@@ -29,6 +29,9 @@ log = logging.getLogger(__name__)
 
 DEFAULT_SEED = 42
 """``--seed`` when not given (PAINT's for its balanced split)."""
+TRAIN_FRACTION = 0.7
+"""The time split's default share of each heliostat's records that trains
+(``--train-fraction``; :func:`heliojax.calibrate`'s ``train_fraction``)."""
 
 
 SPLIT_CHOICES = ("time", "azimuth", "solstice", "balanced", "high_variance")
@@ -79,18 +82,21 @@ def add_parser(subparsers) -> None:
         default="time",
         help="how records are split into training and held-out: by time (earliest train) or one of PAINT's splits",
     )
-    p.add_argument(
+    # one or the other (a config's value of one gives way to the other on the command line)
+    how_many = p.add_mutually_exclusive_group()
+    how_many.add_argument(
         "--train",
         type=integer(1),
         default=None,
         metavar="N",
         help="training records per heliostat (time split: default the --train-fraction earliest)",
     )
-    p.add_argument(
+    how_many.add_argument(
         "--train-fraction",
         type=number(0.0, 1.0, above=True, below=True),
-        default=0.7,
-        help="time split: fraction of each heliostat's records that trains, in (0, 1)",
+        default=None,
+        metavar="F",
+        help=f"time split: fraction of each heliostat's records that trains, in (0, 1) (default: {TRAIN_FRACTION})",
     )
     p.add_argument("--val", type=integer(0), default=0, metavar="N", help="validation records per heliostat")
     p.add_argument(
@@ -217,7 +223,7 @@ def run(args) -> int:
         split=args.split,
         n_train=args.train,
         n_val=args.val,
-        train_fraction=args.train_fraction,
+        train_fraction=TRAIN_FRACTION if args.train_fraction is None else args.train_fraction,
         seed=seed,
         fit_options=fit_options,
         test_fleet=test_fleet,
@@ -273,7 +279,7 @@ def run(args) -> int:
         given = [
             f"{flag} {value}"
             for flag, value in (("--train", args.train), ("--train-fraction", args.train_fraction))
-            if value is not None and (flag == "--train" or args.train is None)
+            if value is not None
         ]
         raise ConfigError(
             f"--split {args.split}{''.join(' ' + g for g in given)} leaves no heliostat a training record "

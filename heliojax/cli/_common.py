@@ -768,3 +768,37 @@ def read_plant_tower(path, origin_lla) -> typing.Any:
             "give the plant's with --tower"
         )
     return tower
+
+
+MOVED_POSITION_M = 0.1
+"""A heliostat of a PAINT folder farther than this (m) from the position its fit used is
+named: a survey is good to centimetres, so the folder comes from another survey, or
+another plant, than the fit (hostile-input trials 4 and 5: 22 m and 55 m went
+unnoticed)."""
+
+
+def warn_moved(source: str, ids, positions, results, what_is_used: str) -> None:
+    """Warn of the heliostats ``ids`` whose ``positions`` ``(N, 3)`` (ENU m, read from
+    ``source``) lie more than :data:`MOVED_POSITION_M` from the ones the fit in
+    ``results`` (a :class:`heliojax.CalibrationResults`) used; ``what_is_used`` ends
+    the message (which of the two the command goes on with)."""
+    import numpy as np
+
+    from .._errors import few_names
+
+    row = {h: i for i, h in enumerate(ids)}
+    shared = [(k, row[h]) for k, h in enumerate(results.ids) if h in row]
+    if not shared:
+        return
+    fit_rows, own_rows = (np.array(x) for x in zip(*shared, strict=True))
+    gap = np.linalg.norm(
+        np.asarray(positions, float).reshape(-1, 3)[own_rows] - np.asarray(results.geometry.position)[fit_rows],
+        axis=-1,
+    )
+    moved = [f"{results.ids[k]} ({d:.3g} m)" for k, d in zip(fit_rows, gap, strict=True) if not d <= MOVED_POSITION_M]
+    if moved:
+        log.warning(
+            f"{source}: {few_names(moved)} {'lies' if len(moved) == 1 else 'lie'} farther than "
+            f"{MOVED_POSITION_M:g} m from the position the fit used (another survey or plant than the fit's?); "
+            f"{what_is_used}"
+        )

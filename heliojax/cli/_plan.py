@@ -21,39 +21,10 @@ from ._common import (
     report_load,
     staged_outputs,
     target_name,
+    warn_moved,
 )
 
 log = logging.getLogger(__name__)
-
-MOVED_POSITION_M = 0.1
-"""A heliostat of ``--paint-dir`` farther than this (m) from the position the fit used
-is named: a survey is good to centimetres, so the records come from another survey, or
-another plant, than the fit (hostile-input trial 4: 22 m went unnoticed)."""
-
-
-def _warn_moved(fleet, results, source) -> None:
-    """Warn of heliostats whose position in ``fleet`` (the ``--paint-dir`` load) lies
-    more than :data:`MOVED_POSITION_M` from the one in ``results`` (the fit's)."""
-    import numpy as np
-
-    from .._errors import few_names
-
-    row = {h: i for i, h in enumerate(fleet.ids)}
-    shared = [(k, row[h]) for k, h in enumerate(results.ids) if h in row]
-    if not shared:
-        return
-    fit_rows, paint_rows = (np.array(x) for x in zip(*shared, strict=True))
-    gap = np.linalg.norm(
-        np.asarray(fleet.geometry.position)[paint_rows] - np.asarray(results.geometry.position)[fit_rows], axis=-1
-    )
-    moved = [f"{results.ids[k]} ({d:.3g} m)" for k, d in zip(fit_rows, gap, strict=True) if not d <= MOVED_POSITION_M]
-    if moved:
-        log.warning(
-            f"--paint-dir {source}: {few_names(moved)} {'lies' if len(moved) == 1 else 'lie'} farther than "
-            f"{MOVED_POSITION_M:g} m from the position the fit used (another survey or plant than the fit's?); "
-            "the plan uses the fit's positions"
-        )
-
 
 OUTPUT_FILES = ("out", "ranking", "records_out", "plot")
 OUTPUT_DIRS = ("cache_dir",)
@@ -305,7 +276,13 @@ def run(args) -> int:
         with activity(f"loading {args.paint_dir}", logger=log):
             fleet = load_paint_directory(args.paint_dir, heliostats=results.ids, origin=origin)
         report_load(fleet.report, args.paint_dir)
-        _warn_moved(fleet, results, args.paint_dir)
+        warn_moved(
+            f"--paint-dir {args.paint_dir}",
+            fleet.ids,
+            fleet.geometry.position,
+            results,
+            "the plan uses the fit's positions",
+        )
         times = np.asarray(fleet.context.unix_time)
         usable = np.asarray(fleet.mask) & np.isfinite(times)
         if args.before is not None:

@@ -187,7 +187,9 @@ def run(args: argparse.Namespace) -> int:
     ax[2].set_title(f"normal RMS error vs truth: ideal {e_ideal:.2f} -> recovered {e_rec:.2f} mrad", fontsize=10)
     ax[2].legend(fontsize=8)
     ax[2].grid(alpha=0.3, which="both")
-    _write_outputs(args.out, res.facets, fig, report, extra={"true_control_points": scene.truth.control_points})
+    _write_outputs(
+        args.out, res.facets, fig, report, res.losses, extra={"true_control_points": scene.truth.control_points}
+    )
     return 0
 
 
@@ -253,20 +255,44 @@ def _run_real(args: argparse.Namespace) -> int:
             for name, f in (("ideal", rec.ideal), ("reconstructed", rec.result.facets))
         }
     attrs = {"heliostat": args.heliostat, "train_records": [records.record_ids[i] for i in rec.train]}
-    _write_outputs(args.out, rec.result.facets, optics.records_figure(rec, records), report, attrs=attrs)
+    figure = optics.records_figure(rec, records)
+    _write_outputs(args.out, rec.result.facets, figure, report, rec.result.losses, attrs=attrs)
     return 0
 
 
-def _write_outputs(out: Path, facets, fig, report: dict, *, extra=None, attrs=None) -> None:
+def _loss_rose(losses) -> tuple[float, float] | None:
+    """``(first, last)`` mean loss over the first and the last ``k`` steps (``k`` a fifth
+    of the steps, 1 to 10: the loss of one step is a draw of rays) where the last is
+    above the first: the optimiser made the surface worse than where it started; else
+    None."""
+    import numpy as np
+
+    x = np.asarray(losses, float)
+    k = max(1, min(10, x.size // 5))
+    first, last = float(x[:k].mean()), float(x[-k:].mean())
+    return (first, last) if x.size > 1 and last > first else None
+
+
+def _write_outputs(out: Path, facets, fig, report: dict, losses, *, extra=None, attrs=None) -> None:
     """OUT/control_points.h5 (the facets' control points, translations, degree, plus
     ``extra`` datasets and ``attrs``), OUT/reconstruction.png and OUT/reconstruction.json
-    (also printed), each written atomically."""
+    (also printed), each written atomically. ``losses``: the loss per step; a loss that
+    rose (:func:`_loss_rose`) is a warning and ``"diverged": true`` in the JSON."""
+    import logging
+
     import matplotlib.pyplot as plt
     import numpy as np
 
     from .._errors import ConfigError
     from .._io import atomic_h5, atomic_path, atomic_write, staged_paths
 
+    rose = _loss_rose(losses)
+    report["diverged"] = rose is not None
+    if rose is not None:
+        logging.getLogger(__name__).warning(
+            f"the loss rose from {rose[0]:.4g} to {rose[1]:.4g} over {len(losses)} steps: the optimiser diverged and "
+            "the surface written is worse than the one it started from; lower --learning-rate"
+        )
     bad = _non_finite(report)
     if bad or not np.isfinite(np.asarray(facets.control_points)).all():
         raise ConfigError(

@@ -11,7 +11,16 @@ import time
 import typing
 from pathlib import Path
 
-from ._common import check_sun_possible, heliostat_id, integer, number, option_label, path_type, target_name
+from ._common import (
+    check_sun_possible,
+    heliostat_id,
+    integer,
+    number,
+    option_label,
+    path_type,
+    target_name,
+    warn_moved,
+)
 
 log = logging.getLogger(__name__)
 
@@ -240,6 +249,13 @@ def run(args: argparse.Namespace) -> int:
                     "worse than nominal" if results.worse_than_nominal[i] else results.status[i]
                 )
                 raise ConfigError(f"--results {args.results}: {args.heliostat} has no usable fit ({why})")
+            warn_moved(
+                f"{props_path}",
+                [args.heliostat],
+                geometry.position,
+                results,
+                "the trace uses the fit's geometry, with this file's facets",
+            )
             model, geometry = results.heliostat(args.heliostat)
         if args.deflectometry is not None:
             defl = optics.read_deflectometry(args.deflectometry)
