@@ -38,12 +38,14 @@ fitted record's sun; ``g`` 0 unless the later training records asked for it).
 from __future__ import annotations
 
 import math
+import os
 import typing
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._beam import beam_pointing_error
@@ -252,7 +254,14 @@ def aim_fleet(
 
     Returns:
         An :class:`AimResult`.
+
+    Raises:
+        TypeError: ``sun`` or ``aim_points`` not an array of numbers (a string, None).
+        ValueError: wrong shapes, a sun vector that is not a finite unit vector, a
+            non-finite (NaN, inf) aim point coordinate.
     """
+    _check_numeric(sun, "sun", "(N, 3) unit ENU vectors towards the sun (heliojax.sun_direction)")
+    _check_numeric(aim_points, "aim_points", "ENU aim points (m) of shape (3,), (H, 3) or (H, N, 3)")
     sun = jnp.asarray(sun)
     if sun.ndim != 2 or sun.shape[1] != 3:
         raise ValueError(f"sun has shape {sun.shape}; expected (N, 3) unit ENU vectors (one instant: sun[None])")
@@ -262,6 +271,13 @@ def aim_fleet(
     if jnp.shape(aim_points) not in ((3,), (h, 3), (h, n, 3)):
         raise ValueError(f"aim_points has shape {jnp.shape(aim_points)}; expected (3,), ({h}, 3) or ({h}, {n}, 3)")
     points = jnp.asarray(aim_points, sun.dtype)
+    if not isinstance(points, Tracer):
+        finite = np.isfinite(np.asarray(points))
+        if not finite.all():  # else every count is NaN and each heliostat is flagged unreachable
+            raise ValueError(
+                f"aim_points: {int((~finite).sum())} of {finite.size} coordinate(s) are not finite (NaN or inf); "
+                "aim points are ENU positions (m)"
+            )
     if points.ndim == 1:
         points = jnp.broadcast_to(points, (h, n, 3))
     elif points.ndim == 2:
@@ -337,6 +353,22 @@ _LATEST_UNIX_S = 7_258_118_400.0
 """2200-01-01T00:00Z (s): a later instant is a time in other units (ms, ns)."""
 
 
+def _check_numeric(x: typing.Any, name: str, expected: str) -> None:
+    """TypeError naming ``name`` where ``x`` is not an array of numbers (a string,
+    None, an object array): JAX's own error is many frames deep and names no argument.
+    Skipped for traced values."""
+    if isinstance(x, Tracer):
+        return
+    kind = "?"
+    if x is not None and not isinstance(x, (str, bytes)):
+        try:
+            kind = np.asarray(x).dtype.kind
+        except (TypeError, ValueError):  # a ragged list
+            kind = "?"
+    if kind not in "biuf":
+        raise TypeError(f"{name}: expected {expected}, got {type(x).__name__} {str(x)[:40]!r}")
+
+
 def _instant_seconds(unix_time: typing.Any, shape: tuple[int, ...]) -> np.ndarray:
     """``unix_time`` as float seconds since 1970 of ``shape`` (numbers, or numpy
     ``datetime64`` of any unit); ValueError for another shape or type, or an instant
@@ -373,7 +405,19 @@ def aim_results(
     Commands whose sun is far from every fitted record's sun are flagged
     ``beyond_calibrated_sky`` (``max_sky_gap_deg`` among ``options``), and commands
     whose predicted uncertainty exceeds the uncalibrated model's RMS error on the
-    fitted records ``uncertainty_above_nominal``."""
+    fitted records ``uncertainty_above_nominal``.
+
+    Raises:
+        TypeError: ``results`` is not a loaded calibration (a path, None), or ``sun``
+            or ``aim_points`` is not an array of numbers.
+        ValueError: as :func:`aim_fleet`.
+    """
+    if results is None or isinstance(results, (str, bytes, os.PathLike)) or not hasattr(results, "fitted"):
+        raise TypeError(
+            f"results: expected a CalibrationResults (heliojax.load_results(path)), got {type(results).__name__}"
+        )
+    _check_numeric(sun, "sun", "(N, 3) unit ENU vectors towards the sun (heliojax.sun_direction)")
+    _check_numeric(aim_points, "aim_points", "ENU aim points (m) of shape (3,), (H, 3) or (H, N, 3)")
     fitted = np.asarray(results.fitted, bool)
     sky = results.fitted_sun()
     fitted_sun, fitted_record = (None, None) if sky is None else sky

@@ -46,6 +46,83 @@ def _float(path, field, text) -> float:
     return x
 
 
+MIN_HELIOSTAT_SPACING_M = 1.0
+"""Smallest horizontal distance (m) between two heliostats' positions (pivots), and
+between a heliostat and the tower (the receiver aperture's centre): two mirrors whose
+pivots are closer than a mirror's side collide when stowed flat, and the smallest
+heliostats built have mirrors of about 1 m (the Jülich heliostat's is 3.22 m x 2.56 m,
+the PAINT properties' ``width`` and ``height``). A field closer than this is not a field
+that can be built: its positions are in another unit (km for m puts heliostats
+millimetres apart)."""
+
+
+def check_spacing(
+    path: str | os.PathLike,
+    ids: tuple[str, ...],
+    positions: np.ndarray,
+    where: list[str] | None = None,
+    *,
+    min_spacing_m: float = MIN_HELIOSTAT_SPACING_M,
+) -> None:
+    """DataError naming ``path``, two heliostats and their distance where two of
+    ``positions`` (``(n, 3)`` ENU m; only east and north count) are closer than
+    ``min_spacing_m`` (m): mirrors that would collide, or positions in km.
+
+    ``where``: per heliostat, where it was read (e.g. ``"line 3"``), named in the
+    error. One k-d tree query (no loop over pairs): fields of 10,000 heliostats."""
+    from scipy import spatial
+
+    xy = np.asarray(positions, dtype=float)[:, :2]
+    n = len(xy)
+    if n < 2:
+        return
+    dist, near = spatial.cKDTree(xy).query(xy, k=2)  # pyright: ignore[reportAttributeAccessIssue]
+    dist, near = np.asarray(dist), np.asarray(near)
+    own = near[:, 0] == np.arange(n)  # the nearest is the point itself, except among duplicates
+    other = np.where(own, near[:, 1], near[:, 0])
+    d = np.where(own, dist[:, 1], dist[:, 0])
+    close = np.flatnonzero(~(d >= min_spacing_m))
+    if not close.size:
+        return
+    a, b = sorted((int(close[0]), int(other[close[0]])))  # the first heliostat in file order, its neighbour
+    name = (lambda k: f"{ids[k]!r} ({where[k]})") if where is not None else (lambda k: repr(ids[k]))
+    field = f"{where[b]}: east_m/north_m" if where is not None else "east_m/north_m"
+    if d[close[0]] == 0.0:
+        raise DataError(path, field, f"heliostats {name(a)} and {name(b)}: two heliostats in one place")
+    raise DataError(
+        path,
+        field,
+        f"heliostats {name(a)} and {name(b)} are {d[close[0]]:.3g} m apart, closer than a heliostat's mirror "
+        f"({min_spacing_m:g} m; {int(close.size)} heliostat(s) so close): positions in km instead of m?",
+    )
+
+
+def check_tower_clearance(
+    path: str | os.PathLike,
+    ids: tuple[str, ...],
+    positions: np.ndarray,
+    tower_en: tuple[float, float],
+    *,
+    min_distance_m: float = MIN_HELIOSTAT_SPACING_M,
+) -> None:
+    """DataError naming ``path`` and the heliostat where one of ``positions``
+    (``(n, 3)`` ENU m) is horizontally nearer than ``min_distance_m`` (m) to the tower
+    at ``tower_en`` (east, north m: the receiver aperture's centre): its mirror would
+    be in the tower, or the positions are in km."""
+    xy = np.asarray(positions, dtype=float)[:, :2]
+    d = np.hypot(xy[:, 0] - tower_en[0], xy[:, 1] - tower_en[1])
+    near = np.flatnonzero(~(d >= min_distance_m))
+    if near.size:
+        k = int(near[0])
+        raise DataError(
+            path,
+            "east_m/north_m",
+            f"heliostat {ids[k]!r} is {d[k]:.3g} m from the tower (east {tower_en[0]:.2f} m, north "
+            f"{tower_en[1]:.2f} m), nearer than {min_distance_m:g} m ({int(near.size)} heliostat(s)): "
+            "positions in km instead of m?",
+        )
+
+
 def read_field_csv(path: str | os.PathLike) -> FieldData:
     """Read ``heliostat_id,east_m,north_m[,up_m]`` plus any of
     ``tracking_mrad,slope_mrad,reflectance,aperture_m2`` (empty cell = not measured).
@@ -54,7 +131,8 @@ def read_field_csv(path: str | os.PathLike) -> FieldData:
 
     Raises:
         DataError: missing columns, non-numeric or non-finite cells, duplicate IDs,
-            values outside the parameter's support.
+            values outside the parameter's support, two heliostats closer than
+            :data:`MIN_HELIOSTAT_SPACING_M` (:func:`check_spacing`).
     """
     header, rows = read_csv_rows(path, "a field CSV")
     if not rows:
@@ -109,13 +187,7 @@ def read_field_csv(path: str | os.PathLike) -> FieldData:
                 f"{u:g} m: more than {MAX_HELIOSTAT_HEIGHT_M:g} m above or below the plant's reference point, "
                 "not on its ground (millimetres, or another height datum?)",
             )
-    seen: dict[tuple[float, float], int] = {}
-    for i, (e, n, _) in enumerate(pos, start=2):
-        if (e, n) in seen:
-            raise DataError(
-                path, f"line {i}: east_m/north_m", f"the position of line {seen[e, n]}: two heliostats in one place"
-            )
-        seen[e, n] = i
+    check_spacing(path, tuple(ids), np.asarray(pos, dtype=float), [f"line {i}" for i in range(2, len(ids) + 2)])
     return FieldData(
         ids=tuple(ids),
         positions=np.asarray(pos, dtype=float),
@@ -403,8 +475,14 @@ def load_contract(path: str | os.PathLike) -> Contract:
     tower = y.get("tower_file")
     if tower is not None and not isinstance(tower, str):
         raise ConfigError(f"{path}: [yield] tower_file must be a string")
-    if tower is not None and not (path.parent / tower).resolve().is_file():
-        raise ConfigError(f"{path}: [yield] tower_file {tower!r} not found (relative to the contract's folder)")
+    if tower is not None:
+        where = (path.parent / tower).resolve()
+        if where.is_dir():
+            raise ConfigError(f"{path}: [yield] tower_file {tower!r} is a directory, not a tower file")
+        if where.exists() and not where.is_file():  # a device (/dev/zero), a FIFO: read forever or never
+            raise ConfigError(f"{path}: [yield] tower_file {tower!r} exists and is not a regular file")
+        if not where.is_file():
+            raise ConfigError(f"{path}: [yield] tower_file {tower!r} not found (relative to the contract's folder)")
     return Contract(
         parameters=params,
         confidence=float(confidence),

@@ -9,13 +9,13 @@ import math
 import numpy as np
 from scipy import stats
 
-from .._errors import ConfigError
+from .._errors import ConfigError, DataError
 from .._geometry import TargetPlane
 from .._progress import activity, progress_bar
 from ._clusters import ClusterResult, field_spacing, find_clusters, resampling_advice
 from ._extrapolate import Extrapolation, extrapolate_field
 from ._field import PARAMETERS, FieldData
-from ._io import Contract
+from ._io import Contract, check_tower_clearance
 from ._level1 import Level1Result, level1_test
 from ._sampling import sample_size
 from ._yield import SunSeries, YieldResult, field_efficiency, typical_year
@@ -80,6 +80,7 @@ def run_acceptance(
     plant_lla: tuple[float, float, float],
     *,
     sun: SunSeries | None = None,
+    positions_source: str | None = None,
 ) -> AcceptanceResult:
     """Sample sizes, level 1, clusters, resampling advice, extrapolation and level 2.
 
@@ -90,6 +91,15 @@ def run_acceptance(
         aperture: receiver aperture (ENU, same origin as ``field.positions``).
         plant_lla: plant WGS84 coordinates (deg, deg, m) for the sun positions.
         sun: precomputed sun samples (default: :func:`typical_year` from the contract).
+        positions_source: where ``field.positions`` were read (a file), named when a
+            heliostat is nearer than :data:`MIN_HELIOSTAT_SPACING_M` to the tower
+            (the receiver aperture's centre, east and north).
+
+    A heliostat nearer than :data:`MIN_HELIOSTAT_SPACING_M` (m) to the tower (its
+    mirror would be in the tower, or the positions are in km) is logged as a warning.
+
+    Raises:
+        ConfigError: the sun never rises above the contract's ``min_elevation_deg``.
 
     Returns:
         An :class:`AcceptanceResult`; ``result.report`` follows the
@@ -219,6 +229,13 @@ def run_acceptance(
                 f"{contract.source or 'contract'}: [yield] min_elevation_deg = {contract.min_elevation_deg}: "
                 f"the sun never rises that high at the plant (latitude {plant_lla[0]:.2f}) in {contract.year}"
             )
+    centre = np.asarray(aperture.centre, dtype=float)
+    try:
+        check_tower_clearance(
+            positions_source or "the field's positions", field.ids, np.asarray(field.positions), (centre[0], centre[1])
+        )
+    except DataError as e:  # a warning, not (yet) a refusal: one-heliostat test fields stand at the tower's foot
+        log.warning(f"{e} (its level-2 efficiency is not that of a field that can be built)")
     contract_kw, measured_kw = {}, {}
     for i, name in enumerate(("tracking_mrad", "slope_mrad", "reflectance", "aperture_m2")):
         spec = contract.parameters.get(name)

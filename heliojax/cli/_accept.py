@@ -72,17 +72,26 @@ def run(args: argparse.Namespace) -> int:
         contract = acc.load_contract(args.contract)
         if args.results.suffix.lower() == ".json":
             if args.positions is not None:
-                # the positions are all --positions' (its frame may not be --paint's: the two are not mixed)
+                # the positions are all --positions' (its frame may not be --paint's: the two are not mixed);
+                # --paint still gives the tower file
                 ids, pos = acc.read_positions_csv(args.positions)
                 source = f"--positions {args.positions}"
+                positions = {"positions": str(args.positions), "positions_from": "--positions"}
                 if args.paint is not None:
                     source += ", which takes precedence over --paint,"
+                    positions["positions_from"] = "--positions (the heliostat positions of --paint not used)"
+                    log.warning(
+                        f"--positions {args.positions} given: the heliostat positions of --paint {args.paint} are "
+                        "not used (--paint gives the tower file only)"
+                    )
             elif args.paint is not None:
                 ids, pos = acc.positions_from_paint(args.paint)
                 source = f"--paint {args.paint}"
+                positions = {"positions": str(args.paint), "positions_from": "--paint (heliostat properties files)"}
             else:
                 raise ConfigError("a summary.json needs the heliostat positions: give --positions or --paint")
             field = acc.field_from_summary(args.results, ids, pos, positions_from=source)
+            positions_file = args.positions if args.positions is not None else args.paint
         else:
             if args.positions is not None:
                 raise ConfigError(
@@ -90,6 +99,8 @@ def run(args: argparse.Namespace) -> int:
                     f"(the CSV {args.results.name} carries the positions)"
                 )
             field = acc.read_field_csv(args.results)
+            positions = {"positions": str(args.results), "positions_from": "--results (the field CSV)"}
+            positions_file = args.results
         tower = args.tower
         if tower is None and args.paint is not None:
             tower = acc.find_tower_file(args.paint)
@@ -101,9 +112,16 @@ def run(args: argparse.Namespace) -> int:
         else:
             aperture, plant = acc.juelich_receiver(), acc.JUELICH_COORDINATES
             receiver_source = "built-in Jülich receiver"
-        result = acc.run_acceptance(field, contract, aperture, plant)
+        # a heliostat at the tower's foot (positions in km?) is a warning of run_acceptance; the spacing
+        # of the heliostats is checked (and refused) where they are read
+        result = acc.run_acceptance(field, contract, aperture, plant, positions_source=str(positions_file))
         report = dict(result.report)
-        report["inputs"] = {"results": str(args.results), "contract": str(args.contract), "receiver": receiver_source}
+        report["inputs"] = {
+            "results": str(args.results),
+            "contract": str(args.contract),
+            "receiver": receiver_source,
+            **positions,
+        }
         # the report and its figures are published together (a run stopped while drawing
         # leaves the previous set), and a figure this run does not draw is not left from
         # an earlier run beside the new report

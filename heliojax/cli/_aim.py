@@ -246,6 +246,21 @@ def _aim_points_csv(path: Path, ids: tuple[str, ...], origin_lla, heliostat_posi
         raise DataError(path, None, f"needs heliostat_id and {', '.join(enu_cols)} or {', '.join(lla_cols)}")
     if has_enu and has_lla:
         raise DataError(path, None, "has both ENU and WGS84 columns: give the aim points in one of them")
+    # a column of the other frame beside a full set (lat_deg beside east_m,north_m,up_m): which
+    # frame was meant is unknown; any other column would be dropped without a word
+    other = lla_cols if has_enu else enu_cols
+    for c in header:
+        if c in other:
+            raise DataError(
+                path,
+                c,
+                f"{'a WGS84' if has_enu else 'an ENU'} column beside the {'ENU' if has_enu else 'WGS84'} columns "
+                f"{', '.join(enu_cols if has_enu else lla_cols)}: give the aim points in one frame",
+            )
+        if c not in ("heliostat_id", *enu_cols, *lla_cols):
+            raise DataError(
+                path, str(c), f"unknown column; known: heliostat_id and {', '.join(enu_cols)} or {', '.join(lla_cols)}"
+            )
     if not rows:
         raise DataError(path, None, "no aim points (a header only)")
     cols = enu_cols if has_enu else lla_cols

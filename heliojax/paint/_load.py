@@ -717,9 +717,12 @@ def load_paint_directory(
         origin: WGS84 ENU origin overriding the tower file's plant coordinates.
 
     Raises:
+        TypeError: ``path`` is not a path (a number, a list).
         DataError: a missing/invalid tower file or no loadable heliostat (always);
             any bad input when ``strict``.
     """
+    if path is not None and not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path: expected a directory path (str or os.PathLike) or None, got {type(path).__name__}")
     _check_centroid(centroid)
     root = default_data_dir() if path is None else Path(path)
     if not root.is_dir():
