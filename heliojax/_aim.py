@@ -18,6 +18,10 @@ blindly:
   neither the counts nor their predicted uncertainty (a linearisation about the fit)
   can be trusted there. A heliostat whose records all share one sun position is
   well fitted at that position and nowhere else.
+* ``before_fit``: the instant is before the first record the heliostat's model was
+  fitted to (given the instants' times): the fit describes the heliostat since then
+  (since a change point, when one was found), not before; nor does its drift term,
+  which grows with the time from the fit, cover an earlier instant.
 * ``uncertainty_above_nominal``: the command's predicted pointing uncertainty
   (radial RMS, drift since the fit included) exceeds the RMS beam error of the
   heliostat's *uncalibrated* model on the records it was fitted to (given that
@@ -87,6 +91,8 @@ class AimResult(eqx.Module):
         uncertainty_above_nominal: ``(H, N)`` the predicted pointing uncertainty
             (:attr:`pointing_std_mrad`) exceeds the uncalibrated model's RMS error
             on the fitted records (all False when that error is not given).
+        before_fit: ``(H, N)`` the instant is before the heliostat's first fitted
+            record (all False when the times are not given).
         pointing_cov_mrad2: ``(H, N, 2, 2)`` predicted scale matrix of the beam
             direction's error (mrad^2) from the parameter covariance and the drift
             since the fit; NaN without a covariance. It is the covariance when
@@ -107,6 +113,7 @@ class AimResult(eqx.Module):
     beyond_calibrated_sky: Bool[Array, "H N"]
     sky_gap_deg: Float[Array, "H N"]
     uncertainty_above_nominal: Bool[Array, "H N"]
+    before_fit: Bool[Array, "H N"]
     pointing_cov_mrad2: Float[Array, "H N 2 2"]
     error_law: PointingErrorLaw = eqx.field(static=True, default=PointingErrorLaw())
 
@@ -125,7 +132,7 @@ class AimResult(eqx.Module):
     def ok(self) -> Bool[Array, "H N"]:
         """Counts that may be sent: no flag raised."""
         raised = self.counts_out_of_range | self.sun_low[None, :] | self.unreliable[:, None] | self.unreachable
-        return ~(raised | self.beyond_calibrated_sky | self.uncertainty_above_nominal)
+        return ~(raised | self.beyond_calibrated_sky | self.uncertainty_above_nominal | self.before_fit)
 
 
 def _radial_std(cov: Float[Array, "*hn 2 2"]) -> Float[Array, "*hn"]:
@@ -214,6 +221,7 @@ def aim_fleet(
     fitted_record: Bool[ArrayLike, "H M"] | None = None,
     max_sky_gap_deg: float = MAX_SKY_GAP_DEG,
     nominal_rms_mrad: Float[ArrayLike, " H"] | None = None,
+    before_fit: Bool[ArrayLike, "H N"] | None = None,
 ) -> AimResult:
     """Counts that put each heliostat's beam on its aim point at each instant.
 
@@ -251,6 +259,9 @@ def aim_fleet(
             uncalibrated model on the records its model was fitted to (NaN: unknown):
             commands whose predicted uncertainty exceeds it are flagged
             ``uncertainty_above_nominal`` (:func:`aim_results` takes it from the file).
+        before_fit: ``(H, N)`` commands at instants before the heliostat's first
+            fitted record, flagged ``before_fit`` (:func:`aim_results` computes it
+            from the instants' times and the file's records).
 
     Returns:
         An :class:`AimResult`.
@@ -344,6 +355,7 @@ def aim_fleet(
         beyond_calibrated_sky=beyond,
         sky_gap_deg=gap,
         uncertainty_above_nominal=above,
+        before_fit=jnp.zeros((h, n), bool) if before_fit is None else jnp.broadcast_to(jnp.asarray(before_fit), (h, n)),
         pointing_cov_mrad2=pointing,
         error_law=error_law,
     )
@@ -427,9 +439,10 @@ def aim_results(
         use = fitted_record & np.isfinite(e)
         with np.errstate(invalid="ignore", divide="ignore"):  # no fitted record: NaN, no flag
             nominal_rms = np.sqrt((np.where(use, e, 0.0) ** 2).sum(axis=1) / use.sum(axis=1))
-    drift = 0.0
+    drift, before = 0.0, None
     if unix_time is not None:
         unix_time = _instant_seconds(unix_time, np.shape(sun)[:1])
+        before = _before_fit(results, unix_time)
         variance = np.asarray(results.drift_variance_mrad2(unix_time), float)
         known = np.isfinite(variance).reshape(len(fitted), -1).all(axis=1)
         fitted = fitted & known
@@ -448,8 +461,21 @@ def aim_results(
         fitted_sun=fitted_sun,
         fitted_record=fitted_record,
         nominal_rms_mrad=nominal_rms,
+        before_fit=before,
         **options,
     )
+
+
+def _before_fit(results: typing.Any, unix_time: np.ndarray) -> np.ndarray | None:
+    """``(H, N)`` instants ``unix_time`` (s) before each heliostat's first fitted record
+    (training, not superseded by a change point, with a time); None where the file holds
+    no per-record times or split."""
+    if not {"unix_time", "split"} <= results.records.keys():
+        return None
+    t = np.asarray(results.records["unix_time"], float)
+    fitted = results.fitted_records(inliers=False) & np.isfinite(t)
+    first = np.min(np.where(fitted, t, np.inf), axis=1)  # inf: no fitted record, no flag (unreliable already)
+    return np.isfinite(first)[:, None] & (np.asarray(unix_time, float)[None, :] < first[:, None])
 
 
 __all__ = [

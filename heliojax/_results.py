@@ -454,14 +454,14 @@ class CalibrationResults:
         if self.drift_mrad2_per_day == 0.0 and self.creep_mrad2_per_day2 == 0.0:
             return variance
         if self.drift_mrad2_per_day != 0.0:
-            age = days_since_fit(self._fitted_records(inliers=False), self.records["unix_time"], when)
+            age = days_since_fit(self.fitted_records(inliers=False), self.records["unix_time"], when)
             variance = variance + self.drift_mrad2_per_day * age
         if self.creep_mrad2_per_day2 != 0.0:
-            days = days_from_fitted_mean(self._fitted_records(inliers=True), self.records["unix_time"], when)
+            days = days_from_fitted_mean(self.fitted_records(inliers=True), self.records["unix_time"], when)
             variance = variance + self.creep_mrad2_per_day2 * days**2
         return variance
 
-    def _fitted_records(self, *, inliers: bool) -> Bool[np.ndarray, "H M"]:
+    def fitted_records(self, *, inliers: bool) -> Bool[np.ndarray, "H M"]:
         """``(H, M)`` the training records the model was fitted to (not superseded by a
         change point), with ``inliers`` the outliers among them left out too."""
         fitted = self.records["split"] == 1
@@ -481,7 +481,7 @@ class CalibrationResults:
         el = np.radians(np.asarray(self.records["sun_elevation_deg"], float))
         known = np.isfinite(az) & np.isfinite(el)
         sun = np.asarray(sun_direction(np.where(known, az, 0.0), np.where(known, el, 0.0)))
-        return np.where(known[..., None], sun, 0.0), self._fitted_records(inliers=True) & known
+        return np.where(known[..., None], sun, 0.0), self.fitted_records(inliers=True) & known
 
     @property
     def fitted(self) -> np.ndarray:

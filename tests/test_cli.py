@@ -425,7 +425,9 @@ def test_output_schemas_are_documented(results_h5):
 
 def test_aim_writes_commands_with_error_bars(results_h5, tmp_path, capsys):
     out, h5, plot = tmp_path / "aim.csv", tmp_path / "aim.h5", tmp_path / "aim.png"
-    argv = ["aim", str(results_h5), "--date", "2023-06-21", "--step-minutes", "60", "--out", str(out)]
+    # after every heliostat's first fitted record (BL14's fit starts at its 2024-05 change point):
+    # earlier instants are flagged before_fit
+    argv = ["aim", str(results_h5), "--date", "2024-06-21", "--step-minutes", "60", "--out", str(out)]
     assert main([*argv, "--h5", str(h5), "--plot", str(plot), "--cache-dir", "none", "--quiet"]) == 0
     assert "commands without a flag" in capsys.readouterr().out
     with open(out, newline="") as f:

@@ -3062,6 +3062,36 @@ def test_trace_names_a_heliostat_of_paint_far_from_the_fits_position(fitted_h5, 
     assert "BE36 (55.6 m) lies farther than 0.1 m from the position the fit used" in err, err
 
 
+def test_aim_before_the_fitted_records_is_flagged(fitted_h5, tmp_path, capsys):
+    """``aim`` at an instant years before the fitted records (and before a change point's
+    state) gave the smallest uncertainty of all, ok and no flag: the drift term, clipped
+    at zero, does not cover an earlier instant (hostile-input trial 5). Such commands are
+    flagged ``before_fit`` now; an instant after the records is not."""
+    results = hj.load_results(fitted_h5)
+    t = np.asarray(results.records["unix_time"], float)
+    first = np.nanmin(np.where(results.fitted_records(inliers=False), t, np.nan), axis=1)
+    out = tmp_path / "aim.csv"
+    for when, flagged in (("2019-06-21T10:00:00Z", True), ("2024-06-21T10:00:00Z", False)):
+        rc, _, err = _run(["aim", str(fitted_h5), "--time", when, "--out", str(out), "--quiet"], capsys)
+        assert rc == 0, err
+        with out.open() as f:
+            rows = list(csv.DictReader(f))
+        assert all(("before_fit" in r["flags"]) == flagged for r in rows), rows
+        assert flagged or all(r["ok"] == "1" for r in rows if r["heliostat_id"] != "BL14"), rows
+    # the library: an instant between two heliostats' first fitted records flags the later one only
+    order = np.argsort(first)
+    between = 0.5 * (first[order[0]] + first[order[-1]])
+    r = hj.aim_results(
+        results,
+        hj.sun_direction(np.radians([10.0]), np.radians([40.0])),
+        results.geometry.position[0] + np.array([0.0, 0.0, 50.0]),
+        unix_time=np.array([between]),
+    )
+    flags = np.asarray(r.before_fit)[:, 0]
+    assert flags[order[-1]] and not flags[order[0]]
+    np.testing.assert_array_equal(flags, between < first)
+
+
 def test_plan_over_a_window_without_a_usable_instant_warns(fitted_h5, tmp_path, capsys):
     """A night-only window wrote a schedule of its header alone (exit 0), and stderr
     said only "planning 4 measurement(s) ... among 17 instants": that nothing could be

@@ -398,6 +398,7 @@ def run(args) -> int:
         "unreachable": np.asarray(r.unreachable),
         "beyond_calibrated_sky": np.asarray(r.beyond_calibrated_sky),
         "uncertainty_above_nominal": np.asarray(r.uncertainty_above_nominal),
+        "before_fit": np.asarray(r.before_fit),
     }
     ok = np.asarray(r.ok)
     others = np.any([v for k, v in flags.items() if k != "beyond_calibrated_sky"], axis=0)
