@@ -30,8 +30,10 @@ log = logging.getLogger(__name__)
 
 OUTPUT_FILES = ("out", "h5", "plot")
 OUTPUT_DIRS = ("cache_dir",)
-PARTNERS = {"start": ("end",)}
-"""Options that go with another (a config's ``end`` is dropped with its ``start``)."""
+PARTNERS = {"start": ("end",), "sun_azimuth": ("sun_elevation",)}
+"""Options that go with another (a config's ``end`` is dropped with its ``start``, its
+``sun_elevation`` with its ``sun_azimuth``: ``--date`` on the command line had dropped
+only the azimuth, and the error then named flags the user had not typed)."""
 
 
 def default_outputs(args) -> None:
