@@ -470,9 +470,10 @@ def _before_fit(results: typing.Any, unix_time: np.ndarray) -> np.ndarray | None
     """``(H, N)`` instants ``unix_time`` (s) before each heliostat's first fitted record
     (training, not superseded by a change point, with a time); None where the file holds
     no per-record times or split."""
-    if not {"unix_time", "split"} <= results.records.keys():
+    records = getattr(results, "records", None)  # duck-typed results: none
+    if records is None or not {"unix_time", "split"} <= records.keys():
         return None
-    t = np.asarray(results.records["unix_time"], float)
+    t = np.asarray(records["unix_time"], float)
     fitted = results.fitted_records(inliers=False) & np.isfinite(t)
     first = np.min(np.where(fitted, t, np.inf), axis=1)  # inf: no fitted record, no flag (unreliable already)
     return np.isfinite(first)[:, None] & (np.asarray(unix_time, float)[None, :] < first[:, None])
