@@ -140,6 +140,17 @@ def unchecked():
 
 
 @pytest.fixture(scope="session")
+def fitted_h5(tmp_path_factory) -> Path:
+    """A results.h5 of the embedded data (a quick stone8 fit: 3 steps), read-only."""
+    from heliojax.cli._main import main
+
+    results = tmp_path_factory.mktemp("fitted") / "results.h5"
+    argv = ["calibrate", "--model", "stone8", "--max-steps", "3", "--out", str(results), "--cache-dir", "none"]
+    assert main([*argv, "--quiet"]) == 0
+    return results
+
+
+@pytest.fixture(scope="session")
 def shared_paint() -> Path:
     """The real PAINT records beside the checkout (../shared/data/paint)."""
     if not (SHARED_PAINT / "WRI1030197-tower-measurements.json").exists():

@@ -62,3 +62,23 @@ def zoo(name: str) -> Case:
 
 
 ZOO_NAMES = ("stone", "actuator", "backlash", "padded", "all_masked", "embedded")
+
+
+def run_cli(argv: list[str], capsys) -> tuple[int, str, str]:
+    """``heliojax argv`` run in this process: ``(exit code, stdout, stderr)`` (argparse's
+    usage errors, a SystemExit, give their code)."""
+    from heliojax.cli._main import main
+
+    try:
+        rc = main(argv)
+    except SystemExit as e:
+        rc = int(e.code or 0)
+    captured = capsys.readouterr()
+    return rc, captured.out, captured.err
+
+
+def write_file(folder, name: str, content: str | bytes) -> str:
+    """Write ``content`` (text as UTF-8, or bytes) to ``folder / name``; the path."""
+    path = folder / name
+    path.write_bytes(content if isinstance(content, bytes) else content.encode())
+    return str(path)

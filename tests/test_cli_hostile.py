@@ -18,18 +18,12 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import run_cli, write_file
 
 import heliojax as hj
 from heliojax.cli._main import main
 
-
-def _run(argv: list[str], capsys) -> tuple[int, str, str]:
-    try:
-        rc = main(argv)
-    except SystemExit as e:  # argparse's own usage errors
-        rc = int(e.code or 0)
-    captured = capsys.readouterr()
-    return rc, captured.out, captured.err
+_run = run_cli
 
 
 _HIGH_SUN = "[yield]\nmin_elevation_deg = 89\n"
@@ -75,10 +69,7 @@ rel_error = 0.04
 """
 
 
-def _file(tmp: Path, name: str, content: str | bytes) -> str:
-    path = tmp / name
-    path.write_bytes(content if isinstance(content, bytes) else content.encode())
-    return str(path)
+_file = write_file
 
 
 def _field(tmp: Path) -> str:
@@ -2508,15 +2499,6 @@ def test_an_input_folder_in_place_of_a_file_is_named_a_directory(tmp_path):
     from heliojax._io import input_file_problem
 
     assert input_file_problem(_a_dir(tmp_path)) == "a directory, not a file"
-
-
-@pytest.fixture(scope="module")
-def fitted_h5(tmp_path_factory) -> Path:
-    """A results.h5 of the embedded data (a quick stone8 fit)."""
-    results = tmp_path_factory.mktemp("fitted") / "results.h5"
-    argv = ["calibrate", "--model", "stone8", "--max-steps", "3", "--out", str(results), "--cache-dir", "none"]
-    assert main([*argv, "--quiet"]) == 0
-    return results
 
 
 def _edit_h5(name: str, index, value):

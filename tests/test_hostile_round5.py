@@ -10,10 +10,10 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import run_cli, write_file
 
 import heliojax as hj
 from heliojax.acceptance._io import check_spacing
-from heliojax.cli._main import main
 
 CONTRACT = """
 [parameters.tracking_mrad]
@@ -29,19 +29,10 @@ step_minutes = 720
 _IDS = ("BE36", "BF56", "BG23", "BH20", "BL14")
 
 
-def _run(argv: list[str], capsys) -> tuple[int, str, str]:
-    try:
-        rc = main(argv)
-    except SystemExit as e:  # argparse's own usage errors
-        rc = int(e.code or 0)
-    captured = capsys.readouterr()
-    return rc, captured.out, captured.err
+_run = run_cli
 
 
-def _file(tmp: Path, name: str, content: str) -> str:
-    path = tmp / name
-    path.write_text(content)
-    return str(path)
+_file = write_file
 
 
 def _accept(tmp: Path, results: str, contract: str = CONTRACT) -> list[str]:
@@ -138,15 +129,6 @@ def test_contract_tower_file_that_is_no_regular_file_is_not_called_missing(where
 
 
 # ---- D and E: aim points
-
-
-@pytest.fixture(scope="module")
-def fitted_h5(tmp_path_factory) -> Path:
-    """A results.h5 of the embedded data (a quick stone8 fit)."""
-    results = tmp_path_factory.mktemp("fitted") / "results.h5"
-    argv = ["calibrate", "--model", "stone8", "--max-steps", "3", "--out", str(results), "--cache-dir", "none"]
-    assert main([*argv, "--quiet"]) == 0
-    return results
 
 
 @pytest.mark.parametrize(
