@@ -29,10 +29,7 @@ step_minutes = 720
 _IDS = ("BE36", "BF56", "BG23", "BH20", "BL14")
 
 
-_run = run_cli
-
-
-_file = write_file
+_run, _file = run_cli, write_file
 
 
 def _accept(tmp: Path, results: str, contract: str = CONTRACT) -> list[str]:
