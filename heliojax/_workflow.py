@@ -97,6 +97,7 @@ class CalibrationRun:
             heliostat with mostly these among its training records
             (:func:`mostly_off_target`) is left out of every fleet-wide statistic, as a
             noise outlier is, and not aimed with (``results.h5``'s ``off_target``).
+        spots_off_target: ``(H,)`` those heliostats (summary.json's ``spots_off_target``).
     """
 
     fleet: typing.Any
@@ -127,6 +128,7 @@ class CalibrationRun:
     noise_outlier: np.ndarray | None = None
     small_fleet_prior: np.ndarray | None = None
     off_target: np.ndarray | None = None
+    spots_off_target: np.ndarray | None = None
 
 
 def mostly_off_target(off_target: Bool[ArrayLike, "H M"], fitted: Bool[ArrayLike, "H M"]) -> Bool[np.ndarray, " H"]:
@@ -478,6 +480,7 @@ def calibrate(
         noise_outlier=noisy,
         small_fleet_prior=small_fleet,
         off_target=off_target,
+        spots_off_target=astray,
     )
     summary = _summarise(run, n_real, compile_s=compile_s, fit_s=fit_s)
     warming.result()  # done by now; no work outlives the call
@@ -982,7 +985,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
     garbage = np.zeros(len(status), bool) if run.noise_outlier is None else np.asarray(run.noise_outlier, bool)
     small = np.zeros(len(status), bool) if run.small_fleet_prior is None else np.asarray(run.small_fleet_prior, bool)
     off_target = np.zeros(run.train_mask.shape, bool) if run.off_target is None else np.asarray(run.off_target, bool)
-    astray = mostly_off_target(off_target, run.train_mask) & np.isin(status, _ATTEMPTED)
+    astray = np.zeros(len(status), bool) if run.spots_off_target is None else np.asarray(run.spots_off_target, bool)
     typical = _typical_noise(run, garbage | astray)
     heliostats = {}
     pooled, pooled_unc = [], []

@@ -97,30 +97,28 @@ def check_spacing(
     )
 
 
-def check_tower_clearance(
-    path: str | os.PathLike,
+def tower_clearance_problem(
     ids: tuple[str, ...],
     positions: np.ndarray,
     tower_en: tuple[float, float],
     *,
     min_distance_m: float = MIN_HELIOSTAT_SPACING_M,
-) -> None:
-    """DataError naming ``path`` and the heliostat where one of ``positions``
-    (``(n, 3)`` ENU m) is horizontally nearer than ``min_distance_m`` (m) to the tower
-    at ``tower_en`` (east, north m: the receiver aperture's centre): its mirror would
-    be in the tower, or the positions are in km."""
+) -> str | None:
+    """What is wrong where one of ``positions`` (``(n, 3)`` ENU m) is horizontally nearer
+    than ``min_distance_m`` (m) to the tower at ``tower_en`` (east, north m: the receiver
+    aperture's centre): its mirror would be in the tower, or the positions are in km;
+    None where none is."""
     xy = np.asarray(positions, dtype=float)[:, :2]
     d = np.hypot(xy[:, 0] - tower_en[0], xy[:, 1] - tower_en[1])
     near = np.flatnonzero(~(d >= min_distance_m))
-    if near.size:
-        k = int(near[0])
-        raise DataError(
-            path,
-            "east_m/north_m",
-            f"heliostat {ids[k]!r} is {d[k]:.3g} m from the tower (east {tower_en[0]:.2f} m, north "
-            f"{tower_en[1]:.2f} m), nearer than {min_distance_m:g} m ({int(near.size)} heliostat(s)): "
-            "positions in km instead of m?",
-        )
+    if not near.size:
+        return None
+    k = int(near[0])
+    return (
+        f"heliostat {ids[k]!r} is {d[k]:.3g} m from the tower (east {tower_en[0]:.2f} m, north "
+        f"{tower_en[1]:.2f} m), nearer than {min_distance_m:g} m ({int(near.size)} heliostat(s)): "
+        "positions in km instead of m?"
+    )
 
 
 def read_field_csv(path: str | os.PathLike) -> FieldData:

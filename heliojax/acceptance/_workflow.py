@@ -9,13 +9,13 @@ import math
 import numpy as np
 from scipy import stats
 
-from .._errors import ConfigError, DataError
+from .._errors import ConfigError
 from .._geometry import TargetPlane
 from .._progress import activity, progress_bar
 from ._clusters import ClusterResult, field_spacing, find_clusters, resampling_advice
 from ._extrapolate import Extrapolation, extrapolate_field
 from ._field import PARAMETERS, FieldData
-from ._io import Contract, check_tower_clearance
+from ._io import Contract, tower_clearance_problem
 from ._level1 import Level1Result, level1_test
 from ._sampling import sample_size
 from ._yield import SunSeries, YieldResult, field_efficiency, typical_year
@@ -230,12 +230,13 @@ def run_acceptance(
                 f"the sun never rises that high at the plant (latitude {plant_lla[0]:.2f}) in {contract.year}"
             )
     centre = np.asarray(aperture.centre, dtype=float)
-    try:
-        check_tower_clearance(
-            positions_source or "the field's positions", field.ids, np.asarray(field.positions), (centre[0], centre[1])
+    problem = tower_clearance_problem(field.ids, np.asarray(field.positions), (centre[0], centre[1]))
+    if problem is not None:  # a warning, not a refusal: one-heliostat test fields stand at the tower's foot
+        where = positions_source or "the field's positions"
+        log.warning(
+            f"{where}: field 'east_m/north_m': {problem} (its level-2 efficiency is not that of a field "
+            "that can be built)"
         )
-    except DataError as e:  # a warning, not (yet) a refusal: one-heliostat test fields stand at the tower's foot
-        log.warning(f"{e} (its level-2 efficiency is not that of a field that can be built)")
     contract_kw, measured_kw = {}, {}
     for i, name in enumerate(("tracking_mrad", "slope_mrad", "reflectance", "aperture_m2")):
         spec = contract.parameters.get(name)
