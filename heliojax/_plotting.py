@@ -223,8 +223,12 @@ def plot_aim(ids, pointing_cov_mrad2, ok, distance_m, hours=None, start=None, *,
         when = f"instant {j}"
     else:
         when = f"{start + datetime.timedelta(hours=float(hours[j])):%Y-%m-%d %H:%M} UTC"
+    flagged = int((~ok.any(axis=1)).sum())  # left out without a word, they looked forgotten
     ax.set_title(
-        f"68 % landing regions of {int(ok[:, j].sum())} heliostats\n{when}; colours as in the legend", fontsize=10
+        f"68 % landing regions of {int(ok[:, j].sum())} heliostats"
+        + (f"\n({flagged} more with every command flagged: see the CSV's flags)" if flagged else "")
+        + f"\n{when}; colours as in the legend",
+        fontsize=10,
     )
     ax = axes[1]
     x = np.arange(radius.shape[1]) if hours is None or start is None else hours
