@@ -114,6 +114,7 @@ from ._predictive import (
     fit_drift_terms_and_law as fit_drift_terms_and_law,
     prediction_region_d2 as prediction_region_d2,
 )
+from ._programs import clear_caches as clear_caches, memory_map_count as memory_map_count
 from ._results import (
     CalibrationResults as CalibrationResults,
     load_results as load_results,

@@ -384,6 +384,37 @@ def warm_up(work: Callable[[], typing.Any]) -> concurrent.futures.Future:
     return _BACKGROUND[0].submit(run)
 
 
+def clear_caches() -> None:
+    """Drop every compiled program this process keeps: heliojax's (:class:`cached_jit`'s
+    programs of this process) and JAX's (:func:`jax.clear_caches`); later calls compile
+    (or load from a configured persistent cache) again. Programs being compiled by a
+    warm-up thread now are kept.
+
+    For a long-running process that compiles many distinct programs (a notebook, a
+    service, a test suite): XLA:CPU maps each compiled program's code and data into
+    memory as ~3-6 separate memory mappings, kept while the program is cached, and
+    Linux limits a process to ``vm.max_map_count`` mappings (65,530 by default). XLA's
+    compiler dies of a segmentation fault, with no Python error, when a new program
+    finds that limit reached: the test suite's worker did after ~12,000 programs
+    (:func:`memory_map_count` says how near a process is)."""
+    with _LOCK:
+        _COMPILED.clear()
+    jax.clear_caches()
+
+
+def memory_map_count() -> tuple[int, int] | None:
+    """``(mappings in use, the limit)``: this process's memory mappings
+    (``/proc/self/maps``) and Linux's ``vm.max_map_count``; None where either cannot
+    be read (not Linux). See :func:`clear_caches`."""
+    try:
+        with open("/proc/self/maps", "rb") as f:
+            used = sum(chunk.count(b"\n") for chunk in iter(lambda: f.read(1 << 20), b""))
+        limit = int(Path("/proc/sys/vm/max_map_count").read_text())
+    except (OSError, ValueError):
+        return None
+    return used, limit
+
+
 def _load(path: Path, leaves: list) -> tuple[typing.Any, typing.Any] | None:
     """The exported program and output skeleton kept in ``path``, or None when there
     is none, it is damaged, it was written under another key (a file renamed or
@@ -676,7 +707,9 @@ __all__ = [
     "PROGRAM_DIR",
     "RECENT_SUFFIX",
     "cached_jit",
+    "clear_caches",
     "compile_cached",
+    "memory_map_count",
     "preload",
     "remember",
     "warm_up",

@@ -20,6 +20,7 @@ process.) A run with everything optimised, as users get it, is
 
 from __future__ import annotations
 
+import gc
 import logging
 import os
 from pathlib import Path
@@ -64,6 +65,8 @@ _import_dependencies_first()
 import jax  # noqa: E402  (reads JAX_* variables at import)
 import jaxtyping  # noqa: E402
 import pytest  # noqa: E402
+
+import heliojax as hj  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 # Catch silent broadcasting and mixed-dtype arithmetic in heliojax and in the tests.
@@ -126,6 +129,29 @@ def _optimised_when_marked(request, monkeypatch):
     jax.config.update("jax_disable_most_optimizations", default and not marked)
     _optimised_now[0] = marked or not default
     yield
+
+
+MAP_HEADROOM = 0.4
+"""Share of Linux's per-process limit on memory mappings (``vm.max_map_count``) at
+which a worker drops its compiled programs (see :func:`_programs_dropped_before_the_limit`)."""
+
+
+@pytest.fixture(autouse=True)
+def _programs_dropped_before_the_limit():
+    """After a test, if this process's memory mappings pass :data:`MAP_HEADROOM` of the
+    limit, drop the compiled programs it keeps (:func:`heliojax.clear_caches`).
+
+    Each compiled XLA:CPU program holds ~3-6 mappings while it is cached; a worker of
+    ``-n 2`` reached the limit (65,530) at ~85 % of the suite (~12,000 programs), and
+    XLA's compiler then died of a segmentation fault (the "intermittent" crash of
+    earlier sessions, in whichever test compiled next), after which pytest-xdist
+    (``--dist loadfile``) waits for ever. Dropping the programs costs their
+    recompilation in later tests that would have reused them."""
+    yield
+    count = hj.memory_map_count()
+    if count is not None and count[0] > MAP_HEADROOM * count[1]:
+        hj.clear_caches()
+        gc.collect()
 
 
 @pytest.fixture

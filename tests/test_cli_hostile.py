@@ -1387,6 +1387,34 @@ def test_flux_images_blank_tiny_or_16_bit(tmp_path):
     assert np.allclose(read_flux_png(tmp_path / "deep.png"), read_flux_png(tmp_path / "plain.png"))
 
 
+def test_a_flux_image_of_noise_has_no_spot(tmp_path, shared_paint):
+    """A flux PNG of pure noise (8 or 16 bits) was taken as a record, its "spot" pose
+    read from the noise (a hostile-input trial): refused, naming the file; a spot on a
+    noisy background and every shared real flux image are read."""
+    import numpy as np
+    from PIL import Image
+
+    from heliojax.optics import MAX_UNIFORM_SPREAD, uniform_spread
+    from heliojax.optics._compare import flux_sample_records, measured_images
+
+    rng = np.random.default_rng(0)
+    spot = (rng.random((128, 128)) * 40).astype(np.uint8)
+    spot[40:80, 50:90] += 200
+    Image.fromarray(spot).save(tmp_path / "1-flux-centered.png")
+    for noise in ((rng.random((128, 128)) * 255).astype(np.uint8), (rng.random((128, 128)) * 65535).astype(np.uint16)):
+        Image.fromarray(noise).save(tmp_path / "1-flux.png")
+        with pytest.raises(hj.DataError, match="spread over the whole image like noise") as e:
+            measured_images(tmp_path / "1-calibration-properties.json")
+        assert e.value.file == str(tmp_path / "1-flux.png")
+    Image.fromarray(spot).save(tmp_path / "1-flux.png")
+    flux, centred = measured_images(tmp_path / "1-calibration-properties.json")
+    assert uniform_spread(flux) < MAX_UNIFORM_SPREAD and uniform_spread(centred) < MAX_UNIFORM_SPREAD
+    records = flux_sample_records(shared_paint / "flux-samples")
+    assert len(records) >= 5
+    for record, _ in records:
+        assert max(uniform_spread(image) for image in measured_images(record)) < MAX_UNIFORM_SPREAD
+
+
 def test_a_cropped_flux_image_is_named(tmp_path, caplog):
     """A flux PNG cropped to 64 x 10 pixels was read as covering the whole target, and the
     comparison's positions moved by metres without a word (a hostile-input trial)."""

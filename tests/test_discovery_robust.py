@@ -428,3 +428,20 @@ def test_a_generic_competitor_that_beats_the_library_is_reported_and_the_report_
     assert eligible <= {x["effect"] for x in rep["refits"][0]}
     write_report(tmp_path / "report.json", rep)
     assert json.loads((tmp_path / "report.json").read_text())["unexplained"][0]["instead_of"] == first["instead_of"]
+
+
+def test_a_garbage_heliostat_is_named_in_the_report_and_its_warnings():
+    """One heliostat's records with its two motor axes swapped (garbage) changed the
+    fleet's noise estimate and every p-value of ``discover`` without a word (a
+    hostile-input trial): the report names it with its noise, and a warning says so;
+    the clean heliostats are not named."""
+    import equinox as eqx
+    from helpers import zoo
+
+    fleet = zoo("actuator").fleet
+    garbage = eqx.tree_at(lambda f: f.counts, fleet, fleet.counts.at[0].set(fleet.counts[0, :, ::-1]))
+    rep = discover(garbage, base="actuator", effects=("backlash",), max_refits=1).report
+    assert [n["heliostat"] for n in rep["noisy_heliostats"]] == [fleet.ids[0]]
+    assert rep["noisy_heliostats"][0]["noise_mrad"] > 10 * rep["data"]["robust_noise_median_mrad"]
+    assert any(fleet.ids[0] in w and "noise far above" in w for w in rep["warnings"])
+    assert discover(fleet, base="actuator", effects=("backlash",), max_refits=1).report["noisy_heliostats"] == []

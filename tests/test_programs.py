@@ -541,3 +541,31 @@ def test_a_quick_programs_executable_is_kept_under_its_options(program_dir, monk
     monkeypatch.setattr(_programs, "_export", _no_export)
     monkeypatch.setattr(_programs, "_compile_noting_cache_hits", _no_export)
     np.testing.assert_array_equal(np.asarray(square(jnp.arange(3.0))), [0.0, 1.0, 4.0])
+
+
+def test_clear_caches_drops_every_compiled_program_and_its_memory_maps(program_dir):
+    """:func:`heliojax.clear_caches` drops heliojax's programs of this process and JAX's:
+    the next call compiles again (the same result), and the memory mappings of the
+    dropped executables are returned to the system (the reason to call it: Linux's
+    per-process limit, see its docstring)."""
+    power = _programs.cached_jit(_power)
+    x = jnp.arange(4.0)
+    first = np.asarray(power(x, 2))
+    assert len(_programs._COMPILED) == 1
+
+    def program(k):
+        return jax.jit(lambda a: jnp.cumsum(jnp.sin(a * k)) @ jnp.outer(a, a) + jnp.linalg.norm(a) ** k)
+
+    programs = [program(k) for k in range(20)]
+    for p in programs:
+        p(x).block_until_ready()
+    before = hj.memory_map_count()
+    hj.clear_caches()
+    assert _programs._COMPILED == {} and all(p._cache_size() == 0 for p in programs)
+    after = hj.memory_map_count()
+    if sys.platform == "linux":
+        assert before is not None and after is not None
+        assert 0 < after[0] < before[0] < before[1] == after[1]
+        assert before[0] - after[0] >= 20  # at least one mapping per dropped program
+    np.testing.assert_array_equal(np.asarray(power(x, 2)), first)
+    assert len(_programs._COMPILED) == 1

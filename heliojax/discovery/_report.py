@@ -38,6 +38,11 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
                                                    # (Kass & Raftery's "positive", below "strong"):
                                                    # the name is not certain
       "outliers": [{"heliostat", "record_id"}],    # gross errors of the robust pre-pass (left out)
+      "noisy_heliostats": [{"heliostat", "noise_mrad"}],  # noise far above the fleet's (robust
+                                                   # pre-pass; heliojax.fitting.noise_outliers):
+                                                   # garbage records or a wrong properties file?
+                                                   # Kept (a warning says so): their records move
+                                                   # the fleet-wide statistics
       "change_points": [{"heliostat", "time": UTC ISO 8601 (first record since the change),
                          "previous_record_time", "jump": {param: rad}, "jump_unit": "rad",
                          "p", "p_holm", "n_records_before"}],   # records before it: fitted with the jump
@@ -106,6 +111,7 @@ import numpy as np
 
 from .._io import atomic_write
 from .._plotting import pyplot, save_figure
+from ..fitting import noise_outliers
 from ._diagnostics import record_variables
 from ._lanes import fold_blocks, too_few_days_note
 
@@ -340,6 +346,13 @@ def build_report(result, typical_start=None) -> dict:
     blocks = fold_blocks(np.asarray(fleet.context.unix_time), mask)
     note = too_few_days_note(blocks) if mask.any() else None
     warnings = [note] if note is not None else []
+    if cleaning["noisy_heliostats"]:
+        noisy = ", ".join(f"{n['heliostat']} ({n['noise_mrad']:.3g} mrad)" for n in cleaning["noisy_heliostats"])
+        warnings.append(
+            f"noise far above the fleet's median of {cleaning['robust_noise_median_mrad']:.3g} mrad: {noisy} "
+            "(garbage records or a wrong properties file?); kept, so their records move the fleet-wide noise "
+            "estimate and every test: check them, or run without them"
+        )
     left_out, not_cross_validated = _folds_left_out(result.lanes, list(fleet.ids))
     n_base = len(result.layout.base_cols)
     if note is None and mask.any() and len(not_cross_validated) == sum(1 for i in fleet.ids if i):
@@ -376,6 +389,7 @@ def build_report(result, typical_start=None) -> dict:
         "ambiguities": ambiguities,
         "weak_evidence": weak,
         "outliers": cleaning["outliers"],
+        "noisy_heliostats": cleaning["noisy_heliostats"],
         "change_points": cleaning["change_points"],
         "change_points_withdrawn": cleaning["change_points_withdrawn"],
         "unexplained": [
@@ -549,6 +563,7 @@ def _cleaning_report(result) -> dict:
             "n_superseded": 0,
             "n_restored": 0,
             "robust_noise_median_mrad": None,
+            "noisy_heliostats": [],
         }
     rid = np.asarray(fleet.record_id)
     outliers = [{"heliostat": ids[h], "record_id": int(rid[h, m])} for h, m in zip(*np.nonzero(cl.outlier)) if ids[h]]
@@ -576,6 +591,7 @@ def _cleaning_report(result) -> dict:
                 withdrawn.append({"heliostat": ids[h], "time": when, "p": _f(cl.change_p[h])})
     real = np.array([bool(i) for i in ids])
     noise = cl.noise_mrad[real & np.isfinite(cl.noise_mrad)]
+    noisy = noise_outliers(cl.noise_mrad, real)
     return {
         "outliers": outliers,
         "change_points": changes,
@@ -584,6 +600,7 @@ def _cleaning_report(result) -> dict:
         "n_superseded": int(cl.superseded.sum()),
         "n_restored": int(cl.restored.sum()) if cl.restored is not None else 0,
         "robust_noise_median_mrad": _f(np.median(noise)) if noise.size else None,
+        "noisy_heliostats": [{"heliostat": ids[h], "noise_mrad": _f(cl.noise_mrad[h])} for h in np.flatnonzero(noisy)],
     }
 
 

@@ -8,6 +8,7 @@ from ._artist import (
 )
 from ._compare import (
     CENTRED_WINDOW_M as CENTRED_WINDOW_M,
+    MAX_UNIFORM_SPREAD as MAX_UNIFORM_SPREAD,
     FluxComparison as FluxComparison,
     FluxRecords as FluxRecords,
     compare_record as compare_record,
@@ -23,6 +24,7 @@ from ._compare import (
     point_at as point_at,
     spot_widths as spot_widths,
     target_from_tower as target_from_tower,
+    uniform_spread as uniform_spread,
 )
 from ._flux import (
     ImageGrid as ImageGrid,

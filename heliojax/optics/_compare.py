@@ -145,12 +145,43 @@ def measured_images(record_path: str | os.PathLike) -> tuple[np.ndarray, np.ndar
         image = remove_background(image)
         if not image.any():
             raise DataError(path, None, "no flux spot: the image is uniform after removing its border's level")
+        spread = uniform_spread(image)
+        if spread > MAX_UNIFORM_SPREAD:
+            raise DataError(
+                path,
+                None,
+                f"no flux spot: its brightness is spread over the whole image like noise (second-moment widths "
+                f"{spread:.2f} of a uniformly lit image's or more along both axes; at most {MAX_UNIFORM_SPREAD})",
+            )
         images.append(image)
     return images[0], images[1]
 
 
 MIN_FLUX_PIXELS = 8
 """Fewest pixels per side of a measured flux image (PAINT's are 256 or 512)."""
+
+
+MAX_UNIFORM_SPREAD = 0.8
+"""Largest :func:`uniform_spread` of a measured flux image: a spot is concentrated on
+the target, and an image whose brightness is spread like that of a uniformly lit
+image (1.0; pure noise after :func:`remove_background` gives 1.0 too) holds no spot
+to compare with. The shared real flux images lie at 0.31-0.58."""
+
+
+def uniform_spread(image: np.ndarray) -> float:
+    """The smaller of a (background-free) image's two second-moment widths along its
+    rows and columns, each divided by that of a uniformly lit image of the same size
+    (its side over ``sqrt(12)``), both in pixels: ~0.1-0.6 for a spot, 1 for uniform
+    light or noise."""
+    img = np.clip(np.asarray(image, np.float64), 0.0, None)
+    rows, cols = img.shape
+    total = max(img.sum(), 1e-300)
+    widths = []
+    for weights, n in ((img.sum(axis=0), cols), (img.sum(axis=1), rows)):
+        x = np.arange(n, dtype=np.float64)
+        centre = (weights * x).sum() / total
+        widths.append(np.sqrt((weights * (x - centre) ** 2).sum() / total) / (n / np.sqrt(12.0)))
+    return float(min(widths))
 
 
 def geometry_from_properties(properties, origin_lla) -> HeliostatGeometry:
@@ -587,6 +618,7 @@ def comparison_figure(comparison: FluxComparison, ax=None):
 
 __all__ = [
     "CENTRED_WINDOW_M",
+    "MAX_UNIFORM_SPREAD",
     "FluxComparison",
     "FluxRecords",
     "compare_record",
@@ -605,4 +637,5 @@ __all__ = [
     "normalised_cross_correlation",
     "remove_background",
     "target_from_tower",
+    "uniform_spread",
 ]
