@@ -58,6 +58,7 @@ import dataclasses
 import json
 import logging
 import math
+import re
 import typing
 from pathlib import Path
 
@@ -524,6 +525,64 @@ _RECORD_FIELDS = (
 )
 
 
+_MAX_RESIDUAL_MRAD = 1e6
+"""Largest magnitude of a stored residual component (mrad): no pointing error is a
+thousand radians; a larger one is a forged or corrupted value."""
+_ANGLE_RANGES_DEG = {"sun_azimuth_deg": (-360.0, 360.0), "sun_elevation_deg": (-90.0, 90.0)}
+"""Where a record's sun angles (degrees) must lie."""
+
+
+def _check_record_ranges(records: dict[str, np.ndarray], source: str) -> None:
+    """Residuals within :data:`_MAX_RESIDUAL_MRAD`, and the sun angles of the fit's
+    records (``split`` not 0) finite and within :data:`_ANGLE_RANGES_DEG` (padding may
+    hold NaN)."""
+    for key in ("residual_mrad", "residual_uncalibrated_mrad"):
+        if key in records:
+            values = records[key]
+            big = np.abs(values[np.isfinite(values)])
+            if big.size and big.max() > _MAX_RESIDUAL_MRAD:
+                raise DataError(source, key, f"{big.max():.6g} mrad: no pointing error exceeds {_MAX_RESIDUAL_MRAD:g}")
+    fitted = records["split"] != 0 if "split" in records else None
+    for key, (low, high) in _ANGLE_RANGES_DEG.items():
+        if key not in records:
+            continue
+        values = records[key]
+        if fitted is not None and not np.isfinite(values[fitted]).all():
+            raise DataError(source, key, "not finite for a record of the fit's split")
+        finite = values[np.isfinite(values)]
+        if finite.size and not ((finite >= low) & (finite <= high)).all():
+            bad = finite[(finite < low) | (finite > high)][0]
+            raise DataError(source, key, f"{bad!r} deg is outside {low:g}..{high:g} deg")
+
+
+def _version_tuple(text: str) -> tuple[int, ...]:
+    """The leading numeric release parts of a version string ("0.9.1.dev3" -> (0, 9, 1))."""
+    parts = []
+    for piece in text.split("."):
+        digits = re.match(r"\d+", piece)
+        if digits is None:
+            break
+        parts.append(int(digits.group()))
+        if digits.group() != piece:
+            break
+    return tuple(parts)
+
+
+def _note_newer_version(written_by: typing.Any, source: str) -> None:
+    """Warn when the file was written by a newer heliojax than this one: what that version
+    added or changed is not known here (read as far as this version understands it)."""
+    if not isinstance(written_by, (str, bytes)):
+        return
+    text = written_by.decode(errors="replace") if isinstance(written_by, bytes) else written_by
+    if "unknown" in __version__:  # a source tree that was never installed: nothing to compare with
+        return
+    if _version_tuple(text) > _version_tuple(__version__):
+        log.warning(
+            f"{source}: written by heliojax {text}, newer than this heliojax {__version__}: read as this version "
+            "understands it (fields or meanings the newer one added are not known here)"
+        )
+
+
 _TIMED_RATES = ("drift_mrad2_per_day", "creep_mrad2_per_day2")
 """The rates of the predictive law that grow with the time since the fit: with either,
 the records of the fit's split need their times."""
@@ -732,6 +791,8 @@ def _load_results(path: str | Path) -> CalibrationResults:
                     f"{timed[(timed < 0) | (timed > _LATEST_UNIX_TIME)][0]!r} s is not a time "
                     "of 1970-2200 (seconds since 1970, UTC)",
                 )
+        _check_record_ranges(records, source)
+        _note_newer_version(f.attrs.get("heliojax_version"), source)
         status = _strings(need("status_labels"), source, "status_labels", len(ids))
         unknown_status = sorted(set(status) - _STATUS_LABELS)
         if unknown_status:

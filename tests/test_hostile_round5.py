@@ -178,3 +178,53 @@ def test_aim_results_names_bad_sun_and_aim_points(fitted_h5):
 def test_load_paint_directory_names_a_path_of_the_wrong_type(path):
     with pytest.raises(TypeError, match=r"^path: expected a directory path .* got (int|list)"):
         _unchecked(hj.load_paint_directory)(path)
+
+
+@pytest.mark.parametrize(
+    "dataset, value, message",
+    [
+        ("residual_mrad", 1e200, "no pointing error exceeds"),
+        ("sun_elevation_deg", 200.0, "outside -90..90 deg"),
+        ("sun_azimuth_deg", np.nan, "not finite for a record of the fit's split"),
+    ],
+)
+def test_forged_record_values_outside_their_range_are_refused(fitted_h5, tmp_path, dataset, value, message):
+    """Values edited in results.h5 with the row checksum recomputed (a forgery, or a
+    tool that rewrites the file) passed every check; a residual of 1e200 mrad then
+    moved the other heliostats' plans (a hostile-input trial, round 5). A value no
+    pointing error or sun position can take is refused, naming the dataset."""
+    import shutil
+
+    import h5py
+
+    from heliojax._results import CHECKSUM_DATASET, _row_checksums
+
+    results = tmp_path / "results.h5"
+    shutil.copy(fitted_h5, results)
+    with h5py.File(results, "r+") as f:
+        data = f[dataset][...]
+        fitted = np.argwhere(f["split"][...] != 0)[0]
+        data[tuple(fitted)] = value
+        f[dataset][...] = data
+        f[CHECKSUM_DATASET][...] = _row_checksums(f, len(f["heliostat_ids"]))
+    with pytest.raises(hj.DataError, match=message) as e:
+        hj.load_results(results)
+    assert e.value.field == dataset and e.value.file == str(results)
+
+
+def test_results_of_a_newer_heliojax_are_read_with_a_warning(fitted_h5, tmp_path, caplog):
+    """A results.h5 that says a newer heliojax wrote it was read without a word."""
+    import shutil
+
+    import h5py
+
+    results = tmp_path / "results.h5"
+    shutil.copy(fitted_h5, results)
+    with caplog.at_level("WARNING", logger="heliojax"):
+        hj.load_results(results)
+    assert "newer than this heliojax" not in caplog.text
+    with h5py.File(results, "r+") as f:
+        f.attrs["heliojax_version"] = "99.0"
+    with caplog.at_level("WARNING", logger="heliojax"):
+        hj.load_results(results)
+    assert "written by heliojax 99.0, newer than this heliojax" in caplog.text

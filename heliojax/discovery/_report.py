@@ -40,9 +40,9 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
       "outliers": [{"heliostat", "record_id"}],    # gross errors of the robust pre-pass (left out)
       "noisy_heliostats": [{"heliostat", "noise_mrad"}],  # noise far above the fleet's (robust
                                                    # pre-pass; heliojax.fitting.noise_outliers):
-                                                   # garbage records or a wrong properties file?
-                                                   # Kept (a warning says so): their records move
-                                                   # the fleet-wide statistics
+                                                   # garbage records, a wrong properties file, or
+                                                   # a noisier heliostat? Kept (a warning says so):
+                                                   # their records weigh in every fleet-wide statistic
       "change_points": [{"heliostat", "time": UTC ISO 8601 (first record since the change),
                          "previous_record_time", "jump": {param: rad}, "jump_unit": "rad",
                          "p", "p_holm", "n_records_before"}],   # records before it: fitted with the jump
@@ -350,8 +350,8 @@ def build_report(result, typical_start=None) -> dict:
         noisy = ", ".join(f"{n['heliostat']} ({n['noise_mrad']:.3g} mrad)" for n in cleaning["noisy_heliostats"])
         warnings.append(
             f"noise far above the fleet's median of {cleaning['robust_noise_median_mrad']:.3g} mrad: {noisy} "
-            "(garbage records or a wrong properties file?); kept, so their records move the fleet-wide noise "
-            "estimate and every test: check them, or run without them"
+            "(garbage records, a wrong properties file, or a heliostat noisier than the rest?); kept, so their "
+            "records weigh in the fleet-wide noise estimate and every test: check them, or run without them"
         )
     left_out, not_cross_validated = _folds_left_out(result.lanes, list(fleet.ids))
     n_base = len(result.layout.base_cols)
