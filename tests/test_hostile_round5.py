@@ -228,3 +228,24 @@ def test_results_of_a_newer_heliojax_are_read_with_a_warning(fitted_h5, tmp_path
     with caplog.at_level("WARNING", logger="heliojax"):
         hj.load_results(results)
     assert "written by heliojax 99.0, newer than this heliojax" in caplog.text
+
+
+def test_discover_leaves_out_the_heliostats_it_is_told_to(capsys, tmp_path):
+    """The report's warning about a garbage heliostat says to run without it:
+    ``--exclude`` does so; an unknown id or excluding every heliostat is a usage error
+    naming the ids (before anything is fitted)."""
+    from heliojax.cli._discover import without_heliostats
+
+    fleet = hj.load_paint_directory(hj.default_data_dir())
+    kept = without_heliostats(fleet, " BL14, BE36 ")
+    assert kept.ids == tuple(i for i in fleet.ids if i not in ("BL14", "BE36"))
+    np.testing.assert_array_equal(np.asarray(kept.counts), np.asarray(fleet.counts)[[fleet.index(i) for i in kept.ids]])
+    assert without_heliostats(fleet, None) is fleet
+    report = str(tmp_path / "r.json")
+    for exclude, message in (
+        ("BL14,XX99", "XX99 not among the loaded heliostats"),
+        (",".join(fleet.ids), "no heliostat"),
+    ):
+        rc, _, err = _run(["discover", "--exclude", exclude, "--report", report, "--quiet"], capsys)
+        assert rc == 2 and message in err, err
+    assert not Path(report).exists()

@@ -41,6 +41,27 @@ MAX_FOLDS = 100
 """Most --folds: the fit runs once per fold and once on all records, the fleet copied for each."""
 
 
+def without_heliostats(fleet, exclude: str | None):
+    """``fleet`` without the heliostats of the comma-separated ids ``exclude`` (None:
+    all kept). Raises ConfigError for an id the fleet lacks or when none would be left."""
+    from .._errors import ConfigError
+    from .._fleet import fleet_subset
+
+    if exclude is None:
+        return fleet
+    ids = [i.strip() for i in exclude.split(",") if i.strip()]
+    if not ids:
+        raise ConfigError(f"--exclude {exclude!r}: no heliostat id given")
+    unknown = sorted(set(ids) - set(fleet.ids))
+    if unknown:
+        raise ConfigError(f"--exclude: {', '.join(unknown)} not among the loaded heliostats ({len(fleet.ids)})")
+    keep = [i for i in fleet.ids if i not in set(ids)]
+    if not keep:
+        raise ConfigError("--exclude leaves no heliostat")
+    log.info(f"left out {len(set(ids))} heliostat(s): {', '.join(sorted(set(ids)))}")
+    return fleet_subset(fleet, keep)
+
+
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "discover",
@@ -98,6 +119,13 @@ def add_parser(subparsers) -> None:
         help="name library effects without letting generic functions of the time of day and the wind vector "
         "compete (default: they compete; one that wins is reported unexplained)",
     )
+    p.add_argument(
+        "--exclude",
+        default=None,
+        metavar="IDS",
+        help="comma-separated heliostat ids to leave out (e.g. those the report's noisy_heliostats names; "
+        "default: none)",
+    )
     add_fit_arguments(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar or messages on stderr")
 
@@ -149,7 +177,7 @@ def run(args) -> int:
         )
     except ValueError as e:
         raise ConfigError(str(e)) from e
-    fleet = load_fleet(args)
+    fleet = without_heliostats(load_fleet(args), args.exclude)
     blocks = fold_blocks(np.asarray(fleet.context.unix_time), np.asarray(fleet.mask))
     if 2 <= blocks < args.folds:  # (fewer than 2: discover says nothing can be tested)
         raise ConfigError(

@@ -351,7 +351,8 @@ def build_report(result, typical_start=None) -> dict:
         warnings.append(
             f"noise far above the fleet's median of {cleaning['robust_noise_median_mrad']:.3g} mrad: {noisy} "
             "(garbage records, a wrong properties file, or a heliostat noisier than the rest?); kept, so their "
-            "records weigh in the fleet-wide noise estimate and every test: check them, or run without them"
+            "records weigh in the fleet-wide noise estimate and every test: check them, or run without them "
+            "(`heliojax discover --exclude`)"
         )
     left_out, not_cross_validated = _folds_left_out(result.lanes, list(fleet.ids))
     n_base = len(result.layout.base_cols)
