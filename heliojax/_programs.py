@@ -392,11 +392,11 @@ def clear_caches() -> None:
 
     For a long-running process that compiles many distinct programs (a notebook, a
     service, a test suite): XLA:CPU maps each compiled program's code and data into
-    memory as ~3-6 separate memory mappings, kept while the program is cached, and
-    Linux limits a process to ``vm.max_map_count`` mappings (65,530 by default). XLA's
-    compiler dies of a segmentation fault, with no Python error, when a new program
-    finds that limit reached: the test suite's worker did after ~12,000 programs
-    (:func:`memory_map_count` says how near a process is)."""
+    memory as separate memory mappings (~5-20 per program as measured), kept while the
+    program is cached, and Linux limits a process to ``vm.max_map_count`` mappings
+    (65,530 by default). XLA's compiler dies of a segmentation fault, with no Python
+    error, when a new program finds that limit reached: a test suite's worker did after
+    ~13,000 programs (:func:`memory_map_count` says how near a process is)."""
     with _LOCK:
         _COMPILED.clear()
     jax.clear_caches()

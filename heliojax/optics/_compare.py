@@ -151,7 +151,8 @@ def measured_images(record_path: str | os.PathLike) -> tuple[np.ndarray, np.ndar
                 path,
                 None,
                 f"no flux spot: its brightness is spread over the whole image like noise (second-moment widths "
-                f"{spread:.2f} of a uniformly lit image's or more along both axes; at most {MAX_UNIFORM_SPREAD})",
+                f"at least {spread:.2f} of a uniformly lit image's along both axes; a spot's are at most "
+                f"{MAX_UNIFORM_SPREAD})",
             )
         images.append(image)
     return images[0], images[1]
