@@ -58,7 +58,6 @@ import dataclasses
 import json
 import logging
 import math
-import re
 import typing
 from pathlib import Path
 
@@ -76,7 +75,7 @@ from ._kinematics import AbstractKinematicModel, nominal_model
 from ._parameters import ParameterView, broadcast_model
 from ._predictive import DRIFT_RATE_KEYS, MIN_TAIL_DOF, PointingErrorLaw
 from ._splits import days_from_fitted_mean, days_since_fit
-from ._version import __version__
+from ._version import __version__, release_tuple
 from .effects import with_effects
 from .fitting import FitStatus
 from .paint._common import (
@@ -555,19 +554,6 @@ def _check_record_ranges(records: dict[str, np.ndarray], source: str) -> None:
             raise DataError(source, key, f"{bad!r} deg is outside {low:g}..{high:g} deg")
 
 
-def _version_tuple(text: str) -> tuple[int, ...]:
-    """The leading numeric release parts of a version string ("0.9.1.dev3" -> (0, 9, 1))."""
-    parts = []
-    for piece in text.split("."):
-        digits = re.match(r"\d+", piece)
-        if digits is None:
-            break
-        parts.append(int(digits.group()))
-        if digits.group() != piece:
-            break
-    return tuple(parts)
-
-
 def _note_newer_version(written_by: typing.Any, source: str) -> None:
     """Warn when the file was written by a newer heliojax than this one: what that version
     added or changed is not known here (read as far as this version understands it)."""
@@ -576,7 +562,7 @@ def _note_newer_version(written_by: typing.Any, source: str) -> None:
     text = written_by.decode(errors="replace") if isinstance(written_by, bytes) else written_by
     if "unknown" in __version__:  # a source tree that was never installed: nothing to compare with
         return
-    if _version_tuple(text) > _version_tuple(__version__):
+    if release_tuple(text) > release_tuple(__version__):
         log.warning(
             f"{source}: written by heliojax {text}, newer than this heliojax {__version__}: read as this version "
             "understands it (fields or meanings the newer one added are not known here)"

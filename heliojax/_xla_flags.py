@@ -34,7 +34,8 @@ from __future__ import annotations
 
 import importlib.metadata
 import os
-import re
+
+from ._version import release_tuple
 
 LEGACY_CPU_EMITTERS = "--xla_cpu_use_fusion_emitters=false"
 """The flag (see the module docstring)."""
@@ -48,7 +49,7 @@ def _jaxlib_version() -> tuple[int, ...]:
         text = importlib.metadata.version("jaxlib")
     except importlib.metadata.PackageNotFoundError:
         return ()
-    return tuple(int(x) for x in re.findall(r"\d+", text)[:3])
+    return release_tuple(text)[:3]
 
 
 PROGRAM_OPTION = "xla_cpu_use_fusion_emitters"

@@ -52,13 +52,14 @@ def without_heliostats(fleet, exclude: str | None):
     ids = [i.strip() for i in exclude.split(",") if i.strip()]
     if not ids:
         raise ConfigError(f"--exclude {exclude!r}: no heliostat id given")
-    unknown = sorted(set(ids) - set(fleet.ids))
+    drop = set(ids)
+    unknown = sorted(drop - set(fleet.ids))
     if unknown:
         raise ConfigError(f"--exclude: {', '.join(unknown)} not among the loaded heliostats ({len(fleet.ids)})")
-    keep = [i for i in fleet.ids if i not in set(ids)]
+    keep = [i for i in fleet.ids if i not in drop]
     if not keep:
         raise ConfigError("--exclude leaves no heliostat")
-    log.info(f"left out {len(set(ids))} heliostat(s): {', '.join(sorted(set(ids)))}")
+    log.info(f"left out {len(drop)} heliostat(s): {', '.join(sorted(drop))}")
     return fleet_subset(fleet, keep)
 
 

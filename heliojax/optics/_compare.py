@@ -174,14 +174,15 @@ def uniform_spread(image: np.ndarray) -> float:
     rows and columns, each divided by that of a uniformly lit image of the same size
     (its side over ``sqrt(12)``), both in pixels: ~0.1-0.6 for a spot, 1 for uniform
     light or noise."""
-    img = np.clip(np.asarray(image, np.float64), 0.0, None)
-    rows, cols = img.shape
-    total = max(img.sum(), 1e-300)
-    widths = []
-    for weights, n in ((img.sum(axis=0), cols), (img.sum(axis=1), rows)):
-        x = np.arange(n, dtype=np.float64)
-        centre = (weights * x).sum() / total
-        widths.append(np.sqrt((weights * (x - centre) ** 2).sum() / total) / (n / np.sqrt(12.0)))
+    rows, cols = np.shape(image)
+    pixels = ImageGrid(  # one metre per pixel
+        u_min=jnp.asarray(0.0),
+        u_max=jnp.asarray(float(cols)),
+        v_min=jnp.asarray(0.0),
+        v_max=jnp.asarray(float(rows)),
+        shape=(rows, cols),
+    )
+    widths = spot_widths(image, pixels) / (np.asarray([cols, rows], np.float64) / np.sqrt(12.0))
     return float(min(widths))
 
 
