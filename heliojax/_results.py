@@ -4,7 +4,9 @@ Schema (``H`` heliostats, ``M`` padded records; NaN / -1 where no record):
 
 * attrs: ``model`` (the model's label, e.g. ``"actuator"``,
   ``"stone8+backlash"``; ``"stone8+nn"``: a neural correction, whose network the file
-  does not hold, so :func:`load_results` refuses it), ``split``, ``heliojax_version``, ``param_names`` and
+  does not hold, so :func:`load_results` refuses it), ``split``, ``heliojax_version``,
+  ``written_unix_time`` (s; a record time after it is refused, a write time after the
+  reader's clock warned of), ``param_names`` and
   ``param_units`` (JSON lists, vector order of :class:`heliojax.ParameterView`),
   ``free_params`` (JSON list), ``robust`` (bool), ``origin_lla`` (WGS84 lat deg,
   lon deg, alt m of the ENU origin), ``drift_mrad2_per_day`` (the fleet's
@@ -44,6 +46,14 @@ Schema (``H`` heliostats, ``M`` padded records; NaN / -1 where no record):
 * with ``--test-data``: group ``test_data`` with ``record_id``, ``unix_time``,
   ``beam_error_mrad``, ``beam_error_uncalibrated_mrad`` ``(H, M')`` re-indexed to
   the fitted heliostats' rows
+* group ``record_inputs``: the records' inputs, ``counts`` ``(H, M, 2)``,
+  ``focal_spot`` ``(H, M, 3)`` ENU m, ``sun`` ``(H, M, 3)`` unit ENU vectors,
+  ``temperature`` deg C, ``wind_speed`` m/s, ``wind_direction`` rad, ``approach``
+  ``(H, M, 2)``: with ``params``, ``geometry`` and ``unix_time`` /
+  ``target_index`` they reproduce ``residual_mrad``, which :func:`load_results`
+  recomputes (one compiled program) and flags a heliostat whose stored residuals its
+  parameters miss by more than :data:`RESIDUAL_TOLERANCE_MRAD` (files without the
+  group, of older versions, are not checked)
 * ``row_checksum`` ``(H,)`` uint64, written last: per heliostat a 64-bit checksum of
   its rows of every other dataset with the file's attributes and ``target_names``.
   :func:`load_results` recomputes it and flags a heliostat whose rows changed since
@@ -58,6 +68,7 @@ import dataclasses
 import json
 import logging
 import math
+import time
 import typing
 from pathlib import Path
 
@@ -69,7 +80,7 @@ from jaxtyping import ArrayLike, Bool, Float
 
 from ._errors import DataError, HeliojaxError
 from ._geometry import direction_to_azimuth_elevation, sun_direction
-from ._heliostat import HeliostatGeometry, LinearActuators
+from ._heliostat import HeliostatGeometry, LinearActuators, RecordContext
 from ._io import atomic_h5
 from ._kinematics import AbstractKinematicModel, nominal_model
 from ._parameters import ParameterView, broadcast_model
@@ -77,7 +88,7 @@ from ._predictive import DRIFT_RATE_KEYS, MIN_TAIL_DOF, PointingErrorLaw
 from ._splits import days_from_fitted_mean, days_since_fit
 from ._version import __version__, release_tuple
 from .effects import with_effects
-from .fitting import FitStatus
+from .fitting import FitStatus, residuals_mrad
 from .paint._common import (
     MAX_HELIOSTAT_DISTANCE_M,
     MAX_HELIOSTAT_HEIGHT_M,
@@ -230,6 +241,31 @@ def model_from_label(label: str, dtype: typing.Any = jnp.float64) -> AbstractKin
 CHECKSUM_DATASET = "row_checksum"
 """Dataset of results.h5 with one 64-bit checksum per heliostat (see :func:`_row_checksums`)."""
 
+RECORD_INPUTS = "record_inputs"
+"""Group of results.h5 with the fitted records' inputs (counts, focal spots, sun, weather,
+approach directions), from which :func:`load_results` recomputes ``residual_mrad``."""
+
+_RECORD_INPUT_TRAILING = {
+    "counts": (2,),
+    "focal_spot": (3,),
+    "sun": (3,),
+    "temperature": (),
+    "wind_speed": (),
+    "wind_direction": (),
+    "approach": (2,),
+}
+"""The datasets of :data:`RECORD_INPUTS` and their axes after ``(heliostats, records)``."""
+
+RESIDUAL_TOLERANCE_MRAD = 1e-6
+"""Largest difference (mrad) between a stored residual component and the one its
+heliostat's parameters give on its stored record inputs: both are the same float64
+program's output (observed differences ~1e-12 mrad); an edited parameter moves them by
+far more."""
+
+_CLOCK_SKEW_S = 86_400.0
+"""Slack (s) for clocks of different machines when a record time or the file's write
+time is compared with a later one."""
+
 _FILE_LEVEL = frozenset({"target_names"})
 """Datasets that describe the file, not a heliostat's row, whatever their length."""
 
@@ -313,6 +349,7 @@ def write_results_h5(path: str | Path, run: typing.Any) -> None:
         f.attrs["model"] = str(run.summary.get("model") or run.model0.label())
         f.attrs["split"] = run.split_kind
         f.attrs["heliojax_version"] = __version__
+        f.attrs["written_unix_time"] = time.time()
         f.attrs["param_names"] = json.dumps(list(view.names))
         f.attrs["param_units"] = json.dumps(list(view.units))
         f.attrs["free_params"] = json.dumps(list(view.free_names))
@@ -359,6 +396,20 @@ def write_results_h5(path: str | Path, run: typing.Any) -> None:
         off_target = run.off_target if run.off_target is not None else np.zeros(np.shape(run.outlier), bool)
         f.create_dataset("off_target", data=np.asarray(off_target, bool)[:n])
         f.create_dataset("residual_mrad", data=run.residuals_mrad[:n])
+        # the records themselves: with params and geometry they reproduce residual_mrad,
+        # which load_results checks (a parameter edited within every bound is found)
+        context = run.fleet.context
+        inputs = {
+            "counts": run.fleet.counts,
+            "focal_spot": run.fleet.focal_spot,
+            "sun": context.sun,
+            "temperature": context.temperature,
+            "wind_speed": context.wind_speed,
+            "wind_direction": context.wind_direction,
+            "approach": context.approach,
+        }
+        for name, value in inputs.items():
+            f.create_dataset(f"{RECORD_INPUTS}/{name}", data=np.asarray(value, float)[:n])
         f.create_dataset("residual_uncalibrated_mrad", data=run.uncalibrated_residuals_mrad[:n])
         f.create_dataset("beam_error_mrad", data=run.errors_mrad[:n])
         f.create_dataset("beam_error_uncalibrated_mrad", data=run.uncalibrated_mrad[:n])
@@ -586,6 +637,80 @@ _LAW_ATTRS = (
 """Numeric attributes of results.h5 and their ranges."""
 
 
+def _iso(unix_time: float) -> str:
+    import datetime
+
+    return datetime.datetime.fromtimestamp(unix_time, tz=datetime.UTC).strftime("%Y-%m-%dT%H:%MZ")
+
+
+def _written_time(attrs: dict, records: dict[str, np.ndarray], source: str) -> float | None:
+    """The file's ``written_unix_time`` (None in files written before it was kept);
+    DataError when it is no time of 1970-2200 or a record is later than it."""
+    if "written_unix_time" not in attrs:
+        return None
+    try:
+        written = float(attrs["written_unix_time"])
+    except (TypeError, ValueError):
+        raise DataError(source, "written_unix_time", f"not a number: {attrs['written_unix_time']!r}"[:200]) from None
+    if not 0.0 <= written <= _LATEST_UNIX_TIME:  # NaN too
+        raise DataError(source, "written_unix_time", f"{written!r} s is not a time of 1970-2200")
+    t = records.get("unix_time")
+    if t is not None:
+        later = np.isfinite(t) & (t > written + _CLOCK_SKEW_S)
+        if later.any():
+            raise DataError(
+                source,
+                "unix_time",
+                f"a record at {_iso(float(t[later][0]))} is later than the file was written ({_iso(written)})",
+            )
+    return written
+
+
+def _unreproduced_residuals(
+    label: str,
+    view: ParameterView,
+    params: np.ndarray,
+    geometry: HeliostatGeometry,
+    inputs: dict[str, np.ndarray],
+    records: dict[str, np.ndarray],
+    usable: np.ndarray,
+) -> dict[int, float]:
+    """Heliostat index -> largest difference (mrad) between its stored residuals and
+    those its parameters (``params`` ``(H, P)`` of the model ``label`` in ``view``'s
+    order) give on the stored record inputs, for the usable heliostats where it exceeds
+    :data:`RESIDUAL_TOLERANCE_MRAD`. In float64 whatever the caller's
+    ``jax_enable_x64`` (``geometry`` read so); one compiled program over every heliostat
+    and record (the calibration's own)."""
+    stored = records["residual_mrad"]
+    claimed = np.isfinite(stored).all(axis=-1) & usable[:, None]
+    if not claimed.any():
+        return {}
+    n_rows = stored.shape[0]
+    with jax.enable_x64(True):
+        model = jax.vmap(view.from_vector)(broadcast_model(model_from_label(label), n_rows), jnp.asarray(params))
+        recomputed = _recomputed_residuals(model, geometry, inputs, records, claimed)
+    with np.errstate(invalid="ignore"):
+        difference = np.where(claimed[..., None], np.abs(recomputed - stored), 0.0)
+    worst = np.nan_to_num(difference, nan=np.inf).reshape(n_rows, -1).max(axis=1)
+    return {int(h): float(worst[h]) for h in np.flatnonzero(worst > RESIDUAL_TOLERANCE_MRAD)}
+
+
+def _recomputed_residuals(model, geometry, inputs, records, claimed) -> np.ndarray:
+    """``(H, M, 2)`` residuals (mrad) of ``model`` on the stored record inputs."""
+    stored = records["residual_mrad"]
+    context = RecordContext(
+        sun=jnp.asarray(inputs["sun"]),
+        unix_time=jnp.asarray(records.get("unix_time", np.full(stored.shape[:2], np.nan)), float),
+        temperature=jnp.asarray(inputs["temperature"]),
+        wind_speed=jnp.asarray(inputs["wind_speed"]),
+        wind_direction=jnp.asarray(inputs["wind_direction"]),
+        approach=jnp.asarray(inputs["approach"]),
+        target=jnp.asarray(records.get("target_index", np.full(stored.shape[:2], -1)), jnp.int32),
+    )
+    counts, focal = jnp.asarray(inputs["counts"]), jnp.asarray(inputs["focal_spot"])
+    return np.asarray(residuals_mrad(model, geometry, counts, context, focal, jnp.asarray(claimed)))
+
+
 def _error_law(attrs: dict) -> PointingErrorLaw:
     """The pointing-error law of results.h5's attributes ``attrs`` (the Gaussian without
     them). Raises ValueError naming the attribute the law refuses."""
@@ -779,6 +904,21 @@ def _load_results(path: str | Path) -> CalibrationResults:
                 )
         _check_record_ranges(records, source)
         _note_newer_version(f.attrs.get("heliojax_version"), source)
+        written = _written_time(attrs, records, source)
+        inputs: dict[str, np.ndarray] = {}
+        geometry64: HeliostatGeometry | None = None
+        if (
+            isinstance(f.get(RECORD_INPUTS), h5py.Group)
+            and "residual_mrad" in records
+            and isinstance(group, h5py.Group)
+        ):
+            m = records["residual_mrad"].shape[1]
+            inputs = {
+                k: _numeric(need(f"{RECORD_INPUTS}/{k}"), source, f"{RECORD_INPUTS}/{k}", (len(ids), m, *tail), "f")
+                for k, tail in _RECORD_INPUT_TRAILING.items()
+            }
+            with jax.enable_x64(True):  # the check compares float64 residuals, whatever the caller's setting
+                geometry64 = _read_geometry(group, source, len(ids))
         status = _strings(need("status_labels"), source, "status_labels", len(ids))
         unknown_status = sorted(set(status) - _STATUS_LABELS)
         if unknown_status:
@@ -948,6 +1088,20 @@ def _load_results(path: str | Path) -> CalibrationResults:
         )
     batched = broadcast_model(template, len(ids))
     model = jax.vmap(view.from_vector)(batched, jnp.asarray(params))
+    if inputs and geometry64 is not None:
+        unreproduced = _unreproduced_residuals(str(attrs["model"]), view, params, geometry64, inputs, records, usable)
+        for h, difference in unreproduced.items():
+            reason = (
+                f"params: heliostat {ids[h]!r}: its parameters do not reproduce its residuals in the file (by up to "
+                f"{difference:.3g} mrad): the parameters or the records were edited, or come from another fit"
+            )
+            log.warning(f"{source}: {reason}; its fit is not used")
+            flags.setdefault(ids[h], reason)
+    if written is not None and written > time.time() + _CLOCK_SKEW_S:
+        log.warning(
+            f"{source}: written_unix_time: written {_iso(written)}, later than this machine's clock: a wrong clock, "
+            "or an edited file"
+        )
     return CalibrationResults(
         ids=ids,
         model=model,

@@ -430,18 +430,41 @@ def test_a_generic_competitor_that_beats_the_library_is_reported_and_the_report_
     assert json.loads((tmp_path / "report.json").read_text())["unexplained"][0]["instead_of"] == first["instead_of"]
 
 
-def test_a_garbage_heliostat_is_named_in_the_report_and_its_warnings():
+def test_a_garbage_heliostat_is_left_out_and_spoils_nothing():
     """One heliostat's records with its two motor axes swapped (garbage) changed the
     fleet's noise estimate and every p-value of ``discover`` without a word (a
-    hostile-input trial): the report names it with its noise, and a warning says so;
-    the clean heliostats are not named."""
+    hostile-input trial). Now it is named in the report and a warning, and left out
+    after the pre-pass: the fleet's noise estimate, screens and held-out errors are
+    those of the fleet without it; with ``keep_noisy`` it is kept and they move."""
     import equinox as eqx
     from helpers import zoo
 
+    from heliojax._fleet import fleet_subset
+
     fleet = zoo("actuator").fleet
     garbage = eqx.tree_at(lambda f: f.counts, fleet, fleet.counts.at[0].set(fleet.counts[0, :, ::-1]))
-    rep = discover(garbage, base="actuator", effects=("backlash",), max_refits=1).report
+    settings = dict(base="actuator", effects=("backlash",), max_refits=1)
+    rep = discover(garbage, **settings).report
     assert [n["heliostat"] for n in rep["noisy_heliostats"]] == [fleet.ids[0]]
+    assert rep["noisy_heliostats"][0]["left_out"] is True
     assert rep["noisy_heliostats"][0]["noise_mrad"] > 10 * rep["data"]["robust_noise_median_mrad"]
-    assert any(fleet.ids[0] in w and "noise far above" in w for w in rep["warnings"])
-    assert discover(fleet, base="actuator", effects=("backlash",), max_refits=1).report["noisy_heliostats"] == []
+    assert any(fleet.ids[0] in w and "left out" in w for w in rep["warnings"])
+    n_garbage = int(np.asarray(fleet.mask[0]).sum())
+    others_flagged = sum(o["heliostat"] != fleet.ids[0] for o in rep["outliers"])
+    assert rep["data"]["n_records_used"] == int(np.asarray(fleet.mask).sum()) - n_garbage - others_flagged
+
+    rest = discover(fleet_subset(fleet, list(fleet.ids[1:])), **settings).report
+    for key in ("noise_estimate_mrad", "heldout_rms_base_mrad", "heldout_rms_final_mrad"):
+        np.testing.assert_allclose(rep[key], rest[key], rtol=1e-6, err_msg=key)
+    assert rep["variable_p_values"].keys() == rest["variable_p_values"].keys()
+    tested = [v for v, p in rest["variable_p_values"].items() if p is not None]
+    assert tested
+    np.testing.assert_allclose(
+        [rep["variable_p_values"][v] for v in tested], [rest["variable_p_values"][v] for v in tested], rtol=1e-6
+    )
+    assert rep["named_effects"] == rest["named_effects"]
+
+    kept = discover(garbage, keep_noisy=True, **settings).report
+    assert kept["noisy_heliostats"][0]["left_out"] is False
+    assert kept["noise_estimate_mrad"] > 1.2 * rest["noise_estimate_mrad"]
+    assert rest["noisy_heliostats"] == []  # the clean heliostats

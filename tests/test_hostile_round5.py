@@ -212,6 +212,81 @@ def test_forged_record_values_outside_their_range_are_refused(fitted_h5, tmp_pat
     assert e.value.field == dataset and e.value.file == str(results)
 
 
+def _forged(fitted_h5: Path, tmp_path: Path, edit) -> Path:
+    """A copy of ``fitted_h5`` changed by ``edit(file)`` with its row checksums recomputed."""
+    import shutil
+
+    import h5py
+
+    from heliojax._results import CHECKSUM_DATASET, _row_checksums
+
+    results = tmp_path / "results.h5"
+    shutil.copy(fitted_h5, results)
+    with h5py.File(results, "r+") as f:
+        edit(f)
+        f[CHECKSUM_DATASET][...] = _row_checksums(f, len(f["heliostat_ids"]))
+    return results
+
+
+def test_a_parameter_forged_within_its_bounds_is_found_by_the_residuals(fitted_h5, tmp_path, caplog):
+    """A parameter edited within every plausibility bound, the row checksum recomputed,
+    passed (an axis tilt of pi aimed with, ok=1: hostile-input trial, round 5). The file
+    now holds its records' inputs, and the parameters must reproduce its residuals: the
+    forged heliostat is flagged (not aimed with), the others keep their fits."""
+    clean = hj.load_results(fitted_h5)
+    assert clean.flags == {}
+    h = next(i for i, s in enumerate(clean.status) if s in ("converged", "max_steps"))
+    column = list(clean.view.names).index(clean.view.free_names[0])
+
+    def edit(f):
+        params = f["params"][...]
+        params[h, column] += 1e-6  # a micro-radian: far inside any bound
+        f["params"][...] = params
+
+    with caplog.at_level("WARNING", logger="heliojax"):
+        forged = hj.load_results(_forged(fitted_h5, tmp_path, edit))
+    assert list(forged.flags) == [clean.ids[h]]
+    assert "do not reproduce its residuals" in forged.flags[clean.ids[h]]
+    assert clean.ids[h] in caplog.text
+
+
+def test_residuals_are_reproduced_without_x64(fitted_h5):
+    """The check computes in float64 whatever the caller's ``jax_enable_x64``: in a
+    plain user's configuration (float32) it flags nothing."""
+    import subprocess
+    import sys
+
+    code = (
+        "import jax, heliojax as hj, sys; assert not jax.config.jax_enable_x64; "
+        f"r = hj.load_results({str(fitted_h5)!r}); print(sorted(r.flags)); sys.exit(bool(r.flags))"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stdout + done.stderr
+
+
+def test_record_times_after_the_file_was_written_are_refused(fitted_h5, tmp_path):
+    """Record times moved to 2191 (within 1970-2200) lowered that heliostat's predicted
+    uncertainty without a word (round 5). A record cannot be later than its file."""
+
+    def edit(f):
+        t = f["unix_time"][...]
+        t[np.isfinite(t)] = 7.0e9  # 2191
+        f["unix_time"][...] = t
+
+    with pytest.raises(hj.DataError, match="later than the file was written") as e:
+        hj.load_results(_forged(fitted_h5, tmp_path, edit))
+    assert e.value.field == "unix_time"
+
+
+def test_a_file_written_after_now_is_warned_of(fitted_h5, tmp_path, caplog):
+    def edit(f):
+        f.attrs["written_unix_time"] = 7.0e9
+
+    with caplog.at_level("WARNING", logger="heliojax"):
+        hj.load_results(_forged(fitted_h5, tmp_path, edit))
+    assert "later than this machine's clock" in caplog.text
+
+
 def test_results_of_a_newer_heliojax_are_read_with_a_warning(fitted_h5, tmp_path, caplog):
     """A results.h5 that says a newer heliojax wrote it was read without a word."""
     import shutil

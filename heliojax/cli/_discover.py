@@ -124,8 +124,13 @@ def add_parser(subparsers) -> None:
         "--exclude",
         default=None,
         metavar="IDS",
-        help="comma-separated heliostat ids to leave out (e.g. those the report's noisy_heliostats names; "
-        "default: none)",
+        help="comma-separated heliostat ids to leave out (default: none)",
+    )
+    p.add_argument(
+        "--keep-noisy",
+        action="store_true",
+        help="keep heliostats whose noise after the robust pre-pass lies far above the fleet's (default: left out "
+        "after it, as calibrate leaves them out of its fleet statistics; the report's noisy_heliostats names them)",
     )
     add_fit_arguments(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar or messages on stderr")
@@ -175,6 +180,7 @@ def run(args) -> int:
             changes=not args.no_changes,
             effect_prior=not args.no_effect_prior,
             generic_competitors=not args.no_generic_competitors,
+            keep_noisy=args.keep_noisy,
         )
     except ValueError as e:
         raise ConfigError(str(e)) from e

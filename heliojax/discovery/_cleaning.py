@@ -93,6 +93,11 @@ class Cleaning:
             between them and a drift fit alike, and the noise decides which fits
             better). A library effect whose evidence rests on these heliostats alone is
             reported ambiguous with a change point (:func:`change_point_rival`).
+        left_out: ``(H,)`` heliostats whose noise after the pre-pass lies far above the
+            fleet's (:func:`heliojax.fitting.noise_outliers`, the rule by which
+            ``calibrate`` leaves them out of its fleet statistics): left out of the
+            workflow after the pre-pass, their gross errors and change points those of
+            the pre-pass (None: none left out).
     """
 
     valid: np.ndarray
@@ -110,6 +115,53 @@ class Cleaning:
     restored: np.ndarray | None = None
     final_residuals: np.ndarray | None = None
     undecided: np.ndarray | None = None
+    left_out: np.ndarray | None = None
+
+    def leaving_out(self, heliostats: np.ndarray) -> Cleaning:
+        """This pre-pass with the records of ``heliostats`` ``(H,)`` bool no longer valid
+        (and none of them changed): what the workflow after the pre-pass sees."""
+        keep = ~np.asarray(heliostats, bool)
+        return dataclasses.replace(
+            self,
+            valid=self.valid & keep[:, None],
+            outlier=self.outlier & keep[:, None],
+            superseded=self.superseded & keep[:, None],
+            change_found=self.change_found & keep,
+            undecided=None if self.undecided is None else self.undecided & keep,
+        )
+
+    def with_left_out(self, pre_pass: Cleaning, heliostats: np.ndarray) -> Cleaning:
+        """The workflow's cleaning (of :meth:`leaving_out`'s result) with the rows of
+        the left-out ``heliostats`` ``(H,)`` bool back from ``pre_pass``: their records,
+        gross errors and change points as the pre-pass found them, never withdrawn or
+        restored (the final model never saw them)."""
+        out = np.asarray(heliostats, bool)
+        rows = out[:, None]
+
+        def pick(mine, theirs, where):
+            if mine is None:
+                return None
+            return np.where(where, theirs, mine)
+
+        zeros = np.zeros_like(out)
+        return dataclasses.replace(
+            self,
+            valid=np.where(rows, pre_pass.valid, self.valid),
+            outlier=np.where(rows, pre_pass.outlier, self.outlier),
+            superseded=np.where(rows, pre_pass.superseded, self.superseded),
+            change_found=np.where(out, pre_pass.change_found, self.change_found),
+            change_time_s=np.where(out, pre_pass.change_time_s, self.change_time_s),
+            change_previous_s=np.where(out, pre_pass.change_previous_s, self.change_previous_s),
+            change_jump_mrad=np.where(rows, pre_pass.change_jump_mrad, self.change_jump_mrad),
+            change_p=np.where(out, pre_pass.change_p, self.change_p),
+            change_p_holm=np.where(out, pre_pass.change_p_holm, self.change_p_holm),
+            noise_mrad=np.where(out, pre_pass.noise_mrad, self.noise_mrad),
+            withdrawn=pick(self.withdrawn, zeros, out),
+            restored=pick(self.restored, np.zeros_like(rows), rows),
+            final_residuals=pick(self.final_residuals, np.nan, rows[..., None]),
+            undecided=pick(self.undecided, pre_pass.undecided if pre_pass.undecided is not None else zeros, out),
+            left_out=out,
+        )
 
     @classmethod
     def none(cls, valid: np.ndarray) -> Cleaning:

@@ -38,11 +38,13 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
                                                    # (Kass & Raftery's "positive", below "strong"):
                                                    # the name is not certain
       "outliers": [{"heliostat", "record_id"}],    # gross errors of the robust pre-pass (left out)
-      "noisy_heliostats": [{"heliostat", "noise_mrad"}],  # noise far above the fleet's (robust
-                                                   # pre-pass; heliojax.fitting.noise_outliers):
+      "noisy_heliostats": [{"heliostat", "noise_mrad", "left_out"}],  # noise far above the fleet's
+                                                   # (robust pre-pass; heliojax.fitting.noise_outliers):
                                                    # garbage records, a wrong properties file, or
-                                                   # a noisier heliostat? Kept (a warning says so):
-                                                   # their records weigh in every fleet-wide statistic
+                                                   # a noisier heliostat? left_out true (default):
+                                                   # not used after the pre-pass (their outliers and
+                                                   # change points are the pre-pass's); false
+                                                   # (keep_noisy): they weigh in every statistic
       "change_points": [{"heliostat", "time": UTC ISO 8601 (first record since the change),
                          "previous_record_time", "jump": {param: rad}, "jump_unit": "rad",
                          "p", "p_holm", "n_records_before"}],   # records before it: fitted with the jump
@@ -348,11 +350,15 @@ def build_report(result, typical_start=None) -> dict:
     warnings = [note] if note is not None else []
     if cleaning["noisy_heliostats"]:
         noisy = ", ".join(f"{n['heliostat']} ({n['noise_mrad']:.3g} mrad)" for n in cleaning["noisy_heliostats"])
+        said = (
+            "left out after the robust pre-pass (its gross errors and change points are reported), as calibrate "
+            "leaves them out of its fleet statistics; keep them with `heliojax discover --keep-noisy`"
+            if cleaning["noisy_heliostats"][0]["left_out"]
+            else "kept (keep_noisy), so their records weigh in the fleet-wide noise estimate and every test"
+        )
         warnings.append(
             f"noise far above the fleet's median of {cleaning['robust_noise_median_mrad']:.3g} mrad: {noisy} "
-            "(garbage records, a wrong properties file, or a heliostat noisier than the rest?); kept, so their "
-            "records weigh in the fleet-wide noise estimate and every test: check them, or run without them "
-            "(`heliojax discover --exclude`)"
+            f"(garbage records, a wrong properties file, or a heliostat noisier than the rest?): {said}"
         )
     left_out, not_cross_validated = _folds_left_out(result.lanes, list(fleet.ids))
     n_base = len(result.layout.base_cols)
@@ -448,6 +454,7 @@ def build_report(result, typical_start=None) -> dict:
             # the refits' criterion (the field "delta_bic" holds its difference)
             "criterion": "laplace_evidence" if cfg.effect_prior else "bic",
             "generic_competitors": cfg.generic_competitors and cfg.effect_prior,
+            "keep_noisy": cfg.keep_noisy,
         },
         "data": {
             "source": getattr(getattr(fleet, "report", None), "source", None),
@@ -592,7 +599,9 @@ def _cleaning_report(result) -> dict:
                 withdrawn.append({"heliostat": ids[h], "time": when, "p": _f(cl.change_p[h])})
     real = np.array([bool(i) for i in ids])
     noise = cl.noise_mrad[real & np.isfinite(cl.noise_mrad)]
-    noisy = noise_outliers(cl.noise_mrad, real)
+    left = np.zeros(len(ids), bool) if cl.left_out is None else np.asarray(cl.left_out, bool)
+    left_out = bool(left.any())
+    noisy = left if left_out else noise_outliers(cl.noise_mrad, real)
     return {
         "outliers": outliers,
         "change_points": changes,
@@ -601,7 +610,10 @@ def _cleaning_report(result) -> dict:
         "n_superseded": int(cl.superseded.sum()),
         "n_restored": int(cl.restored.sum()) if cl.restored is not None else 0,
         "robust_noise_median_mrad": _f(np.median(noise)) if noise.size else None,
-        "noisy_heliostats": [{"heliostat": ids[h], "noise_mrad": _f(cl.noise_mrad[h])} for h in np.flatnonzero(noisy)],
+        "noisy_heliostats": [
+            {"heliostat": ids[h], "noise_mrad": _f(cl.noise_mrad[h]), "left_out": left_out}
+            for h in np.flatnonzero(noisy)
+        ],
     }
 
 

@@ -93,11 +93,12 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from .._errors import few_names
 from .._fleet import bucket_size, pad_fleet
 from .._kinematics import MODEL_KINDS, nominal_model
 from .._progress import activity, progress_bar
 from ..effects import EFFECT_NAMES, OffsetStep
-from ..fitting import OFFSET_NAMES, AbstractBatching, default_solver, fitted_start_geometry
+from ..fitting import OFFSET_NAMES, AbstractBatching, default_solver, fitted_start_geometry, noise_outliers
 from ._cleaning import Cleaning, change_point_rival, clean, confirm_change_points, recheck_outliers
 from ._competitors import (
     CompetitorScore,
@@ -214,6 +215,13 @@ class DiscoveryConfig:
             vector) compete with it on the same criterion; if one is at least as good,
             nothing more is named and its variable is reported unexplained
             (:mod:`._competitors`). Needs ``effect_prior`` (the criterion's priors).
+        keep_noisy: keep the heliostats whose noise after the robust pre-pass lies far
+            above the fleet's (:func:`heliojax.fitting.noise_outliers`: garbage
+            records, a wrong properties file). By default they are left out after the
+            pre-pass (``report["noisy_heliostats"]``; their gross errors and change
+            points are the pre-pass's), as ``calibrate`` leaves them out of its fleet
+            statistics: kept, one such heliostat moves the fleet's noise estimate and
+            every test.
     """
 
     base: str = "auto"
@@ -234,6 +242,7 @@ class DiscoveryConfig:
     ambiguity_bic: float = AMBIGUITY_BIC
     effect_prior: bool = True
     generic_competitors: bool = True
+    keep_noisy: bool = False
 
     @property
     def candidates(self) -> tuple[str, ...]:
@@ -926,8 +935,17 @@ def discover(
             geometry, typical_start, _ = fitted_start_geometry(base, padded)
             padded = eqx.tree_at(lambda f: f.geometry, padded, geometry)
     with activity("robust pre-pass and change-point scan", logger=log):
-        cleaning = clean(base, padded, config.alpha, outliers=config.robust, changes=config.changes)
-    result = _discover_cleaned(padded, base, cleaning, config, n_real, t_start)
+        pre_pass = clean(base, padded, config.alpha, outliers=config.robust, changes=config.changes)
+    real = np.array([bool(i) for i in padded.ids])
+    noisy = np.zeros_like(real) if config.keep_noisy else noise_outliers(pre_pass.noise_mrad, real)
+    if noisy.any():
+        log.info(
+            f"{few_names([padded.ids[i] for i in np.flatnonzero(noisy)])}: noise far above the fleet's: "
+            "left out after the pre-pass"
+        )
+    cleaning = pre_pass.leaving_out(noisy)
+    n_used = n_real - int(noisy.sum())
+    result = _discover_cleaned(padded, base, cleaning, config, n_used, t_start)
     first = result.cleaning
     assert first is not None
     withdrawn = first.withdrawn if first.withdrawn is not None else np.zeros_like(first.change_found)
@@ -947,7 +965,7 @@ def discover(
         again = dataclasses.replace(
             cleaning, outlier=first.outlier, change_found=kept, superseded=superseded, restored=None, withdrawn=None
         )
-        result = _discover_cleaned(padded, base, again, config, n_real, t_start)
+        result = _discover_cleaned(padded, base, again, config, n_used, t_start)
         assert result.cleaning is not None
         later = result.cleaning.withdrawn
         later_restored = result.cleaning.restored
@@ -960,6 +978,9 @@ def discover(
             restored=restored if later_restored is None else restored | later_restored,
         )
         result = dataclasses.replace(result, cleaning=final)
+    if noisy.any():
+        assert result.cleaning is not None
+        result = dataclasses.replace(result, cleaning=result.cleaning.with_left_out(pre_pass, noisy))
     return dataclasses.replace(result, typical_start=typical_start, report=build_report(result, typical_start))
 
 
