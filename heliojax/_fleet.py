@@ -467,6 +467,27 @@ def spots_off_target(fleet: Fleet) -> Bool[np.ndarray, "H M"]:
     return known & ~(distance <= reach)  # a NaN spot is off too
 
 
+def spot_scatter_mrad(fleet: Fleet, mask: Bool[ArrayLike, "H M"] | None = None) -> Float[np.ndarray, " H"]:
+    """``(H,)`` RMS per tangent component (mrad) of the angle, seen from each
+    heliostat, between its records' focal spots and their targets' centres (the
+    records of ``mask``, default the valid ones, with a known target); NaN where there
+    is none. The residual scale of a model that puts every beam on the target centre:
+    a fitted model whose noise is well above it predicts the spots worse than that."""
+    index = np.asarray(fleet.target_index)
+    n_targets = np.shape(fleet.targets.centre)[0]
+    use = np.asarray(fleet.mask if mask is None else mask, bool) & (index >= 0) & (index < n_targets)
+    centre = np.asarray(fleet.targets.centre)[np.where(use, index, 0)] if n_targets else np.zeros((*use.shape, 3))
+    position = np.asarray(fleet.geometry.position)[:, None, :]
+    to_spot, to_centre = np.asarray(fleet.focal_spot) - position, centre - position
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sine = np.linalg.norm(np.cross(to_spot, to_centre), axis=-1) / (
+            np.linalg.norm(to_spot, axis=-1) * np.linalg.norm(to_centre, axis=-1)
+        )
+        angle = np.where(use & np.isfinite(sine), np.arcsin(np.clip(sine, 0.0, 1.0)), 0.0)
+        n = (use & np.isfinite(sine)).sum(axis=1)
+        return np.where(n > 0, 1e3 * np.sqrt(np.sum(angle**2, axis=1) / np.maximum(2 * n, 1)), np.nan)
+
+
 def records_among(
     ids: Sequence[str],
     record_id: Int[ArrayLike, "H M"],

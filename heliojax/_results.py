@@ -5,8 +5,8 @@ Schema (``H`` heliostats, ``M`` padded records; NaN / -1 where no record):
 * attrs: ``model`` (the model's label, e.g. ``"actuator"``,
   ``"stone8+backlash"``; ``"stone8+nn"``: a neural correction, whose network the file
   does not hold, so :func:`load_results` refuses it), ``split``, ``heliojax_version``,
-  ``written_unix_time`` (s; a record time after it is refused, a write time after the
-  reader's clock warned of), ``param_names`` and
+  ``written_unix_time`` (s; a heliostat with a record time after it is flagged, a
+  write time after the reader's clock warned of), ``param_names`` and
   ``param_units`` (JSON lists, vector order of :class:`heliojax.ParameterView`),
   ``free_params`` (JSON list), ``robust`` (bool), ``origin_lla`` (WGS84 lat deg,
   lon deg, alt m of the ENU origin), ``drift_mrad2_per_day`` (the fleet's
@@ -52,8 +52,9 @@ Schema (``H`` heliostats, ``M`` padded records; NaN / -1 where no record):
   ``(H, M, 2)``: with ``params``, ``geometry`` and ``unix_time`` /
   ``target_index`` they reproduce ``residual_mrad``, which :func:`load_results`
   recomputes (one compiled program) and flags a heliostat whose stored residuals its
-  parameters miss by more than :data:`RESIDUAL_TOLERANCE_MRAD` (files without the
-  group, of older versions, are not checked)
+  parameters miss by more than :data:`RESIDUAL_TOLERANCE_MRAD` (a file with
+  ``written_unix_time`` but without the group is refused; older files without either
+  are read with a warning that they cannot be checked)
 * ``row_checksum`` ``(H,)`` uint64, written last: per heliostat a 64-bit checksum of
   its rows of every other dataset with the file's attributes and ``target_names``.
   :func:`load_results` recomputes it and flags a heliostat whose rows changed since
@@ -643,27 +644,36 @@ def _iso(unix_time: float) -> str:
     return datetime.datetime.fromtimestamp(unix_time, tz=datetime.UTC).strftime("%Y-%m-%dT%H:%MZ")
 
 
-def _written_time(attrs: dict, records: dict[str, np.ndarray], source: str) -> float | None:
+def _written_time(attrs: dict, source: str) -> float | None:
     """The file's ``written_unix_time`` (None in files written before it was kept);
-    DataError when it is no time of 1970-2200 or a record is later than it."""
+    DataError when it is no time of 1970-2200."""
     if "written_unix_time" not in attrs:
         return None
     try:
-        written = float(attrs["written_unix_time"])
+        written = float(np.asarray(attrs["written_unix_time"]).item())
     except (TypeError, ValueError):
         raise DataError(source, "written_unix_time", f"not a number: {attrs['written_unix_time']!r}"[:200]) from None
     if not 0.0 <= written <= _LATEST_UNIX_TIME:  # NaN too
         raise DataError(source, "written_unix_time", f"{written!r} s is not a time of 1970-2200")
-    t = records.get("unix_time")
-    if t is not None:
-        later = np.isfinite(t) & (t > written + _CLOCK_SKEW_S)
-        if later.any():
-            raise DataError(
-                source,
-                "unix_time",
-                f"a record at {_iso(float(t[later][0]))} is later than the file was written ({_iso(written)})",
-            )
     return written
+
+
+def _records_after(written: float, records: dict[str, np.ndarray], ids: tuple[str, ...]) -> dict[str, str]:
+    """Heliostat id -> why its fit is not used, for the heliostats with a record later
+    than the file's write time ``written`` (a forged time, or a record whose date the
+    loader flagged as in the future and the fit kept)."""
+    t = records.get("unix_time")
+    if t is None:
+        return {}
+    with np.errstate(invalid="ignore"):
+        later = np.isfinite(t) & (t > written + _CLOCK_SKEW_S)
+    return {
+        ids[h]: (
+            f"unix_time: heliostat {ids[h]!r}: a record at {_iso(float(t[h][later[h]].max()))} is later than the "
+            f"file was written ({_iso(written)}): a wrong record date, or an edited file"
+        )
+        for h in np.flatnonzero(later.any(axis=1))
+    }
 
 
 def _unreproduced_residuals(
@@ -904,9 +914,18 @@ def _load_results(path: str | Path) -> CalibrationResults:
                 )
         _check_record_ranges(records, source)
         _note_newer_version(f.attrs.get("heliojax_version"), source)
-        written = _written_time(attrs, records, source)
+        written = _written_time(attrs, source)
         inputs: dict[str, np.ndarray] = {}
         geometry64: HeliostatGeometry | None = None
+        if RECORD_INPUTS in f and not isinstance(f[RECORD_INPUTS], h5py.Group):
+            raise DataError(source, RECORD_INPUTS, "not a group")
+        if RECORD_INPUTS not in f and "residual_mrad" in records:
+            if written is not None:  # written together since 2026-12-07
+                raise DataError(source, RECORD_INPUTS, "missing group, although the file says when it was written")
+            log.warning(
+                f"{source}: no {RECORD_INPUTS} (a file of a heliojax before 2026-12-07, or one whose group was "
+                "removed): whether the parameters reproduce the stored residuals cannot be checked"
+            )
         if (
             isinstance(f.get(RECORD_INPUTS), h5py.Group)
             and "residual_mrad" in records
@@ -1069,6 +1088,9 @@ def _load_results(path: str | Path) -> CalibrationResults:
                 f"off_target: heliostat {ids[h]!r}: {int(off[h].sum())} of its {int(training[h].sum())} training "
                 "records have their focal spot off their target, so its fit follows wrong spots",
             )
+    if written is not None:
+        for h, reason in _records_after(written, records, ids).items():
+            flags.setdefault(h, reason)
     for reason in flags.values():
         log.warning(f"{source}: {reason}; its fit is not used")
     if changed.all() and len(ids) > 1:

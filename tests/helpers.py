@@ -82,3 +82,15 @@ def write_file(folder, name: str, content: str | bytes) -> str:
     path = folder / name
     path.write_bytes(content if isinstance(content, bytes) else content.encode())
     return str(path)
+
+
+def unchecked_config(**fields):
+    """``DiscoveryConfig(**fields)`` without the test run's runtime type checker (which
+    rejects a wrong type first): the checks under test are the class's own, which a user
+    meets."""
+    from heliojax.discovery import DiscoveryConfig
+
+    init = getattr(DiscoveryConfig.__init__, "__wrapped__", DiscoveryConfig.__init__)
+    config = object.__new__(DiscoveryConfig)
+    init(config, **fields)
+    return config

@@ -10,6 +10,7 @@ import json
 import sys
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -19,6 +20,7 @@ from heliojax.discovery import (
     Variable,
     change_point_pvalues,
     discover,
+    markdown_summary,
     plot_unexplained,
     unexplained_structure,
     write_figures,
@@ -423,6 +425,10 @@ def test_a_generic_competitor_that_beats_the_library_is_reported_and_the_report_
     assert first["source"] == "generic competitor" and first["variable"] == "wind_direction"
     assert first["instead_of"]["effect"] == "wind" and isinstance(first["instead_of"]["ambiguous"], bool)
     assert "wind" not in rep["named_effects"]
+    # its size is that of the residual structure it explains, never more than the residuals
+    # (before, the function's amplitude with the share the model absorbs: 3.1 mrad on the
+    # real records against a training RMS of 0.83)
+    assert 0.0 < first["effect_size_mrad"] <= rep["train_rms_final_mrad"]
     eligible = {c for c, s in rep["screens"][0].items() if s["tested"] and s["p_holm"] < 0.01}
     assert len(eligible) == 2  # wind and thermal: a second batch to refit
     assert eligible <= {x["effect"] for x in rep["refits"][0]}
@@ -430,30 +436,52 @@ def test_a_generic_competitor_that_beats_the_library_is_reported_and_the_report_
     assert json.loads((tmp_path / "report.json").read_text())["unexplained"][0]["instead_of"] == first["instead_of"]
 
 
-def test_a_garbage_heliostat_is_left_out_and_spoils_nothing():
-    """One heliostat's records with its two motor axes swapped (garbage) changed the
-    fleet's noise estimate and every p-value of ``discover`` without a word (a
-    hostile-input trial). Now it is named in the report and a warning, and left out
-    after the pre-pass: the fleet's noise estimate, screens and held-out errors are
-    those of the fleet without it; with ``keep_noisy`` it is kept and they move."""
+def _garbage(fleet, heliostats, seed=0, swap_first=True):
+    """``fleet`` with the records of ``heliostats`` made garbage: motor axes swapped in
+    the first (``swap_first``), the others' counts shuffled among their records."""
     import equinox as eqx
+
+    rng = np.random.default_rng(seed)
+    counts = np.asarray(fleet.counts).copy()
+    for k, h in enumerate(heliostats):
+        counts[h] = counts[h, :, ::-1] if k == 0 and swap_first else counts[h, rng.permutation(counts.shape[1])]
+    return eqx.tree_at(lambda f: f.counts, fleet, jnp.asarray(counts))
+
+
+def test_garbage_heliostats_are_left_out_and_spoil_nothing():
+    """Heliostats of garbage records (motor axes swapped, counts shuffled) changed the
+    fleet's noise estimate and every p-value of ``discover`` without a word (hostile-input
+    trials, rounds 5 and 6; with two of them, leaving them out after the pre-pass still
+    let them move the start geometries and the pre-pass of the others). Now they are
+    named in the report and a warning and left out of everything after a first pre-pass:
+    the noise estimate, held-out errors and every variable's p are those of the fleet
+    without them; with ``keep_noisy`` they are kept and these move."""
     from helpers import zoo
 
     from heliojax._fleet import fleet_subset
 
     fleet = zoo("actuator").fleet
-    garbage = eqx.tree_at(lambda f: f.counts, fleet, fleet.counts.at[0].set(fleet.counts[0, :, ::-1]))
+    assert np.asarray(fleet.mask).all()
+    garbage = _garbage(fleet, (0, 1))
     settings = dict(base="actuator", effects=("backlash",), max_refits=1)
     rep = discover(garbage, **settings).report
-    assert [n["heliostat"] for n in rep["noisy_heliostats"]] == [fleet.ids[0]]
-    assert rep["noisy_heliostats"][0]["left_out"] is True
-    assert rep["noisy_heliostats"][0]["noise_mrad"] > 10 * rep["data"]["robust_noise_median_mrad"]
-    assert any(fleet.ids[0] in w and "left out" in w for w in rep["warnings"])
-    n_garbage = int(np.asarray(fleet.mask[0]).sum())
-    others_flagged = sum(o["heliostat"] != fleet.ids[0] for o in rep["outliers"])
-    assert rep["data"]["n_records_used"] == int(np.asarray(fleet.mask).sum()) - n_garbage - others_flagged
+    bad = list(fleet.ids[:2])
+    assert [n["heliostat"] for n in rep["noisy_heliostats"]] == bad
+    assert all(n["left_out"] is True for n in rep["noisy_heliostats"])
+    assert min(n["noise_mrad"] for n in rep["noisy_heliostats"]) > 10 * rep["data"]["robust_noise_median_mrad"]
+    assert any(all(i in w for i in bad) and "left out" in w for w in rep["warnings"])
+    # shuffled counts leave a noise above the spots' scatter about the target centres; the
+    # swapped axes, which the robust fit partly absorbs (4 mrad), do not
+    assert [n["heliostat"] for n in rep["spots_unexplained"]] == [fleet.ids[1]]
+    n_bad = int(np.asarray(fleet.mask[:2]).sum())
+    others_flagged = sum(o["heliostat"] not in bad for o in rep["outliers"])
+    assert rep["data"]["n_records_used"] == int(np.asarray(fleet.mask).sum()) - n_bad - others_flagged
+    assert "(2 left out after the pre-pass as noise outliers: " in markdown_summary(rep)
 
-    rest = discover(fleet_subset(fleet, list(fleet.ids[1:])), **settings).report
+    rest = discover(fleet_subset(fleet, list(fleet.ids[2:])), **settings).report
+    assert sorted(o["record_id"] for o in rest["outliers"]) == sorted(
+        o["record_id"] for o in rep["outliers"] if o["heliostat"] not in bad
+    )
     for key in ("noise_estimate_mrad", "heldout_rms_base_mrad", "heldout_rms_final_mrad"):
         np.testing.assert_allclose(rep[key], rest[key], rtol=1e-6, err_msg=key)
     assert rep["variable_p_values"].keys() == rest["variable_p_values"].keys()
@@ -463,8 +491,36 @@ def test_a_garbage_heliostat_is_left_out_and_spoils_nothing():
         [rep["variable_p_values"][v] for v in tested], [rest["variable_p_values"][v] for v in tested], rtol=1e-6
     )
     assert rep["named_effects"] == rest["named_effects"]
+    assert rest["noisy_heliostats"] == [] and rest["spots_unexplained"] == []  # the clean heliostats
 
     kept = discover(garbage, keep_noisy=True, **settings).report
-    assert kept["noisy_heliostats"][0]["left_out"] is False
+    assert [n["left_out"] for n in kept["noisy_heliostats"]] == [False, False]
     assert kept["noise_estimate_mrad"] > 1.2 * rest["noise_estimate_mrad"]
-    assert rest["noisy_heliostats"] == []  # the clean heliostats
+
+
+def test_a_majority_of_garbage_heliostats_is_warned_of():
+    """Five of eight heliostats garbage: no minority stands out, so none is a noise
+    outlier, and ``discover`` said nothing (hostile-input trial, round 6: 3 of 5, a noise
+    estimate of 404 mrad, no warning). Their models predict their spots worse than a beam
+    on the target centre would: the report names them and warns."""
+    from helpers import zoo
+
+    fleet = zoo("actuator").fleet
+    rep = discover(_garbage(fleet, range(5), swap_first=False), base="actuator", effects=("backlash",), max_refits=1)
+    rep = rep.report
+    # (with a garbage majority the pre-pass's joint fit of the change points fails for some
+    # good heliostats too: here two at 157 mrad, named as well)
+    assert set(fleet.ids[:5]) <= {n["heliostat"] for n in rep["spots_unexplained"]}
+    assert all(n["noise_mrad"] > 2 * n["spot_scatter_mrad"] for n in rep["spots_unexplained"])
+    assert any("worse than a beam on the target's centre" in w and fleet.ids[4] in w for w in rep["warnings"])
+
+
+@pytest.mark.parametrize("field", ["keep_noisy", "robust", "changes", "effect_prior", "generic_competitors"])
+@pytest.mark.parametrize("value", ["no", np.array([True, False]), 1])
+def test_switches_of_the_discovery_config_take_booleans_only(field, value):
+    """``discover(fleet, keep_noisy="no")`` kept the garbage heliostat (a truthy string)
+    and an array raised numpy's "truth value ... ambiguous" from deep inside (round 6)."""
+    from helpers import unchecked_config
+
+    with pytest.raises(ValueError, match=f"{field} must be True or False"):
+        unchecked_config(**{field: value})

@@ -264,18 +264,40 @@ def test_residuals_are_reproduced_without_x64(fitted_h5):
     assert done.returncode == 0, done.stdout + done.stderr
 
 
-def test_record_times_after_the_file_was_written_are_refused(fitted_h5, tmp_path):
+def test_a_heliostat_with_records_after_the_file_was_written_is_flagged(fitted_h5, tmp_path):
     """Record times moved to 2191 (within 1970-2200) lowered that heliostat's predicted
-    uncertainty without a word (round 5). A record cannot be later than its file."""
+    uncertainty without a word (round 5). A record cannot be later than its file: that
+    heliostat is flagged (not aimed with), the others keep their fits (round 6: refusing
+    the whole file lost every heliostat for one whose records a loader had dated in the
+    future, which calibrate keeps with a warning)."""
+    clean = hj.load_results(fitted_h5)
+    h = next(i for i, s in enumerate(clean.status) if s in ("converged", "max_steps"))
 
     def edit(f):
         t = f["unix_time"][...]
-        t[np.isfinite(t)] = 7.0e9  # 2191
+        t[h][np.isfinite(t[h])] = 7.0e9  # 2191
         f["unix_time"][...] = t
 
-    with pytest.raises(hj.DataError, match="later than the file was written") as e:
+    forged = hj.load_results(_forged(fitted_h5, tmp_path, edit))
+    assert list(forged.flags) == [clean.ids[h]]
+    assert "later than the file was written" in forged.flags[clean.ids[h]]
+
+
+@pytest.mark.parametrize("how", ["deleted", "a dataset"])
+def test_a_file_without_its_record_inputs_is_refused(fitted_h5, tmp_path, how):
+    """Deleting ``record_inputs`` (and recomputing the checksum) switched the residual
+    check off and an edited parameter was aimed with (round 6). A file that says when it
+    was written has the group (both are written since 2026-12-07): without it, or with
+    something else in its place, the file is refused."""
+
+    def edit(f):
+        del f["record_inputs"]
+        if how == "a dataset":
+            f["record_inputs"] = np.zeros(3)
+
+    with pytest.raises(hj.DataError, match="missing group|not a group") as e:
         hj.load_results(_forged(fitted_h5, tmp_path, edit))
-    assert e.value.field == "unix_time"
+    assert e.value.field == "record_inputs"
 
 
 def test_a_file_written_after_now_is_warned_of(fitted_h5, tmp_path, caplog):
@@ -309,17 +331,24 @@ def test_discover_leaves_out_the_heliostats_it_is_told_to(capsys, tmp_path):
     """The report's warning about a garbage heliostat says to run without it:
     ``--exclude`` does so; an unknown id or excluding every heliostat is a usage error
     naming the ids (before anything is fitted)."""
-    from heliojax.cli._discover import without_heliostats
+    from heliojax.cli._discover import excluded_ids
+    from heliojax.discovery._select import _without_heliostats
 
     fleet = hj.load_paint_directory(hj.default_data_dir())
-    kept = without_heliostats(fleet, " BL14, BE36 ")
+    assert excluded_ids(" BL14, BE36,BL14 ") == ("BL14", "BE36") and excluded_ids(None) == ()
+    kept = _without_heliostats(fleet, ("BL14", "BE36"))
     assert kept.ids == tuple(i for i in fleet.ids if i not in ("BL14", "BE36"))
     np.testing.assert_array_equal(np.asarray(kept.counts), np.asarray(fleet.counts)[[fleet.index(i) for i in kept.ids]])
-    assert without_heliostats(fleet, None) is fleet
+    from helpers import unchecked_config
+
+    with pytest.raises(ValueError, match="exclude must be a sequence of heliostat ids"):
+        unchecked_config(exclude="BL14")
+    assert unchecked_config(exclude=["BL14"]).exclude == ("BL14",)
     report = str(tmp_path / "r.json")
     for exclude, message in (
-        ("BL14,XX99", "XX99 not among the loaded heliostats"),
+        ("BL14,XX99", "XX99 not among the 5 heliostats loaded"),
         (",".join(fleet.ids), "no heliostat"),
+        (" , ", "no heliostat id given"),
     ):
         rc, _, err = _run(["discover", "--exclude", exclude, "--report", report, "--quiet"], capsys)
         assert rc == 2 and message in err, err

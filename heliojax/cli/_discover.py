@@ -41,26 +41,17 @@ MAX_FOLDS = 100
 """Most --folds: the fit runs once per fold and once on all records, the fleet copied for each."""
 
 
-def without_heliostats(fleet, exclude: str | None):
-    """``fleet`` without the heliostats of the comma-separated ids ``exclude`` (None:
-    all kept). Raises ConfigError for an id the fleet lacks or when none would be left."""
+def excluded_ids(exclude: str | None) -> tuple[str, ...]:
+    """The heliostat ids of ``--exclude`` (comma-separated; None: none). ConfigError when
+    the option names none."""
     from .._errors import ConfigError
-    from .._fleet import fleet_subset
 
     if exclude is None:
-        return fleet
-    ids = [i.strip() for i in exclude.split(",") if i.strip()]
+        return ()
+    ids = tuple(dict.fromkeys(i.strip() for i in exclude.split(",") if i.strip()))
     if not ids:
         raise ConfigError(f"--exclude {exclude!r}: no heliostat id given")
-    drop = set(ids)
-    unknown = sorted(drop - set(fleet.ids))
-    if unknown:
-        raise ConfigError(f"--exclude: {', '.join(unknown)} not among the loaded heliostats ({len(fleet.ids)})")
-    keep = [i for i in fleet.ids if i not in drop]
-    if not keep:
-        raise ConfigError("--exclude leaves no heliostat")
-    log.info(f"left out {len(drop)} heliostat(s): {', '.join(sorted(drop))}")
-    return fleet_subset(fleet, keep)
+    return ids
 
 
 def add_parser(subparsers) -> None:
@@ -144,6 +135,7 @@ def run(args) -> int:
     from .._progress import activity
     from ..discovery import (
         DiscoveryConfig,
+        check_exclusions,
         discover,
         fold_blocks,
         markdown_summary,
@@ -181,10 +173,15 @@ def run(args) -> int:
             effect_prior=not args.no_effect_prior,
             generic_competitors=not args.no_generic_competitors,
             keep_noisy=args.keep_noisy,
+            exclude=excluded_ids(args.exclude),
         )
     except ValueError as e:
         raise ConfigError(str(e)) from e
-    fleet = without_heliostats(load_fleet(args), args.exclude)
+    fleet = load_fleet(args)
+    try:
+        check_exclusions(fleet.ids, config.exclude)
+    except ValueError as e:
+        raise ConfigError(f"--{e}") from None
     blocks = fold_blocks(np.asarray(fleet.context.unix_time), np.asarray(fleet.mask))
     if 2 <= blocks < args.folds:  # (fewer than 2: discover says nothing can be tested)
         raise ConfigError(

@@ -53,6 +53,7 @@ from ._select import (
     DEFAULT_CANDIDATES as DEFAULT_CANDIDATES,
     DiscoveryConfig as DiscoveryConfig,
     DiscoveryResult as DiscoveryResult,
+    check_exclusions as check_exclusions,
     discover as discover,
 )
 from ._suites import random_actuator_models as random_actuator_models, simulate_fleet as simulate_fleet
@@ -68,6 +69,7 @@ __all__ = [
     "Cleaning",
     "DiscoveryConfig",
     "DiscoveryResult",
+    "check_exclusions",
     "Variable",
     "absorbed_fractions",
     "build_report",

@@ -93,11 +93,20 @@ class Cleaning:
             between them and a drift fit alike, and the noise decides which fits
             better). A library effect whose evidence rests on these heliostats alone is
             reported ambiguous with a change point (:func:`change_point_rival`).
-        left_out: ``(H,)`` heliostats whose noise after the pre-pass lies far above the
+        noisy: ``(H,)`` heliostats whose noise after the pre-pass lies far above the
             fleet's (:func:`heliojax.fitting.noise_outliers`, the rule by which
-            ``calibrate`` leaves them out of its fleet statistics): left out of the
-            workflow after the pre-pass, their gross errors and change points those of
-            the pre-pass (None: none left out).
+            ``calibrate`` leaves them out of its fleet statistics; None before it is
+            judged).
+        left_out: ``(H,)`` the noisy heliostats left out of everything after the
+            first pre-pass (start geometries and pre-pass again without them), their
+            gross errors and change points the first pre-pass's (None: none).
+        spot_scatter_mrad: ``(H,)`` RMS per component of the angle between each
+            heliostat's spots and its targets' centres (:func:`heliojax._fleet.spot_scatter_mrad`).
+        unexplained_spots: ``(H,)`` heliostats whose pre-pass noise exceeds
+            :data:`heliojax.fitting.NOISE_OUTLIER_MIN_RATIO` times that scatter: the
+            base model predicts their spots worse than a beam on the target centre
+            would (garbage records, wrong properties), whether or not they are a
+            minority (warned of, kept).
     """
 
     valid: np.ndarray
@@ -115,26 +124,16 @@ class Cleaning:
     restored: np.ndarray | None = None
     final_residuals: np.ndarray | None = None
     undecided: np.ndarray | None = None
+    noisy: np.ndarray | None = None
     left_out: np.ndarray | None = None
-
-    def leaving_out(self, heliostats: np.ndarray) -> Cleaning:
-        """This pre-pass with the records of ``heliostats`` ``(H,)`` bool no longer valid
-        (and none of them changed): what the workflow after the pre-pass sees."""
-        keep = ~np.asarray(heliostats, bool)
-        return dataclasses.replace(
-            self,
-            valid=self.valid & keep[:, None],
-            outlier=self.outlier & keep[:, None],
-            superseded=self.superseded & keep[:, None],
-            change_found=self.change_found & keep,
-            undecided=None if self.undecided is None else self.undecided & keep,
-        )
+    spot_scatter_mrad: np.ndarray | None = None
+    unexplained_spots: np.ndarray | None = None
 
     def with_left_out(self, pre_pass: Cleaning, heliostats: np.ndarray) -> Cleaning:
-        """The workflow's cleaning (of :meth:`leaving_out`'s result) with the rows of
-        the left-out ``heliostats`` ``(H,)`` bool back from ``pre_pass``: their records,
-        gross errors and change points as the pre-pass found them, never withdrawn or
-        restored (the final model never saw them)."""
+        """The workflow's cleaning (of a fleet without the records of ``heliostats``
+        ``(H,)`` bool) with their rows back from ``pre_pass`` (of the whole fleet): their
+        records, gross errors and change points as that pre-pass found them, never
+        withdrawn or restored (the final model never saw them)."""
         out = np.asarray(heliostats, bool)
         rows = out[:, None]
 

@@ -168,7 +168,7 @@ def _per_heliostat(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray,
     _, logdet = np.linalg.slogdet(np.eye(k) + typ2 * info)
     delta = float(np.sum(n * np.log(np.maximum(rss, 1e-300) / rss_new) - logdet - np.sum(beta * beta, axis=1) / typ2))
     delta -= penalty
-    fitted = (x @ beta[..., None])[..., 0]
+    fitted = (xt @ beta[..., None])[..., 0]  # the residual structure it explains (the model's share projected off)
     sq = float(np.sum(fitted * fitted))
     n_sq = int(np.sum(n // 2))
     # the F test of the screens (exact for Gaussian noise), on their directions
@@ -200,7 +200,7 @@ def _fleet(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray):
     r2 = np.sum(bases.r_res * bases.r_res, axis=1)
     rss_new = np.maximum(bases.rss - (r2 - np.sum(new * new, axis=1)), 1e-300)
     delta = float(np.sum(bases.n * np.log(np.maximum(bases.rss, 1e-300) / rss_new)))
-    fitted = x @ beta
+    fitted = xt @ beta  # the residual structure it explains (the model's share projected off)
     sq = float(np.sum(fitted * fitted))
     n_sq = int(np.sum(bases.n // 2))
     _, logdet = np.linalg.slogdet(np.eye(k) + typ2 * gmat)

@@ -45,6 +45,11 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
                                                    # not used after the pre-pass (their outliers and
                                                    # change points are the pre-pass's); false
                                                    # (keep_noisy): they weigh in every statistic
+      "spots_unexplained": [{"heliostat", "noise_mrad", "spot_scatter_mrad"}],  # pre-pass noise above
+                                                   # NOISE_OUTLIER_MIN_RATIO x the RMS angle between
+                                                   # its spots and its targets' centres: the base
+                                                   # model predicts them worse than a beam on the
+                                                   # centre would (kept; a warning names them)
       "change_points": [{"heliostat", "time": UTC ISO 8601 (first record since the change),
                          "previous_record_time", "jump": {param: rad}, "jump_unit": "rad",
                          "p", "p_holm", "n_records_before"}],   # records before it: fitted with the jump
@@ -113,7 +118,7 @@ import numpy as np
 
 from .._io import atomic_write
 from .._plotting import pyplot, save_figure
-from ..fitting import noise_outliers
+from ..fitting import NOISE_OUTLIER_MIN_RATIO, noise_outliers
 from ._diagnostics import record_variables
 from ._lanes import fold_blocks, too_few_days_note
 
@@ -360,6 +365,17 @@ def build_report(result, typical_start=None) -> dict:
             f"noise far above the fleet's median of {cleaning['robust_noise_median_mrad']:.3g} mrad: {noisy} "
             f"(garbage records, a wrong properties file, or a heliostat noisier than the rest?): {said}"
         )
+    if cleaning["spots_unexplained"]:
+        worse = ", ".join(
+            f"{n['heliostat']} ({n['noise_mrad']:.3g} against {n['spot_scatter_mrad']:.3g} mrad)"
+            for n in cleaning["spots_unexplained"]
+        )
+        warnings.append(
+            f"the base model predicts the spots of {worse} worse than a beam on the target's centre would: their "
+            f"noise after the robust pre-pass exceeds {NOISE_OUTLIER_MIN_RATIO:g} times the scatter of their spots "
+            "about the target centres (garbage records, a wrong properties file?); check them, or leave them out "
+            "(`heliojax discover --exclude`)"
+        )
     left_out, not_cross_validated = _folds_left_out(result.lanes, list(fleet.ids))
     n_base = len(result.layout.base_cols)
     if note is None and mask.any() and len(not_cross_validated) == sum(1 for i in fleet.ids if i):
@@ -397,6 +413,7 @@ def build_report(result, typical_start=None) -> dict:
         "weak_evidence": weak,
         "outliers": cleaning["outliers"],
         "noisy_heliostats": cleaning["noisy_heliostats"],
+        "spots_unexplained": cleaning["spots_unexplained"],
         "change_points": cleaning["change_points"],
         "change_points_withdrawn": cleaning["change_points_withdrawn"],
         "unexplained": [
@@ -455,6 +472,7 @@ def build_report(result, typical_start=None) -> dict:
             "criterion": "laplace_evidence" if cfg.effect_prior else "bic",
             "generic_competitors": cfg.generic_competitors and cfg.effect_prior,
             "keep_noisy": cfg.keep_noisy,
+            "exclude": list(cfg.exclude),
         },
         "data": {
             "source": getattr(getattr(fleet, "report", None), "source", None),
@@ -572,6 +590,7 @@ def _cleaning_report(result) -> dict:
             "n_restored": 0,
             "robust_noise_median_mrad": None,
             "noisy_heliostats": [],
+            "spots_unexplained": [],
         }
     rid = np.asarray(fleet.record_id)
     outliers = [{"heliostat": ids[h], "record_id": int(rid[h, m])} for h, m in zip(*np.nonzero(cl.outlier)) if ids[h]]
@@ -600,8 +619,9 @@ def _cleaning_report(result) -> dict:
     real = np.array([bool(i) for i in ids])
     noise = cl.noise_mrad[real & np.isfinite(cl.noise_mrad)]
     left = np.zeros(len(ids), bool) if cl.left_out is None else np.asarray(cl.left_out, bool)
-    left_out = bool(left.any())
-    noisy = left if left_out else noise_outliers(cl.noise_mrad, real)
+    noisy = noise_outliers(cl.noise_mrad, real) if cl.noisy is None else np.asarray(cl.noisy, bool)
+    spots = np.zeros(len(ids), bool) if cl.unexplained_spots is None else np.asarray(cl.unexplained_spots, bool)
+    scatter = np.full(len(ids), np.nan) if cl.spot_scatter_mrad is None else cl.spot_scatter_mrad
     return {
         "outliers": outliers,
         "change_points": changes,
@@ -611,8 +631,12 @@ def _cleaning_report(result) -> dict:
         "n_restored": int(cl.restored.sum()) if cl.restored is not None else 0,
         "robust_noise_median_mrad": _f(np.median(noise)) if noise.size else None,
         "noisy_heliostats": [
-            {"heliostat": ids[h], "noise_mrad": _f(cl.noise_mrad[h]), "left_out": left_out}
+            {"heliostat": ids[h], "noise_mrad": _f(cl.noise_mrad[h]), "left_out": bool(left[h])}
             for h in np.flatnonzero(noisy)
+        ],
+        "spots_unexplained": [
+            {"heliostat": ids[h], "noise_mrad": _f(cl.noise_mrad[h]), "spot_scatter_mrad": _f(scatter[h])}
+            for h in np.flatnonzero(spots & real)
         ],
     }
 
@@ -624,14 +648,30 @@ def write_report(path, report: dict) -> None:
         f.write("\n")
 
 
+def _left_out(report: dict) -> list[str]:
+    return [n["heliostat"] for n in report.get("noisy_heliostats", []) if n.get("left_out")]
+
+
+def _left_out_note(report: dict) -> str:
+    """`` (k left out after the pre-pass: ids)`` for the noise outliers discovery left out."""
+    left = _left_out(report)
+    return f" ({len(left)} left out after the pre-pass as noise outliers: {', '.join(left)})" if left else ""
+
+
 def markdown_summary(report: dict) -> str:
     """A Markdown summary of a report."""
     d = report["data"]
     lines = [
         "# Discovery report",
         "",
-        f"Data: {d['n_heliostats']} heliostats, {d['n_records']} records"
-        + (f" ({d['source']})" if d.get("source") else "")
+        f"Data: {d['n_heliostats']} heliostats{_left_out_note(report)}, {d['n_records']} records"
+        + (f" in {d['source']}" if d.get("source") else "")
+        + f", {d['n_records_used']} used (gross errors{' and left-out heliostats' if _left_out(report) else ''} aside)"
+        + (
+            f"; excluded by the caller: {', '.join(report['config']['exclude'])}"
+            if report["config"].get("exclude")
+            else ""
+        )
         + f"; base model `{report['base_model']}`.",
         "",
         f"Held-out beam error (blocked {report['config']['n_folds']}-fold cross-validation by day, pooled RMS): "
@@ -1075,8 +1115,11 @@ def plot_change_points(result, *, max_heliostats: int = 12):
     cl = result.cleaning
     if cl is None or cl.final_residuals is None:
         return None
-    found = np.nonzero(_confirmed_changes(cl))[0]
-    found = [h for h in found if result.fleet.ids[h]]
+    left = np.zeros(len(result.fleet.ids), bool) if cl.left_out is None else np.asarray(cl.left_out, bool)
+    confirmed = [h for h in np.nonzero(_confirmed_changes(cl))[0] if result.fleet.ids[h]]
+    # a heliostat left out after the pre-pass has no final-model residuals: named in the title
+    found = [h for h in confirmed if not left[h]]
+    unseen = [result.fleet.ids[h] for h in confirmed if left[h]]
     if not found:
         return None
     found = sorted(found, key=lambda h: cl.change_p_holm[h])[:max_heliostats]
@@ -1109,9 +1152,16 @@ def plot_change_points(result, *, max_heliostats: int = 12):
         ax.set_visible(False)
     handles, labels = axes.flat[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=4, fontsize=8, bbox_to_anchor=(0.5, 0.0))
-    more = len(np.nonzero(_confirmed_changes(cl))[0]) - len(found)
+    more = len(confirmed) - len(unseen) - len(found)
     extra = f" ({more} more not shown)" if more > 0 else ""
-    fig.suptitle(f"change points{extra}: final-model residuals without the jump, both components, against time")
+    note = (
+        f"\n(not shown: {', '.join(unseen)}, left out after the pre-pass as "
+        + ("a noise outlier; its change point is" if len(unseen) == 1 else "noise outliers; their change points are")
+        + " the pre-pass's)"
+        if unseen
+        else ""
+    )
+    fig.suptitle(f"change points{extra}: final-model residuals without the jump, both components, against time{note}")
     fig.tight_layout(rect=(0, 0.07, 1, 1))
     return fig
 

@@ -94,11 +94,18 @@ import numpy as np
 import optimistix as optx
 
 from .._errors import few_names
-from .._fleet import bucket_size, pad_fleet
+from .._fleet import bucket_size, fleet_subset, pad_fleet, spot_scatter_mrad
 from .._kinematics import MODEL_KINDS, nominal_model
 from .._progress import activity, progress_bar
 from ..effects import EFFECT_NAMES, OffsetStep
-from ..fitting import OFFSET_NAMES, AbstractBatching, default_solver, fitted_start_geometry, noise_outliers
+from ..fitting import (
+    NOISE_OUTLIER_MIN_RATIO,
+    OFFSET_NAMES,
+    AbstractBatching,
+    default_solver,
+    fitted_start_geometry,
+    noise_outliers,
+)
 from ._cleaning import Cleaning, change_point_rival, clean, confirm_change_points, recheck_outliers
 from ._competitors import (
     CompetitorScore,
@@ -215,6 +222,8 @@ class DiscoveryConfig:
             vector) compete with it on the same criterion; if one is at least as good,
             nothing more is named and its variable is reported unexplained
             (:mod:`._competitors`). Needs ``effect_prior`` (the criterion's priors).
+        exclude: ids of heliostats to leave out before anything runs (ValueError for an
+            id the fleet lacks, or when none would be left).
         keep_noisy: keep the heliostats whose noise after the robust pre-pass lies far
             above the fleet's (:func:`heliojax.fitting.noise_outliers`: garbage
             records, a wrong properties file). By default they are left out after the
@@ -243,6 +252,7 @@ class DiscoveryConfig:
     effect_prior: bool = True
     generic_competitors: bool = True
     keep_noisy: bool = False
+    exclude: tuple[str, ...] = ()
 
     @property
     def candidates(self) -> tuple[str, ...]:
@@ -267,6 +277,12 @@ class DiscoveryConfig:
             raise ValueError(f"ambiguity_bic must be >= 0 (inf: cross-validate every refit), got {self.ambiguity_bic}")
         if not np.isfinite(self.min_delta_bic):
             raise ValueError(f"min_delta_bic must be finite, got {self.min_delta_bic}")
+        for name in ("robust", "changes", "effect_prior", "generic_competitors", "keep_noisy"):
+            if not isinstance(getattr(self, name), bool | np.bool_):
+                raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}"[:200])
+        if isinstance(self.exclude, str) or not all(isinstance(i, str) for i in self.exclude):
+            raise ValueError(f"exclude must be a sequence of heliostat ids, got {self.exclude!r}"[:200])
+        object.__setattr__(self, "exclude", tuple(self.exclude))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -926,25 +942,27 @@ def discover(
     """
     config = dataclasses.replace(config or DiscoveryConfig(), **kwargs)
     t_start = time.perf_counter()
+    if config.exclude:
+        fleet = _without_heliostats(fleet, config.exclude)
     base = nominal_model(config.base, fleet.counts.dtype)
     n_real = sum(1 for i in fleet.ids if i)
     padded = pad_fleet(fleet, bucket_size(fleet.n_heliostats), bucket_size(fleet.n_records))
-    typical_start = np.zeros(padded.counts.shape[0], bool)
-    if config.start == "auto":
-        with activity("choosing start geometries", logger=log):
-            geometry, typical_start, _ = fitted_start_geometry(base, padded)
-            padded = eqx.tree_at(lambda f: f.geometry, padded, geometry)
-    with activity("robust pre-pass and change-point scan", logger=log):
-        pre_pass = clean(base, padded, config.alpha, outliers=config.robust, changes=config.changes)
+    started, typical_start, pre_pass = _pre_pass(base, padded, config)
     real = np.array([bool(i) for i in padded.ids])
-    noisy = np.zeros_like(real) if config.keep_noisy else noise_outliers(pre_pass.noise_mrad, real)
-    if noisy.any():
-        log.info(
-            f"{few_names([padded.ids[i] for i in np.flatnonzero(noisy)])}: noise far above the fleet's: "
-            "left out after the pre-pass"
-        )
-    cleaning = pre_pass.leaving_out(noisy)
-    n_used = n_real - int(noisy.sum())
+    noisy = noise_outliers(pre_pass.noise_mrad, real)
+    scatter = spot_scatter_mrad(padded, pre_pass.valid & ~pre_pass.outlier)
+    with np.errstate(invalid="ignore"):
+        unexplained_spots = real & (pre_pass.noise_mrad > NOISE_OUTLIER_MIN_RATIO * scatter)
+    left = np.zeros_like(noisy) if config.keep_noisy else noisy
+    cleaning = pre_pass
+    if left.any():
+        # everything after the pre-pass without them: the start geometries and the pre-pass
+        # too (the fleet-typical actuators, the change points' family), as with exclude
+        log.info(f"{few_names([padded.ids[i] for i in np.flatnonzero(left)])}: noise far above the fleet's: left out")
+        without = eqx.tree_at(lambda f: f.mask, padded, jnp.asarray(np.asarray(padded.mask) & ~left[:, None]))
+        started, typical_start, cleaning = _pre_pass(base, without, config)
+    padded = started
+    n_used = n_real - int(left.sum())
     result = _discover_cleaned(padded, base, cleaning, config, n_used, t_start)
     first = result.cleaning
     assert first is not None
@@ -978,10 +996,41 @@ def discover(
             restored=restored if later_restored is None else restored | later_restored,
         )
         result = dataclasses.replace(result, cleaning=final)
-    if noisy.any():
-        assert result.cleaning is not None
-        result = dataclasses.replace(result, cleaning=result.cleaning.with_left_out(pre_pass, noisy))
+    assert result.cleaning is not None
+    final = result.cleaning.with_left_out(pre_pass, left) if left.any() else result.cleaning
+    final = dataclasses.replace(final, noisy=noisy, unexplained_spots=unexplained_spots, spot_scatter_mrad=scatter)
+    result = dataclasses.replace(result, cleaning=final)
     return dataclasses.replace(result, typical_start=typical_start, report=build_report(result, typical_start))
+
+
+def _pre_pass(base, padded, config: DiscoveryConfig):
+    """``(padded with its start geometries, typical_start (H,), the robust pre-pass)``."""
+    typical_start = np.zeros(padded.counts.shape[0], bool)
+    if config.start == "auto":
+        with activity("choosing start geometries", logger=log):
+            geometry, typical_start, _ = fitted_start_geometry(base, padded)
+            padded = eqx.tree_at(lambda f: f.geometry, padded, geometry)
+    with activity("robust pre-pass and change-point scan", logger=log):
+        cleaning = clean(base, padded, config.alpha, outliers=config.robust, changes=config.changes)
+    return padded, typical_start, cleaning
+
+
+def check_exclusions(ids: collections.abc.Sequence[str], exclude: collections.abc.Sequence[str]) -> None:
+    """ValueError when ``exclude`` names an id not among ``ids`` (a fleet's heliostat
+    ids) or leaves none of them."""
+    unknown = sorted(set(exclude) - set(ids))
+    if unknown:
+        raise ValueError(f"exclude: {', '.join(unknown)} not among the {len(ids)} heliostats loaded")
+    if not {i for i in ids if i} - set(exclude):
+        raise ValueError("exclude leaves no heliostat")
+
+
+def _without_heliostats(fleet, exclude: tuple[str, ...]):
+    """``fleet`` without the heliostats ``exclude`` names (:func:`check_exclusions`)."""
+    check_exclusions(fleet.ids, exclude)
+    keep = [i for i in fleet.ids if i and i not in set(exclude)]
+    log.info(f"left out {len(set(exclude))} heliostat(s): {', '.join(sorted(set(exclude)))}")
+    return fleet_subset(fleet, keep)
 
 
 CHANGE_POINT = OffsetStep.NAME
