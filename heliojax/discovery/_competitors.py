@@ -114,7 +114,9 @@ class CompetitorScore:
             current model), comparable with a refit's.
         p: score-test p-value of the form (Gaussian noise); ``None``: not tested
             (every direction absorbed by the current model to ``1 - 1e-12``).
-        effect_size_mrad: RMS over the records of the fitted function (both components).
+        effect_size_mrad: RMS over the records (both components) of the residual
+            structure it explains: its fitted function with the share the current
+            model absorbs projected off (never more than the residuals).
         p_heliostats: ``(H,)`` per-heliostat p-values (NaN where not tested).
     """
 

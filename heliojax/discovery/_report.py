@@ -356,14 +356,14 @@ def build_report(result, typical_start=None) -> dict:
     if cleaning["noisy_heliostats"]:
         noisy = ", ".join(f"{n['heliostat']} ({n['noise_mrad']:.3g} mrad)" for n in cleaning["noisy_heliostats"])
         said = (
-            "left out after the robust pre-pass (its gross errors and change points are reported), as calibrate "
+            "left out after the robust pre-pass (their gross errors and change points are reported), as calibrate "
             "leaves them out of its fleet statistics; keep them with `heliojax discover --keep-noisy`"
             if cleaning["noisy_heliostats"][0]["left_out"]
             else "kept (keep_noisy), so their records weigh in the fleet-wide noise estimate and every test"
         )
         warnings.append(
-            f"noise far above the fleet's median of {cleaning['robust_noise_median_mrad']:.3g} mrad: {noisy} "
-            f"(garbage records, a wrong properties file, or a heliostat noisier than the rest?): {said}"
+            f"noise far above the rest of the fleet's (median {cleaning['robust_noise_median_mrad']:.3g} mrad): "
+            f"{noisy} (garbage records, a wrong properties file, or a heliostat noisier than the rest?): {said}"
         )
     if cleaning["spots_unexplained"]:
         worse = ", ".join(
@@ -617,7 +617,8 @@ def _cleaning_report(result) -> dict:
                 when = _utc(float(cl.change_time_s[h]))
                 withdrawn.append({"heliostat": ids[h], "time": when, "p": _f(cl.change_p[h])})
     real = np.array([bool(i) for i in ids])
-    noise = cl.noise_mrad[real & np.isfinite(cl.noise_mrad)]
+    # the fleet's noise: of the heliostats discovery used (a left-out one's is its own line)
+    noise = cl.noise_mrad[real & ~(cl.left_out if cl.left_out is not None else False) & np.isfinite(cl.noise_mrad)]
     left = np.zeros(len(ids), bool) if cl.left_out is None else np.asarray(cl.left_out, bool)
     noisy = noise_outliers(cl.noise_mrad, real) if cl.noisy is None else np.asarray(cl.noisy, bool)
     spots = np.zeros(len(ids), bool) if cl.unexplained_spots is None else np.asarray(cl.unexplained_spots, bool)
