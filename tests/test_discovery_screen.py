@@ -163,7 +163,7 @@ def test_batched_competitor_forms_equal_the_per_heliostat_computation():
         rss_new = rr @ rr - (rt @ rt - np.sum((rt - xt @ beta) ** 2))
         logdet = np.linalg.slogdet(np.eye(4) + t2_scaled * xt.T @ xt / s2)[1]
         ref_delta += rows.size * np.log(rr @ rr / rss_new) - logdet - beta @ beta / t2_scaled
-        sq, n_sq = sq + np.sum((x @ beta) ** 2), n_sq + rows.size // 2
+        sq, n_sq = sq + np.sum((xt @ beta) ** 2), n_sq + rows.size // 2  # the structure it explains
         dof = rows.size - u.shape[1]
         if dof - 4 > 0:
             v = np.linalg.svd(xt, full_matrices=False)[0]
@@ -180,7 +180,7 @@ def test_batched_competitor_forms_equal_the_per_heliostat_computation():
     )
     ref_fleet -= np.linalg.slogdet(np.eye(4) + t2 * gmat)[1] + beta @ beta / t2
     np.testing.assert_allclose(d_fleet, ref_fleet, rtol=1e-9)
-    ref_size = np.sqrt(sum(np.sum((x @ beta) ** 2) for _, x, _, _, _ in parts) / sum(n // 2 for n, *_ in parts))
+    ref_size = np.sqrt(sum(np.sum((xt @ beta) ** 2) for _, _, xt, _, _ in parts) / sum(n // 2 for n, *_ in parts))
     np.testing.assert_allclose(size_fleet, ref_size, rtol=1e-9)
 
 

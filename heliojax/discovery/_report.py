@@ -653,6 +653,10 @@ def _left_out(report: dict) -> list[str]:
     return [n["heliostat"] for n in report.get("noisy_heliostats", []) if n.get("left_out")]
 
 
+def _aside(report: dict) -> str:
+    return "gross errors and left-out heliostats" if _left_out(report) else "gross errors"
+
+
 def _left_out_note(report: dict) -> str:
     """`` (k left out after the pre-pass: ids)`` for the noise outliers discovery left out."""
     left = _left_out(report)
@@ -667,7 +671,7 @@ def markdown_summary(report: dict) -> str:
         "",
         f"Data: {d['n_heliostats']} heliostats{_left_out_note(report)}, {d['n_records']} records"
         + (f" in {d['source']}" if d.get("source") else "")
-        + f", {d['n_records_used']} used (gross errors{' and left-out heliostats' if _left_out(report) else ''} aside)"
+        + (f", {d['n_records_used']} used ({_aside(report)} aside)" if "n_records_used" in d else "")
         + (
             f"; excluded by the caller: {', '.join(report['config']['exclude'])}"
             if report["config"].get("exclude")
