@@ -105,8 +105,8 @@ def add_parser(subparsers) -> None:
             "radius, from the fit's parameter covariance, the drift since the fit, the sky gap to the fitted "
             "records' suns where the fit asked for it, and the fitted tails) and "
             "flags (counts outside the actuator range, sun low, no usable fit, "
-            "aim point not reached). Writes a CSV (one row per heliostat and instant), optionally HDF5 "
-            "and a plot."
+            "aim point not reached, a sun or an instant outside what the fit's records cover). Writes a CSV "
+            "(one row per heliostat and instant), optionally HDF5 and a plot."
         ),
     )
     p.add_argument("results", type=path_type, metavar="RESULTS_H5", help="results.h5 of `heliojax calibrate`")
@@ -401,6 +401,7 @@ def run(args) -> int:
         "beyond_calibrated_sky": np.asarray(r.beyond_calibrated_sky),
         "uncertainty_above_nominal": np.asarray(r.uncertainty_above_nominal),
         "before_fit": np.asarray(r.before_fit),
+        "long_after_fit": np.asarray(r.long_after_fit),
     }
     ok = np.asarray(r.ok)
     others = np.any([v for k, v in flags.items() if k != "beyond_calibrated_sky"], axis=0)
