@@ -252,16 +252,13 @@ def test_a_parameter_forged_within_its_bounds_is_found_by_the_residuals(fitted_h
 
 def test_residuals_are_reproduced_without_x64(fitted_h5):
     """The check computes in float64 whatever the caller's ``jax_enable_x64``: in a
-    plain user's configuration (float32) it flags nothing."""
-    import subprocess
-    import sys
+    plain user's configuration (float32; in float32 the residuals differ by up to
+    1e-3 mrad) it flags nothing."""
+    import jax
 
-    code = (
-        "import jax, heliojax as hj, sys; assert not jax.config.jax_enable_x64; "
-        f"r = hj.load_results({str(fitted_h5)!r}); print(sorted(r.flags)); sys.exit(bool(r.flags))"
-    )
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stdout + done.stderr
+    with jax.enable_x64(False):
+        assert not jax.config.jax_enable_x64
+        assert hj.load_results(fitted_h5).flags == {}
 
 
 def test_a_heliostat_with_records_after_the_file_was_written_is_flagged(fitted_h5, tmp_path):
