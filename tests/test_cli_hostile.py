@@ -1641,6 +1641,37 @@ def test_trace_summary_is_strict_json_and_a_missing_flux_png_is_named(tmp_path, 
     assert "centroid is undefined" in caplog.text + err
 
 
+def test_trace_refuses_a_record_the_timestamps_give_another_heliostat(tmp_path, capsys):
+    """A copy of BH20's record under BL14's folder: calibrate skips it (the timestamps
+    assign it to BH20), but `trace --heliostat BL14 --record` aimed BL14 with BH20's
+    counts and sun without a word (hostile-input round 7). It is refused now, naming the
+    file and the heliostat the timestamps give."""
+    data = tmp_path / "paint"
+    shutil.copytree(hj.default_data_dir(), data)
+    record = sorted((data / "BH20" / "Calibration").glob("*-calibration-properties.json"))[0]
+    shutil.copy(record, data / "BL14" / "Calibration" / record.name)
+    rid = record.name.split("-")[0]
+    argv = ["trace", str(data), "--heliostat", "BL14", "--record", rid, "--out", str(tmp_path / "o")]
+    rc, _, err = _run([*argv, "--pixels", "8", "--rays-per-point", "1", "--steps", "1", "--quiet"], capsys)
+    assert rc == 2 and f"assigns record {rid} to 'BH20'" in err and record.name in err, err
+    assert not (tmp_path / "o").exists()
+
+
+def test_trace_takes_its_heliostat_from_the_config(tmp_path, capsys):
+    """`heliostat` in a config's [trace] was never read: argparse demanded --heliostat
+    first (hostile-input round 7). The config gives it now; without it anywhere the error
+    says where it may come from."""
+    small = ["--pixels", "8", "--rays-per-point", "1", "--steps", "1", "--resolution", "4", "--quiet"]
+    config = _config(tmp_path, '[trace]\nheliostat = "BE36"\nsun_azimuth = 10.0\nsun_elevation = 30.0\n')
+    rc, _, err = _run(["trace", "--config", config, "--out", str(tmp_path / "o"), *small], capsys)
+    assert rc == 0, err
+    assert {p.name for p in (tmp_path / "o").iterdir()} == {
+        f"BE36-az10_el30-{kind}" for kind in ("flux.h5", "flux.png", "summary.json")
+    }
+    rc, _, err = _run(["trace", "--sun-azimuth", "10", "--sun-elevation", "30", "--out", str(tmp_path / "n")], capsys)
+    assert rc == 2 and "--heliostat is required (on the command line, or `heliostat` in the --config's [trace])" in err
+
+
 def test_trace_refuses_an_unfitted_heliostat_of_results_and_an_aim_h5(tmp_path, capsys):
     """--results whose heliostat was never fitted (too few records: its model is the start)
     traced as if calibrated; an aim.h5 given for a results.h5 was 'missing attribute model'."""
@@ -3389,6 +3420,8 @@ def test_trace_takes_a_heliostat_whose_folder_name_holds_a_space(tmp_path, capsy
     (data / "BE36").rename(data / "BE 36")
     for f in (data / "BE 36").rglob("BE36*"):
         f.rename(f.with_name(f.name.replace("BE36", "BE 36")))
+    stamps = data / "calibration-timestamps.json"  # whose records they are
+    stamps.write_text(stamps.read_text().replace('"BE36"', '"BE 36"'))
     record = sorted((data / "BE 36" / "Calibration").glob("*-calibration-properties.json"))[0]
     rid = record.name.split("-")[0]
     out = tmp_path / "o"
@@ -3542,7 +3575,7 @@ def test_trace_says_when_most_of_the_spot_is_off_the_image(tmp_path, capsys):
     [
         ([], "the time split is not random"),
         (["--split", "azimuth", "--train", "5"], "the azimuth split is not random"),
-        (["--records", "records.csv", "--split", "balanced", "--val", "2"], "--records chooses the records"),
+        (["--records", "records.csv"], "--records chooses the records"),
         (["--test-data", "."], "--test-data holds the held-out records"),
     ],
 )
@@ -3561,6 +3594,28 @@ def test_a_seed_that_nothing_draws_with_is_refused(extra, why, tmp_path, capsys,
     config = _config(tmp_path, "[calibrate]\nseed = 7\n")
     rc, _, err = _run(["calibrate", *extra, "--config", config], capsys)
     assert rc == 2 and f"{config}: [calibrate] seed 7: nothing in this run is drawn" in err, err
+
+
+@pytest.mark.parametrize(
+    "extra",
+    [
+        ["--records", "records.csv", "--split", "azimuth"],
+        ["--records", "records.csv", "--train", "5"],
+        ["--records", "records.csv", "--train-fraction", "0.5"],
+        ["--records", "records.csv", "--val", "2"],
+        ["--test-data", ".", "--split", "time"],
+    ],
+)
+def test_split_options_beside_records_or_test_data_are_refused(extra, tmp_path, capsys, monkeypatch):
+    """`calibrate --records F --split azimuth` (or --train, --train-fraction) fitted the
+    file's records and said nothing of the split asked for (hostile-input round 7):
+    --records and --test-data choose the records themselves, so a split option beside
+    them is refused before any work, naming both."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "records.csv").write_text("heliostat_id,record_id\nBE36,1\n")
+    rc, _, err = _run(["calibrate", *extra], capsys)
+    assert rc == 2 and f"{extra[2]} {extra[3]}: {extra[0]} chooses the training and held-out records" in err, err
+    assert len(err.strip().splitlines()) == 1, err
 
 
 def test_a_seed_is_taken_where_something_is_drawn_and_unsaid_by_default(caplog):
@@ -3593,7 +3648,6 @@ _REQUIRED = {
     "plan": ["r.h5"],
     "fetch": ["--out", "o"],
     "accept": ["--results", "r.h5", "--contract", "c.toml"],
-    "trace": ["--heliostat", "BE36"],
 }
 
 

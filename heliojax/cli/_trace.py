@@ -67,7 +67,7 @@ def _tag(args) -> str:
 def outputs_inside(args) -> list[tuple[str, Path]]:
     """The files this command writes in ``--out``, checked before any work (none while
     the record / sun flags are incomplete: :func:`run` names that error)."""
-    if args.record is None and (args.sun_azimuth is None or args.sun_elevation is None):
+    if args.heliostat is None or (args.record is None and (args.sun_azimuth is None or args.sun_elevation is None)):
         return []
     return [("out", _output(args, kind)) for kind in ("flux.h5", "flux.png", "comparison.png", "summary.json")]
 
@@ -99,7 +99,12 @@ def add_parser(subparsers) -> None:
         metavar="PAINT_DIR",
         help="PAINT-layout directory (<H>/Properties, <H>/Calibration; default: the embedded real subset)",
     )
-    p.add_argument("--heliostat", required=True, type=heliostat_id, help="heliostat id, e.g. AA39")
+    p.add_argument(
+        "--heliostat",
+        default=None,
+        type=heliostat_id,
+        help="heliostat id, e.g. AA39 (required; or `heliostat` in --config)",
+    )
     p.add_argument("--record", type=integer(0), help="calibration record id (counts, sun and target of the record)")
     p.add_argument(
         "--sun-azimuth", type=number(-360.0, 360.0), help="sun azimuth in degrees, 0 = south, positive toward east"
@@ -203,8 +208,10 @@ def run(args: argparse.Namespace) -> int:
     from .._io import atomic_h5, atomic_path, json_safe, staged_paths, write_json
     from .._kinematics import ActuatorModel, forward, inverse_aim
     from .._progress import progress_bar
-    from ..paint import read_calibration_record, read_heliostat_properties, read_tower
+    from ..paint import TIMESTAMPS_FILE, read_calibration_record, read_heliostat_properties, read_timestamps, read_tower
 
+    if args.heliostat is None:
+        raise ConfigError("--heliostat is required (on the command line, or `heliostat` in the --config's [trace])")
     for dest, flag, shape in (("csr", "--csr", "buie"), ("sigma_mrad", "--sigma-mrad", "gaussian")):
         if getattr(args, dest) is not None and args.sunshape != shape:  # another sun shape's: would be ignored
             raise ConfigError(
@@ -281,7 +288,11 @@ def run(args: argparse.Namespace) -> int:
                     f"--record {args.record}: {args.heliostat} has no such calibration record ({rec_path} "
                     f"not found); its records: {shown or 'none'}"
                 )
-            record = read_calibration_record(rec_path, heliostat_id=args.heliostat)
+            # the download's timestamps say whose record it is (a copy under another
+            # heliostat's folder is refused, as the loader refuses it)
+            stamps = args.paint / TIMESTAMPS_FILE
+            timestamps = read_timestamps(stamps, on_error=lambda e: None) if stamps.is_file() else None
+            record = read_calibration_record(rec_path, heliostat_id=args.heliostat, timestamps=timestamps)
             az, el, target_name = record.sun_azimuth_deg, record.sun_elevation_deg, record.target_name
             if args.target is not None and args.target != target_name:
                 raise ConfigError(
