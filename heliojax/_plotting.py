@@ -240,7 +240,19 @@ def plot_aim(ids, pointing_cov_mrad2, ok, distance_m, hours=None, start=None, *,
     ax.set_ylabel("radius holding the beam with 68 % [mrad]")
     ax.set_title(f"predicted pointing uncertainty of the usable commands ({error_law.describe()})", fontsize=10)
     ax.grid(alpha=0.3)
-    if len(ids) <= 30:
+    if not ok.any():  # empty axes and an empty legend said nothing
+        for a in axes:
+            a.text(
+                0.5,
+                0.5,
+                "no usable command:\nevery one is flagged\n(see the CSV's flags column)",
+                transform=a.transAxes,
+                ha="center",
+                va="center",
+                fontsize=11,
+                color="tab:red",
+            )
+    elif len(ids) <= 30:
         ax.legend(fontsize=7, ncol=2, loc="upper left", bbox_to_anchor=(1.01, 1.0), title="heliostat")
     fig.tight_layout()
     return fig

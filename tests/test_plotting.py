@@ -94,3 +94,19 @@ def test_plan_figure_keeps_a_readable_width_for_large_fleets(tmp_path):
     assert len(bars.get_xticklabels()) == 40 and "40 of 300" in bars.get_xlabel()
     save_figure(fig, tmp_path / "plan.png")  # the render check of every saved figure runs here
     assert (tmp_path / "plan.png").stat().st_size > 10_000
+
+
+def test_aim_figure_says_when_every_command_is_flagged(tmp_path):
+    """An aim day on which every command was flagged drew two empty panels and an empty
+    legend box: both panels now say that nothing is usable and where to look."""
+    from heliojax._plotting import plot_aim, save_figure
+
+    cov = np.tile(np.eye(2), (3, 4, 1, 1))
+    fig = plot_aim(["A", "B", "C"], cov, np.zeros((3, 4), bool), np.full(3, 100.0))
+    for ax in fig.axes:
+        assert any("no usable command" in t.get_text() for t in ax.texts)
+        assert ax.get_legend() is None
+    save_figure(fig, tmp_path / "aim.png")
+    usable = plot_aim(["A", "B", "C"], cov, np.ones((3, 4), bool), np.full(3, 100.0))
+    assert not any(t.get_text() for ax in usable.axes for t in ax.texts)
+    assert usable.axes[1].get_legend() is not None
