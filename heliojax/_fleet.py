@@ -78,7 +78,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, Real
 
-from ._geometry import TargetPlane, check_unit_vectors
+from ._geometry import TargetPlane, angle_between, check_unit_vectors
 from ._heliostat import HeliostatGeometry, RecordContext
 
 __all__ = [
@@ -478,14 +478,11 @@ def spot_scatter_mrad(fleet: Fleet, mask: Bool[ArrayLike, "H M"] | None = None) 
     use = np.asarray(fleet.mask if mask is None else mask, bool) & (index >= 0) & (index < n_targets)
     centre = np.asarray(fleet.targets.centre)[np.where(use, index, 0)] if n_targets else np.zeros((*use.shape, 3))
     position = np.asarray(fleet.geometry.position)[:, None, :]
-    to_spot, to_centre = np.asarray(fleet.focal_spot) - position, centre - position
+    angle = np.asarray(angle_between(np.asarray(fleet.focal_spot) - position, centre - position))
+    use &= np.isfinite(angle)
+    n = use.sum(axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        sine = np.linalg.norm(np.cross(to_spot, to_centre), axis=-1) / (
-            np.linalg.norm(to_spot, axis=-1) * np.linalg.norm(to_centre, axis=-1)
-        )
-        angle = np.where(use & np.isfinite(sine), np.arcsin(np.clip(sine, 0.0, 1.0)), 0.0)
-        n = (use & np.isfinite(sine)).sum(axis=1)
-        return np.where(n > 0, 1e3 * np.sqrt(np.sum(angle**2, axis=1) / np.maximum(2 * n, 1)), np.nan)
+        return np.where(n > 0, 1e3 * np.sqrt(np.sum(np.where(use, angle, 0.0) ** 2, axis=1) / (2 * n)), np.nan)
 
 
 def records_among(

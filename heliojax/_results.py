@@ -86,7 +86,7 @@ from ._io import atomic_h5
 from ._kinematics import AbstractKinematicModel, nominal_model
 from ._parameters import ParameterView, broadcast_model
 from ._predictive import DRIFT_RATE_KEYS, MIN_TAIL_DOF, PointingErrorLaw
-from ._splits import days_from_fitted_mean, days_since_fit
+from ._splits import days_from_fitted_mean, days_since_fit, utc_iso
 from ._version import __version__, release_tuple
 from .effects import with_effects
 from .fitting import FitStatus, residuals_mrad
@@ -638,12 +638,6 @@ _LAW_ATTRS = (
 """Numeric attributes of results.h5 and their ranges."""
 
 
-def _iso(unix_time: float) -> str:
-    import datetime
-
-    return datetime.datetime.fromtimestamp(unix_time, tz=datetime.UTC).strftime("%Y-%m-%dT%H:%MZ")
-
-
 def _written_time(attrs: dict, source: str) -> float | None:
     """The file's ``written_unix_time`` (None in files written before it was kept);
     DataError when it is no time of 1970-2200."""
@@ -669,8 +663,8 @@ def _records_after(written: float, records: dict[str, np.ndarray], ids: tuple[st
         later = np.isfinite(t) & (t > written + _CLOCK_SKEW_S)
     return {
         ids[h]: (
-            f"unix_time: heliostat {ids[h]!r}: a record at {_iso(float(t[h][later[h]].max()))} is later than the "
-            f"file was written ({_iso(written)}): a wrong record date, or an edited file"
+            f"unix_time: heliostat {ids[h]!r}: a record at {utc_iso(float(t[h][later[h]].max()))} is later than the "
+            f"file was written ({utc_iso(written)}): a wrong record date, or an edited file"
         )
         for h in np.flatnonzero(later.any(axis=1))
     }
@@ -698,27 +692,21 @@ def _unreproduced_residuals(
     n_rows = stored.shape[0]
     with jax.enable_x64(True):
         model = jax.vmap(view.from_vector)(broadcast_model(model_from_label(label), n_rows), jnp.asarray(params))
-        recomputed = _recomputed_residuals(model, geometry, inputs, records, claimed)
+        context = RecordContext(
+            sun=jnp.asarray(inputs["sun"]),
+            unix_time=jnp.asarray(records.get("unix_time", np.full(stored.shape[:2], np.nan)), float),
+            temperature=jnp.asarray(inputs["temperature"]),
+            wind_speed=jnp.asarray(inputs["wind_speed"]),
+            wind_direction=jnp.asarray(inputs["wind_direction"]),
+            approach=jnp.asarray(inputs["approach"]),
+            target=jnp.asarray(records.get("target_index", np.full(stored.shape[:2], -1)), jnp.int32),
+        )
+        counts, focal = jnp.asarray(inputs["counts"]), jnp.asarray(inputs["focal_spot"])
+        recomputed = np.asarray(residuals_mrad(model, geometry, counts, context, focal, jnp.asarray(claimed)))
     with np.errstate(invalid="ignore"):
         difference = np.where(claimed[..., None], np.abs(recomputed - stored), 0.0)
     worst = np.nan_to_num(difference, nan=np.inf).reshape(n_rows, -1).max(axis=1)
     return {int(h): float(worst[h]) for h in np.flatnonzero(worst > RESIDUAL_TOLERANCE_MRAD)}
-
-
-def _recomputed_residuals(model, geometry, inputs, records, claimed) -> np.ndarray:
-    """``(H, M, 2)`` residuals (mrad) of ``model`` on the stored record inputs."""
-    stored = records["residual_mrad"]
-    context = RecordContext(
-        sun=jnp.asarray(inputs["sun"]),
-        unix_time=jnp.asarray(records.get("unix_time", np.full(stored.shape[:2], np.nan)), float),
-        temperature=jnp.asarray(inputs["temperature"]),
-        wind_speed=jnp.asarray(inputs["wind_speed"]),
-        wind_direction=jnp.asarray(inputs["wind_direction"]),
-        approach=jnp.asarray(inputs["approach"]),
-        target=jnp.asarray(records.get("target_index", np.full(stored.shape[:2], -1)), jnp.int32),
-    )
-    counts, focal = jnp.asarray(inputs["counts"]), jnp.asarray(inputs["focal_spot"])
-    return np.asarray(residuals_mrad(model, geometry, counts, context, focal, jnp.asarray(claimed)))
 
 
 def _error_law(attrs: dict) -> PointingErrorLaw:
@@ -926,11 +914,7 @@ def _load_results(path: str | Path) -> CalibrationResults:
                 f"{source}: no {RECORD_INPUTS} (a file of a heliojax before 2026-12-07, or one whose group was "
                 "removed): whether the parameters reproduce the stored residuals cannot be checked"
             )
-        if (
-            isinstance(f.get(RECORD_INPUTS), h5py.Group)
-            and "residual_mrad" in records
-            and isinstance(group, h5py.Group)
-        ):
+        elif "residual_mrad" in records and isinstance(group, h5py.Group):  # the group (geometry read above)
             m = records["residual_mrad"].shape[1]
             inputs = {
                 k: _numeric(need(f"{RECORD_INPUTS}/{k}"), source, f"{RECORD_INPUTS}/{k}", (len(ids), m, *tail), "f")
@@ -1121,7 +1105,7 @@ def _load_results(path: str | Path) -> CalibrationResults:
             flags.setdefault(ids[h], reason)
     if written is not None and written > time.time() + _CLOCK_SKEW_S:
         log.warning(
-            f"{source}: written_unix_time: written {_iso(written)}, later than this machine's clock: a wrong clock, "
+            f"{source}: written_unix_time: written {utc_iso(written)}, later than this machine's clock: a wrong clock, "
             "or an edited file"
         )
     return CalibrationResults(

@@ -64,6 +64,7 @@ since the Unix epoch, UTC.
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import math
 from collections.abc import Mapping, Sequence
 from typing import Literal
@@ -79,6 +80,7 @@ __all__ = [
     "chronological_holdout",
     "days_since_fit",
     "days_from_fitted_mean",
+    "utc_iso",
     "FleetSplit",
     "record_sky_gap_deg",
     "SplitResult",
@@ -90,6 +92,15 @@ __all__ = [
     "split_masks",
     "split_records",
 ]
+
+
+def utc_iso(unix_time: float) -> str | None:
+    """``unix_time`` (s) as an ISO 8601 UTC date-time ``YYYY-MM-DDTHH:MM:SSZ``; None
+    when it is not finite."""
+    if not math.isfinite(unix_time):
+        return None
+    return datetime.datetime.fromtimestamp(float(unix_time), tz=datetime.UTC).isoformat().replace("+00:00", "Z")
+
 
 SplitKind = Literal["time", "azimuth", "solstice", "balanced", "high_variance"]
 SPLIT_NAMES: tuple[str, ...] = ("time", "azimuth", "solstice", "balanced", "high_variance")

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import collections.abc
 import dataclasses
-import datetime
 import functools
 import json
 import logging
@@ -32,7 +31,14 @@ from ._kinematics import AbstractKinematicModel, nominal_model
 from ._predictive import DRIFT_RATE_KEYS, PointingErrorLaw, fit_drift_terms_and_law
 from ._programs import warm_up
 from ._progress import activity
-from ._splits import chronological_holdout, days_from_fitted_mean, days_since_fit, record_sky_gap_deg, split_fleet
+from ._splits import (
+    chronological_holdout,
+    days_from_fitted_mean,
+    days_since_fit,
+    record_sky_gap_deg,
+    split_fleet,
+    utc_iso,
+)
 from .fitting import (
     MIN_PRIOR_HELIOSTATS,
     ChangePoints,
@@ -844,12 +850,6 @@ def _scan_changes(
     return eqx.tree_at(lambda c: (c.found, c.is_step), cp, (jax.device_put(found), jax.device_put(step))), superseded
 
 
-def _utc(t: float) -> str | None:
-    if not np.isfinite(t):
-        return None
-    return datetime.datetime.fromtimestamp(float(t), tz=datetime.UTC).isoformat().replace("+00:00", "Z")
-
-
 RECENT_OUTLIERS_WARN = 2
 """A heliostat whose latest this-many (or more) fitted records are all gross errors is
 warned about: one glitch is common, a run of them at the end is how a change that has
@@ -875,12 +875,12 @@ def _recent_outliers(run: CalibrationRun, fit_mask: np.ndarray, i: int) -> dict[
     warning = None
     if n >= RECENT_OUTLIERS_WARN:
         warning = (
-            f"its latest {n} fitted records (since {_utc(t[first])}) are all gross errors, median {median:.1f} mrad: "
-            "a change may have started; measure it again before aiming with this calibration"
+            f"its latest {n} fitted records (since {utc_iso(t[first])}) are all gross errors, median "
+            f"{median:.1f} mrad: a change may have started; measure it again before aiming with this calibration"
         )
     return {
         "recent_outliers": n,
-        "recent_outliers_since": _utc(t[first]),
+        "recent_outliers_since": utc_iso(t[first]),
         "recent_outliers_median_mrad": _json_float(median),
         "warning": warning,
     }
@@ -897,8 +897,8 @@ def _change_entry(run: CalibrationRun, i: int) -> dict[str, typing.Any]:
     n_sup = int(run.superseded[i].sum()) if run.superseded is not None else 0
     return {
         "change_point": {
-            "date_utc": _utc(float(np.asarray(cp.time_s)[i])),
-            "previous_record_utc": _utc(float(np.asarray(cp.previous_time_s)[i])),
+            "date_utc": utc_iso(float(np.asarray(cp.time_s)[i])),
+            "previous_record_utc": utc_iso(float(np.asarray(cp.previous_time_s)[i])),
             "kind": "step" if bool(np.asarray(cp.is_step)[i]) else "drift",
             "jump_mrad": {n: _json_float(float(v)) for n, v in zip(cp.offsets, jump)},
             "delta_chi2": dchi2,

@@ -109,7 +109,6 @@ The variables of ``"unexplained"`` are those of
 
 from __future__ import annotations
 
-import datetime
 import json
 import math
 from pathlib import Path
@@ -118,6 +117,7 @@ import numpy as np
 
 from .._io import atomic_write
 from .._plotting import pyplot, save_figure
+from .._splits import utc_iso
 from ..fitting import NOISE_OUTLIER_MIN_RATIO, noise_outliers
 from ._diagnostics import record_variables
 from ._lanes import fold_blocks, too_few_days_note
@@ -563,12 +563,6 @@ def _not_tested_reason(result) -> str | None:
     return "no candidate effect and no recorded variable could be tested on these records"
 
 
-def _utc(t: float) -> str | None:
-    if not math.isfinite(t):
-        return None
-    return datetime.datetime.fromtimestamp(float(t), tz=datetime.UTC).isoformat().replace("+00:00", "Z")
-
-
 def _confirmed_changes(cl) -> np.ndarray:
     """``(H,)`` change points found and not withdrawn under the final model."""
     return cl.change_found & ~(cl.withdrawn if cl.withdrawn is not None else False)
@@ -601,8 +595,8 @@ def _cleaning_report(result) -> dict:
         changes.append(
             {
                 "heliostat": ids[h],
-                "time": _utc(float(cl.change_time_s[h])),
-                "previous_record_time": _utc(float(cl.change_previous_s[h])),
+                "time": utc_iso(float(cl.change_time_s[h])),
+                "previous_record_time": utc_iso(float(cl.change_previous_s[h])),
                 "jump": {n: _f(float(v) * 1e-3) for n, v in zip(cl.offsets, cl.change_jump_mrad[h])},
                 "jump_unit": "rad",
                 "p": _f(cl.change_p[h]),
@@ -614,12 +608,12 @@ def _cleaning_report(result) -> dict:
     if cl.withdrawn is not None:
         for h in np.nonzero(cl.withdrawn)[0]:
             if ids[h]:
-                when = _utc(float(cl.change_time_s[h]))
+                when = utc_iso(float(cl.change_time_s[h]))
                 withdrawn.append({"heliostat": ids[h], "time": when, "p": _f(cl.change_p[h])})
     real = np.array([bool(i) for i in ids])
-    # the fleet's noise: of the heliostats discovery used (a left-out one's is its own line)
-    noise = cl.noise_mrad[real & ~(cl.left_out if cl.left_out is not None else False) & np.isfinite(cl.noise_mrad)]
     left = np.zeros(len(ids), bool) if cl.left_out is None else np.asarray(cl.left_out, bool)
+    # the fleet's noise: of the heliostats discovery used (a left-out one's is its own line)
+    noise = cl.noise_mrad[real & ~left & np.isfinite(cl.noise_mrad)]
     noisy = noise_outliers(cl.noise_mrad, real) if cl.noisy is None else np.asarray(cl.noisy, bool)
     spots = np.zeros(len(ids), bool) if cl.unexplained_spots is None else np.asarray(cl.unexplained_spots, bool)
     scatter = np.full(len(ids), np.nan) if cl.spot_scatter_mrad is None else cl.spot_scatter_mrad
@@ -1145,7 +1139,7 @@ def plot_change_points(result, *, max_heliostats: int = 12):
         ax.axvline(0.0, color="k", ls="--", lw=1)
         ax.axhline(0.0, color="k", lw=0.5)
         jump = ", ".join(f"{v:+.2f}" for v in cl.change_jump_mrad[h])
-        when = (_utc(float(cl.change_time_s[h])) or "")[:10]
+        when = (utc_iso(float(cl.change_time_s[h])) or "")[:10]
         ax.set_title(
             f"{result.fleet.ids[h]}: change {when}\n"
             f"fitted jump of offsets ({jump}) mrad, p (Holm) {cl.change_p_holm[h]:.1g}",
