@@ -63,7 +63,7 @@ from ._beam import beam_pointing_error
 from ._geometry import check_unit_vectors
 from ._heliostat import HeliostatGeometry, RecordContext
 from ._kinematics import AbstractKinematicModel, forward, inverse_aim
-from ._parameters import ParameterView
+from ._parameters import ParameterView, covariance_problem
 from ._predictive import PointingErrorLaw, region_radius
 
 REACH_TOLERANCE_MRAD = 1e-3
@@ -220,6 +220,107 @@ def _pointing_covariance(view, models, geometry, counts, aim_points, sun, covari
     return jax.vmap(one)(models, geometry, counts, aim_points, covariance)
 
 
+def _threshold(value: typing.Any, name: str, low: float, high: float, unit: str) -> typing.Any:
+    """``value`` as a float: ValueError naming ``name`` unless it is a finite number in
+    ``[low, high]`` (a NaN had switched a flag off, or raised it on every command).
+    The one check of every scalar option of :func:`aim_fleet`; traced values pass."""
+    if isinstance(value, Tracer):
+        return value
+    a = None if value is None or isinstance(value, (str, bytes)) else np.asarray(value)
+    if a is None or a.ndim != 0 or a.dtype.kind not in "iuf":  # a bool, a string, an array
+        raise ValueError(f"{name} is {value!r}; expected a number ({unit})")
+    x = float(a)
+    if not (math.isfinite(x) and low <= x <= high):
+        expected = f"a finite value >= {low:g}" if high == math.inf else f"a finite value in [{low:g}, {high:g}]"
+        raise ValueError(f"{name} is {x}; expected {expected} {unit}")
+    return x
+
+
+def _heliostat_count(models: typing.Any, geometry: typing.Any) -> int:
+    """``H``, the heliostats ``geometry`` is batched over; ValueError unless every array
+    of ``models`` and ``geometry`` carries that leading axis (models of one calibration
+    with another's geometry had ended in a raw vmap error)."""
+    h = int(jnp.shape(geometry.position)[0])
+    for name, tree in (("geometry", geometry), ("models", models)):
+        sizes = {int(jnp.shape(x)[0]) if jnp.ndim(x) else None for x in jax.tree.leaves(tree) if eqx.is_array(x)}
+        if sizes - {h}:
+            got = ", ".join("unbatched" if n is None else str(n) for n in sorted(sizes - {h}, key=str))
+            raise ValueError(
+                f"{name}: arrays batched over {got} heliostat(s), expected {h} (geometry.position has "
+                f"{h} rows); give the models and geometry of one calibration, batched over its heliostats"
+            )
+    return h
+
+
+def _fitted_mask(fitted: typing.Any, h: int) -> Bool[Array, " H"]:
+    """``fitted`` as a boolean ``(H,)`` array (None: all True); TypeError for another
+    dtype (2.5 had been taken as True), ValueError for another shape (one value had
+    been broadcast to every heliostat)."""
+    if fitted is None:
+        return jnp.ones((h,), bool)
+    a = fitted if isinstance(fitted, Tracer) else np.asarray(fitted)
+    if a.dtype != bool:
+        raise TypeError(
+            f"fitted has dtype {a.dtype}; expected a boolean ({h},) array (True: the heliostat's model may be used)"
+        )
+    if a.shape != (h,):
+        raise ValueError(f"fitted has shape {a.shape}; expected ({h},), one boolean per heliostat")
+    return jnp.asarray(a)
+
+
+def _check_covariance(covariance: typing.Any, view: ParameterView, used: np.ndarray | None, h: int) -> None:
+    """ValueError naming ``covariance`` unless it is ``(H, F, F)`` (``F`` the free
+    parameters of ``view``) and, for the heliostats ``used`` (None: traced, values not
+    checked), finite, symmetric and positive semi-definite within rounding
+    (:func:`heliojax._parameters.covariance_problem`, the check of results.h5)."""
+    f = view.n_free
+    expected = f"({h}, {f}, {f}): the covariance of the {f} free parameters {list(view.free_names)} per heliostat"
+    _check_numeric(covariance, "covariance", expected)
+    if jnp.shape(covariance) != (h, f, f):
+        raise ValueError(f"covariance has shape {jnp.shape(covariance)}; expected {expected}")
+    if used is None or isinstance(covariance, Tracer):
+        return
+    cov = np.where(used[:, None, None], np.asarray(covariance, float), 0.0)  # unused heliostats: not checked
+    problem = covariance_problem(cov)
+    if problem is not None:
+        raise ValueError(
+            f"covariance: {problem} for a heliostat used (fitted); expected {expected}, finite, symmetric and "
+            "positive semi-definite (heliojax.FitSolution.covariance)"
+        )
+
+
+def _check_drift(drift: typing.Any, used: np.ndarray | None, h: int, n: int) -> None:
+    """ValueError naming ``drift_variance_mrad2`` unless it broadcasts to ``(H, N)``
+    and, for the heliostats ``used`` (None: traced, values not checked), is finite and
+    >= 0 (a negative or NaN variance had left a NaN uncertainty beside an ``ok``)."""
+    _check_numeric(drift, "drift_variance_mrad2", f"variances (mrad^2) broadcast to ({h}, {n})")
+    try:
+        fits = np.broadcast_shapes(jnp.shape(drift), (h, n)) == (h, n)
+    except ValueError:
+        fits = False
+    if not fits:
+        raise ValueError(f"drift_variance_mrad2 has shape {jnp.shape(drift)}; expected one broadcast to ({h}, {n})")
+    if used is None or isinstance(drift, Tracer):
+        return
+    d = np.broadcast_to(np.asarray(drift, float), (h, n))
+    bad = ~(np.isfinite(d) & (d >= 0.0)) & used[:, None]
+    if bad.any():
+        raise ValueError(
+            f"drift_variance_mrad2: {int(bad.sum())} value(s) negative or not finite (e.g. {float(d[bad][0])}) for a "
+            "heliostat used (fitted); expected variances >= 0 (mrad^2 per tangent component)"
+        )
+
+
+def uncertainty_unknown(values: Float[ArrayLike, "H ..."]) -> Bool[Array, " H"]:
+    """``(H,)`` heliostats with a non-finite value among ``values`` (leading axis the
+    heliostats): their predicted uncertainty is unknown, and a NaN uncertainty beside an
+    unflagged command reads as trusted, so :func:`aim_results` (a drift unknown) and
+    :func:`aim_fleet` (the predicted covariance of a command with finite counts) flag
+    them ``unreliable``."""
+    v = jnp.asarray(values)
+    return ~jnp.all(jnp.isfinite(v.reshape(v.shape[0], -1)), axis=1)
+
+
 def aim_fleet(
     models: AbstractKinematicModel,
     geometry: HeliostatGeometry,
@@ -249,15 +350,22 @@ def aim_fleet(
         sun: ``(N, 3)`` unit ENU vectors to the sun.
         aim_points: ``(3,)`` one point for all, ``(H, 3)`` per heliostat or
             ``(H, N, 3)`` per heliostat and instant (ENU m).
-        fitted: ``(H,)`` heliostats whose model may be used (default all).
-        covariance: ``(H, F, F)`` covariance of the free parameters (physical
+        fitted: ``(H,)`` boolean, heliostats whose model may be used (default all);
+            the others are flagged ``unreliable``.
+        covariance: ``(H, F, F)`` covariance of the ``F`` free parameters (physical
             units, :attr:`heliojax.FitSolution.covariance`) and ``view`` the
             :class:`heliojax.ParameterView` naming them: give both for the
-            predicted pointing uncertainty.
-        drift_variance_mrad2: variance (mrad^2 per tangent component) of the drift
-            since the fit, broadcast to ``(H, N)`` (:func:`heliojax.temporal_drift`;
-            :func:`aim_results` computes it from the instants' times), added to that
-            uncertainty as ``drift_variance_mrad2 * I``.
+            predicted pointing uncertainty. Each used (``fitted``) heliostat's
+            matrix must be finite, symmetric and positive semi-definite (to
+            rounding); those of the others are not read for the check. A heliostat
+            with a command of finite counts whose predicted covariance is still not
+            finite is flagged ``unreliable`` (as :func:`aim_results` does for an
+            unknown drift): a NaN uncertainty is never beside an ``ok``.
+        drift_variance_mrad2: variance (mrad^2 per tangent component, >= 0, finite
+            for the used heliostats) of the drift since the fit, broadcast to
+            ``(H, N)`` (:func:`heliojax.temporal_drift`; :func:`aim_results` computes
+            it from the instants' times), added to that uncertainty as
+            ``drift_variance_mrad2 * I``.
         sky_gap_mrad2_per_deg: ``g``, variance (mrad^2 per tangent component) added
             per degree of sky gap, ``g * sky_gap_deg * I`` (:func:`heliojax.temporal_drift`;
             :func:`aim_results` takes it from the file); needs ``fitted_sun``. Where it
@@ -265,14 +373,16 @@ def aim_fleet(
             ``unreliable``: its predicted uncertainty is unknown.
         error_law: the predicted error's :class:`heliojax.PointingErrorLaw`
             (:func:`heliojax.temporal_drift`; default Gaussian), kept in the result.
-        min_sun_elevation_deg: flag instants with the sun lower than this.
-        reach_tolerance_mrad: largest forward-model miss still counted as reached.
+        min_sun_elevation_deg: flag instants with the sun lower than this (deg, in
+            [-90, 90]).
+        reach_tolerance_mrad: largest forward-model miss still counted as reached
+            (mrad, finite, >= 0).
         fitted_sun: ``(H, M, 3)`` unit ENU sun vectors of the records each model was
             fitted to, and ``fitted_record`` ``(H, M)`` which of them count: give both
             to flag commands ``beyond_calibrated_sky`` (:func:`aim_results` takes them
             from the file).
-        max_sky_gap_deg: the largest angle (deg) from the sun to the nearest fitted
-            record's sun that is not flagged.
+        max_sky_gap_deg: the largest angle (deg, in [0, 180]) from the sun to the
+            nearest fitted record's sun that is not flagged.
         nominal_rms_mrad: ``(H,)`` RMS beam error (mrad) of each heliostat's
             uncalibrated model on the records its model was fitted to (NaN: unknown):
             commands whose predicted uncertainty exceeds it are flagged
@@ -288,9 +398,17 @@ def aim_fleet(
         An :class:`AimResult`.
 
     Raises:
-        TypeError: ``sun`` or ``aim_points`` not an array of numbers (a string, None).
-        ValueError: wrong shapes, a sun vector that is not a finite unit vector, a
-            non-finite (NaN, inf) aim point coordinate.
+        TypeError: ``sun``, ``aim_points``, ``covariance`` or ``drift_variance_mrad2``
+            not an array of numbers (a string, None); ``fitted`` not boolean.
+        ValueError: wrong shapes (``fitted`` not ``(H,)``, ``covariance`` not
+            ``(H, F, F)``, ``models`` and ``geometry`` batched over different
+            heliostat counts), a sun vector that is not a finite unit vector, a
+            non-finite (NaN, inf) aim point coordinate, a covariance that is not
+            finite / symmetric / positive semi-definite or a drift variance that is
+            negative or not finite (for a used heliostat), a scalar option that is
+            not a finite number in its range. Under ``jax.jit`` the checks of traced
+            values are skipped; the ``unreliable`` flag for a non-finite uncertainty
+            stays.
     """
     _check_numeric(sun, "sun", "(N, 3) unit ENU vectors towards the sun (heliojax.sun_direction)")
     _check_numeric(aim_points, "aim_points", "ENU aim points (m) of shape (3,), (H, 3) or (H, N, 3)")
@@ -299,7 +417,18 @@ def aim_fleet(
         raise ValueError(f"sun has shape {sun.shape}; expected (N, 3) unit ENU vectors (one instant: sun[None])")
     check_unit_vectors(sun, None, "sun")
     n = sun.shape[0]
-    h = int(jnp.shape(geometry.position)[0])
+    h = _heliostat_count(models, geometry)
+    fitted_mask = _fitted_mask(fitted, h)
+    min_sun_elevation_deg = _threshold(min_sun_elevation_deg, "min_sun_elevation_deg", -90.0, 90.0, "deg")
+    reach_tolerance_mrad = _threshold(reach_tolerance_mrad, "reach_tolerance_mrad", 0.0, math.inf, "mrad")
+    max_sky_gap_deg = _threshold(max_sky_gap_deg, "max_sky_gap_deg", 0.0, 180.0, "deg")
+    sky_gap_mrad2_per_deg = _threshold(sky_gap_mrad2_per_deg, "sky_gap_mrad2_per_deg", 0.0, math.inf, "mrad^2 per deg")
+    used = None if isinstance(fitted_mask, Tracer) else np.asarray(fitted_mask)
+    _check_drift(drift_variance_mrad2, used, h, n)
+    if (covariance is None) != (view is None):
+        raise ValueError("give both covariance and view (the ParameterView naming its parameters), or neither")
+    if covariance is not None and view is not None:
+        _check_covariance(covariance, view, used, h)
     if jnp.shape(aim_points) not in ((3,), (h, 3), (h, n, 3)):
         raise ValueError(f"aim_points has shape {jnp.shape(aim_points)}; expected (3,), ({h}, 3) or ({h}, {n}, 3)")
     points = jnp.asarray(aim_points, sun.dtype)
@@ -319,20 +448,12 @@ def aim_fleet(
     out_of_range = jnp.any((counts < act.min_counts[:, None, :]) | (counts > act.max_counts[:, None, :]), axis=-1)
     elevation = jnp.degrees(jnp.arcsin(jnp.clip(sun[:, 2], -1.0, 1.0)))
     unreachable = ~jnp.all(jnp.isfinite(counts), axis=-1) | ~(miss <= reach_tolerance_mrad)
-    unreliable = jnp.zeros((h,), bool) if fitted is None else ~jnp.asarray(fitted, bool)
+    unreliable = ~fitted_mask
     if (fitted_sun is None) != (fitted_record is None):
         raise ValueError("give both fitted_sun and fitted_record, or neither")
-    try:
-        sky_gap_mrad2_per_deg = float(sky_gap_mrad2_per_deg)
-    except (TypeError, ValueError):
-        raise ValueError(f"sky_gap_mrad2_per_deg is {sky_gap_mrad2_per_deg!r}; expected a number") from None
-    if not (math.isfinite(sky_gap_mrad2_per_deg) and sky_gap_mrad2_per_deg >= 0.0):
-        raise ValueError(f"sky_gap_mrad2_per_deg is {sky_gap_mrad2_per_deg}; expected a finite value >= 0")
     if sky_gap_mrad2_per_deg > 0.0 and fitted_sun is None:
         raise ValueError("sky_gap_mrad2_per_deg > 0 needs fitted_sun and fitted_record (the sky gap)")
     if fitted_sun is not None and fitted_record is not None:
-        if not (0.0 <= max_sky_gap_deg <= 180.0):
-            raise ValueError(f"max_sky_gap_deg is {max_sky_gap_deg}; expected a value in [0, 180] deg")
         fitted_record = np.asarray(fitted_record, bool)
         if fitted_record.ndim != 2 or fitted_record.shape[0] != h or np.shape(fitted_sun) != (*fitted_record.shape, 3):
             raise ValueError(
@@ -356,6 +477,9 @@ def aim_fleet(
         if sky_gap_mrad2_per_deg > 0.0:  # a heliostat without a fitted record (gap inf) is flagged unreliable
             drift = drift + sky_gap_mrad2_per_deg * jnp.where(jnp.isfinite(gap), gap, 0.0)
         pointing = pointing + drift[:, :, None, None] * jnp.eye(2, dtype=sun.dtype)[None, None, :, :]
+        # defence in depth (the checks above are skipped under jit): no NaN uncertainty beside an ok
+        reached = jnp.all(jnp.isfinite(counts), axis=-1)[:, :, None, None]
+        unreliable = unreliable | uncertainty_unknown(jnp.where(reached, pointing, 0.0))
     else:
         pointing = jnp.full((h, n, 2, 2), jnp.nan, sun.dtype)
     if nominal_rms_mrad is not None:
@@ -403,22 +527,46 @@ def _check_numeric(x: typing.Any, name: str, expected: str) -> None:
         raise TypeError(f"{name}: expected {expected}, got {type(x).__name__} {str(x)[:40]!r}")
 
 
-def _instant_seconds(unix_time: typing.Any, shape: tuple[int, ...]) -> np.ndarray:
-    """``unix_time`` as float seconds since 1970 of ``shape`` (numbers, or numpy
-    ``datetime64`` of any unit); ValueError for another shape or type, or an instant
-    outside 1970-2200 (milliseconds or nanoseconds given as seconds had put every
-    command's drift, and so its error bar, at 500-500,000 mrad, all flagged)."""
+def instant_seconds(unix_time: typing.Any, shape: tuple[int, ...] | None = None) -> np.ndarray:
+    """``unix_time`` as float seconds since 1970 (of ``shape``; None: any shape), from
+    numbers or numpy ``datetime64`` of any unit; ValueError for another shape or type,
+    or an instant outside 1970-2200 or NaN (milliseconds or nanoseconds given as
+    seconds had put every command's drift, and so its error bar, at 500-500,000 mrad,
+    all flagged). Shared by :func:`aim_results` and
+    :meth:`heliojax.CalibrationResults.drift_variance_mrad2`."""
     t = np.asarray(unix_time)
     if t.dtype.kind == "M":
         t = t.astype("datetime64[us]").astype(np.int64) / 1e6
     elif t.dtype.kind not in "iuf":
         raise ValueError(f"unix_time must be seconds since 1970 (numbers) or numpy datetime64, not {t.dtype}")
     t = t.astype(float)
-    if t.shape != shape:
+    if shape is not None and t.shape != shape:
         raise ValueError(f"unix_time has shape {t.shape}; expected {shape}, one per sun vector")
-    if not np.all(np.isfinite(t) & (t >= 0.0) & (t < _LATEST_UNIX_S)):
-        raise ValueError("unix_time must be seconds since 1970-01-01 UTC between 1970 and 2200 (not ms or ns)")
+    bad = ~(np.isfinite(t) & (t >= 0.0) & (t < _LATEST_UNIX_S))
+    if bad.any():
+        raise ValueError(
+            f"unix_time must be seconds since 1970-01-01 UTC between 1970 and 2200 (not ms or ns); "
+            f"got {float(t[bad].flat[0])} ({int(bad.sum())} of {t.size} bad)"
+        )
     return t
+
+
+_FROM_FILE = frozenset(
+    {
+        "fitted",
+        "covariance",
+        "view",
+        "drift_variance_mrad2",
+        "sky_gap_mrad2_per_deg",
+        "error_law",
+        "fitted_sun",
+        "fitted_record",
+        "nominal_rms_mrad",
+        "before_fit",
+        "long_after_fit",
+    }
+)
+"""The :func:`aim_fleet` arguments :func:`aim_results` takes from the file."""
 
 
 def aim_results(
@@ -441,11 +589,31 @@ def aim_results(
     whose predicted uncertainty exceeds the uncalibrated model's RMS error on the
     fitted records ``uncertainty_above_nominal``.
 
+    ``options`` are :func:`aim_fleet`'s thresholds (``min_sun_elevation_deg``,
+    ``reach_tolerance_mrad``, ``max_sky_gap_deg``). What aim_results takes from the
+    file (``fitted``, ``covariance``, ``view``, ``drift_variance_mrad2``, ...) cannot be
+    given there: call :func:`aim_fleet` with the file's arrays to override one.
+
+    A host-side function (it reads the file's NumPy arrays): call it outside
+    ``jax.jit``; :func:`aim_fleet` is the jittable core.
+
     Raises:
-        TypeError: ``results`` is not a loaded calibration (a path, None), or ``sun``
-            or ``aim_points`` is not an array of numbers.
+        TypeError: ``results`` is not a loaded calibration (a path, None), ``sun``
+            or ``aim_points`` is not an array of numbers, an option that
+            aim_results sets from the file, or a traced (jitted) argument.
         ValueError: as :func:`aim_fleet`.
     """
+    if any(isinstance(x, Tracer) for x in jax.tree.leaves((sun, aim_points, unix_time, options))):
+        raise TypeError(
+            "aim_results is a host-side function (it reads the calibration's NumPy arrays) and cannot be traced "
+            "(jax.jit, vmap): call it outside jit; heliojax.aim_fleet is the jittable core"
+        )
+    from_file = sorted(set(options) & _FROM_FILE)
+    if from_file:
+        raise TypeError(
+            f"aim_results: {', '.join(from_file)} is taken from the calibration file (and unix_time); to give "
+            "your own, call heliojax.aim_fleet with results.model, results.geometry and the other arrays"
+        )
     if results is None or isinstance(results, (str, bytes, os.PathLike)) or not hasattr(results, "fitted"):
         raise TypeError(
             f"results: expected a CalibrationResults (heliojax.load_results(path)), got {type(results).__name__}"
@@ -463,11 +631,10 @@ def aim_results(
             nominal_rms = np.sqrt((np.where(use, e, 0.0) ** 2).sum(axis=1) / use.sum(axis=1))
     drift, before, after = 0.0, None, None
     if unix_time is not None:
-        unix_time = _instant_seconds(unix_time, np.shape(sun)[:1])
+        unix_time = instant_seconds(unix_time, np.shape(sun)[:1])
         before, after = _outside_fit_time(results, unix_time)
         variance = np.asarray(results.drift_variance_mrad2(unix_time), float)
-        known = np.isfinite(variance).reshape(len(fitted), -1).all(axis=1)
-        fitted = fitted & known
+        fitted = fitted & ~np.asarray(uncertainty_unknown(variance))
         drift = jnp.asarray(np.where(np.isfinite(variance), variance, 0.0))
     return aim_fleet(
         results.model,

@@ -66,6 +66,7 @@ that differs from the fleet's majority.
 
 from __future__ import annotations
 
+import collections.abc
 import dataclasses
 import typing
 from collections.abc import Sequence
@@ -429,9 +430,42 @@ def pad_fleet(fleet: Fleet, n_heliostats: int | None = None, n_records: int | No
 
 def fleet_subset(fleet: Fleet, indices: Sequence[int] | np.ndarray | int | str | Sequence[str]) -> Fleet:
     """The heliostats ``indices`` (positions or ids, in the given order) of a fleet;
-    the record axis, targets and report are kept."""
-    items: list = [indices] if isinstance(indices, (int, np.integer, str)) else list(indices)
-    idx = [fleet.index(i) if isinstance(i, str) else int(i) for i in items]
+    the record axis, targets and report are kept.
+
+    Args:
+        fleet: the fleet.
+        indices: one position (int, negative from the end) or id (str), or a
+            sequence / integer array of them.
+
+    Raises:
+        TypeError: an index that is neither an integer nor an id (a bool, 1.5, a
+            boolean mask: use ``np.flatnonzero(mask)``).
+        ValueError: no heliostat selected (empty ``indices``), an id not in the fleet.
+        IndexError: a position out of range.
+    """
+    if isinstance(indices, np.ndarray) and indices.dtype.kind not in "iuUSO":
+        raise TypeError(
+            f"fleet_subset: indices has dtype {indices.dtype}; expected integer positions or heliostat ids "
+            "(a boolean mask: np.flatnonzero(mask))"
+        )
+    if isinstance(indices, np.ndarray):
+        items: list = [indices.item()] if indices.ndim == 0 else list(indices)
+    elif isinstance(indices, (str, bytes)) or not isinstance(indices, collections.abc.Iterable):
+        items = [indices]
+    else:
+        items = list(indices)
+    if not items:
+        raise ValueError(f"fleet_subset: no heliostat selected (indices is empty; the fleet has {fleet.n_heliostats})")
+    idx = []
+    for i in items:
+        if isinstance(i, (str, np.str_)):
+            idx.append(fleet.index(str(i)))
+        elif isinstance(i, (int, np.integer)) and not isinstance(i, (bool, np.bool_)):
+            idx.append(int(i))
+        else:
+            raise TypeError(
+                f"fleet_subset: index {i!r} ({type(i).__name__}); expected an integer position or a heliostat id"
+            )
     for i in idx:
         if not -fleet.n_heliostats <= i < fleet.n_heliostats:
             raise IndexError(f"heliostat index {i} out of range for {fleet.n_heliostats}")

@@ -42,6 +42,41 @@ def input_file_problem(path: str | os.PathLike) -> str | None:
     return None
 
 
+MAX_ID_LENGTH = 255
+"""Longest heliostat id (a folder name: most file systems allow 255 bytes)."""
+
+SPREADSHEET_FORMULA_START = ("=", "+", "-", "@")
+"""First characters with which a CSV cell is taken for a formula by spreadsheet programs."""
+
+
+def heliostat_id_problem(text: str) -> str | None:
+    """Why ``text`` cannot be a heliostat id, or None: the one rule of the loader (a
+    heliostat folder's name), the CLI's options, results.h5 and the CSV inputs.
+
+    PAINT's ids are like ``AA39``; any other name is allowed (another plant's naming)
+    that can be written and read back everywhere heliojax writes ids: printable, not
+    blank, no white space at either end (read back stripped from a CSV cell or an
+    option), no ``,`` (options list ids comma-separated), no path separator, not
+    ``.`` or ``..``, at most :data:`MAX_ID_LENGTH` characters, and not starting with a
+    character of :data:`SPREADSHEET_FORMULA_START` (written into CSV outputs, such a
+    cell is run as a formula by spreadsheet programs)."""
+    if not text or not text.strip():
+        return "blank"
+    if len(text) > MAX_ID_LENGTH:
+        return f"longer than {MAX_ID_LENGTH} characters"
+    if not text.isprintable():
+        return "holds unprintable characters"
+    if text != text.strip():
+        return "white space at either end"
+    if "," in text:
+        return "holds a comma (ids are listed comma-separated)"
+    if "/" in text or "\\" in text or text in (".", ".."):
+        return "a path, not a folder name"
+    if text.startswith(SPREADSHEET_FORMULA_START):
+        return f"starts with {text[0]!r} (a spreadsheet formula in a CSV cell)"
+    return None
+
+
 _DECIMAL = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
 
 

@@ -207,6 +207,11 @@ def inverse_aim(
         aim_point: ``(3,)`` ENU m.
         sun: ``(3,)`` unit vector to the sun.
         iterations: fixed-point iterations (static).
+
+    Returns:
+        ``(2,)`` counts; NaN for a zero or non-finite ``sun`` (no direction to
+        reflect: a zero vector had given plausible finite counts). No error is
+        raised, so that the function stays jittable and vmappable.
     """
     aim = jnp.asarray(aim_point)
     sun = jnp.asarray(sun)
@@ -218,7 +223,9 @@ def inverse_aim(
         return model.pose(geometry, counts).centre
 
     centre = jax.lax.fori_loop(0, iterations - 1, step, centre0)
-    return inverse_normal(model, geometry, bisector_normal(sun, normalize(aim - centre)))
+    counts = inverse_normal(model, geometry, bisector_normal(sun, normalize(aim - centre)))
+    degenerate = ~(jnp.all(jnp.isfinite(sun)) & (jnp.sum(sun * sun) > 0.0))
+    return jnp.where(degenerate, jnp.nan, counts)
 
 
 @typing.final

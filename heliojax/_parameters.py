@@ -422,3 +422,29 @@ def is_batched(model: eqx.Module) -> bool:
         raise ValueError("is_batched: the model has no parameter fields" if arrays else "empty model")
     leaf = leaves[0]
     return jnp.ndim(_get(model, leaf.path)) > len(leaf.info.shape)
+
+
+COVARIANCE_RTOL = 1e-6
+"""Relative rounding (of a matrix's largest entry) allowed in :func:`covariance_problem`'s
+symmetry and positive semi-definiteness checks."""
+
+
+def covariance_problem(cov: Float[np.ndarray, "H F F"]) -> str | None:
+    """What is wrong with a stack of ``(F, F)`` covariance matrices (``(H, F, F)``):
+    ``"not finite"``, ``"not symmetric (heliostat h)"`` or ``"not positive
+    semi-definite (heliostat h)"`` (to :data:`COVARIANCE_RTOL` of each matrix's
+    largest entry); None when each is a finite, symmetric, positive semi-definite
+    covariance. One batched check, not a loop over heliostats."""
+    cov = np.asarray(cov, float)
+    if not np.isfinite(cov).all():
+        return "not finite"
+    if cov.size == 0:
+        return None
+    scale = np.max(np.abs(cov), axis=(-2, -1))
+    asymmetric = np.max(np.abs(cov - np.swapaxes(cov, -1, -2)), axis=(-2, -1)) > COVARIANCE_RTOL * scale
+    if asymmetric.any():
+        return f"not symmetric (heliostat {int(np.argmax(asymmetric))})"
+    indefinite = np.linalg.eigvalsh(cov).min(axis=-1) < -COVARIANCE_RTOL * scale
+    if indefinite.any():
+        return f"not positive semi-definite (heliostat {int(np.argmax(indefinite))})"
+    return None

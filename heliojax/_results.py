@@ -79,12 +79,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
+from ._aim import instant_seconds
 from ._errors import DataError, HeliojaxError
 from ._geometry import direction_to_azimuth_elevation, sun_direction
 from ._heliostat import HeliostatGeometry, LinearActuators, RecordContext
-from ._io import atomic_h5
+from ._io import atomic_h5, heliostat_id_problem
 from ._kinematics import AbstractKinematicModel, nominal_model
-from ._parameters import ParameterView, broadcast_model
+from ._parameters import ParameterView, broadcast_model, covariance_problem
 from ._predictive import DRIFT_RATE_KEYS, MIN_TAIL_DOF, PointingErrorLaw
 from ._splits import days_from_fitted_mean, days_since_fit, utc_iso
 from ._version import __version__, release_tuple
@@ -500,8 +501,13 @@ class CalibrationResults:
         drift rate times the fitted state's age in days (:func:`heliojax.days_since_fit`),
         plus the creep rate times the squared days from the mean time of the fitted
         records that are not outliers (:func:`heliojax.days_from_fitted_mean`); NaN
-        for a heliostat without a fitted record."""
-        when = np.atleast_1d(np.asarray(unix_time, float))
+        for a heliostat without a fitted record.
+
+        Raises:
+            ValueError: ``unix_time`` not seconds since 1970 between 1970 and 2200
+                (milliseconds, nanoseconds, NaN), as :func:`heliojax.aim_results`.
+        """
+        when = np.atleast_1d(instant_seconds(unix_time))
         variance = np.zeros((len(self.ids), when.size))
         if self.drift_mrad2_per_day == 0.0 and self.creep_mrad2_per_day2 == 0.0:
             return variance
@@ -732,19 +738,13 @@ _STATUS_LABELS = frozenset(s.label for s in FitStatus) | {"no_training_records"}
 
 def _check_covariance(cov: np.ndarray, source: str) -> None:
     """DataError unless every ``(F, F)`` matrix of ``cov`` (those of usable fits) is a
-    finite, symmetric, positive semi-definite covariance (to rounding); one batched
-    check, not a loop over heliostats."""
-    if not np.isfinite(cov).all():
-        raise DataError(source, "covariance", "not finite for a heliostat whose fit converged")
-    if cov.size == 0:
-        return
-    scale = np.max(np.abs(cov), axis=(1, 2))
-    asymmetric = np.max(np.abs(cov - np.swapaxes(cov, 1, 2)), axis=(1, 2)) > 1e-6 * scale
-    if asymmetric.any():
-        raise DataError(source, "covariance", f"not symmetric (heliostat {int(np.argmax(asymmetric))})")
-    indefinite = np.linalg.eigvalsh(cov).min(axis=1) < -1e-6 * scale
-    if indefinite.any():
-        raise DataError(source, "covariance", f"not positive semi-definite (heliostat {int(np.argmax(indefinite))})")
+    finite, symmetric, positive semi-definite covariance (to rounding):
+    :func:`heliojax._parameters.covariance_problem`."""
+    problem = covariance_problem(cov)
+    if problem == "not finite":
+        problem = "not finite for a heliostat whose fit converged"
+    if problem is not None:
+        raise DataError(source, "covariance", problem)
 
 
 def _numeric(
@@ -843,9 +843,9 @@ def _load_results(path: str | Path) -> CalibrationResults:
             raise DataError(source, "heliostat_ids", "no heliostat")
         if len(set(ids)) != len(ids):
             raise DataError(source, "heliostat_ids", "an id is listed twice")
-        bad = [h for h in ids if not h.strip() or h != h.strip() or not h.isprintable()]
+        bad = [(h, p) for h in ids if (p := heliostat_id_problem(h))]
         if bad:
-            raise DataError(source, "heliostat_ids", f"{bad[0]!r} is not a heliostat id (blank or control characters)")
+            raise DataError(source, "heliostat_ids", f"{bad[0][0]!r} is not a heliostat id ({bad[0][1]})")
         changed = np.zeros(len(ids), bool)
         if CHECKSUM_DATASET in f:  # files of older heliojax versions have none
             stored = _numeric(need(CHECKSUM_DATASET), source, CHECKSUM_DATASET, (len(ids),), "u")

@@ -49,6 +49,10 @@ def _orientation_up(doc: dict) -> None:
     doc["initial_orientation"] = [0.0, 0.0, 1.0]
 
 
+def _orientation_not_unit(doc: dict) -> None:
+    doc["initial_orientation"] = [0.0, -1000.0, 0.0]
+
+
 def _upper_case_actuator_type(doc: dict) -> None:
     for a in doc["kinematics_properties"]["actuators"]:
         a["type_axis"] = a["type_axis"].upper()
@@ -68,6 +72,7 @@ def _older_joint_keys(doc: dict) -> None:
 PROPERTY_VARIANTS = [
     ("kinematic_properties (PAINT before 3.0)", _older_kinematics_key, "kinematic_properties"),
     ("initial_orientation [0, 0, 1] (PAINT 2024-12 to 2025-11)", _orientation_up, "initial_orientation"),
+    ("initial_orientation [0, -1000, 0] (south, not a unit vector)", _orientation_not_unit, "initial_orientation"),
     ("type_axis LINEAR (PAINT before 2024-12-06)", _upper_case_actuator_type, None),
     ("movement_speed NaN (an optional key PAINT lacked)", _optional_key_nan, "actuators[0].movement_speed"),
     ("first_joint_translation_e (PAINT before 2024-12-05)", _older_joint_keys, "first_joint_translation_e"),

@@ -239,7 +239,7 @@ def _aim_points_csv(path: Path, ids: tuple[str, ...], origin_lla, heliostat_posi
     """``(H, 3)`` ENU aim points (m) of the heliostats ``ids`` from a CSV (see ``--aim-csv``)."""
     from .._errors import DataError
     from .._geometry import MAX_FIELD_EXTENT_M, wgs84_to_enu
-    from .._io import is_decimal, read_csv_rows
+    from .._io import heliostat_id_problem, is_decimal, read_csv_rows
 
     enu_cols, lla_cols = ("east_m", "north_m", "up_m"), ("lat_deg", "lon_deg", "alt_m")
     header, rows = read_csv_rows(path, "an aim-point CSV")
@@ -270,8 +270,8 @@ def _aim_points_csv(path: Path, ids: tuple[str, ...], origin_lla, heliostat_posi
     lines: dict[str, int] = {}
     for line, row in rows:
         hid = str(row["heliostat_id"] or "").strip()
-        if not hid or not hid.isprintable():
-            raise DataError(path, f"row {line}.heliostat_id", f"{hid!r} is no heliostat id")
+        if problem := heliostat_id_problem(hid):
+            raise DataError(path, f"row {line}.heliostat_id", f"{hid!r} is no heliostat id ({problem})")
         for c in cols:
             if not is_decimal(str(row[c] or "")):
                 raise DataError(path, f"row {line}.{c}", f"not a decimal number: {row[c]!r}")

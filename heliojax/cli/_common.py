@@ -512,19 +512,12 @@ def _check_no_dangling_link(flag: str, path: Path, link: Path | None = None) -> 
 
 def heliostat_id(value: str) -> str:
     """An argparse ``type``: a heliostat id as the loader reads it, a heliostat folder's
-    name (PAINT's are like ``AA39``; any printable name, spaces included), never a path:
-    no separator, not ``.`` or ``..``."""
-    if (
-        not value
-        or len(value) > 255
-        or not value.isprintable()
-        or "/" in value
-        or "\\" in value
-        or value in (".", "..")
-    ):
-        raise argparse.ArgumentTypeError(
-            f"{shown_value(value)} is not a heliostat id (a heliostat folder's name: printable, no / or \\)"
-        )
+    name (the one rule: :func:`heliojax._io.heliostat_id_problem`)."""
+    from .._io import heliostat_id_problem
+
+    problem = heliostat_id_problem(value)
+    if problem:
+        raise argparse.ArgumentTypeError(f"{shown_value(value)} is not a heliostat id ({problem})")
     return value
 
 

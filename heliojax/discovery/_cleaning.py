@@ -52,12 +52,17 @@ import numpy as np
 from .._errors import ConfigError
 from .._parameters import broadcast_model, is_batched
 from ..effects import EffectModel, OffsetStep, add_effects
-from ..fitting import find_change_points, fit_robust, robust_component_noise
+from ..fitting import FitStatus, find_change_points, fit_robust, robust_component_noise
 from ..fitting._changes import drift_coordinate
 from ..fitting._robust import OUTLIER_TAIL
 from ._screen import holm
 
 log = logging.getLogger(__name__)
+
+
+def _too_few(solution) -> np.ndarray:
+    """``(H,)`` heliostats a fit left at its start for too few (or no) records."""
+    return np.isin(np.asarray(solution.status), (FitStatus.TOO_FEW_RECORDS, FitStatus.NO_RECORDS))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,7 +83,8 @@ class Cleaning:
             no scan was possible).
         change_p_holm: ``(H,)`` Holm-adjusted over heliostats.
         offsets: names of the two offset parameters.
-        noise_mrad: ``(H,)`` robust noise per residual component (mrad) of the inliers.
+        noise_mrad: ``(H,)`` robust noise per residual component (mrad) of the inliers
+            (NaN where the pre-pass had too few records to fit the heliostat).
         withdrawn: ``(H,)`` change points of the pre-pass the final model explains
             (:func:`confirm_change_points`; None before that test).
         restored: ``(H, M)`` records flagged under the base model that the final
@@ -216,7 +222,11 @@ def clean(
         return out
     rf = fit_robust(base, fleet, mask=jnp.asarray(valid))
     outlier = np.asarray(rf.outlier, bool) if outliers else np.zeros_like(valid)
-    out = dataclasses.replace(out, outlier=outlier, noise_mrad=np.asarray(rf.noise_mrad, float))
+    # the noise of a heliostat the pre-pass could not fit for too few records (for the
+    # base's parameters) would be the scatter of an unfitted model's residuals: none is
+    # known (one whose fit failed on its records keeps their scatter: garbage is noise)
+    noise = np.where(_too_few(rf.solution), np.nan, np.asarray(rf.noise_mrad, float))
+    out = dataclasses.replace(out, outlier=outlier, noise_mrad=noise)
     n_out = int(outlier.sum())
     if n_out:
         log.info(f"robust pre-pass: {n_out} gross errors left out")
@@ -261,7 +271,7 @@ def clean(
         if outliers:
             outlier = np.where(found[:, None], np.asarray(joint.outlier, bool), outlier) & valid
         superseded = earlier & ~outlier
-        noise = np.where(found, np.asarray(joint.noise_mrad, float), np.asarray(out.noise_mrad, float))
+        noise = np.where(found & ~_too_few(joint.solution), np.asarray(joint.noise_mrad, float), out.noise_mrad)
         out = dataclasses.replace(out, outlier=outlier, noise_mrad=noise)
     return dataclasses.replace(
         out,

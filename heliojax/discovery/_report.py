@@ -50,6 +50,8 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
                                                    # its spots and its targets' centres: the base
                                                    # model predicts them worse than a beam on the
                                                    # centre would (kept; a warning names them)
+      "pre_pass_unfitted": [heliostat],            # heliostats the robust pre-pass could not fit
+                                                   # (too few records): gross errors not flagged
       "change_points": [{"heliostat", "time": UTC ISO 8601 (first record since the change),
                          "previous_record_time", "jump": {param: rad}, "jump_unit": "rad",
                          "p", "p_holm", "n_records_before"}],   # records before it: fitted with the jump
@@ -115,6 +117,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._errors import few_names
 from .._io import atomic_write
 from .._plotting import pyplot, save_figure
 from .._splits import utc_iso
@@ -376,6 +379,11 @@ def build_report(result, typical_start=None) -> dict:
             "about the target centres (garbage records, a wrong properties file?); check them, or leave them out "
             "(`heliojax discover --exclude`)"
         )
+    if cleaning["pre_pass_unfitted"]:
+        warnings.append(
+            f"the robust pre-pass could not fit {few_names(cleaning['pre_pass_unfitted'])} (fewer records than the "
+            "base model's parameters need): their gross errors are not flagged and their noise is not estimated"
+        )
     left_out, not_cross_validated = _folds_left_out(result.lanes, list(fleet.ids))
     n_base = len(result.layout.base_cols)
     if note is None and mask.any() and len(not_cross_validated) == sum(1 for i in fleet.ids if i):
@@ -414,6 +422,7 @@ def build_report(result, typical_start=None) -> dict:
         "outliers": cleaning["outliers"],
         "noisy_heliostats": cleaning["noisy_heliostats"],
         "spots_unexplained": cleaning["spots_unexplained"],
+        "pre_pass_unfitted": cleaning["pre_pass_unfitted"],
         "change_points": cleaning["change_points"],
         "change_points_withdrawn": cleaning["change_points_withdrawn"],
         "unexplained": [
@@ -585,6 +594,7 @@ def _cleaning_report(result) -> dict:
             "robust_noise_median_mrad": None,
             "noisy_heliostats": [],
             "spots_unexplained": [],
+            "pre_pass_unfitted": [],
         }
     rid = np.asarray(fleet.record_id)
     outliers = [{"heliostat": ids[h], "record_id": int(rid[h, m])} for h, m in zip(*np.nonzero(cl.outlier)) if ids[h]]
@@ -632,6 +642,9 @@ def _cleaning_report(result) -> dict:
         "spots_unexplained": [
             {"heliostat": ids[h], "noise_mrad": _f(cl.noise_mrad[h]), "spot_scatter_mrad": _f(scatter[h])}
             for h in np.flatnonzero(spots & real)
+        ],
+        "pre_pass_unfitted": [
+            ids[h] for h in np.flatnonzero(real & cl.valid.any(axis=1) & ~np.isfinite(cl.noise_mrad) & ~left)
         ],
     }
 

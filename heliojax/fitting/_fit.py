@@ -375,6 +375,11 @@ class FitSolution(eqx.Module):
     def n_heliostats(self) -> int:
         return int(jnp.shape(self.status)[0])
 
+    def fitted(self) -> np.ndarray:
+        """``(H,)`` host booleans: the heliostat has a usable fit (converged, or stopped at
+        the step limit); the others keep their start model."""
+        return np.isin(np.asarray(self.status), (FitStatus.CONVERGED, FitStatus.MAX_STEPS))
+
     def parameters(self) -> Float[Array, "H P"]:
         """Physical parameter values ``(H, P)`` in the view's vector order."""
         return self.view.to_vector(self.model)

@@ -294,11 +294,6 @@ def _holds_gross_error(residuals: Float[ArrayLike, "H M 2"], mask: Bool[ArrayLik
     return (n > 0) & (single | heavy)
 
 
-def _fitted(solution: FitSolution) -> np.ndarray:
-    st = np.asarray(solution.status)
-    return np.isin(st, (FitStatus.CONVERGED, FitStatus.MAX_STEPS))
-
-
 def robust_fit_program(
     model0: AbstractKinematicModel,
     fleet: typing.Any,
@@ -365,7 +360,7 @@ def fit_robust(
     # Only heliostats whose least-squares residuals hold a gross error (or that have no
     # usable least-squares fit) are refitted with the Cauchy loss; the others keep
     # their least-squares fit (Cauchy scale infinite).
-    cauchy = _holds_gross_error(r0, m, n_free) | ~_fitted(ls)
+    cauchy = _holds_gross_error(r0, m, n_free) | ~ls.fitted()
 
     def scale_of(sigma):
         return jnp.asarray(np.where(cauchy, CAUCHY_EFFICIENCY_FACTOR * sigma, np.inf), fleet.counts.dtype)
@@ -374,7 +369,7 @@ def fit_robust(
     sol, r1, sigma1 = ls, r0, sigma0
     if cauchy.any():
         # warm start from the least-squares fit where it succeeded
-        start = _select_models(_fitted(ls), ls.model, _batched_like(model0, ls.model))
+        start = _select_models(ls.fitted(), ls.model, _batched_like(model0, ls.model))
         sol = run(start, loss=Cauchy(scale), only=cauchy, otherwise=ls)
         r1 = sol.residual_mrad
         sigma1, _ = robust_noise(r1, m, n_free)
@@ -389,7 +384,7 @@ def fit_robust(
         # Heliostats without a usable fit (too few records) have residuals of an unfitted
         # model, whose spread is no noise estimate: the prior rows of those are scaled by
         # the fitted heliostats' median noise instead (else the prior outweighs their records).
-        fitted = _fitted(sol)
+        fitted = sol.fitted()
         # heliostats of garbage records (noise far above the fleet's) teach the prior nothing
         garbage = noise_outliers(sigma1, fitted)
         typical_from = fitted & ~garbage

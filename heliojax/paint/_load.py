@@ -23,6 +23,7 @@ from .._errors import DataError, few_names
 from .._fleet import CENTROIDS, Centroid, Fleet, ReportEntry, bucket_size
 from .._geometry import TargetPlane, sun_direction, wgs84_to_enu
 from .._heliostat import HeliostatGeometry, LinearActuators, RecordContext
+from .._io import heliostat_id_problem
 from .._programs import cached_jit
 from .._sun import datetime_to_unix, solar_position
 from ._calibration import (
@@ -774,10 +775,11 @@ def load_paint_directory(
             continue
         if not os.access(d, os.R_OK | os.X_OK):  # is_dir() of its subfolders would say False: name it
             log.skip(DataError(d, None, "cannot read folder: permission denied"), heliostats=1)
-        elif not d.name.isprintable() and ((d / "Properties").is_dir() or (d / "Calibration").is_dir()):
-            log.skip(DataError(d, None, "folder name holds unprintable characters: not a heliostat id"), heliostats=1)
         elif (d / "Properties").is_dir() or (d / "Calibration").is_dir():
-            dirs.append(d)
+            if problem := heliostat_id_problem(d.name):
+                log.skip(DataError(d, None, f"folder name {problem}: not a heliostat id"), heliostats=1)
+            else:
+                dirs.append(d)
     if not dirs and (any(root.glob("*" + CALIBRATION_SUFFIX)) or any(root.glob("*" + PROPERTIES_SUFFIX))):
         raise DataError(
             root,

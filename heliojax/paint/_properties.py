@@ -172,6 +172,11 @@ OLDER_KINEMATICS_KEY = "kinematic_properties"
 """PAINT's key for the kinematics before version 3.0 (PAINT commit e644ef5, 2026-03)."""
 
 
+UNIT_TOLERANCE = 1e-6
+"""Largest deviation of ``initial_orientation``'s length from 1 read without a flag (PAINT
+writes the direction's components exactly)."""
+
+
 def _is(unit: tuple[float, ...], direction: Vec3) -> bool:
     return all(abs(a - b) < 1e-9 for a, b in zip(unit, direction, strict=True))
 
@@ -191,6 +196,9 @@ def _properties_from_json(file: str, data: Any, heliostat_id: str) -> HeliostatP
     norm = math.sqrt(sum(x * x for x in orient))
     _check(norm > 0, file, "initial_orientation", "zero vector")
     unit = tuple(x / norm for x in orient)
+    if abs(norm - 1.0) > UNIT_TOLERANCE and (_is(unit, UP) or _is(unit, SOUTH)):
+        notes.append(("initial_orientation", f"{list(orient)} has length {norm:g}, not 1: read as its direction"))
+        orient = SOUTH if _is(unit, SOUTH) else orient
     if _is(unit, UP):
         notes.append(("initial_orientation", OLDER_UP_LABEL))
         orient = SOUTH
