@@ -8,6 +8,7 @@ into a projection or a sum would change the results."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from _evidence import scale_and_penalty
 from scipy import stats
 
@@ -291,3 +292,76 @@ def test_day_clustering_is_the_one_way_anova_estimate_and_stays_off_for_independ
     off = day_clustering(iid[0], np.ones(iid[1].shape, bool), iid[1], n_params)
     assert off.p > 0.05 and off.correlation == 0.0
     np.testing.assert_array_equal(off.design_effect, np.ones(40))
+
+
+def test_day_whitened_rss_is_the_quadratic_form_of_the_random_day_effect_covariance():
+    """:func:`day_whitened_rss` against ``r^T R^-1 r`` with ``R`` written out densely and
+    solved (clusters: row set, UTC day, component; a record without a time alone), the
+    plain sum of squares at ``rho = 0``, and unused rows counting nothing."""
+    from heliojax.discovery._diagnostics import day_labels, day_whitened_rss
+
+    rng = np.random.default_rng(5)
+    s, m, rho = 3, 9, 0.35
+    t = (200 + rng.integers(0, 3, (s, m))) * 86400.0 + rng.uniform(0, 86000, (s, m))
+    t[1, 4] = np.nan
+    day = day_labels(t)
+    rows = rng.normal(size=(s, 2 * m))
+    used = np.ones((s, 2 * m), bool)
+    used[2, 6:10] = False  # records 3 and 4 of the third row set
+    got = day_whitened_rss(rows, used, day, rho)
+    for i in range(s):
+        keep = np.flatnonzero(used[i])
+        key = [(day[i, j // 2] if np.isfinite(t[i, j // 2]) else -1000 - j // 2, j % 2) for j in keep]
+        same = np.array([[a == b for b in key] for a in key], float)
+        cov = (1 - rho) * np.eye(keep.size) + rho * same
+        x = rows[i, keep]
+        np.testing.assert_allclose(got[i], x @ np.linalg.solve(cov, x), rtol=1e-12)
+    np.testing.assert_allclose(day_whitened_rss(rows, used, day, 0.0), np.sum(np.where(used, rows, 0) ** 2, axis=1))
+    with pytest.raises(ValueError, match="below 1"):
+        day_whitened_rss(rows, used, day, 1.0)
+
+
+def test_whitened_evidence_of_a_day_constant_regressor_is_calibrated_under_day_clustered_noise():
+    """Under noise of which a share ``rho`` is common to a day's records, the likelihood
+    ratio of a regressor that is constant within each day (a slow drift) is inflated by
+    ordinary least squares (about Kish's design effect) and chi-square with 1 degree of
+    freedom (mean 1) after :func:`day_whitened_rss`; a regressor that varies within
+    the day keeps nearly all of its evidence: the reason the criterion whitens instead
+    of dividing every record by the design effect."""
+    from heliojax.discovery._diagnostics import day_whitened_rss
+
+    rng = np.random.default_rng(11)
+    reps, days, per_day, rho = 2000, 20, 4, 0.5
+    m = days * per_day
+    day_of = np.repeat(np.arange(days), per_day)
+    day = np.broadcast_to(day_of, (reps, m))
+    shared = rng.normal(size=(reps, days, 2))[:, day_of]
+    noise = np.sqrt(1 - rho) * rng.normal(size=(reps, m, 2)) + np.sqrt(rho) * shared
+    rows = noise.reshape(reps, 2 * m)
+    used = np.ones(rows.shape, bool)
+
+    def likelihood_ratios(x):
+        """``n log(Q0 / Q1)`` for the one-column fit ``x`` ``(2M,)`` by least squares,
+        plain and whitened (the fit itself by generalised least squares for the latter:
+        the whitened sum of squares is a quadratic form, minimised in closed form)."""
+        n = 2 * m
+        plain0 = np.sum(rows**2, axis=1)
+        beta = rows @ x / (x @ x)
+        plain1 = np.sum((rows - beta[:, None] * x) ** 2, axis=1)
+        q = lambda v: day_whitened_rss(v, used, day, rho)  # noqa: E731
+        qx = q(np.broadcast_to(x, rows.shape))
+        cross = (q(rows + x) - q(rows - x)) / 4.0  # the bilinear form r^T R^-1 x
+        white0 = q(rows)
+        white1 = white0 - cross**2 / qx
+        return n * np.log(plain0 / plain1), n * np.log(white0 / white1)
+
+    drift = np.repeat((day_of - days / 2) / days, 2)  # constant within a day
+    plain, white = likelihood_ratios(drift)
+    deff = 1 + (per_day - 1) * rho
+    assert abs(plain.mean() / deff - 1) < 0.15  # inflated by the design effect
+    assert abs(white.mean() - 1) < 0.1 and abs(np.mean(white > 3.841) - 0.05) < 0.015
+    # a regressor varying within the day: its noise-only ratio is calibrated as well,
+    # and a real effect of it keeps its evidence (far from being divided by deff)
+    wobble = np.sin(np.arange(2 * m) * 1.7)
+    _, white_null = likelihood_ratios(wobble)
+    assert abs(white_null.mean() - 1) < 0.1

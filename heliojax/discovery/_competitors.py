@@ -11,7 +11,10 @@ reported as unexplained, never forced onto a library name.
 So, before an effect is named, each generic competitor is scored on the same
 residuals with the same criterion (:meth:`~heliojax.discovery._select._Workflow.bic_pair`:
 ``-2 log`` of the Laplace evidence under a Gaussian prior of typical size, each
-heliostat's noise profiled out). A competitor is linear in its coefficients: per
+heliostat's noise profiled out; where records of one day share an error, the residual
+sums of squares whitened under the random day effect of the competitor's own
+residuals, as a library refit's are under its own: :class:`DayWhitening`). A competitor
+is linear in its coefficients: per
 heliostat (or once for the fleet) the two residual components (mrad) each get
 ``c_1 f_1(x) + c_2 f_2(x)``, with the current model's parameters profiled out
 (projected off its Jacobian's columns, as the screens do). If the best competitor's
@@ -48,10 +51,12 @@ in the fleet form ``s = 1``, as for the library's shared forms.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import numpy as np
 from scipy import stats
 
+from ._diagnostics import day_whitened_rss
 from ._screen import (
     HeliostatBases,
     best_prior_scale,
@@ -139,7 +144,47 @@ def _prior_scale(info: np.ndarray, score: np.ndarray) -> tuple[float, float]:
     return at**2, hyperprior_penalty(at**2 * info, at * score, scale)
 
 
-def _per_heliostat(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray, n_h: int):
+def _fit_terms(bases: HeliostatBases, which: np.ndarray, new: np.ndarray, clustering: DayWhitening | None):
+    """``(rss, rss_new)`` ``(S',)`` of the heliostats ``which`` (mask over ``bases``)
+    before and after a competitor's fit ``new`` (their projected residual rows):
+    plain sums of squares, or with ``clustering`` whitened under the random day effect
+    of the competitor's own residuals (:class:`DayWhitening`), as a library refit's
+    criterion is under its own (:meth:`~heliojax.discovery._select._Workflow.bic_pair`).
+    The share of the residuals inside the model's span (rounding at a converged fit)
+    is added to both unwhitened."""
+    r_res, rss = bases.r_res[which], bases.rss[which]
+    inside = rss - np.sum(r_res * r_res, axis=1)
+    rho = 0.0
+    if clustering is not None:
+        after = bases.r_res.copy()
+        after[which] = new
+        rho = clustering.correlation(after, bases.index, bases.used)
+    if rho <= 0.0 or clustering is None:
+        return rss, np.maximum(inside + np.sum(new * new, axis=1), 1e-300)
+    used, day = bases.used[which], clustering.day[bases.index[which]]
+    before_w = inside + day_whitened_rss(r_res, used, day, rho)
+    return before_w, np.maximum(inside + day_whitened_rss(new, used, day, rho), 1e-300)
+
+
+@dataclasses.dataclass(frozen=True)
+class DayWhitening:
+    """What a competitor's criterion needs to whiten residuals under a random day
+    effect, as a library refit's is (:func:`day_whitened_rss`).
+
+    Attributes:
+        day: ``(H, M)`` each record's UTC day (:func:`day_labels`).
+        correlation: the intra-day correlation of residual rows ``(S, R)`` of the
+            heliostats ``(S,)`` on their used rows ``(S, R)`` (the workflow's
+            :func:`day_clustering` estimate; 0 where its test does not reject).
+    """
+
+    day: np.ndarray
+    correlation: Callable[[np.ndarray, np.ndarray, np.ndarray], float]
+
+
+def _per_heliostat(
+    bases: HeliostatBases, design: np.ndarray, noise: np.ndarray, n_h: int, clustering: DayWhitening | None = None
+):
     """The per-heliostat form, all heliostats at once (those whose records lack the
     variable add nothing): ``(delta_bic, p, effect_size_mrad, p_heliostats)``, ``p``
     ``None`` where no heliostat has a direction left to test
@@ -150,7 +195,8 @@ def _per_heliostat(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray,
         bases: the current model's projected residuals (``S`` heliostats, ``R`` rows).
         design: ``(H, >= R, k)`` the competitor's Jacobian (:func:`competitor_design`).
         noise: ``(L,)`` the lanes' noise (mrad).
-        n_h: ``H``."""
+        n_h: ``H``.
+        clustering: whiten under a random day effect (:class:`DayWhitening`)."""
     p_h = np.full(n_h, np.nan)
     x = bases.rows(design)  # (S, R, k)
     driven = np.any(x, axis=(1, 2))
@@ -165,8 +211,7 @@ def _per_heliostat(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray,
     typ2, penalty = _prior_scale(info, score)
     beta = np.linalg.solve(info + np.eye(k) / typ2, score[..., None])[..., 0]
     new = r_res - (xt @ beta[..., None])[..., 0]
-    r2 = np.sum(r_res * r_res, axis=1)
-    rss_new = np.maximum(rss - (r2 - np.sum(new * new, axis=1)), 1e-300)
+    rss, rss_new = _fit_terms(bases, driven, new, clustering)
     _, logdet = np.linalg.slogdet(np.eye(k) + typ2 * info)
     delta = float(np.sum(n * np.log(np.maximum(rss, 1e-300) / rss_new) - logdet - np.sum(beta * beta, axis=1) / typ2))
     delta -= penalty
@@ -184,7 +229,7 @@ def _per_heliostat(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray,
     return delta, p, float(np.sqrt(sq / max(n_sq, 1))), p_h
 
 
-def _fleet(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray):
+def _fleet(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray, clustering: DayWhitening | None = None):
     """The fleet form: ``(delta_bic, p, effect_size_mrad)``; ``p`` (chi-square test of
     the score, the noise known) ``None`` where no direction is left to test
     (:func:`._screen.shared_score`). Arguments as :func:`_per_heliostat`'s."""
@@ -199,9 +244,8 @@ def _fleet(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray):
     typ2 = GENERIC_TYPICAL_MRAD**2  # the fleet form's one draw says nothing about the scale
     beta = np.linalg.solve(gmat + np.eye(k) / typ2, g)
     new = bases.r_res - xt @ beta
-    r2 = np.sum(bases.r_res * bases.r_res, axis=1)
-    rss_new = np.maximum(bases.rss - (r2 - np.sum(new * new, axis=1)), 1e-300)
-    delta = float(np.sum(bases.n * np.log(np.maximum(bases.rss, 1e-300) / rss_new)))
+    rss, rss_new = _fit_terms(bases, np.ones(len(bases), bool), new, clustering)
+    delta = float(np.sum(bases.n * np.log(np.maximum(rss, 1e-300) / rss_new)))
     fitted = xt @ beta  # the residual structure it explains (the model's share projected off)
     sq = float(np.sum(fitted * fitted))
     n_sq = int(np.sum(bases.n // 2))
@@ -212,7 +256,9 @@ def _fleet(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray):
     return delta, p, float(np.sqrt(sq / max(n_sq, 1)))
 
 
-def score_competitors(fleet, bases: HeliostatBases, noise: np.ndarray, n_heliostats: int) -> list[CompetitorScore]:
+def score_competitors(
+    fleet, bases: HeliostatBases, noise: np.ndarray, n_heliostats: int, clustering: DayWhitening | None = None
+) -> list[CompetitorScore]:
     """Every generic competitor with recorded data, best evidence first.
 
     Args:
@@ -221,6 +267,8 @@ def score_competitors(fleet, bases: HeliostatBases, noise: np.ndarray, n_heliost
             stack (:func:`heliojax.discovery._screen.prepare_bases`, fold-0 lanes).
         noise: ``(L,)`` the lanes' noise (mrad) that weighs the priors in the refits.
         n_heliostats: ``H``.
+        clustering: whiten each competitor's criterion under the random day effect of
+            its own residuals (:class:`DayWhitening`); None: records independent.
     """
     out = []
     for name in COMPETITORS:
@@ -228,8 +276,8 @@ def score_competitors(fleet, bases: HeliostatBases, noise: np.ndarray, n_heliost
         if not np.isfinite(features).any():
             continue
         design = competitor_design(features)
-        d_h, p_h, size_h, p_each = _per_heliostat(bases, design, noise, n_heliostats)
-        d_f, p_f, size_f = _fleet(bases, design, noise)
+        d_h, p_h, size_h, p_each = _per_heliostat(bases, design, noise, n_heliostats, clustering)
+        d_f, p_f, size_f = _fleet(bases, design, noise, clustering)
         # an untested form (its delta ~ 0: rounding only) does not hide a tested one
         if d_f > d_h if (p_f is None) == (p_h is None) else p_f is not None:
             out.append(CompetitorScore(name, "fleet", d_f, p_f, size_f, p_each))

@@ -471,3 +471,56 @@ def day_clustering(r: np.ndarray, use: np.ndarray, unix_time: np.ndarray, n_para
     rho = between / (between + msw) if p < CLUSTERING_ALPHA and between > 0 else 0.0
     m_h = np.where(per_helio_n > 0, m_h, 1.0)
     return DayClustering(float(rho), p, 1.0 + (m_h - 1.0) * rho, m_h)
+
+
+def day_labels(unix_time: np.ndarray) -> np.ndarray:
+    """``(..., M)`` integer UTC day of each record (``floor(t / 1 day)``); a record
+    without a finite time is a day of its own (a negative label of its own)."""
+    t = np.asarray(unix_time, float)
+    own = -1 - np.arange(t.size, dtype=np.int64).reshape(t.shape)
+    with np.errstate(invalid="ignore"):
+        return np.where(np.isfinite(t), np.floor(np.where(np.isfinite(t), t, 0.0) / DAY_S), own).astype(np.int64)
+
+
+def day_whitened_rss(rows: np.ndarray, used: np.ndarray, day: np.ndarray, correlation: float) -> np.ndarray:
+    """``(S,)`` ``r^T R^-1 r`` of each row set: the residual sum of squares of
+    generalised least squares under a random day effect.
+
+    The residual components of one row set (a heliostat's lane), UTC day and component
+    are taken as correlated by ``correlation`` (``rho``, :func:`day_clustering`), those
+    of different days or components as independent: per cluster of ``n_c`` rows,
+    ``R_c = (1 - rho) I + rho 1 1^T``, so ``r_c^T R_c^-1 r_c = (SSW_c + n_c mean_c^2
+    (1 - rho) / (1 - rho + n_c rho)) / (1 - rho)``, ``SSW_c`` the sum of squares
+    about the cluster's mean. The structure a day shares counts with the weight of
+    ``(1 - rho) / (1 - rho + n_c rho)``, the variation within a day in full; at
+    ``rho = 0`` this is the plain sum of squares. Two models compared on the same rows
+    under the same ``rho`` have the same ``log det R``, so the difference of their
+    ``n log(r^T R^-1 r / n)`` is ``2 log`` of their likelihood ratio (each row set's
+    noise profiled out).
+
+    Args:
+        rows: ``(S, R)`` residual components (mrad), record ``j``'s at rows ``2j``,
+            ``2j + 1``.
+        used: ``(S, R)`` the rows that count.
+        day: ``(S, >= R / 2)`` each record's day (:func:`day_labels`).
+        correlation: ``rho`` in ``[0, 1)``.
+    """
+    rows = np.where(used, rows, 0.0)
+    plain = np.sum(rows * rows, axis=1)
+    if correlation <= 0.0:
+        return plain
+    if not correlation < 1.0:
+        raise ValueError(f"day_whitened_rss: correlation must be below 1, got {correlation}")
+    s, r = rows.shape
+    si, ri = np.nonzero(used)
+    keys = np.stack([si, np.asarray(day)[si, ri // 2], ri % 2])
+    _, cluster = np.unique(keys, axis=1, return_inverse=True)
+    cluster = cluster.reshape(-1)
+    x = rows[si, ri]
+    n_c = np.bincount(cluster).astype(float)
+    between = np.bincount(cluster, weights=x) ** 2 / n_c  # n_c mean_c^2
+    set_of = np.zeros(n_c.size, np.int64)
+    set_of[cluster] = si
+    rho = float(correlation)
+    kept = between * (1.0 - rho) / (1.0 - rho + n_c * rho)
+    return (plain - np.bincount(set_of, weights=between - kept, minlength=s)) / (1.0 - rho)

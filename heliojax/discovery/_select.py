@@ -109,6 +109,7 @@ from ..fitting import (
 from ._cleaning import Cleaning, change_point_rival, clean, confirm_change_points, recheck_outliers
 from ._competitors import (
     CompetitorScore,
+    DayWhitening,
     competitor_design,
     competitor_features,
     generic_rivals,
@@ -117,7 +118,14 @@ from ._competitors import (
     significant,
     unexplained_entry,
 )
-from ._diagnostics import DayClustering, day_clustering, record_variables, unexplained_structure
+from ._diagnostics import (
+    DayClustering,
+    day_clustering,
+    day_labels,
+    day_whitened_rss,
+    record_variables,
+    unexplained_structure,
+)
 from ._identifiability import ABSORBED_LIMIT, column_bases
 from ._lanes import Engine, Lanes, Layout, make_lanes, make_layout
 from ._report import (
@@ -595,11 +603,18 @@ class _Workflow:
 
         ``sum_h n_h log(RSS_h / n_h)`` (each heliostat's own noise level profiled out)
         plus each parameter's Occam term. Where the records of one day share an error
-        under ``after`` (:meth:`day_clustering` of its residuals: an effect that ``before``
-        lacks makes records of one day alike as well, and must not weaken its own
-        evidence), ``n_h`` and ``N`` count effective records, ``n_h / deff_h`` (Kish's
-        design effect): ``n_h`` records of which groups share an error carry the evidence
-        of fewer independent ones. Without the effect prior this is the BIC (``k log N``,
+        under ``after`` (:meth:`day_clustering` of its residuals, intra-day correlation
+        ``rho``: an effect that ``before`` lacks makes records of one day alike as well,
+        and must not weaken its own evidence), ``RSS_h`` of both models is the
+        generalised least-squares one under a random day effect of that ``rho``
+        (:func:`._diagnostics.day_whitened_rss`; both share its ``log det``, so the
+        difference is ``2 log`` of the likelihood ratio): a day's common structure
+        counts with the weight its shared error leaves it, the variation within a day in
+        full. (Until 2026-12-07 every record counted ``1 / deff_h``, Kish's design
+        effect, which is exact for structure constant within a day only and weakened an
+        effect that varies within the day - an encoder wobble, a gravity sag - as much
+        as a drift, so that a competitor not so weakened took its place.) Without the
+        effect prior this is the BIC (``k log N``,
         :meth:`effective_parameters` aside). With it (the default), the effect parameters
         are fitted under a Gaussian prior of their typical size and the BIC's ``log N``
         per parameter, the large-sample limit of a unit-information
@@ -613,14 +628,20 @@ class _Workflow:
         :data:`MIN_DELTA_BIC` and :data:`AMBIGUITY_BIC` quote."""
         lanes = np.nonzero((self.lanes.fold == 0) & before.ok & after.ok & (before.n_res > 0))[0]
         n = before.n_res[lanes].astype(float)
-        # records that share an error by day carry the information of n / deff independent ones
-        deff = self.day_clustering(after).design_effect[self.lanes.heliostat[lanes]]
-        n_effective = n / deff
-        big_n = max(n_effective.sum(), 2.0)
+        big_n = max(n.sum(), 2.0)
+        # records that share an error by day: both models' residuals whitened under the
+        # random day effect that the residuals of `after` show
+        rho = self.day_clustering(after).correlation
+        if rho > 0.0 and self.unix_time is not None:
+            used = np.repeat(self.lanes.train_mask[lanes], 2, axis=1)
+            day = day_labels(self.unix_time)[self.lanes.heliostat[lanes]]
+            rss_of = {id(s): day_whitened_rss(s.r[lanes], used, day, rho) for s in (before, after)}
+        else:
+            rss_of = {id(s): s.rss[lanes] for s in (before, after)}
 
         def criterion(state):
-            rss = np.maximum(state.rss[lanes], 1e-300)
-            fit = float(np.sum(n_effective * np.log(rss / n)))
+            rss = np.maximum(rss_of[id(state)], 1e-300)
+            fit = float(np.sum(n * np.log(rss / n)))
             if self.config.effect_prior and self.noise is not None:
                 return fit + len(self.layout.base_cols) * lanes.size * np.log(big_n) + self.occam_terms(state, lanes)
             k = float(np.sum(self.effective_parameters(state, lanes))) + len(self.shared_cols(state.effects))
@@ -757,7 +778,28 @@ class _Workflow:
         """The generic competitors' scores on ``state``'s residuals (:mod:`._competitors`)."""
         if self.noise is None:
             raise ValueError("competitors need the lanes' noise (set from the base fit)")
-        return score_competitors(fleet, self.bases(state), self.noise, self.lanes.n_heliostats)
+        clustering = None
+        if self.unix_time is not None:
+            n_params = len(self.active_cols(state.effects))
+
+            def correlation(rows: np.ndarray, index: np.ndarray, used: np.ndarray) -> float:
+                return self._rows_correlation(rows, index, used, n_params)
+
+            clustering = DayWhitening(day_labels(self.unix_time), correlation)
+        return score_competitors(fleet, self.bases(state), self.noise, self.lanes.n_heliostats, clustering)
+
+    def _rows_correlation(self, rows: np.ndarray, index: np.ndarray, used: np.ndarray, n_params: int) -> float:
+        """The intra-day correlation (:func:`day_clustering`) of residual rows ``(S, R)``
+        of the heliostats ``index`` ``(S,)`` on their used rows ``(S, R)`` (record
+        ``j``'s components at rows ``2j``, ``2j + 1``)."""
+        h, m = self.lanes.n_heliostats, self.lanes.train_mask.shape[1]
+        w = rows.shape[1] // 2
+        r = np.zeros((h, m, 2))
+        use = np.zeros((h, m), bool)
+        r[index, :w] = rows[:, : 2 * w].reshape(len(index), w, 2)
+        use[index, :w] = used[:, 0 : 2 * w : 2]
+        assert self.unix_time is not None
+        return day_clustering(r, use, self.unix_time, n_params).correlation
 
     def screen(self, state: ModelState, candidates) -> dict[str, CandidateScreen]:
         h = self.lanes.n_heliostats
@@ -860,8 +902,9 @@ class DiscoveryResult:
             competitors' scores beside the best library candidate's.
         day_clustering: how much the final model's residuals of one heliostat and
             UTC day share an error (:class:`heliojax.discovery._diagnostics.DayClustering`;
-            the residual scan's tests are divided by its design effect, as each refit's
-            evidence is by its own model's, :meth:`_Workflow.bic_pair`).
+            the residual scan's tests are divided by its design effect; each refit's
+            evidence, and each generic competitor's, is whitened under its own model's
+            intra-day correlation, :meth:`_Workflow.bic_pair`).
     """
 
     config: DiscoveryConfig
