@@ -3066,6 +3066,8 @@ def test_aim_and_plan_refuse_instants_that_do_not_exist(argv, said, fitted_h5, t
     rc, _, err = _run([a.replace("{h5}", str(fitted_h5)).replace("{data}", data) for a in argv] + out, capsys)
     assert rc == 2 and said in err and "Traceback" not in err, err
     assert not (tmp_path / "o.csv").exists()
+    if "never rises" in said:  # refused before anything is announced (round 7: "planning 2 measurement(s)")
+        assert "planning" not in err and "nothing planned" not in err, err
 
 
 def test_plan_among_existing_records_offers_none_the_fit_used(fitted_h5, tmp_path, capsys):

@@ -245,6 +245,16 @@ def run(args) -> int:
         )
     origin = np.asarray(results.attrs["origin_lla"], float)
     tower = read_plant_tower(args.tower, origin)
+    # before any candidate is chosen or announced (round 7: "planning 2 measurement(s)"
+    # stood before this error)
+    sun_e, w_e = operating_envelope(
+        origin, year=args.envelope_year, day_step=args.envelope_day_step, min_elevation_deg=args.min_sun_elevation
+    )
+    if sun_e.shape[0] == 0:
+        raise ConfigError(
+            f"--min-sun-elevation {args.min_sun_elevation:g}: the sun never rises that high in "
+            f"{args.envelope_year} at latitude {float(origin[0]):.2f} (the operating envelope is empty)"
+        )
 
     def centre(name: str) -> np.ndarray:
         plane = target_from_tower(tower, name)
@@ -363,14 +373,6 @@ def run(args) -> int:
         source = f"{len(instants)} instants x {len(targets)} targets"
     log.info(f"planning {args.budget} measurement(s) for {h} heliostats among {source} ({args.start_from})")
     with activity("planning", logger=log):
-        sun_e, w_e = operating_envelope(
-            origin, year=args.envelope_year, day_step=args.envelope_day_step, min_elevation_deg=args.min_sun_elevation
-        )
-        if sun_e.shape[0] == 0:
-            raise ConfigError(
-                f"--min-sun-elevation {args.min_sun_elevation:g}: the sun never rises that high in "
-                f"{args.envelope_year} at latitude {float(origin[0]):.2f} (the operating envelope is empty)"
-            )
         plan, _ = plan_calibration(
             results,
             candidates,
