@@ -632,15 +632,16 @@ class _Workflow:
         # records that share an error by day: both models' residuals whitened under the
         # random day effect that the residuals of `after` show
         rho = self.day_clustering(after).correlation
-        if rho > 0.0 and self.unix_time is not None:
-            used = np.repeat(self.lanes.train_mask[lanes], 2, axis=1)
-            day = day_labels(self.unix_time)[self.lanes.heliostat[lanes]]
-            rss_of = {id(s): day_whitened_rss(s.r[lanes], used, day, rho) for s in (before, after)}
-        else:
-            rss_of = {id(s): s.rss[lanes] for s in (before, after)}
+        used = np.repeat(self.lanes.train_mask[lanes], 2, axis=1)
+
+        def residual_ss(state):
+            if rho > 0.0 and self.unix_time is not None:
+                day = day_labels(self.unix_time)[self.lanes.heliostat[lanes]]
+                return day_whitened_rss(state.r[lanes], used, day, rho)
+            return state.rss[lanes]
 
         def criterion(state):
-            rss = np.maximum(rss_of[id(state)], 1e-300)
+            rss = np.maximum(residual_ss(state), 1e-300)
             fit = float(np.sum(n * np.log(rss / n)))
             if self.config.effect_prior and self.noise is not None:
                 return fit + len(self.layout.base_cols) * lanes.size * np.log(big_n) + self.occam_terms(state, lanes)
