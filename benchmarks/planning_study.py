@@ -48,11 +48,19 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import heliojax as hj  # noqa: E402
+from heliojax.discovery._diagnostics import day_clustering, day_labels  # noqa: E402
 from heliojax.fitting import GaussianPrior, fleet_beam_errors_mrad, prior_moments, well_determined  # noqa: E402
 from heliojax.optics import target_from_tower  # noqa: E402
 
 BUDGETS = (4, 6, 8, 12, 16)
-PLANNERS = ("planner", "planner_discrepancy", "planner_drift", "planner_discrepancy_drift")
+PLANNERS = (
+    "planner",
+    "planner_discrepancy",
+    "planner_drift",
+    "planner_discrepancy_drift",
+    "planner_days",
+    "planner_discrepancy_days",
+)
 """The planners compared: exact model or with a model discrepancy, each with every
 candidate at the fit's noise or with the noise grown by its age under the fleet's
 pointing drift (:func:`heliojax.aged_noise_mrad`; added 2026-12-05)."""
@@ -68,6 +76,11 @@ def lane_fleet(padded, rows: np.ndarray, mask: np.ndarray):
         focal_spot=take(padded.focal_spot),
         mask=jnp.asarray(mask),
     )
+
+
+def padded_times(padded, h: int, m_pad: int) -> np.ndarray:
+    """``(h, m_pad)`` record times (s) of the padded fleet."""
+    return np.asarray(padded.context.unix_time, float)[:h, :m_pad]
 
 
 def main() -> None:
@@ -206,6 +219,32 @@ def study(
     )
     chosen_da = np.asarray(plan_da.chosen)
 
+    # Records of one day share an error: the intra-day correlation of the pool fit's
+    # training inliers (well-determined heliostats), each candidate labelled by its day.
+    clustering = day_clustering(
+        np.asarray(run.residuals_mrad)[:h, :m_pad],
+        learn,
+        np.where(pool_p, padded_times(padded, h, m_pad), np.nan),
+        len(free),
+    )
+    rho = clustering.correlation
+    days = day_labels(np.asarray(sub.context.unix_time))
+    plan_y = hj.plan_measurements(
+        jnp.asarray(cov0), jac, jnp.asarray(pool_p[rows]), m_env, noise, max(BUDGETS), day=days, day_correlation=rho
+    )
+    chosen_y = np.asarray(plan_y.chosen)
+    plan_dy = hj.plan_measurements(
+        design.covariance,
+        design.candidate_jacobians,
+        cands.valid,
+        m_env_d,
+        noise,
+        max(BUDGETS),
+        day=days,
+        day_correlation=rho,
+    )
+    chosen_dy = np.asarray(plan_dy.chosen)
+
     # Selections -> lanes.
     rng = np.random.default_rng(args.seed)
     lanes_row, lanes_prior, lanes_mask, lanes_key = [], [], [], []
@@ -218,6 +257,8 @@ def study(
                 "planner_discrepancy": [chosen_d[si][:k][chosen_d[si][:k] >= 0]],
                 "planner_drift": [chosen_a[si][:k][chosen_a[si][:k] >= 0]],
                 "planner_discrepancy_drift": [chosen_da[si][:k][chosen_da[si][:k] >= 0]],
+                "planner_days": [chosen_y[si][:k][chosen_y[si][:k] >= 0]],
+                "planner_discrepancy_days": [chosen_dy[si][:k][chosen_dy[si][:k] >= 0]],
                 "first": [by_time[:k]],
             }
             picks["random"] = [rng.choice(cand, size=min(k, cand.size), replace=False) for _ in range(args.draws)]
@@ -306,6 +347,7 @@ def study(
             "length": float(discrepancy.length),
             "nugget_mrad": float(discrepancy.nugget_mrad),
         },
+        "intra_day_correlation": clustering.as_dict(),
         "pool_records_superseded_by_change_points": n_superseded,
         "lanes": n_lanes,
         "fit_s": round(fit_s, 2),

@@ -205,7 +205,9 @@ def inverse_aim(
         model: fitted parameters.
         geometry: the heliostat.
         aim_point: ``(3,)`` ENU m.
-        sun: ``(3,)`` unit vector to the sun.
+        sun: ``(3,)`` vector towards the sun; only its direction counts (a vector
+            of any non-zero length is normalised: the bisector of a non-unit sun
+            and the unit aim direction is not the mirror normal).
         iterations: fixed-point iterations (static).
 
     Returns:
@@ -214,7 +216,9 @@ def inverse_aim(
         raised, so that the function stays jittable and vmappable.
     """
     aim = jnp.asarray(aim_point)
-    sun = jnp.asarray(sun)
+    raw_sun = jnp.asarray(sun)
+    degenerate = ~(jnp.all(jnp.isfinite(raw_sun)) & (jnp.sum(raw_sun * raw_sun) > 0.0))
+    sun = normalize(jnp.where(degenerate, jnp.array([0.0, 0.0, 1.0], raw_sun.dtype), raw_sun))
     centre0 = geometry.position + geometry.joint_translation_1
 
     def step(_, centre):
@@ -224,7 +228,6 @@ def inverse_aim(
 
     centre = jax.lax.fori_loop(0, iterations - 1, step, centre0)
     counts = inverse_normal(model, geometry, bisector_normal(sun, normalize(aim - centre)))
-    degenerate = ~(jnp.all(jnp.isfinite(sun)) & (jnp.sum(sun * sun) > 0.0))
     return jnp.where(degenerate, jnp.nan, counts)
 
 

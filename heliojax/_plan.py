@@ -205,34 +205,73 @@ class MeasurementPlan(eqx.Module):
 
 
 @eqx.filter_jit
-def _greedy(cov, cand_jac, cand_valid, cand_slot, m_env, noise, budget: int):
-    def one(c, jac, valid, slot, m, sigma):
-        eye = jnp.eye(2, dtype=c.dtype)
+def _greedy(cov, cand_jac, cand_valid, cand_slot, m_env, noise, day, correlation, budget: int, day_slots: int):
+    """The greedy choice (:func:`plan_measurements`) for every heliostat in one program.
 
-        def gains(c):
-            a = jnp.einsum("kif,fg->kig", jac, c)  # J C
-            s = sigma[:, None, None] ** 2 * eye[None] + jnp.einsum("kif,kjf->kij", a, jac)
-            g = jnp.einsum("kif,fg,kjg->kij", a, m, a)
-            return jnp.trace(jnp.linalg.solve(s, g), axis1=1, axis2=2), a, s
+    With ``day_slots > 0`` the state is the covariance of the parameters and of the
+    whitened day effects ``z_1..z_B`` (``2 B`` coordinates, ``B = day_slots``) of the
+    days measured so far, ``blockdiag(C, I)`` at the start: a day's effect is
+    independent of everything until a record of that day is chosen, so a candidate of
+    a day not yet measured is scored with its whole noise ``sigma^2`` (as without day
+    effects), and one of a measured day through that day's coordinates."""
+
+    def one(c, jac, valid, slot, m, sigma, day, rho):
+        g = c.shape[0]
+        size = g + 2 * day_slots
+        eye = jnp.eye(2, dtype=c.dtype)
+        shared = sigma * jnp.sqrt(rho)  # (K,) the day effect's share of the noise (sd)
+        own = sigma * jnp.sqrt(1.0 - rho)  # (K,) the record's own
+        c = jnp.zeros((size, size), c.dtype).at[:g, :g].set(c).at[g:, g:].set(jnp.eye(2 * day_slots, dtype=c.dtype))
+
+        def day_rows(day_of_slot, d):
+            """Rows of day(s) ``d`` in the state, and whether each is measured yet."""
+            match = d[..., None] == day_of_slot[(None,) * d.ndim]
+            j = jnp.argmax(match, axis=-1)
+            return g + jnp.stack([2 * j, 2 * j + 1], axis=-1), jnp.any(match, axis=-1)
+
+        def designs(c, day_of_slot):
+            """``a = J' C`` ``(K, 2, size)`` and ``S = J' C J'^T + own^2 I`` ``(K, 2, 2)``
+            with ``J' = [J, shared E_day]`` (``E_day`` picks the day's coordinates)."""
+            a = jnp.einsum("kif,fg->kig", jac, c[:g, :])
+            extra = (shared**2)[:, None, None] * eye[None]  # a day not measured yet: its whole effect
+            if day_slots:
+                rows, measured = day_rows(day_of_slot, day)
+                a = a + jnp.where(measured[:, None, None], shared[:, None, None] * c[rows, :], 0.0)
+                a_day = jnp.take_along_axis(a, jnp.broadcast_to(rows[:, None, :], (rows.shape[0], 2, 2)), axis=2)
+                extra = jnp.where(measured[:, None, None], shared[:, None, None] * a_day, extra)
+            s = jnp.einsum("kif,kjf->kij", a[..., :g], jac) + extra + (own**2)[:, None, None] * eye[None]
+            return a, s
 
         def step(carry, _):
-            c, avail = carry
-            gain, a, s = gains(c)
+            c, avail, day_of_slot, used = carry
+            a, s = designs(c, day_of_slot)
+            gain_matrix = jnp.einsum("kif,fg,kjg->kij", a[..., :g], m, a[..., :g])
+            gain = jnp.trace(jnp.linalg.solve(s, gain_matrix), axis1=1, axis2=2)
             gain = jnp.where(avail, gain, -jnp.inf)
             k = jnp.argmax(gain)
             ok = avail[k]
             ak, sk = a[k], s[k]
+            if day_slots:  # a new day takes the next free slot; the choice's design then uses it
+                rows, measured = day_rows(day_of_slot, day[k])
+                new_day = ok & ~measured
+                day_of_slot = jnp.where(new_day, day_of_slot.at[used].set(day[k]), day_of_slot)
+                used = used + new_day.astype(used.dtype)
+                rows, _ = day_rows(day_of_slot, day[k])
+                ak = jac[k] @ c[:g, :] + shared[k] * c[rows, :]
+                sk = ak[:, :g] @ jac[k].T + shared[k] * ak[:, rows] + own[k] ** 2 * eye
             c_new = c - ak.T @ jnp.linalg.solve(sk, ak)
             c_new = 0.5 * (c_new + c_new.T)
             c = jnp.where(ok, c_new, c)
             avail = avail & ~(ok & (slot == slot[k])) & (jnp.arange(avail.shape[0]) != k)
-            return (c, avail), (jnp.where(ok, k, -1), jnp.sqrt(jnp.maximum(jnp.trace(c @ m), 0.0)))
+            u = jnp.sqrt(jnp.maximum(jnp.trace(c[:g, :g] @ m), 0.0))
+            return (c, avail, day_of_slot, used), (jnp.where(ok, k, -1), u)
 
-        u0 = jnp.sqrt(jnp.maximum(jnp.trace(c @ m), 0.0))
-        (c_end, _), (chosen, u) = jax.lax.scan(step, (c, valid), None, length=budget)
-        return chosen, u0, u, c_end
+        u0 = jnp.sqrt(jnp.maximum(jnp.trace(c[:g, :g] @ m), 0.0))
+        start = (c, valid, jnp.full((day_slots,), -1, day.dtype), jnp.zeros((), jnp.int32))
+        (c_end, *_), (chosen, u) = jax.lax.scan(step, start, None, length=budget)
+        return chosen, u0, u, c_end[:g, :g]
 
-    return jax.vmap(one)(cov, cand_jac, cand_valid, cand_slot, m_env, noise)
+    return jax.vmap(one)(cov, cand_jac, cand_valid, cand_slot, m_env, noise, day, correlation)
 
 
 def plan_measurements(
@@ -243,8 +282,23 @@ def plan_measurements(
     noise_mrad: Float[ArrayLike, "*hk"],
     budget: int,
     slot: Int[Array, "H K"] | None = None,
+    day: Int[ArrayLike, "H K"] | None = None,
+    day_correlation: Float[ArrayLike, "*h"] = 0.0,
 ) -> MeasurementPlan:
     """Choose ``budget`` measurements per heliostat among its candidates.
+
+    Records of one day can share an error (the target's or camera's state that day, a
+    drift slower than a day; the shared real records' residuals have an intra-day
+    correlation of ~0.4): then a second record of a measured day teaches less than a
+    record of a new day, and a planner that takes records as independent crowds its
+    choice into a few days (on the shared records, 4-5 days for 16 records where a
+    random choice spans 10-13). With ``day`` and ``day_correlation`` (``rho``), each
+    candidate's two residual components are ``J theta + b_d + e`` with a day effect
+    ``b_d`` of variance ``rho sigma^2`` per component shared by the candidates of day
+    ``d`` and an own error of variance ``(1 - rho) sigma^2`` (``sigma`` the candidate's
+    noise): the random day-effect model under which discovery whitens its criterion
+    (:func:`heliojax.fitting.day_clustering`). The day effects enter the greedy
+    state as nuisance parameters (not counted in ``U``: a future day has its own).
 
     Args:
         covariance: current parameter covariance (physical units of the free
@@ -257,13 +311,40 @@ def plan_measurements(
         budget: measurements per heliostat (static).
         slot: ``(H, K)`` candidates of one slot exclude each other (one heliostat
             measures one target at a time); default: every candidate its own slot.
+        day: ``(H, K)`` integer day label of each candidate (e.g.
+            :func:`heliojax.fitting.day_labels` of its time); default: no day effect.
+        day_correlation: ``rho`` in ``[0, 1)``, scalar or ``(H,)``; 0 (the default)
+            takes records as independent (the plan without ``day``).
+
+    Raises:
+        ValueError: ``day_correlation`` outside ``[0, 1)`` or not finite.
     """
     h, k = candidate_valid.shape
     noise = jnp.asarray(noise_mrad, covariance.dtype)
     noise = jnp.broadcast_to(noise[:, None] if noise.ndim == 1 else noise, (h, k))
     slots = jnp.broadcast_to(jnp.arange(k, dtype=jnp.int32), (h, k)) if slot is None else jnp.asarray(slot, jnp.int32)
+    rho = np.broadcast_to(np.asarray(day_correlation, float), (h,))
+    if not np.all(np.isfinite(rho) & (rho >= 0.0) & (rho < 1.0)):
+        raise ValueError(f"day_correlation must be in [0, 1), not {day_correlation!r}")
+    with_days = day is not None and bool(np.any(rho > 0.0))
+    labels = np.zeros((h, k), np.int32)
+    if with_days:  # any integer labels, as 0..D-1 (-2 for candidates that cannot be chosen)
+        day = np.broadcast_to(np.asarray(day), (h, k))
+        if not np.issubdtype(day.dtype, np.integer):
+            raise ValueError(f"day must hold integer labels of shape {(h, k)}, not dtype {day.dtype}")
+        labels = np.where(np.asarray(candidate_valid, bool), np.unique(day, return_inverse=True)[1].reshape(h, k), -2)
+    rho = np.where(with_days, rho, 0.0)
     chosen, u0, u, c_end = _greedy(
-        covariance, candidate_jacobians, jnp.asarray(candidate_valid, bool), slots, envelope, noise, int(budget)
+        covariance,
+        candidate_jacobians,
+        jnp.asarray(candidate_valid, bool),
+        slots,
+        envelope,
+        noise,
+        jnp.asarray(labels),
+        jnp.asarray(rho, covariance.dtype),
+        int(budget),
+        int(budget) if with_days else 0,
     )
     return MeasurementPlan(chosen=chosen, uncertainty_before_mrad=u0, uncertainty_after_mrad=u, covariance_after=c_end)
 

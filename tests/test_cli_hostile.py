@@ -604,7 +604,7 @@ CASES = [
     ("discover unknown effect", lambda t: ["discover", "--effects", "abc"], "--effects"),
     ("discover no effect named", lambda t: ["discover", "--effects", " , "], "--effects"),
     ("discover folds beyond any data", lambda t: ["discover", "--folds", "100000"], "--folds"),
-    ("discover folds beyond the data's days", lambda t: ["discover", "--folds", "99"], "98 UTC days"),
+    ("discover folds beyond the data's days", lambda t: ["discover", "--folds", "99"], "98 days"),
     (
         "reconstruct --tower of the synthetic scene",
         lambda t: ["reconstruct", "--tower", str(_a_file(t)), "--steps", "1", "--out", str(t / "o")],

@@ -138,6 +138,30 @@ def test_day_folds_block_whole_days():
     assert f[0, 4] > 0  # a record without time is its own block
 
 
+def test_day_folds_keep_a_local_day_of_a_plant_far_from_greenwich_together():
+    """A plant at 150 deg east (eastern Australia): local noon is 02:00 UTC, and a day's
+    records from 08:00 to 18:00 local time run from 22:00 to 08:00 UTC, across UTC
+    midnight. Blocked by UTC day, one day's records fell into two folds (their shared
+    error then leaks between training and held-out records); by the local mean solar
+    day (240 s per degree east), they share one."""
+    from heliojax.fitting import day_labels
+
+    local_midnight_utc = 1.7e9 - np.mod(1.7e9, 86400.0) - 150.0 * 240.0  # 00:00 local mean time
+    hours = np.array([8.0, 11.0, 14.0, 17.5])  # local
+    t = (local_midnight_utc + np.concatenate([hours, hours + 24.0, hours + 48.0]) * 3600.0)[None]
+    valid = np.ones_like(t, bool)
+    assert len(np.unique(np.floor(t / 86400.0))) > 3  # UTC days split each local day
+    np.testing.assert_array_equal(
+        day_labels(t, 150.0), np.repeat(day_labels(t[:, :1], 150.0), 12, axis=1) + np.repeat([0, 1, 2], 4)[None]
+    )
+    f = day_folds(t, valid, None, 3, longitude_deg=150.0)
+    for d in range(3):
+        assert len(set(f[0, 4 * d : 4 * d + 4])) == 1  # one local day, one fold
+    assert len(set(f[0])) == 3
+    with pytest.raises(ValueError, match="longitude_deg must be in"):
+        day_labels(t, 200.0)
+
+
 def _linear_problem(rng, n_h=12, n=90, signal=0.0, common=True):
     """Per heliostat: base columns A, candidate columns B, residuals of the LS fit
     of A to data with noise (own level per heliostat) and optionally B * theta."""
@@ -381,7 +405,7 @@ def _run(seed, effects=(), **kw):
 def test_null_fleet_names_nothing():
     res = _run(101)
     r = res.report
-    assert r["named_effects"] == [] and r["warnings"] == [] and r["data"]["utc_days"] > 2
+    assert r["named_effects"] == [] and r["warnings"] == [] and r["data"]["days"] > 2
     assert r["steps"] == []
     assert "gravity_sag" in r["not_identifiable"]
     assert r["heldout_rms_final_mrad"] == r["heldout_rms_base_mrad"]
@@ -605,16 +629,16 @@ def test_per_target_survey_offsets_are_named_and_fitted_back():
 
 
 def test_records_of_one_day_name_nothing_and_the_report_says_why():
-    """Cross-validation blocks by UTC day: records of a single day hold nothing out, so
+    """Cross-validation blocks by day: records of a single day hold nothing out, so
     nothing can be named. The CLI warned; report.json and the Markdown say it too."""
     fleet, _ = simulate_fleet(103, 4, 20, effects=[make_effect("backlash", backlash_1=3e-4, backlash_2=3e-4)])
     t = np.asarray(fleet.context.unix_time)
     one_day = 1.6e9 + np.mod(t, 36000.0)  # every record on 2020-09-13 UTC, within 10 h
     fleet = dataclasses.replace(fleet, context=eqx.tree_at(lambda c: c.unix_time, fleet.context, jnp.asarray(one_day)))
     r = discover(fleet, DiscoveryConfig(base="stone8", effects=("backlash",))).report
-    assert r["data"]["utc_days"] == 1 and r["named_effects"] == []
-    assert len(r["warnings"]) == 1 and "span 1 UTC day(s)" in r["warnings"][0]
-    assert "**Warning**: the records span 1 UTC day(s)" in markdown_summary(r)
+    assert r["data"]["days"] == 1 and r["named_effects"] == []
+    assert len(r["warnings"]) == 1 and "span 1 day(s)" in r["warnings"][0]
+    assert "**Warning**: the records span 1 day(s)" in markdown_summary(r)
 
 
 def test_heliostats_too_few_records_for_a_fold_name_nothing_and_the_report_says_why():
@@ -625,7 +649,7 @@ def test_heliostats_too_few_records_for_a_fold_name_nothing_and_the_report_says_
     fleet, _ = simulate_fleet(109, 3, 8, effects=[make_effect("backlash", backlash_1=3e-4, backlash_2=3e-4)])
     r = discover(fleet, DiscoveryConfig(base="stone8", effects=("backlash",))).report
     d = r["data"]
-    assert d["n_base_parameters"] == 8 and d["utc_days"] >= 5
+    assert d["n_base_parameters"] == 8 and d["days"] >= 5
     assert d["folds_left_out"] == 3 * 5 and sorted(d["heliostats_not_cross_validated"]) == sorted(d["heliostat_ids"])
     assert r["named_effects"] == [] and r["heldout_rms_base_mrad"] is None
     assert len(r["warnings"]) == 1 and "no heliostat keeps 8 training records" in r["warnings"][0]

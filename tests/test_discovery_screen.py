@@ -253,7 +253,7 @@ def test_day_clustering_is_the_one_way_anova_estimate_and_stays_off_for_independ
     out with loops (each heliostat's components standardised by its noise, cluster
     means about the heliostat's mean), its recovery of a planted intra-day correlation,
     and no design effect for independent records (the F test's gate)."""
-    from heliojax.discovery._diagnostics import CLUSTERING_ALPHA, day_clustering
+    from heliojax.fitting import CLUSTERING_ALPHA, day_clustering
 
     rng = np.random.default_rng(3)
     h, days, per_day, n_params = 6, 12, 3, 4
@@ -298,7 +298,8 @@ def test_day_whitened_rss_is_the_quadratic_form_of_the_random_day_effect_covaria
     """:func:`day_whitened_rss` against ``r^T R^-1 r`` with ``R`` written out densely and
     solved (clusters: row set, UTC day, component; a record without a time alone), the
     plain sum of squares at ``rho = 0``, and unused rows counting nothing."""
-    from heliojax.discovery._diagnostics import day_labels, day_whitened_rss
+    from heliojax.discovery._diagnostics import day_whitened_rss
+    from heliojax.fitting import day_labels
 
     rng = np.random.default_rng(5)
     s, m, rho = 3, 9, 0.35

@@ -123,6 +123,19 @@ def test_inverse_aim_of_a_zero_or_non_finite_sun_is_nan(results):
     assert np.isfinite(np.asarray(batch[0])).all() and np.isnan(np.asarray(batch[1])).all()
 
 
+def test_inverse_aim_takes_the_direction_of_a_non_unit_sun(results):
+    """Only the sun's direction counts: a sun vector of length 0.5 or 1e3 had given
+    other counts than the unit vector (the bisector of a non-unit sun and the unit aim
+    direction is not the mirror normal)."""
+    model, geometry = results.heliostat(results.ids[0])
+    sun = _sun()[0]
+    unit = np.asarray(hj.inverse_aim(model, geometry, AIM, sun))
+    for scale in (0.5, 1e3):
+        np.testing.assert_allclose(
+            np.asarray(hj.inverse_aim(model, geometry, AIM, scale * sun)), unit, rtol=0, atol=1e-9
+        )
+
+
 def test_jit_of_aim_results_says_it_is_host_side(results):
     """Case 13: a TracerArrayConversionError had not said why."""
     message = "aim_results is a host-side function .* call it outside jit; heliojax.aim_fleet is the jittable core"

@@ -57,6 +57,77 @@ def test_greedy_choice_matches_brute_force_in_information_form(per_candidate):
     np.testing.assert_allclose(np.asarray(plan.covariance_after)[0], np.linalg.inv(info), rtol=1e-8, atol=1e-12)
 
 
+def _gls_posterior(cov, jac, sigma, day, rho, chosen):
+    """The parameters' posterior covariance after records ``chosen`` whose residual
+    components share a day effect: ``R = diag((1 - rho) sigma^2) + rho sigma sigma^T``
+    between components of one index of records of one day (a dense solve)."""
+    if not chosen:
+        return cov
+    rows = np.concatenate([jac[c] for c in chosen])  # (2n, F)
+    rec = np.repeat(np.asarray(chosen), 2)
+    comp = np.tile([0, 1], len(chosen))
+    s = sigma[rec]
+    same = (day[rec][:, None] == day[rec][None, :]) & (comp[:, None] == comp[None, :])
+    r = np.diag((1.0 - rho) * s**2) + rho * np.outer(s, s) * same
+    return np.linalg.inv(np.linalg.inv(cov) + rows.T @ np.linalg.solve(r, rows))
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.45, 0.9])
+def test_greedy_choice_with_day_effects_matches_brute_force_generalised_least_squares(rho):
+    """Records of one day share an error (variance ``rho sigma^2``): each step's choice
+    and the covariance after it against the dense GLS posterior of every remaining
+    candidate (4 days, noise per candidate)."""
+    rng = np.random.default_rng(5)
+    f, k, budget = 5, 14, 7
+    a = rng.normal(size=(f, f))
+    cov = a @ a.T + 0.5 * np.eye(f)
+    jac = rng.normal(size=(k, 2, f))
+    b = rng.normal(size=(3 * f, f))
+    m = b.T @ b / (3 * f)
+    sigma = rng.uniform(0.4, 1.2, k)
+    day = rng.integers(0, 4, k) * 86400 + 20000  # any integer labels
+    plan = hj.plan_measurements(
+        jnp.asarray(cov[None]),
+        jnp.asarray(jac[None]),
+        jnp.ones((1, k), bool),
+        jnp.asarray(m[None]),
+        jnp.asarray(sigma[None]),
+        budget,
+        day=day[None],
+        day_correlation=rho,
+    )
+    chosen = [int(c) for c in np.asarray(plan.chosen)[0]]
+    expected_u = []
+    for step in range(budget):
+        left = [c for c in range(k) if c not in chosen[:step]]
+        u = {c: _integrated_variance(_gls_posterior(cov, jac, sigma, day, rho, [*chosen[:step], c]), m) for c in left}
+        assert min(u, key=lambda c: u[c]) == chosen[step]
+        expected_u.append(np.sqrt(u[chosen[step]]))
+    np.testing.assert_allclose(np.asarray(plan.uncertainty_after_mrad)[0], expected_u, rtol=1e-9)
+    posterior = _gls_posterior(cov, jac, sigma, day, rho, chosen)
+    np.testing.assert_allclose(np.asarray(plan.covariance_after)[0], posterior, rtol=1e-8, atol=1e-12)
+
+
+def test_a_shared_day_error_spreads_the_plan_over_days():
+    """Six copies of one informative pose on day 0, six slightly weaker ones on day 1:
+    taking records as independent, the plan stays on day 0; with a day effect, its
+    second record is on the other day."""
+    rng = np.random.default_rng(6)
+    f, k = 3, 12
+    base = rng.normal(size=(2, f))
+    jac = np.stack([base * (1.0 if c < 6 else 0.9) + 0.01 * rng.normal(size=(2, f)) for c in range(k)])
+    day = np.repeat([0, 1], 6)
+    args = (jnp.eye(f)[None], jnp.asarray(jac[None]), jnp.ones((1, k), bool), jnp.eye(f)[None], 0.5, 4)
+    independent = np.asarray(hj.plan_measurements(*args, day=day[None], day_correlation=0.0).chosen)[0]
+    shared = np.asarray(hj.plan_measurements(*args, day=day[None], day_correlation=0.8).chosen)[0]
+    assert (day[independent[:2]] == 0).all()
+    assert set(day[shared[:2]]) == {0, 1}
+    plain = np.asarray(hj.plan_measurements(*args).chosen)[0]
+    np.testing.assert_array_equal(independent, plain)  # rho = 0 is the plan without days
+    with pytest.raises(ValueError, match=r"day_correlation must be in \[0, 1\)"):
+        hj.plan_measurements(*args, day=day[None], day_correlation=1.0)
+
+
 def test_slots_exclude_each_other_and_invalid_candidates_are_never_chosen():
     rng = np.random.default_rng(4)
     f, k = 4, 10

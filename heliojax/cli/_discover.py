@@ -94,7 +94,9 @@ def add_parser(subparsers) -> None:
         default=0.01,
         help="family-wise error rate per step (Holm), between 0 and 1",
     )
-    p.add_argument("--folds", type=integer(2, MAX_FOLDS), default=5, help="blocked cross-validation folds (by UTC day)")
+    p.add_argument(
+        "--folds", type=integer(2, MAX_FOLDS), default=5, help="blocked cross-validation folds (by local day)"
+    )
     p.add_argument("--max-named", type=integer(1), default=6, help="most effects to name (>= 1)")
     p.add_argument(
         "--no-robust", action="store_true", help="keep every record (no gross-error flags; default: robust pre-pass)"
@@ -137,6 +139,7 @@ def run(args) -> int:
         DiscoveryConfig,
         check_exclusions,
         discover,
+        fleet_longitude_deg,
         fold_blocks,
         markdown_summary,
         too_few_days_note,
@@ -182,10 +185,10 @@ def run(args) -> int:
         check_exclusions(fleet.ids, config.exclude)
     except ValueError as e:
         raise ConfigError(f"--{e}") from None
-    blocks = fold_blocks(np.asarray(fleet.context.unix_time), np.asarray(fleet.mask))
+    blocks = fold_blocks(np.asarray(fleet.context.unix_time), np.asarray(fleet.mask), fleet_longitude_deg(fleet))
     if 2 <= blocks < args.folds:  # (fewer than 2: discover says nothing can be tested)
         raise ConfigError(
-            f"--folds {args.folds}: the records span only {blocks} UTC days (a record without a time counts as "
+            f"--folds {args.folds}: the records span only {blocks} days (a record without a time counts as "
             f"one), so some folds would hold no record; at most --folds {blocks}"
         )
     note = too_few_days_note(blocks)

@@ -31,7 +31,12 @@ from ._identifiability import (
     CONDITION_INDEX_LIMIT as CONDITION_INDEX_LIMIT,
     absorbed_fractions as absorbed_fractions,
 )
-from ._lanes import day_folds as day_folds, fold_blocks as fold_blocks, too_few_days_note as too_few_days_note
+from ._lanes import (
+    day_folds as day_folds,
+    fleet_longitude_deg as fleet_longitude_deg,
+    fold_blocks as fold_blocks,
+    too_few_days_note as too_few_days_note,
+)
 from ._report import (
     AMBIGUITY_BIC as AMBIGUITY_BIC,
     MIN_DELTA_BIC as MIN_DELTA_BIC,
@@ -78,6 +83,7 @@ __all__ = [
     "confirm_change_points",
     "day_folds",
     "evidence_grade",
+    "fleet_longitude_deg",
     "fold_blocks",
     "too_few_days_note",
     "discover",

@@ -172,7 +172,7 @@ class DayWhitening:
     effect, as a library refit's is (:func:`day_whitened_rss`).
 
     Attributes:
-        day: ``(H, M)`` each record's UTC day (:func:`day_labels`).
+        day: ``(H, M)`` each record's local day (:func:`heliojax.fitting.day_labels`).
         correlation: the intra-day correlation of residual rows ``(S, R)`` of the
             heliostats ``(S,)`` on their used rows ``(S, R)`` (the workflow's
             :func:`day_clustering` estimate; 0 where its test does not reject).

@@ -45,6 +45,7 @@ from ..effects import EffectModel, OffsetStep, add_effects, with_data_references
 from ..fitting import (
     AbstractBatching,
     block_lanes,
+    day_labels,
     default_batching,
     default_solver,
     record_rows,
@@ -491,40 +492,55 @@ class Lanes:
         return self.fold_records() & self.cross_validated[:, None]
 
 
-def _utc_days(unix_time: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``(valid, day, timed, days)``: the mask as bool, each record's UTC day number,
-    the valid records with a time, and their distinct days in order."""
+def _local_days(
+    unix_time: np.ndarray, valid: np.ndarray, longitude_deg: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(valid, day, timed, days)``: the mask as bool, each record's local day
+    (:func:`heliojax.fitting.day_labels`), the valid records with a time, and their
+    distinct days in order."""
     valid = np.asarray(valid, bool)
-    day = np.floor(np.asarray(unix_time, float) / 86400.0)
-    timed = valid & np.isfinite(day)
+    timed = valid & np.isfinite(np.asarray(unix_time, float))
+    day = day_labels(unix_time, longitude_deg)
     return valid, day, timed, np.unique(day[timed])
 
 
-def fold_blocks(unix_time: np.ndarray, valid: np.ndarray) -> int:
-    """Number of blocks :func:`day_folds` deals to the folds: the distinct UTC days of
-    the valid timed records plus one per valid record without a time (``unix_time``: s,
-    ``valid``: bool, same shape)."""
-    valid, _, timed, days = _utc_days(unix_time, valid)
+def fleet_longitude_deg(fleet: typing.Any) -> float:
+    """The plant's longitude (deg east) from a fleet's ENU origin, 0 (UTC days) for
+    a fleet without one."""
+    origin = getattr(fleet, "origin_lla", None)
+    return 0.0 if origin is None else float(np.asarray(origin)[1])
+
+
+def fold_blocks(unix_time: np.ndarray, valid: np.ndarray, longitude_deg: float = 0.0) -> int:
+    """Number of blocks :func:`day_folds` deals to the folds: the distinct local days
+    of the valid timed records plus one per valid record without a time (``unix_time``:
+    s, ``valid``: bool, same shape; ``longitude_deg``: the plant's, deg east)."""
+    valid, _, timed, days = _local_days(unix_time, valid, longitude_deg)
     return len(days) + int((valid & ~timed).sum())
 
 
 def too_few_days_note(blocks: int) -> str | None:
     """Why no effect can be named when the records span fewer than 2 blocks of
-    :func:`fold_blocks` (cross-validation by UTC day holds no record out), else None."""
+    :func:`fold_blocks` (cross-validation by day holds no record out), else None."""
     if blocks >= 2:
         return None
     return (
-        f"the records span {blocks} UTC day(s): cross-validation blocked by day holds no record out, so no "
+        f"the records span {blocks} day(s): cross-validation blocked by day holds no record out, so no "
         "effect can pass its held-out test and none will be named"
     )
 
 
-def day_folds(unix_time: np.ndarray, valid: np.ndarray, record_id: np.ndarray | None, n_folds: int) -> np.ndarray:
-    """Blocked folds by UTC day: the fleet's distinct days, in chronological order,
-    are dealt to folds ``1..K`` in turn (so every fold spans the season); all
-    records of a day share a fold. A record without a time is its own block,
-    dealt after the days in record-id order. Invalid records get fold 0."""
-    valid, day, timed, days = _utc_days(unix_time, valid)
+def day_folds(
+    unix_time: np.ndarray, valid: np.ndarray, record_id: np.ndarray | None, n_folds: int, longitude_deg: float = 0.0
+) -> np.ndarray:
+    """Blocked folds by day (a local mean solar day at ``longitude_deg`` east,
+    :func:`heliojax.fitting.day_labels`: records of one day share their errors, and
+    a boundary at UTC midnight would split a day of a plant far east or west of
+    Greenwich): the fleet's distinct days, in chronological order, are dealt to folds
+    ``1..K`` in turn (so every fold spans the season); all records of a day share a
+    fold. A record without a time is its own block, dealt after the days in record-id
+    order. Invalid records get fold 0."""
+    valid, day, timed, days = _local_days(unix_time, valid, longitude_deg)
     out = np.zeros(valid.shape, np.int64)
     out[timed] = np.searchsorted(days, day[timed]) % n_folds + 1  # a day's rank among the fleet's days
     untimed = np.argwhere(valid & ~timed)
@@ -536,7 +552,7 @@ def day_folds(unix_time: np.ndarray, valid: np.ndarray, record_id: np.ndarray | 
 
 
 def make_lanes(fleet: typing.Any, n_folds: int, min_training_records: int = 0) -> Lanes:
-    """Lanes of ``fleet`` (padded): one per (fold, heliostat), folds by UTC day.
+    """Lanes of ``fleet`` (padded): one per (fold, heliostat), folds by local day.
 
     A cross-validation lane (fold > 0) keeps its training records only where they are
     at least ``min_training_records`` (discovery: the base model's free parameters, so
@@ -548,7 +564,9 @@ def make_lanes(fleet: typing.Any, n_folds: int, min_training_records: int = 0) -
     with 8-12 records: 6-7 training records against 8 free parameters), and its
     held-out predictions were wherever it stopped."""
     valid = np.asarray(fleet.mask, bool)
-    rf = day_folds(np.asarray(fleet.context.unix_time), valid, np.asarray(fleet.record_id), n_folds)
+    rf = day_folds(
+        np.asarray(fleet.context.unix_time), valid, np.asarray(fleet.record_id), n_folds, fleet_longitude_deg(fleet)
+    )
     h = valid.shape[0]
     fold = np.repeat(np.arange(n_folds + 1), h)
     heli = np.tile(np.arange(h), n_folds + 1)

@@ -1,7 +1,7 @@
 """Reports of the discovery workflow: report.json, a Markdown summary, PNG figures.
 
 ``report.json`` schema (all RMS values are pooled over records, mrad, of the
-beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
+beam pointing error; ``cv`` = blocked cross-validation by day)::
 
     {
       "base_model": "auto" | "actuator" | "stone8",
@@ -75,14 +75,14 @@ beam pointing error; ``cv`` = blocked cross-validation by UTC day)::
       "untestable": [names],                       # the data do not drive them (e.g. no weather)
       "screens_run": bool,                         # false: nothing was tested (see not_tested_reason)
       "not_tested_reason": str | null,             # why, e.g. too few records for the parameters
-      "warnings": [str],                           # e.g. records on one UTC day: nothing can be named
+      "warnings": [str],                           # e.g. records on one day: nothing can be named
       "absorbed_fraction": {name: float | null},   # at the first screen
       "heldout_rms_base_mrad": float, "heldout_rms_final_mrad": float,
       "heldout_median_base_mrad": float, "heldout_median_final_mrad": float,
       "train_rms_base_mrad": float, "train_rms_final_mrad": float,
       "noise_estimate_mrad": float,                # per tangent component, final model
       "day_clustering": {"intra_day_correlation", "p", "design_effect_median",
-                         "records_per_day_median"},  # records of one heliostat and UTC day
+                         "records_per_day_median"},  # records of one heliostat and day
                                                    # sharing an error (final model); correlation
                                                    # 0 unless its F test has p < 0.01; each
                                                    # refit's evidence counts effective records
@@ -123,7 +123,7 @@ from .._plotting import pyplot, save_figure
 from .._splits import utc_iso
 from ..fitting import NOISE_OUTLIER_MIN_RATIO, noise_outliers
 from ._diagnostics import record_variables
-from ._lanes import fold_blocks, too_few_days_note
+from ._lanes import fleet_longitude_deg, fold_blocks, too_few_days_note
 
 # Kass & Raftery's (1995) scale of 2 log Bayes factor (a delta BIC): 0-2 "not worth
 # more than a bare mention", 2-6 "positive", 6-10 "strong", above 10 "very strong".
@@ -353,7 +353,7 @@ def build_report(result, typical_start=None) -> dict:
     first = result.screens[0]["screens"] if result.screens else {}
     fleet = result.fleet
     mask = np.asarray(fleet.mask)
-    blocks = fold_blocks(np.asarray(fleet.context.unix_time), mask)
+    blocks = fold_blocks(np.asarray(fleet.context.unix_time), mask, fleet_longitude_deg(fleet))
     note = too_few_days_note(blocks) if mask.any() else None
     warnings = [note] if note is not None else []
     if cleaning["noisy_heliostats"]:
@@ -495,7 +495,7 @@ def build_report(result, typical_start=None) -> dict:
             "start_typical_actuators": [i for i, t in zip(fleet.ids, typical) if i and t],
             "heliostat_ids": [i for i in fleet.ids if i],
             "max_records_per_heliostat": _max_records(fleet),
-            "utc_days": blocks,  # blocks of the day-blocked cross-validation (a record without a time: one)
+            "days": blocks,  # blocks of the day-blocked cross-validation (local days; a record without a time: one)
             "n_base_parameters": n_base,
             # (heliostat, fold) pairs holding records out but keeping fewer than n_base_parameters
             # training records: not fitted, not in the cross-validation (heliojax.discovery._lanes.make_lanes)

@@ -38,7 +38,7 @@ repeat, diagnose.
 6. **Name** the passing candidate with the largest decrease of the criterion below
    (``delta_bic``, 2 log of a Bayes factor) among those with
    ``delta_bic > min_delta_bic`` (2) *and* a better held-out likelihood in the blocked
-   cross-validation by UTC day (:func:`._report.cv_log_ratio` < 0: each
+   cross-validation by day (:func:`._report.cv_log_ratio` < 0: each
    heliostat with its own noise level, as in the BIC, so that one heliostat
    with poorly determined folds cannot decide); passing rivals within ``ambiguity_bic`` of it
    are reported as an ambiguity. Add it to the model and repeat from 2. (The criterion
@@ -191,7 +191,7 @@ class DiscoveryConfig:
         effects: candidate effects (names from :data:`heliojax.effects.EFFECT_NAMES`;
             default :data:`DEFAULT_CANDIDATES`).
         alpha: family-wise error rate of each step's test family (Holm).
-        n_folds: blocked cross-validation folds (by UTC day).
+        n_folds: blocked cross-validation folds (by local day).
         max_named: most effects to name.
         max_refits: finalists refitted per step (best linearised delta BIC first).
         max_iterations: expansion/fit iterations of one refit (effects enter a fit
@@ -350,6 +350,7 @@ class _Workflow:
         self.free_index = np.asarray(self.layout.free_index)
         self.noise: np.ndarray | None = None  # (L,) mrad per component, from the base fit
         self.unix_time: np.ndarray | None = None  # (H, M) the records' times (s), for day_clustering
+        self.longitude_deg = 0.0  # the plant's, for its local days (day_labels)
         self._derivative: tuple[ModelState, tuple] | None = None  # (state, its expansion): see derivative_at
 
     # -- columns ----------------------------------------------------------------------
@@ -636,7 +637,7 @@ class _Workflow:
 
         def residual_ss(state):
             if rho > 0.0 and self.unix_time is not None:
-                day = day_labels(self.unix_time)[self.lanes.heliostat[lanes]]
+                day = day_labels(self.unix_time, self.longitude_deg)[self.lanes.heliostat[lanes]]
                 return day_whitened_rss(state.r[lanes], used, day, rho)
             return state.rss[lanes]
 
@@ -652,7 +653,7 @@ class _Workflow:
 
     def day_clustering(self, state: ModelState) -> DayClustering:
         """How much ``state``'s training residuals (fold-0 lanes) of one heliostat and
-        UTC day share an error (:func:`heliojax.discovery._diagnostics.day_clustering`);
+        day share an error (:func:`heliojax.fitting.day_clustering`);
         none (design effect 1) before the records' times are known."""
         h = self.lanes.n_heliostats
         if self.unix_time is None:
@@ -663,6 +664,7 @@ class _Workflow:
             self.lanes.train_mask[:h] & state.ok[:h, None],
             self.unix_time,
             len(self.active_cols(state.effects)),
+            self.longitude_deg,
         )
 
     def occam_terms(self, state: ModelState, lanes: np.ndarray) -> float:
@@ -786,7 +788,7 @@ class _Workflow:
             def correlation(rows: np.ndarray, index: np.ndarray, used: np.ndarray) -> float:
                 return self._rows_correlation(rows, index, used, n_params)
 
-            clustering = DayWhitening(day_labels(self.unix_time), correlation)
+            clustering = DayWhitening(day_labels(self.unix_time, self.longitude_deg), correlation)
         return score_competitors(fleet, self.bases(state), self.noise, self.lanes.n_heliostats, clustering)
 
     def _rows_correlation(self, rows: np.ndarray, index: np.ndarray, used: np.ndarray, n_params: int) -> float:
@@ -800,7 +802,7 @@ class _Workflow:
         r[index, :w] = rows[:, : 2 * w].reshape(len(index), w, 2)
         use[index, :w] = used[:, 0 : 2 * w : 2]
         assert self.unix_time is not None
-        return day_clustering(r, use, self.unix_time, n_params).correlation
+        return day_clustering(r, use, self.unix_time, n_params, self.longitude_deg).correlation
 
     def screen(self, state: ModelState, candidates) -> dict[str, CandidateScreen]:
         h = self.lanes.n_heliostats
@@ -902,7 +904,7 @@ class DiscoveryResult:
         competitors: per step that had a library name to give, the generic
             competitors' scores beside the best library candidate's.
         day_clustering: how much the final model's residuals of one heliostat and
-            UTC day share an error (:class:`heliojax.discovery._diagnostics.DayClustering`;
+            day share an error (:class:`heliojax.fitting.DayClustering`;
             the residual scan's tests are divided by its design effect; each refit's
             evidence, and each generic competitor's, is whitened under its own model's
             intra-day correlation, :meth:`_Workflow.bic_pair`).
@@ -1152,6 +1154,7 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
     wf.noise = _lane_noise(state, len(layout.base_cols) + 2 * _stepped_lanes(cleaning, lanes, steps_found))
     h = lanes.n_heliostats
     wf.unix_time = np.asarray(padded.context.unix_time, float)
+    wf.longitude_deg = float(np.asarray(padded.origin_lla)[1])
     train_rms = np.sqrt(np.nansum(state.rss[:h]) / np.sum(state.n_res[:h]) * 2)
     log.info(f"base fitted ({state.fit_s:.1f} s): train RMS {train_rms:.3f} mrad")
     steps: list[Step] = []

@@ -22,6 +22,14 @@ from ._changes import (
     ChangePoints as ChangePoints,
     find_change_points as find_change_points,
 )
+from ._days import (
+    CLUSTERING_ALPHA as CLUSTERING_ALPHA,
+    DAY_S as DAY_S,
+    DayClustering as DayClustering,
+    day_clustering as day_clustering,
+    day_labels as day_labels,
+    heliostat_noise as heliostat_noise,
+)
 from ._evaluate import (
     beam_errors_mrad as beam_errors_mrad,
     choose_start_geometry as choose_start_geometry,
