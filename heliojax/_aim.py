@@ -63,6 +63,7 @@ from ._beam import beam_pointing_error
 from ._geometry import check_unit_vectors
 from ._heliostat import HeliostatGeometry, RecordContext
 from ._kinematics import AbstractKinematicModel, forward, inverse_aim
+from ._limits import EARLIEST_UNIX_S, LATEST_UNIX_S
 from ._parameters import ParameterView, covariance_problem
 from ._predictive import PointingErrorLaw, region_radius
 
@@ -507,10 +508,6 @@ def aim_fleet(
     )
 
 
-_LATEST_UNIX_S = 7_258_118_400.0
-"""2200-01-01T00:00Z (s): a later instant is a time in other units (ms, ns)."""
-
-
 def _check_numeric(x: typing.Any, name: str, expected: str) -> None:
     """TypeError naming ``name`` where ``x`` is not an array of numbers (a string,
     None, an object array): JAX's own error is many frames deep and names no argument.
@@ -542,7 +539,7 @@ def instant_seconds(unix_time: typing.Any, shape: tuple[int, ...] | None = None)
     t = t.astype(float)
     if shape is not None and t.shape != shape:
         raise ValueError(f"unix_time has shape {t.shape}; expected {shape}, one per sun vector")
-    bad = ~(np.isfinite(t) & (t >= 0.0) & (t < _LATEST_UNIX_S))
+    bad = ~(np.isfinite(t) & (t >= EARLIEST_UNIX_S) & (t < LATEST_UNIX_S))  # the CLI's span too
     if bad.any():
         raise ValueError(
             f"unix_time must be seconds since 1970-01-01 UTC between 1970 and 2200 (not ms or ns); "
@@ -632,7 +629,7 @@ def aim_results(
     drift, before, after = 0.0, None, None
     if unix_time is not None:
         unix_time = instant_seconds(unix_time, np.shape(sun)[:1])
-        before, after = _outside_fit_time(results, unix_time)
+        before, after = outside_fit_time(results, unix_time)
         variance = np.asarray(results.drift_variance_mrad2(unix_time), float)
         fitted = fitted & ~np.asarray(uncertainty_unknown(variance))
         drift = jnp.asarray(np.where(np.isfinite(variance), variance, 0.0))
@@ -656,7 +653,7 @@ def aim_results(
     )
 
 
-def _outside_fit_time(results: typing.Any, unix_time: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
+def outside_fit_time(results: typing.Any, unix_time: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
     """``(before_fit, long_after_fit)``, each ``(H, N)``: instants ``unix_time`` (s)
     before each heliostat's first fitted record (training, not superseded by a change
     point, with a time), and further after its last one than the fleet's fitted records

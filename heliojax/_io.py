@@ -15,6 +15,7 @@ import json
 import math
 import os
 import re
+import secrets
 import socket
 import stat
 import tempfile
@@ -69,9 +70,9 @@ def heliostat_id_problem(text: str) -> str | None:
     if text != text.strip():
         return "white space at either end"
     if "," in text:
-        return "holds a comma (ids are listed comma-separated)"
+        return "holds a comma (options list names comma-separated)"
     if "/" in text or "\\" in text or text in (".", ".."):
-        return "a path, not a folder name"
+        return "holds a path separator or is . or .. (not a folder name)"
     if text.startswith(SPREADSHEET_FORMULA_START):
         return f"starts with {text[0]!r} (a spreadsheet formula in a CSV cell)"
     return None
@@ -166,6 +167,22 @@ def _temporary_prefix(name: str) -> str:
     return f".{name}.{_host()}-{os.getpid()}."
 
 
+def new_temporary(folder: str | os.PathLike, name: str, suffix: str = "") -> Path:
+    """The path of a new temporary in ``folder`` beside the output ``name`` (hidden, the
+    writer's host and process in its name: :func:`_temporary_prefix`), not yet made.
+
+    A caller records the path for removal first and then makes the file
+    (:func:`make_temporary`): with :func:`tempfile.mkstemp`, a signal (Ctrl-C, a
+    ``kill``) between the file's making and its recording left it behind."""
+    return Path(folder) / f"{_temporary_prefix(name)}{secrets.token_hex(6)}{TEMPORARY_MARK}{suffix}"
+
+
+def make_temporary(path: Path) -> None:
+    """Make ``path`` (:func:`new_temporary`) empty, readable by its owner only until it
+    is published; FileExistsError if it exists."""
+    os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+
+
 def _process_gone(pid: int) -> bool:
     """Whether no process ``pid`` runs on this machine (one of another user runs)."""
     try:
@@ -227,7 +244,7 @@ def _umask() -> int:
     return mask
 
 
-def _publish(tmp: str, path: Path) -> None:
+def _publish(tmp: str | os.PathLike, path: Path) -> None:
     """Give ``tmp`` the mode a plain ``open(path, "w")`` would have, then rename it
     onto ``path``."""
     if path.is_dir():  # name the destination, not the temporary, and never give it a folder's mode
@@ -294,9 +311,9 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **kwargs) -> Iterator
             os.fsync(f.fileno())
         return
     _make_folder(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=_temporary_prefix(path.name), suffix=TEMPORARY_MARK)
-    os.close(fd)
+    tmp = new_temporary(path.parent, path.name)
     try:
+        make_temporary(tmp)
         with open(tmp, mode, **kwargs) as f:
             yield f
             f.flush()
@@ -325,13 +342,11 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             yield path
         return
     _make_folder(path)
-    fd, tmp = tempfile.mkstemp(
-        dir=path.parent, prefix=_temporary_prefix(path.stem), suffix=TEMPORARY_MARK + path.suffix
-    )
-    os.close(fd)
+    tmp = new_temporary(path.parent, path.stem, path.suffix)
     try:
-        yield Path(tmp)
-        _publish(tmp, path)
+        make_temporary(tmp)
+        yield tmp
+        _publish(str(tmp), path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
@@ -374,9 +389,9 @@ def staged_paths(paths: Sequence[str | os.PathLike | None]) -> Iterator[list[Pat
                 temps.append(None)
                 continue
             _make_folder(d)
-            fd, tmp = tempfile.mkstemp(dir=d.parent, prefix=_temporary_prefix(d.stem), suffix=TEMPORARY_MARK + d.suffix)
-            os.close(fd)
-            temps.append(Path(tmp))
+            tmp = new_temporary(d.parent, d.stem, d.suffix)
+            temps.append(tmp)  # recorded before it is made: removed whenever the block is left
+            make_temporary(tmp)
             _STAGED[os.path.abspath(tmp)] = d
         placeholders = {t: os.stat(t).st_ino for t in temps if t is not None}
         yield temps

@@ -213,10 +213,18 @@ def inverse_aim(
     Returns:
         ``(2,)`` counts; NaN for a zero or non-finite ``sun`` (no direction to
         reflect: a zero vector had given plausible finite counts). No error is
-        raised, so that the function stays jittable and vmappable.
+        raised for values, so that the function stays jittable and vmappable.
+
+    Raises:
+        ValueError: ``aim_point`` or ``sun`` not of shape ``(3,)``.
     """
     aim = jnp.asarray(aim_point)
     raw_sun = jnp.asarray(sun)
+    for name, value in (("aim_point", aim), ("sun", raw_sun)):  # shapes are static, also under jit and vmap
+        if value.shape != (3,):
+            raise ValueError(
+                f"inverse_aim: {name} must have shape (3,) (one ENU vector; vmap for many), not {value.shape}"
+            )
     degenerate = ~(jnp.all(jnp.isfinite(raw_sun)) & (jnp.sum(raw_sun * raw_sun) > 0.0))
     sun = normalize(jnp.where(degenerate, jnp.array([0.0, 0.0, 1.0], raw_sun.dtype), raw_sun))
     centre0 = geometry.position + geometry.joint_translation_1

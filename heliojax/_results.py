@@ -85,6 +85,7 @@ from ._geometry import direction_to_azimuth_elevation, sun_direction
 from ._heliostat import HeliostatGeometry, LinearActuators, RecordContext
 from ._io import atomic_h5, heliostat_id_problem
 from ._kinematics import AbstractKinematicModel, nominal_model
+from ._limits import LATEST_UNIX_S
 from ._parameters import ParameterView, broadcast_model, covariance_problem
 from ._predictive import DRIFT_RATE_KEYS, MIN_TAIL_DOF, PointingErrorLaw
 from ._splits import days_from_fitted_mean, days_since_fit, utc_iso
@@ -558,7 +559,7 @@ class CalibrationResults:
         return jax.tree.map(take, self.model), jax.tree.map(take, self.geometry)
 
 
-_LATEST_UNIX_TIME = 7_258_118_400.0
+_LATEST_UNIX_TIME = LATEST_UNIX_S
 """2200-01-01T00:00Z in unix seconds: a later record time is a unit mistake (ms, us)."""
 _RECORD_TRAILING = {"residual_mrad": (2,), "residual_uncalibrated_mrad": (2,)}
 """Axes of a per-record dataset after its ``(heliostats, records)`` ones (east and north

@@ -567,6 +567,36 @@ def datetime_to_unix(dt_or_iso_string: _dt.datetime | str) -> float:
     return micro / 1e6
 
 
+SPA_VALID_UNIX_S = (-125_000_000_000.0, 127_000_000_000.0)
+"""Unix times (s) of SPA's validity, the years -2000 to 6000 (Reda & Andreas 2008), rounded inwards."""
+
+
+def _seconds_since_1970(value: typing.Any) -> typing.Any:
+    """``value`` as seconds since 1970 (a numpy ``datetime64`` converted; NaT is NaN),
+    checked where it is concrete; a tracer is returned as it is."""
+    if isinstance(value, Tracer):
+        return value
+    if isinstance(value, str | bytes) or np.asarray(value).dtype.kind in "USO":
+        raise TypeError(
+            f"unix_time_s must be seconds since 1970-01-01 UTC, not text {value!r} "
+            "(heliojax.datetime_to_unix converts an ISO 8601 string)"
+        )
+    array = np.asarray(value)
+    if array.dtype.kind == "M":
+        ns = array.astype("datetime64[ns]")
+        value = np.where(np.isnat(ns), np.nan, ns.astype(np.int64) / 1e9)
+        array = value
+    if array.dtype.kind in "biuf":
+        t = np.asarray(array, float)
+        lo, hi = SPA_VALID_UNIX_S
+        if np.any((t < lo) | (t > hi)):  # NaN: NaN out
+            raise ValueError(
+                "unix_time_s must be seconds since 1970-01-01 UTC within the years -2000 to 6000 that SPA covers, "
+                f"not {t[(t < lo) | (t > hi)].ravel()[0]:.6g} (milliseconds or nanoseconds?)"
+            )
+    return value
+
+
 def solar_position(
     unix_time_s: ArrayLike,
     latitude_deg: ArrayLike,
@@ -601,8 +631,12 @@ def solar_position(
 
     Raises:
         ValueError: a (concrete) latitude outside [-90, 90] deg or a longitude outside
-            [-360, 360] deg (radians or a swapped pair; under jit not checked).
+            [-360, 360] deg (radians or a swapped pair), or a (concrete) time outside
+            the years -2000 to 6000 that SPA covers (milliseconds or nanoseconds since
+            1970 gave a plausible sun of the wrong year); under jit not checked.
+        TypeError: times given as text (:func:`datetime_to_unix` converts them).
     """
+    unix_time_s = _seconds_since_1970(unix_time_s)
     for name, value, bound in (("latitude_deg", latitude_deg, 90.0), ("longitude_deg", longitude_deg, 360.0)):
         if not isinstance(value, Tracer) and np.any(np.abs(np.asarray(value, float)) > bound):  # NaN: NaN out
             raise ValueError(f"{name} must be degrees in [-{bound:g}, {bound:g}], not {value!r}")

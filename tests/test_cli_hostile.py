@@ -1222,19 +1222,17 @@ def test_each_output_of_a_set_is_written_through_one_temporary(tmp_path, capsys,
     a temporary of their own beside the set's: a kill while the figure was drawn left
     ``..c.X.heliojax-tmp.Y.heliojax-tmp.png``, a temporary of a temporary (hostile-input
     trial 4, #4). One temporary per output now, renamed onto it."""
-    import tempfile
-
+    import heliojax._io as io
     from heliojax._io import TEMPORARY_MARK
 
     made: list[str] = []
-    mkstemp = tempfile.mkstemp
+    make = io.make_temporary
 
-    def spy(*args, **kwargs):
-        fd, name = mkstemp(*args, **kwargs)
-        made.append(Path(name).name)
-        return fd, name
+    def spy(path):
+        make(path)
+        made.append(Path(path).name)
 
-    monkeypatch.setattr(tempfile, "mkstemp", spy)
+    monkeypatch.setattr(io, "make_temporary", spy)
     out = tmp_path / "out"
     argv = ["calibrate", "--model", "stone8", "--max-steps", "3", "--cache-dir", "none", "--quiet"]
     argv += ["--out", str(out / "results.h5"), "--report", str(out / "summary.json"), "--plot", str(out / "c.png")]

@@ -136,6 +136,17 @@ def test_inverse_aim_takes_the_direction_of_a_non_unit_sun(results):
         )
 
 
+def test_inverse_aim_names_a_mis_shaped_sun_or_aim_point(results, unchecked):
+    """A sun of shape (1, 3) or (2,), or an aim point of shape (3, 1), had given JAX's
+    broadcasting error naming neither argument (hostile-input round 9)."""
+    model, geometry = results.heliostat(results.ids[0])
+    sun = _sun()[0]
+    aim = np.asarray(AIM, float)
+    for name, args in (("sun", (aim, sun[None])), ("sun", (aim, sun[:2])), ("aim_point", (aim[:, None], sun))):
+        with pytest.raises(ValueError, match=rf"inverse_aim: {name} must have shape \(3,\)"):
+            hj.inverse_aim(model, geometry, *args)
+
+
 def test_jit_of_aim_results_says_it_is_host_side(results):
     """Case 13: a TracerArrayConversionError had not said why."""
     message = "aim_results is a host-side function .* call it outside jit; heliojax.aim_fleet is the jittable core"

@@ -369,3 +369,27 @@ def test_latitude_and_longitude_outside_degrees_are_refused():
         with pytest.raises(ValueError, match=name):
             solar_position(*args)
     assert np.isnan(float(solar_position(1.6e9, float("nan"), 6.0).elevation))  # NaN in, NaN out
+
+
+def test_times_in_milliseconds_text_or_datetime64_are_named_or_converted(unchecked):
+    """A time in milliseconds (1.687e12) had given a plausible sun of the year ~55,000;
+    a numpy datetime64 failed with a JAX type error and a date string with a format
+    error of its own (hostile-input round 9). Run-time type checks off: what a user
+    without them gets."""
+    import jax
+
+    import heliojax as hj
+
+    lat, lon = 50.9, 6.38
+    seconds = 1.687e9
+    with pytest.raises(ValueError, match=r"within the years -2000 to 6000 .*1\.687e\+12 \(milliseconds"):
+        hj.solar_position(seconds * 1e3, lat, lon)
+    with pytest.raises(TypeError, match="datetime_to_unix converts"):
+        hj.solar_position("2023-06-17T12:00:00Z", lat, lon)
+    when = np.array(["2023-06-17T12:00:00", "NaT"], dtype="datetime64[s]")
+    got = hj.solar_position(when, lat, lon)
+    want = hj.solar_position(np.array([hj.datetime_to_unix("2023-06-17T12:00:00Z"), np.nan]), lat, lon)
+    np.testing.assert_allclose(np.asarray(got.elevation)[0], np.asarray(want.elevation)[0], rtol=0, atol=1e-12)
+    assert np.isnan(np.asarray(got.elevation)[1])
+    # under jit the value is not known: not checked, as the latitude is not
+    assert np.isfinite(jax.jit(lambda t: hj.solar_position(t, lat, lon).elevation)(seconds))

@@ -50,25 +50,22 @@ EXAMPLES = """examples:
   heliojax aim out/results.h5 --sun-azimuth -20 --sun-elevation 40 --target solar_tower_juelich_lower"""
 
 
-YEARS = (1900, 2200)
-"""Years an instant may fall in: the span of the solar position algorithm's tables
-kept here (and of any plant's operation)."""
-
-
 def _utc(value: str) -> dt.datetime:
-    """``YYYY-MM-DD[THH:MM[:SS]][Z|+hh:mm]``; naive means UTC; a year in :data:`YEARS`."""
+    """``YYYY-MM-DD[THH:MM[:SS]][Z|+hh:mm]``; naive means UTC; an instant the library
+    takes (:func:`heliojax._limits.instant_problem`: 1970 to 2200-01-01, UTC; an instant
+    of 1900 passed here and ended in a traceback of :func:`heliojax.aim_results`)."""
+    from .._limits import instant_problem
+
     try:
         if not is_iso_date_time(value):
             raise ValueError
         t = dt.datetime.fromisoformat(value.replace("Z", "+00:00"))
     except ValueError as e:
         raise argparse.ArgumentTypeError(f"not an ISO date-time: {shown_value(value)}") from e
-    # the year in UTC: 2200-12-31T23:00-05:00 is in 2201
-    if not YEARS[0] <= t.year <= YEARS[1]:
-        raise argparse.ArgumentTypeError(f"{value!r}: the year must lie in {YEARS[0]}-{YEARS[1]}")
     t = t if t.tzinfo is not None else t.replace(tzinfo=dt.UTC)
-    if not YEARS[0] <= t.astimezone(dt.UTC).year <= YEARS[1]:
-        raise argparse.ArgumentTypeError(f"{value!r}: the year in UTC must lie in {YEARS[0]}-{YEARS[1]}")
+    problem = instant_problem(t)  # in UTC: 2199-12-31T23:00-05:00 is in 2200
+    if problem is not None:
+        raise argparse.ArgumentTypeError(f"{value!r}: {problem}")
     return t.astimezone(dt.UTC)  # written and computed in UTC from here on
 
 

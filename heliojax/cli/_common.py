@@ -477,20 +477,22 @@ def _check_output_path(flag: str, path: Path, name: str, is_dir: bool, seen: dic
 def _check_a_file_can_be_made(flag: str, path: Path, folder: Path) -> None:
     """A file can be made in ``folder`` (tried: an empty temporary file, removed at once).
     ``os.access`` says yes to root everywhere, also in /proc or /sys, where no file can be
-    made: the command ran for minutes and then failed on writing its output."""
-    import tempfile
-
+    made: the command ran for minutes and then failed on writing its output. The probe
+    carries this process in its name (:func:`heliojax._io.new_temporary`), so that one
+    left by a ``kill -9`` is removed by the next run at once, not after an hour."""
     from .._errors import ConfigError
-    from .._io import TEMPORARY_MARK
+    from .._io import make_temporary, new_temporary
 
+    probe = new_temporary(folder, "probe")
     try:
-        fd, probe = tempfile.mkstemp(dir=folder, prefix=".probe.", suffix=TEMPORARY_MARK)
+        make_temporary(probe)
     except OSError as e:
         raise ConfigError(
             f"{flag} {_shown(path)}: no file can be made in {_shown(folder)}: {e.strerror or e}"
         ) from None
-    os.close(fd)
-    os.unlink(probe)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(probe)
 
 
 def _check_no_dangling_link(flag: str, path: Path, link: Path | None = None) -> None:
@@ -591,14 +593,17 @@ LARGEST_INTEGER = 2**31 - 1
 
 
 def target_name(value: object) -> str:
-    """An argparse ``type``: a target of the tower file by name (``receiver``), not blank,
-    without control characters and at most 100 characters."""
-    if not isinstance(value, str) or not value.strip():
-        raise argparse.ArgumentTypeError(f"expected a target name, got {value!r}")
-    if len(value) > 100 or any(ord(c) < 32 for c in value):
-        raise argparse.ArgumentTypeError(
-            f"{value[:40]!r}... is not a target name" if len(value) > 40 else f"{value!r} is not a target name"
-        )
+    """An argparse ``type``: a target of the tower file by name (``receiver``), by the
+    rule the tower file's loader applies (:func:`heliojax._limits.target_name_problem`:
+    ``--targets =HYPERLINK(...)`` went into plan.csv's ``target`` column, a formula to a
+    spreadsheet)."""
+    from .._limits import target_name_problem
+
+    if not isinstance(value, str):
+        raise argparse.ArgumentTypeError(f"expected a target name, got {shown_value(value)}")
+    problem = target_name_problem(value)
+    if problem:
+        raise argparse.ArgumentTypeError(f"{shown_value(value)} is not a target name ({problem})")
     return value
 
 

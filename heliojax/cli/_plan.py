@@ -188,6 +188,34 @@ def _nothing_to_plan(sun_elevation_deg, unix, min_elevation_deg: float, label: s
     )
 
 
+def _warn_before_fit(args, results, unix) -> None:
+    """Warn (a plan is still made) where candidate instants ``unix`` (s) lie before a
+    heliostat's first fitted record, as :func:`heliojax.aim_results` flags ``before_fit``
+    (:func:`heliojax._aim.outside_fit_time`): a measurement in the past cannot be taken
+    (``--date 1990-06-21`` was planned without a word); a retrospective plan is what
+    ``--paint-dir`` with ``--before`` is for."""
+    import numpy as np
+
+    from .._aim import outside_fit_time
+    from .._errors import few_names
+
+    before, _ = outside_fit_time(results, unix)
+    if before is None or not before.any():
+        return
+    early = np.flatnonzero(before.any(axis=1))
+    t = np.asarray(results.records["unix_time"], float)
+    fitted = results.fitted_records(inliers=False) & np.isfinite(t)
+    first = np.min(np.where(fitted, t, np.inf), axis=1)
+    dest, flag = ("date", "--date") if args.date is not None else ("start", "--start")
+    window = f"{_iso(float(unix[0]))} .. {_iso(float(unix[-1]))}"
+    label = option_label(args, dest, flag) if getattr(args, dest) is not None else "the window (today, UTC)"
+    log.warning(
+        f"{label}: candidate instants {window} lie before the first fitted record of {len(early)} heliostat(s) "
+        f"({few_names([f'{results.ids[i]} {_iso(float(first[i]))[:10]}' for i in early])}): "
+        "measurements planned in the past cannot be taken; for a retrospective plan use --paint-dir with --before"
+    )
+
+
 def _iso(unix: float) -> str:
     if unix != unix:  # NaN
         return ""
@@ -351,6 +379,7 @@ def run(args) -> int:
                 f"(a measurement needs one: {', '.join(tower.planar_target_names)})"
             )
         unix = np.array([t.timestamp() for t in instants])
+        _warn_before_fit(args, results, unix)
         lat, lon, alt = (float(x) for x in origin)
         position = solar_position(jnp.asarray(unix), lat, lon, alt)
         sun = position.direction_enu()

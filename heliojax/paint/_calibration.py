@@ -38,6 +38,7 @@ from ._common import (
     _type_name,
     _write_json,
 )
+from ._tower import shown_name, skipped_target_message
 
 # ======================================================================================
 # Calibration records
@@ -161,10 +162,13 @@ def check_record_context(
     if tower is not None:
         t = tower.targets.get(record.target_name)
         if t is None:
+            skipped = skipped_target_message(tower, record.target_name)  # a name the tower file's reader refused
             raise DataError(
                 file,
                 "target_name",
-                f"unknown target {record.target_name!r} (tower file has {', '.join(tower.planar_target_names)})",
+                f"unknown target {shown_name(record.target_name)}: {skipped}"
+                if skipped
+                else f"unknown target {record.target_name!r} (tower file has {', '.join(tower.planar_target_names)})",
             )
         if not t.is_planar_target:
             raise DataError(file, "target_name", f"{record.target_name!r} is not a planar calibration target")

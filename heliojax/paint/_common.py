@@ -210,12 +210,16 @@ class TowerFile:
         origin_lla: ``power_plant_properties.coordinates``, the ENU origin (WGS84).
         targets: every other entry (receiver included), in file order.
         source: the file it came from.
+        skipped: name -> why it is no target name
+            (:func:`heliojax._limits.target_name_problem`) of the entries the reader
+            skipped (:func:`heliojax.paint.read_tower`). Not compared.
     """
 
     plant_id: str
     origin_lla: Vec3
     targets: dict[str, TargetEntry]
     source: str = _MEMORY
+    skipped: dict[str, str] = dataclasses.field(default_factory=dict, compare=False)
 
     @property
     def planar_target_names(self) -> tuple[str, ...]:

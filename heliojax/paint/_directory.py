@@ -20,7 +20,7 @@ from ._common import (
 )
 from ._properties import validate_properties, write_heliostat_properties
 from ._timestamps import write_timestamps
-from ._tower import _tower_from_json, _tower_to_json, write_tower
+from ._tower import _tower_from_json, _tower_to_json, shown_name, write_tower
 from ._weather import write_weather_csv
 
 
@@ -61,11 +61,14 @@ def write_paint_directory(
     out = Path(out_dir)
     # Validate first so that a bad input leaves no half-written directory behind.
     try:
-        _tower_from_json(tower.source, _roundtrip(_tower_to_json(tower)))
+        checked = _tower_from_json(tower.source, _roundtrip(_tower_to_json(tower)))
     except (TypeError, ValueError) as e:
         if isinstance(e, DataError):
             raise
         raise DataError(tower.source, None, f"not serialisable: {e}") from None
+    if checked.skipped:  # a target the reader would skip: not written
+        name, problem = next(iter(checked.skipped.items()))
+        raise DataError(tower.source, shown_name(name), f"not a target name ({problem})")
     props = [validate_properties(p) for p in properties]
     seen: set[int] = set()
     for r in records:

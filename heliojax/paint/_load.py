@@ -61,7 +61,7 @@ from ._flags import (
 )
 from ._properties import read_heliostat_properties, validate_properties
 from ._timestamps import METADATA_GLOB, read_metadata_times, read_timestamps
-from ._tower import check_target_corners, read_tower
+from ._tower import check_target_corners, read_tower, shown_name
 from ._weather import read_weather_csv
 
 
@@ -689,6 +689,16 @@ def _listing(folder: Path, suffix: str, log: _Log) -> list[Path]:
         return []
 
 
+def _note_skipped_targets(tower: TowerFile, log: _Log) -> None:
+    """The tower file's targets :func:`read_tower` skipped by name (it warned of each): a
+    note of the report, or with ``strict`` the first one's DataError; the records that
+    name one are skipped as of an unknown target, saying why."""
+    for name, problem in tower.skipped.items():
+        if log.strict:
+            raise DataError(tower.source, shown_name(name), f"not a target name ({problem})")
+        log.notes.append(f"{tower.source}: target {shown_name(name)} skipped: not a target name ({problem})")
+
+
 def load_paint_directory(
     path: str | os.PathLike | None = None,
     *,
@@ -736,6 +746,7 @@ def load_paint_directory(
         raise DataError(root, None, f"expected one *{TOWER_FILE_SUFFIX}, found {len(towers)}")
     log.files_seen += 1
     tower = read_tower(towers[0])
+    _note_skipped_targets(tower, log)
 
     timestamps: Mapping = {}
     ts_path = root / TIMESTAMPS_FILE
@@ -965,6 +976,7 @@ def load_weather_csv_fleet(
     _check_centroid(centroid)
     log = _Log(str(csv_path), strict, centroid)
     tower = read_tower(tower_path)
+    _note_skipped_targets(tower, log)
     log.files_seen += 2
     rows = read_weather_csv(csv_path, on_error=log.skip_record)
     if heliostats is not None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 from typing import Any
@@ -9,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from .._errors import DataError
+from .._limits import target_name_problem
 from ._common import (
     CORNERS,
     TargetEntry,
@@ -21,6 +23,8 @@ from ._common import (
     _vec3,
     _write_json,
 )
+
+log = logging.getLogger(__name__)
 
 # ======================================================================================
 # Tower file
@@ -87,8 +91,13 @@ def _tower_from_json(file: str, data: Any) -> TowerFile:
     origin = plant.vec3("coordinates")
     _latlon_ok(file, plant.field("coordinates"), origin)
     targets: dict[str, TargetEntry] = {}
+    skipped: dict[str, str] = {}
     for name, value in root.data.items():
         if name == "power_plant_properties":
+            continue
+        problem = target_name_problem(name)
+        if problem is not None:  # before its content is read: one bad name spoils no other target
+            skipped[name] = problem
             continue
         entry = _Node(file, value, name)
         ttype = entry.string("type")
@@ -117,10 +126,27 @@ def _tower_from_json(file: str, data: Any) -> TowerFile:
             if math.hypot(*normal) == 0.0:
                 raise DataError(file, entry.field("normal_vector"), "zero vector")
         targets[name] = TargetEntry(name=name, type=ttype, normal=normal, points=points, extra=extra)
-    tower = TowerFile(plant_id=str(plant_id), origin_lla=origin, targets=targets, source=file)
+    tower = TowerFile(plant_id=str(plant_id), origin_lla=origin, targets=targets, source=file, skipped=skipped)
     if not tower.planar_target_names:
-        raise DataError(file, None, "no planar calibration target")
+        more = f" (skipped by name: {', '.join(shown_name(n) for n in skipped)})" if skipped else ""
+        raise DataError(file, None, f"no planar calibration target{more}")
     return tower
+
+
+def shown_name(name: str, most: int = 60) -> str:
+    """``repr(name)`` as a message shows it: at most about ``most`` characters (a tower
+    file may name a target with 100 kB)."""
+    text = repr(name)
+    return text if len(text) <= most else f"{text[: most // 2]}...{text[-most // 2 :]} ({len(name)} characters)"
+
+
+def skipped_target_message(tower: TowerFile, name: str) -> str | None:
+    """Why ``tower`` has no target ``name``, when the loader skipped one of that name
+    (:attr:`TowerFile.skipped`), or None."""
+    problem = tower.skipped.get(name)
+    if problem is None:
+        return None
+    return f"the tower file's target of that name was skipped (not a target name: {problem})"
 
 
 def _tower_to_json(tower: TowerFile) -> dict:
@@ -143,13 +169,26 @@ def read_tower(path: str | os.PathLike) -> TowerFile:
     ``upper_right``, ``lower_left``, ``lower_right`` and a ``normal_vector``, and are
     the calibration targets (:attr:`TowerFile.planar_target_names`).
 
+    An entry whose name is no target name (:func:`heliojax._limits.target_name_problem`:
+    blank, padded, multi-line, over 255 characters, or starting with ``= + - @``, a
+    formula once written into a CSV cell) is skipped, unread, with a logged warning
+    naming the file and the name, and listed in :attr:`TowerFile.skipped`; a record
+    that names it is then skipped as one of an unknown target.
+
     Raises:
         DataError: naming the file and the field.
     """
     file = str(path)
-    return _tower_from_json(file, _load_json(path))
+    tower = _tower_from_json(file, _load_json(path))
+    for name, problem in tower.skipped.items():
+        log.warning(f"{file}: skipped target {shown_name(name)}: not a target name ({problem})")
+    return tower
 
 
 def write_tower(path: str | os.PathLike, tower: TowerFile) -> None:
-    """Write ``tower`` as a PAINT tower file (atomically)."""
+    """Write ``tower`` as a PAINT tower file (atomically); DataError for a target whose
+    name :func:`read_tower` would skip (:func:`heliojax._limits.target_name_problem`)."""
+    for name in tower.targets:
+        if (problem := target_name_problem(name)) is not None:
+            raise DataError(path, shown_name(name), f"not a target name ({problem})")
     _write_json(path, _tower_to_json(tower))

@@ -1,0 +1,47 @@
+"""Limits on inputs shared by the library and the command line, kept once: the span of
+instants heliojax takes and the rule for a calibration target's name. The CLI reads them
+when it parses its options (this module imports no JAX), so that an option is refused
+by name instead of the library failing later with a traceback."""
+
+from __future__ import annotations
+
+import datetime as dt
+
+from ._io import SPREADSHEET_FORMULA_START, heliostat_id_problem
+
+EARLIEST_UNIX_S = 0.0
+"""1970-01-01T00:00Z (s): the first instant heliojax takes (Unix time 0)."""
+
+LATEST_UNIX_S = 7_258_118_400.0
+"""2200-01-01T00:00Z (s), itself excluded: a later instant is a time in other units
+(milliseconds, nanoseconds given as seconds)."""
+
+
+_SPAN = (EARLIEST_UNIX_S, LATEST_UNIX_S)
+
+
+def instant_problem(t: dt.datetime) -> str | None:
+    """Why the instant ``t`` (naive: UTC) lies outside ``[EARLIEST_UNIX_S,
+    LATEST_UNIX_S)``, the span :func:`heliojax.aim_results` takes, or None."""
+    utc = t if t.tzinfo is not None else t.replace(tzinfo=dt.UTC)
+    # a difference, not .timestamp() or .astimezone(): year 1 with an offset overflowed those
+    seconds = (utc - dt.datetime(1970, 1, 1, tzinfo=dt.UTC)).total_seconds()
+    if EARLIEST_UNIX_S <= seconds < LATEST_UNIX_S:
+        return None
+    first, last = (dt.datetime.fromtimestamp(s, dt.UTC).strftime("%Y-%m-%dT%H:%MZ") for s in _SPAN)
+    return f"outside the instants heliojax takes, {first} (included) to {last} (excluded), UTC"
+
+
+def target_name_problem(name: object) -> str | None:
+    """Why ``name`` cannot be a calibration target's name (a tower file's entry, a
+    record's ``target_name``, ``--target``), or None: the rule of heliostat ids
+    (:func:`heliojax._io.heliostat_id_problem`), since a target's name goes into the same
+    CSV outputs (``heliojax plan``'s schedule): printable, not blank, no white space at
+    either end, no ``,``, no path separator, at most 255 characters, and not starting
+    with a spreadsheet formula's first character (``= + - @``)."""
+    if not isinstance(name, str):
+        return f"not a string ({type(name).__name__})"
+    problem = heliostat_id_problem(name)
+    if problem is not None and name.startswith(SPREADSHEET_FORMULA_START):  # named first: the gravest
+        return f"starts with {name[0]!r} (a spreadsheet formula in a CSV cell)"  # (=HYPERLINK("a","b") holds a comma)
+    return problem
