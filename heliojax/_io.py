@@ -22,13 +22,14 @@ import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import IO
+from typing import IO, no_type_check
 
 MAX_INPUT_BYTES = 2**30
 """An input file larger than this (1 GiB) is refused before it is read: a PAINT file of
 the whole plant is tens of MB; a sparse or runaway file of many GB would fill memory."""
 
 
+@no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
 def input_file_problem(path: str | os.PathLike) -> str | None:
     """Why ``path`` cannot be read as an input file, or None: not a regular file (a
     link to /dev/zero is read forever, a FIFO blocks the open), or over
@@ -81,6 +82,7 @@ def heliostat_id_problem(text: str) -> str | None:
 _DECIMAL = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
 
 
+@no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
 def is_decimal(text: str) -> bool:
     """Whether ``text`` (blanks around it aside) is a number as a CSV cell writes it: ASCII
     digits, a point, an exponent. Python's float() and int() also take ``1_000``, digits

@@ -276,6 +276,7 @@ _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 """An odd 64-bit constant (2^64 / golden ratio): the checksum's multipliers are its odd multiples."""
 
 
+@typing.no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
 def _word_sums(rows: np.ndarray) -> np.ndarray:
     """``(n,)`` uint64 polynomial checksum of each row of ``rows`` ``(n, B)`` uint8:
     the row's little-endian 64-bit words times odd multipliers, summed modulo 2^64
@@ -290,6 +291,7 @@ def _word_sums(rows: np.ndarray) -> np.ndarray:
         return (w * k[None, :]).sum(axis=1, dtype=np.uint64) + np.uint64(width)
 
 
+@typing.no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
 def _as_rows(value: typing.Any, n: int) -> np.ndarray:
     """``value`` (a dataset's or attribute's content) as ``(n, B)`` bytes, one row per
     heliostat (``n`` = 1: the whole value)."""

@@ -505,6 +505,7 @@ def julian_day(unix_time_s: ArrayLike) -> Float[Array, "..."]:
     return t / _SECONDS_PER_DAY + _UNIX_EPOCH_JD
 
 
+@typing.no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
 def utc_datetime(value: _dt.datetime | str) -> _dt.datetime:
     """The one reading of a date-time (a data file's, a STAC item's, a command line's)
     as an aware UTC :class:`datetime.datetime`.
@@ -546,6 +547,7 @@ def utc_datetime(value: _dt.datetime | str) -> _dt.datetime:
         raise ValueError(f"{value!r} in UTC falls outside the years 1-9999") from None
 
 
+@typing.no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
 def datetime_to_unix(dt_or_iso_string: _dt.datetime | str) -> float:
     """Seconds since the unix epoch of a UTC instant (data-boundary helper, not traceable).
 

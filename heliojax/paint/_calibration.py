@@ -7,7 +7,7 @@ import numbers
 import os
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, no_type_check
 
 from .._errors import DataError
 from ._common import (
@@ -45,6 +45,7 @@ from ._tower import shown_name, skipped_target_message
 # ======================================================================================
 
 
+@no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
 def _record_from_json(
     file: str,
     data: Any,
@@ -125,6 +126,7 @@ corners' mean) is that point copied in, not a measurement (a camera's spot centr
 has centimetres of noise): a failed centroid's placeholder."""
 
 
+@no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
 def spot_off_target(record: CalibrationRecord, tower: TowerFile) -> tuple[str, str] | None:
     """``(field, reason)`` for a focal spot of ``record`` farther from its (planar) target's
     centre than the target's farthest corner: no spot on the target (a camera sees only
@@ -144,6 +146,7 @@ def spot_off_target(record: CalibrationRecord, tower: TowerFile) -> tuple[str, s
     return None
 
 
+@no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
 def check_record_context(
     record: CalibrationRecord,
     tower: TowerFile | None = None,
@@ -230,6 +233,7 @@ def check_record_context(
             )
 
 
+@no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
 def _front_distance_m(point: Vec3, centre: Vec3, normal: Vec3) -> float:
     """Signed distance (m) of the WGS84 ``point`` from the plane through the WGS84
     ``centre`` with the ENU ``normal`` (positive on the side it faces;
@@ -289,6 +293,7 @@ def heliostat_properties_path(root: str | os.PathLike, heliostat_id: str) -> Pat
     return Path(root) / heliostat_id / "Properties" / f"{heliostat_id}{PROPERTIES_SUFFIX}"
 
 
+@no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
 def read_calibration_record(
     path: str | os.PathLike,
     *,

