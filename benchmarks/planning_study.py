@@ -11,13 +11,17 @@ Protocol (issue 15, fixed before looking at any result):
   pool), *leaving out the heliostat itself* (what the fleet knows before this
   heliostat has a record); pool records that this fit's change-point scan puts
   before a change (a past state) are no candidates for any of the selections;
-* for K = 4, 6, 8, 12, 16 four selections of K pool records are compared:
+* for K = 4, 6, 8, 12, 16 these selections of K pool records are compared:
   the planner's (greedy I-optimal, :func:`heliojax.plan_measurements`, from the
   leave-one-out prior, linearised at its centre, operating envelope: a year of
   sun positions weighted by clear-sky DNI aiming at the receiver), the same
   planner for a model that is not exact (:func:`heliojax.discrepancy_design`,
   the discrepancy learnt from the pool fit's training inliers; added 2026-11-26),
-  the first K in time, and K at random (20 draws);
+  each of the two with every candidate's noise aged by the fleet's drift
+  (:func:`heliojax.aged_noise_mrad`; added 2026-12-05) and with a random day effect
+  (records of one day share an error: ``plan_measurements(day=, day_correlation=)``
+  with the pool fit's intra-day correlation, :func:`heliojax.fitting.day_clustering`;
+  added 2026-12-07), the first K in time, and K at random (20 draws);
 * each selection is fitted by least squares under the same leave-one-out prior,
   all lanes in one compiled program, and judged by the median beam error on the
   heliostat's test records.
@@ -48,8 +52,14 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import heliojax as hj  # noqa: E402
-from heliojax.discovery._diagnostics import day_clustering, day_labels  # noqa: E402
-from heliojax.fitting import GaussianPrior, fleet_beam_errors_mrad, prior_moments, well_determined  # noqa: E402
+from heliojax.fitting import (  # noqa: E402  # noqa: E402
+    GaussianPrior,
+    day_clustering,
+    day_labels,
+    fleet_beam_errors_mrad,
+    prior_moments,
+    well_determined,
+)
 from heliojax.optics import target_from_tower  # noqa: E402
 
 BUDGETS = (4, 6, 8, 12, 16)
@@ -62,8 +72,9 @@ PLANNERS = (
     "planner_discrepancy_days",
 )
 """The planners compared: exact model or with a model discrepancy, each with every
-candidate at the fit's noise or with the noise grown by its age under the fleet's
-pointing drift (:func:`heliojax.aged_noise_mrad`; added 2026-12-05)."""
+candidate at the fit's noise, with the noise grown by its age under the fleet's
+pointing drift (:func:`heliojax.aged_noise_mrad`; added 2026-12-05), or with a random
+day effect (added 2026-12-07)."""
 
 
 def lane_fleet(padded, rows: np.ndarray, mask: np.ndarray):
@@ -374,6 +385,8 @@ def plot(out: dict, path: Path) -> None:
               "planner_discrepancy_mrad": ("planner with model discrepancy", "D-", "tab:purple"),
               "planner_drift_mrad": ("planner, noise aged by the drift", "o-.", "tab:cyan"),
               "planner_discrepancy_drift_mrad": ("planner with discrepancy, noise aged", "D-.", "tab:pink"),
+              "planner_days_mrad": ("planner, day effect", "o--", "tab:red"),
+              "planner_discrepancy_days_mrad": ("planner with discrepancy, day effect", "D--", "tab:brown"),
               "first_in_time_mrad": ("first K in time", "s--", "tab:orange"),
               "random_mrad": ("K at random (median of draws)", "^:", "tab:green")}  # fmt: skip
     for key, (label, style, colour) in styles.items():
