@@ -132,12 +132,16 @@ def plot_cluster_distributions(
     return fig
 
 
-def plot_monthly_efficiency(contract: YieldResult, measured: YieldResult, *, ax=None):
-    """Monthly DNI-weighted field efficiency, contract against measured values."""
+def plot_monthly_efficiency(contract: YieldResult, measured: YieldResult | None, *, ax=None):
+    """Monthly DNI-weighted field efficiency, contract against measured values
+    (``measured`` None: level 2 not assessed, nothing measured; the contract alone)."""
     fig, ax = _axes(ax, figsize=(6.5, 4.0))
     months = np.arange(1, 13)
     ax.plot(months, contract.monthly, "o-", label=f"contract (annual {contract.annual:.4f})")
-    ax.plot(months, measured.monthly, "s--", label=f"measured (annual {measured.annual:.4f})")
+    if measured is not None:
+        ax.plot(months, measured.monthly, "s--", label=f"measured (annual {measured.annual:.4f})")
+    else:
+        ax.plot([], [], " ", label="measured: not assessed (nothing measured on >= 2 heliostats)")
     ax.set_xticks(months)
     ax.set_xticklabels(list("JFMAMJJASOND"))
     ax.set_xlabel("month")

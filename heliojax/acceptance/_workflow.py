@@ -56,7 +56,9 @@ class AcceptanceResult:
     clusters: dict[str, ClusterResult]
     extrapolations: dict[str, Extrapolation]
     yield_contract: YieldResult
-    yield_measured: YieldResult
+    yield_measured: YieldResult | None
+    """None when level 2 was not assessed (no yield parameter measured on at least 2
+    heliostats: the "measured" field would be the contract's)."""
 
 
 def _clean(x):
@@ -100,6 +102,15 @@ def run_acceptance(
 
     Raises:
         ConfigError: the sun never rises above the contract's ``min_elevation_deg``.
+
+    Level 2 compares the contract's field with the measured one, in which a parameter
+    measured on fewer than 2 heliostats takes the contract's values
+    (``level2.parameters_from_contract``; ``parameters_measured`` are extrapolated from
+    the measurements). With no yield parameter measured on at least 2 heliostats it is
+    not assessed: ``level2.assessed`` false, ``pass``, ``annual_efficiency_measured``,
+    ``relative_difference``, ``mean_intercept_measured`` and the monthly
+    ``efficiency_measured`` null, ``not_assessed_reason`` says why, and the verdict is
+    at best ``inconclusive``.
 
     Returns:
         An :class:`AcceptanceResult`; ``result.report`` follows the
@@ -156,7 +167,9 @@ def run_acceptance(
                 "contract_mean": spec.mean,
                 "contract_std": spec.std,
             }
-            reasons.append(f"{name}: not measured")
+            reasons.append(
+                f"{name}: not measured" if meas.size == 0 else f"{name}: {meas.size} measured, at least 2 needed"
+            )
             inconclusive = True
             continue
         vals = np.asarray(field.values[name])[meas]
@@ -238,7 +251,13 @@ def run_acceptance(
             "that can be built)"
         )
     contract_kw, measured_kw = {}, {}
-    for i, name in enumerate(("tracking_mrad", "slope_mrad", "reflectance", "aperture_m2")):
+    yield_names = ("tracking_mrad", "slope_mrad", "reflectance", "aperture_m2")
+    # a parameter measured on fewer than 2 heliostats has no extrapolation: the measured
+    # field takes the contract's values for it (named in the report)
+    from_measurements = [name for name in yield_names if name in extrap]
+    from_contract = [name for name in yield_names if name in contract.parameters and name not in extrap]
+    assessed = bool(from_measurements)
+    for i, name in enumerate(yield_names):
         spec = contract.parameters.get(name)
         if spec is None:
             c = np.full(n, _YIELD_DEFAULTS[name])
@@ -248,26 +267,37 @@ def run_acceptance(
         measured_kw[name] = extrap[name].values if name in extrap else c
     a_ref = contract.parameters["aperture_m2"].mean if "aperture_m2" in contract.parameters else 1.0
     common = {"reference_aperture_m2": a_ref, "sun_sigma_mrad": contract.sun_sigma_mrad}
-    yc, ym = (
+    fields = (contract_kw, measured_kw) if assessed else (contract_kw,)
+    desc = "level 2: yield (contract, measured)" if assessed else "level 2: yield (contract; nothing measured)"
+    yields = [
         field_efficiency(field.positions, aperture, sun, **kw, **common)
-        for kw in progress_bar(
-            (contract_kw, measured_kw), logger=log, desc="level 2: yield (contract, measured)", total=2, unit="field"
-        )
-    )
-    rel = (ym.annual - yc.annual) / yc.annual
+        for kw in progress_bar(fields, logger=log, desc=desc, total=len(fields), unit="field")
+    ]
+    yc = yields[0]
+    ym = yields[1] if assessed else None
+    rel = (ym.annual - yc.annual) / yc.annual if ym is not None else None
     report["level2"] = {
+        "assessed": assessed,
+        "not_assessed_reason": None
+        if assessed
+        else (
+            "no parameter of the yield model (" + ", ".join(from_contract) + ") is measured on at least 2 "
+            "heliostats: the measured field would be the contract's"
+        ),
+        "parameters_measured": from_measurements,
+        "parameters_from_contract": from_contract,
         "annual_efficiency_contract": yc.annual,
-        "annual_efficiency_measured": ym.annual,
+        "annual_efficiency_measured": ym.annual if ym is not None else None,
         "relative_difference": rel,
         "mean_intercept_contract": float(yc.intercept.mean()),
-        "mean_intercept_measured": float(ym.intercept.mean()),
+        "mean_intercept_measured": float(ym.intercept.mean()) if ym is not None else None,
         "tolerance": contract.tolerance,
-        "pass": bool(rel >= -contract.tolerance),
+        "pass": bool(rel >= -contract.tolerance) if rel is not None else None,
         "monthly": [
             {
                 "month": m + 1,
                 "efficiency_contract": yc.monthly[m],
-                "efficiency_measured": ym.monthly[m],
+                "efficiency_measured": ym.monthly[m] if ym is not None else None,
                 "clear_sky_dni_kwh_m2": yc.dni_kwh_m2[m],
             }
             for m in range(12)
@@ -280,12 +310,16 @@ def run_acceptance(
             "beam_sigma": "per-axis sigma^2 = sun^2 + 2 slope^2 + tracking^2 / 2 (radial RMS inputs)",
         },
     }
-    if not report["level2"]["pass"]:
+    if rel is None:
+        reasons.append(f"level 2: not assessed: {report['level2']['not_assessed_reason']}")
+        inconclusive = True
+    elif not report["level2"]["pass"]:
+        assert ym is not None
         reasons.append(
             f"level 2: annual efficiency {ym.annual:.4f} vs contract {yc.annual:.4f} "
             f"({100 * rel:+.2f} %, tolerance {100 * contract.tolerance:.2f} %)"
         )
-    failed = any(not (r.pass_mean and r.pass_std) for r in level1.values()) or not report["level2"]["pass"]
+    failed = any(not (r.pass_mean and r.pass_std) for r in level1.values()) or report["level2"]["pass"] is False
     report["verdict"] = "rejected" if failed else "inconclusive" if inconclusive else "accepted"
     report["reasons"] = reasons
     return AcceptanceResult(_clean(report), field, level1, clusters, extrap, yc, ym)  # pyright: ignore[reportArgumentType]

@@ -148,9 +148,17 @@ def run(args: argparse.Namespace) -> int:
         else:  # mean and std consistent with the contract: passed unless the sample is too small
             status = "pass" if r["pass"] else "too few heliostats"
         print(f"{name:14s} n={r.get('n')}/{report['sample_sizes'][name]}  {status}")
-    print(
-        f"annual efficiency: contract {l2['annual_efficiency_contract']:.4f}, "
-        f"measured {l2['annual_efficiency_measured']:.4f}"
-    )
+    if l2["annual_efficiency_measured"] is None:
+        print(
+            f"annual efficiency: contract {l2['annual_efficiency_contract']:.4f}, measured: not assessed "
+            f"({l2['not_assessed_reason']})"
+        )
+    else:
+        assumed = l2["parameters_from_contract"]
+        note = f" (contract's values assumed for {', '.join(assumed)}: not measured)" if assumed else ""
+        print(
+            f"annual efficiency: contract {l2['annual_efficiency_contract']:.4f}, "
+            f"measured {l2['annual_efficiency_measured']:.4f}{note}"
+        )
     print(f"verdict: {report['verdict']}")
     return 0

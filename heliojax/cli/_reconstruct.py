@@ -5,12 +5,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 import sys
 import typing
 from pathlib import Path
 
 from ._common import heliostat_id, integer, number, path_type
+
+log = logging.getLogger(__name__)
 
 EXAMPLES = """examples:
   heliojax reconstruct --out out/reconstruction
@@ -42,7 +45,9 @@ def add_parser(subparsers) -> None:
             "calibration JSON; relative brightness; each record's pose from its motor counts turned "
             "onto its measured focal spot), trains on all records but --held-out and scores every "
             "record (NCC, KL) with the ideal, the reconstructed and, with --scenario, the "
-            "deflectometry surface of an ARTIST scenario. Without --paint it runs the synthetic "
+            "deflectometry surface of an ARTIST scenario. A record that cannot be used (a damaged or blank "
+            "flux PNG, a malformed record JSON, no focal spot) or has no flux image is left out with a warning "
+            "and listed under skipped_records in reconstruction.json. Without --paint it runs the synthetic "
             "benchmark: a hidden surface with 1-3 mrad bumps, imaged for N sun positions. Writes "
             "OUT/reconstruction.json, OUT/control_points.h5 and OUT/reconstruction.png."
         ),
@@ -207,10 +212,18 @@ def _run_real(args: argparse.Namespace) -> int:
     if args.paint is None or args.heliostat is None:
         return fail("real records need both --paint DIR and --heliostat ID")
     pairs = [p for p in optics.flux_sample_records(args.paint) if p[1].parent.parent.name == args.heliostat]
+    # records of the heliostat without a flux image: not flux records, but the user should hear of them
+    no_image = _records_without_flux(args.paint / args.heliostat / "Calibration")
+    if no_image:
+        log.warning(
+            f"{len(no_image)} record(s) of {args.heliostat} have no flux image ({', '.join(no_image[:5])}"
+            f"{' ...' if len(no_image) > 5 else ''}: <ID>-flux.png missing); they are left out"
+        )
     if not pairs:
         found = sorted({p[1].parent.parent.name for p in optics.flux_sample_records(args.paint)})
         some = ", ".join(found) or "none"
-        return fail(f"no flux records of {args.heliostat} under {args.paint} (heliostats with some: {some})")
+        why = f" ({len(no_image)} record(s) without a flux image)" if no_image else ""
+        return fail(f"no flux records of {args.heliostat}{why} under {args.paint} (heliostats with some: {some})")
     tower = args.tower
     if tower is None:
         candidates = [
@@ -221,7 +234,7 @@ def _run_real(args: argparse.Namespace) -> int:
             return fail(f"no *-tower-measurements.json in {args.paint} or its parent: pass --tower")
         tower = candidates[0]
     try:
-        records = optics.flux_records(pairs, tower)
+        records = optics.flux_records(pairs, tower, skip_bad=True)
         references = {}
         if args.scenario is not None:
             scene = optics.scene_from_artist(args.scenario)
@@ -229,6 +242,14 @@ def _run_real(args: argparse.Namespace) -> int:
             references["deflectometry"] = jax.tree_util.tree_map(lambda x: x[i], scene.facets)
     except (DataError, KeyError) as e:
         return fail(str(e))
+    skipped = dict(records.skipped)
+    for rid in args.held_out:  # a record the user asked to score must be scored, or the reason given
+        if str(rid) in skipped:
+            return fail(f"--held-out {rid}: the record cannot be used: {skipped[str(rid)]}")
+        if str(rid) in no_image:
+            return fail(
+                f"--held-out {rid}: record {rid} of {args.heliostat} has no flux image ({rid}-flux.png missing)"
+            )
     unknown = sorted(set(args.held_out) - set(records.record_ids))
     if unknown:
         return fail(
@@ -249,6 +270,10 @@ def _run_real(args: argparse.Namespace) -> int:
         rays_per_point=args.rays_per_point,
     )
     report = rec.summary()
+    as_id = lambda r: int(r) if r.isdecimal() else r  # noqa: E731 (a file name when its id is unreadable)
+    report["skipped_records"] = [{"record": as_id(r), "reason": why} for r, why in records.skipped] + [
+        {"record": as_id(r), "reason": f"no flux image ({r}-flux.png missing)"} for r in no_image
+    ]
     if "deflectometry" in references:
         report["normal_rms_vs_deflectometry_mrad"] = {
             name: optics.normal_deviation_mrad(f, references["deflectometry"])
@@ -260,15 +285,29 @@ def _run_real(args: argparse.Namespace) -> int:
     return 0
 
 
+def _records_without_flux(calibration: Path) -> list[str]:
+    """IDs of the calibration records in ``calibration`` (``<ID>-calibration-properties.json``)
+    that have no ``<ID>-flux.png``, sorted."""
+    suffix = "-calibration-properties.json"
+    return sorted(
+        p.name[: -len(suffix)]
+        for p in calibration.glob(f"*{suffix}")
+        if not (calibration / p.name.replace(suffix, "-flux.png")).exists()
+    )
+
+
 def _loss_rose(losses) -> tuple[float, float] | None:
-    """``(first, last)`` mean loss over the first and the last ``k`` steps (``k`` a fifth
-    of the steps, 1 to 10: the loss of one step is a draw of rays) where the last is
-    above the first: the optimiser made the surface worse than where it started; else
-    None."""
+    """``(first, last)`` mean loss over the first and the last ``k`` steps (``k`` from
+    :func:`heliojax.optics.loss_window`, a fifth of the steps, 1 to 10: the loss of one
+    step is a draw of rays; the same window as ``loss_first_last`` in the report) where
+    the last is above the first: the optimiser made the surface worse than where it
+    started; else None."""
     import numpy as np
 
+    from ..optics import loss_window
+
     x = np.asarray(losses, float)
-    k = max(1, min(10, x.size // 5))
+    k = loss_window(x.size)
     first, last = float(x[:k].mean()), float(x[-k:].mean())
     return (first, last) if x.size > 1 and last > first else None
 
@@ -278,8 +317,6 @@ def _write_outputs(out: Path, facets, fig, report: dict, losses, *, extra=None, 
     ``extra`` datasets and ``attrs``), OUT/reconstruction.png and OUT/reconstruction.json
     (also printed), each written atomically. ``losses``: the loss per step; a loss that
     rose (:func:`_loss_rose`) is a warning and ``"diverged": true`` in the JSON."""
-    import logging
-
     import matplotlib.pyplot as plt
     import numpy as np
 
@@ -289,7 +326,7 @@ def _write_outputs(out: Path, facets, fig, report: dict, losses, *, extra=None, 
     rose = _loss_rose(losses)
     report["diverged"] = rose is not None
     if rose is not None:
-        logging.getLogger(__name__).warning(
+        log.warning(
             f"the loss rose from {rose[0]:.4g} to {rose[1]:.4g} over {len(losses)} steps: the optimiser diverged and "
             "the surface written is worse than the one it started from; lower --learning-rate"
         )

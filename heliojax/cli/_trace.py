@@ -311,28 +311,33 @@ def run(args: argparse.Namespace) -> int:
         n_rays = optics.ray_count(surface, args.rays_per_point, args.steps)
         log.info(f"tracing {n_rays:,} rays of {args.heliostat} onto {target_name} (the first run compiles the tracer)")
         t0 = time.perf_counter()
+
         # One call per step (one compiled program, the step index an argument), so that
         # a bar can show progress; the mean of the steps' images is the one-call image.
-        image = np.zeros(grid.shape, np.float64)
-        key = jax.random.key(args.seed)
-        for step in progress_bar(range(args.steps), logger=log, desc="tracing", unit="step"):
-            image += np.asarray(
-                optics.flux_image(
-                    key,
-                    surface,
-                    pose,
-                    sun,
-                    target,
-                    grid,
-                    sunshape,
-                    rays_per_point=args.rays_per_point,
-                    first_step=jnp.asarray(step, jnp.int32),
-                    dni=args.dni,
-                    reflectivity=args.reflectivity,
-                ),
-                np.float64,
-            )
-        image /= args.steps
+        def trace(dni: float, reflectivity: float, bar: bool = True) -> np.ndarray:
+            image = np.zeros(grid.shape, np.float64)
+            key = jax.random.key(args.seed)
+            steps = range(args.steps)
+            for step in progress_bar(steps, logger=log, desc="tracing", unit="step") if bar else steps:
+                image += np.asarray(
+                    optics.flux_image(
+                        key,
+                        surface,
+                        pose,
+                        sun,
+                        target,
+                        grid,
+                        sunshape,
+                        rays_per_point=args.rays_per_point,
+                        first_step=jnp.asarray(step, jnp.int32),
+                        dni=dni,
+                        reflectivity=reflectivity,
+                    ),
+                    np.float64,
+                )
+            return image / args.steps
+
+        image = trace(args.dni, args.reflectivity)
         log.info(f"traced in {time.perf_counter() - t0:.1f} s")
         c = np.asarray(optics.centroid(jnp.asarray(image), grid))
         power = float(image.sum() * float(grid.pixel_area))
@@ -346,12 +351,31 @@ def run(args: argparse.Namespace) -> int:
             if args.results is None
             else ""
         )
+        underflow = None
+        if args.dni * args.reflectivity < 1.0 and (off_image is None or off_image > OFF_IMAGE_WARNING):
+            # a faint beam's flux density underflows the tracer's float32 (below ~1e-38 W/m^2
+            # per ray and pixel; the product of the two options may even be 0.0): traced again
+            # at 1 W/m^2, where it cannot, the spot may be on the image after all; then the
+            # cause is the irradiance, not the aim
+            unit = trace(1.0, 1.0, bar=False)
+            unit_on = float(optics.plane_power(surface, pose, sun, target, dni=1.0, reflectivity=1.0))
+            unit_off = 1.0 - float(unit.sum() * float(grid.pixel_area)) / unit_on if unit_on > 0.0 else 1.0
+            if unit_off <= OFF_IMAGE_WARNING:
+                underflow = (
+                    f"the flux density underflows the tracer's float32 numbers at --dni {args.dni:g} W/m^2 x "
+                    f"--reflectivity {args.reflectivity:g}: traced at 1 W/m^2, {1.0 - max(unit_off, 0.0):.1%} of "
+                    f"the reflected power lands on the image ({size}), so the spot is on it; the image, power and "
+                    "centroid written are not the spot's. Use a physical --dni (W/m^2, e.g. 1 to 1000)"
+                )
         if not power > 0.0:
             # every ray missed the image: why, from the power reflected onto the plane
-            # (--dni and --reflectivity are > 0, so they are never the cause)
+            # (--dni and --reflectivity are > 0, so they are never the cause, unless they
+            # are so small that the flux underflows)
             why = (
-                f"all of the {on_plane:.4g} W reflected onto the plane of {target_name} lands outside the image "
-                f"({size}): the spot is off the image{hint}"
+                underflow
+                if underflow is not None
+                else f"all of the {on_plane:.4g} W reflected onto the plane of {target_name} lands outside the "
+                f"image ({size}): the spot is off the image{hint}"
                 if on_plane > 0.0
                 else f"no reflected ray reaches the front of the plane of {target_name} (the heliostat is behind "
                 "it, or its mirror faces away from the sun or the target)"
@@ -360,6 +384,10 @@ def run(args: argparse.Namespace) -> int:
                 f"no flux on the target image ({power:g} W): the centroid is undefined (null in the summary); {why}"
             )
             c = np.full(2, np.nan)
+        elif underflow is not None:
+            log.warning(
+                f"only {power:.4g} of the {on_plane:.4g} W reflected onto the plane is on the image: {underflow}"
+            )
         elif off_image is not None and off_image > OFF_IMAGE_WARNING:
             log.warning(
                 f"{off_image:.1%} of the {on_plane:.4g} W reflected onto the plane of {target_name} lands outside "

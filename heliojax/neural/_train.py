@@ -10,6 +10,8 @@ padding, and the same seed gives the same networks.
 from __future__ import annotations
 
 import dataclasses
+import math
+import numbers
 import typing
 
 import equinox as eqx
@@ -26,6 +28,66 @@ from ._model import NeuralCorrection, PaperPredictor
 from ._network import MLP, PAPER_HIDDEN, init_networks
 
 VARIANTS = ("residual", "paper")
+
+
+_INT_FIELDS = (
+    "n_synthetic",
+    "pretrain_epochs",
+    "batch_size",
+    "steps_per_epoch",
+    "plateau_patience",
+    "finetune_epochs",
+    "residual_epochs",
+    "min_val",
+)
+# name: (low, high, low_open, high_open); every bound is finite, so NaN and inf fail
+_FLOAT_FIELDS: dict[str, tuple[float, float, bool, bool]] = {
+    "synthetic_val_fraction": (0.0, 1.0, True, True),
+    "sun_jitter_deg": (0.0, 90.0, False, False),
+    "spot_jitter_m": (0.0, 1e3, False, False),
+    "pretrain_lr": (0.0, 1e3, True, False),
+    "plateau_factor": (0.0, 1.0, True, False),
+    "plateau_rtol": (0.0, 1.0, False, True),
+    "huber_delta": (0.0, 1e12, True, False),
+    "finetune_lr": (0.0, 1e3, True, False),
+    "residual_lr": (0.0, 1e3, True, False),
+    "residual_huber_mrad": (0.0, 1e12, True, False),
+    "val_fraction": (0.0, 1.0, False, True),
+    "fallback_tolerance": (0.0, 1e12, False, False),
+}
+_DTYPES = ("float16", "bfloat16", "float32", "float64")
+
+
+def _check_int(name: str, value: object, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise TypeError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    if value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def _check_float(name: str, value: object, low: float, high: float, low_open: bool, high_open: bool) -> float:
+    interval = f"{'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a finite number in {interval}, got {value!r}")
+    x = float(value)
+    above_low = x > low if low_open else x >= low
+    below_high = x < high if high_open else x <= high
+    if not (math.isfinite(x) and above_low and below_high):  # NaN fails here
+        raise ValueError(f"{name} must be a finite number in {interval}, got {value!r}")
+    return x
+
+
+def _check_dtype(value: object) -> str:
+    name = None
+    if value is not None:
+        try:
+            name = jnp.dtype(typing.cast(typing.Any, value)).name
+        except TypeError:
+            pass
+    if name not in _DTYPES:
+        raise TypeError(f"dtype must be one of {', '.join(_DTYPES)}, got {value!r}")
+    return name
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,7 +121,10 @@ class NeuralConfig:
             validation records is at most ``1 + fallback_tolerance`` times the
             physics model's; otherwise the heliostat falls back to the physics model.
         hidden: hidden layer widths (the paper's 6-5-4-3).
-        dtype: network float type.
+        dtype: network float type (float16, bfloat16, float32 or float64).
+
+    Every field is checked on construction (a ValueError or TypeError naming the
+    field and its allowed range; NaN and infinity fail every numeric bound).
     """
 
     n_synthetic: int = 4000
@@ -86,23 +151,23 @@ class NeuralConfig:
     dtype: str = "float32"
 
     def __post_init__(self):
-        if not 0.0 < self.synthetic_val_fraction < 1.0:
-            raise ValueError("synthetic_val_fraction must be in (0, 1)")
-        if not 0.0 <= self.val_fraction < 1.0:
-            raise ValueError("val_fraction must be in [0, 1)")
-        if self.fallback_tolerance < 0:
-            raise ValueError("fallback_tolerance must be >= 0")
-        for name in (
-            "n_synthetic",
-            "pretrain_epochs",
-            "batch_size",
-            "steps_per_epoch",
-            "finetune_epochs",
-            "residual_epochs",
-        ):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1")
-        object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
+        # every field is checked here, so a bad value fails at construction with its
+        # name, not later inside numpy/JAX; written so that NaN fails every bound
+        for name in _INT_FIELDS:
+            minimum = 0 if name == "min_val" else 1
+            object.__setattr__(self, name, _check_int(name, getattr(self, name), minimum))
+        for name, (low, high, low_open, high_open) in _FLOAT_FIELDS.items():
+            object.__setattr__(self, name, _check_float(name, getattr(self, name), low, high, low_open, high_open))
+        if self.n_synthetic_val >= self.n_synthetic:
+            raise ValueError(
+                f"n_synthetic must leave at least one synthetic point for training after the "
+                f"synthetic_val_fraction {self.synthetic_val_fraction} for validation, got {self.n_synthetic}"
+            )
+        hidden = self.hidden
+        if isinstance(hidden, (str, bytes)) or not isinstance(hidden, typing.Iterable):
+            raise TypeError(f"hidden must be a sequence of layer widths (integers >= 1), got {hidden!r}")
+        object.__setattr__(self, "hidden", tuple(_check_int(f"hidden[{i}]", h, 1) for i, h in enumerate(hidden)))
+        object.__setattr__(self, "dtype", _check_dtype(self.dtype))
 
     @property
     def n_synthetic_val(self) -> int:

@@ -58,6 +58,7 @@ from ._reconstruct import (
     ReconstructionResult as ReconstructionResult,
     SyntheticScene as SyntheticScene,
     flux_loss as flux_loss,
+    loss_window as loss_window,
     normal_rms_error_mrad as normal_rms_error_mrad,
     reconstruct_surface as reconstruct_surface,
     synthetic_scene as synthetic_scene,

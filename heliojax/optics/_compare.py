@@ -476,6 +476,8 @@ class FluxRecords(eqx.Module):
         grids: :class:`ImageGrid` ``(n,)``: 6 x 6 m windows about the measured centroids.
         geometry: the heliostat's :class:`HeliostatGeometry` (from its properties).
         layout: its :class:`FacetLayout`.
+        skipped: ``(record, reason)`` of each record left out by ``flux_records(...,
+            skip_bad=True)`` (``record`` its id, or its file name when the id is unreadable).
     """
 
     heliostat_id: str = eqx.field(static=True)
@@ -487,6 +489,7 @@ class FluxRecords(eqx.Module):
     grids: ImageGrid
     geometry: HeliostatGeometry
     layout: FacetLayout
+    skipped: tuple[tuple[str, str], ...] = eqx.field(static=True, default=())
 
     def __check_init__(self):
         n = len(self.record_ids)
@@ -507,6 +510,7 @@ class FluxRecords(eqx.Module):
             grids=take(self.grids),
             geometry=self.geometry,
             layout=self.layout,
+            skipped=self.skipped,
         )
 
 
@@ -516,42 +520,52 @@ def flux_records(
     *,
     model: AbstractKinematicModel | None = None,
     pixels: int = 64,
+    skip_bad: bool = False,
 ) -> FluxRecords:
     """Load one heliostat's flux records (``(record JSON, properties JSON)`` pairs as
     :func:`flux_sample_records` lists them) for reconstruction or validation.
 
+    Args:
+        skip_bad: leave out, with a warning naming the file and the reason, a record
+            that cannot be used (a damaged or blank flux PNG, a malformed record JSON,
+            no focal spot, an unknown target) instead of raising; the records left out
+            are :attr:`FluxRecords.skipped`. The properties and tower files are needed
+            by every record: an error in them is raised all the same.
+
     Raises:
         DataError: a record of another heliostat, one without a focal spot, or a
-            ``-flux-centered.png`` whose size is not a multiple of ``pixels``.
+            ``-flux-centered.png`` whose size is not a multiple of ``pixels`` (without
+            ``skip_bad``); with ``skip_bad``, when no record is left.
+        ValueError: ``records`` is empty.
     """
+    if not records:
+        raise ValueError("no flux records given")
     tower = read_tower(tower_path)
     model = ActuatorModel.nominal(jnp.float64) if model is None else model
     props = read_heliostat_properties(records[0][1])
     geometry = geometry_from_properties(props, tower.origin_lla)
     ids, images, counts, az_el, spots, targets, grids = [], [], [], [], [], [], []
+    skipped: list[tuple[str, str]] = []
     for rec_path, _ in records:
         rec_path = Path(rec_path)
-        record = read_calibration_record(rec_path, heliostat_id=props.heliostat_id)
-        spot = record.focal_spot_utis or record.focal_spot_helios
-        if spot is None:
-            raise DataError(rec_path, "focal_spot", "no focal spot")
-        target = target_from_tower(tower, record.target_name)
-        counts.append([record.axis_1_counts, record.axis_2_counts])
-        az_el.append([record.sun_azimuth_deg, record.sun_elevation_deg])
-        spots.append(spot)
-        full, centred = measured_images(rec_path)
-        centre = image_centroid(full, ImageGrid.for_target(target, full.shape))
-        k = centred.shape[0] // pixels
-        if centred.shape != (k * pixels, k * pixels):
-            raise DataError(
-                rec_path.parent / rec_path.name.replace("-calibration-properties.json", "-flux-centered.png"),
-                None,
-                f"{centred.shape} pixels, not a multiple of {pixels}",
-            )
-        images.append(centred.reshape(pixels, k, pixels, k).mean(axis=(1, 3)))
-        ids.append(record.record_id)
-        targets.append(target)
-        grids.append(ImageGrid.centred(centre[0], centre[1], *CENTRED_WINDOW_M, shape=(pixels, pixels)))
+        try:
+            loaded = _flux_record(rec_path, props.heliostat_id, tower, pixels)
+        except DataError as e:
+            if not skip_bad:
+                raise
+            name = rec_path.name.replace("-calibration-properties.json", "")
+            skipped.append((name, str(e)))
+            log.warning(f"record {name} of {props.heliostat_id} left out: {e}")
+            continue
+        for out, value in zip((ids, images, counts, az_el, spots, targets, grids), loaded, strict=True):
+            out.append(value)
+    if not ids:
+        raise DataError(
+            Path(records[0][0]).parent,
+            None,
+            f"no usable flux record of {props.heliostat_id}: all {len(records)} were left out "
+            f"({'; '.join(f'{r}: {why}' for r, why in skipped[:3])})",
+        )
     stack = lambda xs: jax.tree_util.tree_map(lambda *x: jnp.stack(x), *xs)  # noqa: E731
     f64 = lambda x: np.asarray(x, np.float64)  # noqa: E731
     poses, suns = _record_poses(model, geometry, f64(counts), f64(az_el), f64(spots), f64(tower.origin_lla))
@@ -565,6 +579,35 @@ def flux_records(
         grids=stack(grids),
         geometry=geometry,
         layout=layout_from_properties(props),
+        skipped=tuple(skipped),
+    )
+
+
+def _flux_record(rec_path: Path, heliostat: str, tower, pixels: int) -> tuple:
+    """One record of :func:`flux_records`: ``(id, image, counts, (azimuth, elevation),
+    focal spot, target, grid)``; a :class:`DataError` if it cannot be used."""
+    record = read_calibration_record(rec_path, heliostat_id=heliostat)
+    spot = record.focal_spot_utis or record.focal_spot_helios
+    if spot is None:
+        raise DataError(rec_path, "focal_spot", "no focal spot")
+    target = target_from_tower(tower, record.target_name)
+    full, centred = measured_images(rec_path)
+    centre = image_centroid(full, ImageGrid.for_target(target, full.shape))
+    k = centred.shape[0] // pixels
+    if centred.shape != (k * pixels, k * pixels):
+        raise DataError(
+            rec_path.parent / rec_path.name.replace("-calibration-properties.json", "-flux-centered.png"),
+            None,
+            f"{centred.shape} pixels, not a multiple of {pixels}",
+        )
+    return (
+        record.record_id,
+        centred.reshape(pixels, k, pixels, k).mean(axis=(1, 3)),
+        [record.axis_1_counts, record.axis_2_counts],
+        [record.sun_azimuth_deg, record.sun_elevation_deg],
+        spot,
+        target,
+        ImageGrid.centred(centre[0], centre[1], *CENTRED_WINDOW_M, shape=(pixels, pixels)),
     )
 
 

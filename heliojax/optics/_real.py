@@ -22,7 +22,7 @@ from .._plotting import pyplot
 from ._compare import FluxRecords, kl_divergence, normalised_cross_correlation
 from ._flux import flux_images
 from ._nurbs import NurbsFacets
-from ._reconstruct import ReconstructionResult, reconstruct_surface
+from ._reconstruct import ReconstructionResult, loss_window, reconstruct_surface
 from ._sunshape import AbstractSunShape, BuieSun
 
 
@@ -56,7 +56,10 @@ class RecordsReconstruction:
         return tuple(i for i in range(len(self.record_ids)) if i not in self.train)
 
     def summary(self) -> dict:
-        """JSON-able scores per record and surface."""
+        """JSON-able scores per record and surface, and ``loss_first_last``: the mean
+        loss over the first and over the last ``loss_window_steps`` steps
+        (:func:`heliojax.optics.loss_window`: a fifth of the steps, 1 to 10; with one
+        step the two are the same)."""
         rows = []
         for i, rid in enumerate(self.record_ids):
             row: dict = {"record": rid, "role": "train" if i in self.train else "held out"}
@@ -64,10 +67,13 @@ class RecordsReconstruction:
                 row[f"ncc_{name}"] = float(self.ncc[name][i])
                 row[f"kl_{name}"] = float(self.kl[name][i])
             rows.append(row)
+        losses = np.asarray(self.result.losses, np.float64)
+        k = loss_window(losses.size)
         return {
             "heliostat": self.heliostat_id,
             "records": rows,
-            "loss_first_last": [float(self.result.losses[:10].mean()), float(self.result.losses[-10:].mean())],
+            "loss_first_last": [float(losses[:k].mean()), float(losses[-k:].mean())],
+            "loss_window_steps": k,
         }
 
 

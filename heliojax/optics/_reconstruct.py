@@ -69,6 +69,16 @@ class ReconstructionResult:
     losses: np.ndarray
 
 
+def loss_window(steps: int) -> int:
+    """Steps averaged at each end of a loss curve of ``steps`` steps to compare its start
+    with its end: a fifth of the steps, at least 1 and at most 10 (the loss of one step
+    is a draw of rays, so a few are averaged; a window wider than a fifth of the run
+    would blur the start into the end, and one of 10 steps already averages the noise).
+    Used both for the ``loss_first_last`` of a reconstruction's summary and for the
+    CLI's divergence warning, so the two always agree."""
+    return max(1, min(10, int(steps) // 5))
+
+
 def flux_loss(
     dz,
     key: PRNGKeyArray,
@@ -277,6 +287,7 @@ __all__ = [
     "SyntheticScene",
     "synthetic_scene",
     "flux_loss",
+    "loss_window",
     "normal_rms_error_mrad",
     "reconstruct_surface",
     "with_height_offsets",

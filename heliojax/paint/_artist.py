@@ -57,6 +57,25 @@ DEVIATIONS = (
 )
 """Kinematic deviations of ARTIST's rigid-body kinematics (m for translations, rad for tilts)."""
 
+MAX_CONTROL_POINT_REACH = 2.0
+"""Farthest a facet's NURBS control point may lie from the facet's centre, in units of
+the facet's half-diagonal (``sqrt(|canting_e|^2 + |canting_n|^2)``, its centre-to-corner
+distance). The control net of a clamped NURBS patch spans its facet: the corner control
+points are the facet's corners, the others lie between them, so none is farther than about
+one half-diagonal (a little more with curvature). A point at twice that would put part of
+the surface over a neighbouring facet or beyond the heliostat: not a mirror, but damaged
+numbers (a flipped byte reads as metres or kilometres)."""
+
+MAX_CONTROL_POINT_HEIGHT = 0.1
+"""Farthest a facet's NURBS control point may lie off the facet's plane (the plane through
+its centre spanned by ``canting_e`` and ``canting_n``), in units of its half-diagonal: a
+height ``h`` over the centre-to-corner distance ``d`` means a mean slope of about ``h / d``
+off the plane. A mirror facet departs from its plane by milliradians (slope errors of
+1-3 mrad; a curvature for a focal length of tens of metres or more, ``d / 2f``, ~10 mrad),
+so a slope of 0.1 rad (100 mrad) is ten times any of these: a surface that rises 10 % of
+its size off its facet is not a mirror facet. (Chosen from this reasoning, not fitted to
+data; the shared deflectometry scenarios stay below 0.005.)"""
+
 _NUMBERED = re.compile(r"^(?:actuator|facet)_(\d+)\Z")
 
 
@@ -234,6 +253,7 @@ class _Reader:
                     degrees=(int(deg[0]), int(deg[1])),
                 )
             )
+        self.check_control_points(fg, facets)
         return ArtistHeliostat(
             name=name,
             id=None if prototype else int(self.array(g, "id", ())),
@@ -244,6 +264,41 @@ class _Reader:
             actuators=tuple(actuators),
             facets=tuple(facets),
         )
+
+    def check_control_points(self, group: Any, facets: list[ArtistFacet]) -> None:
+        """Refuse control points too far from their facet (:data:`MAX_CONTROL_POINT_REACH`)
+        or off its plane (:data:`MAX_CONTROL_POINT_HEIGHT`). The points are facet-local
+        and flat when every one of the heliostat is at ``z == 0`` (ARTIST then cants and
+        translates them), else already canted and translated (centred on ``position``)."""
+        flat = all(np.all(f.control_points[..., 2] == 0.0) for f in facets)
+        for k, facet in zip(self.numbered(group), facets, strict=True):
+            field = self.where(group[k], "control_points")
+            e, n = facet.canting
+            half_diagonal = float(np.hypot(np.linalg.norm(e), np.linalg.norm(n)))
+            if not half_diagonal >= 1e-3:
+                raise self.fail(
+                    self.where(group[k], "canting"),
+                    f"half-edges of {np.linalg.norm(e):.3g} and {np.linalg.norm(n):.3g} m: no facet",
+                )
+            local = facet.control_points - (0.0 if flat else facet.position)
+            reach = float(np.linalg.norm(local, axis=-1).max())
+            if reach > MAX_CONTROL_POINT_REACH * half_diagonal:
+                raise self.fail(
+                    field,
+                    f"a control point {reach:.4g} m from the facet's centre, more than {MAX_CONTROL_POINT_REACH:g} "
+                    f"times its half-diagonal ({half_diagonal:.3g} m): not on the facet (damaged numbers?)",
+                )
+            normal = np.asarray([0.0, 0.0, 1.0]) if flat else np.cross(e, n)
+            if np.linalg.norm(normal) < 1e-12:  # canting half-edges parallel: no plane to measure from
+                continue
+            height = float(np.abs(local @ (normal / np.linalg.norm(normal))).max())
+            if height > MAX_CONTROL_POINT_HEIGHT * half_diagonal:
+                raise self.fail(
+                    field,
+                    f"a control point {height:.4g} m off the facet's plane, more than {MAX_CONTROL_POINT_HEIGHT:g} "
+                    f"times its half-diagonal ({half_diagonal:.3g} m; a slope of 100 mrad): not a mirror facet "
+                    "(damaged numbers?)",
+                )
 
     def scenario(self, f: Any) -> ArtistScenario:
         hel = self.group(f, "heliostats")

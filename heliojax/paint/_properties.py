@@ -7,6 +7,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from .._errors import DataError
 from ._common import (
     ACTUATOR_KEYS,
@@ -103,6 +105,58 @@ def _facet(file: str, fn: _Node) -> Facet:
     return Facet(t, e, n)
 
 
+MAX_FACET_OVERLAP = 0.1
+"""Largest part of the smaller facet's area that two facets may share in the mirror plane
+(PAINT's facets do not overlap; a facet listed twice, or at another's place, shares all of
+it and would reflect its light twice)."""
+MAX_FACET_AREA_RATIO = 1.25
+"""Largest ratio of the facets' total area to the heliostat's ``width * height``
+(PAINT's facets cover 99.3 % of it): more facets do not fit the declared size."""
+
+
+def _norm(v: Vec3) -> float:
+    return math.hypot(*v)
+
+
+def _facet_area(f: Facet) -> float:
+    """Area (m^2) of the rectangle spanned by twice the canting vectors."""
+    e, n = f.canting_e, f.canting_n
+    cross = (e[1] * n[2] - e[2] * n[1], e[2] * n[0] - e[0] * n[2], e[0] * n[1] - e[1] * n[0])
+    return 4.0 * _norm(cross)
+
+
+def _overlap_fractions(facets: tuple[Facet, ...], j: int) -> np.ndarray:
+    """Part of the smaller facet's area that facet ``j`` shares with each of the facets
+    before it, measured in the earlier facet's edge directions (facets nearly in one
+    plane, edges nearly parallel: PAINT's)."""
+    t = np.array([f.translation_vector for f in facets[: j + 1]], float)
+    d = t[j] - t[:j]
+    shared = np.ones(j)
+    for key in ("canting_e", "canting_n"):
+        u = np.array([getattr(f, key) for f in facets[:j]], float).reshape(j, 3)
+        length = np.linalg.norm(u, axis=1)
+        other = math.hypot(*getattr(facets[j], key))
+        along = np.abs(np.sum(d * u, axis=1)) / length
+        shared *= np.maximum(0.0, np.minimum(length + other - along, 2.0 * np.minimum(length, other)))
+    areas = np.array([_facet_area(f) for f in facets[:j]])
+    return shared / np.minimum(areas, _facet_area(facets[j]))
+
+
+def _check_facet_layout(file: str, field: str, facets: tuple[Facet, ...]) -> None:
+    """No two facets at one place (:data:`MAX_FACET_OVERLAP`)."""
+    for j in range(1, len(facets)):
+        shared = _overlap_fractions(facets, j)
+        i = int(np.argmax(shared))
+        _check(
+            not shared[i] > MAX_FACET_OVERLAP,
+            file,
+            f"{_join(field, j)}.translation_vector",
+            f"{list(facets[j].translation_vector)}: the facet overlaps facet {i} (at "
+            f"{list(facets[i].translation_vector)}) by {100 * shared[i]:.0f} % of its area (at most "
+            f"{100 * MAX_FACET_OVERLAP:g} %): a facet listed twice or at another's place would reflect its light twice",
+        )
+
+
 def _facets_from_json(file: str, root: _Node) -> tuple[tuple[Facet, ...], str | None]:
     facets: tuple[Facet, ...] = ()
     canting_type = None
@@ -123,6 +177,7 @@ def _facets_from_json(file: str, root: _Node) -> tuple[tuple[Facet, ...], str | 
             _check(
                 n == len(facets), file, fp.field("number_of_facets"), f"says {n} but {len(facets)} facets are listed"
             )
+        _check_facet_layout(file, fp.field("facets"), facets)
     return facets, canting_type
 
 
@@ -236,6 +291,14 @@ def _properties_from_json(file: str, data: Any, heliostat_id: str) -> HeliostatP
     jt2 = _offset_in_heliostat(file, kin, joint_keys[1])
     conc = _offset_in_heliostat(file, kin, "concentrator_translation_{}")
     facets, canting_type = _facets_from_json(file, root)
+    area = sum(_facet_area(f) for f in facets)
+    _check(
+        area <= MAX_FACET_AREA_RATIO * width * height,
+        file,
+        "facet_properties.facets",
+        f"{len(facets)} facets of {area:.4g} m^2 in all do not fit the heliostat's width x height "
+        f"{width:.4g} m x {height:.4g} m = {width * height:.4g} m^2 (at most {MAX_FACET_AREA_RATIO:g} times that)",
+    )
     renovation = None
     if root.has("renovation") and root.get("renovation") is not None:
         renovation = root.string("renovation")

@@ -107,6 +107,7 @@ from ._stac_io import (
     _TOWER_SUFFIX,
     CALIBRATION_ASSETS,
     COLLECTIONS,
+    HREF_PROBLEM,
     FetchReport,
     RedirectRefused,
     Transport,
@@ -128,6 +129,11 @@ from ._stac_io import (
     _Task,
 )
 from ._timestamps import read_timestamps, write_timestamps
+
+
+def _why(e: DataError) -> str:
+    """The reason of an unreadable STAC file, with its field where one is named."""
+    return e.reason if e.field is None else f"field '{e.field}': {e.reason}"
 
 
 def _item_time(item: pystac.Item) -> dt.datetime | None:
@@ -268,8 +274,8 @@ def fetch_catalog(
         catalogs: dict[str, tuple[pystac.STACObject, str]] = {}
         for obj, href in zip(children, child_hrefs, strict=True):
             if isinstance(obj, DataError):
-                all_tasks_done["failed"].append((href, obj.reason))
-                say(f"  FAILED {href}: {obj.reason}")
+                all_tasks_done["failed"].append((href, _why(obj)))
+                say(f"  FAILED {href}: {_why(obj)}")
                 continue
             if isinstance(obj, pystac.Item) and obj.id.endswith(_TOWER_SUFFIX):
                 if include_tower:
@@ -326,8 +332,8 @@ def fetch_catalog(
             if not isinstance(item, DataError | pystac.Item | pystac.Collection):  # a catalogue has no assets
                 item = DataError(href, "type", f"expected a STAC item with the tower file, got {type(item).__name__}")
             if isinstance(item, DataError):
-                all_tasks_done["failed"].append((href, item.reason))
-                say(f"  FAILED {href}: {item.reason}")
+                all_tasks_done["failed"].append((href, _why(item)))
+                say(f"  FAILED {href}: {_why(item)}")
                 continue
             tasks = _plan_assets(scope, out, (), item, lambda _: True, href, warnings, all_tasks_done["failed"])
             plans.append((f"tower {item.id}", tasks))
@@ -451,6 +457,9 @@ def _plan_asset(
 ) -> _Task:
     field = f"assets.{key}.href"
     raw = asset.href
+    problem = asset.extra_fields.get(HREF_PROBLEM)
+    if problem is not None:  # missing or not a string in the JSON (see _stac_shape_problem)
+        raise _MalformedAsset(owner, field, str(problem))
     if not isinstance(raw, str) or not raw.strip():
         raise _MalformedAsset(owner, field, "empty or non-string href")
     try:
@@ -505,7 +514,7 @@ def _plan_heliostat(
             href = scope.resolve(raw, cat_href, cat_href, "links.child")
             obj = reader.stac_or_error(href)
             if isinstance(obj, DataError):
-                failed.append((href, obj.reason))
+                failed.append((href, _why(obj)))
                 continue
             for suffix, name in wanted_suffix.items():
                 if obj.id.endswith(suffix):
@@ -522,7 +531,7 @@ def _plan_heliostat(
         selected = []
         for item, href in zip(items, item_hrefs, strict=True):
             if isinstance(item, DataError):
-                failed.append((href, item.reason))
+                failed.append((href, _why(item)))
                 continue
             if not isinstance(item, pystac.Item):
                 raise DataError(href, "type", f"expected a STAC item in {coll.id}, got {type(item).__name__}")

@@ -335,10 +335,75 @@ class _Reader:
 
     def stac(self, href: str) -> pystac.STACObject:
         d = self.json(href)
+        problem = _stac_shape_problem(d)
+        if problem is not None:  # named by field, not by the exception pystac would raise
+            raise DataError(href, *problem)
         try:
             return pystac.read_dict(d, href=href)
         except Exception as e:  # pystac raises several types for malformed STAC
             raise DataError(href, None, f"not a valid STAC object: {e}") from e
+
+
+_STAC_TIMES = ("datetime", "start_datetime", "end_datetime")
+
+
+def _json_text(value: object) -> str:
+    """A JSON value for a message, cut (:func:`_short`) without repr's quotes."""
+    text = json.dumps(value)
+    return text if len(text) <= 120 else f"{text[:60]}...{text[-60:]}"
+
+
+HREF_PROBLEM = "heliojax:href_problem"
+"""Key put into an asset of a STAC JSON object whose ``href`` is missing or not a string
+(the href becomes ``""``): that asset fails when it is planned, the item's others are
+fetched."""
+
+
+def _stac_shape_problem(d: dict) -> tuple[str, str] | None:
+    """``(field, reason)`` of the first part of a STAC JSON object that is not of the
+    shape pystac reads (which would fail with a bare ``KeyError``/``TypeError``):
+    ``links`` a list of objects with string ``rel`` and ``href``, ``assets`` an object
+    of objects, an item's ``properties`` an object whose
+    ``datetime``/``start_datetime``/``end_datetime`` are RFC 3339 strings (or null).
+    None when it has that shape. An asset whose ``href`` is missing or not a string
+    is marked (:data:`HREF_PROBLEM`) in ``d``."""
+    links = d.get("links", [])
+    if not isinstance(links, list):
+        return "links", f"not a list: {_json_text(links)}"
+    for k, link in enumerate(links):
+        if not isinstance(link, dict):
+            return f"links[{k}]", f"not an object: {_json_text(link)}"
+        for key in ("rel", "href"):
+            if key not in link:
+                return f"links[{k}].{key}", "missing"
+            if not isinstance(link[key], str):
+                return f"links[{k}].{key}", f"not a string: {_json_text(link[key])}"
+    assets = d.get("assets", {})
+    if not isinstance(assets, dict):
+        return "assets", f"not an object: {_json_text(assets)}"
+    for key, asset in assets.items():
+        if not isinstance(asset, dict):
+            return f"assets.{key}", f"not an object: {_json_text(asset)}"
+        if not isinstance(asset.get("href"), str):  # that asset fails alone (see _plan_asset), not the item
+            href = asset.pop("href", None)
+            asset[HREF_PROBLEM] = "missing" if href is None else f"not a string: {_json_text(href)}"
+            asset["href"] = ""
+    if d.get("type") != "Feature":
+        return None
+    properties = d.get("properties")
+    if not isinstance(properties, dict):
+        return "properties", "missing" if properties is None else f"not an object: {_json_text(properties)}"
+    for key in _STAC_TIMES:
+        value = properties.get(key)
+        if value is None:
+            continue
+        if not isinstance(value, str):
+            return f"properties.{key}", f"not an RFC 3339 string: {_json_text(value)}"
+        try:
+            pystac.utils.str_to_datetime(value)
+        except (ValueError, OverflowError) as e:
+            return f"properties.{key}", f"not an RFC 3339 date-time: {_short(value)} ({e})"
+    return None
 
 
 MAX_INFLATION = 100
