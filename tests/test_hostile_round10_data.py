@@ -109,9 +109,11 @@ def test_level2_is_not_assessed_without_two_measurements(coarse_sun, n_measured)
     json.dumps(res.report)
 
 
-def test_accept_cli_with_empty_cells_does_not_print_a_measured_efficiency(tmp_path, capsys):
+def _accept(tmp_path, capsys, csv_text: str) -> tuple[dict, str]:
+    """``heliojax accept`` of a field CSV under :data:`CONTRACT`: the report's level 2
+    and the printed output."""
     field = tmp_path / "f.csv"
-    field.write_text("heliostat_id,east_m,north_m,tracking_mrad\nA,0,50,\nB,12,50,\nC,-12,62,\n")
+    field.write_text(csv_text)
     contract = tmp_path / "c.toml"
     contract.write_text(CONTRACT)
     report = tmp_path / "acc.json"
@@ -119,24 +121,21 @@ def test_accept_cli_with_empty_cells_does_not_print_a_measured_efficiency(tmp_pa
         ["accept", "--results", str(field), "--contract", str(contract), "--report", str(report)], capsys
     )
     assert rc == 0, err
-    l2 = json.loads(report.read_text())["level2"]
+    return json.loads(report.read_text())["level2"], out
+
+
+def test_accept_cli_with_empty_cells_does_not_print_a_measured_efficiency(tmp_path, capsys):
+    l2, out = _accept(tmp_path, capsys, "heliostat_id,east_m,north_m,tracking_mrad\nA,0,50,\nB,12,50,\nC,-12,62,\n")
     assert l2["pass"] is None and l2["annual_efficiency_measured"] is None
     line = next(x for x in out.splitlines() if x.startswith("annual efficiency"))
     assert "measured: not assessed" in line and "contract's" in line, line
 
 
 def test_a_partly_measured_field_names_the_contract_values_it_assumes(tmp_path, capsys):
-    field = tmp_path / "f.csv"
     rows = [f"H{i},{6 * i - 30},{60 + i},{1.8 + 0.05 * i}," for i in range(10)]
-    field.write_text("heliostat_id,east_m,north_m,tracking_mrad,slope_mrad\n" + "\n".join(rows) + "\n")
-    contract = tmp_path / "c.toml"
-    contract.write_text(CONTRACT)
-    report = tmp_path / "acc.json"
-    rc, out, err = run_cli(
-        ["accept", "--results", str(field), "--contract", str(contract), "--report", str(report)], capsys
+    l2, out = _accept(
+        tmp_path, capsys, "heliostat_id,east_m,north_m,tracking_mrad,slope_mrad\n" + "\n".join(rows) + "\n"
     )
-    assert rc == 0, err
-    l2 = json.loads(report.read_text())["level2"]
     assert l2["assessed"] and l2["parameters_measured"] == ["tracking_mrad"]
     assert l2["parameters_from_contract"] == ["slope_mrad"] and isinstance(l2["pass"], bool)
     assert "contract's values assumed for slope_mrad" in out, out
