@@ -653,19 +653,29 @@ def aim_results(
     )
 
 
+def fitted_time_span(results: typing.Any) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(first, last)``, each ``(H,)``: the times (s) of each heliostat's first and last
+    fitted record (training, not superseded by a change point, with a time; ``inf`` and
+    ``-inf`` for a heliostat without one); None where the file holds no per-record times
+    or split."""
+    records = getattr(results, "records", None)  # duck-typed results: none
+    if records is None or not {"unix_time", "split"} <= records.keys():
+        return None
+    t = np.asarray(records["unix_time"], float)
+    fitted = results.fitted_records(inliers=False) & np.isfinite(t)
+    return np.min(np.where(fitted, t, np.inf), axis=1), np.max(np.where(fitted, t, -np.inf), axis=1)
+
+
 def outside_fit_time(results: typing.Any, unix_time: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
     """``(before_fit, long_after_fit)``, each ``(H, N)``: instants ``unix_time`` (s)
     before each heliostat's first fitted record (training, not superseded by a change
     point, with a time), and further after its last one than the fleet's fitted records
     span (the first to the last over every heliostat); None where the file holds no
     per-record times or split."""
-    records = getattr(results, "records", None)  # duck-typed results: none
-    if records is None or not {"unix_time", "split"} <= records.keys():
+    times = fitted_time_span(results)
+    if times is None:
         return None, None
-    t = np.asarray(records["unix_time"], float)
-    fitted = results.fitted_records(inliers=False) & np.isfinite(t)
-    first = np.min(np.where(fitted, t, np.inf), axis=1)  # inf: no fitted record, no flag (unreliable already)
-    last = np.max(np.where(fitted, t, -np.inf), axis=1)
+    first, last = times
     known = np.isfinite(first)
     span = float(last[known].max() - first[known].min()) if known.any() else 0.0
     instant = np.asarray(unix_time, float)[None, :]

@@ -79,6 +79,13 @@ def heliostat_id_problem(text: str) -> str | None:
     return None
 
 
+def shown_value(value: object, most: int = 60) -> str:
+    """``repr(value)`` as shown in a message: at most about ``most`` characters (a file
+    or an option may hold a name of 100 kB)."""
+    text = repr(value)
+    return text if len(text) <= most else f"{text[: most // 2]}...{text[-most // 2 :]} ({len(str(value))} characters)"
+
+
 _DECIMAL = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
 
 

@@ -14,6 +14,8 @@ import sys
 import typing
 from pathlib import Path
 
+from .._io import shown_value as shown_value  # (the standard library only: the CLI starts fast)
+
 log = logging.getLogger(__name__)
 
 
@@ -580,12 +582,6 @@ def _is_ascii_number(text: str, special: bool = False) -> bool:
     from .._io import is_decimal
 
     return is_decimal(text) or (special and text.strip().lower().lstrip("+-") in ("nan", "inf", "infinity"))
-
-
-def shown_value(value: object, most: int = 60) -> str:
-    """``repr(value)`` as shown in a message: at most about ``most`` characters."""
-    text = repr(value)
-    return text if len(text) <= most else f"{text[: most // 2]}...{text[-most // 2 :]} ({len(str(value))} characters)"
 
 
 LARGEST_INTEGER = 2**31 - 1

@@ -196,16 +196,15 @@ def _warn_before_fit(args, results, unix) -> None:
     ``--paint-dir`` with ``--before`` is for."""
     import numpy as np
 
-    from .._aim import outside_fit_time
+    from .._aim import fitted_time_span, outside_fit_time
     from .._errors import few_names
 
     before, _ = outside_fit_time(results, unix)
-    if before is None or not before.any():
+    times = fitted_time_span(results)
+    if before is None or times is None or not before.any():
         return
     early = np.flatnonzero(before.any(axis=1))
-    t = np.asarray(results.records["unix_time"], float)
-    fitted = results.fitted_records(inliers=False) & np.isfinite(t)
-    first = np.min(np.where(fitted, t, np.inf), axis=1)
+    first = times[0]
     dest, flag = ("date", "--date") if args.date is not None else ("start", "--start")
     window = f"{_iso(float(unix[0]))} .. {_iso(float(unix[-1]))}"
     label = option_label(args, dest, flag) if getattr(args, dest) is not None else "the window (today, UTC)"

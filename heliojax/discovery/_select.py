@@ -127,7 +127,7 @@ from ._diagnostics import (
     unexplained_structure,
 )
 from ._identifiability import ABSORBED_LIMIT, column_bases
-from ._lanes import Engine, Lanes, Layout, make_lanes, make_layout
+from ._lanes import Engine, Lanes, Layout, fleet_longitude_deg, make_lanes, make_layout
 from ._report import (
     AMBIGUITY_BIC,
     MIN_DELTA_BIC,
@@ -1154,7 +1154,7 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
     wf.noise = _lane_noise(state, len(layout.base_cols) + 2 * _stepped_lanes(cleaning, lanes, steps_found))
     h = lanes.n_heliostats
     wf.unix_time = np.asarray(padded.context.unix_time, float)
-    wf.longitude_deg = float(np.asarray(padded.origin_lla)[1])
+    wf.longitude_deg = fleet_longitude_deg(padded)
     train_rms = np.sqrt(np.nansum(state.rss[:h]) / np.sum(state.n_res[:h]) * 2)
     log.info(f"base fitted ({state.fit_s:.1f} s): train RMS {train_rms:.3f} mrad")
     steps: list[Step] = []

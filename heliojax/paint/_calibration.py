@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any, no_type_check
 
 from .._errors import DataError
+from .._io import shown_value
 from ._common import (
     CALIBRATION_SUFFIX,
     CORNERS,
@@ -38,7 +39,7 @@ from ._common import (
     _type_name,
     _write_json,
 )
-from ._tower import shown_name, skipped_target_message
+from ._tower import skipped_target_message
 
 # ======================================================================================
 # Calibration records
@@ -169,7 +170,7 @@ def check_record_context(
             raise DataError(
                 file,
                 "target_name",
-                f"unknown target {shown_name(record.target_name)}: {skipped}"
+                f"unknown target {shown_value(record.target_name)}: {skipped}"
                 if skipped
                 else f"unknown target {record.target_name!r} (tower file has {', '.join(tower.planar_target_names)})",
             )

@@ -8,6 +8,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from .._errors import DataError
+from .._io import shown_value
 from ._calibration import calibration_record_path, heliostat_properties_path, validate_record, write_calibration_record
 from ._common import (
     TIMESTAMPS_FILE,
@@ -20,7 +21,7 @@ from ._common import (
 )
 from ._properties import validate_properties, write_heliostat_properties
 from ._timestamps import write_timestamps
-from ._tower import _tower_from_json, _tower_to_json, shown_name, write_tower
+from ._tower import _tower_from_json, _tower_to_json, write_tower
 from ._weather import write_weather_csv
 
 
@@ -68,7 +69,7 @@ def write_paint_directory(
         raise DataError(tower.source, None, f"not serialisable: {e}") from None
     if checked.skipped:  # a target the reader would skip: not written
         name, problem = next(iter(checked.skipped.items()))
-        raise DataError(tower.source, shown_name(name), f"not a target name ({problem})")
+        raise DataError(tower.source, shown_value(name), f"not a target name ({problem})")
     props = [validate_properties(p) for p in properties]
     seen: set[int] = set()
     for r in records:

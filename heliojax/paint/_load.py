@@ -24,7 +24,7 @@ from .._errors import DataError, few_names
 from .._fleet import CENTROIDS, Centroid, Fleet, ReportEntry, bucket_size
 from .._geometry import TargetPlane, sun_direction, wgs84_to_enu
 from .._heliostat import HeliostatGeometry, LinearActuators, RecordContext
-from .._io import heliostat_id_problem
+from .._io import heliostat_id_problem, shown_value
 from .._programs import cached_jit
 from .._sun import datetime_to_unix, solar_position
 from ._calibration import (
@@ -62,7 +62,7 @@ from ._flags import (
 )
 from ._properties import read_heliostat_properties, validate_properties
 from ._timestamps import METADATA_GLOB, read_metadata_times, read_timestamps
-from ._tower import check_target_corners, read_tower, shown_name
+from ._tower import check_target_corners, read_tower
 from ._weather import read_weather_csv
 
 
@@ -698,8 +698,8 @@ def _note_skipped_targets(tower: TowerFile, log: _Log) -> None:
     name one are skipped as of an unknown target, saying why."""
     for name, problem in tower.skipped.items():
         if log.strict:
-            raise DataError(tower.source, shown_name(name), f"not a target name ({problem})")
-        log.notes.append(f"{tower.source}: target {shown_name(name)} skipped: not a target name ({problem})")
+            raise DataError(tower.source, shown_value(name), f"not a target name ({problem})")
+        log.notes.append(f"{tower.source}: target {shown_value(name)} skipped: not a target name ({problem})")
 
 
 def load_paint_directory(

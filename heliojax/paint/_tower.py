@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from .._errors import DataError
+from .._io import shown_value
 from .._limits import target_name_problem
 from ._common import (
     CORNERS,
@@ -128,16 +129,9 @@ def _tower_from_json(file: str, data: Any) -> TowerFile:
         targets[name] = TargetEntry(name=name, type=ttype, normal=normal, points=points, extra=extra)
     tower = TowerFile(plant_id=str(plant_id), origin_lla=origin, targets=targets, source=file, skipped=skipped)
     if not tower.planar_target_names:
-        more = f" (skipped by name: {', '.join(shown_name(n) for n in skipped)})" if skipped else ""
+        more = f" (skipped by name: {', '.join(shown_value(n) for n in skipped)})" if skipped else ""
         raise DataError(file, None, f"no planar calibration target{more}")
     return tower
-
-
-def shown_name(name: str, most: int = 60) -> str:
-    """``repr(name)`` as a message shows it: at most about ``most`` characters (a tower
-    file may name a target with 100 kB)."""
-    text = repr(name)
-    return text if len(text) <= most else f"{text[: most // 2]}...{text[-most // 2 :]} ({len(name)} characters)"
 
 
 def skipped_target_message(tower: TowerFile, name: str) -> str | None:
@@ -181,7 +175,7 @@ def read_tower(path: str | os.PathLike) -> TowerFile:
     file = str(path)
     tower = _tower_from_json(file, _load_json(path))
     for name, problem in tower.skipped.items():
-        log.warning(f"{file}: skipped target {shown_name(name)}: not a target name ({problem})")
+        log.warning(f"{file}: skipped target {shown_value(name)}: not a target name ({problem})")
     return tower
 
 
@@ -190,5 +184,5 @@ def write_tower(path: str | os.PathLike, tower: TowerFile) -> None:
     name :func:`read_tower` would skip (:func:`heliojax._limits.target_name_problem`)."""
     for name in tower.targets:
         if (problem := target_name_problem(name)) is not None:
-            raise DataError(path, shown_name(name), f"not a target name ({problem})")
+            raise DataError(path, shown_value(name), f"not a target name ({problem})")
     _write_json(path, _tower_to_json(tower))
