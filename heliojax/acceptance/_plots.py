@@ -147,7 +147,7 @@ def plot_monthly_efficiency(contract: YieldResult, measured: YieldResult | None,
     ax.set_xlabel("month")
     ax.set_ylabel("field efficiency")
     ax.set_title("monthly field efficiency")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.15))  # below the axes: never on a curve
     return fig
 
 
