@@ -432,6 +432,10 @@ def test_a_generic_competitor_that_beats_the_library_is_reported_and_the_report_
     eligible = {c for c, s in rep["screens"][0].items() if s["tested"] and s["p_holm"] < 0.01}
     assert len(eligible) == 2  # wind and thermal: a second batch to refit
     assert eligible <= {x["effect"] for x in rep["refits"][0]}
+    # each name carries the p of its held-out gain over days; those at or above alpha are flagged
+    assert all(0.0 <= s["cv_p"] <= 1.0 for s in rep["steps"])
+    flagged = [(i + 1, s["effect"]) for i, s in enumerate(rep["steps"]) if s["cv_p"] >= 0.01]
+    assert [(u["step"], u["named"]) for u in rep["held_out_not_significant"]] == flagged
     write_report(tmp_path / "report.json", rep)
     assert json.loads((tmp_path / "report.json").read_text())["unexplained"][0]["instead_of"] == first["instead_of"]
 

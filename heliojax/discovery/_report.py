@@ -12,6 +12,8 @@ beam pointing error; ``cv`` = blocked cross-validation by day)::
                                                    # the BIC without it; see config.criterion)
          "cv_heldout_rms_before_mrad": float, "cv_heldout_rms_after_mrad": float,
          "cv_log_ratio": float,                    # held-out criterion (< 0), see cv_log_ratio
+         "cv_p": float,                            # one-sided p of the held-out improvement,
+                                                   # a t test over heliostat-days (cv_improvement_p)
          "amplitude": {param: value},              # physical units (see "units")
          "amplitude_std": {param: value},
          "units": {param: unit},
@@ -37,6 +39,10 @@ beam pointing error; ``cv`` = blocked cross-validation by day)::
       "weak_evidence": [{"step", "named", "named_mode", "delta_bic"}],  # names on delta BIC < 6
                                                    # (Kass & Raftery's "positive", below "strong"):
                                                    # the name is not certain
+      "held_out_not_significant": [{"step", "named", "named_mode", "cv_log_ratio", "cv_p"}],
+                                                   # names whose held-out gain is not significant
+                                                   # over days (cv_p >= alpha): a day's shared
+                                                   # error can make such a gain; not certain
       "outliers": [{"heliostat", "record_id"}],    # gross errors of the robust pre-pass (left out)
       "noisy_heliostats": [{"heliostat", "noise_mrad", "left_out"}],  # noise far above the fleet's
                                                    # (robust pre-pass; heliojax.fitting.noise_outliers):
@@ -89,7 +95,7 @@ beam pointing error; ``cv`` = blocked cross-validation by day)::
       "screens": [{name: {"p", "p_shared", "p_per_heliostat", "p_holm", "absorbed_fraction",
                           "identifiable", "tested", "testable"}}],  # one per step
       "refits": [[{"effect", "mode", "delta_bic", "cv_heldout_rms_before_mrad",
-                   "cv_heldout_rms_after_mrad", "cv_log_ratio", "prior_scale",
+                   "cv_heldout_rms_after_mrad", "cv_log_ratio", "cv_p", "prior_scale",
                    "cross_validated", "passed"}]],
                                                    # cross_validated false (cv_* null)
                                                    # where delta BIC failed, or passed
@@ -116,6 +122,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+from scipy import stats
 
 from .._errors import few_names
 from .._io import atomic_write
@@ -237,6 +244,50 @@ def cv_log_ratio(before, after, heliostat: np.ndarray) -> float:
     return float(total / n_all) if n_all else float("nan")
 
 
+def cv_improvement_p(before, after, heliostat: np.ndarray, day: np.ndarray) -> float:
+    """One-sided p-value that ``after`` predicts the held-out records no better than
+    ``before``: a t test over days of the held-out improvement.
+
+    Per record held out and predicted by both, ``d = (e_after^2 - e_before^2) /
+    MSE_h(before)`` (its heliostat's scale, as :func:`cv_log_ratio`); ``d`` summed per
+    heliostat and day, and those sums tested for a negative mean (Student's t,
+    ``K - 1`` degrees of freedom over ``K`` heliostat-days). Days, not records: the
+    folds are blocks of whole days, so a day's held-out records were predicted by
+    parameters fitted without that day, and an error the records of one day share
+    (the target's or camera's state that day) leaves the days independent, where
+    counting its records as independent would make the shared error evidence. Under
+    no effect, the refit's parameters fitted to noise only add ``(J delta)^2 >= 0`` to
+    each held-out error on average, so the test is conservative there.
+
+    Args:
+        before, after: model states with ``heldout_sq`` ``(L, M)`` (mrad^2, NaN where
+            not held out).
+        heliostat: ``(L,)`` each lane's heliostat.
+        day: ``(L, M)`` each record's day (:func:`heliojax.fitting.day_labels`).
+
+    Returns:
+        The p-value in ``[0, 1]``; NaN with fewer than 3 heliostat-days held out.
+    """
+    both = np.isfinite(before.heldout_sq) & np.isfinite(after.heldout_sq)
+    li, mi = np.nonzero(both)
+    if li.size == 0:
+        return float("nan")
+    h = np.asarray(heliostat)[li]
+    b, a = before.heldout_sq[li, mi], after.heldout_sq[li, mi]
+    _, hi = np.unique(h, return_inverse=True)
+    scale = np.bincount(hi, weights=b) / np.bincount(hi)
+    ok = scale[hi] > 0
+    _, cluster = np.unique(np.stack([h[ok], np.asarray(day)[li, mi][ok]]), axis=1, return_inverse=True)
+    sums = np.bincount(cluster.reshape(-1), weights=((a - b) / np.where(ok, scale[hi], 1.0))[ok])
+    k = sums.size
+    if k < 3:
+        return float("nan")
+    sd = float(np.std(sums, ddof=1))
+    if sd == 0.0:
+        return 1.0 if sums.mean() >= 0 else 0.0
+    return float(stats.t.cdf(sums.mean() / (sd / np.sqrt(k)), k - 1))
+
+
 IMPLAUSIBLE_TYPICAL = 10.0
 """A named effect's parameter beyond this multiple of its documented typical size
 (:func:`heliojax.parameter`'s ``typical``, fixed a priori from the physics) is
@@ -271,6 +322,7 @@ def build_report(result, typical_start=None) -> dict:
                 "cv_heldout_rms_before_mrad": _f(s.cv_before),
                 "cv_heldout_rms_after_mrad": _f(s.cv_after),
                 "cv_log_ratio": _f(s.cv_log_ratio),
+                "cv_p": _f(s.cv_p),
                 "amplitude": {k: _f(v) for k, v in s.amplitude.items()},
                 "amplitude_std": {k: _f(v) for k, v in s.amplitude_std.items()},
                 "units": units,
@@ -338,6 +390,7 @@ def build_report(result, typical_start=None) -> dict:
                 "cv_heldout_rms_before_mrad": _f(c.cv_before),
                 "cv_heldout_rms_after_mrad": _f(c.cv_after),
                 "cv_log_ratio": _f(c.cv_log_ratio),
+                "cv_p": _f(c.cv_p),
                 "prior_scale": _f(c.prior_scale),
                 "cross_validated": bool(c.cross_validated),
                 "passed": bool(c.passed),
@@ -413,12 +466,24 @@ def build_report(result, typical_start=None) -> dict:
         for i, s in enumerate(steps)
         if s["delta_bic"] is not None and s["delta_bic"] < STRONG_EVIDENCE_BIC
     ]
+    unconfirmed = [
+        {
+            "step": i + 1,
+            "named": s["effect"],
+            "named_mode": s["mode"],
+            "cv_log_ratio": s["cv_log_ratio"],
+            "cv_p": s["cv_p"],
+        }
+        for i, s in enumerate(steps)
+        if s["cv_p"] is not None and s["cv_p"] >= cfg.alpha
+    ]
     return {
         "base_model": cfg.base,
         "steps": steps,
         "named_effects": named,
         "ambiguities": ambiguities,
         "weak_evidence": weak,
+        "held_out_not_significant": unconfirmed,
         "outliers": cleaning["outliers"],
         "noisy_heliostats": cleaning["noisy_heliostats"],
         "spots_unexplained": cleaning["spots_unexplained"],
@@ -746,6 +811,14 @@ def markdown_summary(report: dict) -> str:
             f"**Weak evidence** at step {w['step']}: `{w['named']}` ({_mode_words(w.get('named_mode'))}) rests on "
             f'a delta BIC of {w["delta_bic"]:.1f} (2 log Bayes factor: "positive", below "strong" at '
             f"{STRONG_EVIDENCE_BIC:g}; Kass & Raftery 1995); the name is not certain."
+        )
+    for u in report.get("held_out_not_significant", []):
+        lines.append(
+            f"**Held-out gain not significant** at step {u['step']}: `{u['named']}` "
+            f"({_mode_words(u.get('named_mode'))}) predicted the held-out records better (log ratio "
+            f"{u['cv_log_ratio']:+.4f}) but not significantly over days (p = {u['cv_p']:.2g}, alpha "
+            f"{report['config'].get('alpha', 0.01):g}): a day's shared error can make such a gain; the name is "
+            "not certain."
         )
     for a in report.get("ambiguities", []):
         alts = ", ".join(_alternative_words(x) for x in a["alternatives"])
