@@ -81,6 +81,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int, Real
 
 from ._geometry import TargetPlane, angle_between, check_unit_vectors
 from ._heliostat import HeliostatGeometry, RecordContext
+from ._io import shown_value
 
 __all__ = [
     "OUTLIER_FLOOR",
@@ -440,7 +441,8 @@ def fleet_subset(fleet: Fleet, indices: Sequence[int] | np.ndarray | int | str |
     Raises:
         TypeError: an index that is neither an integer nor an id (a bool, 1.5, a
             boolean mask: use ``np.flatnonzero(mask)``).
-        ValueError: no heliostat selected (empty ``indices``), an id not in the fleet.
+        ValueError: no heliostat selected (empty ``indices``), an id not in the fleet, a
+            heliostat selected twice.
         IndexError: a position out of range.
     """
     if isinstance(indices, np.ndarray) and indices.dtype.kind not in "iuUSO":
@@ -469,6 +471,15 @@ def fleet_subset(fleet: Fleet, indices: Sequence[int] | np.ndarray | int | str |
     for i in idx:
         if not -fleet.n_heliostats <= i < fleet.n_heliostats:
             raise IndexError(f"heliostat index {i} out of range for {fleet.n_heliostats}")
+    seen: dict[int, int] = {}
+    for item, i in zip(items, idx, strict=True):  # a repeated heliostat: two fits of one, counted twice
+        at = i % fleet.n_heliostats
+        if at in seen:
+            raise ValueError(
+                f"fleet_subset: indices selects heliostat {at} ({fleet.ids[at]!r}) twice "
+                f"({shown_value(items[seen[at]])} and {shown_value(item)})"
+            )
+        seen[at] = len(seen)
     xp = _backend(fleet)
     sel = np.asarray(idx, dtype=np.int64)
     take = lambda x: _to_jax(xp.asarray(x)[sel])  # noqa: E731
@@ -561,11 +572,18 @@ def fleet_from_arrays(
     Raises:
         ValueError: a mask that is not boolean (or 0/1 integers); an origin that is
             not a finite latitude, longitude, altitude; a used record's sun that is not
-            a unit vector.
+            a unit vector; ``ids`` not one per heliostat, or an id listed twice.
     """
     dtype = jnp.result_type(float)  # float64 under jax_enable_x64
     counts = jnp.asarray(counts, dtype)
     h, m = counts.shape[:2]
+    if ids is not None:
+        ids = [ids] if isinstance(ids, str) else list(ids)
+        if len(ids) != h:
+            raise ValueError(f"ids: {len(ids)} heliostat ids for the {h} heliostats of counts")
+        if len(set(ids)) != len(ids):
+            twice = next(x for k, x in enumerate(ids) if x in ids[:k])
+            raise ValueError(f"ids: heliostat id {shown_value(twice)} is listed twice")
     context = eqx.tree_at(lambda c: c.target, context, jnp.full((h, m), -1, jnp.int32))
     focal_spot = jnp.asarray(focal_spot, dtype)
     origin = np.asarray(origin_lla, float)

@@ -19,6 +19,12 @@ LATEST_UNIX_S = 7_258_118_400.0
 
 _SPAN = (EARLIEST_UNIX_S, LATEST_UNIX_S)
 
+EARLIEST_YEAR = dt.datetime.fromtimestamp(EARLIEST_UNIX_S, dt.UTC).year
+"""1970: the first year (UTC) whose every instant heliojax takes."""
+LATEST_YEAR = dt.datetime.fromtimestamp(LATEST_UNIX_S - 1.0, dt.UTC).year
+"""2199: the last year (UTC) whose every instant heliojax takes (``plan --envelope-year``
+took 1900 to 2200, years of instants the library refuses)."""
+
 
 def instant_problem(t: dt.datetime) -> str | None:
     """Why the instant ``t`` (naive: UTC) lies outside ``[EARLIEST_UNIX_S,

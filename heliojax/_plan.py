@@ -47,12 +47,14 @@ at the receiver: hours that deliver more energy count more.
 from __future__ import annotations
 
 import collections.abc
+import math
 import typing
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._aim import direction_jacobian_mrad
@@ -68,7 +70,9 @@ from ._discrepancy import (
 from ._errors import DataError
 from ._geometry import check_unit_vectors
 from ._heliostat import HeliostatGeometry, RecordContext
+from ._io import shown_value
 from ._kinematics import AbstractKinematicModel, inverse_aim
+from ._limits import EARLIEST_UNIX_S, EARLIEST_YEAR, LATEST_UNIX_S, LATEST_YEAR
 from ._parameters import ParameterView
 from ._sun import solar_position
 from .fitting import prior_moments, residual_jacobians
@@ -86,6 +90,33 @@ def clear_sky_dni(elevation: Float[ArrayLike, "*n"]) -> Float[np.ndarray, "*n"]:
         am = 1.0 / (np.cos(np.radians(zenith)) + 0.50572 * (96.07995 - zenith) ** -1.6364)
         dni = SOLAR_CONSTANT_W_M2 * 0.7 ** (am**0.678)
     return np.where(el > 0.0, dni, 0.0)
+
+
+def _check_min_elevation(min_elevation_deg: float) -> float:
+    """``min_elevation_deg`` as a float; ValueError unless it is finite degrees in
+    [-90, 90] (1e9 wrapped through the sine and let every instant in, NaN none)."""
+    if isinstance(min_elevation_deg, bool) or not isinstance(min_elevation_deg, (int, float, np.integer, np.floating)):
+        raise ValueError(f"min_elevation_deg must be a number of degrees, not {min_elevation_deg!r}")
+    value = float(min_elevation_deg)
+    if not -90.0 <= value <= 90.0:  # NaN too
+        raise ValueError(f"min_elevation_deg must be degrees in [-90, 90], not {value!r}")
+    return value
+
+
+def _check_unix_times(name: str, times: np.ndarray, unknown: bool) -> None:
+    """ValueError unless the finite ``times`` are seconds since 1970 within heliojax's
+    span (:mod:`heliojax._limits`), and, unless ``unknown``, every time is finite (NaN:
+    unknown). Milliseconds had aged a candidate by 50 years."""
+    bad = ~np.isfinite(times) if not unknown else np.isinf(times)
+    with np.errstate(invalid="ignore"):
+        bad |= np.isfinite(times) & ~((times >= EARLIEST_UNIX_S) & (times < LATEST_UNIX_S))
+    if bad.any():
+        first = float(times[bad].flat[0])
+        raise ValueError(
+            f"{name} must be seconds since 1970-01-01 UTC in [{EARLIEST_UNIX_S:g}, {LATEST_UNIX_S:g})"
+            f"{' or NaN (unknown)' if unknown else ''}, not {first!r}"
+            + (" (milliseconds?)" if first >= LATEST_UNIX_S and math.isfinite(first) else "")
+        )
 
 
 def operating_envelope(
@@ -108,14 +139,32 @@ def operating_envelope(
     Returns:
         ``(sun, weight)``: ``(E, 3)`` unit ENU vectors to the sun and ``(E,)``
         clear-sky DNI (W/m^2) of each instant.
+
+    Raises:
+        ValueError: naming the argument: ``year`` or ``day_step`` not an integer (or
+            ``day_step`` below 1, ``year`` outside 1970 to 2199), ``hour_step`` not in (0, 24] h, ``min_elevation_deg``
+            not in [-90, 90], ``origin_lla`` not three finite numbers. (``day_step`` 0
+            was taken as 1, 2.9 as 2, ``hour_step`` 0 divided by zero, and a NaN
+            elevation or origin gave an empty envelope.)
     """
     import datetime as dt
 
+    for name, value, low in (("year", year, 1), ("day_step", day_step, 1)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+            raise ValueError(f"{name} must be an integer{' >= 1' if name == 'day_step' else ''}, not {value!r}")
+    if not EARLIEST_YEAR <= year <= LATEST_YEAR:  # the span of instants heliojax takes (heliojax._limits)
+        raise ValueError(f"year must be in {EARLIEST_YEAR} to {LATEST_YEAR} (UTC), not {year!r}")
+    if isinstance(hour_step, bool) or not 0.0 < float(hour_step) <= 24.0:  # NaN too
+        raise ValueError(f"hour_step must be hours in (0, 24], not {hour_step!r}")
+    min_elevation_deg = _check_min_elevation(min_elevation_deg)
+    origin = np.asarray(origin_lla, float)
+    if origin.shape != (3,) or not np.isfinite(origin).all():
+        raise ValueError(f"origin_lla must be 3 finite numbers [lat_deg, lon_deg, alt_m], not {origin_lla!r}"[:200])
     start = dt.datetime(year, 1, 1, tzinfo=dt.UTC).timestamp()
-    days = np.arange(0, 365, max(int(day_step), 1))
+    days = np.arange(0, 365, int(day_step))
     hours = np.arange(0.0, 24.0, float(hour_step))
     unix = start + (days[:, None] * 86400.0 + hours[None, :] * 3600.0).ravel()
-    lat, lon, alt = (float(x) for x in np.asarray(origin_lla, float))
+    lat, lon, alt = (float(x) for x in origin)
     position = solar_position(jnp.asarray(unix, jnp.float64), lat, lon, alt)
     el = np.asarray(position.elevation)
     keep = el > np.radians(min_elevation_deg)
@@ -382,19 +431,38 @@ def aged_noise_mrad(
             each heliostat's latest valid candidate (the end of the candidate window,
             or the cut date of records chosen before it).
         creep_mrad2_per_day2: ``c`` (mrad^2/day^2), finite and >= 0.
+
+    Raises:
+        ValueError: naming the argument: a rate or ``noise_mrad`` negative or not
+            finite, times that are not seconds since 1970 (milliseconds; an infinite
+            or NaN ``use_unix_time`` had aged nothing, silently), shapes that do not
+            fit ``(H, K)``.
     """
     times = np.asarray(candidate_unix_time, float)
+    if times.ndim != 2 or np.shape(candidate_valid) != times.shape:
+        raise ValueError(
+            f"candidate_unix_time and candidate_valid must be (H, K) arrays of one shape, not "
+            f"{times.shape} and {np.shape(candidate_valid)}"
+        )
+    _check_unix_times("candidate_unix_time", times, unknown=True)
     valid = np.asarray(candidate_valid, bool) & np.isfinite(times)
     h, k = times.shape
     for name, rate in (("drift_mrad2_per_day", drift_mrad2_per_day), ("creep_mrad2_per_day2", creep_mrad2_per_day2)):
         if not np.isfinite(rate) or rate < 0.0:
             raise ValueError(f"{name} must be finite and >= 0, not {rate}")
+    sigma = np.asarray(noise_mrad, float)
+    if sigma.shape not in ((), (h,)) or not np.all(np.isfinite(sigma) & (sigma >= 0.0)):
+        raise ValueError(f"noise_mrad must be finite and >= 0, a scalar or ({h},), not {noise_mrad!r}"[:200])
     if use_unix_time is None:
         use = np.max(np.where(valid, times, -np.inf), axis=1)
     else:
-        use = np.broadcast_to(np.asarray(use_unix_time, float), (h,))
+        use = np.asarray(use_unix_time, float)
+        if use.shape not in ((), (h,)):
+            raise ValueError(f"use_unix_time must be a scalar or ({h},), not of shape {use.shape}")
+        _check_unix_times("use_unix_time", use, unknown=False)
+        use = np.broadcast_to(use, (h,))
     age_days = np.where(valid & np.isfinite(use)[:, None], np.maximum(use[:, None] - times, 0.0), 0.0) / 86400.0
-    sigma = np.broadcast_to(np.asarray(noise_mrad, float), (h,))[:, None]
+    sigma = np.broadcast_to(sigma, (h,))[:, None]
     return np.sqrt(sigma**2 + drift_mrad2_per_day * age_days + creep_mrad2_per_day2 * age_days**2)
 
 
@@ -455,13 +523,34 @@ def candidates_at_targets(
     ``target_index`` ``(T,)``: each target's index in the fitted fleet's
     ``target_names`` (-1 for a target it never used), carried in the candidates'
     context so that target-dependent effects (``survey_target``) enter the
-    candidates' Jacobians; default -1 (unknown) for every target."""
+    candidates' Jacobians; default -1 (unknown) for every target.
+
+    Raises:
+        ValueError: naming the argument: ``target_centres`` not ``(T, 3)``,
+            ``target_index`` not ``(T,)`` integers >= -1, ``unix_time`` not ``(N,)``
+            seconds since 1970 (NaN: unknown), ``min_elevation_deg`` not in [-90, 90]
+            (1e9 went through the sine and let every candidate in).
+    """
     sun = jnp.asarray(sun)
     centres = jnp.asarray(target_centres, sun.dtype)
+    if centres.ndim != 2 or centres.shape[1] != 3 or centres.shape[0] == 0:
+        raise ValueError(f"target_centres must be (T, 3) ENU m, T >= 1, not of shape {centres.shape}")
+    # values are checked where known (not traced): a NaN centre had made every candidate invalid
+    if not isinstance(centres, Tracer) and not np.isfinite(np.asarray(centres)).all():
+        raise ValueError("target_centres must be finite (ENU m)")
     h, n, t = int(jnp.shape(geometry.position)[0]), sun.shape[0], centres.shape[0]
     if target_index is not None and np.shape(target_index) != (t,):
         raise ValueError(f"target_index has shape {np.shape(target_index)}, expected ({t},): one per target centre")
-    counts, valid = _target_candidates(models, geometry, sun, centres, float(np.sin(np.radians(min_elevation_deg))))
+    index = None if target_index is None or isinstance(target_index, Tracer) else np.asarray(target_index)
+    if index is not None and (index.dtype.kind not in "iu" or np.any(index < -1)):
+        raise ValueError(f"target_index must be integers >= -1 (-1: a target the fit never used), not {target_index!r}")
+    if unix_time is not None:
+        if np.shape(unix_time) != (n,):
+            raise ValueError(f"unix_time has shape {np.shape(unix_time)}, expected ({n},): one per sun")
+        if not isinstance(unix_time, Tracer):
+            _check_unix_times("unix_time", np.asarray(unix_time, float), unknown=True)
+    min_sin = float(np.sin(np.radians(_check_min_elevation(min_elevation_deg))))
+    counts, valid = _target_candidates(models, geometry, sun, centres, min_sin)
     sun_k = jnp.broadcast_to(jnp.repeat(sun, t, axis=0), (h, n * t, 3))
     time_k = None if unix_time is None else jnp.repeat(jnp.asarray(unix_time, sun.dtype), t)
     target_k = None if target_index is None else jnp.tile(jnp.asarray(target_index, jnp.int32), n)
@@ -592,19 +681,39 @@ def discrepancy_from_results(results: typing.Any, target_centres: Float[ArrayLik
 
     Raises:
         DataError: the file lacks a per-record dataset this needs (written by an
-            older heliojax), naming it.
+            older heliojax), naming it; or no training inlier of a fitted heliostat
+            lies on a target of finite centre (a tower file without the fit's
+            targets gave NaN centres, and a discrepancy of 0 mrad, "learnt" from no
+            record, was planned with).
+        ValueError: ``target_centres`` is not ``(T, 3)`` with a row for every one of
+            the file's ``target_names``.
     """
     rec = results.records
     for name in ("sun_azimuth_deg", "sun_elevation_deg", "target_index", "split", "residual_mrad"):
         if name not in rec:
             raise DataError(results.source, name, "missing dataset (needed to learn the model discrepancy)")
+    centres = np.asarray(target_centres, float)
+    names = tuple(getattr(results, "target_names", ()))
+    if centres.ndim != 2 or centres.shape[1] != 3 or centres.shape[0] < max(len(names), 1):
+        raise ValueError(
+            f"target_centres must be (T, 3) ENU m with a row for each of the {len(names)} target_names "
+            f"(NaN: a target without a centre), not of shape {centres.shape}"
+        )
     sun, fitted_record = results.fitted_sun()  # the training inliers of the fit
     index = np.asarray(rec["target_index"], int)
-    centres = np.asarray(target_centres, float)
     known = (index >= 0) & (index < centres.shape[0])
     aim = np.where(known[..., None], centres[np.where(known, index, 0)], np.nan)
     normals = np.asarray(mirror_normals(np.asarray(results.geometry.position, float), sun, aim))
     use = known & fitted_record & np.asarray(results.fitted, bool)[:, None]
+    if not (use & np.all(np.isfinite(aim), axis=-1)).any():
+        without = [n for k, n in enumerate(names) if k >= centres.shape[0] or not np.isfinite(centres[k]).all()]
+        raise DataError(
+            results.source,
+            "target_index",
+            "no training record of a fitted heliostat lies on a target with a known centre"
+            + (f" (no centre for {', '.join(shown_value(n) for n in without)})" if without else "")
+            + ": nothing to learn the model discrepancy from",
+        )
     return estimate_discrepancy(rec["residual_mrad"], normals, use)
 
 

@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import collections.abc
 import math
+import numbers
 import typing
 
 import equinox as eqx
@@ -67,6 +68,10 @@ _FRACTION_GRID = np.geomspace(0.003, 0.5, 24)
 _SCALE_GRID = np.geomspace(1.5, 1e3, 29)
 _GAP_GRID = np.concatenate([[0.0], np.geomspace(1e-5, 1e2, 71)])  # mrad^2 / deg
 _CREEP_GRID = np.concatenate([[0.0], np.geomspace(1e-10, 1e1, 111)])  # mrad^2 / day^2
+
+
+_LAW_KEYS = ("kind", "tail_dof", "outlier_fraction", "outlier_scale")
+"""The keys of :meth:`PointingErrorLaw.to_dict` (``kind`` follows from the others)."""
 
 
 @typing.final
@@ -149,14 +154,33 @@ class PointingErrorLaw(eqx.Module):
 
     @classmethod
     def from_dict(cls, data: collections.abc.Mapping[str, typing.Any] | None) -> PointingErrorLaw:
-        """Inverse of :meth:`to_dict` (``None`` or missing keys: the Gaussian's values)."""
-        data = data or {}
-        dof = data.get("tail_dof")
-        return cls(
-            tail_dof=math.inf if dof is None else float(dof),
-            outlier_fraction=float(data.get("outlier_fraction", 0.0)),
-            outlier_scale=float(data.get("outlier_scale", 1.0)),
-        )
+        """Inverse of :meth:`to_dict` (``None`` or missing keys: the Gaussian's values).
+
+        Raises:
+            TypeError: ``data`` is not a mapping (a list raised AttributeError), or a
+                value is not a number (``tail_dof`` may be None: a Gaussian core).
+            ValueError: a key :meth:`to_dict` does not write (a misspelt one was
+                read as the Gaussian's value), or a value out of its range.
+        """
+        if data is None:
+            data = {}
+        if not isinstance(data, collections.abc.Mapping):
+            raise TypeError(
+                "PointingErrorLaw.from_dict: data: expected a mapping of tail_dof, outlier_fraction and "
+                f"outlier_scale (PointingErrorLaw.to_dict) or None, got {type(data).__name__}"
+            )
+        unknown = sorted(str(k) for k in data if k not in _LAW_KEYS)
+        if unknown:
+            raise ValueError(f"PointingErrorLaw.from_dict: data: unknown keys {unknown} (expected {list(_LAW_KEYS)})")
+        values = {}
+        for key, default in (("tail_dof", None), ("outlier_fraction", 0.0), ("outlier_scale", 1.0)):
+            value = data.get(key, default)
+            if value is None and key == "tail_dof":
+                value = math.inf
+            if isinstance(value, bool) or not isinstance(value, numbers.Real):
+                raise TypeError(f"PointingErrorLaw.from_dict: data[{key!r}]: expected a number, got {value!r}"[:200])
+            values[key] = float(value)
+        return cls(**values)
 
     def to_dict(self) -> dict[str, typing.Any]:
         """JSON form (``tail_dof`` null for a Gaussian core)."""

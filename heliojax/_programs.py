@@ -674,6 +674,9 @@ def preload(name: str) -> None:
 
     def load() -> None:
         for path, future in pending:
+            if not threading.main_thread().is_alive():  # the interpreter is exiting: load nothing more
+                future.set_result(None)
+                continue
             try:
                 future.set_result(_read_executable(path))
             except BaseException as e:  # noqa: BLE001 - _read_executable returns None on failure; just in case
@@ -681,7 +684,13 @@ def preload(name: str) -> None:
                 log.debug("preloading %s failed: %s", path, e)
 
     if pending:
-        threading.Thread(target=load, name=_PRELOAD_THREAD, daemon=True).start()
+        # Not a daemon: the interpreter's exit waits for the executable being read, and
+        # the thread then stops. A daemon thread inside XLA's deserializer when a Python
+        # caller's interpreter exited (two commands through heliojax.cli._main.main in one
+        # process) was ended inside C++ code: "terminate called ... FATAL: exception not
+        # rethrown", exit status 134 (hostile-input round 11). The heliojax program itself
+        # ends with os._exit and waits for nothing.
+        threading.Thread(target=load, name=_PRELOAD_THREAD, daemon=False).start()
 
 
 _PRELOAD_THREAD = "heliojax-preload"

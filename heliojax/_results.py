@@ -83,9 +83,9 @@ from ._aim import instant_seconds
 from ._errors import DataError, HeliojaxError
 from ._geometry import direction_to_azimuth_elevation, sun_direction
 from ._heliostat import HeliostatGeometry, LinearActuators, RecordContext
-from ._io import atomic_h5, heliostat_id_problem
+from ._io import atomic_h5, heliostat_id_problem, shown_value
 from ._kinematics import AbstractKinematicModel, nominal_model
-from ._limits import LATEST_UNIX_S
+from ._limits import LATEST_UNIX_S, target_name_problem
 from ._parameters import ParameterView, broadcast_model, covariance_problem
 from ._predictive import DRIFT_RATE_KEYS, MIN_TAIL_DOF, PointingErrorLaw
 from ._splits import days_from_fitted_mean, days_since_fit, utc_iso
@@ -615,6 +615,46 @@ def _check_record_ranges(records: dict[str, np.ndarray], source: str) -> None:
             raise DataError(source, key, f"{bad!r} deg is outside {low:g}..{high:g} deg")
 
 
+_MAX_RECORD_ID = 2**31
+"""Record ids are PAINT's, integers in ``[0, 2**31)`` (:func:`heliojax.records_among`
+keys them so); -1 marks padding."""
+_BOOLEAN_RECORD_FIELDS = ("outlier", "superseded", "off_target")
+"""Per-record flags heliojax writes as booleans."""
+
+
+def _check_record_codes(records: dict[str, np.ndarray], ids: tuple[str, ...], source: str) -> None:
+    """The record ids, weights and flags as heliojax writes them (round 11b: a float, a
+    repeated or a negative record id was read, and plan took a fitted record for a new
+    candidate; a NaN or negative weight; an outlier flag of 2): DataError naming the
+    field otherwise."""
+    if "record_id" in records:
+        rid = records["record_id"]
+        if rid.dtype.kind not in "iu":
+            raise DataError(source, "record_id", f"not integers (dtype {rid.dtype})")
+        wrong = (rid < -1) | (rid >= _MAX_RECORD_ID)
+        if wrong.any():
+            raise DataError(
+                source,
+                "record_id",
+                f"{int(rid[wrong][0])} is not a record id (integers in [0, 2**31); -1 marks padding)",
+            )
+        if "split" in records and ((rid == -1) & (records["split"] != 0)).any():
+            raise DataError(source, "record_id", "-1 (padding) for a record of the fit's split")
+        for h, row in enumerate(rid):
+            known = np.sort(row[row >= 0])
+            twice = known[1:][known[1:] == known[:-1]]
+            if twice.size:
+                raise DataError(source, "record_id", f"record {int(twice[0])} of {ids[h]!r} is listed twice")
+    if "weight" in records:
+        weight = records["weight"]
+        if not ((weight >= 0.0) & (weight <= 1.0)).all():  # NaN too: the writer's weights are in [0, 1]
+            bad = weight[~((weight >= 0.0) & (weight <= 1.0))][0]
+            raise DataError(source, "weight", f"{shown_value(float(bad))} is not a record weight in [0, 1]")
+    for key in _BOOLEAN_RECORD_FIELDS:
+        if key in records and records[key].dtype.kind != "b":
+            raise DataError(source, key, f"not booleans (dtype {records[key].dtype})")
+
+
 def _note_newer_version(written_by: typing.Any, source: str) -> None:
     """Warn when the file was written by a newer heliojax than this one: what that version
     added or changed is not known here (read as far as this version understands it)."""
@@ -727,6 +767,11 @@ def _error_law(attrs: dict) -> PointingErrorLaw:
         outlier_scale=float(attrs.get("outlier_scale", 1.0)),
     )
 
+
+MAX_ORIGIN_ALTITUDE_M = 1e5
+"""Largest ``|altitude|`` (m) of ``origin_lla``, the PAINT readers' bound for a point
+near the Earth's surface (an altitude of 1e7 m was read, and aim then called the tower
+file one of another plant)."""
 
 _MAX_NOISE_MRAD = 1e4
 """Largest noise (mrad) of a usable fit: no beam misses by more than pi radians."""
@@ -841,6 +886,15 @@ def _load_results(path: str | Path) -> CalibrationResults:
                 raise DataError(source, key, f"not a JSON list of strings: {value!r}"[:200])
             attrs[key] = value
         names = tuple(attrs["param_names"])
+        if len(attrs["param_units"]) != len(names):  # one unit per parameter, in the same order
+            raise DataError(
+                source, "param_units", f"{len(attrs['param_units'])} units for the {len(names)} param_names"
+            )
+        # the writer's types (round 11b: a forged robust of "no" or a numeric split was read)
+        if "robust" in attrs and not isinstance(attrs["robust"], (bool, np.bool_)):
+            raise DataError(source, "robust", f"not a boolean: {shown_value(attrs['robust'])}")
+        if "split" in attrs and not isinstance(attrs["split"], str):
+            raise DataError(source, "split", f"not the name of a split (text): {shown_value(attrs['split'])}")
         ids = _strings(need("heliostat_ids"), source, "heliostat_ids")
         if not ids:
             raise DataError(source, "heliostat_ids", "no heliostat")
@@ -878,12 +932,23 @@ def _load_results(path: str | Path) -> CalibrationResults:
             if shape != next(iter(shapes.values())):
                 raise DataError(source, k, f"shape {records[k].shape} differs from the other per-record datasets")
         targets = _strings(need("target_names"), source, "target_names") if "target_names" in f else ()
+        # the tower reader's rule (round 11: a forged '=HYPERLINK(...)' or a name listed
+        # twice was read, and plan matched the tower's targets to these names)
+        bad_target = next(((t, p) for t in targets if (p := target_name_problem(t))), None)
+        if bad_target is not None:
+            raise DataError(
+                source, "target_names", f"{shown_value(bad_target[0])} is not a target name ({bad_target[1]})"
+            )
+        if len(set(targets)) != len(targets):
+            twice = next(t for t in targets if targets.count(t) > 1)
+            raise DataError(source, "target_names", f"{shown_value(twice)} is listed twice")
         if "target_index" in records and np.any(records["target_index"] >= max(len(targets), 1)):
             raise DataError(source, "target_index", f"points beyond the {len(targets)} target_names")
         if "target_index" in records and np.any(records["target_index"] < -1):
             raise DataError(source, "target_index", "negative (-1 marks padding)")
         if "split" in records and not np.isin(records["split"], list(SPLIT_CODES.values())).all():
             raise DataError(source, "split", f"a code not among {sorted(SPLIT_CODES.values())} ({SPLIT_CODES})")
+        _check_record_codes(records, ids, source)
         if "split" in records and "unix_time" in records:
             # NaN: unknown (a download without record times, split by record id); the drift
             # since the fit needs every time of the split, and a fit without times has none
@@ -978,6 +1043,8 @@ def _load_results(path: str | Path) -> CalibrationResults:
         raise DataError(source, "origin_lla", "missing attribute")
     if origin.shape != (3,) or not np.isfinite(origin).all() or abs(origin[0]) > 90 or abs(origin[1]) > 180:
         raise DataError(source, "origin_lla", f"not a WGS84 latitude, longitude, altitude: {origin!r}"[:200])
+    if abs(origin[2]) > MAX_ORIGIN_ALTITUDE_M:  # the PAINT readers' bound; was taken for another plant's tower
+        raise DataError(source, "origin_lla", f"altitude {float(origin[2])!r} m is not near the Earth's surface")
     attrs["origin_lla"] = origin
     geometry_leaves = jax.tree_util.tree_leaves_with_path(geometry)
     for path_, leaf in geometry_leaves:

@@ -585,7 +585,14 @@ def test_two_garbage_heliostats_are_both_named():
 
     fleet = hj.load_paint_directory(hj.default_data_dir())
     n = fleet.n_heliostats
-    both = hj.fleet_subset(fleet, [*range(n), "BF56", "BG23"])
+    # the copies appended by hand: fleet_subset refuses a heliostat twice (round 11b)
+    extra = hj.fleet_subset(fleet, ["BF56", "BG23"])
+    per_heliostat = ("geometry", "counts", "context", "focal_spot", "record_id", "mask")
+    appended = {
+        k: jax.tree.map(lambda a, b: jnp.concatenate([a, b]), getattr(fleet, k), getattr(extra, k))
+        for k in per_heliostat
+    }
+    both = dataclasses.replace(fleet, **appended, ids=(*fleet.ids, "SWAPPED", "MOVED"))
     moved = np.random.default_rng(3).integers(-3000, 3001, both.counts.shape[1:])
     counts = both.counts.at[n].set(both.counts[n, :, ::-1]).at[n + 1].add(jnp.asarray(moved, both.counts.dtype))
     garbage = dataclasses.replace(eqx.tree_at(lambda f: f.counts, both, counts), ids=(*fleet.ids, "SWAPPED", "MOVED"))

@@ -265,10 +265,11 @@ def read_positions_csv(path: str | os.PathLike) -> tuple[tuple[str, ...], np.nda
 
 def find_tower_file(paint_dir: str | os.PathLike) -> Path:
     """The ``*-tower-measurements.json`` of a PAINT download directory."""
-    hits = sorted(glob.glob(os.path.join(paint_dir, "*" + TOWER_FILE_SUFFIX)))
+    # root_dir: the folder's own name is no pattern (one named "run[1]" had no tower file)
+    hits = sorted(glob.glob("*" + TOWER_FILE_SUFFIX, root_dir=paint_dir))
     if not hits:
         raise DataError(paint_dir, None, "no *-tower-measurements.json in the PAINT directory")
-    return Path(hits[0])
+    return Path(paint_dir) / hits[0]
 
 
 def positions_from_paint(paint_dir: str | os.PathLike) -> tuple[tuple[str, ...], np.ndarray]:
@@ -277,7 +278,8 @@ def positions_from_paint(paint_dir: str | os.PathLike) -> tuple[tuple[str, ...],
     the tower file's plant reference point."""
     tower = read_tower(find_tower_file(paint_dir))
     ids, lla = [], []
-    for prop in sorted(glob.glob(os.path.join(paint_dir, "*", "Properties", "*-heliostat-properties.json"))):
+    for rel in sorted(glob.glob(os.path.join("*", "Properties", "*-heliostat-properties.json"), root_dir=paint_dir)):
+        prop = Path(paint_dir) / rel
         props = read_heliostat_properties(prop)
         ids.append(props.heliostat_id)
         lla.append(props.position_lla)

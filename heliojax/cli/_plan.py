@@ -8,6 +8,7 @@ import datetime as dt
 import logging
 from pathlib import Path
 
+from .._limits import EARLIEST_YEAR, LATEST_YEAR
 from ._aim import _utc, time_window, utc_day
 from ._common import (
     RECORDS_HEADER,
@@ -126,7 +127,12 @@ def add_parser(subparsers) -> None:
         help="operating aim point: this target's centre in the tower file",
     )
     p.add_argument("--tower", type=path_type, help="tower file (default: the embedded Jülich tower file)")
-    p.add_argument("--envelope-year", type=integer(1900, 2200), default=2023, help="year of the operating envelope")
+    p.add_argument(
+        "--envelope-year",
+        type=integer(EARLIEST_YEAR, LATEST_YEAR),  # the library's span of instants (1900 and 2200 were taken)
+        default=2023,
+        help=f"year of the operating envelope ({EARLIEST_YEAR} to {LATEST_YEAR}, UTC)",
+    )
     p.add_argument("--envelope-day-step", type=integer(1, 365), default=5, help="every N-th day of the envelope year")
     p.add_argument(
         "--min-sun-elevation",
@@ -291,6 +297,13 @@ def run(args) -> int:
     discrepancy = None
     if args.model_discrepancy == "estimate":
         known = set(tower.targets)
+        missing = [t for t in results.target_names if t not in known]
+        if missing:  # their records' mirror normals are unknown: left out of what is learnt
+            which = f"--tower {args.tower}" if args.tower else "the embedded Jülich tower file"
+            log.warning(
+                f"{which} has no target {', '.join(missing)} of the fit (results.h5 target_names): the fit's "
+                f"records on {'it' if len(missing) == 1 else 'them'} do not inform the model discrepancy"
+            )
         centres_r = np.stack(
             [centre(t) if t in known else np.full(3, np.nan) for t in results.target_names] or [np.full(3, np.nan)]
         )

@@ -218,7 +218,8 @@ def check_record_context(
             raise DataError(
                 file,
                 f"motor_position.axis_{axis}_motor_position",
-                f"count {count} outside [min_increment, max_increment] = [{lo}, {hi}] of {Path(props.source).name}",
+                f"count {_shown_count(count)} outside [min_increment, max_increment] = "
+                f"[{_shown_count(lo)}, {_shown_count(hi)}] of {Path(props.source).name}",
             )
     target = None if tower is None else tower.targets.get(record.target_name)
     if target is not None and target.normal is not None and any(target.normal):
@@ -232,6 +233,15 @@ def check_record_context(
                 f"{-front:.3g} m behind the plane of target {record.target_name!r}, whose front faces "
                 f"{list(target.normal)}: no reflection reaches that face (a wrong position or target?)",
             )
+
+
+def _shown_count(count: Any) -> str:
+    """A motor count as a message shows it: every digit up to 15 of them, else in
+    ``%g`` form (a count of 1e300 was printed with its 301 digits)."""
+    try:
+        return str(count) if abs(count) < 10**15 else f"{float(count):.6g}"
+    except (OverflowError, TypeError, ValueError):
+        return shown_value(count)
 
 
 @no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body

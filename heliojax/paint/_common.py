@@ -10,7 +10,7 @@ import json
 import math
 import os
 import re
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any, no_type_check
 
@@ -166,6 +166,23 @@ _ID_RE = re.compile(r"[0-9]{1,18}\Z")  # ASCII digits only, no trailing line bre
 # types, and the tests' run-time type checks (jaxtyping's import hook) would cost
 # them ~10 s per directory load.
 @no_type_check
+def requested_heliostats(heliostats: Iterable[str] | str, caller: str) -> list[str]:
+    """The ids of a ``heliostats`` argument: one id (a string) or an iterable of ids.
+    A string was iterated over ("BF09" requested heliostats B, F, 0 and 9); anything
+    else is a TypeError naming ``caller``'s argument."""
+    if isinstance(heliostats, str):
+        return [heliostats]
+    if isinstance(heliostats, (bytes, os.PathLike)) or not isinstance(heliostats, Iterable):
+        raise TypeError(
+            f"{caller}: heliostats: expected a heliostat id or a list of them, got {type(heliostats).__name__}"
+        )
+    ids = list(heliostats)
+    bad = next((x for x in ids if not isinstance(x, str)), None)
+    if bad is not None:
+        raise TypeError(f"{caller}: heliostats: {bad!r} ({type(bad).__name__}) is not a heliostat id (a string)")
+    return ids
+
+
 def _nan_weather() -> dict[str, float]:
     return {k: math.nan for k in WEATHER_KEYS}
 

@@ -51,6 +51,7 @@ from ._common import (
     TowerFile,
     _distance_m,
     _nan_weather,
+    requested_heliostats,
 )
 from ._flags import (
     EARLIEST_RECORD_TIME,
@@ -681,11 +682,16 @@ def records_to_fleet(
 
 def _listing(folder: Path, suffix: str, log: _Log) -> list[Path]:
     """The files in ``folder`` whose names end in ``suffix`` (not hidden), sorted; none
-    for a missing folder; an unreadable one is named in the load report."""
+    for a missing folder; an unreadable one, or a file in its place, is named in the load
+    report (a file ``<H>/Calibration`` was reported only as a heliostat without a valid
+    record)."""
     try:
         with os.scandir(folder) as entries:
             return sorted(Path(e.path) for e in entries if e.name.endswith(suffix) and not e.name.startswith("."))
-    except (FileNotFoundError, NotADirectoryError):
+    except FileNotFoundError:
+        return []
+    except NotADirectoryError:
+        log.skip(DataError(folder, None, f"not a folder (a file): no *{suffix} read from it"))
         return []
     except OSError as e:
         log.skip(DataError(folder, None, f"cannot list folder: {e.strerror or e}"))
@@ -726,12 +732,14 @@ def load_paint_directory(
     Args:
         path: the directory; default: :func:`default_data_dir` (embedded data).
         centroid: ``"utis"`` (default; HeliOS where UTIS is missing/null) or ``"helios"``.
-        heliostats: ids to load (default: all); others are not read.
+        heliostats: ids to load (a list, or one id as a string; default: all); others
+            are not read.
         strict: raise the first :class:`DataError` instead of skipping.
         origin: WGS84 ENU origin overriding the tower file's plant coordinates.
 
     Raises:
-        TypeError: ``path`` is not a path (a number, a list).
+        TypeError: ``path`` is not a path (a number, a list); ``heliostats`` is not an
+            id or a list of ids.
         DataError: a missing/invalid tower file or no loadable heliostat (always);
             any bad input when ``strict``.
     """
@@ -804,7 +812,7 @@ def load_paint_directory(
             f"<H>/Calibration/<ID>{CALIBRATION_SUFFIX}",
         )
     if heliostats is not None:
-        wanted = set(heliostats)
+        wanted = set(requested_heliostats(heliostats, "load_paint_directory"))
         if wanted and not wanted & {d.name for d in dirs}:  # another fleet's folder: one line, not a report
             raise DataError(
                 root,
@@ -972,7 +980,7 @@ def load_weather_csv_fleet(
         properties_dir: where to look for properties files.
         centroid: as :func:`load_paint_directory` (CSV rows carry HeliOS only, so
             ``"utis"`` falls back to HeliOS for every row).
-        heliostats: ids to load (default: all in the CSV).
+        heliostats: ids to load (a list, or one id as a string; default: all in the CSV).
         strict: raise the first :class:`DataError` instead of skipping.
         origin: WGS84 ENU origin overriding the tower file's.
     """
@@ -983,7 +991,7 @@ def load_weather_csv_fleet(
     log.files_seen += 2
     rows = read_weather_csv(csv_path, on_error=log.skip_record)
     if heliostats is not None:
-        wanted = set(heliostats)
+        wanted = set(requested_heliostats(heliostats, "load_weather_csv_fleet"))
         for hid in sorted(wanted - {r.heliostat_id for r in rows}):
             log.skip(
                 DataError(csv_path, "heliostat_id", f"heliostat {hid!r} requested but not in the CSV"), heliostats=1

@@ -90,13 +90,14 @@ import re
 import tempfile
 import urllib.parse
 from collections.abc import Callable, Sequence
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import pystac
 
 from .._errors import DataError
+from .._io import shown_value
 from .._sun import utc_datetime
-from ._common import TOWER_FILE_SUFFIX, TimestampEntry
+from ._common import TOWER_FILE_SUFFIX, TimestampEntry, requested_heliostats
 from ._stac_io import (
     _COLLECTION_SUFFIX,
     _FOLDER,
@@ -108,6 +109,7 @@ from ._stac_io import (
     CALIBRATION_ASSETS,
     COLLECTIONS,
     HREF_PROBLEM,
+    JOURNAL_NAME,
     FetchReport,
     RedirectRefused,
     Transport,
@@ -183,7 +185,8 @@ def fetch_catalog(
         source: root catalogue: ``http(s)://`` or ``file://`` URL, local path of its
             JSON file, or a folder holding ``catalog.json`` / ``*-catalog-stac.json``.
         out_dir: output folder (created).
-        heliostats: heliostat ids to fetch (default: every heliostat catalogue).
+        heliostats: heliostat ids to fetch (a list, or one id as a string; default: every
+            heliostat catalogue).
         collections: any of :data:`COLLECTIONS`.
         calibration_assets: asset keys of calibration items to fetch (any of
             :data:`CALIBRATION_ASSETS`); other collections' items are fetched whole.
@@ -229,7 +232,11 @@ def fetch_catalog(
     root_href = _root_href(source)
     scope = _Scope.of(root_href)
     out = Path(out_dir)
-    wanted = None if heliostats is None else {h.strip() for h in heliostats if h.strip()}
+    wanted = (
+        None
+        if heliostats is None
+        else {h.strip() for h in requested_heliostats(heliostats, "fetch_catalog") if h.strip()}
+    )
     warnings: list[str] = []
     all_tasks_done: dict[str, list] = {"downloaded": [], "skipped": [], "failed": []}
     timestamps: dict[int, TimestampEntry] = {}  # record id -> (heliostat, item datetime)
@@ -303,9 +310,11 @@ def fetch_catalog(
             say(f"not in the catalogue: {', '.join(missing)}")
         say(f"{len(catalogs)} heliostat catalogue(s) selected")
 
+        new_mode = 0o666 & ~_umask()  # read now, in this thread (not at import, not in the workers)
+
         def run(tasks: list[_Task]) -> tuple[int, int, int]:
             counts = [0, 0, 0]
-            futures = [pool.submit(_fetch_one, t, reader, journal, resume, out) for t in tasks]
+            futures = [pool.submit(_fetch_one, t, reader, journal, resume, out, new_mode) for t in tasks]
             for t, fut in zip(tasks, futures, strict=True):
                 try:
                     status, n = fut.result()
@@ -631,7 +640,12 @@ def _merge_timestamps(path: Path, new: dict[int, TimestampEntry]) -> None:
     write_timestamps(path, {**old, **new})
 
 
-def _fetch_one(task: _Task, reader: _Reader, journal: _Journal, resume: bool, out: Path) -> tuple[str, int]:
+def _fetch_one(
+    task: _Task, reader: _Reader, journal: _Journal, resume: bool, out: Path, new_mode: int
+) -> tuple[str, int]:
+    """Download ``task`` (or skip it, complete already); the file gets the mode of the
+    file it replaces, else ``new_mode`` (``0o666`` less the umask): the rule of
+    :func:`heliojax._io._publish` for every other output."""
     checker = _Checker(task)
     dest = task.dest
     if dest.is_symlink():
@@ -690,7 +704,7 @@ def _fetch_one(task: _Task, reader: _Reader, journal: _Journal, resume: bool, ou
         problem = checker.check(size, other if other is not None else sha) or _content_ok(tmp, dest.name)
         if problem:
             raise _Failure(problem)
-        os.chmod(tmp, _FILE_MODE)  # mkstemp creates 0600; give the usual umask-based mode
+        os.chmod(tmp, _replaced_mode(dest, new_mode))  # mkstemp creates 0600
         os.replace(tmp, dest)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
@@ -714,11 +728,36 @@ def _umask() -> int:
     return mask
 
 
-_FILE_MODE = 0o666 & ~_umask()
+def _replaced_mode(dest: Path, new_mode: int) -> int:
+    """The mode a plain ``open(dest, "w")`` leaves: that of the file ``dest`` replaces (a
+    download of a changed file, or ``--no-resume``: the umask of the import was given
+    instead), else ``new_mode``."""
+    try:
+        return dest.stat().st_mode & 0o7777
+    except FileNotFoundError:
+        return new_mode
 
 
 def _glob_escape(name: str) -> str:
     return re.sub(r"([*?\[])", r"[\1]", name)
+
+
+def _journal_path_problem(out: Path, rel: str) -> str | None:
+    """Why the journal's ``rel`` is not a path fetch writes, inside ``out`` (an absolute
+    path, a ``..``, a folder on the way that is a symbolic link), or None."""
+    pure = PurePosixPath(rel)
+    if pure.is_absolute():
+        return "an absolute path, out of the output folder"
+    if ".." in pure.parts:
+        return "a path out of the output folder ('..')"
+    if not rel or "\0" in rel or "\\" in rel or str(pure) != rel:
+        return "not a path as fetch writes it (relative, '/' between its parts)"
+    folder = out
+    for part in pure.parts[:-1]:
+        folder = folder / part
+        if folder.is_symlink():
+            return f"its folder {part!r} is a symbolic link (out of the output folder)"
+    return None
 
 
 def verify_download(out_dir: str | os.PathLike) -> list[str]:
@@ -726,12 +765,29 @@ def verify_download(out_dir: str | os.PathLike) -> list[str]:
 
     Returns:
         One message per problem (missing file, symbolic link, size or SHA-256
-        differing from the journal, JSON that does not parse); empty when all is well.
+        differing from the journal, JSON that does not parse, a journal path out of
+        ``out_dir``: absolute, with ``..`` or through a linked folder, not read);
+        empty when all is well.
+
+    Raises:
+        DataError: ``out_dir`` is not a folder, or holds no journal (not a folder
+            ``heliojax fetch`` downloaded into: a mistyped path was verified as one
+            where all is well).
     """
     out = Path(out_dir)
+    if not out.is_dir():
+        raise DataError(out, None, "not a folder (missing, or a file): nothing to verify")
+    if not ((out / JOURNAL_NAME).exists() or (out / JOURNAL_NAME).is_symlink()):  # a link: _Journal names it
+        raise DataError(
+            out, JOURNAL_NAME, "missing: not a folder `heliojax fetch` downloaded into (it keeps the journal there)"
+        )
     journal = _Journal(out)
     problems = []
     for rel, rec in sorted(journal.records.items()):
+        outside = _journal_path_problem(out, rel)
+        if outside is not None:  # never read: an edited journal pointed at /etc/shadow, or ../../x
+            problems.append(f"{shown_value(rel, 200)}: {outside}; not read")
+            continue
         p = out / rel
         if p.is_symlink() or not p.is_file():
             problems.append(f"{rel}: missing or not a regular file")
