@@ -26,6 +26,9 @@ import heliojax as hj
 from heliojax.discovery import simulate_fleet
 from heliojax.effects import make_effect
 
+if typing.TYPE_CHECKING:
+    from pathlib import Path
+
 N_HELIOSTATS = 8
 N_RECORDS = 24
 NOISE_MRAD = 0.2
@@ -94,3 +97,21 @@ def unchecked_config(**fields):
     config = object.__new__(DiscoveryConfig)
     init(config, **fields)
     return config
+
+
+def forged_results(fitted_h5: Path, tmp_path: Path, edit) -> Path:
+    """A copy of ``fitted_h5`` in ``tmp_path`` changed by ``edit(file)`` (an open
+    ``h5py.File``) with its row checksums recomputed (a forgery, or a tool that rewrites
+    the file: the checksums alone do not find it)."""
+    import shutil
+
+    import h5py
+
+    from heliojax._results import CHECKSUM_DATASET, _row_checksums
+
+    results = tmp_path / "results.h5"
+    shutil.copy(fitted_h5, results)
+    with h5py.File(results, "r+") as f:
+        edit(f)
+        f[CHECKSUM_DATASET][...] = _row_checksums(f, len(f["heliostat_ids"]))
+    return results

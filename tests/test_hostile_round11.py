@@ -14,13 +14,12 @@ from __future__ import annotations
 import json
 import shutil
 import threading
-from pathlib import Path
 
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 import pytest
-from helpers import run_cli
+from helpers import forged_results, run_cli
 
 import heliojax as hj
 from heliojax import _programs
@@ -30,21 +29,6 @@ from heliojax.paint import JOURNAL_NAME, verify_download
 TOWER = "WRI1030197-tower-measurements.json"
 FORMULA = '=HYPERLINK("http://evil","x")'
 ORIGIN = np.array([50.91342112, 6.38782476, 87.0])
-
-
-def _forged(fitted_h5: Path, tmp_path: Path, edit) -> Path:
-    """A copy of ``fitted_h5`` changed by ``edit(file)`` with its row checksums recomputed
-    (a forgery, or a tool that rewrites the file: the checksums alone do not find it)."""
-    import h5py
-
-    from heliojax._results import CHECKSUM_DATASET, _row_checksums
-
-    results = tmp_path / "results.h5"
-    shutil.copy(fitted_h5, results)
-    with h5py.File(results, "r+") as f:
-        edit(f)
-        f[CHECKSUM_DATASET][...] = _row_checksums(f, len(f["heliostat_ids"]))
-    return results
 
 
 @pytest.mark.parametrize(
@@ -62,7 +46,7 @@ def test_results_target_names_get_the_tower_readers_rule(fitted_h5, tmp_path, ca
         del f["target_names"]
         f.create_dataset("target_names", data=[first, *names[1:]], dtype=h5py.string_dtype())
 
-    results = _forged(fitted_h5, tmp_path, edit)
+    results = forged_results(fitted_h5, tmp_path, edit)
     with pytest.raises(hj.DataError, match=said) as e:
         hj.load_results(results)
     assert e.value.field == "target_names" and e.value.file == str(results)
@@ -79,7 +63,7 @@ def test_results_origin_far_above_the_earth_is_named_not_blamed_on_the_tower(fit
     def edit(f):
         f.attrs["origin_lla"] = np.array([*f.attrs["origin_lla"][:2], 1e7])
 
-    results = _forged(fitted_h5, tmp_path, edit)
+    results = forged_results(fitted_h5, tmp_path, edit)
     with pytest.raises(hj.DataError, match="not near the Earth's surface") as e:
         hj.load_results(results)
     assert e.value.field == "origin_lla"

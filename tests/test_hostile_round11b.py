@@ -18,8 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import run_cli
-from test_hostile_round11 import _forged
+from helpers import forged_results, run_cli
 from test_stac import build_catalogue
 
 import heliojax as hj
@@ -106,7 +105,7 @@ def _attr(name, value):
 def test_results_record_fields_and_attributes_get_the_writers_types(fitted_h5, tmp_path, edit, field, said):
     """Each forgery (row checksums recomputed) was read; a float record id went through
     plan's records_among as int64, so a fitted record was taken for a new candidate."""
-    results = _forged(fitted_h5, tmp_path, edit)
+    results = forged_results(fitted_h5, tmp_path, edit)
     with pytest.raises(hj.DataError, match=said) as e:
         hj.load_results(results)
     assert e.value.field == field and e.value.file == str(results)

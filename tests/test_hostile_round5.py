@@ -10,7 +10,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import run_cli, write_file
+from helpers import forged_results, run_cli, write_file
 
 import heliojax as hj
 from heliojax.acceptance._io import check_spacing
@@ -212,22 +212,6 @@ def test_forged_record_values_outside_their_range_are_refused(fitted_h5, tmp_pat
     assert e.value.field == dataset and e.value.file == str(results)
 
 
-def _forged(fitted_h5: Path, tmp_path: Path, edit) -> Path:
-    """A copy of ``fitted_h5`` changed by ``edit(file)`` with its row checksums recomputed."""
-    import shutil
-
-    import h5py
-
-    from heliojax._results import CHECKSUM_DATASET, _row_checksums
-
-    results = tmp_path / "results.h5"
-    shutil.copy(fitted_h5, results)
-    with h5py.File(results, "r+") as f:
-        edit(f)
-        f[CHECKSUM_DATASET][...] = _row_checksums(f, len(f["heliostat_ids"]))
-    return results
-
-
 def test_a_parameter_forged_within_its_bounds_is_found_by_the_residuals(fitted_h5, tmp_path, caplog):
     """A parameter edited within every plausibility bound, the row checksum recomputed,
     passed (an axis tilt of pi aimed with, ok=1: hostile-input trial, round 5). The file
@@ -244,7 +228,7 @@ def test_a_parameter_forged_within_its_bounds_is_found_by_the_residuals(fitted_h
         f["params"][...] = params
 
     with caplog.at_level("WARNING", logger="heliojax"):
-        forged = hj.load_results(_forged(fitted_h5, tmp_path, edit))
+        forged = hj.load_results(forged_results(fitted_h5, tmp_path, edit))
     assert list(forged.flags) == [clean.ids[h]]
     assert "do not reproduce its residuals" in forged.flags[clean.ids[h]]
     assert clean.ids[h] in caplog.text
@@ -275,7 +259,7 @@ def test_a_heliostat_with_records_after_the_file_was_written_is_flagged(fitted_h
         t[h][np.isfinite(t[h])] = 7.0e9  # 2191
         f["unix_time"][...] = t
 
-    forged = hj.load_results(_forged(fitted_h5, tmp_path, edit))
+    forged = hj.load_results(forged_results(fitted_h5, tmp_path, edit))
     assert list(forged.flags) == [clean.ids[h]]
     assert "later than the file was written" in forged.flags[clean.ids[h]]
 
@@ -293,7 +277,7 @@ def test_a_file_without_its_record_inputs_is_refused(fitted_h5, tmp_path, how):
             f["record_inputs"] = np.zeros(3)
 
     with pytest.raises(hj.DataError, match="missing group|not a group") as e:
-        hj.load_results(_forged(fitted_h5, tmp_path, edit))
+        hj.load_results(forged_results(fitted_h5, tmp_path, edit))
     assert e.value.field == "record_inputs"
 
 
@@ -302,7 +286,7 @@ def test_a_file_written_after_now_is_warned_of(fitted_h5, tmp_path, caplog):
         f.attrs["written_unix_time"] = 7.0e9
 
     with caplog.at_level("WARNING", logger="heliojax"):
-        hj.load_results(_forged(fitted_h5, tmp_path, edit))
+        hj.load_results(forged_results(fitted_h5, tmp_path, edit))
     assert "later than this machine's clock" in caplog.text
 
 
