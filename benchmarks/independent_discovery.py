@@ -115,7 +115,9 @@ def judge(truth: dict, rep: dict) -> dict:
     # the named effects the report itself calls uncertain: a rival within ambiguity_bic, or
     # a name on weak evidence (delta BIC below "strong", "weak_evidence")
     ambiguous = [a["named"] for a in rep.get("ambiguities", []) + rep.get("weak_evidence", [])]
-    out = {"named": named, "unexplained": unexplained, "ambiguous": ambiguous}
+    # the names whose held-out gain is not significant over days (flagged, still named)
+    held_out_flagged = [u["named"] for u in rep.get("held_out_not_significant", [])]
+    out = {"named": named, "unexplained": unexplained, "ambiguous": ambiguous, "held_out_flagged": held_out_flagged}
     if effect == "none":
         out["hit"] = not named and not unexplained
         out["misnamed"] = bool(named)
