@@ -81,6 +81,29 @@ def _warn_if_single_precision(x: Array, function: str) -> None:
         )
 
 
+def _check_triples(function: str, name: str, x: Array, *, one: bool = False, geodetic: bool = False) -> None:
+    """ValueError naming ``name`` (an argument of ``function``) when ``x``'s last axis
+    is not 3 (``one``: when ``x`` is not one ``(3,)`` vector), and, for a concrete
+    geodetic ``[lat_deg, lon_deg, alt_m]`` (``geodetic``), when a latitude lies outside
+    [-90, 90] degrees. JAX clamps an index past the end: ``lla[..., 2]`` of a
+    ``(lat, lon)`` pair had read the longitude as the altitude, without an error. The
+    shape is checked under ``jit`` and ``vmap`` too (it is static); values only where
+    concrete (NaN passes: NaN out)."""
+    shape = jnp.shape(x)
+    if (shape != (3,)) if one else (len(shape) == 0 or shape[-1] != 3):
+        what = "one (3,) vector" if one else "(..., 3) points"
+        unit = "[lat_deg, lon_deg, alt_m]" if geodetic else "metres"
+        raise ValueError(f"{function}: {name} has shape {shape}; expected {what}, {unit}")
+    if geodetic and not isinstance(x, Tracer):
+        lat = np.asarray(x)[..., 0]
+        if np.any(np.abs(lat) > 90.0):
+            worst = float(lat.flat[int(np.argmax(np.where(np.isnan(lat), 0.0, np.abs(lat))))])
+            raise ValueError(
+                f"{function}: {name} holds a latitude of {worst:g} deg, outside [-90, 90] "
+                "(expected [lat_deg, lon_deg, alt_m]: swapped, or not degrees?)"
+            )
+
+
 def wgs84_to_ecef(lla: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
     """WGS84 geodetic ``[lat_deg, lon_deg, alt_m]`` -> Earth-centred Earth-fixed metres.
     Warns below float64 (see :func:`_warn_if_single_precision`).
@@ -90,8 +113,13 @@ def wgs84_to_ecef(lla: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
 
     Returns:
         ``(..., 3)`` ECEF coordinates in metres.
+
+    Raises:
+        ValueError: ``lla`` not ``(..., 3)``, or a (concrete) latitude outside [-90, 90]
+            degrees.
     """
     lla = jnp.asarray(lla)
+    _check_triples("wgs84_to_ecef", "lla", lla, geodetic=True)
     _warn_if_single_precision(lla, "wgs84_to_ecef")
     return _wgs84_to_ecef(lla)
 
@@ -122,6 +150,7 @@ def ecef_to_wgs84(xyz: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
         ``(..., 3)`` latitude (deg), longitude (deg), ellipsoidal height (m).
     """
     xyz = jnp.asarray(xyz)
+    _check_triples("ecef_to_wgs84", "xyz", xyz)
     _warn_if_single_precision(xyz, "ecef_to_wgs84")
     return _ecef_to_wgs84(xyz)
 
@@ -175,8 +204,14 @@ def wgs84_to_enu(lla: Float[ArrayLike, "... 3"], origin_lla: Float[ArrayLike, "3
     Returns:
         ``(..., 3)`` east, north, up in metres (warns below float64, see
         :func:`wgs84_to_ecef`).
+
+    Raises:
+        ValueError: ``lla`` not ``(..., 3)`` or ``origin_lla`` not ``(3,)`` (also under
+            ``jit``), or a (concrete) latitude outside [-90, 90] degrees.
     """
     lla, origin_lla = jnp.asarray(lla), jnp.asarray(origin_lla)
+    _check_triples("wgs84_to_enu", "lla", lla, geodetic=True)
+    _check_triples("wgs84_to_enu", "origin_lla", origin_lla, one=True, geodetic=True)
     rot = _ecef_to_enu_matrix(origin_lla)
     ecef = _wgs84_to_ecef(lla)
     _warn_if_single_precision(ecef, "wgs84_to_enu")
@@ -191,6 +226,8 @@ def enu_to_wgs84(enu: Float[ArrayLike, "... 3"], origin_lla: Float[ArrayLike, "3
     below it).
     """
     enu, origin_lla = jnp.asarray(enu), jnp.asarray(origin_lla)
+    _check_triples("enu_to_wgs84", "enu", enu)
+    _check_triples("enu_to_wgs84", "origin_lla", origin_lla, one=True, geodetic=True)
     rot = _ecef_to_enu_matrix(origin_lla)
     ecef = enu @ rot
     ecef = ecef + jnp.broadcast_to(_wgs84_to_ecef(origin_lla), ecef.shape)
@@ -287,8 +324,17 @@ class TargetPlane(eqx.Module):
         lower-to-upper direction made orthogonal to ``u_axis`` (Gram-Schmidt);
         the normal is ``u_axis x v_axis``. No assumption of a vertical or
         axis-aligned target is made.
+
+        Raises:
+            ValueError: a corner not of shape ``(3,)`` (also under ``jit``), or (concrete)
+                corners that span no rectangle: not finite, or no width or height (they
+                had given a plane of NaN axes, which every ray missed without an error).
         """
         ul, ur, ll, lr = (jnp.asarray(p) for p in (upper_left, upper_right, lower_left, lower_right))
+        names = ("upper_left", "upper_right", "lower_left", "lower_right")
+        for name, corner in zip(names, (ul, ur, ll, lr), strict=True):
+            if corner.shape != (3,):
+                raise ValueError(f"TargetPlane.from_corners: {name} has shape {corner.shape}; expected (3,), ENU m")
         centre = (ul + ur + ll + lr) / 4.0
         width_vec = (ur + lr) / 2.0 - (ul + ll) / 2.0
         height_vec = (ul + ur) / 2.0 - (ll + lr) / 2.0
@@ -296,6 +342,14 @@ class TargetPlane(eqx.Module):
         v_raw = height_vec - jnp.dot(height_vec, u_axis) * u_axis
         v_axis = normalize(v_raw)
         normal = jnp.cross(u_axis, v_axis)
+        if not any(isinstance(x, Tracer) for x in (ul, ur, ll, lr)):
+            width, height = (float(np.linalg.norm(np.asarray(x))) for x in (width_vec, v_raw))  # no eager XLA op
+            if not (np.isfinite(np.asarray(normal)).all() and width > 0.0 and height > 0.0):
+                raise ValueError(
+                    "TargetPlane.from_corners: the corners span no rectangle "
+                    f"(width {width:g} m, height {height:g} m); expected four finite corners in the order "
+                    "upper_left, upper_right, lower_left, lower_right"
+                )
         return cls(
             centre=centre,
             normal=normal,

@@ -171,9 +171,14 @@ class HeliostatGeometry(eqx.Module):
         ``ideal_axes``: per axis, whether the plant declares an *ideal* actuator
         (PAINT ``type_axis == "ideal"``: the joint angle is linear in the counts),
         ``(2,)`` or batched like the actuators; the law-of-cosines actuator model
-        then uses the linear map on that axis (see :class:`ActuatorModel`)."""
+        then uses the linear map on that axis (see :class:`ActuatorModel`).
+
+        A ``position`` of integers is taken as JAX's default float (the translations
+        take its dtype: ``(0, 0.175, 0)`` had been truncated to zeros)."""
         slope, intercept = actuators.linearised()
         pos = jnp.asarray(position)
+        if not jnp.issubdtype(pos.dtype, jnp.inexact):
+            pos = pos.astype(jnp.result_type(float))
         return cls(
             position=pos,
             joint_translation_1=jnp.broadcast_to(jnp.asarray(joint_translation_1, pos.dtype), pos.shape),

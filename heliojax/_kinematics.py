@@ -43,7 +43,7 @@ from jaxtyping import Array, ArrayLike, Float
 from ._beam import beam_error_components, beam_pointing_error
 from ._geometry import bisector_normal, normalize
 from ._heliostat import HeliostatGeometry, LinearActuators, Pose, RecordContext, chain_pose, solve_chain_angles
-from ._parameters import parameter
+from ._parameters import is_batched, parameter, parameter_leaves
 
 # --------------------------------------------------------------------------------------
 # Models (the fitted parameters)
@@ -181,8 +181,16 @@ class AbstractModelWrapper(AbstractKinematicModel):
 def inverse_normal(
     model: AbstractKinematicModel, geometry: HeliostatGeometry, normal: Float[ArrayLike, "3"]
 ) -> Float[Array, "2"]:
-    """Motor counts (float) that align the mirror normal with ``normal`` (unit, ENU)."""
-    normal = normalize(jnp.asarray(normal))
+    """Motor counts (float) that align the mirror normal with ``normal`` (unit, ENU).
+
+    Raises:
+        ValueError: ``normal`` not of shape ``(3,)`` (vmap for many)."""
+    normal = jnp.asarray(normal)
+    if normal.shape != (3,):
+        raise ValueError(
+            f"inverse_normal: normal has shape {normal.shape}; expected (3,), one ENU vector (vmap for many)"
+        )
+    normal = normalize(normal)
     angles = solve_chain_angles(model.tilts(), normal, jnp.zeros((), normal.dtype))
     return model.counts(geometry, angles)
 
@@ -402,8 +410,37 @@ def forward(
         geometry: the heliostat.
         counts: ``(2,)`` motor counts (axis 1, axis 2).
         context: the record's sun, time and weather (used by effects).
+
+    Raises:
+        ValueError: ``counts`` not of shape ``(2,)``, or ``geometry`` or ``model``
+            batched over heliostats (checked under ``jit`` and ``vmap`` too: shapes are
+            static). Counts of shape ``(1,)`` had been used for both axes.
     """
-    return model.pose(geometry, jnp.asarray(counts), context)
+    counts = jnp.asarray(counts)
+    if counts.shape != (2,):
+        raise ValueError(
+            f"forward: counts has shape {counts.shape}; expected (2,), the motor counts (axis 1, axis 2) of one "
+            "record (jax.vmap over records and heliostats)"
+        )
+    _check_one_heliostat("forward", model, geometry)
+    return model.pose(geometry, counts, context)
+
+
+def _check_one_heliostat(function: str, model: AbstractKinematicModel, geometry: HeliostatGeometry) -> None:
+    """ValueError where ``geometry`` or ``model`` carries a heliostat axis: a function of
+    one heliostat had failed deep inside the rotation chain (a ``dot_general`` shape
+    error) or broadcast the batch against the record."""
+    position = jnp.shape(geometry.position)
+    if position != (3,):
+        raise ValueError(
+            f"{function}: geometry.position has shape {position}; expected (3,), the geometry of one heliostat "
+            "(jax.vmap over a fleet's heliostats, or take one with fleet.heliostat(i))"
+        )
+    if parameter_leaves(model) and is_batched(model):  # a model of one's own may have no parameter
+        raise ValueError(
+            f"{function}: model is batched over heliostats; expected the model of one heliostat "
+            "(solution.heliostat_model(i), or jax.vmap over the heliostats)"
+        )
 
 
 __all__ = [

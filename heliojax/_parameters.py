@@ -208,8 +208,15 @@ def no_free(model: eqx.Module) -> typing.Any:
     return _bool_tree(model, False)
 
 
-def _is_free(free: typing.Any, leaf: ParameterLeaf) -> bool:
-    value = _get(free, leaf.path)
+def _is_free(free: typing.Any, leaf: ParameterLeaf, model: typing.Any = None) -> bool:
+    try:
+        value = _get(free, leaf.path)
+    except (AttributeError, IndexError, KeyError, TypeError):  # a free set of another model, or a dict of names
+        raise TypeError(
+            f"free set: no entry for {'.'.join(map(str, leaf.path))} of the model ({type(model).__name__}), "
+            f"got a {type(free).__name__}; expected booleans of the model's structure "
+            "(heliojax.default_free(model), changed with eqx.tree_at)"
+        ) from None
     flat = np.asarray(value)
     if flat.dtype != bool:
         raise TypeError(f"free set at {'.'.join(map(str, leaf.path))}: expected booleans, got {value!r}")
@@ -240,7 +247,7 @@ class ParameterView:
         if free is None:
             free_leaves = tuple(not leaf.fixed_by_model for leaf in leaves)
         else:
-            free_leaves = tuple(_is_free(free, leaf) for leaf in leaves)
+            free_leaves = tuple(_is_free(free, leaf, model) for leaf in leaves)
         return cls(leaves, free_leaves)
 
     # -- element-wise tables ------------------------------------------------------

@@ -579,9 +579,11 @@ def _seconds_since_1970(value: typing.Any) -> typing.Any:
     if isinstance(value, Tracer):
         return value
     if isinstance(value, str | bytes) or np.asarray(value).dtype.kind in "USO":
+        text = isinstance(value, str | bytes) or np.asarray(value).dtype.kind in "US"
+        what = f"text {value!r}" if text else f"{type(value).__name__} {value!r}"  # a datetime is no text
         raise TypeError(
-            f"unix_time_s must be seconds since 1970-01-01 UTC, not text {value!r} "
-            "(heliojax.datetime_to_unix converts an ISO 8601 string)"
+            f"unix_time_s must be seconds since 1970-01-01 UTC, not {what:.200} "
+            "(heliojax.datetime_to_unix converts a datetime or an ISO 8601 string)"
         )
     array = np.asarray(value)
     if array.dtype.kind == "M":

@@ -91,6 +91,23 @@ BCA_MAX_VALUES = 5000
 larger samples get the percentile interval."""
 
 
+def _check_confidence(function: str, confidence: object) -> float:
+    """``confidence`` as a float in (0, 1), or ValueError naming it (95 for 95 % had
+    given NaN intervals, and a level-1 test failed without a word of why)."""
+    if isinstance(confidence, bool) or not isinstance(confidence, int | float | np.integer | np.floating):
+        raise TypeError(f"{function}: confidence must be a number in (0, 1), got {confidence!r}")
+    if not 0.0 < float(confidence) < 1.0:
+        hint = f" (for {confidence:g} %, give {float(confidence) / 100:g})" if 50.0 <= float(confidence) < 100.0 else ""
+        raise ValueError(f"{function}: confidence must lie in (0, 1), got {confidence!r}{hint}")
+    return float(confidence)
+
+
+def _check_resamples(function: str, n_resamples: object) -> int:
+    if isinstance(n_resamples, bool) or not isinstance(n_resamples, int | np.integer) or n_resamples < 1:
+        raise ValueError(f"{function}: n_resamples must be an integer >= 1, got {n_resamples!r}")
+    return int(n_resamples)
+
+
 def confidence_intervals(
     values: Float[np.ndarray, " n"],
     confidence: float = 0.95,
@@ -107,7 +124,14 @@ def confidence_intervals(
 
     Returns:
         ``((mean_low, mean_high), (std_low, std_high))``.
+
+    Raises:
+        ValueError: fewer than two values, ``confidence`` outside (0, 1), ``n_resamples``
+            below 1 (bootstrap).
     """
+    confidence = _check_confidence("confidence_intervals", confidence)
+    if method == "bootstrap":
+        n_resamples = _check_resamples("confidence_intervals", n_resamples)
     x = np.asarray(values, dtype=float)
     n = x.size
     if n < 2:
@@ -181,7 +205,27 @@ def level1_test(
 
     Returns:
         A :class:`Level1Result`.
+
+    Raises:
+        ValueError: fewer than two finite values; ``confidence`` outside (0, 1); a
+            ``contract_mean`` that is not finite, a ``contract_std`` that is not finite
+            and >= 0; ``n_required`` not an integer >= 0; ``n_resamples`` below 1.
+            (A NaN contract value or a confidence of 95 had given a failed test and no
+            reason.)
     """
+    confidence = _check_confidence("level1_test", confidence)
+    if distribution == "radial":
+        n_resamples = _check_resamples("level1_test", n_resamples)
+    for name, value in (("contract_mean", contract_mean), ("contract_std", contract_std)):
+        if name == "contract_std" and value is None:
+            continue
+        if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+            raise TypeError(f"level1_test: {name} must be a number, got {value!r}")
+        if not math.isfinite(value) or (name == "contract_std" and value < 0):
+            bound = "finite and >= 0" if name == "contract_std" else "finite"
+            raise ValueError(f"level1_test: {name} must be {bound}, got {value!r}")
+    if isinstance(n_required, bool) or not isinstance(n_required, int | np.integer) or n_required < 0:
+        raise ValueError(f"level1_test: n_required must be an integer >= 0, got {n_required!r}")
     x = np.asarray(values, dtype=float)
     x = x[np.isfinite(x)]
     if x.size < 2:

@@ -182,9 +182,25 @@ def select_sample(
 
     Returns:
         ``(n,)`` sorted indices into ``positions``.
+
+    Raises:
+        ValueError: ``positions`` not ``(N, >= 2)`` or not finite (a NaN had surfaced
+            as "cannot convert float NaN to integer"), ``n`` not an integer between 0
+            and the heliostats available, an unknown ``method``.
     """
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-    xy = np.asarray(positions, dtype=float)[:, :2]
+    xy = np.asarray(positions, dtype=float)
+    if xy.ndim != 2 or xy.shape[1] < 2:
+        raise ValueError(f"select_sample: positions has shape {xy.shape}; expected (N, 2) east, north in m")
+    xy = xy[:, :2]
+    if not np.isfinite(xy).all():
+        bad = np.flatnonzero(~np.isfinite(xy).all(axis=1))
+        raise ValueError(
+            f"select_sample: positions of {bad.size} heliostat(s) are not finite (first: row {int(bad[0])}); "
+            "expected east, north in m for every heliostat"
+        )
+    if isinstance(n, bool) or not isinstance(n, int | np.integer):
+        raise ValueError(f"select_sample: n must be an integer, got {n!r}")
     avail = np.ones(len(xy), dtype=bool)
     if exclude is not None:
         avail[np.asarray(exclude, dtype=int)] = False

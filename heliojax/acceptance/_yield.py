@@ -114,9 +114,12 @@ def load_receiver(tower_file: str | os.PathLike) -> tuple[TargetPlane, tuple[flo
         if key not in receiver.points:
             raise DataError(tower_file, f"receiver.coordinates.{key}", "missing")
         corners[name] = wgs84_to_enu(jnp.asarray(receiver.points[key]), jnp.asarray(origin))
-    plane = TargetPlane.from_corners(
-        corners["upper_left"], corners["upper_right"], corners["lower_left"], corners["lower_right"]
-    )
+    try:
+        plane = TargetPlane.from_corners(
+            corners["upper_left"], corners["upper_right"], corners["lower_left"], corners["lower_right"]
+        )
+    except ValueError as e:  # corners of no rectangle: a NaN aperture had followed
+        raise DataError(tower_file, "receiver.coordinates", str(e).removeprefix("TargetPlane.from_corners: ")) from None
     nv = receiver.normal
     if nv is not None:
         nv = np.asarray(nv, dtype=float)

@@ -44,16 +44,30 @@ def effect_class(name: str) -> type[AbstractEffect]:
         raise ValueError(f"unknown effect {name!r}; expected one of {EFFECT_NAMES}") from None
 
 
-def with_effects(model: AbstractKinematicModel, effects: collections.abc.Sequence[str]) -> EffectModel:
+def with_effects(model: AbstractKinematicModel, effects: collections.abc.Sequence[str] | str) -> EffectModel:
     """``model`` wrapped by the named effects at their no-effect values (parameters 0,
     references at their defaults: set them from data with :func:`with_data_references`).
 
     Args:
         model: any kinematic model (a base model or a wrapper).
-        effects: names from :data:`EFFECT_NAMES` (each at most once).
+        effects: names from :data:`EFFECT_NAMES` (each at most once); one name alone
+            is one effect (``"thermal"`` had been read as its letters: "unknown effect 't'").
+
+    Raises:
+        TypeError: ``effects`` not names (strings).
+        ValueError: an unknown or repeated name.
     """
+    names = (
+        [effects]
+        if isinstance(effects, str)
+        else list(effects)
+        if isinstance(effects, collections.abc.Iterable)
+        else None
+    )
+    if names is None or not all(isinstance(e, str) for e in names):
+        raise TypeError(f"with_effects: effects must be effect names (strings), got {effects!r}")
     dtype = jnp.asarray(ParameterView.of(model).to_vector(model)).dtype
-    return add_effects(model, [effect_class(e).nominal(model, dtype) for e in effects])
+    return add_effects(model, [effect_class(e).nominal(model, dtype) for e in names])
 
 
 def data_references(fleet: typing.Any, mask: typing.Any = None) -> dict[str, float]:

@@ -582,6 +582,29 @@ def _fit_compiled(
     return batching.map(one)(model0, prior_h, loss_h, geometry, counts, context, focal, mask, active)
 
 
+def _fit_mask(mask: typing.Any, shape: tuple[int, ...]) -> typing.Any:
+    """``mask`` checked against the fleet's ``(H, M)``: its shape (also under ``jit``) and
+    type; a concrete integer mask of 0 and 1 becomes boolean. A mask of another shape
+    had met a broadcasting error naming nothing, a float mask a dtype error of ``&``,
+    and an integer mask of counts (2) selected nothing (``2 & True`` is 0)."""
+    if mask is None:
+        return None
+    array = mask if isinstance(mask, jax.Array) else np.asarray(mask)
+    if tuple(array.shape) != tuple(shape):
+        raise ValueError(
+            f"fit: mask has shape {tuple(array.shape)}; expected {tuple(shape)}, the fleet's (H, M) records"
+        )
+    if array.dtype == bool:
+        return mask
+    concrete = not isinstance(array, jax.core.Tracer)  # pyright: ignore[reportAttributeAccessIssue]
+    if array.dtype.kind in "iu" and concrete and np.isin(np.asarray(array), (0, 1)).all():
+        return jax.device_put(np.asarray(array, bool))
+    raise ValueError(
+        f"fit: mask has dtype {array.dtype}{' with values other than 0 and 1' if array.dtype.kind in 'iu' else ''}; "
+        "expected booleans (H, M), True for the records to fit"
+    )
+
+
 def _prepare(model0, fleet, mask, free, solver, loss, prior, batching, max_steps, active=None):
     if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
         raise ValueError(f"max_steps: expected an integer >= 1, got {max_steps!r}")
@@ -598,6 +621,14 @@ def _prepare(model0, fleet, mask, free, solver, loss, prior, batching, max_steps
     model0 = jax.tree.map(lambda x: jnp.asarray(x, dtype) if eqx.is_inexact_array(x) else x, model0)
     if not is_batched(model0):
         model0 = broadcast_model(model0, h)
+    else:  # a batch of models for another fleet size had failed in the batching's scan, naming no argument
+        sizes = {jnp.shape(x)[0] for x in jax.tree.leaves(model0) if eqx.is_array(x) and jnp.ndim(x)}
+        if sizes != {h}:
+            raise ValueError(
+                f"fit: model0 is batched over {', '.join(map(str, sorted(sizes)))} heliostats and the fleet has {h}; "
+                "give one model (used for every heliostat) or one per heliostat of the fleet"
+            )
+    mask = _fit_mask(mask, np.shape(fleet.mask))
     view = ParameterView.of(model0, free)
     solver = default_solver() if solver is None else solver
     loss = LeastSquares() if loss is None else loss

@@ -16,6 +16,7 @@ from collections.abc import Mapping
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .._parameters import ParameterView, broadcast_model
@@ -100,14 +101,22 @@ class GaussianPrior(AbstractPrior):
 
 def gaussian_prior(model: eqx.Module, sigma: Mapping[str, float], noise_mrad: float = 0.5) -> GaussianPrior:
     """A :class:`GaussianPrior` centred on ``model`` with ``sigma`` given per parameter
-    name (physical units; others none), e.g. ``{"gamma": 5e-3, "delta": 5e-3}``."""
+    name (physical units; others none), e.g. ``{"gamma": 5e-3, "delta": 5e-3}``.
+
+    Raises:
+        ValueError: an unknown parameter name; a sigma that is not > 0 (NaN included;
+            ``inf`` is no prior on that parameter); a ``noise_mrad`` that is not finite
+            and > 0."""
     view = ParameterView.of(model)
     unknown = set(sigma) - set(view.names)
     if unknown:
         raise ValueError(f"prior on unknown parameters {sorted(unknown)}; known: {view.names}")
     vec = jnp.asarray([sigma.get(n, jnp.inf) for n in view.names], jnp.asarray(view.to_vector(model)).dtype)
-    if vec.ndim and any(s <= 0 for s in sigma.values()):
-        raise ValueError(f"prior sigmas must be > 0, got {dict(sigma)}")
+    if vec.ndim and not all(s > 0 for s in sigma.values()):  # NaN too: a NaN sigma had meant no prior
+        raise ValueError(f"prior sigmas must be > 0 (inf: no prior), got {dict(sigma)}")
+    noise = None if isinstance(noise_mrad, jax.core.Tracer) else np.asarray(noise_mrad, float)  # pyright: ignore[reportAttributeAccessIssue]
+    if noise is not None and not np.all((noise > 0) & np.isfinite(noise)):
+        raise ValueError(f"gaussian_prior: noise_mrad must be finite and > 0, got {noise_mrad!r}")
     return GaussianPrior(centre=model, sigma=view.from_vector(model, vec), noise_mrad=jnp.asarray(noise_mrad))
 
 

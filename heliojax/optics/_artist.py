@@ -84,7 +84,7 @@ from ..paint import (
     read_artist_scenario,
 )
 from ._nurbs import NurbsFacets
-from ._sunshape import AbstractSunShape, GaussianSun
+from ._sunshape import MAX_SPREAD_RAD, AbstractSunShape, GaussianSun
 from ._surfaces import FacetLayout
 
 
@@ -244,8 +244,17 @@ def scene_from_artist(scenario: ArtistScenario | str | os.PathLike, dtype=jnp.fl
     layout = FacetLayout.from_arrays(
         *(jnp.asarray(x, dtype) for x in (translations, canting[..., 0, :], canting[..., 1, :]))
     )
-    suns = [s for s in scenario.light_sources.values() if s.type == "sun" and s.distribution_type == "normal"]
-    sunshape: AbstractSunShape = GaussianSun(float(np.sqrt(suns[0].covariance))) if suns else GaussianSun()
+    suns = [(k, s) for k, s in scenario.light_sources.items() if s.type == "sun" and s.distribution_type == "normal"]
+    sunshape: AbstractSunShape = GaussianSun()
+    if suns:
+        name, sun = suns[0]
+        if not 0.0 <= sun.covariance <= MAX_SPREAD_RAD**2:  # negative: a NaN sun; huge: a flux image of nothing
+            raise DataError(
+                src,
+                f"lightsources/{name}/distribution_parameters/covariance",
+                f"{sun.covariance!r}; expected the sun's variance per axis in [0, {MAX_SPREAD_RAD**2:g}] rad^2",
+            )
+        sunshape = GaussianSun(float(np.sqrt(sun.covariance)))
     return Scene(
         heliostat_ids=tuple(h.name for h in hs),
         origin_lla=np.asarray(scenario.plant_position_lla, np.float64),

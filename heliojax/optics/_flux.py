@@ -179,6 +179,14 @@ def plane_power(
     return jnp.asarray(dni, dtype) * jnp.asarray(reflectivity, dtype) * collected
 
 
+def _float_array(x: ArrayLike) -> Array:
+    """``x`` as a JAX array of its float dtype, integers as JAX's default float: the
+    other vectors take its dtype (a centre of whole metres had cast the sun and the
+    normal to integers, a NaN pose)."""
+    x = jnp.asarray(x)
+    return x if jnp.issubdtype(x.dtype, jnp.inexact) else x.astype(jnp.result_type(float))
+
+
 def aim_pose(centre: Float[ArrayLike, "3"], sun: Float[ArrayLike, "3"], aim_point: Float[ArrayLike, "3"]) -> Pose:
     """Ideal pose at ``centre`` (ENU m) reflecting the central sun ray onto ``aim_point``.
 
@@ -186,7 +194,7 @@ def aim_pose(centre: Float[ArrayLike, "3"], sun: Float[ArrayLike, "3"], aim_poin
     (``up x normal``), as for an azimuth-elevation heliostat. For tests, the
     benchmark and what-if studies; real heliostats use :func:`heliojax.forward`.
     """
-    centre = jnp.asarray(centre)
+    centre = _float_array(centre)
     sun = jnp.asarray(sun, centre.dtype)
     normal = bisector_normal(sun, normalize(jnp.asarray(aim_point, centre.dtype) - centre))
     return pose_from_normal(centre, normal)
@@ -195,7 +203,7 @@ def aim_pose(centre: Float[ArrayLike, "3"], sun: Float[ArrayLike, "3"], aim_poin
 def pose_from_normal(centre: Float[ArrayLike, "3"], normal: Float[ArrayLike, "3"]) -> Pose:
     """Pose with the given centre and unit normal, surface ``x`` axis horizontal
     (north-based if the normal is vertical)."""
-    centre = jnp.asarray(centre)
+    centre = _float_array(centre)
     normal = normalize(jnp.asarray(normal, centre.dtype))
     e1, e2 = tangent_basis(normal)
     rot = jnp.stack([e1, e2, normal], axis=-1)
@@ -205,6 +213,16 @@ def pose_from_normal(centre: Float[ArrayLike, "3"], normal: Float[ArrayLike, "3"
 # --------------------------------------------------------------------------------------
 # The tracer
 # --------------------------------------------------------------------------------------
+
+
+MAX_UNIFORMS_PER_STEP = 2**32
+"""Most uniform random numbers one step of :func:`flux_images` draws (heliostats x
+points x ``rays_per_point`` x the sun shape's ``n_uniforms``): the range of the hash
+generator's 32-bit counter, ~16 GiB of them in float32 (more steps trace more rays in
+the same memory)."""
+MAX_IMAGE_CELLS = 2**31 - 1
+"""Most cells of :func:`flux_images`' accumulation buffer (one per pixel corner of
+every image): its indices are 32-bit integers."""
 
 
 @typing.final
@@ -339,13 +357,43 @@ def flux_images(
 
     Returns:
         ``(ny, nx)`` for one heliostat (or ``combine=True``), else ``(h, ny, nx)``.
+
+    Raises:
+        ValueError: ``rays_per_point`` or ``steps`` not an integer >= 1 (0 had traced
+            nothing and returned an image of zeros, as if no ray reached the target);
+            more than :data:`MAX_UNIFORMS_PER_STEP` random numbers per step (trace in
+            more steps) or more than :data:`MAX_IMAGE_CELLS` pixels of all images
+            together: refused before any memory is taken.
     """
+    for name, value in (("rays_per_point", rays_per_point), ("steps", steps)):
+        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+            raise ValueError(f"flux_images: {name} must be an integer >= 1, got {value!r}")
     single = surfaces.points.ndim == 2
     if single:
         surfaces = jax.tree_util.tree_map(lambda x: x[None], surfaces)
         poses = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], poses)
     h = surfaces.points.shape[0]
+    draws = h * surfaces.points.shape[1] * int(rays_per_point) * sunshape.n_uniforms
+    if draws > MAX_UNIFORMS_PER_STEP:
+        raise ValueError(
+            f"flux_images: {h} heliostat(s) x {surfaces.points.shape[1]} points x {rays_per_point} rays_per_point "
+            f"need {draws:.3g} random numbers per step, more than {MAX_UNIFORMS_PER_STEP:.3g} (held in memory at "
+            "once, and the counter of the hash generator would repeat): lower rays_per_point and raise steps"
+        )
+    pixels = (1 if combine else h) * (grid.shape[0] + 1) * (grid.shape[1] + 1)
+    if pixels > MAX_IMAGE_CELLS:
+        raise ValueError(
+            f"flux_images: grid.shape {grid.shape} for {1 if combine else h} image(s) needs {pixels:.3g} cells, "
+            f"more than {MAX_IMAGE_CELLS:.3g} (32-bit pixel indices): use fewer pixels"
+        )
     sun = jnp.asarray(sun)
+    if sun.ndim not in (1, 2) or sun.shape[-1] != 3:
+        raise ValueError(f"flux_images: sun has shape {sun.shape}; expected (3,) or (h, 3), unit ENU vectors")
+    for name, value, high in (("dni", dni, np.inf), ("reflectivity", reflectivity, 1.0)):
+        v = None if isinstance(value, jax.core.Tracer) else np.asarray(value, float)  # pyright: ignore[reportAttributeAccessIssue]
+        if v is not None and not np.all(np.isfinite(v) & (v >= 0) & (v <= high)):  # traced: not checked
+            bound = "finite and >= 0 W/m^2" if name == "dni" else "in [0, 1]"
+            raise ValueError(f"flux_images: {name} must be {bound}, got {value!r}")
     sun_axis = 0 if sun.ndim == 2 else None
     target_axis = 0 if jnp.ndim(target.centre) == 2 else None
     grid_axis = 0 if jnp.ndim(grid.u_min) == 1 else None
@@ -411,6 +459,8 @@ def ray_count(surfaces: SurfacePoints, rays_per_point: int, steps: int = 1) -> i
 
 
 __all__ = [
+    "MAX_IMAGE_CELLS",
+    "MAX_UNIFORMS_PER_STEP",
     "ImageGrid",
     "aim_pose",
     "centroid",

@@ -134,18 +134,44 @@ def _disk(radius: Float[Array, "..."], u: Float[Array, "..."]) -> Float[Array, "
     return jnp.stack([radius * _horner(_COS_P, y), radius * (x * _horner(_SIN_P, y))], axis=-1)
 
 
+MAX_SPREAD_RAD = 0.1
+"""Largest angular width (rad) of :class:`GaussianSun`, :class:`PillboxSun` and
+:class:`EffectiveSun`'s slope error, as ``heliojax trace`` takes them (100 mrad):
+5.7 degrees per axis is no sun or mirror any more (a width in mrad or degrees, given
+as radians, had traced a flux image of nothing)."""
+
+
+def _check_width(cls: str, name: str, value: ArrayLike) -> None:
+    """ValueError naming ``cls(name)`` unless the (concrete) width is finite and in
+    ``[0, MAX_SPREAD_RAD]`` rad; a traced one is not checked."""
+    if isinstance(value, jax.core.Tracer):  # pyright: ignore[reportAttributeAccessIssue]
+        return
+    v = np.asarray(value, float)
+    if not np.all(np.isfinite(v) & (v >= 0.0) & (v <= MAX_SPREAD_RAD)):
+        hint = "; mrad? give it in rad (x 1e-3)" if np.all(np.isfinite(v) & (v > MAX_SPREAD_RAD)) else ""
+        raise ValueError(f"{cls}: {name} must be finite and in [0, {MAX_SPREAD_RAD:g}] rad, got {value!r}{hint}")
+
+
+def _gaussian_offsets(sigma: Float[Array, ""], u: Float[Array, "... 2"]) -> Float[Array, "... 2"]:
+    """Isotropic Gaussian offsets of standard deviation ``sigma`` (rad) per axis from
+    two uniforms (Box-Muller)."""
+    r = jnp.asarray(sigma, u.dtype) * jnp.sqrt(-2.0 * jnp.log(u[..., 0]))
+    return _disk(r, u[..., 1])
+
+
 @typing.final
 class GaussianSun(AbstractSunShape):
-    """Isotropic Gaussian sun. ``sigma``: standard deviation per tangent axis, rad."""
+    """Isotropic Gaussian sun. ``sigma``: standard deviation per tangent axis, rad
+    (finite, at most :data:`MAX_SPREAD_RAD`; ValueError otherwise)."""
 
     sigma: Float[Array, ""]
 
     def __init__(self, sigma: float | ArrayLike = 2.51e-3):
+        _check_width("GaussianSun", "sigma", sigma)
         self.sigma = jnp.asarray(sigma)
 
     def from_uniforms(self, u):
-        r = jnp.asarray(self.sigma, u.dtype) * jnp.sqrt(-2.0 * jnp.log(u[..., 0]))
-        return _disk(r, u[..., 1])
+        return _gaussian_offsets(self.sigma, u)
 
     def second_moment(self):
         return float(self.sigma) ** 2
@@ -153,11 +179,13 @@ class GaussianSun(AbstractSunShape):
 
 @typing.final
 class PillboxSun(AbstractSunShape):
-    """Uniform disk of angular radius ``half_angle`` (rad)."""
+    """Uniform disk of angular radius ``half_angle`` (rad; finite, at most
+    :data:`MAX_SPREAD_RAD`, ValueError otherwise)."""
 
     half_angle: Float[Array, ""]
 
     def __init__(self, half_angle: float | ArrayLike = SUN_HALF_ANGLE):
+        _check_width("PillboxSun", "half_angle", half_angle)
         self.half_angle = jnp.asarray(half_angle)
 
     def from_uniforms(self, u):
@@ -258,13 +286,15 @@ class EffectiveSun(AbstractSunShape):
 
     Attributes:
         base: the sun shape.
-        slope_error: RMS slope error per axis of the mirror normal, rad.
+        slope_error: RMS slope error per axis of the mirror normal, rad (finite, at most
+            :data:`MAX_SPREAD_RAD`; ValueError otherwise).
     """
 
     base: AbstractSunShape
     slope_error: Float[Array, ""]
 
     def __init__(self, base: AbstractSunShape, slope_error: float | ArrayLike):
+        _check_width("EffectiveSun", "slope_error", slope_error)
         self.base = base
         self.slope_error = jnp.asarray(slope_error)
 
@@ -274,7 +304,7 @@ class EffectiveSun(AbstractSunShape):
 
     def from_uniforms(self, u):
         k = self.base.n_uniforms
-        extra = GaussianSun(2.0 * jnp.asarray(self.slope_error, u.dtype)).from_uniforms(u[..., k : k + 2])
+        extra = _gaussian_offsets(2.0 * jnp.asarray(self.slope_error, u.dtype), u[..., k : k + 2])
         return self.base.from_uniforms(u[..., :k]) + extra
 
     def second_moment(self):
@@ -311,6 +341,7 @@ def offsets_to_directions(offsets: Float[Array, "... 2"], sun: Float[Array, "3"]
 
 
 __all__ = [
+    "MAX_SPREAD_RAD",
     "SUN_HALF_ANGLE",
     "AbstractSunShape",
     "BuieSun",
