@@ -813,13 +813,14 @@ def markdown_summary(report: dict) -> str:
             f"{STRONG_EVIDENCE_BIC:g}; Kass & Raftery 1995); the name is not certain."
         )
     for u in report.get("held_out_not_significant", []):
-        lines.append(
+        lines += [
             f"**Held-out gain not significant** at step {u['step']}: `{u['named']}` "
             f"({_mode_words(u.get('named_mode'))}) predicted the held-out records better (log ratio "
             f"{u['cv_log_ratio']:+.4f}) but not significantly over days (p = {u['cv_p']:.2g}, alpha "
             f"{report['config'].get('alpha', 0.01):g}): a day's shared error can make such a gain; the name is "
-            "not certain."
-        )
+            "not certain.",
+            "",
+        ]
     for a in report.get("ambiguities", []):
         alts = ", ".join(_alternative_words(x) for x in a["alternatives"])
         lines.append(
