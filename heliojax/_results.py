@@ -640,11 +640,11 @@ def _check_record_codes(records: dict[str, np.ndarray], ids: tuple[str, ...], so
             )
         if "split" in records and ((rid == -1) & (records["split"] != 0)).any():
             raise DataError(source, "record_id", "-1 (padding) for a record of the fit's split")
-        for h, row in enumerate(rid):
-            known = np.sort(row[row >= 0])
-            twice = known[1:][known[1:] == known[:-1]]
-            if twice.size:
-                raise DataError(source, "record_id", f"record {int(twice[0])} of {ids[h]!r} is listed twice")
+        ordered = np.sort(rid, axis=-1)  # all heliostats at once; padding (-1) may repeat
+        twice = (ordered[..., 1:] == ordered[..., :-1]) & (ordered[..., 1:] >= 0)
+        if twice.any():
+            h, j = (int(i[0]) for i in np.nonzero(twice))
+            raise DataError(source, "record_id", f"record {int(ordered[h, j + 1])} of {ids[h]!r} is listed twice")
     if "weight" in records:
         weight = records["weight"]
         if not ((weight >= 0.0) & (weight <= 1.0)).all():  # NaN too: the writer's weights are in [0, 1]

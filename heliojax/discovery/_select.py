@@ -640,8 +640,7 @@ class _Workflow:
 
         def residual_ss(state):
             if rho > 0.0 and self.unix_time is not None:
-                day = day_labels(self.unix_time, self.longitude_deg)[self.lanes.heliostat[lanes]]
-                return day_whitened_rss(state.r[lanes], used, day, rho)
+                return day_whitened_rss(state.r[lanes], used, self.lane_days()[lanes], rho)
             return state.rss[lanes]
 
         def criterion(state):
@@ -670,7 +669,7 @@ class _Workflow:
             self.longitude_deg,
         )
 
-    def heldout_days(self) -> np.ndarray:
+    def lane_days(self) -> np.ndarray:
         """``(L, M)`` the day of each lane's records (:func:`day_labels`; every record a
         day of its own where the times are unknown)."""
         m = self.lanes.train_mask.shape[1]
@@ -1535,7 +1534,7 @@ def _verdict(wf: _Workflow, state: ModelState, effect: str, mode: str, st: Model
     b0, b1, _ = wf.bic_pair(state, st)
     cv0, cv1, n_cv = wf.cv_pair(state, st)
     ratio = float(cv_log_ratio(state, st, wf.lanes.heliostat))
-    cv_p = cv_improvement_p(state, st, wf.lanes.heliostat, wf.heldout_days())
+    cv_p = cv_improvement_p(state, st, wf.lanes.heliostat, wf.lane_days())
     passed = refit_passes(b0 - b1, ratio, wf.config.min_delta_bic)
     log.info(
         f"refit {effect} ({mode}, {st.fit_s:.1f} s): delta BIC {b0 - b1:.1f}, held-out RMS "
