@@ -61,6 +61,34 @@ def _actuator_psi(stroke, offset, pivot_radius):
     return jnp.arccos(jnp.clip(cos_psi, -1.0, 1.0))
 
 
+def _broadcasts_to(shape: tuple[int, ...], target: tuple[int, ...]) -> bool:
+    """Whether an array of ``shape`` broadcasts to ``target`` (``jnp.broadcast_to``)."""
+    try:
+        return np.broadcast_shapes(shape, target) == target
+    except ValueError:
+        return False
+
+
+_POSITIVE_ACTUATOR_FIELDS = {
+    "increment": "counts per metre",
+    "offset": "m",
+    "pivot_radius": "m",
+}
+"""Fields of :class:`LinearActuators` that must be finite and positive (their unit):
+the actuator law divides by each."""
+
+
+def known_values(x: typing.Any) -> np.ndarray | None:
+    """``x`` as a float NumPy array where its values are known, None under a trace
+    (jit, vmap: a tracer) or for a shape-only stand-in."""
+    if isinstance(x, (jax.core.Tracer, jax.ShapeDtypeStruct)):  # pyright: ignore[reportAttributeAccessIssue]
+        return None
+    try:
+        return np.asarray(x, dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+
+
 @typing.final
 class LinearActuators(eqx.Module):
     """The two linear actuators of a heliostat; every field has shape ``(2,)``
@@ -91,6 +119,21 @@ class LinearActuators(eqx.Module):
         shapes = {jnp.shape(getattr(self, f)) for f in self.__dataclass_fields__}
         if len(shapes) != 1 or next(iter(shapes))[-1:] != (2,):
             raise ValueError(f"LinearActuators fields must share a shape (..., 2), got {shapes}")
+        # values are checked where they are known (not under jit / vmap, where the
+        # fields are tracers): an increment of 0 had divided the counts by zero
+        for name in _POSITIVE_ACTUATOR_FIELDS:
+            values = known_values(getattr(self, name))
+            if values is None:
+                continue
+            bad = ~(np.isfinite(values) & (values > 0.0))
+            if bad.any():
+                at = tuple(int(i) for i in np.argwhere(bad)[0])
+                where = f"axis {at[-1] + 1}" + (f" of heliostat {at[0]}" if values.ndim == 2 else "")
+                where = where if values.ndim <= 2 else f"index {at}"
+                raise ValueError(
+                    f"LinearActuators: {name} must be finite and > 0 ({_POSITIVE_ACTUATOR_FIELDS[name]}), "
+                    f"got {float(values[at])} at {where}"
+                )
 
     def counts_to_angles(
         self, counts: Float[ArrayLike, "*b 2"], stroke_scale: Float[ArrayLike, "*b 2"] | float = 1.0
@@ -174,9 +217,31 @@ class HeliostatGeometry(eqx.Module):
         then uses the linear map on that axis (see :class:`ActuatorModel`).
 
         A ``position`` of integers is taken as JAX's default float (the translations
-        take its dtype: ``(0, 0.175, 0)`` had been truncated to zeros)."""
-        slope, intercept = actuators.linearised()
+        take its dtype: ``(0, 0.175, 0)`` had been truncated to zeros).
+
+        Raises:
+            ValueError: ``position`` is no ``(..., 3)`` array, or another argument's
+                heliostat axes differ from its (each named with its shape)."""
         pos = jnp.asarray(position)
+        batch = tuple(pos.shape[:-1])
+        if pos.shape[-1:] != (3,):
+            raise ValueError(f"HeliostatGeometry.build: position has shape {pos.shape}; expected (..., 3)")
+        shapes = {
+            "actuators": (tuple(jnp.shape(actuators.increment)), batch + (2,)),
+            "joint_translation_1": (tuple(np.shape(joint_translation_1)), batch + (3,)),
+            "joint_translation_2": (tuple(np.shape(joint_translation_2)), batch + (3,)),
+            "concentrator_translation": (tuple(np.shape(concentrator_translation)), batch + (3,)),
+            "ideal_axes": (tuple(np.shape(ideal_axes)), batch + (2,)),
+        }
+        for name, (got, want) in shapes.items():
+            exact = name == "actuators"  # the others may be one heliostat's, broadcast
+            if got != want and (exact or not _broadcasts_to(got, want)):
+                raise ValueError(
+                    f"HeliostatGeometry.build: {name} has shape {got}, but position {pos.shape} holds "
+                    f"{'one heliostat' if not batch else f'heliostats {batch}'}: expected {want}"
+                    + ("" if exact else f" or {want[-1:]} (one for all)")
+                )
+        slope, intercept = actuators.linearised()
         if not jnp.issubdtype(pos.dtype, jnp.inexact):
             pos = pos.astype(jnp.result_type(float))
         return cls(
@@ -318,5 +383,6 @@ __all__ = [
     "Pose",
     "RecordContext",
     "chain_pose",
+    "known_values",
     "solve_chain_angles",
 ]

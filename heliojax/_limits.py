@@ -6,6 +6,7 @@ by name instead of the library failing later with a traceback."""
 from __future__ import annotations
 
 import datetime as dt
+import numbers
 
 from ._io import SPREADSHEET_FORMULA_START, heliostat_id_problem
 
@@ -51,3 +52,27 @@ def target_name_problem(name: object) -> str | None:
     if problem is not None and name.startswith(SPREADSHEET_FORMULA_START):  # named first: the gravest
         return f"starts with {name[0]!r} (a spreadsheet formula in a CSV cell)"  # (=HYPERLINK("a","b") holds a comma)
     return problem
+
+
+MAX_SYNTHETIC_HELIOSTATS = 1_000_000
+"""The most heliostats a synthetic fleet may have (the largest plants hold ~10^5): more
+had been refused only by XLA running out of memory, after minutes."""
+
+MAX_SYNTHETIC_RECORDS = 10_000_000
+"""The most records (heliostats x records per heliostat) a synthetic fleet may have:
+drawing their times takes ~1 kB each at its peak (13 candidate hours and their solar
+positions), ~10 GB here."""
+
+
+def count_problem(value: object, limit: int, *, minimum: int = 1) -> str | None:
+    """Why ``value`` cannot be a count (of heliostats, records, points) in
+    ``[minimum, limit]``, or None: not an integer (a bool, a float, a string), below
+    ``minimum`` or above ``limit`` (checked before anything is allocated)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        return f"must be a whole number, got {value!r} ({type(value).__name__})"
+    n = int(value)
+    if n < minimum:
+        return f"must be at least {minimum}, got {n}"
+    if n > limit:
+        return f"must be at most {limit:,}, got {n:,}"
+    return None

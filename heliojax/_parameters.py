@@ -127,6 +127,7 @@ class ParameterLeaf:
     fixed_by_model: bool
 
     @property
+    @typing.no_type_check  # run per parameter, often: the tests' run-time type checks cost more than its body
     def size(self) -> int:
         return math.prod(self.info.shape)
 
@@ -140,6 +141,7 @@ class ReferenceLeaf:
     name: str
 
 
+@typing.no_type_check  # run per parameter, often: the tests' run-time type checks cost more than its body
 def _element_names(name: str, info: ParameterInfo) -> tuple[str, ...]:
     if info.shape == ():
         return (name,)
@@ -171,6 +173,7 @@ def _walk(node: typing.Any, path: Path) -> Iterator[ParameterLeaf | ReferenceLea
             yield from _walk(v, path + (i,))
 
 
+@typing.no_type_check  # run per parameter, often: the tests' run-time type checks cost more than its body
 def _get(node: typing.Any, path: Path) -> typing.Any:
     for step in path:
         node = node[step] if isinstance(step, int) else getattr(node, step)
@@ -375,7 +378,29 @@ class ParameterView:
 
 
 def set_references(model: ModuleT, values: collections.abc.Mapping[str, float]) -> ModuleT:
-    """``model`` with the references named in ``values`` set (others unchanged)."""
+    """``model`` with the references named in ``values`` set (others unchanged).
+
+    Raises:
+        ValueError: a name in ``values`` is none of the model's references (a
+            misspelled one had been ignored without a word), or a value is not a
+            finite real number.
+    """
+    known = [leaf.name for leaf in reference_leaves(model)]
+    unknown = [str(k) for k in values if k not in known]
+    if unknown:
+        raise ValueError(
+            f"set_references: unknown reference(s) {', '.join(map(repr, unknown))}; "
+            f"the model's references are: {', '.join(known) if known else 'none'}"
+        )
+    for name, value in values.items():
+        if isinstance(value, jax.core.Tracer):  # pyright: ignore[reportAttributeAccessIssue]
+            continue  # a value under a trace is not known here
+        try:
+            ok = np.ndim(value) == 0 and not isinstance(value, (bool, np.bool_)) and bool(np.isfinite(value))
+        except TypeError:
+            ok = False
+        if not ok:
+            raise ValueError(f"set_references: {name} must be a finite real number, got {value!r}")
     leaves = [leaf for leaf in reference_leaves(model) if leaf.name in values]
     if not leaves:
         return model

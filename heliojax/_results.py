@@ -120,7 +120,9 @@ def _geometry_items(geometry: eqx.Module, prefix: str = "geometry") -> dict[str,
     return out
 
 
-def _read_geometry(group: h5py.Group, source: str, n: int) -> HeliostatGeometry:
+def _read_geometry(group: h5py.Group, source: str, ids: tuple[str, ...]) -> HeliostatGeometry:
+    """The geometry of ``group``; its actuators are checked (:func:`_check_actuators`)
+    before they are built, so that a bad one is named by its field and heliostat."""
     import h5py  # only for results files: ~35 ms of import a calibration without --out never needs
 
     def arr(name):
@@ -136,7 +138,10 @@ def _read_geometry(group: h5py.Group, source: str, n: int) -> HeliostatGeometry:
             raise DataError(source, f"geometry/{name}", "not a flag (0 or 1, false or true)")
         return jnp.asarray(value)
 
-    act = LinearActuators(**{f.name: arr(f"actuators/{f.name}") for f in dataclasses.fields(LinearActuators)})
+    n = len(ids)
+    raw = {f.name: arr(f"actuators/{f.name}") for f in dataclasses.fields(LinearActuators)}
+    _check_actuators({k: np.asarray(v, float) for k, v in raw.items()}, ids, source)
+    act = LinearActuators(**raw)
     kw = {f.name: arr(f.name) for f in dataclasses.fields(HeliostatGeometry) if f.name != "actuators"}
     return HeliostatGeometry(actuators=act, **kw)
 
@@ -149,13 +154,17 @@ _GEOMETRY_ACTUATOR_NAMES = {
 """The geometry's names of the actuator keys of a properties file whose names differ."""
 
 
-def _check_geometry(geometry: HeliostatGeometry, ids: tuple[str, ...], source: str) -> None:
-    """DataError unless every heliostat's (finite) geometry keeps the properties reader's
-    bounds: each actuator :func:`~heliojax.paint._common.actuator_problem` and
-    :func:`~heliojax.paint._flags.actuator_law_problem` (``sign`` is +1 or -1 for
-    ``clockwise_axis_movement`` 0 or 1), every mount translation within
-    :data:`~heliojax.paint._common.MAX_HELIOSTAT_SIZE_M`, a nonzero Stone slope."""
-    act = {f.name: np.asarray(getattr(geometry.actuators, f.name), float) for f in dataclasses.fields(LinearActuators)}
+def _check_actuators(act: dict[str, np.ndarray], ids: tuple[str, ...], source: str) -> None:
+    """DataError unless every actuator (``act``: the :class:`LinearActuators` fields,
+    ``(H, 2)`` each) is finite and keeps the properties reader's bounds
+    (:func:`~heliojax.paint._common.actuator_problem`,
+    :func:`~heliojax.paint._flags.actuator_law_problem`; ``sign`` is +1 or -1 for
+    ``clockwise_axis_movement`` 0 or 1), naming the first bad field and heliostat."""
+    for name, value in act.items():
+        bad = ~np.isfinite(value)
+        if bad.any():
+            h, i = np.argwhere(bad)[0]
+            raise DataError(source, f"geometry/actuators/{name}", f"heliostat {ids[h]!r} axis {i + 1}: not finite")
     sign = act["sign"]
     clockwise = np.where(sign == 1.0, 0, np.where(sign == -1.0, 1, -1))
     fleet = {
@@ -180,6 +189,16 @@ def _check_geometry(geometry: HeliostatGeometry, ids: tuple[str, ...], source: s
                 reason = f"must be +1 or -1, got {float(sign[h, i])!r}"
             field = "/".join(("geometry/actuators", _GEOMETRY_ACTUATOR_NAMES.get(key, key))).rstrip("/")
             raise DataError(source, field, f"heliostat {ids[h]!r} axis {i + 1}: {reason}")
+
+
+def _check_geometry(geometry: HeliostatGeometry, ids: tuple[str, ...], source: str) -> None:
+    """DataError unless every heliostat's (finite) geometry keeps the properties reader's
+    bounds: each actuator :func:`~heliojax.paint._common.actuator_problem` and
+    :func:`~heliojax.paint._flags.actuator_law_problem` (``sign`` is +1 or -1 for
+    ``clockwise_axis_movement`` 0 or 1), every mount translation within
+    :data:`~heliojax.paint._common.MAX_HELIOSTAT_SIZE_M`, a nonzero Stone slope."""
+    act = {f.name: np.asarray(getattr(geometry.actuators, f.name), float) for f in dataclasses.fields(LinearActuators)}
+    _check_actuators(act, ids, source)
     for name in ("joint_translation_1", "joint_translation_2", "concentrator_translation"):
         far = np.abs(np.asarray(getattr(geometry, name), float)) > MAX_HELIOSTAT_SIZE_M
         if far.any():
@@ -917,7 +936,7 @@ def _load_results(path: str | Path) -> CalibrationResults:
             )
         params = _numeric(need("params"), source, "params", (len(ids), len(names)), "f")
         group = f.get("geometry")
-        geometry = _read_geometry(group, source, len(ids)) if isinstance(group, h5py.Group) else None
+        geometry = _read_geometry(group, source, ids) if isinstance(group, h5py.Group) else None
         if geometry is None:
             raise DataError(source, "geometry", "missing group (written by an older heliojax?)")
         records = {
@@ -989,7 +1008,7 @@ def _load_results(path: str | Path) -> CalibrationResults:
                 for k, tail in _RECORD_INPUT_TRAILING.items()
             }
             with jax.enable_x64(True):  # the check compares float64 residuals, whatever the caller's setting
-                geometry64 = _read_geometry(group, source, len(ids))
+                geometry64 = _read_geometry(group, source, ids)
         status = _strings(need("status_labels"), source, "status_labels", len(ids))
         unknown_status = sorted(set(status) - _STATUS_LABELS)
         if unknown_status:

@@ -23,6 +23,7 @@ A simulated record is produced the way a plant produces one:
 from __future__ import annotations
 
 import datetime as dt
+import math
 import typing
 from collections.abc import Callable
 
@@ -37,6 +38,7 @@ from ._fleet import Fleet, LoadReport
 from ._geometry import TargetPlane, direction_to_azimuth_elevation, enu_to_wgs84, intersect_plane, normalize
 from ._heliostat import HeliostatGeometry, LinearActuators, Pose, RecordContext
 from ._kinematics import AbstractKinematicModel, StoneModel, forward, inverse_aim
+from ._limits import MAX_SYNTHETIC_HELIOSTATS, MAX_SYNTHETIC_RECORDS, count_problem
 from ._sun import solar_position
 from .paint import CalibrationRecord, HeliostatProperties, TargetEntry, TowerFile, write_paint_directory
 
@@ -57,8 +59,30 @@ _TYPICAL_ACTUATORS = dict(
 )
 
 
+def _check_sizes(function: str, records: tuple[str, ...] = (), **counts: typing.Any) -> None:
+    """Refuse a count of heliostats or records that is no whole number, below 1 or past
+    :data:`~heliojax._limits.MAX_SYNTHETIC_HELIOSTATS` (before anything is allocated:
+    XLA had failed after minutes with an out-of-memory error); ``records`` names the
+    counts whose product is a number of records (at most
+    :data:`~heliojax._limits.MAX_SYNTHETIC_RECORDS`)."""
+    for name, value in counts.items():
+        limit = MAX_SYNTHETIC_RECORDS if name in records else MAX_SYNTHETIC_HELIOSTATS
+        problem = count_problem(value, limit)
+        if problem is not None:
+            raise ValueError(f"{function}: {name} {problem}")
+    if records:
+        total = math.prod(int(counts[name]) for name in records)
+        if total > MAX_SYNTHETIC_RECORDS:
+            raise ValueError(
+                f"{function}: {' x '.join(records)} = {total:,} records, more than the "
+                f"{MAX_SYNTHETIC_RECORDS:,} a synthetic fleet may have"
+            )
+
+
 def typical_actuators(n: int | None = None, dtype=jnp.float64) -> LinearActuators:
     """Jülich-like :class:`LinearActuators` (batched to ``(n, 2)`` if ``n`` is given)."""
+    if n is not None:
+        _check_sizes("typical_actuators", n=n)
     fields = {k: jnp.asarray(v, dtype) for k, v in _TYPICAL_ACTUATORS.items()}
     if n is not None:
         fields = {k: jnp.broadcast_to(v, (n, 2)) for k, v in fields.items()}
@@ -69,6 +93,7 @@ def typical_actuators(n: int | None = None, dtype=jnp.float64) -> LinearActuator
 def synthetic_geometry(key: PRNGKeyArray, n: int, dtype=jnp.float64) -> HeliostatGeometry:
     """``n`` heliostats in a field 60-300 m north of the tower (ENU m), Jülich-like
     actuators with small manufacturing scatter, mirror 0.175 m off axis 2."""
+    _check_sizes("synthetic_geometry", n=n)
     k1, k2, k3 = jax.random.split(key, 3)
     east = jax.random.uniform(k1, (n,), dtype, -130.0, 130.0)
     north = jax.random.uniform(k2, (n,), dtype, 60.0, 300.0)
@@ -87,6 +112,7 @@ def random_stone_models(
 ) -> StoneModel:
     """``n`` true Stone models with angles ~ N(0, angle_sigma) rad (offsets 3x
     larger) and gear ratios ~ 1 + N(0, gear_sigma), batched."""
+    _check_sizes("random_stone_models", n=n)
     z = jax.vmap(lambda k: jax.random.normal(k, (n,), dtype))(jax.random.split(key, 8))  # (8, n)
     ang = [angle_sigma * z[i] for i in range(4)]
     off = [3 * angle_sigma * z[i] for i in range(4, 6)]
@@ -128,6 +154,8 @@ def calibration_times(
     **Returns:** ``(times, sun)``: times ``shape`` (unix s, whole seconds) and unit
     vectors towards the sun ``(*shape, 3)`` (local ENU).
     """
+    axes = {f"shape[{i}]": n for i, n in enumerate(shape)}
+    _check_sizes("calibration_times", tuple(axes), **axes)
 
     k_day, k_hour = jax.random.split(key)
     midnight = np.floor(start_unix / 86400.0) * 86400.0  # hours below are UTC hours of the day
@@ -204,7 +232,20 @@ def simulate_records(
         noise_m: std of additional spot noise on the target plane per axis, m.
         perturb_pose: the injection point for an unmodelled effect, applied to the
             true pose of every record.
+
+    Raises:
+        ValueError: ``noise_mrad`` or ``noise_m`` not finite and >= 0 (a NaN had made
+            every spot NaN and every record masked, without a word).
     """
+    for name, value in (("noise_mrad", noise_mrad), ("noise_m", noise_m)):
+        if isinstance(value, jax.core.Tracer):  # pyright: ignore[reportAttributeAccessIssue]
+            continue
+        try:
+            ok = np.ndim(value) == 0 and bool(np.isfinite(value) and value >= 0.0)
+        except TypeError:
+            ok = False
+        if not ok:
+            raise ValueError(f"simulate_records: {name} must be a finite number >= 0, got {value!r}")
     h = geometry.position.shape[0]
     m = context.sun.shape[1]
     dtype = geometry.position.dtype
@@ -243,6 +284,7 @@ def synthetic_contexts(
     wind direction); records are in chronological order per heliostat and
     ``approach`` is left 0 (the simulator fills it from the counts' order) and
     ``target`` is 0 (the one simulated target)."""
+    _check_sizes("synthetic_contexts", ("n_heliostats", "n_records"), n_heliostats=n_heliostats, n_records=n_records)
     k_t, k_w1, k_w2, k_w3 = jax.random.split(key, 4)
     t, sun = calibration_times(k_t, (n_heliostats, n_records), **time_kwargs)
     order = jnp.argsort(t, axis=1)

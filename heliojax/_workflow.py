@@ -164,6 +164,37 @@ _ATTEMPTED = (FitStatus.CONVERGED, FitStatus.MAX_STEPS, FitStatus.DIVERGED, FitS
 """Statuses of heliostats whose records were fitted (their noise compared with the fleet's)."""
 
 
+FIT_OPTION_KEYS = ("free", "solver", "loss", "prior", "batching", "max_steps")
+"""The keys of :func:`calibrate`'s ``fit_options``: :func:`heliojax.fit`'s keyword
+arguments but ``mask`` (calibrate sets it)."""
+
+
+def _check_fit_options(fit_options: typing.Any, *, robust: bool, pool: bool) -> None:
+    """Refuse ``fit_options`` that are no mapping, or that hold a key :func:`calibrate`
+    sets itself or :func:`heliojax.fit` does not take (naming them)."""
+    if fit_options is None:
+        return
+    if not isinstance(fit_options, collections.abc.Mapping):
+        raise ConfigError(f"fit_options must map keyword -> value, not a {type(fit_options).__name__}")
+    keys = [str(k) for k in fit_options]
+    set_here = {"mask": "calibrate chooses each fit's records (leave records out with record_roles)"}
+    if robust:
+        set_here["loss"] = "robust=True fits with its own Cauchy loss (robust=False to give one)"
+        if pool:
+            set_here["prior"] = "robust=True with pool=True learns the fleet's prior (pool=False to give one)"
+    taken = [k for k in keys if k in set_here]
+    if taken:
+        raise ConfigError(
+            f"fit_options: {', '.join(repr(k) for k in taken)} is set by calibrate itself: "
+            + "; ".join(set_here[k] for k in taken)
+        )
+    unknown = [k for k in keys if k not in FIT_OPTION_KEYS]
+    if unknown:
+        raise ConfigError(
+            f"fit_options: unknown key(s) {', '.join(repr(k) for k in unknown)}; known: {', '.join(FIT_OPTION_KEYS)}"
+        )
+
+
 def calibrate(
     fleet,
     *,
@@ -194,7 +225,13 @@ def calibrate(
         n_train, n_val, train_fraction, seed: split sizes (``n_train`` wins over
             ``train_fraction``; PAINT's splits need ``n_train``).
         fit_options: keyword arguments of :func:`heliojax.fit` (``free``, ``solver``,
-            ``loss``, ``prior``, ``batching``, ``max_steps``).
+            ``loss``, ``prior``, ``batching``, ``max_steps``). Not ``mask``: calibrate
+            chooses the records of each fit itself (leave records out with
+            ``record_roles`` or a fleet without them); with ``robust``, not ``loss``
+            (the robust fit chooses it); with ``robust`` and ``pool``, not ``prior``
+            (the pooled fit learns it). Such a key, or one :func:`heliojax.fit` does not
+            take, is refused with a :class:`~heliojax.ConfigError` naming it (it had
+            failed with Python's "got multiple values for keyword argument").
         test_fleet: evaluate on this fleet's records (same heliostat ids) instead of
             the split's test records; then all of ``fleet``'s records may train.
         start: ``"auto"`` (per heliostat the nominal actuators, or the fleet-typical
@@ -231,6 +268,7 @@ def calibrate(
             "record_roles must map heliostat id -> {PAINT record id: 'train' or 'test'}, "
             f"not a {type(record_roles).__name__}"
         )
+    _check_fit_options(fit_options, robust=robust, pool=pool)
     model0 = nominal_model(model, fleet.counts.dtype) if isinstance(model, str) else model
     n_real = len(fleet.ids)
     ids = list(fleet.ids)

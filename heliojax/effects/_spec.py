@@ -91,9 +91,10 @@ def data_references(fleet: typing.Any, mask: typing.Any = None) -> dict[str, flo
 
 def with_data_references(model: ModelT, fleet: typing.Any, mask: typing.Any = None) -> ModelT:
     """``model`` with its effects' references set from ``fleet`` (:func:`data_references`)."""
-    if not reference_leaves(model):
+    names = {leaf.name for leaf in reference_leaves(model)}
+    if not names:
         return model
-    return set_references(model, data_references(fleet, mask))
+    return set_references(model, {k: v for k, v in data_references(fleet, mask).items() if k in names})
 
 
 def make_effect(name: str, inner: AbstractKinematicModel | None = None, **values: float) -> AbstractEffect:

@@ -20,7 +20,10 @@ import typing
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
+
+from .._heliostat import known_values
 
 CAUCHY_EFFICIENCY_FACTOR = 2.3849
 """Cauchy scale in units of the noise standard deviation for 95 % asymptotic
@@ -89,6 +92,17 @@ class Cauchy(AbstractLoss):
     def __check_init__(self):
         if jnp.ndim(self.scale_mrad) > 1:
             raise ValueError(f"Cauchy: scale_mrad must be a scalar or (H,), got shape {jnp.shape(self.scale_mrad)}")
+        # checked where the values are known (not under jit / vmap): a scale of 0 or
+        # NaN had made every row of the heliostat NaN (z = |r|^2 / 0)
+        c = known_values(self.scale_mrad)
+        if c is None:
+            return
+        bad = ~(c > 0.0)  # NaN too; inf is least squares
+        if bad.any():
+            where = f" (heliostat {int(np.argmax(bad.reshape(-1)))})" if c.ndim else ""
+            raise ValueError(
+                f"Cauchy: scale_mrad must be > 0 (mrad; inf for least squares), got {float(c[bad][0])}{where}"
+            )
 
     def per_heliostat(self, n):
         return jnp.broadcast_to(jnp.asarray(self.scale_mrad), (n,))

@@ -23,9 +23,10 @@ from jaxtyping import Array, Bool, Float, Key, PRNGKeyArray, UInt32
 from .._geometry import direction_to_azimuth_elevation, sun_direction
 from .._heliostat import HeliostatGeometry, RecordContext
 from .._kinematics import AbstractKinematicModel, inverse_aim
+from .._limits import MAX_SYNTHETIC_RECORDS
 from ..fitting import sanitise
 from ._model import NeuralCorrection, PaperPredictor
-from ._network import MLP, PAPER_HIDDEN, init_networks
+from ._network import MAX_LAYER_WIDTH, MLP, PAPER_HIDDEN, init_networks
 
 VARIANTS = ("residual", "paper")
 
@@ -167,6 +168,13 @@ class NeuralConfig:
         if isinstance(hidden, (str, bytes)) or not isinstance(hidden, typing.Iterable):
             raise TypeError(f"hidden must be a sequence of layer widths (integers >= 1), got {hidden!r}")
         object.__setattr__(self, "hidden", tuple(_check_int(f"hidden[{i}]", h, 1) for i, h in enumerate(hidden)))
+        # sizes past these had been refused only by running out of memory
+        for name, limit in (("n_synthetic", MAX_SYNTHETIC_RECORDS), ("batch_size", MAX_SYNTHETIC_RECORDS)):
+            if getattr(self, name) > limit:
+                raise ValueError(f"{name} must be at most {limit:,}, got {getattr(self, name):,}")
+        for i, h in enumerate(self.hidden):
+            if h > MAX_LAYER_WIDTH:
+                raise ValueError(f"hidden[{i}] must be at most {MAX_LAYER_WIDTH}, got {h:,}")
         object.__setattr__(self, "dtype", _check_dtype(self.dtype))
 
     @property

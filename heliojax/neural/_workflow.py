@@ -22,6 +22,8 @@ from __future__ import annotations
 import copy
 import dataclasses
 import logging
+import math
+import numbers
 import time
 from collections.abc import Sequence
 
@@ -30,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._errors import ConfigError
+from .._errors import ConfigError, few_names
 from .._fleet import fleet_subset
 from .._workflow import CalibrationRun, _json_float, _stats, calibrate
 from ..fitting import FitStatus, beam_errors_mrad, residuals_mrad, sanitise
@@ -90,6 +92,10 @@ def validation_tail(train_mask: np.ndarray, val_fraction: float, min_val: int = 
     """Split each row's training records (record axis chronological) into *fit* and
     the latest ``max(min_val, round(val_fraction * n))`` for *validation*; no
     validation where fewer than 2 records would fit the network."""
+    if isinstance(val_fraction, bool) or not (isinstance(val_fraction, numbers.Real) and 0.0 <= val_fraction < 1.0):
+        raise ValueError(f"validation_tail: val_fraction must be a number in [0, 1), got {val_fraction!r}")
+    if isinstance(min_val, bool) or not (isinstance(min_val, numbers.Integral) and min_val >= 0):
+        raise ValueError(f"validation_tail: min_val must be a whole number >= 0, got {min_val!r}")
     train_mask = np.asarray(train_mask, bool)
     fit = train_mask.copy()
     val = np.zeros_like(train_mask)
@@ -233,7 +239,13 @@ def fallback_rule(nn_val_median, lm_val_median, tolerance: float, unchanged=None
     validation median (mrad) is finite and ``<= (1 + tolerance) *`` the LM model's,
     and the network corrects anything (``unchanged``: optional ``(H,)`` bool, the
     network's correction is zero everywhere, :func:`zero_correction`)."""
+    if isinstance(tolerance, bool) or not (isinstance(tolerance, numbers.Real) and 0.0 <= tolerance < math.inf):
+        # NaN had let every network through (no comparison with NaN is true)
+        raise ValueError(f"fallback_rule: tolerance must be a finite number >= 0, got {tolerance!r}")
     unchanged = np.zeros(len(lm_val_median), bool) if unchanged is None else np.asarray(unchanged, bool)
+    lengths = {"nn_val_median": len(nn_val_median), "lm_val_median": len(lm_val_median), "unchanged": len(unchanged)}
+    if len(set(lengths.values())) != 1:  # zip had dropped the heliostats past the shortest
+        raise ValueError(f"fallback_rule: one value per heliostat needed, got {lengths}")
     fb, why = [], []
     for a, b, same in zip(nn_val_median, lm_val_median, unchanged):
         if not np.isfinite(b):
@@ -295,6 +307,15 @@ def calibrate_neural(
     """
     if variant not in VARIANTS:
         raise ConfigError(f"unknown neural variant {variant!r}; choose one of {', '.join(VARIANTS)}")
+    if not isinstance(nn, NeuralConfig):  # a dict had failed with an AttributeError deep inside
+        raise ConfigError(f"nn must be a heliojax.neural.NeuralConfig, not a {type(nn).__name__}")
+    if lm_run is not None and fleet is not None:
+        run_ids = tuple(lm_run.summary["heliostats"])
+        if tuple(fleet.ids) != run_ids:  # lm_run's fleet had been used, this one ignored without a word
+            raise ConfigError(
+                f"lm_run was fitted on other heliostats ({few_names(list(run_ids))}) than fleet's "
+                f"({few_names(list(fleet.ids))}): pass the fleet it was fitted on, or fleet=None"
+            )
     if lm_run is None:
         lm_run = calibrate(
             fleet,
@@ -444,7 +465,13 @@ def learning_curve(
     ``"paper_raw"``: without), ``fleet_median_mrad`` (pooled test records),
     ``per_heliostat`` {id: median}, ``n_fallback``.
     """
-    sizes = sorted(int(n) for n in sizes)
+    given = list(sizes)
+    if not given or not all(isinstance(n, numbers.Integral) and not isinstance(n, bool) and n >= 1 for n in given):
+        # a size of 0 had trained on every record before the test period (before[-0:])
+        raise ConfigError(f"learning_curve: sizes must be whole numbers >= 1, got {given!r}")
+    if isinstance(test_fraction, bool) or not (isinstance(test_fraction, numbers.Real) and 0.0 < test_fraction < 1.0):
+        raise ConfigError(f"learning_curve: test_fraction must be a number in (0, 1), got {test_fraction!r}")
+    sizes = sorted(int(n) for n in given)
     min_train = max(sizes) if min_train is None else int(min_train)
     mask = np.asarray(fleet.mask)
     n_valid = mask.sum(1)

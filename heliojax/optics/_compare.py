@@ -427,7 +427,9 @@ def compare_record(
         bar.update()
         c_traced = image_centroid(np.asarray(trace(jax.random.fold_in(key, 2), wide), np.float64), wide)
         bar.update()
-        grid_c = ImageGrid.centred(c_traced[0], c_traced[1], *CENTRED_WINDOW_M, shape=measured_c.shape)
+        # no ray on the wide grid (a NaN centroid): the window at the target's centre, also dark
+        u0, v0 = c_traced if np.isfinite(c_traced).all() else (0.0, 0.0)
+        grid_c = ImageGrid.centred(u0, v0, *CENTRED_WINDOW_M, shape=measured_c.shape)
         traced_c = np.asarray(trace(jax.random.fold_in(key, 1), grid_c), np.float64)
         bar.update()
 

@@ -59,7 +59,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
 from .._geometry import TargetPlane, bisector_normal, normalize
-from .._heliostat import Pose
+from .._heliostat import Pose, known_values
 from ._sunshape import AbstractSunShape, tangent_basis, uniforms
 from ._surfaces import SurfacePoints
 
@@ -83,6 +83,20 @@ class ImageGrid(eqx.Module):
     def __check_init__(self):
         if len(self.shape) != 2 or min(self.shape) < 1:
             raise ValueError(f"ImageGrid shape must be (ny, nx) >= 1, got {self.shape}")
+        # checked where the edges are known (not under jit / vmap): a grid of negative
+        # width had drawn a mirrored image, one of zero or NaN width an image of NaN
+        for axis, lo, hi in (("u", self.u_min, self.u_max), ("v", self.v_min, self.v_max)):
+            lo_, hi_ = known_values(lo), known_values(hi)
+            if lo_ is None or hi_ is None:
+                continue
+            lo_, hi_ = np.broadcast_arrays(lo_, hi_)
+            bad = ~(np.isfinite(lo_) & np.isfinite(hi_) & (hi_ > lo_))
+            if bad.any():
+                at = tuple(int(k) for k in np.argwhere(bad)[0])
+                raise ValueError(
+                    f"ImageGrid: {axis}_min < {axis}_max, both finite (m), needed; got {axis}_min = "
+                    f"{float(lo_[at])}, {axis}_max = {float(hi_[at])}" + (f" at index {at}" if at else "")
+                )
 
     @classmethod
     def for_target(cls, target: TargetPlane, shape: tuple[int, int] = (256, 256)) -> ImageGrid:

@@ -36,6 +36,7 @@ import numpy as np
 
 from .._errors import DataError
 from .._io import atomic_h5
+from ._common import MAX_COUNTS, MAX_HELIOSTAT_DISTANCE_M
 
 ACTUATOR_PARAMETERS = ("increment", "initial_angle", "initial_stroke_length", "offset", "pivot_radius")
 """Parameters of an ARTIST actuator (m, rad; ``increment`` counts per metre)."""
@@ -75,6 +76,13 @@ off the plane. A mirror facet departs from its plane by milliradians (slope erro
 so a slope of 0.1 rad (100 mrad) is ten times any of these: a surface that rises 10 % of
 its size off its facet is not a mirror facet. (Chosen from this reasoning, not fitted to
 data; the shared deflectometry scenarios stay below 0.005.)"""
+
+POSITIVE_ACTUATOR_PARAMETERS = {"increment": "counts/m", "offset": "m", "pivot_radius": "m"}
+"""Actuator parameters that must be positive (the actuator law divides by each), with
+their units."""
+
+MAX_NURBS_DEGREE = 10
+"""Highest NURBS degree of a facet read (ARTIST's are 2 or 3)."""
 
 _NUMBERED = re.compile(r"^(?:actuator|facet)_(\d+)\Z")
 
@@ -175,9 +183,14 @@ class _Reader:
         return f"{(group.name or '').strip('/')}/{name}".strip("/")
 
     def node(self, group: Any, name: str) -> Any:
+        if not isinstance(group, h5py.Group):
+            raise self.fail(self.where(group), "is a dataset, expected a group")
         if name not in group:
             raise self.fail(self.where(group, name), "missing")
-        return group[name]
+        try:
+            return group[name]
+        except (KeyError, RuntimeError, OSError, ValueError) as e:  # a dangling, external or looping link
+            raise self.fail(self.where(group, name), f"cannot be read ({e})") from None
 
     def group(self, parent: Any, name: str) -> Any:
         g = self.node(parent, name)
@@ -185,13 +198,24 @@ class _Reader:
             raise self.fail(self.where(parent, name), "is a dataset, expected a group")
         return g
 
-    def array(self, group: Any, name: str, shape: tuple[int | None, ...]) -> np.ndarray:
-        field = self.where(group, name)
+    def groups(self, parent: Any) -> list[tuple[str, Any]]:
+        """Every entry of ``parent`` (a group each), in the file's order."""
+        return [(k, self.group(parent, k)) for k in parent]
+
+    def dataset(self, group: Any, name: str) -> Any:
         obj = self.node(group, name)
         if not isinstance(obj, h5py.Dataset):
-            raise self.fail(field, "is a group, expected a dataset")
+            raise self.fail(self.where(group, name), "is a group, expected a dataset")
         try:
-            a = np.asarray(obj[()], np.float64)
+            return obj[()]
+        except (OSError, RuntimeError, ValueError, TypeError) as e:  # damaged chunks, an unknown type
+            raise self.fail(self.where(group, name), f"cannot be read ({e})") from None
+
+    def array(self, group: Any, name: str, shape: tuple[int | None, ...]) -> np.ndarray:
+        field = self.where(group, name)
+        value = self.dataset(group, name)
+        try:
+            a = np.asarray(value, np.float64)
         except (TypeError, ValueError) as e:
             raise self.fail(field, f"not numeric ({e})") from None
         if a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape, strict=True)):
@@ -203,10 +227,38 @@ class _Reader:
     def number(self, group: Any, name: str) -> float:
         return float(self.array(group, name, ()))
 
+    def positive(self, group: Any, name: str, unit: str) -> float:
+        value = self.number(group, name)
+        if not value > 0.0:
+            raise self.fail(self.where(group, name), f"{value:g} {unit}; expected > 0")
+        return value
+
+    def whole(self, group: Any, name: str, shape: tuple[int | None, ...], low: float, high: float) -> np.ndarray:
+        """Whole numbers in ``[low, high]`` (a count, a degree, an id: 2.7 had been cut to 2)."""
+        a = self.array(group, name, shape)
+        bad = (a != np.round(a)) | (a < low) | (a > high)
+        if bad.any():
+            raise self.fail(
+                self.where(group, name),
+                f"{a[bad].reshape(-1)[0]:g}; expected a whole number in [{low:.0f}, {high:.0f}]",
+            )
+        return a.astype(np.int64)
+
+    def flag(self, group: Any, name: str) -> bool:
+        value = self.dataset(group, name)
+        if isinstance(value, (bool, np.bool_)) or (isinstance(value, np.integer | int) and value in (0, 1)):
+            return bool(value)
+        shown = repr(value.item() if isinstance(value, np.generic) else value)
+        shown = shown if np.ndim(value) == 0 else f"an array of shape {np.shape(value)}"
+        raise self.fail(self.where(group, name), f"{shown}; expected a boolean (true/false or 0/1)")
+
     def text(self, group: Any, name: str) -> str:
-        value = self.node(group, name)[()]
+        value = self.dataset(group, name)
         if isinstance(value, bytes):
-            return value.decode()
+            try:
+                return value.decode()
+            except UnicodeDecodeError:
+                raise self.fail(self.where(group, name), f"{value[:40]!r}: not UTF-8 text") from None
         if isinstance(value, str):
             return value
         raise self.fail(self.where(group, name), f"expected a string, got {type(value).__name__}")
@@ -224,15 +276,24 @@ class _Reader:
         actuators = []
         act_group = self.group(g, "actuator")
         for a in self.numbered(act_group):
-            ag = act_group[a]
+            ag = self.group(act_group, a)
             params = self.group(ag, "parameters")
-            mm = self.array(ag, "min_max_motor_positions", (2,))
+            mm = self.whole(ag, "min_max_motor_positions", (2,), -MAX_COUNTS, MAX_COUNTS)
+            if not mm[0] < mm[1]:
+                raise self.fail(
+                    self.where(ag, "min_max_motor_positions"), f"{mm.tolist()}: the minimum is not below the maximum"
+                )
             actuators.append(
                 ArtistActuator(
                     type=self.text(ag, "type"),
-                    clockwise_axis_movement=bool(self.node(ag, "clockwise_axis_movement")[()]),
+                    clockwise_axis_movement=self.flag(ag, "clockwise_axis_movement"),
                     min_max_motor_positions=(int(mm[0]), int(mm[1])),
-                    parameters={k: self.number(params, k) for k in ACTUATOR_PARAMETERS},
+                    parameters={
+                        k: self.positive(params, k, POSITIVE_ACTUATOR_PARAMETERS[k])
+                        if k in POSITIVE_ACTUATOR_PARAMETERS
+                        else self.number(params, k)
+                        for k in ACTUATOR_PARAMETERS
+                    },
                 )
             )
         if len(actuators) != 2:
@@ -240,8 +301,8 @@ class _Reader:
         facets = []
         fg = self.group(self.group(g, "surface"), "facets")
         for k in self.numbered(fg):
-            f = fg[k]
-            deg = self.array(f, "degrees", (2,))
+            f = self.group(fg, k)
+            deg = self.whole(f, "degrees", (2,), 1, MAX_NURBS_DEGREE)
             cp = self.array(f, "control_points", (None, None, 3))
             if cp.shape[0] <= deg[0] or cp.shape[1] <= deg[1]:
                 raise self.fail(self.where(f, "control_points"), f"{cp.shape[:2]} too few for degrees {deg}")
@@ -254,10 +315,19 @@ class _Reader:
                 )
             )
         self.check_control_points(fg, facets)
+        position = None
+        if not prototype:
+            position = self.array(g, "position", (4,))[:3]
+            if not np.linalg.norm(position) <= MAX_HELIOSTAT_DISTANCE_M:
+                raise self.fail(
+                    self.where(g, "position"),
+                    f"{np.linalg.norm(position):.4g} m from the plant's origin, more than "
+                    f"{MAX_HELIOSTAT_DISTANCE_M:g} m: not a heliostat of this plant (damaged numbers?)",
+                )
         return ArtistHeliostat(
             name=name,
-            id=None if prototype else int(self.array(g, "id", ())),
-            position=None if prototype else self.array(g, "position", (4,))[:3],
+            id=None if prototype else int(self.whole(g, "id", (), 0, 2**63 - 1)),
+            position=position,
             kinematics_type=self.text(kin, "type"),
             initial_orientation=self.array(kin, "initial_orientation", (4,))[:3],
             deviations=deviations,
@@ -302,46 +372,66 @@ class _Reader:
 
     def scenario(self, f: Any) -> ArtistScenario:
         hel = self.group(f, "heliostats")
-        heliostats = tuple(self.heliostat(hel[k], k, False) for k in hel)
+        heliostats = tuple(self.heliostat(g, k, False) for k, g in self.groups(hel))
         if not heliostats:
             raise self.fail("heliostats", "no heliostats")
-        prototype = self.heliostat(f["prototypes"], "prototype", True) if "prototypes" in f else None
+        ids: dict[int | None, str] = {}
+        for h in heliostats:
+            if h.id in ids:
+                raise self.fail(f"heliostats/{h.name}/id", f"{h.id}, the id of heliostats/{ids[h.id]} too")
+            ids[h.id] = h.name
+        prototype = self.heliostat(self.group(f, "prototypes"), "prototype", True) if "prototypes" in f else None
         planar = {}
         if "target_areas_planar" in f:
-            for k, t in f["target_areas_planar"].items():
-                normal = self.array(t, "normal_vector", (None, 4)).reshape(-1, 4)[0, :3]
+            for k, t in self.groups(self.group(f, "target_areas_planar")):
+                normals = self.array(t, "normal_vector", (None, 4))
+                normal = normals[0, :3] if len(normals) else np.zeros(3)
+                if not np.linalg.norm(normal) > 0.0:
+                    raise self.fail(self.where(t, "normal_vector"), f"{normals.tolist()}: no direction")
                 planar[k] = ArtistPlanarTarget(
                     centre=self.array(t, "position_center", (4,))[:3],
                     normal=normal,
-                    width=self.number(t, "plane_e"),
-                    height=self.number(t, "plane_u"),
+                    width=self.positive(t, "plane_e", "m"),
+                    height=self.positive(t, "plane_u", "m"),
                 )
         cylindrical = {}
         if "target_areas_cylindrical" in f:
-            for k, t in f["target_areas_cylindrical"].items():
-                cylindrical[k] = {n: np.asarray(d[()]) for n, d in t.items()}
+            for k, t in self.groups(self.group(f, "target_areas_cylindrical")):
+                cylindrical[k] = {n: np.asarray(self.dataset(t, n)) for n in t}
         lights = {}
         if "lightsources" in f:
-            for k, s in f["lightsources"].items():
+            for k, s in self.groups(self.group(f, "lightsources")):
                 d = self.group(s, "distribution_parameters")
                 lights[k] = ArtistLightSource(
                     type=self.text(s, "type"),
-                    number_of_rays=int(self.number(s, "number_of_rays")),
+                    number_of_rays=int(self.whole(s, "number_of_rays", (), 1, 2**31 - 1)),
                     distribution_type=self.text(d, "distribution_type"),
                     mean=self.number(d, "mean"),
                     covariance=self.number(d, "covariance"),
                 )
-        groups = f.get("number_of_heliostat_groups")
+        groups = None
+        if "number_of_heliostat_groups" in f:
+            groups = int(self.whole(f, "number_of_heliostat_groups", (), 1, len(heliostats)))
+        plant = self.group(f, "power_plant")
+        lla = self.array(plant, "position", (3,))
+        if not (abs(lla[0]) <= 90.0 and abs(lla[1]) <= 360.0):
+            raise self.fail(
+                self.where(plant, "position"), f"latitude {lla[0]:g} deg, longitude {lla[1]:g} deg: not on the earth"
+            )
+        try:
+            version = float(f.attrs.get("version", 1.0))
+        except (TypeError, ValueError):
+            raise self.fail("version (attribute)", f"{f.attrs['version']!r}: not a number") from None
         return ArtistScenario(
             source=self.path,
-            plant_position_lla=self.array(self.group(f, "power_plant"), "position", (3,)),
+            plant_position_lla=lla,
             heliostats=heliostats,
             prototype=prototype,
             planar_targets=planar,
             cylindrical_targets=cylindrical,
             light_sources=lights,
-            number_of_heliostat_groups=None if groups is None else int(np.asarray(groups[()])),
-            version=float(f.attrs.get("version", 1.0)),
+            number_of_heliostat_groups=groups,
+            version=version,
         )
 
 
