@@ -127,7 +127,6 @@ class ParameterLeaf:
     fixed_by_model: bool
 
     @property
-    @typing.no_type_check  # run per parameter, often: the tests' run-time type checks cost more than its body
     def size(self) -> int:
         return math.prod(self.info.shape)
 
@@ -141,7 +140,6 @@ class ReferenceLeaf:
     name: str
 
 
-@typing.no_type_check  # run per parameter, often: the tests' run-time type checks cost more than its body
 def _element_names(name: str, info: ParameterInfo) -> tuple[str, ...]:
     if info.shape == ():
         return (name,)
@@ -173,7 +171,6 @@ def _walk(node: typing.Any, path: Path) -> Iterator[ParameterLeaf | ReferenceLea
             yield from _walk(v, path + (i,))
 
 
-@typing.no_type_check  # run per parameter, often: the tests' run-time type checks cost more than its body
 def _get(node: typing.Any, path: Path) -> typing.Any:
     for step in path:
         node = node[step] if isinstance(step, int) else getattr(node, step)
