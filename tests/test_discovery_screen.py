@@ -294,6 +294,76 @@ def test_day_clustering_is_the_one_way_anova_estimate_and_stays_off_for_independ
     np.testing.assert_array_equal(off.design_effect, np.ones(40))
 
 
+def _fitted_clustered_residuals(rng, h, days, per_day, rho, n_cols, use=None):
+    """Residuals ``(H, M, 2)`` of a least-squares fit of ``n_cols`` smooth columns per
+    component (a constant, slow trends over the days, the hour) to the records ``use``
+    (all by default) whose error shares ``rho`` of its variance by day; their times and
+    the fit's orthonormal basis ``(H, M, 2, 2 n_cols)`` (zero on unused records)."""
+    r, t = _clustered_residuals(rng, h, days, per_day, rho, np.ones(h))
+    m = days * per_day
+    use = np.ones((h, m), bool) if use is None else use
+    season = (t - t.min()) / (t.max() - t.min())
+    hour = np.mod(t, 86400.0) / 86400.0
+    cols = np.stack([np.ones_like(t), season, season**2, np.sin(6 * season), hour, season * hour], -1)[..., :n_cols]
+    x = np.zeros((h, m, 2, 2 * n_cols))
+    x[:, :, 0, :n_cols], x[:, :, 1, n_cols:] = cols, cols
+    x *= use[..., None, None]
+    u = np.linalg.svd(x.reshape(h, 2 * m, -1), full_matrices=False)[0]
+    y = r.reshape(h, 2 * m)
+    fitted = np.einsum("hrc,hc->hr", u, np.einsum("hrc,hr->hc", u, y))
+    return (y - fitted).reshape(h, m, 2), t, u.reshape(h, m, 2, -1)
+
+
+def test_day_clustering_allows_for_what_the_fit_absorbed():
+    """The residuals' analysis of variance finds the intra-day correlation too small
+    when the fitted parameters take up part of each day's shared error (a trend over
+    the days absorbs day means); with the fit's basis the method-of-moments estimate
+    recovers the planted one, and equals a second computation with every projector
+    written out densely (heliostat by heliostat)."""
+    from scipy import optimize
+
+    from heliojax.fitting import day_clustering, day_labels
+
+    rng = np.random.default_rng(11)
+    for rho in (0.2, 0.5):
+        plain, moments = [], []
+        for _ in range(4):
+            r, t, u = _fitted_clustered_residuals(rng, 30, 10, 4, rho, 6)
+            use = np.ones(t.shape, bool)
+            plain.append(day_clustering(r, use, t, 12).correlation)
+            moments.append(day_clustering(r, use, t, 12, basis=u).correlation)
+        assert np.mean(plain) < rho - 0.08  # what the fit absorbed, taken for independence
+        assert abs(np.mean(moments) - rho) < 0.04, (rho, moments)
+    # the second computation: M = I - U U^T, Z the (day, component) indicators, A the
+    # projector on the cluster means, B = I - A, on a heliostat's used rows
+    use = np.ones((6, 24), bool)
+    use[1, :2] = False
+    r, t, u = _fitted_clustered_residuals(rng, 6, 8, 3, 0.5, 3, use)
+    h, m = use.shape
+    sums = np.zeros((6, h))  # |z|^2, |B z|^2, tr M, |M Z|^2, tr(B M), |B M Z|^2
+    for i in range(h):
+        keep = np.repeat(use[i], 2)
+        ui = u[i].reshape(2 * m, -1)[keep] * 1.0
+        ui = ui[:, np.linalg.norm(ui, axis=0) > 0]
+        ri = r[i].reshape(-1)[keep]
+        z = ri / np.sqrt(ri @ ri / (keep.sum() - 6))
+        label = day_labels(np.repeat(t[i], 2))[keep] * 2 + np.tile([0, 1], m)[keep]
+        zmat = (label[:, None] == np.unique(label)[None, :]).astype(float)
+        a = zmat @ np.linalg.inv(zmat.T @ zmat) @ zmat.T
+        b = np.eye(keep.sum()) - a
+        mm = np.eye(keep.sum()) - ui @ ui.T
+        sums[:, i] = [z @ z, z @ b @ z, np.trace(mm), np.sum((mm @ zmat) ** 2), np.trace(b @ mm), np.sum((b @ mm @ zmat) ** 2)]
+    qt, qw, t1, t2, w1, w2 = sums
+
+    def excess(c):
+        return np.sum(qt * ((1 - c) * w1 + c * w2) / ((1 - c) * t1 + c * t2)) - np.sum(qw)
+
+    expected = optimize.brentq(excess, 0.0, 0.99, xtol=1e-12) if excess(0.0) > 0 else 0.0
+    got = day_clustering(r, use, t, 6, basis=u)
+    assert got.p < 0.01 and expected > 0.2  # this draw's test rejects independence
+    np.testing.assert_allclose(got.correlation, expected, rtol=1e-6)
+
+
 def test_day_whitened_rss_is_the_quadratic_form_of_the_random_day_effect_covariance():
     """:func:`day_whitened_rss` against ``r^T R^-1 r`` with ``R`` written out densely and
     solved (clusters: row set, UTC day, component; a record without a time alone), the

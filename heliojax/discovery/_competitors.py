@@ -57,6 +57,7 @@ import numpy as np
 from scipy import stats
 
 from ._diagnostics import day_whitened_rss
+from ._identifiability import column_bases
 from ._screen import (
     HeliostatBases,
     best_prior_scale,
@@ -144,11 +145,20 @@ def _prior_scale(info: np.ndarray, score: np.ndarray) -> tuple[float, float]:
     return at**2, hyperprior_penalty(at**2 * info, at * score, scale)
 
 
-def _fit_terms(bases: HeliostatBases, which: np.ndarray, new: np.ndarray, clustering: DayWhitening | None):
+def _fit_terms(
+    bases: HeliostatBases,
+    which: np.ndarray,
+    new: np.ndarray,
+    xt: np.ndarray | None,
+    clustering: DayWhitening | None,
+):
     """``(rss, rss_new)`` ``(S',)`` of the heliostats ``which`` (mask over ``bases``)
-    before and after a competitor's fit ``new`` (their projected residual rows):
+    before and after a competitor's fit ``new`` (their projected residual rows) of
+    columns ``xt`` ``(S', R, k)`` (projected off the model's span; None for the fleet
+    form, whose ``k`` coefficients are shared by every heliostat):
     plain sums of squares, or with ``clustering`` whitened under the random day effect
-    of the competitor's own residuals (:class:`DayWhitening`), as a library refit's
+    of the competitor's own residuals (:class:`DayWhitening`; the fit's span is the
+    model's and the competitor's columns), as a library refit's
     criterion is under its own (:meth:`~heliojax.discovery._select._Workflow.bic_pair`).
     The share of the residuals inside the model's span (rounding at a converged fit)
     is added to both unwhitened."""
@@ -158,7 +168,12 @@ def _fit_terms(bases: HeliostatBases, which: np.ndarray, new: np.ndarray, cluste
     if clustering is not None:
         after = bases.r_res.copy()
         after[which] = new
-        rho = clustering.correlation(after, bases.index, bases.used)
+        basis = bases.u
+        if xt is not None:
+            extra = np.zeros((len(bases), *xt.shape[1:]))
+            extra[which] = column_bases(xt)[0]  # orthogonal to the model's span already
+            basis = np.concatenate([basis, extra], axis=2)
+        rho = clustering.correlation(after, bases.index, bases.used, basis)
     if rho <= 0.0 or clustering is None:
         return rss, np.maximum(inside + np.sum(new * new, axis=1), 1e-300)
     used, day = bases.used[which], clustering.day[bases.index[which]]
@@ -174,12 +189,13 @@ class DayWhitening:
     Attributes:
         day: ``(H, M)`` each record's local day (:func:`heliojax.fitting.day_labels`).
         correlation: the intra-day correlation of residual rows ``(S, R)`` of the
-            heliostats ``(S,)`` on their used rows ``(S, R)`` (the workflow's
+            heliostats ``(S,)`` on their used rows ``(S, R)``, of a fit whose columns
+            span an orthonormal basis ``(S, R, c)`` there (the workflow's
             :func:`day_clustering` estimate; 0 where its test does not reject).
     """
 
     day: np.ndarray
-    correlation: Callable[[np.ndarray, np.ndarray, np.ndarray], float]
+    correlation: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], float]
 
 
 def _per_heliostat(
@@ -211,7 +227,7 @@ def _per_heliostat(
     typ2, penalty = _prior_scale(info, score)
     beta = np.linalg.solve(info + np.eye(k) / typ2, score[..., None])[..., 0]
     new = r_res - (xt @ beta[..., None])[..., 0]
-    rss, rss_new = _fit_terms(bases, driven, new, clustering)
+    rss, rss_new = _fit_terms(bases, driven, new, xt, clustering)
     _, logdet = np.linalg.slogdet(np.eye(k) + typ2 * info)
     delta = float(np.sum(n * np.log(np.maximum(rss, 1e-300) / rss_new) - logdet - np.sum(beta * beta, axis=1) / typ2))
     delta -= penalty
@@ -244,7 +260,7 @@ def _fleet(bases: HeliostatBases, design: np.ndarray, noise: np.ndarray, cluster
     typ2 = GENERIC_TYPICAL_MRAD**2  # the fleet form's one draw says nothing about the scale
     beta = np.linalg.solve(gmat + np.eye(k) / typ2, g)
     new = bases.r_res - xt @ beta
-    rss, rss_new = _fit_terms(bases, np.ones(len(bases), bool), new, clustering)
+    rss, rss_new = _fit_terms(bases, np.ones(len(bases), bool), new, None, clustering)
     delta = float(np.sum(bases.n * np.log(np.maximum(rss, 1e-300) / rss_new)))
     fitted = xt @ beta  # the residual structure it explains (the model's share projected off)
     sq = float(np.sum(fitted * fitted))

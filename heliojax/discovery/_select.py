@@ -661,12 +661,18 @@ class _Workflow:
         if self.unix_time is None:
             return DayClustering(0.0, float("nan"), np.ones(h), np.ones(h))
         m = self.lanes.train_mask.shape[1]
+        use = self.lanes.train_mask[:h] & state.ok[:h, None]
+        cols = self.active_cols(state.effects)
+        # what the fit absorbed of each day's shared error: the span of its own columns
+        a = np.where(np.repeat(use, 2, axis=1)[..., None], np.take(state.jac[:h], cols, axis=2), 0.0)
+        basis, _ = column_bases(a)
         return day_clustering(
             state.r[:h].reshape(h, m, 2),
-            self.lanes.train_mask[:h] & state.ok[:h, None],
+            use,
             self.unix_time,
-            len(self.active_cols(state.effects)),
+            len(cols),
             self.longitude_deg,
+            basis=basis.reshape(h, m, 2, -1),
         )
 
     def lane_days(self) -> np.ndarray:
@@ -795,24 +801,29 @@ class _Workflow:
         if self.unix_time is not None:
             n_params = len(self.active_cols(state.effects))
 
-            def correlation(rows: np.ndarray, index: np.ndarray, used: np.ndarray) -> float:
-                return self._rows_correlation(rows, index, used, n_params)
+            def correlation(rows: np.ndarray, index: np.ndarray, used: np.ndarray, basis: np.ndarray) -> float:
+                return self._rows_correlation(rows, index, used, n_params, basis)
 
             clustering = DayWhitening(day_labels(self.unix_time, self.longitude_deg), correlation)
         return score_competitors(fleet, self.bases(state), self.noise, self.lanes.n_heliostats, clustering)
 
-    def _rows_correlation(self, rows: np.ndarray, index: np.ndarray, used: np.ndarray, n_params: int) -> float:
+    def _rows_correlation(
+        self, rows: np.ndarray, index: np.ndarray, used: np.ndarray, n_params: int, basis: np.ndarray
+    ) -> float:
         """The intra-day correlation (:func:`day_clustering`) of residual rows ``(S, R)``
         of the heliostats ``index`` ``(S,)`` on their used rows ``(S, R)`` (record
-        ``j``'s components at rows ``2j``, ``2j + 1``)."""
+        ``j``'s components at rows ``2j``, ``2j + 1``), of a fit whose columns span
+        ``basis`` ``(S, R, c)`` there (orthonormal)."""
         h, m = self.lanes.n_heliostats, self.lanes.train_mask.shape[1]
         w = rows.shape[1] // 2
         r = np.zeros((h, m, 2))
         use = np.zeros((h, m), bool)
+        u = np.zeros((h, m, 2, basis.shape[-1]))
         r[index, :w] = rows[:, : 2 * w].reshape(len(index), w, 2)
         use[index, :w] = used[:, 0 : 2 * w : 2]
+        u[index, :w] = basis[:, : 2 * w].reshape(len(index), w, 2, -1)
         assert self.unix_time is not None
-        return day_clustering(r, use, self.unix_time, n_params, self.longitude_deg).correlation
+        return day_clustering(r, use, self.unix_time, n_params, self.longitude_deg, basis=u).correlation
 
     def screen(self, state: ModelState, candidates) -> dict[str, CandidateScreen]:
         h = self.lanes.n_heliostats
