@@ -352,7 +352,8 @@ def test_day_clustering_allows_for_what_the_fit_absorbed():
         a = zmat @ np.linalg.inv(zmat.T @ zmat) @ zmat.T
         b = np.eye(keep.sum()) - a
         mm = np.eye(keep.sum()) - ui @ ui.T
-        sums[:, i] = [z @ z, z @ b @ z, np.trace(mm), np.sum((mm @ zmat) ** 2), np.trace(b @ mm), np.sum((b @ mm @ zmat) ** 2)]
+        mz = mm @ zmat
+        sums[:, i] = [z @ z, z @ b @ z, np.trace(mm), np.sum(mz**2), np.trace(b @ mm), np.sum((b @ mz) ** 2)]
     qt, qw, t1, t2, w1, w2 = sums
 
     def excess(c):
