@@ -287,6 +287,30 @@ def test_the_real_artist_scenarios_still_read(shared_paint):
         assert scenario.number_of_heliostat_groups == 2
 
 
+def test_one_damaged_heliostat_of_a_scenario_spoils_only_itself(tmp_path, shared_paint, capsys):
+    """A damaged heliostat group made the whole scenario unreadable, so `reconstruct
+    --scenario` failed for every heliostat of the file. With ``skip_bad`` it is left
+    out and named; `reconstruct` refuses only that heliostat, naming why."""
+    from helpers import run_cli
+
+    path = tmp_path / "scenario.h5"
+    shutil.copy(SCENARIO, path)
+    with h5py.File(path, "r+") as f:
+        _replace(_H + "actuator/actuator_1/parameters/pivot_radius", np.float32(-1))(f)
+    with pytest.raises(DataError, match="pivot_radius"):
+        read_artist_scenario(path)
+    scenario = read_artist_scenario(path, skip_bad=True)
+    assert [h.name for h in scenario.heliostats] == ["AA28", "AA31", "AC43"]
+    assert [name for name, _ in scenario.skipped] == ["AA39"] and "pivot_radius" in scenario.skipped[0][1]
+    assert optics.scene_from_artist(path, skip_bad=True).heliostat_ids == ("AA28", "AA31", "AC43")
+    root = tmp_path / "paint"
+    shutil.copytree(shared_paint / "flux-samples" / "AA39", root / "AA39")
+    shutil.copy(next(shared_paint.glob("*-tower-measurements.json")), root)
+    argv = ["reconstruct", "--paint", str(root), "--heliostat", "AA39", "--scenario", str(path)]
+    rc, _, err = run_cli([*argv, "--out", str(tmp_path / "out")], capsys)
+    assert rc == 2 and "heliostat AA39 is damaged there" in err and "pivot_radius" in err, err
+
+
 # --------------------------------------------------------------------------------------
 # Part B: the neural correction's API
 # --------------------------------------------------------------------------------------

@@ -203,7 +203,8 @@ def _run_real(args: argparse.Namespace) -> int:
     import jax
 
     from .. import optics
-    from .._errors import DataError
+    from .._errors import DataError, one_line
+    from ..paint import read_artist_scenario
 
     def fail(message: str) -> int:
         print(f"heliojax reconstruct: error: {message}", file=sys.stderr)
@@ -237,7 +238,14 @@ def _run_real(args: argparse.Namespace) -> int:
         records = optics.flux_records(pairs, tower, skip_bad=True)
         references = {}
         if args.scenario is not None:
-            scene = optics.scene_from_artist(args.scenario)
+            # a damaged heliostat of the scenario spoils only itself
+            scenario = read_artist_scenario(args.scenario, skip_bad=True)
+            damaged = dict(scenario.skipped)
+            if args.heliostat in damaged:
+                return fail(f"--scenario: heliostat {args.heliostat} is damaged there: {damaged[args.heliostat]}")
+            for name, reason in scenario.skipped:
+                log.warning(f"--scenario: heliostat {name} left out (damaged: {one_line(reason, 200)})")
+            scene = optics.scene_from_artist(scenario)
             i = scene.index(args.heliostat)
             references["deflectometry"] = jax.tree_util.tree_map(lambda x: x[i], scene.facets)
     except (DataError, KeyError) as e:

@@ -153,18 +153,24 @@ def _build_geometry(position, actuators, v01, v12, v2m, ideal_axes) -> Heliostat
     return HeliostatGeometry.build(position, actuators, v01, v12, v2m, ideal_axes=ideal_axes)
 
 
-def scene_from_artist(scenario: ArtistScenario | str | os.PathLike, dtype=jnp.float64) -> Scene:
+def scene_from_artist(scenario: ArtistScenario | str | os.PathLike, dtype=jnp.float64, skip_bad: bool = False) -> Scene:
     """An ARTIST scenario (file or :class:`heliojax.paint.ArtistScenario`) as a :class:`Scene`.
 
     Every heliostat must have the same number of facets and control points and
     one NURBS degree in both directions (as ARTIST's own scenarios do).
+
+    Args:
+        scenario: the file or its contents.
+        dtype: the scene's float type.
+        skip_bad: a file's damaged heliostats are left out (:func:`read_artist_scenario`;
+            listed in its ``skipped``) instead of refusing the file.
 
     Raises:
         DataError: an unreadable file or one outside what heliojax models (naming
             the heliostat and field).
     """
     if not isinstance(scenario, ArtistScenario):
-        scenario = read_artist_scenario(scenario)
+        scenario = read_artist_scenario(scenario, skip_bad=skip_bad)
     src = scenario.source
     hs = scenario.heliostats
     shapes = {(len(h.facets),) + f.control_points.shape + f.degrees for h in hs for f in h.facets}

@@ -164,6 +164,8 @@ class ArtistScenario:
     light_sources: Mapping[str, ArtistLightSource]
     number_of_heliostat_groups: int | None = None
     version: float = 1.0
+    skipped: tuple[tuple[str, str], ...] = ()
+    """``(heliostat, reason)`` of each heliostat left out by ``skip_bad`` (:func:`read_artist_scenario`)."""
 
 
 # --------------------------------------------------------------------------------------
@@ -370,16 +372,30 @@ class _Reader:
                     "(damaged numbers?)",
                 )
 
-    def scenario(self, f: Any) -> ArtistScenario:
+    def scenario(self, f: Any, skip_bad: bool = False) -> ArtistScenario:
         hel = self.group(f, "heliostats")
-        heliostats = tuple(self.heliostat(g, k, False) for k, g in self.groups(hel))
-        if not heliostats:
-            raise self.fail("heliostats", "no heliostats")
+        read, skipped = [], []
+        for k, g in self.groups(hel):
+            try:
+                read.append(self.heliostat(g, k, False))
+            except DataError as e:
+                if not skip_bad:
+                    raise
+                skipped.append((k, str(e)))
+        if not read:
+            damaged = f" (every one damaged: {skipped[0][1]})" if skipped else ""
+            raise self.fail("heliostats", "no heliostats" + damaged)
+        heliostats: list[ArtistHeliostat] = []
         ids: dict[int | None, str] = {}
-        for h in heliostats:
+        for h in read:
             if h.id in ids:
-                raise self.fail(f"heliostats/{h.name}/id", f"{h.id}, the id of heliostats/{ids[h.id]} too")
+                problem = self.fail(f"heliostats/{h.name}/id", f"{h.id}, the id of heliostats/{ids[h.id]} too")
+                if not skip_bad:
+                    raise problem
+                skipped.append((h.name, str(problem)))
+                continue
             ids[h.id] = h.name
+            heliostats.append(h)
         prototype = self.heliostat(self.group(f, "prototypes"), "prototype", True) if "prototypes" in f else None
         planar = {}
         if "target_areas_planar" in f:
@@ -425,27 +441,35 @@ class _Reader:
         return ArtistScenario(
             source=self.path,
             plant_position_lla=lla,
-            heliostats=heliostats,
+            heliostats=tuple(heliostats),
             prototype=prototype,
             planar_targets=planar,
             cylindrical_targets=cylindrical,
             light_sources=lights,
             number_of_heliostat_groups=groups,
             version=version,
+            skipped=tuple(skipped),
         )
 
 
-def read_artist_scenario(path: str | os.PathLike) -> ArtistScenario:
+def read_artist_scenario(path: str | os.PathLike, skip_bad: bool = False) -> ArtistScenario:
     """Read an ARTIST scenario HDF5 file.
+
+    Args:
+        path: the file.
+        skip_bad: leave out a heliostat whose group is damaged (its reason in
+            :attr:`ArtistScenario.skipped`) instead of refusing the file, so that one
+            bad heliostat does not spoil the others.
 
     Raises:
         DataError: unreadable file, missing groups or datasets (named by their HDF5
-            path), wrong shapes or non-finite numbers.
+            path), wrong shapes or non-finite numbers (with ``skip_bad``: outside the
+            heliostats, or in every heliostat).
     """
     reader = _Reader(str(path))
     try:
         with h5py.File(path, "r") as f:
-            return reader.scenario(f)
+            return reader.scenario(f, skip_bad)
     except OSError as e:
         raise DataError(path, None, f"not a readable HDF5 file ({e})") from None
 
