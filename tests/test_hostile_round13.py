@@ -316,7 +316,7 @@ def test_one_damaged_heliostat_of_a_scenario_spoils_only_itself(tmp_path, shared
 # --------------------------------------------------------------------------------------
 
 
-def test_networks_of_mismatched_layers_or_widths_are_named():
+def test_networks_of_mismatched_layers_or_widths_are_named(unchecked):
     with pytest.raises(ValueError, match=r"MLP: weights\[1\] takes 5 inputs but layer 0 gives 4"):
         neural.MLP(weights=(jnp.ones((4, 3)), jnp.ones((2, 5))), biases=(jnp.ones(4), jnp.ones(2)))
     with pytest.raises(ValueError, match=r"MLP: biases\[0\] has shape \(5,\); expected \(4,\)"):

@@ -97,19 +97,12 @@ def validation_tail(train_mask: np.ndarray, val_fraction: float, min_val: int = 
     if isinstance(min_val, bool) or not (isinstance(min_val, numbers.Integral) and min_val >= 0):
         raise ValueError(f"validation_tail: min_val must be a whole number >= 0, got {min_val!r}")
     train_mask = np.asarray(train_mask, bool)
-    fit = train_mask.copy()
-    val = np.zeros_like(train_mask)
-    for i, row in enumerate(train_mask):
-        idx = np.flatnonzero(row)
-        n = idx.size
-        if val_fraction <= 0 or n == 0:
-            continue
-        n_val = max(int(min_val), int(round(val_fraction * n)))
-        if n - n_val < 2:
-            continue
-        val[i, idx[n - n_val :]] = True
-        fit[i, idx[n - n_val :]] = False
-    return fit, val
+    n = train_mask.sum(axis=-1, keepdims=True)  # (H, 1) training records per row
+    n_val = np.maximum(int(min_val), np.round(val_fraction * n).astype(np.int64))  # half to even, as round()
+    split = (val_fraction > 0) & (n > 0) & (n - n_val >= 2)
+    rank = np.cumsum(train_mask, axis=-1)  # 1-based position of each training record in its row
+    val = train_mask & split & (rank > n - n_val)
+    return train_mask & ~val, val
 
 
 def _median(x):
@@ -482,14 +475,12 @@ def learning_curve(
     sub = fleet_subset(fleet, keep)
     mask = np.asarray(sub.mask)
     rows = []
-    for n in sizes:
-        m = np.zeros_like(mask)
-        for i in range(mask.shape[0]):
-            idx = np.flatnonzero(mask[i])
-            nt = int(np.ceil(test_fraction * idx.size))
-            before, test_idx = idx[: idx.size - nt], idx[idx.size - nt :]
-            m[i, before[-n:]] = True
-            m[i, test_idx] = True
+    count = mask.sum(axis=1, keepdims=True)  # (H, 1) valid records per heliostat
+    first_test = count - np.ceil(test_fraction * count).astype(np.int64)  # records before the test period
+    rank = np.cumsum(mask, axis=1) - 1  # 0-based position of each valid record in its row
+    for n in sizes:  # a handful of sizes, one calibration each
+        # the test period and the n records right before it, every heliostat at once
+        m = mask & (rank >= first_test - n)
         masked = eqx.tree_at(lambda f: f.mask, sub, jnp.asarray(m))
         lm = calibrate(
             masked,
