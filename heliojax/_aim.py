@@ -48,6 +48,7 @@ fitted record's sun; ``g`` 0 unless the later training records asked for it).
 
 from __future__ import annotations
 
+import inspect
 import math
 import os
 import typing
@@ -604,6 +605,12 @@ def aim_results(
         raise TypeError(
             "aim_results is a host-side function (it reads the calibration's NumPy arrays) and cannot be traced "
             "(jax.jit, vmap): call it outside jit; heliojax.aim_fleet is the jittable core"
+        )
+    known = set(inspect.signature(aim_fleet).parameters) - {"models", "geometry", "sun", "aim_points"} - _FROM_FILE
+    unknown = sorted(set(options) - known - _FROM_FILE)
+    if unknown:  # round 14: "aim_fleet() got an unexpected keyword argument", of a function not called
+        raise TypeError(
+            f"aim_results: unknown option(s) {', '.join(unknown)}; the options are {', '.join(sorted(known))}"
         )
     from_file = sorted(set(options) & _FROM_FILE)
     if from_file:

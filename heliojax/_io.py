@@ -20,6 +20,7 @@ import socket
 import stat
 import tempfile
 import time
+import typing
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import IO, no_type_check
@@ -434,6 +435,53 @@ def atomic_h5(path: str | os.PathLike) -> Iterator:
         yield f
     with atomic_write(path, "wb") as out:
         out.write(buffer.getbuffer())
+
+
+def h5_outside_data(obj: typing.Any, file_name: str) -> str | None:
+    """Why the HDF5 object ``obj``, reached in the open file named ``file_name``, holds
+    data from outside that file, or None: reached through an external link (to another
+    HDF5 file), a dataset stored in external raw files, or a virtual dataset (mapping
+    other files). Such a file read data from files it names (another results.h5, any
+    file a forger chose) while the messages named only the file given."""
+    import h5py
+
+    if obj.file.filename != file_name:
+        return f"an external link to {obj.file.filename!r}"
+    if isinstance(obj, h5py.Dataset):
+        if obj.external:
+            return f"a dataset stored in external file(s) {[e[0] for e in obj.external]!r}"
+        if obj.is_virtual:
+            return "a virtual dataset (it maps data of other files)"
+    return None
+
+
+def h5_first_outside_data(f: typing.Any) -> tuple[str, str] | None:
+    """``(HDF5 path, reason)`` of the first link or dataset of the open file ``f`` that
+    holds data from outside it (:func:`h5_outside_data`), or None; a soft link is
+    followed by its target's own link. Every link of the file is visited (a results.h5
+    holds ~60)."""
+    import h5py
+
+    hard: list[str] = []
+
+    def check(name: str, link: typing.Any) -> tuple[str, str] | None:
+        if isinstance(link, h5py.ExternalLink):
+            return name, f"an external link to {link.filename!r} (path {link.path!r})"
+        if isinstance(link, h5py.HardLink):
+            hard.append(name)  # opened after the visit: HDF5 refuses an object opened inside it
+        return None
+
+    found = f.visititems_links(check)
+    if found is not None:
+        return found
+    for name in hard:
+        why = h5_outside_data(f[name], f.filename)
+        if why is not None:
+            return name, why
+    return None
+
+
+H5_OUTSIDE_DATA_REFUSED = "holds data from outside this file ({why}): refused, the file given would not be what is read"
 
 
 def json_safe(value):

@@ -58,6 +58,10 @@ MAX_SYNTHETIC_HELIOSTATS = 1_000_000
 """The most heliostats a synthetic fleet may have (the largest plants hold ~10^5): more
 had been refused only by XLA running out of memory, after minutes."""
 
+MAX_PLAN_BUDGET = 100_000
+"""The most measurements per heliostat a plan may choose (``heliojax plan --budget`` takes
+1,000): a budget of 10**9 had run a scan of 10**9 greedy steps."""
+
 MAX_SYNTHETIC_RECORDS = 10_000_000
 """The most records (heliostats x records per heliostat) a synthetic fleet may have:
 drawing their times takes ~1 kB each at its peak (13 candidate hours and their solar

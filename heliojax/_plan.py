@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import collections.abc
 import math
+import os
 import typing
 
 import equinox as eqx
@@ -72,7 +73,7 @@ from ._geometry import check_unit_vectors
 from ._heliostat import HeliostatGeometry, RecordContext
 from ._io import shown_value
 from ._kinematics import AbstractKinematicModel, inverse_aim
-from ._limits import EARLIEST_UNIX_S, EARLIEST_YEAR, LATEST_UNIX_S, LATEST_YEAR
+from ._limits import EARLIEST_UNIX_S, EARLIEST_YEAR, LATEST_UNIX_S, LATEST_YEAR, MAX_PLAN_BUDGET
 from ._parameters import ParameterView
 from ._sun import solar_position
 from .fitting import prior_moments, residual_jacobians
@@ -368,7 +369,20 @@ def plan_measurements(
     Raises:
         ValueError: ``day_correlation`` outside ``[0, 1)`` or not finite.
     """
+    if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or not 0 <= budget <= MAX_PLAN_BUDGET:
+        # round 14: a budget of 10**9 ran a scan of 10**9 steps (out of memory, or hours)
+        raise ValueError(f"budget must be a whole number of measurements in [0, {MAX_PLAN_BUDGET:,}], not {budget!r}")
+    if jnp.ndim(candidate_valid) != 2 or jnp.shape(candidate_jacobians)[:2] != jnp.shape(candidate_valid):
+        raise ValueError(
+            f"candidate_valid {jnp.shape(candidate_valid)} and candidate_jacobians {jnp.shape(candidate_jacobians)} "
+            "must be (H, K) and (H, K, 2, F)"
+        )
     h, k = candidate_valid.shape
+    if k == 0:  # round 14: argmax of an empty sequence
+        raise ValueError("candidates: none (K = 0 candidates per heliostat); give at least one instant and target")
+    # round 14: a candidate whose Jacobian is not finite (counts NaN: a pose the model cannot reach) was chosen
+    # and left the heliostat's covariance as it was; it cannot be measured, and the others stay usable
+    candidate_valid = jnp.asarray(candidate_valid, bool) & jnp.all(jnp.isfinite(candidate_jacobians), axis=(2, 3))
     noise = jnp.asarray(noise_mrad, covariance.dtype)
     noise = jnp.broadcast_to(noise[:, None] if noise.ndim == 1 else noise, (h, k))
     slots = jnp.broadcast_to(jnp.arange(k, dtype=jnp.int32), (h, k)) if slot is None else jnp.asarray(slot, jnp.int32)
@@ -392,9 +406,13 @@ def plan_measurements(
         noise,
         jnp.asarray(labels),
         jnp.asarray(rho, covariance.dtype),
-        int(budget),
-        int(budget) if with_days else 0,
+        min(int(budget), k),  # each step takes a candidate out: no more than K steps choose anything
+        min(int(budget), k) if with_days else 0,
     )
+    if int(budget) > k:  # the steps past K choose nothing: -1, the uncertainty stays
+        rest = int(budget) - k
+        chosen = jnp.concatenate([chosen, jnp.full((h, rest), -1, chosen.dtype)], axis=1)
+        u = jnp.concatenate([u, jnp.broadcast_to(u[:, -1:], (h, rest))], axis=1)
     return MeasurementPlan(chosen=chosen, uncertainty_before_mrad=u0, uncertainty_after_mrad=u, covariance_after=c_end)
 
 
@@ -532,6 +550,9 @@ def candidates_at_targets(
             (1e9 went through the sine and let every candidate in).
     """
     sun = jnp.asarray(sun)
+    if sun.ndim != 2 or sun.shape[1] != 3:  # round 14: inverse_aim's "sun must have shape (3,) ... not ()"
+        raise ValueError(f"sun has shape {sun.shape}; expected (N, 3) unit ENU vectors (one instant: sun[None])")
+    check_unit_vectors(sun, None, "sun")  # a NaN sun had made every candidate of its instant invalid, unsaid
     centres = jnp.asarray(target_centres, sun.dtype)
     if centres.ndim != 2 or centres.shape[1] != 3 or centres.shape[0] == 0:
         raise ValueError(f"target_centres must be (T, 3) ENU m, T >= 1, not of shape {centres.shape}")
@@ -575,8 +596,11 @@ def candidates_from_records(
         ``(candidates, record_id)``: the :class:`Candidates` ``(H, M)`` and the PAINT
         record ids ``(H, M)`` (-1 where none).
     """
-    fleet_ids = list(fleet.ids)
-    rows = np.array([fleet_ids.index(i) if i in fleet_ids else -1 for i in ids])
+    if isinstance(ids, (str, bytes)) or not isinstance(ids, collections.abc.Sequence):
+        # round 14: "BE36" was taken as the ids 'B', 'E', '3', '6', none in the fleet: no candidate, no word
+        raise TypeError(f"ids: expected a sequence of heliostat ids (results.ids), got {type(ids).__name__}")
+    fleet_ids = {h: row for row, h in enumerate(fleet.ids)}
+    rows = np.array([fleet_ids.get(i, -1) for i in ids], dtype=np.int64)  # [] had been float: an IndexError
     take = np.where(rows >= 0, rows, 0)
     valid = np.asarray(fleet.mask) if usable is None else np.asarray(usable, bool) & np.asarray(fleet.mask)
     valid = valid[take] & (rows >= 0)[:, None]
@@ -726,8 +750,8 @@ def _check_plan_inputs(n_heliostats: int, envelope_sun, envelope_weight, aim_poi
     a non-integer or negative budget, an envelope that is not unit sun vectors with finite,
     non-negative weights of positive sum, an aim point that is not finite ENU metres
     (``(3,)`` or one per heliostat). A NaN aim point had given every heliostat 0.0 mrad."""
-    if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or budget < 0:
-        raise ValueError(f"budget must be a non-negative whole number of measurements, not {budget!r}")
+    if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or not 0 <= budget <= MAX_PLAN_BUDGET:
+        raise ValueError(f"budget must be a whole number of measurements in [0, {MAX_PLAN_BUDGET:,}], not {budget!r}")
     sun = np.asarray(envelope_sun, float)
     weight = np.asarray(envelope_weight, float)
     if sun.ndim != 2 or sun.shape[1] != 3 or sun.shape[0] == 0:
@@ -792,6 +816,21 @@ def plan_calibration(
     """
     if start not in PLAN_STARTS:
         raise ValueError(f"start must be one of {PLAN_STARTS}, not {start!r}")
+    if results is None or isinstance(results, (str, bytes, os.PathLike)) or not hasattr(results, "ids"):
+        raise TypeError(  # round 14: AttributeError "'str' object has no attribute 'ids'"
+            f"results: expected a CalibrationResults (heliojax.load_results(path)), got {type(results).__name__}"
+        )
+    if not isinstance(candidates, Candidates):
+        raise TypeError(
+            "candidates: expected Candidates (heliojax.candidates_at_targets or candidates_from_records), "
+            f"got {type(candidates).__name__}"
+        )
+    if np.ndim(candidates.valid) != 2 or np.shape(candidates.valid)[0] != len(results.ids):
+        raise ValueError(  # round 14: vmap's "inconsistent sizes for array axes" deep in the Jacobians
+            f"candidates are for {np.shape(candidates.valid)[:1]} heliostat(s) (valid of shape "
+            f"{np.shape(candidates.valid)}); the results hold {len(results.ids)}: one row per heliostat, in "
+            "results.ids order"
+        )
     _check_plan_inputs(len(results.ids), envelope_sun, envelope_weight, aim_point, budget)
     view = results.view
     fitted = np.asarray(results.fitted, bool)
@@ -841,7 +880,14 @@ def plan_calibration(
         discrepancy=discrepancy,
         inducing=inducing,
     )
-    plan = plan_measurements(cov, jac, candidates.valid, m_env, jnp.asarray(noise), budget, slot=candidates.slot)
+    # round 14: a candidate of NaN counts or spot (a pose the model cannot reach) has a zero Jacobian
+    # (residual_jacobians' rule for a record that is not finite) and was chosen, a measurement wasted
+    valid = (
+        jnp.asarray(candidates.valid, bool)
+        & jnp.all(jnp.isfinite(candidates.counts), axis=-1)
+        & jnp.all(jnp.isfinite(candidates.spots), axis=-1)
+    )
+    plan = plan_measurements(cov, jac, valid, m_env, jnp.asarray(noise), budget, slot=candidates.slot)
     return plan, m_env
 
 
@@ -849,7 +895,17 @@ def predicted_uncertainty_mrad(
     covariance: Float[Array, "H F F"], envelope: Float[Array, "H F F"]
 ) -> Float[Array, " H"]:
     """``sqrt(tr(C M))``: RMS predicted pointing error over the envelope (mrad)
-    from parameter uncertainty; rank heliostats by it to see which most need measuring."""
+    from parameter uncertainty; rank heliostats by it to see which most need measuring.
+
+    Raises:
+        ValueError: ``covariance`` and ``envelope`` not both ``(H, F, F)`` of one shape.
+    """
+    shape = jnp.shape(covariance)
+    if len(shape) != 3 or shape != jnp.shape(envelope) or shape[1] != shape[2]:
+        raise ValueError(  # round 14: einsum's "Size of label 'h' for operand 1 (2) does not match"
+            f"covariance {jnp.shape(covariance)} and envelope {jnp.shape(envelope)} must both be (H, F, F), "
+            "of the same heliostats and parameters"
+        )
     return jnp.sqrt(jnp.maximum(jnp.einsum("hfg,hgf->h", covariance, envelope), 0.0))
 
 

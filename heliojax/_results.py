@@ -83,7 +83,7 @@ from ._aim import instant_seconds
 from ._errors import DataError, HeliojaxError
 from ._geometry import direction_to_azimuth_elevation, sun_direction
 from ._heliostat import HeliostatGeometry, LinearActuators, RecordContext
-from ._io import atomic_h5, heliostat_id_problem, shown_value
+from ._io import H5_OUTSIDE_DATA_REFUSED, atomic_h5, h5_first_outside_data, heliostat_id_problem, shown_value
 from ._kinematics import AbstractKinematicModel, nominal_model
 from ._limits import LATEST_UNIX_S, target_name_problem
 from ._parameters import ParameterView, broadcast_model, covariance_problem
@@ -873,6 +873,9 @@ def _load_results(path: str | Path) -> CalibrationResults:
     except OSError as e:
         raise DataError(source, None, f"not a readable results.h5 ({e})") from e
     with f:
+        outside = h5_first_outside_data(f)  # round 14: an external link read another results.h5
+        if outside is not None:
+            raise DataError(source, outside[0], H5_OUTSIDE_DATA_REFUSED.format(why=outside[1]))
 
         def need(name: str) -> typing.Any:
             if name not in f or not isinstance(f[name], h5py.Dataset):

@@ -35,7 +35,7 @@ import h5py
 import numpy as np
 
 from .._errors import DataError
-from .._io import atomic_h5
+from .._io import H5_OUTSIDE_DATA_REFUSED, atomic_h5, h5_outside_data
 from ._common import MAX_COUNTS, MAX_HELIOSTAT_DISTANCE_M
 
 ACTUATOR_PARAMETERS = ("increment", "initial_angle", "initial_stroke_length", "offset", "pivot_radius")
@@ -190,9 +190,13 @@ class _Reader:
         if name not in group:
             raise self.fail(self.where(group, name), "missing")
         try:
-            return group[name]
+            obj = group[name]
         except (KeyError, RuntimeError, OSError, ValueError) as e:  # a dangling, external or looping link
             raise self.fail(self.where(group, name), f"cannot be read ({e})") from None
+        outside = h5_outside_data(obj, group.file.filename)  # round 14: read another scenario's data
+        if outside is not None:
+            raise self.fail(self.where(group, name), H5_OUTSIDE_DATA_REFUSED.format(why=outside))
+        return obj
 
     def group(self, parent: Any, name: str) -> Any:
         g = self.node(parent, name)
@@ -375,9 +379,9 @@ class _Reader:
     def scenario(self, f: Any, skip_bad: bool = False) -> ArtistScenario:
         hel = self.group(f, "heliostats")
         read, skipped = [], []
-        for k, g in self.groups(hel):
+        for k in hel:  # each read in its own try (round 14: a dangling or external link spoilt every one)
             try:
-                read.append(self.heliostat(g, k, False))
+                read.append(self.heliostat(self.group(hel, k), k, False))
             except DataError as e:
                 if not skip_bad:
                     raise
