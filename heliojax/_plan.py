@@ -820,6 +820,7 @@ def plan_calibration(
         raise TypeError(  # round 14: AttributeError "'str' object has no attribute 'ids'"
             f"results: expected a CalibrationResults (heliojax.load_results(path)), got {type(results).__name__}"
         )
+    _check_plan_inputs(len(results.ids), envelope_sun, envelope_weight, aim_point, budget)
     if not isinstance(candidates, Candidates):
         raise TypeError(
             "candidates: expected Candidates (heliojax.candidates_at_targets or candidates_from_records), "
@@ -831,7 +832,6 @@ def plan_calibration(
             f"{np.shape(candidates.valid)}); the results hold {len(results.ids)}: one row per heliostat, in "
             "results.ids order"
         )
-    _check_plan_inputs(len(results.ids), envelope_sun, envelope_weight, aim_point, budget)
     view = results.view
     fitted = np.asarray(results.fitted, bool)
     params = np.asarray(results.params, float)
