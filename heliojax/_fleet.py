@@ -471,15 +471,19 @@ def fleet_subset(fleet: Fleet, indices: Sequence[int] | np.ndarray | int | str |
     for i in idx:
         if not -fleet.n_heliostats <= i < fleet.n_heliostats:
             raise IndexError(f"heliostat index {i} out of range for {fleet.n_heliostats}")
-    seen: dict[int, int] = {}
-    for item, i in zip(items, idx, strict=True):  # a repeated heliostat: two fits of one, counted twice
-        at = i % fleet.n_heliostats
-        if at in seen:
-            raise ValueError(
-                f"fleet_subset: indices selects heliostat {at} ({fleet.ids[at]!r}) twice "
-                f"({shown_value(items[seen[at]])} and {shown_value(item)})"
-            )
-        seen[at] = len(seen)
+    # a repeated heliostat: two fits of one, counted twice (all selections at once)
+    at = np.asarray(idx, dtype=np.int64) % fleet.n_heliostats
+    _, first = np.unique(at, return_index=True)
+    first_of = np.empty(fleet.n_heliostats, np.int64)
+    first_of[at[first]] = first
+    again = np.flatnonzero(first_of[at] < np.arange(at.size))
+    if again.size:
+        j = int(again[0])
+        h = int(at[j])
+        raise ValueError(
+            f"fleet_subset: indices selects heliostat {h} ({fleet.ids[h]!r}) twice "
+            f"({shown_value(items[int(first_of[h])])} and {shown_value(items[j])})"
+        )
     xp = _backend(fleet)
     sel = np.asarray(idx, dtype=np.int64)
     take = lambda x: _to_jax(xp.asarray(x)[sel])  # noqa: E731

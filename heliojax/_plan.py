@@ -104,6 +104,13 @@ def _check_min_elevation(min_elevation_deg: float) -> float:
     return value
 
 
+def _check_budget(budget: typing.Any) -> None:
+    """ValueError unless ``budget`` is a whole number of measurements in ``[0,
+    MAX_PLAN_BUDGET]`` (a budget of 10**9 had run a scan of 10**9 greedy steps)."""
+    if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or not 0 <= budget <= MAX_PLAN_BUDGET:
+        raise ValueError(f"budget must be a whole number of measurements in [0, {MAX_PLAN_BUDGET:,}], not {budget!r}")
+
+
 def _check_unix_times(name: str, times: np.ndarray, unknown: bool) -> None:
     """ValueError unless the finite ``times`` are seconds since 1970 within heliojax's
     span (:mod:`heliojax._limits`), and, unless ``unknown``, every time is finite (NaN:
@@ -369,9 +376,7 @@ def plan_measurements(
     Raises:
         ValueError: ``day_correlation`` outside ``[0, 1)`` or not finite.
     """
-    if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or not 0 <= budget <= MAX_PLAN_BUDGET:
-        # round 14: a budget of 10**9 ran a scan of 10**9 steps (out of memory, or hours)
-        raise ValueError(f"budget must be a whole number of measurements in [0, {MAX_PLAN_BUDGET:,}], not {budget!r}")
+    _check_budget(budget)
     if jnp.ndim(candidate_valid) != 2 or jnp.shape(candidate_jacobians)[:2] != jnp.shape(candidate_valid):
         raise ValueError(
             f"candidate_valid {jnp.shape(candidate_valid)} and candidate_jacobians {jnp.shape(candidate_jacobians)} "
@@ -750,8 +755,7 @@ def _check_plan_inputs(n_heliostats: int, envelope_sun, envelope_weight, aim_poi
     a non-integer or negative budget, an envelope that is not unit sun vectors with finite,
     non-negative weights of positive sum, an aim point that is not finite ENU metres
     (``(3,)`` or one per heliostat). A NaN aim point had given every heliostat 0.0 mrad."""
-    if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or not 0 <= budget <= MAX_PLAN_BUDGET:
-        raise ValueError(f"budget must be a whole number of measurements in [0, {MAX_PLAN_BUDGET:,}], not {budget!r}")
+    _check_budget(budget)
     sun = np.asarray(envelope_sun, float)
     weight = np.asarray(envelope_weight, float)
     if sun.ndim != 2 or sun.shape[1] != 3 or sun.shape[0] == 0:

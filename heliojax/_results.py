@@ -120,9 +120,12 @@ def _geometry_items(geometry: eqx.Module, prefix: str = "geometry") -> dict[str,
     return out
 
 
-def _read_geometry(group: h5py.Group, source: str, ids: tuple[str, ...]) -> HeliostatGeometry:
-    """The geometry of ``group``; its actuators are checked (:func:`_check_actuators`)
-    before they are built, so that a bad one is named by its field and heliostat."""
+def _read_geometry(
+    group: h5py.Group, source: str, ids: tuple[str, ...], check_actuators: bool = True
+) -> HeliostatGeometry:
+    """The geometry of ``group``; its actuators are checked (:func:`_check_actuators`,
+    unless ``check_actuators`` is False: a second read of the same group) before they
+    are built, so that a bad one is named by its field and heliostat."""
     import h5py  # only for results files: ~35 ms of import a calibration without --out never needs
 
     def arr(name):
@@ -140,7 +143,8 @@ def _read_geometry(group: h5py.Group, source: str, ids: tuple[str, ...]) -> Heli
 
     n = len(ids)
     raw = {f.name: arr(f"actuators/{f.name}") for f in dataclasses.fields(LinearActuators)}
-    _check_actuators({k: np.asarray(v, float) for k, v in raw.items()}, ids, source)
+    if check_actuators:
+        _check_actuators({k: np.asarray(v, float) for k, v in raw.items()}, ids, source)
     act = LinearActuators(**raw)
     kw = {f.name: arr(f.name) for f in dataclasses.fields(HeliostatGeometry) if f.name != "actuators"}
     return HeliostatGeometry(actuators=act, **kw)
@@ -193,12 +197,10 @@ def _check_actuators(act: dict[str, np.ndarray], ids: tuple[str, ...], source: s
 
 def _check_geometry(geometry: HeliostatGeometry, ids: tuple[str, ...], source: str) -> None:
     """DataError unless every heliostat's (finite) geometry keeps the properties reader's
-    bounds: each actuator :func:`~heliojax.paint._common.actuator_problem` and
-    :func:`~heliojax.paint._flags.actuator_law_problem` (``sign`` is +1 or -1 for
-    ``clockwise_axis_movement`` 0 or 1), every mount translation within
-    :data:`~heliojax.paint._common.MAX_HELIOSTAT_SIZE_M`, a nonzero Stone slope."""
+    bounds: every mount translation within
+    :data:`~heliojax.paint._common.MAX_HELIOSTAT_SIZE_M`, a nonzero Stone slope (the
+    actuators were checked as they were read, :func:`_read_geometry`)."""
     act = {f.name: np.asarray(getattr(geometry.actuators, f.name), float) for f in dataclasses.fields(LinearActuators)}
-    _check_actuators(act, ids, source)
     for name in ("joint_translation_1", "joint_translation_2", "concentrator_translation"):
         far = np.abs(np.asarray(getattr(geometry, name), float)) > MAX_HELIOSTAT_SIZE_M
         if far.any():
@@ -1011,7 +1013,7 @@ def _load_results(path: str | Path) -> CalibrationResults:
                 for k, tail in _RECORD_INPUT_TRAILING.items()
             }
             with jax.enable_x64(True):  # the check compares float64 residuals, whatever the caller's setting
-                geometry64 = _read_geometry(group, source, ids)
+                geometry64 = _read_geometry(group, source, ids, check_actuators=False)  # checked above
         status = _strings(need("status_labels"), source, "status_labels", len(ids))
         unknown_status = sorted(set(status) - _STATUS_LABELS)
         if unknown_status:
