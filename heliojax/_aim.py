@@ -35,6 +35,11 @@ blindly:
   error): the calibration no longer promises to aim better than no calibration,
   e.g. for an instant years after the fit.
 
+An aim point below ground (up < 0 m, the ENU origin's level, and below the
+heliostat's reference point) is refused with a ValueError naming ``aim_points``
+rather than flagged: its beam would point into the ground, so it is an input mistake
+(a sign, a frame), not a command a plant could send.
+
 With the fitted parameters' covariance (``results.h5``), each command also gets
 its predicted pointing uncertainty: the 2x2 covariance (mrad^2) of the beam's
 direction in the tangent plane at the commanded counts, propagated linearly from
@@ -62,7 +67,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._beam import beam_pointing_error
 from ._geometry import check_unit_vectors
-from ._heliostat import HeliostatGeometry, RecordContext
+from ._heliostat import HeliostatGeometry, RecordContext, known_values
 from ._kinematics import AbstractKinematicModel, forward, inverse_aim
 from ._limits import EARLIEST_UNIX_S, LATEST_UNIX_S
 from ._parameters import ParameterView, covariance_problem
@@ -313,6 +318,28 @@ def _check_drift(drift: typing.Any, used: np.ndarray | None, h: int, n: int) -> 
         )
 
 
+def _check_above_ground(points: np.ndarray, position: np.ndarray | None, h: int) -> None:
+    """ValueError naming ``aim_points`` where a point lies below ground: its up
+    coordinate below 0 (the ENU origin's level, the plant's ground at the tower) and
+    below the reference point of the heliostat it is for. Its beam would point down,
+    into the ground: no plant sends that, so it is an input mistake (a sign, a frame),
+    not a command to flag. Skipped where the positions are traced."""
+    if position is None:
+        return
+    up = points[..., 2]  # (), (H,) or (H, N)
+    z = position[:, 2].reshape((h,) + (1,) * max(up.ndim - 1, 0))
+    below = np.broadcast_to((up < 0.0) & (up < z), np.broadcast_shapes(up.shape, z.shape))
+    if below.any():
+        at = tuple(int(k) for k in np.argwhere(below)[0])
+        point = points if points.ndim == 1 else points[at]
+        raise ValueError(
+            f"aim_points: {int(below.sum())} aim point(s) below ground, e.g. {np.round(point, 3).tolist()} for "
+            f"heliostat {at[0]} (its reference point at up = {position[at[0], 2]:.3g} m): up < 0 m and below the "
+            "heliostat would send the beam into the ground; aim points are ENU (m), up positive (the tower's "
+            "targets lie tens of metres up)"
+        )
+
+
 def uncertainty_unknown(values: Float[ArrayLike, "H ..."]) -> Bool[Array, " H"]:
     """``(H,)`` heliostats with a non-finite value among ``values`` (leading axis the
     heliostats): their predicted uncertainty is unknown, and a NaN uncertainty beside an
@@ -405,7 +432,10 @@ def aim_fleet(
         ValueError: wrong shapes (``fitted`` not ``(H,)``, ``covariance`` not
             ``(H, F, F)``, ``models`` and ``geometry`` batched over different
             heliostat counts), a sun vector that is not a finite unit vector, a
-            non-finite (NaN, inf) aim point coordinate, a covariance that is not
+            non-finite (NaN, inf) aim point coordinate, an aim point below ground (up
+            < 0 m, the ENU origin's level, and below the heliostat's reference point:
+            its beam would point into the ground; refused as an input mistake, a sign
+            or a frame, rather than flagged, since no plant aims there), a covariance that is not
             finite / symmetric / positive semi-definite or a drift variance that is
             negative or not finite (for a used heliostat), a scalar option that is
             not a finite number in its range. Under ``jax.jit`` the checks of traced
@@ -441,6 +471,7 @@ def aim_fleet(
                 f"aim_points: {int((~finite).sum())} of {finite.size} coordinate(s) are not finite (NaN or inf); "
                 "aim points are ENU positions (m)"
             )
+        _check_above_ground(np.asarray(points), known_values(geometry.position), h)
     if points.ndim == 1:
         points = jnp.broadcast_to(points, (h, n, 3))
     elif points.ndim == 2:

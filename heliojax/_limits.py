@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import datetime as dt
 import numbers
+import typing
 
 from ._io import SPREADSHEET_FORMULA_START, heliostat_id_problem
 
@@ -68,6 +69,11 @@ drawing their times takes ~1 kB each at its peak (13 candidate hours and their s
 positions), ~10 GB here."""
 
 
+MAX_FOLDS = 100
+"""Most cross-validation folds of discovery: the fit runs once per fold and once on all
+records, the fleet copied for each."""
+
+
 def count_problem(value: object, limit: int, *, minimum: int = 1) -> str | None:
     """Why ``value`` cannot be a count (of heliostats, records, points) in
     ``[minimum, limit]``, or None: not an integer (a bool, a float, a string), below
@@ -80,3 +86,20 @@ def count_problem(value: object, limit: int, *, minimum: int = 1) -> str | None:
     if n > limit:
         return f"must be at most {limit:,}, got {n:,}"
     return None
+
+
+def real_problem(value: object, *, minimum: float | None = None) -> str | None:
+    """Why ``value`` cannot be a real number (a magnitude, a width, a reference value)
+    at least ``minimum`` (None: any), or None: a bool, a string, an array of more than
+    one value, not finite (NaN had spread into every result without a word), or below
+    ``minimum``. Callers skip traced values (unknown under ``jax.jit``)."""
+    import numpy as np  # here: the CLI reads this module before anything imports NumPy
+
+    expected = "a finite real number" if minimum is None else f"a finite number >= {minimum:g}"
+    try:
+        x: typing.Any = value
+        ok = np.ndim(x) == 0 and not isinstance(x, (bool, np.bool_, str, bytes)) and bool(np.isfinite(x))
+        ok = ok and (minimum is None or float(x) >= minimum)
+    except (TypeError, ValueError):
+        ok = False
+    return None if ok else f"must be {expected}, got {value!r}"[:200]

@@ -36,6 +36,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._limits import real_problem
+
 _META = "heliojax"
 
 PathStep = str | int
@@ -392,12 +394,9 @@ def set_references(model: ModuleT, values: collections.abc.Mapping[str, float]) 
     for name, value in values.items():
         if isinstance(value, jax.core.Tracer):  # pyright: ignore[reportAttributeAccessIssue]
             continue  # a value under a trace is not known here
-        try:
-            ok = np.ndim(value) == 0 and not isinstance(value, (bool, np.bool_)) and bool(np.isfinite(value))
-        except TypeError:
-            ok = False
-        if not ok:
-            raise ValueError(f"set_references: {name} must be a finite real number, got {value!r}")
+        problem = real_problem(value)
+        if problem is not None:
+            raise ValueError(f"set_references: {name} {problem}")
     leaves = [leaf for leaf in reference_leaves(model) if leaf.name in values]
     if not leaves:
         return model

@@ -38,7 +38,7 @@ from ._fleet import Fleet, LoadReport
 from ._geometry import TargetPlane, direction_to_azimuth_elevation, enu_to_wgs84, intersect_plane, normalize
 from ._heliostat import HeliostatGeometry, LinearActuators, Pose, RecordContext
 from ._kinematics import AbstractKinematicModel, StoneModel, forward, inverse_aim
-from ._limits import MAX_SYNTHETIC_HELIOSTATS, MAX_SYNTHETIC_RECORDS, count_problem
+from ._limits import MAX_SYNTHETIC_HELIOSTATS, MAX_SYNTHETIC_RECORDS, count_problem, real_problem
 from ._sun import solar_position
 from .paint import CalibrationRecord, HeliostatProperties, TargetEntry, TowerFile, write_paint_directory
 
@@ -79,6 +79,19 @@ def _check_sizes(function: str, records: tuple[str, ...] = (), **counts: typing.
             )
 
 
+def check_magnitudes(function: str, **values: typing.Any) -> None:
+    """Refuse a magnitude (a noise level, a spread of random errors) that is no finite
+    number >= 0 (:func:`heliojax._limits.real_problem`), naming ``function`` and the
+    argument: a NaN had made every record or model NaN, a negative one flipped the
+    draws, without a word. Traced values are not checked."""
+    for name, value in values.items():
+        if isinstance(value, jax.core.Tracer):  # pyright: ignore[reportAttributeAccessIssue]
+            continue
+        problem = real_problem(value, minimum=0.0)
+        if problem is not None:
+            raise ValueError(f"{function}: {name} {problem}")
+
+
 def typical_actuators(n: int | None = None, dtype=jnp.float64) -> LinearActuators:
     """Jülich-like :class:`LinearActuators` (batched to ``(n, 2)`` if ``n`` is given)."""
     if n is not None:
@@ -111,8 +124,14 @@ def random_stone_models(
     key: PRNGKeyArray, n: int, angle_sigma: float = 3e-3, gear_sigma: float = 2e-3, dtype=jnp.float64
 ) -> StoneModel:
     """``n`` true Stone models with angles ~ N(0, angle_sigma) rad (offsets 3x
-    larger) and gear ratios ~ 1 + N(0, gear_sigma), batched."""
+    larger) and gear ratios ~ 1 + N(0, gear_sigma), batched.
+
+    Raises:
+        ValueError: ``n`` no whole number >= 1, or a sigma not a finite number >= 0 (a
+            NaN had made every true model NaN).
+    """
     _check_sizes("random_stone_models", n=n)
+    check_magnitudes("random_stone_models", angle_sigma=angle_sigma, gear_sigma=gear_sigma)
     z = jax.vmap(lambda k: jax.random.normal(k, (n,), dtype))(jax.random.split(key, 8))  # (8, n)
     ang = [angle_sigma * z[i] for i in range(4)]
     off = [3 * angle_sigma * z[i] for i in range(4, 6)]
@@ -237,15 +256,7 @@ def simulate_records(
         ValueError: ``noise_mrad`` or ``noise_m`` not finite and >= 0 (a NaN had made
             every spot NaN and every record masked, without a word).
     """
-    for name, value in (("noise_mrad", noise_mrad), ("noise_m", noise_m)):
-        if isinstance(value, jax.core.Tracer):  # pyright: ignore[reportAttributeAccessIssue]
-            continue
-        try:
-            ok = np.ndim(value) == 0 and bool(np.isfinite(value) and value >= 0.0)
-        except TypeError:
-            ok = False
-        if not ok:
-            raise ValueError(f"simulate_records: {name} must be a finite number >= 0, got {value!r}")
+    check_magnitudes("simulate_records", noise_mrad=noise_mrad, noise_m=noise_m)
     h = geometry.position.shape[0]
     m = context.sun.shape[1]
     dtype = geometry.position.dtype

@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from .._limits import MAX_FOLDS
 from ._common import (
     add_data_argument,
     add_fit_arguments,
@@ -35,10 +36,6 @@ EXAMPLES = """examples:
 OUTPUT_FILES = ("report", "markdown")
 OUTPUT_DIRS = ("figures", "cache_dir")
 """Output paths checked before any work (attribute names of the parsed arguments)."""
-
-
-MAX_FOLDS = 100
-"""Most --folds: the fit runs once per fold and once on all records, the fleet copied for each."""
 
 
 def excluded_ids(exclude: str | None) -> tuple[str, ...]:

@@ -47,6 +47,7 @@ import numpy as np
 from jaxtyping import Bool, Float, Int
 from scipy import special, stats
 
+from .._limits import real_problem
 from ._identifiability import (
     PRECISION_INFORMATION,
     RANK_RTOL,
@@ -482,7 +483,19 @@ def screen_candidate(
 
 def holm(pvalues: dict[str, float], alpha: float) -> tuple[dict[str, float], set[str]]:
     """Holm's step-down procedure: adjusted p-values and the rejected hypotheses
-    at family-wise error rate ``alpha``."""
+    at family-wise error rate ``alpha``.
+
+    Raises:
+        ValueError: ``alpha`` not in (0, 1) (5, a percentage, had rejected every
+            hypothesis; NaN none, without a word), or a p-value outside [0, 1] (a NaN
+            one sorted anywhere in the step-down and moved the others' adjustments).
+    """
+    if real_problem(alpha) is not None or not 0.0 < float(alpha) < 1.0:
+        raise ValueError(f"holm: alpha must be a family-wise error rate in (0, 1), got {alpha!r}"[:200])
+    bad = {n: p for n, p in pvalues.items() if real_problem(p) is not None or not 0.0 <= float(p) <= 1.0}
+    if bad:
+        name, p = next(iter(bad.items()))
+        raise ValueError(f"holm: pvalues[{name!r}] is {p!r}; expected p-values in [0, 1] ({len(bad)} bad)"[:200])
     names = sorted(pvalues, key=lambda n: (pvalues[n], n))
     m = len(names)
     adjusted = {}

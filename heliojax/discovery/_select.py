@@ -98,6 +98,7 @@ import optimistix as optx
 from .._errors import few_names
 from .._fleet import bucket_size, fleet_subset, pad_fleet, spot_scatter_mrad
 from .._kinematics import MODEL_KINDS, nominal_model
+from .._limits import MAX_FOLDS, count_problem, real_problem
 from .._progress import activity, progress_bar
 from ..effects import EFFECT_NAMES, OffsetStep
 from ..fitting import (
@@ -273,13 +274,23 @@ class DiscoveryConfig:
     def __post_init__(self):
         if self.effects is None:
             object.__setattr__(self, "effects", DEFAULT_CANDIDATES)
+        if not isinstance(self.effects, collections.abc.Iterable) or isinstance(self.effects, str | bytes):
+            raise ValueError(f"effects must be a sequence of effect names, got {self.effects!r}"[:200])
+        if not all(isinstance(e, str) for e in self.candidates):
+            # a string had been read as its letters ("unknown effects ['a', 'e', ...]")
+            raise ValueError(f"effects must be a sequence of effect names, got {self.effects!r}"[:200])
+        object.__setattr__(self, "effects", tuple(self.candidates))
         unknown = set(self.candidates) - set(EFFECT_NAMES)
         if unknown:
             raise ValueError(f"unknown effects {sorted(unknown)}; expected names from {EFFECT_NAMES}")
-        if not 0.0 < self.alpha < 1.0:
-            raise ValueError(f"alpha must be in (0, 1), got {self.alpha}")
-        if self.n_folds < 2:
-            raise ValueError(f"n_folds must be >= 2, got {self.n_folds}")
+        if real_problem(self.alpha) or not 0.0 < self.alpha < 1.0:
+            raise ValueError(f"alpha must be in (0, 1), got {self.alpha!r}"[:200])
+        # whole numbers in range: n_folds = 2.5 had passed ``< 2``, and the others were not
+        # checked at all (a negative max_steps fitted nothing, a float one failed in the solver)
+        for name, minimum, limit in COUNT_OPTIONS:
+            problem = count_problem(getattr(self, name), limit, minimum=minimum)
+            if problem:
+                raise ValueError(f"{name} {problem}"[:200])
         if self.base not in MODEL_KINDS:
             raise ValueError(f"base must be one of {MODEL_KINDS}, got {self.base!r}")
         if self.start not in ("auto", "nominal"):
@@ -294,6 +305,16 @@ class DiscoveryConfig:
         if isinstance(self.exclude, str) or not all(isinstance(i, str) for i in self.exclude):
             raise ValueError(f"exclude must be a sequence of heliostat ids, got {self.exclude!r}"[:200])
         object.__setattr__(self, "exclude", tuple(self.exclude))
+
+
+COUNT_OPTIONS = (
+    ("n_folds", 2, MAX_FOLDS),
+    ("max_named", 1, 1000),
+    ("max_refits", 1, 1000),
+    ("max_iterations", 1, 1000),
+    ("max_steps", 1, 100_000),
+)
+"""The whole-number options of :class:`DiscoveryConfig`: ``(name, least, most)``."""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -19,20 +19,29 @@ import jax.numpy as jnp
 
 from .._kinematics import ActuatorModel, StoneModel, inverse_aim
 from .._simulate import (
+    _check_sizes,  # pyright: ignore[reportPrivateUsage]
     approach_directions,
     calibration_target,
+    check_magnitudes,
     random_stone_models,
     simulate_records,
     synthetic_contexts,
     synthetic_geometry,
 )
-from ..effects import EffectModel
+from ..effects import AbstractEffect, EffectModel
 
 
 @eqx.filter_jit
 def random_actuator_models(key, n: int, angle_sigma: float = 3e-3, dtype=jnp.float64) -> ActuatorModel:
     """``n`` true actuator models: tilts ~ N(0, angle_sigma) rad, angle offsets
-    ~ N(0, 3 angle_sigma) rad, increment scales ~ N(0, 2e-3), stroke offsets 0."""
+    ~ N(0, 3 angle_sigma) rad, increment scales ~ N(0, 2e-3), stroke offsets 0.
+
+    Raises:
+        ValueError: ``n`` no whole number >= 1 (0 had given models of no heliostat), or
+            ``angle_sigma`` not a finite number >= 0 (a NaN had made every model NaN).
+    """
+    _check_sizes("random_actuator_models", n=n)
+    check_magnitudes("random_actuator_models", angle_sigma=angle_sigma)
     ks = jax.random.split(key, 4)
     tilts = angle_sigma * jax.random.normal(ks[0], (4, n), dtype)
     off = 3 * angle_sigma * jax.random.normal(ks[1], (n, 2), dtype)
@@ -87,7 +96,32 @@ def simulate_fleet(
 
     Returns:
         ``(fleet, truth)`` with ``truth`` the batched true model.
+
+    Raises:
+        ValueError: ``base`` neither name (another had simulated actuator models without
+            a word), an effect that is no :class:`~heliojax.effects.AbstractEffect` (an
+            effect's name had failed deep inside JAX's ``asarray``) or, among
+            ``per_heliostat_effects``, one not batched over the ``n_heliostats``.
     """
+    if base not in ("stone8", "actuator"):
+        raise ValueError(f"simulate_fleet: base must be 'stone8' or 'actuator', got {base!r}"[:200])
+    for name, group in (("effects", effects), ("per_heliostat_effects", per_heliostat_effects)):
+        items = [group] if isinstance(group, str | AbstractEffect) else list(group)
+        wrong = [e for e in items if not isinstance(e, AbstractEffect)]
+        if isinstance(group, str | AbstractEffect) or wrong:
+            got = f"{type(group).__name__}" if isinstance(group, str | AbstractEffect) else f"{wrong[0]!r}"
+            raise ValueError(
+                f"simulate_fleet: {name} must be a sequence of effect instances (heliojax.effects.make_effect("
+                f"name, ...)), got {got}"[:300]
+            )
+    for effect in per_heliostat_effects:
+        sizes = {jnp.shape(x)[:1] for x in jax.tree.leaves(effect) if eqx.is_array(x)}
+        if sizes - {(n_heliostats,)}:
+            raise ValueError(
+                f"simulate_fleet: per_heliostat_effects: {type(effect).__name__} has arrays of leading shape "
+                f"{sorted(sizes - {(n_heliostats,)})}; expected ({n_heliostats},), one row per heliostat "
+                "(effects common to all go in effects)"
+            )
     key = jax.random.PRNGKey(seed)
     k_geo, k_model, k_ctx, k_noise = jax.random.split(key, 4)
     h, m = n_heliostats, n_records

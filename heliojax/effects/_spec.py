@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._kinematics import AbstractKinematicModel
+from .._limits import real_problem
 from .._parameters import ModuleT as ModelT, ParameterView, reference_leaves, set_references
 from ._base import AbstractEffect, EffectModel, add_effects
 from ._environment import DEFAULT_LATITUDE_DEG, Clock, OffsetDrift, Refraction, Thermal, Wind
@@ -37,7 +38,11 @@ EFFECT_NAMES: tuple[str, ...] = tuple(EFFECT_CLASSES)
 
 
 def effect_class(name: str) -> type[AbstractEffect]:
-    """The effect class of ``name`` (ValueError for an unknown name)."""
+    """The effect class of ``name`` (ValueError for an unknown name, TypeError for one
+    that is no string)."""
+    if not isinstance(name, str):  # a list had failed as "unhashable type"
+        got = f"{type(name).__name__} {name!r}"[:200]
+        raise TypeError(f"effect name must be a string (one of {EFFECT_NAMES}), got {got}")
     try:
         return EFFECT_CLASSES[name]
     except KeyError:
@@ -54,9 +59,11 @@ def with_effects(model: AbstractKinematicModel, effects: collections.abc.Sequenc
             is one effect (``"thermal"`` had been read as its letters: "unknown effect 't'").
 
     Raises:
-        TypeError: ``effects`` not names (strings).
+        TypeError: ``model`` not a kinematic model, ``effects`` not names (strings).
         ValueError: an unknown or repeated name.
     """
+    if not isinstance(model, AbstractKinematicModel):  # None had failed in a concatenation
+        raise TypeError(f"with_effects: model must be a kinematic model, got {type(model).__name__}")
     names = (
         [effects]
         if isinstance(effects, str)
@@ -100,7 +107,17 @@ def with_data_references(model: ModelT, fleet: typing.Any, mask: typing.Any = No
 def make_effect(name: str, inner: AbstractKinematicModel | None = None, **values: float) -> AbstractEffect:
     """An effect for a model wrapping ``inner`` (None: a linear-law base such as the
     Stone model) from named parameter / reference values (others at their
-    no-effect values / defaults), e.g. ``make_effect("backlash", backlash_1=3e-4)``."""
+    no-effect values / defaults), e.g. ``make_effect("backlash", backlash_1=3e-4)``.
+
+    Raises:
+        ValueError: an unknown effect or value name, or a value that is no finite real
+            number (a NaN or inf magnitude had made every prediction of the effect NaN;
+            a string had failed in ``float`` without its name).
+    """
+    for key, value in values.items():
+        problem = real_problem(value)
+        if problem is not None:
+            raise ValueError(f"make_effect({name!r}): {key} {problem}")
     effect = effect_class(name).nominal(inner, jnp.float64)
     view = ParameterView.of(effect)
     refs = {leaf.name for leaf in reference_leaves(effect)}

@@ -60,6 +60,7 @@ from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
 from .._geometry import TargetPlane, bisector_normal, normalize
 from .._heliostat import Pose, known_values
+from .._limits import count_problem
 from ._sunshape import AbstractSunShape, tangent_basis, uniforms
 from ._surfaces import SurfacePoints
 
@@ -81,8 +82,8 @@ class ImageGrid(eqx.Module):
     shape: tuple[int, int] = eqx.field(static=True)
 
     def __check_init__(self):
-        if len(self.shape) != 2 or min(self.shape) < 1:
-            raise ValueError(f"ImageGrid shape must be (ny, nx) >= 1, got {self.shape}")
+        if len(self.shape) != 2 or any(count_problem(n, MAX_IMAGE_CELLS) for n in self.shape):
+            raise ValueError(f"ImageGrid shape must be (ny, nx) >= 1, whole numbers, got {self.shape}")
         # checked where the edges are known (not under jit / vmap): a grid of negative
         # width had drawn a mirrored image, one of zero or NaN width an image of NaN
         for axis, lo, hi in (("u", self.u_min, self.u_max), ("v", self.v_min, self.v_max)):
@@ -106,7 +107,7 @@ class ImageGrid(eqx.Module):
             u_max=target.half_width,
             v_min=-target.half_height,
             v_max=target.half_height,
-            shape=(int(shape[0]), int(shape[1])),
+            shape=_pixels(shape),
         )
 
     @classmethod
@@ -120,7 +121,7 @@ class ImageGrid(eqx.Module):
             u_max=u0 + width / 2,
             v_min=v0 - height / 2,
             v_max=v0 + height / 2,
-            shape=(int(shape[0]), int(shape[1])),
+            shape=_pixels(shape),
         )
 
     @property
@@ -145,6 +146,12 @@ class ImageGrid(eqx.Module):
         return u, v
 
 
+def _pixels(shape: typing.Any) -> tuple[int, int]:
+    """``shape`` as ``(ny, nx)``: whole numbers kept (NumPy integers as ints), others
+    left for :class:`ImageGrid`'s check (2.5 had been cut to 2 pixels)."""
+    return tuple(int(n) if isinstance(n, np.integer) else n for n in shape)  # pyright: ignore[reportReturnType]
+
+
 def centroid(image: Float[Array, "*b ny nx"], grid: ImageGrid) -> Float[Array, "*b 2"]:
     """Flux-weighted centroid ``(u, v)`` in m of an image on ``grid``."""
     u, v = (x.astype(image.dtype) for x in grid.pixel_centres())
@@ -161,7 +168,6 @@ def total_power(image: Float[Array, "*b ny nx"], grid: ImageGrid) -> Float[Array
     return jnp.sum(image, axis=(-2, -1)) * grid.pixel_area
 
 
-@eqx.filter_jit
 def plane_power(
     surface: SurfacePoints,
     pose: Pose,
@@ -178,7 +184,20 @@ def plane_power(
     :func:`flux_images`). What a flux image on that plane would integrate to if it
     were large enough (:func:`total_power` of the image is at most this, to the Monte
     Carlo noise); the sun shape's spread changes it only through rays grazing the plane
-    and the mean cosine by a relative ``O(sigma^2)`` (1e-5 for 3 mrad)."""
+    and the mean cosine by a relative ``O(sigma^2)`` (1e-5 for 3 mrad).
+
+    Raises:
+        ValueError: (values known, not under ``jit``) a sun that is no direction (zero,
+            NaN), a ``dni`` or ``reflectivity`` out of range: a power of 0, NaN or below
+            zero had come back without a word.
+    """
+    check_directions("plane_power", "sun", sun)
+    check_irradiance("plane_power", dni, reflectivity)
+    return _plane_power(surface, pose, sun, target, dni, reflectivity)
+
+
+@eqx.filter_jit
+def _plane_power(surface, pose, sun, target, dni, reflectivity):
     dtype = jnp.asarray(pose.rotation).dtype  # the pose's precision (the surface is cast)
     rot = jnp.asarray(pose.rotation, dtype)
     o = jnp.asarray(pose.centre, dtype)[None] + jnp.asarray(surface.points, dtype) @ rot.T  # (p, 3) ENU m
@@ -201,22 +220,91 @@ def _float_array(x: ArrayLike) -> Array:
     return x if jnp.issubdtype(x.dtype, jnp.inexact) else x.astype(jnp.result_type(float))
 
 
+def check_directions(function: str, name: str, v: typing.Any, *, shapes: str = "(3,)") -> None:
+    """ValueError naming ``function`` and ``name`` unless ``v`` is ``(..., 3)`` and, where
+    its values are known (not under ``jit`` / ``vmap``), every row is finite and of
+    non-zero length. The optics normalise such a direction: a zero or NaN one (a sun, a
+    normal, an aim direction) had given a NaN pose or an image of zeros without a word."""
+    shape = jnp.shape(v)
+    if len(shape) == 0 or shape[-1] != 3:
+        raise ValueError(f"{function}: {name} has shape {shape}; expected {shapes}, ENU")
+    a = known_values(v)
+    if a is None:
+        return
+    bad = ~(np.isfinite(a).all(axis=-1) & (np.abs(a).sum(axis=-1) > 0.0))
+    if bad.any():
+        row = a[tuple(np.argwhere(bad)[0])] if a.ndim > 1 else a
+        raise ValueError(
+            f"{function}: {name} is {row.tolist()}, no direction ({int(bad.sum())} of {bad.size} bad); expected a "
+            "finite vector of non-zero length (ENU; it is normalised)"
+        )
+
+
+def check_irradiance(function: str, dni: typing.Any, reflectivity: typing.Any) -> None:
+    """ValueError naming ``function`` unless the (known) ``dni`` is finite and >= 0
+    W/m^2 and ``reflectivity`` in [0, 1]: a NaN or negative one had traced a NaN or
+    negative flux. Traced values are not checked."""
+    for name, value, high in (("dni", dni, np.inf), ("reflectivity", reflectivity, 1.0)):
+        if isinstance(value, jax.core.Tracer | jax.ShapeDtypeStruct):  # pyright: ignore[reportAttributeAccessIssue]
+            continue
+        v = None if isinstance(value, str | bytes) else known_values(value)
+        if v is None or not np.all(np.isfinite(v) & (v >= 0) & (v <= high)):
+            bound = "finite and >= 0 W/m^2" if name == "dni" else "in [0, 1]"
+            raise ValueError(f"{function}: {name} must be {bound}, got {value!r}"[:200])
+
+
 def aim_pose(centre: Float[ArrayLike, "3"], sun: Float[ArrayLike, "3"], aim_point: Float[ArrayLike, "3"]) -> Pose:
     """Ideal pose at ``centre`` (ENU m) reflecting the central sun ray onto ``aim_point``.
 
     The normal is the bisector; the surface ``x`` axis is kept horizontal
     (``up x normal``), as for an azimuth-elevation heliostat. For tests, the
     benchmark and what-if studies; real heliostats use :func:`heliojax.forward`.
+
+    Raises:
+        ValueError: an argument not of shape ``(3,)``, or (values known) a sun that is
+            no direction (zero, NaN), an ``aim_point`` at ``centre`` or straight away
+            from the sun (no mirror reflects the sun there): each had given a pose of
+            NaN, which traced an image of zeros.
     """
+    for name, x in (("centre", centre), ("aim_point", aim_point)):
+        if jnp.shape(x) != (3,):
+            raise ValueError(f"aim_pose: {name} has shape {jnp.shape(x)}; expected (3,), ENU m")
+        v = known_values(x)
+        if v is not None and not np.isfinite(v).all():
+            raise ValueError(f"aim_pose: {name} is {v.tolist()}; expected a finite point (ENU m)")
+    check_directions("aim_pose", "sun", sun)
+    if jnp.shape(sun) != (3,):
+        raise ValueError(f"aim_pose: sun has shape {jnp.shape(sun)}; expected (3,), ENU")
     centre = _float_array(centre)
     sun = jnp.asarray(sun, centre.dtype)
-    normal = bisector_normal(sun, normalize(jnp.asarray(aim_point, centre.dtype) - centre))
+    towards = jnp.asarray(aim_point, centre.dtype) - centre
+    check_directions("aim_pose", "aim_point - centre", towards)
+    s_, d_ = known_values(sun), known_values(towards)
+    if s_ is not None and d_ is not None:
+        bisector = s_ / np.linalg.norm(s_) + d_ / np.linalg.norm(d_)
+        if not np.linalg.norm(bisector) > 1e-6:  # to rounding: a normal of rounding noise, or NaN
+            raise ValueError(
+                "aim_pose: aim_point lies straight away from the sun as seen from centre: no mirror reflects the "
+                "sun there (the bisector of the sun and the aim direction is zero)"
+            )
+    normal = bisector_normal(sun, normalize(towards))
     return pose_from_normal(centre, normal)
 
 
 def pose_from_normal(centre: Float[ArrayLike, "3"], normal: Float[ArrayLike, "3"]) -> Pose:
     """Pose with the given centre and unit normal, surface ``x`` axis horizontal
-    (north-based if the normal is vertical)."""
+    (north-based if the normal is vertical).
+
+    Raises:
+        ValueError: ``centre`` not a finite ``(3,)`` point or ``normal`` no direction
+            (zero, NaN; values known): a pose of NaN traced an image of zeros.
+    """
+    if jnp.shape(centre) != (3,):
+        raise ValueError(f"pose_from_normal: centre has shape {jnp.shape(centre)}; expected (3,), ENU m")
+    c = known_values(centre)
+    if c is not None and not np.isfinite(c).all():
+        raise ValueError(f"pose_from_normal: centre is {c.tolist()}; expected a finite point (ENU m)")
+    check_directions("pose_from_normal", "normal", normal)
     centre = _float_array(centre)
     normal = normalize(jnp.asarray(normal, centre.dtype))
     e1, e2 = tangent_basis(normal)
@@ -324,7 +412,6 @@ def _buffer_to_image(buf, shape):
     return b[..., 1:, 1:, 0] + b[..., 1:, :-1, 1] + b[..., :-1, 1:, 2] + b[..., :-1, :-1, 3]
 
 
-@eqx.filter_jit
 def flux_images(
     key: PRNGKeyArray,
     surfaces: SurfacePoints,
@@ -373,8 +460,13 @@ def flux_images(
         ``(ny, nx)`` for one heliostat (or ``combine=True``), else ``(h, ny, nx)``.
 
     Raises:
+        TypeError: ``dtype`` not a float type (an integer one had traced an image of zeros).
         ValueError: ``rays_per_point`` or ``steps`` not an integer >= 1 (0 had traced
             nothing and returned an image of zeros, as if no ray reached the target);
+            surfaces of no points; (values known, not under ``jit``) a sun that is no
+            direction (zero, NaN, inf), a pose of NaN, a ``dni`` or ``reflectivity``
+            out of range (an array had not been checked): each had traced an image
+            of zeros or NaN;
             more than :data:`MAX_UNIFORMS_PER_STEP` random numbers per step (trace in
             more steps) or more than :data:`MAX_IMAGE_CELLS` pixels of all images
             together: refused before any memory is taken.
@@ -382,15 +474,14 @@ def flux_images(
     for name, value in (("rays_per_point", rays_per_point), ("steps", steps)):
         if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
             raise ValueError(f"flux_images: {name} must be an integer >= 1, got {value!r}")
-    single = surfaces.points.ndim == 2
-    if single:
-        surfaces = jax.tree_util.tree_map(lambda x: x[None], surfaces)
-        poses = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], poses)
-    h = surfaces.points.shape[0]
-    draws = h * surfaces.points.shape[1] * int(rays_per_point) * sunshape.n_uniforms
+    h = 1 if surfaces.points.ndim == 2 else surfaces.points.shape[0]
+    p = surfaces.points.shape[-2]
+    if p == 0:
+        raise ValueError("flux_images: surfaces hold no points (no ray to trace); sample the mirror first")
+    draws = h * p * int(rays_per_point) * sunshape.n_uniforms
     if draws > MAX_UNIFORMS_PER_STEP:
         raise ValueError(
-            f"flux_images: {h} heliostat(s) x {surfaces.points.shape[1]} points x {rays_per_point} rays_per_point "
+            f"flux_images: {h} heliostat(s) x {p} points x {rays_per_point} rays_per_point "
             f"need {draws:.3g} random numbers per step, more than {MAX_UNIFORMS_PER_STEP:.3g} (held in memory at "
             "once, and the counter of the hash generator would repeat): lower rays_per_point and raise steps"
         )
@@ -400,19 +491,66 @@ def flux_images(
             f"flux_images: grid.shape {grid.shape} for {1 if combine else h} image(s) needs {pixels:.3g} cells, "
             f"more than {MAX_IMAGE_CELLS:.3g} (32-bit pixel indices): use fewer pixels"
         )
+    if jnp.ndim(sun) not in (1, 2) or jnp.shape(sun)[-1] != 3:
+        raise ValueError(f"flux_images: sun has shape {jnp.shape(sun)}; expected (3,) or (h, 3), unit ENU vectors")
+    check_directions("flux_images", "sun", sun, shapes="(3,) or (h, 3)")
+    check_irradiance("flux_images", dni, reflectivity)
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise TypeError(f"flux_images: dtype must be a float type (float32, float64), got {dtype!r}")
+    for name, x in (("poses.centre", poses.centre), ("poses.rotation", poses.rotation)):
+        v = known_values(x)
+        if v is not None and not np.isfinite(v).all():
+            raise ValueError(
+                f"flux_images: {name} is not finite ({int((~np.isfinite(v)).sum())} NaN or inf value(s)); a pose "
+                "of NaN (e.g. aimed at its own centre) traces no ray"
+            )
+    if combine and (jnp.ndim(target.centre) == 2 or jnp.ndim(grid.u_min) == 1):
+        raise ValueError("combine=True needs one shared target and grid")
+    options = {"first_step": first_step, "dni": dni, "reflectivity": reflectivity, "combine": combine, "rng": rng}
+    return _flux_images(
+        key,
+        surfaces,
+        poses,
+        sun,
+        target,
+        grid,
+        sunshape,
+        rays_per_point=rays_per_point,
+        steps=steps,
+        dtype=dtype,
+        **options,
+    )
+
+
+@eqx.filter_jit
+def _flux_images(
+    key: PRNGKeyArray,
+    surfaces: SurfacePoints,
+    poses: Pose,
+    sun: Float[ArrayLike, "*b 3"],
+    target: TargetPlane,
+    grid: ImageGrid,
+    sunshape: AbstractSunShape,
+    *,
+    rays_per_point: int = 16,
+    steps: int = 1,
+    first_step: Int[ArrayLike, ""] = 0,
+    dni: float | ArrayLike = 1000.0,
+    reflectivity: float | ArrayLike = 1.0,
+    combine: bool = False,
+    dtype=jnp.float32,
+    rng: str = "hash",
+) -> Float[Array, "*h ny nx"]:
+    """:func:`flux_images` after its checks, compiled."""
+    single = surfaces.points.ndim == 2
+    if single:
+        surfaces = jax.tree_util.tree_map(lambda x: x[None], surfaces)
+        poses = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], poses)
+    h = surfaces.points.shape[0]
     sun = jnp.asarray(sun)
-    if sun.ndim not in (1, 2) or sun.shape[-1] != 3:
-        raise ValueError(f"flux_images: sun has shape {sun.shape}; expected (3,) or (h, 3), unit ENU vectors")
-    for name, value, high in (("dni", dni, np.inf), ("reflectivity", reflectivity, 1.0)):
-        v = None if isinstance(value, jax.core.Tracer) else np.asarray(value, float)  # pyright: ignore[reportAttributeAccessIssue]
-        if v is not None and not np.all(np.isfinite(v) & (v >= 0) & (v <= high)):  # traced: not checked
-            bound = "finite and >= 0 W/m^2" if name == "dni" else "in [0, 1]"
-            raise ValueError(f"flux_images: {name} must be {bound}, got {value!r}")
     sun_axis = 0 if sun.ndim == 2 else None
     target_axis = 0 if jnp.ndim(target.centre) == 2 else None
     grid_axis = 0 if jnp.ndim(grid.u_min) == 1 else None
-    if combine and (target_axis is not None or grid_axis is not None):
-        raise ValueError("combine=True needs one shared target and grid")
     total_rays = rays_per_point * steps
     scale = jnp.asarray(dni) * jnp.asarray(reflectivity) / total_rays
     prep = jax.vmap(
@@ -468,7 +606,12 @@ def flux_image(
 
 
 def ray_count(surfaces: SurfacePoints, rays_per_point: int, steps: int = 1) -> int:
-    """Number of rays traced (padding points included)."""
+    """Number of rays traced (padding points included); ValueError for
+    ``rays_per_point`` or ``steps`` not a whole number >= 1 (-3 had counted -96 rays)."""
+    for name, value in (("rays_per_point", rays_per_point), ("steps", steps)):
+        problem = count_problem(value, MAX_UNIFORMS_PER_STEP)
+        if problem is not None:
+            raise ValueError(f"ray_count: {name} {problem}")
     return int(np.prod(surfaces.areas.shape)) * rays_per_point * steps
 
 

@@ -42,6 +42,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
+from .._limits import count_problem, real_problem
+
 SUN_HALF_ANGLE = 4.65e-3
 """Apparent angular radius of the solar disk, rad."""
 
@@ -147,6 +149,8 @@ def _check_width(cls: str, name: str, value: ArrayLike) -> None:
     if isinstance(value, jax.core.Tracer):  # pyright: ignore[reportAttributeAccessIssue]
         return
     v = np.asarray(value, float)
+    if v.ndim:  # an array of widths had been taken for one sun (the ray tracer used the first)
+        raise ValueError(f"{cls}: {name} must be one number (rad), got an array of shape {v.shape}")
     if not np.all(np.isfinite(v) & (v >= 0.0) & (v <= MAX_SPREAD_RAD)):
         hint = "; mrad? give it in rad (x 1e-3)" if np.all(np.isfinite(v) & (v > MAX_SPREAD_RAD)) else ""
         raise ValueError(f"{cls}: {name} must be finite and in [0, {MAX_SPREAD_RAD:g}] rad, got {value!r}{hint}")
@@ -201,6 +205,7 @@ _BUIE_OUTER_MRAD = 43.6
 
 def buie_profile(theta_mrad: np.ndarray, csr: float) -> np.ndarray:
     """Buie's relative radiance ``phi(theta)`` (``theta`` in mrad, numpy), 0 beyond 43.6 mrad."""
+    _check_csr("buie_profile", csr)
     t = np.asarray(theta_mrad, dtype=np.float64)
     kappa = 0.9 * np.log(13.5 * csr) * csr**-0.3
     gamma = 2.2 * np.log(0.52 * csr) * csr**0.43 - 0.1
@@ -208,6 +213,17 @@ def buie_profile(theta_mrad: np.ndarray, csr: float) -> np.ndarray:
     aureole = np.exp(kappa) * np.maximum(t, 1e-12) ** gamma
     out = np.where(t <= _BUIE_DISK_MRAD, disk, aureole)
     return np.where(t <= _BUIE_OUTER_MRAD, out, 0.0)
+
+
+MAX_BUIE_TABLE = 10_000_000
+"""Most intervals of :class:`BuieSun`'s inverse-CDF table (80 MB in float64)."""
+
+
+def _check_csr(function: str, csr: typing.Any) -> None:
+    """ValueError naming ``function`` unless ``csr`` is a real number in (0, 1) (0 had
+    divided by zero, an array or a string failed in a comparison without its name)."""
+    if real_problem(csr) is not None or not 0.0 < float(csr) < 1.0:
+        raise ValueError(f"{function}: csr must be a circumsolar ratio in (0, 1), got {csr!r}"[:200])
 
 
 @typing.final
@@ -222,14 +238,20 @@ class BuieSun(AbstractSunShape):
     Attributes:
         csr: Buie's circumsolar-ratio parameter (0 < csr < 1).
         inverse_cdf: ``(n + 1,)`` angular radius in rad at probabilities ``0, 1/n, ..., 1``.
+
+    Raises:
+        ValueError: ``csr`` no real number in (0, 1), or ``n`` no whole number in
+            ``[1, MAX_BUIE_TABLE]``.
     """
 
     csr: float = eqx.field(static=True)
     inverse_cdf: Float[Array, " n"]
 
     def __init__(self, csr: float = 0.05, n: int = 8192):
-        if not 0.0 < csr < 1.0:
-            raise ValueError(f"BuieSun csr must lie in (0, 1), got {csr}")
+        _check_csr("BuieSun", csr)
+        problem = count_problem(n, MAX_BUIE_TABLE)
+        if problem is not None:  # 0 or less had built a table of one or no entry, sampled as garbage
+            raise ValueError(f"BuieSun: n {problem}")
         self.csr = float(csr)
         t, cdf = _buie_cdf(self.csr)
         q = np.linspace(0.0, 1.0, n + 1)

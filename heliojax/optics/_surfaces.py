@@ -30,7 +30,10 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._errors import DataError
+from .._heliostat import known_values
+from .._limits import count_problem
 from ..paint import read_deflectometry_facets, read_facets, write_deflectometry
+from ..paint._properties import MIN_CANTING_SINE, MIN_FACET_HALF_SIZE_M
 
 
 @typing.final
@@ -51,6 +54,29 @@ class SurfacePoints(eqx.Module):
         ps, ns, as_ = jnp.shape(self.points), jnp.shape(self.normals), jnp.shape(self.areas)
         if ps != ns or ps[-1:] != (3,) or ps[:-1] != as_:
             raise ValueError(f"SurfacePoints shapes disagree: points {ps}, normals {ns}, areas {as_}")
+        # values, where known (not under jit / vmap): a negative or NaN area had traced
+        # negative or NaN flux, a NaN or zero normal lost its point's rays without a word
+        points, normals, areas = (known_values(x) for x in (self.points, self.normals, self.areas))
+        if points is None or normals is None or areas is None:
+            return
+        mirror = areas > 0.0  # padding (area 0) carries no power: its normal is not read
+        problems = (
+            ("areas", ~(np.isfinite(areas) & (areas >= 0.0)), "m^2 of mirror, finite and >= 0 (0: padding)"),
+            ("points", ~np.isfinite(points).all(axis=-1), "finite positions (m)"),
+            (
+                "normals",
+                mirror & ~(np.isfinite(normals).all(axis=-1) & (np.abs(normals).sum(axis=-1) > 0.0)),
+                "finite, non-zero normals where the area is > 0",
+            ),
+        )
+        for name, bad, expected in problems:
+            if bad.any():
+                at = tuple(int(k) for k in np.argwhere(bad)[0])
+                value = (areas if name == "areas" else points if name == "points" else normals)[at]
+                raise ValueError(
+                    f"SurfacePoints: {name}[{', '.join(map(str, at))}] is {np.round(value, 6).tolist()} "
+                    f"({int(bad.sum())} bad); expected {expected}"
+                )
 
     @property
     def n_points(self) -> int:
@@ -77,9 +103,23 @@ class SurfacePoints(eqx.Module):
         )
 
 
+def _check_some(function: str, name: str, items: typing.Any, kind: str) -> None:
+    """ValueError naming ``function(name)`` where ``items`` holds none (an empty list had
+    failed in ``max()`` without naming the argument), TypeError where it is no sequence."""
+    if isinstance(items, str | bytes) or not isinstance(items, Sequence):
+        raise TypeError(f"{function}: {name} must be a sequence of {kind}, got {type(items).__name__}")
+    if len(items) == 0:
+        raise ValueError(f"{function}: {name} is empty; expected at least one {kind} (one per heliostat or facet)")
+
+
+MAX_RESOLUTION = 4096
+"""Most sample points along one facet edge of :func:`ideal_surface` (16.7 million per facet)."""
+
+
 def stack_surfaces(surfaces: Sequence[SurfacePoints]) -> SurfacePoints:
     """Stack unbatched surfaces with different point counts into a batch ``(h, p_max)``,
     padding with zero-area points."""
+    _check_some("stack_surfaces", "surfaces", surfaces, "SurfacePoints")
     n = max(s.n_points for s in surfaces)
     padded = [s.pad_to(n) for s in surfaces]
     return jax.tree_util.tree_map(lambda *x: jnp.stack(x), *padded)
@@ -88,6 +128,10 @@ def stack_surfaces(surfaces: Sequence[SurfacePoints]) -> SurfacePoints:
 # --------------------------------------------------------------------------------------
 # Facet layout (PAINT heliostat properties)
 # --------------------------------------------------------------------------------------
+
+
+_HALF_EDGE = f"a finite half-{{}} edge vector at least {MIN_FACET_HALF_SIZE_M:g} m long (zero: a facet of no area)"
+_NOT_PARALLEL = f"an edge at an angle to canting_e whose sine is >= {MIN_CANTING_SINE:g} (parallel: a facet of no area)"
 
 
 @typing.final
@@ -99,12 +143,52 @@ class FacetLayout(eqx.Module):
         canting_e: ``(*b, f, 3)`` half-width edge vectors (direction includes canting).
         canting_n: ``(*b, f, 3)`` half-height edge vectors.
         mask: ``(*b, f)`` True for real facets (False = padding).
+
+    Raises:
+        ValueError: fields of disagreeing shapes or, for a real facet (values known,
+            not under ``jit``), a non-finite translation or canting vector, one shorter
+            than ``MIN_FACET_HALF_SIZE_M`` (1 mm) (a facet of zero width or
+            height) or two (nearly) parallel ones (the properties reader's rules),
+            naming the facet and the field.
     """
 
     translations: Float[Array, "*b f 3"]
     canting_e: Float[Array, "*b f 3"]
     canting_n: Float[Array, "*b f 3"]
     mask: Bool[Array, "*b f"]
+
+    def __check_init__(self):
+        shapes = [jnp.shape(x) for x in (self.translations, self.canting_e, self.canting_n)]
+        if len(set(shapes)) != 1 or len(shapes[0]) < 2 or shapes[0][-1] != 3 or jnp.shape(self.mask) != shapes[0][:-1]:
+            raise ValueError(
+                f"FacetLayout: translations {shapes[0]}, canting_e {shapes[1]}, canting_n {shapes[2]} and mask "
+                f"{jnp.shape(self.mask)}; expected (..., f, 3) each and mask (..., f), one row per facet"
+            )
+        # values, where known (not under jit / vmap): a facet of zero width or height, or
+        # of NaN or parallel edges, had a NaN normal and an area of 0 or NaN, so its rays
+        # were lost (or NaN) without a word. The thresholds of the properties reader.
+        t, e, n, mask = (known_values(x) for x in (self.translations, self.canting_e, self.canting_n, self.mask))
+        if t is None or e is None or n is None or mask is None:
+            return
+        real = mask.astype(bool)
+        length_e, length_n = np.linalg.norm(e, axis=-1), np.linalg.norm(n, axis=-1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            sine = np.linalg.norm(np.cross(e, n), axis=-1) / (length_e * length_n)
+        problems = (
+            ("translations", t, ~np.isfinite(t).all(axis=-1), "a finite facet centre (m)"),
+            ("canting_e", e, ~(length_e >= MIN_FACET_HALF_SIZE_M), _HALF_EDGE.format("width")),
+            ("canting_n", n, ~(length_n >= MIN_FACET_HALF_SIZE_M), _HALF_EDGE.format("height")),
+            ("canting_n", n, ~(sine >= MIN_CANTING_SINE), _NOT_PARALLEL),
+        )
+        for name, value, bad, expected in problems:
+            bad = bad & real
+            if bad.any():
+                at = tuple(int(k) for k in np.argwhere(bad)[0])
+                where = f"facet {at[-1]}" + (f" of heliostat {', '.join(map(str, at[:-1]))}" if len(at) > 1 else "")
+                raise ValueError(
+                    f"FacetLayout: {where}: {name} is {np.round(value[at], 6).tolist()}; expected {expected} "
+                    f"({int(bad.sum())} facet(s) bad)"
+                )
 
     @classmethod
     def from_arrays(cls, translations, canting_e, canting_n, mask=None) -> FacetLayout:
@@ -159,6 +243,7 @@ def read_facet_layout(path: str | os.PathLike) -> FacetLayout:
 
 def stack_layouts(layouts: Sequence[FacetLayout]) -> FacetLayout:
     """Batch facet layouts with different facet counts (padding masked out)."""
+    _check_some("stack_layouts", "layouts", layouts, "FacetLayout")
     n = max(lay.n_facets for lay in layouts)
 
     def pad(lay: FacetLayout) -> FacetLayout:
@@ -186,7 +271,17 @@ def ideal_surface(layout: FacetLayout, resolution: tuple[int, int] = (32, 32)) -
 
     Returns:
         :class:`SurfacePoints` with ``(*b, f * n_e * n_n)`` points.
+
+    Raises:
+        ValueError: ``resolution`` not two whole numbers in ``[1, MAX_RESOLUTION]`` (0
+            or a negative count had given a mirror of no points, 2.5 was cut to 2).
     """
+    if isinstance(resolution, str | bytes) or len(resolution) != 2:
+        raise ValueError(f"ideal_surface: resolution must be (n_e, n_n), got {resolution!r}"[:200])
+    for axis, value in zip(("n_e", "n_n"), resolution, strict=True):
+        problem = count_problem(value, MAX_RESOLUTION)
+        if problem is not None:
+            raise ValueError(f"ideal_surface: resolution {axis} {problem}")
     ne, nn = resolution
     a = jnp.asarray(-1.0 + (2.0 * np.arange(ne) + 1.0) / ne, layout.translations.dtype)
     b = jnp.asarray(-1.0 + (2.0 * np.arange(nn) + 1.0) / nn, layout.translations.dtype)
@@ -229,6 +324,7 @@ class Deflectometry(eqx.Module):
     @classmethod
     def from_facets(cls, facets: Sequence[tuple[ArrayLike, ArrayLike]], n_points: int | None = None) -> Deflectometry:
         """Pad per-facet ``(points [n_i, 3], normals [n_i, 3])`` to a common count."""
+        _check_some("Deflectometry.from_facets", "facets", facets, "(points, normals) pair")
         n = max(len(np.asarray(p)) for p, _ in facets)
         n = n if n_points is None else max(n, n_points)
         pts = np.zeros((len(facets), n, 3), np.float32)
@@ -263,6 +359,7 @@ def read_deflectometry(path: str | os.PathLike) -> Deflectometry:
 
 def stack_deflectometry(items: Sequence[Deflectometry]) -> Deflectometry:
     """Batch deflectometry of several heliostats (facets and points padded)."""
+    _check_some("stack_deflectometry", "items", items, "Deflectometry")
     nf = max(d.n_facets for d in items)
     npnt = max(d.mask.shape[-1] for d in items)
 

@@ -37,6 +37,7 @@ import numpy as np
 from .._errors import DataError
 from .._io import H5_OUTSIDE_DATA_REFUSED, atomic_h5, h5_outside_data
 from ._common import MAX_COUNTS, MAX_HELIOSTAT_DISTANCE_M
+from ._properties import MIN_CANTING_SINE, MIN_FACET_HALF_SIZE_M
 
 ACTUATOR_PARAMETERS = ("increment", "initial_angle", "initial_stroke_length", "offset", "pivot_radius")
 """Parameters of an ARTIST actuator (m, rad; ``increment`` counts per metre)."""
@@ -350,11 +351,16 @@ class _Reader:
         for k, facet in zip(self.numbered(group), facets, strict=True):
             field = self.where(group[k], "control_points")
             e, n = facet.canting
-            half_diagonal = float(np.hypot(np.linalg.norm(e), np.linalg.norm(n)))
-            if not half_diagonal >= 1e-3:
+            length_e, length_n = float(np.linalg.norm(e)), float(np.linalg.norm(n))
+            half_diagonal = float(np.hypot(length_e, length_n))
+            # each edge, as the optics' facet layout requires (one edge of zero length, or
+            # two parallel ones, had passed the half-diagonal alone and made a facet of no area)
+            sine = float(np.linalg.norm(np.cross(e, n))) / max(length_e * length_n, 1e-300)
+            if not (min(length_e, length_n) >= MIN_FACET_HALF_SIZE_M and sine >= MIN_CANTING_SINE):
                 raise self.fail(
                     self.where(group[k], "canting"),
-                    f"half-edges of {np.linalg.norm(e):.3g} and {np.linalg.norm(n):.3g} m: no facet",
+                    f"half-edges of {length_e:.3g} and {length_n:.3g} m at an angle of sine {sine:.3g}: no facet "
+                    f"(each half-edge at least {MIN_FACET_HALF_SIZE_M:g} m, sine at least {MIN_CANTING_SINE:g})",
                 )
             local = facet.control_points - (0.0 if flat else facet.position)
             reach = float(np.linalg.norm(local, axis=-1).max())
