@@ -1212,7 +1212,8 @@ def _discover_cleaned(padded, base, cleaning: Cleaning, config: DiscoveryConfig,
         with activity(f"step {len(steps) + 1}: screening {len(remaining)} candidates", logger=log):
             screens = wf.screen(state, remaining)
         # every candidate with a remainder the data drive is tested on it (partly absorbed ones too)
-        testable = {c: s.p for c, s in screens.items() if s.tested}
+        # (a NaN p, from a screen that could not be computed, is no test: holm refuses it)
+        testable = {c: s.p for c, s in screens.items() if s.tested and np.isfinite(s.p)}
         adjusted, rejected = holm(testable, config.alpha) if testable else ({}, set())
         screens_log.append({"screens": screens, "p_holm": adjusted})
         log.info(
