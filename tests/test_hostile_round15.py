@@ -38,7 +38,9 @@ models for a NaN sigma (so did ``random_stone_models``, also for a negative one)
 ``max_refits``, ``max_iterations`` and ``max_steps`` were not checked at all; each is now
 a whole number in a stated range (``n_folds`` up to the command's ``--folds`` limit).
 A ``GaussianSun`` or ``PillboxSun`` of an array of widths was taken for one sun, and
-``with_effects(None, ...)`` failed in a concatenation; both now say what is wrong.
+``with_effects(None, ...)`` failed in a concatenation; both now say what is wrong, as do
+``centroid`` / ``total_power`` of an image that does not end in the grid's shape and
+``uniforms`` / ``sample`` of a negative size (each had failed inside JAX).
 
 Ill-typed values are given under the ``unchecked`` fixture."""
 
@@ -362,3 +364,16 @@ def test_a_sun_of_several_widths_and_effects_on_no_model_are_named(unchecked):
     assert float(optics.GaussianSun(np.float64(2e-3)).sigma) == 2e-3
     with pytest.raises(TypeError, match="with_effects: model must be a kinematic model, got NoneType"):
         effects.with_effects(None, ["thermal"])
+
+
+def test_images_of_another_shape_and_negative_sample_sizes_are_named(unchecked):
+    """``centroid`` / ``total_power`` of a 1-D image failed in JAX's axis handling and
+    ``uniforms`` / ``sample`` of a negative size in JAX's ``iota``, naming neither the
+    function nor the shape."""
+    with pytest.raises(ValueError, match=r"centroid: image has shape \(8,\); expected \(\.\.\., ny, nx\)"):
+        optics.centroid(jnp.ones(8), GRID)
+    with pytest.raises(ValueError, match=r"total_power: image has shape \(8, 4\)"):
+        optics.total_power(jnp.ones((8, 4)), GRID)
+    np.testing.assert_allclose(float(optics.total_power(jnp.ones((8, 8)), GRID)), 16.0 * 1.0, rtol=1e-12)
+    with pytest.raises(ValueError, match=r"uniforms: shape must be whole numbers >= 0, got \(-3, 2\)"):
+        optics.GaussianSun().sample(KEY, (-3,))

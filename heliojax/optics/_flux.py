@@ -152,8 +152,18 @@ def _pixels(shape: typing.Any) -> tuple[int, int]:
     return tuple(int(n) if isinstance(n, np.integer) else n for n in shape)  # pyright: ignore[reportReturnType]
 
 
+def _check_image(function: str, image: typing.Any, grid: ImageGrid) -> None:
+    """ValueError naming ``function`` unless ``image`` ends in ``grid.shape`` (a 1-D
+    image had failed in JAX's axis handling, naming neither)."""
+    if jnp.ndim(image) < 2 or tuple(jnp.shape(image)[-2:]) != tuple(grid.shape):
+        raise ValueError(
+            f"{function}: image has shape {jnp.shape(image)}; expected (..., ny, nx) = (..., *{grid.shape})"
+        )
+
+
 def centroid(image: Float[Array, "*b ny nx"], grid: ImageGrid) -> Float[Array, "*b 2"]:
     """Flux-weighted centroid ``(u, v)`` in m of an image on ``grid``."""
+    _check_image("centroid", image, grid)
     u, v = (x.astype(image.dtype) for x in grid.pixel_centres())
     total = jnp.sum(image, axis=(-2, -1))
     safe = jnp.where(total > 0, total, 1.0)
@@ -165,6 +175,7 @@ def centroid(image: Float[Array, "*b ny nx"], grid: ImageGrid) -> Float[Array, "
 
 def total_power(image: Float[Array, "*b ny nx"], grid: ImageGrid) -> Float[Array, "*b"]:
     """Power in W of a flux image (sum of W/m^2 times the pixel area)."""
+    _check_image("total_power", image, grid)
     return jnp.sum(image, axis=(-2, -1)) * grid.pixel_area
 
 

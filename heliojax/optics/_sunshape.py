@@ -96,6 +96,9 @@ def uniforms(
             ~5x faster on CPU than ``"jax"``, which calls ``jax.random.bits``
             (threefry or the key's implementation) for every number.
     """
+    if any(isinstance(d, bool) or not isinstance(d, int | np.integer) or d < 0 for d in shape):
+        # a negative size had failed in JAX's iota, naming neither the function nor the shape
+        raise ValueError(f"uniforms: shape must be whole numbers >= 0, got {shape!r}"[:200])
     n = int(np.prod(shape))
     if method == "jax":
         bits = jax.random.bits(key, shape, jnp.uint32)
