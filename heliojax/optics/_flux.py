@@ -517,42 +517,16 @@ def flux_images(
             )
     if combine and (jnp.ndim(target.centre) == 2 or jnp.ndim(grid.u_min) == 1):
         raise ValueError("combine=True needs one shared target and grid")
-    options = {"first_step": first_step, "dni": dni, "reflectivity": reflectivity, "combine": combine, "rng": rng}
-    return _flux_images(
-        key,
-        surfaces,
-        poses,
-        sun,
-        target,
-        grid,
-        sunshape,
-        rays_per_point=rays_per_point,
-        steps=steps,
-        dtype=dtype,
-        **options,
-    )
+    options = {"rays_per_point": rays_per_point, "steps": steps, "first_step": first_step, "dni": dni}
+    options |= {"reflectivity": reflectivity, "combine": combine, "dtype": dtype, "rng": rng}
+    return _flux_images(key, surfaces, poses, sun, target, grid, sunshape, **options)
 
 
 @eqx.filter_jit
-def _flux_images(
-    key: PRNGKeyArray,
-    surfaces: SurfacePoints,
-    poses: Pose,
-    sun: Float[ArrayLike, "*b 3"],
-    target: TargetPlane,
-    grid: ImageGrid,
-    sunshape: AbstractSunShape,
-    *,
-    rays_per_point: int = 16,
-    steps: int = 1,
-    first_step: Int[ArrayLike, ""] = 0,
-    dni: float | ArrayLike = 1000.0,
-    reflectivity: float | ArrayLike = 1.0,
-    combine: bool = False,
-    dtype=jnp.float32,
-    rng: str = "hash",
-) -> Float[Array, "*h ny nx"]:
-    """:func:`flux_images` after its checks, compiled."""
+def _flux_images(key, surfaces, poses, sun, target, grid, sunshape, **options) -> Float[Array, "*h ny nx"]:
+    """:func:`flux_images` after its checks, compiled (``options``: its keyword arguments)."""
+    rays_per_point, steps, first_step, dni = (options[k] for k in ("rays_per_point", "steps", "first_step", "dni"))
+    reflectivity, combine, dtype, rng = (options[k] for k in ("reflectivity", "combine", "dtype", "rng"))
     single = surfaces.points.ndim == 2
     if single:
         surfaces = jax.tree_util.tree_map(lambda x: x[None], surfaces)
