@@ -45,6 +45,23 @@ def input_file_problem(path: str | os.PathLike) -> str | None:
     return None
 
 
+def check_path_argument(path: object, name: str = "path") -> None:
+    """Raise unless ``path``, the argument ``name`` of a reader, names a file or folder:
+    a str, bytes or :class:`os.PathLike`, not blank. An int was taken for a file
+    descriptor (``read_tower(0)`` read standard input, and closed it when done), None
+    and a list failed inside ``os.stat`` or ``glob``, and an empty name is the working
+    directory (``Path("")`` is ``.``), never what was meant.
+
+    Raises:
+        TypeError: not a path (an int, a bool, None, a list).
+        ValueError: an empty or blank path.
+    """
+    if not isinstance(path, (str, bytes, os.PathLike)):
+        raise TypeError(f"{name}: expected a file or folder path (str or os.PathLike), got {type(path).__name__}")
+    if not os.fspath(path).strip():
+        raise ValueError(f"{name}: empty path (the working directory is not meant; give a name)")
+
+
 MAX_ID_LENGTH = 255
 """Longest heliostat id (a folder name: most file systems allow 255 bytes)."""
 
@@ -111,17 +128,22 @@ def read_csv_rows(path: str | os.PathLike, what: str) -> tuple[list[str], list[t
         what: what the file is, for the messages (e.g. ``"an aim-point CSV"``).
 
     Raises:
-        DataError: naming the file (and the column or row): unreadable, not UTF-8
-            text, malformed CSV, no header, a header separated by ``;`` or tabs, a
-            column listed twice (only its last cells would be read), a row with more
-            cells than the header has columns.
+        TypeError, ValueError: ``path`` is no path or empty (:func:`check_path_argument`).
+        DataError: naming the file (and the column or row): unreadable (not a regular
+            file: a FIFO blocked the open), not UTF-8 text, malformed CSV, no header, a
+            header separated by ``;`` or tabs, a column listed twice (only its last
+            cells would be read), a row with more cells than the header has columns.
     """
     import csv
     import unicodedata
 
     from ._errors import DataError
 
+    check_path_argument(path)
     try:
+        problem = input_file_problem(path)
+        if problem is not None:
+            raise DataError(path, None, problem)
         with open(path, newline="", encoding="utf-8-sig") as f:
             reader = csv.reader(f)
             header = next(reader, None)

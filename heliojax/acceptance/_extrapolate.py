@@ -21,12 +21,16 @@ their measured value.
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Literal
 
 import numpy as np
 from jaxtyping import Float, Int
 from scipy import spatial, stats
 from scipy.special import expit, logit
+
+from .._limits import count_problem
+from ._field import field_indices
 
 Support = Literal["positive", "unit", "real"]
 Bandwidth = Literal["cv", "scott", "silverman"] | float
@@ -67,7 +71,11 @@ of a fixed random subsample of this size, scaled from its Scott factor to the sa
 def cv_bandwidth_factor(y: Float[np.ndarray, " n"], n_grid: int = 60) -> float:
     """Leave-one-out likelihood cross-validated bandwidth factor (multiplies the
     sample std, as ``gaussian_kde``'s ``bw_method`` scalar does) for 1-D data
-    (beyond :data:`MAX_CV_VALUES` values, from a subsample)."""
+    (beyond :data:`MAX_CV_VALUES` values, from a subsample). ``n_grid``: factors tried,
+    a whole number in [1, 10,000] (0 had divided by zero)."""
+    problem = count_problem(n_grid, 10_000)
+    if problem is not None:
+        raise ValueError(f"cv_bandwidth_factor: n_grid {problem}")
     y = np.asarray(y, dtype=float)
     n = y.size
     if n > MAX_CV_VALUES:
@@ -138,8 +146,18 @@ def fit_kde(
         values: ``(n,)`` values inside the support.
         support: ``"positive"`` (log), ``"unit"`` (logit) or ``"real"``.
         bandwidth: ``"cv"`` (leave-one-out likelihood), ``"scott"``,
-            ``"silverman"`` or a scalar factor.
+            ``"silverman"`` or a scalar factor (finite, > 0).
+
+    Raises:
+        ValueError: fewer than 2 finite values, values outside the support, an
+            unknown bandwidth rule or a factor that is not finite and positive (a
+            negative or NaN one had made a KDE of NaN densities).
     """
+    if isinstance(bandwidth, str):
+        if bandwidth not in ("cv", "scott", "silverman"):
+            raise ValueError(f"bandwidth must be 'cv', 'scott', 'silverman' or a factor > 0, got {bandwidth!r}")
+    elif isinstance(bandwidth, bool) or not isinstance(bandwidth, int | float) or not 0 < bandwidth < math.inf:
+        raise ValueError(f"bandwidth must be 'cv', 'scott', 'silverman' or a finite factor > 0, got {bandwidth!r}")
     x = np.asarray(values, dtype=float)
     x = x[np.isfinite(x)]
     if x.size < 2:
@@ -198,14 +216,24 @@ def extrapolate_field(
 
     Returns:
         An :class:`Extrapolation`.
+
+    Raises:
+        ValueError: ``measured`` of indices outside the field, not whole, or given
+            twice (:func:`~heliojax.acceptance._field.field_indices`: -1 was read as the
+            last heliostat), none measured, ``values`` not finite (a NaN had been
+            "measured" and drawn from), lengths that differ.
     """
     xy = np.asarray(field_positions, dtype=float)[:, :2]
-    measured = np.asarray(measured, dtype=int)
+    n = len(xy)
+    measured = field_indices("measured", measured, n)
     v = np.asarray(values, dtype=float)
     lab = np.zeros(v.size, dtype=int) if labels is None else np.asarray(labels, dtype=int)
     if not (measured.shape == v.shape == lab.shape):
         raise ValueError("measured, values and labels must have the same length")
-    n = len(xy)
+    if measured.size == 0:
+        raise ValueError("measured: no heliostat measured; nothing to extrapolate from")
+    if not np.isfinite(v).all():
+        raise ValueError(f"values: not finite for heliostat index {int(measured[~np.isfinite(v)][0])} (measured)")
     is_meas = np.zeros(n, dtype=bool)
     is_meas[measured] = True
     # label of the nearest measured heliostat

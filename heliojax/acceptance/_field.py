@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import typing
 from typing import Literal
 
@@ -48,6 +49,23 @@ reflectance (fraction). ``aperture_m2``: net reflective aperture area.
 """
 
 
+def value_problem(name: str, x: float) -> str | None:
+    """Why ``x`` cannot be a measured value of parameter ``name`` (NaN: not measured, no
+    problem), or None: not finite, outside the parameter's support or above its
+    :attr:`ParameterInfo.maximum`. The one rule of the field CSV's reader and of
+    :class:`FieldData`."""
+    if math.isnan(x):
+        return None
+    info = PARAMETERS[name]
+    if not math.isfinite(x):
+        return f"{x} is not finite (NaN marks a value not measured)"
+    if (info.support == "positive" and x <= 0) or (info.support == "unit" and not 0 < x < 1):
+        return f"{x} outside the {info.support} range"
+    if x > info.maximum:
+        return f"{x} above {info.maximum:g} {info.unit}: no measurement"
+    return None
+
+
 @typing.final
 class FieldData(eqx.Module):
     """Every heliostat of the field, with the parameters measured so far.
@@ -63,16 +81,38 @@ class FieldData(eqx.Module):
     values: dict[str, Float[np.ndarray, " n"]]
 
     def __check_init__(self):
+        # the field CSV reader's rules (it names the line first): a string of ids was
+        # read as one id per letter, an infinite value as "not measured", a NaN position
+        # failed in SciPy's KD-tree and a negative tracking error in the KDE's logarithm
+        from .._geometry import MAX_FIELD_EXTENT_M
+        from ..paint._common import MAX_HELIOSTAT_HEIGHT_M
+
+        if isinstance(self.ids, str) or not all(isinstance(h, str) and h.strip() for h in self.ids):
+            raise TypeError(f"ids: expected a tuple of heliostat ids (non-blank strings), got {self.ids!r}"[:200])
         n = len(self.ids)
         if len(set(self.ids)) != n:
             raise ValueError("heliostat IDs must be unique")
         if np.shape(self.positions) != (n, 3):
             raise ValueError(f"positions must have shape ({n}, 3), got {np.shape(self.positions)}")
+        if not isinstance(self.values, dict):
+            raise TypeError(f"values: expected a dict parameter name -> (n,) values, got {type(self.values).__name__}")
+        pos = _numbers("positions", self.positions)
+        far = ~(np.abs(pos) <= MAX_FIELD_EXTENT_M).all(axis=1) | ~(np.abs(pos[:, 2]) <= MAX_HELIOSTAT_HEIGHT_M)
+        if far.any():
+            i = int(np.argmax(far))
+            raise ValueError(
+                f"positions: heliostat {self.ids[i]!r} at {pos[i].tolist()} m: not finite or farther than "
+                f"{MAX_FIELD_EXTENT_M:g} m from the tower (or {MAX_HELIOSTAT_HEIGHT_M:g} m above or below it)"
+            )
         for k, v in self.values.items():
             if k not in PARAMETERS:
                 raise ValueError(f"unknown parameter {k!r}; known: {sorted(PARAMETERS)}")
             if np.shape(v) != (n,):
                 raise ValueError(f"values[{k!r}] must have shape ({n},), got {np.shape(v)}")
+            for i, x in enumerate(_numbers(f"values[{k!r}]", v).tolist()):
+                problem = value_problem(k, x)
+                if problem is not None:
+                    raise ValueError(f"values[{k!r}]: heliostat {self.ids[i]!r}: {problem}")
 
     @property
     def n(self) -> int:
@@ -82,6 +122,34 @@ class FieldData(eqx.Module):
         """Mask of the heliostats where parameter ``name`` was measured."""
         v = self.values.get(name)
         return np.zeros(self.n, dtype=bool) if v is None else np.isfinite(v)
+
+
+def field_indices(name: str, indices: object, n: int) -> np.ndarray:
+    """``indices`` (heliostats of a field of ``n``) as a 1-D int array, or a ValueError
+    naming ``name``: not whole numbers (2.5 was cut to 2), negative (-1 was read as the
+    last heliostat of the field), ``n`` or more (an IndexError inside NumPy) or one
+    given twice."""
+    a = np.asarray(indices)
+    if a.size == 0:
+        return np.zeros(0, dtype=int)
+    if a.ndim != 1 or a.dtype.kind not in "iuf" or (a.dtype.kind == "f" and not np.all(a == np.round(a))):
+        raise ValueError(f"{name}: expected a 1-D array of heliostat indices (whole numbers), got {a!r}"[:200])
+    a = a.astype(np.int64)
+    bad = a[(a < 0) | (a >= n)]
+    if bad.size:
+        raise ValueError(f"{name}: heliostat index {int(bad[0])} outside the field's [0, {n - 1}]")
+    unique, counts = np.unique(a, return_counts=True)
+    if (counts > 1).any():
+        raise ValueError(f"{name}: heliostat index {int(unique[counts > 1][0])} given twice")
+    return a
+
+
+def _numbers(name: str, array: object) -> np.ndarray:
+    """``array`` as float64, or a TypeError naming ``name`` (strings, objects, booleans)."""
+    a = np.asarray(array)
+    if a.dtype.kind not in "iuf":
+        raise TypeError(f"{name}: expected numbers, got an array of dtype {a.dtype}")
+    return a.astype(np.float64)
 
 
 def synthetic_field(

@@ -16,10 +16,10 @@ import numpy as np
 
 from .._errors import ConfigError, DataError, few_names
 from .._geometry import MAX_FIELD_EXTENT_M, wgs84_to_enu
-from .._io import is_decimal, read_csv_rows
+from .._io import check_path_argument, input_file_problem, is_decimal, read_csv_rows
 from ..paint import TOWER_FILE_SUFFIX, read_heliostat_properties, read_tower
 from ..paint._common import MAX_HELIOSTAT_HEIGHT_M, _load_json
-from ._field import PARAMETERS, FieldData
+from ._field import PARAMETERS, FieldData, value_problem
 
 log = logging.getLogger(__name__)
 
@@ -162,13 +162,9 @@ def read_field_csv(path: str | os.PathLike) -> FieldData:
         for p in params:
             cell = (row[p] or "").strip()
             x = math.nan if cell == "" else _float(path, f"line {i}: {p}", cell)
-            if not math.isnan(x):
-                sup = PARAMETERS[p].support
-                if (sup == "positive" and x <= 0) or (sup == "unit" and not 0 < x < 1):
-                    raise DataError(path, f"line {i}: {p}", f"{x} outside the {sup} range")
-                info = PARAMETERS[p]
-                if x > info.maximum:
-                    raise DataError(path, f"line {i}: {p}", f"{x} above {info.maximum:g} {info.unit}: no measurement")
+            problem = value_problem(p, x)
+            if problem is not None:
+                raise DataError(path, f"line {i}: {p}", problem)
             vals[p].append(x)
     if len(set(ids)) != len(ids):
         dup = sorted({h for h in ids if ids.count(h) > 1})[0]
@@ -264,7 +260,18 @@ def read_positions_csv(path: str | os.PathLike) -> tuple[tuple[str, ...], np.nda
 
 
 def find_tower_file(paint_dir: str | os.PathLike) -> Path:
-    """The ``*-tower-measurements.json`` of a PAINT download directory."""
+    """The ``*-tower-measurements.json`` of a PAINT download directory.
+
+    Raises:
+        TypeError, ValueError: ``paint_dir`` is no path or empty
+            (:func:`heliojax._io.check_path_argument`; None had searched the working
+            directory).
+        DataError: ``paint_dir`` is no directory, or holds no tower file.
+    """
+    check_path_argument(paint_dir, "paint_dir")
+    if not os.path.isdir(paint_dir):  # a missing folder or a file had "no tower file in the PAINT directory"
+        what = "a file" if os.path.exists(paint_dir) else "missing"
+        raise DataError(paint_dir, None, f"not a directory ({what}): expected a PAINT download directory")
     # root_dir: the folder's own name is no pattern (one named "run[1]" had no tower file)
     hits = sorted(glob.glob("*" + TOWER_FILE_SUFFIX, root_dir=paint_dir))
     if not hits:
@@ -377,10 +384,17 @@ def load_contract(path: str | os.PathLike) -> Contract:
     """Read and validate a contract TOML file (see ``configs/contract.toml``).
 
     Raises:
-        ConfigError: unreadable file, unknown sections/keys, bad values.
+        TypeError, ValueError: ``path`` is no path (an int, None) or empty
+            (:func:`heliojax._io.check_path_argument`).
+        ConfigError: unreadable file (not a regular file: a FIFO blocked the read),
+            unknown sections/keys, bad values.
     """
+    check_path_argument(path)
     path = Path(path)
     try:
+        problem = input_file_problem(path)
+        if problem is not None:
+            raise ConfigError(f"{path}: cannot read contract: {problem}")
         doc = tomllib.loads(path.read_text("utf-8"))
     except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise ConfigError(f"{path}: cannot read contract: {e}") from e

@@ -43,6 +43,8 @@ import numpy as np
 from jaxtyping import Float, Int
 from scipy.stats import norm
 
+from ._field import field_indices
+
 Formula = Literal["eq4", "eq7", "eq8"]
 
 _ROUND_TOL = 1e-9
@@ -186,7 +188,9 @@ def select_sample(
     Raises:
         ValueError: ``positions`` not ``(N, >= 2)`` or not finite (a NaN had surfaced
             as "cannot convert float NaN to integer"), ``n`` not an integer between 0
-            and the heliostats available, an unknown ``method``.
+            and the heliostats available, an unknown ``method``, ``exclude`` of indices
+            outside the field, not whole or given twice (an IndexError inside NumPy;
+            -1 excluded the last heliostat).
     """
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     xy = np.asarray(positions, dtype=float)
@@ -203,7 +207,7 @@ def select_sample(
         raise ValueError(f"select_sample: n must be an integer, got {n!r}")
     avail = np.ones(len(xy), dtype=bool)
     if exclude is not None:
-        avail[np.asarray(exclude, dtype=int)] = False
+        avail[field_indices("exclude", exclude, len(xy))] = False
     idx = np.flatnonzero(avail)
     if not 0 <= n <= idx.size:
         raise ValueError(f"cannot draw {n} heliostats from {idx.size} available")

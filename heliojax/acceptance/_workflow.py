@@ -75,6 +75,30 @@ def _clean(x):
     return x
 
 
+def _check_arguments(field, contract, aperture, plant_lla, sun) -> None:
+    """:func:`run_acceptance`'s arguments are of their kinds (each had failed as an
+    AttributeError deep inside, or a NaN plant had been run)."""
+    for name, value, kind, hint in (
+        ("field", field, FieldData, " (read_field_csv or field_from_summary makes one)"),
+        ("contract", contract, Contract, " (load_contract reads one)"),
+        ("aperture", aperture, TargetPlane, " (load_receiver or juelich_receiver)"),
+    ):
+        if not isinstance(value, kind):
+            raise TypeError(f"run_acceptance: {name}: expected a {kind.__name__}{hint}, got {type(value).__name__}")
+    try:
+        plant = np.asarray(plant_lla, dtype=float)
+    except (TypeError, ValueError):
+        plant = np.full(1, np.nan)
+    if plant.shape != (3,) or not np.isfinite(plant).all() or abs(plant[0]) > 90.0:
+        raise ValueError(
+            f"run_acceptance: plant_lla: expected 3 finite numbers (latitude in [-90, 90] deg, longitude deg, "
+            f"altitude m), got {plant_lla!r}"[:300]
+        )
+    if sun is not None and (not isinstance(sun, SunSeries) or len(sun.unix_time_s) == 0):
+        got = f"{len(sun.unix_time_s)} samples" if isinstance(sun, SunSeries) else type(sun).__name__
+        raise ValueError(f"run_acceptance: sun: expected a SunSeries of at least one sample, got {got}")
+
+
 def run_acceptance(
     field: FieldData,
     contract: Contract,
@@ -102,6 +126,9 @@ def run_acceptance(
 
     Raises:
         ConfigError: the sun never rises above the contract's ``min_elevation_deg``.
+        TypeError: an argument of another kind (a path for ``field`` or ``contract``).
+        ValueError: ``plant_lla`` not 3 finite numbers with a latitude in [-90, 90];
+            ``sun`` of no samples (level 2 had failed on a year without sun).
 
     Level 2 compares the contract's field with the measured one, in which a parameter
     measured on fewer than 2 heliostats takes the contract's values
@@ -116,6 +143,7 @@ def run_acceptance(
         An :class:`AcceptanceResult`; ``result.report`` follows the
         ``acceptance.json`` schema.
     """
+    _check_arguments(field, contract, aperture, plant_lla, sun)
     n = field.n
     xy = np.asarray(field.positions)[:, :2]
     cl = dict(contract.clusters)

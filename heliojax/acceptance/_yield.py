@@ -300,10 +300,28 @@ def typical_year(
     Args:
         latitude_deg, longitude_deg, altitude_m: plant location (WGS84).
         year: calendar year sampled (UTC).
-        step_minutes: sampling step.
+        step_minutes: sampling step, in [1, 1440] (a contract's range).
         min_elevation_deg: drop times with the sun lower than this.
-    """
 
+    Raises:
+        ValueError: a value that is not a finite number (a NaN latitude gave a year
+            without sun), a ``step_minutes`` outside [1, 1440] (0 divided by zero, a
+            negative step gave a year without sun); a latitude beyond a pole.
+    """
+    from .._limits import real_problem
+
+    for name, value in (
+        ("latitude_deg", latitude_deg),
+        ("longitude_deg", longitude_deg),
+        ("altitude_m", altitude_m),
+        ("min_elevation_deg", min_elevation_deg),
+        ("step_minutes", step_minutes),
+    ):
+        problem = real_problem(value)
+        if problem is not None:
+            raise ValueError(f"typical_year: {name} {problem}")
+    if not 1.0 <= step_minutes <= 1440.0:
+        raise ValueError(f"typical_year: step_minutes must lie in [1, 1440] minutes, got {step_minutes!r}")
     start = _dt.datetime(year, 1, 1, tzinfo=_dt.UTC).timestamp()
     end = _dt.datetime(year + 1, 1, 1, tzinfo=_dt.UTC).timestamp()
     step = 60.0 * step_minutes

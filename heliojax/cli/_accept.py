@@ -26,6 +26,12 @@ FIGURES = ("field_map.png", "cluster_distributions.png", "monthly_efficiency.png
 """The figures ``--figures`` receives (the first two need tracking measured on two heliostats)."""
 
 
+def outputs_inside(args) -> list[tuple[str, Path]]:
+    """The files this command writes in ``--figures``, checked before any work: a
+    ``--report figs/field_map.png`` had been written over that figure without a word."""
+    return [("figures", Path(args.figures) / name) for name in FIGURES] if args.figures is not None else []
+
+
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "accept",

@@ -182,6 +182,7 @@ def enable_compilation_cache(cache_dir: str | os.PathLike | None, command: str |
         return
     chosen = cache_dir or os.environ.get("HELIOJAX_CACHE_DIR", "").strip() or None  # blank: unset, not a folder "  "
     where = "--cache-dir" if cache_dir else "$HELIOJAX_CACHE_DIR"
+    path = None
     try:
         xdg = os.environ.get("XDG_CACHE_HOME", "").strip()  # the XDG rule: an absolute path, else ignored
         cache_home = Path(xdg) if xdg and os.path.isabs(xdg) else Path.home() / ".cache"
@@ -194,7 +195,10 @@ def enable_compilation_cache(cache_dir: str | os.PathLike | None, command: str |
     except (OSError, RuntimeError) as e:  # RuntimeError: Path.home() without $HOME or a user entry
         reason = getattr(e, "strerror", None) or str(e)
         if not chosen:  # the default: a convenience, not worth failing a run for
-            log.warning(f"no compilation cache ({reason}); --cache-dir DIR keeps one, --cache-dir none silences this")
+            at = f" in {_shown(path)}" if path is not None else ""  # which folder: $HOME's, $XDG_CACHE_HOME's?
+            log.warning(
+                f"no compilation cache{at} ({reason}); --cache-dir DIR keeps one, --cache-dir none silences this"
+            )
             return
         raise ConfigError(f"{where} {_shown(Path(chosen))}: cannot hold the compilation cache: {reason}") from None
     jax.config.update("jax_compilation_cache_dir", str(path))
@@ -320,15 +324,22 @@ other input path names a file."""
 
 
 def check_input_paths(
-    options: collections.abc.Mapping[str, argparse.Action], args, outputs: collections.abc.Collection[str]
+    options: collections.abc.Mapping[str, argparse.Action],
+    args,
+    outputs: collections.abc.Collection[str],
+    inside: collections.abc.Iterable[tuple[str, Path]] = (),
 ) -> None:
     """Before any work: every input path option among ``options`` (dest -> action, as
     the CLI's parsers record them; type :func:`path_type`, not one of ``outputs``) that
     ``args`` sets exists and is a directory (:data:`INPUT_DIRECTORIES`) or a regular file, and
     no output of ``outputs`` names that same file (the input
     would be replaced) or lies where a load of an input folder reads
-    (:func:`check_not_an_output`). Raises ConfigError naming the flag (the metavar of a
-    positional argument)."""
+    (:func:`check_not_an_output`), nor does a file the command writes ``inside`` an
+    output folder (``(attribute name of the folder, file path)``, as for
+    :func:`check_output_paths`: ``accept --results figs/field_map.png --figures figs``
+    had replaced its input by a figure). Raises ConfigError naming the flag (the
+    metavar of a positional argument)."""
+    inside = list(inside)
     from .._errors import ConfigError
 
     for action in options.values():
@@ -354,7 +365,27 @@ def check_input_paths(
             raise ConfigError(f"{flag} {_shown(path)}: is a directory, expected a file")
         if not want_dir:
             check_input_file(flag, path)
+            _check_not_written_inside(flag, path, args, inside)
         check_not_an_output(flag, path, args, outputs, scanned=want_dir)
+
+
+def _check_not_written_inside(flag: str, path: Path, args, inside: collections.abc.Iterable[tuple[str, Path]]) -> None:
+    """The input file ``path`` is none of the files written ``inside`` an output folder."""
+    from .._errors import ConfigError
+
+    for name, output in inside:
+        if getattr(args, name, None) is None:
+            continue
+        try:
+            same = output.exists() and os.path.samefile(output, path)
+        except (OSError, ValueError):  # not there yet, a name too long: not the input
+            same = False
+        if same:
+            out_flag = "--" + name.replace("_", "-")
+            raise ConfigError(
+                f"{flag} {_shown(path)}: is {_shown(output)}, a file {out_flag} writes, which would replace "
+                f"the input; move the input or give {out_flag} another folder"
+            )
 
 
 def check_input_file(flag: str, path: Path) -> None:
@@ -445,6 +476,7 @@ def _check_output_path(flag: str, path: Path, name: str, is_dir: bool, seen: dic
     from .._io import remove_stale_temporaries
 
     _check_no_dangling_link(flag, path)
+    _check_not_in_embedded_data(flag, path)
     same = seen.setdefault(path.resolve(), flag)  # a folder of figures named like a file output too
     if same != flag:
         raise ConfigError(f"{flag} {path}: {same} names the same path; give each output its own")
@@ -474,6 +506,26 @@ def _check_output_path(flag: str, path: Path, name: str, is_dir: bool, seen: dic
     if folder.is_dir() and name != "cache_dir":
         for stale in remove_stale_temporaries(folder):
             log.info(f"removed {stale}, left by an interrupted run")
+
+
+def _check_not_in_embedded_data(flag: str, path: Path) -> None:
+    """An output is not written inside heliojax's embedded data
+    (:func:`heliojax.paint.default_data_dir`), the input of every command given no data
+    folder: ``calibrate --report <its tower file>`` had replaced that file by a summary
+    (every later run then failed), unchecked because no input path was given."""
+    from .._errors import ConfigError
+    from ..paint import default_data_dir
+
+    data = default_data_dir()
+    try:
+        inside = path.resolve().is_relative_to(data.resolve())
+    except (OSError, RuntimeError):  # a loop of links: named by the checks that follow
+        return
+    if inside:
+        raise ConfigError(
+            f"{flag} {_shown(path)}: inside heliojax's embedded data ({_shown(data)}), the input of every "
+            "command run without a data folder; write it elsewhere"
+        )
 
 
 def _check_a_file_can_be_made(flag: str, path: Path, folder: Path) -> None:

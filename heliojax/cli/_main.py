@@ -366,16 +366,52 @@ def _one_of(action: argparse.Action) -> argparse.Action:
     return argparse.Action(action.option_strings, action.dest, type=action.type, choices=action.choices)  # pyright: ignore[reportArgumentType]
 
 
+def _private_matplotlib_folder() -> str | None:
+    """A temporary folder made ``$MPLCONFIGDIR`` when matplotlib's own folders (config
+    and cache: ``$XDG_CONFIG_HOME/matplotlib``, ``$XDG_CACHE_HOME/matplotlib``, under
+    ``$HOME`` by default) cannot be made or written, else None (``$MPLCONFIGDIR`` set, or
+    usable folders). With an unwritable ``$HOME`` matplotlib printed two lines of
+    warnings on its import and made a ``/tmp/matplotlib-*`` folder of its own, which no
+    run removed (its removal at exit is skipped by :func:`main`'s quick exit); this one is
+    removed when the command ends (:func:`main`)."""
+    import tempfile
+
+    if os.environ.get("MPLCONFIGDIR", "").strip() or not sys.platform.startswith(("linux", "freebsd")):
+        return None
+    try:
+        for variable, default in (("XDG_CONFIG_HOME", ".config"), ("XDG_CACHE_HOME", ".cache")):
+            folder = Path(os.environ.get(variable) or Path.home() / default, "matplotlib").resolve()
+            folder.mkdir(parents=True, exist_ok=True)  # matplotlib's rule (its _get_config_or_cache_dir)
+            if not (os.access(folder, os.W_OK) and folder.is_dir()):
+                raise PermissionError(folder)
+        return None
+    except (OSError, RuntimeError):  # RuntimeError: no home folder
+        pass
+    try:
+        folder = tempfile.mkdtemp(prefix="heliojax-matplotlib-")
+    except OSError:  # no temporary folder either: matplotlib says so itself
+        return None
+    os.environ["MPLCONFIGDIR"] = folder
+    return folder
+
+
 class _NamedStdout:
     """``sys.stdout`` whose write errors (a full disk, ``> /dev/full``) name it: an
-    OSError of a write carries no file name, and the error line would name nothing."""
+    OSError of a write carries no file name, and the error line would name nothing. A
+    character its encoding lacks (an ASCII stdout of ``PYTHONUTF8=0 LC_ALL=C``: the
+    'ü' of Jülich in ``plan --help`` ended in a UnicodeEncodeError traceback, as did a
+    non-UTF-8 file name in a table) is written escaped, as standard error writes it."""
 
     def __init__(self, stream: typing.Any) -> None:
         self._stream = stream
 
     def write(self, text: str) -> int:
         try:
-            return self._stream.write(text)
+            try:
+                return self._stream.write(text)
+            except UnicodeEncodeError:
+                encoding = getattr(self._stream, "encoding", None) or "ascii"
+                return self._stream.write(text.encode(encoding, "backslashreplace").decode(encoding))
         except OSError as e:
             raise OSError(e.errno, e.strerror or str(e), "standard output") from None
 
@@ -461,6 +497,7 @@ def main(argv: list[str] | None = None) -> int:
     if stderr is None:  # started with standard error closed (`2>&-`): progress bars wrote to None and failed
         sys.stderr = open(os.devnull, "w")  # noqa: SIM115 (closed in the finally below)
     command = next((a for a in argv if a in SUBCOMMANDS), "")
+    matplotlib_folder = _private_matplotlib_folder() if command else None
     try:
         code = _main(argv)
         raise_if_interrupted()  # received but swallowed where it was raised: the command stops here
@@ -492,6 +529,11 @@ def main(argv: list[str] | None = None) -> int:
             signal.signal(signal.SIGINT, previous_int)
         sys.unraisablehook = previous_hook
         note_interrupt(None)
+        if matplotlib_folder is not None:
+            import shutil
+
+            shutil.rmtree(matplotlib_folder, ignore_errors=True)
+            os.environ.pop("MPLCONFIGDIR", None)
     if from_console and in_main_thread:
         for stream in (sys.stderr, sys.stdout):
             try:
@@ -589,7 +631,7 @@ def _main(argv: list[str]) -> int:
         inside = module.outputs_inside(args) if hasattr(module, "outputs_inside") else ()
         outputs = (*getattr(module, "OUTPUT_FILES", ()), *getattr(module, "OUTPUT_DIRS", ()))
         check_output_paths(args, getattr(module, "OUTPUT_FILES", ()), getattr(module, "OUTPUT_DIRS", ()), inside)
-        check_input_paths(getattr(subparsers[args.command], "options", {}), args, outputs)
+        check_input_paths(getattr(subparsers[args.command], "options", {}), args, outputs, inside)
         if getattr(args, "quiet", False):  # no bars (INFO is off): nothing to share stderr with
             code = int(module.run(args) or 0)
         else:

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any, no_type_check
 
 from .._errors import DataError
-from .._io import shown_value
+from .._io import check_path_argument, heliostat_id_problem, shown_value
 from ._common import (
     CALIBRATION_SUFFIX,
     CORNERS,
@@ -295,13 +295,40 @@ def _check_weather(file: str, field: str, weather: Any) -> dict[str, float]:
 
 
 def calibration_record_path(root: str | os.PathLike, heliostat_id: str, record_id: int) -> Path:
-    """``root/<H>/Calibration/<ID>-calibration-properties.json``."""
-    return Path(root) / heliostat_id / "Calibration" / f"{record_id}{CALIBRATION_SUFFIX}"
+    """``root/<H>/Calibration/<ID>-calibration-properties.json``.
+
+    Raises:
+        TypeError, ValueError: ``root`` is no path, ``heliostat_id`` no heliostat id (a
+            ``../x`` led out of ``root``) or ``record_id`` no whole number >= 0 (``2.5``
+            and ``-1`` named files that :func:`read_calibration_record` refuses).
+    """
+    _check_path_parts(root, heliostat_id)
+    if isinstance(record_id, bool) or not isinstance(record_id, numbers.Integral) or record_id < 0:
+        number = not isinstance(record_id, bool) and isinstance(record_id, numbers.Integral | float)
+        kind = ValueError if number else TypeError
+        raise kind(f"record_id: expected a whole number >= 0 (a PAINT record id), got {shown_value(record_id)}")
+    return Path(root) / heliostat_id / "Calibration" / f"{int(record_id)}{CALIBRATION_SUFFIX}"
 
 
 def heliostat_properties_path(root: str | os.PathLike, heliostat_id: str) -> Path:
-    """``root/<H>/Properties/<H>-heliostat-properties.json``."""
+    """``root/<H>/Properties/<H>-heliostat-properties.json``.
+
+    Raises:
+        TypeError, ValueError: ``root`` is no path or ``heliostat_id`` no heliostat id
+            (:func:`heliojax._io.heliostat_id_problem`: ``../x`` led out of ``root``).
+    """
+    _check_path_parts(root, heliostat_id)
     return Path(root) / heliostat_id / "Properties" / f"{heliostat_id}{PROPERTIES_SUFFIX}"
+
+
+def _check_path_parts(root: object, heliostat_id: object) -> None:
+    """``root`` is a path and ``heliostat_id`` a heliostat id (a folder's name in it)."""
+    check_path_argument(root, "root")
+    if not isinstance(heliostat_id, str):
+        raise TypeError(f"heliostat_id: expected a heliostat id (a string), got {type(heliostat_id).__name__}")
+    problem = heliostat_id_problem(heliostat_id)
+    if problem is not None:
+        raise ValueError(f"heliostat_id: {shown_value(heliostat_id)} is not a heliostat id ({problem})")
 
 
 @no_type_check  # run per record or cell: the tests' run-time type checks cost more than its body
@@ -330,8 +357,11 @@ def read_calibration_record(
             mapping) the heliostat must have properties.
 
     Raises:
+        TypeError, ValueError: ``path`` is no path or empty
+            (:func:`heliojax._io.check_path_argument`).
         DataError: naming the file and the dotted field.
     """
+    check_path_argument(path)
     path = Path(path)
     file = str(path)
     rid = _record_id_from_name(path)

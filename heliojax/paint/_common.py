@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any, no_type_check
 
 from .._errors import DataError
-from .._io import atomic_write, input_file_problem
+from .._io import atomic_write, check_path_argument, input_file_problem
 from .._sun import datetime_to_unix
 
 Vec3 = tuple[float, float, float]
@@ -372,7 +372,9 @@ def _read_regular_file(path: str | os.PathLike) -> bytes:
     """The bytes of a regular file; a device, pipe or socket in its place (a link to
     /dev/zero reads forever, a pipe blocks), a file over :data:`~heliojax._io.MAX_INPUT_BYTES`
     and an
-    unreadable file are DataErrors."""
+    unreadable file are DataErrors; a ``path`` that is no path (an int, read as a file
+    descriptor; None) is a TypeError (:func:`~heliojax._io.check_path_argument`)."""
+    check_path_argument(path)
     try:
         problem = input_file_problem(path)
         if problem is not None:

@@ -9,7 +9,7 @@ import numpy as np
 from PIL import Image
 
 from .._errors import DataError
-from .._io import input_file_problem
+from .._io import check_path_argument, input_file_problem
 
 MAX_FLUX_PIXELS = 4096 * 4096
 """Largest image (pixels) read; PAINT's flux images are 512 x 512. A larger
@@ -36,12 +36,15 @@ def read_flux_png(path: str | os.PathLike) -> np.ndarray:
     """A PAINT flux PNG as a float64 ``(rows, cols)`` array in ``[0, 1]``.
 
     Raises:
+        TypeError, ValueError: ``path`` is no path (an int was read as a file
+            descriptor) or empty (:func:`~heliojax._io.check_path_argument`).
         DataError: unreadable or not a PNG (a JPEG named ``.png``), larger than
             :data:`MAX_FLUX_PIXELS`, of fewer than :data:`MIN_FLUX_BITS` bits per
             sample (mode ``1``), animated, rotated or mirrored by an EXIF orientation, or
             with transparent pixels, in colour (channels that differ: a false-colour
             rendering is no brightness), or not a regular file (a FIFO blocked the open).
     """
+    check_path_argument(path)
     try:
         problem = input_file_problem(path)
         if problem is not None:

@@ -24,7 +24,7 @@ from .._errors import DataError, few_names
 from .._fleet import CENTROIDS, Centroid, Fleet, ReportEntry, bucket_size
 from .._geometry import TargetPlane, sun_direction, wgs84_to_enu
 from .._heliostat import HeliostatGeometry, LinearActuators, RecordContext
-from .._io import heliostat_id_problem, shown_value
+from .._io import check_path_argument, heliostat_id_problem, shown_value
 from .._programs import cached_jit
 from .._sun import datetime_to_unix, solar_position
 from ._calibration import (
@@ -740,11 +740,14 @@ def load_paint_directory(
     Raises:
         TypeError: ``path`` is not a path (a number, a list); ``heliostats`` is not an
             id or a list of ids.
+        ValueError: ``path`` is empty (not the working directory).
         DataError: a missing/invalid tower file or no loadable heliostat (always);
             any bad input when ``strict``.
     """
     if path is not None and not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"path: expected a directory path (str or os.PathLike) or None, got {type(path).__name__}")
+    if path is not None:
+        check_path_argument(path)  # "" is the working directory (Path("") is "."), loaded without a word
     _check_centroid(centroid)
     root = default_data_dir() if path is None else Path(path)
     if not root.is_dir():

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from .._errors import DataError
+from .._io import check_path_argument
 from ._common import (
     ACTUATOR_KEYS,
     ACTUATOR_OPTIONAL,
@@ -373,12 +374,15 @@ def read_heliostat_properties(path: str | os.PathLike, *, heliostat_id: str | No
         heliostat_id: overrides the id taken from the file name.
 
     Raises:
+        TypeError, ValueError: ``path`` is no path or empty
+            (:func:`heliojax._io.check_path_argument`).
         DataError: naming the file and the dotted field (e.g.
             ``kinematics_properties.actuators[0].increment``). The actuators must be
             ``linear`` with positive ``increment``, ``offset``, ``pivot_radius``,
             ``min_increment < max_increment`` and ``clockwise_axis_movement`` in {0, 1};
             ``initial_orientation`` must be south.
     """
+    check_path_argument(path)
     path = Path(path)
     hid = heliostat_id if heliostat_id is not None else _heliostat_id_from_properties_name(path)
     return _properties_from_json(str(path), _load_json(path), hid)
