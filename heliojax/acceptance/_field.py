@@ -109,10 +109,19 @@ class FieldData(eqx.Module):
                 raise ValueError(f"unknown parameter {k!r}; known: {sorted(PARAMETERS)}")
             if np.shape(v) != (n,):
                 raise ValueError(f"values[{k!r}] must have shape ({n},), got {np.shape(v)}")
-            for i, x in enumerate(_numbers(f"values[{k!r}]", v).tolist()):
-                problem = value_problem(k, x)
-                if problem is not None:
-                    raise ValueError(f"values[{k!r}]: heliostat {self.ids[i]!r}: {problem}")
+            a, info = _numbers(f"values[{k!r}]", v), PARAMETERS[k]
+            with np.errstate(invalid="ignore"):  # vectorised value_problem (NaN: not measured)
+                low = (
+                    (a <= 0)
+                    if info.support == "positive"
+                    else ~((a > 0) & (a < 1))
+                    if info.support == "unit"
+                    else False
+                )
+                bad = ~np.isnan(a) & (~np.isfinite(a) | low | (a > info.maximum))
+            if bad.any():
+                i = int(np.argmax(bad))
+                raise ValueError(f"values[{k!r}]: heliostat {self.ids[i]!r}: {value_problem(k, float(a[i]))}")
 
     @property
     def n(self) -> int:
