@@ -33,7 +33,9 @@ densities) and ``cv_bandwidth_factor(n_grid=0)`` divided by zero;
 ``extrapolate_field`` read measured index -1 as the last heliostat, failed in NumPy on
 one past the field and extrapolated from NaN "measurements", as ``select_sample`` did
 with an ``exclude`` past the field; ``typical_year`` of a NaN latitude or a negative
-step gave a year without sun and of a step of 0 divided by zero.
+step gave a year without sun and of a step of 0 divided by zero. ``outliers`` of a NaN
+threshold flagged nothing, ``find_clusters`` took ``alpha=5`` and handed a length scale
+of 0 to scikit-learn, and ``sample_size`` took a field of 2.5 heliostats.
 
 Ill-typed values are given under the ``unchecked`` fixture.
 """
@@ -356,3 +358,29 @@ def test_a_typical_year_of_a_nan_plant_or_a_step_of_no_minutes_is_named(unchecke
     ):
         with pytest.raises(ValueError, match=f"^typical_year: {said}"):
             acceptance.typical_year(**{"latitude_deg": 50.9, "longitude_deg": 6.4, **kwargs})
+
+
+def test_cluster_and_sample_size_options_out_of_range_are_named(unchecked):
+    """Left by the round at first, then fixed: ``outliers`` of a NaN threshold flagged
+    nothing (of -1 everything) and a ``reference`` of another length failed inside NumPy;
+    ``find_clusters`` took ``alpha=5`` (every cluster an anomaly) and passed a length
+    scale of 0 or ``min_samples=0`` to scikit-learn; ``sample_size`` took a field of 2.5
+    heliostats."""
+    v = np.array([1.0, 1.1, 0.9, 1.0, 5.0])
+    assert acceptance.outliers(v).tolist() == [False, False, False, False, True]
+    for bad in (float("nan"), -1.0):
+        with pytest.raises(ValueError, match="outliers: z_threshold must be a finite number >= 0"):
+            acceptance.outliers(v, z_threshold=bad)
+    with pytest.raises(ValueError, match=r"outliers: reference has shape \(3,\); expected \(5,\)"):
+        acceptance.outliers(v, reference=np.ones(3, bool))
+    xy = np.zeros((5, 2))
+    for kw, said in (
+        ({"alpha": 5.0}, "alpha must be a significance level"),
+        ({"length_scale_m": 0.0}, "length_scale_m must be a finite length > 0"),
+        ({"min_samples": 0}, "min_samples must be at least 1"),
+    ):
+        with pytest.raises(ValueError, match=f"find_clusters: {said}"):
+            acceptance.find_clusters(xy, v, **{"length_scale_m": 10.0, **kw})
+    with pytest.raises(ValueError, match="population must be a whole number"):
+        acceptance.sample_size(2.0, 0.2, 0.04, population=2.5)
+    assert acceptance.sample_size(2.0, 0.2, 0.04, population=1001) >= 1

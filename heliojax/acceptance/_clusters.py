@@ -44,6 +44,7 @@ from scipy import sparse, spatial, stats
 from scipy.sparse import csgraph
 from sklearn.cluster import DBSCAN
 
+from .._limits import count_problem, real_problem
 from ._sampling import select_sample
 
 _MAD_TO_STD = 1.4826
@@ -139,6 +140,15 @@ def find_clusters(
     Returns:
         A :class:`ClusterResult`.
     """
+    # alpha = 5 (a percentage) had called every cluster an anomaly; a length scale of 0 or
+    # NaN and min_samples of 0 failed inside scikit-learn
+    if real_problem(alpha) is not None or not 0.0 < alpha < 1.0:
+        raise ValueError(f"find_clusters: alpha must be a significance level in (0, 1), got {alpha!r}"[:200])
+    if real_problem(length_scale_m) is not None or not length_scale_m > 0.0:
+        raise ValueError(f"find_clusters: length_scale_m must be a finite length > 0 (m), got {length_scale_m!r}"[:200])
+    problem = count_problem(min_samples, 1_000_000)
+    if problem is not None:
+        raise ValueError(f"find_clusters: min_samples {problem}")
     xy = np.asarray(positions, dtype=float)[:, :2]
     v = np.asarray(values, dtype=float)
     if xy.shape[0] != v.shape[0]:
@@ -219,7 +229,11 @@ def outliers(
         reference: mask of the values that define median and robust std
             (default all).
     """
+    if real_problem(z_threshold, minimum=0.0) is not None:  # NaN had flagged nothing, -1 everything
+        raise ValueError(f"outliers: z_threshold must be a finite number >= 0, got {z_threshold!r}"[:200])
     v = np.asarray(values, dtype=float)
+    if reference is not None and np.shape(reference) != v.shape:  # an IndexError inside NumPy
+        raise ValueError(f"outliers: reference has shape {np.shape(reference)}; expected {v.shape}, like values")
     ref = v if reference is None else v[np.asarray(reference, dtype=bool)]
     rs = robust_std(ref)
     if rs == 0 or ref.size == 0:

@@ -43,6 +43,7 @@ import numpy as np
 from jaxtyping import Float, Int
 from scipy.stats import norm
 
+from .._limits import count_problem
 from ._field import field_indices
 
 Formula = Literal["eq4", "eq7", "eq8"]
@@ -72,8 +73,9 @@ def _finite_population(n0: float, population: int | None, formula: Formula) -> f
         raise ValueError(f"formula must be 'eq4', 'eq7' or 'eq8', got {formula!r}")
     if population is None:
         raise ValueError(f"formula {formula!r} needs the field size `population`")
-    if population < 1:
-        raise ValueError(f"population must be >= 1, got {population}")
+    problem = count_problem(population, 10**9)  # 2.5 heliostats had been taken
+    if problem is not None:
+        raise ValueError(f"population {problem}")
     n_pop = float(population)
     if formula == "eq7":
         return n0 / ((1.0 - 1.0 / n_pop) + n0 / n_pop)
