@@ -35,7 +35,9 @@ one past the field and extrapolated from NaN "measurements", as ``select_sample`
 with an ``exclude`` past the field; ``typical_year`` of a NaN latitude or a negative
 step gave a year without sun and of a step of 0 divided by zero. ``outliers`` of a NaN
 threshold flagged nothing, ``find_clusters`` took ``alpha=5`` and handed a length scale
-of 0 to scikit-learn, and ``sample_size`` took a field of 2.5 heliostats.
+of 0 to scikit-learn, and ``sample_size`` took a field of 2.5 heliostats;
+``contract_values(n=-1)`` returned no values (of a NaN ``std`` NaN ones) and
+``synthetic_field(0)`` failed in a NumPy concatenation.
 
 Ill-typed values are given under the ``unchecked`` fixture.
 """
@@ -384,3 +386,21 @@ def test_cluster_and_sample_size_options_out_of_range_are_named(unchecked):
     with pytest.raises(ValueError, match="population must be a whole number"):
         acceptance.sample_size(2.0, 0.2, 0.04, population=2.5)
     assert acceptance.sample_size(2.0, 0.2, 0.04, population=1001) >= 1
+
+
+def test_contract_values_and_synthetic_fields_of_no_heliostat_are_named(unchecked):
+    """``contract_values(n=-1)`` returned no values, of a NaN ``std`` NaN values and of a
+    misspelled ``support`` normal ones; ``synthetic_field(0)`` failed in a NumPy
+    concatenation."""
+    for kw, said in (
+        ({"n": -1}, "n must be at least 1"),
+        ({"std": float("nan")}, "std must be a finite number >= 0"),
+        ({"support": "postive"}, "support must be 'positive', 'unit' or 'real'"),
+    ):
+        with pytest.raises(ValueError, match=f"contract_values: {said}"):
+            acceptance.contract_values(**{"n": 10, "mean": 1.8, "std": 0.3, **kw})
+    np.testing.assert_allclose(np.mean(acceptance.contract_values(1000, 1.8, 0.3)), 1.8, rtol=1e-3)
+    with pytest.raises(ValueError, match="synthetic_field: n must be at least 1"):
+        acceptance.synthetic_field(0)
+    with pytest.raises(ValueError, match="synthetic_field: cluster_size must be at most 10"):
+        acceptance.synthetic_field(10, cluster_size=20)

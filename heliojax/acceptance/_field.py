@@ -187,7 +187,17 @@ def synthetic_field(
 
     Returns:
         ``(field, in_cluster)``: the field and the ``(n,)`` mask of the block.
+
+    Raises:
+        ValueError: ``n`` not a whole number >= 1 or ``cluster_size`` not one in
+            ``[0, n]`` (0 heliostats had failed in a NumPy concatenation).
     """
+    from .._limits import MAX_SYNTHETIC_HELIOSTATS, count_problem
+
+    for name, value, least, most in (("n", n, 1, MAX_SYNTHETIC_HELIOSTATS), ("cluster_size", cluster_size, 0, n)):
+        problem = count_problem(value, most, minimum=least)
+        if problem is not None:
+            raise ValueError(f"synthetic_field: {name} {problem}")
     rng = np.random.default_rng(seed)
     pts = []
     r, row = 30.0, 0

@@ -11,6 +11,7 @@ from scipy import stats
 
 from .._errors import ConfigError
 from .._geometry import TargetPlane
+from .._limits import MAX_SYNTHETIC_HELIOSTATS, count_problem, real_problem
 from .._progress import activity, progress_bar
 from ._clusters import ClusterResult, field_spacing, find_clusters, resampling_advice
 from ._extrapolate import Extrapolation, extrapolate_field
@@ -32,7 +33,23 @@ def contract_values(n: int, mean: float, std: float, support: str = "positive", 
     distribution with the contract mean and std for positive parameters (right
     skewed like radial errors), of a normal one otherwise (clipped into (0, 1)
     for fractions), in a random order.
+
+    Raises:
+        ValueError: ``n`` not a whole number >= 1, ``mean`` not finite, ``std`` not a
+            finite number >= 0, or an unknown ``support`` (``n = -1`` had given no
+            values, a NaN ``std`` NaN values, a misspelled support normal ones).
     """
+    problems = {
+        "n": count_problem(n, MAX_SYNTHETIC_HELIOSTATS),
+        "mean": real_problem(mean),
+        "std": real_problem(std, minimum=0.0),
+        "support": None
+        if support in ("positive", "unit", "real")
+        else f"must be 'positive', 'unit' or 'real', got {support!r}",
+    }
+    for name, problem in problems.items():
+        if problem is not None:
+            raise ValueError(f"contract_values: {name} {problem}"[:200])
     q = (np.arange(n) + 0.5) / n
     if std <= 0:
         vals = np.full(n, float(mean))
