@@ -73,7 +73,7 @@ from ._geometry import check_unit_vectors
 from ._heliostat import HeliostatGeometry, RecordContext
 from ._io import shown_value
 from ._kinematics import AbstractKinematicModel, inverse_aim
-from ._limits import EARLIEST_UNIX_S, EARLIEST_YEAR, LATEST_UNIX_S, LATEST_YEAR, MAX_PLAN_BUDGET
+from ._limits import EARLIEST_UNIX_S, EARLIEST_YEAR, LATEST_UNIX_S, LATEST_YEAR, MAX_PLAN_BUDGET, count_problem
 from ._parameters import ParameterView
 from ._sun import solar_position
 from .fitting import prior_moments, residual_jacobians
@@ -107,7 +107,7 @@ def _check_min_elevation(min_elevation_deg: float) -> float:
 def _check_budget(budget: typing.Any) -> None:
     """ValueError unless ``budget`` is a whole number of measurements in ``[0,
     MAX_PLAN_BUDGET]`` (a budget of 10**9 had run a scan of 10**9 greedy steps)."""
-    if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or not 0 <= budget <= MAX_PLAN_BUDGET:
+    if count_problem(budget, MAX_PLAN_BUDGET, minimum=0) is not None:
         raise ValueError(f"budget must be a whole number of measurements in [0, {MAX_PLAN_BUDGET:,}], not {budget!r}")
 
 

@@ -11,6 +11,10 @@ import equinox as eqx
 import numpy as np
 from jaxtyping import Bool, Float
 
+from .._geometry import MAX_FIELD_EXTENT_M
+from .._limits import MAX_SYNTHETIC_HELIOSTATS, count_problem
+from ..paint._common import MAX_HELIOSTAT_HEIGHT_M
+
 
 @dataclasses.dataclass(frozen=True)
 class ParameterInfo:
@@ -84,9 +88,6 @@ class FieldData(eqx.Module):
         # the field CSV reader's rules (it names the line first): a string of ids was
         # read as one id per letter, an infinite value as "not measured", a NaN position
         # failed in SciPy's KD-tree and a negative tracking error in the KDE's logarithm
-        from .._geometry import MAX_FIELD_EXTENT_M
-        from ..paint._common import MAX_HELIOSTAT_HEIGHT_M
-
         if isinstance(self.ids, str) or not all(isinstance(h, str) and h.strip() for h in self.ids):
             raise TypeError(f"ids: expected a tuple of heliostat ids (non-blank strings), got {self.ids!r}"[:200])
         n = len(self.ids)
@@ -192,8 +193,6 @@ def synthetic_field(
         ValueError: ``n`` not a whole number >= 1 or ``cluster_size`` not one in
             ``[0, n]`` (0 heliostats had failed in a NumPy concatenation).
     """
-    from .._limits import MAX_SYNTHETIC_HELIOSTATS, count_problem
-
     for name, value, least, most in (("n", n, 1, MAX_SYNTHETIC_HELIOSTATS), ("cluster_size", cluster_size, 0, n)):
         problem = count_problem(value, most, minimum=least)
         if problem is not None:

@@ -62,6 +62,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._errors import DataError
 from .._geometry import TargetPlane, sun_direction, wgs84_to_enu
+from .._limits import real_problem
 from .._sun import solar_position
 from ..paint import read_tower
 
@@ -308,8 +309,6 @@ def typical_year(
             without sun), a ``step_minutes`` outside [1, 1440] (0 divided by zero, a
             negative step gave a year without sun); a latitude beyond a pole.
     """
-    from .._limits import real_problem
-
     for name, value in (
         ("latitude_deg", latitude_deg),
         ("longitude_deg", longitude_deg),

@@ -274,10 +274,9 @@ class DiscoveryConfig:
     def __post_init__(self):
         if self.effects is None:
             object.__setattr__(self, "effects", DEFAULT_CANDIDATES)
-        if not isinstance(self.effects, collections.abc.Iterable) or isinstance(self.effects, str | bytes):
-            raise ValueError(f"effects must be a sequence of effect names, got {self.effects!r}"[:200])
-        if not all(isinstance(e, str) for e in self.candidates):
-            # a string had been read as its letters ("unknown effects ['a', 'e', ...]")
+        # a string had been read as its letters ("unknown effects ['a', 'e', ...]")
+        named = isinstance(self.effects, collections.abc.Iterable) and not isinstance(self.effects, str | bytes)
+        if not named or not all(isinstance(e, str) for e in self.candidates):
             raise ValueError(f"effects must be a sequence of effect names, got {self.effects!r}"[:200])
         object.__setattr__(self, "effects", tuple(self.candidates))
         unknown = set(self.candidates) - set(EFFECT_NAMES)

@@ -264,6 +264,17 @@ def check_irradiance(function: str, dni: typing.Any, reflectivity: typing.Any) -
             raise ValueError(f"{function}: {name} must be {bound}, got {value!r}"[:200])
 
 
+def _check_point(function: str, name: str, x: typing.Any) -> None:
+    """ValueError naming ``function`` and ``name`` unless ``x`` is a ``(3,)`` point (ENU m)
+    whose values, where known (not under ``jit``), are finite: a NaN point had given a
+    pose of NaN, a ``(2,)`` one an error inside JAX."""
+    if jnp.shape(x) != (3,):
+        raise ValueError(f"{function}: {name} has shape {jnp.shape(x)}; expected (3,), ENU m")
+    v = known_values(x)
+    if v is not None and not np.isfinite(v).all():
+        raise ValueError(f"{function}: {name} is {v.tolist()}; expected a finite point (ENU m)")
+
+
 def aim_pose(centre: Float[ArrayLike, "3"], sun: Float[ArrayLike, "3"], aim_point: Float[ArrayLike, "3"]) -> Pose:
     """Ideal pose at ``centre`` (ENU m) reflecting the central sun ray onto ``aim_point``.
 
@@ -278,11 +289,7 @@ def aim_pose(centre: Float[ArrayLike, "3"], sun: Float[ArrayLike, "3"], aim_poin
             NaN, which traced an image of zeros.
     """
     for name, x in (("centre", centre), ("aim_point", aim_point)):
-        if jnp.shape(x) != (3,):
-            raise ValueError(f"aim_pose: {name} has shape {jnp.shape(x)}; expected (3,), ENU m")
-        v = known_values(x)
-        if v is not None and not np.isfinite(v).all():
-            raise ValueError(f"aim_pose: {name} is {v.tolist()}; expected a finite point (ENU m)")
+        _check_point("aim_pose", name, x)
     check_directions("aim_pose", "sun", sun)
     if jnp.shape(sun) != (3,):
         raise ValueError(f"aim_pose: sun has shape {jnp.shape(sun)}; expected (3,), ENU")
@@ -310,11 +317,7 @@ def pose_from_normal(centre: Float[ArrayLike, "3"], normal: Float[ArrayLike, "3"
         ValueError: ``centre`` not a finite ``(3,)`` point or ``normal`` no direction
             (zero, NaN; values known): a pose of NaN traced an image of zeros.
     """
-    if jnp.shape(centre) != (3,):
-        raise ValueError(f"pose_from_normal: centre has shape {jnp.shape(centre)}; expected (3,), ENU m")
-    c = known_values(centre)
-    if c is not None and not np.isfinite(c).all():
-        raise ValueError(f"pose_from_normal: centre is {c.tolist()}; expected a finite point (ENU m)")
+    _check_point("pose_from_normal", "centre", centre)
     check_directions("pose_from_normal", "normal", normal)
     centre = _float_array(centre)
     normal = normalize(jnp.asarray(normal, centre.dtype))
