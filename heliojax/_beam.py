@@ -22,7 +22,11 @@ def reflected_ray(pose: Pose, sun: Float[ArrayLike, "3"]) -> Float[Array, "3"]:
     return reflect(-jnp.asarray(sun), pose.normal)
 
 
-def tangent_basis(r):
+def tangent_basis(r: Float[Array, "3"]) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
+    """The beam error's axes about the unit ray ``r`` (ENU): ``e1 = normalize(up x r)``
+    (horizontal) and ``e2 = r x e1`` (upward). Undefined (NaN) for a vertical ``r``,
+    which no heliostat reflects toward a target; :func:`heliojax.optics.tangent_basis`
+    is the ray tracer's basis, which turns to north-based axes near vertical."""
     up = jnp.asarray([0.0, 0.0, 1.0], r.dtype)
     e1 = normalize(jnp.cross(up, r))
     e2 = jnp.cross(r, e1)

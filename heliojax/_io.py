@@ -47,16 +47,19 @@ def input_file_problem(path: str | os.PathLike) -> str | None:
 
 def check_path_argument(path: object, name: str = "path") -> None:
     """Raise unless ``path``, the argument ``name`` of a reader, names a file or folder:
-    a str, bytes or :class:`os.PathLike`, not blank. An int was taken for a file
+    a str or :class:`os.PathLike` of a str, not blank. An int was taken for a file
     descriptor (``read_tower(0)`` read standard input, and closed it when done), None
-    and a list failed inside ``os.stat`` or ``glob``, and an empty name is the working
-    directory (``Path("")`` is ``.``), never what was meant.
+    and a list failed inside ``os.stat`` or ``glob``, bytes inside ``pathlib`` (a
+    TypeError naming no argument), and an empty name is the working directory
+    (``Path("")`` is ``.``), never what was meant.
 
     Raises:
-        TypeError: not a path (an int, a bool, None, a list).
+        TypeError: not a path (an int, a bool, None, a list, bytes).
         ValueError: an empty or blank path.
     """
-    if not isinstance(path, (str, bytes, os.PathLike)):
+    if isinstance(path, bytes) or (isinstance(path, os.PathLike) and isinstance(os.fspath(path), bytes)):
+        raise TypeError(f"{name}: expected a str path, got bytes; give os.fsdecode(path)")
+    if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"{name}: expected a file or folder path (str or os.PathLike), got {type(path).__name__}")
     if not os.fspath(path).strip():
         raise ValueError(f"{name}: empty path (the working directory is not meant; give a name)")

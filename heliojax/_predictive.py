@@ -58,6 +58,8 @@ import equinox as eqx
 import numpy as np
 from jaxtyping import Float
 
+from ._limits import real_problem
+
 _DRIFT_GRID = np.concatenate([[0.0], np.geomspace(1e-6, 1e3, 91)])  # mrad^2 / day
 MIN_TAIL_DOF = 0.5
 """The smallest Student t degrees of freedom of a pointing-error law: the fit's grid
@@ -74,6 +76,19 @@ _LAW_KEYS = ("kind", "tail_dof", "outlier_fraction", "outlier_scale")
 """The keys of :meth:`PointingErrorLaw.to_dict` (``kind`` follows from the others)."""
 
 
+def _law_number(value: typing.Any) -> float:
+    """A field of :class:`PointingErrorLaw` as a float: one real number. ``float`` had
+    read the string "inf" and True (1 degree of freedom) and failed on None ("float()
+    argument must be ...", naming no field)."""
+    kind = "U" if isinstance(value, (str, bytes)) else np.asarray(value).dtype.kind
+    if kind not in "iuf" or np.ndim(value) != 0:
+        raise TypeError(
+            "PointingErrorLaw: tail_dof, outlier_fraction and outlier_scale must be numbers "
+            f"(tail_dof inf: a Gaussian core), got {value!r}"[:200]
+        )
+    return float(value)
+
+
 @typing.final
 class PointingErrorLaw(eqx.Module):
     """Radial law of the predicted 2-D pointing error, a Gaussian scale mixture
@@ -87,9 +102,9 @@ class PointingErrorLaw(eqx.Module):
         outlier_scale: ``k``, the broad component's scale over the core's (>= 1).
     """
 
-    tail_dof: float = eqx.field(static=True, default=math.inf, converter=float)
-    outlier_fraction: float = eqx.field(static=True, default=0.0, converter=float)
-    outlier_scale: float = eqx.field(static=True, default=1.0, converter=float)
+    tail_dof: float = eqx.field(static=True, default=math.inf, converter=_law_number)
+    outlier_fraction: float = eqx.field(static=True, default=0.0, converter=_law_number)
+    outlier_scale: float = eqx.field(static=True, default=1.0, converter=_law_number)
 
     def __check_init__(self):
         if not self.tail_dof >= MIN_TAIL_DOF:
@@ -131,19 +146,19 @@ class PointingErrorLaw(eqx.Module):
         Raises:
             ValueError: ``probability`` outside (0, 1).
         """
-        if not 0.0 < probability < 1.0:
-            raise ValueError(f"probability must be in (0, 1); got {probability}")
+        if real_problem(probability) is not None or not 0.0 < probability < 1.0:  # "0.95" or an array had failed
+            raise ValueError(f"probability must be in (0, 1); got {probability!r}"[:200])
         if self.outlier_fraction == 0.0:
             return self._core_quantile(probability)
         # between the core's and the broad component's own quantiles; bisection in log x
         lo = self._core_quantile(probability)
         hi = lo * self.outlier_scale**2
         for _ in range(200):
-            mid = math.sqrt(lo * hi)
+            mid = math.sqrt(lo) * math.sqrt(hi)  # lo * hi had underflowed to 0 at p = 1e-300 (a ZeroDivisionError)
             lo, hi = (mid, hi) if float(self.cdf(np.asarray(mid))) < probability else (lo, mid)
             if hi / lo < 1.0 + 1e-13:
                 break
-        return math.sqrt(lo * hi)
+        return math.sqrt(lo) * math.sqrt(hi)
 
     def describe(self) -> str:
         """A short name for titles and logs."""
@@ -348,7 +363,8 @@ def _validation_arrays(
 ) -> tuple[Float[np.ndarray, "N 2"], Float[np.ndarray, "N 2 2"], Float[np.ndarray, " N"]]:
     """The validation records of the drift and law fits as float arrays, checked:
     ValueError naming the argument for a shape other than ``(N, 2)``, ``(N, 2, 2)``,
-    ``(N,)``, a value that is not finite, or days < 0. One NaN residual had made every
+    ``(N,)``, a value that is not finite, days < 0, no residual at all, or a scale that
+    is not symmetric positive definite. One NaN residual had made every
     likelihood NaN and the fit return ``q = 0`` and a Gaussian, without a word; the
     caller (:func:`heliojax.temporal_drift`) leaves out the records it cannot use."""
     r = np.asarray(residual_mrad, float)
@@ -366,6 +382,18 @@ def _validation_arrays(
             raise ValueError(f"{name}: {int(np.sum(~np.isfinite(x)))} value(s) not finite; leave those records out")
     if not np.all(np.isfinite(t) & (t >= 0.0)):
         raise ValueError("days must be finite and >= 0 (days since the fit), one per residual")
+    if n == 0:  # had returned q = 0 and a Gaussian, a law of no residual
+        raise ValueError("residual_mrad: no residual; a drift and a law need validation residuals")
+    a, b, c, d = s[:, 0, 0], s[:, 0, 1], s[:, 1, 0], s[:, 1, 1]
+    # a scale that is no covariance had been read (its upper triangle only) into a t law, with
+    # NumPy's warnings of log and sqrt of negative numbers
+    asymmetric = np.abs(b - c) > 1e-9 * np.maximum(np.abs(a), np.abs(d))
+    bad = asymmetric | ~(a > 0) | ~(a * d - b * c > 0)
+    if bad.any():
+        raise ValueError(
+            f"scale_mrad2: {int(bad.sum())} matrix(es) not symmetric positive definite (the first: residual "
+            f"{int(np.argmax(bad))}); expected covariances, mrad^2"
+        )
     return r, s, t
 
 

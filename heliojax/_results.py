@@ -83,7 +83,14 @@ from ._aim import instant_seconds
 from ._errors import DataError, HeliojaxError
 from ._geometry import direction_to_azimuth_elevation, sun_direction
 from ._heliostat import HeliostatGeometry, LinearActuators, RecordContext
-from ._io import H5_OUTSIDE_DATA_REFUSED, atomic_h5, h5_first_outside_data, heliostat_id_problem, shown_value
+from ._io import (
+    H5_OUTSIDE_DATA_REFUSED,
+    atomic_h5,
+    check_path_argument,
+    h5_first_outside_data,
+    heliostat_id_problem,
+    shown_value,
+)
 from ._kinematics import AbstractKinematicModel, nominal_model
 from ._limits import LATEST_UNIX_S, target_name_problem
 from ._parameters import ParameterView, broadcast_model, covariance_problem
@@ -357,9 +364,13 @@ def _row_checksums(f: typing.Any, n: int) -> np.ndarray:
 
 def write_results_h5(path: str | Path, run: typing.Any) -> None:
     """Write ``results.h5`` atomically for a :class:`heliojax.CalibrationRun`
-    (schema in the module docstring)."""
+    (schema in the module docstring).
+
+    Raises:
+        TypeError, ValueError: ``path`` is no path or empty (:func:`heliojax._io.check_path_argument`)."""
     import h5py  # only for results files: ~35 ms of import a calibration without --out never needs
 
+    check_path_argument(path)
     n = len(run.summary["heliostats"])
     view = run.result.view
     split = np.zeros(run.train_mask.shape, np.int8)
@@ -545,7 +556,12 @@ class CalibrationResults:
 
     def fitted_records(self, *, inliers: bool) -> Bool[np.ndarray, "H M"]:
         """``(H, M)`` the training records the model was fitted to (not superseded by a
-        change point), with ``inliers`` the outliers among them left out too."""
+        change point), with ``inliers`` the outliers among them left out too.
+
+        Raises:
+            TypeError: ``inliers`` not a bool ("no" had been taken for True)."""
+        if not isinstance(inliers, (bool, np.bool_)):
+            raise TypeError(f"fitted_records: inliers must be True or False, got {inliers!r}"[:200])
         fitted = self.records["split"] == 1
         for name in ("superseded", "outlier") if inliers else ("superseded",):
             if name in self.records:
@@ -856,7 +872,10 @@ def load_results(path: str | Path) -> CalibrationResults:
     Raises:
         DataError: naming the file and field when something is missing or malformed,
             or naming the file when HDF5 cannot read its structure (a damaged file).
+        TypeError, ValueError: ``path`` is no path (None, an int, a list: they had been
+            called damaged files) or empty (:func:`heliojax._io.check_path_argument`).
     """
+    check_path_argument(path)
     try:
         return _load_results(path)
     except HeliojaxError:

@@ -66,6 +66,7 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import math
+import typing
 from collections.abc import Mapping, Sequence
 from typing import Literal
 
@@ -74,6 +75,7 @@ from jaxtyping import Bool, Float
 
 from ._errors import ConfigError
 from ._geometry import check_unit_vectors
+from ._limits import count_problem, real_problem
 
 __all__ = [
     "SPLIT_NAMES",
@@ -221,6 +223,15 @@ def _not_ok(kind: str, n: int, reason: str) -> SplitResult:
     return SplitResult(kind, empty, empty, empty, np.arange(n, dtype=np.int64), n, False, reason)
 
 
+MAX_SEED = 2**32 - 1
+"""Largest ``seed`` of the splits (scikit-learn's KMeans takes a ``random_state`` below 2**32)."""
+
+
+def _whole(value: object, minimum: int) -> bool:
+    """Whether ``value`` is a whole number (an int, or a float of one) at least ``minimum``."""
+    return real_problem(value, minimum=minimum) is None and float(typing.cast(float, value)).is_integer()
+
+
 def split_records(
     kind: SplitKind,
     azimuth_rad,
@@ -264,12 +275,17 @@ def split_records(
         raise ConfigError(f"unknown split {kind!r}; choose one of {', '.join(SPLIT_NAMES)}")
     if (n_train is None) == (train_fraction is None):
         raise ConfigError("give exactly one of n_train and train_fraction")
-    if n_train is not None and (int(n_train) != n_train or n_train < 1):
-        raise ConfigError(f"n_train must be a positive integer, got {n_train!r}")
-    if train_fraction is not None and not (0.0 < train_fraction < 1.0):
-        raise ConfigError(f"train_fraction must lie in (0, 1), got {train_fraction!r}")
-    if int(n_val) != n_val or n_val < 0:
-        raise ConfigError(f"n_val must be a non-negative integer, got {n_val!r}")
+    # NaN and inf had failed in int() (ValueError, OverflowError), a string fraction in a
+    # comparison, an array of fractions as "truth value ... ambiguous", True had been 1
+    if n_train is not None and not _whole(n_train, 1):
+        raise ConfigError(f"n_train must be a positive integer, got {n_train!r}"[:200])
+    if train_fraction is not None and not (real_problem(train_fraction) is None and 0.0 < train_fraction < 1.0):
+        raise ConfigError(f"train_fraction must lie in (0, 1), got {train_fraction!r}"[:200])
+    if not _whole(n_val, 0):
+        raise ConfigError(f"n_val must be a non-negative integer, got {n_val!r}"[:200])
+    # scikit-learn had named its random_state
+    if seed is not None and count_problem(seed, MAX_SEED, minimum=0) is not None:
+        raise ConfigError(f"seed must be a whole number in [0, {MAX_SEED}] (or None), got {seed!r}"[:200])
     if kind in ("balanced", "high_variance") and n_val < 1:
         raise ConfigError(f"the {kind} split needs n_val >= 1 (it also sets the number of test records)")
     n_val = int(n_val)

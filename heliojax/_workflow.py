@@ -26,8 +26,9 @@ from jaxtyping import ArrayLike, Bool
 from ._errors import ConfigError, few_names
 from ._fleet import bucket_size, pad_fleet, records_among, spots_off_target
 from ._geometry import direction_to_azimuth_elevation
-from ._io import atomic_write
+from ._io import atomic_write, check_path_argument
 from ._kinematics import AbstractKinematicModel, nominal_model
+from ._limits import count_problem, real_problem
 from ._predictive import DRIFT_RATE_KEYS, PointingErrorLaw, fit_drift_terms_and_law
 from ._programs import warm_up
 from ._progress import activity
@@ -58,6 +59,7 @@ from .fitting import (
     residual_jacobians,
     robust_fit_program,
 )
+from .fitting._fit import check_fleet
 
 log = logging.getLogger(__name__)
 
@@ -269,6 +271,14 @@ def calibrate(
             f"not a {type(record_roles).__name__}"
         )
     _check_fit_options(fit_options, robust=robust, pool=pool)
+    check_fleet(fleet, who="calibrate")  # None or a path had been an AttributeError
+    if test_fleet is not None:
+        check_fleet(test_fleet, "test_fleet", who="calibrate")
+    if not isinstance(model, (str, AbstractKinematicModel)):  # None or 3 had failed inside the fit
+        raise ConfigError(
+            f"model must be 'auto', 'stone8', 'actuator' or a kinematic model (e.g. heliojax.with_effects(...)), "
+            f"not {model!r}"[:200]
+        )
     model0 = nominal_model(model, fleet.counts.dtype) if isinstance(model, str) else model
     n_real = len(fleet.ids)
     ids = list(fleet.ids)
@@ -727,6 +737,10 @@ def temporal_drift(
     model that errs more in poses unlike the fitted ones gets ``g``; a beam that creeps
     steadily (a linear drift, whose error grows as ``b``, not as ``sqrt(dt)``) gets ``c``.
 
+    Raises:
+        ConfigError: ``min_records`` not a whole number >= 2, ``fractions`` empty or
+            not shares in (0, 1).
+
     Returns:
         ``{"drift_mrad2_per_day", "sky_gap_mrad2_per_deg", "creep_mrad2_per_day2", "tail_dof", "error_law",
         "validation_records",
@@ -736,9 +750,15 @@ def temporal_drift(
         record once per origin that predicts it); the rates are 0 and the law Gaussian
         with fewer than :data:`DRIFT_MIN_VALIDATION` validation records.
     """
+    problem = count_problem(min_records, 10**9, minimum=2)  # 0 had held out the only record of a heliostat
+    if problem is not None:
+        raise ConfigError(f"temporal_drift: min_records {problem}")
+    fractions = DRIFT_HOLDOUT_FRACTIONS if fractions is None else tuple(fractions)
+    if not fractions or any(real_problem(f) is not None or not 0.0 < f < 1.0 for f in fractions):
+        # 1.5 had held out every record and more, NaN none, without a word
+        raise ConfigError(f"temporal_drift: fractions must be shares in (0, 1), got {fractions!r}"[:200])
     fleet_mask = np.asarray(fleet.mask)
     unix_time = np.asarray(fleet.context.unix_time, float)
-    fractions = DRIFT_HOLDOUT_FRACTIONS if fractions is None else tuple(fractions)
     shares = ", ".join(f"{f:.0%}" for f in fractions)
     method = (
         "random walk from the fitted state in time and across the sky, or a linear creep in time, bivariate "
@@ -1243,7 +1263,12 @@ def _status_reason(st: FitStatus, run: CalibrationRun, i: int, n_records: int, s
 
 
 def write_summary(path: str | Path, run: CalibrationRun) -> None:
-    """Write ``summary.json`` atomically."""
+    """Write ``summary.json`` atomically.
+
+    Raises:
+        TypeError, ValueError: ``path`` is no path (None, an int: a TypeError of pathlib
+            naming nothing) or empty ("" had been "Is a directory: '.'")."""
+    check_path_argument(path)
     with atomic_write(path) as f:
         json.dump(run.summary, f, indent=2, allow_nan=False)
         f.write("\n")

@@ -120,11 +120,18 @@ def _optimised_when_marked(request, monkeypatch):
     """XLA's optimisations back on (in this process and its children) for tests
     marked ``optimised``. On the switch to optimised, JAX's in-memory caches are
     cleared (its jit cache does not key on the setting, so unoptimised programs of
-    earlier tests would be reused); consecutive marked tests share their programs."""
-    marked = request.node.get_closest_marker("optimised") is not None
+    earlier tests would be reused); consecutive marked tests share their programs. A
+    test marked ``optimised(kernel_only=True)`` compiles nothing in this process (a
+    notebook runs in its own kernel, which reads the environment): this process keeps
+    its setting and its programs."""
+    marker = request.node.get_closest_marker("optimised")
+    marked = marker is not None
     default = os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] != "0"
     if marked:
         monkeypatch.setenv("JAX_DISABLE_MOST_OPTIMIZATIONS", "0")
+    if marked and marker.kwargs.get("kernel_only", False):  # only a notebook kernel compiles
+        yield
+        return
     if marked and default and not _optimised_now[0]:
         jax.clear_caches()
     jax.config.update("jax_disable_most_optimizations", default and not marked)

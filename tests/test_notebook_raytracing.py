@@ -7,7 +7,7 @@ from _notebooks import run_notebook
 from conftest import SHARED_PAINT
 
 
-@pytest.mark.optimised
+@pytest.mark.optimised(kernel_only=True)  # the kernel compiles, not this process
 def test_notebook_raytracing_runs(tmp_path, monkeypatch):
     # 25 Adam steps instead of 100: enough to recover a good part of the hidden bumps
     _, text, n_images = run_notebook("raytracing.ipynb", tmp_path, monkeypatch, overrides={"reconstruction_steps": 25})

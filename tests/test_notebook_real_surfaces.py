@@ -8,7 +8,7 @@ from _notebooks import run_notebook
 from conftest import SHARED_PAINT
 
 
-@pytest.mark.optimised
+@pytest.mark.optimised(kernel_only=True)  # the kernel compiles, not this process
 def test_notebook_real_surfaces_runs(tmp_path, monkeypatch):
     if not (SHARED_PAINT.parent / "artist-scenarios").exists():
         pytest.skip("needs ../shared/data (ARTIST scenarios and PAINT flux samples)")

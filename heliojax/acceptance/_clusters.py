@@ -51,8 +51,13 @@ _MAD_TO_STD = 1.4826
 
 
 def robust_std(values: Float[np.ndarray, " n"]) -> float:
-    """1.4826 times the median absolute deviation (the std for normal data)."""
+    """1.4826 times the median absolute deviation (the std for normal data) of ``(n,)``
+    finite values (same unit). Raises ValueError for no value or a NaN / infinite one
+    (NumPy's median of none is NaN with a warning; one NaN made the spread NaN)."""
     x = np.asarray(values, dtype=float)
+    if x.size == 0 or not np.isfinite(x).all():
+        what = "no values" if x.size == 0 else f"{int((~np.isfinite(x)).sum())} NaN or infinite value(s)"
+        raise ValueError(f"robust_std: needs finite values, got {what}; drop unmeasured values first")
     return float(_MAD_TO_STD * np.median(np.abs(x - np.median(x))))
 
 
@@ -235,8 +240,11 @@ def outliers(
     if reference is not None and np.shape(reference) != v.shape:  # an IndexError inside NumPy
         raise ValueError(f"outliers: reference has shape {np.shape(reference)}; expected {v.shape}, like values")
     ref = v if reference is None else v[np.asarray(reference, dtype=bool)]
+    ref = ref[np.isfinite(ref)]  # an unmeasured (NaN) value is no outlier and sets no scale
+    if ref.size == 0:
+        return np.zeros(v.size, dtype=bool)
     rs = robust_std(ref)
-    if rs == 0 or ref.size == 0:
+    if rs == 0:
         return np.zeros(v.size, dtype=bool)
     z = (v - np.median(ref)) / rs
     if side == "high":

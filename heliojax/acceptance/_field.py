@@ -53,6 +53,17 @@ reflectance (fraction). ``aperture_m2``: net reflective aperture area.
 """
 
 
+def _outside_support(support: str, a: np.ndarray) -> np.ndarray:
+    """Where the values ``a`` lie outside the support ``support`` (NaN: False for
+    ``"positive"``, True for ``"unit"``; callers leave NaN out first)."""
+    with np.errstate(invalid="ignore"):
+        if support == "positive":
+            return np.asarray(a <= 0)
+        if support == "unit":
+            return np.asarray(~((a > 0) & (a < 1)))
+        return np.zeros(np.shape(a), bool)
+
+
 def value_problem(name: str, x: float) -> str | None:
     """Why ``x`` cannot be a measured value of parameter ``name`` (NaN: not measured, no
     problem), or None: not finite, outside the parameter's support or above its
@@ -63,7 +74,7 @@ def value_problem(name: str, x: float) -> str | None:
     info = PARAMETERS[name]
     if not math.isfinite(x):
         return f"{x} is not finite (NaN marks a value not measured)"
-    if (info.support == "positive" and x <= 0) or (info.support == "unit" and not 0 < x < 1):
+    if _outside_support(info.support, np.asarray(x)):
         return f"{x} outside the {info.support} range"
     if x > info.maximum:
         return f"{x} above {info.maximum:g} {info.unit}: no measurement"
@@ -111,15 +122,8 @@ class FieldData(eqx.Module):
             if np.shape(v) != (n,):
                 raise ValueError(f"values[{k!r}] must have shape ({n},), got {np.shape(v)}")
             a, info = _numbers(f"values[{k!r}]", v), PARAMETERS[k]
-            with np.errstate(invalid="ignore"):  # vectorised value_problem (NaN: not measured)
-                low = (
-                    (a <= 0)
-                    if info.support == "positive"
-                    else ~((a > 0) & (a < 1))
-                    if info.support == "unit"
-                    else False
-                )
-                bad = ~np.isnan(a) & (~np.isfinite(a) | low | (a > info.maximum))
+            with np.errstate(invalid="ignore"):  # value_problem for every heliostat at once (NaN: not measured)
+                bad = ~np.isnan(a) & (~np.isfinite(a) | _outside_support(info.support, a) | (a > info.maximum))
             if bad.any():
                 i = int(np.argmax(bad))
                 raise ValueError(f"values[{k!r}]: heliostat {self.ids[i]!r}: {value_problem(k, float(a[i]))}")

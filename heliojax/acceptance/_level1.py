@@ -126,8 +126,8 @@ def confidence_intervals(
         ``((mean_low, mean_high), (std_low, std_high))``.
 
     Raises:
-        ValueError: fewer than two values, ``confidence`` outside (0, 1), ``n_resamples``
-            below 1 (bootstrap).
+        ValueError: fewer than two values, a NaN or infinite value, ``confidence``
+            outside (0, 1), ``n_resamples`` below 1 (bootstrap).
     """
     confidence = _check_confidence("confidence_intervals", confidence)
     if method == "bootstrap":
@@ -136,6 +136,11 @@ def confidence_intervals(
     n = x.size
     if n < 2:
         raise ValueError("need at least two values for a confidence interval")
+    if not np.isfinite(x).all():  # NaN intervals (normal) or a failure inside SciPy (bootstrap)
+        raise ValueError(
+            f"confidence_intervals: {int((~np.isfinite(x)).sum())} of {n} values are NaN or infinite; "
+            "drop unmeasured values first (level1_test does)"
+        )
     m, s = float(x.mean()), float(x.std(ddof=1))
     alpha = 1.0 - confidence
     if method == "normal":

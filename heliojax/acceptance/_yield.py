@@ -143,7 +143,21 @@ def beam_sigma(
 
     Returns:
         ``sqrt(sun^2 + 2 slope^2 + tracking^2 / 2) * 1e-3`` in rad.
+
+    Raises:
+        ValueError: a (concrete, not traced) RMS or sunshape std that is negative or not
+            finite (squared, a negative RMS had passed for a positive one).
     """
+    for name, value in (
+        ("tracking_mrad", tracking_mrad),
+        ("slope_mrad", slope_mrad),
+        ("sun_sigma_mrad", sun_sigma_mrad),
+    ):
+        if isinstance(value, jax.core.Tracer):  # pyright: ignore[reportAttributeAccessIssue]
+            continue
+        x = np.asarray(value, dtype=float)
+        if not (np.isfinite(x) & (x >= 0.0)).all():
+            raise ValueError(f"beam_sigma: {name} must be finite and >= 0 mrad (an RMS or std), got {value!r}"[:200])
     t = jnp.asarray(tracking_mrad)
     s = jnp.asarray(slope_mrad)
     return 1e-3 * jnp.sqrt(sun_sigma_mrad**2 + 2.0 * s**2 + 0.5 * t**2)

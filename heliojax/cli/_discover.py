@@ -38,6 +38,25 @@ OUTPUT_DIRS = ("figures", "cache_dir")
 """Output paths checked before any work (attribute names of the parsed arguments)."""
 
 
+def outputs_inside(args) -> list[tuple[str, Path]]:
+    """``--report`` / ``--markdown`` where a figure of ``--figures`` may be written
+    (a name of :data:`heliojax.discovery._report.FIGURE_NAME_PATTERN` in that folder),
+    checked before any work as a file of ``--figures``, which names the clash:
+    ``--report figs/heldout_per_step.png --figures figs`` had been replaced by the figure."""
+    from ..discovery._report import FIGURE_NAME_PATTERN
+
+    if args.figures is None:
+        return []
+    folder = Path(args.figures).resolve()
+    return [
+        ("figures", Path(args.figures) / Path(value).name)
+        for value in (args.report, args.markdown)
+        if value is not None
+        and Path(value).resolve().parent == folder
+        and FIGURE_NAME_PATTERN.fullmatch(Path(value).name)
+    ]
+
+
 def excluded_ids(exclude: str | None) -> tuple[str, ...]:
     """The heliostat ids of ``--exclude`` (comma-separated; None: none). ConfigError when
     the option names none."""

@@ -119,6 +119,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -1252,10 +1253,17 @@ def plot_change_points(result, *, max_heliostats: int = 12):
     return fig
 
 
+FIGURE_NAME_PATTERN = re.compile(
+    r"heldout_per_step\.png|change_points\.png|screen_step\d+\.png|residuals_step\d+_.+\.png|unexplained_\d+_.+\.png"
+)
+"""The names :func:`write_figures` may give a figure (``fullmatch``): another output
+of the same run named so inside the figures' folder would be replaced by a figure."""
+
+
 def write_figures(result, out_dir) -> list[Path]:
     """Write the PNG figures: ``heldout_per_step.png``, ``screen_step<k>.png``,
     ``residuals_step<k>_<effect>.png``, ``unexplained_<k>_<variable>.png`` and
-    ``change_points.png`` (when any).
+    ``change_points.png`` (when any; every name matches :data:`FIGURE_NAME_PATTERN`).
     Returns the paths."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

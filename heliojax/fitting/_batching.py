@@ -30,8 +30,13 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
+from .._limits import count_problem
+
 AXIS = "heliostats"
 """Name of the mesh axis the heliostats are sharded over."""
+
+MAX_COUNT = 2**31 - 1
+"""Largest count a strategy takes (steps, lanes, blocks): XLA's 32-bit loop counters."""
 
 
 class AbstractBatching(eqx.Module):
@@ -102,8 +107,10 @@ class Vmap(AbstractBatching):
     restart_after: int | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
-        if self.restart_after is not None and self.restart_after < 1:
-            raise ValueError(f"Vmap: restart_after must be >= 1 or None, got {self.restart_after}")
+        # 2.5 had reached optimistix ("max_steps must be a Python integer"), "3" a comparison
+        problem = None if self.restart_after is None else count_problem(self.restart_after, MAX_COUNT)
+        if problem is not None:
+            raise ValueError(f"Vmap: restart_after {problem} (or None: one pass)")
 
     def map(self, fn):
         return jax.vmap(fn)
@@ -128,8 +135,9 @@ class Chunked(AbstractBatching):
     size: int = eqx.field(static=True, default=64)
 
     def __check_init__(self):
-        if self.size < 1:
-            raise ValueError(f"Chunked: size must be >= 1, got {self.size}")
+        problem = count_problem(self.size, MAX_COUNT)  # 2.5 had failed deep inside lax.map
+        if problem is not None:
+            raise ValueError(f"Chunked: size {problem}")
 
     def map(self, fn):
         return lambda *xs: jax.lax.map(lambda a: fn(*a), xs, batch_size=self.size)
@@ -205,10 +213,12 @@ class Threaded(AbstractBatching):
     min_block: int = eqx.field(static=True, default=MIN_BLOCK)
 
     def __check_init__(self):
-        if self.workers < 1:
-            raise ValueError(f"Threaded: workers must be >= 1, got {self.workers}")
-        if self.min_block < 1:
-            raise ValueError(f"Threaded: min_block must be >= 1, got {self.min_block}")
+        for name in ("workers", "min_block"):  # 2.5 workers had failed in NumPy's arange
+            problem = count_problem(getattr(self, name), MAX_COUNT)
+            if problem is not None:
+                raise ValueError(f"Threaded: {name} {problem}")
+        if not isinstance(self.inner, AbstractBatching):  # None or "vmap" had been an AttributeError in the fit
+            raise TypeError(f"Threaded: inner must be a batching strategy (e.g. LaxMap()), got {self.inner!r}"[:200])
         if isinstance(self.inner, (Threaded, Sharded)):
             raise ValueError(f"Threaded: inner must batch one block on one device, got {type(self.inner).__name__}")
 
@@ -335,6 +345,22 @@ class Sharded(AbstractBatching):
 
     devices: tuple[typing.Any, ...] | None = eqx.field(static=True, default=None)
     inner: AbstractBatching | None = eqx.field(static=True, default=None)
+
+    def __check_init__(self):
+        # "cpu" for the devices had been an AttributeError, Sharded(inner=Sharded()) an
+        # IndexError, None or "vmap" for the inner an AttributeError, all inside the fit
+        if self.devices is not None and (
+            isinstance(self.devices, (str, bytes)) or not all(hasattr(d, "platform") for d in self.devices)
+        ):
+            raise TypeError(
+                f"Sharded: devices must be JAX devices (e.g. jax.local_devices()), got {self.devices!r}"[:200]
+            )
+        if self.inner is not None and not isinstance(self.inner, AbstractBatching):
+            raise TypeError(
+                f"Sharded: inner must be a batching strategy (e.g. LaxMap()) or None, got {self.inner!r}"[:200]
+            )
+        if isinstance(self.inner, (Sharded, Threaded)):
+            raise ValueError(f"Sharded: inner must batch one device's heliostats, got {type(self.inner).__name__}")
 
     def _devices(self) -> list[typing.Any]:
         devices = list(jax.local_devices() if self.devices is None else self.devices)

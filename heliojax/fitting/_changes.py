@@ -41,17 +41,23 @@ import typing
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._errors import ConfigError
+from .._heliostat import known_values
+from .._limits import count_problem
 from .._parameters import ParameterView, and_masks
 from .._programs import cached_jit
 from ._evaluate import residual_jacobians, residuals_mrad
-from ._fit import FitSolution
+from ._fit import FitSolution, check_kinds, fit_mask
 from ._records import finite_records
 
 OFFSET_NAMES: tuple[tuple[str, str], ...] = (("angle_offset_1", "angle_offset_2"), ("theta_k", "tau_k"))
 """The axis-offset parameter pairs a jump is sought in (actuator model, Stone model)."""
+
+MAX_SEGMENT = 2**31 - 1
+"""Largest ``min_segment`` (records) :func:`find_change_points` takes (its counts are int32)."""
 
 
 @typing.final
@@ -263,7 +269,31 @@ def find_change_points(
 
     Raises:
         ConfigError: the model has no free pair of axis offsets.
+        TypeError, ValueError: a ``solution`` of another fleet, a ``mask`` or ``weights``
+            of another shape, ``weights`` not finite and >= 0, or a ``min_segment`` that
+            is not a whole number >= 1 (a change point with no record on one side had
+            been scanned for, 2.5 read as 2, NaN weights had found nothing without a word).
     """
+    if not isinstance(solution, FitSolution):
+        raise TypeError(f"find_change_points: solution: expected a FitSolution, got {type(solution).__name__}")
+    check_kinds(solution.model, fleet, who="find_change_points")
+    shape = tuple(np.shape(fleet.mask))
+    if solution.n_heliostats != shape[0]:  # had failed in a vmap naming JAX's argument names
+        raise ValueError(
+            f"find_change_points: solution holds {solution.n_heliostats} heliostats and the fleet {shape[0]}; "
+            "give the fleet that was fitted"
+        )
+    mask = fit_mask(mask, shape, "find_change_points")
+    if tuple(np.shape(weights)) != shape:
+        raise ValueError(f"find_change_points: weights has shape {np.shape(weights)}; expected {shape}, the fleet's")
+    w = known_values(weights)
+    if w is not None and not np.all(np.isfinite(w) & (w >= 0)):
+        raise ValueError(
+            "find_change_points: weights must be finite and >= 0 (1 for least squares, 0 ignores a record)"
+        )
+    problem = None if min_segment is None else count_problem(min_segment, MAX_SEGMENT)
+    if problem is not None:
+        raise ValueError(f"find_change_points: min_segment {problem}")
     names, columns = _offset_columns(solution.view)
     use = and_masks(mask, fleet.mask)
     # the residuals and their Jacobian come from the programs the drift and planning use too,

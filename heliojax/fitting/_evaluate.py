@@ -13,9 +13,10 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from .._aim import direction_jacobian_mrad
 from .._heliostat import HeliostatGeometry, RecordContext
 from .._kinematics import AbstractKinematicModel
-from .._parameters import ParameterView, and_masks, broadcast_model, is_batched, on_host
+from .._parameters import ParameterView, and_masks, on_host
 from .._programs import cached_jit
 from ._batching import AbstractBatching
+from ._fit import batched_for, check_fleet, fit_mask
 from ._records import sanitise
 
 
@@ -88,8 +89,14 @@ def residual_jacobians(
     return _jacobian_program(view, models, geometry, counts, context, focal, mask)
 
 
-def _batched_models(models: AbstractKinematicModel, n: int) -> AbstractKinematicModel:
-    return models if is_batched(models) else broadcast_model(models, n)
+def _fleet_arguments(models: AbstractKinematicModel, fleet: typing.Any, mask: typing.Any, who: str):
+    """``(models batched over the fleet, the records to use)``, checked as :func:`heliojax.fit`
+    checks them: models batched for another fleet size had failed in a vmap naming JAX's
+    argument names, a mask of another shape in NumPy's broadcasting."""
+    check_fleet(fleet, who=who)
+    shape = tuple(np.shape(fleet.mask))
+    mask = fit_mask(mask, shape, who)
+    return batched_for(models, shape[0], who, "models"), (fleet.mask if mask is None else and_masks(mask, fleet.mask))
 
 
 def fleet_beam_errors_mrad(
@@ -97,8 +104,7 @@ def fleet_beam_errors_mrad(
 ) -> Float[Array, "H M"]:
     """Per-record beam error (mrad) of ``models`` (one model, or batched over the
     fleet's heliostats, e.g. ``solution.model``) on ``fleet``; NaN outside ``mask``."""
-    m = fleet.mask if mask is None else and_masks(mask, fleet.mask)
-    models = _batched_models(models, int(np.shape(fleet.mask)[0]))
+    models, m = _fleet_arguments(models, fleet, mask, "fleet_beam_errors_mrad")
     return beam_errors_mrad(models, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, m)
 
 
@@ -113,8 +119,7 @@ def fleet_residuals_mrad(
     ``mask``. With ``batching`` (e.g. a fit's :class:`heliojax.Threaded`), the
     program runs by its :meth:`~heliojax.fitting.AbstractBatching.run` (in blocks of
     heliostats on the block threads); the values are the same."""
-    m = fleet.mask if mask is None else and_masks(mask, fleet.mask)
-    models = _batched_models(models, int(np.shape(fleet.mask)[0]))
+    models, m = _fleet_arguments(models, fleet, mask, "fleet_residuals_mrad")
     lanes = (models, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, m)
     if batching is None:
         return residuals_mrad(*lanes)
@@ -160,9 +165,8 @@ def choose_start_geometry(
         ``(H,)`` (started from the typical actuators) and ``sources`` bool ``(H,)``
         (the heliostats the typical actuators came from).
     """
-    m = fleet.mask if mask is None else and_masks(mask, fleet.mask)
+    models, m = _fleet_arguments(model, fleet, mask, "choose_start_geometry")
     h = int(np.shape(fleet.mask)[0])
-    models = _batched_models(model, h)
     e_own = beam_errors_mrad(models, fleet.geometry, fleet.counts, fleet.context, fleet.focal_spot, m)
     own = row_median(e_own)
     sources = np.any(np.asarray(m), axis=1) & np.isfinite(own)

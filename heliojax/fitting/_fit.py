@@ -40,11 +40,12 @@ from .._errors import ConfigError
 from .._geometry import check_unit_vectors, products_by_reduction
 from .._heliostat import HeliostatGeometry, RecordContext
 from .._kinematics import AbstractKinematicModel
+from .._limits import count_problem
 from .._parameters import ParameterView, and_masks, broadcast_model, is_batched, on_host
 from .._programs import cached_jit, compile_cached, program_jit
 from ._batching import AbstractBatching, Vmap, default_batching
 from ._loss import AbstractLoss, LeastSquares
-from ._prior import AbstractPrior, NoPrior
+from ._prior import AbstractPrior, GaussianPrior, NoPrior
 from ._records import sanitise
 from ._status import FitStatus
 
@@ -385,7 +386,17 @@ class FitSolution(eqx.Module):
         return self.view.to_vector(self.model)
 
     def heliostat_model(self, i: int) -> AbstractKinematicModel:
-        """The fitted model of heliostat ``i``."""
+        """The fitted model of heliostat ``i``.
+
+        Raises:
+            ValueError: ``i`` not a whole number in ``[0, H)`` (-1 had been the last
+                heliostat, True a batch of one, 99 or 1.5 an IndexError of NumPy)."""
+        traced = isinstance(i, jax.core.Tracer)  # pyright: ignore[reportAttributeAccessIssue]
+        if not traced and isinstance(i, (np.ndarray, jax.Array)) and i.ndim == 0 and i.dtype.kind in "iu":
+            i = int(i)  # e.g. jnp.argmax(solution.rms_mrad)
+        problem = None if traced else count_problem(i, self.n_heliostats - 1, minimum=0)
+        if problem is not None:
+            raise ValueError(f"heliostat_model: i {problem} (the index of one of the {self.n_heliostats} heliostats)")
         if on_host(*(x for x in jax.tree.leaves(self.model) if eqx.is_array(x))):
             return jax.tree.map(lambda x: jax.device_put(np.asarray(x)[i]) if eqx.is_array(x) else x, self.model)
         return jax.tree.map(lambda x: x[i] if eqx.is_array(x) else x, self.model)
@@ -582,7 +593,7 @@ def _fit_compiled(
     return batching.map(one)(model0, prior_h, loss_h, geometry, counts, context, focal, mask, active)
 
 
-def _fit_mask(mask: typing.Any, shape: tuple[int, ...]) -> typing.Any:
+def fit_mask(mask: typing.Any, shape: tuple[int, ...], who: str = "fit") -> typing.Any:
     """``mask`` checked against the fleet's ``(H, M)``: its shape (also under ``jit``) and
     type; a concrete integer mask of 0 and 1 becomes boolean. A mask of another shape
     had met a broadcasting error naming nothing, a float mask a dtype error of ``&``,
@@ -592,7 +603,7 @@ def _fit_mask(mask: typing.Any, shape: tuple[int, ...]) -> typing.Any:
     array = mask if isinstance(mask, jax.Array) else np.asarray(mask)
     if tuple(array.shape) != tuple(shape):
         raise ValueError(
-            f"fit: mask has shape {tuple(array.shape)}; expected {tuple(shape)}, the fleet's (H, M) records"
+            f"{who}: mask has shape {tuple(array.shape)}; expected {tuple(shape)}, the fleet's (H, M) records"
         )
     if array.dtype == bool:
         return mask
@@ -600,14 +611,66 @@ def _fit_mask(mask: typing.Any, shape: tuple[int, ...]) -> typing.Any:
     if array.dtype.kind in "iu" and concrete and np.isin(np.asarray(array), (0, 1)).all():
         return jax.device_put(np.asarray(array, bool))
     raise ValueError(
-        f"fit: mask has dtype {array.dtype}{' with values other than 0 and 1' if array.dtype.kind in 'iu' else ''}; "
+        f"{who}: mask has dtype {array.dtype}{' with values other than 0 and 1' if array.dtype.kind in 'iu' else ''}; "
         "expected booleans (H, M), True for the records to fit"
     )
+
+
+_FLEET_FIELDS = ("geometry", "counts", "context", "focal_spot", "mask")
+"""The fields of a :class:`heliojax.Fleet` that :func:`fit` reads."""
+
+
+def batched_for(model0: AbstractKinematicModel, h: int, who: str = "fit", name: str = "model0") -> typing.Any:
+    """``model0`` batched over ``h`` heliostats: one model broadcast, or a batch of ``h``
+    as it is. A batch of models for another fleet size had failed in the batching's scan
+    (or a vmap), naming no argument."""
+    if not is_batched(model0):
+        return broadcast_model(model0, h)
+    sizes = {jnp.shape(x)[0] for x in jax.tree.leaves(model0) if eqx.is_array(x) and jnp.ndim(x)}
+    if sizes != {h}:
+        raise ValueError(
+            f"{who}: {name} is batched over {', '.join(map(str, sorted(sizes)))} heliostats and the fleet has {h}; "
+            "give one model (used for every heliostat) or one per heliostat of the fleet"
+        )
+    return model0
+
+
+def check_fleet(fleet: typing.Any, name: str = "fleet", *, who: str = "fit") -> None:
+    """TypeError unless ``fleet`` (the argument ``name`` of ``who``) is a
+    :class:`heliojax.Fleet` (or has the fields :func:`fit` reads): None or a path had
+    failed as "no attribute 'mask'" (or 'counts', 'ids') inside."""
+    if not all(hasattr(fleet, field) for field in _FLEET_FIELDS):
+        raise TypeError(
+            f"{who}: {name}: expected a heliojax.Fleet (heliojax.load_paint_directory, heliojax.fleet_from_arrays), "
+            f"got {type(fleet).__name__}"
+        )
+
+
+def check_kinds(model0, fleet, solver=None, loss=None, prior=None, batching=None, *, who: str = "fit") -> None:
+    """TypeError naming the argument of :func:`fit` that is not of its kind: a string
+    (``batching="vmap"``, ``loss="cauchy"``), a dict for a prior or a minimiser for the
+    solver had failed as an AttributeError inside the fit or optimistix, a fleet of None
+    as "no attribute 'mask'", a model0 of a string as "empty model"."""
+    if not isinstance(model0, AbstractKinematicModel):
+        raise TypeError(
+            f"{who}: model0: expected a kinematic model (e.g. heliojax.StoneModel.nominal()), "
+            f"got {type(model0).__name__}"
+        )
+    check_fleet(fleet, who=who)
+    for name, value, kind, hint in (
+        ("solver", solver, optx.AbstractLeastSquaresSolver, "an optimistix least-squares solver"),
+        ("loss", loss, AbstractLoss, "heliojax.fitting.LeastSquares() or heliojax.fitting.Cauchy(scale_mrad)"),
+        ("prior", prior, AbstractPrior, "heliojax.gaussian_prior(model, sigma) or heliojax.fitting.fleet_prior"),
+        ("batching", batching, AbstractBatching, "e.g. heliojax.LaxMap() or heliojax.fitting.batching_from_name"),
+    ):
+        if value is not None and not isinstance(value, kind):
+            raise TypeError(f"{who}: {name}: expected {hint}, or None for the default; got {type(value).__name__}")
 
 
 def _prepare(model0, fleet, mask, free, solver, loss, prior, batching, max_steps, active=None):
     if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
         raise ValueError(f"max_steps: expected an integer >= 1, got {max_steps!r}")
+    check_kinds(model0, fleet, solver, loss, prior, batching)
     h = int(np.shape(fleet.mask)[0])
     dtype = fleet.counts.dtype
     if dtype != np.float64:
@@ -619,20 +682,22 @@ def _prepare(model0, fleet, mask, free, solver, loss, prior, batching, max_steps
             "command does)"
         )
     model0 = jax.tree.map(lambda x: jnp.asarray(x, dtype) if eqx.is_inexact_array(x) else x, model0)
-    if not is_batched(model0):
-        model0 = broadcast_model(model0, h)
-    else:  # a batch of models for another fleet size had failed in the batching's scan, naming no argument
-        sizes = {jnp.shape(x)[0] for x in jax.tree.leaves(model0) if eqx.is_array(x) and jnp.ndim(x)}
-        if sizes != {h}:
-            raise ValueError(
-                f"fit: model0 is batched over {', '.join(map(str, sorted(sizes)))} heliostats and the fleet has {h}; "
-                "give one model (used for every heliostat) or one per heliostat of the fleet"
-            )
-    mask = _fit_mask(mask, np.shape(fleet.mask))
+    model0 = batched_for(model0, h)
+    mask = fit_mask(mask, np.shape(fleet.mask))
     view = ParameterView.of(model0, free)
+    if view.n_free == 0:  # had failed as "integer modulo by zero" deep inside JAX
+        raise ValueError("fit: free: no parameter is free; a fit needs at least one (heliojax.default_free(model))")
     solver = default_solver() if solver is None else solver
     loss = LeastSquares() if loss is None else loss
     prior = NoPrior() if prior is None else prior
+    if isinstance(prior, GaussianPrior):  # another model's prior had failed as an AttributeError inside the fit
+        for name, part in (("centre", prior.centre), ("sigma", prior.sigma)):
+            names = ParameterView.of(part).names
+            if names != view.names:
+                raise ValueError(
+                    f"fit: prior: its {name} is a {type(part).__name__} of the parameters {', '.join(names)}; "
+                    f"model0 ({type(model0).__name__}) has {', '.join(view.names)}"
+                )
     batching = default_batching() if batching is None else batching
     m = fleet.mask if mask is None else and_masks(mask, fleet.mask)
     check_unit_vectors(fleet.context.sun, m, "fleet.context.sun")
@@ -681,6 +746,12 @@ def fit(
 
     Returns:
         A :class:`FitSolution`.
+
+    Raises:
+        TypeError: an argument of another kind (a string for ``batching`` or ``loss``, a
+            dict for ``prior``, a minimiser for ``solver``, None for ``fleet``).
+        ValueError: a ``mask``, start model, Cauchy scale or prior for another number of
+            heliostats or records, a prior of another model, a free set of no parameter.
     """
     h, static, args = _prepare(model0, fleet, mask, free, solver, loss, prior, batching, max_steps)
     out = _fit_in_passes(static, args)
@@ -766,6 +837,17 @@ class CompiledFit:
         computed and discarded."""
         if (only is None) != (otherwise is None):
             raise TypeError("CompiledFit: give `only` and `otherwise` together")
+        if only is not None and (np.asarray(only).dtype != bool or np.shape(only) != (self._h,)):
+            # indices had been read as booleans, another length failed as XLA's "Argument types
+            # differ ... a different enable_x64 mode"
+            raise ValueError(
+                f"CompiledFit: only must be ({self._h},) booleans, one per heliostat; got "
+                f"{np.asarray(only).dtype} of shape {np.shape(only)}"
+            )
+        if otherwise is not None and not isinstance(otherwise, FitSolution):
+            raise TypeError(
+                f"CompiledFit: otherwise must be a FitSolution of the fleet, got {type(otherwise).__name__}"
+            )
         opts = dict(self._options)
         if loss is not None:
             opts["loss"] = loss

@@ -90,6 +90,8 @@ class Cauchy(AbstractLoss):
     scale_mrad: Float[Array, "*h"]
 
     def __check_init__(self):
+        if isinstance(self.scale_mrad, (str, bytes)):  # "2" had been read as 2.0, failing inside the fit
+            raise TypeError(f"Cauchy: scale_mrad must be a number or an array (mrad), got {self.scale_mrad!r}"[:200])
         if jnp.ndim(self.scale_mrad) > 1:
             raise ValueError(f"Cauchy: scale_mrad must be a scalar or (H,), got shape {jnp.shape(self.scale_mrad)}")
         # checked where the values are known (not under jit / vmap): a scale of 0 or
@@ -105,6 +107,11 @@ class Cauchy(AbstractLoss):
             )
 
     def per_heliostat(self, n):
+        if jnp.ndim(self.scale_mrad) == 1 and jnp.shape(self.scale_mrad)[0] != n:  # had failed in broadcast_to
+            raise ValueError(
+                f"Cauchy: scale_mrad has {jnp.shape(self.scale_mrad)[0]} values (one per heliostat); "
+                f"the fleet has {n} heliostats"
+            )
         return jnp.broadcast_to(jnp.asarray(self.scale_mrad), (n,))
 
     def row(self, residual, heliostat):

@@ -47,6 +47,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._kinematics import AbstractKinematicModel
+from .._limits import MAX_SYNTHETIC_HELIOSTATS, count_problem
 from .._parameters import ParameterView, broadcast_model, is_batched
 from ._fit import FitSolution
 from ._prior import GaussianPrior
@@ -66,6 +67,9 @@ MIN_RESIDUALS_PER_PARAMETER = 3
 def flat_prior(model: AbstractKinematicModel, n: int, noise_mrad: float = 1.0) -> GaussianPrior:
     """A prior of the pooled structure that constrains nothing (``sigma = inf``):
     fits with it run the same compiled program as fits with a learnt prior."""
+    problem = count_problem(n, MAX_SYNTHETIC_HELIOSTATS)  # 0 had made a prior of no heliostat, 2.5 a NumPy error
+    if problem is not None:
+        raise ValueError(f"flat_prior: n {problem}")
     models = model if is_batched(model) else broadcast_model(model, n)
     view = ParameterView.of(models)
     inf = jax.device_put(np.full((n, view.n_parameters), np.inf, jnp.asarray(view.to_vector(models)).dtype))
@@ -185,8 +189,17 @@ def fleet_prior(
     """
     view = solution.view
     p = np.asarray(solution.parameters())
-    good = well_determined(solution) if learn_from is None else np.asarray(learn_from, bool)
     h = p.shape[0]
+    # integer indices had been read as booleans (index 0 dropped, the rest taken), another
+    # length failed in NumPy's indexing, a noise per heliostat of another length in the fit
+    if learn_from is not None and (np.asarray(learn_from).dtype != bool or np.shape(learn_from) != (h,)):
+        raise ValueError(
+            f"fleet_prior: learn_from must be ({h},) booleans, one per heliostat of the solution; got "
+            f"{np.asarray(learn_from).dtype} of shape {np.shape(learn_from)}"
+        )
+    if np.ndim(noise_mrad) not in (0, 1) or np.ndim(noise_mrad) == 1 and np.shape(noise_mrad) != (h,):
+        raise ValueError(f"fleet_prior: noise_mrad has shape {np.shape(noise_mrad)}; expected () or ({h},)")
+    good = well_determined(solution) if learn_from is None else np.asarray(learn_from, bool)
     fallback = np.asarray(view.to_vector(solution.heliostat_model(0)), float)
     std = np.asarray(solution.std)
     if leave_one_out:

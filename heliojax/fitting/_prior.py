@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from .._heliostat import known_values
 from .._parameters import ParameterView, broadcast_model
 
 
@@ -66,21 +67,50 @@ class GaussianPrior(AbstractPrior):
             (physical units; ``inf`` = no prior on that parameter).
         noise_mrad: measurement noise per residual component (mrad): a scalar or
             ``(H,)``.
+
+    Raises:
+        ValueError: (where the values are known, not under ``jit``) a sigma that is not
+            > 0 (NaN included) or a noise that is not finite and > 0, as
+            :func:`gaussian_prior`; at a fit, a centre, sigma or noise batched over
+            another number of heliostats than the fleet's.
     """
 
     centre: eqx.Module
     sigma: eqx.Module
     noise_mrad: Float[Array, "*h"]
 
+    def __check_init__(self):
+        # where the values are known (not under jit): a sigma of 0 or a NaN noise had made
+        # every fitted heliostat DIVERGED, a NaN sigma meant no prior, a noise <= 0 a prior
+        # of the wrong sign or none, without a word (gaussian_prior's rules)
+        noise = known_values(self.noise_mrad)
+        if noise is not None and not np.all(np.isfinite(noise) & (noise > 0)):
+            bad = noise.reshape(-1)[~(np.isfinite(noise) & (noise > 0)).reshape(-1)][0]
+            raise ValueError(f"GaussianPrior: noise_mrad must be finite and > 0 (mrad), got {bad}")
+        sigma = known_values(ParameterView.of(self.sigma).to_vector(self.sigma))
+        if sigma is not None and not np.all(sigma > 0):  # NaN too; inf: no prior
+            raise ValueError(
+                f"GaussianPrior: sigma must be > 0 (inf: no prior on that parameter), got {sigma[~(sigma > 0)][0]}"
+            )
+
     def per_heliostat(self, n):
-        def batch(m):
+        def batch(name, m):
             leaves = [x for x in jax.tree.leaves(m) if eqx.is_array(x)]
-            view = ParameterView.of(m)
-            batched = bool(leaves) and view.to_vector(m).ndim == 2
+            vector = ParameterView.of(m).to_vector(m)
+            batched = bool(leaves) and vector.ndim == 2
+            if batched and vector.shape[0] != n:  # had failed in the batching's scan, naming nothing
+                raise ValueError(
+                    f"GaussianPrior: {name} is batched over {vector.shape[0]} heliostats; the fleet has {n}"
+                )
             return m if batched else broadcast_model(m, n)
 
+        if jnp.ndim(self.noise_mrad) == 1 and jnp.shape(self.noise_mrad)[0] != n:
+            raise ValueError(
+                f"GaussianPrior: noise_mrad has {jnp.shape(self.noise_mrad)[0]} values (one per heliostat); "
+                f"the fleet has {n} heliostats"
+            )
         noise = jnp.broadcast_to(jnp.asarray(self.noise_mrad), (n,))
-        return batch(self.centre), batch(self.sigma), noise
+        return batch("centre", self.centre), batch("sigma", self.sigma), noise
 
     def n_constrained(self, view, heliostat):
         _, sigma, _ = heliostat
@@ -108,6 +138,16 @@ def gaussian_prior(model: eqx.Module, sigma: Mapping[str, float], noise_mrad: fl
             ``inf`` is no prior on that parameter); a ``noise_mrad`` that is not finite
             and > 0."""
     view = ParameterView.of(model)
+    if not isinstance(sigma, Mapping):  # a list of pairs had been "prior on unknown parameters [('gamma', ...)]"
+        raise TypeError(f"gaussian_prior: sigma must map parameter name -> sigma, not a {type(sigma).__name__}")
+    for name, value in sigma.items():  # a string had failed in a comparison ('>' not supported)
+        if (
+            value is None
+            or isinstance(value, (str, bytes))
+            or np.ndim(value)
+            or np.result_type(value).kind not in "iuf"
+        ):
+            raise TypeError(f"gaussian_prior: sigma[{name!r}] must be a number, got {value!r}"[:200])
     unknown = set(sigma) - set(view.names)
     if unknown:
         raise ValueError(f"prior on unknown parameters {sorted(unknown)}; known: {view.names}")

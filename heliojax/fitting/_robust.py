@@ -48,9 +48,10 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._heliostat import HeliostatGeometry
 from .._kinematics import AbstractKinematicModel
+from .._limits import count_problem
 from .._parameters import and_masks, broadcast_model, is_batched, on_host
 from ._evaluate import choose_start_geometry, row_median, select_geometry
-from ._fit import CompiledFit, FitSolution
+from ._fit import CompiledFit, FitSolution, check_kinds, fit_mask
 from ._loss import CAUCHY_EFFICIENCY_FACTOR, Cauchy
 from ._pooling import flat_prior, fleet_prior, small_fleet_prior_heliostats, well_determined
 from ._status import FitStatus
@@ -79,6 +80,10 @@ factor 2), and the MAD of a few heliostats' log noise can be arbitrarily small (
 five heliostats, one at 1.4 times the median of four that agree was flagged)."""
 
 
+MAX_ROBUST_PASSES = 100
+"""Most robust passes :func:`fit_robust` runs (each a fit of the whole fleet; two suffice)."""
+
+
 def noise_outliers(own: Float[ArrayLike, " H"], candidates: Bool[ArrayLike, " H"]) -> np.ndarray:
     """``(H,)`` heliostats among ``candidates`` whose noise ``own`` (mrad) lies far above
     the candidates' typical noise. Fewer than three candidates: none.
@@ -100,6 +105,10 @@ def noise_outliers(own: Float[ArrayLike, " H"], candidates: Bool[ArrayLike, " H"
     the median of its absolute deviations, found by bisection on the deviation with
     counts from ``searchsorted`` (:func:`_prefix_deviation`)."""
     own = np.asarray(own, float)
+    if own.ndim != 1 or np.shape(candidates) != own.shape:  # had failed in NumPy's broadcasting
+        raise ValueError(
+            f"noise_outliers: own has shape {own.shape} and candidates {np.shape(candidates)}; expected (H,) both"
+        )
     cand = np.asarray(candidates, bool) & np.isfinite(own) & (own > 0)
     out = np.zeros(own.shape, bool)
     n = int(cand.sum())
@@ -347,7 +356,20 @@ def fit_robust(
 
     Returns:
         A :class:`RobustFit`.
+
+    Raises:
+        TypeError, ValueError: a ``fleet`` or ``model0`` of another kind, a ``mask`` of
+            another shape or dtype (:func:`heliojax.fit`'s rules), ``passes`` not a whole
+            number in ``[1, MAX_ROBUST_PASSES]`` or ``pool`` not a bool.
     """
+    check_kinds(model0, fleet, who="fit_robust")
+    problem = count_problem(passes, MAX_ROBUST_PASSES)  # 2.5, -3 and "2" had run one pass without a word
+    if problem is not None:
+        raise ValueError(f"fit_robust: passes {problem}")
+    if not isinstance(pool, (bool, np.bool_)):  # "no" had pooled
+        raise TypeError(f"fit_robust: pool must be True or False, got {pool!r}"[:200])
+    # checked before it meets the fleet's mask (a NumPy broadcasting or JAX dtype error, naming nothing)
+    mask = fit_mask(mask, np.shape(fleet.mask), "fit_robust")
     m = fleet.mask if mask is None else and_masks(mask, fleet.mask)
     h = int(np.shape(fleet.mask)[0])
     small_fleet = np.zeros(h, bool)
@@ -504,6 +526,7 @@ def _batched_like(model: AbstractKinematicModel, batched: AbstractKinematicModel
 
 
 __all__ = [
+    "MAX_ROBUST_PASSES",
     "NOISE_OUTLIER_MIN_RATIO",
     "NOISE_OUTLIER_Z",
     "NOISE_PRIOR_RECORDS",
