@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import argparse
 
+from heliojax.cli._common import number
+
 
 def add_holdout_fractions(parser: argparse.ArgumentParser) -> None:
     """``--holdout-fractions F [F ...]``: the predictive law's validation origins."""
     parser.add_argument(
         "--holdout-fractions",
-        type=float,
+        type=number(0.0, 1.0, above=True, below=True),
         nargs="+",
         default=None,
         metavar="F",

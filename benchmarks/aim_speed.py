@@ -22,14 +22,15 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import heliojax as hj  # noqa: E402
+from heliojax.cli._common import integer  # noqa: E402
 from heliojax.discovery import simulate_fleet  # noqa: E402
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--heliostats", type=int, default=10_000)
-    ap.add_argument("--instants", type=int, default=48)
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--heliostats", type=integer(1), default=10_000)
+    ap.add_argument("--instants", type=integer(1), default=48)
+    ap.add_argument("--repeats", type=integer(1), default=3)
     args = ap.parse_args()
     base_h = 50
     fleet, truth = simulate_fleet(0, base_h, 8, base="actuator", noise_mrad=0.0)

@@ -57,6 +57,8 @@ import time
 
 import numpy as np
 
+from heliojax.cli._common import integer, number
+
 # --------------------------------------------------------------------------------------
 # The numpy baseline: Stone chain and beam error components (no JAX)
 # --------------------------------------------------------------------------------------
@@ -451,16 +453,16 @@ def _machine():
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--heliostats", type=int, default=1000)
-    p.add_argument("--records", type=int, default=100)
-    p.add_argument("--noise", type=float, default=0.2, help="measurement noise, mrad per component")
-    p.add_argument("--train-fraction", type=float, default=0.7)
+    p.add_argument("--heliostats", type=integer(1), default=1000)
+    p.add_argument("--records", type=integer(1), default=100)
+    p.add_argument("--noise", type=number(0.0), default=0.2, help="measurement noise, mrad per component")
+    p.add_argument("--train-fraction", type=number(0.0, 1.0, above=True, below=True), default=0.7)
     p.add_argument(
         "--strategy",
         default="auto",
         help="auto|vmap|vmap-restart|chunked|map|threaded (map in one block per core), or a comma list to time several",
     )
-    p.add_argument("--chunk-size", type=int, default=64)
+    p.add_argument("--chunk-size", type=integer(1), default=64)
     p.add_argument("--profile", default=None, help="directory: profile one more warm call (JSON key 'profile')")
     p.add_argument(
         "--linear-solver",
@@ -469,23 +471,25 @@ def parse_args(argv=None):
         "cholesky (normal equations), or a comma list to time several",
     )
     p.add_argument("--skip-other-bucket", action="store_true", help="do not time the compile of a second bucket")
-    p.add_argument("--repeats", type=int, default=2, help="timed calls after the compiling one")
+    p.add_argument("--repeats", type=integer(1), default=2, help="timed calls after the compiling one")
     p.add_argument("--no-pad", action="store_true", help="fit the exact shape (no shape buckets)")
     p.add_argument("--skip-scipy", action="store_true")
-    p.add_argument("--scipy-heliostats", type=int, default=None, help="time scipy on this many and extrapolate")
-    p.add_argument("--scipy-budget", type=float, default=300.0, help="s; above the estimate, scipy is extrapolated")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--scipy-heliostats", type=integer(1), default=None, help="time scipy on this many and extrapolate")
+    p.add_argument(
+        "--scipy-budget", type=number(0.0), default=300.0, help="s; above the estimate, scipy is extrapolated"
+    )
+    p.add_argument("--seed", type=integer(0), default=0)
     p.add_argument("--json", action="store_true", help="print one JSON object only")
     p.add_argument(
         "--data",
         default=None,
         help="npz of the simulated fleet: read if it exists, else simulate and write it (default: a temporary file)",
     )
-    p.add_argument("--sim-chunk", type=int, default=None, help="heliostats per simulation chunk")
+    p.add_argument("--sim-chunk", type=integer(1), default=None, help="heliostats per simulation chunk")
     p.add_argument("--skip-robust", action="store_true", help="do not time the robust fit")
     p.add_argument(
         "--gross-fraction",
-        type=float,
+        type=number(0.0, 1.0, below=True),
         default=0.0,
         help="fraction of the training records displaced by 10-100 mrad (gross errors; default none)",
     )

@@ -24,6 +24,8 @@ import sys
 import tempfile
 import time
 
+from heliojax.cli._common import integer
+
 COMMANDS = {
     "--version": ["--version"],
     "--help": ["--help"],
@@ -63,7 +65,7 @@ def main() -> None:
         default="--version,--help,calibrate --help,inspect,calibrate,calibrate --model stone8",
         help=f"comma-separated, from: {', '.join(COMMANDS)}",
     )
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--repeats", type=integer(1), default=3)
     ap.add_argument("--no-bytecode", action="store_true", help=BYTECODE_NOTE)
     args = ap.parse_args()
     names = [c.strip() for c in args.commands.split(",") if c.strip()]

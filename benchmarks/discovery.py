@@ -34,6 +34,10 @@ import time
 
 import numpy as np
 
+from heliojax._errors import ConfigError
+from heliojax._io import write_json
+from heliojax.cli._common import check_output_paths, integer
+
 SCENARIOS = {
     # name: (base, effects [(effect, values)], expected first, {param: true value} to compare)
     "null": ("stone8", [], None, {}),
@@ -165,15 +169,19 @@ def summarise(runs: list[dict]) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", type=int, default=10)
-    ap.add_argument("--first-seed", type=int, default=0)
-    ap.add_argument("--heliostats", type=int, default=20)
-    ap.add_argument("--records", type=int, default=60)
+    ap.add_argument("--seeds", type=integer(1), default=10)
+    ap.add_argument("--first-seed", type=integer(0), default=0)
+    ap.add_argument("--heliostats", type=integer(1), default=20)
+    ap.add_argument("--records", type=integer(1), default=60)
     ap.add_argument("--scenarios", default=",".join(SCENARIOS))
     ap.add_argument("--out", default=None)
     ap.add_argument("--cache-dir", default=None, help="persistent JAX compilation cache")
     ap.add_argument("--log-level", default="WARNING", help="logging level of the stage messages (INFO: with times)")
     args = ap.parse_args(argv)
+    try:  # before the work: a folder or an unwritable place named as the output had failed after it
+        check_output_paths(args, ("out",))
+    except ConfigError as e:
+        ap.error(str(e))
     logging.basicConfig(level=args.log_level, format="%(relativeCreated)9.0f ms %(name)s: %(message)s")
 
     import jax
@@ -188,27 +196,13 @@ def main(argv=None) -> int:
             r = run_one(name, seed, args.heliostats, args.records)
             runs.append(r)
             print(json.dumps(r), file=sys.stderr, flush=True)
-            if args.out:
-                with open(args.out, "w") as f:
-                    json.dump({"summary": summarise(runs), "runs": runs}, f, indent=1)
+            if args.out:  # written whole or not at all (an interrupted run had left half a JSON file)
+                write_json(args.out, {"summary": summarise(runs), "runs": runs})
     summary = summarise(runs)
     print(json.dumps(summary, indent=1))
     if args.out:
-        with open(args.out, "w") as f:
-            json.dump(
-                {
-                    "summary": summary,
-                    "runs": runs,
-                    "settings": {
-                        "seeds": args.seeds,
-                        "first_seed": args.first_seed,
-                        "heliostats": args.heliostats,
-                        "records": args.records,
-                    },
-                },
-                f,
-                indent=1,
-            )
+        settings = {"seeds": args.seeds, "first_seed": args.first_seed, "heliostats": args.heliostats}
+        write_json(args.out, {"summary": summary, "runs": runs, "settings": settings | {"records": args.records}})
     return 0
 
 

@@ -24,6 +24,8 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
+from heliojax._errors import ConfigError  # noqa: E402
+from heliojax.cli._common import check_output_paths, integer, number  # noqa: E402
 from heliojax.optics import (  # noqa: E402
     BuieSun,
     EffectiveSun,
@@ -45,11 +47,17 @@ def main() -> None:
     ap.add_argument(
         "--scenario", type=Path, default=SHARED / "artist-scenarios" / "paint_four_heliostats_deflectometry.h5"
     )
-    ap.add_argument("--resolution", type=int, default=32, help="surface points per facet and direction")
-    ap.add_argument("--rays", type=int, default=64, help="rays per surface point (x 4 steps)")
-    ap.add_argument("--slope-error-mrad", type=float, default=0.0, help="extra Gaussian slope error of both surfaces")
+    ap.add_argument("--resolution", type=integer(1), default=32, help="surface points per facet and direction")
+    ap.add_argument("--rays", type=integer(1), default=64, help="rays per surface point (x 4 steps)")
+    ap.add_argument(
+        "--slope-error-mrad", type=number(0.0), default=0.0, help="extra Gaussian slope error of both surfaces"
+    )
     ap.add_argument("--figure", type=Path, default=None)
     args = ap.parse_args()
+    try:  # before the work: a folder or an unwritable place named as the output had failed after it
+        check_output_paths(args, ("figure",))
+    except ConfigError as e:
+        ap.error(str(e))
 
     scene = scene_from_artist(args.scenario)
     res = (args.resolution, args.resolution)
@@ -94,7 +102,7 @@ def main() -> None:
 
 
 def figure(comparisons, path: Path) -> None:
-    from heliojax._plotting import pyplot
+    from heliojax._plotting import pyplot, save_figure
 
     plt = pyplot()
     by_record: dict = {}
@@ -118,7 +126,7 @@ def figure(comparisons, path: Path) -> None:
             ax.set_xlabel("u, along the target [m]")
             ax.set_ylabel("v, up [m]")
         fig.colorbar(im, ax=row, label="relative brightness (max = 1)", shrink=0.9)
-    fig.savefig(path, dpi=90)
+    save_figure(fig, path, dpi=90)  # atomically: an interrupted run leaves no half-written PNG
 
 
 if __name__ == "__main__":

@@ -26,6 +26,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 import heliojax as hj  # noqa: E402
+from heliojax.cli._common import number  # noqa: E402
 from independent_sim import generate  # noqa: E402 (after the sys.path line)
 
 DAY_S = 86400.0
@@ -64,7 +65,7 @@ def main() -> None:
     p.add_argument("--source", type=Path, default=ROOT.parent / "shared" / "data" / "paint")
     p.add_argument("--seeds", default="1,2")
     p.add_argument("--null-seeds", default="3")
-    p.add_argument("--amplitude", type=float, default=1.5, help="jump norm, mrad")
+    p.add_argument("--amplitude", type=number(0.0), default=1.5, help="jump norm, mrad")
     a = p.parse_args()
     jax.config.update("jax_enable_x64", True)
     for s in a.seeds.split(","):

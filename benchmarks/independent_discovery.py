@@ -33,6 +33,8 @@ import sys
 import time
 from pathlib import Path
 
+from heliojax.cli._common import integer, number
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from independent_sim import EFFECTS, NOISE_KINDS, generate  # noqa: E402 (after the sys.path line)
@@ -244,7 +246,7 @@ def table(work: Path) -> str:
 def main() -> None:
     p = argparse.ArgumentParser()
     p.add_argument("--work", type=Path, required=True)
-    p.add_argument("--seed", type=int, default=101)
+    p.add_argument("--seed", type=integer(0), default=101)
     p.add_argument("--effects", default=",".join(DEFAULT))
     p.add_argument("--table-only", action="store_true")
     p.add_argument("--hit-rates", action="store_true")
@@ -252,13 +254,13 @@ def main() -> None:
     p.add_argument("--seeds", default="9001,9002")
     p.add_argument(
         "--amplitude-scale",
-        type=float,
+        type=number(0.0),
         default=1.0,
         help="each hidden effect at this multiple of the simulator's default amplitude (a detection-limit sweep)",
     )
-    p.add_argument("--heliostats", type=int, help="heliostats per suite (simulator default 20)")
-    p.add_argument("--records", type=int, help="records per heliostat (simulator default 60)")
-    p.add_argument("--noise", type=float, help="camera noise, mrad per component (simulator default 0.25)")
+    p.add_argument("--heliostats", type=integer(1), help="heliostats per suite (simulator default 20)")
+    p.add_argument("--records", type=integer(1), help="records per heliostat (simulator default 60)")
+    p.add_argument("--noise", type=number(0.0), help="camera noise, mrad per component (simulator default 0.25)")
     p.add_argument("--controller", choices=["calibrated", "nominal"], help="simulator default: calibrated")
     p.add_argument("--noise-kind", choices=NOISE_KINDS, help="the camera noise's law (simulator default: gaussian)")
     a = p.parse_args()

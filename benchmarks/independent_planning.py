@@ -37,6 +37,7 @@ from planning_study import BUDGETS, PLANNERS, study  # noqa: E402
 
 import heliojax as hj  # noqa: E402
 import independent_sim  # noqa: E402
+from heliojax.cli._common import integer, number  # noqa: E402
 from heliojax.optics import target_from_tower  # noqa: E402
 
 METHODS = (*PLANNERS, "first_in_time", "random")
@@ -86,10 +87,10 @@ def operation_errors(suite: Path, lanes: dict, seed: int, instants: int = 40) ->
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--effects", nargs="+", default=["none", "gravity_sag", "encoder_wobble"])
-    ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2])
-    ap.add_argument("--heliostats", type=int, default=20)
-    ap.add_argument("--records", type=int, default=60)
-    ap.add_argument("--amplitude", type=float, default=None, help="every effect's amplitude (default: its own)")
+    ap.add_argument("--seeds", type=integer(0), nargs="+", default=[1, 2])
+    ap.add_argument("--heliostats", type=integer(1), default=20)
+    ap.add_argument("--records", type=integer(1), default=60)
+    ap.add_argument("--amplitude", type=number(), default=None, help="every effect's amplitude (default: its own)")
     ap.add_argument(
         "--noise-kind",
         default="gaussian",

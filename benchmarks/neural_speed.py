@@ -25,6 +25,7 @@ from heliojax._geometry import sun_direction  # noqa: E402
 from heliojax._heliostat import RecordContext  # noqa: E402
 from heliojax._kinematics import ActuatorModel, StoneModel, inverse_aim  # noqa: E402
 from heliojax._simulate import calibration_target, synthetic_geometry  # noqa: E402
+from heliojax.cli._common import integer  # noqa: E402
 from heliojax.neural import NeuralConfig, heliostat_keys, init_residual_networks, validation_tail  # noqa: E402
 from heliojax.neural._train import (  # noqa: E402
     _finetune_paper_program,
@@ -46,8 +47,8 @@ def _timed(fn, *args):
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--heliostats", type=int, default=30)
-    ap.add_argument("--records", type=int, default=100)
+    ap.add_argument("--heliostats", type=integer(1), default=30)
+    ap.add_argument("--records", type=integer(1), default=100)
     args = ap.parse_args()
     h, m = args.heliostats, args.records
     nn = NeuralConfig()

@@ -23,6 +23,7 @@ import json
 
 import numpy as np
 
+from heliojax.cli._common import integer, number
 from heliojax.fitting import NOISE_OUTLIER_MIN_RATIO, NOISE_OUTLIER_Z, noise_outliers
 
 
@@ -35,10 +36,10 @@ def single_test(noise: np.ndarray) -> np.ndarray:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--trials", type=int, default=4000, help="fleets per case (default 4000)")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--spreads", type=float, nargs="+", default=[0.2, 0.35, 0.5, 0.7])
-    ap.add_argument("--sizes", type=int, nargs="+", default=[3, 4, 5, 7, 10, 27, 100], help="good heliostats")
+    ap.add_argument("--trials", type=integer(1), default=4000, help="fleets per case (default 4000)")
+    ap.add_argument("--seed", type=integer(0), default=0)
+    ap.add_argument("--spreads", type=number(0.0, above=True), nargs="+", default=[0.2, 0.35, 0.5, 0.7])
+    ap.add_argument("--sizes", type=integer(1), nargs="+", default=[3, 4, 5, 7, 10, 27, 100], help="good heliostats")
     args = ap.parse_args()
     rng = np.random.default_rng(args.seed)
     cases = []

@@ -39,6 +39,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import heliojax as hj  # noqa: E402
+from heliojax.cli._common import integer  # noqa: E402
 from heliojax.fitting import GaussianPrior, prior_moments, well_determined  # noqa: E402
 from heliojax.optics import target_from_tower  # noqa: E402
 
@@ -159,9 +160,9 @@ def _subset(padded, h: int):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seeds", type=int, nargs="+", default=[1])
-    ap.add_argument("--heliostats", type=int, default=20)
-    ap.add_argument("--records", type=int, default=60)
+    ap.add_argument("--seeds", type=integer(0), nargs="+", default=[1])
+    ap.add_argument("--heliostats", type=integer(1), default=20)
+    ap.add_argument("--records", type=integer(1), default=60)
     args = ap.parse_args()
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:

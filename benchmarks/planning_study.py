@@ -52,6 +52,9 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import heliojax as hj  # noqa: E402
+from heliojax._errors import ConfigError  # noqa: E402
+from heliojax._plotting import save_figure  # noqa: E402
+from heliojax.cli._common import check_output_paths, integer, number  # noqa: E402
 from heliojax.fitting import (  # noqa: E402  # noqa: E402
     GaussianPrior,
     day_clustering,
@@ -97,12 +100,16 @@ def padded_times(padded, h: int, m_pad: int) -> np.ndarray:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("data_dir", type=Path, help="PAINT directory (e.g. ../shared/data/paint)")
-    ap.add_argument("--min-records", type=int, default=40)
-    ap.add_argument("--pool-quantile", type=float, default=0.7)
-    ap.add_argument("--draws", type=int, default=20)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--min-records", type=integer(1), default=40)
+    ap.add_argument("--pool-quantile", type=number(0.0, 1.0), default=0.7)
+    ap.add_argument("--draws", type=integer(1), default=20)
+    ap.add_argument("--seed", type=integer(0), default=0)
     ap.add_argument("--figure", type=Path, default=None)
     args = ap.parse_args()
+    try:  # before the work: a folder or an unwritable place named as the output had failed after it
+        check_output_paths(args, ("figure",))
+    except ConfigError as e:
+        ap.error(str(e))
     out = study(args.data_dir, args.min_records, args.pool_quantile, args.draws, args.seed)
     print(json.dumps(out, indent=2))
     if args.figure is not None:
@@ -399,8 +406,7 @@ def plot(out: dict, path: Path) -> None:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120, bbox_inches="tight")
+    save_figure(fig, path, dpi=120)  # atomically: an interrupted run leaves no half-written PNG
 
 
 if __name__ == "__main__":

@@ -40,6 +40,7 @@ import numpy as np  # noqa: E402
 from _ablation import add_holdout_fractions, apply_holdout_fractions  # noqa: E402 (benchmarks/)
 
 import heliojax as hj  # noqa: E402
+from heliojax.cli._common import integer, number  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import independent_sim  # noqa: E402
@@ -126,13 +127,15 @@ def one_seed(seed: int, workdir: Path, args) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
+    ap.add_argument("--seeds", type=integer(0), nargs="+", default=[1, 2, 3])
     ap.add_argument("--effect", default="none", help="independent_sim effect of the suites")
-    ap.add_argument("--heliostats", type=int, default=20)
-    ap.add_argument("--few", type=int, default=6, help="heliostats left with 2-7 training records")
-    ap.add_argument("--outliers", type=float, default=0.0, help="fraction of records displaced by 10-100 mrad")
+    ap.add_argument("--heliostats", type=integer(1), default=20)
+    ap.add_argument("--few", type=integer(0), default=6, help="heliostats left with 2-7 training records")
+    ap.add_argument(
+        "--outliers", type=number(0.0, 1.0), default=0.0, help="fraction of records displaced by 10-100 mrad"
+    )
     ap.add_argument("--work", type=Path, default=None, help="suite directory (default: a temporary one)")
-    ap.add_argument("--amplitude", type=float, default=None, help="of the effect (default: independent_sim's)")
+    ap.add_argument("--amplitude", type=number(), default=None, help="of the effect (default: independent_sim's)")
     ap.add_argument(
         "--drift-terms",
         nargs="*",

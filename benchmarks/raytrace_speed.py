@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from heliojax._geometry import TargetPlane
+from heliojax.cli._common import integer
 from heliojax.optics import FacetLayout, GaussianSun, ImageGrid, aim_pose, flux_images, ideal_surface, stack_surfaces
 
 
@@ -91,10 +92,10 @@ def run_case(n_heliostats: int, rays: int, resolution: int, chunk: int, repeats:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--rays", type=int, default=20_000_000, help="rays per case (default 2e7)")
-    p.add_argument("--resolution", type=int, default=16, help="surface points per facet edge (default 16)")
-    p.add_argument("--chunk", type=int, default=1 << 21, help="rays per lax.scan step (default 2^21)")
-    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--rays", type=integer(1), default=20_000_000, help="rays per case (default 2e7)")
+    p.add_argument("--resolution", type=integer(1), default=16, help="surface points per facet edge (default 16)")
+    p.add_argument("--chunk", type=integer(1), default=1 << 21, help="rays per lax.scan step (default 2^21)")
+    p.add_argument("--repeats", type=integer(1), default=3)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     args = p.parse_args(argv)
     cases = [run_case(n, args.rays, args.resolution, args.chunk, args.repeats) for n in (1, 100)]

@@ -30,6 +30,8 @@ import numpy as np
 from scipy import stats
 
 import heliojax as hj
+from heliojax._errors import ConfigError
+from heliojax.cli._common import check_output_paths
 from heliojax.discovery import discover
 from heliojax.effects import add_effects, make_effect, with_data_references
 
@@ -125,6 +127,10 @@ def main() -> None:
     p.add_argument("--report", type=Path, default=None, help="discovery report.json to use (default: run discovery)")
     p.add_argument("--figure", type=Path, default=None, help="PNG: held-out error against time and sun distance")
     args = p.parse_args()
+    try:  # before the work: a folder or an unwritable place named as the output had failed after it
+        check_output_paths(args, ("figure",))
+    except ConfigError as e:
+        p.error(str(e))
     jax.config.update("jax_enable_x64", True)  # calibration precision
     fleet = hj.load_paint_directory(args.paint)
     t0 = time.perf_counter()

@@ -33,6 +33,8 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
+from heliojax._errors import ConfigError  # noqa: E402
+from heliojax.cli._common import check_output_paths, integer, number  # noqa: E402
 from heliojax.optics import (  # noqa: E402
     BuieSun,
     flux_records,
@@ -55,10 +57,10 @@ def main() -> None:
     ap.add_argument(
         "--scenario", type=Path, default=SHARED / "artist-scenarios" / "paint_four_heliostats_deflectometry.h5"
     )
-    ap.add_argument("--steps", type=int, default=300)
-    ap.add_argument("--learning-rate", type=float, default=5e-5)
-    ap.add_argument("--smoothness", type=float, default=1e-2)
-    ap.add_argument("--n-ctrl", type=int, default=8)
+    ap.add_argument("--steps", type=integer(1), default=300)
+    ap.add_argument("--learning-rate", type=number(0.0, above=True), default=5e-5)
+    ap.add_argument("--smoothness", type=number(0.0), default=1e-2)
+    ap.add_argument("--n-ctrl", type=integer(1), default=8)
     ap.add_argument("--heliostats", nargs="*", default=None)
     ap.add_argument(
         "--figure", type=Path, default=None, help="held-out images: measured, ideal, reconstructed, deflectometry"
@@ -67,6 +69,10 @@ def main() -> None:
         "--maps", type=Path, default=None, help="maps of the normal deviation from the deflectometry surface"
     )
     args = ap.parse_args()
+    try:  # before the work: a folder or an unwritable place named as the output had failed after it
+        check_output_paths(args, ("figure", "maps"))
+    except ConfigError as e:
+        ap.error(str(e))
 
     scene = scene_from_artist(args.scenario)
     tower = next(args.paint.glob("*-tower-measurements.json"))
@@ -151,7 +157,7 @@ def main() -> None:
 
 
 def figure(panels, path: Path) -> None:
-    from heliojax._plotting import pyplot
+    from heliojax._plotting import pyplot, save_figure
 
     plt = pyplot()
     fig, axes = plt.subplots(len(panels), 4, figsize=(13, 3.1 * len(panels)), layout="constrained", squeeze=False)
@@ -166,11 +172,11 @@ def figure(panels, path: Path) -> None:
             ax.set_xlabel("u, along the target [m]")
             ax.set_ylabel("v, up [m]")
         fig.colorbar(im, ax=row, label="relative brightness (max = 1)", shrink=0.9)
-    fig.savefig(path, dpi=80)
+    save_figure(fig, path, dpi=80)  # atomically: an interrupted run leaves no half-written PNG
 
 
 def deviation_maps(maps, path: Path) -> None:
-    from heliojax._plotting import pyplot
+    from heliojax._plotting import pyplot, save_figure
 
     plt = pyplot()
     fig, axes = plt.subplots(len(maps), 2, figsize=(9.5, 3.3 * len(maps)), layout="constrained", squeeze=False)
@@ -188,7 +194,7 @@ def deviation_maps(maps, path: Path) -> None:
             ax.set_ylabel("y, north on the mirror [m]")
             ax.set_aspect("equal")
         fig.colorbar(sc, ax=row, label="normal deviation [mrad]", shrink=0.9)
-    fig.savefig(path, dpi=80)
+    save_figure(fig, path, dpi=80)
 
 
 if __name__ == "__main__":

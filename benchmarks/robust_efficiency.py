@@ -23,6 +23,8 @@ import time
 
 import numpy as np
 
+from heliojax.cli._common import integer, number
+
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import calibration_speed as cs  # noqa: E402
@@ -50,10 +52,10 @@ def tangent_noise(focal, position, law, scale_mrad, rng):
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--heliostats", type=int, default=200)
-    p.add_argument("--records", type=int, default=60)
-    p.add_argument("--scale", type=float, default=0.2, help="noise scale per component (mrad)")
-    p.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
+    p.add_argument("--heliostats", type=integer(1), default=200)
+    p.add_argument("--records", type=integer(1), default=60)
+    p.add_argument("--scale", type=number(0.0, above=True), default=0.2, help="noise scale per component (mrad)")
+    p.add_argument("--seeds", type=integer(0), nargs="+", default=[1, 2, 3])
     args = p.parse_args(argv)
 
     import jax

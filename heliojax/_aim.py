@@ -66,7 +66,7 @@ from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._beam import beam_pointing_error
-from ._geometry import check_unit_vectors
+from ._geometry import check_numeric, check_unit_vectors
 from ._heliostat import HeliostatGeometry, RecordContext, known_values
 from ._kinematics import AbstractKinematicModel, forward, inverse_aim
 from ._limits import EARLIEST_UNIX_S, LATEST_UNIX_S
@@ -282,7 +282,7 @@ def _check_covariance(covariance: typing.Any, view: ParameterView, used: np.ndar
     (:func:`heliojax._parameters.covariance_problem`, the check of results.h5)."""
     f = view.n_free
     expected = f"({h}, {f}, {f}): the covariance of the {f} free parameters {list(view.free_names)} per heliostat"
-    _check_numeric(covariance, "covariance", expected)
+    check_numeric(covariance, "covariance", expected)
     if jnp.shape(covariance) != (h, f, f):
         raise ValueError(f"covariance has shape {jnp.shape(covariance)}; expected {expected}")
     if used is None or isinstance(covariance, Tracer):
@@ -300,7 +300,7 @@ def _check_drift(drift: typing.Any, used: np.ndarray | None, h: int, n: int) -> 
     """ValueError naming ``drift_variance_mrad2`` unless it broadcasts to ``(H, N)``
     and, for the heliostats ``used`` (None: traced, values not checked), is finite and
     >= 0 (a negative or NaN variance had left a NaN uncertainty beside an ``ok``)."""
-    _check_numeric(drift, "drift_variance_mrad2", f"variances (mrad^2) broadcast to ({h}, {n})")
+    check_numeric(drift, "drift_variance_mrad2", f"variances (mrad^2) broadcast to ({h}, {n})")
     try:
         fits = np.broadcast_shapes(jnp.shape(drift), (h, n)) == (h, n)
     except ValueError:
@@ -442,8 +442,8 @@ def aim_fleet(
             values are skipped; the ``unreliable`` flag for a non-finite uncertainty
             stays.
     """
-    _check_numeric(sun, "sun", "(N, 3) unit ENU vectors towards the sun (heliojax.sun_direction)")
-    _check_numeric(aim_points, "aim_points", "ENU aim points (m) of shape (3,), (H, 3) or (H, N, 3)")
+    check_numeric(sun, "sun", "(N, 3) unit ENU vectors towards the sun (heliojax.sun_direction)")
+    check_numeric(aim_points, "aim_points", "ENU aim points (m) of shape (3,), (H, 3) or (H, N, 3)")
     sun = jnp.asarray(sun)
     if sun.ndim != 2 or sun.shape[1] != 3:
         raise ValueError(f"sun has shape {sun.shape}; expected (N, 3) unit ENU vectors (one instant: sun[None])")
@@ -538,22 +538,6 @@ def aim_fleet(
         pointing_cov_mrad2=pointing,
         error_law=error_law,
     )
-
-
-def _check_numeric(x: typing.Any, name: str, expected: str) -> None:
-    """TypeError naming ``name`` where ``x`` is not an array of numbers (a string,
-    None, an object array): JAX's own error is many frames deep and names no argument.
-    Skipped for traced values."""
-    if isinstance(x, Tracer):
-        return
-    kind = "?"
-    if x is not None and not isinstance(x, (str, bytes)):
-        try:
-            kind = np.asarray(x).dtype.kind
-        except (TypeError, ValueError):  # a ragged list
-            kind = "?"
-    if kind not in "biuf":
-        raise TypeError(f"{name}: expected {expected}, got {type(x).__name__} {str(x)[:40]!r}")
 
 
 def instant_seconds(unix_time: typing.Any, shape: tuple[int, ...] | None = None) -> np.ndarray:
@@ -653,8 +637,8 @@ def aim_results(
         raise TypeError(
             f"results: expected a CalibrationResults (heliojax.load_results(path)), got {type(results).__name__}"
         )
-    _check_numeric(sun, "sun", "(N, 3) unit ENU vectors towards the sun (heliojax.sun_direction)")
-    _check_numeric(aim_points, "aim_points", "ENU aim points (m) of shape (3,), (H, 3) or (H, N, 3)")
+    check_numeric(sun, "sun", "(N, 3) unit ENU vectors towards the sun (heliojax.sun_direction)")
+    check_numeric(aim_points, "aim_points", "ENU aim points (m) of shape (3,), (H, 3) or (H, N, 3)")
     fitted = np.asarray(results.fitted, bool)
     sky = results.fitted_sun()
     fitted_sun, fitted_record = (None, None) if sky is None else sky

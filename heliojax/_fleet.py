@@ -81,7 +81,8 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int, Real
 
 from ._geometry import TargetPlane, angle_between, check_unit_vectors
 from ._heliostat import HeliostatGeometry, RecordContext
-from ._io import shown_value
+from ._io import heliostat_id_problem, shown_value
+from ._limits import MAX_SYNTHETIC_HELIOSTATS, MAX_SYNTHETIC_RECORDS, count_problem
 
 __all__ = [
     "OUTLIER_FLOOR",
@@ -263,7 +264,16 @@ class Fleet(eqx.Module):
     report: LoadReport = eqx.field(static=True)
 
     def __check_init__(self):
-        h, m = jnp.shape(self.mask)
+        shape = jnp.shape(self.mask)
+        dtype = getattr(self.mask, "dtype", None)
+        if len(shape) != 2 or dtype != np.dtype(bool):
+            # a float mask had failed in JAX's `and` inside the fit, a mask of one axis as
+            # "not enough values to unpack"
+            raise ValueError(
+                f"Fleet.mask has shape {tuple(shape)} and dtype {dtype}; expected booleans (H, M), True for the "
+                "valid records (heliojax.fleet_from_arrays takes 0/1 integers too)"
+            )
+        h, m = shape
         checks = {
             "counts": (jnp.shape(self.counts), (h, m, 2)),
             "focal_spot": (jnp.shape(self.focal_spot), (h, m, 3)),
@@ -278,6 +288,13 @@ class Fleet(eqx.Module):
                 raise ValueError(f"Fleet.{name} has shape {got}, expected {want}")
         if len(self.ids) != h:
             raise ValueError(f"Fleet.ids has {len(self.ids)} entries for {h} heliostats")
+        named = [i for i in self.ids if i != ""]  # "": a padding heliostat
+        if not all(isinstance(i, str) for i in named):
+            other = next(i for i in named if not isinstance(i, str))
+            raise ValueError(f"Fleet.ids: heliostat ids are strings, got {shown_value(other)} ({type(other).__name__})")
+        if len(set(named)) != len(named):  # two heliostats of one id: each report row, each aim ambiguous
+            twice = next(x for k, x in enumerate(named) if x in named[:k])
+            raise ValueError(f"Fleet.ids: heliostat id {shown_value(twice)} is listed twice")
         if len(self.target_names) != jnp.shape(self.targets.centre)[0]:
             raise ValueError("Fleet.target_names does not match targets")
 
@@ -304,9 +321,12 @@ class Fleet(eqx.Module):
         return self.ids.index(heliostat_id)
 
     def heliostat(self, i: int | str) -> HeliostatRecords:
-        """The arrays of heliostat ``i`` (position, or id) without the leading axis."""
+        """The arrays of heliostat ``i`` (position, or id) without the leading axis
+        (TypeError for anything else: ``True`` had been heliostat 1, 1.7 heliostat 1)."""
         if isinstance(i, str):
             i = self.index(i)
+        if isinstance(i, (bool, np.bool_)) or not isinstance(i, (int, np.integer)):
+            raise TypeError(f"Fleet.heliostat: expected a heliostat position (int) or id (str), got {i!r}"[:200])
         i = int(i)
         if not -self.n_heliostats <= i < self.n_heliostats:
             raise IndexError(f"heliostat index {i} out of range for {self.n_heliostats}")
@@ -383,9 +403,19 @@ def pad_fleet(fleet: Fleet, n_heliostats: int | None = None, n_records: int | No
     tracing too, but then compiles per shape).
 
     Raises:
-        ValueError: if a requested size is smaller than the fleet's.
+        ValueError: a requested size that is no whole number (8.5 had been read as 8,
+            ``True`` as 1, ``"16"`` as 16), beyond :data:`heliojax._limits.MAX_SYNTHETIC_HELIOSTATS`
+            heliostats or :data:`heliojax._limits.MAX_SYNTHETIC_RECORDS` records each, or
+            smaller than the fleet's.
     """
     h, m = fleet.n_heliostats, fleet.n_records
+    for name, value, limit in (
+        ("n_heliostats", n_heliostats, max(h, MAX_SYNTHETIC_HELIOSTATS)),
+        ("n_records", n_records, max(m, MAX_SYNTHETIC_RECORDS)),
+    ):
+        problem = None if value is None else count_problem(value, limit, minimum=0)
+        if problem is not None:
+            raise ValueError(f"pad_fleet: {name} {problem}")
     nh = bucket_size(h) if n_heliostats is None else int(n_heliostats)
     nm = bucket_size(m) if n_records is None else int(n_records)
     if nh < h or nm < m:
@@ -574,17 +604,45 @@ def fleet_from_arrays(
     their own type: integer counts must not round the focal spots to whole metres.
 
     Raises:
-        ValueError: a mask that is not boolean (or 0/1 integers); an origin that is
+        TypeError: ``geometry`` or ``context`` of another kind (None had failed as an
+            AttributeError), an id that is no string.
+        ValueError: an array whose shape is not the one above for the ``H, M`` of
+            ``counts`` (each had failed in JAX's or NumPy's broadcasting, naming no
+            argument); a mask that is not boolean (or 0/1 integers); an origin that is
             not a finite latitude, longitude, altitude; a used record's sun that is not
-            a unit vector; ``ids`` not one per heliostat, or an id listed twice.
+            a unit vector; ``ids`` not one per heliostat, an id listed twice, or one that
+            is no heliostat id (:func:`heliojax._io.heliostat_id_problem`: ``""`` had made
+            its heliostat a padding one, left out of every statistic; ``"a,b"`` is two in
+            an option).
     """
+    for name, value, kind in (("geometry", geometry, HeliostatGeometry), ("context", context, RecordContext)):
+        if not isinstance(value, kind):
+            got = type(value).__name__
+            raise TypeError(f"fleet_from_arrays: {name}: expected a batched heliojax.{kind.__name__}, got {got}")
+    h, m = (tuple(np.shape(counts)) + (0, 0))[:2]
+    for name, got, want in (
+        ("counts", np.shape(counts), (h, m, 2)),
+        ("focal_spot", np.shape(focal_spot), (h, m, 3)),
+        ("context.sun", jnp.shape(context.sun), (h, m, 3)),
+        ("context.unix_time", jnp.shape(context.unix_time), (h, m)),
+        ("geometry.position", jnp.shape(geometry.position), (h, 3)),
+        ("mask", None if mask is None else np.shape(mask), (h, m)),
+    ):
+        if got is not None and tuple(got) != want:
+            shown = "(H, M, 2): H heliostats x M records x 2 axes" if name == "counts" else f"{want}, as counts'"
+            raise ValueError(f"fleet_from_arrays: {name} has shape {tuple(got)}; expected {shown}")
     dtype = jnp.result_type(float)  # float64 under jax_enable_x64
     counts = jnp.asarray(counts, dtype)
-    h, m = counts.shape[:2]
     if ids is not None:
         ids = [ids] if isinstance(ids, str) else list(ids)
         if len(ids) != h:
             raise ValueError(f"ids: {len(ids)} heliostat ids for the {h} heliostats of counts")
+        for i in ids:
+            if not isinstance(i, str):
+                raise TypeError(f"ids: heliostat ids are strings, got {shown_value(i)} ({type(i).__name__})")
+            problem = heliostat_id_problem(i)
+            if problem is not None:
+                raise ValueError(f"ids: {shown_value(i)} is no heliostat id: {problem}")
         if len(set(ids)) != len(ids):
             twice = next(x for k, x in enumerate(ids) if x in ids[:k])
             raise ValueError(f"ids: heliostat id {shown_value(twice)} is listed twice")

@@ -81,9 +81,12 @@ def _warn_if_single_precision(x: Array, function: str) -> None:
         )
 
 
-def _check_triples(function: str, name: str, x: Array, *, one: bool = False, geodetic: bool = False) -> None:
+def _check_triples(
+    function: str, name: str, x: Array, *, one: bool = False, geodetic: bool = False, vectors: bool = False
+) -> None:
     """ValueError naming ``name`` (an argument of ``function``) when ``x``'s last axis
-    is not 3 (``one``: when ``x`` is not one ``(3,)`` vector), and, for a concrete
+    is not 3 (``one``: when ``x`` is not one ``(3,)`` vector; ``vectors``: the message
+    asks for directions, not points in metres), and, for a concrete
     geodetic ``[lat_deg, lon_deg, alt_m]`` (``geodetic``), when a latitude lies outside
     [-90, 90] degrees. JAX clamps an index past the end: ``lla[..., 2]`` of a
     ``(lat, lon)`` pair had read the longitude as the altitude, without an error. The
@@ -93,7 +96,8 @@ def _check_triples(function: str, name: str, x: Array, *, one: bool = False, geo
     if (shape != (3,)) if one else (len(shape) == 0 or shape[-1] != 3):
         what = "one (3,) vector" if one else "(..., 3) points"
         unit = "[lat_deg, lon_deg, alt_m]" if geodetic else "metres"
-        raise ValueError(f"{function}: {name} has shape {shape}; expected {what}, {unit}")
+        expected = "(..., 3) ENU vectors" if vectors else f"{what}, {unit}"
+        raise ValueError(f"{function}: {name} has shape {shape}; expected {expected}")
     if geodetic and not isinstance(x, Tracer):
         lat = np.asarray(x)[..., 0]
         if np.any(np.abs(lat) > 90.0):
@@ -261,17 +265,25 @@ def sun_direction(azimuth: Float[ArrayLike, "..."], elevation: Float[ArrayLike, 
 def direction_to_azimuth_elevation(
     direction: Float[ArrayLike, "... 3"],
 ) -> tuple[Float[Array, "..."], Float[Array, "..."]]:
-    """Inverse of :func:`sun_direction`: ``(azimuth, elevation)`` in rad of a unit vector."""
+    """Inverse of :func:`sun_direction`: ``(azimuth, elevation)`` in rad of a unit vector.
+
+    Raises:
+        ValueError: ``direction``'s last axis is not 3 (a ``(2,)`` vector had given an
+            azimuth and elevation without an error: JAX clamps the index past its end)."""
     d = jnp.asarray(direction)
+    _check_triples("direction_to_azimuth_elevation", "direction", d, vectors=True)
     az = jnp.arctan2(d[..., 0], -d[..., 1])
     el = jnp.arctan2(d[..., 2], jnp.hypot(d[..., 0], d[..., 1]))
     return az, el
 
 
 def reflect(direction: Float[ArrayLike, "... 3"], normal: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
-    """Mirror reflection ``d - 2 (d . n) n`` of a propagation direction at unit normal ``n``."""
+    """Mirror reflection ``d - 2 (d . n) n`` of a propagation direction at unit normal ``n``
+    (ValueError for a last axis other than 3)."""
     d = jnp.asarray(direction)
     n = jnp.asarray(normal)
+    _check_triples("reflect", "direction", d, vectors=True)
+    _check_triples("reflect", "normal", n, vectors=True)
     return d - 2.0 * jnp.sum(d * n, axis=-1, keepdims=True) * n
 
 
@@ -282,9 +294,12 @@ def bisector_normal(sun: Float[ArrayLike, "... 3"], to_target: Float[ArrayLike, 
 
 
 def angle_between(a: Float[ArrayLike, "... 3"], b: Float[ArrayLike, "... 3"]) -> Float[Array, "..."]:
-    """Angle in rad between two vectors, accurate for tiny angles (atan2 form)."""
+    """Angle in rad between two vectors, accurate for tiny angles (atan2 form)
+    (ValueError for a last axis other than 3)."""
     a = jnp.asarray(a)
     b = jnp.asarray(b)
+    _check_triples("angle_between", "a", a, vectors=True)
+    _check_triples("angle_between", "b", b, vectors=True)
     cross = jnp.linalg.norm(jnp.cross(a, b), axis=-1)
     return jnp.arctan2(cross, jnp.sum(a * b, axis=-1))
 
@@ -489,6 +504,23 @@ UNIT_TOLERANCE = 1e-6
 """Largest ``| |v| - 1 |`` of a direction given as a unit vector (sun vectors)."""
 
 
+def check_numeric(x: typing.Any, name: str, expected: str, *, bools: bool = True) -> None:
+    """TypeError naming ``name`` where ``x`` is not an array of numbers (a string,
+    None, an object array, complex numbers; booleans too unless ``bools``): JAX's own
+    error is many frames deep and names no argument, and ``True`` had been read as 1.
+    Skipped for traced values."""
+    if isinstance(x, Tracer):
+        return
+    kind = "?"
+    if x is not None and not isinstance(x, (str, bytes)):
+        try:
+            kind = np.asarray(x).dtype.kind
+        except (TypeError, ValueError):  # a ragged list
+            kind = "?"
+    if kind not in ("biuf" if bools else "iuf"):
+        raise TypeError(f"{name}: expected {expected}, got {type(x).__name__} {str(x)[:40]!r}")
+
+
 def check_unit_vectors(vectors: ArrayLike, used: ArrayLike | None, name: str) -> None:
     """ValueError naming ``name`` where a used vector (``used``: a mask of ``vectors``'
     leading shape; ``None``: all) is not a finite unit vector within
@@ -520,6 +552,7 @@ __all__ = [
     "WGS84_F",
     "angle_between",
     "bisector_normal",
+    "check_numeric",
     "check_unit_vectors",
     "direction_to_azimuth_elevation",
     "ecef_to_wgs84",

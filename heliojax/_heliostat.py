@@ -44,7 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from ._geometry import matmul3, matvec3, rotation_x, rotation_y, rotation_z
+from ._geometry import check_numeric, matmul3, matvec3, rotation_x, rotation_y, rotation_z
 
 _HALF_PI = np.pi / 2.0
 N_BA = (0.0, -1.0, 0.0)
@@ -120,20 +120,26 @@ class LinearActuators(eqx.Module):
         if len(shapes) != 1 or next(iter(shapes))[-1:] != (2,):
             raise ValueError(f"LinearActuators fields must share a shape (..., 2), got {shapes}")
         # values are checked where they are known (not under jit / vmap, where the
-        # fields are tracers): an increment of 0 had divided the counts by zero
-        for name in _POSITIVE_ACTUATOR_FIELDS:
+        # fields are tracers): an increment of 0 had divided the counts by zero, a sign of
+        # 0 had made a joint that never turns, a NaN angle or count range NaN poses
+        for name in self.__dataclass_fields__:
             values = known_values(getattr(self, name))
             if values is None:
                 continue
-            bad = ~(np.isfinite(values) & (values > 0.0))
+            if name in _POSITIVE_ACTUATOR_FIELDS:
+                bad = ~(np.isfinite(values) & (values > 0.0))
+                rule = f"finite and > 0 ({_POSITIVE_ACTUATOR_FIELDS[name]})"
+            elif name == "sign":
+                bad = ~np.isin(values, (-1.0, 1.0))
+                rule = "+1 or -1 (clockwise_axis_movement 0 or 1)"
+            else:
+                bad = ~np.isfinite(values)
+                rule = "finite"
             if bad.any():
                 at = tuple(int(i) for i in np.argwhere(bad)[0])
                 where = f"axis {at[-1] + 1}" + (f" of heliostat {at[0]}" if values.ndim == 2 else "")
                 where = where if values.ndim <= 2 else f"index {at}"
-                raise ValueError(
-                    f"LinearActuators: {name} must be finite and > 0 ({_POSITIVE_ACTUATOR_FIELDS[name]}), "
-                    f"got {float(values[at])} at {where}"
-                )
+                raise ValueError(f"LinearActuators: {name} must be {rule}, got {float(values[at])} at {where}")
 
     def counts_to_angles(
         self, counts: Float[ArrayLike, "*b 2"], stroke_scale: Float[ArrayLike, "*b 2"] | float = 1.0
@@ -220,8 +226,25 @@ class HeliostatGeometry(eqx.Module):
         take its dtype: ``(0, 0.175, 0)`` had been truncated to zeros).
 
         Raises:
-            ValueError: ``position`` is no ``(..., 3)`` array, or another argument's
-                heliostat axes differ from its (each named with its shape)."""
+            TypeError: ``position`` or a translation that is no array of real numbers
+                (text had failed inside JAX), ``ideal_axes`` that are not booleans
+                (``("no", "no")`` had been read as two ideal axes, 0.5 as True).
+            ValueError: ``position`` is no ``(..., 3)`` array of finite values, or another
+                argument's heliostat axes differ from its (each named with its shape)."""
+        for name, value in (
+            ("position", position),
+            ("joint_translation_1", joint_translation_1),
+            ("joint_translation_2", joint_translation_2),
+            ("concentrator_translation", concentrator_translation),
+        ):
+            check_numeric(value, f"HeliostatGeometry.build: {name}", "ENU metres (real numbers)", bools=False)
+        if not isinstance(ideal_axes, jax.core.Tracer):  # pyright: ignore[reportAttributeAccessIssue]
+            flags = np.asarray(ideal_axes)
+            if flags.dtype.kind not in "biu" or not np.isin(flags, (0, 1)).all():
+                raise TypeError(f"HeliostatGeometry.build: ideal_axes must be booleans, got {ideal_axes!r}"[:200])
+        known = known_values(position)
+        if known is not None and not np.isfinite(known).all():  # a NaN had made every pose NaN
+            raise ValueError(f"HeliostatGeometry.build: position must be finite ENU metres, got {position!r}"[:200])
         pos = jnp.asarray(position)
         batch = tuple(pos.shape[:-1])
         if pos.shape[-1:] != (3,):

@@ -43,7 +43,7 @@ from jaxtyping import Array, ArrayLike, Float
 from ._beam import beam_error_components, beam_pointing_error
 from ._geometry import bisector_normal, normalize
 from ._heliostat import HeliostatGeometry, LinearActuators, Pose, RecordContext, chain_pose, solve_chain_angles
-from ._parameters import is_batched, parameter, parameter_leaves
+from ._parameters import check_fields, is_batched, parameter, parameter_leaves
 
 # --------------------------------------------------------------------------------------
 # Models (the fitted parameters)
@@ -66,7 +66,13 @@ class AbstractKinematicModel(eqx.Module):
     * :meth:`spot` - the measured focal spot as the model corrects it.
 
     :meth:`pose` and the beam error are defined once, from these hooks.
+
+    A model's own parameter fields are checked where their values are concrete
+    (:func:`heliojax._parameters.check_fields`): real, finite, of their declared shape.
     """
+
+    def __check_init__(self):
+        check_fields(self)
 
     @abc.abstractmethod
     def tilts(self) -> Float[Array, "4"]:
@@ -251,7 +257,8 @@ def inverse_aim(
 class StoneModel(AbstractKinematicModel):
     """The eight Stone error parameters (rad, gear ratios dimensionless).
 
-    Nominal (uncalibrated) values: all angles 0, ``gr1 = gr2 = 1``.
+    Nominal (uncalibrated) values: all angles 0, ``gr1 = gr2 = 1``. The gear ratios
+    divide the motor angles: a (concrete) one must be > 0.
     """
 
     alpha: Float[Array, "*h"] = parameter(unit="rad", scale=1e-2, typical=1e-3)
@@ -260,8 +267,8 @@ class StoneModel(AbstractKinematicModel):
     delta: Float[Array, "*h"] = parameter(unit="rad", scale=1e-2, typical=1e-3)
     theta_k: Float[Array, "*h"] = parameter(unit="rad", scale=1e-2, typical=1e-2)
     tau_k: Float[Array, "*h"] = parameter(unit="rad", scale=1e-2, typical=1e-2)
-    gr1: Float[Array, "*h"] = parameter(unit="1", scale=1e-2, typical=1e-2, nominal=1.0)
-    gr2: Float[Array, "*h"] = parameter(unit="1", scale=1e-2, typical=1e-2, nominal=1.0)
+    gr1: Float[Array, "*h"] = parameter(unit="1", scale=1e-2, typical=1e-2, nominal=1.0, above=0.0)
+    gr2: Float[Array, "*h"] = parameter(unit="1", scale=1e-2, typical=1e-2, nominal=1.0, above=0.0)
 
     JOINT_LAW: typing.ClassVar[str] = "linear"
 
@@ -306,7 +313,8 @@ class ActuatorModel(AbstractKinematicModel):
         alpha, beta, gamma, delta: chain tilts, rad (as in the Stone model).
         angle_offset: ``(2,)`` added to each axis's ``initial_angle``, rad.
         increment_scale: ``(2,)`` relative error of ``increment`` (counts per metre);
-            the effective increment is ``increment * (1 + increment_scale)``.
+            the effective increment is ``increment * (1 + increment_scale)``, so a
+            (concrete) one must be > -1.
         stroke_offset: ``(2,)`` added to ``initial_stroke_length``, m (weakly
             identifiable: nearly collinear with the two above over a calibration's
             range; fit with a prior).
@@ -317,7 +325,7 @@ class ActuatorModel(AbstractKinematicModel):
     gamma: Float[Array, "*h"] = parameter(unit="rad", scale=1e-2, typical=1e-3)
     delta: Float[Array, "*h"] = parameter(unit="rad", scale=1e-2, typical=1e-3)
     angle_offset: Float[Array, "*h 2"] = parameter(unit="rad", scale=1e-2, typical=1e-2, shape=(2,))
-    increment_scale: Float[Array, "*h 2"] = parameter(unit="1", scale=1e-2, typical=1e-2, shape=(2,))
+    increment_scale: Float[Array, "*h 2"] = parameter(unit="1", scale=1e-2, typical=1e-2, shape=(2,), above=-1.0)
     stroke_offset: Float[Array, "*h 2"] = parameter(unit="m", scale=1e-2, typical=1e-3, shape=(2,))
 
     JOINT_LAW: typing.ClassVar[str] = "actuator"

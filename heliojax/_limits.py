@@ -69,6 +69,13 @@ drawing their times takes ~1 kB each at its peak (13 candidate hours and their s
 positions), ~10 GB here."""
 
 
+MAX_FIT_STEPS = 100_000
+"""The most Levenberg-Marquardt steps one fit may take (:func:`heliojax.fit`'s
+``max_steps``, ``calibrate --max-steps``, discovery's ``max_steps``; the default is 64):
+``fit(max_steps=2**40)`` had been taken, a fleet that does not converge then running
+for hours, and the command line took up to 2**31 - 1."""
+
+
 MAX_FOLDS = 100
 """Most cross-validation folds of discovery: the fit runs once per fold and once on all
 records, the fleet copied for each."""

@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._geometry import check_numeric
 from ._limits import real_problem
 
 _META = "heliojax"
@@ -56,6 +57,7 @@ class ParameterInfo:
     shape: tuple[int, ...]
     suffixes: tuple[str, ...] | None
     nominal: float
+    above: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,9 +78,14 @@ def parameter(
     shape: tuple[int, ...] = (),
     suffixes: Sequence[str] | None = None,
     nominal: float = 0.0,
+    above: float | None = None,
     **kwargs: typing.Any,
 ) -> typing.Any:
     """An :func:`equinox.field` that declares a fitted parameter.
+
+    A Python number, list or NumPy array given for it becomes a JAX array
+    (:func:`field_array`); a module's ``__check_init__`` names a value that is no array
+    of finite real numbers of the declared shape (:func:`check_fields`).
 
     Args:
         unit: physical unit label (``"rad"``, ``"1"``, ``"m"``, ...).
@@ -92,6 +99,8 @@ def parameter(
         suffixes: element name suffixes of the last axis (default ``1..k``); a
             ``(r, k)`` field's elements are ``name_<row>_<suffix>``, rows from 1.
         nominal: the value that means "no correction".
+        above: a value a (concrete) parameter must exceed (None: any finite value),
+            e.g. 0 for a gear ratio the model divides by.
     """
     info = ParameterInfo(
         unit=unit,
@@ -101,15 +110,89 @@ def parameter(
         shape=tuple(shape),
         suffixes=None if suffixes is None else tuple(suffixes),
         nominal=float(nominal),
+        above=None if above is None else float(above),
     )
-    return eqx.field(metadata={_META: info}, **kwargs)
+    return eqx.field(metadata={_META: info}, converter=field_array, **kwargs)
 
 
 def reference(*, unit: str, default: float, name: str | None = None, **kwargs: typing.Any) -> typing.Any:
     """An :func:`equinox.field` that declares a data-derived constant (never fitted),
     e.g. the reference temperature of a thermal effect. ``default`` is used when the
     data cannot set it."""
-    return eqx.field(metadata={_META: ReferenceInfo(unit=unit, name=name, default=float(default))}, **kwargs)
+    info = ReferenceInfo(unit=unit, name=name, default=float(default))
+    return eqx.field(metadata={_META: info}, converter=field_array, **kwargs)
+
+
+def field_array(value: typing.Any) -> typing.Any:
+    """The converter of :func:`parameter` and :func:`reference` fields: a Python number,
+    or a list or NumPy array of real numbers, becomes a JAX array (integers JAX's default
+    float), put on the device without an eager XLA operation. A model built of Python
+    floats (``StoneModel(alpha=0.0, ...)``) had failed in :func:`heliojax.fit` as
+    "'float' object has no attribute 'shape'". JAX arrays (and traced values) are kept,
+    and so is anything else: :func:`check_fields` names it."""
+    if isinstance(value, jax.Array) or isinstance(value, (bool, np.bool_)):
+        return value
+    if not isinstance(value, (int, float, np.number, list, tuple, np.ndarray)):
+        return value
+    try:
+        array = np.asarray(value)
+    except (TypeError, ValueError):  # a ragged list: named by check_fields
+        return value
+    if array.dtype.kind == "f":
+        return jax.device_put(array)
+    if array.dtype.kind in "iu":
+        return jax.device_put(array.astype(jax.dtypes.canonicalize_dtype(np.float64)))
+    return value
+
+
+def check_fields(module: eqx.Module) -> None:
+    """Check the parameter and reference fields of ``module`` (its own, not those of the
+    modules inside it), each where its value is concrete (traced values under ``jit`` or
+    ``vmap`` pass): called by the ``__check_init__`` of the kinematic models and the
+    effects.
+
+    Raises:
+        TypeError: a value that is no array of real numbers (a string had failed inside
+            the model's first use, None inside the fit, ``True`` had been 1 rad).
+        ValueError: a value that is not finite (NaN had made every prediction NaN
+            without a word), not above its field's ``above`` (a gear ratio of 0 divided
+            by zero), or a parameter whose shape is not ``(*h, *shape)`` of its declared
+            shape, or parameters batched over different heliostat axes.
+    """
+    who = type(module).__name__
+    batches: dict[str, tuple[int, ...]] = {}
+    for f in dataclasses.fields(module):
+        info = f.metadata.get(_META)
+        if not isinstance(info, (ParameterInfo, ReferenceInfo)):
+            continue
+        value = getattr(module, f.name)
+        if isinstance(value, (jax.core.Tracer, jax.ShapeDtypeStruct)):  # pyright: ignore[reportAttributeAccessIssue]
+            continue
+        unit = "" if info.unit == "1" else f" ({info.unit})"
+        check_numeric(value, f"{who}.{f.name}", f"real numbers{unit}, as a JAX array", bools=False)
+        x = np.asarray(value, float)
+        if isinstance(info, ParameterInfo):
+            k = len(info.shape)
+            if x.ndim < k or x.shape[x.ndim - k :] != info.shape:
+                batched = str((None, *info.shape)).replace("None", "H")
+                raise ValueError(
+                    f"{who}.{f.name} has shape {x.shape}; expected {info.shape} for one heliostat "
+                    f"(or {batched} for H heliostats)"
+                )
+            batches[f.name] = x.shape[: x.ndim - k]
+        bad = ~np.isfinite(x)
+        if isinstance(info, ParameterInfo) and info.above is not None:
+            bad |= ~(x > info.above)
+        if bad.any():
+            above = f" and > {info.above:g}" if isinstance(info, ParameterInfo) and info.above is not None else ""
+            at = f" at index {tuple(int(i) for i in np.argwhere(bad)[0])}" if x.ndim else ""
+            raise ValueError(f"{who}.{f.name} must be finite{above}{unit}, got {float(x[bad].flat[0])}{at}")
+    if len(set(batches.values())) > 1:
+        shown = ", ".join(f"{name} {shape}" for name, shape in batches.items())
+        raise ValueError(
+            f"{who}: its parameters are batched over different heliostat axes ({shown}); "
+            "give every parameter the same leading shape (H,), or none"
+        )
 
 
 @dataclasses.dataclass(frozen=True)

@@ -58,9 +58,11 @@ def plot_error_per_heliostat(ids, errors_mrad, *, ax=None, title=None, label="be
     return fig
 
 
-def _residual_panel(ax, pts, flagged, title, color, lim=None):
+def _residual_panel(ax, pts, flagged, title, color, lim=None, errors=None):
     """Scatter of residual pairs (mrad) with flagged records marked; points outside
-    the square ``lim`` are drawn on its edge (open triangles) and counted."""
+    the square ``lim`` are drawn on its edge (open triangles) and counted. The title's
+    median and RMS are of ``errors`` (the same records' beam pointing errors, mrad, as
+    summary.json counts them) where given, else of the pairs' lengths."""
     pts = pts[np.all(np.isfinite(pts), axis=1)] if pts.size else pts.reshape(0, 2)
     flagged = flagged[np.all(np.isfinite(flagged), axis=1)] if flagged.size else flagged.reshape(0, 2)
     if lim is None:
@@ -97,9 +99,11 @@ def _residual_panel(ax, pts, flagged, title, color, lim=None):
     ax.axvline(0, color="0.5", lw=0.5)
     ax.set_xlabel("horizontal miss [mrad]")
     ax.set_ylabel("vertical miss [mrad]")
-    rms = np.sqrt(np.mean(np.sum(pts**2, axis=1))) if pts.size else np.nan
-    med = np.median(np.linalg.norm(pts, axis=1)) if pts.size else np.nan
-    ax.set_title(f"{title}\n(median {med:.2f}, RMS {rms:.2f} mrad)")
+    length = np.linalg.norm(pts, axis=1) if errors is None else np.asarray(errors, float)
+    length = length[np.isfinite(length)]
+    rms = np.sqrt(np.mean(length**2)) if length.size else np.nan
+    med = np.median(length) if length.size else np.nan
+    ax.set_title(f"{title}\n({length.size} records: median {med:.2f}, RMS {rms:.2f} mrad)")
     ax.set_aspect("equal")
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(0.0, -0.18), frameon=False)
 
@@ -174,8 +178,24 @@ def plot_calibration(run, *, axes=None):
     outlier = np.asarray(run.outlier)[:n] if run.outlier is not None else np.zeros_like(test)
     after = np.asarray(run.residuals_mrad)[:n]
     before = np.asarray(run.uncalibrated_residuals_mrad)[:n]
-    _residual_panel(axes[1], before[test], before[outlier], "held-out records before calibration", "0.4")
-    _residual_panel(axes[2], after[test], after[outlier], "held-out records after calibration", "tab:orange")
+    # as summary.json's fleet figures: every heliostat before, the calibrated ones after
+    calibrated = test & np.array([summary["heliostats"][h]["status"] == "converged" for h in ids])[:, None]
+    _residual_panel(
+        axes[1],
+        before[test],
+        before[outlier],
+        "held-out records before calibration",
+        "0.4",
+        errors=np.asarray(run.uncalibrated_mrad)[:n][test],
+    )
+    _residual_panel(
+        axes[2],
+        after[calibrated],
+        after[outlier & calibrated],
+        "held-out records after calibration",
+        "tab:orange",
+        errors=np.asarray(run.errors_mrad)[:n][calibrated],
+    )
     fig.tight_layout()
     return fig
 
@@ -227,7 +247,7 @@ def plot_aim(ids, pointing_cov_mrad2, ok, distance_m, hours=None, start=None, *,
     ax.set_title(
         f"68 % landing regions of {int(ok[:, j].sum())} heliostats"
         + (f"\n({flagged} more with every command flagged: see the CSV's flags)" if flagged else "")
-        + f"\n{when}; colours as in the legend",
+        + f"\n{when}; colours as in the right panel's legend",
         fontsize=10,
     )
     ax = axes[1]

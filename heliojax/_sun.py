@@ -635,15 +635,35 @@ def solar_position(
 
     Raises:
         ValueError: a (concrete) latitude outside [-90, 90] deg or a longitude outside
-            [-360, 360] deg (radians or a swapped pair), or a (concrete) time outside
+            [-360, 360] deg (radians or a swapped pair), a (concrete) time outside
             the years -2000 to 6000 that SPA covers (milliseconds or nanoseconds since
-            1970 gave a plausible sun of the wrong year); under jit not checked.
-        TypeError: times given as text (:func:`datetime_to_unix` converts them).
+            1970 gave a plausible sun of the wrong year), a negative pressure or a
+            temperature below absolute zero (each had given a refraction without a
+            word); under jit not checked.
+        TypeError: times given as text (:func:`datetime_to_unix` converts them); another
+            argument that is no array of real numbers (a string had failed inside JAX,
+            None or a complex number in NumPy, ``True`` had been 1 degree), or a
+            ``refraction`` that is not True or False (``"no"`` had applied it).
     """
     unix_time_s = _seconds_since_1970(unix_time_s)
-    for name, value, bound in (("latitude_deg", latitude_deg, 90.0), ("longitude_deg", longitude_deg, 360.0)):
-        if not isinstance(value, Tracer) and np.any(np.abs(np.asarray(value, float)) > bound):  # NaN: NaN out
-            raise ValueError(f"{name} must be degrees in [-{bound:g}, {bound:g}], not {value!r}")
+    if not isinstance(refraction, (bool, np.bool_)):
+        raise TypeError(f"solar_position: refraction must be True or False, got {refraction!r}"[:200])
+    for name, value, low, high in (
+        ("latitude_deg", latitude_deg, -90.0, 90.0),
+        ("longitude_deg", longitude_deg, -360.0, 360.0),
+        ("altitude_m", altitude_m, -np.inf, np.inf),
+        ("pressure_hpa", pressure_hpa, 0.0, np.inf),
+        ("temperature_c", temperature_c, -273.15, np.inf),
+        ("delta_t_s", delta_t_s, -np.inf, np.inf),
+    ):
+        if isinstance(value, Tracer):
+            continue
+        kind = "?" if value is None or isinstance(value, (str, bytes)) else np.asarray(value).dtype.kind
+        if kind not in "iuf":
+            raise TypeError(f"solar_position: {name} must be real numbers, got {type(value).__name__} {value!r}"[:200])
+        x = np.asarray(value, float)
+        if np.any((x < low) | (x > high)):  # NaN: NaN out
+            raise ValueError(f"{name} must be in [{low:g}, {high:g}], not {value!r}"[:200])
     s = _spa(
         unix_time_s,
         latitude_deg,

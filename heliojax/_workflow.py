@@ -138,6 +138,12 @@ class CalibrationRun:
     off_target: np.ndarray | None = None
     spots_off_target: np.ndarray | None = None
 
+    @property
+    def fitted_mask(self) -> np.ndarray:
+        """``(H, M)`` the training records the fit used: those of the split since the
+        last change point (the records before one describe a past state)."""
+        return self.train_mask if self.superseded is None else self.train_mask & ~self.superseded
+
 
 def mostly_off_target(off_target: Bool[ArrayLike, "H M"], fitted: Bool[ArrayLike, "H M"]) -> Bool[np.ndarray, " H"]:
     """``(H,)`` heliostats with more than half of their ``fitted`` records off their
@@ -837,10 +843,11 @@ def _split_times(fleet, split: str) -> np.ndarray:
 
 
 def roles_to_masks(
-    fleet, record_roles: collections.abc.Mapping[str, collections.abc.Mapping[int, str]]
+    fleet, record_roles: collections.abc.Mapping[str, collections.abc.Mapping[int, str]], *, warn: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(train, test)`` masks ``(H, M)`` of ``fleet`` from ``record_roles`` (see
-    :func:`calibrate`).
+    :func:`calibrate`); ``warn``: log heliostats that train but get no held-out record
+    (off for a check of the roles ahead of the :func:`calibrate` that warns).
 
     Raises:
         ConfigError: naming a heliostat or record that ``fleet`` does not hold, or a role
@@ -881,7 +888,7 @@ def roles_to_masks(
             for i, hid in enumerate(ids)
             if hid in record_roles and train[i].any() and not test[i].any()
         ]
-        if named:
+        if named and warn:
             log.warning(
                 f"record roles: {len(named)} heliostat(s) train but get no held-out record (test roles are "
                 f"given for others only; the count of their records left out in brackets): {few_names(named, 10)}"
@@ -1036,7 +1043,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
         if run.test_uncalibrated_mrad is not None
         else np.where(run.test_mask, run.uncalibrated_mrad, np.nan)
     )
-    fit_mask = run.train_mask if run.superseded is None else run.train_mask & ~run.superseded
+    fit_mask = run.fitted_mask
     train_err = np.where(fit_mask, run.errors_mrad, np.nan)  # the training records the fit used
     val_err = np.where(run.val_mask, run.errors_mrad, np.nan)
     loo_rms, unc_train_rms, worse = _worse_than_nominal(run, fit_mask)
@@ -1057,6 +1064,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
         _, val_rms = _stats(val_err[i])
         n_candidates = int(np.sum(np.asarray(run.fleet.mask)[i]))
         label, reason = _status_reason(st, run, i, n_candidates, int(np.asarray(res.n_steps)[i]))
+        held_out_note = _worse_on_held_out(st, test_err[i], test_unc[i])
         entry = {
             "status": label,
             "status_reason": reason,
@@ -1075,6 +1083,7 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
             "loo_rms_mrad": _json_float(loo_rms[i]),
             "uncalibrated_train_rms_mrad": _json_float(unc_train_rms[i]),
             "worse_than_nominal": bool(worse[i]),
+            "worse_than_nominal_held_out": held_out_note is not None,
             **_change_entry(run, i),
             **_recent_outliers(run, fit_mask, i),
             "noise_outlier": bool(garbage[i]),
@@ -1113,6 +1122,8 @@ def _summarise(run: CalibrationRun, n_real: int, compile_s: float, fit_s: float)
                 f"calibrated under the small-fleet prior (fewer than {MIN_PRIOR_HELIOSTATS} heliostats determine "
                 "their parameters alone, too few to learn a fleet prior from)",
             )
+        if held_out_note is not None:
+            _add_warning(entry, f"on its {entry['n_test']} held-out records {held_out_note}")
         if st == FitStatus.CONVERGED and 2 * entry["n_train_used"] < view.n_free:
             note = _few_records_note(entry["n_train_used"], view.n_free, "small-fleet" if small[i] else "fleet")
             _add_warning(entry, note)
@@ -1182,6 +1193,38 @@ def _load_flags(report) -> list[dict[str, str | None]]:
         shown = str(rel) if rel is not None else str(entry.file)
         out.append({"heliostat": heliostat, "file": shown, "field": entry.field, "reason": entry.reason})
     return out
+
+
+HELD_OUT_WORSE_ALPHA = 0.01
+"""Level of the one-sided sign test behind ``worse_than_nominal_held_out`` (as
+discovery's default ``alpha``)."""
+
+
+def _worse_on_held_out(status: FitStatus, calibrated: np.ndarray, uncalibrated: np.ndarray) -> str | None:
+    """Why a converged heliostat's calibration is worse than the uncalibrated model on its
+    held-out records, or None: ``calibrated`` and ``uncalibrated`` are the records' beam
+    pointing errors ``(M,)`` (mrad, NaN where not held out). Worse: the calibrated model
+    misses by more on significantly more than half of them (one-sided sign test at
+    :data:`HELD_OUT_WORSE_ALPHA`; ties left out), so a heliostat that is nominal already
+    (calibrated and uncalibrated errors alike) is not flagged by chance.
+    ``worse_than_nominal`` judges the training records alone (by leave-one-out), as a
+    plant without held-out records can; a split that trains on one part of the sky and
+    tests on another (``--split azimuth``) can pass it and still extrapolate worse."""
+    if status != FitStatus.CONVERGED:
+        return None
+    both = np.isfinite(calibrated) & np.isfinite(uncalibrated)
+    diff = calibrated[both] - uncalibrated[both]
+    n, k = int(np.sum(diff != 0.0)), int(np.sum(diff > 0.0))
+    if n == 0 or 2 * k <= n:
+        return None
+    p = sum(math.comb(n, j) for j in range(k, n + 1)) / 2.0**n  # exact binomial tail
+    if p >= HELD_OUT_WORSE_ALPHA:
+        return None
+    return (
+        f"the calibrated model misses by more than the uncalibrated one on {k} of {n} (sign test p = {p:.2g}; "
+        f"median {np.median(calibrated[both]):.3g} mrad against {np.median(uncalibrated[both]):.3g}): its training "
+        "records may not cover where it was tested; do not aim with it blindly"
+    )
 
 
 def _add_warning(entry: dict[str, typing.Any], note: str) -> None:

@@ -56,16 +56,17 @@ def plot_field_map(
     size = 6.0 + 60.0 * (t / np.nanmax(t)) ** 2
     colours = np.array(["tab:blue", "tab:red", "tab:orange", "tab:purple", "tab:green", "tab:brown"])
     col = colours[np.minimum(lab, len(colours) - 1)]
-    ax.scatter(
-        xy[~meas, 0],
-        xy[~meas, 1],
-        s=size[~meas],
-        facecolors="none",
-        edgecolors=col[~meas],  # pyright: ignore[reportArgumentType]
-        linewidths=0.5,
-        alpha=0.6,
-        label="extrapolated",
-    )
+    if (~meas).any():  # an empty scatter had left a legend entry without a symbol
+        ax.scatter(
+            xy[~meas, 0],
+            xy[~meas, 1],
+            s=size[~meas],
+            facecolors="none",
+            edgecolors=col[~meas],  # pyright: ignore[reportArgumentType]
+            linewidths=0.5,
+            alpha=0.6,
+            label="extrapolated",
+        )
     ax.scatter(xy[meas, 0], xy[meas, 1], s=size[meas], c=col[meas], edgecolors="k", linewidths=0.4, label="measured")
     for k in range(1, int(lab.max(initial=0)) + 1):  # loop over clusters
         pts = xy[(lab == k) & meas]
@@ -85,8 +86,12 @@ def plot_field_map(
     ax.set_aspect("equal")
     ax.set_xlabel("east of the tower [m]")
     ax.set_ylabel("north of the tower [m]")
-    ax.set_title("tracking error (marker size) and clusters")
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), title="marker", title_fontsize=7)
+    anomalous = int(lab.max(initial=0))
+    ax.set_title(
+        "tracking error (marker size), "
+        + (f"{anomalous} anomalous cluster(s) outlined" if anomalous else "no anomalous cluster (one population)")
+    )
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
     return fig
 
 

@@ -150,7 +150,13 @@ def run(args: argparse.Namespace) -> int:
         if r["pass"] is None:
             status = "n/a"
         elif not (r["pass_mean"] and r["pass_std"]):
-            status = "FAIL"
+            why = [  # which of the two the contract's value lies outside (the reason was in the JSON only)
+                f"{what} {r[what]:.3g} ({r[f'{what}_ci'][0]:.3g}..{r[f'{what}_ci'][1]:.3g}) against the "
+                f"contract's {r[f'contract_{what}']:.3g}"
+                for what in ("mean", "std")
+                if not r[f"pass_{what}"] and r.get(f"{what}_ci") is not None
+            ]
+            status = "FAIL" + (f": {'; '.join(why)}" if why else "")
         else:  # mean and std consistent with the contract: passed unless the sample is too small
             status = "pass" if r["pass"] else "too few heliostats"
         print(f"{name:14s} n={r.get('n')}/{report['sample_sizes'][name]}  {status}")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 
+from .._limits import MAX_FIT_STEPS
 from ._common import (
     add_data_argument,
     add_fit_arguments,
@@ -56,7 +57,7 @@ def add_parser(subparsers) -> None:
         description=(
             "Split each heliostat's records, fit the Stone (stone8) or linear-actuator model of all "
             "heliostats in one compiled program, evaluate held-out beam pointing errors, and write "
-            "summary.json / results.h5 / a plot."
+            "summary.json / results.h5 / a plot where asked (--report, --out, --plot)."
         ),
     )
     add_data_argument(p)
@@ -126,7 +127,12 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--prior", action="store_true", help="Tikhonov prior toward nominal for the weakly identified parameters"
     )
-    p.add_argument("--max-steps", type=integer(1), default=64, help="Levenberg-Marquardt step limit per fit pass")
+    p.add_argument(
+        "--max-steps",
+        type=integer(1, MAX_FIT_STEPS),
+        default=64,
+        help=f"Levenberg-Marquardt step limit per fit pass (1 to {MAX_FIT_STEPS:,})",
+    )
     p.add_argument(
         "--no-robust",
         dest="robust",
@@ -174,9 +180,11 @@ def add_parser(subparsers) -> None:
 def _table(s: dict, neural: bool) -> list[str]:
     """The lines of the console table of a run's summary (``s``: summary.json's content)."""
     lines: list[str] = []
+    # train: the split's training records; used: those the fit used (a change point
+    # supersedes the records before it, a gross error is left out by the robust fit)
     lines.append(
-        f"{'heliostat':<10} {'status':<20} {'train':>5} {'test':>5} {'train rms':>9} {'test med':>9} "
-        f"{'test rms':>9} {'uncal med':>9}   [mrad]"
+        f"{'heliostat':<10} {'status':<20} {'train':>5} {'used':>5} {'test':>5} {'train rms':>9} {'test med':>9} "
+        f"{'test rms':>9} {'uncal med':>9}" + (f"   {'LM test med':>12}" if neural else "") + "   [mrad]"
     )
 
     def fmt(x):
@@ -185,9 +193,10 @@ def _table(s: dict, neural: bool) -> list[str]:
     for hid, h in s["heliostats"].items():
         extra = ""
         if neural:
-            extra = f"   LM {fmt(h['lm_test_median_mrad'])}" + ("  (fallback to LM)" if h["nn_fallback"] else "")
+            extra = f"   {fmt(h['lm_test_median_mrad']):>12}" + ("  (fallback to LM)" if h["nn_fallback"] else "")
         lines.append(
-            f"{hid:<10} {h['status']:<20} {h['n_train']:>5} {h['n_test']:>5} {fmt(h['train_rms_mrad'])} "
+            f"{hid:<10} {h['status']:<20} {h['n_train']:>5} {h['n_train_used']:>5} {h['n_test']:>5} "
+            f"{fmt(h['train_rms_mrad'])} "
             f"{fmt(h['test_median_mrad'])} {fmt(h['test_rms_mrad'])} {fmt(h['uncalibrated_test_median_mrad'])}{extra}"
         )
     for hid, h in s["heliostats"].items():
@@ -244,7 +253,7 @@ def run(args) -> int:
             raise ConfigError("--records and --test-data both choose the held-out records; give one")
         roles = read_record_roles(args.records)
         try:
-            train, _ = roles_to_masks(fleet, roles)
+            train, _ = roles_to_masks(fleet, roles, warn=False)  # calibrate warns
         except ConfigError as e:
             raise DataError(args.records, None, str(e)) from None
         if not train.any():

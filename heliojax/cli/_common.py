@@ -358,7 +358,11 @@ def check_input_paths(
             raise ConfigError(f"{flag} {_shown(path)}: {e.strerror or e}") from None
         if not exists:
             what = "directory" if want_dir else "file"
-            raise ConfigError(f"{flag} {_shown(path)}: no such {what}")
+            hint = ""
+            if action.dest == "results" and path.suffix.lower() in (".h5", ".hdf5"):
+                # aim, plan, trace --results: calibrate writes results.h5 only when asked
+                hint = f" (heliojax calibrate writes one with --out {_shown(path)})"
+            raise ConfigError(f"{flag} {_shown(path)}: no such {what}{hint}")
         if want_dir and not is_dir:
             raise ConfigError(f"{flag} {_shown(path)}: is a file, expected a directory")
         if not want_dir and is_dir:

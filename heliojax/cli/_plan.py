@@ -74,7 +74,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--budget", type=integer(1, 1000), default=4, help="measurements per heliostat")
     when = p.add_mutually_exclusive_group()
     when.add_argument(
-        "--date", type=utc_day, help="candidate instants: a whole day (UTC, YYYY-MM-DD), with --step-minutes"
+        "--date",
+        type=utc_day,
+        help="candidate instants: a whole day (UTC, YYYY-MM-DD), with --step-minutes (default: today)",
     )
     when.add_argument("--start", type=_utc, help="candidate instants: first one, ISO date-time (UTC), with --end")
     p.add_argument("--end", type=_utc, help="last candidate instant with --start")
@@ -194,6 +196,35 @@ def _nothing_to_plan(sun_elevation_deg, unix, min_elevation_deg: float, label: s
     )
 
 
+def _warn_fitted_after_the_cut(args, results, fleet, times) -> None:
+    """Warn where a retrospective plan (``--before``) starts from a fit that trained on
+    records at or after the cut: from its posterior (the default) the plan then knows
+    what a plant at the cut could not have, and the study is not retrospective. The
+    plan is still made; ``--records-out`` holds those records out (role ``test``)."""
+    import numpy as np
+
+    from .._errors import few_names
+    from .._fleet import records_among
+    from .._results import SPLIT_CODES
+
+    if args.before is None or args.start_from != "posterior" or "split" not in results.records:
+        return
+    trained = np.asarray(results.records["split"]) == SPLIT_CODES["train"]
+    trained &= np.asarray(results.fitted, bool)[:, None]
+    known = records_among(fleet.ids, fleet.record_id, results.ids, results.records["record_id"], trained)
+    late = known & np.isfinite(times) & (times >= args.before.timestamp())
+    if not late.any():
+        return
+    rows = np.flatnonzero(late.any(axis=1))
+    named = few_names([f"{fleet.ids[r]} ({int(late[r].sum())})" for r in rows])
+    log.warning(
+        f"--before {args.before.isoformat()}: the fit in {Path(args.results).name} trained on records at or after "
+        f"it for {len(rows)} heliostat(s): {named}; the plan starts from that posterior, so it is not "
+        "retrospective (--records-out holds those records out as test). Fit the records before the cut first "
+        "(heliojax calibrate --records FILE), or plan from the fleet prior (--start-from prior)"
+    )
+
+
 def _warn_before_fit(args, results, unix) -> None:
     """Warn (a plan is still made) where candidate instants ``unix`` (s) lie before a
     heliostat's first fitted record, as :func:`heliojax.aim_results` flags ``before_fit``
@@ -205,15 +236,25 @@ def _warn_before_fit(args, results, unix) -> None:
     from .._aim import fitted_time_span, outside_fit_time
     from .._errors import few_names
 
-    before, _ = outside_fit_time(results, unix)
+    before, after = outside_fit_time(results, unix)
     times = fitted_time_span(results)
-    if before is None or times is None or not before.any():
+    if before is None or after is None or times is None:
         return
-    early = np.flatnonzero(before.any(axis=1))
-    first = times[0]
     dest, flag = ("date", "--date") if args.date is not None else ("start", "--start")
     window = f"{_iso(float(unix[0]))} .. {_iso(float(unix[-1]))}"
     label = option_label(args, dest, flag) if getattr(args, dest) is not None else "the window (today, UTC)"
+    late = np.flatnonzero(after.all(axis=1))
+    if late.size:  # as aim flags long_after_fit, which a plan had not said
+        log.warning(
+            f"{label}: candidate instants {window} lie further after the last fitted record of {late.size} "
+            f"heliostat(s) ({few_names([f'{results.ids[i]} {_iso(float(times[1][i]))[:10]}' for i in late])}) "
+            "than the fit's records span: the heliostats may have drifted since, which the predicted "
+            "uncertainties (from the fit's covariance) leave out"
+        )
+    if not before.any():
+        return
+    early = np.flatnonzero(before.any(axis=1))
+    first = times[0]
     log.warning(
         f"{label}: candidate instants {window} lie before the first fitted record of {len(early)} heliostat(s) "
         f"({few_names([f'{results.ids[i]} {_iso(float(first[i]))[:10]}' for i in early])}): "
@@ -345,6 +386,7 @@ def run(args) -> int:
         # the plan's predicted gain with it). From the fleet prior (--start-from prior, a
         # retrospective study of which records to have taken) they are candidates.
         if "record_id" in results.records:
+            _warn_fitted_after_the_cut(args, results, fleet, times)
             fitted = np.zeros(np.shape(results.records["record_id"]), bool)
             if "split" in results.records and args.start_from == "posterior":
                 fitted |= np.asarray(results.records["split"]) == SPLIT_CODES["train"]
@@ -511,7 +553,13 @@ def run(args) -> int:
                 w.writerow([*RECORDS_HEADER, "role"])
                 for i, hid in enumerate(results.ids):
                     r = list(fleet.ids).index(hid) if hid in fleet.ids else -1
-                    held = set(np.asarray(fleet.record_id)[r][np.asarray(fleet.mask)[r]].tolist()) if r >= 0 else set()
+                    # records at or after --before are held out, also where the fit trained on
+                    # them (a fit of later records: _warn_fitted_after_the_cut said so)
+                    held = (
+                        set(np.asarray(fleet.record_id)[r][np.asarray(fleet.mask)[r] & ~later[r]].tolist())
+                        if r >= 0
+                        else set()
+                    )
                     planned_ids = [int(record_ids[i, c]) for c in chosen[i][chosen[i] >= 0]]
                     train_ids = [int(x) for x in known_train[i] if int(x) in held and int(x) not in planned_ids]
                     for rid in [*train_ids, *planned_ids]:
@@ -535,12 +583,21 @@ def run(args) -> int:
     fewest = int(planned.sum(axis=1).min()) if h else args.budget
     short = (  # a window of fewer usable instants than --budget: not the budget's worth, and said so
         f" ({int((planned.sum(axis=1) < args.budget).sum())} heliostat(s) got fewer, as few as {fewest}: "
-        "the window has no more usable instants)"
+        + (
+            f"they have no more usable records{' before --before' if args.before is not None else ''})"
+            if fleet is not None
+            else "the window has no more usable instants)"
+        )
         if fewest < args.budget
         else ""
     )
     print(
         f"fleet: median predicted pointing uncertainty {np.median(before):.3f} -> {np.median(final):.3f} mrad "
         f"with {args.budget} planned measurement(s) per heliostat{short}"
+    )
+    print(
+        "(predicted: the RMS over the operating envelope of the pointing error that the parameters' uncertainty"
+        + (" and the model discrepancy" if discrepancy is not None else "")
+        + " leave, without the measurement noise; a held-out error also holds the noise and any drift)"
     )
     return 0

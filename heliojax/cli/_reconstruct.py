@@ -224,7 +224,13 @@ def _run_real(args: argparse.Namespace) -> int:
         found = sorted({p[1].parent.parent.name for p in optics.flux_sample_records(args.paint)})
         some = ", ".join(found) or "none"
         why = f" ({len(no_image)} record(s) without a flux image)" if no_image else ""
-        return fail(f"no flux records of {args.heliostat}{why} under {args.paint} (heliostats with some: {some})")
+        get = (
+            ""
+            if found
+            else "; `heliojax fetch --out DIR --heliostats ID --assets calibration_properties,flux_image` "
+            "downloads records with their flux images from PAINT"
+        )
+        return fail(f"no flux records of {args.heliostat}{why} under {args.paint} (heliostats with some: {some}){get}")
     tower = args.tower
     if tower is None:
         candidates = [

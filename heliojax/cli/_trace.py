@@ -38,7 +38,7 @@ disc of the sun's 4.65 mrad radius has 2.33 per axis, the circumsolar aureole wi
 
 EXAMPLES = """examples:
   heliojax trace ../shared/data/paint/flux-samples --heliostat AA39 --record 270398 --out out/trace
-  heliojax trace PAINT_DIR --heliostat AA39 --sun-azimuth -20 --sun-elevation 35 --sunshape pillbox --out out/trace"""
+  heliojax trace --heliostat BE36 --sun-azimuth -20 --sun-elevation 35 --sunshape pillbox --out out/trace"""
 
 SOLAR_CONSTANT_PERIHELION = 1413.0
 """W/m^2 above the atmosphere at the sun's closest: no DNI on the ground exceeds it."""
@@ -103,7 +103,7 @@ def add_parser(subparsers) -> None:
         "--heliostat",
         default=None,
         type=heliostat_id,
-        help="heliostat id, e.g. AA39 (required; or `heliostat` in --config)",
+        help="heliostat id, e.g. BE36 of the embedded data (required; or `heliostat` in --config)",
     )
     p.add_argument("--record", type=integer(0), help="calibration record id (counts, sun and target of the record)")
     p.add_argument(
@@ -203,7 +203,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from .. import optics
-    from .._errors import ConfigError, HeliojaxError
+    from .._errors import ConfigError, HeliojaxError, few_names
     from .._geometry import sun_direction
     from .._io import atomic_h5, atomic_path, json_safe, staged_paths, write_json
     from .._kinematics import ActuatorModel, forward, inverse_aim
@@ -240,6 +240,12 @@ def run(args: argparse.Namespace) -> int:
             check_sun_possible(args.sun_azimuth, args.sun_elevation, tower.origin_lla[0])
         hdir = args.paint / args.heliostat
         props_path = hdir / "Properties" / f"{args.heliostat}-heliostat-properties.json"
+        if not props_path.exists():  # name those there are, not only the file that is not
+            there = sorted(p.parent.parent.name for p in args.paint.glob("*/Properties/*-heliostat-properties.json"))
+            raise ConfigError(
+                f"--heliostat {args.heliostat}: no {props_path.relative_to(args.paint)} in {args.paint}; "
+                + (f"its heliostats: {few_names(there, 12)}" if there else "it holds no heliostat properties file")
+            )
         props = read_heliostat_properties(props_path)
         geometry = optics.geometry_from_properties(props, tower.origin_lla)
         layout = optics.layout_from_properties(props)

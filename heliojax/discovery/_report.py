@@ -870,8 +870,12 @@ def markdown_summary(report: dict) -> str:
     elif not report.get("not_tested_reason"):
         lines.append("\nNo residual structure left against any recorded variable.")
     lines.append("")
+    uncertain = {
+        x["named"] for key in ("weak_evidence", "held_out_not_significant", "ambiguities") for x in report.get(key, [])
+    }
+    named = [f"{n} (not certain, see above)" if n in uncertain else n for n in report["named_effects"]]
     lines += [
-        f"Named: {', '.join(report['named_effects']) or 'none'}.",
+        f"Named: {', '.join(named) or 'none'}.",
         f"Not identifiable under this data's sampling (absorbed by the model's parameters): "
         f"{', '.join(report['not_identifiable']) or 'none'}.",
         f"Untestable (no driving data): {', '.join(report['untestable']) or 'none'}."

@@ -95,10 +95,10 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .._errors import few_names
+from .._errors import DataError, few_names
 from .._fleet import bucket_size, fleet_subset, pad_fleet, spot_scatter_mrad
 from .._kinematics import MODEL_KINDS, nominal_model
-from .._limits import MAX_FOLDS, count_problem, real_problem
+from .._limits import MAX_FIT_STEPS, MAX_FOLDS, count_problem, real_problem
 from .._progress import activity, progress_bar
 from ..effects import EFFECT_NAMES, OffsetStep
 from ..fitting import (
@@ -311,7 +311,7 @@ COUNT_OPTIONS = (
     ("max_named", 1, 1000),
     ("max_refits", 1, 1000),
     ("max_iterations", 1, 1000),
-    ("max_steps", 1, 100_000),
+    ("max_steps", 1, MAX_FIT_STEPS),
 )
 """The whole-number options of :class:`DiscoveryConfig`: ``(name, least, most)``."""
 
@@ -1028,11 +1028,24 @@ def discover(
 
     Returns:
         A :class:`DiscoveryResult`; ``result.report`` is the report.json content.
+
+    Raises:
+        DataError: no heliostat of ``fleet`` (after ``exclude``) has a valid record:
+            nothing to fit or test (this had compiled and run for ~20 s and then failed
+            inside NumPy, "cannot reshape array of size 0").
     """
     config = dataclasses.replace(config or DiscoveryConfig(), **kwargs)
     t_start = time.perf_counter()
     if config.exclude:
         fleet = _without_heliostats(fleet, config.exclude)
+    real = np.array([bool(i) for i in fleet.ids], bool)
+    if not np.asarray(fleet.mask, bool)[real].any():
+        raise DataError(
+            fleet.report.source,
+            None,
+            f"no valid calibration record in {'the heliostats left after exclude' if config.exclude else 'the fleet'} "
+            f"({int(real.sum())} heliostats): nothing to fit or test (the load report names why records were skipped)",
+        )
     base = nominal_model(config.base, fleet.counts.dtype)
     n_real = sum(1 for i in fleet.ids if i)
     padded = pad_fleet(fleet, bucket_size(fleet.n_heliostats), bucket_size(fleet.n_records))

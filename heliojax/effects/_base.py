@@ -42,6 +42,7 @@ from jaxtyping import Array, Float
 
 from .._heliostat import HeliostatGeometry, RecordContext, chain_pose
 from .._kinematics import AbstractKinematicModel, AbstractModelWrapper
+from .._parameters import check_fields
 
 
 class AbstractEffect(eqx.Module):
@@ -59,6 +60,11 @@ class AbstractEffect(eqx.Module):
     DRIVERS: typing.ClassVar[tuple[str, ...]] = ()
     NEEDS_NORMAL: typing.ClassVar[bool] = False
     TILTS_NORMAL: typing.ClassVar[bool] = False
+
+    def __check_init__(self):
+        # concrete values only (discovery builds effects inside traced code): a NaN or
+        # inf parameter had made every prediction NaN, only make_effect checked them
+        check_fields(self)
 
     @classmethod
     def nominal(cls, inner: AbstractKinematicModel | None, dtype: typing.Any = None) -> AbstractEffect:

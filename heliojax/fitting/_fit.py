@@ -40,7 +40,7 @@ from .._errors import ConfigError
 from .._geometry import check_unit_vectors, products_by_reduction
 from .._heliostat import HeliostatGeometry, RecordContext
 from .._kinematics import AbstractKinematicModel
-from .._limits import count_problem
+from .._limits import MAX_FIT_STEPS, count_problem
 from .._parameters import ParameterView, and_masks, broadcast_model, is_batched, on_host
 from .._programs import cached_jit, compile_cached, program_jit
 from ._batching import AbstractBatching, Vmap, default_batching
@@ -668,8 +668,8 @@ def check_kinds(model0, fleet, solver=None, loss=None, prior=None, batching=None
 
 
 def _prepare(model0, fleet, mask, free, solver, loss, prior, batching, max_steps, active=None):
-    if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
-        raise ValueError(f"max_steps: expected an integer >= 1, got {max_steps!r}")
+    if count_problem(max_steps, MAX_FIT_STEPS) is not None:
+        raise ValueError(f"max_steps: expected an integer >= 1 and <= {MAX_FIT_STEPS:,}, got {max_steps!r}"[:200])
     check_kinds(model0, fleet, solver, loss, prior, batching)
     h = int(np.shape(fleet.mask)[0])
     dtype = fleet.counts.dtype

@@ -50,6 +50,7 @@ from .._heliostat import HeliostatGeometry
 from .._kinematics import AbstractKinematicModel
 from .._limits import count_problem
 from .._parameters import and_masks, broadcast_model, is_batched, on_host
+from ._batching import MAX_COUNT
 from ._evaluate import choose_start_geometry, row_median, select_geometry
 from ._fit import CompiledFit, FitSolution, check_kinds, fit_mask
 from ._loss import CAUCHY_EFFICIENCY_FACTOR, Cauchy
@@ -180,12 +181,24 @@ class RobustFit(eqx.Module):
     run_s: float = eqx.field(static=True)
 
 
+def _check_n_free(who: str, n_free: typing.Any) -> None:
+    """ValueError naming ``n_free`` of ``who`` where it is no count of free parameters."""
+    problem = count_problem(n_free, MAX_COUNT, minimum=0)
+    if problem is not None:
+        raise ValueError(f"{who}: n_free (the free parameters per heliostat) {problem}")
+
+
 def robust_noise(
     residuals: Float[Array, "H M 2"], use: Bool[Array, "H M"], n_free: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per-heliostat noise (mrad per component) from residuals: median norm over
     ``sqrt(2 ln 2)``, corrected for the fitted degrees of freedom, shrunk toward the
-    fleet median for heliostats with few records. Returns ``(sigma, own)``."""
+    fleet median for heliostats with few records. Returns ``(sigma, own)``.
+
+    Raises:
+        ValueError: ``n_free`` no whole number >= 0 (-1 had raised every heliostat's
+            degrees of freedom, 2.5 had been taken)."""
+    _check_n_free("robust_noise", n_free)
     r = np.asarray(residuals, float)
     use = np.asarray(use, bool) & np.all(np.isfinite(r), axis=-1)
     norm = np.where(use, np.linalg.norm(np.where(np.isfinite(r), r, 0.0), axis=-1), np.nan)
@@ -214,7 +227,9 @@ def robust_component_noise(
     each component over ``Phi^-1(3/4) = 0.6745`` (Gaussian), corrected for the fitted
     degrees of freedom and shrunk toward the fleet median like :func:`robust_noise`.
     Measurement noise is rarely isotropic (a spot on an oblique target is measured
-    less precisely along one direction), so gross errors are judged per component."""
+    less precisely along one direction), so gross errors are judged per component
+    (ValueError for an ``n_free`` that is no whole number >= 0)."""
+    _check_n_free("robust_component_noise", n_free)
     r = np.asarray(residuals, float)
     used = np.asarray(use, bool) & np.all(np.isfinite(r), axis=-1)
     n = used.sum(axis=1)

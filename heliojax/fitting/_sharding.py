@@ -74,7 +74,8 @@ import numpy as np
 from jax.experimental import multihost_utils
 
 from .._kinematics import AbstractKinematicModel
-from ._batching import Sharded
+from .._limits import count_problem
+from ._batching import MAX_COUNT, Sharded
 from ._fit import FitSolution, fit
 
 
@@ -84,14 +85,25 @@ def process_slice(n_heliostats: int, process_index: int | None = None, process_c
     the first ``n_heliostats % process_count`` processes take one more.
 
     Defaults: ``jax.process_index()`` and ``jax.process_count()``.
+
+    Raises:
+        ValueError: an argument that is no whole number in its range (2.5 heliostats
+            had been read as 2, ``True`` as 1), or ``process_index`` outside
+            ``0..process_count - 1``.
     """
+    for name, value, minimum in (
+        ("n_heliostats", n_heliostats, 0),
+        ("process_index", process_index, 0),
+        ("process_count", process_count, 1),
+    ):
+        problem = None if value is None else count_problem(value, MAX_COUNT, minimum=minimum)
+        if problem is not None:
+            raise ValueError(f"process_slice: {name} {problem}")
     i = jax.process_index() if process_index is None else int(process_index)
     p = jax.process_count() if process_count is None else int(process_count)
     n = int(n_heliostats)
-    if p < 1 or not 0 <= i < p:
+    if not 0 <= i < p:
         raise ValueError(f"process_index {i} outside 0..{p - 1}")
-    if n < 0:
-        raise ValueError(f"n_heliostats must be >= 0, got {n}")
     q, r = divmod(n, p)
     start = i * q + min(i, r)
     return slice(start, start + q + (1 if i < r else 0))

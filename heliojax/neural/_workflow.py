@@ -147,7 +147,8 @@ def train_neural(
         raise ConfigError(f"unknown neural variant {variant!r}; choose one of {', '.join(VARIANTS)}")
     fleet = lm.fleet
     if fit_mask is None or val_mask is None:
-        fit_mask, val_mask = validation_tail(lm.train_mask, nn.val_fraction, nn.min_val)
+        # the records the LM fit used: those before a change point describe a past state
+        fit_mask, val_mask = validation_tail(lm.fitted_mask, nn.val_fraction, nn.min_val)
     fit_mask = np.asarray(fit_mask) & np.asarray(fleet.mask)
     val_mask = np.asarray(val_mask) & np.asarray(fleet.mask)
     h = fit_mask.shape[0]
@@ -162,7 +163,7 @@ def train_neural(
         rms = np.nan_to_num(np.asarray(lm.result.rms_mrad), nan=1.0)
         scale = jnp.asarray(np.clip(rms, 0.1, 100.0) * 1e-3, dt)
         nets = init_residual_networks(k_init, h, nn)
-        log.info(f"fine-tuning {h} residual networks ({nn.residual_epochs} steps)")
+        log.info(f"fine-tuning {len(lm.summary['heliostats'])} residual networks ({nn.residual_epochs} steps)")
         t0 = time.perf_counter()
         nets, info = _finetune_residual_program(
             heliostat_keys(k_ft, h),
@@ -186,7 +187,7 @@ def train_neural(
     ti = jnp.asarray(fleet.target_index)
     u_axis = tgt.u_axis[ti]
     v_axis = tgt.v_axis[ti]
-    log.info(f"pretraining {h} x 2 networks on {nn.n_synthetic} synthetic points each")
+    log.info(f"pretraining {len(lm.summary['heliostats'])} x 2 networks on {nn.n_synthetic} synthetic points each")
     t0 = time.perf_counter()
     k_syn, k_pre = jax.random.split(k_pre)
     syn = synthetic_fleet_data(
@@ -382,7 +383,7 @@ def _neural_summary(
         lm_med, lm_rms = e["test_median_mrad"], e["test_rms_mrad"]
         t = np.where(test[i], errors[i], np.nan)
         med, rms = _stats(t)
-        _, tr_rms = _stats(np.where(lm.train_mask[i], errors[i], np.nan))
+        _, tr_rms = _stats(np.where(lm.fitted_mask[i], errors[i], np.nan))  # as the LM summary's
         nn_med, nn_rms = _stats(np.where(test[i], nn_err[i], np.nan))
         e.update(
             {

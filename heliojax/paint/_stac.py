@@ -129,6 +129,7 @@ from ._stac_io import (
     _Scope,
     _short,
     _Task,
+    read_failure,
 )
 from ._timestamps import read_timestamps, write_timestamps
 
@@ -700,7 +701,7 @@ def _fetch_one(
         except RedirectRefused as e:  # the failure is listed with the href: not named twice
             raise _Failure(f"download failed: {e.reason if e.source == task.src else e}") from None
         except OSError as e:
-            raise _Failure(f"download failed: {e}") from e
+            raise _Failure(f"download failed: {read_failure(e)}") from e
         problem = checker.check(size, other if other is not None else sha) or _content_ok(tmp, dest.name)
         if problem:
             raise _Failure(problem)

@@ -125,6 +125,28 @@ def _short(text: str, most: int = 120) -> str:
     return repr(text) if len(text) <= most else f"{text[: most // 2]!r}...{text[-most // 2 :]!r}"
 
 
+def read_failure(e: OSError) -> str:
+    """A one-line reason of a failed read or download, for a message: the innermost cause
+    of requests' and urllib3's wrappers (a ``ConnectionError(MaxRetryError(...
+    NameResolutionError(...)))`` repr of 400 characters had been the message), with a
+    hint where the server could not be reached at all."""
+    inner: BaseException = e
+    seen: set[int] = set()
+    while id(inner) not in seen:  # requests wraps urllib3's MaxRetryError, which holds its reason
+        seen.add(id(inner))
+        nxt = getattr(inner, "reason", None)
+        if not isinstance(nxt, BaseException) and inner.args and isinstance(inner.args[0], BaseException):
+            nxt = inner.args[0]
+        if not isinstance(nxt, BaseException):
+            break
+        inner = nxt
+    text = str(inner) or type(inner).__name__
+    text = re.sub(r"^\w*Connection(Pool)?\(host='[^']*', port=\d+\): ", "", text)  # said by the href already
+    if isinstance(inner, (urllib3.exceptions.NameResolutionError, urllib3.exceptions.NewConnectionError)):
+        return f"cannot reach the server ({_short(text, 160)[1:-1]}): no network connection, or a proxy needed?"
+    return f"{type(inner).__name__}: {_short(text, 200)[1:-1]}"
+
+
 def _is_url(href: str) -> bool:
     return bool(re.match(r"^[A-Za-z][A-Za-z0-9+.-]*://", href))
 
@@ -315,7 +337,7 @@ class _Reader:
         except RedirectRefused as e:
             raise DataError(href, None, e.reason if e.source == href else str(e)) from None
         except OSError as e:
-            raise DataError(href, None, f"cannot read STAC file: {e!r}") from e
+            raise DataError(href, None, f"cannot read STAC file: {read_failure(e)}") from e
         try:
             obj = json.loads(data.decode("utf-8-sig"))  # -sig: a byte-order mark an editor left
         except (UnicodeDecodeError, json.JSONDecodeError) as e:
