@@ -246,6 +246,16 @@ def test_cli_one_heliostat_says_which_figures_it_leaves_out(tmp_path, capsys, ca
     assert _cli(argv) == 0
     out = capsys.readouterr().out
     assert "tracking_mrad  n=2/4  too few heliostats" in out and "verdict: inconclusive" in out
+    # a FAIL names what failed (new-user trial, 2026-12-08: the reason was in the JSON only):
+    # four values spread far wider than the contract's std of 0.2 mrad, their mean near 2
+    field.write_text("heliostat_id,east_m,north_m,tracking_mrad\nA1,0,50,0.5\nA2,0,60,3.5\nA3,0,70,1.0\nA4,0,80,3.0\n")
+    assert _cli(argv) == 0
+    out = capsys.readouterr().out
+    r = json.loads((tmp_path / "r.json").read_text())["level1"]["tracking_mrad"]
+    assert r["pass_mean"] and not r["pass_std"]
+    lo, hi = r["std_ci"]
+    assert f"tracking_mrad  n=4/4  FAIL: std {r['std']:.3g} ({lo:.3g}..{hi:.3g}) against the contract's 0.2" in out
+    assert "mean" not in out.split("FAIL: ")[1].splitlines()[0]  # the mean passed
 
 
 def test_cli_summary_with_paint_positions(shared_paint, tmp_path):

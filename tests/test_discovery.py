@@ -437,12 +437,15 @@ def test_hidden_backlash_is_named_with_its_size():
     weak = {**r, "weak_evidence": [{"step": 1, "named": "backlash", "named_mode": "shared", "delta_bic": 4.0}]}
     assert "**Weak evidence** at step 1: `backlash`" in markdown_summary(weak)
     assert "**Weak evidence**" not in markdown_summary(r)
+    # the closing "Named:" line marks a flagged name too (it read as certain there)
+    assert "Named: backlash (not certain, see above)." in markdown_summary(weak)
+    assert "Named: backlash." in markdown_summary(r)
     # a strong effect's held-out gain is significant over days: not flagged; one that is not, is
     assert step["cv_p"] < 1e-3 and r["held_out_not_significant"] == []
     flag = {"step": 1, "named": "backlash", "named_mode": "shared", "cv_log_ratio": -0.01, "cv_p": 0.2}
-    assert "**Held-out gain not significant** at step 1: `backlash`" in markdown_summary(
-        {**r, "held_out_not_significant": [flag]}
-    )
+    unconfirmed = markdown_summary({**r, "held_out_not_significant": [flag]})
+    assert "**Held-out gain not significant** at step 1: `backlash`" in unconfirmed
+    assert "Named: backlash (not certain, see above)." in unconfirmed
     # independent noise: no design effect; a clustered one is reported in the Markdown
     assert r["day_clustering"]["intra_day_correlation"] == 0.0 and r["day_clustering"]["p"] > 0.01
     assert "share an error" not in markdown_summary(r)

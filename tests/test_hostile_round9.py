@@ -206,5 +206,12 @@ def test_plan_warns_of_candidate_instants_before_the_fit(fitted_h5, tmp_path, ca
     assert rc == 0, err
     assert "--date: candidate instants 1990-06-21" in err and "before the first fitted record" in err, err
     assert "--paint-dir with --before" in err
+    assert "further after the last fitted record" not in err, err
     rc, _, err = run_cli(_plan_argv(fitted_h5, tmp_path, "--date", "2024-12-21", "--quiet"), capsys)
     assert rc == 0 and "before the first fitted record" not in err, err
+    assert "further after the last fitted record" not in err, err  # within the records' span after them
+    # long after the fit (new-user trial, 2026-12-08: `plan` of today after a fit of 2022-2024
+    # said nothing, where aim flags such instants long_after_fit): a warning naming the fits' ends
+    rc, _, err = run_cli(_plan_argv(fitted_h5, tmp_path, "--date", "2031-06-21", "--quiet"), capsys)
+    assert rc == 0 and "--date: candidate instants 2031-06-21" in err, err
+    assert "further after the last fitted record of" in err and "may have drifted since" in err, err

@@ -70,6 +70,10 @@ def test_heliostats_that_are_already_nominal_are_flagged_worse_than_nominal(tmp_
     assert not flagged[~is_nominal].any()
     assert flagged[is_nominal].mean() >= 0.75, flagged
     assert run.summary["fleet"]["worse_than_nominal"] == [i for i, f in zip(fleet.ids, flagged) if f]
+    # the held-out flag: none of the heliostats with 1-3 mrad to correct; a nominal one
+    # only by the sign test's chance (the calibrated and uncalibrated errors are alike)
+    held_out = np.array([run.summary["heliostats"][i]["worse_than_nominal_held_out"] for i in fleet.ids])
+    assert not held_out[~is_nominal].any() and held_out[is_nominal].sum() <= 1, held_out
     # results.h5 carries the flag; aiming does not use the flagged fits
     hj.write_results_h5(tmp_path / "results.h5", run)
     results = hj.load_results(tmp_path / "results.h5")
@@ -79,3 +83,25 @@ def test_heliostats_that_are_already_nominal_are_flagged_worse_than_nominal(tmp_
     # change point (a false alarm is allowed at the detector's rate) are not used
     used = run.train_mask & np.asarray(run.fleet.mask) & ~results.records["superseded"].astype(bool)
     np.testing.assert_array_equal(np.isfinite(results.records["loo_mrad"]), used)
+
+
+def test_the_held_out_flag_is_a_one_sided_sign_test():
+    """``worse_than_nominal_held_out``: the calibrated model misses by more than the
+    uncalibrated one on significantly more than half of the held-out records (the
+    binomial tail by hand); ties and records not held out take no part; never for a
+    heliostat that did not converge."""
+    from heliojax._workflow import HELD_OUT_WORSE_ALPHA, _worse_on_held_out
+    from heliojax.fitting import FitStatus
+
+    unc = np.full(20, 2.0)
+    cal = np.where(np.arange(20) < 16, 3.0, 1.0)  # worse on 16 of 20: P(X >= 16) = 6196 / 2^20
+    assert 6196 / 2**20 < HELD_OUT_WORSE_ALPHA
+    note = _worse_on_held_out(FitStatus.CONVERGED, cal, unc)
+    assert note is not None and "on 16 of 20 (sign test p = 0.0059" in note and "median 3 mrad against 2" in note
+    cal_15 = np.where(np.arange(20) < 15, 3.0, 1.0)  # P(X >= 15) = 21700 / 2^20 = 0.0207
+    assert _worse_on_held_out(FitStatus.CONVERGED, cal_15, unc) is None
+    # ties and records without both errors leave the test: 16 of 20 again
+    tied = np.concatenate([cal, [2.0, 2.0, np.nan]])
+    assert "on 16 of 20" in _worse_on_held_out(FitStatus.CONVERGED, tied, np.concatenate([unc, [2.0, 2.0, 1.0]]))
+    assert _worse_on_held_out(FitStatus.MAX_STEPS, cal, unc) is None
+    assert _worse_on_held_out(FitStatus.CONVERGED, np.full(3, np.nan), unc[:3]) is None

@@ -35,7 +35,20 @@ def _run(flags: dict[str, dict]):
         outlier=np.zeros_like(mask),
         residuals_mrad=rng.normal(size=(3, 4, 2)),
         uncalibrated_residuals_mrad=rng.normal(scale=10.0, size=(3, 4, 2)),
+        errors_mrad=np.tile([1.0, 2.0, 3.0, 4.0], (3, 1)),
+        uncalibrated_mrad=np.tile([10.0, 20.0, 30.0, 40.0], (3, 1)),
     )
+
+
+def test_panel_titles_count_the_beam_errors_summary_json_counts():
+    """The scatter panels' titles took the median and RMS of the two plotted components
+    (48.93 against summary.json's 49.06 mrad in a trial) and, after calibration, over
+    heliostats that were not calibrated too: now the beam errors over the same records
+    as summary.json's fleet figures, with their number."""
+    fig = plot_calibration(_run({"C": {"status": "max_steps"}}))
+    before, after = fig.axes[1].get_title(), fig.axes[2].get_title()
+    assert "12 records: median 25.00, RMS 27.39 mrad" in before, before  # sqrt(mean(100, 400, 900, 1600))
+    assert "8 records: median 2.50, RMS 2.74 mrad" in after, after  # C left out
 
 
 def _legend(fig) -> list[str]:
